@@ -1,0 +1,711 @@
+//! Scene compilation: validation, walls, collision shapes and footprints.
+//!
+//! A [`CompiledScene`] is immutable and shared (behind an `Arc`) by every episode of the same
+//! scene. It holds the static world (walls and fixed furniture, one parry [`Compound`] with its
+//! BVH), each movable object's shape twice — exact, for when it is an obstacle, and dilated by
+//! the collision margin, for when it is carried — and the robot's dilated body.
+//!
+//! # The collision margin
+//!
+//! A motion is rejected when the moving body would come within `collision_margin` of an
+//! obstacle. The moving shapes are the exact shapes dilated by the margin (parry's round shapes:
+//! the Minkowski sum with a ball), so a cast at zero distance between a dilated moving shape and
+//! an exact obstacle is a cast at the margin between the exact shapes. Linear (translation) and
+//! nonlinear (rotation) casts use the same shapes, so both obey the same margin.
+
+use std::sync::Arc;
+
+use parry3d::bounding_volume::{Aabb, BoundingVolume};
+use parry3d::math::{Pose, Rotation, Vector};
+use parry3d::query;
+use parry3d::shape::{Compound, ConvexPolyhedron, Cuboid, Cylinder, SharedShape, Triangle};
+
+use crate::error::{Layout, SceneError};
+use crate::geometry::{OrientedRect, PlanPoint, footprint_iou, point_in_polygon, polygon_is_simple, rotate_plan, signed_area};
+use crate::heading::Heading;
+use crate::scene::{Difficulty, ObjectPose, OpeningKind, Part, SCENE_SCHEMA, Scene, Shape};
+
+/// The robot's collision radius, metres (SPEC §2).
+pub const ROBOT_RADIUS: f64 = 0.30;
+/// The robot's collision height, metres (SPEC §2).
+pub const ROBOT_HEIGHT: f64 = 1.10;
+/// Length of one move, metres (SPEC §3).
+pub const MOVE_DISTANCE: f64 = 0.25;
+/// Height of the egocentric camera above the floor, metres (SPEC §2).
+pub const CAMERA_HEIGHT: f64 = 1.25;
+/// Downward pitch of the egocentric camera, radians (20°, SPEC §2).
+pub const CAMERA_PITCH: f64 = 20.0 * std::f64::consts::PI / 180.0;
+/// Horizontal field of view of the egocentric camera, radians (90°, SPEC §2).
+pub const CAMERA_HORIZONTAL_FOV: f64 = std::f64::consts::FRAC_PI_2;
+/// The most movable objects a scene may have (SPEC §7).
+pub const MAX_MOVABLE_OBJECTS: usize = 6;
+
+/// The task's rule parameters (SPEC §3, §5). Every field has the SPEC's default.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Rules {
+    /// Safety margin of the continuous collision checks, metres (default 0.01).
+    pub collision_margin: f64,
+    /// Fetch reach: footprint distance from the agent's centre, metres (default 1.0).
+    pub fetch_reach: f64,
+    /// An object is placed when its footprint IoU with its target exceeds this (default 0.3).
+    pub placement_iou: f64,
+}
+
+impl Default for Rules {
+    fn default() -> Self {
+        Self { collision_margin: 0.01, fetch_reach: 1.0, placement_iou: 0.3 }
+    }
+}
+
+impl Rules {
+    fn validate(&self) -> Result<(), SceneError> {
+        let bad = |reason: String| Err(SceneError::InvalidRules { reason });
+        if !(self.collision_margin.is_finite() && self.collision_margin > 0.0 && self.collision_margin <= 0.1) {
+            return bad(format!("collision_margin {} must be in (0, 0.1] metres", self.collision_margin));
+        }
+        if !(self.fetch_reach.is_finite() && self.fetch_reach > 0.0 && self.fetch_reach <= 5.0) {
+            return bad(format!("fetch_reach {} must be in (0, 5] metres", self.fetch_reach));
+        }
+        if !(self.placement_iou.is_finite() && (0.0..1.0).contains(&self.placement_iou)) {
+            return bad(format!("placement_iou {} must be in [0, 1)", self.placement_iou));
+        }
+        Ok(())
+    }
+}
+
+/// Something the agent can hit.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, serde::Serialize, serde::Deserialize)]
+#[serde(tag = "kind", content = "index", rename_all = "snake_case")]
+pub enum Obstacle {
+    /// Wall `i` (floor polygon edge `i`), doors included.
+    Wall(usize),
+    /// Fixed object `i` of `fixed_objects`.
+    Fixed(usize),
+    /// Movable object `i` of `movable_objects`.
+    Movable(usize),
+}
+
+/// What a piece of wall is, for drawing.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum WallPieceKind {
+    /// Plain wall.
+    Wall,
+    /// A closed door leaf set into the wall.
+    Door,
+}
+
+/// One box of wall, in world coordinates: the walls of a room cut around their openings.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct WallPiece {
+    /// Index of the wall (floor polygon edge).
+    pub wall: usize,
+    /// Wall or door.
+    pub kind: WallPieceKind,
+    /// Centre `[x, y, z]`.
+    pub center: [f64; 3],
+    /// Half sizes along the piece's local x (along the wall), y (up) and z (through the wall).
+    pub half_extents: [f64; 3],
+    /// Yaw of the piece's local x axis, radians.
+    pub yaw: f64,
+}
+
+impl WallPiece {
+    /// The piece's footprint on the plan.
+    pub fn footprint(&self) -> OrientedRect {
+        OrientedRect {
+            center: PlanPoint::new(self.center[0], self.center[2]),
+            half_x: self.half_extents[0],
+            half_z: self.half_extents[2],
+            yaw: self.yaw,
+        }
+    }
+}
+
+/// An object's footprint in its own frame: the x–z extent of its model's bounding box.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LocalFootprint {
+    /// Centre of the bounding box on the object's local plan.
+    pub center: PlanPoint,
+    /// Half extent along local x.
+    pub half_x: f64,
+    /// Half extent along local z.
+    pub half_z: f64,
+}
+
+impl LocalFootprint {
+    /// The footprint placed at `pose` (SPEC §5).
+    pub fn at(&self, pose: &ObjectPose) -> OrientedRect {
+        let (sin, cos) = pose.yaw.sin_cos();
+        let c = rotate_plan(self.center, cos, sin);
+        OrientedRect { center: PlanPoint::new(pose.x + c.x, pose.z + c.z), half_x: self.half_x, half_z: self.half_z, yaw: pose.yaw }
+    }
+}
+
+/// A movable object's collision data.
+#[derive(Clone)]
+pub(crate) struct MovableGeometry {
+    /// Exact shape in the object's frame, as an obstacle (a compound of convex parts).
+    pub obstacle: SharedShape,
+    /// Parts dilated by the margin, in the object's frame, for when it is carried.
+    pub carried_parts: Vec<(Pose, SharedShape)>,
+    /// Footprint in the object's frame.
+    pub footprint: LocalFootprint,
+}
+
+/// A validated scene with its collision world, ready for episodes. Immutable; share it with
+/// `Arc` between every episode of the scene.
+pub struct CompiledScene {
+    scene: Scene,
+    rules: Rules,
+    floor: Vec<PlanPoint>,
+    wall_pieces: Vec<WallPiece>,
+    static_world: SharedShape,
+    static_part_owner: Vec<Obstacle>,
+    fixed_footprints: Vec<OrientedRect>,
+    pub(crate) movables: Vec<MovableGeometry>,
+    pub(crate) robot_carried: SharedShape,
+    robot_exact: SharedShape,
+    initial_distance: f64,
+}
+
+impl std::fmt::Debug for CompiledScene {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CompiledScene").field("id", &self.scene.id).field("rules", &self.rules).finish_non_exhaustive()
+    }
+}
+
+/// The pose of the robot's collision cylinder for an agent at `position`.
+pub(crate) fn robot_pose(position: PlanPoint) -> Pose {
+    Pose::translation(position.x, ROBOT_HEIGHT / 2.0, position.z)
+}
+
+/// The world pose of an object's frame.
+pub(crate) fn object_pose(pose: &ObjectPose) -> Pose {
+    Pose::from_parts(Vector::new(pose.x, 0.0, pose.z), Rotation::from_rotation_y(pose.yaw))
+}
+
+fn part_pose(offset: [f64; 3], yaw: f64) -> Pose {
+    Pose::from_parts(Vector::new(offset[0], offset[1], offset[2]), Rotation::from_rotation_y(yaw))
+}
+
+fn check_finite(path: impl FnOnce() -> String, values: &[f64]) -> Result<(), SceneError> {
+    if values.iter().all(|v| v.is_finite()) { Ok(()) } else { Err(SceneError::NonFinite { path: path() }) }
+}
+
+/// Exact and dilated convex parts of a shape, in the object's frame.
+struct PartShapes {
+    exact: Vec<(Pose, SharedShape)>,
+    dilated: Vec<(Pose, SharedShape)>,
+    local_aabb: Aabb,
+}
+
+/// Builds a shape's convex parts. A mesh becomes its triangles for a fixed object
+/// (`as_triangles`) and its convex hull for a movable one.
+fn build_parts(object: &str, path: &str, shape: &Shape, margin: f64, as_triangles: bool) -> Result<PartShapes, SceneError> {
+    let invalid = |reason: String| SceneError::InvalidShape { object: object.to_owned(), reason };
+    let mut exact = Vec::new();
+    let mut dilated = Vec::new();
+    match shape {
+        Shape::Parts(parts) => {
+            if parts.is_empty() {
+                return Err(invalid("`shape.parts` is empty: give at least one box, cylinder or convex hull".into()));
+            }
+            for (i, part) in parts.iter().enumerate() {
+                let (offset, yaw) = part.placement();
+                check_finite(|| format!("{path}.shape.parts[{i}].offset"), &offset)?;
+                check_finite(|| format!("{path}.shape.parts[{i}].yaw"), &[yaw])?;
+                let pose = part_pose(offset, yaw);
+                let (e, d) = match part {
+                    Part::Box { half_extents, .. } => {
+                        check_finite(|| format!("{path}.shape.parts[{i}].half_extents"), half_extents)?;
+                        if half_extents.iter().any(|&h| h <= 0.0) {
+                            return Err(invalid(format!("part {i}: box half extents {half_extents:?} must all be positive")));
+                        }
+                        let [x, y, z] = *half_extents;
+                        (SharedShape::new(Cuboid::new(Vector::new(x, y, z))), SharedShape::round_cuboid(x, y, z, margin))
+                    }
+                    Part::Cylinder { radius, half_height, .. } => {
+                        check_finite(|| format!("{path}.shape.parts[{i}]"), &[*radius, *half_height])?;
+                        if *radius <= 0.0 || *half_height <= 0.0 {
+                            return Err(invalid(format!("part {i}: cylinder radius and half height must be positive")));
+                        }
+                        (SharedShape::new(Cylinder::new(*half_height, *radius)), SharedShape::round_cylinder(*half_height, *radius, margin))
+                    }
+                    Part::ConvexHull { points, .. } => {
+                        for (j, p) in points.iter().enumerate() {
+                            check_finite(|| format!("{path}.shape.parts[{i}].points[{j}]"), p)?;
+                        }
+                        let points: Vec<Vector> = points.iter().map(|p| Vector::new(p[0], p[1], p[2])).collect();
+                        hull_pair(&points, margin).ok_or_else(|| {
+                            invalid(format!("part {i}: the convex hull of its points is degenerate (give at least 4 points not in one plane)"))
+                        })?
+                    }
+                };
+                exact.push((pose, e));
+                dilated.push((pose, d));
+            }
+        }
+        Shape::Mesh(mesh) => {
+            for (j, p) in mesh.vertices.iter().enumerate() {
+                check_finite(|| format!("{path}.shape.mesh.vertices[{j}]"), p)?;
+            }
+            if mesh.triangles.is_empty() {
+                return Err(invalid("`shape.mesh.triangles` is empty".into()));
+            }
+            let vertices: Vec<Vector> = mesh.vertices.iter().map(|p| Vector::new(p[0], p[1], p[2])).collect();
+            for (t, tri) in mesh.triangles.iter().enumerate() {
+                if let Some(&bad) = tri.iter().find(|&&v| v as usize >= vertices.len()) {
+                    return Err(invalid(format!(
+                        "mesh triangle {t} uses vertex {bad}, but the mesh has only {} vertices",
+                        vertices.len()
+                    )));
+                }
+            }
+            if as_triangles {
+                for tri in &mesh.triangles {
+                    let [a, b, c] = tri.map(|v| vertices[v as usize]);
+                    if (b - a).cross(c - a).length() <= 1e-12 {
+                        continue; // A degenerate triangle has no surface to hit.
+                    }
+                    exact.push((Pose::IDENTITY, SharedShape::new(Triangle::new(a, b, c))));
+                    dilated.push((Pose::IDENTITY, SharedShape::round_triangle(a, b, c, margin)));
+                }
+                if exact.is_empty() {
+                    return Err(invalid("every mesh triangle is degenerate (zero area)".into()));
+                }
+            } else {
+                let (e, d) = hull_pair(&vertices, margin)
+                    .ok_or_else(|| invalid("the convex hull of the mesh is degenerate (flat or fewer than 4 vertices)".into()))?;
+                exact.push((Pose::IDENTITY, e));
+                dilated.push((Pose::IDENTITY, d));
+            }
+        }
+    }
+    let mut local_aabb = Aabb::new_invalid();
+    for (pose, shape) in &exact {
+        local_aabb.merge(&shape.compute_aabb(pose));
+    }
+    Ok(PartShapes { exact, dilated, local_aabb })
+}
+
+fn hull_pair(points: &[Vector], margin: f64) -> Option<(SharedShape, SharedShape)> {
+    let hull = ConvexPolyhedron::from_convex_hull(points)?;
+    let dilated = SharedShape::round_convex_hull(points, margin)?;
+    Some((SharedShape::new(hull), dilated))
+}
+
+fn local_footprint(aabb: &Aabb) -> LocalFootprint {
+    LocalFootprint {
+        center: PlanPoint::new(0.5 * (aabb.mins.x + aabb.maxs.x), 0.5 * (aabb.mins.z + aabb.maxs.z)),
+        half_x: 0.5 * (aabb.maxs.x - aabb.mins.x),
+        half_z: 0.5 * (aabb.maxs.z - aabb.mins.z),
+    }
+}
+
+/// Cuts the room's walls into boxes around their openings.
+fn build_walls(scene: &Scene, floor: &[PlanPoint]) -> Result<Vec<WallPiece>, SceneError> {
+    let room = &scene.room;
+    let n = floor.len();
+    let orientation = signed_area(floor).signum();
+    let thickness = room.wall_thickness;
+    let height = room.wall_height;
+    let convex_at = |i: usize| {
+        let prev = floor[(i + n - 1) % n];
+        let here = floor[i];
+        let next = floor[(i + 1) % n];
+        let cross = (here.x - prev.x) * (next.z - here.z) - (here.z - prev.z) * (next.x - here.x);
+        orientation * cross > 0.0
+    };
+    let mut openings_by_wall: Vec<Vec<(usize, &crate::scene::Opening)>> = vec![Vec::new(); n];
+    for (index, opening) in room.openings.iter().enumerate() {
+        let invalid = |reason: String| SceneError::InvalidOpening { index, reason };
+        check_finite(
+            || format!("room.openings[{index}]"),
+            &[opening.offset, opening.width, opening.bottom, opening.top],
+        )?;
+        if opening.wall >= n {
+            return Err(invalid(format!("wall {} does not exist: the floor has {n} edges (walls 0..{n})", opening.wall)));
+        }
+        let length = floor[opening.wall].distance(floor[(opening.wall + 1) % n]);
+        if opening.offset < 0.0 || opening.width <= 0.0 || opening.offset + opening.width > length {
+            return Err(invalid(format!(
+                "it spans {}..{} m along wall {}, which is {length:.3} m long",
+                opening.offset,
+                opening.offset + opening.width,
+                opening.wall
+            )));
+        }
+        if !(opening.bottom >= 0.0 && opening.top > opening.bottom && opening.top <= height) {
+            return Err(invalid(format!(
+                "bottom {} and top {} must satisfy 0 <= bottom < top <= wall height {height}",
+                opening.bottom, opening.top
+            )));
+        }
+        openings_by_wall[opening.wall].push((index, opening));
+    }
+    let mut pieces = Vec::new();
+    for (wall, openings) in openings_by_wall.iter_mut().enumerate() {
+        let a = floor[wall];
+        let b = floor[(wall + 1) % n];
+        let length = a.distance(b);
+        let d = PlanPoint::new((b.x - a.x) / length, (b.z - a.z) / length);
+        let outward = PlanPoint::new(orientation * d.z, -orientation * d.x);
+        let yaw = (-d.z).atan2(d.x);
+        let start = if convex_at(wall) { -thickness } else { 0.0 };
+        let end = length + if convex_at((wall + 1) % n) { thickness } else { 0.0 };
+        openings.sort_by(|x, y| x.1.offset.total_cmp(&y.1.offset));
+        for pair in openings.windows(2) {
+            if pair[1].1.offset < pair[0].1.offset + pair[0].1.width {
+                return Err(SceneError::InvalidOpening {
+                    index: pair[1].0,
+                    reason: format!("it overlaps opening {} on wall {wall}", pair[0].0),
+                });
+            }
+        }
+        let mut piece = |u0: f64, u1: f64, y0: f64, y1: f64, kind: WallPieceKind| {
+            if u1 - u0 <= 1e-9 || y1 - y0 <= 1e-9 {
+                return;
+            }
+            let u = 0.5 * (u0 + u1);
+            let w = 0.5 * thickness;
+            pieces.push(WallPiece {
+                wall,
+                kind,
+                center: [a.x + d.x * u + outward.x * w, 0.5 * (y0 + y1), a.z + d.z * u + outward.z * w],
+                half_extents: [0.5 * (u1 - u0), 0.5 * (y1 - y0), 0.5 * thickness],
+                yaw,
+            });
+        };
+        let mut cursor = start;
+        for (_, opening) in openings.iter() {
+            let (u0, u1) = (opening.offset, opening.offset + opening.width);
+            piece(cursor, u0, 0.0, height, WallPieceKind::Wall);
+            piece(u0, u1, 0.0, opening.bottom, WallPieceKind::Wall);
+            piece(u0, u1, opening.top, height, WallPieceKind::Wall);
+            if opening.kind == OpeningKind::Door {
+                piece(u0, u1, opening.bottom, opening.top, WallPieceKind::Door);
+            }
+            cursor = u1;
+        }
+        piece(cursor, end, 0.0, height, WallPieceKind::Wall);
+    }
+    Ok(pieces)
+}
+
+fn validate_room(scene: &Scene) -> Result<Vec<PlanPoint>, SceneError> {
+    let room = &scene.room;
+    for (i, p) in room.floor.iter().enumerate() {
+        check_finite(|| format!("room.floor[{i}]"), p)?;
+    }
+    check_finite(|| "room.wall_height".into(), &[room.wall_height])?;
+    check_finite(|| "room.wall_thickness".into(), &[room.wall_thickness])?;
+    let invalid = |reason: String| Err(SceneError::InvalidRoom { reason });
+    let floor = room.floor_points();
+    if floor.len() < 3 {
+        return invalid(format!("`room.floor` has {} vertices: a floor polygon needs at least 3", floor.len()));
+    }
+    if !polygon_is_simple(&floor) {
+        return invalid("`room.floor` is not a simple polygon: its edges cross, touch or repeat a vertex".into());
+    }
+    if signed_area(&floor).abs() < 1.0 {
+        return invalid("`room.floor` encloses less than 1 m²".into());
+    }
+    if room.wall_height < ROBOT_HEIGHT || room.wall_height > 20.0 {
+        return invalid(format!("`room.wall_height` {} must be between the robot's height {ROBOT_HEIGHT} m and 20 m", room.wall_height));
+    }
+    if !(0.01..=1.0).contains(&room.wall_thickness) {
+        return invalid(format!("`room.wall_thickness` {} must be between 0.01 and 1 m", room.wall_thickness));
+    }
+    Ok(floor)
+}
+
+fn obstacle_name(scene: &Scene, obstacle: Obstacle) -> String {
+    match obstacle {
+        Obstacle::Wall(i) => format!("wall {i}"),
+        Obstacle::Fixed(i) => scene.fixed_objects[i].id.clone(),
+        Obstacle::Movable(i) => scene.movable_objects[i].id.clone(),
+    }
+}
+
+impl CompiledScene {
+    /// Validates `scene` under `rules` and builds its collision world.
+    ///
+    /// Checks, each with its own [`SceneError`]: schema, finite numbers, room and openings,
+    /// non-empty shapes, unique ids, 1–6 movable objects matching the difficulty, every
+    /// object's footprint centre inside the room, movable objects' 3D shapes clear (by the
+    /// collision margin) of walls, fixed objects and each other in both layouts, the agent
+    /// inside the room and clear of everything, not every object already placed, and a positive
+    /// horizon. (A footprint's corners may reach past the floor polygon — a round stool turned
+    /// 45° has a bounding box wider than itself — but never its 3D shape, which the wall
+    /// clearance check keeps inside.)
+    pub fn new(scene: Scene, rules: Rules) -> Result<Self, SceneError> {
+        let compiled = Self::for_backward_construction(scene, rules)?;
+        compiled.check_not_solved()?;
+        Ok(compiled)
+    }
+
+    /// Like [`CompiledScene::new`], but accepts an initial layout in which every object is
+    /// already placed: the starting point of backward construction (SPEC §7), where the
+    /// generator begins at the target layout and moves objects away. Every other check applies.
+    pub fn for_backward_construction(scene: Scene, rules: Rules) -> Result<Self, SceneError> {
+        rules.validate()?;
+        if scene.schema != SCENE_SCHEMA {
+            return Err(SceneError::UnknownSchema { found: scene.schema });
+        }
+        if scene.id.trim().is_empty() {
+            return Err(SceneError::EmptyField { field: "id".into() });
+        }
+        let count = scene.movable_objects.len();
+        if count == 0 {
+            return Err(SceneError::NoMovableObjects);
+        }
+        if count > MAX_MOVABLE_OBJECTS {
+            return Err(SceneError::TooManyMovableObjects { count });
+        }
+        if Difficulty::for_object_count(count) != Some(scene.difficulty) {
+            return Err(SceneError::DifficultyMismatch { difficulty: scene.difficulty.as_str(), count });
+        }
+        if scene.horizon == 0 {
+            return Err(SceneError::ZeroHorizon);
+        }
+        let mut ids = std::collections::HashSet::new();
+        for id in scene.fixed_objects.iter().map(|o| &o.id).chain(scene.movable_objects.iter().map(|o| &o.id)) {
+            if id.is_empty() {
+                return Err(SceneError::EmptyField { field: "object id".into() });
+            }
+            if !ids.insert(id.as_str()) {
+                return Err(SceneError::DuplicateId { id: id.clone() });
+            }
+        }
+        let floor = validate_room(&scene)?;
+        let wall_pieces = build_walls(&scene, &floor)?;
+        let margin = rules.collision_margin;
+
+        let mut static_parts: Vec<(Pose, SharedShape)> = Vec::new();
+        let mut static_part_owner = Vec::new();
+        for piece in &wall_pieces {
+            let [hx, hy, hz] = piece.half_extents;
+            static_parts.push((
+                Pose::from_parts(Vector::from(piece.center), Rotation::from_rotation_y(piece.yaw)),
+                SharedShape::new(Cuboid::new(Vector::new(hx, hy, hz))),
+            ));
+            static_part_owner.push(Obstacle::Wall(piece.wall));
+        }
+        let mut fixed_footprints = Vec::new();
+        for (i, object) in scene.fixed_objects.iter().enumerate() {
+            let path = format!("fixed_objects[{i}]");
+            check_finite(|| format!("{path}.pose"), &[object.pose.x, object.pose.z, object.pose.yaw])?;
+            let parts = build_parts(&object.id, &path, &object.shape, margin, true)?;
+            let footprint = local_footprint(&parts.local_aabb).at(&object.pose);
+            if !point_in_polygon(footprint.center, &floor) {
+                return Err(SceneError::OutsideRoom { object: object.id.clone(), layout: Layout::Initial });
+            }
+            fixed_footprints.push(footprint);
+            let placement = object_pose(&object.pose);
+            for (pose, shape) in parts.exact {
+                static_parts.push((placement * pose, shape));
+                static_part_owner.push(Obstacle::Fixed(i));
+            }
+        }
+        let static_world = SharedShape::new(Compound::new(static_parts));
+
+        let mut movables = Vec::with_capacity(count);
+        for (i, object) in scene.movable_objects.iter().enumerate() {
+            let path = format!("movable_objects[{i}]");
+            check_finite(|| format!("{path}.pose"), &[object.pose.x, object.pose.z, object.pose.yaw])?;
+            check_finite(|| format!("{path}.target"), &[object.target.x, object.target.z, object.target.yaw])?;
+            let parts = build_parts(&object.id, &path, &object.shape, margin, false)?;
+            let footprint = local_footprint(&parts.local_aabb);
+            for (layout, pose) in [(Layout::Initial, &object.pose), (Layout::Target, &object.target)] {
+                if !point_in_polygon(footprint.at(pose).center, &floor) {
+                    return Err(SceneError::OutsideRoom { object: object.id.clone(), layout });
+                }
+            }
+            movables.push(MovableGeometry {
+                obstacle: SharedShape::new(Compound::new(parts.exact)),
+                carried_parts: parts.dilated,
+                footprint,
+            });
+        }
+
+        let agent = PlanPoint::new(scene.agent.x, scene.agent.z);
+        check_finite(|| "agent".into(), &[agent.x, agent.z])?;
+        if !point_in_polygon(agent, &floor) {
+            return Err(SceneError::AgentOutsideRoom);
+        }
+        let initial_distance = scene
+            .movable_objects
+            .iter()
+            .zip(&movables)
+            .map(|(o, g)| g.footprint.at(&o.pose).center.distance(g.footprint.at(&o.target).center))
+            .sum();
+        let compiled = CompiledScene {
+            robot_carried: SharedShape::round_cylinder(ROBOT_HEIGHT / 2.0, ROBOT_RADIUS, margin),
+            robot_exact: SharedShape::cylinder(ROBOT_HEIGHT / 2.0, ROBOT_RADIUS),
+            scene,
+            rules,
+            floor,
+            wall_pieces,
+            static_world,
+            static_part_owner,
+            fixed_footprints,
+            movables,
+            initial_distance,
+        };
+        compiled.check_clearances()?;
+        Ok(compiled)
+    }
+
+    /// Movable objects must be clear of everything by the margin in both layouts, and the agent
+    /// clear of everything in the initial layout.
+    fn check_clearances(&self) -> Result<(), SceneError> {
+        let margin = self.rules.collision_margin;
+        for layout in [Layout::Initial, Layout::Target] {
+            let poses: Vec<ObjectPose> = self
+                .scene
+                .movable_objects
+                .iter()
+                .map(|o| if layout == Layout::Initial { o.pose } else { o.target })
+                .collect();
+            for (i, pose) in poses.iter().enumerate() {
+                let placement = object_pose(pose);
+                for (part_pose, part) in &self.movables[i].carried_parts {
+                    let world = placement * *part_pose;
+                    let obstacle = self.first_intersection(&world, part.as_ref(), &poses, Some(i));
+                    if let Some(other) = obstacle {
+                        return Err(SceneError::Overlap {
+                            object: self.scene.movable_objects[i].id.clone(),
+                            other: obstacle_name(&self.scene, other),
+                            layout,
+                            margin,
+                        });
+                    }
+                }
+            }
+            if layout == Layout::Initial {
+                let robot = robot_pose(PlanPoint::new(self.scene.agent.x, self.scene.agent.z));
+                if let Some(other) = self.first_intersection(&robot, self.robot_carried.as_ref(), &poses, None) {
+                    return Err(SceneError::AgentInCollision { obstacle: obstacle_name(&self.scene, other) });
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn check_not_solved(&self) -> Result<(), SceneError> {
+        let placed = self.scene.movable_objects.iter().zip(&self.movables).all(|(o, g)| {
+            footprint_iou(&g.footprint.at(&o.pose), &g.footprint.at(&o.target)) > self.rules.placement_iou
+        });
+        if placed { Err(SceneError::AlreadySolved) } else { Ok(()) }
+    }
+
+    /// The first obstacle that `shape` at `pose` intersects: the static world, then movable
+    /// objects at `poses` except `skip`.
+    pub(crate) fn first_intersection(
+        &self,
+        pose: &Pose,
+        shape: &dyn parry3d::shape::Shape,
+        poses: &[ObjectPose],
+        skip: Option<usize>,
+    ) -> Option<Obstacle> {
+        // Unsupported shape pairs cannot occur with the shapes built here; count one as a hit
+        // so that a bug can only make the simulator stricter, never let a body through.
+        let hit = query::intersection_test(pose, shape, &Pose::IDENTITY, self.static_world.as_ref())
+            .map_or(Some(0), |r| r.intersecting.then_some(r.subshape2 as usize));
+        if let Some(part) = hit {
+            return Some(self.static_part_owner.get(part).copied().unwrap_or(Obstacle::Wall(0)));
+        }
+        for (j, other) in poses.iter().enumerate() {
+            if Some(j) == skip {
+                continue;
+            }
+            let hit = query::intersection_test(pose, shape, &object_pose(other), self.movables[j].obstacle.as_ref())
+                .map_or(true, |r| r.intersecting);
+            if hit {
+                return Some(Obstacle::Movable(j));
+            }
+        }
+        None
+    }
+
+    /// The scene as given.
+    pub fn scene(&self) -> &Scene {
+        &self.scene
+    }
+
+    /// The rules this scene was compiled under.
+    pub fn rules(&self) -> &Rules {
+        &self.rules
+    }
+
+    /// The floor polygon.
+    pub fn floor(&self) -> &[PlanPoint] {
+        &self.floor
+    }
+
+    /// The walls cut around their openings, in world coordinates.
+    pub fn wall_pieces(&self) -> &[WallPiece] {
+        &self.wall_pieces
+    }
+
+    /// Footprints of the fixed objects, in scene order.
+    pub fn fixed_footprints(&self) -> &[OrientedRect] {
+        &self.fixed_footprints
+    }
+
+    /// Movable object `i`'s footprint at `pose`.
+    pub fn movable_footprint(&self, i: usize, pose: &ObjectPose) -> OrientedRect {
+        self.movables[i].footprint.at(pose)
+    }
+
+    /// Movable object `i`'s footprint in its own frame.
+    pub fn movable_local_footprint(&self, i: usize) -> LocalFootprint {
+        self.movables[i].footprint
+    }
+
+    /// `D` at the start (SPEC §5): the sum over objects of the plan distance between footprint
+    /// centres at the initial and target poses.
+    pub fn initial_distance(&self) -> f64 {
+        self.initial_distance
+    }
+
+    /// Human-readable name of an obstacle: the object's id or `wall N`.
+    pub fn obstacle_name(&self, obstacle: Obstacle) -> String {
+        obstacle_name(&self.scene, obstacle)
+    }
+
+    pub(crate) fn static_world(&self) -> &SharedShape {
+        &self.static_world
+    }
+
+    pub(crate) fn static_owner(&self, part: u32) -> Obstacle {
+        self.static_part_owner.get(part as usize).copied().unwrap_or(Obstacle::Wall(0))
+    }
+
+    /// The robot's exact collision cylinder (for independent checks).
+    pub fn robot_shape(&self) -> &SharedShape {
+        &self.robot_exact
+    }
+
+    /// The exact collision shape of movable object `i` in its own frame (a compound).
+    pub fn movable_shape(&self, i: usize) -> &SharedShape {
+        &self.movables[i].obstacle
+    }
+
+    /// The static world (walls and fixed objects) as one compound in world coordinates.
+    pub fn static_shape(&self) -> &SharedShape {
+        &self.static_world
+    }
+
+    /// Validates and compiles a scene under the default rules, behind an `Arc`.
+    pub fn shared(scene: Scene) -> Result<Arc<Self>, SceneError> {
+        Self::new(scene, Rules::default()).map(Arc::new)
+    }
+
+    /// The start heading.
+    pub fn start_heading(&self) -> Heading {
+        self.scene.agent.heading
+    }
+}
