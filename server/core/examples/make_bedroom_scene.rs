@@ -114,7 +114,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     for (i, &action) in script.iter().enumerate() {
         let outcome = episode.step(action)?;
         if !outcome.accepted {
-            return Err(format!("step {i} ({}) was not accepted: {outcome:?}\nagent {:?}", action.name(), episode.agent_pose()).into());
+            return Err(format!(
+                "step {i} ({}) was not accepted: {outcome:?}\nagent {:?}",
+                action.name(),
+                episode.agent_pose()
+            )
+            .into());
         }
     }
     for (i, object) in scene.movable_objects.iter_mut().enumerate() {

@@ -24,15 +24,19 @@ pub enum Action {
 
 /// An action code outside `0..=5`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
-#[error(
-    "unknown action code {0}: use 0 move_forward, 1 move_backward, 2 turn_left, 3 turn_right, 4 fetch, 5 release"
-)]
+#[error("unknown action code {0}: use 0 move_forward, 1 move_backward, 2 turn_left, 3 turn_right, 4 fetch, 5 release")]
 pub struct UnknownAction(pub i64);
 
 impl Action {
     /// All actions in code order.
-    pub const ALL: [Action; 6] =
-        [Action::MoveForward, Action::MoveBackward, Action::TurnLeft, Action::TurnRight, Action::Fetch, Action::Release];
+    pub const ALL: [Action; 6] = [
+        Action::MoveForward,
+        Action::MoveBackward,
+        Action::TurnLeft,
+        Action::TurnRight,
+        Action::Fetch,
+        Action::Release,
+    ];
 
     /// The action's integer code.
     pub const fn code(self) -> u8 {
@@ -122,6 +126,9 @@ mod tests {
     #[test]
     fn reversing_inverts_and_reorders() {
         use Action::*;
-        assert_eq!(reverse_trajectory(&[Fetch, MoveForward, TurnLeft, Release]), vec![Fetch, TurnRight, MoveBackward, Release]);
+        assert_eq!(
+            reverse_trajectory(&[Fetch, MoveForward, TurnLeft, Release]),
+            vec![Fetch, TurnRight, MoveBackward, Release]
+        );
     }
 }

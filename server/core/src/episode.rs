@@ -329,7 +329,8 @@ impl Grip {
     fn carried_pose(&self, position: PlanPoint, heading: Heading) -> ObjectPose {
         let turns = heading.turns_from(self.agent_heading);
         let turn = Heading::wrapping(i64::from(turns));
-        let rel = PlanPoint::new(self.object_pose.x - self.agent_position.x, self.object_pose.z - self.agent_position.z);
+        let rel =
+            PlanPoint::new(self.object_pose.x - self.agent_position.x, self.object_pose.z - self.agent_position.z);
         let rotated = rotate_plan(rel, turn.cos(), turn.sin());
         // Written so that no displacement and no turn give back the exact fetch pose.
         let dx = (position.x - self.agent_position.x) + (rotated.x - rel.x);
@@ -420,8 +421,10 @@ impl Episode {
         let poses: Vec<ObjectPose> = s.movable_objects.iter().map(|o| o.pose).collect();
         let placed = (0..poses.len())
             .map(|i| {
-                footprint_iou(&scene.movable_footprint(i, &poses[i]), &scene.movable_footprint(i, &s.movable_objects[i].target))
-                    > scene.rules().placement_iou
+                footprint_iou(
+                    &scene.movable_footprint(i, &poses[i]),
+                    &scene.movable_footprint(i, &s.movable_objects[i].target),
+                ) > scene.rules().placement_iou
             })
             .collect();
         let obstacle_aabbs =
@@ -458,7 +461,9 @@ impl Episode {
     pub fn step(&mut self, action: Action) -> Result<StepOutcome, EpisodeError> {
         match self.state.status {
             EpisodeStatus::Running => {}
-            EpisodeStatus::Succeeded => return Err(EpisodeError::Finished { reason: "success", steps: self.state.steps }),
+            EpisodeStatus::Succeeded => {
+                return Err(EpisodeError::Finished { reason: "success", steps: self.state.steps });
+            }
             EpisodeStatus::Truncated => {
                 return Err(EpisodeError::Finished { reason: "horizon reached", steps: self.state.steps });
             }
@@ -481,14 +486,20 @@ impl Episode {
             Action::MoveForward | Action::MoveBackward => {
                 let sign = if action == Action::MoveForward { 1 } else { -1 };
                 let h = self.state.heading;
-                let delta = PlanPoint::new(f64::from(sign) * MOVE_DISTANCE * h.cos(), -(f64::from(sign) * MOVE_DISTANCE * h.sin()));
+                let delta = PlanPoint::new(
+                    f64::from(sign) * MOVE_DISTANCE * h.cos(),
+                    -(f64::from(sign) * MOVE_DISTANCE * h.sin()),
+                );
                 let counts = self.state.counts.moved(h, sign);
                 let position = counts.position(self.start_position());
                 self.try_motion(Motion::Translate(delta), counts, position, h, &mut outcome);
             }
             Action::TurnLeft | Action::TurnRight => {
-                let (heading, angle) =
-                    if action == Action::TurnLeft { (self.state.heading.left(), TURN_ANGLE) } else { (self.state.heading.right(), -TURN_ANGLE) };
+                let (heading, angle) = if action == Action::TurnLeft {
+                    (self.state.heading.left(), TURN_ANGLE)
+                } else {
+                    (self.state.heading.right(), -TURN_ANGLE)
+                };
                 self.try_motion(Motion::Rotate(angle), self.state.counts, self.state.position, heading, &mut outcome);
             }
             Action::Fetch => self.fetch(&mut outcome),
@@ -543,11 +554,22 @@ impl Episode {
 
     fn any_in_reach(scene: &CompiledScene, state: &State) -> bool {
         let reach = scene.rules().fetch_reach;
-        state.poses.iter().enumerate().any(|(i, p)| scene.movable_footprint(i, p).distance_to_point(state.position) <= reach)
+        state
+            .poses
+            .iter()
+            .enumerate()
+            .any(|(i, p)| scene.movable_footprint(i, p).distance_to_point(state.position) <= reach)
     }
 
     /// Checks `motion` and, if it is free, commits the new agent state.
-    fn try_motion(&mut self, motion: Motion, counts: MoveCounts, position: PlanPoint, heading: Heading, outcome: &mut StepOutcome) {
+    fn try_motion(
+        &mut self,
+        motion: Motion,
+        counts: MoveCounts,
+        position: PlanPoint,
+        heading: Heading,
+        outcome: &mut StepOutcome,
+    ) {
         if let Some(hit) = self.first_hit(motion) {
             outcome.collided_with = Some(hit.obstacle);
             return;
@@ -608,7 +630,8 @@ impl Episode {
                     continue;
                 }
                 let obstacle = self.scene.movable_shape(j).as_ref();
-                if let Some((time, _)) = cast(pose, shape, motion, centre, &object_pose(&self.state.poses[j]), obstacle) {
+                if let Some((time, _)) = cast(pose, shape, motion, centre, &object_pose(&self.state.poses[j]), obstacle)
+                {
                     earliest(&mut best, Hit { time, obstacle: Obstacle::Movable(j) });
                 }
             }
@@ -677,7 +700,8 @@ impl Episode {
         let pose = *pose;
         self.state.obstacle_aabbs[object] = self.scene.movable_shape(object).compute_aabb(&object_pose(&pose));
         let target = &self.scene.scene().movable_objects[object].target;
-        let iou = footprint_iou(&self.scene.movable_footprint(object, &pose), &self.scene.movable_footprint(object, target));
+        let iou =
+            footprint_iou(&self.scene.movable_footprint(object, &pose), &self.scene.movable_footprint(object, target));
         if iou > self.scene.rules().placement_iou {
             self.state.placed[object] = true;
             outcome.reward.placement = self.config.reward.place;

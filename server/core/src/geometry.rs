@@ -350,14 +350,11 @@ mod tests {
         let inside = rect(1.0, 1.0, 0.5, 0.5, 0.0).corners();
         assert!(convex_inside_polygon(&inside, &l_shape));
         // Corners all inside, but the reflex corner (2, 2) pokes into the rectangle.
-        let around_reflex = [
-            PlanPoint::new(1.5, 1.5),
-            PlanPoint::new(2.4, 1.5),
-            PlanPoint::new(2.4, 1.9),
-            PlanPoint::new(1.5, 2.4),
-        ];
+        let around_reflex =
+            [PlanPoint::new(1.5, 1.5), PlanPoint::new(2.4, 1.5), PlanPoint::new(2.4, 1.9), PlanPoint::new(1.5, 2.4)];
         assert!(!convex_inside_polygon(&around_reflex, &l_shape));
-        let bow_tie = [PlanPoint::new(0.0, 0.0), PlanPoint::new(1.0, 1.0), PlanPoint::new(1.0, 0.0), PlanPoint::new(0.0, 1.0)];
+        let bow_tie =
+            [PlanPoint::new(0.0, 0.0), PlanPoint::new(1.0, 1.0), PlanPoint::new(1.0, 0.0), PlanPoint::new(0.0, 1.0)];
         assert!(!polygon_is_simple(&bow_tie));
     }
 }

@@ -287,7 +287,8 @@ pub enum MovableCategory {
 
 impl MovableCategory {
     /// All categories, in a fixed order.
-    pub const ALL: [MovableCategory; 5] = [Self::CabinetShelfDesk, Self::Chair, Self::Sofa, Self::PierStool, Self::Others];
+    pub const ALL: [MovableCategory; 5] =
+        [Self::CabinetShelfDesk, Self::Chair, Self::Sofa, Self::PierStool, Self::Others];
 
     /// The snake-case name as in the JSON.
     pub fn as_str(self) -> &'static str {
@@ -357,9 +358,9 @@ impl Part {
     /// The part's placement in the object's frame: offset and yaw.
     pub fn placement(&self) -> ([f64; 3], f64) {
         match self {
-            Part::Box { offset, yaw, .. } | Part::Cylinder { offset, yaw, .. } | Part::ConvexHull { offset, yaw, .. } => {
-                (*offset, *yaw)
-            }
+            Part::Box { offset, yaw, .. }
+            | Part::Cylinder { offset, yaw, .. }
+            | Part::ConvexHull { offset, yaw, .. } => (*offset, *yaw),
         }
     }
 }

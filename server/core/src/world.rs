@@ -18,10 +18,12 @@ use std::sync::Arc;
 use parry3d::bounding_volume::{Aabb, BoundingVolume};
 use parry3d::math::{Pose, Rotation, Vector};
 use parry3d::query;
-use parry3d::shape::{Compound, ConvexPolyhedron, Cuboid, Cylinder, SharedShape, Triangle};
+use parry3d::shape::{Compound, ConvexPolyhedron, Cuboid, Cylinder, Shape as _, SharedShape, Triangle};
 
 use crate::error::{Layout, SceneError};
-use crate::geometry::{OrientedRect, PlanPoint, footprint_iou, point_in_polygon, polygon_is_simple, rotate_plan, signed_area};
+use crate::geometry::{
+    OrientedRect, PlanPoint, footprint_iou, point_in_polygon, polygon_is_simple, rotate_plan, signed_area,
+};
 use crate::heading::Heading;
 use crate::scene::{Difficulty, ObjectPose, OpeningKind, Part, SCENE_SCHEMA, Scene, Shape};
 
@@ -139,7 +141,12 @@ impl LocalFootprint {
     pub fn at(&self, pose: &ObjectPose) -> OrientedRect {
         let (sin, cos) = pose.yaw.sin_cos();
         let c = rotate_plan(self.center, cos, sin);
-        OrientedRect { center: PlanPoint::new(pose.x + c.x, pose.z + c.z), half_x: self.half_x, half_z: self.half_z, yaw: pose.yaw }
+        OrientedRect {
+            center: PlanPoint::new(pose.x + c.x, pose.z + c.z),
+            half_x: self.half_x,
+            half_z: self.half_z,
+            yaw: pose.yaw,
+        }
     }
 }
 
@@ -203,7 +210,13 @@ struct PartShapes {
 
 /// Builds a shape's convex parts. A mesh becomes its triangles for a fixed object
 /// (`as_triangles`) and its convex hull for a movable one.
-fn build_parts(object: &str, path: &str, shape: &Shape, margin: f64, as_triangles: bool) -> Result<PartShapes, SceneError> {
+fn build_parts(
+    object: &str,
+    path: &str,
+    shape: &Shape,
+    margin: f64,
+    as_triangles: bool,
+) -> Result<PartShapes, SceneError> {
     let invalid = |reason: String| SceneError::InvalidShape { object: object.to_owned(), reason };
     let mut exact = Vec::new();
     let mut dilated = Vec::new();
@@ -221,17 +234,25 @@ fn build_parts(object: &str, path: &str, shape: &Shape, margin: f64, as_triangle
                     Part::Box { half_extents, .. } => {
                         check_finite(|| format!("{path}.shape.parts[{i}].half_extents"), half_extents)?;
                         if half_extents.iter().any(|&h| h <= 0.0) {
-                            return Err(invalid(format!("part {i}: box half extents {half_extents:?} must all be positive")));
+                            return Err(invalid(format!(
+                                "part {i}: box half extents {half_extents:?} must all be positive"
+                            )));
                         }
                         let [x, y, z] = *half_extents;
-                        (SharedShape::new(Cuboid::new(Vector::new(x, y, z))), SharedShape::round_cuboid(x, y, z, margin))
+                        (
+                            SharedShape::new(Cuboid::new(Vector::new(x, y, z))),
+                            SharedShape::round_cuboid(x, y, z, margin),
+                        )
                     }
                     Part::Cylinder { radius, half_height, .. } => {
                         check_finite(|| format!("{path}.shape.parts[{i}]"), &[*radius, *half_height])?;
                         if *radius <= 0.0 || *half_height <= 0.0 {
                             return Err(invalid(format!("part {i}: cylinder radius and half height must be positive")));
                         }
-                        (SharedShape::new(Cylinder::new(*half_height, *radius)), SharedShape::round_cylinder(*half_height, *radius, margin))
+                        (
+                            SharedShape::new(Cylinder::new(*half_height, *radius)),
+                            SharedShape::round_cylinder(*half_height, *radius, margin),
+                        )
                     }
                     Part::ConvexHull { points, .. } => {
                         for (j, p) in points.iter().enumerate() {
@@ -276,8 +297,9 @@ fn build_parts(object: &str, path: &str, shape: &Shape, margin: f64, as_triangle
                     return Err(invalid("every mesh triangle is degenerate (zero area)".into()));
                 }
             } else {
-                let (e, d) = hull_pair(&vertices, margin)
-                    .ok_or_else(|| invalid("the convex hull of the mesh is degenerate (flat or fewer than 4 vertices)".into()))?;
+                let (e, d) = hull_pair(&vertices, margin).ok_or_else(|| {
+                    invalid("the convex hull of the mesh is degenerate (flat or fewer than 4 vertices)".into())
+                })?;
                 exact.push((Pose::IDENTITY, e));
                 dilated.push((Pose::IDENTITY, d));
             }
@@ -290,8 +312,13 @@ fn build_parts(object: &str, path: &str, shape: &Shape, margin: f64, as_triangle
     Ok(PartShapes { exact, dilated, local_aabb })
 }
 
+/// The exact and dilated convex hulls of `points`, or `None` if the hull has no volume (fewer
+/// than four points, or all in one plane).
 fn hull_pair(points: &[Vector], margin: f64) -> Option<(SharedShape, SharedShape)> {
     let hull = ConvexPolyhedron::from_convex_hull(points)?;
+    if hull.mass_properties(1.0).mass() <= 1e-9 {
+        return None;
+    }
     let dilated = SharedShape::round_convex_hull(points, margin)?;
     Some((SharedShape::new(hull), dilated))
 }
@@ -326,7 +353,10 @@ fn build_walls(scene: &Scene, floor: &[PlanPoint]) -> Result<Vec<WallPiece>, Sce
             &[opening.offset, opening.width, opening.bottom, opening.top],
         )?;
         if opening.wall >= n {
-            return Err(invalid(format!("wall {} does not exist: the floor has {n} edges (walls 0..{n})", opening.wall)));
+            return Err(invalid(format!(
+                "wall {} does not exist: the floor has {n} edges (walls 0..{n})",
+                opening.wall
+            )));
         }
         let length = floor[opening.wall].distance(floor[(opening.wall + 1) % n]);
         if opening.offset < 0.0 || opening.width <= 0.0 || opening.offset + opening.width > length {
@@ -413,7 +443,10 @@ fn validate_room(scene: &Scene) -> Result<Vec<PlanPoint>, SceneError> {
         return invalid("`room.floor` encloses less than 1 m²".into());
     }
     if room.wall_height < ROBOT_HEIGHT || room.wall_height > 20.0 {
-        return invalid(format!("`room.wall_height` {} must be between the robot's height {ROBOT_HEIGHT} m and 20 m", room.wall_height));
+        return invalid(format!(
+            "`room.wall_height` {} must be between the robot's height {ROBOT_HEIGHT} m and 20 m",
+            room.wall_height
+        ));
     }
     if !(0.01..=1.0).contains(&room.wall_thickness) {
         return invalid(format!("`room.wall_thickness` {} must be between 0.01 and 1 m", room.wall_thickness));

@@ -1,0 +1,6 @@
+//! esrp-core's integration tests: one binary, one module per concern.
+
+mod fixtures;
+mod properties;
+mod rules;
+mod validation;
