@@ -378,6 +378,11 @@ struct Hit {
     obstacle: Obstacle,
 }
 
+/// How far along the motion a further hit can still matter: only before the best one so far.
+fn until(best: &Option<Hit>) -> f64 {
+    best.map_or(1.0, |b| b.time)
+}
+
 fn earliest(best: &mut Option<Hit>, candidate: Hit) {
     if best.is_none_or(|b| candidate.time < b.time) {
         *best = Some(candidate);
@@ -581,10 +586,12 @@ impl Episode {
         outcome.accepted = true;
     }
 
-    /// The moving body's parts in world coordinates: the robot, then the held object's parts,
-    /// all dilated by the collision margin.
-    fn for_each_moving_part(&self, mut f: impl FnMut(&Pose, &dyn Shape)) {
-        f(&robot_pose(self.state.position), self.scene.robot_carried.as_ref());
+    /// The moving body's parts in world coordinates, all dilated by the collision margin: the
+    /// robot (unless `with_robot` is false), then the held object's parts.
+    fn for_each_moving_part(&self, with_robot: bool, mut f: impl FnMut(&Pose, &dyn Shape)) {
+        if with_robot {
+            f(&robot_pose(self.state.position), self.scene.robot_carried.as_ref());
+        }
         if let Some(grip) = self.state.grip {
             let placement = object_pose(&self.state.poses[grip.object]);
             for (pose, shape) in &self.scene.movables[grip.object].carried_parts {
@@ -595,44 +602,81 @@ impl Episode {
 
     /// The first obstacle hit by the moving body over the whole of `motion`, if any.
     fn first_hit(&self, motion: Motion) -> Option<Hit> {
+        match motion {
+            Motion::Translate(d) => self.first_hit_translating(d),
+            Motion::Rotate(angle) => self.first_hit_rotating(angle),
+        }
+    }
+
+    /// Translation: one linear shape cast per moving part against the static compound (parry
+    /// walks its BVH) and against each movable object whose box meets the swept box.
+    fn first_hit_translating(&self, d: PlanPoint) -> Option<Hit> {
         let held = self.state.grip.map(|g| g.object);
-        let centre = self.state.position;
-        // A bound on the space the body sweeps, to skip movable obstacles far away.
-        let mut body = Aabb::new_invalid();
-        self.for_each_moving_part(|pose, shape| body.merge(&shape.compute_aabb(pose)));
-        let swept = match motion {
-            Motion::Translate(d) => {
-                let mut moved = body;
-                moved.mins += Vector::new(d.x, 0.0, d.z);
-                moved.maxs += Vector::new(d.x, 0.0, d.z);
-                body.merged(&moved)
-            }
-            Motion::Rotate(_) => {
-                let corners = [body.mins, body.maxs];
-                let radius = corners
-                    .iter()
-                    .flat_map(|a| corners.iter().map(move |b| (a.x - centre.x).hypot(b.z - centre.z)))
-                    .fold(0.0, f64::max);
-                Aabb::new(
-                    Vector::new(centre.x - radius, body.mins.y, centre.z - radius),
-                    Vector::new(centre.x + radius, body.maxs.y, centre.z + radius),
-                )
-            }
-        };
-        let static_world = self.scene.static_world().as_ref();
+        let shift = Vector::new(d.x, 0.0, d.z);
         let mut best: Option<Hit> = None;
-        self.for_each_moving_part(|pose, shape| {
-            if let Some((time, part)) = cast(pose, shape, motion, centre, &Pose::IDENTITY, static_world) {
-                earliest(&mut best, Hit { time, obstacle: self.scene.static_owner(part) });
+        self.for_each_moving_part(true, |pose, shape| {
+            let start = shape.compute_aabb(pose);
+            let swept = start.merged(&Aabb::new(start.mins + shift, start.maxs + shift));
+            if let Some((time, part)) = cast_linear(pose, shape, shift, &Pose::IDENTITY, self.scene.static_shape()) {
+                earliest(&mut best, Hit { time, obstacle: self.scene.static_part_owner(part) });
             }
             for (j, aabb) in self.state.obstacle_aabbs.iter().enumerate() {
                 if Some(j) == held || !aabb.intersects(&swept) {
                     continue;
                 }
-                let obstacle = self.scene.movable_shape(j).as_ref();
-                if let Some((time, _)) = cast(pose, shape, motion, centre, &object_pose(&self.state.poses[j]), obstacle)
-                {
+                let obstacle = &self.scene.movables[j].obstacle;
+                if let Some((time, _)) = cast_linear(pose, shape, shift, &object_pose(&self.state.poses[j]), obstacle) {
                     earliest(&mut best, Hit { time, obstacle: Obstacle::Movable(j) });
+                }
+            }
+        });
+        best
+    }
+
+    /// Rotation: a nonlinear (rotational) shape cast of each moving part over the whole arc
+    /// against each convex obstacle part whose box meets the box swept by the arc.
+    ///
+    /// The robot is skipped: it is a cylinder turning about its own axis, so a turn sweeps no
+    /// space it does not already occupy.
+    fn first_hit_rotating(&self, angle: f64) -> Option<Hit> {
+        let held = self.state.grip?.object;
+        let centre = self.state.position;
+        let mut best: Option<Hit> = None;
+        self.for_each_moving_part(false, |pose, shape| {
+            let (swept, radius) = arc_swept_aabb(&shape.compute_aabb(pose), centre, angle);
+            // No point of the part moves farther than the chord of its arc: an obstacle farther
+            // than that from the part's start pose cannot be reached, and a distance query is
+            // much cheaper than a rotational cast.
+            let reach = 2.0 * radius * (0.5 * angle).abs().sin() + 1e-9;
+            let motion = NonlinearRigidMotion::new(
+                *pose,
+                pose.inverse_transform_point(Vector::new(centre.x, pose.translation.y, centre.z)),
+                Vector::ZERO,
+                Vector::new(0.0, angle, 0.0),
+            );
+            let mut check = |obstacle_pose: &Pose, obstacle: &dyn Shape, best: &Option<Hit>| {
+                let far = query::distance(pose, shape, obstacle_pose, obstacle).is_ok_and(|d| d.distance > reach);
+                if far { None } else { cast_rotating(&motion, shape, obstacle_pose, obstacle, until(best)) }
+            };
+            let statics = self.scene.static_shape();
+            for leaf in statics.bvh().intersect_aabb(&swept) {
+                let (leaf_pose, leaf_shape) = &statics.shapes()[leaf as usize];
+                if let Some(time) = check(leaf_pose, leaf_shape.as_ref(), &best) {
+                    earliest(&mut best, Hit { time, obstacle: self.scene.static_part_owner(leaf) });
+                }
+            }
+            for (j, aabb) in self.state.obstacle_aabbs.iter().enumerate() {
+                if j == held || !aabb.intersects(&swept) {
+                    continue;
+                }
+                let placement = object_pose(&self.state.poses[j]);
+                let obstacle = &self.scene.movables[j].obstacle;
+                let local = swept.transform_by(&placement.inverse());
+                for leaf in obstacle.bvh().intersect_aabb(&local) {
+                    let (leaf_pose, leaf_shape) = &obstacle.shapes()[leaf as usize];
+                    if let Some(time) = check(&(placement * *leaf_pose), leaf_shape.as_ref(), &best) {
+                        earliest(&mut best, Hit { time, obstacle: Obstacle::Movable(j) });
+                    }
                 }
             }
         });
@@ -895,39 +939,72 @@ fn wrap_angle(angle: f64) -> f64 {
     if wrapped <= -PI { wrapped + TAU } else { wrapped }
 }
 
-/// Casts one moving part against one obstacle over the motion; the time of impact in `[0, 1]`
-/// and the obstacle's sub-shape hit, or `None` if the whole motion is free.
-fn cast(
+/// A box that contains everything `aabb` sweeps when rotated by `angle` (radians) about the
+/// vertical axis through `centre`, and the largest distance of a point of `aabb` from that axis.
+///
+/// At every instant the rotated box is the convex hull of its rotated corners, and each corner
+/// moves along an arc that lies within the arc's sagitta `ρ(1 − cos(angle/2))` of its chord; so
+/// the box of the corners' start and end positions, grown by the largest sagitta, holds it all.
+fn arc_swept_aabb(aabb: &Aabb, centre: PlanPoint, angle: f64) -> (Aabb, f64) {
+    let (sin, cos) = angle.sin_cos();
+    let sagitta_factor = 1.0 - (0.5 * angle).cos();
+    let mut mins = aabb.mins;
+    let mut maxs = aabb.maxs;
+    let mut radius: f64 = 0.0;
+    for x in [aabb.mins.x, aabb.maxs.x] {
+        for z in [aabb.mins.z, aabb.maxs.z] {
+            let rel = PlanPoint::new(x - centre.x, z - centre.z);
+            let end = rotate_plan(rel, cos, sin);
+            mins.x = mins.x.min(centre.x + end.x);
+            mins.z = mins.z.min(centre.z + end.z);
+            maxs.x = maxs.x.max(centre.x + end.x);
+            maxs.z = maxs.z.max(centre.z + end.z);
+            radius = radius.max(rel.x.hypot(rel.z));
+        }
+    }
+    // A hair more, so that rounding never makes the box too small.
+    let grow = radius * sagitta_factor + 1e-9;
+    (Aabb::new(mins - Vector::new(grow, 0.0, grow), maxs + Vector::new(grow, 0.0, grow)), radius)
+}
+
+/// A linear shape cast of a moving part by `shift` (over `t ∈ [0, 1]`) against an obstacle:
+/// the time of impact and the obstacle's sub-shape hit, or `None` if the whole motion is free.
+fn cast_linear(
     pose: &Pose,
     shape: &dyn Shape,
-    motion: Motion,
-    centre: PlanPoint,
+    shift: Vector,
     obstacle_pose: &Pose,
     obstacle: &dyn Shape,
 ) -> Option<(f64, u32)> {
-    let result = match motion {
-        Motion::Translate(d) => {
-            let options = ShapeCastOptions {
-                max_time_of_impact: 1.0,
-                target_distance: 0.0,
-                stop_at_penetration: true,
-                compute_impact_geometry_on_penetration: false,
-            };
-            query::cast_shapes(pose, Vector::new(d.x, 0.0, d.z), shape, obstacle_pose, Vector::ZERO, obstacle, options)
-        }
-        Motion::Rotate(angle) => {
-            let local_centre = pose.inverse_transform_point(Vector::new(centre.x, pose.translation.y, centre.z));
-            let moving = NonlinearRigidMotion::new(*pose, local_centre, Vector::ZERO, Vector::new(0.0, angle, 0.0));
-            let fixed = NonlinearRigidMotion::constant_position(*obstacle_pose);
-            query::cast_shapes_nonlinear(&moving, shape, &fixed, obstacle, 0.0, 1.0, true)
-        }
+    let options = ShapeCastOptions {
+        max_time_of_impact: 1.0,
+        target_distance: 0.0,
+        stop_at_penetration: true,
+        compute_impact_geometry_on_penetration: false,
     };
     // An unsupported pair cannot occur with the shapes this crate builds; count it as a hit at
     // the start so that a bug makes the simulator stricter, never lets a body through.
-    match result {
+    match query::cast_shapes(pose, shift, shape, obstacle_pose, Vector::ZERO, obstacle, options) {
         Ok(Some(hit)) => Some((hit.time_of_impact, hit.subshape2)),
         Ok(None) => None,
         Err(_) => Some((0.0, 0)),
+    }
+}
+
+/// A nonlinear shape cast of a rotating part against a fixed convex obstacle part over
+/// `t ∈ [0, until]`: the time of impact, or `None` if that part of the arc is free.
+fn cast_rotating(
+    motion: &NonlinearRigidMotion,
+    shape: &dyn Shape,
+    obstacle_pose: &Pose,
+    obstacle: &dyn Shape,
+    until: f64,
+) -> Option<f64> {
+    let fixed = NonlinearRigidMotion::constant_position(*obstacle_pose);
+    match query::cast_shapes_nonlinear(motion, shape, &fixed, obstacle, 0.0, until, true) {
+        Ok(Some(hit)) => Some(hit.time_of_impact),
+        Ok(None) => None,
+        Err(_) => Some(0.0),
     }
 }
 

@@ -154,7 +154,7 @@ impl LocalFootprint {
 #[derive(Clone)]
 pub(crate) struct MovableGeometry {
     /// Exact shape in the object's frame, as an obstacle (a compound of convex parts).
-    pub obstacle: SharedShape,
+    pub obstacle: Compound,
     /// Parts dilated by the margin, in the object's frame, for when it is carried.
     pub carried_parts: Vec<(Pose, SharedShape)>,
     /// Footprint in the object's frame.
@@ -168,7 +168,7 @@ pub struct CompiledScene {
     rules: Rules,
     floor: Vec<PlanPoint>,
     wall_pieces: Vec<WallPiece>,
-    static_world: SharedShape,
+    static_world: Compound,
     static_part_owner: Vec<Obstacle>,
     fixed_footprints: Vec<OrientedRect>,
     pub(crate) movables: Vec<MovableGeometry>,
@@ -542,7 +542,7 @@ impl CompiledScene {
                 static_part_owner.push(Obstacle::Fixed(i));
             }
         }
-        let static_world = SharedShape::new(Compound::new(static_parts));
+        let static_world = Compound::new(static_parts);
 
         let mut movables = Vec::with_capacity(count);
         for (i, object) in scene.movable_objects.iter().enumerate() {
@@ -557,7 +557,7 @@ impl CompiledScene {
                 }
             }
             movables.push(MovableGeometry {
-                obstacle: SharedShape::new(Compound::new(parts.exact)),
+                obstacle: Compound::new(parts.exact),
                 carried_parts: parts.dilated,
                 footprint,
             });
@@ -645,7 +645,7 @@ impl CompiledScene {
     ) -> Option<Obstacle> {
         // Unsupported shape pairs cannot occur with the shapes built here; count one as a hit
         // so that a bug can only make the simulator stricter, never let a body through.
-        let hit = query::intersection_test(pose, shape, &Pose::IDENTITY, self.static_world.as_ref())
+        let hit = query::intersection_test(pose, shape, &Pose::IDENTITY, &self.static_world)
             .map_or(Some(0), |r| r.intersecting.then_some(r.subshape2 as usize));
         if let Some(part) = hit {
             return Some(self.static_part_owner.get(part).copied().unwrap_or(Obstacle::Wall(0)));
@@ -654,7 +654,7 @@ impl CompiledScene {
             if Some(j) == skip {
                 continue;
             }
-            let hit = query::intersection_test(pose, shape, &object_pose(other), self.movables[j].obstacle.as_ref())
+            let hit = query::intersection_test(pose, shape, &object_pose(other), &self.movables[j].obstacle)
                 .map_or(true, |r| r.intersecting);
             if hit {
                 return Some(Obstacle::Movable(j));
@@ -709,11 +709,8 @@ impl CompiledScene {
         obstacle_name(&self.scene, obstacle)
     }
 
-    pub(crate) fn static_world(&self) -> &SharedShape {
-        &self.static_world
-    }
-
-    pub(crate) fn static_owner(&self, part: u32) -> Obstacle {
+    /// The wall or fixed object that part `part` of [`CompiledScene::static_shape`] belongs to.
+    pub fn static_part_owner(&self, part: u32) -> Obstacle {
         self.static_part_owner.get(part as usize).copied().unwrap_or(Obstacle::Wall(0))
     }
 
@@ -722,13 +719,15 @@ impl CompiledScene {
         &self.robot_exact
     }
 
-    /// The exact collision shape of movable object `i` in its own frame (a compound).
-    pub fn movable_shape(&self, i: usize) -> &SharedShape {
+    /// The exact collision shape of movable object `i` in its own frame: a compound of its
+    /// convex parts (a mesh becomes its convex hull).
+    pub fn movable_shape(&self, i: usize) -> &Compound {
         &self.movables[i].obstacle
     }
 
-    /// The static world (walls and fixed objects) as one compound in world coordinates.
-    pub fn static_shape(&self) -> &SharedShape {
+    /// The static world (walls and fixed objects) as one compound in world coordinates; its
+    /// part `i` belongs to [`CompiledScene::static_part_owner`]`(i)`.
+    pub fn static_shape(&self) -> &Compound {
         &self.static_world
     }
 

@@ -27,11 +27,11 @@ fn body_intersects(
     held: Option<(usize, ObjectPose)>,
     poses: &[ObjectPose],
 ) -> Option<String> {
-    let world = scene.static_shape().as_ref();
+    let world = scene.static_shape();
     let mut body: Vec<(Pose, &dyn esrp_core::parry3d::shape::Shape, String)> =
         vec![(robot_pose(position), scene.robot_shape().as_ref(), "robot".into())];
     if let Some((i, pose)) = held {
-        body.push((object_pose(&pose), scene.movable_shape(i).as_ref(), format!("held object {i}")));
+        body.push((object_pose(&pose), scene.movable_shape(i), format!("held object {i}")));
     }
     for (pose, shape, name) in &body {
         if query::intersection_test(pose, *shape, &Pose::IDENTITY, world).unwrap().intersecting {
@@ -41,9 +41,7 @@ fn body_intersects(
             if held.is_some_and(|(i, _)| i == j) {
                 continue;
             }
-            if query::intersection_test(pose, *shape, &object_pose(other), scene.movable_shape(j).as_ref())
-                .unwrap()
-                .intersecting
+            if query::intersection_test(pose, *shape, &object_pose(other), scene.movable_shape(j)).unwrap().intersecting
             {
                 return Some(format!("{name} intersects movable object {j}"));
             }
@@ -99,6 +97,9 @@ proptest! {
         let mut e = episode(seed);
         let scene = e.compiled().clone();
         for action in random_actions(seed, 80) {
+            if e.is_over() {
+                break;
+            }
             let before = e.clone();
             let outcome = e.step(action).unwrap();
             if !outcome.accepted {
@@ -132,6 +133,9 @@ proptest! {
         let mut e = episode(seed);
         let mut reversed = 0;
         for action in random_actions(seed, 80) {
+            if e.is_over() {
+                break;
+            }
             if !action.is_motion() {
                 // Fetches and releases change what is carried; keep them in the walk.
                 e.step(action).unwrap();
@@ -159,6 +163,10 @@ proptest! {
         let actions = random_actions(seed, 60);
         let mut c = a.clone();
         for &action in &actions {
+            if a.is_over() {
+                prop_assert!(b.is_over() && c.is_over());
+                break;
+            }
             let oa = a.step(action).unwrap();
             let ob = b.step(action).unwrap();
             let oc = c.step(action).unwrap();
@@ -223,6 +231,9 @@ fn random_walks_exercise_every_path() {
     for seed in 0..64u64 {
         let mut e = episode(seed);
         for action in random_actions(seed, 80) {
+            if e.is_over() {
+                break;
+            }
             let holding = e.held().is_some();
             let o = e.step(action).unwrap();
             fetches += usize::from(o.fetched.is_some());

@@ -104,8 +104,8 @@ fn a_rotation_that_collides_only_mid_arc_is_rejected() {
         .compile();
     // Independent check with parry's intersection test: the bar is clear of the pole at both
     // ends of the turn and hits it half-way.
-    let bar = scene.movable_shape(0).as_ref();
-    let world = scene.static_shape().as_ref();
+    let bar = scene.movable_shape(0);
+    let world = scene.static_shape();
     let at = |a: f64| pose(3.0 + a.cos(), 3.0 - a.sin(), a);
     let hits =
         |a: f64| query::intersection_test(&object_pose(&at(a)), bar, &Pose::IDENTITY, world).unwrap().intersecting;
