@@ -654,7 +654,7 @@ impl Episode {
                 Vector::ZERO,
                 Vector::new(0.0, angle, 0.0),
             );
-            let mut check = |obstacle_pose: &Pose, obstacle: &dyn Shape, best: &Option<Hit>| {
+            let check = |obstacle_pose: &Pose, obstacle: &dyn Shape, best: &Option<Hit>| {
                 let far = query::distance(pose, shape, obstacle_pose, obstacle).is_ok_and(|d| d.distance > reach);
                 if far { None } else { cast_rotating(&motion, shape, obstacle_pose, obstacle, until(best)) }
             };
