@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Runs every check and test of the project. Installs what it needs first, so it works on a
+# fresh machine with a Rust toolchain. Usage: bash scripts/test.sh
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+step() { printf '\n==> %s\n' "$*"; }
+
+step "toolchain"
+cargo --version
+rustc --version
+
+step "format"
+if cargo fmt --version >/dev/null 2>&1; then
+    cargo fmt --all -- --check
+else
+    echo "rustfmt is not installed: skipping the format check (rustup component add rustfmt)"
+fi
+
+step "lint"
+if cargo clippy --version >/dev/null 2>&1; then
+    cargo clippy --workspace --all-targets --locked -- -D warnings
+else
+    echo "clippy is not installed: skipping the lint (rustup component add clippy)"
+fi
+
+step "tests"
+cargo test --workspace --locked
+
+step "benchmarks compile"
+cargo bench --workspace --locked --no-run
