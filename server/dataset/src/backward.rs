@@ -180,16 +180,39 @@ impl PartialOrd for Frontier {
     }
 }
 
-/// Plans the shortest-ish (weighted A*) sequence of motions after which `fetch` takes object
-/// `target`, or `None` within the node budget. Nothing is held during the search.
+/// The largest angle between the agent's heading and the direction to the object it fetches:
+/// the rule-based agent faces what it takes, so that backing up pulls the object out.
+const MAX_FETCH_BEARING: f64 = std::f64::consts::FRAC_PI_6;
+
+/// The absolute angle between the agent's forward vector and the direction to object
+/// `target`'s footprint centre.
+fn bearing_to(e: &Episode, target: usize) -> f64 {
+    let agent = e.agent_pose();
+    let centre = e.compiled().movable_footprint(target, &e.object_poses()[target]).center;
+    let (f, dx, dz) = (agent.forward(), centre.x - agent.position.x, centre.z - agent.position.z);
+    (f.x * dz - f.z * dx).atan2(f.x * dx + f.z * dz).abs()
+}
+
+/// Whether the agent can fetch `target` now, facing it.
+fn can_fetch_facing(e: &Episode, target: usize) -> bool {
+    e.fetch_candidate() == Some(target) && bearing_to(e, target) <= MAX_FETCH_BEARING
+}
+
+/// Plans a short (weighted A*) sequence of motions after which `fetch` takes object `target`
+/// with the agent facing it, or `None` within the node budget. Nothing is held during the
+/// search.
 pub fn plan_to_fetch(start: &Episode, target: usize, max_nodes: usize) -> Option<Vec<Action>> {
-    if start.fetch_candidate() == Some(target) {
+    if can_fetch_facing(start, target) {
         return Some(Vec::new());
     }
     let reach = start.compiled().rules().fetch_reach;
+    // Moves still needed to come within reach, plus turns still needed to face the object.
     let heuristic = |e: &Episode| {
         let footprint = e.compiled().movable_footprint(target, &e.object_poses()[target]);
-        (footprint.distance_to_point(e.agent_pose().position) - reach).max(0.0) / esrp_core::world::MOVE_DISTANCE
+        let moves =
+            (footprint.distance_to_point(e.agent_pose().position) - reach).max(0.0) / esrp_core::world::MOVE_DISTANCE;
+        let turns = ((bearing_to(e, target) - MAX_FETCH_BEARING).max(0.0) / esrp_core::TURN_ANGLE).floor();
+        moves + turns
     };
     let key = |e: &Episode| {
         let p = e.agent_pose();
@@ -210,7 +233,7 @@ pub fn plan_to_fetch(start: &Episode, target: usize, max_nodes: usize) -> Option
                 continue;
             }
             let cost = nodes[node].3 + 1.0;
-            if next.fetch_candidate() == Some(target) {
+            if can_fetch_facing(&next, target) {
                 let mut path = vec![action];
                 let mut at = node;
                 while at != 0 {
@@ -297,9 +320,10 @@ fn carry_away(
         if taken >= wanted && release_is_good(episode, object, params) {
             return step_recorded(episode, Action::Release, run).then_some(());
         }
+        // Mostly pull the object back out of its place, with turns to swing it aside.
         let action = match dice.below(10) {
-            0..=3 => Action::MoveBackward,
-            4 | 5 => Action::MoveForward,
+            0..=4 => Action::MoveBackward,
+            5 => Action::MoveForward,
             6 | 7 => Action::TurnLeft,
             _ => Action::TurnRight,
         };

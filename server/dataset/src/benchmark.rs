@@ -64,7 +64,7 @@ fn fnv1a(text: &str) -> u64 {
 
 /// The split of a scene id: `test` for one id in ten (by a fixed hash), `train` otherwise.
 pub fn split_for_id(id: &str) -> Split {
-    if fnv1a(id) % 10 == 0 { Split::Test } else { Split::Train }
+    if fnv1a(id).is_multiple_of(10) { Split::Test } else { Split::Train }
 }
 
 impl Benchmark {
@@ -128,7 +128,9 @@ impl Benchmark {
         let mut last = Rejection::TooFewMovable;
         for attempt in 0..MAX_ATTEMPTS {
             let mut dice = Dice::new(self.seed, index as u64, attempt);
-            let result = target_layout(&mut dice, self.room_type(index), self.object_count(index))
+            // After every 8 rejected attempts, make the room a little roomier.
+            let ease = (attempt / 8) as f64;
+            let result = target_layout(&mut dice, self.room_type(index), self.object_count(index), ease)
                 .map_err(|LayoutFailure::TooFewMovable| Rejection::TooFewMovable)
                 .and_then(|mut target| {
                     target.id = self.scene_id(index);

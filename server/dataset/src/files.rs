@@ -1,1 +1,176 @@
-//! Dataset files.
+//! The on-disk dataset format: `DIR/manifest.json` plus one `esrp.scene/v1` JSON file per
+//! scene under `DIR/scenes/`. Every file is written to a temporary name and renamed into place,
+//! so a crash never leaves a half-written file, and the manifest is written last.
+
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use esrp_core::Scene;
+use serde::{Deserialize, Serialize};
+
+/// The manifest's schema string.
+pub const MANIFEST_SCHEMA: &str = "esrp.dataset/v1";
+
+/// One scene's entry in the manifest.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ManifestEntry {
+    /// Scene id.
+    pub id: String,
+    /// File name under `scenes/`.
+    pub file: String,
+    /// 3D-FRONT room type.
+    pub room_type: String,
+    /// `easy` / `medium` / `hard`.
+    pub difficulty: esrp_core::Difficulty,
+    /// `train` / `test`.
+    pub split: esrp_core::Split,
+    /// Number of movable objects.
+    pub movable_objects: usize,
+    /// Length of the expert trajectory.
+    pub expert_length: usize,
+}
+
+/// `DIR/manifest.json`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    /// Always [`MANIFEST_SCHEMA`].
+    pub schema: String,
+    /// Dataset name, e.g. `esrp-bench-v1`.
+    pub name: String,
+    /// Generator and version that wrote it.
+    pub generator: String,
+    /// Seed of a generated dataset.
+    #[serde(default)]
+    pub seed: Option<u64>,
+    /// Rejected generation attempts by reason.
+    #[serde(default)]
+    pub rejections: BTreeMap<String, usize>,
+    /// The scenes, in order.
+    pub scenes: Vec<ManifestEntry>,
+}
+
+/// A problem reading or writing dataset files.
+#[derive(Debug, thiserror::Error)]
+pub enum FilesError {
+    /// An I/O error on a path.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file or folder.
+        path: PathBuf,
+        /// The error.
+        source: std::io::Error,
+    },
+    /// A file is not valid JSON of the expected shape.
+    #[error("{path}: {message}")]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+}
+
+fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> FilesError + '_ {
+    move |source| FilesError::Io { path: path.to_owned(), source }
+}
+
+/// Writes `bytes` to `path` atomically: a temporary file beside it, flushed, then renamed.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FilesError> {
+    let dir = path.parent().unwrap_or(Path::new("."));
+    std::fs::create_dir_all(dir).map_err(io_error(dir))?;
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
+    let mut file = std::fs::File::create(&tmp).map_err(io_error(&tmp))?;
+    file.write_all(bytes).and_then(|()| file.sync_all()).map_err(io_error(&tmp))?;
+    std::fs::rename(&tmp, path).map_err(io_error(path))
+}
+
+/// The file name of a scene: its id with every character outside `[A-Za-z0-9._-]` replaced by
+/// `_`, plus `.json` (`esrp-bench-v1/00042` → `esrp-bench-v1_00042.json`).
+pub fn scene_file_name(id: &str) -> String {
+    let safe: String =
+        id.chars().map(|c| if c.is_ascii_alphanumeric() || "._-".contains(c) { c } else { '_' }).collect();
+    format!("{safe}.json")
+}
+
+/// Writes one scene under `dir/scenes/` and returns its manifest entry.
+pub fn write_scene(dir: &Path, scene: &Scene) -> Result<ManifestEntry, FilesError> {
+    let file = scene_file_name(&scene.id);
+    let mut text = scene.to_json_pretty();
+    text.push('\n');
+    write_atomic(&dir.join("scenes").join(&file), text.as_bytes())?;
+    Ok(ManifestEntry {
+        id: scene.id.clone(),
+        file,
+        room_type: scene.room_type.clone(),
+        difficulty: scene.difficulty,
+        split: scene.split,
+        movable_objects: scene.movable_objects.len(),
+        expert_length: scene.expert_trajectory.len(),
+    })
+}
+
+/// Writes the manifest (last, after every scene file).
+pub fn write_manifest(dir: &Path, manifest: &Manifest) -> Result<(), FilesError> {
+    let mut text = serde_json::to_string_pretty(manifest).unwrap_or_default();
+    text.push('\n');
+    write_atomic(&dir.join("manifest.json"), text.as_bytes())
+}
+
+/// A dataset on disk.
+#[derive(Clone, Debug)]
+pub struct Dataset {
+    dir: PathBuf,
+    manifest: Manifest,
+}
+
+impl Dataset {
+    /// Opens `dir` by reading its manifest.
+    pub fn open(dir: &Path) -> Result<Self, FilesError> {
+        let path = dir.join("manifest.json");
+        let text = std::fs::read_to_string(&path).map_err(io_error(&path))?;
+        let manifest: Manifest = serde_json::from_str(&text)
+            .map_err(|e| FilesError::Parse { path: path.clone(), message: e.to_string() })?;
+        if manifest.schema != MANIFEST_SCHEMA {
+            return Err(FilesError::Parse {
+                path,
+                message: format!("unknown manifest schema {:?}: expected {MANIFEST_SCHEMA:?}", manifest.schema),
+            });
+        }
+        Ok(Self { dir: dir.to_owned(), manifest })
+    }
+
+    /// The manifest.
+    pub fn manifest(&self) -> &Manifest {
+        &self.manifest
+    }
+
+    /// The folder.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Reads the scene of one manifest entry.
+    pub fn read_scene(&self, entry: &ManifestEntry) -> Result<Scene, FilesError> {
+        let path = self.dir.join("scenes").join(&entry.file);
+        let text = std::fs::read_to_string(&path).map_err(io_error(&path))?;
+        Scene::from_json(&text).map_err(|e| FilesError::Parse { path, message: e.to_string() })
+    }
+
+    /// Reads the scene with id `id`, if the manifest lists it.
+    pub fn scene_by_id(&self, id: &str) -> Option<Result<Scene, FilesError>> {
+        self.manifest.scenes.iter().find(|e| e.id == id).map(|e| self.read_scene(e))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn file_names_are_safe() {
+        assert_eq!(scene_file_name("esrp-bench-v1/00042"), "esrp-bench-v1_00042.json");
+        assert_eq!(scene_file_name("3dfront/a b/../c"), "3dfront_a_b_.._c.json");
+    }
+}

@@ -155,7 +155,9 @@ impl RoomPlan {
 
     /// Adds a door of `width` on a wall long enough, keeping the floor in front of it clear.
     pub fn add_door(&mut self, dice: &mut Dice, width: f64) -> bool {
-        let candidates: Vec<usize> = (0..self.walls.len()).filter(|&i| self.walls[i].length >= width + 0.5).collect();
+        let candidates: Vec<usize> = (0..self.walls.len())
+            .filter(|&i| self.walls[i].length >= width + 0.5 && !self.openings.iter().any(|o| o.wall == i))
+            .collect();
         if candidates.is_empty() {
             return false;
         }
@@ -224,14 +226,22 @@ impl RoomPlan {
         wall: Option<usize>,
         at: Option<f64>,
     ) -> Option<usize> {
-        for _ in 0..12 {
-            let index = wall.unwrap_or_else(|| dice.below(self.walls.len()));
+        for attempt in 0..12 {
+            // The requested wall and spot first, then jittered spots on it, then any wall.
+            let index = match wall {
+                Some(w) if attempt < 8 => w,
+                _ => dice.below(self.walls.len()),
+            };
             let w = self.walls[index];
             let half = model.width() / 2.0 + GAP;
             if w.length < 2.0 * half {
                 continue;
             }
-            let t = at.unwrap_or_else(|| dice.unit());
+            let t = match at {
+                Some(t) if attempt == 0 => t,
+                Some(t) if attempt < 8 => (t + dice.uniform(-0.2, 0.2)).clamp(0.0, 1.0),
+                _ => dice.unit(),
+            };
             let u = half + t * (w.length - 2.0 * half);
             let inset = model.depth() / 2.0 + GAP + 0.005;
             let pose = ObjectPose::new(
@@ -604,8 +614,20 @@ pub const CATEGORY_SHARES: [(MovableCategory, f64); 5] = [
     (MovableCategory::Others, 772.0),
 ];
 
+/// How often rooms offer each category, measured on generated rooms: the selection weight
+/// divides the target share by it so that the chosen objects follow [`CATEGORY_SHARES`].
+const CATEGORY_SUPPLY: [(MovableCategory, f64); 5] = [
+    (MovableCategory::CabinetShelfDesk, 0.85),
+    (MovableCategory::Chair, 1.0),
+    (MovableCategory::Sofa, 0.6),
+    (MovableCategory::PierStool, 0.6),
+    (MovableCategory::Others, 2.0),
+];
+
 fn category_weight(category: MovableCategory) -> f64 {
-    CATEGORY_SHARES.iter().find(|(c, _)| *c == category).map_or(1.0, |(_, w)| *w)
+    let share = CATEGORY_SHARES.iter().find(|(c, _)| *c == category).map_or(1.0, |(_, w)| *w);
+    let supply = CATEGORY_SUPPLY.iter().find(|(c, _)| *c == category).map_or(1.0, |(_, s)| *s);
+    share / supply
 }
 
 /// Why a target layout could not be made.
@@ -618,8 +640,19 @@ pub enum LayoutFailure {
 /// A furnished target layout with `movable_count` pieces chosen to be moved, as a scene whose
 /// movable objects all stand at their targets (the start of backward construction), with the
 /// agent not yet placed.
-pub fn target_layout(dice: &mut Dice, room_type: &str, movable_count: usize) -> Result<Scene, LayoutFailure> {
+///
+/// Rooms grow with the number of objects to move (a room with six pieces to rearrange needs
+/// floor to carry them about), and by `ease` (0 at first, raised by the caller after rejected
+/// attempts) so that a hard combination still yields a scene.
+pub fn target_layout(
+    dice: &mut Dice,
+    room_type: &str,
+    movable_count: usize,
+    ease: f64,
+) -> Result<Scene, LayoutFailure> {
     let (width, depth, l_chance) = room_size(dice, room_type);
+    let scale = 1.0 + 0.06 * movable_count.saturating_sub(1) as f64 + 0.08 * ease;
+    let (width, depth) = (width * scale, depth * scale);
     let notch = dice.chance(l_chance).then(|| (dice.uniform(0.25, 0.4), dice.uniform(0.25, 0.4), dice.below(4)));
     let mut plan = RoomPlan::new(width, depth, notch);
     plan.add_door(dice, 0.9);
@@ -740,7 +773,7 @@ mod tests {
         let mut beds = 0;
         for seed in 0..20 {
             let mut dice = Dice::new(seed, 0, 0);
-            let scene = target_layout(&mut dice, "MasterBedroom", 1).unwrap();
+            let scene = target_layout(&mut dice, "MasterBedroom", 1, 0.0).unwrap();
             if let Some(bed) = scene.fixed_objects.iter().find(|o| o.category == "bed") {
                 beds += 1;
                 let stands = scene

@@ -1,1 +1,240 @@
-fn main() {}
+//! `esrp-dataset`: generate, validate, inspect and describe ESRP-Bench datasets.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::Mutex;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::{Parser, Subcommand};
+use esrp_dataset::files::{Dataset, MANIFEST_SCHEMA, Manifest, write_manifest, write_scene};
+use esrp_dataset::stats::Stats;
+use esrp_dataset::{BENCH_NAME, Benchmark, DEFAULT_SEED, validate_by_replay};
+use indicatif::{ProgressBar, ProgressStyle};
+use rayon::prelude::*;
+
+#[derive(Parser)]
+#[command(name = "esrp-dataset", version, about = "ESRP-Bench: generate, validate and describe scene-pair datasets")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Generate scenes of the built-in benchmark (esrp-bench-v1) into a folder.
+    Generate {
+        /// Output folder (gets manifest.json and scenes/).
+        #[arg(long)]
+        out: PathBuf,
+        /// How many scenes (default: all from --first to the end).
+        #[arg(long)]
+        scenes: Option<usize>,
+        /// Index of the first scene.
+        #[arg(long, default_value_t = 0)]
+        first: usize,
+        /// Benchmark seed (0 is esrp-bench-v1 itself).
+        #[arg(long, default_value_t = DEFAULT_SEED)]
+        seed: u64,
+        /// Worker threads (default: all cores).
+        #[arg(long)]
+        threads: Option<usize>,
+        /// Overwrite a folder that already holds a dataset.
+        #[arg(long)]
+        force: bool,
+    },
+    /// Check every scene of a dataset: schema, esrp-core validation and expert replay.
+    Validate {
+        /// Dataset folder.
+        dir: PathBuf,
+    },
+    /// Write statistics (JSON and PNG plots) of a dataset.
+    Stats {
+        /// Dataset folder.
+        dir: PathBuf,
+        /// Output folder for stats.json and the plots.
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Print one scene as JSON: from a dataset folder, or generated from the built-in benchmark.
+    Show {
+        /// Scene id (e.g. esrp-bench-v1/00042) or index into the built-in benchmark.
+        id: String,
+        /// Read the scene from this dataset folder instead of generating it.
+        #[arg(long)]
+        dataset: Option<PathBuf>,
+        /// Benchmark seed when generating.
+        #[arg(long, default_value_t = DEFAULT_SEED)]
+        seed: u64,
+    },
+}
+
+fn progress(len: usize, what: &str) -> ProgressBar {
+    let bar = ProgressBar::new(len as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{prefix} [{elapsed_precise}] {wide_bar} {pos}/{len} ({per_sec}, eta {eta})")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    bar.set_prefix(what.to_owned());
+    bar
+}
+
+fn generate(out: &Path, scenes: Option<usize>, first: usize, seed: u64, force: bool) -> Result<bool> {
+    let bench = Benchmark::new(seed);
+    if first >= bench.len() {
+        bail!("--first {first} is past the end: the benchmark has {} scenes (0..{})", bench.len(), bench.len());
+    }
+    let count = scenes.unwrap_or(bench.len() - first);
+    if first + count > bench.len() {
+        bail!("--first {first} --scenes {count} runs past the benchmark's {} scenes", bench.len());
+    }
+    if out.join("manifest.json").exists() && !force {
+        bail!("{} already holds a dataset (manifest.json): choose another --out or pass --force", out.display());
+    }
+    let started = Instant::now();
+    let bar = progress(count, "generate");
+    let rejections: Mutex<BTreeMap<String, usize>> = Mutex::new(BTreeMap::new());
+    let results: Vec<Result<esrp_dataset::files::ManifestEntry, String>> = (first..first + count)
+        .into_par_iter()
+        .map(|index| {
+            let result = match bench.generate(index) {
+                Ok(generated) => {
+                    if let Ok(mut totals) = rejections.lock() {
+                        for (reason, n) in &generated.rejections {
+                            *totals.entry((*reason).to_owned()).or_default() += n;
+                        }
+                    }
+                    write_scene(out, &generated.scene).map_err(|e| e.to_string())
+                }
+                Err(failed) => Err(failed.to_string()),
+            };
+            bar.inc(1);
+            result
+        })
+        .collect();
+    bar.finish_and_clear();
+    let mut entries = Vec::with_capacity(count);
+    let mut failures = 0;
+    for result in results {
+        match result {
+            Ok(entry) => entries.push(entry),
+            Err(message) => {
+                failures += 1;
+                eprintln!("error: {message}");
+            }
+        }
+    }
+    let rejections = rejections.into_inner().unwrap_or_default();
+    let manifest = Manifest {
+        schema: MANIFEST_SCHEMA.to_owned(),
+        name: if seed == DEFAULT_SEED { BENCH_NAME.to_owned() } else { format!("{BENCH_NAME}-s{seed}") },
+        generator: format!("esrp-dataset {}", env!("CARGO_PKG_VERSION")),
+        seed: Some(seed),
+        rejections: rejections.clone(),
+        scenes: entries,
+    };
+    write_manifest(out, &manifest)?;
+    let elapsed = started.elapsed().as_secs_f64();
+    println!(
+        "wrote {} scenes to {} in {:.1} s ({:.1} ms per scene, {} threads)",
+        manifest.scenes.len(),
+        out.display(),
+        elapsed,
+        1e3 * elapsed / count.max(1) as f64,
+        rayon::current_num_threads()
+    );
+    let rejected: usize = rejections.values().sum();
+    println!("rejected attempts: {rejected} {rejections:?}");
+    if failures > 0 {
+        eprintln!("{failures} scene(s) could not be generated");
+    }
+    Ok(failures == 0)
+}
+
+fn validate(dir: &Path) -> Result<bool> {
+    let dataset = Dataset::open(dir)?;
+    let entries = &dataset.manifest().scenes;
+    let bar = progress(entries.len(), "validate");
+    let failures: Vec<(String, String)> = entries
+        .par_iter()
+        .filter_map(|entry| {
+            let outcome = match dataset.read_scene(entry) {
+                Err(e) => Some(e.to_string()),
+                Ok(scene) if scene.id != entry.id => {
+                    Some(format!("the file holds scene {:?}, the manifest says {:?}", scene.id, entry.id))
+                }
+                Ok(scene) => validate_by_replay(&scene).err().map(|e| e.to_string()),
+            };
+            bar.inc(1);
+            outcome.map(|reason| (entry.id.clone(), reason))
+        })
+        .collect();
+    bar.finish_and_clear();
+    for (id, reason) in &failures {
+        eprintln!("{id}: {reason}");
+    }
+    println!("{} of {} scenes valid", entries.len() - failures.len(), entries.len());
+    Ok(failures.is_empty())
+}
+
+fn stats(dir: &Path, out: &Path) -> Result<()> {
+    let dataset = Dataset::open(dir)?;
+    let mut stats = Stats::default();
+    for entry in &dataset.manifest().scenes {
+        stats.add(&dataset.read_scene(entry)?);
+    }
+    stats.write(out)?;
+    println!("{}", serde_json::to_string_pretty(&stats)?);
+    println!("wrote stats.json and plots to {}", out.display());
+    Ok(())
+}
+
+fn show(id: &str, dataset: Option<&Path>, seed: u64) -> Result<()> {
+    let scene = match dataset {
+        Some(dir) => {
+            Dataset::open(dir)?.scene_by_id(id).with_context(|| format!("no scene {id:?} in {}", dir.display()))??
+        }
+        None => {
+            let bench = Benchmark::new(seed);
+            let index = match id.parse::<usize>() {
+                Ok(i) if i < bench.len() => i,
+                _ => bench.index_of(id).with_context(|| {
+                    format!(
+                        "{id:?} is not a scene of {} (ids {} to {})",
+                        BENCH_NAME,
+                        bench.scene_id(0),
+                        bench.scene_id(bench.len() - 1)
+                    )
+                })?,
+            };
+            bench.generate(index)?.scene
+        }
+    };
+    println!("{}", scene.to_json_pretty());
+    Ok(())
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Generate { out, scenes, first, seed, threads, force } => {
+            if let Some(threads) = threads {
+                // Only fails if a pool was already built, which cannot happen here.
+                let _ = rayon::ThreadPoolBuilder::new().num_threads(threads).build_global();
+            }
+            generate(&out, scenes, first, seed, force)
+        }
+        Command::Validate { dir } => validate(&dir),
+        Command::Stats { dir, out } => stats(&dir, &out).map(|()| true),
+        Command::Show { id, dataset, seed } => show(&id, dataset.as_deref(), seed).map(|()| true),
+    };
+    match result {
+        Ok(true) => ExitCode::SUCCESS,
+        Ok(false) => ExitCode::FAILURE,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
