@@ -286,7 +286,10 @@ pub fn construct(mut target: Scene, dice: &mut Dice, params: &ConstructionParams
     }
     let agent = episode.agent_pose();
     scene.agent = AgentStart { x: agent.position.x, z: agent.position.z, heading: agent.heading };
-    scene.expert_trajectory = reverse_trajectory(&run);
+    // The approach to the first object is not part of the demonstration: reversed, it would
+    // trail after the final release, which already ends the episode in success.
+    let first_fetch = run.iter().position(|a| *a == Action::Fetch).unwrap_or(0);
+    scene.expert_trajectory = reverse_trajectory(&run[first_fetch..]);
     scene.horizon = horizon_for(scene.expert_trajectory.len());
     validate_by_replay(&scene)?;
     Ok(scene)

@@ -23,12 +23,12 @@ pub const TRIANGLE_BUDGET: usize = 3000;
 /// `esrp-bench-v1` (5,495 in all; 8 types above 100, MasterBedroom and LivingDiningRoom largest,
 /// the top six above 80 %).
 pub const ROOM_TYPES: [(&str, usize); 24] = [
-    ("MasterBedroom", 1500),
-    ("LivingDiningRoom", 1300),
-    ("SecondBedroom", 800),
-    ("Bedroom", 600),
-    ("LivingRoom", 350),
-    ("DiningRoom", 240),
+    ("MasterBedroom", 1430),
+    ("LivingDiningRoom", 1200),
+    ("SecondBedroom", 760),
+    ("Bedroom", 560),
+    ("LivingRoom", 340),
+    ("DiningRoom", 230),
     ("StudyRoom", 150),
     ("Library", 120),
     ("KidsRoom", 95),

@@ -1,0 +1,91 @@
+//! The `esrp-dataset` command line, run as a real process.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn run(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_esrp-dataset")).args(args).output().expect("the binary runs")
+}
+
+fn text(output: &Output) -> String {
+    format!("{}{}", String::from_utf8_lossy(&output.stdout), String::from_utf8_lossy(&output.stderr))
+}
+
+fn files_in(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut files: Vec<_> = std::fs::read_dir(dir.join("scenes"))
+        .unwrap()
+        .map(|e| {
+            let e = e.unwrap();
+            (e.file_name().to_string_lossy().into_owned(), std::fs::read(e.path()).unwrap())
+        })
+        .collect();
+    files.sort();
+    files
+}
+
+#[test]
+fn generate_validate_stats_and_show() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (a, b) = (tmp.path().join("a"), tmp.path().join("b"));
+    let out = run(&["generate", "--out", a.to_str().unwrap(), "--scenes", "6", "--first", "10"]);
+    assert!(out.status.success(), "{}", text(&out));
+    assert!(text(&out).contains("wrote 6 scenes"));
+    // The same command gives byte-identical files, with one thread as with many.
+    let out = run(&["generate", "--out", b.to_str().unwrap(), "--scenes", "6", "--first", "10", "--threads", "1"]);
+    assert!(out.status.success(), "{}", text(&out));
+    let files = files_in(&a);
+    assert_eq!(files.len(), 6);
+    assert_eq!(files, files_in(&b));
+    assert!(files[0].0.starts_with("esrp-bench-v1_00010"));
+    // Refuses to overwrite without --force.
+    let out = run(&["generate", "--out", a.to_str().unwrap(), "--scenes", "1"]);
+    assert!(!out.status.success() && text(&out).contains("--force"), "{}", text(&out));
+
+    let out = run(&["validate", a.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", text(&out));
+    assert!(text(&out).contains("6 of 6 scenes valid"));
+
+    let stats = tmp.path().join("stats");
+    let out = run(&["stats", a.to_str().unwrap(), "--out", stats.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", text(&out));
+    for plot in ["room_types.png", "categories.png", "difficulty.png", "clutter.png"] {
+        let bytes = std::fs::read(stats.join(plot)).unwrap();
+        assert_eq!(&bytes[1..4], b"PNG", "{plot}");
+    }
+    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(stats.join("stats.json")).unwrap()).unwrap();
+    assert_eq!(json["scenes"], 6);
+
+    // `show` by id from the folder equals the file; by index it generates the same scene.
+    let out = run(&["show", "esrp-bench-v1/00012", "--dataset", a.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", text(&out));
+    let shown = String::from_utf8(out.stdout).unwrap();
+    let generated = run(&["show", "12"]);
+    assert_eq!(shown, String::from_utf8(generated.stdout).unwrap());
+    let file = std::fs::read_to_string(a.join("scenes/esrp-bench-v1_00012.json")).unwrap();
+    assert_eq!(shown, file);
+}
+
+#[test]
+fn validate_reports_a_broken_scene_and_fails() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("d");
+    assert!(run(&["generate", "--out", dir.to_str().unwrap(), "--scenes", "2"]).status.success());
+    let path = dir.join("scenes/esrp-bench-v1_00001.json");
+    let mut scene: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    scene["expert_trajectory"] = serde_json::json!([0, 1]);
+    std::fs::write(&path, scene.to_string()).unwrap();
+    let out = run(&["validate", dir.to_str().unwrap()]);
+    assert!(!out.status.success());
+    let t = text(&out);
+    assert!(t.contains("esrp-bench-v1/00001") && t.contains("replay") && t.contains("1 of 2 scenes valid"), "{t}");
+}
+
+#[test]
+fn bad_arguments_get_clear_errors() {
+    let out = run(&["generate", "--out", "/tmp/never-written", "--first", "99999"]);
+    assert!(!out.status.success() && text(&out).contains("past the end"), "{}", text(&out));
+    let out = run(&["show", "no-such-scene"]);
+    assert!(!out.status.success() && text(&out).contains("is not a scene of esrp-bench-v1"), "{}", text(&out));
+    let out = run(&["validate", "/nonexistent/dataset"]);
+    assert!(!out.status.success() && text(&out).contains("manifest.json"), "{}", text(&out));
+}
