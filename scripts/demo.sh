@@ -1,9 +1,14 @@
 #!/usr/bin/env bash
-# The main job: builds the simulator and replays the expert trajectory of the example scene,
-# printing SR / OSR / RDR. (The gRPC server on the built-in benchmark replaces this demo when
-# it lands: see issue "gRPC server (esrp-server)".) Usage: bash scripts/demo.sh
+# The main job, until the gRPC server lands: generates the first scenes of the built-in
+# benchmark esrp-bench-v1, validates them, and replays their expert trajectories through the
+# simulator, printing SR / OSR / RDR. Usage: bash scripts/demo.sh [SCENES]
 set -euo pipefail
 cd "$(dirname "$0")/.."
-cargo run --release --locked -q -p esrp-core --example replay -- server/core/examples/scenes/bedroom.json
+scenes="${1:-24}"
+out=target/demo/esrp-bench-v1
+cargo build --release --locked -q -p esrp-dataset -p esrp-core --example replay
+./target/release/esrp-dataset generate --out "$out" --scenes "$scenes" --force
+./target/release/esrp-dataset validate "$out"
+./target/release/examples/replay "$out"/scenes/*.json | tail -n 4
 echo
-echo "The gRPC server (esrp-server) on the built-in benchmark is not built yet; this demo runs the simulator alone."
+echo "The gRPC server (esrp-server) is not built yet: this demo drives the simulator directly."
