@@ -64,7 +64,7 @@ fn fnv1a(text: &str) -> u64 {
 
 /// The split of a scene id: `test` for one id in ten (by a fixed hash), `train` otherwise.
 pub fn split_for_id(id: &str) -> Split {
-    if fnv1a(id) % 10 == 0 { Split::Test } else { Split::Train }
+    if fnv1a(id).is_multiple_of(10) { Split::Test } else { Split::Train }
 }
 
 impl Benchmark {
