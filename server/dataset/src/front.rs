@@ -912,6 +912,7 @@ fn slug(text: &str) -> String {
 
 /// The target layout of one attempt as a scene (agent not yet placed).
 fn target_scene(id: &str, room_type: &str, draft: &RoomDraft, chosen: &[usize], poses: &[ObjectPose]) -> Option<Scene> {
+    let difficulty = Difficulty::for_object_count(chosen.len())?;
     let mut fixed_objects = Vec::new();
     let mut movable_objects = Vec::new();
     for (i, piece) in draft.pieces.iter().enumerate() {
@@ -938,7 +939,7 @@ fn target_scene(id: &str, room_type: &str, draft: &RoomDraft, chosen: &[usize], 
         schema: SCENE_SCHEMA.to_owned(),
         id: id.to_owned(),
         room_type: room_type.to_owned(),
-        difficulty: Difficulty::for_object_count(movable_objects.len())?,
+        difficulty,
         split: split_for_id(id),
         room: Room {
             floor: draft.floor.iter().map(|p| [p.x, p.z]).collect(),
@@ -1100,10 +1101,13 @@ fn draft_room(
             ModelGeometry::Hull(points) => (points, false),
             ModelGeometry::Missing => match item.bbox.as_deref() {
                 Some(&[x, y, z]) if x > 0.0 && y > 0.0 && z > 0.0 => {
-                    report.warnings.push(format!(
-                        "{room_name}: furniture {} ({jid}) has no model; using a box of its bbox",
-                        item.uid
-                    ));
+                    if jid.is_empty() {
+                        // (A model that is missing was warned about once, by the library.)
+                        report.warnings.push(format!(
+                            "{room_name}: furniture {} has no model id; using a box of its bbox",
+                            item.uid
+                        ));
+                    }
                     (box_corners(&[[-x / 2.0, 0.0, -z / 2.0], [x / 2.0, y, z / 2.0]]), true)
                 }
                 _ => {
@@ -1341,6 +1345,58 @@ mod tests {
 
         // Same seed, same scenes.
         assert_eq!(import_fixture().scenes, report.scenes);
+    }
+
+    fn box_piece(category: &str, movable: Option<MovableCategory>, size: [f64; 3], x: f64, z: f64) -> Piece {
+        let [sx, sy, sz] = size;
+        Piece {
+            jid: format!("{category}-model"),
+            category: category.to_owned(),
+            movable,
+            points: box_corners(&[[-sx / 2.0, 0.0, -sz / 2.0], [sx / 2.0, sy, sz / 2.0]]),
+            is_box: true,
+            pose: ObjectPose::new(x, z, 0.0),
+            size,
+            standing: true,
+        }
+    }
+
+    #[test]
+    fn overlapping_pieces_are_nudged_apart_or_kept_fixed() {
+        let floor: Vec<PlanPoint> =
+            [(0.0, 0.0), (4.0, 0.0), (4.0, 4.0), (0.0, 4.0)].map(|(x, z)| PlanPoint::new(x, z)).to_vec();
+        let wardrobe = box_piece("Wardrobe", None, [1.0, 2.0, 0.6], 1.0, 0.5);
+        let stool = Some(MovableCategory::PierStool);
+        let draft_with = |stool: Piece| RoomDraft {
+            floor: floor.clone(),
+            wall_height: 2.8,
+            openings: Vec::new(),
+            pieces: vec![wardrobe.clone(), stool],
+        };
+        let clearances_of = |draft: &RoomDraft| Clearances {
+            walls: wall_colliders(&draft.floor, draft.wall_height),
+            colliders: draft.pieces.iter().map(Piece::collider).collect(),
+        };
+
+        // A stool 5 cm into the wardrobe's front is moved out and becomes movable.
+        let draft = draft_with(box_piece("Stool", stool, [0.4, 0.45, 0.4], 1.0, 0.95));
+        let clearances = clearances_of(&draft);
+        let (chosen, poses, nudged, stuck) = choose_movables(&draft, &clearances, &mut Dice::new(0, 1, 0));
+        assert_eq!((chosen.as_slice(), nudged, stuck), (&[1][..], 1, 0));
+        let moved = poses[1].position().distance(draft.pieces[1].pose.position());
+        assert!(moved > 0.05 && moved <= 0.3 + 1e-9, "moved {moved}");
+        assert!(clearances.is_clear(1, &poses[1], &poses));
+        let target = target_scene("test/nudged", "Bedroom", &draft, &chosen, &poses).unwrap();
+        assert_eq!(target.movable_objects.len(), 1);
+        let scene = construct(target, &mut Dice::new(0, 1, 0), &ConstructionParams::default())
+            .expect("the nudged target layout is valid for backward construction");
+        crate::backward::validate_by_replay(&scene).unwrap();
+
+        // A stool deep inside the wardrobe cannot be freed: it stays fixed.
+        let draft = draft_with(box_piece("Stool", stool, [0.4, 0.45, 0.4], 1.0, 0.5));
+        let (chosen, poses, nudged, stuck) = choose_movables(&draft, &clearances_of(&draft), &mut Dice::new(0, 1, 0));
+        assert_eq!((chosen.len(), nudged, stuck), (0, 0, 1));
+        assert!(target_scene("test/stuck", "Bedroom", &draft, &chosen, &poses).is_none());
     }
 
     #[test]
