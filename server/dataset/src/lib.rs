@@ -10,6 +10,7 @@
 //! - [`backward`]: the rule-based agent that moves objects away from their targets, the expert
 //!   trajectory and the replay check.
 //! - [`benchmark`]: `esrp-bench-v1`, 5,495 scenes defined by a seed, any one generated alone.
+//! - [`front`]: the 3D-FRONT importer: houses and 3D-FUTURE models to scene pairs.
 //! - [`files`]: the on-disk format (`manifest.json` and `scenes/*.json`), written atomically.
 //! - [`stats`]: dataset statistics as JSON and PNG plots.
 //! - [`dice`]: the portable seeded random source.
@@ -31,6 +32,7 @@ pub mod benchmark;
 pub mod catalogue;
 pub mod dice;
 pub mod files;
+pub mod front;
 pub mod layout;
 pub mod stats;
 
