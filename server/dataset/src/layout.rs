@@ -618,10 +618,10 @@ pub const CATEGORY_SHARES: [(MovableCategory, f64); 5] = [
 /// divides the target share by it so that the chosen objects follow [`CATEGORY_SHARES`].
 const CATEGORY_SUPPLY: [(MovableCategory, f64); 5] = [
     (MovableCategory::CabinetShelfDesk, 0.85),
-    (MovableCategory::Chair, 1.0),
-    (MovableCategory::Sofa, 0.6),
-    (MovableCategory::PierStool, 0.6),
-    (MovableCategory::Others, 2.0),
+    (MovableCategory::Chair, 0.88),
+    (MovableCategory::Sofa, 0.74),
+    (MovableCategory::PierStool, 0.74),
+    (MovableCategory::Others, 2.2),
 ];
 
 fn category_weight(category: MovableCategory) -> f64 {

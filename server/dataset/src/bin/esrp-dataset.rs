@@ -9,6 +9,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand};
 use esrp_dataset::files::{Dataset, MANIFEST_SCHEMA, Manifest, write_manifest, write_scene};
+use esrp_dataset::front::{ImportOptions, import};
 use esrp_dataset::stats::Stats;
 use esrp_dataset::{BENCH_NAME, Benchmark, DEFAULT_SEED, validate_by_replay};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -56,6 +57,28 @@ enum Command {
         /// Output folder for stats.json and the plots.
         #[arg(long)]
         out: PathBuf,
+    },
+    /// Import rooms of 3D-FRONT (with 3D-FUTURE models) as scene pairs, by backward construction.
+    #[command(name = "import-3dfront")]
+    Import3dFront {
+        /// Folder of 3D-FRONT house JSON files.
+        #[arg(long)]
+        front: PathBuf,
+        /// The 3D-FUTURE-model folder (or its parent), with model_info.json.
+        #[arg(long)]
+        future: PathBuf,
+        /// Output folder (gets manifest.json and scenes/).
+        #[arg(long)]
+        out: PathBuf,
+        /// Seed for the choice of movable pieces and the backward construction.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Import at most this many houses.
+        #[arg(long)]
+        max_houses: Option<usize>,
+        /// Overwrite a folder that already holds a dataset.
+        #[arg(long)]
+        force: bool,
     },
     /// Print one scene as JSON: from a dataset folder, or generated from the built-in benchmark.
     Show {
@@ -152,6 +175,55 @@ fn generate(out: &Path, scenes: Option<usize>, first: usize, seed: u64, force: b
     Ok(failures == 0)
 }
 
+fn import_3dfront(front: &Path, future: &Path, out: &Path, options: &ImportOptions, force: bool) -> Result<bool> {
+    if out.join("manifest.json").exists() && !force {
+        bail!("{} already holds a dataset (manifest.json): choose another --out or pass --force", out.display());
+    }
+    let started = Instant::now();
+    let bar = ProgressBar::new(0);
+    bar.set_style(
+        ProgressStyle::with_template("import [{elapsed_precise}] {wide_bar} {pos}/{len} houses (eta {eta})")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let report = import(front, future, options, &|done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    })?;
+    bar.finish_and_clear();
+    // Every scene is written only now, after the whole import succeeded: a failed import
+    // leaves no partial dataset behind.
+    let mut entries = Vec::with_capacity(report.scenes.len());
+    for scene in &report.scenes {
+        entries.push(write_scene(out, scene)?);
+    }
+    let manifest = Manifest {
+        schema: MANIFEST_SCHEMA.to_owned(),
+        name: "3dfront".to_owned(),
+        generator: format!("esrp-dataset {} import-3dfront", env!("CARGO_PKG_VERSION")),
+        seed: Some(options.seed),
+        rejections: report.rooms_skipped.clone(),
+        scenes: entries,
+    };
+    write_manifest(out, &manifest)?;
+    for warning in report.warnings.iter().take(20) {
+        eprintln!("warning: {warning}");
+    }
+    if report.warnings.len() > 20 {
+        eprintln!("... and {} more warnings", report.warnings.len() - 20);
+    }
+    println!(
+        "imported {} of {} rooms from {} houses into {} in {:.1} s",
+        report.rooms_imported,
+        report.rooms_seen,
+        report.houses,
+        out.display(),
+        started.elapsed().as_secs_f64()
+    );
+    println!("rooms skipped: {:?}", report.rooms_skipped);
+    println!("objects dropped: {:?}; nudged apart: {}", report.objects_dropped, report.objects_nudged);
+    Ok(true)
+}
+
 fn validate(dir: &Path) -> Result<bool> {
     let dataset = Dataset::open(dir)?;
     let entries = &dataset.manifest().scenes;
@@ -224,6 +296,10 @@ fn main() -> ExitCode {
                 let _ = rayon::ThreadPoolBuilder::new().num_threads(threads).build_global();
             }
             generate(&out, scenes, first, seed, force)
+        }
+        Command::Import3dFront { front, future, out, seed, max_houses, force } => {
+            let options = ImportOptions { seed, max_houses, ..ImportOptions::default() };
+            import_3dfront(&front, &future, &out, &options, force)
         }
         Command::Validate { dir } => validate(&dir),
         Command::Stats { dir, out } => stats(&dir, &out).map(|()| true),

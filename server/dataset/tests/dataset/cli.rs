@@ -89,3 +89,39 @@ fn bad_arguments_get_clear_errors() {
     let out = run(&["validate", "/nonexistent/dataset"]);
     assert!(!out.status.success() && text(&out).contains("manifest.json"), "{}", text(&out));
 }
+
+#[test]
+fn import_3dfront_writes_a_valid_dataset() {
+    let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/3dfront");
+    let tmp = tempfile::tempdir().unwrap();
+    let out_dir = tmp.path().join("front");
+    let out = run(&[
+        "import-3dfront",
+        "--front",
+        fixtures.join("front").to_str().unwrap(),
+        "--future",
+        fixtures.join("future").to_str().unwrap(),
+        "--out",
+        out_dir.to_str().unwrap(),
+    ]);
+    let t = text(&out);
+    assert!(out.status.success(), "{t}");
+    assert!(t.contains("imported 1 of 2 rooms") && t.contains("no_floor_mesh") && t.contains("warning"), "{t}");
+    let out = run(&["validate", out_dir.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", text(&out));
+    // A folder without house files is an error that names it, and writes nothing.
+    let empty = tmp.path().join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    let out_dir = tmp.path().join("never");
+    let out = run(&[
+        "import-3dfront",
+        "--front",
+        empty.to_str().unwrap(),
+        "--future",
+        fixtures.join("future").to_str().unwrap(),
+        "--out",
+        out_dir.to_str().unwrap(),
+    ]);
+    assert!(!out.status.success() && text(&out).contains("empty"), "{}", text(&out));
+    assert!(!out_dir.exists());
+}
