@@ -118,10 +118,13 @@ fn generate(out: &Path, scenes: Option<usize>, first: usize, seed: u64, force: b
     let started = Instant::now();
     let bar = progress(count, "generate");
     let rejections: Mutex<BTreeMap<String, usize>> = Mutex::new(BTreeMap::new());
-    let results: Vec<Result<esrp_dataset::files::ManifestEntry, String>> = (first..first + count)
+    let results: Vec<(Result<esrp_dataset::files::ManifestEntry, String>, f64)> = (first..first + count)
         .into_par_iter()
         .map(|index| {
-            let result = match bench.generate(index) {
+            let scene_started = Instant::now();
+            let generated = bench.generate(index);
+            let milliseconds = 1e3 * scene_started.elapsed().as_secs_f64();
+            let result = match generated {
                 Ok(generated) => {
                     if let Ok(mut totals) = rejections.lock() {
                         for (reason, n) in &generated.rejections {
@@ -133,13 +136,16 @@ fn generate(out: &Path, scenes: Option<usize>, first: usize, seed: u64, force: b
                 Err(failed) => Err(failed.to_string()),
             };
             bar.inc(1);
-            result
+            (result, milliseconds)
         })
         .collect();
     bar.finish_and_clear();
+    let mut times: Vec<f64> = results.iter().map(|(_, ms)| *ms).collect();
+    times.sort_by(f64::total_cmp);
+    let percentile = |p: f64| times.get(((times.len() as f64 - 1.0) * p).round() as usize).copied().unwrap_or(0.0);
     let mut entries = Vec::with_capacity(count);
     let mut failures = 0;
-    for result in results {
+    for (result, _) in results {
         match result {
             Ok(entry) => entries.push(entry),
             Err(message) => {
@@ -166,6 +172,12 @@ fn generate(out: &Path, scenes: Option<usize>, first: usize, seed: u64, force: b
         elapsed,
         1e3 * elapsed / count.max(1) as f64,
         rayon::current_num_threads()
+    );
+    println!(
+        "one scene takes {:.1} ms median, {:.1} ms at the 90th percentile, {:.1} ms at most (rejected attempts included)",
+        percentile(0.5),
+        percentile(0.9),
+        percentile(1.0)
     );
     let rejected: usize = rejections.values().sum();
     println!("rejected attempts: {rejected} {rejections:?}");
