@@ -13,8 +13,9 @@
 //! # Invariants
 //!
 //! - **Batch-first, one submit per batch.** Rendering costs per submit and per draw, so callers
-//!   batch across episodes; a batch's outputs are bit-identical to rendering each view alone
-//!   (each view has its own tile, viewport and scissor; nothing is shared between tiles).
+//!   batch across episodes; a batch's RGB and segmentation are bit-identical to rendering each
+//!   view alone (each view has its own tile, viewport and scissor; nothing is shared between
+//!   tiles), and its depth equal to float rounding (interpolation depends on the tile's place).
 //! - **Geometry is uploaded once.** A scene's mesh (floor, walls and doors, fixed furniture in
 //!   the world frame, movable objects in their own frames) never changes. What changes per view
 //!   is 240 bytes of uniforms: the camera and one pose per movable object, which the vertex

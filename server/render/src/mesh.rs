@@ -39,7 +39,7 @@ pub fn category_colour(category: MovableCategory) -> Rgb {
         MovableCategory::Chair => [0.88, 0.20, 0.16],
         MovableCategory::Sofa => [0.18, 0.70, 0.26],
         MovableCategory::PierStool => [0.98, 0.72, 0.08],
-        MovableCategory::Others => [0.72, 0.26, 0.84],
+        MovableCategory::Others => [0.78, 0.22, 0.86],
     }
 }
 
@@ -47,7 +47,7 @@ pub fn category_colour(category: MovableCategory) -> Rgb {
 /// small deterministic brightness tint from the object's index, so that two chairs differ a
 /// little but stay recognisably chairs.
 pub fn movable_colour(category: MovableCategory, index: usize) -> Rgb {
-    const TINTS: [f32; 8] = [1.0, 0.80, 1.16, 0.90, 1.08, 0.72, 0.95, 1.24];
+    const TINTS: [f32; 8] = [1.0, 0.88, 1.12, 0.94, 1.06, 0.84, 0.97, 1.16];
     let tint = TINTS[index % TINTS.len()];
     category_colour(category).map(|c| (c * tint).clamp(0.0, 1.0))
 }
