@@ -20,9 +20,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let info = renderer.adapter_info();
     eprintln!("adapter: {} ({:?}, {})", info.name, info.backend, info.driver_info);
 
-    let (ego, goal, current) = render_scene_pngs(&renderer, &scene, resolution)?;
+    let pngs = render_scene_pngs(&renderer, &scene, resolution)?;
     std::fs::create_dir_all(&out_dir)?;
-    for (name, png) in [("ego.png", ego), ("goal.png", goal), ("current.png", current)] {
+    for (name, png) in [("ego.png", pngs.ego), ("goal.png", pngs.goal), ("current.png", pngs.current)] {
         std::fs::write(out_dir.join(name), png)?;
     }
     eprintln!("wrote ego.png, goal.png, current.png to {}", out_dir.display());

@@ -14,7 +14,9 @@ use crate::renderer::{Renderer, ViewRequest};
 pub fn encode_png_rgb(rgb: &[u8], width: u32, height: u32) -> Result<Vec<u8>, RenderError> {
     let expected = width as usize * height as usize * 3;
     if rgb.len() != expected {
-        return Err(RenderError::Png { reason: format!("{} bytes given for {width}×{height} RGB ({expected})", rgb.len()) });
+        return Err(RenderError::Png {
+            reason: format!("{} bytes given for {width}×{height} RGB ({expected})", rgb.len()),
+        });
     }
     let mut out = Vec::new();
     let mut encoder = png::Encoder::new(&mut out, width, height);
@@ -38,8 +40,12 @@ pub fn decode_png_rgb(data: &[u8]) -> Result<(Vec<u8>, u32, u32), RenderError> {
     buffer.truncate(info.buffer_size());
     let rgb = match (info.color_type, info.bit_depth) {
         (png::ColorType::Rgb, png::BitDepth::Eight) => buffer,
-        (png::ColorType::Rgba, png::BitDepth::Eight) => buffer.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect(),
-        other => return Err(RenderError::Png { reason: format!("unsupported PNG format {other:?}; expected 8-bit RGB") }),
+        (png::ColorType::Rgba, png::BitDepth::Eight) => {
+            buffer.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect()
+        }
+        other => {
+            return Err(RenderError::Png { reason: format!("unsupported PNG format {other:?}; expected 8-bit RGB") });
+        }
     };
     Ok((rgb, info.width, info.height))
 }
@@ -105,15 +111,26 @@ pub fn render_scene_views(
     Ok(SceneViews { resolution, ego: next()?, goal: next()?, current: next()? })
 }
 
-/// [`render_scene_views`] as PNG files' bytes: `(ego, goal, current)`.
+/// A scene's three standard views as PNG files' bytes.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ScenePngs {
+    /// `ego.png`: the egocentric view at the start of an episode.
+    pub ego: Vec<u8>,
+    /// `goal.png`: the target layout, top-down.
+    pub goal: Vec<u8>,
+    /// `current.png`: the initial layout, top-down.
+    pub current: Vec<u8>,
+}
+
+/// [`render_scene_views`] encoded as PNG.
 pub fn render_scene_pngs(
     renderer: &Renderer,
     scene: &Arc<CompiledScene>,
     resolution: u32,
-) -> Result<(Vec<u8>, Vec<u8>, Vec<u8>), RenderError> {
+) -> Result<ScenePngs, RenderError> {
     let views = render_scene_views(renderer, scene, resolution)?;
     let png = |rgb: &[u8]| encode_png_rgb(rgb, resolution, resolution);
-    Ok((png(&views.ego)?, png(&views.goal)?, png(&views.current)?))
+    Ok(ScenePngs { ego: png(&views.ego)?, goal: png(&views.goal)?, current: png(&views.current)? })
 }
 
 /// A PNG contact sheet of the goal images of `scenes`, `columns` per row, rendered in batches.

@@ -158,7 +158,11 @@ impl Triangles {
     fn orient_outward(mut self, inside: P3) -> Self {
         for t in &mut self.0 {
             let n = cross(sub(t[1], t[0]), sub(t[2], t[0]));
-            let centre = [(t[0][0] + t[1][0] + t[2][0]) / 3.0, (t[0][1] + t[1][1] + t[2][1]) / 3.0, (t[0][2] + t[1][2] + t[2][2]) / 3.0];
+            let centre = [
+                (t[0][0] + t[1][0] + t[2][0]) / 3.0,
+                (t[0][1] + t[1][1] + t[2][1]) / 3.0,
+                (t[0][2] + t[1][2] + t[2][2]) / 3.0,
+            ];
             if dot(n, sub(centre, inside)) < 0.0 {
                 t.swap(1, 2);
             }
@@ -205,7 +209,8 @@ fn cylinder_triangles(radius: f64, half_height: f64) -> Triangles {
     for i in 0..CYLINDER_SIDES {
         let (x0, z0) = ring[i];
         let (x1, z1) = ring[(i + 1) % CYLINDER_SIDES];
-        let (b0, b1, t0, t1) = ([x0, -half_height, z0], [x1, -half_height, z1], [x0, half_height, z0], [x1, half_height, z1]);
+        let (b0, b1, t0, t1) =
+            ([x0, -half_height, z0], [x1, -half_height, z1], [x0, half_height, z0], [x1, half_height, z1]);
         out.push([b0, b1, t1]);
         out.push([b0, t1, t0]);
         out.push([[0.0, half_height, 0.0], t0, t1]);
@@ -245,7 +250,8 @@ fn shape_triangles(shape: &Shape) -> Result<Triangles, String> {
         Shape::Mesh(mesh) => {
             let mut all = Vec::with_capacity(mesh.triangles.len());
             for t in &mesh.triangles {
-                let get = |i: u32| mesh.vertices.get(i as usize).copied().ok_or(format!("vertex index {i} out of range"));
+                let get =
+                    |i: u32| mesh.vertices.get(i as usize).copied().ok_or(format!("vertex index {i} out of range"));
                 all.push([get(t[0])?, get(t[1])?, get(t[2])?]);
             }
             Ok(Triangles(all))
@@ -260,10 +266,12 @@ fn triangulate_polygon(points: &[[f64; 2]]) -> Vec<[usize; 3]> {
     if n < 3 {
         return Vec::new();
     }
-    let area2: f64 = (0..n).map(|i| {
-        let (a, b) = (points[i], points[(i + 1) % n]);
-        a[0] * b[1] - b[0] * a[1]
-    }).sum();
+    let area2: f64 = (0..n)
+        .map(|i| {
+            let (a, b) = (points[i], points[(i + 1) % n]);
+            a[0] * b[1] - b[0] * a[1]
+        })
+        .sum();
     let mut remaining: Vec<usize> = if area2 >= 0.0 { (0..n).collect() } else { (0..n).rev().collect() };
     let orient = |a: [f64; 2], b: [f64; 2], c: [f64; 2]| (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]);
     let mut out = Vec::with_capacity(n - 2);
@@ -321,19 +329,13 @@ impl MeshBuilder {
         for t in &triangles.0 {
             let n = cross(sub(t[1], t[0]), sub(t[2], t[0]));
             let len = dot(n, n).sqrt();
-            if !(len > 1e-12) {
+            if len.is_nan() || len <= 1e-12 {
                 continue;
             }
             let normal = n.map(|c| (c / len) as f32);
             for p in t {
                 self.mesh.max_height = self.mesh.max_height.max(p[1]);
-                let vertex = GpuVertex {
-                    position: p.map(|c| c as f32),
-                    slot,
-                    normal,
-                    colour: packed,
-                    segment,
-                };
+                let vertex = GpuVertex { position: p.map(|c| c as f32), slot, normal, colour: packed, segment };
                 let key: [u32; 9] = bytemuck::cast(vertex);
                 let next = self.mesh.vertices.len() as u32;
                 let index = *self.lookup.entry(key).or_insert(next);
@@ -353,13 +355,9 @@ pub fn build_scene_mesh(compiled: &CompiledScene) -> Result<SceneMesh, RenderErr
     let mut builder = MeshBuilder { mesh: SceneMesh::default(), lookup: HashMap::new() };
 
     let floor = &scene.room.floor;
-    let floor_triangles = Triangles(
-        triangulate_polygon(floor)
-            .into_iter()
-            .map(|t| t.map(|i| [floor[i][0], 0.0, floor[i][1]]))
-            .collect(),
-    )
-    .orient_outward([0.0, -1.0e9, 0.0]);
+    let floor_triangles =
+        Triangles(triangulate_polygon(floor).into_iter().map(|t| t.map(|i| [floor[i][0], 0.0, floor[i][1]])).collect())
+            .orient_outward([0.0, -1.0e9, 0.0]);
     builder.add(&floor_triangles, 0, FLOOR_COLOUR, SegmentLabel::Floor);
 
     for piece in compiled.wall_pieces() {

@@ -12,6 +12,7 @@
 use std::num::NonZeroU64;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
+use std::time::Instant;
 
 use bytes::Bytes;
 use esrp_core::{CompiledScene, ObjectPose};
@@ -233,7 +234,10 @@ pub struct Renderer {
 
 impl std::fmt::Debug for Renderer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Renderer").field("adapter", &self.adapter_info.name).field("backend", &self.adapter_info.backend).finish()
+        f.debug_struct("Renderer")
+            .field("adapter", &self.adapter_info.name)
+            .field("backend", &self.adapter_info.backend)
+            .finish()
     }
 }
 
@@ -257,12 +261,10 @@ impl Renderer {
             BackendPreference::Vulkan => &[(wgpu::Backends::VULKAN, "vulkan")],
             BackendPreference::Gl => &[(wgpu::Backends::GL, "gl")],
         };
-        let adapter = order
-            .iter()
-            .find_map(|(backends, _)| request_adapter(*backends, config.power_preference))
-            .ok_or_else(|| RenderError::NoAdapter {
-                tried: order.iter().map(|(_, name)| *name).collect::<Vec<_>>().join(", "),
-            })?;
+        let adapter =
+            order.iter().find_map(|(backends, _)| request_adapter(*backends, config.power_preference)).ok_or_else(
+                || RenderError::NoAdapter { tried: order.iter().map(|(_, name)| *name).collect::<Vec<_>>().join(", ") },
+            )?;
         let adapter_info = adapter.get_info();
         log::info!(
             "esrp-render: adapter {} ({:?}, {:?}, driver {} {})",
@@ -580,6 +582,7 @@ impl Renderer {
         let (tiles, width, height) = self.layout(requests)?;
         let full = requests.iter().any(|r| r.outputs.any_extra());
 
+        let t0 = Instant::now();
         let mut guard = self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
         let state = &mut *guard;
         state.batches += 1;
@@ -688,6 +691,7 @@ impl Renderer {
             copy(&mut encoder, &extras[0].0, 1);
             copy(&mut encoder, &extras[1].0, 2);
         }
+        let t1 = Instant::now();
         self.queue.submit([encoder.finish()]);
 
         let (sender, receiver) = std::sync::mpsc::channel();
@@ -696,73 +700,162 @@ impl Renderer {
             let _ = sender.send(result);
         });
         let polled = self.device.poll(wgpu::PollType::wait_indefinitely());
-        if let Some(error) = pollster::block_on(scope.pop()) {
-            return Err(RenderError::Gpu { reason: error.to_string() });
+        let mapped = matches!(receiver.try_recv(), Ok(Ok(())));
+        let failure = if let Some(error) = pollster::block_on(scope.pop()) {
+            Some(RenderError::Gpu { reason: error.to_string() })
+        } else if let Some(reason) = self.lost.lock().ok().and_then(|slot| slot.clone()) {
+            Some(RenderError::DeviceLost { reason })
+        } else if let Err(e) = polled {
+            Some(RenderError::Readback { reason: e.to_string() })
+        } else if !mapped {
+            Some(RenderError::Readback { reason: "the readback buffer could not be mapped".into() })
+        } else {
+            None
+        };
+        if let Some(error) = failure {
+            if mapped {
+                atlas.readback.unmap();
+            }
+            return Err(error);
         }
-        if let Some(reason) = self.lost.lock().ok().and_then(|slot| slot.clone()) {
-            return Err(RenderError::DeviceLost { reason });
-        }
-        polled.map_err(|e| RenderError::Readback { reason: e.to_string() })?;
-        match receiver.try_recv() {
-            Ok(Ok(())) => {}
-            Ok(Err(e)) => return Err(RenderError::Readback { reason: e.to_string() }),
-            Err(_) => return Err(RenderError::Readback { reason: "the readback buffer was never mapped".into() }),
-        }
-
+        let t2 = Instant::now();
         let outputs = {
-            let mapped = atlas
-                .readback
-                .get_mapped_range(..)
-                .map_err(|e| RenderError::Readback { reason: format!("{e:?}") })?;
-            let bytes: &[u8] = &mapped;
-            let plane_bytes = atlas.plane_bytes() as usize;
-            let row_bytes = atlas.width as usize * 4;
-            requests
-                .iter()
-                .zip(&tiles)
-                .map(|(request, tile)| {
-                    let n = tile.size as usize;
-                    let rows = |plane: usize| {
-                        (0..n).map(move |row| {
-                            let start = plane * plane_bytes + (tile.y as usize + row) * row_bytes + tile.x as usize * 4;
-                            &bytes[start..start + n * 4]
-                        })
-                    };
-                    let mut rgb = Vec::with_capacity(n * n * 3);
-                    for row in rows(0) {
-                        for pixel in row.chunks_exact(4) {
-                            rgb.extend_from_slice(&pixel[..3]);
-                        }
-                    }
-                    let words = |plane: usize| {
-                        let mut out = Vec::with_capacity(n * n);
-                        for row in rows(plane) {
-                            out.extend(row.chunks_exact(4).map(|w| u32::from_le_bytes([w[0], w[1], w[2], w[3]])));
-                        }
-                        out
-                    };
-                    let depth = (request.outputs.depth && atlas.full).then(|| {
-                        words(1)
-                            .into_iter()
-                            .map(|bits| {
-                                let d = f32::from_bits(bits);
-                                if d > 0.0 { d } else { f32::INFINITY }
-                            })
-                            .collect()
-                    });
-                    let segmentation = (request.outputs.segmentation && atlas.full).then(|| words(2));
-                    ViewOutput { resolution: tile.size, rgb: Bytes::from(rgb), depth, segmentation }
-                })
-                .collect()
+            let mapped =
+                atlas.readback.get_mapped_range(..).map_err(|e| RenderError::Readback { reason: format!("{e:?}") })?;
+            let planes = Planes {
+                bytes: &mapped,
+                plane_bytes: atlas.plane_bytes() as usize,
+                row_bytes: atlas.width as usize * 4,
+                full: atlas.full,
+            };
+            extract_all(&planes, requests, &tiles)
         };
         atlas.readback.unmap();
+        let outputs = outputs?;
+        log::trace!(
+            "esrp-render: {} views, atlas {width}x{height}: encode {:?}, device {:?}, extract {:?}",
+            requests.len(),
+            t1 - t0,
+            t2 - t1,
+            t2.elapsed()
+        );
         Ok(outputs)
     }
 }
 
-#[allow(dead_code)]
-fn assert_send_sync() {
-    fn check<T: Send + Sync>() {}
+/// The mapped readback buffer: one plane per output texture, rows of `row_bytes`.
+struct Planes<'a> {
+    bytes: &'a [u8],
+    plane_bytes: usize,
+    row_bytes: usize,
+    full: bool,
+}
+
+impl Planes<'_> {
+    /// The `row`-th row of `tile` in `plane`, 4 bytes per pixel.
+    fn row(&self, plane: usize, tile: &Tile, row: usize) -> &[u8] {
+        let start = plane * self.plane_bytes + (tile.y as usize + row) * self.row_bytes + tile.x as usize * 4;
+        &self.bytes[start..start + tile.size as usize * 4]
+    }
+
+    fn words(&self, plane: usize, tile: &Tile) -> Vec<u32> {
+        let n = tile.size as usize;
+        let mut out = vec![0u32; n * n];
+        for (row, dst) in out.chunks_exact_mut(n).enumerate() {
+            for (d, s) in dst.iter_mut().zip(self.row(plane, tile, row).chunks_exact(4)) {
+                *d = u32::from_le_bytes([s[0], s[1], s[2], s[3]]);
+            }
+        }
+        out
+    }
+
+    fn extract(&self, request: &ViewRequest<'_>, tile: &Tile) -> ViewOutput {
+        let n = tile.size as usize;
+        let mut rgb = vec![0u8; n * n * 3];
+        for (row, dst) in rgb.chunks_exact_mut(n * 3).enumerate() {
+            rgba_to_rgb(self.row(0, tile, row), dst);
+        }
+        let depth = (request.outputs.depth && self.full).then(|| {
+            self.words(1, tile)
+                .into_iter()
+                .map(|bits| {
+                    let d = f32::from_bits(bits);
+                    if d > 0.0 { d } else { f32::INFINITY }
+                })
+                .collect()
+        });
+        let segmentation = (request.outputs.segmentation && self.full).then(|| self.words(2, tile));
+        ViewOutput { resolution: tile.size, rgb: Bytes::from(rgb), depth, segmentation }
+    }
+}
+
+/// Drops the alpha byte of each pixel: `src` is RGBA, `dst` RGB, same pixel count. Four
+/// pixels at a time as three little-endian words, which compiles to a tight loop.
+fn rgba_to_rgb(src: &[u8], dst: &mut [u8]) {
+    let mut src_quads = src.chunks_exact(16);
+    let mut dst_quads = dst.chunks_exact_mut(12);
+    for (s, d) in (&mut src_quads).zip(&mut dst_quads) {
+        let p = |i: usize| u32::from_le_bytes([s[4 * i], s[4 * i + 1], s[4 * i + 2], s[4 * i + 3]]);
+        let (p0, p1, p2, p3) = (p(0), p(1), p(2), p(3));
+        d[0..4].copy_from_slice(&((p0 & 0x00ff_ffff) | (p1 << 24)).to_le_bytes());
+        d[4..8].copy_from_slice(&(((p1 >> 8) & 0xffff) | (p2 << 16)).to_le_bytes());
+        d[8..12].copy_from_slice(&(((p2 >> 16) & 0xff) | (p3 << 8)).to_le_bytes());
+    }
+    for (s, d) in src_quads.remainder().chunks_exact(4).zip(dst_quads.into_remainder().chunks_exact_mut(3)) {
+        d.copy_from_slice(&s[..3]);
+    }
+}
+
+/// Extracts every view's images from the atlas; large batches use several threads, since the
+/// device is idle by then.
+fn extract_all(
+    planes: &Planes<'_>,
+    requests: &[ViewRequest<'_>],
+    tiles: &[Tile],
+) -> Result<Vec<ViewOutput>, RenderError> {
+    const PIXELS_PER_THREAD: u64 = 1 << 18;
+    let pixels: u64 = tiles.iter().map(|t| u64::from(t.size).pow(2)).sum();
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get()).min(8);
+    let threads = threads.min((pixels / PIXELS_PER_THREAD) as usize).max(1);
+    if threads == 1 {
+        return Ok(requests.iter().zip(tiles).map(|(r, t)| planes.extract(r, t)).collect());
+    }
+    let chunk = requests.len().div_ceil(threads);
+    std::thread::scope(|scope| {
+        let workers: Vec<_> = requests
+            .chunks(chunk)
+            .zip(tiles.chunks(chunk))
+            .map(|(rs, ts)| {
+                scope.spawn(move || rs.iter().zip(ts).map(|(r, t)| planes.extract(r, t)).collect::<Vec<_>>())
+            })
+            .collect();
+        let mut out = Vec::with_capacity(requests.len());
+        for worker in workers {
+            out.extend(
+                worker.join().map_err(|_| RenderError::Readback { reason: "an extraction thread panicked".into() })?,
+            );
+        }
+        Ok(out)
+    })
+}
+
+/// The renderer and scene handles are shared across threads (see the module docs).
+const _: () = {
+    const fn check<T: Send + Sync>() {}
     check::<Renderer>();
     check::<SceneHandle>();
+};
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn rgba_to_rgb_drops_alpha_for_every_length() {
+        for pixels in 0..11usize {
+            let src: Vec<u8> = (0..pixels * 4).map(|i| if i % 4 == 3 { 255 } else { i as u8 }).collect();
+            let mut dst = vec![0u8; pixels * 3];
+            super::rgba_to_rgb(&src, &mut dst);
+            let expected: Vec<u8> = src.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect();
+            assert_eq!(dst, expected);
+        }
+    }
 }

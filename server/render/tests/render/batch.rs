@@ -19,7 +19,8 @@ fn batch_output_is_identical_to_views_rendered_one_by_one() {
         ViewRequest::new(&handles[2], Camera::Ego(ego_at(1.0, 1.0, 1)), &moved).with_outputs(Outputs::ALL),
         ViewRequest::new(&handles[0], Camera::TopDown, &bed_goal).with_resolution(64),
         ViewRequest::new(&handles[1], Camera::Ego(show_cam), &show_now).with_resolution(200),
-        ViewRequest::new(&handles[2], Camera::TopDown, &moved).with_outputs(Outputs { depth: true, segmentation: false }),
+        ViewRequest::new(&handles[2], Camera::TopDown, &moved)
+            .with_outputs(Outputs { depth: true, segmentation: false }),
     ];
     for k in 0..16 {
         requests.push(ViewRequest::new(&handles[0], Camera::Ego(ego_at(1.0 + 0.2 * f64::from(k), 1.5, k)), &bed_now));
@@ -37,7 +38,8 @@ fn batch_output_is_identical_to_views_rendered_one_by_one() {
         // in the atlas: equal to float rounding, not bit for bit.
         match (&batched.depth, &alone.depth) {
             (Some(a), Some(b)) => {
-                let worst = a.iter().zip(b).map(|(x, y)| if x == y { 0.0 } else { ((x - y) / y).abs() }).fold(0.0f32, f32::max);
+                let worst =
+                    a.iter().zip(b).map(|(x, y)| if x == y { 0.0 } else { ((x - y) / y).abs() }).fold(0.0f32, f32::max);
                 assert!(worst < 1e-5, "view {i}: depth differs by a relative {worst}");
             }
             (a, b) => assert_eq!(a.is_some(), b.is_some(), "view {i}: depth presence"),
@@ -51,7 +53,8 @@ fn full_batches_of_many_views_work_and_views_differ() {
     let scene = bedroom();
     let handle = renderer().upload_scene(&scene).unwrap();
     let (_, now) = start(&scene);
-    let cameras: Vec<_> = (0..256).map(|i| ego_at(0.8 + 0.013 * f64::from(i), 0.8 + 0.005 * f64::from(i), (i % 16) as u8)).collect();
+    let cameras: Vec<_> =
+        (0..256).map(|i| ego_at(0.8 + 0.013 * f64::from(i), 0.8 + 0.005 * f64::from(i), (i % 16) as u8)).collect();
     let requests: Vec<_> = cameras.iter().map(|c| ViewRequest::new(&handle, Camera::Ego(*c), &now)).collect();
     let out = renderer().render_batch(&requests).unwrap();
     assert_eq!(out.len(), 256);

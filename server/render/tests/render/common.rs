@@ -51,7 +51,13 @@ pub fn scene(id: &str, floor: Vec<[f64; 2]>, agent: (f64, f64, u8)) -> Scene {
     }
 }
 
-pub fn movable(id: &str, category: MovableCategory, parts: Vec<Part>, pose: ObjectPose, target: ObjectPose) -> MovableObject {
+pub fn movable(
+    id: &str,
+    category: MovableCategory,
+    parts: Vec<Part>,
+    pose: ObjectPose,
+    target: ObjectPose,
+) -> MovableObject {
     MovableObject { id: id.into(), category, model: String::new(), shape: Shape::Parts(parts), pose, target }
 }
 
@@ -124,7 +130,13 @@ pub fn showcase() -> Arc<CompiledScene> {
         fixed("wedge", Shape::Mesh(wedge), pose(5.4, 2.4, 0.0)),
     ];
     s.movable_objects = vec![
-        movable("cabinet", MovableCategory::CabinetShelfDesk, vec![box_part(0.25, 0.2, 0.9)], pose(1.0, 2.2, 0.0), pose(1.0, 1.4, 0.0)),
+        movable(
+            "cabinet",
+            MovableCategory::CabinetShelfDesk,
+            vec![box_part(0.25, 0.2, 0.9)],
+            pose(1.0, 2.2, 0.0),
+            pose(1.0, 1.4, 0.0),
+        ),
         movable(
             "chair",
             MovableCategory::Chair,
@@ -135,13 +147,31 @@ pub fn showcase() -> Arc<CompiledScene> {
             pose(2.0, 1.2, 0.8),
             pose(3.5, 2.0, 0.0),
         ),
-        movable("sofa", MovableCategory::Sofa, vec![box_part(0.45, 0.3, 0.5)], pose(1.6, 3.4, 1.57), pose(0.7, 3.5, 0.0)),
-        movable("stool", MovableCategory::PierStool, vec![cylinder_part(0.2, 0.45)], pose(2.3, 4.5, 0.0), pose(4.0, 2.2, 0.0)),
+        movable(
+            "sofa",
+            MovableCategory::Sofa,
+            vec![box_part(0.45, 0.3, 0.5)],
+            pose(1.6, 3.4, 1.57),
+            pose(0.7, 3.5, 0.0),
+        ),
+        movable(
+            "stool",
+            MovableCategory::PierStool,
+            vec![cylinder_part(0.2, 0.45)],
+            pose(2.3, 4.5, 0.0),
+            pose(4.0, 2.2, 0.0),
+        ),
         movable(
             "plant",
             MovableCategory::Others,
             vec![Part::ConvexHull {
-                points: vec![[-0.15, 0.0, -0.15], [0.15, 0.0, -0.15], [0.15, 0.0, 0.15], [-0.15, 0.0, 0.15], [0.0, 0.8, 0.0]],
+                points: vec![
+                    [-0.15, 0.0, -0.15],
+                    [0.15, 0.0, -0.15],
+                    [0.15, 0.0, 0.15],
+                    [-0.15, 0.0, 0.15],
+                    [0.0, 0.8, 0.0],
+                ],
                 offset: [0.0; 3],
                 yaw: 0.0,
             }],

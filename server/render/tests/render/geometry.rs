@@ -24,14 +24,19 @@ fn top_down_mapping_round_trips_and_is_oriented() {
     assert!((frame.side - (6.0 + 2.0 * 0.12 + 2.0 * 0.15)).abs() < 1e-9, "side {}", frame.side);
     assert_eq!(frame.floor_to_pixel_index(3.0, 2.0), Some((64, 64)));
     let (x, z) = frame.pixel_centre_to_floor(64, 64);
-    assert!((x - 3.0 - frame.metres_per_pixel() / 2.0).abs() < 1e-12 && (z - 2.0 - frame.metres_per_pixel() / 2.0).abs() < 1e-12);
+    assert!(
+        (x - 3.0 - frame.metres_per_pixel() / 2.0).abs() < 1e-12
+            && (z - 2.0 - frame.metres_per_pixel() / 2.0).abs() < 1e-12
+    );
 }
 
 fn top_down_box_centroid(scene: &CompiledScene, x: f64, z: f64, resolution: u32) -> (usize, (f64, f64)) {
     let handle = renderer().upload_scene(scene).unwrap();
     let poses = [pose(x, z, 0.0)];
     let out = renderer()
-        .render_one(&ViewRequest::new(&handle, Camera::TopDown, &poses).with_outputs(Outputs::ALL).with_resolution(resolution))
+        .render_one(
+            &ViewRequest::new(&handle, Camera::TopDown, &poses).with_outputs(Outputs::ALL).with_resolution(resolution),
+        )
         .unwrap();
     pixels_with(out.segmentation.as_ref().unwrap(), resolution, SegmentLabel::Movable(0).id())
 }
@@ -58,7 +63,11 @@ fn object_appears_at_its_predicted_top_down_pixel() {
 fn object_appears_at_its_predicted_ego_pixel() {
     let scene = one_box_room(4.0, 2.0);
     let handle = renderer().upload_scene(&scene).unwrap();
-    for (camera, target) in [(ego_at(1.5, 2.0, 0), [4.0, 0.2, 2.0]), (ego_at(1.5, 2.0, 0), [3.0, 0.2, 2.6]), (ego_at(4.0, 3.5, 4), [4.3, 0.2, 1.5])] {
+    for (camera, target) in [
+        (ego_at(1.5, 2.0, 0), [4.0, 0.2, 2.0]),
+        (ego_at(1.5, 2.0, 0), [3.0, 0.2, 2.6]),
+        (ego_at(4.0, 3.5, 4), [4.3, 0.2, 1.5]),
+    ] {
         let poses = [pose(target[0], target[2], 0.0)];
         let out = renderer()
             .render_one(&ViewRequest::new(&handle, Camera::Ego(camera), &poses).with_outputs(Outputs::ALL))
@@ -69,7 +78,10 @@ fn object_appears_at_its_predicted_ego_pixel() {
         let (c, r, _) = project_ego(&camera, target, 128).unwrap();
         // The box's image centroid is near the projection of its centre (perspective moves it
         // by a fraction of the box's size).
-        assert!((centroid.0 - c).abs() < 2.5 && (centroid.1 - r).abs() < 2.5, "centroid {centroid:?}, predicted ({c}, {r})");
+        assert!(
+            (centroid.0 - c).abs() < 2.5 && (centroid.1 - r).abs() < 2.5,
+            "centroid {centroid:?}, predicted ({c}, {r})"
+        );
         // The pixel containing the projection of the top face's centre shows the box.
         let (tc, tr, _) = project_ego(&camera, [target[0], 0.4, target[2]], 128).unwrap();
         let top = seg[tr as usize * 128 + tc as usize];
@@ -84,7 +96,9 @@ fn turning_left_shifts_the_scene_right() {
     let poses = [pose(4.0, 2.0, 0.0)];
     let centroid = |heading| {
         let out = renderer()
-            .render_one(&ViewRequest::new(&handle, Camera::Ego(ego_at(1.5, 2.0, heading)), &poses).with_outputs(Outputs::ALL))
+            .render_one(
+                &ViewRequest::new(&handle, Camera::Ego(ego_at(1.5, 2.0, heading)), &poses).with_outputs(Outputs::ALL),
+            )
             .unwrap();
         pixels_with(out.segmentation.as_ref().unwrap(), 128, SegmentLabel::Movable(0).id()).1
     };
@@ -102,7 +116,9 @@ fn depth_of_a_wall_at_a_known_distance_is_right() {
     let handle = renderer().upload_scene(&scene).unwrap();
     let camera = ego_at(3.0, 2.0, 0);
     let poses = [pose(1.0, 1.0, 0.0)];
-    let out = renderer().render_one(&ViewRequest::new(&handle, Camera::Ego(camera), &poses).with_outputs(Outputs::ALL)).unwrap();
+    let out = renderer()
+        .render_one(&ViewRequest::new(&handle, Camera::Ego(camera), &poses).with_outputs(Outputs::ALL))
+        .unwrap();
     let depth = out.depth.as_ref().unwrap();
     let seg = out.segmentation.as_ref().unwrap();
     let mut checked = 0;

@@ -30,7 +30,10 @@ fn check_golden(name: &str, rgb: &[u8], resolution: u32) {
         return;
     }
     let data = std::fs::read(&path).unwrap_or_else(|e| {
-        panic!("golden {} is missing ({e}); create it with ESRP_UPDATE_GOLDENS=1 cargo test -p esrp-render", path.display())
+        panic!(
+            "golden {} is missing ({e}); create it with ESRP_UPDATE_GOLDENS=1 cargo test -p esrp-render",
+            path.display()
+        )
     });
     let (golden, w, h) = decode_png_rgb(&data).unwrap();
     assert_eq!((w, h), (resolution, resolution), "golden {name} has another size");

@@ -29,8 +29,9 @@ fn contact_sheet_places_images_in_a_grid() {
 
 #[test]
 fn scene_pngs_and_goal_sheet_render() {
-    let (ego, goal, current) = render_scene_pngs(renderer(), &bedroom(), 128).unwrap();
-    for png in [&ego, &goal, &current] {
+    let pngs = render_scene_pngs(renderer(), &bedroom(), 128).unwrap();
+    let (goal, current) = (&pngs.goal, &pngs.current);
+    for png in [&pngs.ego, goal, current] {
         let (rgb, w, h) = decode_png_rgb(png).unwrap();
         assert_eq!((w, h, rgb.len()), (128, 128, 128 * 128 * 3));
     }
