@@ -1,7 +1,7 @@
 //! Throughput of the renderer: views per second for one view per submit and for batches of
 //! 16, 64 and 256 egocentric views of furnished rooms at 128×128 (plus a top-down batch and a
 //! batch with depth and segmentation). `cargo bench -p esrp-render`; set `ESRP_BENCH_SECONDS`
-//! to change the time per case (default 3).
+//! to change the time per case (default 3) and `ESRP_RENDER_BACKEND=gl` to measure OpenGL.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -60,7 +60,9 @@ fn main() {
     } else {
         0.05
     });
-    let renderer = Renderer::new(RendererConfig::default()).unwrap_or_else(|e| panic!("{e}"));
+    let backends = esrp_render::BackendPreference::from_env().unwrap_or_default();
+    let renderer =
+        Renderer::new(RendererConfig { backends, ..RendererConfig::default() }).unwrap_or_else(|e| panic!("{e}"));
     let info = renderer.adapter_info();
     println!("adapter: {} ({:?}, {})", info.name, info.backend, info.driver_info);
     let scenes = scenes();

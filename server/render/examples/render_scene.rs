@@ -1,12 +1,13 @@
 //! Renders a scene file's start egocentric view, goal image and current top-down view.
 //!
 //! `cargo run -p esrp-render --example render_scene -- SCENE.json OUT_DIR [RESOLUTION]` writes
-//! `OUT_DIR/ego.png`, `OUT_DIR/goal.png` and `OUT_DIR/current.png`.
+//! `OUT_DIR/ego.png`, `OUT_DIR/goal.png` and `OUT_DIR/current.png`. `ESRP_RENDER_BACKEND=gl`
+//! forces the OpenGL backend.
 
 use std::path::PathBuf;
 
 use esrp_core::{CompiledScene, Scene};
-use esrp_render::{Renderer, RendererConfig, render_scene_pngs};
+use esrp_render::{BackendPreference, Renderer, RendererConfig, render_scene_pngs};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut args = std::env::args().skip(1);
@@ -16,7 +17,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let resolution: u32 = args.next().map(|r| r.parse()).transpose()?.unwrap_or(esrp_render::DEFAULT_RESOLUTION);
 
     let scene = CompiledScene::shared(Scene::from_json(&std::fs::read_to_string(&scene_path)?)?)?;
-    let renderer = Renderer::new(RendererConfig::default())?;
+    let backends = BackendPreference::from_env().unwrap_or_default();
+    let renderer = Renderer::new(RendererConfig { backends, ..RendererConfig::default() })?;
     let info = renderer.adapter_info();
     eprintln!("adapter: {} ({:?}, {})", info.name, info.backend, info.driver_info);
 

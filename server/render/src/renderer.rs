@@ -32,7 +32,8 @@ pub const MAX_MOVABLE_OBJECTS: usize = MAX_POSE_SLOTS - 1;
 
 const COLOUR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
 const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
-const DEPTH_OUT_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::R32Float;
+/// View depth as the bits of an `f32` (R32Float is not renderable on OpenGL ES).
+const DEPTH_OUT_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::R32Uint;
 const SEGMENT_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::R32Uint;
 /// Atlas textures kept for reuse (one per distinct size and output set).
 const CACHED_ATLASES: usize = 4;
@@ -49,6 +50,19 @@ pub enum BackendPreference {
     Vulkan,
     /// OpenGL (EGL) only.
     Gl,
+}
+
+impl BackendPreference {
+    /// The preference named by `ESRP_RENDER_BACKEND` (`auto`, `vulkan` or `gl`), if set and
+    /// valid.
+    pub fn from_env() -> Option<Self> {
+        match std::env::var("ESRP_RENDER_BACKEND").ok()?.to_ascii_lowercase().as_str() {
+            "auto" => Some(Self::Auto),
+            "vulkan" => Some(Self::Vulkan),
+            "gl" | "gles" | "opengl" => Some(Self::Gl),
+            _ => None,
+        }
+    }
 }
 
 /// How to create a [`Renderer`].
@@ -291,6 +305,11 @@ impl Renderer {
             }
         });
 
+        // Errors are returned from the operations that cause them (error scopes); anything else
+        // is logged rather than aborting the process, as wgpu does by default.
+        device.on_uncaptured_error(Arc::new(|error| log::error!("esrp-render: uncaptured wgpu error: {error}")));
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+
         let max_side = config.max_atlas_size.min(limits.max_texture_dimension_2d).max(64);
         let max_atlas = 1u32 << (31 - max_side.leading_zeros());
 
@@ -373,6 +392,13 @@ impl Renderer {
                 }),
             }],
         });
+
+        if let Some(error) = pollster::block_on(scope.pop()) {
+            return Err(RenderError::RequestDevice {
+                adapter: adapter_info.name.clone(),
+                reason: format!("the adapter cannot build the pipelines: {error}"),
+            });
+        }
 
         Ok(Self {
             id: NEXT_RENDERER_ID.fetch_add(1, Ordering::Relaxed),

@@ -102,9 +102,11 @@ fn vs_full(v: VertexIn) -> FullOut {
     return out;
 }
 
+// Depth goes out as the bits of an f32 in an R32Uint target: R32Float is not renderable on
+// every backend (OpenGL ES), R32Uint is.
 struct FullTargets {
     @location(0) colour: vec4<f32>,
-    @location(1) depth: f32,
+    @location(1) depth_bits: u32,
     @location(2) segment: u32,
 }
 
@@ -112,7 +114,7 @@ struct FullTargets {
 fn fs_full(in: FullOut) -> FullTargets {
     var out: FullTargets;
     out.colour = in.colour;
-    out.depth = in.depth;
+    out.depth_bits = bitcast<u32>(in.depth);
     out.segment = in.segment;
     return out;
 }

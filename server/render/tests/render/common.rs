@@ -6,12 +6,14 @@ use esrp_core::{
     AgentStart, CompiledScene, Difficulty, EgoCamera, Episode, EpisodeConfig, FixedObject, Heading, Mesh,
     MovableCategory, MovableObject, ObjectPose, Opening, OpeningKind, Part, Room, SCENE_SCHEMA, Scene, Shape, Split,
 };
-use esrp_render::{Renderer, RendererConfig};
+use esrp_render::{BackendPreference, Renderer, RendererConfig};
 
-/// The renderer every test shares (batches serialise on its mutex).
+/// The renderer every test shares (batches serialise on its mutex). `ESRP_RENDER_BACKEND=gl`
+/// runs the suite on OpenGL.
 pub fn renderer() -> &'static Renderer {
     static RENDERER: OnceLock<Renderer> = OnceLock::new();
-    RENDERER.get_or_init(|| match Renderer::new(RendererConfig::default()) {
+    let backends = BackendPreference::from_env().unwrap_or_default();
+    RENDERER.get_or_init(|| match Renderer::new(RendererConfig { backends, ..RendererConfig::default() }) {
         Ok(r) => {
             eprintln!("esrp-render tests on {:?}", r.adapter_info());
             r
