@@ -108,8 +108,8 @@ pub use images::{
 };
 pub use mesh::{SceneMesh, SegmentLabel, build_scene_mesh};
 pub use renderer::{
-    BackendPreference, DEFAULT_RESOLUTION, MAX_BATCH_VIEWS, MAX_MOVABLE_OBJECTS, Outputs, Renderer, RendererConfig,
-    SceneHandle, ViewOutput, ViewRequest,
+    BackendPreference, DEFAULT_RESOLUTION, MAX_BATCH_PIXELS, MAX_BATCH_VIEWS, MAX_MOVABLE_OBJECTS, Outputs, Renderer,
+    RendererConfig, SceneHandle, ViewOutput, ViewRequest,
 };
 
 /// Re-export of wgpu, whose [`wgpu::AdapterInfo`] and [`wgpu::PowerPreference`] appear in this

@@ -27,6 +27,8 @@ use crate::mesh::{BACKGROUND_COLOUR, build_scene_mesh};
 pub const DEFAULT_RESOLUTION: u32 = 128;
 /// Most views in one batch.
 pub const MAX_BATCH_VIEWS: usize = 1024;
+/// Most pixels in one batch (1024 views of 128×128).
+pub const MAX_BATCH_PIXELS: u64 = 1 << 24;
 /// Most movable objects a scene may have for this renderer (pose slots on the GPU).
 pub const MAX_MOVABLE_OBJECTS: usize = MAX_POSE_SLOTS - 1;
 
@@ -200,30 +202,48 @@ pub struct ViewOutput {
 /// Where one view lies in the atlas.
 #[derive(Clone, Copy, Debug)]
 struct Tile {
+    page: u32,
     x: u32,
     y: u32,
     size: u32,
 }
 
-/// Textures and readback buffer of one atlas size.
+/// A texture array (one layer per page) and a view of each layer.
+struct PagedTexture {
+    texture: wgpu::Texture,
+    layers: Vec<wgpu::TextureView>,
+}
+
+/// Textures and readback buffer of one atlas shape: `pages` square pages of `side` pixels.
+///
+/// Pages rather than one big texture: lavapipe's cost of a render pass grows with the area of
+/// its target, so views go into small pages, one render pass each, all in one submit, one copy
+/// and one map.
 struct Atlas {
-    width: u32,
-    height: u32,
+    side: u32,
+    pages: u32,
     full: bool,
-    colour: wgpu::TextureView,
-    colour_texture: wgpu::Texture,
+    colour: PagedTexture,
+    /// One page of depth buffer, cleared by every pass.
     depth: wgpu::TextureView,
-    /// Linear depth and segmentation targets, present when `full`.
-    extras: Option<[(wgpu::Texture, wgpu::TextureView); 2]>,
+    /// View depth (as f32 bits) and segmentation targets, present when `full`.
+    extras: Option<[PagedTexture; 2]>,
     readback: wgpu::Buffer,
     last_used: u64,
 }
 
 impl Atlas {
+    fn page_bytes(&self) -> u64 {
+        u64::from(self.side) * u64::from(self.side) * 4
+    }
+
     fn plane_bytes(&self) -> u64 {
-        u64::from(self.width) * u64::from(self.height) * 4
+        self.page_bytes() * u64::from(self.pages)
     }
 }
+
+/// Side of a page when a batch needs more than one, pixels (16 views of 128×128).
+const PAGE_SIDE: u32 = 512;
 
 struct BatchState {
     atlases: Vec<Atlas>,
@@ -242,6 +262,7 @@ pub struct Renderer {
     uniform_buffer: wgpu::Buffer,
     bind_group: wgpu::BindGroup,
     max_atlas: u32,
+    max_pages: u32,
     lost: Arc<Mutex<Option<String>>>,
     state: Mutex<BatchState>,
 }
@@ -410,6 +431,7 @@ impl Renderer {
             uniform_buffer,
             bind_group,
             max_atlas,
+            max_pages: limits.max_texture_array_layers.clamp(1, 1024),
             lost,
             state: Mutex::new(BatchState { atlases: Vec::new(), batches: 0, uniforms: Vec::new() }),
         })
@@ -522,46 +544,62 @@ impl Renderer {
                 }
             }
         }
+        let pixels: u64 = requests.iter().map(|r| u64::from(r.resolution).pow(2)).sum();
+        if pixels > MAX_BATCH_PIXELS {
+            return Err(RenderError::BatchTooLarge {
+                views: requests.len(),
+                reason: format!("{pixels} pixels, at most {MAX_BATCH_PIXELS} per batch"),
+            });
+        }
         Ok(())
     }
 
-    /// Shelf-packs the views into an atlas; returns the tiles (in request order) and the atlas
-    /// size (powers of two, so that rows are 256-byte aligned and sizes repeat across batches).
+    /// Shelf-packs the views into square pages; returns the tiles (in request order), the page
+    /// side and the number of pages (sides are powers of two, so that rows are 256-byte aligned
+    /// and shapes repeat across batches).
     fn layout(&self, requests: &[ViewRequest<'_>]) -> Result<(Vec<Tile>, u32, u32), RenderError> {
         let largest = requests.iter().map(|r| r.resolution).max().unwrap_or(1);
         let area: u64 = requests.iter().map(|r| u64::from(r.resolution).pow(2)).sum();
-        let side = (area as f64).sqrt().ceil() as u32;
-        let width = side.max(largest).max(64).next_power_of_two().min(self.max_atlas);
+        let fit = ((area as f64).sqrt().ceil() as u32).min(PAGE_SIDE);
+        let side = fit.max(largest).max(64).next_power_of_two().min(self.max_atlas);
         let mut order: Vec<usize> = (0..requests.len()).collect();
         order.sort_by_key(|&i| std::cmp::Reverse(requests[i].resolution));
-        let mut tiles = vec![Tile { x: 0, y: 0, size: 0 }; requests.len()];
-        let (mut x, mut y, mut shelf) = (0u32, 0u32, 0u32);
+        let mut tiles = vec![Tile { page: 0, x: 0, y: 0, size: 0 }; requests.len()];
+        let (mut page, mut x, mut y, mut shelf) = (0u32, 0u32, 0u32, 0u32);
         for i in order {
             let size = requests[i].resolution;
-            if x + size > width {
+            if x + size > side {
                 y += shelf;
                 x = 0;
                 shelf = 0;
             }
-            tiles[i] = Tile { x, y, size };
+            if y + size > side {
+                page += 1;
+                y = 0;
+            }
+            tiles[i] = Tile { page, x, y, size };
             x += size;
             shelf = shelf.max(size);
         }
-        let used_height = y + shelf;
-        if used_height > self.max_atlas {
+        let pages = (page + 1).next_power_of_two();
+        if pages > self.max_pages {
             return Err(RenderError::BatchTooLarge {
                 views: requests.len(),
-                reason: format!("the views need {width}×{used_height} pixels, the atlas holds {0}×{0}", self.max_atlas),
+                reason: format!(
+                    "the views need {} pages of {side}×{side} pixels, the device holds {}",
+                    page + 1,
+                    self.max_pages
+                ),
             });
         }
-        Ok((tiles, width, used_height.max(64).next_power_of_two()))
+        Ok((tiles, side, pages))
     }
 
-    fn create_atlas(&self, width: u32, height: u32, full: bool) -> Atlas {
-        let texture = |label: &str, format, usage| {
+    fn create_atlas(&self, side: u32, pages: u32, full: bool) -> Atlas {
+        let texture = |label: &str, format, usage, layers: u32| {
             let texture = self.device.create_texture(&wgpu::TextureDescriptor {
                 label: Some(label),
-                size: wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
+                size: wgpu::Extent3d { width: side, height: side, depth_or_array_layers: layers },
                 mip_level_count: 1,
                 sample_count: 1,
                 dimension: wgpu::TextureDimension::D2,
@@ -569,26 +607,36 @@ impl Renderer {
                 usage,
                 view_formats: &[],
             });
-            let view = texture.create_view(&Default::default());
-            (texture, view)
+            let layers = (0..layers)
+                .map(|layer| {
+                    texture.create_view(&wgpu::TextureViewDescriptor {
+                        dimension: Some(wgpu::TextureViewDimension::D2),
+                        base_array_layer: layer,
+                        array_layer_count: Some(1),
+                        ..Default::default()
+                    })
+                })
+                .collect();
+            PagedTexture { texture, layers }
         };
         let target = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC;
-        let (colour_texture, colour) = texture("esrp-render atlas colour", COLOUR_FORMAT, target);
-        let (_, depth) = texture("esrp-render atlas depth", DEPTH_FORMAT, wgpu::TextureUsages::RENDER_ATTACHMENT);
+        let colour = texture("esrp-render atlas colour", COLOUR_FORMAT, target, pages);
+        let depth = texture("esrp-render atlas depth", DEPTH_FORMAT, wgpu::TextureUsages::RENDER_ATTACHMENT, 1);
         let extras = full.then(|| {
             [
-                texture("esrp-render atlas linear depth", DEPTH_OUT_FORMAT, target),
-                texture("esrp-render atlas segmentation", SEGMENT_FORMAT, target),
+                texture("esrp-render atlas view depth", DEPTH_OUT_FORMAT, target, pages),
+                texture("esrp-render atlas segmentation", SEGMENT_FORMAT, target, pages),
             ]
         });
         let planes = if full { 3 } else { 1 };
         let readback = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("esrp-render readback"),
-            size: u64::from(width) * u64::from(height) * 4 * planes,
+            size: u64::from(side) * u64::from(side) * 4 * u64::from(pages) * planes,
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        Atlas { width, height, full, colour, colour_texture, depth, extras, readback, last_used: 0 }
+        let depth = depth.layers.into_iter().next().unwrap_or_else(|| depth.texture.create_view(&Default::default()));
+        Atlas { side, pages, full, colour, depth, extras, readback, last_used: 0 }
     }
 
     /// Renders any mix of views of any scenes in one render pass, with one submit and one
@@ -605,7 +653,7 @@ impl Renderer {
             return Ok(Vec::new());
         }
         self.validate(requests)?;
-        let (tiles, width, height) = self.layout(requests)?;
+        let (tiles, side, pages) = self.layout(requests)?;
         let full = requests.iter().any(|r| r.outputs.any_extra());
 
         let t0 = Instant::now();
@@ -613,7 +661,7 @@ impl Renderer {
         let state = &mut *guard;
         state.batches += 1;
         let now = state.batches;
-        let index = match state.atlases.iter().position(|a| a.width == width && a.height == height && a.full == full) {
+        let index = match state.atlases.iter().position(|a| a.side == side && a.pages == pages && a.full == full) {
             Some(i) => i,
             None => {
                 if state.atlases.len() >= CACHED_ATLASES
@@ -621,7 +669,7 @@ impl Renderer {
                 {
                     state.atlases.swap_remove(oldest);
                 }
-                state.atlases.push(self.create_atlas(width, height, full));
+                state.atlases.push(self.create_atlas(side, pages, full));
                 state.atlases.len() - 1
             }
         };
@@ -649,9 +697,10 @@ impl Renderer {
         self.queue.write_buffer(&self.uniform_buffer, 0, &state.uniforms);
         let mut encoder =
             self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("esrp-render batch") });
-        {
-            let [r, g, b] = BACKGROUND_COLOUR.map(f64::from);
-            let clear_colour = wgpu::Color { r, g, b, a: 1.0 };
+        let used_pages = tiles.iter().map(|t| t.page + 1).max().unwrap_or(1);
+        let [r, g, b] = BACKGROUND_COLOUR.map(f64::from);
+        let clear_colour = wgpu::Color { r, g, b, a: 1.0 };
+        for page in 0..used_pages {
             let attachment = |view, clear| {
                 Some(wgpu::RenderPassColorAttachment {
                     view,
@@ -660,13 +709,13 @@ impl Renderer {
                     ops: wgpu::Operations { load: wgpu::LoadOp::Clear(clear), store: wgpu::StoreOp::Store },
                 })
             };
-            let mut attachments = vec![attachment(&atlas.colour, clear_colour)];
+            let mut attachments = vec![attachment(&atlas.colour.layers[page as usize], clear_colour)];
             if let Some(extras) = &atlas.extras {
-                attachments.push(attachment(&extras[0].1, wgpu::Color::TRANSPARENT));
-                attachments.push(attachment(&extras[1].1, wgpu::Color::TRANSPARENT));
+                attachments.push(attachment(&extras[0].layers[page as usize], wgpu::Color::TRANSPARENT));
+                attachments.push(attachment(&extras[1].layers[page as usize], wgpu::Color::TRANSPARENT));
             }
             let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("esrp-render atlas"),
+                label: Some("esrp-render page"),
                 color_attachments: &attachments,
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
                     view: &atlas.depth,
@@ -680,7 +729,7 @@ impl Renderer {
             pass.set_pipeline(if full { &self.pipeline_full } else { &self.pipeline_rgb });
             for (i, (request, tile)) in requests.iter().zip(&tiles).enumerate() {
                 let scene = request.scene;
-                if scene.index_count == 0 {
+                if tile.page != page || scene.index_count == 0 {
                     continue;
                 }
                 pass.set_viewport(tile.x as f32, tile.y as f32, tile.size as f32, tile.size as f32, 0.0, 1.0);
@@ -691,8 +740,6 @@ impl Renderer {
                 pass.draw_indexed(0..scene.index_count, 0, 0..1);
             }
         }
-        let used_width = tiles.iter().map(|t| t.x + t.size).max().unwrap_or(1);
-        let used_height = tiles.iter().map(|t| t.y + t.size).max().unwrap_or(1);
         let copy = |encoder: &mut wgpu::CommandEncoder, texture: &wgpu::Texture, plane: u64| {
             encoder.copy_texture_to_buffer(
                 wgpu::TexelCopyTextureInfo {
@@ -705,17 +752,17 @@ impl Renderer {
                     buffer: &atlas.readback,
                     layout: wgpu::TexelCopyBufferLayout {
                         offset: plane * atlas.plane_bytes(),
-                        bytes_per_row: Some(atlas.width * 4),
-                        rows_per_image: Some(atlas.height),
+                        bytes_per_row: Some(atlas.side * 4),
+                        rows_per_image: Some(atlas.side),
                     },
                 },
-                wgpu::Extent3d { width: used_width, height: used_height, depth_or_array_layers: 1 },
+                wgpu::Extent3d { width: atlas.side, height: atlas.side, depth_or_array_layers: used_pages },
             );
         };
-        copy(&mut encoder, &atlas.colour_texture, 0);
+        copy(&mut encoder, &atlas.colour.texture, 0);
         if let Some(extras) = &atlas.extras {
-            copy(&mut encoder, &extras[0].0, 1);
-            copy(&mut encoder, &extras[1].0, 2);
+            copy(&mut encoder, &extras[0].texture, 1);
+            copy(&mut encoder, &extras[1].texture, 2);
         }
         let t1 = Instant::now();
         self.queue.submit([encoder.finish()]);
@@ -751,7 +798,8 @@ impl Renderer {
             let planes = Planes {
                 bytes: &mapped,
                 plane_bytes: atlas.plane_bytes() as usize,
-                row_bytes: atlas.width as usize * 4,
+                page_bytes: atlas.page_bytes() as usize,
+                row_bytes: atlas.side as usize * 4,
                 full: atlas.full,
             };
             extract_all(&planes, requests, &tiles)
@@ -759,7 +807,7 @@ impl Renderer {
         atlas.readback.unmap();
         let outputs = outputs?;
         log::trace!(
-            "esrp-render: {} views, atlas {width}x{height}: encode {:?}, device {:?}, extract {:?}",
+            "esrp-render: {} views, {pages} pages of {side}x{side}: encode {:?}, device {:?}, extract {:?}",
             requests.len(),
             t1 - t0,
             t2 - t1,
@@ -773,6 +821,7 @@ impl Renderer {
 struct Planes<'a> {
     bytes: &'a [u8],
     plane_bytes: usize,
+    page_bytes: usize,
     row_bytes: usize,
     full: bool,
 }
@@ -780,7 +829,10 @@ struct Planes<'a> {
 impl Planes<'_> {
     /// The `row`-th row of `tile` in `plane`, 4 bytes per pixel.
     fn row(&self, plane: usize, tile: &Tile, row: usize) -> &[u8] {
-        let start = plane * self.plane_bytes + (tile.y as usize + row) * self.row_bytes + tile.x as usize * 4;
+        let start = plane * self.plane_bytes
+            + tile.page as usize * self.page_bytes
+            + (tile.y as usize + row) * self.row_bytes
+            + tile.x as usize * 4;
         &self.bytes[start..start + tile.size as usize * 4]
     }
 
