@@ -639,9 +639,10 @@ impl Renderer {
         Atlas { side, pages, full, colour, depth, extras, readback, last_used: 0 }
     }
 
-    /// Renders any mix of views of any scenes in one render pass, with one submit and one
-    /// readback. Outputs are in request order; RGB and segmentation are bit-identical to rendering
-    /// each view alone, depth equal to float rounding.
+    /// Renders any mix of views of any scenes into the pages of one atlas (one render pass per
+    /// page), with one submit and one readback. Outputs are in request order; RGB and
+    /// segmentation are bit-identical to rendering each view alone, depth equal to float
+    /// rounding.
     ///
     /// If any view asks for depth or segmentation, the whole batch is drawn with the pipeline
     /// that writes them (a little slower); only the views that asked get them.
