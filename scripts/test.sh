@@ -6,6 +6,17 @@ cd "$(dirname "$0")/.."
 
 step() { printf '\n==> %s\n' "$*"; }
 
+step "system packages"
+# Rendering tests run on lavapipe, Mesa's CPU Vulkan driver.
+if ! ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1 || ! ldconfig -p | grep -q 'libvulkan.so.1'; then
+    if [ "$(id -u)" = 0 ]; then apt_get="apt-get"; else apt_get="sudo apt-get"; fi
+    export DEBIAN_FRONTEND=noninteractive
+    $apt_get update -qq
+    $apt_get install -y -qq mesa-vulkan-drivers libvulkan1 >/dev/null
+fi
+ls /usr/share/vulkan/icd.d/
+export NODEVICE_SELECT=1
+
 step "toolchain"
 cargo --version
 rustc --version

@@ -80,6 +80,29 @@ enum Command {
         #[arg(long)]
         force: bool,
     },
+    /// Render a scene's start ego view, goal view and current top-down view as PNG, or a
+    /// contact sheet of many scenes' goal images.
+    #[cfg(feature = "render")]
+    Render {
+        /// Scene id or benchmark index (with --dataset: an id of that dataset).
+        #[arg(long, required_unless_present = "sheet")]
+        scene: Option<String>,
+        /// Instead: a contact sheet (sheet.png) of the goal images of the first N scenes.
+        #[arg(long, conflicts_with = "scene")]
+        sheet: Option<usize>,
+        /// Read scenes from this dataset folder instead of generating them.
+        #[arg(long)]
+        dataset: Option<PathBuf>,
+        /// Benchmark seed when generating.
+        #[arg(long, default_value_t = DEFAULT_SEED)]
+        seed: u64,
+        /// Image side in pixels.
+        #[arg(long, default_value_t = 128)]
+        resolution: u32,
+        /// Output folder.
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Print one scene as JSON: from a dataset folder, or generated from the built-in benchmark.
     Show {
         /// Scene id (e.g. esrp-bench-v1/00042) or index into the built-in benchmark.
@@ -275,7 +298,14 @@ fn stats(dir: &Path, out: &Path) -> Result<()> {
 }
 
 fn show(id: &str, dataset: Option<&Path>, seed: u64) -> Result<()> {
-    let scene = match dataset {
+    println!("{}", load_scene(id, dataset, seed)?.to_json_pretty());
+    Ok(())
+}
+
+/// A scene by id: read from a dataset folder, or generated from the built-in benchmark (by id or
+/// index).
+fn load_scene(id: &str, dataset: Option<&Path>, seed: u64) -> Result<esrp_core::Scene> {
+    Ok(match dataset {
         Some(dir) => {
             Dataset::open(dir)?.scene_by_id(id).with_context(|| format!("no scene {id:?} in {}", dir.display()))??
         }
@@ -294,8 +324,54 @@ fn show(id: &str, dataset: Option<&Path>, seed: u64) -> Result<()> {
             };
             bench.generate(index)?.scene
         }
-    };
-    println!("{}", scene.to_json_pretty());
+    })
+}
+
+#[cfg(feature = "render")]
+fn render(
+    scene: Option<&str>,
+    sheet: Option<usize>,
+    dataset: Option<&Path>,
+    seed: u64,
+    resolution: u32,
+    out: &Path,
+) -> Result<()> {
+    use std::sync::Arc;
+
+    use esrp_core::CompiledScene;
+    use esrp_render::{Renderer, RendererConfig};
+
+    let renderer = Renderer::new(RendererConfig::default())?;
+    let compile = |scene: esrp_core::Scene| -> Result<Arc<CompiledScene>> { Ok(CompiledScene::shared(scene)?) };
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    if let Some(count) = sheet {
+        let scenes: Vec<esrp_core::Scene> = match dataset {
+            Some(dir) => {
+                let data = Dataset::open(dir)?;
+                data.manifest().scenes.iter().take(count).map(|e| data.read_scene(e)).collect::<Result<_, _>>()?
+            }
+            None => {
+                let bench = Benchmark::new(seed);
+                (0..count.min(bench.len()))
+                    .into_par_iter()
+                    .map(|i| bench.generate(i).map(|g| g.scene))
+                    .collect::<Result<_, _>>()?
+            }
+        };
+        let compiled = scenes.into_iter().map(compile).collect::<Result<Vec<_>>>()?;
+        let columns = (compiled.len() as f64).sqrt().ceil().max(1.0) as u32;
+        let png = esrp_render::goal_contact_sheet_png(&renderer, &compiled, resolution, columns)?;
+        esrp_dataset::files::write_atomic(&out.join("sheet.png"), &png)?;
+        println!("wrote {} ({} goal images, {columns} per row)", out.join("sheet.png").display(), compiled.len());
+        return Ok(());
+    }
+    let id = scene.context("give --scene ID or --sheet N")?;
+    let compiled = compile(load_scene(id, dataset, seed)?)?;
+    let pngs = esrp_render::render_scene_pngs(&renderer, &compiled, resolution)?;
+    for (name, bytes) in [("ego.png", &pngs.ego), ("goal.png", &pngs.goal), ("current.png", &pngs.current)] {
+        esrp_dataset::files::write_atomic(&out.join(name), bytes)?;
+    }
+    println!("wrote ego.png, goal.png and current.png of {} to {}", compiled.scene().id, out.display());
     Ok(())
 }
 
@@ -315,6 +391,10 @@ fn main() -> ExitCode {
         }
         Command::Validate { dir } => validate(&dir),
         Command::Stats { dir, out } => stats(&dir, &out).map(|()| true),
+        #[cfg(feature = "render")]
+        Command::Render { scene, sheet, dataset, seed, resolution, out } => {
+            render(scene.as_deref(), sheet, dataset.as_deref(), seed, resolution, &out).map(|()| true)
+        }
         Command::Show { id, dataset, seed } => show(&id, dataset.as_deref(), seed).map(|()| true),
     };
     match result {
