@@ -1,0 +1,84 @@
+//! Server configuration: command-line flags, each with an `ESRP_*` environment variable.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use clap::{Parser, ValueEnum};
+
+/// Which rendering backend to use.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum RenderBackend {
+    /// Vulkan (GPU or lavapipe) first, OpenGL if no Vulkan adapter exists.
+    Auto,
+    /// Vulkan only.
+    Vulkan,
+    /// OpenGL (EGL) only.
+    Gl,
+}
+
+/// Log output format.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum LogFormat {
+    /// Human-readable lines.
+    Text,
+    /// One JSON object per line.
+    Json,
+}
+
+/// Configuration of `esrp-server`.
+#[derive(Clone, Debug, Parser)]
+#[command(name = "esrp-server", version, about = "The ESRP environment server (gRPC)")]
+pub struct Config {
+    /// Address to listen on (port 0 picks a free port; the bound address is logged and printed).
+    #[arg(long, env = "ESRP_LISTEN", default_value = "127.0.0.1:50051")]
+    pub listen: SocketAddr,
+    /// Serve this dataset folder (from `esrp-dataset generate` or `import-3dfront`) instead of
+    /// the built-in benchmark esrp-bench-v1.
+    #[arg(long, env = "ESRP_DATASET")]
+    pub dataset: Option<PathBuf>,
+    /// Seed of the built-in benchmark (0 is esrp-bench-v1).
+    #[arg(long, env = "ESRP_BENCH_SEED", default_value_t = 0)]
+    pub bench_seed: u64,
+    /// Most live episodes; CreateEpisode beyond it fails with RESOURCE_EXHAUSTED.
+    #[arg(long, env = "ESRP_MAX_EPISODES", default_value_t = 4096)]
+    pub max_episodes: usize,
+    /// Most steps in one StepBatch.
+    #[arg(long, env = "ESRP_MAX_BATCH", default_value_t = 1024)]
+    pub max_batch: usize,
+    /// Largest gRPC message, bytes, either way.
+    #[arg(long, env = "ESRP_MAX_MESSAGE_BYTES", default_value_t = 64 * 1024 * 1024)]
+    pub max_message_bytes: usize,
+    /// Episodes untouched this long are closed, seconds.
+    #[arg(long, env = "ESRP_IDLE_TIMEOUT", default_value_t = 600)]
+    pub idle_timeout_seconds: u64,
+    /// Rendering backend.
+    #[arg(long, env = "ESRP_RENDER_BACKEND", value_enum, default_value_t = RenderBackend::Auto)]
+    pub render_backend: RenderBackend,
+    /// Require `authorization: Bearer TOKEN` on every call.
+    #[arg(long, env = "ESRP_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    /// TLS certificate chain (PEM); needs --tls-key.
+    #[arg(long, env = "ESRP_TLS_CERT", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// TLS private key (PEM); needs --tls-cert.
+    #[arg(long, env = "ESRP_TLS_KEY", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// Log format.
+    #[arg(long, env = "ESRP_LOG_FORMAT", value_enum, default_value_t = LogFormat::Text)]
+    pub log_format: LogFormat,
+}
+
+impl Config {
+    /// The idle timeout as a duration.
+    pub fn idle_timeout(&self) -> Duration {
+        Duration::from_secs(self.idle_timeout_seconds)
+    }
+
+    /// A configuration with every default, listening on `listen` (tests, embedding).
+    pub fn with_listen(listen: SocketAddr) -> Self {
+        let mut config = Config::parse_from(["esrp-server"]);
+        config.listen = listen;
+        config
+    }
+}

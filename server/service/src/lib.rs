@@ -1,0 +1,139 @@
+//! **esrp-server**: the ESRP environment server. A tonic gRPC service (`esrp.v1.Esrp`) hosting
+//! many concurrent episodes, each with its own simulator state (esrp-core) and views rendered
+//! in batches across all episodes by one render thread (esrp-render), on the built-in
+//! benchmark esrp-bench-v1 (scenes generated lazily by index) or a dataset folder.
+//!
+//! # Module map
+//!
+//! - [`config`]: flags and environment variables.
+//! - [`scenes`]: the served scenes, built lazily and cached.
+//! - [`registry`]: live episodes by unguessable id, each locked alone; limits; idle reaping.
+//! - [`render`]: the render scheduler (one thread, batches of every waiting view).
+//! - [`service`]: the `esrp.v1.Esrp` handlers; proto ↔ core conversions at the edge.
+//! - [`error`]: typed errors and their one mapping to gRPC status codes.
+//!
+//! # Invariants
+//!
+//! - **The runtime never blocks on simulation or rendering.** Steps run on blocking threads
+//!   (a whole batch per hop), scene generation and uploads too, and rendering on the render
+//!   thread behind a channel.
+//! - **Each episode is locked alone**; a batch locks its episodes in id order, so concurrent
+//!   batches cannot deadlock. The registry's own lock is held only for map operations.
+//! - **No client input panics or stops the server**: every field is validated into a
+//!   [`error::ServiceError`] with a precise status code and a message that says what to change.
+//! - **Same scene and actions, same observations**, whatever else the server is doing: episodes
+//!   share nothing mutable, and a batch renders each view as it would alone.
+
+#![warn(missing_docs)]
+
+pub mod config;
+pub mod error;
+pub mod registry;
+pub mod render;
+pub mod scenes;
+pub mod service;
+
+use std::future::Future;
+use std::sync::Arc;
+
+use tokio::net::TcpListener;
+use tonic::service::interceptor::InterceptedService;
+
+/// Generated protobuf messages and gRPC stubs of `esrp.v1`.
+#[allow(missing_docs, clippy::all)]
+pub mod proto {
+    tonic::include_proto!("esrp.v1");
+
+    /// The encoded file descriptor set, for gRPC reflection.
+    pub const FILE_DESCRIPTOR_SET: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/esrp_descriptor.bin"));
+}
+
+pub use config::Config;
+
+/// Checks `authorization: Bearer TOKEN` in constant time.
+#[derive(Clone)]
+pub struct TokenCheck {
+    expected: Option<Arc<Vec<u8>>>,
+}
+
+impl tonic::service::Interceptor for TokenCheck {
+    fn call(&mut self, request: tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> {
+        use subtle::ConstantTimeEq;
+        let Some(expected) = &self.expected else { return Ok(request) };
+        let given = request.metadata().get("authorization").map(|v| v.as_bytes()).unwrap_or_default();
+        if bool::from(given.ct_eq(expected.as_slice())) {
+            Ok(request)
+        } else {
+            Err(tonic::Status::unauthenticated(
+                "missing or wrong bearer token: send the metadata `authorization: Bearer <token>` with the server's --token",
+            ))
+        }
+    }
+}
+
+/// Builds the shared state: the scene store, the renderer and its thread.
+pub fn build_shared(config: &Config) -> anyhow::Result<Arc<service::Shared>> {
+    let store = match &config.dataset {
+        Some(dir) => scenes::SceneStore::folder(dir)?,
+        None => scenes::SceneStore::built_in(config.bench_seed),
+    };
+    let backends = match config.render_backend {
+        config::RenderBackend::Auto => esrp_render::BackendPreference::Auto,
+        config::RenderBackend::Vulkan => esrp_render::BackendPreference::Vulkan,
+        config::RenderBackend::Gl => esrp_render::BackendPreference::Gl,
+    };
+    let renderer = esrp_render::Renderer::new(esrp_render::RendererConfig { backends, ..Default::default() })?;
+    let info = renderer.adapter_info();
+    tracing::info!(adapter = %info.name, backend = ?info.backend, software = renderer.is_software(), "renderer ready");
+    let render = render::RenderScheduler::start(renderer);
+    Ok(Arc::new(service::Shared::new(store, render, config.clone())))
+}
+
+/// Serves on `listener` until `shutdown` completes, then drains in-flight calls.
+pub async fn run(listener: TcpListener, config: Config, shutdown: impl Future<Output = ()> + Send) -> anyhow::Result<()> {
+    let shared = build_shared(&config)?;
+    let address = listener.local_addr()?;
+    tracing::info!(%address, dataset = shared.store.name(), scenes = shared.store.infos().len(), "serving esrp.v1");
+
+    // Close idle episodes.
+    let reaper = {
+        let shared = shared.clone();
+        let idle = config.idle_timeout();
+        tokio::spawn(async move {
+            let mut tick = tokio::time::interval((idle / 10).clamp(std::time::Duration::from_secs(1), std::time::Duration::from_secs(60)));
+            loop {
+                tick.tick().await;
+                let reaped = shared.registry.reap(idle);
+                if reaped > 0 {
+                    tracing::info!(reaped, "closed idle episodes");
+                }
+            }
+        })
+    };
+
+    let (health, health_service) = tonic_health::server::health_reporter();
+    health.set_serving::<proto::esrp_server::EsrpServer<service::EsrpService>>().await;
+    let reflection = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
+        .build_v1()?;
+    let esrp = proto::esrp_server::EsrpServer::new(service::EsrpService::new(shared))
+        .max_decoding_message_size(config.max_message_bytes)
+        .max_encoding_message_size(config.max_message_bytes);
+    let check = TokenCheck { expected: config.token.as_ref().map(|t| Arc::new(format!("Bearer {t}").into_bytes())) };
+
+    let mut builder = tonic::transport::Server::builder();
+    if let (Some(cert), Some(key)) = (&config.tls_cert, &config.tls_key) {
+        let cert = std::fs::read(cert).map_err(|e| anyhow::anyhow!("cannot read --tls-cert {}: {e}", cert.display()))?;
+        let key = std::fs::read(key).map_err(|e| anyhow::anyhow!("cannot read --tls-key {}: {e}", key.display()))?;
+        builder = builder.tls_config(tonic::transport::ServerTlsConfig::new().identity(tonic::transport::Identity::from_pem(cert, key)))?;
+    }
+    let result = builder
+        .add_service(health_service)
+        .add_service(reflection)
+        .add_service(InterceptedService::new(esrp, check))
+        .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(listener), shutdown)
+        .await;
+    reaper.abort();
+    tracing::info!("server stopped");
+    Ok(result?)
+}

@@ -1,0 +1,162 @@
+//! The render scheduler: one dedicated thread owns the renderer, gathers the view requests of
+//! all episodes that arrived while it was busy, and renders them in one batch.
+//!
+//! The async side sends a [`RenderJob`] (the views of one request) down a channel and awaits
+//! the reply; the runtime never blocks on rendering. Batching is automatic: the more episodes
+//! step at once, the larger the batches.
+
+use std::sync::Arc;
+use std::sync::mpsc;
+
+use esrp_core::{CompiledScene, EgoCamera, ObjectPose};
+use esrp_render::{Camera, Outputs, Renderer, SceneHandle, ViewOutput, ViewRequest};
+use tokio::sync::oneshot;
+
+use crate::error::ServiceError;
+
+/// One view to render, owning its inputs.
+#[derive(Clone, Debug)]
+pub struct View {
+    /// The scene.
+    pub scene: Arc<SceneHandle>,
+    /// Egocentric or top-down.
+    pub camera: Camera,
+    /// Poses of the movable objects.
+    pub poses: Vec<ObjectPose>,
+    /// Extra outputs.
+    pub outputs: Outputs,
+    /// Square side in pixels.
+    pub resolution: u32,
+}
+
+impl View {
+    /// The egocentric view at `camera`.
+    pub fn ego(scene: &Arc<SceneHandle>, camera: EgoCamera, poses: &[ObjectPose], outputs: Outputs, resolution: u32) -> Self {
+        Self { scene: scene.clone(), camera: Camera::Ego(camera), poses: poses.to_vec(), outputs, resolution }
+    }
+
+    /// The top-down view with the objects at `poses`.
+    pub fn top_down(scene: &Arc<SceneHandle>, poses: &[ObjectPose], resolution: u32) -> Self {
+        Self { scene: scene.clone(), camera: Camera::TopDown, poses: poses.to_vec(), outputs: Outputs::RGB, resolution }
+    }
+}
+
+struct RenderJob {
+    views: Vec<View>,
+    reply: oneshot::Sender<Result<Vec<ViewOutput>, String>>,
+}
+
+/// Handle to the render thread. Cheap to clone.
+#[derive(Clone)]
+pub struct RenderScheduler {
+    renderer: Arc<Renderer>,
+    jobs: mpsc::Sender<RenderJob>,
+    stats: Arc<RenderStats>,
+}
+
+/// Counters of the render thread.
+#[derive(Debug, Default)]
+pub struct RenderStats {
+    /// Batches rendered.
+    pub batches: std::sync::atomic::AtomicU64,
+    /// Views rendered.
+    pub views: std::sync::atomic::AtomicU64,
+}
+
+impl RenderScheduler {
+    /// Starts the render thread around `renderer`.
+    pub fn start(renderer: Renderer) -> Self {
+        let renderer = Arc::new(renderer);
+        let (jobs, receiver) = mpsc::channel::<RenderJob>();
+        let stats = Arc::new(RenderStats::default());
+        let thread_renderer = renderer.clone();
+        let thread_stats = stats.clone();
+        std::thread::Builder::new()
+            .name("esrp-render".into())
+            .spawn(move || render_loop(&thread_renderer, &receiver, &thread_stats))
+            .map(drop)
+            .unwrap_or_else(|e| tracing::error!("cannot start the render thread: {e}"));
+        Self { renderer, jobs, stats }
+    }
+
+    /// The renderer (adapter information, scene uploads).
+    pub fn renderer(&self) -> &Arc<Renderer> {
+        &self.renderer
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> &RenderStats {
+        &self.stats
+    }
+
+    /// Uploads a scene's geometry (on a blocking thread).
+    pub async fn upload(&self, scene: Arc<CompiledScene>) -> Result<Arc<SceneHandle>, ServiceError> {
+        let renderer = self.renderer.clone();
+        tokio::task::spawn_blocking(move || renderer.upload_scene(&scene))
+            .await
+            .map_err(|e| ServiceError::Internal(e.to_string()))?
+            .map_err(ServiceError::from)
+    }
+
+    /// Renders `views`, batched with whatever other episodes asked for meanwhile.
+    pub async fn render(&self, views: Vec<View>) -> Result<Vec<ViewOutput>, ServiceError> {
+        if views.is_empty() {
+            return Ok(Vec::new());
+        }
+        let (reply, answer) = oneshot::channel();
+        self.jobs.send(RenderJob { views, reply }).map_err(|_| ServiceError::Render("the render thread has stopped".into()))?;
+        answer.await.map_err(|_| ServiceError::Render("the render thread dropped the request".into()))?.map_err(ServiceError::Render)
+    }
+}
+
+fn render_loop(renderer: &Renderer, receiver: &mpsc::Receiver<RenderJob>, stats: &RenderStats) {
+    while let Ok(first) = receiver.recv() {
+        // Gather every job that is already waiting, up to the batch limit.
+        let mut jobs = vec![first];
+        let mut count = jobs[0].views.len();
+        while count < esrp_render::MAX_BATCH_VIEWS {
+            match receiver.try_recv() {
+                Ok(job) if count + job.views.len() <= esrp_render::MAX_BATCH_VIEWS => {
+                    count += job.views.len();
+                    jobs.push(job);
+                }
+                Ok(job) => {
+                    // Too big to join this batch: render it on its own right after.
+                    render_jobs(renderer, jobs, stats);
+                    jobs = vec![job];
+                    count = jobs[0].views.len();
+                }
+                Err(_) => break,
+            }
+        }
+        render_jobs(renderer, jobs, stats);
+    }
+}
+
+fn render_jobs(renderer: &Renderer, jobs: Vec<RenderJob>, stats: &RenderStats) {
+    use std::sync::atomic::Ordering::Relaxed;
+    let requests: Vec<ViewRequest<'_>> = jobs
+        .iter()
+        .flat_map(|job| job.views.iter())
+        .map(|v| ViewRequest::new(&v.scene, v.camera, &v.poses).with_outputs(v.outputs).with_resolution(v.resolution))
+        .collect();
+    stats.batches.fetch_add(1, Relaxed);
+    stats.views.fetch_add(requests.len() as u64, Relaxed);
+    let result = renderer.render_batch(&requests);
+    drop(requests);
+    match result {
+        Ok(outputs) => {
+            let mut outputs = outputs.into_iter();
+            for job in jobs {
+                let mine: Vec<ViewOutput> = outputs.by_ref().take(job.views.len()).collect();
+                let _ = job.reply.send(Ok(mine));
+            }
+        }
+        Err(e) => {
+            let message = e.to_string();
+            for job in jobs {
+                let _ = job.reply.send(Err(message.clone()));
+            }
+        }
+    }
+}

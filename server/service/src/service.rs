@@ -1,0 +1,749 @@
+//! The `esrp.v1.Esrp` service: thin handlers over [`Shared`], which owns the scenes, the
+//! registry and the render scheduler. Conversions between proto messages and esrp-core types
+//! happen here, at the edge; core types never see the proto.
+
+use std::collections::HashSet;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Instant;
+
+use bytes::Bytes;
+use esrp_core::{Action, CompiledScene, Episode, EpisodeConfig, RewardWeights, Scene, Split};
+use esrp_render::{Outputs, ViewOutput};
+use tokio::sync::mpsc;
+use tokio_stream::{Stream, StreamExt};
+use tonic::{Request, Response, Status, Streaming};
+
+use crate::config::Config;
+use crate::error::ServiceError;
+use crate::proto;
+use crate::registry::{EpisodeEntry, Registry, SensorConfig, SharedEpisode};
+use crate::render::{RenderScheduler, View};
+use crate::scenes::{SceneInfo, SceneStore};
+
+/// State shared by every handler.
+pub struct Shared {
+    /// The served scenes.
+    pub store: SceneStore,
+    /// Live episodes.
+    pub registry: Registry,
+    /// The render thread.
+    pub render: RenderScheduler,
+    /// The configuration.
+    pub config: Config,
+    next_stream: AtomicU64,
+    /// Steps taken since start.
+    pub steps: AtomicU64,
+}
+
+/// The largest image side a client may ask for.
+pub const MAX_RESOLUTION: u32 = 512;
+
+const ACTIONS: [&str; 6] = ["move_forward", "move_backward", "turn_left", "turn_right", "fetch", "release"];
+
+fn image(rgb: Bytes, resolution: u32) -> proto::Image {
+    proto::Image { height: resolution, width: resolution, channels: 3, data: rgb }
+}
+
+fn split_of(split: i32) -> Result<Option<Split>, ServiceError> {
+    match proto::Split::try_from(split) {
+        Ok(proto::Split::Unspecified) => Ok(None),
+        Ok(proto::Split::Train) => Ok(Some(Split::Train)),
+        Ok(proto::Split::Test) => Ok(Some(Split::Test)),
+        Err(_) => Err(ServiceError::InvalidArgument(format!("unknown split {split}: use 1 (train) or 2 (test)"))),
+    }
+}
+
+fn split_to_proto(split: Split) -> proto::Split {
+    match split {
+        Split::Train => proto::Split::Train,
+        Split::Test => proto::Split::Test,
+    }
+}
+
+fn difficulty_to_proto(d: esrp_core::Difficulty) -> proto::Difficulty {
+    match d {
+        esrp_core::Difficulty::Easy => proto::Difficulty::Easy,
+        esrp_core::Difficulty::Medium => proto::Difficulty::Medium,
+        esrp_core::Difficulty::Hard => proto::Difficulty::Hard,
+    }
+}
+
+fn summary_of_info(info: &SceneInfo) -> proto::SceneSummary {
+    proto::SceneSummary {
+        id: info.id.clone(),
+        room_type: info.room_type.clone(),
+        difficulty: difficulty_to_proto(info.difficulty) as i32,
+        split: split_to_proto(info.split) as i32,
+        movable_objects: info.movable_objects as u32,
+        horizon: info.horizon,
+        expert_length: info.expert_length as u32,
+    }
+}
+
+fn summary_of_scene(scene: &Scene) -> proto::SceneSummary {
+    proto::SceneSummary {
+        id: scene.id.clone(),
+        room_type: scene.room_type.clone(),
+        difficulty: difficulty_to_proto(scene.difficulty) as i32,
+        split: split_to_proto(scene.split) as i32,
+        movable_objects: scene.movable_objects.len() as u32,
+        horizon: scene.horizon,
+        expert_length: scene.expert_trajectory.len() as u32,
+    }
+}
+
+fn metrics_to_proto(m: &esrp_core::EpisodeMetrics) -> proto::EpisodeMetrics {
+    proto::EpisodeMetrics {
+        success: m.success,
+        object_success_rate: m.object_success_rate,
+        remaining_distance_ratio: m.remaining_distance_ratio,
+        stage: m.stage as u32,
+        placed: m.placed as u32,
+        movable_objects: m.movable_objects as u32,
+        steps: m.steps,
+        total_reward: m.total_reward,
+    }
+}
+
+fn obstacle_to_proto(scene: &CompiledScene, o: esrp_core::Obstacle) -> proto::Obstacle {
+    use proto::obstacle::Kind;
+    let (kind, index) = match o {
+        esrp_core::Obstacle::Wall(i) => (Kind::Wall, i),
+        esrp_core::Obstacle::Fixed(i) => (Kind::Fixed, i),
+        esrp_core::Obstacle::Movable(i) => (Kind::Movable, i),
+    };
+    proto::Obstacle { kind: kind as i32, index: index as u32, name: scene.obstacle_name(o) }
+}
+
+fn reward_weights(w: Option<proto::RewardWeights>) -> RewardWeights {
+    let d = RewardWeights::default();
+    let w = w.unwrap_or_default();
+    RewardWeights {
+        success: w.success.unwrap_or(d.success),
+        place: w.place.unwrap_or(d.place),
+        unplace: w.unplace.unwrap_or(d.unplace),
+        potential: w.potential.unwrap_or(d.potential),
+        holding: w.holding.unwrap_or(d.holding),
+        living: w.living.unwrap_or(d.living),
+    }
+}
+
+fn sensors(s: Option<proto::Sensors>) -> Result<SensorConfig, ServiceError> {
+    let s = s.unwrap_or_default();
+    let resolution = if s.resolution == 0 { esrp_render::DEFAULT_RESOLUTION } else { s.resolution };
+    if !(16..=MAX_RESOLUTION).contains(&resolution) {
+        return Err(ServiceError::InvalidArgument(format!(
+            "sensors.resolution {resolution} is out of range: use 16 to {MAX_RESOLUTION} pixels (0 means 128)"
+        )));
+    }
+    Ok(SensorConfig { depth: s.ego_depth, segmentation: s.ego_segmentation, current_top_down: s.current_top_down, resolution })
+}
+
+fn spec(sensors: &SensorConfig) -> proto::ObservationSpec {
+    let r = sensors.resolution;
+    let array = |name: &str, shape: Vec<u32>, dtype: &str| proto::ArraySpec { name: name.into(), shape, dtype: dtype.into() };
+    let mut arrays =
+        vec![array("ego_rgb", vec![r, r, 3], "uint8"), array("goal_rgb", vec![r, r, 3], "uint8"), array("grasping", vec![], "bool")];
+    if sensors.depth {
+        arrays.push(array("ego_depth", vec![r, r], "float32"));
+    }
+    if sensors.segmentation {
+        arrays.push(array("ego_segmentation", vec![r, r], "uint32"));
+    }
+    if sensors.current_top_down {
+        arrays.push(array("current_top_down", vec![r, r, 3], "uint8"));
+    }
+    proto::ObservationSpec { arrays, actions: ACTIONS.iter().map(|a| (*a).to_owned()).collect() }
+}
+
+fn f32_bytes(values: &[f32]) -> Bytes {
+    let mut out = Vec::with_capacity(values.len() * 4);
+    for v in values {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    Bytes::from(out)
+}
+
+fn u32_bytes(values: &[u32]) -> Bytes {
+    let mut out = Vec::with_capacity(values.len() * 4);
+    for v in values {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    Bytes::from(out)
+}
+
+/// The views an observation of `entry` needs: the ego view, then the current top-down view if
+/// that sensor is on.
+fn observation_views(entry: &EpisodeEntry) -> Vec<View> {
+    let outputs = Outputs { depth: entry.sensors.depth, segmentation: entry.sensors.segmentation };
+    let poses = entry.episode.object_poses();
+    let mut views = vec![View::ego(&entry.scene, entry.episode.ego_camera(), poses, outputs, entry.sensors.resolution)];
+    if entry.sensors.current_top_down {
+        views.push(View::top_down(&entry.scene, poses, entry.sensors.resolution));
+    }
+    views
+}
+
+fn observation(entry: &EpisodeEntry, outputs: Vec<ViewOutput>, include_goal: bool) -> proto::Observation {
+    let r = entry.sensors.resolution;
+    let mut outputs = outputs.into_iter();
+    let mut observation = proto::Observation {
+        grasping: entry.episode.held().is_some(),
+        goal_rgb: include_goal.then(|| entry.goal.clone()),
+        ..Default::default()
+    };
+    if let Some(ego) = outputs.next() {
+        observation.ego_depth = ego.depth.as_deref().map(|d| proto::FloatImage { height: r, width: r, data: f32_bytes(d) });
+        observation.ego_segmentation =
+            ego.segmentation.as_deref().map(|s| proto::LabelImage { height: r, width: r, data: u32_bytes(s) });
+        observation.ego_rgb = Some(image(ego.rgb, r));
+    }
+    if entry.sensors.current_top_down {
+        observation.current_top_down = outputs.next().map(|v| image(v.rgb, r));
+    }
+    observation
+}
+
+impl Shared {
+    /// Shared state for a server with `config`, serving `store` and rendering with `render`.
+    pub fn new(store: SceneStore, render: RenderScheduler, config: Config) -> Self {
+        Self {
+            store,
+            registry: Registry::new(config.max_episodes),
+            render,
+            config,
+            next_stream: AtomicU64::new(1),
+            steps: AtomicU64::new(0),
+        }
+    }
+
+    /// Resolves a request's scene choice into a compiled scene.
+    async fn resolve_scene(
+        self: &Arc<Self>,
+        scene_id: Option<String>,
+        scene_json: Option<String>,
+        split: i32,
+        seed: u64,
+    ) -> Result<Arc<CompiledScene>, ServiceError> {
+        let this = self.clone();
+        let job = move || -> Result<Arc<CompiledScene>, ServiceError> {
+            if let Some(json) = scene_json {
+                let scene = Scene::from_json(&json)?;
+                return Ok(Arc::new(CompiledScene::new(scene, esrp_core::Rules::default())?));
+            }
+            let index = match scene_id {
+                Some(id) if !id.is_empty() => this.store.index_of(&id)?,
+                _ => {
+                    let split = split_of(split)?.unwrap_or(Split::Test);
+                    let candidates = this.store.indices_of_split(split);
+                    if candidates.is_empty() {
+                        return Err(ServiceError::InvalidArgument(format!(
+                            "the served dataset has no {} scenes: choose another split or a scene_id",
+                            split.as_str()
+                        )));
+                    }
+                    candidates[(seed % candidates.len() as u64) as usize]
+                }
+            };
+            this.store.compiled(index)
+        };
+        tokio::task::spawn_blocking(job).await.map_err(|e| ServiceError::Internal(e.to_string()))?
+    }
+
+    /// Builds a fresh entry on `scene`, rendering its goal and first observation.
+    async fn new_entry(
+        self: &Arc<Self>,
+        scene: Arc<CompiledScene>,
+        config: EpisodeConfig,
+        sensors: SensorConfig,
+        privileged: bool,
+    ) -> Result<(EpisodeEntry, proto::Observation), ServiceError> {
+        let episode = Episode::new(scene.clone(), config)?;
+        let handle = self.render.upload(scene.clone()).await?;
+        let frame = handle.top_down_frame(sensors.resolution);
+        let targets: Vec<esrp_core::ObjectPose> = scene.scene().movable_objects.iter().map(|o| o.target).collect();
+        let mut entry = EpisodeEntry {
+            episode,
+            scene: handle.clone(),
+            summary: summary_of_scene(scene.scene()),
+            sensors,
+            privileged,
+            goal: proto::Image::default(),
+            frame,
+            last_used: Instant::now(),
+        };
+        let mut views = vec![View::top_down(&handle, &targets, sensors.resolution)];
+        views.extend(observation_views(&entry));
+        let mut outputs = self.render.render(views).await?;
+        let goal = outputs.remove(0);
+        entry.goal = image(goal.rgb, sensors.resolution);
+        let observation = observation(&entry, outputs, true);
+        Ok((entry, observation))
+    }
+
+    /// CreateEpisode.
+    pub async fn create(self: &Arc<Self>, request: proto::CreateEpisodeRequest, stream: Option<u64>) -> Result<proto::CreateEpisodeResponse, ServiceError> {
+        if self.registry.len() >= self.registry.max_episodes() {
+            return Err(ServiceError::Exhausted(format!(
+                "the server holds its maximum of {} live episodes: close some (CloseEpisode) or raise --max-episodes",
+                self.registry.max_episodes()
+            )));
+        }
+        let (scene_id, scene_json) = match request.scene {
+            Some(proto::create_episode_request::Scene::SceneId(id)) => (Some(id), None),
+            Some(proto::create_episode_request::Scene::SceneJson(json)) => (None, Some(json)),
+            None => (None, None),
+        };
+        let sensors = sensors(request.sensors)?;
+        let config = EpisodeConfig { horizon: (request.horizon != 0).then_some(request.horizon), reward: reward_weights(request.reward) };
+        let scene = self.resolve_scene(scene_id, scene_json, request.split, request.seed).await?;
+        let (entry, observation) = self.new_entry(scene, config, sensors, request.privileged).await?;
+        let summary = entry.summary.clone();
+        let spec = spec(&entry.sensors);
+        let episode_id = self.registry.insert(entry, stream)?;
+        tracing::debug!(episode = %episode_id, scene = %summary.id, "episode created");
+        Ok(proto::CreateEpisodeResponse { episode_id, spec: Some(spec), observation: Some(observation), scene: Some(summary) })
+    }
+
+    /// Reset.
+    pub async fn reset(self: &Arc<Self>, request: proto::ResetRequest) -> Result<proto::ResetResponse, ServiceError> {
+        let shared = self.registry.get(&request.episode_id)?;
+        let mut entry = shared.lock().await;
+        let (scene_id, scene_json) = match request.scene {
+            Some(proto::reset_request::Scene::SceneId(id)) if !id.is_empty() => (Some(id), None),
+            Some(proto::reset_request::Scene::SceneJson(json)) => (None, Some(json)),
+            _ => (None, None),
+        };
+        if scene_id.is_none() && scene_json.is_none() {
+            entry.episode.reset();
+            entry.last_used = Instant::now();
+            let outputs = self.render.render(observation_views(&entry)).await?;
+            let observation = observation(&entry, outputs, true);
+            return Ok(proto::ResetResponse { observation: Some(observation), scene: Some(entry.summary.clone()) });
+        }
+        let scene = self.resolve_scene(scene_id, scene_json, 0, 0).await?;
+        let (fresh, observation) =
+            self.new_entry(scene, *entry.episode.config(), entry.sensors, entry.privileged).await?;
+        *entry = fresh;
+        Ok(proto::ResetResponse { observation: Some(observation), scene: Some(entry.summary.clone()) })
+    }
+
+    /// Step and StepBatch: validates the whole batch, steps every episode (off the async
+    /// runtime), renders every view in one batch.
+    pub async fn step_many(self: &Arc<Self>, requests: Vec<proto::StepRequest>) -> Result<Vec<proto::StepResponse>, ServiceError> {
+        if requests.len() > self.config.max_batch {
+            return Err(ServiceError::Exhausted(format!(
+                "a batch of {} steps exceeds the limit of {} (--max-batch)",
+                requests.len(),
+                self.config.max_batch
+            )));
+        }
+        let mut seen = HashSet::new();
+        let mut plan = Vec::with_capacity(requests.len());
+        for (i, r) in requests.iter().enumerate() {
+            let action = Action::from_code(i64::from(r.action))
+                .map_err(|e| ServiceError::InvalidArgument(format!("steps[{i}].action: {e}")))?;
+            if !seen.insert(r.episode_id.as_str()) {
+                return Err(ServiceError::InvalidArgument(format!(
+                    "steps[{i}]: episode {} appears twice in one batch: send one step per episode",
+                    r.episode_id
+                )));
+            }
+            plan.push((self.registry.get(&r.episode_id)?, action, r.include_goal));
+        }
+        // Lock every episode (in id order, so that concurrent batches cannot deadlock).
+        let mut order: Vec<usize> = (0..plan.len()).collect();
+        order.sort_by(|&a, &b| requests[a].episode_id.cmp(&requests[b].episode_id));
+        let mut guards: Vec<Option<tokio::sync::OwnedMutexGuard<EpisodeEntry>>> = (0..plan.len()).map(|_| None).collect();
+        for &i in &order {
+            guards[i] = Some(plan[i].0.clone().lock_owned().await);
+        }
+        let mut guards: Vec<tokio::sync::OwnedMutexGuard<EpisodeEntry>> = guards.into_iter().flatten().collect();
+        for (i, g) in guards.iter().enumerate() {
+            if g.episode.is_over() {
+                return Err(ServiceError::EpisodeOver(format!(
+                    "steps[{i}]: episode {} has ended after {} steps: Reset it or create a new one",
+                    requests[i].episode_id,
+                    g.episode.steps()
+                )));
+            }
+        }
+        let actions: Vec<Action> = plan.iter().map(|p| p.1).collect();
+        let (guards_back, outcomes) = tokio::task::spawn_blocking(move || {
+            let outcomes: Vec<Result<esrp_core::StepOutcome, esrp_core::EpisodeError>> =
+                guards.iter_mut().zip(&actions).map(|(g, &a)| g.episode.step(a)).collect();
+            (guards, outcomes)
+        })
+        .await
+        .map_err(|e| ServiceError::Internal(e.to_string()))?;
+        guards = guards_back;
+        let mut views = Vec::new();
+        let mut counts = Vec::with_capacity(guards.len());
+        for g in &guards {
+            let v = observation_views(g);
+            counts.push(v.len());
+            views.extend(v);
+        }
+        let mut outputs = self.render.render(views).await?.into_iter();
+        self.steps.fetch_add(guards.len() as u64, Ordering::Relaxed);
+        let mut responses = Vec::with_capacity(guards.len());
+        for (i, (g, outcome)) in guards.iter_mut().zip(outcomes).enumerate() {
+            let outcome = outcome?;
+            g.last_used = Instant::now();
+            let mine: Vec<ViewOutput> = outputs.by_ref().take(counts[i]).collect();
+            let compiled = g.episode.compiled().clone();
+            let ended = outcome.terminated || outcome.truncated;
+            responses.push(proto::StepResponse {
+                observation: Some(observation(g, mine, plan[i].2)),
+                reward: outcome.reward.total,
+                terminated: outcome.terminated,
+                truncated: outcome.truncated,
+                info: Some(proto::StepInfo {
+                    accepted: outcome.accepted,
+                    collided_with: outcome.collided_with.map(|o| obstacle_to_proto(&compiled, o)),
+                    no_op: outcome.no_op.map(|r| r.message().to_owned()).unwrap_or_default(),
+                    fetched: outcome.fetched.map(|i| i as u32),
+                    released: outcome.released.map(|i| i as u32),
+                    placed_count: outcome.placed_count as u32,
+                    step_index: outcome.step_index,
+                    reward_terms: Some(proto::RewardTerms {
+                        success: outcome.reward.success,
+                        placement: outcome.reward.placement,
+                        potential: outcome.reward.potential,
+                        holding: outcome.reward.holding,
+                        living: outcome.reward.living,
+                    }),
+                }),
+                metrics: ended.then(|| metrics_to_proto(&g.episode.metrics())),
+            });
+        }
+        Ok(responses)
+    }
+
+    async fn entry(&self, id: &str) -> Result<SharedEpisode, ServiceError> {
+        self.registry.get(id)
+    }
+
+    /// CloseEpisode.
+    pub async fn close(&self, request: proto::CloseEpisodeRequest) -> Result<proto::CloseEpisodeResponse, ServiceError> {
+        let shared = self.registry.remove(&request.episode_id)?;
+        let entry = shared.lock().await;
+        Ok(proto::CloseEpisodeResponse { metrics: Some(metrics_to_proto(&entry.episode.metrics())) })
+    }
+
+    /// Gives a stream a fresh id for owning its episodes.
+    fn stream_id(&self) -> u64 {
+        self.next_stream.fetch_add(1, Ordering::Relaxed)
+    }
+
+    /// Serves one StepStream: requests are read in waves (everything already sent, one request
+    /// per episode per wave), the steps of a wave are taken and rendered as one batch, and the
+    /// responses go back in request order.
+    async fn serve_stream(self: Arc<Self>, mut inbound: Streaming<proto::StreamRequest>, out: mpsc::Sender<Result<proto::StreamResponse, Status>>) {
+        let stream = self.stream_id();
+        let mut pending: Option<proto::StreamRequest> = None;
+        'outer: loop {
+            let first = match pending.take() {
+                Some(r) => r,
+                None => match inbound.next().await {
+                    Some(Ok(r)) => r,
+                    Some(Err(status)) => {
+                        tracing::debug!(stream, "stream ended by the client: {status}");
+                        break;
+                    }
+                    None => break,
+                },
+            };
+            // Gather a wave: requests already received, each touching a different episode.
+            let mut wave = vec![first];
+            let mut touched: HashSet<String> = wave.iter().filter_map(episode_of).collect();
+            while wave.len() < self.config.max_batch {
+                match futures_now(&mut inbound) {
+                    Some(Some(Ok(r))) => {
+                        let id = episode_of(&r);
+                        if id.as_ref().is_some_and(|id| touched.contains(id)) || matches!(r.request, Some(proto::stream_request::Request::Create(_))) {
+                            pending = Some(r);
+                            break;
+                        }
+                        touched.extend(id);
+                        wave.push(r);
+                    }
+                    Some(Some(Err(_))) | Some(None) => {
+                        self.answer_wave(wave, stream, &out).await;
+                        break 'outer;
+                    }
+                    None => break,
+                }
+            }
+            if !self.answer_wave(wave, stream, &out).await {
+                break;
+            }
+        }
+        let closed = self.registry.remove_stream(stream);
+        if closed > 0 {
+            tracing::debug!(stream, closed, "closed the episodes of a finished stream");
+        }
+    }
+
+    /// Answers one wave; false when the client is gone.
+    async fn answer_wave(self: &Arc<Self>, wave: Vec<proto::StreamRequest>, stream: u64, out: &mpsc::Sender<Result<proto::StreamResponse, Status>>) -> bool {
+        use proto::stream_request::Request as Rq;
+        use proto::stream_response::Response as Rs;
+        // Steps first, together, then the rest one by one (in order).
+        let step_ids: Vec<usize> = (0..wave.len()).filter(|&i| matches!(wave[i].request, Some(Rq::Step(_)))).collect();
+        let mut answers: Vec<Option<Rs>> = (0..wave.len()).map(|_| None).collect();
+        if !step_ids.is_empty() {
+            let steps: Vec<proto::StepRequest> = step_ids
+                .iter()
+                .filter_map(|&i| match &wave[i].request {
+                    Some(Rq::Step(s)) => Some(s.clone()),
+                    _ => None,
+                })
+                .collect();
+            match self.step_many(steps.clone()).await {
+                Ok(responses) => {
+                    for (&i, r) in step_ids.iter().zip(responses) {
+                        answers[i] = Some(Rs::Step(r));
+                    }
+                }
+                // One bad step must not fail its neighbours: redo them one by one.
+                Err(_) => {
+                    for (&i, s) in step_ids.iter().zip(steps) {
+                        answers[i] = Some(match self.step_many(vec![s]).await {
+                            Ok(mut r) => Rs::Step(r.remove(0)),
+                            Err(e) => stream_error(e),
+                        });
+                    }
+                }
+            }
+        }
+        for (i, request) in wave.iter().enumerate() {
+            if answers[i].is_some() {
+                continue;
+            }
+            answers[i] = Some(match request.request.clone() {
+                Some(Rq::Create(c)) => self.create(c, Some(stream)).await.map_or_else(stream_error, Rs::Created),
+                Some(Rq::Reset(r)) => self.reset(r).await.map_or_else(stream_error, Rs::Reset),
+                Some(Rq::Close(c)) => self.close(c).await.map_or_else(stream_error, Rs::Closed),
+                Some(Rq::Step(_)) => stream_error(ServiceError::Internal("step without an answer".into())),
+                None => stream_error(ServiceError::InvalidArgument("empty StreamRequest: set create, step, reset or close".into())),
+            });
+        }
+        for (request, answer) in wave.iter().zip(answers) {
+            let response = proto::StreamResponse { request_id: request.request_id, response: answer };
+            if out.send(Ok(response)).await.is_err() {
+                return false;
+            }
+        }
+        true
+    }
+}
+
+fn stream_error(e: ServiceError) -> proto::stream_response::Response {
+    let status = Status::from(e);
+    proto::stream_response::Response::Error(proto::StreamError { code: status.code() as i32, message: status.message().to_owned() })
+}
+
+fn episode_of(r: &proto::StreamRequest) -> Option<String> {
+    use proto::stream_request::Request as Rq;
+    match &r.request {
+        Some(Rq::Step(s)) => Some(s.episode_id.clone()),
+        Some(Rq::Reset(s)) => Some(s.episode_id.clone()),
+        Some(Rq::Close(s)) => Some(s.episode_id.clone()),
+        _ => None,
+    }
+}
+
+/// The next item of the stream if it is ready now, without waiting: `None` if not ready,
+/// `Some(None)` at the end.
+fn futures_now(inbound: &mut Streaming<proto::StreamRequest>) -> Option<Option<Result<proto::StreamRequest, Status>>> {
+    let waker = std::task::Waker::noop();
+    let mut cx = std::task::Context::from_waker(waker);
+    match Pin::new(inbound).poll_next(&mut cx) {
+        std::task::Poll::Ready(item) => Some(item),
+        std::task::Poll::Pending => None,
+    }
+}
+
+/// The tonic service.
+#[derive(Clone)]
+pub struct EsrpService {
+    shared: Arc<Shared>,
+}
+
+impl EsrpService {
+    /// A service over `shared`.
+    pub fn new(shared: Arc<Shared>) -> Self {
+        Self { shared }
+    }
+}
+
+type StreamOut = Pin<Box<dyn Stream<Item = Result<proto::StreamResponse, Status>> + Send + 'static>>;
+
+#[tonic::async_trait]
+impl proto::esrp_server::Esrp for EsrpService {
+    async fn server_info(&self, _: Request<proto::ServerInfoRequest>) -> Result<Response<proto::ServerInfoResponse>, Status> {
+        let s = &self.shared;
+        let renderer = s.render.renderer();
+        let info = renderer.adapter_info();
+        Ok(Response::new(proto::ServerInfoResponse {
+            version: env!("CARGO_PKG_VERSION").to_owned(),
+            renderer_adapter: info.name.clone(),
+            renderer_backend: format!("{:?}", info.backend).to_lowercase(),
+            software_renderer: renderer.is_software(),
+            limits: Some(proto::ServerLimits {
+                max_episodes: s.config.max_episodes as u32,
+                max_batch: s.config.max_batch as u32,
+                max_message_bytes: s.config.max_message_bytes as u32,
+                idle_timeout_seconds: s.config.idle_timeout_seconds as u32,
+                max_resolution: MAX_RESOLUTION.min(renderer.max_resolution()),
+            }),
+            live_episodes: s.registry.len() as u32,
+            dataset: s.store.name().to_owned(),
+        }))
+    }
+
+    async fn describe_dataset(&self, _: Request<proto::DescribeDatasetRequest>) -> Result<Response<proto::DescribeDatasetResponse>, Status> {
+        let store = &self.shared.store;
+        let [by_split, by_difficulty, by_room_type] = store.counts();
+        Ok(Response::new(proto::DescribeDatasetResponse {
+            name: store.name().to_owned(),
+            scenes: store.infos().len() as u32,
+            by_split: by_split.into_iter().collect(),
+            by_difficulty: by_difficulty.into_iter().collect(),
+            by_room_type: by_room_type.into_iter().collect(),
+            source: store.description().to_owned(),
+        }))
+    }
+
+    async fn list_scenes(&self, request: Request<proto::ListScenesRequest>) -> Result<Response<proto::ListScenesResponse>, Status> {
+        let r = request.into_inner();
+        let split = split_of(r.split)?;
+        let difficulty = match proto::Difficulty::try_from(r.difficulty) {
+            Ok(proto::Difficulty::Unspecified) => None,
+            Ok(proto::Difficulty::Easy) => Some(esrp_core::Difficulty::Easy),
+            Ok(proto::Difficulty::Medium) => Some(esrp_core::Difficulty::Medium),
+            Ok(proto::Difficulty::Hard) => Some(esrp_core::Difficulty::Hard),
+            Err(_) => return Err(ServiceError::InvalidArgument(format!("unknown difficulty {}: use 1, 2 or 3", r.difficulty)).into()),
+        };
+        let page_size = match r.page_size {
+            0 => 100,
+            n @ 1..=1000 => n as usize,
+            n => return Err(ServiceError::InvalidArgument(format!("page_size {n} is too large: at most 1000")).into()),
+        };
+        let start: usize = if r.page_token.is_empty() {
+            0
+        } else {
+            r.page_token.parse().map_err(|_| ServiceError::InvalidArgument(format!("page_token {:?} is not one this server gave", r.page_token)))?
+        };
+        let infos = self.shared.store.infos();
+        let mut scenes = Vec::new();
+        let mut next = infos.len();
+        for (i, info) in infos.iter().enumerate().skip(start) {
+            if split.is_some_and(|s| s != info.split) || difficulty.is_some_and(|d| d != info.difficulty) {
+                continue;
+            }
+            if scenes.len() == page_size {
+                next = i;
+                break;
+            }
+            scenes.push(summary_of_info(info));
+        }
+        let next_page_token = if next < infos.len() { next.to_string() } else { String::new() };
+        Ok(Response::new(proto::ListScenesResponse { scenes, next_page_token }))
+    }
+
+    async fn create_episode(&self, request: Request<proto::CreateEpisodeRequest>) -> Result<Response<proto::CreateEpisodeResponse>, Status> {
+        Ok(Response::new(self.shared.create(request.into_inner(), None).await?))
+    }
+
+    async fn reset(&self, request: Request<proto::ResetRequest>) -> Result<Response<proto::ResetResponse>, Status> {
+        Ok(Response::new(self.shared.reset(request.into_inner()).await?))
+    }
+
+    async fn step(&self, request: Request<proto::StepRequest>) -> Result<Response<proto::StepResponse>, Status> {
+        let mut responses = self.shared.step_many(vec![request.into_inner()]).await?;
+        Ok(Response::new(responses.remove(0)))
+    }
+
+    async fn step_batch(&self, request: Request<proto::StepBatchRequest>) -> Result<Response<proto::StepBatchResponse>, Status> {
+        let responses = self.shared.step_many(request.into_inner().steps).await?;
+        Ok(Response::new(proto::StepBatchResponse { responses }))
+    }
+
+    type StepStreamStream = StreamOut;
+
+    async fn step_stream(&self, request: Request<Streaming<proto::StreamRequest>>) -> Result<Response<Self::StepStreamStream>, Status> {
+        let (out, receiver) = mpsc::channel(256);
+        let shared = self.shared.clone();
+        tokio::spawn(shared.serve_stream(request.into_inner(), out));
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(receiver))))
+    }
+
+    async fn get_goal(&self, request: Request<proto::GetGoalRequest>) -> Result<Response<proto::GetGoalResponse>, Status> {
+        let shared = self.shared.entry(&request.into_inner().episode_id).await?;
+        let mut entry = shared.lock().await;
+        entry.last_used = Instant::now();
+        let f = entry.frame;
+        Ok(Response::new(proto::GetGoalResponse {
+            goal_rgb: Some(entry.goal.clone()),
+            frame: Some(proto::TopDownFrame { min_x: f.min_x, min_z: f.min_z, metres_per_pixel: f.metres_per_pixel(), resolution: f.resolution }),
+        }))
+    }
+
+    async fn get_privileged_state(&self, request: Request<proto::GetPrivilegedStateRequest>) -> Result<Response<proto::GetPrivilegedStateResponse>, Status> {
+        let id = request.into_inner().episode_id;
+        let shared = self.shared.entry(&id).await?;
+        let mut entry = shared.lock().await;
+        if !entry.privileged {
+            return Err(ServiceError::NotPrivileged(id).into());
+        }
+        entry.last_used = Instant::now();
+        let compiled = entry.episode.compiled().clone();
+        let state = entry.episode.privileged_state();
+        let footprint = |f: &esrp_core::OrientedRect| proto::Footprint { center_x: f.center.x, center_z: f.center.z, half_x: f.half_x, half_z: f.half_z, yaw: f.yaw };
+        let pose = |p: &esrp_core::ObjectPose| proto::Pose2 { x: p.x, z: p.z, yaw: p.yaw };
+        Ok(Response::new(proto::GetPrivilegedStateResponse {
+            agent_x: state.agent.position.x,
+            agent_z: state.agent.position.z,
+            agent_heading: u32::from(state.agent.heading.index()),
+            held: state.held.map(|i| i as u32),
+            objects: state
+                .objects
+                .iter()
+                .zip(&compiled.scene().movable_objects)
+                .map(|(o, m)| proto::ObjectState {
+                    id: o.id.clone(),
+                    category: m.category.as_str().to_owned(),
+                    pose: Some(pose(&o.pose)),
+                    target: Some(pose(&o.target)),
+                    footprint: Some(footprint(&o.footprint)),
+                    target_footprint: Some(footprint(&o.target_footprint)),
+                    iou: o.iou,
+                    placed: o.placed,
+                    held: o.held,
+                })
+                .collect(),
+            static_obstacles: state
+                .static_obstacles
+                .iter()
+                .map(|s| proto::StaticObstacle { obstacle: Some(obstacle_to_proto(&compiled, s.obstacle)), footprint: Some(footprint(&s.footprint)) })
+                .collect(),
+            floor: compiled.floor().iter().flat_map(|p| [p.x, p.z]).collect(),
+            scene_json: compiled.scene().to_json_pretty(),
+        }))
+    }
+
+    async fn get_metrics(&self, request: Request<proto::GetMetricsRequest>) -> Result<Response<proto::GetMetricsResponse>, Status> {
+        let shared = self.shared.entry(&request.into_inner().episode_id).await?;
+        let mut entry = shared.lock().await;
+        entry.last_used = Instant::now();
+        Ok(Response::new(proto::GetMetricsResponse { metrics: Some(metrics_to_proto(&entry.episode.metrics())), ended: entry.episode.is_over() }))
+    }
+
+    async fn close_episode(&self, request: Request<proto::CloseEpisodeRequest>) -> Result<Response<proto::CloseEpisodeResponse>, Status> {
+        Ok(Response::new(self.shared.close(request.into_inner()).await?))
+    }
+}

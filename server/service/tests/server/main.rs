@@ -1,0 +1,4 @@
+//! esrp-server's integration tests: start the real binary on an ephemeral port and talk gRPC.
+
+mod harness;
+mod smoke;
