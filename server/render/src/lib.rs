@@ -6,16 +6,18 @@
 //! turned into one triangle mesh and uploaded once ([`Renderer::upload_scene`] → an
 //! `Arc<`[`SceneHandle`]`>`); each view names a scene, a [`Camera`] and the movable objects'
 //! poses ([`ViewRequest`]). [`Renderer::render_batch`] draws any mix of views of any scenes into
-//! an atlas of 512×512 pages, one render pass per page (a viewport and a dynamic uniform offset
-//! per view, one indexed draw per view), submits once, reads back once and returns tightly packed RGB per view
-//! ([`ViewOutput`]), plus depth and segmentation where asked.
+//! the pages of an atlas (a texture array), one page and one render pass per view (a dynamic
+//! uniform offset and one indexed draw per view), submits once, reads back once and returns
+//! tightly packed RGB per view ([`ViewOutput`]), plus depth and segmentation where asked.
 //!
 //! # Invariants
 //!
 //! - **Batch-first, one submit per batch.** Rendering costs per submit and per draw, so callers
-//!   batch across episodes; a batch's RGB and segmentation are bit-identical to rendering each
-//!   view alone (each view has its own tile, viewport and scissor; nothing is shared between
-//!   tiles), and its depth equal to float rounding (interpolation depends on the tile's place).
+//!   batch across episodes; a batch's outputs are bit-identical to rendering each view alone.
+//!   Every view is drawn at the origin of its own page, so the viewport transform, and with it
+//!   every rounding of rasterisation and interpolation, never depends on the rest of the batch
+//!   (views packed side by side in one texture differ in the last bit of an interpolated
+//!   colour now and then, which made observations depend on what else the server rendered).
 //! - **Geometry is uploaded once.** A scene's mesh (floor, walls and doors, fixed furniture in
 //!   the world frame, movable objects in their own frames) never changes. What changes per view
 //!   is 240 bytes of uniforms: the camera and one pose per movable object, which the vertex
@@ -31,8 +33,8 @@
 //! # Module map
 //!
 //! - [`renderer`]: [`Renderer`], [`RendererConfig`], [`SceneHandle`], [`ViewRequest`],
-//!   [`ViewOutput`], [`Outputs`]; the paged atlas (512×512 pages, one render pass each, one
-//!   submit) and the readback.
+//!   [`ViewOutput`], [`Outputs`]; the paged atlas (one page and one render pass per view,
+//!   one submit per chunk of up to 16 Mpixels) and the readback.
 //! - [`camera`]: [`Camera`], the egocentric projection ([`project_ego`]) and the top-down frame
 //!   ([`TopDownFrame`]) with its exact pixel ↔ floor mapping.
 //! - [`mesh`]: triangle meshes from esrp-core shapes (box: 12 triangles, cylinder: 12-sided

@@ -242,9 +242,6 @@ impl Atlas {
     }
 }
 
-/// Side of a page when a batch needs more than one, pixels (16 views of 128×128).
-const PAGE_SIDE: u32 = 512;
-
 struct BatchState {
     atlases: Vec<Atlas>,
     batches: u64,
@@ -554,45 +551,40 @@ impl Renderer {
         Ok(())
     }
 
-    /// Shelf-packs the views into square pages; returns the tiles (in request order), the page
-    /// side and the number of pages (sides are powers of two, so that rows are 256-byte aligned
-    /// and shapes repeat across batches).
-    fn layout(&self, requests: &[ViewRequest<'_>]) -> Result<(Vec<Tile>, u32, u32), RenderError> {
+    /// One page per view, every view at the page's origin: the viewport transform, and so
+    /// every rounding of rasterisation and interpolation, is the same whatever else is in the
+    /// batch. Returns the tiles (in request order), the page side (the largest resolution
+    /// rounded up to 64, so that rows are 256-byte aligned) and the number of pages (a power of
+    /// two, so that atlas shapes repeat across batches). `requests` fits one chunk.
+    fn layout(&self, requests: &[ViewRequest<'_>]) -> (Vec<Tile>, u32, u32) {
         let largest = requests.iter().map(|r| r.resolution).max().unwrap_or(1);
-        let area: u64 = requests.iter().map(|r| u64::from(r.resolution).pow(2)).sum();
-        let fit = ((area as f64).sqrt().ceil() as u32).min(PAGE_SIDE);
-        let side = fit.max(largest).max(64).next_power_of_two().min(self.max_atlas);
-        let mut order: Vec<usize> = (0..requests.len()).collect();
-        order.sort_by_key(|&i| std::cmp::Reverse(requests[i].resolution));
-        let mut tiles = vec![Tile { page: 0, x: 0, y: 0, size: 0 }; requests.len()];
-        let (mut page, mut x, mut y, mut shelf) = (0u32, 0u32, 0u32, 0u32);
-        for i in order {
-            let size = requests[i].resolution;
-            if x + size > side {
-                y += shelf;
-                x = 0;
-                shelf = 0;
+        let side = largest.next_multiple_of(64);
+        let tiles =
+            requests.iter().enumerate().map(|(i, r)| Tile { page: i as u32, x: 0, y: 0, size: r.resolution }).collect();
+        let pages = (requests.len() as u32).next_power_of_two().min(self.max_pages);
+        (tiles, side, pages)
+    }
+
+    /// Splits a batch into consecutive chunks that each fit one atlas: at most `max_pages`
+    /// views and at most [`MAX_BATCH_PIXELS`] page pixels.
+    fn chunks(&self, requests: &[ViewRequest<'_>]) -> Vec<std::ops::Range<usize>> {
+        let mut chunks = Vec::new();
+        let (mut start, mut side) = (0usize, 0u64);
+        for (i, request) in requests.iter().enumerate() {
+            let wider = side.max(u64::from(request.resolution.next_multiple_of(64)));
+            let views = (i + 1 - start) as u64;
+            if i > start && (views > u64::from(self.max_pages) || views * wider * wider > MAX_BATCH_PIXELS) {
+                chunks.push(start..i);
+                start = i;
+                side = u64::from(request.resolution.next_multiple_of(64));
+            } else {
+                side = wider;
             }
-            if y + size > side {
-                page += 1;
-                y = 0;
-            }
-            tiles[i] = Tile { page, x, y, size };
-            x += size;
-            shelf = shelf.max(size);
         }
-        let pages = (page + 1).next_power_of_two();
-        if pages > self.max_pages {
-            return Err(RenderError::BatchTooLarge {
-                views: requests.len(),
-                reason: format!(
-                    "the views need {} pages of {side}×{side} pixels, the device holds {}",
-                    page + 1,
-                    self.max_pages
-                ),
-            });
+        if start < requests.len() {
+            chunks.push(start..requests.len());
         }
-        Ok((tiles, side, pages))
+        chunks
     }
 
     fn create_atlas(&self, side: u32, pages: u32, full: bool) -> Atlas {
@@ -640,9 +632,10 @@ impl Renderer {
     }
 
     /// Renders any mix of views of any scenes into the pages of one atlas (one render pass per
-    /// page), with one submit and one readback. Outputs are in request order; RGB and
-    /// segmentation are bit-identical to rendering each view alone, depth equal to float
-    /// rounding.
+    /// page), with one submit and one readback. Outputs are in request order and
+    /// bit-identical to rendering each view alone. A batch larger than one atlas (more pages
+    /// than the device's texture array holds, or more than [`MAX_BATCH_PIXELS`] page pixels) is
+    /// drawn in consecutive chunks.
     ///
     /// If any view asks for depth or segmentation, the whole batch is drawn with the pipeline
     /// that writes them (a little slower); only the views that asked get them.
@@ -654,8 +647,17 @@ impl Renderer {
             return Ok(Vec::new());
         }
         self.validate(requests)?;
-        let (tiles, side, pages) = self.layout(requests)?;
         let full = requests.iter().any(|r| r.outputs.any_extra());
+        let mut outputs = Vec::with_capacity(requests.len());
+        for chunk in self.chunks(requests) {
+            outputs.extend(self.render_chunk(&requests[chunk], full)?);
+        }
+        Ok(outputs)
+    }
+
+    /// Renders a validated chunk of a batch with one submit and one readback.
+    fn render_chunk(&self, requests: &[ViewRequest<'_>], full: bool) -> Result<Vec<ViewOutput>, RenderError> {
+        let (tiles, side, pages) = self.layout(requests);
 
         let t0 = Instant::now();
         let mut guard = self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner());

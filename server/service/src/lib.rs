@@ -90,7 +90,11 @@ pub fn build_shared(config: &Config) -> anyhow::Result<Arc<service::Shared>> {
 }
 
 /// Serves on `listener` until `shutdown` completes, then drains in-flight calls.
-pub async fn run(listener: TcpListener, config: Config, shutdown: impl Future<Output = ()> + Send) -> anyhow::Result<()> {
+pub async fn run(
+    listener: TcpListener,
+    config: Config,
+    shutdown: impl Future<Output = ()> + Send,
+) -> anyhow::Result<()> {
     let shared = build_shared(&config)?;
     let address = listener.local_addr()?;
     tracing::info!(%address, dataset = shared.store.name(), scenes = shared.store.infos().len(), "serving esrp.v1");
@@ -100,7 +104,9 @@ pub async fn run(listener: TcpListener, config: Config, shutdown: impl Future<Ou
         let shared = shared.clone();
         let idle = config.idle_timeout();
         tokio::spawn(async move {
-            let mut tick = tokio::time::interval((idle / 10).clamp(std::time::Duration::from_secs(1), std::time::Duration::from_secs(60)));
+            let mut tick = tokio::time::interval(
+                (idle / 10).clamp(std::time::Duration::from_secs(1), std::time::Duration::from_secs(60)),
+            );
             loop {
                 tick.tick().await;
                 let reaped = shared.registry.reap(idle);
@@ -123,9 +129,12 @@ pub async fn run(listener: TcpListener, config: Config, shutdown: impl Future<Ou
 
     let mut builder = tonic::transport::Server::builder();
     if let (Some(cert), Some(key)) = (&config.tls_cert, &config.tls_key) {
-        let cert = std::fs::read(cert).map_err(|e| anyhow::anyhow!("cannot read --tls-cert {}: {e}", cert.display()))?;
+        let cert =
+            std::fs::read(cert).map_err(|e| anyhow::anyhow!("cannot read --tls-cert {}: {e}", cert.display()))?;
         let key = std::fs::read(key).map_err(|e| anyhow::anyhow!("cannot read --tls-key {}: {e}", key.display()))?;
-        builder = builder.tls_config(tonic::transport::ServerTlsConfig::new().identity(tonic::transport::Identity::from_pem(cert, key)))?;
+        builder = builder.tls_config(
+            tonic::transport::ServerTlsConfig::new().identity(tonic::transport::Identity::from_pem(cert, key)),
+        )?;
     }
     let result = builder
         .add_service(health_service)

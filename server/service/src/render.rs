@@ -31,7 +31,13 @@ pub struct View {
 
 impl View {
     /// The egocentric view at `camera`.
-    pub fn ego(scene: &Arc<SceneHandle>, camera: EgoCamera, poses: &[ObjectPose], outputs: Outputs, resolution: u32) -> Self {
+    pub fn ego(
+        scene: &Arc<SceneHandle>,
+        camera: EgoCamera,
+        poses: &[ObjectPose],
+        outputs: Outputs,
+        resolution: u32,
+    ) -> Self {
         Self { scene: scene.clone(), camera: Camera::Ego(camera), poses: poses.to_vec(), outputs, resolution }
     }
 
@@ -104,8 +110,13 @@ impl RenderScheduler {
             return Ok(Vec::new());
         }
         let (reply, answer) = oneshot::channel();
-        self.jobs.send(RenderJob { views, reply }).map_err(|_| ServiceError::Render("the render thread has stopped".into()))?;
-        answer.await.map_err(|_| ServiceError::Render("the render thread dropped the request".into()))?.map_err(ServiceError::Render)
+        self.jobs
+            .send(RenderJob { views, reply })
+            .map_err(|_| ServiceError::Render("the render thread has stopped".into()))?;
+        answer
+            .await
+            .map_err(|_| ServiceError::Render("the render thread dropped the request".into()))?
+            .map_err(ServiceError::Render)
     }
 }
 

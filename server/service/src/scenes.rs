@@ -67,7 +67,11 @@ impl SceneStore {
                 }
             })
             .collect();
-        let name = if seed == esrp_dataset::DEFAULT_SEED { esrp_dataset::BENCH_NAME.to_owned() } else { format!("{}-s{seed}", esrp_dataset::BENCH_NAME) };
+        let name = if seed == esrp_dataset::DEFAULT_SEED {
+            esrp_dataset::BENCH_NAME.to_owned()
+        } else {
+            format!("{}-s{seed}", esrp_dataset::BENCH_NAME)
+        };
         Self::new(Source::BuiltIn(bench), infos, name, format!("built-in (seed {seed})"))
     }
 
@@ -153,7 +157,9 @@ impl SceneStore {
     fn build(&self, index: usize) -> Result<Scene, ServiceError> {
         let info = self.infos.get(index).ok_or_else(|| ServiceError::UnknownScene(format!("#{index}")))?;
         match &self.source {
-            Source::BuiltIn(bench) => bench.generate(index).map(|g| g.scene).map_err(|e| ServiceError::Internal(e.to_string())),
+            Source::BuiltIn(bench) => {
+                bench.generate(index).map(|g| g.scene).map_err(|e| ServiceError::Internal(e.to_string()))
+            }
             Source::Folder(dataset) => dataset
                 .scene_by_id(&info.id)
                 .ok_or_else(|| ServiceError::UnknownScene(info.id.clone()))?

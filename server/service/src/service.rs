@@ -138,14 +138,23 @@ fn sensors(s: Option<proto::Sensors>) -> Result<SensorConfig, ServiceError> {
             "sensors.resolution {resolution} is out of range: use 16 to {MAX_RESOLUTION} pixels (0 means 128)"
         )));
     }
-    Ok(SensorConfig { depth: s.ego_depth, segmentation: s.ego_segmentation, current_top_down: s.current_top_down, resolution })
+    Ok(SensorConfig {
+        depth: s.ego_depth,
+        segmentation: s.ego_segmentation,
+        current_top_down: s.current_top_down,
+        resolution,
+    })
 }
 
 fn spec(sensors: &SensorConfig) -> proto::ObservationSpec {
     let r = sensors.resolution;
-    let array = |name: &str, shape: Vec<u32>, dtype: &str| proto::ArraySpec { name: name.into(), shape, dtype: dtype.into() };
-    let mut arrays =
-        vec![array("ego_rgb", vec![r, r, 3], "uint8"), array("goal_rgb", vec![r, r, 3], "uint8"), array("grasping", vec![], "bool")];
+    let array =
+        |name: &str, shape: Vec<u32>, dtype: &str| proto::ArraySpec { name: name.into(), shape, dtype: dtype.into() };
+    let mut arrays = vec![
+        array("ego_rgb", vec![r, r, 3], "uint8"),
+        array("goal_rgb", vec![r, r, 3], "uint8"),
+        array("grasping", vec![], "bool"),
+    ];
     if sensors.depth {
         arrays.push(array("ego_depth", vec![r, r], "float32"));
     }
@@ -195,7 +204,8 @@ fn observation(entry: &EpisodeEntry, outputs: Vec<ViewOutput>, include_goal: boo
         ..Default::default()
     };
     if let Some(ego) = outputs.next() {
-        observation.ego_depth = ego.depth.as_deref().map(|d| proto::FloatImage { height: r, width: r, data: f32_bytes(d) });
+        observation.ego_depth =
+            ego.depth.as_deref().map(|d| proto::FloatImage { height: r, width: r, data: f32_bytes(d) });
         observation.ego_segmentation =
             ego.segmentation.as_deref().map(|s| proto::LabelImage { height: r, width: r, data: u32_bytes(s) });
         observation.ego_rgb = Some(image(ego.rgb, r));
@@ -284,7 +294,11 @@ impl Shared {
     }
 
     /// CreateEpisode.
-    pub async fn create(self: &Arc<Self>, request: proto::CreateEpisodeRequest, stream: Option<u64>) -> Result<proto::CreateEpisodeResponse, ServiceError> {
+    pub async fn create(
+        self: &Arc<Self>,
+        request: proto::CreateEpisodeRequest,
+        stream: Option<u64>,
+    ) -> Result<proto::CreateEpisodeResponse, ServiceError> {
         if self.registry.len() >= self.registry.max_episodes() {
             return Err(ServiceError::Exhausted(format!(
                 "the server holds its maximum of {} live episodes: close some (CloseEpisode) or raise --max-episodes",
@@ -297,14 +311,22 @@ impl Shared {
             None => (None, None),
         };
         let sensors = sensors(request.sensors)?;
-        let config = EpisodeConfig { horizon: (request.horizon != 0).then_some(request.horizon), reward: reward_weights(request.reward) };
+        let config = EpisodeConfig {
+            horizon: (request.horizon != 0).then_some(request.horizon),
+            reward: reward_weights(request.reward),
+        };
         let scene = self.resolve_scene(scene_id, scene_json, request.split, request.seed).await?;
         let (entry, observation) = self.new_entry(scene, config, sensors, request.privileged).await?;
         let summary = entry.summary.clone();
         let spec = spec(&entry.sensors);
         let episode_id = self.registry.insert(entry, stream)?;
         tracing::debug!(episode = %episode_id, scene = %summary.id, "episode created");
-        Ok(proto::CreateEpisodeResponse { episode_id, spec: Some(spec), observation: Some(observation), scene: Some(summary) })
+        Ok(proto::CreateEpisodeResponse {
+            episode_id,
+            spec: Some(spec),
+            observation: Some(observation),
+            scene: Some(summary),
+        })
     }
 
     /// Reset.
@@ -332,7 +354,10 @@ impl Shared {
 
     /// Step and StepBatch: validates the whole batch, steps every episode (off the async
     /// runtime), renders every view in one batch.
-    pub async fn step_many(self: &Arc<Self>, requests: Vec<proto::StepRequest>) -> Result<Vec<proto::StepResponse>, ServiceError> {
+    pub async fn step_many(
+        self: &Arc<Self>,
+        requests: Vec<proto::StepRequest>,
+    ) -> Result<Vec<proto::StepResponse>, ServiceError> {
         if requests.len() > self.config.max_batch {
             return Err(ServiceError::Exhausted(format!(
                 "a batch of {} steps exceeds the limit of {} (--max-batch)",
@@ -356,7 +381,8 @@ impl Shared {
         // Lock every episode (in id order, so that concurrent batches cannot deadlock).
         let mut order: Vec<usize> = (0..plan.len()).collect();
         order.sort_by(|&a, &b| requests[a].episode_id.cmp(&requests[b].episode_id));
-        let mut guards: Vec<Option<tokio::sync::OwnedMutexGuard<EpisodeEntry>>> = (0..plan.len()).map(|_| None).collect();
+        let mut guards: Vec<Option<tokio::sync::OwnedMutexGuard<EpisodeEntry>>> =
+            (0..plan.len()).map(|_| None).collect();
         for &i in &order {
             guards[i] = Some(plan[i].0.clone().lock_owned().await);
         }
@@ -427,7 +453,10 @@ impl Shared {
     }
 
     /// CloseEpisode.
-    pub async fn close(&self, request: proto::CloseEpisodeRequest) -> Result<proto::CloseEpisodeResponse, ServiceError> {
+    pub async fn close(
+        &self,
+        request: proto::CloseEpisodeRequest,
+    ) -> Result<proto::CloseEpisodeResponse, ServiceError> {
         let shared = self.registry.remove(&request.episode_id)?;
         let entry = shared.lock().await;
         Ok(proto::CloseEpisodeResponse { metrics: Some(metrics_to_proto(&entry.episode.metrics())) })
@@ -441,7 +470,11 @@ impl Shared {
     /// Serves one StepStream: requests are read in waves (everything already sent, one request
     /// per episode per wave), the steps of a wave are taken and rendered as one batch, and the
     /// responses go back in request order.
-    async fn serve_stream(self: Arc<Self>, mut inbound: Streaming<proto::StreamRequest>, out: mpsc::Sender<Result<proto::StreamResponse, Status>>) {
+    async fn serve_stream(
+        self: Arc<Self>,
+        mut inbound: Streaming<proto::StreamRequest>,
+        out: mpsc::Sender<Result<proto::StreamResponse, Status>>,
+    ) {
         let stream = self.stream_id();
         let mut pending: Option<proto::StreamRequest> = None;
         'outer: loop {
@@ -463,7 +496,9 @@ impl Shared {
                 match futures_now(&mut inbound) {
                     Some(Some(Ok(r))) => {
                         let id = episode_of(&r);
-                        if id.as_ref().is_some_and(|id| touched.contains(id)) || matches!(r.request, Some(proto::stream_request::Request::Create(_))) {
+                        if id.as_ref().is_some_and(|id| touched.contains(id))
+                            || matches!(r.request, Some(proto::stream_request::Request::Create(_)))
+                        {
                             pending = Some(r);
                             break;
                         }
@@ -488,7 +523,12 @@ impl Shared {
     }
 
     /// Answers one wave; false when the client is gone.
-    async fn answer_wave(self: &Arc<Self>, wave: Vec<proto::StreamRequest>, stream: u64, out: &mpsc::Sender<Result<proto::StreamResponse, Status>>) -> bool {
+    async fn answer_wave(
+        self: &Arc<Self>,
+        wave: Vec<proto::StreamRequest>,
+        stream: u64,
+        out: &mpsc::Sender<Result<proto::StreamResponse, Status>>,
+    ) -> bool {
         use proto::stream_request::Request as Rq;
         use proto::stream_response::Response as Rs;
         // Steps first, together, then the rest one by one (in order).
@@ -528,7 +568,9 @@ impl Shared {
                 Some(Rq::Reset(r)) => self.reset(r).await.map_or_else(stream_error, Rs::Reset),
                 Some(Rq::Close(c)) => self.close(c).await.map_or_else(stream_error, Rs::Closed),
                 Some(Rq::Step(_)) => stream_error(ServiceError::Internal("step without an answer".into())),
-                None => stream_error(ServiceError::InvalidArgument("empty StreamRequest: set create, step, reset or close".into())),
+                None => stream_error(ServiceError::InvalidArgument(
+                    "empty StreamRequest: set create, step, reset or close".into(),
+                )),
             });
         }
         for (request, answer) in wave.iter().zip(answers) {
@@ -543,7 +585,10 @@ impl Shared {
 
 fn stream_error(e: ServiceError) -> proto::stream_response::Response {
     let status = Status::from(e);
-    proto::stream_response::Response::Error(proto::StreamError { code: status.code() as i32, message: status.message().to_owned() })
+    proto::stream_response::Response::Error(proto::StreamError {
+        code: status.code() as i32,
+        message: status.message().to_owned(),
+    })
 }
 
 fn episode_of(r: &proto::StreamRequest) -> Option<String> {
@@ -584,7 +629,10 @@ type StreamOut = Pin<Box<dyn Stream<Item = Result<proto::StreamResponse, Status>
 
 #[tonic::async_trait]
 impl proto::esrp_server::Esrp for EsrpService {
-    async fn server_info(&self, _: Request<proto::ServerInfoRequest>) -> Result<Response<proto::ServerInfoResponse>, Status> {
+    async fn server_info(
+        &self,
+        _: Request<proto::ServerInfoRequest>,
+    ) -> Result<Response<proto::ServerInfoResponse>, Status> {
         let s = &self.shared;
         let renderer = s.render.renderer();
         let info = renderer.adapter_info();
@@ -605,7 +653,10 @@ impl proto::esrp_server::Esrp for EsrpService {
         }))
     }
 
-    async fn describe_dataset(&self, _: Request<proto::DescribeDatasetRequest>) -> Result<Response<proto::DescribeDatasetResponse>, Status> {
+    async fn describe_dataset(
+        &self,
+        _: Request<proto::DescribeDatasetRequest>,
+    ) -> Result<Response<proto::DescribeDatasetResponse>, Status> {
         let store = &self.shared.store;
         let [by_split, by_difficulty, by_room_type] = store.counts();
         Ok(Response::new(proto::DescribeDatasetResponse {
@@ -618,7 +669,10 @@ impl proto::esrp_server::Esrp for EsrpService {
         }))
     }
 
-    async fn list_scenes(&self, request: Request<proto::ListScenesRequest>) -> Result<Response<proto::ListScenesResponse>, Status> {
+    async fn list_scenes(
+        &self,
+        request: Request<proto::ListScenesRequest>,
+    ) -> Result<Response<proto::ListScenesResponse>, Status> {
         let r = request.into_inner();
         let split = split_of(r.split)?;
         let difficulty = match proto::Difficulty::try_from(r.difficulty) {
@@ -626,7 +680,13 @@ impl proto::esrp_server::Esrp for EsrpService {
             Ok(proto::Difficulty::Easy) => Some(esrp_core::Difficulty::Easy),
             Ok(proto::Difficulty::Medium) => Some(esrp_core::Difficulty::Medium),
             Ok(proto::Difficulty::Hard) => Some(esrp_core::Difficulty::Hard),
-            Err(_) => return Err(ServiceError::InvalidArgument(format!("unknown difficulty {}: use 1, 2 or 3", r.difficulty)).into()),
+            Err(_) => {
+                return Err(ServiceError::InvalidArgument(format!(
+                    "unknown difficulty {}: use 1, 2 or 3",
+                    r.difficulty
+                ))
+                .into());
+            }
         };
         let page_size = match r.page_size {
             0 => 100,
@@ -636,7 +696,9 @@ impl proto::esrp_server::Esrp for EsrpService {
         let start: usize = if r.page_token.is_empty() {
             0
         } else {
-            r.page_token.parse().map_err(|_| ServiceError::InvalidArgument(format!("page_token {:?} is not one this server gave", r.page_token)))?
+            r.page_token.parse().map_err(|_| {
+                ServiceError::InvalidArgument(format!("page_token {:?} is not one this server gave", r.page_token))
+            })?
         };
         let infos = self.shared.store.infos();
         let mut scenes = Vec::new();
@@ -655,7 +717,10 @@ impl proto::esrp_server::Esrp for EsrpService {
         Ok(Response::new(proto::ListScenesResponse { scenes, next_page_token }))
     }
 
-    async fn create_episode(&self, request: Request<proto::CreateEpisodeRequest>) -> Result<Response<proto::CreateEpisodeResponse>, Status> {
+    async fn create_episode(
+        &self,
+        request: Request<proto::CreateEpisodeRequest>,
+    ) -> Result<Response<proto::CreateEpisodeResponse>, Status> {
         Ok(Response::new(self.shared.create(request.into_inner(), None).await?))
     }
 
@@ -668,32 +733,49 @@ impl proto::esrp_server::Esrp for EsrpService {
         Ok(Response::new(responses.remove(0)))
     }
 
-    async fn step_batch(&self, request: Request<proto::StepBatchRequest>) -> Result<Response<proto::StepBatchResponse>, Status> {
+    async fn step_batch(
+        &self,
+        request: Request<proto::StepBatchRequest>,
+    ) -> Result<Response<proto::StepBatchResponse>, Status> {
         let responses = self.shared.step_many(request.into_inner().steps).await?;
         Ok(Response::new(proto::StepBatchResponse { responses }))
     }
 
     type StepStreamStream = StreamOut;
 
-    async fn step_stream(&self, request: Request<Streaming<proto::StreamRequest>>) -> Result<Response<Self::StepStreamStream>, Status> {
+    async fn step_stream(
+        &self,
+        request: Request<Streaming<proto::StreamRequest>>,
+    ) -> Result<Response<Self::StepStreamStream>, Status> {
         let (out, receiver) = mpsc::channel(256);
         let shared = self.shared.clone();
         tokio::spawn(shared.serve_stream(request.into_inner(), out));
         Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(receiver))))
     }
 
-    async fn get_goal(&self, request: Request<proto::GetGoalRequest>) -> Result<Response<proto::GetGoalResponse>, Status> {
+    async fn get_goal(
+        &self,
+        request: Request<proto::GetGoalRequest>,
+    ) -> Result<Response<proto::GetGoalResponse>, Status> {
         let shared = self.shared.entry(&request.into_inner().episode_id).await?;
         let mut entry = shared.lock().await;
         entry.last_used = Instant::now();
         let f = entry.frame;
         Ok(Response::new(proto::GetGoalResponse {
             goal_rgb: Some(entry.goal.clone()),
-            frame: Some(proto::TopDownFrame { min_x: f.min_x, min_z: f.min_z, metres_per_pixel: f.metres_per_pixel(), resolution: f.resolution }),
+            frame: Some(proto::TopDownFrame {
+                min_x: f.min_x,
+                min_z: f.min_z,
+                metres_per_pixel: f.metres_per_pixel(),
+                resolution: f.resolution,
+            }),
         }))
     }
 
-    async fn get_privileged_state(&self, request: Request<proto::GetPrivilegedStateRequest>) -> Result<Response<proto::GetPrivilegedStateResponse>, Status> {
+    async fn get_privileged_state(
+        &self,
+        request: Request<proto::GetPrivilegedStateRequest>,
+    ) -> Result<Response<proto::GetPrivilegedStateResponse>, Status> {
         let id = request.into_inner().episode_id;
         let shared = self.shared.entry(&id).await?;
         let mut entry = shared.lock().await;
@@ -703,7 +785,13 @@ impl proto::esrp_server::Esrp for EsrpService {
         entry.last_used = Instant::now();
         let compiled = entry.episode.compiled().clone();
         let state = entry.episode.privileged_state();
-        let footprint = |f: &esrp_core::OrientedRect| proto::Footprint { center_x: f.center.x, center_z: f.center.z, half_x: f.half_x, half_z: f.half_z, yaw: f.yaw };
+        let footprint = |f: &esrp_core::OrientedRect| proto::Footprint {
+            center_x: f.center.x,
+            center_z: f.center.z,
+            half_x: f.half_x,
+            half_z: f.half_z,
+            yaw: f.yaw,
+        };
         let pose = |p: &esrp_core::ObjectPose| proto::Pose2 { x: p.x, z: p.z, yaw: p.yaw };
         Ok(Response::new(proto::GetPrivilegedStateResponse {
             agent_x: state.agent.position.x,
@@ -729,21 +817,33 @@ impl proto::esrp_server::Esrp for EsrpService {
             static_obstacles: state
                 .static_obstacles
                 .iter()
-                .map(|s| proto::StaticObstacle { obstacle: Some(obstacle_to_proto(&compiled, s.obstacle)), footprint: Some(footprint(&s.footprint)) })
+                .map(|s| proto::StaticObstacle {
+                    obstacle: Some(obstacle_to_proto(&compiled, s.obstacle)),
+                    footprint: Some(footprint(&s.footprint)),
+                })
                 .collect(),
             floor: compiled.floor().iter().flat_map(|p| [p.x, p.z]).collect(),
             scene_json: compiled.scene().to_json_pretty(),
         }))
     }
 
-    async fn get_metrics(&self, request: Request<proto::GetMetricsRequest>) -> Result<Response<proto::GetMetricsResponse>, Status> {
+    async fn get_metrics(
+        &self,
+        request: Request<proto::GetMetricsRequest>,
+    ) -> Result<Response<proto::GetMetricsResponse>, Status> {
         let shared = self.shared.entry(&request.into_inner().episode_id).await?;
         let mut entry = shared.lock().await;
         entry.last_used = Instant::now();
-        Ok(Response::new(proto::GetMetricsResponse { metrics: Some(metrics_to_proto(&entry.episode.metrics())), ended: entry.episode.is_over() }))
+        Ok(Response::new(proto::GetMetricsResponse {
+            metrics: Some(metrics_to_proto(&entry.episode.metrics())),
+            ended: entry.episode.is_over(),
+        }))
     }
 
-    async fn close_episode(&self, request: Request<proto::CloseEpisodeRequest>) -> Result<Response<proto::CloseEpisodeResponse>, Status> {
+    async fn close_episode(
+        &self,
+        request: Request<proto::CloseEpisodeRequest>,
+    ) -> Result<Response<proto::CloseEpisodeResponse>, Status> {
         Ok(Response::new(self.shared.close(request.into_inner()).await?))
     }
 }

@@ -1,4 +1,7 @@
 //! esrp-server's integration tests: start the real binary on an ephemeral port and talk gRPC.
 
+mod episodes;
+mod errors;
 mod harness;
+mod lifecycle;
 mod smoke;

@@ -31,7 +31,11 @@ async fn the_expert_succeeds_through_unary_steps() {
     let mut last = None;
     for action in &scene.expert_trajectory {
         let response = client
-            .step(proto::StepRequest { episode_id: created.episode_id.clone(), action: i32::from(action.code()), include_goal: false })
+            .step(proto::StepRequest {
+                episode_id: created.episode_id.clone(),
+                action: i32::from(action.code()),
+                include_goal: false,
+            })
             .await
             .unwrap()
             .into_inner();

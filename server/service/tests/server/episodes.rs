@@ -1,0 +1,198 @@
+//! Whole episodes through StepBatch and StepStream, and determinism under concurrency.
+
+use std::collections::HashMap;
+
+use esrp_server::proto;
+use esrp_server::proto::stream_request::Request as Rq;
+use esrp_server::proto::stream_response::Response as Rs;
+use tokio_stream::StreamExt;
+
+use super::harness::{Server, SplitMix, create_request, digest, expert_actions, scene_ids, step_request};
+
+/// The experts of a sample of built-in test scenes, stepped together through StepBatch in
+/// lockstep, all succeed: SR = 1.
+#[tokio::test]
+async fn experts_of_test_scenes_succeed_through_step_batch() {
+    let server = Server::start(&[]);
+    let mut client = server.client().await;
+    let scenes = scene_ids(&mut client, proto::Split::Test, 6).await;
+    assert_eq!(scenes.len(), 6);
+    let mut episodes = Vec::new();
+    for scene in &scenes {
+        let created = client.create_episode(create_request(scene, true)).await.unwrap().into_inner();
+        let actions = expert_actions(&mut client, &created.episode_id).await;
+        assert!(!actions.is_empty(), "{scene} has an expert trajectory");
+        episodes.push((created.episode_id, actions));
+    }
+    let longest = episodes.iter().map(|e| e.1.len()).max().unwrap();
+    let mut finals: HashMap<String, proto::StepResponse> = HashMap::new();
+    for t in 0..longest {
+        let batch: Vec<proto::StepRequest> =
+            episodes.iter().filter(|e| t < e.1.len()).map(|(id, actions)| step_request(id, actions[t])).collect();
+        let ids: Vec<String> = batch.iter().map(|s| s.episode_id.clone()).collect();
+        let responses =
+            client.step_batch(proto::StepBatchRequest { steps: batch }).await.unwrap().into_inner().responses;
+        assert_eq!(responses.len(), ids.len(), "one response per step, in order");
+        for (id, response) in ids.into_iter().zip(responses) {
+            assert_eq!(response.info.as_ref().unwrap().step_index as usize, t + 1);
+            finals.insert(id, response);
+        }
+    }
+    let mut successes = 0;
+    for (id, _) in &episodes {
+        let last = &finals[id];
+        assert!(last.terminated, "episode {id} ends with its expert");
+        let metrics = last.metrics.as_ref().expect("the last response carries metrics");
+        assert_eq!(metrics.object_success_rate, 1.0);
+        assert_eq!(metrics.stage, 4);
+        successes += u32::from(metrics.success);
+    }
+    assert_eq!(successes as usize, episodes.len(), "SR = 1 over the sample");
+}
+
+/// One stream creates an episode, pipelines the whole expert trajectory without waiting for
+/// answers, gets every answer in order, and closes the episode.
+#[tokio::test]
+async fn a_full_episode_runs_through_a_pipelined_stream() {
+    let server = Server::start(&[]);
+    let mut client = server.client().await;
+    let scene = scene_ids(&mut client, proto::Split::Test, 2).await.pop().unwrap();
+    // The expert trajectory, read from a privileged probe episode.
+    let probe = client.create_episode(create_request(&scene, true)).await.unwrap().into_inner();
+    let actions = expert_actions(&mut client, &probe.episode_id).await;
+
+    let (tx, rx) = tokio::sync::mpsc::channel::<proto::StreamRequest>(4096);
+    let mut inbound = client.step_stream(tokio_stream::wrappers::ReceiverStream::new(rx)).await.unwrap().into_inner();
+    tx.send(proto::StreamRequest { request_id: 1, request: Some(Rq::Create(create_request(&scene, false))) })
+        .await
+        .unwrap();
+    let episode_id = match inbound.next().await.unwrap().unwrap().response {
+        Some(Rs::Created(created)) => created.episode_id,
+        other => panic!("expected Created, got {other:?}"),
+    };
+    for (i, &action) in actions.iter().enumerate() {
+        tx.send(proto::StreamRequest {
+            request_id: 100 + i as u64,
+            request: Some(Rq::Step(step_request(&episode_id, action))),
+        })
+        .await
+        .unwrap();
+    }
+    let mut last = None;
+    for i in 0..actions.len() {
+        let response = inbound.next().await.unwrap().unwrap();
+        assert_eq!(response.request_id, 100 + i as u64, "answers come in request order");
+        match response.response {
+            Some(Rs::Step(step)) => last = Some(step),
+            other => panic!("expected Step, got {other:?}"),
+        }
+    }
+    let last = last.unwrap();
+    assert!(last.terminated);
+    assert!(last.metrics.unwrap().success);
+    // The probe ran nothing; the stream's episode is the one that succeeded.
+    tx.send(proto::StreamRequest {
+        request_id: 7,
+        request: Some(Rq::Close(proto::CloseEpisodeRequest { episode_id })),
+    })
+    .await
+    .unwrap();
+    match inbound.next().await.unwrap().unwrap().response {
+        Some(Rs::Closed(closed)) => assert!(closed.metrics.unwrap().success),
+        other => panic!("expected Closed, got {other:?}"),
+    }
+    // A bad request on the stream is answered in-band and the stream goes on.
+    tx.send(proto::StreamRequest { request_id: 8, request: Some(Rq::Step(step_request("0123", 0))) }).await.unwrap();
+    match inbound.next().await.unwrap().unwrap().response {
+        Some(Rs::Error(error)) => assert_eq!(error.code, tonic::Code::NotFound as i32),
+        other => panic!("expected an in-band error, got {other:?}"),
+    }
+    tx.send(proto::StreamRequest { request_id: 9, request: Some(Rq::Create(create_request(&scene, false))) })
+        .await
+        .unwrap();
+    assert!(matches!(inbound.next().await.unwrap().unwrap().response, Some(Rs::Created(_))));
+}
+
+const EPISODES: usize = 256;
+const TASKS: usize = 32;
+const STEPS: usize = 12;
+const SCENES: usize = 8;
+
+/// What one episode produced: the digest of its first observation and of every step response,
+/// and its final metrics.
+type Trace = (Vec<u64>, proto::EpisodeMetrics);
+
+async fn run_episode(
+    client: &mut proto::esrp_client::EsrpClient<tonic::transport::Channel>,
+    scene: &str,
+    seed: u64,
+) -> Trace {
+    let created = client.create_episode(create_request(scene, false)).await.unwrap().into_inner();
+    let mut digests = vec![digest(&proto::StepResponse { observation: created.observation, ..Default::default() })];
+    let mut rng = SplitMix(seed);
+    for _ in 0..STEPS {
+        let response = client.step(step_request(&created.episode_id, rng.action())).await.unwrap().into_inner();
+        digests.push(digest(&response));
+        if response.terminated || response.truncated {
+            break;
+        }
+    }
+    let closed =
+        client.close_episode(proto::CloseEpisodeRequest { episode_id: created.episode_id }).await.unwrap().into_inner();
+    (digests, closed.metrics.unwrap())
+}
+
+/// 256 episodes stepped from 32 concurrent tasks (each interleaving its own 8) give the same
+/// observations, rewards, infos and metrics as the same episodes run one at a time.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn concurrent_episodes_match_sequential_runs() {
+    let server = Server::start(&[]);
+    let mut client = server.client().await;
+    let scenes = scene_ids(&mut client, proto::Split::Train, SCENES).await;
+    assert_eq!(scenes.len(), SCENES);
+
+    // Concurrent: each task creates its episodes, then steps them round-robin.
+    let mut tasks = Vec::new();
+    for task in 0..TASKS {
+        let mut client = server.client().await;
+        let scenes = scenes.clone();
+        tasks.push(tokio::spawn(async move {
+            let mine: Vec<usize> = (task..EPISODES).step_by(TASKS).collect();
+            let mut live = Vec::new();
+            for &e in &mine {
+                let created =
+                    client.create_episode(create_request(&scenes[e % SCENES], false)).await.unwrap().into_inner();
+                let first = digest(&proto::StepResponse { observation: created.observation, ..Default::default() });
+                live.push((e, created.episode_id, SplitMix(e as u64), vec![first], false));
+            }
+            for _ in 0..STEPS {
+                for (_, id, rng, digests, done) in live.iter_mut() {
+                    if *done {
+                        continue;
+                    }
+                    let response = client.step(step_request(id, rng.action())).await.unwrap().into_inner();
+                    digests.push(digest(&response));
+                    *done = response.terminated || response.truncated;
+                }
+            }
+            let mut traces = Vec::new();
+            for (e, id, _, digests, _) in live {
+                let closed =
+                    client.close_episode(proto::CloseEpisodeRequest { episode_id: id }).await.unwrap().into_inner();
+                traces.push((e, (digests, closed.metrics.unwrap())));
+            }
+            traces
+        }));
+    }
+    let mut concurrent: HashMap<usize, Trace> = HashMap::new();
+    for task in tasks {
+        concurrent.extend(task.await.unwrap());
+    }
+    assert_eq!(concurrent.len(), EPISODES);
+
+    // Sequential: one episode at a time.
+    for e in 0..EPISODES {
+        let alone = run_episode(&mut client, &scenes[e % SCENES], e as u64).await;
+        assert_eq!(concurrent[&e], alone, "episode {e} differs when run concurrently");
+    }
+}

@@ -1,0 +1,163 @@
+//! Bad input, one test each: the right status code, a message that says what to change, and a
+//! server that keeps serving.
+
+use esrp_server::proto;
+use esrp_server::proto::esrp_client::EsrpClient;
+use tonic::Code;
+use tonic::transport::Channel;
+
+use super::harness::{Server, create_request, live_episodes, scene_ids, step_request};
+
+/// Asserts `result` failed with `code` and a message containing `needle`, then that the server
+/// still answers.
+async fn assert_fails<T: std::fmt::Debug>(
+    server: &mut Server,
+    client: &mut EsrpClient<Channel>,
+    result: Result<T, tonic::Status>,
+    code: Code,
+    needle: &str,
+) {
+    let status = result.expect_err("the call fails");
+    assert_eq!(status.code(), code, "{status:?}");
+    assert!(status.message().contains(needle), "message {:?} should mention {needle:?}", status.message());
+    assert!(server.is_running(), "the server survives");
+    let info = client.server_info(proto::ServerInfoRequest {}).await.expect("the server keeps serving");
+    assert_eq!(info.into_inner().dataset, "esrp-bench-v1");
+}
+
+async fn first_episode(client: &mut EsrpClient<Channel>, privileged: bool) -> String {
+    let scene = scene_ids(client, proto::Split::Test, 1).await.remove(0);
+    client.create_episode(create_request(&scene, privileged)).await.unwrap().into_inner().episode_id
+}
+
+#[tokio::test]
+async fn unknown_episode_is_not_found() {
+    let mut server = Server::start(&[]);
+    let mut client = server.client().await;
+    let r = client.step(step_request("0123456789abcdef0123456789abcdef", 0)).await;
+    assert_fails(&mut server, &mut client, r, Code::NotFound, "0123456789abcdef0123456789abcdef").await;
+    let r = client.get_metrics(proto::GetMetricsRequest { episode_id: String::new() }).await;
+    assert_fails(&mut server, &mut client, r, Code::NotFound, "no episode").await;
+}
+
+#[tokio::test]
+async fn unknown_scene_is_not_found() {
+    let mut server = Server::start(&[]);
+    let mut client = server.client().await;
+    let r = client.create_episode(create_request("esrp-bench-v1/99999", false)).await;
+    assert_fails(&mut server, &mut client, r, Code::NotFound, "ListScenes").await;
+    let r = client.create_episode(create_request("kitchen", false)).await;
+    assert_fails(&mut server, &mut client, r, Code::NotFound, "kitchen").await;
+    assert_eq!(live_episodes(&mut client).await, 0, "a failed create leaves nothing behind");
+}
+
+#[tokio::test]
+async fn bad_action_code_is_invalid_argument() {
+    let mut server = Server::start(&[]);
+    let mut client = server.client().await;
+    let episode = first_episode(&mut client, false).await;
+    for code in [6, -1, i32::MAX] {
+        let r = client.step(step_request(&episode, code)).await;
+        assert_fails(&mut server, &mut client, r, Code::InvalidArgument, "action").await;
+    }
+    // The episode did not move: its first valid step is step 1.
+    let ok = client.step(step_request(&episode, 2)).await.unwrap().into_inner();
+    assert_eq!(ok.info.unwrap().step_index, 1);
+}
+
+#[tokio::test]
+async fn stepping_after_the_end_is_failed_precondition() {
+    let mut server = Server::start(&[]);
+    let mut client = server.client().await;
+    let scene = scene_ids(&mut client, proto::Split::Test, 1).await.remove(0);
+    let mut request = create_request(&scene, false);
+    request.horizon = 2;
+    let episode = client.create_episode(request).await.unwrap().into_inner().episode_id;
+    let first = client.step(step_request(&episode, 2)).await.unwrap().into_inner();
+    assert!(!first.truncated);
+    let second = client.step(step_request(&episode, 3)).await.unwrap().into_inner();
+    assert!(second.truncated, "the horizon of 2 steps truncates the episode");
+    assert!(second.metrics.is_some());
+    let r = client.step(step_request(&episode, 2)).await;
+    assert_fails(&mut server, &mut client, r, Code::FailedPrecondition, "Reset").await;
+    // Reset makes it steppable again.
+    client.reset(proto::ResetRequest { episode_id: episode.clone(), scene: None }).await.unwrap();
+    client.step(step_request(&episode, 2)).await.unwrap();
+}
+
+#[tokio::test]
+async fn oversize_batch_is_resource_exhausted() {
+    let mut server = Server::start(&["--max-batch", "4"]);
+    let mut client = server.client().await;
+    let mut steps = Vec::new();
+    for _ in 0..5 {
+        steps.push(step_request(&first_episode(&mut client, false).await, 0));
+    }
+    let r = client.step_batch(proto::StepBatchRequest { steps: steps.clone() }).await;
+    assert_fails(&mut server, &mut client, r, Code::ResourceExhausted, "--max-batch").await;
+    // A batch naming one episode twice is refused before anything moves.
+    let twice = vec![steps[0].clone(), steps[1].clone(), steps[0].clone()];
+    let r = client.step_batch(proto::StepBatchRequest { steps: twice }).await;
+    assert_fails(&mut server, &mut client, r, Code::InvalidArgument, "twice").await;
+    let ok = client.step_batch(proto::StepBatchRequest { steps: steps[..4].to_vec() }).await.unwrap().into_inner();
+    assert!(ok.responses.iter().all(|r| r.info.as_ref().unwrap().step_index == 1), "nothing moved before");
+}
+
+#[tokio::test]
+async fn malformed_inline_scene_is_invalid_argument() {
+    let mut server = Server::start(&[]);
+    let mut client = server.client().await;
+    let inline = |json: String| proto::CreateEpisodeRequest {
+        scene: Some(proto::create_episode_request::Scene::SceneJson(json)),
+        ..Default::default()
+    };
+    let r = client.create_episode(inline("{ not json".into())).await;
+    assert_fails(&mut server, &mut client, r, Code::InvalidArgument, "invalid scene").await;
+    // Well-formed JSON, but an unknown schema version: the message names it.
+    let scene =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../core/examples/scenes/bedroom.json")).unwrap();
+    let bad = scene.replacen("esrp.scene/v1", "esrp.scene/v9", 1);
+    let r = client.create_episode(inline(bad)).await;
+    assert_fails(&mut server, &mut client, r, Code::InvalidArgument, "esrp.scene/v9").await;
+    // The example scene itself is accepted inline.
+    client.create_episode(inline(scene)).await.expect("a valid inline scene is served");
+}
+
+#[tokio::test]
+async fn wrong_or_missing_token_is_unauthenticated() {
+    let mut server = Server::start(&["--token", "s3cret"]);
+    let channel = Channel::from_shared(server.address.clone()).unwrap().connect().await.unwrap();
+    let with_token = |token: &'static str| {
+        move |mut request: tonic::Request<()>| {
+            request.metadata_mut().insert("authorization", format!("Bearer {token}").parse().unwrap());
+            Ok(request)
+        }
+    };
+    let mut bare = EsrpClient::new(channel.clone());
+    let status = bare.server_info(proto::ServerInfoRequest {}).await.expect_err("no token, no answer");
+    assert_eq!(status.code(), Code::Unauthenticated);
+    assert!(status.message().contains("--token"), "{status:?}");
+    let mut wrong = EsrpClient::with_interceptor(channel.clone(), with_token("guess"));
+    let status = wrong.server_info(proto::ServerInfoRequest {}).await.expect_err("a wrong token, no answer");
+    assert_eq!(status.code(), Code::Unauthenticated);
+    assert!(server.is_running());
+    let mut right = EsrpClient::with_interceptor(channel, with_token("s3cret"));
+    let info = right.server_info(proto::ServerInfoRequest {}).await.expect("the right token is served").into_inner();
+    assert_eq!(info.dataset, "esrp-bench-v1");
+}
+
+#[tokio::test]
+async fn privileged_call_on_a_normal_episode_is_permission_denied() {
+    let mut server = Server::start(&[]);
+    let mut client = server.client().await;
+    let episode = first_episode(&mut client, false).await;
+    let r = client.get_privileged_state(proto::GetPrivilegedStateRequest { episode_id: episode.clone() }).await;
+    assert_fails(&mut server, &mut client, r, Code::PermissionDenied, "privileged = true").await;
+    let privileged = first_episode(&mut client, true).await;
+    let state = client
+        .get_privileged_state(proto::GetPrivilegedStateRequest { episode_id: privileged })
+        .await
+        .expect("a privileged episode answers")
+        .into_inner();
+    assert!(!state.objects.is_empty());
+}
