@@ -64,6 +64,10 @@ pub struct Config {
     /// TLS private key (PEM); needs --tls-cert.
     #[arg(long, env = "ESRP_TLS_KEY", requires = "tls_cert")]
     pub tls_key: Option<PathBuf>,
+    /// Serve Prometheus metrics over HTTP at `http://ADDR/metrics` (off unless set; port 0
+    /// picks a free port, printed at start).
+    #[arg(long, env = "ESRP_METRICS_LISTEN")]
+    pub metrics_listen: Option<SocketAddr>,
     /// Log format.
     #[arg(long, env = "ESRP_LOG_FORMAT", value_enum, default_value_t = LogFormat::Text)]
     pub log_format: LogFormat,

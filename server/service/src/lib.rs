@@ -10,6 +10,7 @@
 //! - [`registry`]: live episodes by unguessable id, each locked alone; limits; idle reaping.
 //! - [`render`]: the render scheduler (one thread, batches of every waiting view).
 //! - [`service`]: the `esrp.v1.Esrp` handlers; proto ↔ core conversions at the edge.
+//! - [`metrics`]: Prometheus metrics and their HTTP endpoint.
 //! - [`error`]: typed errors and their one mapping to gRPC status codes.
 //!
 //! # Invariants
@@ -28,6 +29,7 @@
 
 pub mod config;
 pub mod error;
+pub mod metrics;
 pub mod registry;
 pub mod render;
 pub mod scenes;
@@ -85,13 +87,16 @@ pub fn build_shared(config: &Config) -> anyhow::Result<Arc<service::Shared>> {
     let renderer = esrp_render::Renderer::new(esrp_render::RendererConfig { backends, ..Default::default() })?;
     let info = renderer.adapter_info();
     tracing::info!(adapter = %info.name, backend = ?info.backend, software = renderer.is_software(), "renderer ready");
-    let render = render::RenderScheduler::start(renderer);
-    Ok(Arc::new(service::Shared::new(store, render, config.clone())))
+    let metrics = Arc::new(metrics::Metrics::new());
+    let render = render::RenderScheduler::start(renderer, metrics.clone());
+    Ok(Arc::new(service::Shared::new(store, render, config.clone(), metrics)))
 }
 
-/// Serves on `listener` until `shutdown` completes, then drains in-flight calls.
+/// Serves gRPC on `listener` (and Prometheus metrics on `metrics_listener`, if given) until
+/// `shutdown` completes, then drains in-flight calls.
 pub async fn run(
     listener: TcpListener,
+    metrics_listener: Option<TcpListener>,
     config: Config,
     shutdown: impl Future<Output = ()> + Send,
 ) -> anyhow::Result<()> {
@@ -111,11 +116,28 @@ pub async fn run(
                 tick.tick().await;
                 let reaped = shared.registry.reap(idle);
                 if reaped > 0 {
+                    shared.metrics.count_closed("idle", reaped);
+                    shared.metrics.live.set(shared.registry.len() as i64);
                     tracing::info!(reaped, "closed idle episodes");
                 }
             }
         })
     };
+
+    let metrics_server = metrics_listener.map(|listener| {
+        let shared = shared.clone();
+        let refresh = {
+            let shared = shared.clone();
+            move || {
+                shared.metrics.live.set(shared.registry.len() as i64);
+            }
+        };
+        tokio::spawn(async move {
+            if let Err(e) = metrics::serve(listener, shared.metrics.clone(), refresh).await {
+                tracing::error!("the metrics endpoint stopped: {e}");
+            }
+        })
+    });
 
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<proto::esrp_server::EsrpServer<service::EsrpService>>().await;
@@ -143,6 +165,9 @@ pub async fn run(
         .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(listener), shutdown)
         .await;
     reaper.abort();
+    if let Some(task) = metrics_server {
+        task.abort();
+    }
     tracing::info!("server stopped");
     Ok(result?)
 }

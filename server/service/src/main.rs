@@ -38,5 +38,15 @@ async fn main() -> anyhow::Result<()> {
         .map_err(|e| anyhow::anyhow!("cannot listen on {}: {e}", config.listen))?;
     // Tests and scripts read the bound address (useful with port 0) from this line.
     println!("esrp-server listening on {}", listener.local_addr()?);
-    esrp_server::run(listener, config, shutdown_signal()).await
+    let metrics_listener = match config.metrics_listen {
+        Some(address) => {
+            let listener = tokio::net::TcpListener::bind(address)
+                .await
+                .map_err(|e| anyhow::anyhow!("cannot listen on {address} for --metrics-listen: {e}"))?;
+            println!("esrp-server metrics on http://{}/metrics", listener.local_addr()?);
+            Some(listener)
+        }
+        None => None,
+    };
+    esrp_server::run(listener, metrics_listener, config, shutdown_signal()).await
 }

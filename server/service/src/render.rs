@@ -13,6 +13,7 @@ use esrp_render::{Camera, Outputs, Renderer, SceneHandle, ViewOutput, ViewReques
 use tokio::sync::oneshot;
 
 use crate::error::ServiceError;
+use crate::metrics::Metrics;
 
 /// One view to render, owning its inputs.
 #[derive(Clone, Debug)]
@@ -71,7 +72,7 @@ pub struct RenderStats {
 
 impl RenderScheduler {
     /// Starts the render thread around `renderer`.
-    pub fn start(renderer: Renderer) -> Self {
+    pub fn start(renderer: Renderer, metrics: Arc<Metrics>) -> Self {
         let renderer = Arc::new(renderer);
         let (jobs, receiver) = mpsc::channel::<RenderJob>();
         let stats = Arc::new(RenderStats::default());
@@ -79,7 +80,7 @@ impl RenderScheduler {
         let thread_stats = stats.clone();
         std::thread::Builder::new()
             .name("esrp-render".into())
-            .spawn(move || render_loop(&thread_renderer, &receiver, &thread_stats))
+            .spawn(move || render_loop(&thread_renderer, &receiver, &thread_stats, &metrics))
             .map(drop)
             .unwrap_or_else(|e| tracing::error!("cannot start the render thread: {e}"));
         Self { renderer, jobs, stats }
@@ -120,7 +121,7 @@ impl RenderScheduler {
     }
 }
 
-fn render_loop(renderer: &Renderer, receiver: &mpsc::Receiver<RenderJob>, stats: &RenderStats) {
+fn render_loop(renderer: &Renderer, receiver: &mpsc::Receiver<RenderJob>, stats: &RenderStats, metrics: &Metrics) {
     while let Ok(first) = receiver.recv() {
         // Gather every job that is already waiting, up to the batch limit.
         let mut jobs = vec![first];
@@ -133,18 +134,18 @@ fn render_loop(renderer: &Renderer, receiver: &mpsc::Receiver<RenderJob>, stats:
                 }
                 Ok(job) => {
                     // Too big to join this batch: render it on its own right after.
-                    render_jobs(renderer, jobs, stats);
+                    render_jobs(renderer, jobs, stats, metrics);
                     jobs = vec![job];
                     count = jobs[0].views.len();
                 }
                 Err(_) => break,
             }
         }
-        render_jobs(renderer, jobs, stats);
+        render_jobs(renderer, jobs, stats, metrics);
     }
 }
 
-fn render_jobs(renderer: &Renderer, jobs: Vec<RenderJob>, stats: &RenderStats) {
+fn render_jobs(renderer: &Renderer, jobs: Vec<RenderJob>, stats: &RenderStats, metrics: &Metrics) {
     use std::sync::atomic::Ordering::Relaxed;
     let requests: Vec<ViewRequest<'_>> = jobs
         .iter()
@@ -153,7 +154,10 @@ fn render_jobs(renderer: &Renderer, jobs: Vec<RenderJob>, stats: &RenderStats) {
         .collect();
     stats.batches.fetch_add(1, Relaxed);
     stats.views.fetch_add(requests.len() as u64, Relaxed);
+    let started = std::time::Instant::now();
     let result = renderer.render_batch(&requests);
+    metrics.batch_views.observe(requests.len() as f64);
+    metrics.batch_seconds.observe(started.elapsed().as_secs_f64());
     drop(requests);
     match result {
         Ok(outputs) => {

@@ -17,6 +17,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use crate::config::Config;
 use crate::error::ServiceError;
+use crate::metrics::Metrics;
 use crate::proto;
 use crate::registry::{EpisodeEntry, Registry, SensorConfig, SharedEpisode};
 use crate::render::{RenderScheduler, View};
@@ -33,8 +34,8 @@ pub struct Shared {
     /// The configuration.
     pub config: Config,
     next_stream: AtomicU64,
-    /// Steps taken since start.
-    pub steps: AtomicU64,
+    /// Prometheus metrics.
+    pub metrics: Arc<Metrics>,
 }
 
 /// The largest image side a client may ask for.
@@ -218,14 +219,14 @@ fn observation(entry: &EpisodeEntry, outputs: Vec<ViewOutput>, include_goal: boo
 
 impl Shared {
     /// Shared state for a server with `config`, serving `store` and rendering with `render`.
-    pub fn new(store: SceneStore, render: RenderScheduler, config: Config) -> Self {
+    pub fn new(store: SceneStore, render: RenderScheduler, config: Config, metrics: Arc<Metrics>) -> Self {
         Self {
             store,
             registry: Registry::new(config.max_episodes),
             render,
             config,
             next_stream: AtomicU64::new(1),
-            steps: AtomicU64::new(0),
+            metrics,
         }
     }
 
@@ -320,6 +321,8 @@ impl Shared {
         let summary = entry.summary.clone();
         let spec = spec(&entry.sensors);
         let episode_id = self.registry.insert(entry, stream)?;
+        self.metrics.created.inc();
+        self.metrics.live.set(self.registry.len() as i64);
         tracing::debug!(episode = %episode_id, scene = %summary.id, "episode created");
         Ok(proto::CreateEpisodeResponse {
             episode_id,
@@ -365,6 +368,7 @@ impl Shared {
                 self.config.max_batch
             )));
         }
+        let started = Instant::now();
         let mut seen = HashSet::new();
         let mut plan = Vec::with_capacity(requests.len());
         for (i, r) in requests.iter().enumerate() {
@@ -413,8 +417,8 @@ impl Shared {
             views.extend(v);
         }
         let mut outputs = self.render.render(views).await?.into_iter();
-        self.steps.fetch_add(guards.len() as u64, Ordering::Relaxed);
         let mut responses = Vec::with_capacity(guards.len());
+        self.metrics.observe_steps(guards.len(), started.elapsed());
         for (i, (g, outcome)) in guards.iter_mut().zip(outcomes).enumerate() {
             let outcome = outcome?;
             g.last_used = Instant::now();
@@ -458,6 +462,8 @@ impl Shared {
         request: proto::CloseEpisodeRequest,
     ) -> Result<proto::CloseEpisodeResponse, ServiceError> {
         let shared = self.registry.remove(&request.episode_id)?;
+        self.metrics.count_closed("client", 1);
+        self.metrics.live.set(self.registry.len() as i64);
         let entry = shared.lock().await;
         Ok(proto::CloseEpisodeResponse { metrics: Some(metrics_to_proto(&entry.episode.metrics())) })
     }
@@ -517,6 +523,8 @@ impl Shared {
             }
         }
         let closed = self.registry.remove_stream(stream);
+        self.metrics.count_closed("stream_ended", closed);
+        self.metrics.live.set(self.registry.len() as i64);
         if closed > 0 {
             tracing::debug!(stream, closed, "closed the episodes of a finished stream");
         }

@@ -12,6 +12,8 @@ pub struct Server {
     child: Child,
     /// `http://127.0.0.1:PORT`.
     pub address: String,
+    /// `http://127.0.0.1:PORT/metrics`, when started with `--metrics-listen`.
+    pub metrics: Option<String>,
 }
 
 impl Server {
@@ -27,10 +29,29 @@ impl Server {
             .spawn()
             .expect("the server binary starts");
         let stdout = child.stdout.take().expect("stdout is piped");
+        let mut stdout = BufReader::new(stdout);
         let mut line = String::new();
-        BufReader::new(stdout).read_line(&mut line).expect("the server prints its address");
+        stdout.read_line(&mut line).expect("the server prints its address");
         let address = line.trim().rsplit(' ').next().expect("an address").to_owned();
-        Server { child, address: format!("http://{address}") }
+        let metrics = args.contains(&"--metrics-listen").then(|| {
+            let mut line = String::new();
+            stdout.read_line(&mut line).expect("the server prints its metrics address");
+            line.trim().rsplit(' ').next().expect("a metrics URL").to_owned()
+        });
+        Server { child, address: format!("http://{address}"), metrics }
+    }
+
+    /// Fetches the Prometheus text from the metrics endpoint (plain HTTP/1.0 over a socket).
+    pub fn scrape(&self) -> String {
+        use std::io::{Read, Write};
+        let url = self.metrics.as_deref().expect("started with --metrics-listen");
+        let host = url.trim_start_matches("http://").trim_end_matches("/metrics");
+        let mut socket = std::net::TcpStream::connect(host).expect("the metrics endpoint accepts");
+        write!(socket, "GET /metrics HTTP/1.0\r\nHost: {host}\r\n\r\n").unwrap();
+        let mut response = String::new();
+        socket.read_to_string(&mut response).unwrap();
+        assert!(response.starts_with("HTTP/1.0 200") || response.starts_with("HTTP/1.1 200"), "{response}");
+        response
     }
 
     /// A connected client.

@@ -45,3 +45,42 @@ async fn the_expert_succeeds_through_unary_steps() {
     assert!(last.terminated);
     assert!(last.metrics.unwrap().success);
 }
+
+/// The Prometheus endpoint counts steps, episodes and render batches.
+#[tokio::test]
+async fn metrics_count_steps_episodes_and_render_batches() {
+    let server = Server::start(&["--metrics-listen", "127.0.0.1:0"]);
+    let mut client = server.client().await;
+    let created = client
+        .create_episode(proto::CreateEpisodeRequest {
+            scene: Some(proto::create_episode_request::Scene::SceneId("esrp-bench-v1/00003".into())),
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    for action in [2, 2, 3] {
+        client
+            .step(proto::StepRequest { episode_id: created.episode_id.clone(), action, include_goal: false })
+            .await
+            .unwrap();
+    }
+    let text = server.scrape();
+    let value = |name: &str| -> f64 {
+        let line = text
+            .lines()
+            .find(|l| l.starts_with(name) && l[name.len()..].starts_with(' '))
+            .unwrap_or_else(|| panic!("{name} in {text}"));
+        line.rsplit(' ').next().unwrap().parse().unwrap()
+    };
+    assert_eq!(value("esrp_steps_total"), 3.0);
+    assert_eq!(value("esrp_episodes_created_total"), 1.0);
+    assert_eq!(value("esrp_live_episodes"), 1.0);
+    assert_eq!(value("esrp_step_latency_seconds_count"), 3.0);
+    // Create renders goal + first view, each step one view.
+    assert!(value("esrp_render_batch_views_sum") >= 5.0, "{text}");
+    client.close_episode(proto::CloseEpisodeRequest { episode_id: created.episode_id }).await.unwrap();
+    let text = server.scrape();
+    assert!(text.contains("esrp_episodes_closed_total{reason=\"client\"} 1"), "{text}");
+    assert!(text.contains("esrp_live_episodes 0"), "{text}");
+}

@@ -1,0 +1,127 @@
+//! Prometheus metrics, served as text over HTTP at `/metrics` when `--metrics-listen` is set.
+//!
+//! | metric | type | what |
+//! |---|---|---|
+//! | `esrp_steps_total` | counter | steps taken, all episodes and APIs |
+//! | `esrp_step_latency_seconds` | histogram | time from receiving a step (or a batch, counted once per step) to its response being ready, rendering included |
+//! | `esrp_episodes_created_total` | counter | episodes created |
+//! | `esrp_episodes_closed_total` | counter | episodes closed, by reason (`client`, `stream_ended`, `idle`) |
+//! | `esrp_live_episodes` | gauge | episodes alive now |
+//! | `esrp_render_batch_views` | histogram | views per render batch |
+//! | `esrp_render_batch_seconds` | histogram | time to render one batch |
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use prometheus_client::encoding::EncodeLabelSet;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
+use prometheus_client::registry::Registry;
+use tokio::net::TcpListener;
+
+/// Why an episode was closed.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct CloseReason {
+    /// `client`, `stream_ended` or `idle`.
+    pub reason: &'static str,
+}
+
+/// Every metric the server keeps. Cheap to update from any thread.
+pub struct Metrics {
+    registry: Registry,
+    /// Steps taken.
+    pub steps: Counter,
+    /// Step latency, seconds.
+    pub step_latency: Histogram,
+    /// Episodes created.
+    pub created: Counter,
+    /// Episodes closed, by reason.
+    pub closed: Family<CloseReason, Counter>,
+    /// Live episodes (set on every scrape and on every create/close).
+    pub live: Gauge,
+    /// Views per render batch.
+    pub batch_views: Histogram,
+    /// Seconds per render batch.
+    pub batch_seconds: Histogram,
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Metrics {
+    /// A fresh set of metrics, registered.
+    pub fn new() -> Self {
+        let steps = Counter::default();
+        let step_latency = Histogram::new(exponential_buckets(50e-6, 2.0, 16));
+        let created = Counter::default();
+        let closed = Family::<CloseReason, Counter>::default();
+        let live = Gauge::default();
+        let batch_views = Histogram::new(exponential_buckets(1.0, 2.0, 11));
+        let batch_seconds = Histogram::new(exponential_buckets(50e-6, 2.0, 16));
+        let mut registry = Registry::with_prefix("esrp");
+        registry.register("steps", "Steps taken, all episodes and APIs", steps.clone());
+        registry.register(
+            "step_latency_seconds",
+            "Time from receiving a step to its response being ready, rendering included",
+            step_latency.clone(),
+        );
+        registry.register("episodes_created", "Episodes created", created.clone());
+        registry.register("episodes_closed", "Episodes closed, by reason", closed.clone());
+        registry.register("live_episodes", "Episodes alive now", live.clone());
+        registry.register("render_batch_views", "Views per render batch", batch_views.clone());
+        registry.register("render_batch_seconds", "Time to render one batch", batch_seconds.clone());
+        Self { registry, steps, step_latency, created, closed, live, batch_views, batch_seconds }
+    }
+
+    /// Counts `n` closed episodes.
+    pub fn count_closed(&self, reason: &'static str, n: usize) {
+        self.closed.get_or_create(&CloseReason { reason }).inc_by(n as u64);
+    }
+
+    /// The OpenMetrics text exposition.
+    pub fn encode(&self) -> String {
+        let mut text = String::new();
+        // Writing into a String cannot fail.
+        let _ = prometheus_client::encoding::text::encode(&mut text, &self.registry);
+        text
+    }
+
+    /// Records the time `steps` steps took together.
+    pub fn observe_steps(&self, steps: usize, elapsed: Duration) {
+        self.steps.inc_by(steps as u64);
+        let seconds = elapsed.as_secs_f64();
+        for _ in 0..steps {
+            self.step_latency.observe(seconds);
+        }
+    }
+}
+
+/// Serves `GET /metrics` on `listener` until the task is dropped; `refresh` runs before each
+/// scrape (to update gauges).
+pub async fn serve(
+    listener: TcpListener,
+    metrics: Arc<Metrics>,
+    refresh: impl Fn() + Clone + Send + Sync + 'static,
+) -> std::io::Result<()> {
+    use axum::http::header::CONTENT_TYPE;
+    let address: SocketAddr = listener.local_addr()?;
+    tracing::info!(%address, "serving Prometheus metrics at /metrics");
+    let app = axum::Router::new().route(
+        "/metrics",
+        axum::routing::get(move || {
+            let metrics = metrics.clone();
+            let refresh = refresh.clone();
+            async move {
+                refresh();
+                ([(CONTENT_TYPE, "application/openmetrics-text; version=1.0.0; charset=utf-8")], metrics.encode())
+            }
+        }),
+    );
+    axum::serve(listener, app).await
+}
