@@ -1,0 +1,408 @@
+//! `esrp-bench`: end-to-end throughput and latency of esrp-server, client and server on one
+//! machine (or against a running server with `--server`).
+//!
+//! Scenarios (each runs for `--seconds` after a one-second warm-up; every client waits for a
+//! step's answer before sending that episode's next action, as an agent does):
+//!
+//! - `unary-1`: one episode, unary `Step`.
+//! - `stream-1`: one episode on a `StepStream`.
+//! - `unary-64`: 64 episodes, one task each, concurrent unary `Step`s.
+//! - `streams-64`: 64 episodes, one stream each.
+//! - `stream-mux-64`: 64 episodes on one stream, a wave of 64 steps at a time.
+//! - `batch-64`: 64 episodes, one `StepBatch` of 64 steps at a time.
+//! - `memory-1000`: the server's resident memory with 1,000 live episodes (local server only).
+//!
+//! Latency is per step: from sending it to receiving its answer (for a batch or a wave, the
+//! whole call). Actions are random (seeded); episodes that end are reset.
+
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, bail};
+use clap::Parser;
+use esrp_server::proto;
+use esrp_server::proto::esrp_client::EsrpClient;
+use esrp_server::proto::stream_request::Request as Rq;
+use esrp_server::proto::stream_response::Response as Rs;
+use tokio::sync::mpsc;
+use tokio_stream::StreamExt;
+use tonic::transport::Channel;
+
+#[derive(Parser, Debug)]
+#[command(name = "esrp-bench", version, about = "End-to-end throughput and latency of esrp-server")]
+struct Args {
+    /// A running server (`http://host:port`); without it, esrp-bench starts the `esrp-server`
+    /// next to its own executable on a free local port.
+    #[arg(long)]
+    server: Option<String>,
+    /// Path of the server binary to start (default: `esrp-server` beside esrp-bench).
+    #[arg(long)]
+    server_binary: Option<PathBuf>,
+    /// Extra arguments for the started server, e.g. `--server-args=--render-backend=gl`.
+    #[arg(long, allow_hyphen_values = true, value_delimiter = ' ')]
+    server_args: Vec<String>,
+    /// Measured seconds per scenario.
+    #[arg(long, default_value_t = 5.0)]
+    seconds: f64,
+    /// Scenarios to run (comma-separated); all by default.
+    #[arg(long, value_delimiter = ',', default_value = "unary-1,stream-1,unary-64,streams-64,stream-mux-64,batch-64,memory-1000")]
+    scenarios: Vec<String>,
+    /// Episodes of the multi-episode scenarios.
+    #[arg(long, default_value_t = 64)]
+    episodes: usize,
+    /// Write the results as JSON to this file too.
+    #[arg(long)]
+    json: Option<PathBuf>,
+}
+
+/// The started server, killed on drop.
+struct LocalServer {
+    child: Child,
+    address: String,
+}
+
+impl Drop for LocalServer {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl LocalServer {
+    fn start(binary: Option<PathBuf>, args: &[String]) -> anyhow::Result<Self> {
+        use std::io::{BufRead, BufReader};
+        let binary = match binary {
+            Some(b) => b,
+            None => std::env::current_exe()?.with_file_name(format!("esrp-server{}", std::env::consts::EXE_SUFFIX)),
+        };
+        let mut child = Command::new(&binary)
+            .args(["--listen", "127.0.0.1:0"])
+            .args(args)
+            .env("ESRP_LOG", std::env::var("ESRP_LOG").unwrap_or_else(|_| "warn".into()))
+            .stdout(Stdio::piped())
+            .spawn()
+            .with_context(|| format!("cannot start {} (build it with `cargo build --release -p esrp-server`)", binary.display()))?;
+        let mut line = String::new();
+        BufReader::new(child.stdout.take().context("no stdout")?).read_line(&mut line)?;
+        let Some(address) = line.trim().strip_prefix("esrp-server listening on ") else {
+            bail!("the server did not start: {line:?}");
+        };
+        Ok(Self { address: format!("http://{address}"), child })
+    }
+
+    fn resident_bytes(&self) -> Option<u64> {
+        let status = std::fs::read_to_string(format!("/proc/{}/status", self.child.id())).ok()?;
+        let kib: u64 = status.lines().find(|l| l.starts_with("VmRSS:"))?.split_whitespace().nth(1)?.parse().ok()?;
+        Some(kib * 1024)
+    }
+}
+
+/// One scenario's result.
+#[derive(Debug, Default, Clone)]
+struct Outcome {
+    name: String,
+    episodes: usize,
+    steps: u64,
+    seconds: f64,
+    latencies: Vec<f64>,
+    note: String,
+}
+
+impl Outcome {
+    fn rate(&self) -> f64 {
+        self.steps as f64 / self.seconds.max(1e-9)
+    }
+
+    fn percentile(&self, p: f64) -> f64 {
+        if self.latencies.is_empty() {
+            return f64::NAN;
+        }
+        let mut sorted = self.latencies.clone();
+        sorted.sort_by(f64::total_cmp);
+        sorted[((sorted.len() - 1) as f64 * p).round() as usize]
+    }
+}
+
+/// Tiny deterministic action source.
+struct Actions(u64);
+
+impl Actions {
+    fn next(&mut self) -> i32 {
+        self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        // Mostly moves and turns, like an exploring agent.
+        ((self.0 >> 33) % 6) as i32
+    }
+}
+
+/// Episode scenes: test scenes of the served dataset, round robin.
+async fn scenes(client: &mut EsrpClient<Channel>, n: usize) -> anyhow::Result<Vec<String>> {
+    let page = client
+        .list_scenes(proto::ListScenesRequest { split: proto::Split::Test as i32, page_size: n.min(1000) as u32, ..Default::default() })
+        .await?
+        .into_inner();
+    if page.scenes.is_empty() {
+        bail!("the server has no test scenes");
+    }
+    Ok((0..n).map(|i| page.scenes[i % page.scenes.len()].id.clone()).collect())
+}
+
+async fn create(client: &mut EsrpClient<Channel>, scene: &str) -> anyhow::Result<String> {
+    let request = proto::CreateEpisodeRequest {
+        scene: Some(proto::create_episode_request::Scene::SceneId(scene.to_owned())),
+        ..Default::default()
+    };
+    Ok(client.create_episode(request).await?.into_inner().episode_id)
+}
+
+fn step(episode_id: &str, action: i32) -> proto::StepRequest {
+    proto::StepRequest { episode_id: episode_id.to_owned(), action, include_goal: false }
+}
+
+fn ended(r: &proto::StepResponse) -> bool {
+    r.terminated || r.truncated
+}
+
+async fn reset(client: &mut EsrpClient<Channel>, episode_id: &str) -> anyhow::Result<()> {
+    client.reset(proto::ResetRequest { episode_id: episode_id.to_owned(), scene: None }).await?;
+    Ok(())
+}
+
+/// Measurement window: warm-up, then `seconds` measured.
+#[derive(Clone, Copy)]
+struct Window {
+    measure_from: Instant,
+    until: Instant,
+}
+
+impl Window {
+    fn new(seconds: f64) -> Self {
+        let measure_from = Instant::now() + Duration::from_secs(1);
+        Self { measure_from, until: measure_from + Duration::from_secs_f64(seconds) }
+    }
+}
+
+/// Steps `episodes` with unary calls, one task each; returns (steps, latencies) measured.
+async fn unary(client: &EsrpClient<Channel>, episodes: Vec<String>, window: Window) -> anyhow::Result<(u64, Vec<f64>)> {
+    let mut tasks = Vec::new();
+    for (i, id) in episodes.into_iter().enumerate() {
+        let mut client = client.clone();
+        tasks.push(tokio::spawn(async move {
+            let mut actions = Actions(i as u64 + 1);
+            let (mut steps, mut latencies) = (0u64, Vec::new());
+            loop {
+                let t = Instant::now();
+                if t >= window.until {
+                    break;
+                }
+                let r = client.step(step(&id, actions.next())).await?.into_inner();
+                if t >= window.measure_from {
+                    steps += 1;
+                    latencies.push(t.elapsed().as_secs_f64());
+                }
+                if ended(&r) {
+                    reset(&mut client, &id).await?;
+                }
+            }
+            anyhow::Ok((steps, latencies))
+        }));
+    }
+    gather(tasks).await
+}
+
+async fn gather(tasks: Vec<tokio::task::JoinHandle<anyhow::Result<(u64, Vec<f64>)>>>) -> anyhow::Result<(u64, Vec<f64>)> {
+    let (mut steps, mut latencies) = (0, Vec::new());
+    for task in tasks {
+        let (s, l) = task.await??;
+        steps += s;
+        latencies.extend(l);
+    }
+    Ok((steps, latencies))
+}
+
+/// Steps `episodes` on one stream, a wave of one step per episode at a time.
+async fn stream(client: &EsrpClient<Channel>, episodes: Vec<String>, seed: u64, window: Window) -> anyhow::Result<(u64, Vec<f64>)> {
+    let mut client = client.clone();
+    let (tx, rx) = mpsc::channel::<proto::StreamRequest>(episodes.len() * 2 + 2);
+    let mut inbound = client.step_stream(tokio_stream::wrappers::ReceiverStream::new(rx)).await?.into_inner();
+    let mut actions = Actions(seed);
+    let (mut steps, mut latencies, mut id) = (0u64, Vec::new(), 0u64);
+    loop {
+        let t = Instant::now();
+        if t >= window.until {
+            break;
+        }
+        for e in &episodes {
+            id += 1;
+            tx.send(proto::StreamRequest { request_id: id, request: Some(Rq::Step(step(e, actions.next()))) }).await?;
+        }
+        let mut to_reset = Vec::new();
+        for e in &episodes {
+            let response = inbound.next().await.context("the stream ended")??;
+            match response.response {
+                Some(Rs::Step(r)) => {
+                    if ended(&r) {
+                        to_reset.push(e.clone());
+                    }
+                }
+                Some(Rs::Error(error)) => bail!("step failed: {}", error.message),
+                other => bail!("unexpected answer {other:?}"),
+            }
+        }
+        if t >= window.measure_from {
+            steps += episodes.len() as u64;
+            let latency = t.elapsed().as_secs_f64();
+            latencies.extend(std::iter::repeat_n(latency, episodes.len()));
+        }
+        for e in to_reset {
+            reset(&mut client, &e).await?;
+        }
+    }
+    Ok((steps, latencies))
+}
+
+/// Steps `episodes` with one StepBatch per wave.
+async fn batch(client: &EsrpClient<Channel>, episodes: Vec<String>, window: Window) -> anyhow::Result<(u64, Vec<f64>)> {
+    let mut client = client.clone();
+    let mut actions = Actions(7);
+    let (mut steps, mut latencies) = (0u64, Vec::new());
+    loop {
+        let t = Instant::now();
+        if t >= window.until {
+            break;
+        }
+        let request = proto::StepBatchRequest { steps: episodes.iter().map(|e| step(e, actions.next())).collect() };
+        let responses = client.step_batch(request).await?.into_inner().responses;
+        if t >= window.measure_from {
+            steps += episodes.len() as u64;
+            latencies.extend(std::iter::repeat_n(t.elapsed().as_secs_f64(), episodes.len()));
+        }
+        for (e, r) in episodes.iter().zip(&responses) {
+            if ended(r) {
+                reset(&mut client, e).await?;
+            }
+        }
+    }
+    Ok((steps, latencies))
+}
+
+async fn close_all(client: &mut EsrpClient<Channel>, episodes: &[String]) -> anyhow::Result<()> {
+    for e in episodes {
+        client.close_episode(proto::CloseEpisodeRequest { episode_id: e.clone() }).await?;
+    }
+    Ok(())
+}
+
+async fn scenario(name: &str, args: &Args, client: &mut EsrpClient<Channel>, server: Option<&LocalServer>) -> anyhow::Result<Outcome> {
+    let n = match name {
+        "unary-1" | "stream-1" => 1,
+        "memory-1000" => 1000,
+        _ => args.episodes,
+    };
+    let ids = scenes(client, n).await?;
+    let before = server.and_then(LocalServer::resident_bytes);
+    let mut episodes = Vec::with_capacity(n);
+    for scene in &ids {
+        episodes.push(create(client, scene).await?);
+    }
+    let mut outcome = Outcome { name: name.to_owned(), episodes: n, ..Default::default() };
+    if name == "memory-1000" {
+        // One step each, so that every episode has rendered and holds its state.
+        for chunk in episodes.chunks(250) {
+            client.step_batch(proto::StepBatchRequest { steps: chunk.iter().map(|e| step(e, 2)).collect() }).await?;
+        }
+        match (before, server.and_then(LocalServer::resident_bytes)) {
+            (Some(b), Some(a)) => {
+                outcome.note = format!(
+                    "server RSS {:.0} MiB -> {:.0} MiB with {n} live episodes: {:.2} MiB per episode",
+                    b as f64 / 1048576.0,
+                    a as f64 / 1048576.0,
+                    a.saturating_sub(b) as f64 / n as f64 / 1048576.0
+                )
+            }
+            _ => outcome.note = "needs a local server on Linux (no --server)".into(),
+        }
+        close_all(client, &episodes).await?;
+        return Ok(outcome);
+    }
+    let window = Window::new(args.seconds);
+    let (steps, latencies) = match name {
+        "unary-1" | "unary-64" => unary(client, episodes.clone(), window).await?,
+        "stream-1" | "stream-mux-64" => stream(client, episodes.clone(), 3, window).await?,
+        "streams-64" => {
+            let mut tasks = Vec::new();
+            for (i, e) in episodes.iter().enumerate() {
+                let client = client.clone();
+                let e = vec![e.clone()];
+                tasks.push(tokio::spawn(async move { stream(&client, e, i as u64 + 11, window).await }));
+            }
+            gather(tasks).await?
+        }
+        "batch-64" => batch(client, episodes.clone(), window).await?,
+        other => bail!("unknown scenario {other:?}"),
+    };
+    outcome.steps = steps;
+    outcome.seconds = args.seconds;
+    outcome.latencies = latencies;
+    close_all(client, &episodes).await?;
+    Ok(outcome)
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    let local = match &args.server {
+        Some(_) => None,
+        None => Some(LocalServer::start(args.server_binary.clone(), &args.server_args)?),
+    };
+    let address = args.server.clone().or_else(|| local.as_ref().map(|s| s.address.clone())).context("no server")?;
+    let channel = Channel::from_shared(address.clone())?.connect().await.with_context(|| format!("cannot connect to {address}"))?;
+    let mut client = EsrpClient::new(channel).max_decoding_message_size(64 << 20);
+    let info = client.server_info(proto::ServerInfoRequest {}).await?.into_inner();
+    let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
+    let cpu_model = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|c| c.lines().find(|l| l.starts_with("model name")).map(|l| l.split(':').nth(1).unwrap_or("").trim().to_owned()))
+        .unwrap_or_default();
+    println!("esrp-bench against {address}: esrp-server {}, renderer {} ({}), dataset {}", info.version, info.renderer_adapter, info.renderer_backend, info.dataset);
+    println!("client machine: {cpus} CPUs, {cpu_model}");
+    println!("{:<14} {:>8} {:>9} {:>11} {:>9} {:>9}", "scenario", "episodes", "steps", "steps/s", "p50 ms", "p99 ms");
+    let mut results = Vec::new();
+    for name in &args.scenarios {
+        let outcome = scenario(name, &args, &mut client, local.as_ref()).await.with_context(|| format!("scenario {name}"))?;
+        if outcome.latencies.is_empty() {
+            println!("{:<14} {:>8} {}", outcome.name, outcome.episodes, outcome.note);
+        } else {
+            println!(
+                "{:<14} {:>8} {:>9} {:>11.0} {:>9.2} {:>9.2}",
+                outcome.name,
+                outcome.episodes,
+                outcome.steps,
+                outcome.rate(),
+                outcome.percentile(0.5) * 1e3,
+                outcome.percentile(0.99) * 1e3
+            );
+        }
+        results.push(outcome);
+    }
+    if let Some(path) = &args.json {
+        let rows: Vec<serde_json::Value> = results
+            .iter()
+            .map(|o| {
+                serde_json::json!({
+                    "scenario": o.name, "episodes": o.episodes, "steps": o.steps, "seconds": o.seconds,
+                    "steps_per_second": if o.latencies.is_empty() { None } else { Some(o.rate()) },
+                    "p50_ms": if o.latencies.is_empty() { None } else { Some(o.percentile(0.5) * 1e3) },
+                    "p99_ms": if o.latencies.is_empty() { None } else { Some(o.percentile(0.99) * 1e3) },
+                    "note": o.note,
+                })
+            })
+            .collect();
+        let report = serde_json::json!({
+            "server": address, "renderer": info.renderer_adapter, "backend": info.renderer_backend,
+            "cpus": cpus, "cpu": cpu_model, "results": rows,
+        });
+        std::fs::write(path, serde_json::to_string_pretty(&report)?)?;
+    }
+    Ok(())
+}
