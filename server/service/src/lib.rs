@@ -10,6 +10,7 @@
 //! - [`registry`]: live episodes by unguessable id, each locked alone; limits; idle reaping.
 //! - [`render`]: the render scheduler (one thread, batches of every waiting view).
 //! - [`service`]: the `esrp.v1.Esrp` handlers; proto ↔ core conversions at the edge.
+//! - [`dm_env`]: `dm_env_rpc.v1.Environment`, the same episodes behind the dm_env_rpc protocol.
 //! - [`error`]: typed errors and their one mapping to gRPC status codes.
 //!
 //! # Invariants
@@ -27,6 +28,7 @@
 #![warn(missing_docs)]
 
 pub mod config;
+pub mod dm_env;
 pub mod error;
 pub mod registry;
 pub mod render;
@@ -44,7 +46,8 @@ use tonic::service::interceptor::InterceptedService;
 pub mod proto {
     tonic::include_proto!("esrp.v1");
 
-    /// The encoded file descriptor set, for gRPC reflection.
+    /// The encoded file descriptor set of every served API (esrp.v1 and dm_env_rpc.v1), for
+    /// gRPC reflection.
     pub const FILE_DESCRIPTOR_SET: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/esrp_descriptor.bin"));
 }
 
@@ -113,9 +116,13 @@ pub async fn run(listener: TcpListener, config: Config, shutdown: impl Future<Ou
 
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<proto::esrp_server::EsrpServer<service::EsrpService>>().await;
+    health
+        .set_serving::<dm_env::wire::dm_env_rpc::v1::environment_server::EnvironmentServer<dm_env::DmEnvService>>()
+        .await;
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
         .build_v1()?;
+    let dm_env = dm_env::server(shared.clone());
     let esrp = proto::esrp_server::EsrpServer::new(service::EsrpService::new(shared))
         .max_decoding_message_size(config.max_message_bytes)
         .max_encoding_message_size(config.max_message_bytes);
@@ -130,7 +137,8 @@ pub async fn run(listener: TcpListener, config: Config, shutdown: impl Future<Ou
     let result = builder
         .add_service(health_service)
         .add_service(reflection)
-        .add_service(InterceptedService::new(esrp, check))
+        .add_service(InterceptedService::new(esrp, check.clone()))
+        .add_service(InterceptedService::new(dm_env, check))
         .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(listener), shutdown)
         .await;
     reaper.abort();
