@@ -6,7 +6,8 @@ use prost::Message;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let proto_root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../proto");
-    let files = ["esrp/v1/esrp.proto", "dm_env_rpc/v1/dm_env_rpc.proto", "google/rpc/status.proto"].map(|f| proto_root.join(f));
+    let files =
+        ["esrp/v1/esrp.proto", "dm_env_rpc/v1/dm_env_rpc.proto", "google/rpc/status.proto"].map(|f| proto_root.join(f));
     for file in &files {
         println!("cargo:rerun-if-changed={}", file.display());
     }
