@@ -1,4 +1,5 @@
 //! esrp-server's integration tests: start the real binary on an ephemeral port and talk gRPC.
 
+mod dm_env;
 mod harness;
 mod smoke;
