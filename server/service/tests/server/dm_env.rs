@@ -278,3 +278,29 @@ async fn worlds_end_with_their_stream() {
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
 }
+
+#[tokio::test]
+async fn reset_world_interrupts_the_agent_of_another_connection() {
+    let server = Server::start(&[]);
+    let mut host = Connection::open(&server).await;
+    let mut agent = Connection::open(&server).await;
+    let world =
+        host.create_world(vec![("resolution", int64(32)), ("scene", string("esrp-bench-v1/00003"))]).await.unwrap();
+    agent.join_world(&world).await.unwrap();
+    let start = agent.step(None, &[1]).await.unwrap();
+    assert_eq!(state(&agent.step(Some(action(2)), &[]).await.unwrap()), dm::EnvironmentStateType::Running);
+
+    // The host moves the world to another scene: the agent is told once, then starts over there.
+    let settings = [("scene".to_owned(), string("esrp-bench-v1/00000"))].into();
+    let reset = dm::ResetWorldRequest { world_name: world.clone(), settings };
+    assert!(matches!(host.send(Rq::ResetWorld(reset)).await, Ok(Rs::ResetWorld(_))));
+    let bad = dm::ResetWorldRequest { world_name: world.clone(), settings: [("horizon".to_owned(), int64(3))].into() };
+    check_code(host.send(Rq::ResetWorld(bad)).await, Code::InvalidArgument, "horizon");
+    let interrupted = agent.step(Some(action(2)), &[1]).await.unwrap();
+    assert_eq!(state(&interrupted), dm::EnvironmentStateType::Interrupted);
+    let first = agent.step(Some(action(2)), &[1]).await.unwrap();
+    assert_eq!(state(&first), dm::EnvironmentStateType::Running);
+    assert_eq!(first.observations[&1], interrupted.observations[&1]);
+    assert_ne!(first.observations[&1], start.observations[&1], "another scene, another view");
+    assert_eq!(state(&agent.step(Some(action(2)), &[]).await.unwrap()), dm::EnvironmentStateType::Running);
+}
