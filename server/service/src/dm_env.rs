@@ -129,6 +129,11 @@ pub enum DmEnvError {
     /// A requested observation uid is not in the specs.
     #[error("unknown observation uid {0}: request uids from the JoinWorld specs")]
     UnknownObservation(u64),
+    /// An EnvironmentRequest without a payload.
+    #[error(
+        "empty EnvironmentRequest: set one of create_world, join_world, step, reset, reset_world, leave_world, destroy_world"
+    )]
+    EmptyRequest,
     /// A request this server does not implement.
     #[error("{0}")]
     Unimplemented(String),
@@ -151,9 +156,10 @@ impl DmEnvError {
             | DmEnvError::AlreadyJoined(_)
             | DmEnvError::WorldTaken(_)
             | DmEnvError::WorldInUse(_) => Code::FailedPrecondition,
-            DmEnvError::InvalidSetting(_) | DmEnvError::InvalidAction(_) | DmEnvError::UnknownObservation(_) => {
-                Code::InvalidArgument
-            }
+            DmEnvError::InvalidSetting(_)
+            | DmEnvError::InvalidAction(_)
+            | DmEnvError::UnknownObservation(_)
+            | DmEnvError::EmptyRequest => Code::InvalidArgument,
             DmEnvError::Unimplemented(_) => Code::Unimplemented,
         }
     }
@@ -543,12 +549,7 @@ impl Connection {
                     tracing::debug!(connection = self.id, "dm_env_rpc request failed: {e}");
                     Rs::Error(e.into())
                 }),
-                None => Rs::Error(
-                    DmEnvError::InvalidSetting(
-                        "empty EnvironmentRequest: set one of create_world, join_world, step, reset, reset_world, leave_world, destroy_world".into(),
-                    )
-                    .into(),
-                ),
+                None => Rs::Error(DmEnvError::EmptyRequest.into()),
             };
             if out.send(Ok(dm::EnvironmentResponse { payload: Some(payload) })).await.is_err() {
                 break;
@@ -842,4 +843,100 @@ pub fn server(shared: Arc<Shared>) -> dm::environment_server::EnvironmentServer<
     dm::environment_server::EnvironmentServer::new(DmEnvService::new(shared))
         .max_decoding_message_size(limit)
         .max_encoding_message_size(limit)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn int64(value: i64) -> dm::Tensor {
+        tensor(Vec::new(), Elements::Int64s(dm::tensor::Int64Array { array: vec![value] }))
+    }
+
+    fn int32(shape: Vec<i32>, values: Vec<i32>) -> dm::Tensor {
+        tensor(shape, Elements::Int32s(dm::tensor::Int32Array { array: values }))
+    }
+
+    fn string(value: &str) -> dm::Tensor {
+        tensor(Vec::new(), Elements::Strings(dm::tensor::StringArray { array: vec![value.to_owned()] }))
+    }
+
+    /// Parses `settings`; the request's summary or the error's message must contain `expected`.
+    fn check_settings(settings: Vec<(&str, dm::Tensor)>, expected: &str) {
+        let settings = settings.into_iter().map(|(k, v)| (k.to_owned(), v)).collect();
+        let got = match create_request(settings) {
+            Ok(r) => format!(
+                "scene={:?} split={} seed={} horizon={} sensors={:?}",
+                r.scene, r.split, r.seed, r.horizon, r.sensors
+            ),
+            Err(e) => e.to_string(),
+        };
+        assert!(got.contains(expected), "{got:?} does not contain {expected:?}");
+    }
+
+    #[test]
+    fn create_world_settings_map_to_the_native_request() {
+        check_settings(vec![], "scene=None split=0 seed=0 horizon=0");
+        check_settings(vec![("scene", string("a/1"))], "SceneId(\"a/1\")");
+        check_settings(vec![("split", string("train")), ("seed", int64(7))], "split=1 seed=7");
+        check_settings(vec![("horizon", int32(vec![], vec![9]))], "horizon=9");
+        check_settings(vec![("resolution", int64(64))], "resolution: 64");
+        check_settings(vec![("seed", int64(-1))], "setting seed: -1 is negative");
+        check_settings(vec![("split", string("dev"))], "not a split");
+        check_settings(vec![("scene", int64(3))], "setting scene: expected a STRING, got INT64");
+        check_settings(vec![("seed", int32(vec![2], vec![1, 2]))], "expected a single value, got 2 elements");
+        check_settings(vec![("zeta", int64(1)), ("alpha", int64(1))], "unknown CreateWorld setting \"alpha\"");
+    }
+
+    fn check_action(tensor: Option<dm::Tensor>, expected: Result<i32, &str>) {
+        let actions = tensor.map(|t| HashMap::from([(ACTION_UID, t)])).unwrap_or_default();
+        match (action_of(&actions), expected) {
+            (Ok(got), Ok(want)) => assert_eq!(got, want),
+            (Err(e), Err(want)) => assert!(e.to_string().contains(want), "{e} does not contain {want:?}"),
+            (got, want) => panic!("got {got:?}, expected {want:?}"),
+        }
+    }
+
+    #[test]
+    fn the_action_is_an_int32_scalar_from_0_to_5() {
+        check_action(Some(int32(vec![], vec![0])), Ok(0));
+        check_action(Some(int32(vec![], vec![5])), Ok(5));
+        check_action(Some(int32(vec![], vec![6])), Err("6 is out of range"));
+        check_action(Some(int32(vec![], vec![-1])), Err("-1 is out of range"));
+        check_action(Some(int32(vec![1], vec![1])), Err("expected a scalar"));
+        check_action(Some(int32(vec![], vec![1, 2])), Err("expected one element, got 2"));
+        check_action(Some(int64(1)), Err("expected an INT32 tensor, got INT64"));
+        check_action(None, Err("is required"));
+        let extra = HashMap::from([(ACTION_UID, int32(vec![], vec![1])), (7, int64(1))]);
+        assert!(action_of(&extra).unwrap_err().to_string().contains("unknown action uid 7"));
+    }
+
+    #[test]
+    fn specs_number_the_native_observations_then_reward_and_discount() {
+        let array = |name: &str, shape: Vec<u32>, dtype: &str| proto::ArraySpec {
+            name: name.into(),
+            shape,
+            dtype: dtype.into(),
+        };
+        let arrays = vec![
+            array("ego_rgb", vec![8, 8, 3], "uint8"),
+            array("grasping", vec![], "bool"),
+            array("ego_depth", vec![8, 8], "float32"),
+        ];
+        let (specs, names) = specs_of(&proto::ObservationSpec { arrays, actions: Vec::new() }).unwrap();
+        assert_eq!(names, ["ego_rgb", "grasping", "ego_depth", "reward", "discount"]);
+        assert_eq!(specs.observations[&3].dtype, dm::DataType::Float as i32);
+        assert_eq!(specs.observations[&5].max, Some(doubles_value(1.0)));
+        assert_eq!(specs.actions[&ACTION_UID].max, Some(int32s_value(MAX_ACTION)));
+        let unknown = proto::ObservationSpec { arrays: vec![array("x", vec![], "float64")], actions: Vec::new() };
+        assert!(specs_of(&unknown).is_err());
+    }
+
+    #[test]
+    fn errors_carry_their_grpc_code() {
+        let status = wire::google::rpc::Status::from(DmEnvError::from(ServiceError::UnknownScene("s".into())));
+        assert_eq!((status.code, status.message.contains("no scene \"s\"")), (Code::NotFound as i32, true));
+        assert_eq!(wire::google::rpc::Status::from(DmEnvError::NotJoined).code, Code::FailedPrecondition as i32);
+        assert_eq!(wire::google::rpc::Status::from(DmEnvError::EmptyRequest).code, Code::InvalidArgument as i32);
+    }
 }
