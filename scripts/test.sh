@@ -40,3 +40,6 @@ cargo test --workspace --locked
 
 step "benchmarks compile"
 cargo bench --workspace --locked --no-run
+
+step "python end-to-end tests (dm_env_rpc)"
+bash scripts/python-tests.sh

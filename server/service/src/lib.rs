@@ -11,6 +11,7 @@
 //! - [`render`]: the render scheduler (one thread, batches of every waiting view).
 //! - [`service`]: the `esrp.v1.Esrp` handlers; proto ↔ core conversions at the edge.
 //! - [`metrics`]: Prometheus metrics and their HTTP endpoint.
+//! - [`dm_env`]: `dm_env_rpc.v1.Environment`, the same episodes behind the dm_env_rpc protocol.
 //! - [`error`]: typed errors and their one mapping to gRPC status codes.
 //!
 //! # Invariants
@@ -28,6 +29,7 @@
 #![warn(missing_docs)]
 
 pub mod config;
+pub mod dm_env;
 pub mod error;
 pub mod metrics;
 pub mod registry;
@@ -46,7 +48,8 @@ use tonic::service::interceptor::InterceptedService;
 pub mod proto {
     tonic::include_proto!("esrp.v1");
 
-    /// The encoded file descriptor set, for gRPC reflection.
+    /// The encoded file descriptor set of every served API (esrp.v1 and dm_env_rpc.v1), for
+    /// gRPC reflection.
     pub const FILE_DESCRIPTOR_SET: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/esrp_descriptor.bin"));
 }
 
@@ -141,9 +144,13 @@ pub async fn run(
 
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<proto::esrp_server::EsrpServer<service::EsrpService>>().await;
+    health
+        .set_serving::<dm_env::wire::dm_env_rpc::v1::environment_server::EnvironmentServer<dm_env::DmEnvService>>()
+        .await;
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
         .build_v1()?;
+    let dm_env = dm_env::server(shared.clone());
     let esrp = proto::esrp_server::EsrpServer::new(service::EsrpService::new(shared))
         .max_decoding_message_size(config.max_message_bytes)
         .max_encoding_message_size(config.max_message_bytes);
@@ -161,8 +168,13 @@ pub async fn run(
     let result = builder
         .add_service(health_service)
         .add_service(reflection)
-        .add_service(InterceptedService::new(esrp, check))
-        .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(listener), shutdown)
+        .add_service(InterceptedService::new(esrp, check.clone()))
+        .add_service(InterceptedService::new(dm_env, check))
+        // TCP_NODELAY: an agent waits for each answer, so Nagle + delayed ACK would add ~40 ms a step.
+        .serve_with_incoming_shutdown(
+            tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true)),
+            shutdown,
+        )
         .await;
     reaper.abort();
     if let Some(task) = metrics_server {

@@ -35,6 +35,9 @@ enum Source {
     Folder(Dataset),
 }
 
+/// Compiled scenes by index, with their insertion order for eviction.
+type Cache = (HashMap<usize, Arc<CompiledScene>>, VecDeque<usize>);
+
 /// How many compiled scenes stay cached.
 const CACHE_CAPACITY: usize = 2048;
 
@@ -43,7 +46,7 @@ pub struct SceneStore {
     source: Source,
     infos: Vec<SceneInfo>,
     index_by_id: HashMap<String, usize>,
-    cache: Mutex<(HashMap<usize, Arc<CompiledScene>>, VecDeque<usize>)>,
+    cache: Mutex<Cache>,
     name: String,
     description: String,
 }

@@ -46,7 +46,11 @@ struct Args {
     #[arg(long, default_value_t = 5.0)]
     seconds: f64,
     /// Scenarios to run (comma-separated); all by default.
-    #[arg(long, value_delimiter = ',', default_value = "unary-1,stream-1,unary-64,streams-64,stream-mux-64,batch-64,memory-1000")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "unary-1,stream-1,unary-64,streams-64,stream-mux-64,batch-64,memory-1000"
+    )]
     scenarios: Vec<String>,
     /// Episodes of the multi-episode scenarios.
     #[arg(long, default_value_t = 64)]
@@ -82,7 +86,9 @@ impl LocalServer {
             .env("ESRP_LOG", std::env::var("ESRP_LOG").unwrap_or_else(|_| "warn".into()))
             .stdout(Stdio::piped())
             .spawn()
-            .with_context(|| format!("cannot start {} (build it with `cargo build --release -p esrp-server`)", binary.display()))?;
+            .with_context(|| {
+                format!("cannot start {} (build it with `cargo build --release -p esrp-server`)", binary.display())
+            })?;
         let mut line = String::new();
         BufReader::new(child.stdout.take().context("no stdout")?).read_line(&mut line)?;
         let Some(address) = line.trim().strip_prefix("esrp-server listening on ") else {
@@ -138,7 +144,11 @@ impl Actions {
 /// Episode scenes: test scenes of the served dataset, round robin.
 async fn scenes(client: &mut EsrpClient<Channel>, n: usize) -> anyhow::Result<Vec<String>> {
     let page = client
-        .list_scenes(proto::ListScenesRequest { split: proto::Split::Test as i32, page_size: n.min(1000) as u32, ..Default::default() })
+        .list_scenes(proto::ListScenesRequest {
+            split: proto::Split::Test as i32,
+            page_size: n.min(1000) as u32,
+            ..Default::default()
+        })
         .await?
         .into_inner();
     if page.scenes.is_empty() {
@@ -210,7 +220,9 @@ async fn unary(client: &EsrpClient<Channel>, episodes: Vec<String>, window: Wind
     gather(tasks).await
 }
 
-async fn gather(tasks: Vec<tokio::task::JoinHandle<anyhow::Result<(u64, Vec<f64>)>>>) -> anyhow::Result<(u64, Vec<f64>)> {
+async fn gather(
+    tasks: Vec<tokio::task::JoinHandle<anyhow::Result<(u64, Vec<f64>)>>>,
+) -> anyhow::Result<(u64, Vec<f64>)> {
     let (mut steps, mut latencies) = (0, Vec::new());
     for task in tasks {
         let (s, l) = task.await??;
@@ -221,7 +233,12 @@ async fn gather(tasks: Vec<tokio::task::JoinHandle<anyhow::Result<(u64, Vec<f64>
 }
 
 /// Steps `episodes` on one stream, a wave of one step per episode at a time.
-async fn stream(client: &EsrpClient<Channel>, episodes: Vec<String>, seed: u64, window: Window) -> anyhow::Result<(u64, Vec<f64>)> {
+async fn stream(
+    client: &EsrpClient<Channel>,
+    episodes: Vec<String>,
+    seed: u64,
+    window: Window,
+) -> anyhow::Result<(u64, Vec<f64>)> {
     let mut client = client.clone();
     let (tx, rx) = mpsc::channel::<proto::StreamRequest>(episodes.len() * 2 + 2);
     let mut inbound = client.step_stream(tokio_stream::wrappers::ReceiverStream::new(rx)).await?.into_inner();
@@ -293,7 +310,12 @@ async fn close_all(client: &mut EsrpClient<Channel>, episodes: &[String]) -> any
     Ok(())
 }
 
-async fn scenario(name: &str, args: &Args, client: &mut EsrpClient<Channel>, server: Option<&LocalServer>) -> anyhow::Result<Outcome> {
+async fn scenario(
+    name: &str,
+    args: &Args,
+    client: &mut EsrpClient<Channel>,
+    server: Option<&LocalServer>,
+) -> anyhow::Result<Outcome> {
     let n = match name {
         "unary-1" | "stream-1" => 1,
         "memory-1000" => 1000,
@@ -356,20 +378,34 @@ async fn main() -> anyhow::Result<()> {
         None => Some(LocalServer::start(args.server_binary.clone(), &args.server_args)?),
     };
     let address = args.server.clone().or_else(|| local.as_ref().map(|s| s.address.clone())).context("no server")?;
-    let channel = Channel::from_shared(address.clone())?.connect().await.with_context(|| format!("cannot connect to {address}"))?;
+    // Observations are ~49 KB each: give HTTP/2 flow control room for many in flight, or the
+    // sender stalls on window updates.
+    let channel = Channel::from_shared(address.clone())?
+        .initial_connection_window_size(64 << 20)
+        .initial_stream_window_size(16 << 20)
+        .tcp_nodelay(true)
+        .connect()
+        .await
+        .with_context(|| format!("cannot connect to {address}"))?;
     let mut client = EsrpClient::new(channel).max_decoding_message_size(64 << 20);
     let info = client.server_info(proto::ServerInfoRequest {}).await?.into_inner();
     let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
     let cpu_model = std::fs::read_to_string("/proc/cpuinfo")
         .ok()
-        .and_then(|c| c.lines().find(|l| l.starts_with("model name")).map(|l| l.split(':').nth(1).unwrap_or("").trim().to_owned()))
+        .and_then(|c| {
+            c.lines().find(|l| l.starts_with("model name")).map(|l| l.split(':').nth(1).unwrap_or("").trim().to_owned())
+        })
         .unwrap_or_default();
-    println!("esrp-bench against {address}: esrp-server {}, renderer {} ({}), dataset {}", info.version, info.renderer_adapter, info.renderer_backend, info.dataset);
+    println!(
+        "esrp-bench against {address}: esrp-server {}, renderer {} ({}), dataset {}",
+        info.version, info.renderer_adapter, info.renderer_backend, info.dataset
+    );
     println!("client machine: {cpus} CPUs, {cpu_model}");
     println!("{:<14} {:>8} {:>9} {:>11} {:>9} {:>9}", "scenario", "episodes", "steps", "steps/s", "p50 ms", "p99 ms");
     let mut results = Vec::new();
     for name in &args.scenarios {
-        let outcome = scenario(name, &args, &mut client, local.as_ref()).await.with_context(|| format!("scenario {name}"))?;
+        let outcome =
+            scenario(name, &args, &mut client, local.as_ref()).await.with_context(|| format!("scenario {name}"))?;
         if outcome.latencies.is_empty() {
             println!("{:<14} {:>8} {}", outcome.name, outcome.episodes, outcome.note);
         } else {

@@ -1,5 +1,6 @@
 //! esrp-server's integration tests: start the real binary on an ephemeral port and talk gRPC.
 
+mod dm_env;
 mod episodes;
 mod errors;
 mod harness;
