@@ -1,14 +1,21 @@
 #!/usr/bin/env bash
-# The main job, until the gRPC server lands: generates the first scenes of the built-in
-# benchmark esrp-bench-v1, validates them, and replays their expert trajectories through the
-# simulator, printing SR / OSR / RDR. Usage: bash scripts/demo.sh [SCENES]
+# The main job: builds esrp-server, starts it on the built-in benchmark esrp-bench-v1 (on a free
+# local port, rendering on the GPU or on lavapipe), and runs a short evaluation against it over
+# gRPC: the expert and a random agent on a few test scenes, printing SR / OSR / RDR.
+# Usage: bash scripts/demo.sh [SCENES]   (default 6)
 set -euo pipefail
 cd "$(dirname "$0")/.."
-scenes="${1:-24}"
-out=target/demo/esrp-bench-v1
-cargo build --release --locked -q -p esrp-dataset -p esrp-core --example replay
-./target/release/esrp-dataset generate --out "$out" --scenes "$scenes" --force
-./target/release/esrp-dataset validate "$out"
-./target/release/examples/replay "$out"/scenes/*.json | tail -n 4
-echo
-echo "The gRPC server (esrp-server) is not built yet: this demo drives the simulator directly."
+scenes="${1:-6}"
+
+# The server renders on lavapipe (Mesa's CPU Vulkan driver) where there is no GPU.
+if ! ls /usr/share/vulkan/icd.d/*.json >/dev/null 2>&1 || ! ldconfig -p | grep -q 'libvulkan.so.1'; then
+    if [ "$(id -u)" = 0 ]; then apt_get="apt-get"; else apt_get="sudo apt-get"; fi
+    export DEBIAN_FRONTEND=noninteractive
+    $apt_get update -qq
+    $apt_get install -y -qq mesa-vulkan-drivers libvulkan1 >/dev/null
+fi
+export NODEVICE_SELECT=1
+
+cargo build --release --locked -q -p esrp-server --bins
+# esrp-demo starts target/release/esrp-server itself and stops it when done.
+./target/release/esrp-demo --scenes "$scenes"

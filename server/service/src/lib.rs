@@ -5,6 +5,7 @@
 //!
 //! # Module map
 //!
+//! - [`client`]: a tuned client channel and a local server process, for the bundled tools.
 //! - [`config`]: flags and environment variables.
 //! - [`scenes`]: the served scenes, built lazily and cached.
 //! - [`registry`]: live episodes by unguessable id, each locked alone; limits; idle reaping.
@@ -28,6 +29,7 @@
 
 #![warn(missing_docs)]
 
+pub mod client;
 pub mod config;
 pub mod dm_env;
 pub mod error;

@@ -16,11 +16,11 @@
 //! whole call). Actions are random (seeded); episodes that end are reset.
 
 use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use clap::Parser;
+use esrp_server::client::LocalServer;
 use esrp_server::proto;
 use esrp_server::proto::esrp_client::EsrpClient;
 use esrp_server::proto::stream_request::Request as Rq;
@@ -58,50 +58,6 @@ struct Args {
     /// Write the results as JSON to this file too.
     #[arg(long)]
     json: Option<PathBuf>,
-}
-
-/// The started server, killed on drop.
-struct LocalServer {
-    child: Child,
-    address: String,
-}
-
-impl Drop for LocalServer {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-impl LocalServer {
-    fn start(binary: Option<PathBuf>, args: &[String]) -> anyhow::Result<Self> {
-        use std::io::{BufRead, BufReader};
-        let binary = match binary {
-            Some(b) => b,
-            None => std::env::current_exe()?.with_file_name(format!("esrp-server{}", std::env::consts::EXE_SUFFIX)),
-        };
-        let mut child = Command::new(&binary)
-            .args(["--listen", "127.0.0.1:0"])
-            .args(args)
-            .env("ESRP_LOG", std::env::var("ESRP_LOG").unwrap_or_else(|_| "warn".into()))
-            .stdout(Stdio::piped())
-            .spawn()
-            .with_context(|| {
-                format!("cannot start {} (build it with `cargo build --release -p esrp-server`)", binary.display())
-            })?;
-        let mut line = String::new();
-        BufReader::new(child.stdout.take().context("no stdout")?).read_line(&mut line)?;
-        let Some(address) = line.trim().strip_prefix("esrp-server listening on ") else {
-            bail!("the server did not start: {line:?}");
-        };
-        Ok(Self { address: format!("http://{address}"), child })
-    }
-
-    fn resident_bytes(&self) -> Option<u64> {
-        let status = std::fs::read_to_string(format!("/proc/{}/status", self.child.id())).ok()?;
-        let kib: u64 = status.lines().find(|l| l.starts_with("VmRSS:"))?.split_whitespace().nth(1)?.parse().ok()?;
-        Some(kib * 1024)
-    }
 }
 
 /// One scenario's result.
@@ -220,9 +176,10 @@ async fn unary(client: &EsrpClient<Channel>, episodes: Vec<String>, window: Wind
     gather(tasks).await
 }
 
-async fn gather(
-    tasks: Vec<tokio::task::JoinHandle<anyhow::Result<(u64, Vec<f64>)>>>,
-) -> anyhow::Result<(u64, Vec<f64>)> {
+/// Steps measured and their latencies, seconds.
+type Measured = (u64, Vec<f64>);
+
+async fn gather(tasks: Vec<tokio::task::JoinHandle<anyhow::Result<Measured>>>) -> anyhow::Result<(u64, Vec<f64>)> {
     let (mut steps, mut latencies) = (0, Vec::new());
     for task in tasks {
         let (s, l) = task.await??;
@@ -378,16 +335,7 @@ async fn main() -> anyhow::Result<()> {
         None => Some(LocalServer::start(args.server_binary.clone(), &args.server_args)?),
     };
     let address = args.server.clone().or_else(|| local.as_ref().map(|s| s.address.clone())).context("no server")?;
-    // Observations are ~49 KB each: give HTTP/2 flow control room for many in flight, or the
-    // sender stalls on window updates.
-    let channel = Channel::from_shared(address.clone())?
-        .initial_connection_window_size(64 << 20)
-        .initial_stream_window_size(16 << 20)
-        .tcp_nodelay(true)
-        .connect()
-        .await
-        .with_context(|| format!("cannot connect to {address}"))?;
-    let mut client = EsrpClient::new(channel).max_decoding_message_size(64 << 20);
+    let mut client = esrp_server::client::connect(&address).await?;
     let info = client.server_info(proto::ServerInfoRequest {}).await?.into_inner();
     let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
     let cpu_model = std::fs::read_to_string("/proc/cpuinfo")
