@@ -49,7 +49,8 @@ pub struct Config {
     /// Largest gRPC message, bytes, either way.
     #[arg(long, env = "ESRP_MAX_MESSAGE_BYTES", default_value_t = 64 * 1024 * 1024)]
     pub max_message_bytes: usize,
-    /// Episodes untouched this long are closed, seconds.
+    /// Episodes untouched this long are closed, seconds (0: never). Episodes of an open
+    /// StepStream are closed with their stream instead.
     #[arg(long, env = "ESRP_IDLE_TIMEOUT", default_value_t = 600)]
     pub idle_timeout_seconds: u64,
     /// Rendering backend.

@@ -119,6 +119,9 @@ pub async fn run(
             );
             loop {
                 tick.tick().await;
+                if idle.is_zero() {
+                    continue; // --idle-timeout-seconds 0: never reap
+                }
                 let reaped = shared.registry.reap(idle);
                 if reaped > 0 {
                     shared.metrics.count_closed("idle", reaped);

@@ -120,7 +120,10 @@ impl Registry {
         let mut map = self.map();
         let before = map.len();
         // An episode that is locked right now is in use, hence not idle.
-        map.retain(|_, (_, e)| e.try_lock().map(|e| e.last_used.elapsed() <= idle).unwrap_or(true));
+        // Episodes of an open stream live as long as the stream.
+        map.retain(|_, (stream, e)| {
+            stream.is_some() || e.try_lock().map(|e| e.last_used.elapsed() <= idle).unwrap_or(true)
+        });
         before - map.len()
     }
 }

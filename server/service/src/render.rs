@@ -121,22 +121,34 @@ impl RenderScheduler {
     }
 }
 
+/// Pixels of a view.
+fn pixels(v: &View) -> u64 {
+    u64::from(v.resolution).pow(2)
+}
+
 fn render_loop(renderer: &Renderer, receiver: &mpsc::Receiver<RenderJob>, stats: &RenderStats, metrics: &Metrics) {
     while let Ok(first) = receiver.recv() {
         // Gather every job that is already waiting, up to the batch limit.
         let mut jobs = vec![first];
         let mut count = jobs[0].views.len();
+        let mut area: u64 = jobs[0].views.iter().map(pixels).sum();
         while count < esrp_render::MAX_BATCH_VIEWS {
             match receiver.try_recv() {
-                Ok(job) if count + job.views.len() <= esrp_render::MAX_BATCH_VIEWS => {
-                    count += job.views.len();
-                    jobs.push(job);
-                }
                 Ok(job) => {
-                    // Too big to join this batch: render it on its own right after.
-                    render_jobs(renderer, jobs, stats, metrics);
-                    jobs = vec![job];
-                    count = jobs[0].views.len();
+                    let job_area: u64 = job.views.iter().map(pixels).sum();
+                    if count + job.views.len() <= esrp_render::MAX_BATCH_VIEWS
+                        && area + job_area <= esrp_render::MAX_BATCH_PIXELS
+                    {
+                        count += job.views.len();
+                        area += job_area;
+                        jobs.push(job);
+                    } else {
+                        // Too big to join this batch: it starts the next one.
+                        render_jobs(renderer, jobs, stats, metrics);
+                        jobs = vec![job];
+                        count = jobs[0].views.len();
+                        area = job_area;
+                    }
                 }
                 Err(_) => break,
             }
@@ -155,7 +167,26 @@ fn render_jobs(renderer: &Renderer, jobs: Vec<RenderJob>, stats: &RenderStats, m
     stats.batches.fetch_add(1, Relaxed);
     stats.views.fetch_add(requests.len() as u64, Relaxed);
     let started = std::time::Instant::now();
-    let result = renderer.render_batch(&requests);
+    // One job may exceed the renderer's limits per call (a large StepBatch): split it.
+    let mut result: Result<Vec<ViewOutput>, esrp_render::RenderError> = Ok(Vec::with_capacity(requests.len()));
+    let mut start = 0;
+    while start < requests.len()
+        && let Ok(done) = &mut result
+    {
+        let (mut end, mut area) = (start, 0u64);
+        while end < requests.len()
+            && end - start < esrp_render::MAX_BATCH_VIEWS
+            && (end == start || area + u64::from(requests[end].resolution).pow(2) <= esrp_render::MAX_BATCH_PIXELS)
+        {
+            area += u64::from(requests[end].resolution).pow(2);
+            end += 1;
+        }
+        match renderer.render_batch(&requests[start..end]) {
+            Ok(outputs) => done.extend(outputs),
+            Err(e) => result = Err(e),
+        }
+        start = end;
+    }
     metrics.batch_views.observe(requests.len() as f64);
     metrics.batch_seconds.observe(started.elapsed().as_secs_f64());
     drop(requests);

@@ -134,12 +134,12 @@ fn reward_weights(w: Option<proto::RewardWeights>) -> RewardWeights {
     }
 }
 
-fn sensors(s: Option<proto::Sensors>) -> Result<SensorConfig, ServiceError> {
+fn sensors(s: Option<proto::Sensors>, max_resolution: u32) -> Result<SensorConfig, ServiceError> {
     let s = s.unwrap_or_default();
     let resolution = if s.resolution == 0 { esrp_render::DEFAULT_RESOLUTION } else { s.resolution };
-    if !(16..=MAX_RESOLUTION).contains(&resolution) {
+    if !(16..=max_resolution).contains(&resolution) {
         return Err(ServiceError::InvalidArgument(format!(
-            "sensors.resolution {resolution} is out of range: use 16 to {MAX_RESOLUTION} pixels (0 means 128)"
+            "sensors.resolution {resolution} is out of range: use 16 to {max_resolution} pixels (0 means 128)"
         )));
     }
     Ok(SensorConfig {
@@ -199,6 +199,17 @@ fn observation_views(entry: &EpisodeEntry) -> Vec<View> {
     views
 }
 
+/// An upper bound of the encoded size of one step's response, bytes.
+fn response_size(sensors: &SensorConfig, include_goal: bool) -> usize {
+    let pixels = (sensors.resolution as usize).pow(2);
+    let mut bytes = 512 + pixels * 3;
+    bytes += usize::from(sensors.depth) * pixels * 4;
+    bytes += usize::from(sensors.segmentation) * pixels * 4;
+    bytes += usize::from(sensors.current_top_down) * pixels * 3;
+    bytes += usize::from(include_goal) * pixels * 3;
+    bytes
+}
+
 fn observation(entry: &EpisodeEntry, outputs: Vec<ViewOutput>, include_goal: bool) -> proto::Observation {
     let r = entry.sensors.resolution;
     let mut outputs = outputs.into_iter();
@@ -231,6 +242,11 @@ impl Shared {
             next_stream: AtomicU64::new(1),
             metrics,
         }
+    }
+
+    /// The largest image side a client may ask for: ours, or the renderer's if smaller.
+    pub fn max_resolution(&self) -> u32 {
+        MAX_RESOLUTION.min(self.render.renderer().max_resolution())
     }
 
     /// Resolves a request's scene choice into a compiled scene.
@@ -314,7 +330,7 @@ impl Shared {
             Some(proto::create_episode_request::Scene::SceneJson(json)) => (None, Some(json)),
             None => (None, None),
         };
-        let sensors = sensors(request.sensors)?;
+        let sensors = sensors(request.sensors, self.max_resolution())?;
         let config = EpisodeConfig {
             horizon: (request.horizon != 0).then_some(request.horizon),
             reward: reward_weights(request.reward),
@@ -372,14 +388,18 @@ impl Shared {
             )));
         }
         let started = Instant::now();
+        // "steps[3]" in a batch, "step" alone.
+        let batch = requests.len() > 1;
+        let at = |i: usize| if batch { format!("steps[{i}]") } else { "step".to_owned() };
         let mut seen = HashSet::new();
         let mut plan = Vec::with_capacity(requests.len());
         for (i, r) in requests.iter().enumerate() {
             let action = Action::from_code(i64::from(r.action))
-                .map_err(|e| ServiceError::InvalidArgument(format!("steps[{i}].action: {e}")))?;
+                .map_err(|e| ServiceError::InvalidArgument(format!("{}.action: {e}", at(i))))?;
             if !seen.insert(r.episode_id.as_str()) {
                 return Err(ServiceError::InvalidArgument(format!(
-                    "steps[{i}]: episode {} appears twice in one batch: send one step per episode",
+                    "{}: episode {} appears twice in one batch: send one step per episode",
+                    at(i),
                     r.episode_id
                 )));
             }
@@ -394,14 +414,27 @@ impl Shared {
             guards[i] = Some(plan[i].0.clone().lock_owned().await);
         }
         let mut guards: Vec<tokio::sync::OwnedMutexGuard<EpisodeEntry>> = guards.into_iter().flatten().collect();
+        let mut response_bytes = 0usize;
         for (i, g) in guards.iter().enumerate() {
             if g.episode.is_over() {
                 return Err(ServiceError::EpisodeOver(format!(
-                    "steps[{i}]: episode {} has ended after {} steps: Reset it or create a new one",
+                    "{}: episode {} has ended after {} steps: Reset it or create a new one",
+                    at(i),
                     requests[i].episode_id,
                     g.episode.steps()
                 )));
             }
+            response_bytes += response_size(&g.sensors, plan[i].2);
+        }
+        // Refuse, before anything moves, a batch whose answer could not be sent.
+        if response_bytes > self.config.max_message_bytes {
+            return Err(ServiceError::Exhausted(format!(
+                "the answer to these {} steps would take about {:.1} MB, over the {:.1} MB message limit \
+                 (--max-message-bytes): send fewer steps per call, or ask for goal images less often",
+                requests.len(),
+                response_bytes as f64 / 1e6,
+                self.config.max_message_bytes as f64 / 1e6
+            )));
         }
         let actions: Vec<Action> = plan.iter().map(|p| p.1).collect();
         // A step costs microseconds (a rejected turn, the worst case, well under 0.1 ms): a few
@@ -500,7 +533,10 @@ impl Shared {
                 None => match inbound.next().await {
                     Some(Ok(r)) => r,
                     Some(Err(status)) => {
-                        tracing::debug!(stream, "stream ended by the client: {status}");
+                        // An unreadable request (too large, not protobuf) or a broken
+                        // connection: say why, if anyone still listens, and end the stream.
+                        tracing::debug!(stream, "stream ended: {status}");
+                        let _ = out.send(Err(status)).await;
                         break;
                     }
                     None => break,
@@ -567,7 +603,15 @@ impl Shared {
                         answers[i] = Some(Rs::Step(r));
                     }
                 }
-                // One bad step must not fail its neighbours: redo them one by one.
+                // Rendering failed after the steps were taken: they must not be taken again.
+                Err(e @ (ServiceError::Render(_) | ServiceError::Internal(_))) => {
+                    let error = stream_error(e);
+                    for &i in &step_ids {
+                        answers[i] = Some(error.clone());
+                    }
+                }
+                // Refused before anything moved: one bad step must not fail its neighbours,
+                // so redo them one by one.
                 Err(_) => {
                     for (&i, s) in step_ids.iter().zip(steps) {
                         answers[i] = Some(match self.step_many(vec![s]).await {
@@ -665,7 +709,7 @@ impl proto::esrp_server::Esrp for EsrpService {
                 max_batch: s.config.max_batch as u32,
                 max_message_bytes: s.config.max_message_bytes as u32,
                 idle_timeout_seconds: s.config.idle_timeout_seconds as u32,
-                max_resolution: MAX_RESOLUTION.min(renderer.max_resolution()),
+                max_resolution: s.max_resolution(),
             }),
             live_episodes: s.registry.len() as u32,
             dataset: s.store.name().to_owned(),

@@ -196,3 +196,25 @@ async fn concurrent_episodes_match_sequential_runs() {
         assert_eq!(concurrent[&e], alone, "episode {e} differs when run concurrently");
     }
 }
+
+/// A batch larger than one render call may hold (65 views of 512×512 is over 16 Mpixels) is
+/// rendered in parts, not refused after its steps were taken.
+#[tokio::test]
+async fn a_batch_beyond_one_render_call_is_rendered_in_parts() {
+    let server = Server::start(&[]);
+    let mut client = server.client().await;
+    let scene = scene_ids(&mut client, proto::Split::Test, 1).await.remove(0);
+    let mut steps = Vec::new();
+    for _ in 0..65 {
+        let mut request = create_request(&scene, false);
+        request.sensors = Some(proto::Sensors { resolution: 512, ..Default::default() });
+        let created = client.create_episode(request).await.unwrap().into_inner();
+        steps.push(step_request(&created.episode_id, 2));
+    }
+    let responses = client.step_batch(proto::StepBatchRequest { steps }).await.unwrap().into_inner().responses;
+    assert_eq!(responses.len(), 65);
+    let first = responses[0].observation.as_ref().unwrap().ego_rgb.as_ref().unwrap();
+    assert_eq!((first.height, first.width, first.data.len()), (512, 512, 512 * 512 * 3));
+    // Same scene, same action: every episode sees the same thing.
+    assert!(responses.iter().all(|r| r.observation.as_ref().unwrap().ego_rgb.as_ref().unwrap().data == first.data));
+}

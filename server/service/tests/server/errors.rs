@@ -161,3 +161,22 @@ async fn privileged_call_on_a_normal_episode_is_permission_denied() {
         .into_inner();
     assert!(!state.objects.is_empty());
 }
+
+#[tokio::test]
+async fn a_batch_whose_answer_exceeds_the_message_limit_is_refused_before_anything_moves() {
+    let mut server = Server::start(&["--max-message-bytes", "200000"]);
+    let mut client = server.client().await;
+    let mut steps = Vec::new();
+    for _ in 0..3 {
+        let mut step = step_request(&first_episode(&mut client, false).await, 2);
+        step.include_goal = true; // 2 images of 49 KB each per step: ~295 KB in all
+        steps.push(step);
+    }
+    let r = client.step_batch(proto::StepBatchRequest { steps: steps.clone() }).await;
+    assert_fails(&mut server, &mut client, r, Code::ResourceExhausted, "--max-message-bytes").await;
+    for step in &mut steps {
+        step.include_goal = false;
+    }
+    let ok = client.step_batch(proto::StepBatchRequest { steps }).await.unwrap().into_inner();
+    assert!(ok.responses.iter().all(|r| r.info.as_ref().unwrap().step_index == 1), "nothing moved before");
+}
