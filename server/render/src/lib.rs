@@ -25,8 +25,9 @@
 //! - **Nothing panics on input.** Bad poses, resolutions, batch sizes, foreign scenes and a
 //!   missing adapter are [`RenderError`] values; [`RenderError::NoAdapter`] says how to install
 //!   lavapipe.
-//! - **Thread-safe.** [`Renderer`] and [`SceneHandle`] are `Send + Sync`; batches are serialised
-//!   by an internal mutex, so run them on one dedicated render thread.
+//! - **Thread-safe.** [`Renderer`] and [`SceneHandle`] are `Send + Sync`; each batch renders
+//!   with an atlas of its own from a small pool, so batches from two threads overlap (one
+//!   submits while the other waits or extracts).
 //! - **The agent is never drawn** (SPEC §2); there is no ceiling, so the background colour shows
 //!   above the walls and through windows.
 //!

@@ -3,10 +3,13 @@
 //!
 //! # Concurrency
 //!
-//! [`Renderer`] is `Send + Sync`. [`Renderer::render_batch`] takes `&self` and holds an internal
-//! mutex for the whole batch (atlas textures, readback buffer, uniform buffer are reused from
-//! batch to batch), so concurrent calls are serialised: the intended use is one dedicated
-//! render thread that gathers view requests and renders them in few large batches.
+//! [`Renderer`] is `Send + Sync`. [`Renderer::render_batch`] takes `&self`; each batch takes an
+//! atlas (textures, uniform buffer, readback buffer, reused from batch to batch) out of a small
+//! pool under a mutex, renders with it alone, waits for its own submission and puts it back. So
+//! batches on a few threads overlap — one encodes and submits while another waits for the
+//! device or extracts pixels — and outputs never depend on what else is being rendered. The
+//! intended use is one or two dedicated render threads that gather view requests into large
+//! batches.
 //! [`Renderer::upload_scene`] does not take that mutex and may run on any thread.
 
 use std::num::NonZeroU64;
@@ -229,6 +232,9 @@ struct Atlas {
     /// View depth (as f32 bits) and segmentation targets, present when `full`.
     extras: Option<[PagedTexture; 2]>,
     readback: wgpu::Buffer,
+    /// Per-view uniforms (one `VIEW_STRIDE` slot per page) and their bind group.
+    uniforms: wgpu::Buffer,
+    bind_group: wgpu::BindGroup,
     last_used: u64,
 }
 
@@ -242,10 +248,12 @@ impl Atlas {
     }
 }
 
+/// The atlases not in use right now. A batch takes one out (or makes one), renders with it
+/// without holding the lock, and puts it back: batches on different threads overlap (one
+/// encodes and submits while another waits for the device or extracts its pixels).
 struct BatchState {
     atlases: Vec<Atlas>,
     batches: u64,
-    uniforms: Vec<u8>,
 }
 
 /// The renderer: one per process, long-lived. See the module docs for its concurrency.
@@ -256,8 +264,7 @@ pub struct Renderer {
     queue: wgpu::Queue,
     pipeline_rgb: wgpu::RenderPipeline,
     pipeline_full: wgpu::RenderPipeline,
-    uniform_buffer: wgpu::Buffer,
-    bind_group: wgpu::BindGroup,
+    bind_group_layout: wgpu::BindGroupLayout,
     max_atlas: u32,
     max_pages: u32,
     lost: Arc<Mutex<Option<String>>>,
@@ -392,25 +399,6 @@ impl Renderer {
         let pipeline_full =
             pipeline("vs_full", "fs_full", &[target(COLOUR_FORMAT), target(DEPTH_OUT_FORMAT), target(SEGMENT_FORMAT)]);
 
-        let uniform_buffer = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("esrp-render views"),
-            size: MAX_BATCH_VIEWS as u64 * VIEW_STRIDE,
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("esrp-render views"),
-            layout: &bind_group_layout,
-            entries: &[wgpu::BindGroupEntry {
-                binding: 0,
-                resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                    buffer: &uniform_buffer,
-                    offset: 0,
-                    size: NonZeroU64::new(std::mem::size_of::<GpuView>() as u64),
-                }),
-            }],
-        });
-
         if let Some(error) = pollster::block_on(scope.pop()) {
             return Err(RenderError::RequestDevice {
                 adapter: adapter_info.name.clone(),
@@ -425,12 +413,11 @@ impl Renderer {
             queue,
             pipeline_rgb,
             pipeline_full,
-            uniform_buffer,
-            bind_group,
+            bind_group_layout,
             max_atlas,
             max_pages: limits.max_texture_array_layers.clamp(1, 1024),
             lost,
-            state: Mutex::new(BatchState { atlases: Vec::new(), batches: 0, uniforms: Vec::new() }),
+            state: Mutex::new(BatchState { atlases: Vec::new(), batches: 0 }),
         })
     }
 
@@ -628,7 +615,25 @@ impl Renderer {
             mapped_at_creation: false,
         });
         let depth = depth.layers.into_iter().next().unwrap_or_else(|| depth.texture.create_view(&Default::default()));
-        Atlas { side, pages, full, colour, depth, extras, readback, last_used: 0 }
+        let uniforms = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("esrp-render views"),
+            size: u64::from(pages) * VIEW_STRIDE,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let bind_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("esrp-render views"),
+            layout: &self.bind_group_layout,
+            entries: &[wgpu::BindGroupEntry {
+                binding: 0,
+                resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                    buffer: &uniforms,
+                    offset: 0,
+                    size: NonZeroU64::new(std::mem::size_of::<GpuView>() as u64),
+                }),
+            }],
+        });
+        Atlas { side, pages, full, colour, depth, extras, readback, uniforms, bind_group, last_used: 0 }
     }
 
     /// Renders any mix of views of any scenes into the pages of one atlas (one render pass per
@@ -660,27 +665,40 @@ impl Renderer {
         let (tiles, side, pages) = self.layout(requests);
 
         let t0 = Instant::now();
-        let mut guard = self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
-        let state = &mut *guard;
-        state.batches += 1;
-        let now = state.batches;
-        let index = match state.atlases.iter().position(|a| a.side == side && a.pages == pages && a.full == full) {
-            Some(i) => i,
-            None => {
-                if state.atlases.len() >= CACHED_ATLASES
-                    && let Some(oldest) = (0..state.atlases.len()).min_by_key(|&i| state.atlases[i].last_used)
-                {
-                    state.atlases.swap_remove(oldest);
-                }
-                state.atlases.push(self.create_atlas(side, pages, full));
-                state.atlases.len() - 1
-            }
+        let (taken, now) = {
+            let mut state = self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+            state.batches += 1;
+            let taken = state
+                .atlases
+                .iter()
+                .position(|a| a.side == side && a.pages == pages && a.full == full)
+                .map(|i| state.atlases.swap_remove(i));
+            (taken, state.batches)
         };
-        state.atlases[index].last_used = now;
+        let mut atlas = taken.unwrap_or_else(|| self.create_atlas(side, pages, full));
+        let result = self.draw_and_read(&atlas, requests, &tiles, t0);
+        atlas.last_used = now;
+        let mut state = self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        state.atlases.push(atlas);
+        if state.atlases.len() > CACHED_ATLASES
+            && let Some(oldest) = (0..state.atlases.len()).min_by_key(|&i| state.atlases[i].last_used)
+        {
+            state.atlases.swap_remove(oldest);
+        }
+        result
+    }
 
+    /// Draws `requests` into `atlas` (one page each), submits, waits for that submission and
+    /// extracts every view.
+    fn draw_and_read(
+        &self,
+        atlas: &Atlas,
+        requests: &[ViewRequest<'_>],
+        tiles: &[Tile],
+        t0: Instant,
+    ) -> Result<Vec<ViewOutput>, RenderError> {
         // Per-view uniforms: camera and the movable objects' poses.
-        state.uniforms.clear();
-        state.uniforms.resize(requests.len() * VIEW_STRIDE as usize, 0);
+        let mut uniforms = vec![0u8; requests.len() * VIEW_STRIDE as usize];
         for (i, request) in requests.iter().enumerate() {
             let mut view = match request.camera {
                 Camera::Ego(camera) => ego_view(&camera),
@@ -692,12 +710,11 @@ impl Renderer {
                 *slot = [c as f32, s as f32, pose.x as f32, pose.z as f32];
             }
             let start = i * VIEW_STRIDE as usize;
-            state.uniforms[start..start + std::mem::size_of::<GpuView>()].copy_from_slice(bytemuck::bytes_of(&view));
+            uniforms[start..start + std::mem::size_of::<GpuView>()].copy_from_slice(bytemuck::bytes_of(&view));
         }
 
-        let atlas = &state.atlases[index];
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        self.queue.write_buffer(&self.uniform_buffer, 0, &state.uniforms);
+        self.queue.write_buffer(&atlas.uniforms, 0, &uniforms);
         let mut encoder =
             self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("esrp-render batch") });
         let used_pages = tiles.iter().map(|t| t.page + 1).max().unwrap_or(1);
@@ -729,15 +746,15 @@ impl Renderer {
                 occlusion_query_set: None,
                 multiview_mask: None,
             });
-            pass.set_pipeline(if full { &self.pipeline_full } else { &self.pipeline_rgb });
-            for (i, (request, tile)) in requests.iter().zip(&tiles).enumerate() {
+            pass.set_pipeline(if atlas.full { &self.pipeline_full } else { &self.pipeline_rgb });
+            for (i, (request, tile)) in requests.iter().zip(tiles).enumerate() {
                 let scene = request.scene;
                 if tile.page != page || scene.index_count == 0 {
                     continue;
                 }
                 pass.set_viewport(tile.x as f32, tile.y as f32, tile.size as f32, tile.size as f32, 0.0, 1.0);
                 pass.set_scissor_rect(tile.x, tile.y, tile.size, tile.size);
-                pass.set_bind_group(0, &self.bind_group, &[(i as u64 * VIEW_STRIDE) as u32]);
+                pass.set_bind_group(0, &atlas.bind_group, &[(i as u64 * VIEW_STRIDE) as u32]);
                 pass.set_vertex_buffer(0, scene.vertex_buffer.slice(..));
                 pass.set_index_buffer(scene.index_buffer.slice(..), wgpu::IndexFormat::Uint32);
                 pass.draw_indexed(0..scene.index_count, 0, 0..1);
@@ -768,15 +785,34 @@ impl Renderer {
             copy(&mut encoder, &extras[1].texture, 2);
         }
         let t1 = Instant::now();
-        self.queue.submit([encoder.finish()]);
+        let submission = self.queue.submit([encoder.finish()]);
 
         let (sender, receiver) = std::sync::mpsc::channel();
         let planes = if atlas.full { 3 } else { 1 };
         atlas.readback.map_async(wgpu::MapMode::Read, 0..atlas.plane_bytes() * planes, move |result| {
             let _ = sender.send(result);
         });
-        let polled = self.device.poll(wgpu::PollType::wait_indefinitely());
-        let mapped = matches!(receiver.try_recv(), Ok(Ok(())));
+        // Wait for this submission only: another thread's later batch may still be running.
+        let polled = self.device.poll(wgpu::PollType::Wait { submission_index: Some(submission), timeout: None });
+        // Another thread's poll may be the one that runs our map callback: wait for it a
+        // little, polling again meanwhile, rather than assuming our poll ran it.
+        let mut mapped = false;
+        if polled.is_ok() {
+            let deadline = Instant::now() + std::time::Duration::from_secs(10);
+            loop {
+                match receiver.recv_timeout(std::time::Duration::from_millis(1)) {
+                    Ok(result) => {
+                        mapped = result.is_ok();
+                        break;
+                    }
+                    Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => break,
+                    Err(std::sync::mpsc::RecvTimeoutError::Timeout) if Instant::now() < deadline => {
+                        let _ = self.device.poll(wgpu::PollType::Poll);
+                    }
+                    Err(std::sync::mpsc::RecvTimeoutError::Timeout) => break,
+                }
+            }
+        }
         let failure = if let Some(error) = pollster::block_on(scope.pop()) {
             Some(RenderError::Gpu { reason: error.to_string() })
         } else if let Some(reason) = self.lost.lock().ok().and_then(|slot| slot.clone()) {
@@ -805,13 +841,16 @@ impl Renderer {
                 row_bytes: atlas.side as usize * 4,
                 full: atlas.full,
             };
-            extract_all(&planes, requests, &tiles)
+            extract_all(&planes, requests, tiles)
         };
         atlas.readback.unmap();
         let outputs = outputs?;
         log::trace!(
-            "esrp-render: {} views, {pages} pages of {side}x{side}: encode {:?}, device {:?}, extract {:?}",
+            "esrp-render: {} views, {} pages of {}x{}: encode {:?}, device {:?}, extract {:?}",
             requests.len(),
+            atlas.pages,
+            atlas.side,
+            atlas.side,
             t1 - t0,
             t2 - t1,
             t2.elapsed()

@@ -15,6 +15,12 @@ use tokio::sync::oneshot;
 use crate::error::ServiceError;
 use crate::metrics::Metrics;
 
+/// Threads rendering batches. The renderer lets batches from several threads overlap (one
+/// gathers and submits while another waits for the device or extracts pixels), but on the
+/// 2-core development machine a second thread measured no faster (the cores are already busy),
+/// so one, until it is measured on a GPU machine.
+const RENDER_THREADS: usize = 1;
+
 /// One view to render, owning its inputs.
 #[derive(Clone, Debug)]
 pub struct View {
@@ -75,14 +81,17 @@ impl RenderScheduler {
     pub fn start(renderer: Renderer, metrics: Arc<Metrics>) -> Self {
         let renderer = Arc::new(renderer);
         let (jobs, receiver) = mpsc::channel::<RenderJob>();
+        let receiver = Arc::new(std::sync::Mutex::new(receiver));
         let stats = Arc::new(RenderStats::default());
-        let thread_renderer = renderer.clone();
-        let thread_stats = stats.clone();
-        std::thread::Builder::new()
-            .name("esrp-render".into())
-            .spawn(move || render_loop(&thread_renderer, &receiver, &thread_stats, &metrics))
-            .map(drop)
-            .unwrap_or_else(|e| tracing::error!("cannot start the render thread: {e}"));
+        for i in 0..RENDER_THREADS {
+            let (renderer, receiver, stats, metrics) =
+                (renderer.clone(), receiver.clone(), stats.clone(), metrics.clone());
+            std::thread::Builder::new()
+                .name(format!("esrp-render-{i}"))
+                .spawn(move || render_loop(&renderer, &receiver, &stats, &metrics))
+                .map(drop)
+                .unwrap_or_else(|e| tracing::error!("cannot start a render thread: {e}"));
+        }
         Self { renderer, jobs, stats }
     }
 
@@ -126,8 +135,17 @@ fn pixels(v: &View) -> u64 {
     u64::from(v.resolution).pow(2)
 }
 
-fn render_loop(renderer: &Renderer, receiver: &mpsc::Receiver<RenderJob>, stats: &RenderStats, metrics: &Metrics) {
-    while let Ok(first) = receiver.recv() {
+fn render_loop(
+    renderer: &Renderer,
+    receiver: &std::sync::Mutex<mpsc::Receiver<RenderJob>>,
+    stats: &RenderStats,
+    metrics: &Metrics,
+) {
+    loop {
+        // Gather under the lock, render without it: while one thread renders, the other
+        // gathers the next batch and submits it as soon as it can.
+        let Ok(receiver) = receiver.lock() else { return };
+        let Ok(first) = receiver.recv() else { return };
         // Gather every job that is already waiting, up to the batch limit.
         let mut jobs = vec![first];
         let mut count = jobs[0].views.len();
@@ -153,6 +171,7 @@ fn render_loop(renderer: &Renderer, receiver: &mpsc::Receiver<RenderJob>, stats:
                 Err(_) => break,
             }
         }
+        drop(receiver);
         render_jobs(renderer, jobs, stats, metrics);
     }
 }

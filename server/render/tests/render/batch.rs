@@ -95,16 +95,30 @@ fn full_batches_of_many_views_work_and_views_differ() {
 
 #[test]
 fn renderer_is_usable_from_several_threads() {
+    // Batches overlap across threads (each has its own atlas and uniforms): every thread's
+    // views must still be exactly its own.
     let scene = bedroom();
     let handle = renderer().upload_scene(&scene).unwrap();
-    let (camera, now) = start(&scene);
-    let expected = renderer().render_one(&ViewRequest::new(&handle, Camera::Ego(camera), &now)).unwrap();
+    let (_, now) = start(&scene);
+    let cameras: Vec<_> =
+        (0..12).map(|k| ego_at(0.8 + 0.25 * f64::from(k), 1.2 + 0.1 * f64::from(k), k as u8)).collect();
+    let expected: Vec<_> = cameras
+        .iter()
+        .map(|c| renderer().render_one(&ViewRequest::new(&handle, Camera::Ego(*c), &now)).unwrap().rgb)
+        .collect();
     std::thread::scope(|s| {
-        for _ in 0..3 {
-            s.spawn(|| {
-                for _ in 0..4 {
-                    let out = renderer().render_one(&ViewRequest::new(&handle, Camera::Ego(camera), &now)).unwrap();
-                    assert!(out.rgb == expected.rgb);
+        for t in 0..3usize {
+            let (cameras, expected, handle, now) = (&cameras, &expected, &handle, &now);
+            s.spawn(move || {
+                for round in 0..6 {
+                    // Thread t renders views t, t+3, ... in batches of a size of its own.
+                    let mine: Vec<usize> = (0..12).filter(|i| (i + round) % 3 == t).collect();
+                    let requests: Vec<_> =
+                        mine.iter().map(|&i| ViewRequest::new(handle, Camera::Ego(cameras[i]), now)).collect();
+                    let out = renderer().render_batch(&requests).unwrap();
+                    for (&i, o) in mine.iter().zip(&out) {
+                        assert!(o.rgb == expected[i], "thread {t}, round {round}: view {i} differs");
+                    }
                 }
             });
         }
