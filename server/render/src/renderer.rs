@@ -935,21 +935,27 @@ fn extract_all(
 ) -> Result<Vec<ViewOutput>, RenderError> {
     const PIXELS_PER_THREAD: u64 = 1 << 18;
     let pixels: u64 = tiles.iter().map(|t| u64::from(t.size).pow(2)).sum();
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get()).min(8);
+    // available_parallelism reads cgroup files on every call: ask once.
+    static CORES: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
+    let threads = (*CORES.get_or_init(|| std::thread::available_parallelism().map_or(1, |n| n.get()))).min(8);
     let threads = threads.min((pixels / PIXELS_PER_THREAD) as usize).max(1);
     if threads == 1 {
         return Ok(requests.iter().zip(tiles).map(|(r, t)| planes.extract(r, t)).collect());
     }
     let chunk = requests.len().div_ceil(threads);
     std::thread::scope(|scope| {
+        // The calling thread takes the first chunk; helpers take the rest.
         let workers: Vec<_> = requests
             .chunks(chunk)
             .zip(tiles.chunks(chunk))
+            .skip(1)
             .map(|(rs, ts)| {
                 scope.spawn(move || rs.iter().zip(ts).map(|(r, t)| planes.extract(r, t)).collect::<Vec<_>>())
             })
             .collect();
-        let mut out = Vec::with_capacity(requests.len());
+        let first = requests.len().min(chunk);
+        let mut out: Vec<ViewOutput> =
+            requests[..first].iter().zip(&tiles[..first]).map(|(r, t)| planes.extract(r, t)).collect();
         for worker in workers {
             out.extend(
                 worker.join().map_err(|_| RenderError::Readback { reason: "an extraction thread panicked".into() })?,
