@@ -416,6 +416,8 @@ impl Shared {
         let mut guards: Vec<tokio::sync::OwnedMutexGuard<EpisodeEntry>> = guards.into_iter().flatten().collect();
         let mut response_bytes = 0usize;
         for (i, g) in guards.iter().enumerate() {
+            // Closed (or reaped) while this call waited for its lock.
+            self.registry.get(&requests[i].episode_id)?;
             if g.episode.is_over() {
                 return Err(ServiceError::EpisodeOver(format!(
                     "{}: episode {} has ended after {} steps: Reset it or create a new one",
