@@ -64,16 +64,6 @@ struct RenderJob {
 pub struct RenderScheduler {
     renderer: Arc<Renderer>,
     jobs: mpsc::Sender<RenderJob>,
-    stats: Arc<RenderStats>,
-}
-
-/// Counters of the render thread.
-#[derive(Debug, Default)]
-pub struct RenderStats {
-    /// Batches rendered.
-    pub batches: std::sync::atomic::AtomicU64,
-    /// Views rendered.
-    pub views: std::sync::atomic::AtomicU64,
 }
 
 impl RenderScheduler {
@@ -82,27 +72,20 @@ impl RenderScheduler {
         let renderer = Arc::new(renderer);
         let (jobs, receiver) = mpsc::channel::<RenderJob>();
         let receiver = Arc::new(std::sync::Mutex::new(receiver));
-        let stats = Arc::new(RenderStats::default());
         for i in 0..RENDER_THREADS {
-            let (renderer, receiver, stats, metrics) =
-                (renderer.clone(), receiver.clone(), stats.clone(), metrics.clone());
+            let (renderer, receiver, metrics) = (renderer.clone(), receiver.clone(), metrics.clone());
             std::thread::Builder::new()
                 .name(format!("esrp-render-{i}"))
-                .spawn(move || render_loop(&renderer, &receiver, &stats, &metrics))
+                .spawn(move || render_loop(&renderer, &receiver, &metrics))
                 .map(drop)
                 .unwrap_or_else(|e| tracing::error!("cannot start a render thread: {e}"));
         }
-        Self { renderer, jobs, stats }
+        Self { renderer, jobs }
     }
 
     /// The renderer (adapter information, scene uploads).
     pub fn renderer(&self) -> &Arc<Renderer> {
         &self.renderer
-    }
-
-    /// Counters.
-    pub fn stats(&self) -> &RenderStats {
-        &self.stats
     }
 
     /// Uploads a scene's geometry (on a blocking thread).
@@ -135,12 +118,7 @@ fn pixels(v: &View) -> u64 {
     u64::from(v.resolution).pow(2)
 }
 
-fn render_loop(
-    renderer: &Renderer,
-    receiver: &std::sync::Mutex<mpsc::Receiver<RenderJob>>,
-    stats: &RenderStats,
-    metrics: &Metrics,
-) {
+fn render_loop(renderer: &Renderer, receiver: &std::sync::Mutex<mpsc::Receiver<RenderJob>>, metrics: &Metrics) {
     loop {
         // Gather under the lock, render without it: while one thread renders, the other
         // gathers the next batch and submits it as soon as it can.
@@ -162,7 +140,7 @@ fn render_loop(
                         jobs.push(job);
                     } else {
                         // Too big to join this batch: it starts the next one.
-                        render_jobs(renderer, jobs, stats, metrics);
+                        render_jobs(renderer, jobs, metrics);
                         jobs = vec![job];
                         count = jobs[0].views.len();
                         area = job_area;
@@ -172,19 +150,16 @@ fn render_loop(
             }
         }
         drop(receiver);
-        render_jobs(renderer, jobs, stats, metrics);
+        render_jobs(renderer, jobs, metrics);
     }
 }
 
-fn render_jobs(renderer: &Renderer, jobs: Vec<RenderJob>, stats: &RenderStats, metrics: &Metrics) {
-    use std::sync::atomic::Ordering::Relaxed;
+fn render_jobs(renderer: &Renderer, jobs: Vec<RenderJob>, metrics: &Metrics) {
     let requests: Vec<ViewRequest<'_>> = jobs
         .iter()
         .flat_map(|job| job.views.iter())
         .map(|v| ViewRequest::new(&v.scene, v.camera, &v.poses).with_outputs(v.outputs).with_resolution(v.resolution))
         .collect();
-    stats.batches.fetch_add(1, Relaxed);
-    stats.views.fetch_add(requests.len() as u64, Relaxed);
     let started = std::time::Instant::now();
     // One job may exceed the renderer's limits per call (a large StepBatch): split it.
     let mut result: Result<Vec<ViewOutput>, esrp_render::RenderError> = Ok(Vec::with_capacity(requests.len()));

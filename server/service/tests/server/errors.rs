@@ -180,3 +180,26 @@ async fn a_batch_whose_answer_exceeds_the_message_limit_is_refused_before_anythi
     let ok = client.step_batch(proto::StepBatchRequest { steps }).await.unwrap().into_inner();
     assert!(ok.responses.iter().all(|r| r.info.as_ref().unwrap().step_index == 1), "nothing moved before");
 }
+
+#[tokio::test]
+async fn an_unreadable_stream_request_ends_the_stream_with_its_status() {
+    use esrp_server::proto::stream_request::Request as Rq;
+    use tokio_stream::StreamExt;
+    let mut server = Server::start(&["--max-message-bytes", "100000"]);
+    let mut client = server.client().await;
+    let (tx, rx) = tokio::sync::mpsc::channel::<proto::StreamRequest>(4);
+    let mut inbound = client.step_stream(tokio_stream::wrappers::ReceiverStream::new(rx)).await.unwrap().into_inner();
+    let huge = proto::CreateEpisodeRequest {
+        scene: Some(proto::create_episode_request::Scene::SceneJson("x".repeat(200_000))),
+        ..Default::default()
+    };
+    tx.send(proto::StreamRequest { request_id: 1, request: Some(Rq::Create(huge)) }).await.unwrap();
+    let status = match inbound.next().await {
+        Some(Ok(response)) => panic!("no answer expected for an unreadable request: {response:?}"),
+        Some(Err(status)) => status,
+        None => panic!("the stream ended without saying why"),
+    };
+    assert_eq!(status.code(), Code::OutOfRange, "{status:?}");
+    assert!(server.is_running());
+    client.server_info(proto::ServerInfoRequest {}).await.expect("the server keeps serving");
+}

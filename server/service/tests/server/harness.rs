@@ -62,6 +62,11 @@ impl Server {
             .max_decoding_message_size(256 << 20)
     }
 
+    /// A plaintext client that may fail to connect (an error on the first call instead).
+    pub async fn client_unchecked(&self) -> EsrpClient<Channel> {
+        EsrpClient::new(Channel::from_shared(self.address.clone()).expect("a URL").connect_lazy())
+    }
+
     /// Whether the process is still running.
     pub fn is_running(&mut self) -> bool {
         self.child.try_wait().map(|s| s.is_none()).unwrap_or(false)

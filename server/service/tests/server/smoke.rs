@@ -84,3 +84,34 @@ async fn metrics_count_steps_episodes_and_render_batches() {
     assert!(text.contains("esrp_episodes_closed_total{reason=\"client\"} 1"), "{text}");
     assert!(text.contains("esrp_live_episodes 0"), "{text}");
 }
+
+/// With --tls-cert/--tls-key the server speaks TLS only: a client that trusts the certificate is
+/// served, a plaintext client is not.
+#[tokio::test]
+async fn tls_serves_clients_that_trust_the_certificate() {
+    use tonic::transport::{Certificate, Channel, ClientTlsConfig};
+    let rcgen::CertifiedKey { cert, signing_key } =
+        rcgen::generate_simple_self_signed(vec!["localhost".to_owned()]).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let (cert_path, key_path) = (dir.path().join("cert.pem"), dir.path().join("key.pem"));
+    std::fs::write(&cert_path, cert.pem()).unwrap();
+    std::fs::write(&key_path, signing_key.serialize_pem()).unwrap();
+    let server = Server::start(&["--tls-cert", cert_path.to_str().unwrap(), "--tls-key", key_path.to_str().unwrap()]);
+    let port = server.address.rsplit(':').next().unwrap();
+    let tls = ClientTlsConfig::new().ca_certificate(Certificate::from_pem(cert.pem())).domain_name("localhost");
+    let channel = Channel::from_shared(format!("https://localhost:{port}"))
+        .unwrap()
+        .tls_config(tls)
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let info = proto::esrp_client::EsrpClient::new(channel)
+        .server_info(proto::ServerInfoRequest {})
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(info.dataset, "esrp-bench-v1");
+    let mut plain = server.client_unchecked().await;
+    assert!(plain.server_info(proto::ServerInfoRequest {}).await.is_err(), "plaintext is refused");
+}
