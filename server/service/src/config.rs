@@ -69,12 +69,25 @@ pub struct Config {
     /// picks a free port, printed at start).
     #[arg(long, env = "ESRP_METRICS_LISTEN")]
     pub metrics_listen: Option<SocketAddr>,
+    /// Threads of the async runtime (gRPC, episode bookkeeping); 0: one per core but one, which
+    /// leaves a core to the render thread (on 2 cores, one runtime thread measured 5-15 % more
+    /// steps/s with 64 episodes than two).
+    #[arg(long, env = "ESRP_WORKER_THREADS", default_value_t = 0)]
+    pub worker_threads: usize,
     /// Log format.
     #[arg(long, env = "ESRP_LOG_FORMAT", value_enum, default_value_t = LogFormat::Text)]
     pub log_format: LogFormat,
 }
 
 impl Config {
+    /// The runtime's thread count: `worker_threads`, or for 0 the cores less one (at least 1).
+    pub fn worker_threads(&self) -> usize {
+        match self.worker_threads {
+            0 => std::thread::available_parallelism().map_or(1, |n| n.get()).saturating_sub(1).max(1),
+            n => n,
+        }
+    }
+
     /// The idle timeout as a duration.
     pub fn idle_timeout(&self) -> Duration {
         Duration::from_secs(self.idle_timeout_seconds)

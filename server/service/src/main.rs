@@ -41,11 +41,15 @@ fn default_lavapipe_threads() {
 
 fn main() -> anyhow::Result<()> {
     default_lavapipe_threads();
-    tokio::runtime::Builder::new_multi_thread().enable_all().build()?.block_on(serve())
+    let config = Config::parse();
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(config.worker_threads())
+        .enable_all()
+        .build()?
+        .block_on(serve(config))
 }
 
-async fn serve() -> anyhow::Result<()> {
-    let config = Config::parse();
+async fn serve(config: Config) -> anyhow::Result<()> {
     let filter = tracing_subscriber::EnvFilter::try_from_env("ESRP_LOG").unwrap_or_else(|_| "info".into());
     match config.log_format {
         LogFormat::Text => tracing_subscriber::fmt().with_env_filter(filter).init(),
