@@ -9,10 +9,27 @@ use tonic::transport::Channel;
 
 use crate::proto::esrp_client::EsrpClient;
 
+/// Adds `authorization: Bearer TOKEN` to every call when a token is set.
+#[derive(Clone, Debug, Default)]
+pub struct Bearer(Option<tonic::metadata::MetadataValue<tonic::metadata::Ascii>>);
+
+impl tonic::service::Interceptor for Bearer {
+    fn call(&mut self, mut request: tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> {
+        if let Some(value) = &self.0 {
+            request.metadata_mut().insert("authorization", value.clone());
+        }
+        Ok(request)
+    }
+}
+
+/// A client of `esrp.v1` that sends the server's bearer token, if any.
+pub type Client = EsrpClient<tonic::service::interceptor::InterceptedService<Channel, Bearer>>;
+
 /// Connects to `address` (`http://host:port`) with settings suited to ESRP's traffic: no
 /// Nagle delay (an agent waits for every answer) and HTTP/2 windows large enough for many
-/// ~49 KB observations in flight.
-pub async fn connect(address: &str) -> anyhow::Result<EsrpClient<Channel>> {
+/// ~49 KB observations in flight. With `token`, every call carries `authorization: Bearer
+/// TOKEN` (the server's `--token`).
+pub async fn connect(address: &str, token: Option<&str>) -> anyhow::Result<Client> {
     let channel = Channel::from_shared(address.to_owned())
         .with_context(|| format!("{address:?} is not a URL like http://127.0.0.1:50051"))?
         .initial_connection_window_size(64 << 20)
@@ -21,7 +38,15 @@ pub async fn connect(address: &str) -> anyhow::Result<EsrpClient<Channel>> {
         .connect()
         .await
         .with_context(|| format!("cannot connect to {address}: is esrp-server running there?"))?;
-    Ok(EsrpClient::new(channel).max_decoding_message_size(256 << 20).max_encoding_message_size(256 << 20))
+    let bearer = match token {
+        Some(token) => {
+            Bearer(Some(format!("Bearer {token}").parse().context("the token must be printable ASCII without spaces")?))
+        }
+        None => Bearer(None),
+    };
+    Ok(EsrpClient::with_interceptor(channel, bearer)
+        .max_decoding_message_size(256 << 20)
+        .max_encoding_message_size(256 << 20))
 }
 
 /// An `esrp-server` child process on a free local port, killed on drop.

@@ -20,14 +20,12 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use clap::Parser;
-use esrp_server::client::LocalServer;
+use esrp_server::client::{Client, LocalServer};
 use esrp_server::proto;
-use esrp_server::proto::esrp_client::EsrpClient;
 use esrp_server::proto::stream_request::Request as Rq;
 use esrp_server::proto::stream_response::Response as Rs;
 use tokio::sync::mpsc;
 use tokio_stream::StreamExt;
-use tonic::transport::Channel;
 
 #[derive(Parser, Debug)]
 #[command(name = "esrp-bench", version, about = "End-to-end throughput and latency of esrp-server")]
@@ -55,6 +53,9 @@ struct Args {
     /// Episodes of the multi-episode scenarios.
     #[arg(long, default_value_t = 64)]
     episodes: usize,
+    /// Bearer token of a server started with `--token` (env ESRP_TOKEN).
+    #[arg(long, env = "ESRP_TOKEN", hide_env_values = true)]
+    token: Option<String>,
     /// Write the results as JSON to this file too.
     #[arg(long)]
     json: Option<PathBuf>,
@@ -98,7 +99,7 @@ impl Actions {
 }
 
 /// Episode scenes: test scenes of the served dataset, round robin.
-async fn scenes(client: &mut EsrpClient<Channel>, n: usize) -> anyhow::Result<Vec<String>> {
+async fn scenes(client: &mut Client, n: usize) -> anyhow::Result<Vec<String>> {
     let page = client
         .list_scenes(proto::ListScenesRequest {
             split: proto::Split::Test as i32,
@@ -113,7 +114,7 @@ async fn scenes(client: &mut EsrpClient<Channel>, n: usize) -> anyhow::Result<Ve
     Ok((0..n).map(|i| page.scenes[i % page.scenes.len()].id.clone()).collect())
 }
 
-async fn create(client: &mut EsrpClient<Channel>, scene: &str) -> anyhow::Result<String> {
+async fn create(client: &mut Client, scene: &str) -> anyhow::Result<String> {
     let request = proto::CreateEpisodeRequest {
         scene: Some(proto::create_episode_request::Scene::SceneId(scene.to_owned())),
         ..Default::default()
@@ -129,7 +130,7 @@ fn ended(r: &proto::StepResponse) -> bool {
     r.terminated || r.truncated
 }
 
-async fn reset(client: &mut EsrpClient<Channel>, episode_id: &str) -> anyhow::Result<()> {
+async fn reset(client: &mut Client, episode_id: &str) -> anyhow::Result<()> {
     client.reset(proto::ResetRequest { episode_id: episode_id.to_owned(), scene: None }).await?;
     Ok(())
 }
@@ -149,7 +150,7 @@ impl Window {
 }
 
 /// Steps `episodes` with unary calls, one task each; returns (steps, latencies) measured.
-async fn unary(client: &EsrpClient<Channel>, episodes: Vec<String>, window: Window) -> anyhow::Result<(u64, Vec<f64>)> {
+async fn unary(client: &Client, episodes: Vec<String>, window: Window) -> anyhow::Result<(u64, Vec<f64>)> {
     let mut tasks = Vec::new();
     for (i, id) in episodes.into_iter().enumerate() {
         let mut client = client.clone();
@@ -190,12 +191,7 @@ async fn gather(tasks: Vec<tokio::task::JoinHandle<anyhow::Result<Measured>>>) -
 }
 
 /// Steps `episodes` on one stream, a wave of one step per episode at a time.
-async fn stream(
-    client: &EsrpClient<Channel>,
-    episodes: Vec<String>,
-    seed: u64,
-    window: Window,
-) -> anyhow::Result<(u64, Vec<f64>)> {
+async fn stream(client: &Client, episodes: Vec<String>, seed: u64, window: Window) -> anyhow::Result<(u64, Vec<f64>)> {
     let mut client = client.clone();
     let (tx, rx) = mpsc::channel::<proto::StreamRequest>(episodes.len() * 2 + 2);
     let mut inbound = client.step_stream(tokio_stream::wrappers::ReceiverStream::new(rx)).await?.into_inner();
@@ -236,7 +232,7 @@ async fn stream(
 }
 
 /// Steps `episodes` with one StepBatch per wave.
-async fn batch(client: &EsrpClient<Channel>, episodes: Vec<String>, window: Window) -> anyhow::Result<(u64, Vec<f64>)> {
+async fn batch(client: &Client, episodes: Vec<String>, window: Window) -> anyhow::Result<(u64, Vec<f64>)> {
     let mut client = client.clone();
     let mut actions = Actions(7);
     let (mut steps, mut latencies) = (0u64, Vec::new());
@@ -260,7 +256,7 @@ async fn batch(client: &EsrpClient<Channel>, episodes: Vec<String>, window: Wind
     Ok((steps, latencies))
 }
 
-async fn close_all(client: &mut EsrpClient<Channel>, episodes: &[String]) -> anyhow::Result<()> {
+async fn close_all(client: &mut Client, episodes: &[String]) -> anyhow::Result<()> {
     for e in episodes {
         client.close_episode(proto::CloseEpisodeRequest { episode_id: e.clone() }).await?;
     }
@@ -270,7 +266,7 @@ async fn close_all(client: &mut EsrpClient<Channel>, episodes: &[String]) -> any
 async fn scenario(
     name: &str,
     args: &Args,
-    client: &mut EsrpClient<Channel>,
+    client: &mut Client,
     server: Option<&LocalServer>,
 ) -> anyhow::Result<Outcome> {
     let n = match name {
@@ -335,7 +331,7 @@ async fn main() -> anyhow::Result<()> {
         None => Some(LocalServer::start(args.server_binary.clone(), &args.server_args)?),
     };
     let address = args.server.clone().or_else(|| local.as_ref().map(|s| s.address.clone())).context("no server")?;
-    let mut client = esrp_server::client::connect(&address).await?;
+    let mut client = esrp_server::client::connect(&address, args.token.as_deref()).await?;
     let info = client.server_info(proto::ServerInfoRequest {}).await?.into_inner();
     let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
     let cpu_model = std::fs::read_to_string("/proc/cpuinfo")

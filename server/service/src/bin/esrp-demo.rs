@@ -13,13 +13,11 @@ use std::collections::HashMap;
 
 use anyhow::{Context, bail};
 use clap::Parser;
-use esrp_server::client::{LocalServer, connect};
+use esrp_server::client::{Client, LocalServer, connect};
 use esrp_server::proto;
-use esrp_server::proto::esrp_client::EsrpClient;
 use esrp_server::proto::stream_request::Request as Rq;
 use esrp_server::proto::stream_response::Response as Rs;
 use tokio_stream::StreamExt;
-use tonic::transport::Channel;
 
 #[derive(Parser, Debug)]
 #[command(name = "esrp-demo", version, about = "Run the expert and a random agent on a few ESRP test scenes")]
@@ -30,6 +28,9 @@ struct Args {
     /// Number of test scenes.
     #[arg(long, default_value_t = 6)]
     scenes: usize,
+    /// Bearer token of a server started with `--token` (env ESRP_TOKEN).
+    #[arg(long, env = "ESRP_TOKEN", hide_env_values = true)]
+    token: Option<String>,
     /// Seed of the random agent.
     #[arg(long, default_value_t = 1)]
     seed: u64,
@@ -65,7 +66,7 @@ impl Tally {
 }
 
 /// Test scenes, round robin over difficulties so that a short demo sees easy to hard.
-async fn pick_scenes(client: &mut EsrpClient<Channel>, n: usize) -> anyhow::Result<Vec<proto::SceneSummary>> {
+async fn pick_scenes(client: &mut Client, n: usize) -> anyhow::Result<Vec<proto::SceneSummary>> {
     let mut by_difficulty: Vec<Vec<proto::SceneSummary>> = Vec::new();
     for difficulty in [proto::Difficulty::Easy, proto::Difficulty::Medium, proto::Difficulty::Hard] {
         let page = client
@@ -104,7 +105,7 @@ fn create(scene: &str, privileged: bool) -> proto::CreateEpisodeRequest {
 }
 
 /// Replays the expert of `scene` on a stream, all steps sent before reading any answer.
-async fn expert(client: &mut EsrpClient<Channel>, scene: &str) -> anyhow::Result<(usize, proto::EpisodeMetrics)> {
+async fn expert(client: &mut Client, scene: &str) -> anyhow::Result<(usize, proto::EpisodeMetrics)> {
     let created = client.create_episode(create(scene, true)).await?.into_inner();
     let state = client
         .get_privileged_state(proto::GetPrivilegedStateRequest { episode_id: created.episode_id.clone() })
@@ -138,7 +139,7 @@ async fn expert(client: &mut EsrpClient<Channel>, scene: &str) -> anyhow::Result
 
 /// Random actions on every scene at once until each episode ends.
 async fn random(
-    client: &mut EsrpClient<Channel>,
+    client: &mut Client,
     scenes: &[String],
     seed: u64,
 ) -> anyhow::Result<HashMap<String, proto::EpisodeMetrics>> {
@@ -182,7 +183,7 @@ async fn main() -> anyhow::Result<()> {
         None => Some(LocalServer::start(None, &[])?),
     };
     let address = args.server.clone().or_else(|| local.as_ref().map(|s| s.address.clone())).context("no server")?;
-    let mut client = connect(&address).await?;
+    let mut client = connect(&address, args.token.as_deref()).await?;
     let info = client.server_info(proto::ServerInfoRequest {}).await?.into_inner();
     println!(
         "esrp-server {} at {address}: dataset {}, renderer {} ({})",
