@@ -73,8 +73,9 @@ class TestCreateDestroyWorld(Connected, create_destroy_world.CreateDestroyWorld)
         return True
 
 
-@pytest.mark.usefixtures("server_for_class")
-class TestJoinLeaveWorld(Connected, join_leave_world.JoinLeaveWorld):
+class WithWorld(Connected):
+    """A fresh world for each test, named by `world_name` as the suites expect."""
+
     def setUp(self) -> None:
         super().setUp()
         self._world_name = self.new_world()
@@ -83,6 +84,9 @@ class TestJoinLeaveWorld(Connected, join_leave_world.JoinLeaveWorld):
     def world_name(self) -> str:
         return self._world_name
 
+
+@pytest.mark.usefixtures("server_for_class")
+class TestJoinLeaveWorld(WithWorld, join_leave_world.JoinLeaveWorld):
     @property
     def invalid_join_settings(self) -> dict[str, dm.Tensor]:
         return {"colour": tensor_utils.pack_tensor(1), "resolution": tensor_utils.pack_tensor(64)}
@@ -96,14 +100,8 @@ class TestReset(Connected, reset.Reset):
 
 
 @pytest.mark.usefixtures("server_for_class")
-class TestResetWorld(Connected, reset_world.ResetWorld):
-    def setUp(self) -> None:
-        super().setUp()
-        self._world_name = self.new_world()
-
-    @property
-    def world_name(self) -> str:
-        return self._world_name
+class TestResetWorld(WithWorld, reset_world.ResetWorld):
+    pass
 
 
 @pytest.mark.usefixtures("server_for_class")

@@ -1,8 +1,10 @@
 //! Helpers for the bundled tools (`esrp-bench`, `esrp-demo`) and for embedding: connecting a
 //! well-tuned channel and starting a local server process.
 
-use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
+use std::ffi::OsStr;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdout, Command, Stdio};
 
 use anyhow::{Context, bail};
 use tonic::transport::Channel;
@@ -52,8 +54,12 @@ pub async fn connect(address: &str, token: Option<&str>) -> anyhow::Result<Clien
 /// An `esrp-server` child process on a free local port, killed on drop.
 pub struct LocalServer {
     child: Child,
+    /// The server's stdout, kept open: a closed pipe would make its later prints fail.
+    _stdout: BufReader<ChildStdout>,
     /// `http://127.0.0.1:PORT`.
     pub address: String,
+    /// `http://127.0.0.1:PORT/metrics`, when started with `--metrics-listen`.
+    pub metrics: Option<String>,
 }
 
 impl Drop for LocalServer {
@@ -63,30 +69,78 @@ impl Drop for LocalServer {
     }
 }
 
+/// The server at `address` if given, else a local one started now with `binary` and `args`
+/// (see [`LocalServer::start`]), running as long as the returned [`LocalServer`] lives.
+pub fn reach_or_start(
+    address: Option<&str>,
+    binary: Option<PathBuf>,
+    args: &[String],
+) -> anyhow::Result<(String, Option<LocalServer>)> {
+    match address {
+        Some(address) => Ok((address.to_owned(), None)),
+        None => {
+            let local = LocalServer::start(binary, args)?;
+            Ok((local.address.clone(), Some(local)))
+        }
+    }
+}
+
 impl LocalServer {
     /// Starts `binary` (default: the `esrp-server` beside the running executable) with
     /// `--listen 127.0.0.1:0` and `args`, and waits until it listens.
     pub fn start(binary: Option<PathBuf>, args: &[String]) -> anyhow::Result<Self> {
-        use std::io::{BufRead, BufReader};
+        Self::spawn(Self::command(binary, args)?)
+    }
+
+    /// The command [`LocalServer::start`] runs, for callers that adjust it (environment,
+    /// stderr) before [`LocalServer::spawn`]: `esrp-server --listen 127.0.0.1:0 ARGS`, with
+    /// `ESRP_LOG` at `warn` unless set.
+    pub fn command<S: AsRef<OsStr>>(binary: Option<PathBuf>, args: &[S]) -> anyhow::Result<Command> {
         let binary = match binary {
             Some(b) => b,
             None => std::env::current_exe()?.with_file_name(format!("esrp-server{}", std::env::consts::EXE_SUFFIX)),
         };
-        let mut child = Command::new(&binary)
+        let mut command = Command::new(binary);
+        command
             .args(["--listen", "127.0.0.1:0"])
             .args(args)
-            .env("ESRP_LOG", std::env::var("ESRP_LOG").unwrap_or_else(|_| "warn".into()))
-            .stdout(Stdio::piped())
-            .spawn()
-            .with_context(|| {
-                format!("cannot start {} (build it with `cargo build --release -p esrp-server`)", binary.display())
-            })?;
+            .env("ESRP_LOG", std::env::var("ESRP_LOG").unwrap_or_else(|_| "warn".into()));
+        Ok(command)
+    }
+
+    /// Spawns a server `command` with its stdout piped and waits until it listens; with
+    /// `--metrics-listen` among its arguments, reads the metrics address too.
+    pub fn spawn(mut command: Command) -> anyhow::Result<Self> {
+        let with_metrics = command.get_args().any(|a| a == "--metrics-listen");
+        let mut child = command.stdout(Stdio::piped()).spawn().with_context(|| {
+            format!(
+                "cannot start {} (build it with `cargo build --release -p esrp-server`)",
+                Path::new(command.get_program()).display()
+            )
+        })?;
+        let mut stdout = BufReader::new(child.stdout.take().context("no stdout")?);
         let mut line = String::new();
-        BufReader::new(child.stdout.take().context("no stdout")?).read_line(&mut line)?;
+        stdout.read_line(&mut line)?;
         let Some(address) = line.trim().strip_prefix("esrp-server listening on ") else {
             bail!("the server did not start: {line:?}");
         };
-        Ok(Self { address: format!("http://{address}"), child })
+        let address = format!("http://{address}");
+        let metrics = if with_metrics {
+            let mut line = String::new();
+            stdout.read_line(&mut line)?;
+            let Some(url) = line.trim().strip_prefix("esrp-server metrics on ") else {
+                bail!("the server did not print its metrics address: {line:?}");
+            };
+            Some(url.to_owned())
+        } else {
+            None
+        };
+        Ok(Self { child, _stdout: stdout, address, metrics })
+    }
+
+    /// Whether the process is still running.
+    pub fn is_running(&mut self) -> bool {
+        self.child.try_wait().map(|s| s.is_none()).unwrap_or(false)
     }
 
     /// The process's resident memory in bytes (Linux; `None` elsewhere).

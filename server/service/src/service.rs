@@ -19,7 +19,7 @@ use crate::config::Config;
 use crate::error::ServiceError;
 use crate::metrics::Metrics;
 use crate::proto;
-use crate::registry::{EpisodeEntry, Registry, SensorConfig, SharedEpisode};
+use crate::registry::{EpisodeEntry, Registry, SensorConfig};
 use crate::render::{RenderScheduler, View};
 use crate::scenes::{SceneInfo, SceneStore};
 
@@ -498,8 +498,9 @@ impl Shared {
         Ok(responses)
     }
 
-    async fn entry(&self, id: &str) -> Result<SharedEpisode, ServiceError> {
-        self.registry.get(id)
+    /// The episode `id`, locked.
+    async fn locked(&self, id: &str) -> Result<tokio::sync::OwnedMutexGuard<EpisodeEntry>, ServiceError> {
+        Ok(self.registry.get(id)?.lock_owned().await)
     }
 
     /// CloseEpisode.
@@ -822,8 +823,7 @@ impl proto::esrp_server::Esrp for EsrpService {
         &self,
         request: Request<proto::GetGoalRequest>,
     ) -> Result<Response<proto::GetGoalResponse>, Status> {
-        let shared = self.shared.entry(&request.into_inner().episode_id).await?;
-        let mut entry = shared.lock().await;
+        let mut entry = self.shared.locked(&request.into_inner().episode_id).await?;
         entry.last_used = Instant::now();
         let f = entry.frame;
         Ok(Response::new(proto::GetGoalResponse {
@@ -842,8 +842,7 @@ impl proto::esrp_server::Esrp for EsrpService {
         request: Request<proto::GetPrivilegedStateRequest>,
     ) -> Result<Response<proto::GetPrivilegedStateResponse>, Status> {
         let id = request.into_inner().episode_id;
-        let shared = self.shared.entry(&id).await?;
-        let mut entry = shared.lock().await;
+        let mut entry = self.shared.locked(&id).await?;
         if !entry.privileged {
             return Err(ServiceError::NotPrivileged(id).into());
         }
@@ -896,8 +895,7 @@ impl proto::esrp_server::Esrp for EsrpService {
         &self,
         request: Request<proto::GetMetricsRequest>,
     ) -> Result<Response<proto::GetMetricsResponse>, Status> {
-        let shared = self.shared.entry(&request.into_inner().episode_id).await?;
-        let mut entry = shared.lock().await;
+        let mut entry = self.shared.locked(&request.into_inner().episode_id).await?;
         entry.last_used = Instant::now();
         Ok(Response::new(proto::GetMetricsResponse {
             metrics: Some(metrics_to_proto(&entry.episode.metrics())),

@@ -20,7 +20,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use clap::Parser;
-use esrp_server::client::{Client, LocalServer};
+use esrp_dataset::dice::Dice;
+use esrp_server::client::{Client, LocalServer, reach_or_start};
 use esrp_server::proto;
 use esrp_server::proto::stream_request::Request as Rq;
 use esrp_server::proto::stream_response::Response as Rs;
@@ -87,14 +88,16 @@ impl Outcome {
     }
 }
 
-/// Tiny deterministic action source.
-struct Actions(u64);
+/// Uniform random action codes from a seed (the project's portable random source).
+struct Actions(Dice);
 
 impl Actions {
+    fn new(seed: u64) -> Self {
+        Self(Dice::new(seed, 0, 0))
+    }
+
     fn next(&mut self) -> i32 {
-        self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-        // Mostly moves and turns, like an exploring agent.
-        ((self.0 >> 33) % 6) as i32
+        self.0.below(6) as i32
     }
 }
 
@@ -155,7 +158,7 @@ async fn unary(client: &Client, episodes: Vec<String>, window: Window) -> anyhow
     for (i, id) in episodes.into_iter().enumerate() {
         let mut client = client.clone();
         tasks.push(tokio::spawn(async move {
-            let mut actions = Actions(i as u64 + 1);
+            let mut actions = Actions::new(i as u64 + 1);
             let (mut steps, mut latencies) = (0u64, Vec::new());
             loop {
                 let t = Instant::now();
@@ -195,7 +198,7 @@ async fn stream(client: &Client, episodes: Vec<String>, seed: u64, window: Windo
     let mut client = client.clone();
     let (tx, rx) = mpsc::channel::<proto::StreamRequest>(episodes.len() * 2 + 2);
     let mut inbound = client.step_stream(tokio_stream::wrappers::ReceiverStream::new(rx)).await?.into_inner();
-    let mut actions = Actions(seed);
+    let mut actions = Actions::new(seed);
     let (mut steps, mut latencies, mut id) = (0u64, Vec::new(), 0u64);
     loop {
         let t = Instant::now();
@@ -234,7 +237,7 @@ async fn stream(client: &Client, episodes: Vec<String>, seed: u64, window: Windo
 /// Steps `episodes` with one StepBatch per wave.
 async fn batch(client: &Client, episodes: Vec<String>, window: Window) -> anyhow::Result<(u64, Vec<f64>)> {
     let mut client = client.clone();
-    let mut actions = Actions(7);
+    let mut actions = Actions::new(7);
     let (mut steps, mut latencies) = (0u64, Vec::new());
     loop {
         let t = Instant::now();
@@ -326,11 +329,7 @@ async fn scenario(
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let local = match &args.server {
-        Some(_) => None,
-        None => Some(LocalServer::start(args.server_binary.clone(), &args.server_args)?),
-    };
-    let address = args.server.clone().or_else(|| local.as_ref().map(|s| s.address.clone())).context("no server")?;
+    let (address, local) = reach_or_start(args.server.as_deref(), args.server_binary.clone(), &args.server_args)?;
     let mut client = esrp_server::client::connect(&address, args.token.as_deref()).await?;
     let info = client.server_info(proto::ServerInfoRequest {}).await?.into_inner();
     let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());

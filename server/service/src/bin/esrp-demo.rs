@@ -13,7 +13,8 @@ use std::collections::HashMap;
 
 use anyhow::{Context, bail};
 use clap::Parser;
-use esrp_server::client::{Client, LocalServer, connect};
+use esrp_dataset::dice::Dice;
+use esrp_server::client::{Client, connect, reach_or_start};
 use esrp_server::proto;
 use esrp_server::proto::stream_request::Request as Rq;
 use esrp_server::proto::stream_response::Response as Rs;
@@ -147,16 +148,15 @@ async fn random(
     for scene in scenes {
         live.push((scene.clone(), client.create_episode(create(scene, false)).await?.into_inner().episode_id));
     }
-    let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    let mut dice = Dice::new(seed, 0, 0);
     let mut results = HashMap::new();
     while !live.is_empty() {
         let steps = live
             .iter()
-            .map(|(_, id)| {
-                state ^= state << 13;
-                state ^= state >> 7;
-                state ^= state << 17;
-                proto::StepRequest { episode_id: id.clone(), action: (state % 6) as i32, include_goal: false }
+            .map(|(_, id)| proto::StepRequest {
+                episode_id: id.clone(),
+                action: dice.below(6) as i32,
+                include_goal: false,
             })
             .collect();
         let responses = client.step_batch(proto::StepBatchRequest { steps }).await?.into_inner().responses;
@@ -178,11 +178,7 @@ async fn random(
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let local = match &args.server {
-        Some(_) => None,
-        None => Some(LocalServer::start(None, &[])?),
-    };
-    let address = args.server.clone().or_else(|| local.as_ref().map(|s| s.address.clone())).context("no server")?;
+    let (address, _local) = reach_or_start(args.server.as_deref(), None, &[])?;
     let mut client = connect(&address, args.token.as_deref()).await?;
     let info = client.server_info(proto::ServerInfoRequest {}).await?.into_inner();
     println!(

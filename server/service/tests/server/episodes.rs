@@ -2,12 +2,13 @@
 
 use std::collections::HashMap;
 
+use esrp_dataset::dice::Dice;
 use esrp_server::proto;
 use esrp_server::proto::stream_request::Request as Rq;
 use esrp_server::proto::stream_response::Response as Rs;
 use tokio_stream::StreamExt;
 
-use super::harness::{Server, SplitMix, create_request, digest, expert_actions, scene_ids, step_request};
+use super::harness::{Server, create_request, digest, expert_actions, random_action, scene_ids, step_request};
 
 /// The experts of a sample of built-in test scenes, stepped together through StepBatch in
 /// lockstep, all succeed: SR = 1.
@@ -129,9 +130,10 @@ async fn run_episode(
 ) -> Trace {
     let created = client.create_episode(create_request(scene, false)).await.unwrap().into_inner();
     let mut digests = vec![digest(&proto::StepResponse { observation: created.observation, ..Default::default() })];
-    let mut rng = SplitMix(seed);
+    let mut dice = Dice::new(seed, 0, 0);
     for _ in 0..STEPS {
-        let response = client.step(step_request(&created.episode_id, rng.action())).await.unwrap().into_inner();
+        let response =
+            client.step(step_request(&created.episode_id, random_action(&mut dice))).await.unwrap().into_inner();
         digests.push(digest(&response));
         if response.terminated || response.truncated {
             break;
@@ -163,14 +165,14 @@ async fn concurrent_episodes_match_sequential_runs() {
                 let created =
                     client.create_episode(create_request(&scenes[e % SCENES], false)).await.unwrap().into_inner();
                 let first = digest(&proto::StepResponse { observation: created.observation, ..Default::default() });
-                live.push((e, created.episode_id, SplitMix(e as u64), vec![first], false));
+                live.push((e, created.episode_id, Dice::new(e as u64, 0, 0), vec![first], false));
             }
             for _ in 0..STEPS {
-                for (_, id, rng, digests, done) in live.iter_mut() {
+                for (_, id, dice, digests, done) in live.iter_mut() {
                     if *done {
                         continue;
                     }
-                    let response = client.step(step_request(id, rng.action())).await.unwrap().into_inner();
+                    let response = client.step(step_request(id, random_action(dice))).await.unwrap().into_inner();
                     digests.push(digest(&response));
                     *done = response.terminated || response.truncated;
                 }
