@@ -125,7 +125,6 @@ pub async fn run(
                 let reaped = shared.registry.reap(idle);
                 if reaped > 0 {
                     shared.metrics.count_closed("idle", reaped);
-                    shared.metrics.live.set(shared.registry.len() as i64);
                     tracing::info!(reaped, "closed idle episodes");
                 }
             }

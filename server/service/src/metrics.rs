@@ -40,7 +40,7 @@ pub struct Metrics {
     pub created: Counter,
     /// Episodes closed, by reason.
     pub closed: Family<CloseReason, Counter>,
-    /// Live episodes (set on every scrape and on every create/close).
+    /// Live episodes (read from the registry at every scrape).
     pub live: Gauge,
     /// Views per render batch.
     pub batch_views: Histogram,

@@ -341,7 +341,6 @@ impl Shared {
         let spec = spec(&entry.sensors);
         let episode_id = self.registry.insert(entry, stream)?;
         self.metrics.created.inc();
-        self.metrics.live.set(self.registry.len() as i64);
         tracing::debug!(episode = %episode_id, scene = %summary.id, "episode created");
         Ok(proto::CreateEpisodeResponse {
             episode_id,
@@ -510,7 +509,6 @@ impl Shared {
     ) -> Result<proto::CloseEpisodeResponse, ServiceError> {
         let shared = self.registry.remove(&request.episode_id)?;
         self.metrics.count_closed("client", 1);
-        self.metrics.live.set(self.registry.len() as i64);
         let entry = shared.lock().await;
         Ok(proto::CloseEpisodeResponse { metrics: Some(metrics_to_proto(&entry.episode.metrics())) })
     }
@@ -574,7 +572,6 @@ impl Shared {
         }
         let closed = self.registry.remove_stream(stream);
         self.metrics.count_closed("stream_ended", closed);
-        self.metrics.live.set(self.registry.len() as i64);
         if closed > 0 {
             tracing::debug!(stream, closed, "closed the episodes of a finished stream");
         }
