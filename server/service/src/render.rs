@@ -113,41 +113,20 @@ impl RenderScheduler {
     }
 }
 
-/// Pixels of a view.
-fn pixels(v: &View) -> u64 {
-    u64::from(v.resolution).pow(2)
-}
-
 fn render_loop(renderer: &Renderer, receiver: &std::sync::Mutex<mpsc::Receiver<RenderJob>>, metrics: &Metrics) {
     loop {
         // Gather under the lock, render without it: while one thread renders, the other
         // gathers the next batch and submits it as soon as it can.
         let Ok(receiver) = receiver.lock() else { return };
         let Ok(first) = receiver.recv() else { return };
-        // Gather every job that is already waiting, up to the batch limit.
+        // Gather the jobs already waiting, about one renderer call's worth; render_jobs
+        // splits whatever was gathered to the renderer's limits.
         let mut jobs = vec![first];
         let mut count = jobs[0].views.len();
-        let mut area: u64 = jobs[0].views.iter().map(pixels).sum();
         while count < esrp_render::MAX_BATCH_VIEWS {
-            match receiver.try_recv() {
-                Ok(job) => {
-                    let job_area: u64 = job.views.iter().map(pixels).sum();
-                    if count + job.views.len() <= esrp_render::MAX_BATCH_VIEWS
-                        && area + job_area <= esrp_render::MAX_BATCH_PIXELS
-                    {
-                        count += job.views.len();
-                        area += job_area;
-                        jobs.push(job);
-                    } else {
-                        // Too big to join this batch: it starts the next one.
-                        render_jobs(renderer, jobs, metrics);
-                        jobs = vec![job];
-                        count = jobs[0].views.len();
-                        area = job_area;
-                    }
-                }
-                Err(_) => break,
-            }
+            let Ok(job) = receiver.try_recv() else { break };
+            count += job.views.len();
+            jobs.push(job);
         }
         drop(receiver);
         render_jobs(renderer, jobs, metrics);
@@ -161,7 +140,7 @@ fn render_jobs(renderer: &Renderer, jobs: Vec<RenderJob>, metrics: &Metrics) {
         .map(|v| ViewRequest::new(&v.scene, v.camera, &v.poses).with_outputs(v.outputs).with_resolution(v.resolution))
         .collect();
     let started = std::time::Instant::now();
-    // One job may exceed the renderer's limits per call (a large StepBatch): split it.
+    // The jobs (a large StepBatch alone) may exceed the renderer's limits per call: split them.
     let mut result: Result<Vec<ViewOutput>, esrp_render::RenderError> = Ok(Vec::with_capacity(requests.len()));
     let mut start = 0;
     while start < requests.len()
