@@ -99,17 +99,46 @@ impl RenderScheduler {
 
     /// Renders `views`, batched with whatever other episodes asked for meanwhile.
     pub async fn render(&self, views: Vec<View>) -> Result<Vec<ViewOutput>, ServiceError> {
+        self.submit(views).wait().await
+    }
+
+    /// Hands `views` to the render thread now; the ticket waits for them. The views are
+    /// snapshots: the episodes they show may move on meanwhile.
+    pub fn submit(&self, views: Vec<View>) -> RenderTicket {
         if views.is_empty() {
-            return Ok(Vec::new());
+            return RenderTicket::nothing();
         }
         let (reply, answer) = oneshot::channel();
-        self.jobs
-            .send(RenderJob { views, reply })
-            .map_err(|_| ServiceError::Render("the render thread has stopped".into()))?;
-        answer
-            .await
-            .map_err(|_| ServiceError::Render("the render thread dropped the request".into()))?
-            .map_err(ServiceError::Render)
+        match self.jobs.send(RenderJob { views, reply }) {
+            Ok(()) => RenderTicket(Ticket::Waiting(answer)),
+            Err(_) => RenderTicket(Ticket::Done(Err(ServiceError::Render("the render thread has stopped".into())))),
+        }
+    }
+}
+
+/// Views handed to the render thread ([`RenderScheduler::submit`]).
+pub struct RenderTicket(Ticket);
+
+enum Ticket {
+    Waiting(oneshot::Receiver<Result<Vec<ViewOutput>, String>>),
+    Done(Result<Vec<ViewOutput>, ServiceError>),
+}
+
+impl RenderTicket {
+    /// A ticket for no views.
+    pub fn nothing() -> Self {
+        RenderTicket(Ticket::Done(Ok(Vec::new())))
+    }
+
+    /// The rendered views, in the order they were submitted.
+    pub async fn wait(self) -> Result<Vec<ViewOutput>, ServiceError> {
+        match self.0 {
+            Ticket::Done(result) => result,
+            Ticket::Waiting(answer) => answer
+                .await
+                .map_err(|_| ServiceError::Render("the render thread dropped the request".into()))?
+                .map_err(ServiceError::Render),
+        }
     }
 }
 

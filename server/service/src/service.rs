@@ -19,8 +19,8 @@ use crate::config::Config;
 use crate::error::ServiceError;
 use crate::metrics::Metrics;
 use crate::proto;
-use crate::registry::{EpisodeEntry, Registry, SensorConfig};
-use crate::render::{RenderScheduler, View};
+use crate::registry::{EpisodeEntry, Registry, SensorConfig, SharedEpisode};
+use crate::render::{RenderScheduler, RenderTicket, View};
 use crate::scenes::{SceneInfo, SceneStore};
 
 /// State shared by every handler.
@@ -211,13 +211,19 @@ fn response_size(sensors: &SensorConfig, include_goal: bool) -> usize {
 }
 
 fn observation(entry: &EpisodeEntry, outputs: Vec<ViewOutput>, include_goal: bool) -> proto::Observation {
-    let r = entry.sensors.resolution;
-    let mut outputs = outputs.into_iter();
     let mut observation = proto::Observation {
         grasping: entry.episode.held().is_some(),
         goal_rgb: include_goal.then(|| entry.goal.clone()),
         ..Default::default()
     };
+    attach_images(&mut observation, &entry.sensors, outputs);
+    observation
+}
+
+/// Puts the rendered views of an observation (as [`observation_views`] asked for them) in it.
+fn attach_images(observation: &mut proto::Observation, sensors: &SensorConfig, outputs: Vec<ViewOutput>) {
+    let r = sensors.resolution;
+    let mut outputs = outputs.into_iter();
     if let Some(ego) = outputs.next() {
         observation.ego_depth =
             ego.depth.as_deref().map(|d| proto::FloatImage { height: r, width: r, data: f32_bytes(d) });
@@ -225,10 +231,150 @@ fn observation(entry: &EpisodeEntry, outputs: Vec<ViewOutput>, include_goal: boo
             ego.segmentation.as_deref().map(|s| proto::LabelImage { height: r, width: r, data: u32_bytes(s) });
         observation.ego_rgb = Some(image(ego.rgb, r));
     }
-    if entry.sensors.current_top_down {
+    if sensors.current_top_down {
         observation.current_top_down = outputs.next().map(|v| image(v.rgb, r));
     }
-    observation
+}
+
+/// A locked episode.
+type EpisodeGuard = tokio::sync::OwnedMutexGuard<EpisodeEntry>;
+
+/// A step to take: where it is in its call (for messages), its episode (an index into the
+/// call's locked episodes), its action and whether its answer carries the goal image.
+struct PlannedStep {
+    at: String,
+    episode: usize,
+    action: Action,
+    include_goal: bool,
+}
+
+/// A step taken: its answer without images, the views that make them, and the sensors that
+/// say how they fit in the answer.
+struct TakenStep {
+    response: proto::StepResponse,
+    views: Vec<View>,
+    view_count: usize,
+    sensors: SensorConfig,
+}
+
+/// Takes `plan` in order on the locked `guards` (`ids` names them): each step sees the state
+/// the previous one left, and one that cannot be taken answers its error without moving.
+fn take_planned(
+    guards: &mut [EpisodeGuard],
+    ids: &[String],
+    plan: Vec<Result<PlannedStep, ServiceError>>,
+    max_message_bytes: usize,
+) -> Vec<Result<TakenStep, ServiceError>> {
+    plan.into_iter()
+        .map(|step| {
+            let step = step?;
+            let g = &mut guards[step.episode];
+            if g.episode.is_over() {
+                return Err(ServiceError::EpisodeOver(format!(
+                    "{}: episode {} has ended after {} steps: Reset it or create a new one",
+                    step.at,
+                    ids[step.episode],
+                    g.episode.steps()
+                )));
+            }
+            let bytes = response_size(&g.sensors, step.include_goal);
+            if bytes > max_message_bytes {
+                return Err(ServiceError::Exhausted(format!(
+                    "the answer to this step would take about {:.1} MB, over the {:.1} MB message limit \
+                     (--max-message-bytes): ask for fewer sensors, a smaller resolution or no goal image",
+                    bytes as f64 / 1e6,
+                    max_message_bytes as f64 / 1e6
+                )));
+            }
+            let outcome = g.episode.step(step.action)?;
+            let views = observation_views(g);
+            Ok(TakenStep {
+                response: step_response(g, outcome, step.include_goal),
+                view_count: views.len(),
+                views,
+                sensors: g.sensors,
+            })
+        })
+        .collect()
+}
+
+/// Steps taken, their views being rendered.
+pub struct Stepped {
+    taken: Vec<Result<TakenStep, ServiceError>>,
+    render: RenderTicket,
+    started: Instant,
+}
+
+impl Stepped {
+    /// `n` steps that all failed with `error` (nothing moved).
+    fn failed(n: usize, error: &ServiceError) -> Self {
+        let message = error.to_string();
+        Stepped {
+            taken: (0..n).map(|_| Err(ServiceError::Internal(message.clone()))).collect(),
+            render: RenderTicket::nothing(),
+            started: Instant::now(),
+        }
+    }
+
+    /// Waits for the rendering and answers every step, in order.
+    pub async fn finish(self, metrics: &Metrics) -> Vec<Result<proto::StepResponse, ServiceError>> {
+        let Stepped { taken, render, started } = self;
+        let rendered = render.wait().await;
+        metrics.observe_steps(taken.iter().filter(|t| t.is_ok()).count(), started.elapsed());
+        match rendered {
+            Ok(outputs) => {
+                let mut outputs = outputs.into_iter();
+                taken
+                    .into_iter()
+                    .map(|t| {
+                        let mut t = t?;
+                        let mine: Vec<ViewOutput> = outputs.by_ref().take(t.view_count).collect();
+                        if let Some(observation) = &mut t.response.observation {
+                            attach_images(observation, &t.sensors, mine);
+                        }
+                        Ok(t.response)
+                    })
+                    .collect()
+            }
+            // The steps were taken: they answer the failure (and must not be retaken).
+            Err(e) => {
+                let message = match e {
+                    ServiceError::Render(m) => m,
+                    other => other.to_string(),
+                };
+                taken.into_iter().map(|t| t.and_then(|_| Err(ServiceError::Render(message.clone())))).collect()
+            }
+        }
+    }
+}
+
+/// The answer to a step just taken on `g`, without its images.
+fn step_response(g: &EpisodeEntry, outcome: esrp_core::StepOutcome, include_goal: bool) -> proto::StepResponse {
+    let compiled = g.episode.compiled();
+    let ended = outcome.terminated || outcome.truncated;
+    proto::StepResponse {
+        observation: Some(observation(g, Vec::new(), include_goal)),
+        reward: outcome.reward.total,
+        terminated: outcome.terminated,
+        truncated: outcome.truncated,
+        info: Some(proto::StepInfo {
+            accepted: outcome.accepted,
+            collided_with: outcome.collided_with.map(|o| obstacle_to_proto(compiled, o)),
+            no_op: outcome.no_op.map(|r| r.message().to_owned()).unwrap_or_default(),
+            fetched: outcome.fetched.map(|i| i as u32),
+            released: outcome.released.map(|i| i as u32),
+            placed_count: outcome.placed_count as u32,
+            step_index: outcome.step_index,
+            reward_terms: Some(proto::RewardTerms {
+                success: outcome.reward.success,
+                placement: outcome.reward.placement,
+                potential: outcome.reward.potential,
+                holding: outcome.reward.holding,
+                living: outcome.reward.living,
+            }),
+        }),
+        metrics: ended.then(|| metrics_to_proto(&g.episode.metrics())),
+    }
 }
 
 impl Shared {
@@ -373,8 +519,9 @@ impl Shared {
         Ok(proto::ResetResponse { observation: Some(observation), scene: Some(entry.summary.clone()) })
     }
 
-    /// Step and StepBatch: validates the whole batch, steps every episode (off the async
-    /// runtime), renders every view in one batch.
+    /// Step and StepBatch, all or nothing: validates the whole batch (every action, one step per
+    /// episode, no ended episode, an answer that fits in a message) before any episode moves,
+    /// then steps every episode and renders every view in one batch.
     pub async fn step_many(
         self: &Arc<Self>,
         requests: Vec<proto::StepRequest>,
@@ -386,11 +533,11 @@ impl Shared {
                 self.config.max_batch
             )));
         }
-        let started = Instant::now();
         // "steps[3]" in a batch, "step" alone.
         let batch = requests.len() > 1;
         let at = |i: usize| if batch { format!("steps[{i}]") } else { "step".to_owned() };
         let mut seen = HashSet::new();
+        let mut episodes = Vec::with_capacity(requests.len());
         let mut plan = Vec::with_capacity(requests.len());
         for (i, r) in requests.iter().enumerate() {
             let action = Action::from_code(i64::from(r.action))
@@ -402,99 +549,134 @@ impl Shared {
                     r.episode_id
                 )));
             }
-            plan.push((self.registry.get(&r.episode_id)?, action, r.include_goal));
+            episodes.push((r.episode_id.clone(), self.registry.get(&r.episode_id)?));
+            plan.push(Ok(PlannedStep { at: at(i), episode: i, action, include_goal: r.include_goal }));
         }
-        // Lock every episode (in id order, so that concurrent batches cannot deadlock).
-        let mut order: Vec<usize> = (0..plan.len()).collect();
-        order.sort_by(|&a, &b| requests[a].episode_id.cmp(&requests[b].episode_id));
-        let mut guards: Vec<Option<tokio::sync::OwnedMutexGuard<EpisodeEntry>>> =
-            (0..plan.len()).map(|_| None).collect();
-        for &i in &order {
-            guards[i] = Some(plan[i].0.clone().lock_owned().await);
-        }
-        let mut guards: Vec<tokio::sync::OwnedMutexGuard<EpisodeEntry>> = guards.into_iter().flatten().collect();
-        let mut response_bytes = 0usize;
-        for (i, g) in guards.iter().enumerate() {
-            // Closed (or reaped) while this call waited for its lock.
-            self.registry.get(&requests[i].episode_id)?;
-            if g.episode.is_over() {
-                return Err(ServiceError::EpisodeOver(format!(
-                    "{}: episode {} has ended after {} steps: Reset it or create a new one",
-                    at(i),
-                    requests[i].episode_id,
-                    g.episode.steps()
+        let max_message_bytes = self.config.max_message_bytes;
+        let check = |guards: &[EpisodeGuard], plan: &[Result<PlannedStep, ServiceError>]| {
+            if let Some(i) = plan.iter().position(Result::is_err) {
+                return Err(ServiceError::UnknownEpisode(requests[i].episode_id.clone()));
+            }
+            let mut response_bytes = 0usize;
+            for (i, g) in guards.iter().enumerate() {
+                if g.episode.is_over() {
+                    return Err(ServiceError::EpisodeOver(format!(
+                        "{}: episode {} has ended after {} steps: Reset it or create a new one",
+                        at(i),
+                        requests[i].episode_id,
+                        g.episode.steps()
+                    )));
+                }
+                response_bytes += response_size(&g.sensors, requests[i].include_goal);
+            }
+            // Refuse, before anything moves, a batch whose answer could not be sent.
+            if response_bytes > max_message_bytes {
+                return Err(ServiceError::Exhausted(format!(
+                    "the answer to these {} steps would take about {:.1} MB, over the {:.1} MB message limit \
+                     (--max-message-bytes): send fewer steps per call, or ask for goal images less often",
+                    requests.len(),
+                    response_bytes as f64 / 1e6,
+                    max_message_bytes as f64 / 1e6
                 )));
             }
-            response_bytes += response_size(&g.sensors, plan[i].2);
+            Ok(())
+        };
+        self.run_steps(episodes, plan, check).await?.into_iter().collect()
+    }
+
+    /// Takes the steps of a StepStream wave, each answered on its own: an episode may be
+    /// stepped several times (in request order, each step seeing the state the previous one
+    /// left), a bad step answers its error without disturbing the others, and every view of
+    /// the wave is rendered as one job. Returns once the steps are taken; the answers come
+    /// from [`Stepped::finish`]. The caller bounds the number of requests (`--max-batch`).
+    pub async fn step_each(self: &Arc<Self>, requests: Vec<proto::StepRequest>) -> Stepped {
+        let mut episodes: Vec<(String, SharedEpisode)> = Vec::new();
+        let mut plan = Vec::with_capacity(requests.len());
+        for r in &requests {
+            let planned = Action::from_code(i64::from(r.action))
+                .map_err(|e| ServiceError::InvalidArgument(format!("step.action: {e}")))
+                .and_then(|action| {
+                    let episode = match episodes.iter().position(|(id, _)| *id == r.episode_id) {
+                        Some(e) => e,
+                        None => {
+                            episodes.push((r.episode_id.clone(), self.registry.get(&r.episode_id)?));
+                            episodes.len() - 1
+                        }
+                    };
+                    Ok(PlannedStep { at: "step".to_owned(), episode, action, include_goal: r.include_goal })
+                });
+            plan.push(planned);
         }
-        // Refuse, before anything moves, a batch whose answer could not be sent.
-        if response_bytes > self.config.max_message_bytes {
-            return Err(ServiceError::Exhausted(format!(
-                "the answer to these {} steps would take about {:.1} MB, over the {:.1} MB message limit \
-                 (--max-message-bytes): send fewer steps per call, or ask for goal images less often",
-                requests.len(),
-                response_bytes as f64 / 1e6,
-                self.config.max_message_bytes as f64 / 1e6
-            )));
+        match self.take_steps(episodes, plan, |_, _| Ok(())).await {
+            Ok(stepped) => stepped,
+            Err(e) => Stepped::failed(requests.len(), &e),
         }
-        let actions: Vec<Action> = plan.iter().map(|p| p.1).collect();
+    }
+
+    /// [`Shared::take_steps`], then waits for the rendering.
+    async fn run_steps(
+        self: &Arc<Self>,
+        episodes: Vec<(String, SharedEpisode)>,
+        plan: Vec<Result<PlannedStep, ServiceError>>,
+        check: impl FnOnce(&[EpisodeGuard], &[Result<PlannedStep, ServiceError>]) -> Result<(), ServiceError>,
+    ) -> Result<Vec<Result<proto::StepResponse, ServiceError>>, ServiceError> {
+        Ok(self.take_steps(episodes, plan, check).await?.finish(&self.metrics).await)
+    }
+
+    /// Locks `episodes` (in id order, so that concurrent calls cannot deadlock), turns the
+    /// steps of any closed while this call waited into NOT_FOUND, runs `check` on the locked
+    /// episodes and the plan (its error fails the whole call before anything moves), takes the
+    /// planned steps in order (a few inline, more on a blocking thread), hands all their views
+    /// to the render thread as one job and unlocks the episodes: the views are snapshots, so
+    /// the episodes may take their next steps while these render.
+    async fn take_steps(
+        self: &Arc<Self>,
+        episodes: Vec<(String, SharedEpisode)>,
+        mut plan: Vec<Result<PlannedStep, ServiceError>>,
+        check: impl FnOnce(&[EpisodeGuard], &[Result<PlannedStep, ServiceError>]) -> Result<(), ServiceError>,
+    ) -> Result<Stepped, ServiceError> {
+        let started = Instant::now();
+        let mut order: Vec<usize> = (0..episodes.len()).collect();
+        order.sort_by(|&a, &b| episodes[a].0.cmp(&episodes[b].0));
+        let mut slots: Vec<Option<EpisodeGuard>> = (0..episodes.len()).map(|_| None).collect();
+        for &e in &order {
+            slots[e] = Some(episodes[e].1.clone().lock_owned().await);
+        }
+        let mut guards: Vec<EpisodeGuard> = slots.into_iter().flatten().collect();
+        // Closed (or reaped) while this call waited for its lock.
+        for (e, (id, _)) in episodes.iter().enumerate() {
+            if self.registry.get(id).is_err() {
+                for step in plan.iter_mut().filter(|s| s.as_ref().is_ok_and(|s| s.episode == e)) {
+                    *step = Err(ServiceError::UnknownEpisode(id.clone()));
+                }
+            }
+        }
+        check(&guards, &plan)?;
+        let ids: Vec<String> = episodes.into_iter().map(|(id, _)| id).collect();
+        let max_message_bytes = self.config.max_message_bytes;
         // A step costs microseconds (a rejected turn, the worst case, well under 0.1 ms): a few
-        // run inline, which spares a thread hand-off per step; larger batches go to a blocking
-        // thread so that the runtime never stalls.
-        let outcomes: Vec<Result<esrp_core::StepOutcome, esrp_core::EpisodeError>> = if guards.len() <= INLINE_STEPS {
-            guards.iter_mut().zip(&actions).map(|(g, &a)| g.episode.step(a)).collect()
+        // run inline, which spares a thread hand-off per step; more go to a blocking thread so
+        // that the runtime never stalls.
+        let mut taken = if plan.len() <= INLINE_STEPS {
+            take_planned(&mut guards, &ids, plan, max_message_bytes)
         } else {
-            let (guards_back, outcomes) = tokio::task::spawn_blocking(move || {
-                let outcomes: Vec<Result<esrp_core::StepOutcome, esrp_core::EpisodeError>> =
-                    guards.iter_mut().zip(&actions).map(|(g, &a)| g.episode.step(a)).collect();
-                (guards, outcomes)
+            let (guards_back, taken) = tokio::task::spawn_blocking(move || {
+                let taken = take_planned(&mut guards, &ids, plan, max_message_bytes);
+                (guards, taken)
             })
             .await
             .map_err(|e| ServiceError::Internal(e.to_string()))?;
             guards = guards_back;
-            outcomes
+            taken
         };
-        let mut views = Vec::new();
-        let mut counts = Vec::with_capacity(guards.len());
-        for g in &guards {
-            let v = observation_views(g);
-            counts.push(v.len());
-            views.extend(v);
+        let views: Vec<View> =
+            taken.iter_mut().filter_map(|t| t.as_mut().ok()).flat_map(|t| std::mem::take(&mut t.views)).collect();
+        let render = self.render.submit(views);
+        let now = Instant::now();
+        for g in &mut guards {
+            g.last_used = now;
         }
-        let mut outputs = self.render.render(views).await?.into_iter();
-        let mut responses = Vec::with_capacity(guards.len());
-        self.metrics.observe_steps(guards.len(), started.elapsed());
-        for (i, (g, outcome)) in guards.iter_mut().zip(outcomes).enumerate() {
-            let outcome = outcome?;
-            g.last_used = Instant::now();
-            let mine: Vec<ViewOutput> = outputs.by_ref().take(counts[i]).collect();
-            let compiled = g.episode.compiled().clone();
-            let ended = outcome.terminated || outcome.truncated;
-            responses.push(proto::StepResponse {
-                observation: Some(observation(g, mine, plan[i].2)),
-                reward: outcome.reward.total,
-                terminated: outcome.terminated,
-                truncated: outcome.truncated,
-                info: Some(proto::StepInfo {
-                    accepted: outcome.accepted,
-                    collided_with: outcome.collided_with.map(|o| obstacle_to_proto(&compiled, o)),
-                    no_op: outcome.no_op.map(|r| r.message().to_owned()).unwrap_or_default(),
-                    fetched: outcome.fetched.map(|i| i as u32),
-                    released: outcome.released.map(|i| i as u32),
-                    placed_count: outcome.placed_count as u32,
-                    step_index: outcome.step_index,
-                    reward_terms: Some(proto::RewardTerms {
-                        success: outcome.reward.success,
-                        placement: outcome.reward.placement,
-                        potential: outcome.reward.potential,
-                        holding: outcome.reward.holding,
-                        living: outcome.reward.living,
-                    }),
-                }),
-                metrics: ended.then(|| metrics_to_proto(&g.episode.metrics())),
-            });
-        }
-        Ok(responses)
+        Ok(Stepped { taken, render, started })
     }
 
     /// The episode `id`, locked.
@@ -518,17 +700,30 @@ impl Shared {
         self.next_stream.fetch_add(1, Ordering::Relaxed)
     }
 
-    /// Serves one StepStream: requests are read in waves (everything already sent, one request
-    /// per episode per wave), the steps of a wave are taken and rendered as one batch, and the
-    /// responses go back in request order.
+    /// Serves one StepStream: requests are read in waves (everything already sent, see
+    /// [`Wave::admits`]), the steps of a wave are taken in request order and their views
+    /// rendered as one job, and the answers go back in request order. Waves overlap: while one
+    /// wave's views render, the next wave is read and stepped (its answers wait for the
+    /// earlier ones); at most [`WAVES_IN_FLIGHT`] waves wait for their answers.
     async fn serve_stream(
         self: Arc<Self>,
         mut inbound: Streaming<proto::StreamRequest>,
         out: mpsc::Sender<Result<proto::StreamResponse, Status>>,
     ) {
         let stream = self.stream_id();
+        // Answers of each wave, in wave order, to a task that sends them in order.
+        let (answers, mut waiting) = mpsc::channel::<WaveAnswers>(WAVES_IN_FLIGHT);
+        let sender = tokio::spawn(async move {
+            while let Some(wave) = waiting.recv().await {
+                for answer in wave.await {
+                    if out.send(answer).await.is_err() {
+                        return;
+                    }
+                }
+            }
+        });
         let mut pending: Option<proto::StreamRequest> = None;
-        'outer: loop {
+        loop {
             let first = match pending.take() {
                 Some(r) => r,
                 None => match inbound.next().await {
@@ -537,39 +732,54 @@ impl Shared {
                         // An unreadable request (too large, not protobuf) or a broken
                         // connection: say why, if anyone still listens, and end the stream.
                         tracing::debug!(stream, "stream ended: {status}");
-                        let _ = out.send(Err(status)).await;
+                        let _ = answers.send(Box::pin(std::future::ready(vec![Err(status)]))).await;
                         break;
                     }
                     None => break,
                 },
             };
-            // Gather a wave: requests already received, each touching a different episode.
-            let mut wave = vec![first];
-            let mut touched: HashSet<String> = wave.iter().filter_map(episode_of).collect();
-            while wave.len() < self.config.max_batch {
+            // Gather a wave: requests already received, up to one that must wait for the
+            // wave's answers (see `Wave::admits`).
+            let mut wave = Wave::default();
+            wave.push(first);
+            let mut end: Option<Option<Status>> = None;
+            while wave.requests.len() < self.config.max_batch {
                 match futures_now(&mut inbound) {
                     Some(Some(Ok(r))) => {
-                        let id = episode_of(&r);
-                        if id.as_ref().is_some_and(|id| touched.contains(id))
-                            || matches!(r.request, Some(proto::stream_request::Request::Create(_)))
-                        {
+                        if !wave.admits(&r) {
                             pending = Some(r);
                             break;
                         }
-                        touched.extend(id);
                         wave.push(r);
                     }
-                    Some(Some(Err(_))) | Some(None) => {
-                        self.answer_wave(wave, stream, &out).await;
-                        break 'outer;
+                    // The end, or an unreadable request: answer the wave, then end as above.
+                    Some(Some(Err(status))) => {
+                        end = Some(Some(status));
+                        break;
+                    }
+                    Some(None) => {
+                        end = Some(None);
+                        break;
                     }
                     None => break,
                 }
             }
-            if !self.answer_wave(wave, stream, &out).await {
+            let wave = self.answer_wave(wave.requests, stream).await;
+            // The sender has stopped: the client is gone.
+            if answers.send(wave).await.is_err() {
+                break;
+            }
+            if let Some(end) = end {
+                if let Some(status) = end {
+                    tracing::debug!(stream, "stream ended: {status}");
+                    let _ = answers.send(Box::pin(std::future::ready(vec![Err(status)]))).await;
+                }
                 break;
             }
         }
+        // Every answer is sent (or the client is gone) before the stream's episodes close.
+        drop(answers);
+        let _ = sender.await;
         let closed = self.registry.remove_stream(stream);
         self.metrics.count_closed("stream_ended", closed);
         if closed > 0 {
@@ -577,74 +787,55 @@ impl Shared {
         }
     }
 
-    /// Answers one wave; false when the client is gone.
-    async fn answer_wave(
-        self: &Arc<Self>,
-        wave: Vec<proto::StreamRequest>,
-        stream: u64,
-        out: &mpsc::Sender<Result<proto::StreamResponse, Status>>,
-    ) -> bool {
+    /// Takes a wave's steps (their views go to the render thread), then its creates, resets
+    /// and closes one by one; the answers, in request order, come from the returned future.
+    async fn answer_wave(self: &Arc<Self>, wave: Vec<proto::StreamRequest>, stream: u64) -> WaveAnswers {
         use proto::stream_request::Request as Rq;
         use proto::stream_response::Response as Rs;
         // Steps first, together, then the rest one by one (in order).
         let step_ids: Vec<usize> = (0..wave.len()).filter(|&i| matches!(wave[i].request, Some(Rq::Step(_)))).collect();
+        let steps: Vec<proto::StepRequest> = step_ids
+            .iter()
+            .filter_map(|&i| match &wave[i].request {
+                Some(Rq::Step(s)) => Some(s.clone()),
+                _ => None,
+            })
+            .collect();
+        let stepped = if steps.is_empty() { None } else { Some(self.step_each(steps).await) };
         let mut answers: Vec<Option<Rs>> = (0..wave.len()).map(|_| None).collect();
-        if !step_ids.is_empty() {
-            let steps: Vec<proto::StepRequest> = step_ids
-                .iter()
-                .filter_map(|&i| match &wave[i].request {
-                    Some(Rq::Step(s)) => Some(s.clone()),
-                    _ => None,
-                })
-                .collect();
-            match self.step_many(steps.clone()).await {
-                Ok(responses) => {
-                    for (&i, r) in step_ids.iter().zip(responses) {
-                        answers[i] = Some(Rs::Step(r));
-                    }
-                }
-                // Rendering failed after the steps were taken: they must not be taken again.
-                Err(e @ (ServiceError::Render(_) | ServiceError::Internal(_))) => {
-                    let error = stream_error(e);
-                    for &i in &step_ids {
-                        answers[i] = Some(error.clone());
-                    }
-                }
-                // Refused before anything moved: one bad step must not fail its neighbours,
-                // so redo them one by one.
-                Err(_) => {
-                    for (&i, s) in step_ids.iter().zip(steps) {
-                        answers[i] = Some(match self.step_many(vec![s]).await {
-                            Ok(mut r) => Rs::Step(r.remove(0)),
-                            Err(e) => stream_error(e),
-                        });
-                    }
-                }
-            }
-        }
         for (i, request) in wave.iter().enumerate() {
-            if answers[i].is_some() {
-                continue;
-            }
-            answers[i] = Some(match request.request.clone() {
-                Some(Rq::Create(c)) => self.create(c, Some(stream)).await.map_or_else(stream_error, Rs::Created),
-                Some(Rq::Reset(r)) => self.reset(r).await.map_or_else(stream_error, Rs::Reset),
-                Some(Rq::Close(c)) => self.close(c).await.map_or_else(stream_error, Rs::Closed),
-                Some(Rq::Step(_)) => stream_error(ServiceError::Internal("step without an answer".into())),
-                None => stream_error(ServiceError::InvalidArgument(
+            answers[i] = match request.request.clone() {
+                Some(Rq::Create(c)) => Some(self.create(c, Some(stream)).await.map_or_else(stream_error, Rs::Created)),
+                Some(Rq::Reset(r)) => Some(self.reset(r).await.map_or_else(stream_error, Rs::Reset)),
+                Some(Rq::Close(c)) => Some(self.close(c).await.map_or_else(stream_error, Rs::Closed)),
+                Some(Rq::Step(_)) => None,
+                None => Some(stream_error(ServiceError::InvalidArgument(
                     "empty StreamRequest: set create, step, reset or close".into(),
-                )),
-            });
+                ))),
+            };
         }
-        for (request, answer) in wave.iter().zip(answers) {
-            let response = proto::StreamResponse { request_id: request.request_id, response: answer };
-            if out.send(Ok(response)).await.is_err() {
-                return false;
+        let ids: Vec<u64> = wave.iter().map(|r| r.request_id).collect();
+        let metrics = self.metrics.clone();
+        Box::pin(async move {
+            if let Some(stepped) = stepped {
+                for (&i, result) in step_ids.iter().zip(stepped.finish(&metrics).await) {
+                    answers[i] = Some(result.map_or_else(stream_error, Rs::Step));
+                }
             }
-        }
-        true
+            ids.into_iter()
+                .zip(answers)
+                .map(|(request_id, response)| Ok(proto::StreamResponse { request_id, response }))
+                .collect()
+        })
     }
 }
+
+/// Waves of a StepStream whose answers may wait at once: enough to keep the render thread
+/// busy while the next wave is read and stepped, few enough to bound what a stream holds.
+const WAVES_IN_FLIGHT: usize = 4;
+
+/// A wave's answers, in request order, once its views are rendered.
+type WaveAnswers = Pin<Box<dyn std::future::Future<Output = Vec<Result<proto::StreamResponse, Status>>> + Send>>;
 
 fn stream_error(e: ServiceError) -> proto::stream_response::Response {
     let status = Status::from(e);
@@ -654,13 +845,47 @@ fn stream_error(e: ServiceError) -> proto::stream_response::Response {
     })
 }
 
-fn episode_of(r: &proto::StreamRequest) -> Option<String> {
-    use proto::stream_request::Request as Rq;
-    match &r.request {
-        Some(Rq::Step(s)) => Some(s.episode_id.clone()),
-        Some(Rq::Reset(s)) => Some(s.episode_id.clone()),
-        Some(Rq::Close(s)) => Some(s.episode_id.clone()),
-        _ => None,
+/// The requests of one StepStream wave: answered together, steps first.
+#[derive(Default)]
+struct Wave {
+    requests: Vec<proto::StreamRequest>,
+    /// Episodes stepped in the wave.
+    stepped: HashSet<String>,
+    /// Episodes reset or closed in the wave.
+    others: HashSet<String>,
+}
+
+impl Wave {
+    /// Whether `r` can join the wave without its answer depending on the wave's order of
+    /// work (steps first, then resets and closes): more steps of a stepped episode can (they
+    /// run in request order); a create, a step of an episode reset or closed in the wave, or a
+    /// reset or close of an episode already in the wave cannot, and opens the next wave.
+    fn admits(&self, r: &proto::StreamRequest) -> bool {
+        use proto::stream_request::Request as Rq;
+        match &r.request {
+            Some(Rq::Create(_)) => false,
+            Some(Rq::Step(s)) => !self.others.contains(&s.episode_id),
+            Some(Rq::Reset(proto::ResetRequest { episode_id, .. }))
+            | Some(Rq::Close(proto::CloseEpisodeRequest { episode_id })) => {
+                !self.stepped.contains(episode_id) && !self.others.contains(episode_id)
+            }
+            None => true,
+        }
+    }
+
+    fn push(&mut self, r: proto::StreamRequest) {
+        use proto::stream_request::Request as Rq;
+        match &r.request {
+            Some(Rq::Step(s)) => {
+                self.stepped.insert(s.episode_id.clone());
+            }
+            Some(Rq::Reset(proto::ResetRequest { episode_id, .. }))
+            | Some(Rq::Close(proto::CloseEpisodeRequest { episode_id })) => {
+                self.others.insert(episode_id.clone());
+            }
+            _ => {}
+        }
+        self.requests.push(r);
     }
 }
 

@@ -1,20 +1,24 @@
 //! `esrp-bench`: end-to-end throughput and latency of esrp-server, client and server on one
 //! machine (or against a running server with `--server`).
 //!
-//! Scenarios (each runs for `--seconds` after a one-second warm-up; every client waits for a
-//! step's answer before sending that episode's next action, as an agent does):
+//! Scenarios (each runs for `--seconds` after a one-second warm-up; except in
+//! `stream-1-pipelined`, every client waits for a step's answer before sending that episode's
+//! next action, as an agent does):
 //!
 //! - `unary-1`: one episode, unary `Step`.
 //! - `stream-1`: one episode on a `StepStream`.
+//! - `stream-1-pipelined`: one episode on a `StepStream` with `--window` (8) steps in flight,
+//!   as an agent that sends action chunks, or a replay.
 //! - `unary-64`: 64 episodes, one task each, concurrent unary `Step`s.
 //! - `streams-64`: 64 episodes, one stream each.
-//! - `stream-mux-64`: 64 episodes on one stream, a wave of 64 steps at a time.
+//! - `stream-mux-64`: 64 episodes on one stream, each sending its next step when its answer
+//!   comes.
 //! - `batch-64`: 64 episodes, one `StepBatch` of 64 steps at a time.
 //! - `memory-1000`: the server's resident memory with 1,000 live episodes (local server only).
 //!
-//! Latency is per step: from sending it to receiving its answer (for a batch or a wave, the
-//! whole call). Actions are random (seeded); episodes that end are reset.
+//! Latency is per step: from sending it to receiving its answer (for a batch, the whole call). Actions are random (seeded); episodes that end are reset.
 
+use std::collections::VecDeque;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
@@ -48,9 +52,12 @@ struct Args {
     #[arg(
         long,
         value_delimiter = ',',
-        default_value = "unary-1,stream-1,unary-64,streams-64,stream-mux-64,batch-64,memory-1000"
+        default_value = "unary-1,stream-1,stream-1-pipelined,unary-64,streams-64,stream-mux-64,batch-64,memory-1000"
     )]
     scenarios: Vec<String>,
+    /// Steps in flight in `stream-1-pipelined`.
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=1024))]
+    window: u32,
     /// Episodes of the multi-episode scenarios.
     #[arg(long, default_value_t = 64)]
     episodes: usize,
@@ -193,42 +200,61 @@ async fn gather(tasks: Vec<tokio::task::JoinHandle<anyhow::Result<Measured>>>) -
     Ok((steps, latencies))
 }
 
-/// Steps `episodes` on one stream, a wave of one step per episode at a time.
-async fn stream(client: &Client, episodes: Vec<String>, seed: u64, window: Window) -> anyhow::Result<(u64, Vec<f64>)> {
+/// Steps `episodes` on one stream with `window` steps of each episode in flight: every answer
+/// sends that episode's next step (window 1 is an agent that waits for each observation;
+/// more is an agent that sends action chunks, or a replay). An episode that ends is reset on
+/// the stream; steps already sent behind its end answer FAILED_PRECONDITION and are not counted.
+async fn stream(
+    client: &Client,
+    episodes: Vec<String>,
+    seed: u64,
+    window: usize,
+    measured: Window,
+) -> anyhow::Result<Measured> {
     let mut client = client.clone();
-    let (tx, rx) = mpsc::channel::<proto::StreamRequest>(episodes.len() * 2 + 2);
+    let in_flight_max = episodes.len() * (window + 1);
+    let (tx, rx) = mpsc::channel::<proto::StreamRequest>(in_flight_max + 1);
     let mut inbound = client.step_stream(tokio_stream::wrappers::ReceiverStream::new(rx)).await?.into_inner();
     let mut actions = Actions::new(seed);
-    let (mut steps, mut latencies, mut id) = (0u64, Vec::new(), 0u64);
-    loop {
-        let t = Instant::now();
-        if t >= window.until {
-            break;
+    // Answers come in request order: what each one answers, and when it was sent.
+    let mut in_flight: VecDeque<(Instant, usize, bool)> = VecDeque::with_capacity(in_flight_max);
+    let mut next_id = 0u64;
+    let mut send = async |e: usize, is_step: bool, in_flight: &mut VecDeque<(Instant, usize, bool)>| {
+        next_id += 1;
+        let request = if is_step {
+            Rq::Step(step(&episodes[e], actions.next()))
+        } else {
+            Rq::Reset(proto::ResetRequest { episode_id: episodes[e].clone(), scene: None })
+        };
+        in_flight.push_back((Instant::now(), e, is_step));
+        tx.send(proto::StreamRequest { request_id: next_id, request: Some(request) }).await
+    };
+    for _ in 0..window {
+        for e in 0..episodes.len() {
+            send(e, true, &mut in_flight).await?;
         }
-        for e in &episodes {
-            id += 1;
-            tx.send(proto::StreamRequest { request_id: id, request: Some(Rq::Step(step(e, actions.next()))) }).await?;
-        }
-        let mut to_reset = Vec::new();
-        for e in &episodes {
-            let response = inbound.next().await.context("the stream ended")??;
-            match response.response {
-                Some(Rs::Step(r)) => {
-                    if ended(&r) {
-                        to_reset.push(e.clone());
-                    }
+    }
+    let (mut steps, mut latencies) = (0u64, Vec::new());
+    while let Some((sent, e, is_step)) = in_flight.pop_front() {
+        let response = inbound.next().await.context("the stream ended")??;
+        let now = Instant::now();
+        match response.response {
+            Some(Rs::Step(r)) => {
+                if sent >= measured.measure_from && now <= measured.until {
+                    steps += 1;
+                    latencies.push((now - sent).as_secs_f64());
                 }
-                Some(Rs::Error(error)) => bail!("step failed: {}", error.message),
-                other => bail!("unexpected answer {other:?}"),
+                if ended(&r) && now < measured.until {
+                    send(e, false, &mut in_flight).await?;
+                }
             }
+            Some(Rs::Reset(_)) => {}
+            Some(Rs::Error(error)) if is_step && error.code == tonic::Code::FailedPrecondition as i32 => {}
+            Some(Rs::Error(error)) => bail!("{} failed: {}", if is_step { "step" } else { "reset" }, error.message),
+            other => bail!("unexpected answer {other:?}"),
         }
-        if t >= window.measure_from {
-            steps += episodes.len() as u64;
-            let latency = t.elapsed().as_secs_f64();
-            latencies.extend(std::iter::repeat_n(latency, episodes.len()));
-        }
-        for e in to_reset {
-            reset(&mut client, &e).await?;
+        if is_step && now < measured.until {
+            send(e, true, &mut in_flight).await?;
         }
     }
     Ok((steps, latencies))
@@ -273,7 +299,7 @@ async fn scenario(
     server: Option<&LocalServer>,
 ) -> anyhow::Result<Outcome> {
     let n = match name {
-        "unary-1" | "stream-1" => 1,
+        "unary-1" | "stream-1" | "stream-1-pipelined" => 1,
         "memory-1000" => 1000,
         _ => args.episodes,
     };
@@ -306,13 +332,14 @@ async fn scenario(
     let window = Window::new(args.seconds);
     let (steps, latencies) = match name {
         "unary-1" | "unary-64" => unary(client, episodes.clone(), window).await?,
-        "stream-1" | "stream-mux-64" => stream(client, episodes.clone(), 3, window).await?,
+        "stream-1" | "stream-mux-64" => stream(client, episodes.clone(), 3, 1, window).await?,
+        "stream-1-pipelined" => stream(client, episodes.clone(), 5, args.window as usize, window).await?,
         "streams-64" => {
             let mut tasks = Vec::new();
             for (i, e) in episodes.iter().enumerate() {
                 let client = client.clone();
                 let e = vec![e.clone()];
-                tasks.push(tokio::spawn(async move { stream(&client, e, i as u64 + 11, window).await }));
+                tasks.push(tokio::spawn(async move { stream(&client, e, i as u64 + 11, 1, window).await }));
             }
             gather(tasks).await?
         }
@@ -344,16 +371,16 @@ async fn main() -> anyhow::Result<()> {
         info.version, info.renderer_adapter, info.renderer_backend, info.dataset
     );
     println!("client machine: {cpus} CPUs, {cpu_model}");
-    println!("{:<14} {:>8} {:>9} {:>11} {:>9} {:>9}", "scenario", "episodes", "steps", "steps/s", "p50 ms", "p99 ms");
+    println!("{:<20} {:>8} {:>9} {:>11} {:>9} {:>9}", "scenario", "episodes", "steps", "steps/s", "p50 ms", "p99 ms");
     let mut results = Vec::new();
     for name in &args.scenarios {
         let outcome =
             scenario(name, &args, &mut client, local.as_ref()).await.with_context(|| format!("scenario {name}"))?;
         if outcome.latencies.is_empty() {
-            println!("{:<14} {:>8} {}", outcome.name, outcome.episodes, outcome.note);
+            println!("{:<20} {:>8} {}", outcome.name, outcome.episodes, outcome.note);
         } else {
             println!(
-                "{:<14} {:>8} {:>9} {:>11.0} {:>9.2} {:>9.2}",
+                "{:<20} {:>8} {:>9} {:>11.0} {:>9.2} {:>9.2}",
                 outcome.name,
                 outcome.episodes,
                 outcome.steps,

@@ -114,6 +114,90 @@ async fn a_full_episode_runs_through_a_pipelined_stream() {
     assert!(matches!(inbound.next().await.unwrap().unwrap().response, Some(Rs::Created(_))));
 }
 
+/// What a request of the pipelining test did: a step's digest, a reset's observation
+/// digest, or an error code.
+#[derive(Debug, PartialEq, Eq)]
+enum Answer {
+    Step(u64),
+    Reset(u64),
+    Error(i32),
+}
+
+/// Requests sent all at once on one stream (several steps of one episode, steps of a second
+/// episode between them, a bad action, steps past the end, a reset, more steps) get the same
+/// answers, in order, as the same requests made one by one with unary calls.
+#[tokio::test]
+async fn pipelined_stream_answers_match_unary_calls() {
+    let server = Server::start(&[]);
+    let mut client = server.client().await;
+    let scene = scene_ids(&mut client, proto::Split::Test, 1).await.pop().unwrap();
+    let create = || proto::CreateEpisodeRequest { horizon: 10, ..create_request(&scene, false) };
+    // (episode 0 or 1, None for a reset or Some(action)).
+    let mut dice = Dice::new(17, 0, 0);
+    let mut plan: Vec<(usize, Option<i32>)> = Vec::new();
+    for i in 0..14 {
+        plan.push((0, Some(if i == 4 { 9 } else { random_action(&mut dice) })));
+        if i % 3 == 0 {
+            plan.push((1, Some(random_action(&mut dice))));
+        }
+    }
+    plan.push((0, None));
+    plan.extend((0..6).map(|_| (0, Some(random_action(&mut dice)))));
+
+    let answer_of = |result: Result<Answer, tonic::Status>| result.unwrap_or_else(|s| Answer::Error(s.code() as i32));
+    let mut expected = Vec::new();
+    let unary: Vec<String> = [
+        client.create_episode(create()).await.unwrap().into_inner().episode_id,
+        client.create_episode(create()).await.unwrap().into_inner().episode_id,
+    ]
+    .into();
+    for &(e, action) in &plan {
+        let id = unary[e].clone();
+        expected.push(answer_of(match action {
+            Some(a) => client.step(step_request(&id, a)).await.map(|r| Answer::Step(digest(&r.into_inner()))),
+            None => client.reset(proto::ResetRequest { episode_id: id, scene: None }).await.map(|r| {
+                Answer::Reset(digest(&proto::StepResponse {
+                    observation: r.into_inner().observation,
+                    ..Default::default()
+                }))
+            }),
+        }));
+    }
+    assert!(expected.contains(&Answer::Error(tonic::Code::InvalidArgument as i32)));
+    assert!(expected.contains(&Answer::Error(tonic::Code::FailedPrecondition as i32)));
+
+    let streamed: Vec<String> = [
+        client.create_episode(create()).await.unwrap().into_inner().episode_id,
+        client.create_episode(create()).await.unwrap().into_inner().episode_id,
+    ]
+    .into();
+    let (tx, rx) = tokio::sync::mpsc::channel::<proto::StreamRequest>(plan.len());
+    for (i, &(e, action)) in plan.iter().enumerate() {
+        let id = streamed[e].clone();
+        let request = match action {
+            Some(a) => Rq::Step(step_request(&id, a)),
+            None => Rq::Reset(proto::ResetRequest { episode_id: id, scene: None }),
+        };
+        tx.send(proto::StreamRequest { request_id: i as u64, request: Some(request) }).await.unwrap();
+    }
+    drop(tx);
+    let mut inbound = client.step_stream(tokio_stream::wrappers::ReceiverStream::new(rx)).await.unwrap().into_inner();
+    let mut answers = Vec::new();
+    while let Some(response) = inbound.next().await {
+        let response = response.unwrap();
+        assert_eq!(response.request_id, answers.len() as u64, "answers come in request order");
+        answers.push(match response.response {
+            Some(Rs::Step(r)) => Answer::Step(digest(&r)),
+            Some(Rs::Reset(r)) => {
+                Answer::Reset(digest(&proto::StepResponse { observation: r.observation, ..Default::default() }))
+            }
+            Some(Rs::Error(error)) => Answer::Error(error.code),
+            other => panic!("unexpected answer {other:?}"),
+        });
+    }
+    assert_eq!(answers, expected);
+}
+
 const EPISODES: usize = 256;
 const TASKS: usize = 32;
 const STEPS: usize = 12;
