@@ -353,12 +353,24 @@ async fn scenario(
     Ok(outcome)
 }
 
-#[tokio::main]
-async fn main() -> anyhow::Result<()> {
+/// The client's async runtime for a scenario: one thread for one episode (one agent process
+/// with one connection; a multi-threaded runtime would add a thread hand-off to every step),
+/// one per core for many.
+fn runtime_for(scenario: &str) -> std::io::Result<tokio::runtime::Runtime> {
+    if scenario.ends_with("-1") || scenario.ends_with("-1-pipelined") {
+        tokio::runtime::Builder::new_current_thread().enable_all().build()
+    } else {
+        tokio::runtime::Builder::new_multi_thread().enable_all().build()
+    }
+}
+
+fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let (address, local) = reach_or_start(args.server.as_deref(), args.server_binary.clone(), &args.server_args)?;
-    let mut client = esrp_server::client::connect(&address, args.token.as_deref()).await?;
-    let info = client.server_info(proto::ServerInfoRequest {}).await?.into_inner();
+    let connect = async || esrp_server::client::connect(&address, args.token.as_deref()).await;
+    let info = runtime_for("")?.block_on(async {
+        anyhow::Ok(connect().await?.server_info(proto::ServerInfoRequest {}).await?.into_inner())
+    })?;
     let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
     let cpu_model = std::fs::read_to_string("/proc/cpuinfo")
         .ok()
@@ -374,8 +386,9 @@ async fn main() -> anyhow::Result<()> {
     println!("{:<20} {:>8} {:>9} {:>11} {:>9} {:>9}", "scenario", "episodes", "steps", "steps/s", "p50 ms", "p99 ms");
     let mut results = Vec::new();
     for name in &args.scenarios {
-        let outcome =
-            scenario(name, &args, &mut client, local.as_ref()).await.with_context(|| format!("scenario {name}"))?;
+        let outcome = runtime_for(name)?
+            .block_on(async { scenario(name, &args, &mut connect().await?, local.as_ref()).await })
+            .with_context(|| format!("scenario {name}"))?;
         if outcome.latencies.is_empty() {
             println!("{:<20} {:>8} {}", outcome.name, outcome.episodes, outcome.note);
         } else {
