@@ -2,7 +2,7 @@
 //! registry and the render scheduler. Conversions between proto messages and esrp-core types
 //! happen here, at the edge; core types never see the proto.
 
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 use std::pin::Pin;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -591,15 +591,17 @@ impl Shared {
     /// from [`Stepped::finish`]. The caller bounds the number of requests (`--max-batch`).
     pub async fn step_each(self: &Arc<Self>, requests: Vec<proto::StepRequest>) -> Stepped {
         let mut episodes: Vec<(String, SharedEpisode)> = Vec::new();
+        let mut index: HashMap<&str, usize> = HashMap::new();
         let mut plan = Vec::with_capacity(requests.len());
         for r in &requests {
             let planned = Action::from_code(i64::from(r.action))
                 .map_err(|e| ServiceError::InvalidArgument(format!("step.action: {e}")))
                 .and_then(|action| {
-                    let episode = match episodes.iter().position(|(id, _)| *id == r.episode_id) {
-                        Some(e) => e,
+                    let episode = match index.get(r.episode_id.as_str()) {
+                        Some(&e) => e,
                         None => {
                             episodes.push((r.episode_id.clone(), self.registry.get(&r.episode_id)?));
+                            index.insert(&r.episode_id, episodes.len() - 1);
                             episodes.len() - 1
                         }
                     };
