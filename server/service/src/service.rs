@@ -252,6 +252,8 @@ struct PlannedStep {
 /// say how they fit in the answer.
 struct TakenStep {
     response: proto::StepResponse,
+    /// An upper bound of the answer's encoded size.
+    bytes: usize,
     views: Vec<View>,
     view_count: usize,
     sensors: SensorConfig,
@@ -290,6 +292,7 @@ fn take_planned(
             let views = observation_views(g);
             Ok(TakenStep {
                 response: step_response(g, outcome, step.include_goal),
+                bytes,
                 view_count: views.len(),
                 views,
                 sensors: g.sensors,
@@ -314,6 +317,11 @@ impl Stepped {
             render: RenderTicket::nothing(),
             started: Instant::now(),
         }
+    }
+
+    /// An upper bound of the encoded size of the answers.
+    fn answer_bytes(&self) -> usize {
+        self.taken.iter().map(|t| t.as_ref().map_or(256, |t| t.bytes)).sum()
     }
 
     /// Waits for the rendering and answers every step, in order.
@@ -713,17 +721,25 @@ impl Shared {
         out: mpsc::Sender<Result<proto::StreamResponse, Status>>,
     ) {
         let stream = self.stream_id();
-        // Answers of each wave, in wave order, to a task that sends them in order.
-        let (answers, mut waiting) = mpsc::channel::<WaveAnswers>(WAVES_IN_FLIGHT);
+        // Answers of each wave, in wave order, to a task that sends them in order. Each wave
+        // holds permits of the stream's budget of answer bytes until its answers are sent.
+        let (answers, mut waiting) =
+            mpsc::channel::<(WaveAnswers, Option<tokio::sync::OwnedSemaphorePermit>)>(WAVES_IN_FLIGHT);
+        let budget_kib = (self.config.max_message_bytes / 1024).clamp(1, u32::MAX as usize) as u32;
+        let budget = Arc::new(tokio::sync::Semaphore::new(budget_kib as usize));
         let sender = tokio::spawn(async move {
-            while let Some(wave) = waiting.recv().await {
+            while let Some((wave, permit)) = waiting.recv().await {
                 for answer in wave.await {
                     if out.send(answer).await.is_err() {
                         return;
                     }
                 }
+                drop(permit);
             }
         });
+        let failed = |status: Status| -> (WaveAnswers, Option<tokio::sync::OwnedSemaphorePermit>) {
+            (Box::pin(std::future::ready(vec![Err(status)])), None)
+        };
         let mut pending: Option<proto::StreamRequest> = None;
         loop {
             let first = match pending.take() {
@@ -734,7 +750,7 @@ impl Shared {
                         // An unreadable request (too large, not protobuf) or a broken
                         // connection: say why, if anyone still listens, and end the stream.
                         tracing::debug!(stream, "stream ended: {status}");
-                        let _ = answers.send(Box::pin(std::future::ready(vec![Err(status)]))).await;
+                        let _ = answers.send(failed(status)).await;
                         break;
                     }
                     None => break,
@@ -766,15 +782,21 @@ impl Shared {
                     None => break,
                 }
             }
-            let wave = self.answer_wave(wave.requests, stream).await;
+            let (wave, bytes) = self.answer_wave(wave.requests, stream).await;
+            // Wait while the answers of earlier waves hold the stream's byte budget (a wave
+            // larger than the whole budget waits for all of it), so that a client that sends
+            // faster than it reads cannot make the server hold more than about one message
+            // limit of answers per stream, beyond one wave.
+            let kib = (bytes / 1024).clamp(1, budget_kib as usize) as u32;
+            let Ok(permit) = budget.clone().acquire_many_owned(kib).await else { break };
             // The sender has stopped: the client is gone.
-            if answers.send(wave).await.is_err() {
+            if answers.send((wave, Some(permit))).await.is_err() {
                 break;
             }
             if let Some(end) = end {
                 if let Some(status) = end {
                     tracing::debug!(stream, "stream ended: {status}");
-                    let _ = answers.send(Box::pin(std::future::ready(vec![Err(status)]))).await;
+                    let _ = answers.send(failed(status)).await;
                 }
                 break;
             }
@@ -790,8 +812,9 @@ impl Shared {
     }
 
     /// Takes a wave's steps (their views go to the render thread), then its creates, resets
-    /// and closes one by one; the answers, in request order, come from the returned future.
-    async fn answer_wave(self: &Arc<Self>, wave: Vec<proto::StreamRequest>, stream: u64) -> WaveAnswers {
+    /// and closes one by one; the answers, in request order, come from the returned future,
+    /// with an upper bound of their encoded size.
+    async fn answer_wave(self: &Arc<Self>, wave: Vec<proto::StreamRequest>, stream: u64) -> (WaveAnswers, usize) {
         use proto::stream_request::Request as Rq;
         use proto::stream_response::Response as Rs;
         // Steps first, together, then the rest one by one (in order).
@@ -818,7 +841,9 @@ impl Shared {
         }
         let ids: Vec<u64> = wave.iter().map(|r| r.request_id).collect();
         let metrics = self.metrics.clone();
-        Box::pin(async move {
+        let bytes = stepped.as_ref().map_or(0, Stepped::answer_bytes)
+            + answers.iter().flatten().map(|a| a.encoded_len() + 16).sum::<usize>();
+        let future: WaveAnswers = Box::pin(async move {
             if let Some(stepped) = stepped {
                 for (&i, result) in step_ids.iter().zip(stepped.finish(&metrics).await) {
                     answers[i] = Some(result.map_or_else(stream_error, Rs::Step));
@@ -828,7 +853,8 @@ impl Shared {
                 .zip(answers)
                 .map(|(request_id, response)| Ok(proto::StreamResponse { request_id, response }))
                 .collect()
-        })
+        });
+        (future, bytes)
     }
 }
 

@@ -198,6 +198,39 @@ async fn pipelined_stream_answers_match_unary_calls() {
     assert_eq!(answers, expected);
 }
 
+/// With a message limit of a few answers (which is also a stream's budget of answers waiting
+/// to be sent), a client that sends 120 steps at once still gets every answer, in order: the
+/// server waits for the client to read rather than holding everything.
+#[tokio::test]
+async fn a_stream_waits_within_its_answer_budget() {
+    let server = Server::start(&["--max-message-bytes", "200000"]);
+    let mut client = server.client().await;
+    let scene = scene_ids(&mut client, proto::Split::Test, 1).await.pop().unwrap();
+    let id = client.create_episode(create_request(&scene, false)).await.unwrap().into_inner().episode_id;
+    let mut dice = Dice::new(3, 0, 0);
+    let (tx, rx) = tokio::sync::mpsc::channel::<proto::StreamRequest>(120);
+    for i in 0..120u64 {
+        let request = Rq::Step(step_request(&id, random_action(&mut dice)));
+        tx.send(proto::StreamRequest { request_id: i, request: Some(request) }).await.unwrap();
+    }
+    drop(tx);
+    let mut inbound = client.step_stream(tokio_stream::wrappers::ReceiverStream::new(rx)).await.unwrap().into_inner();
+    let mut n = 0u64;
+    let read_all = async {
+        while let Some(response) = inbound.next().await {
+            let response = response.unwrap();
+            assert_eq!(response.request_id, n);
+            match response.response {
+                Some(Rs::Step(step)) => assert_eq!(u64::from(step.info.unwrap().step_index), n + 1),
+                other => panic!("expected Step, got {other:?}"),
+            }
+            n += 1;
+        }
+    };
+    tokio::time::timeout(std::time::Duration::from_secs(120), read_all).await.expect("the stream stalled");
+    assert_eq!(n, 120);
+}
+
 const EPISODES: usize = 256;
 const TASKS: usize = 32;
 const STEPS: usize = 12;
