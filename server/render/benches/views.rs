@@ -61,31 +61,49 @@ fn main() {
         0.05
     });
     let backends = esrp_render::BackendPreference::from_env().unwrap_or_default();
-    let renderer =
-        Renderer::new(RendererConfig { backends, ..RendererConfig::default() }).unwrap_or_else(|e| panic!("{e}"));
-    let info = renderer.adapter_info();
+    // The same cases with culling on (the default) and off.
+    let renderers: Vec<Renderer> = [true, false]
+        .into_iter()
+        .map(|cull| {
+            Renderer::new(RendererConfig { backends, cull, ..RendererConfig::default() })
+                .unwrap_or_else(|e| panic!("{e}"))
+        })
+        .collect();
+    let info = renderers[0].adapter_info();
     println!("adapter: {} ({:?}, {})", info.name, info.backend, info.driver_info);
     let scenes = scenes();
-    let handles: Vec<Arc<SceneHandle>> = scenes.iter().map(|s| renderer.upload_scene(s).unwrap()).collect();
-    for h in &handles {
+    let handles: Vec<Vec<Arc<SceneHandle>>> =
+        renderers.iter().map(|r| scenes.iter().map(|s| r.upload_scene(s).unwrap()).collect()).collect();
+    for h in &handles[0] {
         println!("scene {}: {} triangles", h.scene_id(), h.triangle_count());
     }
     let poses: Vec<Vec<ObjectPose>> =
         scenes.iter().map(|s| s.scene().movable_objects.iter().map(|o| o.pose).collect()).collect();
     let cameras: Vec<EgoCamera> = (0..256).map(camera).collect();
-    let ego = |n: usize| -> Vec<ViewRequest<'_>> {
+    let ego = |r: usize, n: usize| -> Vec<ViewRequest<'_>> {
+        let handles = &handles[r];
         (0..n)
             .map(|i| ViewRequest::new(&handles[i % handles.len()], Camera::Ego(cameras[i]), &poses[i % handles.len()]))
             .collect()
     };
-    println!("{:<34} {:>10}", "case (128x128)", "views/s");
-    for n in [1, 16, 64, 256] {
-        println!("{:<34} {:>10.0}", format!("ego, batch of {n}"), run(&renderer, &ego(n), seconds));
+    fn both<'a>(renderers: &[Renderer], seconds: f64, case: impl Fn(usize) -> Vec<ViewRequest<'a>>) -> [f64; 2] {
+        [0, 1].map(|r| run(&renderers[r], &case(r), seconds))
     }
-    let top: Vec<ViewRequest<'_>> = (0..256)
-        .map(|i| ViewRequest::new(&handles[i % handles.len()], Camera::TopDown, &poses[i % handles.len()]))
-        .collect();
-    println!("{:<34} {:>10.0}", "top-down, batch of 256", run(&renderer, &top, seconds));
-    let full: Vec<ViewRequest<'_>> = ego(256).into_iter().map(|r| r.with_outputs(Outputs::ALL)).collect();
-    println!("{:<34} {:>10.0}", "ego + depth + seg, batch of 256", run(&renderer, &full, seconds));
+    println!("{:<34} {:>12} {:>12}", "case (128x128), views/s", "culling on", "culling off");
+    for n in [1, 16, 64, 256] {
+        let [on, off] = both(&renderers, seconds, |r| ego(r, n));
+        println!("{:<34} {:>12.0} {:>12.0}", format!("ego, batch of {n}"), on, off);
+    }
+    let top = |r: usize| -> Vec<ViewRequest<'_>> {
+        let handles = &handles[r];
+        (0..256)
+            .map(|i| ViewRequest::new(&handles[i % handles.len()], Camera::TopDown, &poses[i % handles.len()]))
+            .collect()
+    };
+    let [on, off] = both(&renderers, seconds, top);
+    println!("{:<34} {:>12.0} {:>12.0}", "top-down, batch of 256", on, off);
+    let full =
+        |r: usize| -> Vec<ViewRequest<'_>> { ego(r, 256).into_iter().map(|q| q.with_outputs(Outputs::ALL)).collect() };
+    let [on, off] = both(&renderers, seconds, full);
+    println!("{:<34} {:>12.0} {:>12.0}", "ego + depth + seg, batch of 256", on, off);
 }

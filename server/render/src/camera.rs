@@ -154,6 +154,39 @@ pub fn project_ego(camera: &EgoCamera, point: [f64; 3], resolution: u32) -> Opti
     Some(((x + 1.0) / 2.0 * n, (1.0 - y) / 2.0 * n, depth))
 }
 
+/// The egocentric camera's view volume, for culling: a sphere it reports outside covers no
+/// pixel of the image.
+pub(crate) struct EgoFrustum {
+    eye: [f64; 3],
+    basis: Basis,
+    focal: f64,
+    /// Length of the side planes' normals, `sqrt(focal² + 1)`.
+    side_norm: f64,
+}
+
+/// Added to every bounding radius: far more than the f32 rounding of the device's vertex
+/// work, so that culling never removes a triangle that could touch a pixel.
+const CULL_MARGIN: f64 = 0.01;
+
+impl EgoFrustum {
+    pub(crate) fn new(camera: &EgoCamera) -> Self {
+        let focal = focal_scale(camera);
+        Self { eye: camera.eye, basis: ego_basis(camera), focal, side_norm: (focal * focal + 1.0).sqrt() }
+    }
+
+    /// Whether the sphere at `centre` (world frame) of `radius` lies wholly outside one of the
+    /// planes that bound the image (clip space |x| ≤ w, |y| ≤ w, and the near plane).
+    pub(crate) fn excludes(&self, centre: [f64; 3], radius: f64) -> bool {
+        let rel = [centre[0] - self.eye[0], centre[1] - self.eye[1], centre[2] - self.eye[2]];
+        let dot = |a: [f64; 3]| a[0] * rel[0] + a[1] * rel[1] + a[2] * rel[2];
+        let r = radius + CULL_MARGIN;
+        let d = dot(self.basis.forward);
+        let (x, y) = (dot(self.basis.right) * self.focal, dot(self.basis.up) * self.focal);
+        let side = r * self.side_norm;
+        d + r < EGO_NEAR || x - d > side || -x - d > side || y - d > side || -y - d > side
+    }
+}
+
 fn v4(v: [f64; 3], w: f64) -> [f32; 4] {
     [v[0] as f32, v[1] as f32, v[2] as f32, w as f32]
 }

@@ -105,11 +105,29 @@ impl SegmentLabel {
     }
 }
 
+/// A run of a scene mesh's indices that belongs to one piece (the floor, a wall piece, an
+/// object), with a sphere that bounds it, for culling pieces a view cannot see.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct MeshPart {
+    /// First index of the run.
+    pub first: u32,
+    /// Number of indices.
+    pub count: u32,
+    /// Pose slot of its vertices: 0 for the world frame, `1 + i` for movable object `i`.
+    pub slot: u32,
+    /// Centre of the bounding sphere, in the slot's frame.
+    pub centre: [f64; 3],
+    /// Its radius, metres.
+    pub radius: f64,
+}
+
 /// A scene as one indexed triangle list, ready for upload.
 #[derive(Clone, Debug, Default)]
 pub struct SceneMesh {
     pub(crate) vertices: Vec<GpuVertex>,
     pub(crate) indices: Vec<u32>,
+    /// Consecutive runs of `indices`, one per piece, in order.
+    pub(crate) parts: Vec<MeshPart>,
     /// Highest point of any geometry, metres (for the top-down camera).
     pub(crate) max_height: f64,
 }
@@ -326,6 +344,8 @@ impl MeshBuilder {
             255,
         ]);
         let segment = segment.id();
+        let first = self.mesh.indices.len() as u32;
+        let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
         for t in &triangles.0 {
             let n = cross(sub(t[1], t[0]), sub(t[2], t[0]));
             let len = dot(n, n).sqrt();
@@ -334,6 +354,10 @@ impl MeshBuilder {
             }
             let normal = n.map(|c| (c / len) as f32);
             for p in t {
+                for k in 0..3 {
+                    lo[k] = lo[k].min(p[k]);
+                    hi[k] = hi[k].max(p[k]);
+                }
                 self.mesh.max_height = self.mesh.max_height.max(p[1]);
                 let vertex = GpuVertex { position: p.map(|c| c as f32), slot, normal, colour: packed, segment };
                 let key: [u32; 9] = bytemuck::cast(vertex);
@@ -344,6 +368,12 @@ impl MeshBuilder {
                 }
                 self.mesh.indices.push(index);
             }
+        }
+        let count = self.mesh.indices.len() as u32 - first;
+        if count > 0 {
+            let centre = [0, 1, 2].map(|k| (lo[k] + hi[k]) / 2.0);
+            let radius = [0, 1, 2].map(|k| (hi[k] - lo[k]) / 2.0).iter().map(|h| h * h).sum::<f64>().sqrt();
+            self.mesh.parts.push(MeshPart { first, count, slot, centre, radius });
         }
     }
 }

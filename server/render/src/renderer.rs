@@ -21,10 +21,10 @@ use bytes::Bytes;
 use esrp_core::{CompiledScene, ObjectPose};
 use wgpu::util::DeviceExt;
 
-use crate::camera::{Camera, TopDownFrame, ego_view, top_down_view};
+use crate::camera::{Camera, EgoFrustum, TopDownFrame, ego_view, top_down_view};
 use crate::error::RenderError;
 use crate::gpu::{GpuVertex, GpuView, MAX_POSE_SLOTS, SHADER_SOURCE, VIEW_STRIDE};
-use crate::mesh::{BACKGROUND_COLOUR, build_scene_mesh};
+use crate::mesh::{BACKGROUND_COLOUR, MeshPart, build_scene_mesh};
 
 /// Resolution of every view unless a request asks for another (SPEC §2, §4).
 pub const DEFAULT_RESOLUTION: u32 = 128;
@@ -80,6 +80,10 @@ pub struct RendererConfig {
     /// Largest side of the atlas texture, pixels (rounded down to a power of two and capped by
     /// the adapter). 4096 holds 1024 views of 128×128.
     pub max_atlas_size: u32,
+    /// Skip the pieces of a scene (floor, wall pieces, objects) that an egocentric view cannot
+    /// see, by their bounding spheres: less vertex work, the same images bit for bit. `false`
+    /// draws every piece in every view (for comparison).
+    pub cull: bool,
 }
 
 impl Default for RendererConfig {
@@ -88,6 +92,7 @@ impl Default for RendererConfig {
             backends: BackendPreference::Auto,
             power_preference: wgpu::PowerPreference::HighPerformance,
             max_atlas_size: 4096,
+            cull: true,
         }
     }
 }
@@ -102,6 +107,7 @@ pub struct SceneHandle {
     vertex_buffer: wgpu::Buffer,
     index_buffer: wgpu::Buffer,
     index_count: u32,
+    parts: Vec<MeshPart>,
     vertex_count: usize,
     movable_count: usize,
     frame: TopDownFrame,
@@ -267,6 +273,7 @@ pub struct Renderer {
     bind_group_layout: wgpu::BindGroupLayout,
     max_atlas: u32,
     max_pages: u32,
+    cull: bool,
     lost: Arc<Mutex<Option<String>>>,
     state: Mutex<BatchState>,
 }
@@ -416,6 +423,7 @@ impl Renderer {
             bind_group_layout,
             max_atlas,
             max_pages: limits.max_texture_array_layers.clamp(1, 1024),
+            cull: config.cull,
             lost,
             state: Mutex::new(BatchState { atlases: Vec::new(), batches: 0 }),
         })
@@ -474,6 +482,7 @@ impl Renderer {
             vertex_buffer,
             index_buffer,
             index_count,
+            parts: mesh.parts,
             vertex_count: vertices.len(),
             movable_count,
             frame: TopDownFrame::for_scene(scene, DEFAULT_RESOLUTION),
@@ -636,6 +645,46 @@ impl Renderer {
         Atlas { side, pages, full, colour, depth, extras, readback, uniforms, bind_group, last_used: 0 }
     }
 
+    /// The runs of `request.scene`'s indices to draw for `request`: all of them, or with
+    /// culling on, for an egocentric view, those of the pieces whose bounding spheres are not
+    /// wholly outside the view volume (consecutive ones merged into one draw).
+    fn index_ranges(&self, request: &ViewRequest<'_>) -> Vec<std::ops::Range<u32>> {
+        let scene = request.scene;
+        let everything = std::iter::once(0..scene.index_count).collect();
+        let Camera::Ego(camera) = request.camera else { return everything };
+        if !self.cull {
+            return everything;
+        }
+        let frustum = EgoFrustum::new(&camera);
+        let mut ranges: Vec<std::ops::Range<u32>> = Vec::new();
+        for part in &scene.parts {
+            let centre = match part.slot.checked_sub(1).and_then(|i| request.object_poses.get(i as usize)) {
+                None => part.centre,
+                Some(pose) => {
+                    // As the shader places a movable object's vertices.
+                    let (s, c) = pose.yaw.sin_cos();
+                    let [x, y, z] = part.centre;
+                    [c * x + s * z + pose.x, y, -s * x + c * z + pose.z]
+                }
+            };
+            if frustum.excludes(centre, part.radius) {
+                continue;
+            }
+            let range = part.first..part.first + part.count;
+            match ranges.last_mut() {
+                Some(last) if last.end == range.start => last.end = range.end,
+                _ => ranges.push(range),
+            }
+        }
+        ranges
+    }
+
+    /// Number of triangles `request` draws after culling (every triangle of its scene with
+    /// culling off, or for a top-down view).
+    pub fn triangles_drawn(&self, request: &ViewRequest<'_>) -> usize {
+        self.index_ranges(request).iter().map(|r| r.len()).sum::<usize>() / 3
+    }
+
     /// Renders any mix of views of any scenes into the pages of one atlas (one render pass per
     /// page), with one submit and one readback. Outputs are in request order and
     /// bit-identical to rendering each view alone. A batch larger than one atlas (more pages
@@ -757,7 +806,9 @@ impl Renderer {
                 pass.set_bind_group(0, &atlas.bind_group, &[(i as u64 * VIEW_STRIDE) as u32]);
                 pass.set_vertex_buffer(0, scene.vertex_buffer.slice(..));
                 pass.set_index_buffer(scene.index_buffer.slice(..), wgpu::IndexFormat::Uint32);
-                pass.draw_indexed(0..scene.index_count, 0, 0..1);
+                for range in self.index_ranges(request) {
+                    pass.draw_indexed(range, 0, 0..1);
+                }
             }
         }
         let copy = |encoder: &mut wgpu::CommandEncoder, texture: &wgpu::Texture, plane: u64| {

@@ -124,3 +124,65 @@ fn renderer_is_usable_from_several_threads() {
         }
     });
 }
+
+/// Culling (skipping the pieces an egocentric view cannot see) changes no pixel: views from
+/// all over two rooms, in every direction, with the objects moved around (near the camera
+/// too), give the same RGB, depth and segmentation bit for bit as a renderer that draws every
+/// piece, and culling does skip work.
+#[test]
+fn culling_changes_no_pixel() {
+    let everything = esrp_render::Renderer::new(esrp_render::RendererConfig {
+        backends: esrp_render::BackendPreference::from_env().unwrap_or_default(),
+        cull: false,
+        ..esrp_render::RendererConfig::default()
+    })
+    .unwrap();
+    let mut state = 0x9e37_79b9_7f4a_7c15u64;
+    let mut unit = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let (mut drawn, mut total) = (0usize, 0usize);
+    for scene in [bedroom(), showcase()] {
+        let culled = renderer().upload_scene(&scene).unwrap();
+        let full = everything.upload_scene(&scene).unwrap();
+        let frame = culled.top_down_frame(128);
+        let (lo_x, lo_z) = frame.pixel_to_floor(0.0, 128.0);
+        let (hi_x, hi_z) = frame.pixel_to_floor(128.0, 0.0);
+        let place = |unit: &mut dyn FnMut() -> f64| (lo_x + (hi_x - lo_x) * unit(), lo_z + (hi_z - lo_z) * unit());
+        for i in 0..160 {
+            let (x, z) = place(&mut unit);
+            let camera = esrp_core::EgoCamera {
+                eye: [x, 0.3 + 1.5 * unit(), z],
+                yaw: std::f64::consts::TAU * unit(),
+                pitch: (60.0 * unit() - 10.0f64).to_radians(),
+                horizontal_fov: (50.0 + 60.0 * unit()).to_radians(),
+            };
+            let poses: Vec<ObjectPose> = (0..culled.movable_count())
+                .map(|_| {
+                    let (x, z) = place(&mut unit);
+                    pose(x, z, std::f64::consts::TAU * unit())
+                })
+                .collect();
+            let outputs = Outputs { depth: true, segmentation: true };
+            let resolution = if i % 5 == 0 { 64 } else { 128 };
+            let request = |handle| {
+                ViewRequest::new(handle, Camera::Ego(camera), &poses).with_outputs(outputs).with_resolution(resolution)
+            };
+            let a = renderer().render_one(&request(&culled)).unwrap();
+            let b = everything.render_one(&request(&full)).unwrap();
+            assert!(a.rgb == b.rgb, "view {i}: culling changed the RGB image");
+            assert_eq!(
+                a.depth.map(|d| d.iter().map(|v| v.to_bits()).collect::<Vec<_>>()),
+                b.depth.map(|d| d.iter().map(|v| v.to_bits()).collect::<Vec<_>>()),
+                "view {i}: depth"
+            );
+            assert_eq!(a.segmentation, b.segmentation, "view {i}: segmentation");
+            drawn += renderer().triangles_drawn(&request(&culled));
+            total += everything.triangles_drawn(&request(&full));
+        }
+    }
+    assert!(drawn * 4 < total * 3, "culling skipped too little: {drawn} of {total} triangles drawn");
+}
