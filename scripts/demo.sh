@@ -7,12 +7,14 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 scenes="${1:-6}"
 
-# The server renders on lavapipe (Mesa's CPU Vulkan driver) where there is no GPU.
-if ! ls /usr/share/vulkan/icd.d/*.json >/dev/null 2>&1 || ! ldconfig -p | grep -q 'libvulkan.so.1'; then
+# Without a GPU the server renders on Mesa's CPU renderer: llvmpipe through OpenGL (EGL), or
+# lavapipe through Vulkan.
+if ! ls /usr/share/vulkan/icd.d/*.json >/dev/null 2>&1 || ! ldconfig -p | grep -q 'libvulkan.so.1' \
+    || ! ls /usr/share/glvnd/egl_vendor.d/*mesa*.json >/dev/null 2>&1; then
     if [ "$(id -u)" = 0 ]; then apt_get="apt-get"; else apt_get="sudo apt-get"; fi
     export DEBIAN_FRONTEND=noninteractive
     $apt_get update -qq
-    $apt_get install -y -qq mesa-vulkan-drivers libvulkan1 >/dev/null
+    $apt_get install -y -qq mesa-vulkan-drivers libvulkan1 libegl1 libegl-mesa0 libgl1-mesa-dri >/dev/null
 fi
 export NODEVICE_SELECT=1
 

@@ -53,9 +53,11 @@ fi
 "$venv/bin/python" -m pip list --disable-pip-version-check --format=freeze | grep -iE '^(dm-env-rpc|grpcio|protobuf|numpy)=='
 
 step "binaries"
-# The server renders on lavapipe (Mesa's CPU Vulkan driver) where there is no GPU.
-if ! ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1 || ! ldconfig -p | grep -q 'libvulkan.so.1'; then
-    apt_install mesa-vulkan-drivers libvulkan1
+# Without a GPU the server renders on Mesa's CPU renderer: llvmpipe through OpenGL (EGL), or
+# lavapipe through Vulkan.
+if ! ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1 || ! ldconfig -p | grep -q 'libvulkan.so.1' \
+    || ! ls /usr/share/glvnd/egl_vendor.d/*mesa*.json >/dev/null 2>&1; then
+    apt_install mesa-vulkan-drivers libvulkan1 libegl1 libegl-mesa0 libgl1-mesa-dri
 fi
 export NODEVICE_SELECT=1
 cargo build --locked -p esrp-server -p esrp-dataset

@@ -7,9 +7,10 @@
 pub enum RenderError {
     /// No graphics adapter could be found for any enabled backend.
     #[error(
-        "no graphics adapter found (tried: {tried}); on a machine without a GPU install a CPU \
-         Vulkan driver (`apt-get install mesa-vulkan-drivers libvulkan1`, lavapipe) and, if \
-         another layer hides it, set NODEVICE_SELECT=1"
+        "no graphics adapter found (tried: {tried}); on a machine without a GPU install Mesa's CPU \
+         renderers (`apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri` for llvmpipe through \
+         OpenGL, `apt-get install mesa-vulkan-drivers libvulkan1` for lavapipe through Vulkan) \
+         and, if another Vulkan layer hides lavapipe, set NODEVICE_SELECT=1"
     )]
     NoAdapter {
         /// The backends that were tried.

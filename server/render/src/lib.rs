@@ -1,13 +1,13 @@
 //! **esrp-render**: the ESRP renderer. It draws the observations of SPEC §2 and §4 — the
 //! agent's egocentric RGB view and the top-down goal image — with wgpu, for many episodes at
-//! once, on a GPU or on a CPU (lavapipe) alike.
+//! once, on a GPU or on a CPU (Mesa's llvmpipe through OpenGL, or lavapipe through Vulkan) alike.
 //!
 //! One long-lived [`Renderer`] owns the device, the queue and the pipelines. Each scene is
 //! turned into one triangle mesh and uploaded once ([`Renderer::upload_scene`] → an
 //! `Arc<`[`SceneHandle`]`>`); each view names a scene, a [`Camera`] and the movable objects'
 //! poses ([`ViewRequest`]). [`Renderer::render_batch`] draws any mix of views of any scenes into
 //! the pages of an atlas (a texture array), one page and one render pass per view (a dynamic
-//! uniform offset and one indexed draw per view), submits once, reads back once and returns
+//! uniform offset and one indexed draw per run of visible pieces), submits once, reads back once and returns
 //! tightly packed RGB per view ([`ViewOutput`]), plus depth and segmentation where asked.
 //!
 //! # Invariants
@@ -24,7 +24,10 @@
 //!   shader applies. Writing them every batch is cheaper than tracking which moved.
 //! - **Nothing panics on input.** Bad poses, resolutions, batch sizes, foreign scenes and a
 //!   missing adapter are [`RenderError`] values; [`RenderError::NoAdapter`] says how to install
-//!   lavapipe.
+//!   Mesa's CPU renderers.
+//! - **Culling changes no pixel.** An egocentric view skips the pieces (floor, wall pieces,
+//!   objects) whose bounding spheres, grown by a margin far above f32 rounding, lie wholly
+//!   outside its view volume; such a piece cannot touch a pixel ([`RendererConfig::cull`]).
 //! - **Thread-safe.** [`Renderer`] and [`SceneHandle`] are `Send + Sync`; each batch renders
 //!   with an atlas of its own from a small pool, so batches from two threads overlap (one
 //!   submits while the other waits or extracts).
@@ -88,18 +91,10 @@
 //!
 //! `cargo bench -p esrp-render` prints views/s for batches of 1, 16, 64 and 256 egocentric
 //! views of furnished rooms (266 and 386 triangles) at 128×128, readback and RGB conversion
-//! included. On the development machine (2 Xeon cores, no GPU, lavapipe from Mesa 22.3.6 /
-//! LLVM 15, Vulkan backend, release build, idle machine):
-//!
-//! | batch size | views/s |
-//! |---:|---:|
-//! | 1 | 6,000 |
-//! | 16 | 8,800 |
-//! | 64 | 9,400 |
-//! | 256 | 7,700 |
-//!
-//! With other work sharing the two cores, batches of 64 and 256 gave 5,500–6,800 views/s.
-//! `server/render/README.md` has the full table (top-down, depth and segmentation, OpenGL).
+//! included, with culling on and off. On the 2-core development machine (AMD EPYC, no GPU,
+//! Mesa 22.3.6, `LP_NUM_THREADS=0`, release build) lavapipe gives ~4,200 views/s one view per
+//! call and 5,700–8,000 in batches; llvmpipe through OpenGL ~7,300 one view per call and
+//! 5,600–8,100 in batches. `server/render/README.md` has the full table.
 
 #![warn(missing_docs)]
 

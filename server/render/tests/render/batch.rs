@@ -132,7 +132,7 @@ fn renderer_is_usable_from_several_threads() {
 #[test]
 fn culling_changes_no_pixel() {
     let everything = esrp_render::Renderer::new(esrp_render::RendererConfig {
-        backends: esrp_render::BackendPreference::from_env().unwrap_or_default(),
+        backends: crate::common::backend(),
         cull: false,
         ..esrp_render::RendererConfig::default()
     })

@@ -8,11 +8,12 @@ use esrp_core::{
 };
 use esrp_render::{BackendPreference, Renderer, RendererConfig};
 
-/// The renderer every test shares (batches serialise on its mutex). `ESRP_RENDER_BACKEND=gl`
-/// runs the suite on OpenGL.
+/// The renderer every test shares (batches serialise on its mutex): Vulkan (lavapipe on a
+/// machine without a GPU) unless `ESRP_RENDER_BACKEND` says otherwise (`gl` runs the suite on
+/// OpenGL, `auto` on what the server would pick).
 pub fn renderer() -> &'static Renderer {
     static RENDERER: OnceLock<Renderer> = OnceLock::new();
-    let backends = BackendPreference::from_env().unwrap_or_default();
+    let backends = backend();
     RENDERER.get_or_init(|| match Renderer::new(RendererConfig { backends, ..RendererConfig::default() }) {
         Ok(r) => {
             eprintln!("esrp-render tests on {:?}", r.adapter_info());
@@ -20,6 +21,11 @@ pub fn renderer() -> &'static Renderer {
         }
         Err(e) => panic!("esrp-render tests need a graphics adapter and found none: {e}"),
     })
+}
+
+/// The backends the tests render with (see [`renderer`]).
+pub fn backend() -> BackendPreference {
+    BackendPreference::from_env().unwrap_or(BackendPreference::Vulkan)
 }
 
 /// A box part standing on the floor.
