@@ -25,10 +25,11 @@ async fn shutdown_signal() {
     tracing::info!("shutting down");
 }
 
-/// Mesa's lavapipe rasterises with a pool of `LP_NUM_THREADS` threads (one per core by
-/// default). On a few cores, handing every small view to that pool costs more than it saves:
-/// rendering in the render thread itself measured 1.3-1.7x the steps/s on 2 cores. So unless
-/// the user chose, machines with at most 4 cores render in the render thread.
+/// Mesa's CPU renderers (llvmpipe, lavapipe) rasterise with a pool of `LP_NUM_THREADS`
+/// threads (one per core by default). On a few cores, handing every small view to that pool
+/// costs more than it saves: rasterising in the submitting thread (the render thread for
+/// llvmpipe through OpenGL, lavapipe's queue thread for Vulkan) measured 1.3-1.7x the steps/s
+/// on 2 cores. So unless the user chose, machines with at most 4 cores do that.
 #[allow(unsafe_code)]
 fn default_lavapipe_threads() {
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
