@@ -304,24 +304,20 @@ impl Renderer {
     /// Fails with [`RenderError::NoAdapter`] (never panics) when no adapter exists.
     pub fn new(config: RendererConfig) -> Result<Self, RenderError> {
         let power = config.power_preference;
-        let adapter = match config.backends {
+        let (adapter, tried) = match config.backends {
             BackendPreference::Auto => {
                 // A GPU through Vulkan first. Without one, both APIs reach Mesa's CPU
                 // rasteriser: OpenGL (llvmpipe) draws in the calling thread where Vulkan
                 // (lavapipe) hands every submission to a queue thread, and measured faster
                 // end to end (README), so it comes before lavapipe.
-                match request_adapter(wgpu::Backends::VULKAN, power) {
+                let adapter = match request_adapter(wgpu::Backends::VULKAN, power) {
                     Some(vulkan) if vulkan.get_info().device_type != wgpu::DeviceType::Cpu => Some(vulkan),
                     vulkan => request_adapter(wgpu::Backends::GL, power).or(vulkan),
-                }
+                };
+                (adapter, "vulkan, gl")
             }
-            BackendPreference::Vulkan => request_adapter(wgpu::Backends::VULKAN, power),
-            BackendPreference::Gl => request_adapter(wgpu::Backends::GL, power),
-        };
-        let tried = match config.backends {
-            BackendPreference::Auto => "vulkan, gl",
-            BackendPreference::Vulkan => "vulkan",
-            BackendPreference::Gl => "gl",
+            BackendPreference::Vulkan => (request_adapter(wgpu::Backends::VULKAN, power), "vulkan"),
+            BackendPreference::Gl => (request_adapter(wgpu::Backends::GL, power), "gl"),
         };
         let adapter = adapter.ok_or_else(|| RenderError::NoAdapter { tried: tried.to_owned() })?;
         let adapter_info = adapter.get_info();

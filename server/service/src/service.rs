@@ -236,6 +236,11 @@ fn attach_images(observation: &mut proto::Observation, sensors: &SensorConfig, o
     }
 }
 
+/// The error of stepping an episode that has ended (`at` locates the step in its call).
+fn episode_over(at: &str, id: &str, steps: u32) -> ServiceError {
+    ServiceError::EpisodeOver(format!("{at}: episode {id} has ended after {steps} steps: Reset it or create a new one"))
+}
+
 /// A locked episode.
 type EpisodeGuard = tokio::sync::OwnedMutexGuard<EpisodeEntry>;
 
@@ -272,12 +277,7 @@ fn take_planned(
             let step = step?;
             let g = &mut guards[step.episode];
             if g.episode.is_over() {
-                return Err(ServiceError::EpisodeOver(format!(
-                    "{}: episode {} has ended after {} steps: Reset it or create a new one",
-                    step.at,
-                    ids[step.episode],
-                    g.episode.steps()
-                )));
+                return Err(episode_over(&step.at, &ids[step.episode], g.episode.steps()));
             }
             let bytes = response_size(&g.sensors, step.include_goal);
             if bytes > max_message_bytes {
@@ -568,12 +568,7 @@ impl Shared {
             let mut response_bytes = 0usize;
             for (i, g) in guards.iter().enumerate() {
                 if g.episode.is_over() {
-                    return Err(ServiceError::EpisodeOver(format!(
-                        "{}: episode {} has ended after {} steps: Reset it or create a new one",
-                        at(i),
-                        requests[i].episode_id,
-                        g.episode.steps()
-                    )));
+                    return Err(episode_over(&at(i), &requests[i].episode_id, g.episode.steps()));
                 }
                 response_bytes += response_size(&g.sensors, requests[i].include_goal);
             }

@@ -3,7 +3,7 @@
 use esrp_core::ObjectPose;
 use esrp_render::{Camera, Outputs, ViewOutput, ViewRequest};
 
-use crate::common::{bedroom, ego_at, one_box_room, pose, renderer, showcase, start, targets};
+use crate::common::{bedroom, ego_at, one_box_room, pose, renderer, showcase, start, targets, uniform};
 
 #[test]
 fn batch_output_is_identical_to_views_rendered_one_by_one() {
@@ -48,13 +48,7 @@ fn a_full_batch_of_scattered_views_matches_views_rendered_alone() {
     let handle = renderer().upload_scene(&scene).unwrap();
     let (_, now) = start(&scene);
     let goal = targets(&scene);
-    let mut state = 0x2545_f491_4f6c_dd1du64;
-    let mut unit = move || {
-        state ^= state << 13;
-        state ^= state >> 7;
-        state ^= state << 17;
-        (state >> 11) as f64 / (1u64 << 53) as f64
-    };
+    let mut unit = uniform(0x2545_f491_4f6c_dd1d);
     let cameras: Vec<_> = (0..esrp_render::MAX_BATCH_VIEWS)
         .map(|_| ego_at(0.6 + 3.0 * unit(), 0.6 + 3.0 * unit(), (unit() * 16.0) as u8))
         .collect();
@@ -137,13 +131,7 @@ fn culling_changes_no_pixel() {
         ..esrp_render::RendererConfig::default()
     })
     .unwrap();
-    let mut state = 0x9e37_79b9_7f4a_7c15u64;
-    let mut unit = move || {
-        state ^= state << 13;
-        state ^= state >> 7;
-        state ^= state << 17;
-        (state >> 11) as f64 / (1u64 << 53) as f64
-    };
+    let mut unit = uniform(0x9e37_79b9_7f4a_7c15);
     let (mut drawn, mut total) = (0usize, 0usize);
     for scene in [bedroom(), showcase()] {
         let culled = renderer().upload_scene(&scene).unwrap();

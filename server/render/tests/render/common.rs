@@ -28,6 +28,17 @@ pub fn backend() -> BackendPreference {
     BackendPreference::from_env().unwrap_or(BackendPreference::Vulkan)
 }
 
+/// Uniform numbers in [0, 1) from `seed` (xorshift64; a non-zero seed), for scattering views.
+pub fn uniform(seed: u64) -> impl FnMut() -> f64 {
+    let mut state = seed;
+    move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
 /// A box part standing on the floor.
 pub fn box_part(half_x: f64, half_z: f64, height: f64) -> Part {
     Part::Box { half_extents: [half_x, height / 2.0, half_z], offset: [0.0, height / 2.0, 0.0], yaw: 0.0 }

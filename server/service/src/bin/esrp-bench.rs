@@ -16,7 +16,8 @@
 //! - `batch-64`: 64 episodes, one `StepBatch` of 64 steps at a time.
 //! - `memory-1000`: the server's resident memory with 1,000 live episodes (local server only).
 //!
-//! Latency is per step: from sending it to receiving its answer (for a batch, the whole call). Actions are random (seeded); episodes that end are reset.
+//! Latency is per step: from sending it to receiving its answer (for a batch, the whole call).
+//! Actions are random (seeded); episodes that end are reset.
 
 use std::collections::VecDeque;
 use std::path::PathBuf;
