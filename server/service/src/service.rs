@@ -309,9 +309,13 @@ pub struct Stepped {
 }
 
 impl Stepped {
-    /// `n` steps that all failed with `error` (nothing moved).
+    /// `n` steps that all failed with an internal `error` (nothing moved).
     fn failed(n: usize, error: &ServiceError) -> Self {
-        let message = error.to_string();
+        // Not "internal error: internal error: …".
+        let message = match error {
+            ServiceError::Internal(m) => m.clone(),
+            other => other.to_string(),
+        };
         Stepped {
             taken: (0..n).map(|_| Err(ServiceError::Internal(message.clone()))).collect(),
             render: RenderTicket::nothing(),
