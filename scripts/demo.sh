@@ -18,6 +18,6 @@ if ! ls /usr/share/vulkan/icd.d/*.json >/dev/null 2>&1 || ! ldconfig -p | grep -
 fi
 export NODEVICE_SELECT=1
 
-cargo build --release --locked -q -p esrp-server --bins
+cargo build --release --locked -q -p esrp-server -p esrp-client --bins
 # esrp-demo starts target/release/esrp-server itself and stops it when done.
 ./target/release/esrp-demo --scenes "$scenes"

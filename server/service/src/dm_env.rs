@@ -61,29 +61,8 @@ use crate::proto;
 use crate::service::Shared;
 
 /// Generated protobuf messages and gRPC stubs of `dm_env_rpc.v1` and the `google.rpc` and
-/// `google.protobuf` messages it uses, nested as their packages are (the generated code refers
-/// to its neighbours by relative paths).
-#[allow(missing_docs, clippy::all)]
-pub mod wire {
-    /// The `dm_env_rpc` packages.
-    pub mod dm_env_rpc {
-        /// `dm_env_rpc.v1`.
-        pub mod v1 {
-            tonic::include_proto!("dm_env_rpc.v1");
-        }
-    }
-    /// The `google` packages.
-    pub mod google {
-        /// `google.rpc`.
-        pub mod rpc {
-            tonic::include_proto!("google.rpc");
-        }
-        /// `google.protobuf` (only `Any`).
-        pub mod protobuf {
-            tonic::include_proto!("google.protobuf");
-        }
-    }
-}
+/// `google.protobuf` messages it uses (from esrp-proto).
+pub use esrp_proto as wire;
 
 use wire::dm_env_rpc::v1 as dm;
 use wire::dm_env_rpc::v1::environment_request::Payload as Rq;

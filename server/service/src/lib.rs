@@ -5,7 +5,6 @@
 //!
 //! # Module map
 //!
-//! - [`client`]: a tuned client channel and a local server process, for the bundled tools.
 //! - [`config`]: flags and environment variables.
 //! - [`scenes`]: the served scenes, built lazily and cached.
 //! - [`registry`]: live episodes by unguessable id, each locked alone; limits; idle reaping.
@@ -29,7 +28,6 @@
 
 #![warn(missing_docs)]
 
-pub mod client;
 pub mod config;
 pub mod dm_env;
 pub mod error;
@@ -45,15 +43,8 @@ use std::sync::Arc;
 use tokio::net::TcpListener;
 use tonic::service::interceptor::InterceptedService;
 
-/// Generated protobuf messages and gRPC stubs of `esrp.v1`.
-#[allow(missing_docs, clippy::all)]
-pub mod proto {
-    tonic::include_proto!("esrp.v1");
-
-    /// The encoded file descriptor set of every served API (esrp.v1 and dm_env_rpc.v1), for
-    /// gRPC reflection.
-    pub const FILE_DESCRIPTOR_SET: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/esrp_descriptor.bin"));
-}
+/// Generated protobuf messages and gRPC stubs of `esrp.v1` (from esrp-proto).
+pub use esrp_proto::esrp::v1 as proto;
 
 pub use config::Config;
 
@@ -152,7 +143,7 @@ pub async fn run(
         .set_serving::<dm_env::wire::dm_env_rpc::v1::environment_server::EnvironmentServer<dm_env::DmEnvService>>()
         .await;
     let reflection = tonic_reflection::server::Builder::configure()
-        .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(esrp_proto::FILE_DESCRIPTOR_SET)
         .build_v1()?;
     let dm_env = dm_env::server(shared.clone());
     let esrp = proto::esrp_server::EsrpServer::new(service::EsrpService::new(shared))

@@ -1,6 +1,6 @@
 //! Starts the real `esrp-server` binary on an ephemeral port and connects a client.
 
-use esrp_server::client::LocalServer;
+use esrp_client::LocalServer;
 use esrp_server::proto;
 use esrp_server::proto::esrp_client::EsrpClient;
 use tonic::transport::Channel;

@@ -17,6 +17,7 @@
 //! - `memory-1000`: the server's resident memory with 1,000 live episodes (local server only).
 //!
 //! Latency is per step: from sending it to receiving its answer (for a batch, the whole call).
+//! Everything goes through `esrp-client`, as a Rust agent would.
 //! Actions are random (seeded); episodes that end are reset.
 
 use std::collections::VecDeque;
@@ -25,13 +26,10 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use clap::Parser;
-use esrp_dataset::dice::Dice;
-use esrp_server::client::{Client, LocalServer, reach_or_start};
-use esrp_server::proto;
-use esrp_server::proto::stream_request::Request as Rq;
-use esrp_server::proto::stream_response::Response as Rs;
-use tokio::sync::mpsc;
-use tokio_stream::StreamExt;
+use esrp_client::{
+    Action, Answer, Client, ClientError, Episode, EpisodeOptions, LocalServer, RandomActions, SceneFilter, Split,
+    StepResult, reach_or_start,
+};
 
 #[derive(Parser, Debug)]
 #[command(name = "esrp-bench", version, about = "End-to-end throughput and latency of esrp-server")]
@@ -96,54 +94,24 @@ impl Outcome {
     }
 }
 
-/// Uniform random action codes from a seed (the project's portable random source).
-struct Actions(Dice);
-
-impl Actions {
-    fn new(seed: u64) -> Self {
-        Self(Dice::new(seed, 0, 0))
-    }
-
-    fn next(&mut self) -> i32 {
-        self.0.below(6) as i32
-    }
-}
-
 /// Episode scenes: test scenes of the served dataset, round robin.
-async fn scenes(client: &mut Client, n: usize) -> anyhow::Result<Vec<String>> {
-    let page = client
-        .list_scenes(proto::ListScenesRequest {
-            split: proto::Split::Test as i32,
-            page_size: n.min(1000) as u32,
-            ..Default::default()
-        })
-        .await?
-        .into_inner();
-    if page.scenes.is_empty() {
+async fn scenes(client: &Client, n: usize) -> anyhow::Result<Vec<String>> {
+    let filter = SceneFilter { page_size: n.min(1000) as u32, ..SceneFilter::split(Split::Test) };
+    let mut scenes = std::pin::pin!(client.scenes(filter));
+    let mut ids = Vec::new();
+    while ids.len() < n.min(1000)
+        && let Some(scene) = tokio_stream::StreamExt::next(&mut scenes).await
+    {
+        ids.push(scene?.id);
+    }
+    if ids.is_empty() {
         bail!("the server has no test scenes");
     }
-    Ok((0..n).map(|i| page.scenes[i % page.scenes.len()].id.clone()).collect())
+    Ok((0..n).map(|i| ids[i % ids.len()].clone()).collect())
 }
 
-async fn create(client: &mut Client, scene: &str) -> anyhow::Result<String> {
-    let request = proto::CreateEpisodeRequest {
-        scene: Some(proto::create_episode_request::Scene::SceneId(scene.to_owned())),
-        ..Default::default()
-    };
-    Ok(client.create_episode(request).await?.into_inner().episode_id)
-}
-
-fn step(episode_id: &str, action: i32) -> proto::StepRequest {
-    proto::StepRequest { episode_id: episode_id.to_owned(), action, include_goal: false }
-}
-
-fn ended(r: &proto::StepResponse) -> bool {
-    r.terminated || r.truncated
-}
-
-async fn reset(client: &mut Client, episode_id: &str) -> anyhow::Result<()> {
-    client.reset(proto::ResetRequest { episode_id: episode_id.to_owned(), scene: None }).await?;
-    Ok(())
+async fn create(client: &Client, scene: &str) -> anyhow::Result<Episode> {
+    Ok(client.create_episode(EpisodeOptions::scene(scene)).await?.0)
 }
 
 /// Measurement window: warm-up, then `seconds` measured.
@@ -161,31 +129,37 @@ impl Window {
 }
 
 /// Steps `episodes` with unary calls, one task each; returns (steps, latencies) measured.
-async fn unary(client: &Client, episodes: Vec<String>, window: Window) -> anyhow::Result<(u64, Vec<f64>)> {
+async fn unary(episodes: &mut Vec<Episode>, window: Window) -> anyhow::Result<(u64, Vec<f64>)> {
     let mut tasks = Vec::new();
-    for (i, id) in episodes.into_iter().enumerate() {
-        let mut client = client.clone();
+    for (i, mut episode) in episodes.drain(..).enumerate() {
         tasks.push(tokio::spawn(async move {
-            let mut actions = Actions::new(i as u64 + 1);
+            let mut actions = RandomActions::new(i as u64 + 1);
             let (mut steps, mut latencies) = (0u64, Vec::new());
             loop {
                 let t = Instant::now();
                 if t >= window.until {
                     break;
                 }
-                let r = client.step(step(&id, actions.next())).await?.into_inner();
+                let r = episode.step(actions.next_action()).await?;
                 if t >= window.measure_from {
                     steps += 1;
                     latencies.push(t.elapsed().as_secs_f64());
                 }
-                if ended(&r) {
-                    reset(&mut client, &id).await?;
+                if r.ended() {
+                    episode.reset().await?;
                 }
             }
-            anyhow::Ok((steps, latencies))
+            anyhow::Ok(((steps, latencies), episode))
         }));
     }
-    gather(tasks).await
+    let (mut steps, mut latencies) = (0, Vec::new());
+    for task in tasks {
+        let ((s, l), episode) = task.await??;
+        steps += s;
+        latencies.extend(l);
+        episodes.push(episode);
+    }
+    Ok((steps, latencies))
 }
 
 /// Steps measured and their latencies, seconds.
@@ -212,93 +186,77 @@ async fn stream(
     window: usize,
     measured: Window,
 ) -> anyhow::Result<Measured> {
-    let mut client = client.clone();
-    let in_flight_max = episodes.len() * (window + 1);
-    let (tx, rx) = mpsc::channel::<proto::StreamRequest>(in_flight_max + 1);
-    let mut inbound = client.step_stream(tokio_stream::wrappers::ReceiverStream::new(rx)).await?.into_inner();
-    let mut actions = Actions::new(seed);
+    let mut stream = client.episode_stream(window).await?;
+    let mut actions = RandomActions::new(seed);
     // Answers come in request order: what each one answers, and when it was sent.
-    let mut in_flight: VecDeque<(Instant, usize, bool)> = VecDeque::with_capacity(in_flight_max);
-    let mut next_id = 0u64;
-    let mut send = async |e: usize, is_step: bool, in_flight: &mut VecDeque<(Instant, usize, bool)>| {
-        next_id += 1;
-        let request = if is_step {
-            Rq::Step(step(&episodes[e], actions.next()))
-        } else {
-            Rq::Reset(proto::ResetRequest { episode_id: episodes[e].clone(), scene: None })
-        };
-        in_flight.push_back((Instant::now(), e, is_step));
-        tx.send(proto::StreamRequest { request_id: next_id, request: Some(request) }).await
-    };
+    let mut in_flight: VecDeque<(Instant, usize)> = VecDeque::with_capacity(episodes.len() * (window + 1));
     for _ in 0..window {
-        for e in 0..episodes.len() {
-            send(e, true, &mut in_flight).await?;
+        for (e, id) in episodes.iter().enumerate() {
+            in_flight.push_back((Instant::now(), e));
+            stream.step(id, actions.next_action()).await?;
         }
     }
     let (mut steps, mut latencies) = (0u64, Vec::new());
-    while let Some((sent, e, is_step)) = in_flight.pop_front() {
-        let response = inbound.next().await.context("the stream ended")??;
+    while let Some(answer) = stream.next().await? {
         let now = Instant::now();
-        match response.response {
-            Some(Rs::Step(r)) => {
+        let (sent, e) = in_flight.pop_front().context("more answers than requests")?;
+        let is_step = match answer.result {
+            Ok(Answer::Step(r)) => {
                 if sent >= measured.measure_from && now <= measured.until {
                     steps += 1;
                     latencies.push((now - sent).as_secs_f64());
                 }
-                if ended(&r) && now < measured.until {
-                    send(e, false, &mut in_flight).await?;
+                if r.ended() && now < measured.until {
+                    in_flight.push_back((Instant::now(), e));
+                    stream.reset(&episodes[e])?;
                 }
+                true
             }
-            Some(Rs::Reset(_)) => {}
-            Some(Rs::Error(error)) if is_step && error.code == tonic::Code::FailedPrecondition as i32 => {}
-            Some(Rs::Error(error)) => bail!("{} failed: {}", if is_step { "step" } else { "reset" }, error.message),
-            other => bail!("unexpected answer {other:?}"),
-        }
+            Ok(Answer::Reset(_)) => false,
+            Err(ClientError::EpisodeEnded(_)) => true,
+            Err(error) => bail!("request {} failed: {error}", answer.request_id),
+            Ok(other) => bail!("unexpected answer {other:?}"),
+        };
         if is_step && now < measured.until {
-            send(e, true, &mut in_flight).await?;
+            in_flight.push_back((Instant::now(), e));
+            stream.step(&episodes[e], actions.next_action()).await?;
         }
     }
     Ok((steps, latencies))
 }
 
 /// Steps `episodes` with one StepBatch per wave.
-async fn batch(client: &Client, episodes: Vec<String>, window: Window) -> anyhow::Result<(u64, Vec<f64>)> {
-    let mut client = client.clone();
-    let mut actions = Actions::new(7);
+async fn batch(client: &Client, episodes: &mut [Episode], window: Window) -> anyhow::Result<(u64, Vec<f64>)> {
+    let mut actions = RandomActions::new(7);
     let (mut steps, mut latencies) = (0u64, Vec::new());
     loop {
         let t = Instant::now();
         if t >= window.until {
             break;
         }
-        let request = proto::StepBatchRequest { steps: episodes.iter().map(|e| step(e, actions.next())).collect() };
-        let responses = client.step_batch(request).await?.into_inner().responses;
+        let request: Vec<(&Episode, Action)> = episodes.iter().map(|e| (e, actions.next_action())).collect();
+        let responses: Vec<StepResult> = client.step_batch(&request).await?;
         if t >= window.measure_from {
             steps += episodes.len() as u64;
             latencies.extend(std::iter::repeat_n(t.elapsed().as_secs_f64(), episodes.len()));
         }
-        for (e, r) in episodes.iter().zip(&responses) {
-            if ended(r) {
-                reset(&mut client, e).await?;
+        for (e, r) in episodes.iter_mut().zip(&responses) {
+            if r.ended() {
+                e.reset().await?;
             }
         }
     }
     Ok((steps, latencies))
 }
 
-async fn close_all(client: &mut Client, episodes: &[String]) -> anyhow::Result<()> {
+async fn close_all(episodes: Vec<Episode>) -> anyhow::Result<()> {
     for e in episodes {
-        client.close_episode(proto::CloseEpisodeRequest { episode_id: e.clone() }).await?;
+        e.close().await?;
     }
     Ok(())
 }
 
-async fn scenario(
-    name: &str,
-    args: &Args,
-    client: &mut Client,
-    server: Option<&LocalServer>,
-) -> anyhow::Result<Outcome> {
+async fn scenario(name: &str, args: &Args, client: &Client, server: Option<&LocalServer>) -> anyhow::Result<Outcome> {
     let n = match name {
         "unary-1" | "stream-1" | "stream-1-pipelined" => 1,
         "memory-1000" => 1000,
@@ -314,7 +272,8 @@ async fn scenario(
     if name == "memory-1000" {
         // One step each, so that every episode has rendered and holds its state.
         for chunk in episodes.chunks(250) {
-            client.step_batch(proto::StepBatchRequest { steps: chunk.iter().map(|e| step(e, 2)).collect() }).await?;
+            let steps: Vec<(&Episode, Action)> = chunk.iter().map(|e| (e, Action::TurnLeft)).collect();
+            client.step_batch(&steps).await?;
         }
         match (before, server.and_then(LocalServer::resident_bytes)) {
             (Some(b), Some(a)) => {
@@ -327,30 +286,31 @@ async fn scenario(
             }
             _ => outcome.note = "needs a local server on Linux (no --server)".into(),
         }
-        close_all(client, &episodes).await?;
+        close_all(episodes).await?;
         return Ok(outcome);
     }
     let window = Window::new(args.seconds);
+    let ids: Vec<String> = episodes.iter().map(|e| e.id().to_owned()).collect();
     let (steps, latencies) = match name {
-        "unary-1" | "unary-64" => unary(client, episodes.clone(), window).await?,
-        "stream-1" | "stream-mux-64" => stream(client, episodes.clone(), 3, 1, window).await?,
-        "stream-1-pipelined" => stream(client, episodes.clone(), 5, args.window as usize, window).await?,
+        "unary-1" | "unary-64" => unary(&mut episodes, window).await?,
+        "stream-1" | "stream-mux-64" => stream(client, ids, 3, 1, window).await?,
+        "stream-1-pipelined" => stream(client, ids, 5, args.window as usize, window).await?,
         "streams-64" => {
             let mut tasks = Vec::new();
-            for (i, e) in episodes.iter().enumerate() {
+            for (i, e) in ids.into_iter().enumerate() {
                 let client = client.clone();
-                let e = vec![e.clone()];
+                let e = vec![e];
                 tasks.push(tokio::spawn(async move { stream(&client, e, i as u64 + 11, 1, window).await }));
             }
             gather(tasks).await?
         }
-        "batch-64" => batch(client, episodes.clone(), window).await?,
+        "batch-64" => batch(client, &mut episodes, window).await?,
         other => bail!("unknown scenario {other:?}"),
     };
     outcome.steps = steps;
     outcome.seconds = args.seconds;
     outcome.latencies = latencies;
-    close_all(client, &episodes).await?;
+    close_all(episodes).await?;
     Ok(outcome)
 }
 
@@ -368,10 +328,8 @@ fn runtime_for(scenario: &str) -> std::io::Result<tokio::runtime::Runtime> {
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let (address, local) = reach_or_start(args.server.as_deref(), args.server_binary.clone(), &args.server_args)?;
-    let connect = async || esrp_server::client::connect(&address, args.token.as_deref()).await;
-    let info = runtime_for("")?.block_on(async {
-        anyhow::Ok(connect().await?.server_info(proto::ServerInfoRequest {}).await?.into_inner())
-    })?;
+    let connect = async || Client::connect(&address).token_opt(args.token.as_deref()).await;
+    let info = runtime_for("")?.block_on(async { anyhow::Ok(connect().await?.server_info().await?) })?;
     let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
     let cpu_model = std::fs::read_to_string("/proc/cpuinfo")
         .ok()
@@ -388,7 +346,7 @@ fn main() -> anyhow::Result<()> {
     let mut results = Vec::new();
     for name in &args.scenarios {
         let outcome = runtime_for(name)?
-            .block_on(async { scenario(name, &args, &mut connect().await?, local.as_ref()).await })
+            .block_on(async { scenario(name, &args, &connect().await?, local.as_ref()).await })
             .with_context(|| format!("scenario {name}"))?;
         if outcome.latencies.is_empty() {
             println!("{:<20} {:>8} {}", outcome.name, outcome.episodes, outcome.note);

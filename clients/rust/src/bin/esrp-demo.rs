@@ -13,11 +13,10 @@ use std::collections::HashMap;
 
 use anyhow::{Context, bail};
 use clap::Parser;
-use esrp_dataset::dice::Dice;
-use esrp_server::client::{Client, connect, reach_or_start};
-use esrp_server::proto;
-use esrp_server::proto::stream_request::Request as Rq;
-use esrp_server::proto::stream_response::Response as Rs;
+use esrp_client::{
+    Action, Client, Difficulty, EpisodeMetrics, EpisodeOptions, RandomActions, SceneFilter, SceneSummary, Split,
+    reach_or_start,
+};
 use tokio_stream::StreamExt;
 
 #[derive(Parser, Debug)]
@@ -47,7 +46,7 @@ struct Tally {
 }
 
 impl Tally {
-    fn add(&mut self, m: &proto::EpisodeMetrics) {
+    fn add(&mut self, m: &EpisodeMetrics) {
         self.episodes += 1;
         self.successes += u32::from(m.success);
         self.osr += m.object_success_rate;
@@ -67,19 +66,12 @@ impl Tally {
 }
 
 /// Test scenes, round robin over difficulties so that a short demo sees easy to hard.
-async fn pick_scenes(client: &mut Client, n: usize) -> anyhow::Result<Vec<proto::SceneSummary>> {
-    let mut by_difficulty: Vec<Vec<proto::SceneSummary>> = Vec::new();
-    for difficulty in [proto::Difficulty::Easy, proto::Difficulty::Medium, proto::Difficulty::Hard] {
-        let page = client
-            .list_scenes(proto::ListScenesRequest {
-                split: proto::Split::Test as i32,
-                difficulty: difficulty as i32,
-                page_size: n as u32,
-                page_token: String::new(),
-            })
-            .await?
-            .into_inner();
-        by_difficulty.push(page.scenes);
+async fn pick_scenes(client: &Client, n: usize) -> anyhow::Result<Vec<SceneSummary>> {
+    let mut by_difficulty: Vec<Vec<SceneSummary>> = Vec::new();
+    for difficulty in [Difficulty::Easy, Difficulty::Medium, Difficulty::Hard] {
+        let filter = SceneFilter { page_size: n as u32, ..SceneFilter::split(Split::Test).difficulty(difficulty) };
+        let first: Vec<_> = client.scenes(filter).take(n).collect::<Result<_, _>>().await?;
+        by_difficulty.push(first);
     }
     let mut picked = Vec::new();
     for i in 0..n {
@@ -97,77 +89,40 @@ async fn pick_scenes(client: &mut Client, n: usize) -> anyhow::Result<Vec<proto:
     Ok(picked)
 }
 
-fn create(scene: &str, privileged: bool) -> proto::CreateEpisodeRequest {
-    proto::CreateEpisodeRequest {
-        scene: Some(proto::create_episode_request::Scene::SceneId(scene.to_owned())),
-        privileged,
-        ..Default::default()
-    }
-}
-
 /// Replays the expert of `scene` on a stream, all steps sent before reading any answer.
-async fn expert(client: &mut Client, scene: &str) -> anyhow::Result<(usize, proto::EpisodeMetrics)> {
-    let created = client.create_episode(create(scene, true)).await?.into_inner();
-    let state = client
-        .get_privileged_state(proto::GetPrivilegedStateRequest { episode_id: created.episode_id.clone() })
-        .await?
-        .into_inner();
-    let actions: Vec<i32> = esrp_core::Scene::from_json(&state.scene_json)
-        .context("the server sent a scene this client cannot read")?
-        .expert_trajectory
-        .iter()
-        .map(|a| i32::from(a.code()))
-        .collect();
-    let (tx, rx) = tokio::sync::mpsc::channel(actions.len() + 1);
-    let mut answers = client.step_stream(tokio_stream::wrappers::ReceiverStream::new(rx)).await?.into_inner();
-    for (i, &action) in actions.iter().enumerate() {
-        let step = proto::StepRequest { episode_id: created.episode_id.clone(), action, include_goal: false };
-        tx.send(proto::StreamRequest { request_id: i as u64, request: Some(Rq::Step(step)) }).await?;
-    }
-    drop(tx);
+async fn expert(client: &Client, scene: &str) -> anyhow::Result<(usize, EpisodeMetrics)> {
+    let (episode, _) = client.create_episode(EpisodeOptions::scene(scene).privileged(true)).await?;
+    let actions = episode.privileged_state().await?.expert_trajectory()?;
+    let mut stream = client.episode_stream(actions.len().max(1)).await?;
+    let results = stream.run(&[(episode.id(), &actions)]).await?.pop().unwrap_or_default();
     let mut metrics = None;
-    while let Some(answer) = answers.next().await {
-        match answer?.response {
-            Some(Rs::Step(step)) => metrics = step.metrics.or(metrics),
-            Some(Rs::Error(e)) => bail!("the server refused an expert step: {}", e.message),
-            _ => {}
-        }
+    for result in results {
+        metrics = result.context("the server refused an expert step")?.metrics.or(metrics);
     }
-    let closed =
-        client.close_episode(proto::CloseEpisodeRequest { episode_id: created.episode_id }).await?.into_inner();
-    Ok((actions.len(), metrics.or(closed.metrics).context("no metrics")?))
+    let closed = episode.close().await?;
+    Ok((actions.len(), metrics.unwrap_or(closed)))
 }
 
 /// Random actions on every scene at once until each episode ends.
-async fn random(
-    client: &mut Client,
-    scenes: &[String],
-    seed: u64,
-) -> anyhow::Result<HashMap<String, proto::EpisodeMetrics>> {
+async fn random(client: &Client, scenes: &[String], seed: u64) -> anyhow::Result<HashMap<String, EpisodeMetrics>> {
     let mut live = Vec::new();
     for scene in scenes {
-        live.push((scene.clone(), client.create_episode(create(scene, false)).await?.into_inner().episode_id));
+        live.push((scene.clone(), client.create_episode(EpisodeOptions::scene(scene)).await?.0));
     }
-    let mut dice = Dice::new(seed, 0, 0);
+    let mut actions = RandomActions::new(seed);
     let mut results = HashMap::new();
     while !live.is_empty() {
-        let steps = live
-            .iter()
-            .map(|(_, id)| proto::StepRequest {
-                episode_id: id.clone(),
-                action: dice.below(6) as i32,
-                include_goal: false,
-            })
-            .collect();
-        let responses = client.step_batch(proto::StepBatchRequest { steps }).await?.into_inner().responses;
+        let steps: Vec<(&esrp_client::Episode, Action)> =
+            live.iter().map(|(_, episode)| (episode, actions.next_action())).collect();
+        let responses = client.step_batch(&steps).await?;
         let mut still = Vec::new();
-        for ((scene, id), r) in live.into_iter().zip(responses) {
+        for ((scene, episode), r) in live.into_iter().zip(responses) {
             match r.metrics {
-                Some(m) if r.terminated || r.truncated => {
-                    client.close_episode(proto::CloseEpisodeRequest { episode_id: id }).await?;
+                Some(m) if r.ended() => {
+                    episode.close().await?;
                     results.insert(scene, m);
                 }
-                _ => still.push((scene, id)),
+                _ => still.push((scene, episode)),
             }
         }
         live = still;
@@ -179,16 +134,16 @@ async fn random(
 async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let (address, _local) = reach_or_start(args.server.as_deref(), None, &[])?;
-    let mut client = connect(&address, args.token.as_deref()).await?;
-    let info = client.server_info(proto::ServerInfoRequest {}).await?.into_inner();
+    let client = Client::connect(&address).token_opt(args.token.as_deref()).await?;
+    let info = client.server_info().await?;
     println!(
         "esrp-server {} at {address}: dataset {}, renderer {} ({})",
         info.version, info.dataset, info.renderer_adapter, info.renderer_backend
     );
-    let scenes = pick_scenes(&mut client, args.scenes).await?;
+    let scenes = pick_scenes(&client, args.scenes).await?;
     let ids: Vec<String> = scenes.iter().map(|s| s.id.clone()).collect();
     let started = std::time::Instant::now();
-    let random_results = random(&mut client, &ids, args.seed).await?;
+    let random_results = random(&client, &ids, args.seed).await?;
     let (mut expert_tally, mut random_tally) = (Tally::default(), Tally::default());
     let mut steps = 0usize;
     println!();
@@ -197,22 +152,16 @@ async fn main() -> anyhow::Result<()> {
         "scene", "room", "level", "objs", "expert", "expert: done OSR RDR", "random: done OSR RDR"
     );
     for s in &scenes {
-        let (length, m) = expert(&mut client, &s.id).await.with_context(|| format!("expert on {}", s.id))?;
+        let (length, m) = expert(&client, &s.id).await.with_context(|| format!("expert on {}", s.id))?;
         expert_tally.add(&m);
         let r = &random_results[&s.id];
         random_tally.add(r);
         steps += length + r.steps as usize;
-        let level = match proto::Difficulty::try_from(s.difficulty).unwrap_or_default() {
-            proto::Difficulty::Easy => "easy",
-            proto::Difficulty::Medium => "medium",
-            proto::Difficulty::Hard => "hard",
-            proto::Difficulty::Unspecified => "?",
-        };
         println!(
             "{:<22} {:<17} {:<6} {:>4} {:>6} | {:>5} {:>6.2} {:>8.3} | {:>5} {:>6.2} {:>8.3}",
             s.id,
             s.room_type,
-            level,
+            s.difficulty.map_or("?", Difficulty::name),
             s.movable_objects,
             length,
             if m.success { "yes" } else { "no" },

@@ -1,0 +1,317 @@
+//! [`Client`]: a connection to an ESRP server, and the calls that are not about one episode
+//! (server info, the dataset, scenes, batches, streams).
+
+use std::collections::VecDeque;
+use std::future::{Future, IntoFuture};
+use std::pin::Pin;
+use std::time::Duration;
+
+use tokio_stream::Stream;
+use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint};
+
+use crate::episode::{Episode, EpisodeOptions};
+use crate::error::{ClientError, Result};
+use crate::proto;
+use crate::proto::esrp_client::EsrpClient;
+use crate::stream::EpisodeStream;
+use crate::types::{Action, Difficulty, Observation, SceneSummary, ServerInfo, Split, StepResult};
+
+/// Adds `authorization: Bearer TOKEN` to every call when a token is set.
+#[derive(Clone, Debug, Default)]
+pub struct Bearer(Option<tonic::metadata::MetadataValue<tonic::metadata::Ascii>>);
+
+impl tonic::service::Interceptor for Bearer {
+    fn call(&mut self, mut request: tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> {
+        if let Some(value) = &self.0 {
+            request.metadata_mut().insert("authorization", value.clone());
+        }
+        Ok(request)
+    }
+}
+
+/// The generated `esrp.v1` stub with the bearer token attached: every RPC, unwrapped, for
+/// what the typed API does not cover.
+pub type RawClient = EsrpClient<tonic::service::interceptor::InterceptedService<Channel, Bearer>>;
+
+/// Largest message either side sends: a StepBatch of many high-resolution views.
+const MAX_MESSAGE_BYTES: usize = 256 << 20;
+
+/// TLS settings: the certificate authority that signed the server's certificate, and the name
+/// the certificate was issued for.
+#[derive(Clone, Debug)]
+pub struct Tls {
+    config: ClientTlsConfig,
+}
+
+impl Tls {
+    /// Trusts the CA certificate(s) in `pem`. The server's name defaults to the URL's host.
+    pub fn ca_pem(pem: impl AsRef<[u8]>) -> Self {
+        Tls { config: ClientTlsConfig::new().ca_certificate(Certificate::from_pem(pem)) }
+    }
+
+    /// Checks the server's certificate against `name` instead of the URL's host.
+    pub fn domain_name(self, name: impl Into<String>) -> Self {
+        Tls { config: self.config.domain_name(name) }
+    }
+}
+
+/// Settings of a connection; `.await` it to connect (see [`Client::connect`]).
+#[must_use = "a ConnectBuilder does nothing until awaited"]
+#[derive(Clone, Debug)]
+pub struct ConnectBuilder {
+    url: String,
+    token: Option<String>,
+    tls: Option<Tls>,
+    connect_timeout: Duration,
+}
+
+impl ConnectBuilder {
+    /// Sends `authorization: Bearer TOKEN` with every call (the server's `--token`).
+    pub fn token(mut self, token: impl Into<String>) -> Self {
+        self.token = Some(token.into());
+        self
+    }
+
+    /// Sends `token` when it is `Some`.
+    pub fn token_opt(mut self, token: Option<impl Into<String>>) -> Self {
+        self.token = token.map(Into::into);
+        self
+    }
+
+    /// Connects over TLS (use an `https://` URL).
+    pub fn tls(mut self, tls: Tls) -> Self {
+        self.tls = Some(tls);
+        self
+    }
+
+    /// Gives up connecting after `timeout` (default 10 s).
+    pub fn connect_timeout(mut self, timeout: Duration) -> Self {
+        self.connect_timeout = timeout;
+        self
+    }
+
+    fn endpoint(&self) -> Result<Endpoint> {
+        let mut endpoint = Endpoint::from_shared(self.url.clone())
+            .map_err(|e| ClientError::Config(format!("{:?} is not a URL like http://127.0.0.1:50051: {e}", self.url)))?
+            // An agent waits for every answer: no Nagle delay. Windows large enough for many
+            // ~49 KB observations in flight.
+            .tcp_nodelay(true)
+            .initial_connection_window_size(64 << 20)
+            .initial_stream_window_size(16 << 20)
+            .connect_timeout(self.connect_timeout);
+        if let Some(tls) = &self.tls {
+            endpoint = endpoint.tls_config(tls.config.clone())?;
+        }
+        Ok(endpoint)
+    }
+
+    fn bearer(&self) -> Result<Bearer> {
+        match &self.token {
+            None => Ok(Bearer(None)),
+            Some(token) => format!("Bearer {token}")
+                .parse()
+                .map(|v| Bearer(Some(v)))
+                .map_err(|_| ClientError::Config("the token must be printable ASCII (no control characters)".into())),
+        }
+    }
+
+    fn wrap(&self, channel: Channel) -> Result<Client> {
+        let raw = EsrpClient::with_interceptor(channel.clone(), self.bearer()?)
+            .max_decoding_message_size(MAX_MESSAGE_BYTES)
+            .max_encoding_message_size(MAX_MESSAGE_BYTES);
+        Ok(Client { raw, channel })
+    }
+
+    /// A client that connects on its first call instead of now (calls fail with
+    /// [`ClientError::Unavailable`] while the server cannot be reached).
+    pub fn connect_lazy(self) -> Result<Client> {
+        let channel = self.endpoint()?.connect_lazy();
+        self.wrap(channel)
+    }
+
+    async fn connect_now(self) -> Result<Client> {
+        let channel = self.endpoint()?.connect().await?;
+        self.wrap(channel)
+    }
+}
+
+impl IntoFuture for ConnectBuilder {
+    type Output = Result<Client>;
+    type IntoFuture = Pin<Box<dyn Future<Output = Result<Client>> + Send>>;
+
+    fn into_future(self) -> Self::IntoFuture {
+        Box::pin(self.connect_now())
+    }
+}
+
+/// Which scenes [`Client::scenes`] lists.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SceneFilter {
+    /// Only this split (all when `None`).
+    pub split: Option<Split>,
+    /// Only this difficulty (all when `None`).
+    pub difficulty: Option<Difficulty>,
+    /// Scenes per request (0: the server's default, 100; at most 1,000).
+    pub page_size: u32,
+}
+
+impl SceneFilter {
+    /// Scenes of `split`.
+    pub fn split(split: Split) -> Self {
+        SceneFilter { split: Some(split), ..Default::default() }
+    }
+
+    /// Only scenes of `difficulty` too.
+    pub fn difficulty(mut self, difficulty: Difficulty) -> Self {
+        self.difficulty = Some(difficulty);
+        self
+    }
+}
+
+/// A connection to an ESRP server. Cheap to clone: clones share the connection (HTTP/2
+/// multiplexes their calls), so give each task its own.
+///
+/// ```no_run
+/// # async fn demo() -> Result<(), esrp_client::ClientError> {
+/// use esrp_client::{Action, Client, EpisodeOptions};
+/// let client = Client::connect("http://127.0.0.1:50051").token("secret").await?;
+/// let (mut episode, first) = client.create_episode(EpisodeOptions::scene("esrp-bench-v1/00017")).await?;
+/// assert_eq!(first.ego_rgb.width(), 128);
+/// let result = episode.step(Action::TurnLeft).await?;
+/// println!("reward {}", result.reward);
+/// episode.close().await?;
+/// # Ok(()) }
+/// ```
+#[derive(Clone, Debug)]
+pub struct Client {
+    raw: RawClient,
+    channel: Channel,
+}
+
+impl Client {
+    /// Starts a connection to `url` (`http://host:port`, or `https://` with [`ConnectBuilder::tls`]);
+    /// set the token and TLS on the builder, then `.await` it.
+    pub fn connect(url: impl Into<String>) -> ConnectBuilder {
+        ConnectBuilder { url: url.into(), token: None, tls: None, connect_timeout: Duration::from_secs(10) }
+    }
+
+    /// The generated stub, for RPCs and fields the typed API does not cover.
+    pub fn raw(&self) -> RawClient {
+        self.raw.clone()
+    }
+
+    /// Waits until the server's health service says `esrp.v1.Esrp` is serving, polling every
+    /// 50 ms; fails with [`ClientError::DeadlineExceeded`] after `timeout`.
+    pub async fn wait_healthy(&self, timeout: Duration) -> Result<()> {
+        use tonic_health::pb::health_check_response::ServingStatus;
+        let mut health = tonic_health::pb::health_client::HealthClient::new(self.channel.clone());
+        let deadline = tokio::time::Instant::now() + timeout;
+        let mut last = String::from("no answer yet");
+        loop {
+            let request = tonic_health::pb::HealthCheckRequest { service: "esrp.v1.Esrp".into() };
+            match tokio::time::timeout_at(deadline, health.check(request)).await {
+                Err(_) => break,
+                Ok(Ok(r)) if r.get_ref().status == ServingStatus::Serving as i32 => return Ok(()),
+                Ok(Ok(r)) => last = format!("status {:?}", r.get_ref().status()),
+                Ok(Err(status)) => last = status.message().to_owned(),
+            }
+            if tokio::time::Instant::now() + Duration::from_millis(50) >= deadline {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        Err(ClientError::DeadlineExceeded(format!("the server was not healthy within {timeout:?}: {last}")))
+    }
+
+    /// The server's version, renderer, limits and live episode count.
+    pub async fn server_info(&self) -> Result<ServerInfo> {
+        Ok(self.raw().server_info(proto::ServerInfoRequest {}).await?.into_inner().into())
+    }
+
+    /// The served dataset: its name, size and counts by split, difficulty and room type.
+    pub async fn describe_dataset(&self) -> Result<proto::DescribeDatasetResponse> {
+        Ok(self.raw().describe_dataset(proto::DescribeDatasetRequest {}).await?.into_inner())
+    }
+
+    /// Every scene that passes `filter`, fetched page by page as the stream is read. The
+    /// stream ends after the last page, or after yielding an error.
+    pub fn scenes(&self, filter: SceneFilter) -> impl Stream<Item = Result<SceneSummary>> + Send + 'static {
+        struct Listing {
+            raw: RawClient,
+            filter: SceneFilter,
+            /// The next page's token; `None` after the last page or an error.
+            token: Option<String>,
+            buffered: VecDeque<SceneSummary>,
+        }
+        let start = Listing { raw: self.raw(), filter, token: Some(String::new()), buffered: VecDeque::new() };
+        futures_util::stream::unfold(start, |mut listing| async move {
+            loop {
+                if let Some(scene) = listing.buffered.pop_front() {
+                    return Some((Ok(scene), listing));
+                }
+                let request = proto::ListScenesRequest {
+                    split: Split::to_proto(listing.filter.split),
+                    difficulty: Difficulty::to_proto(listing.filter.difficulty),
+                    page_size: listing.filter.page_size,
+                    page_token: listing.token.take()?,
+                };
+                match listing.raw.list_scenes(request).await {
+                    Ok(page) => {
+                        let page = page.into_inner();
+                        listing.buffered.extend(page.scenes.into_iter().map(SceneSummary::from));
+                        listing.token = (!page.next_page_token.is_empty()).then_some(page.next_page_token);
+                    }
+                    Err(status) => return Some((Err(status.into()), listing)),
+                }
+            }
+        })
+    }
+
+    /// Every scene that passes `filter`, collected.
+    pub async fn list_scenes(&self, filter: SceneFilter) -> Result<Vec<SceneSummary>> {
+        use tokio_stream::StreamExt;
+        let mut scenes = Vec::new();
+        let mut stream = std::pin::pin!(self.scenes(filter));
+        while let Some(scene) = stream.next().await {
+            scenes.push(scene?);
+        }
+        Ok(scenes)
+    }
+
+    /// Creates an episode; returns its handle and its first observation (with the goal image).
+    pub async fn create_episode(&self, options: EpisodeOptions) -> Result<(Episode, Observation)> {
+        let created = self.raw().create_episode(options.to_proto()).await?.into_inner();
+        Episode::created(self.clone(), created)
+    }
+
+    /// Takes one step in each of several episodes in one call (at most one step per episode;
+    /// the server's `max_batch` caps the count). All-or-nothing: a bad entry fails the call
+    /// and no episode moves. Answers are in request order.
+    pub async fn step_batch(&self, steps: &[(&Episode, Action)]) -> Result<Vec<StepResult>> {
+        let request = proto::StepBatchRequest {
+            steps: steps
+                .iter()
+                .map(|(episode, action)| proto::StepRequest {
+                    episode_id: episode.id().to_owned(),
+                    action: i32::from(action.code()),
+                    include_goal: false,
+                })
+                .collect(),
+        };
+        let responses = self.raw().step_batch(request).await?.into_inner().responses;
+        if responses.len() != steps.len() {
+            return Err(ClientError::Protocol(format!(
+                "{} answers to a batch of {} steps",
+                responses.len(),
+                steps.len()
+            )));
+        }
+        responses.into_iter().map(StepResult::try_from).collect()
+    }
+
+    /// Opens a `StepStream` driven by an [`EpisodeStream`] that keeps up to `window` steps of
+    /// each episode in flight.
+    pub async fn episode_stream(&self, window: usize) -> Result<EpisodeStream> {
+        EpisodeStream::open(self.raw(), window).await
+    }
+}

@@ -1,0 +1,100 @@
+//! The client's errors: one variant per kind of failure a caller may want to handle, each
+//! keeping the server's message (which says what to change).
+
+use tonic::Code;
+
+/// Why a call failed.
+#[derive(Debug, thiserror::Error)]
+pub enum ClientError {
+    /// The episode or scene does not exist (never did, was closed, or was reaped when idle).
+    #[error("not found: {0}")]
+    NotFound(String),
+    /// The request was malformed (bad action, unknown split, invalid scene, ...).
+    #[error("invalid argument: {0}")]
+    InvalidArgument(String),
+    /// The episode has ended (success or horizon): reset it or create a new one.
+    #[error("episode ended: {0}")]
+    EpisodeEnded(String),
+    /// A server limit was reached (live episodes, batch size, message size).
+    #[error("resource exhausted: {0}")]
+    ResourceExhausted(String),
+    /// The server wants a bearer token, or a different one.
+    #[error("unauthenticated: {0}")]
+    Unauthenticated(String),
+    /// The call needs a privileged episode.
+    #[error("permission denied: {0}")]
+    PermissionDenied(String),
+    /// The server cannot be reached now (not running, restarting, network down).
+    #[error("unavailable: {0}")]
+    Unavailable(String),
+    /// The call's deadline passed first.
+    #[error("deadline exceeded: {0}")]
+    DeadlineExceeded(String),
+    /// Any other status from the server (INTERNAL, UNKNOWN, ...).
+    #[error("server error {code:?}: {message}")]
+    Server {
+        /// The gRPC status code.
+        code: Code,
+        /// The server's message.
+        message: String,
+    },
+    /// The connection could not be set up: refused (is esrp-server running there?), TLS
+    /// failed, or the address does not resolve.
+    #[error("cannot connect: {0} (is esrp-server running there, with the same TLS setting?)")]
+    Transport(#[from] tonic::transport::Error),
+    /// The client was configured wrongly (a URL that does not parse, a token that is not printable ASCII).
+    #[error("configuration: {0}")]
+    Config(String),
+    /// The server answered something this client cannot read (a missing field, an image whose
+    /// size does not match its shape): a version mismatch or a bug.
+    #[error("protocol: {0}")]
+    Protocol(String),
+    /// Starting or reaching a local server process failed.
+    #[error("local server: {0}")]
+    LocalServer(String),
+}
+
+impl ClientError {
+    /// The gRPC status code this error stands for (`Unknown` for client-side errors).
+    pub fn code(&self) -> Code {
+        match self {
+            ClientError::NotFound(_) => Code::NotFound,
+            ClientError::InvalidArgument(_) => Code::InvalidArgument,
+            ClientError::EpisodeEnded(_) => Code::FailedPrecondition,
+            ClientError::ResourceExhausted(_) => Code::ResourceExhausted,
+            ClientError::Unauthenticated(_) => Code::Unauthenticated,
+            ClientError::PermissionDenied(_) => Code::PermissionDenied,
+            ClientError::Unavailable(_) => Code::Unavailable,
+            ClientError::DeadlineExceeded(_) => Code::DeadlineExceeded,
+            ClientError::Server { code, .. } => *code,
+            ClientError::Transport(_)
+            | ClientError::Config(_)
+            | ClientError::Protocol(_)
+            | ClientError::LocalServer(_) => Code::Unknown,
+        }
+    }
+
+    /// An error from a status code and message, as a stream's in-band error carries them.
+    pub fn from_code(code: Code, message: String) -> Self {
+        match code {
+            Code::NotFound => ClientError::NotFound(message),
+            Code::InvalidArgument | Code::OutOfRange => ClientError::InvalidArgument(message),
+            Code::FailedPrecondition => ClientError::EpisodeEnded(message),
+            Code::ResourceExhausted => ClientError::ResourceExhausted(message),
+            Code::Unauthenticated => ClientError::Unauthenticated(message),
+            Code::PermissionDenied => ClientError::PermissionDenied(message),
+            Code::Unavailable => ClientError::Unavailable(message),
+            Code::DeadlineExceeded => ClientError::DeadlineExceeded(message),
+            code => ClientError::Server { code, message },
+        }
+    }
+}
+
+impl From<tonic::Status> for ClientError {
+    fn from(status: tonic::Status) -> Self {
+        ClientError::from_code(status.code(), status.message().to_owned())
+    }
+}
+
+/// A result of this crate.
+pub type Result<T, E = ClientError> = std::result::Result<T, E>;

@@ -1,0 +1,66 @@
+//! **esrp-client**: a typed async client of the ESRP server's native API (`esrp.v1` over
+//! gRPC), for Rust agents, planners and evaluation tools. It depends on the generated code of
+//! `esrp-proto` and on tonic only: no renderer, no physics, no dataset.
+//!
+//! ```no_run
+//! use esrp_client::{Action, Client, EpisodeOptions, SceneFilter, Split};
+//!
+//! # async fn demo() -> Result<(), esrp_client::ClientError> {
+//! let client = Client::connect("http://127.0.0.1:50051").await?;
+//! let scenes = client.list_scenes(SceneFilter::split(Split::Test)).await?;
+//! let (mut episode, observation) = client.create_episode(EpisodeOptions::scene(&scenes[0].id)).await?;
+//! println!("{}x{} view, holding: {}", observation.ego_rgb.width(), observation.ego_rgb.height(), observation.grasping);
+//! loop {
+//!     let result = episode.step(Action::TurnLeft).await?;
+//!     if result.ended() {
+//!         println!("success: {}", result.metrics.map_or(false, |m| m.success));
+//!         break;
+//!     }
+//! }
+//! episode.close().await?;
+//! # Ok(()) }
+//! ```
+//!
+//! # Module map
+//!
+//! - [`client`]: [`Client`] — connecting (token, TLS), server info, the dataset and its
+//!   scenes (paged as a stream), creating episodes, [`Client::step_batch`].
+//! - [`episode`]: [`Episode`] — one live episode: step, reset, goal, metrics, privileged
+//!   state, close (also on drop, best effort).
+//! - [`stream`]: [`EpisodeStream`] — a pipelined `StepStream` with up to N steps of each
+//!   episode in flight, answers in request order.
+//! - [`types`]: [`Action`], [`Observation`] (pixels shared with the answer, never copied),
+//!   [`StepResult`], [`EpisodeMetrics`], [`SceneSummary`].
+//! - [`local`]: [`LocalServer`] — an `esrp-server` child process on a free port.
+//! - [`random`]: [`RandomActions`] — seeded, portable uniform random actions.
+//! - [`error`]: [`ClientError`], one variant per status a caller may handle.
+//!
+//! The crate's binaries are `esrp-demo` (the expert and a random agent on a few test scenes)
+//! and `esrp-bench` (end-to-end throughput and latency).
+//!
+//! Features: `image` adds [`Image::to_rgb_image`].
+
+#![warn(missing_docs)]
+
+pub mod client;
+pub mod episode;
+pub mod error;
+pub mod local;
+pub mod random;
+pub mod stream;
+pub mod types;
+
+/// The generated `esrp.v1` messages and stub (from esrp-proto), for what the typed API does
+/// not cover.
+pub use esrp_proto::esrp::v1 as proto;
+
+pub use client::{Client, ConnectBuilder, RawClient, SceneFilter, Tls};
+pub use episode::{Episode, EpisodeOptions, SceneChoice};
+pub use error::{ClientError, Result};
+pub use local::{LocalServer, find_server_binary, reach_or_start};
+pub use random::RandomActions;
+pub use stream::{Answer, EpisodeStream, StreamAnswer};
+pub use types::{
+    Action, DepthImage, Difficulty, EpisodeMetrics, Goal, Image, LabelImage, Observation, Obstacle, ObstacleKind,
+    PrivilegedState, RewardTerms, SceneSummary, Sensors, ServerInfo, Split, StepInfo, StepResult, ValueImage,
+};

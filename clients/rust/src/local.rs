@@ -1,0 +1,161 @@
+//! [`LocalServer`]: an `esrp-server` child process on a free local port, for tools, tests and
+//! notebooks that want a server without a second terminal.
+
+use std::ffi::OsStr;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdout, Command, Stdio};
+
+use crate::client::{Client, ConnectBuilder};
+use crate::error::{ClientError, Result};
+
+/// The server binary's file name on this platform.
+fn binary_name() -> String {
+    format!("esrp-server{}", std::env::consts::EXE_SUFFIX)
+}
+
+/// Where [`LocalServer`] looks for `esrp-server`, in order: `ESRP_SERVER_BIN`; beside the
+/// running executable (and its parent folder, for test binaries in `target/*/deps`); `PATH`;
+/// this workspace's `target/release` and `target/debug` (or `CARGO_TARGET_DIR`'s).
+pub fn find_server_binary() -> Result<PathBuf> {
+    if let Some(path) = std::env::var_os("ESRP_SERVER_BIN") {
+        let path = PathBuf::from(path);
+        return if path.is_file() {
+            Ok(path)
+        } else {
+            Err(ClientError::LocalServer(format!("ESRP_SERVER_BIN={} is not a file", path.display())))
+        };
+    }
+    let mut candidates = Vec::new();
+    if let Ok(exe) = std::env::current_exe() {
+        for dir in exe.ancestors().skip(1).take(2) {
+            candidates.push(dir.join(binary_name()));
+        }
+    }
+    if let Some(path) = std::env::var_os("PATH") {
+        candidates.extend(std::env::split_paths(&path).map(|dir| dir.join(binary_name())));
+    }
+    let target = std::env::var_os("CARGO_TARGET_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../target"));
+    candidates.extend(["release", "debug"].map(|profile| target.join(profile).join(binary_name())));
+    candidates.into_iter().find(|c| c.is_file()).ok_or_else(|| {
+        ClientError::LocalServer(format!(
+            "cannot find {}: build it with `cargo build --release -p esrp-server`, put it on PATH, or set ESRP_SERVER_BIN",
+            binary_name()
+        ))
+    })
+}
+
+/// An `esrp-server` child process on a free local port, killed on drop.
+#[derive(Debug)]
+pub struct LocalServer {
+    child: Child,
+    /// The server's stdout, kept open: a closed pipe would make its later prints fail.
+    _stdout: BufReader<ChildStdout>,
+    /// `http://127.0.0.1:PORT`.
+    pub address: String,
+    /// `http://127.0.0.1:PORT/metrics`, when started with `--metrics-listen`.
+    pub metrics: Option<String>,
+}
+
+impl Drop for LocalServer {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// The server at `address` if given, else a local one started now with `binary` and `args`
+/// (see [`LocalServer::start`]), running as long as the returned [`LocalServer`] lives.
+pub fn reach_or_start(
+    address: Option<&str>,
+    binary: Option<PathBuf>,
+    args: &[String],
+) -> Result<(String, Option<LocalServer>)> {
+    match address {
+        Some(address) => Ok((address.to_owned(), None)),
+        None => {
+            let local = LocalServer::start(binary, args)?;
+            Ok((local.address.clone(), Some(local)))
+        }
+    }
+}
+
+impl LocalServer {
+    /// Starts `binary` (default: [`find_server_binary`]) with `--listen 127.0.0.1:0` and
+    /// `args`, and waits until it listens.
+    pub fn start<S: AsRef<OsStr>>(binary: Option<PathBuf>, args: &[S]) -> Result<Self> {
+        Self::spawn(Self::command(binary, args)?)
+    }
+
+    /// The command [`LocalServer::start`] runs, for callers that adjust it (environment,
+    /// stderr) before [`LocalServer::spawn`]: `esrp-server --listen 127.0.0.1:0 ARGS`, with
+    /// `ESRP_LOG` at `warn` unless set.
+    pub fn command<S: AsRef<OsStr>>(binary: Option<PathBuf>, args: &[S]) -> Result<Command> {
+        let binary = match binary {
+            Some(b) => b,
+            None => find_server_binary()?,
+        };
+        let mut command = Command::new(binary);
+        command
+            .args(["--listen", "127.0.0.1:0"])
+            .args(args)
+            .env("ESRP_LOG", std::env::var("ESRP_LOG").unwrap_or_else(|_| "warn".into()));
+        Ok(command)
+    }
+
+    /// Spawns a server `command` with its stdout piped and waits until it listens; with
+    /// `--metrics-listen` among its arguments, reads the metrics address too.
+    pub fn spawn(mut command: Command) -> Result<Self> {
+        let with_metrics = command.get_args().any(|a| a == "--metrics-listen");
+        let program = Path::new(command.get_program()).display().to_string();
+        let mut child = command.stdout(Stdio::piped()).spawn().map_err(|e| {
+            ClientError::LocalServer(format!(
+                "cannot start {program}: {e} (build it with `cargo build --release -p esrp-server`)"
+            ))
+        })?;
+        let mut stdout =
+            BufReader::new(child.stdout.take().ok_or_else(|| ClientError::LocalServer("no stdout".into()))?);
+        let mut read_line = |prefix: &str| -> Result<String> {
+            let mut line = String::new();
+            stdout
+                .read_line(&mut line)
+                .map_err(|e| ClientError::LocalServer(format!("cannot read {program}'s output: {e}")))?;
+            line.trim().strip_prefix(prefix).map(str::to_owned).ok_or_else(|| {
+                ClientError::LocalServer(format!("{program} did not start (it printed {line:?}; its stderr says why)"))
+            })
+        };
+        let address = format!("http://{}", read_line("esrp-server listening on ")?);
+        let metrics = if with_metrics { Some(read_line("esrp-server metrics on ")?) } else { None };
+        Ok(Self { child, _stdout: stdout, address, metrics })
+    }
+
+    /// Connection settings for this server (add a token or TLS, then `.await`).
+    pub fn connect(&self) -> ConnectBuilder {
+        Client::connect(self.address.clone())
+    }
+
+    /// The process id.
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// Whether the process is still running.
+    pub fn is_running(&mut self) -> bool {
+        self.child.try_wait().map(|s| s.is_none()).unwrap_or(false)
+    }
+
+    /// The process's resident memory in bytes (Linux; `None` elsewhere).
+    pub fn resident_bytes(&self) -> Option<u64> {
+        let status = std::fs::read_to_string(format!("/proc/{}/status", self.child.id())).ok()?;
+        let kib: u64 = status.lines().find(|l| l.starts_with("VmRSS:"))?.split_whitespace().nth(1)?.parse().ok()?;
+        Some(kib * 1024)
+    }
+
+    /// Waits for the process to exit (after a signal sent with [`LocalServer::pid`]) and
+    /// returns its status.
+    pub fn wait(&mut self) -> Result<std::process::ExitStatus> {
+        self.child.wait().map_err(|e| ClientError::LocalServer(format!("cannot wait for the server: {e}")))
+    }
+}

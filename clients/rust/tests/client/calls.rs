@@ -1,0 +1,166 @@
+//! Every call of the typed API, and what it answers.
+
+use std::time::Duration;
+
+use esrp_client::{Action, Difficulty, EpisodeOptions, RandomActions, SceneFilter, Sensors, Split, Tls};
+use tokio_stream::StreamExt;
+
+use crate::harness::{client, start, test_scenes};
+
+#[tokio::test]
+async fn server_dataset_and_scene_listing() {
+    let server = start(&[]);
+    let client = client(&server).await;
+    client.wait_healthy(Duration::from_secs(10)).await.expect("healthy");
+    let info = client.server_info().await.unwrap();
+    assert_eq!(info.dataset, "esrp-bench-v1");
+    assert!(info.limits.max_episodes > 0);
+    let dataset = client.describe_dataset().await.unwrap();
+    assert_eq!(dataset.name, "esrp-bench-v1");
+    let tests = dataset.by_split["test"] as usize;
+
+    // Paging: small pages give the same scenes, in the same order, as one listing.
+    let all = client.list_scenes(SceneFilter::split(Split::Test)).await.unwrap();
+    assert_eq!(all.len(), tests);
+    let paged: Vec<_> = client
+        .scenes(SceneFilter { page_size: 7, ..SceneFilter::split(Split::Test) })
+        .take(50)
+        .collect::<Result<_, _>>()
+        .await
+        .unwrap();
+    assert_eq!(paged[..], all[..50]);
+    assert!(all.iter().all(|s| s.split == Some(Split::Test)));
+    let hard = client.list_scenes(SceneFilter::split(Split::Test).difficulty(Difficulty::Hard)).await.unwrap();
+    assert!(!hard.is_empty() && hard.iter().all(|s| s.difficulty == Some(Difficulty::Hard) && s.movable_objects >= 4));
+}
+
+#[tokio::test]
+async fn an_episode_from_create_to_close() {
+    let server = start(&[]);
+    let client = client(&server).await;
+    let scene = test_scenes(&client, 1).await.remove(0);
+    let sensors = Sensors { ego_depth: true, ego_segmentation: true, current_top_down: true, resolution: 64 };
+    let options = EpisodeOptions::scene(&scene).sensors(sensors).privileged(true).horizon(300);
+    let (mut episode, first) = client.create_episode(options).await.unwrap();
+    assert_eq!(episode.scene().id, scene);
+    assert_eq!(episode.id().len(), 32);
+    assert_eq!((first.ego_rgb.width(), first.ego_rgb.height(), first.ego_rgb.channels()), (64, 64, 3));
+    assert_eq!(first.ego_rgb.bytes().len(), 64 * 64 * 3);
+    let goal_first = first.goal_rgb.clone().expect("the goal comes with the first observation");
+    let depth = first.depth.as_ref().expect("depth is on");
+    assert!(depth.values().all(|d| d > 0.0), "depth in metres, +inf where nothing is seen");
+    assert!(depth.values().any(|d| d.is_finite()));
+    assert_eq!(first.segmentation.as_ref().expect("labels are on").values().len(), 64 * 64);
+    assert!(first.current_top_down.is_some());
+    assert!(episode.spec().arrays.iter().any(|a| a.name == "ego_depth"));
+
+    let step = episode.step(Action::TurnLeft).await.unwrap();
+    assert!(step.info.accepted && step.info.step_index == 1 && !step.ended());
+    assert!(step.observation.goal_rgb.is_none(), "the goal is sent only when asked");
+    assert_ne!(step.observation.ego_rgb, first.ego_rgb, "turning changes the view");
+    let with_goal = episode.step_with_goal(Action::TurnRight).await.unwrap();
+    assert_eq!(with_goal.observation.goal_rgb.as_ref(), Some(&goal_first));
+    assert_eq!(with_goal.observation.ego_rgb, first.ego_rgb, "a turn and its inverse restore the view");
+
+    let goal = episode.goal().await.unwrap();
+    assert_eq!(goal.image.bytes(), goal_first.bytes());
+    assert!(goal.frame.metres_per_pixel > 0.0);
+    let (metrics, ended) = episode.metrics().await.unwrap();
+    assert_eq!((metrics.steps, ended), (2, false));
+    let state = episode.privileged_state().await.unwrap();
+    assert_eq!(state.objects.len() as u32, episode.scene().movable_objects);
+    let expert = state.expert_trajectory().unwrap();
+    assert_eq!(expert.len() as u32, episode.scene().expert_length);
+
+    let again = episode.reset().await.unwrap();
+    assert_eq!(again, first, "a reset gives the first observation again, bit for bit");
+    let mut last = None;
+    for action in &expert {
+        last = Some(episode.step(*action).await.unwrap());
+    }
+    let last = last.unwrap();
+    assert!(last.terminated && last.ended());
+    let m = last.metrics.expect("metrics at the end");
+    assert!(m.success && m.stage == 4 && m.object_success_rate == 1.0);
+    let closed = episode.close().await.unwrap();
+    assert_eq!(closed, m);
+    assert_eq!(client.server_info().await.unwrap().live_episodes, 0);
+}
+
+#[tokio::test]
+async fn step_batch_matches_single_steps() {
+    let server = start(&[]);
+    let client = client(&server).await;
+    let scenes = test_scenes(&client, 4).await;
+    let mut batched = Vec::new();
+    let mut single = Vec::new();
+    for scene in &scenes {
+        batched.push(client.create_episode(EpisodeOptions::scene(scene)).await.unwrap().0);
+        single.push(client.create_episode(EpisodeOptions::scene(scene)).await.unwrap().0);
+    }
+    let mut actions = RandomActions::new(3);
+    for _ in 0..20 {
+        let wave: Vec<Action> = (0..scenes.len()).map(|_| actions.next_action()).collect();
+        let steps: Vec<_> = batched.iter().zip(&wave).map(|(e, a)| (e, *a)).collect();
+        let answers = client.step_batch(&steps).await.unwrap();
+        for ((episode, action), answer) in single.iter_mut().zip(&wave).zip(answers) {
+            assert_eq!(episode.step(*action).await.unwrap(), answer);
+        }
+    }
+}
+
+#[tokio::test]
+async fn dropped_episodes_are_closed() {
+    let server = start(&[]);
+    let client = client(&server).await;
+    let scenes = test_scenes(&client, 3).await;
+    for scene in &scenes {
+        let (mut episode, _) = client.create_episode(EpisodeOptions::scene(scene)).await.unwrap();
+        episode.step(Action::MoveForward).await.unwrap();
+    }
+    let kept = client.create_episode(EpisodeOptions::scene(&scenes[0])).await.unwrap().0;
+    let id = kept.detach();
+    // Closing on drop is a task on the runtime: give it a moment.
+    let mut live = u32::MAX;
+    for _ in 0..100 {
+        live = client.server_info().await.unwrap().live_episodes;
+        if live == 1 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert_eq!(live, 1, "dropped handles close their episodes; a detached one lives");
+    let attached = esrp_client::Episode::attach(&client, id, Default::default());
+    attached.close().await.unwrap();
+    assert_eq!(client.server_info().await.unwrap().live_episodes, 0);
+}
+
+#[tokio::test]
+async fn token_and_tls() {
+    let rcgen::CertifiedKey { cert, signing_key } =
+        rcgen::generate_simple_self_signed(vec!["localhost".to_owned()]).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let (cert_path, key_path) = (dir.path().join("cert.pem"), dir.path().join("key.pem"));
+    std::fs::write(&cert_path, cert.pem()).unwrap();
+    std::fs::write(&key_path, signing_key.serialize_pem()).unwrap();
+    let server = start(&[
+        "--tls-cert",
+        cert_path.to_str().unwrap(),
+        "--tls-key",
+        key_path.to_str().unwrap(),
+        "--token",
+        "s3cret",
+    ]);
+    let port = server.address.rsplit(':').next().unwrap();
+    let url = format!("https://localhost:{port}");
+    let tls = Tls::ca_pem(cert.pem()).domain_name("localhost");
+    let client = esrp_client::Client::connect(&url).tls(tls.clone()).token("s3cret").await.unwrap();
+    let scene = test_scenes(&client, 1).await.remove(0);
+    let (mut episode, _) = client.create_episode(EpisodeOptions::scene(scene)).await.unwrap();
+    assert!(episode.step(Action::TurnLeft).await.unwrap().info.accepted);
+    episode.close().await.unwrap();
+
+    let without_token = esrp_client::Client::connect(&url).tls(tls).await.unwrap();
+    let error = without_token.server_info().await.unwrap_err();
+    assert!(matches!(error, esrp_client::ClientError::Unauthenticated(_)), "{error}");
+}

@@ -1,0 +1,64 @@
+//! Each `ClientError` variant, from a real bad request to a real server.
+
+use esrp_client::{Action, Client, ClientError, EpisodeOptions};
+
+use crate::harness::{client, start, test_scenes};
+
+#[tokio::test]
+async fn each_error_kind_from_a_real_request() {
+    let server = start(&["--max-episodes", "2"]);
+    let client = client(&server).await;
+    let scene = test_scenes(&client, 1).await.remove(0);
+
+    let error = client.create_episode(EpisodeOptions::scene("no-such-scene")).await.unwrap_err();
+    assert!(matches!(&error, ClientError::NotFound(m) if m.contains("no-such-scene")), "{error}");
+    assert_eq!(error.code(), tonic::Code::NotFound);
+
+    let error = client.create_episode(EpisodeOptions::scene_json("{\"format\": 3}")).await.unwrap_err();
+    assert!(matches!(error, ClientError::InvalidArgument(_)), "{error}");
+
+    let (mut short, _) = client.create_episode(EpisodeOptions::scene(&scene).horizon(1)).await.unwrap();
+    assert!(short.step(Action::TurnLeft).await.unwrap().truncated);
+    let error = short.step(Action::TurnLeft).await.unwrap_err();
+    assert!(matches!(&error, ClientError::EpisodeEnded(m) if m.contains("Reset")), "{error}");
+
+    let (unprivileged, _) = client.create_episode(EpisodeOptions::scene(&scene)).await.unwrap();
+    let error = unprivileged.privileged_state().await.unwrap_err();
+    assert!(matches!(error, ClientError::PermissionDenied(_)), "{error}");
+
+    // Two live episodes: the limit.
+    let error = client.create_episode(EpisodeOptions::scene(&scene)).await.unwrap_err();
+    assert!(matches!(&error, ClientError::ResourceExhausted(m) if m.contains('2')), "{error}");
+
+    let id = short.id().to_owned();
+    short.close().await.unwrap();
+    let mut gone = esrp_client::Episode::attach(&client, id, Default::default());
+    let error = gone.step(Action::TurnLeft).await.unwrap_err();
+    assert!(matches!(error, ClientError::NotFound(_)), "{error}");
+    gone.detach();
+    unprivileged.close().await.unwrap();
+}
+
+#[tokio::test]
+async fn connection_errors() {
+    let protected = start(&["--token", "right"]);
+    let wrong = Client::connect(&protected.address).token("wrong").await.unwrap();
+    let error = wrong.server_info().await.unwrap_err();
+    assert!(matches!(error, ClientError::Unauthenticated(_)), "{error}");
+
+    let error = Client::connect("not a url").await.unwrap_err();
+    assert!(matches!(error, ClientError::Config(_)), "{error}");
+    let error = Client::connect(&protected.address).token("line\nbreak").await.unwrap_err();
+    assert!(matches!(error, ClientError::Config(_)), "{error}");
+
+    // A port nobody listens on: refused at once when connecting, UNAVAILABLE on a lazy call.
+    let closed = {
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        format!("http://{}", listener.local_addr().unwrap())
+    };
+    let error = Client::connect(&closed).await.unwrap_err();
+    assert!(matches!(error, ClientError::Transport(_)), "{error}");
+    let lazy = Client::connect(&closed).connect_lazy().unwrap();
+    let error = lazy.server_info().await.unwrap_err();
+    assert!(matches!(error, ClientError::Unavailable(_)), "{error}");
+}

@@ -1,0 +1,22 @@
+//! Starts the real server binary for a test.
+
+use esrp_client::{Client, LocalServer};
+
+/// Starts `esrp-server` with `args` (stderr shown, logs at warn).
+pub fn start(args: &[&str]) -> LocalServer {
+    let mut command = LocalServer::command(None, args).expect("esrp-server is built (cargo build -p esrp-server)");
+    command.env("NODEVICE_SELECT", "1").stderr(std::process::Stdio::inherit());
+    LocalServer::spawn(command).expect("the server starts and listens")
+}
+
+/// A plain client of `server`.
+pub async fn client(server: &LocalServer) -> Client {
+    server.connect().await.expect("the client connects")
+}
+
+/// The ids of the first `n` test scenes.
+pub async fn test_scenes(client: &Client, n: usize) -> Vec<String> {
+    use tokio_stream::StreamExt;
+    let filter = esrp_client::SceneFilter::split(esrp_client::Split::Test);
+    client.scenes(filter).take(n).map(|s| s.expect("a scene").id).collect().await
+}
