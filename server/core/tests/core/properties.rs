@@ -1,6 +1,7 @@
 //! Property tests over random valid scenes and random action sequences (SPEC §3–5).
 
-use esrp_core::parry3d::math::{Pose, Rotation, Vector};
+use esrp_core::collision::{object_pose, robot_pose};
+use esrp_core::parry3d::math::Pose;
 use esrp_core::parry3d::query;
 use esrp_core::{
     Action, CompiledScene, Episode, EpisodeConfig, ObjectPose, OrientedRect, PlanPoint, Rules, footprint_iou,
@@ -9,14 +10,6 @@ use proptest::prelude::*;
 use std::sync::Arc;
 
 use super::fixtures::{SplitMix, random_scene};
-
-fn object_pose(p: &ObjectPose) -> Pose {
-    Pose::from_parts(Vector::new(p.x, 0.0, p.z), Rotation::from_rotation_y(p.yaw))
-}
-
-fn robot_pose(p: PlanPoint) -> Pose {
-    Pose::translation(p.x, 0.55, p.z)
-}
 
 /// Whether the robot (at `position`) or the held object (at `held_pose`) intersects any
 /// obstacle, by parry's intersection test on the exact shapes: independent of the casts that
