@@ -14,21 +14,7 @@ use esrp_core::{
     SceneError, TURN_ANGLE, WallPieceKind,
 };
 
-use super::fixtures::{SceneBuilder, SplitMix, box_part, pose, random_scene, small_box};
-
-fn random_actions(seed: u64, count: usize) -> Vec<Action> {
-    let mut rng = SplitMix(seed ^ 0x5EED_C011);
-    (0..count)
-        .map(|_| match rng.below(12) {
-            0..=3 => Action::MoveForward,
-            4 | 5 => Action::MoveBackward,
-            6 | 7 => Action::TurnLeft,
-            8 | 9 => Action::TurnRight,
-            10 => Action::Fetch,
-            _ => Action::Release,
-        })
-        .collect()
-}
+use super::fixtures::{SceneBuilder, box_part, pose, random_actions, random_scene, small_box};
 
 /// A planner's view: the body and obstacles built from the episode's public state only.
 fn planner_view(e: &Episode) -> (Body, MovableObstacles) {

@@ -9,7 +9,7 @@ use esrp_core::{
 use proptest::prelude::*;
 use std::sync::Arc;
 
-use super::fixtures::{SplitMix, random_scene};
+use super::fixtures::{SplitMix, random_actions, random_scene};
 
 /// Whether the robot (at `position`) or the held object (at `held_pose`) intersects any
 /// obstacle, by parry's intersection test on the exact shapes: independent of the casts that
@@ -41,21 +41,6 @@ fn body_intersects(
         }
     }
     None
-}
-
-/// Random actions biased towards motion, with fetches and releases mixed in.
-fn random_actions(seed: u64, count: usize) -> Vec<Action> {
-    let mut rng = SplitMix(seed ^ 0xA5A5_5A5A);
-    (0..count)
-        .map(|_| match rng.below(12) {
-            0..=3 => Action::MoveForward,
-            4 | 5 => Action::MoveBackward,
-            6 | 7 => Action::TurnLeft,
-            8 | 9 => Action::TurnRight,
-            10 => Action::Fetch,
-            _ => Action::Release,
-        })
-        .collect()
 }
 
 fn episode(seed: u64) -> Episode {
