@@ -12,20 +12,15 @@
 
 use std::sync::Arc;
 
-use parry3d::bounding_volume::{Aabb, BoundingVolume};
-use parry3d::math::{Pose, Vector};
-use parry3d::query::{self, NonlinearRigidMotion, ShapeCastOptions};
-use parry3d::shape::Shape;
 use serde::{Deserialize, Serialize};
 
 use crate::action::Action;
+use crate::collision::{self, Body, Motion, MovableObstacles};
 use crate::error::EpisodeError;
 use crate::geometry::{OrientedRect, PlanPoint, footprint_iou, rotate_plan};
 use crate::heading::{Heading, TURN_ANGLE};
 use crate::scene::ObjectPose;
-use crate::world::{
-    CAMERA_HEIGHT, CAMERA_HORIZONTAL_FOV, CAMERA_PITCH, CompiledScene, MOVE_DISTANCE, Obstacle, object_pose, robot_pose,
-};
+use crate::world::{CAMERA_HEIGHT, CAMERA_HORIZONTAL_FOV, CAMERA_PITCH, CompiledScene, MOVE_DISTANCE, Obstacle};
 
 /// Weights of the reward terms of SPEC §6.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -350,9 +345,9 @@ struct State {
     position: PlanPoint,
     heading: Heading,
     grip: Option<Grip>,
-    poses: Vec<ObjectPose>,
+    /// Every movable object's pose; the held one's box is refreshed when it is released.
+    objects: MovableObstacles,
     placed: Vec<bool>,
-    obstacle_aabbs: Vec<Aabb>,
     steps: u32,
     status: EpisodeStatus,
     ever_in_reach: bool,
@@ -369,33 +364,6 @@ pub struct Episode {
     config: EpisodeConfig,
     horizon: u32,
     state: State,
-}
-
-/// Result of a collision query: the first obstacle hit and when (fraction of the motion).
-#[derive(Clone, Copy, Debug)]
-struct Hit {
-    time: f64,
-    obstacle: Obstacle,
-}
-
-/// How far along the motion a further hit can still matter: only before the best one so far.
-fn until(best: &Option<Hit>) -> f64 {
-    best.map_or(1.0, |b| b.time)
-}
-
-fn earliest(best: &mut Option<Hit>, candidate: Hit) {
-    if best.is_none_or(|b| candidate.time < b.time) {
-        *best = Some(candidate);
-    }
-}
-
-/// The motion of the moving body over `t ∈ [0, 1]`.
-#[derive(Clone, Copy, Debug)]
-enum Motion {
-    /// Translation by a plan vector.
-    Translate(PlanPoint),
-    /// Rotation about the agent's vertical axis by an angle (radians, positive = left).
-    Rotate(f64),
 }
 
 impl Episode {
@@ -432,16 +400,13 @@ impl Episode {
                 ) > scene.rules().placement_iou
             })
             .collect();
-        let obstacle_aabbs =
-            poses.iter().enumerate().map(|(i, p)| scene.movable_shape(i).compute_aabb(&object_pose(p))).collect();
         let mut state = State {
             counts: MoveCounts([0; 8]),
             position: start,
             heading: s.agent.heading,
             grip: None,
-            poses,
+            objects: MovableObstacles::new(scene, poses),
             placed,
-            obstacle_aabbs,
             steps: 0,
             status: EpisodeStatus::Running,
             ever_in_reach: false,
@@ -491,21 +456,14 @@ impl Episode {
             Action::MoveForward | Action::MoveBackward => {
                 let sign = if action == Action::MoveForward { 1 } else { -1 };
                 let h = self.state.heading;
-                let delta = PlanPoint::new(
-                    f64::from(sign) * MOVE_DISTANCE * h.cos(),
-                    -(f64::from(sign) * MOVE_DISTANCE * h.sin()),
-                );
                 let counts = self.state.counts.moved(h, sign);
                 let position = counts.position(self.start_position());
-                self.try_motion(Motion::Translate(delta), counts, position, h, &mut outcome);
+                self.try_motion(action, counts, position, h, &mut outcome);
             }
             Action::TurnLeft | Action::TurnRight => {
-                let (heading, angle) = if action == Action::TurnLeft {
-                    (self.state.heading.left(), TURN_ANGLE)
-                } else {
-                    (self.state.heading.right(), -TURN_ANGLE)
-                };
-                self.try_motion(Motion::Rotate(angle), self.state.counts, self.state.position, heading, &mut outcome);
+                let heading =
+                    if action == Action::TurnLeft { self.state.heading.left() } else { self.state.heading.right() };
+                self.try_motion(action, self.state.counts, self.state.position, heading, &mut outcome);
             }
             Action::Fetch => self.fetch(&mut outcome),
             Action::Release => self.release(&mut outcome),
@@ -513,9 +471,9 @@ impl Episode {
         if outcome.accepted && action.is_motion() {
             if let Some(grip) = self.state.grip {
                 // The potential term: how much closer the held object came to its target.
-                let before = self.held_distance_at(grip.object, &self.state.poses[grip.object]);
+                let before = self.held_distance_at(grip.object, &self.state.objects.poses()[grip.object]);
                 let pose = grip.carried_pose(self.state.position, self.state.heading);
-                self.state.poses[grip.object] = pose;
+                self.state.objects.carry(grip.object, pose);
                 let after = self.held_distance_at(grip.object, &pose);
                 outcome.reward.potential = weights.potential * (before - after);
             }
@@ -560,22 +518,26 @@ impl Episode {
     fn any_in_reach(scene: &CompiledScene, state: &State) -> bool {
         let reach = scene.rules().fetch_reach;
         state
-            .poses
+            .objects
+            .poses()
             .iter()
             .enumerate()
             .any(|(i, p)| scene.movable_footprint(i, p).distance_to_point(state.position) <= reach)
     }
 
-    /// Checks `motion` and, if it is free, commits the new agent state.
+    /// Checks the motion of `action` (SPEC §3) with [`collision::first_hit`] and, if it is
+    /// free, commits the new agent state.
     fn try_motion(
         &mut self,
-        motion: Motion,
+        action: Action,
         counts: MoveCounts,
         position: PlanPoint,
         heading: Heading,
         outcome: &mut StepOutcome,
     ) {
-        if let Some(hit) = self.first_hit(motion) {
+        let hit = Motion::of(action, self.state.heading)
+            .and_then(|motion| collision::first_hit(&self.scene, &self.state.objects, &self.body(), motion));
+        if let Some(hit) = hit {
             outcome.collided_with = Some(hit.obstacle);
             return;
         }
@@ -586,101 +548,16 @@ impl Episode {
         outcome.accepted = true;
     }
 
-    /// The moving body's parts in world coordinates, all dilated by the collision margin: the
-    /// robot (unless `with_robot` is false), then the held object's parts.
-    fn for_each_moving_part(&self, with_robot: bool, mut f: impl FnMut(&Pose, &dyn Shape)) {
-        if with_robot {
-            f(&robot_pose(self.state.position), self.scene.robot_carried.as_ref());
-        }
-        if let Some(grip) = self.state.grip {
-            let placement = object_pose(&self.state.poses[grip.object]);
-            for (pose, shape) in &self.scene.movables[grip.object].carried_parts {
-                f(&(placement * *pose), shape.as_ref());
-            }
-        }
+    /// The agent's moving body now: the robot and what it holds, for [`collision`] queries.
+    pub fn body(&self) -> Body {
+        let held = self.state.grip.map(|g| (g.object, self.state.objects.poses()[g.object]));
+        Body { position: self.state.position, held }
     }
 
-    /// The first obstacle hit by the moving body over the whole of `motion`, if any.
-    fn first_hit(&self, motion: Motion) -> Option<Hit> {
-        match motion {
-            Motion::Translate(d) => self.first_hit_translating(d),
-            Motion::Rotate(angle) => self.first_hit_rotating(angle),
-        }
-    }
-
-    /// Translation: one linear shape cast per moving part against the static compound (parry
-    /// walks its BVH) and against each movable object whose box meets the swept box.
-    fn first_hit_translating(&self, d: PlanPoint) -> Option<Hit> {
-        let held = self.state.grip.map(|g| g.object);
-        let shift = Vector::new(d.x, 0.0, d.z);
-        let mut best: Option<Hit> = None;
-        self.for_each_moving_part(true, |pose, shape| {
-            let start = shape.compute_aabb(pose);
-            let swept = start.merged(&Aabb::new(start.mins + shift, start.maxs + shift));
-            if let Some((time, part)) = cast_linear(pose, shape, shift, &Pose::IDENTITY, self.scene.static_shape()) {
-                earliest(&mut best, Hit { time, obstacle: self.scene.static_part_owner(part) });
-            }
-            for (j, aabb) in self.state.obstacle_aabbs.iter().enumerate() {
-                if Some(j) == held || !aabb.intersects(&swept) {
-                    continue;
-                }
-                let obstacle = &self.scene.movables[j].obstacle;
-                if let Some((time, _)) = cast_linear(pose, shape, shift, &object_pose(&self.state.poses[j]), obstacle) {
-                    earliest(&mut best, Hit { time, obstacle: Obstacle::Movable(j) });
-                }
-            }
-        });
-        best
-    }
-
-    /// Rotation: a nonlinear (rotational) shape cast of each moving part over the whole arc
-    /// against each convex obstacle part whose box meets the box swept by the arc.
-    ///
-    /// The robot is skipped: it is a cylinder turning about its own axis, so a turn sweeps no
-    /// space it does not already occupy.
-    fn first_hit_rotating(&self, angle: f64) -> Option<Hit> {
-        let held = self.state.grip?.object;
-        let centre = self.state.position;
-        let mut best: Option<Hit> = None;
-        self.for_each_moving_part(false, |pose, shape| {
-            let (swept, radius) = arc_swept_aabb(&shape.compute_aabb(pose), centre, angle);
-            // No point of the part moves farther than the chord of its arc: an obstacle farther
-            // than that from the part's start pose cannot be reached, and a distance query is
-            // much cheaper than a rotational cast.
-            let reach = 2.0 * radius * (0.5 * angle).abs().sin() + 1e-9;
-            let motion = NonlinearRigidMotion::new(
-                *pose,
-                pose.inverse_transform_point(Vector::new(centre.x, pose.translation.y, centre.z)),
-                Vector::ZERO,
-                Vector::new(0.0, angle, 0.0),
-            );
-            let check = |obstacle_pose: &Pose, obstacle: &dyn Shape, best: &Option<Hit>| {
-                let far = query::distance(pose, shape, obstacle_pose, obstacle).is_ok_and(|d| d.distance > reach);
-                if far { None } else { cast_rotating(&motion, shape, obstacle_pose, obstacle, until(best)) }
-            };
-            let statics = self.scene.static_shape();
-            for leaf in statics.bvh().intersect_aabb(&swept) {
-                let (leaf_pose, leaf_shape) = &statics.shapes()[leaf as usize];
-                if let Some(time) = check(leaf_pose, leaf_shape.as_ref(), &best) {
-                    earliest(&mut best, Hit { time, obstacle: self.scene.static_part_owner(leaf) });
-                }
-            }
-            for (j, aabb) in self.state.obstacle_aabbs.iter().enumerate() {
-                if j == held || !aabb.intersects(&swept) {
-                    continue;
-                }
-                let placement = object_pose(&self.state.poses[j]);
-                let obstacle = &self.scene.movables[j].obstacle;
-                let local = swept.transform_by(&placement.inverse());
-                for leaf in obstacle.bvh().intersect_aabb(&local) {
-                    let (leaf_pose, leaf_shape) = &obstacle.shapes()[leaf as usize];
-                    if let Some(time) = check(&(placement * *leaf_pose), leaf_shape.as_ref(), &best) {
-                        earliest(&mut best, Hit { time, obstacle: Obstacle::Movable(j) });
-                    }
-                }
-            }
-        });
-        best
+    /// The movable objects as obstacles now, for [`collision`] queries (the held object's entry
+    /// is ignored by queries about [`Episode::body`]).
+    pub fn obstacles(&self) -> &MovableObstacles {
+        &self.state.objects
     }
 
     fn fetch(&mut self, outcome: &mut StepOutcome) {
@@ -698,7 +575,7 @@ impl Episode {
         }
         self.state.grip = Some(Grip {
             object,
-            object_pose: self.state.poses[object],
+            object_pose: self.state.objects.poses()[object],
             agent_position: self.state.position,
             agent_heading: self.state.heading,
         });
@@ -714,7 +591,7 @@ impl Episode {
         let agent = self.agent_pose();
         let forward = agent.forward();
         let mut best: Option<(f64, f64, usize)> = None;
-        for (i, pose) in self.state.poses.iter().enumerate() {
+        for (i, pose) in self.state.objects.poses().iter().enumerate() {
             let footprint = self.scene.movable_footprint(i, pose);
             let distance = footprint.distance_to_point(agent.position);
             if distance > reach {
@@ -739,10 +616,9 @@ impl Episode {
             return;
         };
         let object = grip.object;
-        let pose = &mut self.state.poses[object];
-        pose.yaw = wrap_angle(pose.yaw);
-        let pose = *pose;
-        self.state.obstacle_aabbs[object] = self.scene.movable_shape(object).compute_aabb(&object_pose(&pose));
+        let carried = self.state.objects.poses()[object];
+        let pose = ObjectPose { yaw: wrap_angle(carried.yaw), ..carried };
+        self.state.objects.set(&self.scene, object, pose);
         let target = &self.scene.scene().movable_objects[object].target;
         let iou =
             footprint_iou(&self.scene.movable_footprint(object, &pose), &self.scene.movable_footprint(object, target));
@@ -760,7 +636,8 @@ impl Episode {
 
     /// `D` now: the sum of plan distances between current and target footprint centres.
     pub fn remaining_distance(&self) -> f64 {
-        (0..self.state.poses.len()).map(|i| self.held_distance_at(i, &self.state.poses[i])).sum()
+        let poses = self.state.objects.poses();
+        (0..poses.len()).map(|i| self.held_distance_at(i, &poses[i])).sum()
     }
 
     /// The metrics so far (final once the episode has ended).
@@ -835,7 +712,7 @@ impl Episode {
 
     /// Current poses of the movable objects, in scene order.
     pub fn object_poses(&self) -> &[ObjectPose] {
-        &self.state.poses
+        self.state.objects.poses()
     }
 
     /// Whether each movable object is placed.
@@ -868,11 +745,11 @@ impl Episode {
             .iter()
             .enumerate()
             .map(|(i, object)| {
-                let footprint = self.scene.movable_footprint(i, &self.state.poses[i]);
+                let footprint = self.scene.movable_footprint(i, &self.state.objects.poses()[i]);
                 let target_footprint = self.scene.movable_footprint(i, &object.target);
                 ObjectState {
                     id: object.id.clone(),
-                    pose: self.state.poses[i],
+                    pose: self.state.objects.poses()[i],
                     target: object.target,
                     footprint,
                     target_footprint,
@@ -907,7 +784,7 @@ impl Episode {
         self.state.position.z.to_bits().hash(&mut h);
         self.state.heading.hash(&mut h);
         self.held().hash(&mut h);
-        for p in &self.state.poses {
+        for p in self.state.objects.poses() {
             [p.x.to_bits(), p.z.to_bits(), p.yaw.to_bits()].hash(&mut h);
         }
         self.state.placed.hash(&mut h);
@@ -925,8 +802,8 @@ impl Episode {
             && a.heading == b.heading
             && a.grip == b.grip
             && a.placed == b.placed
-            && a.poses.len() == b.poses.len()
-            && a.poses.iter().zip(&b.poses).all(|(p, q)| {
+            && a.objects.poses().len() == b.objects.poses().len()
+            && a.objects.poses().iter().zip(b.objects.poses()).all(|(p, q)| {
                 p.x.to_bits() == q.x.to_bits() && p.z.to_bits() == q.z.to_bits() && p.yaw.to_bits() == q.yaw.to_bits()
             })
     }
@@ -937,75 +814,6 @@ fn wrap_angle(angle: f64) -> f64 {
     use std::f64::consts::{PI, TAU};
     let wrapped = (angle + PI).rem_euclid(TAU) - PI;
     if wrapped <= -PI { wrapped + TAU } else { wrapped }
-}
-
-/// A box that contains everything `aabb` sweeps when rotated by `angle` (radians) about the
-/// vertical axis through `centre`, and the largest distance of a point of `aabb` from that axis.
-///
-/// At every instant the rotated box is the convex hull of its rotated corners, and each corner
-/// moves along an arc that lies within the arc's sagitta `ρ(1 − cos(angle/2))` of its chord; so
-/// the box of the corners' start and end positions, grown by the largest sagitta, holds it all.
-fn arc_swept_aabb(aabb: &Aabb, centre: PlanPoint, angle: f64) -> (Aabb, f64) {
-    let (sin, cos) = angle.sin_cos();
-    let sagitta_factor = 1.0 - (0.5 * angle).cos();
-    let mut mins = aabb.mins;
-    let mut maxs = aabb.maxs;
-    let mut radius: f64 = 0.0;
-    for x in [aabb.mins.x, aabb.maxs.x] {
-        for z in [aabb.mins.z, aabb.maxs.z] {
-            let rel = PlanPoint::new(x - centre.x, z - centre.z);
-            let end = rotate_plan(rel, cos, sin);
-            mins.x = mins.x.min(centre.x + end.x);
-            mins.z = mins.z.min(centre.z + end.z);
-            maxs.x = maxs.x.max(centre.x + end.x);
-            maxs.z = maxs.z.max(centre.z + end.z);
-            radius = radius.max(rel.x.hypot(rel.z));
-        }
-    }
-    // A hair more, so that rounding never makes the box too small.
-    let grow = radius * sagitta_factor + 1e-9;
-    (Aabb::new(mins - Vector::new(grow, 0.0, grow), maxs + Vector::new(grow, 0.0, grow)), radius)
-}
-
-/// A linear shape cast of a moving part by `shift` (over `t ∈ [0, 1]`) against an obstacle:
-/// the time of impact and the obstacle's sub-shape hit, or `None` if the whole motion is free.
-fn cast_linear(
-    pose: &Pose,
-    shape: &dyn Shape,
-    shift: Vector,
-    obstacle_pose: &Pose,
-    obstacle: &dyn Shape,
-) -> Option<(f64, u32)> {
-    let options = ShapeCastOptions {
-        max_time_of_impact: 1.0,
-        target_distance: 0.0,
-        stop_at_penetration: true,
-        compute_impact_geometry_on_penetration: false,
-    };
-    // An unsupported pair cannot occur with the shapes this crate builds; count it as a hit at
-    // the start so that a bug makes the simulator stricter, never lets a body through.
-    match query::cast_shapes(pose, shift, shape, obstacle_pose, Vector::ZERO, obstacle, options) {
-        Ok(Some(hit)) => Some((hit.time_of_impact, hit.subshape2)),
-        Ok(None) => None,
-        Err(_) => Some((0.0, 0)),
-    }
-}
-
-/// A nonlinear shape cast of a rotating part against a fixed convex obstacle part over
-/// `t ∈ [0, until]`: the time of impact, or `None` if that part of the arc is free.
-fn cast_rotating(
-    motion: &NonlinearRigidMotion,
-    shape: &dyn Shape,
-    obstacle_pose: &Pose,
-    obstacle: &dyn Shape,
-    until: f64,
-) -> Option<f64> {
-    let fixed = NonlinearRigidMotion::constant_position(*obstacle_pose);
-    match query::cast_shapes_nonlinear(motion, shape, &fixed, obstacle, 0.0, until, true) {
-        Ok(Some(hit)) => Some(hit.time_of_impact),
-        Ok(None) => None,
-        Err(_) => Some(0.0),
-    }
 }
 
 #[cfg(test)]

@@ -13,6 +13,9 @@
 //!   example).
 //! - [`world`]: [`CompiledScene`] — validation ([`SceneError`]), walls cut around openings,
 //!   collision shapes, footprints; immutable and shared by every episode of a scene.
+//! - [`collision`]: every collision question, asked without an episode — pose conversion, wall
+//!   boxes, "does this body fit here" ([`collision::obstruction`]) and "what does this motion hit
+//!   first" ([`collision::first_hit`]); [`Episode::step`] and the planners ask the same functions.
 //! - [`episode`]: [`Episode`] — the mutable state and the one [`Episode::step`]; outcomes,
 //!   rewards, metrics, privileged state and the camera pose for renderers.
 //! - [`metrics`]: aggregation of episode metrics over many episodes (SR, OSR, RDR, stages,
@@ -53,6 +56,7 @@
 #![warn(missing_docs)]
 
 pub mod action;
+pub mod collision;
 pub mod episode;
 pub mod error;
 pub mod geometry;

@@ -17,15 +17,15 @@ use std::sync::Arc;
 
 use parry3d::bounding_volume::{Aabb, BoundingVolume};
 use parry3d::math::{Pose, Rotation, Vector};
-use parry3d::query;
 use parry3d::shape::{Compound, ConvexPolyhedron, Cuboid, Cylinder, Shape as _, SharedShape, Triangle};
 
+use crate::collision;
 use crate::error::{Layout, SceneError};
 use crate::geometry::{
     OrientedRect, PlanPoint, footprint_iou, point_in_polygon, polygon_is_simple, rotate_plan, signed_area,
 };
 use crate::heading::Heading;
-use crate::scene::{Difficulty, ObjectPose, OpeningKind, Part, SCENE_SCHEMA, Scene, Shape};
+use crate::scene::{Difficulty, ObjectPose, Part, SCENE_SCHEMA, Scene, Shape};
 
 /// The robot's collision radius, metres (SPEC §2).
 pub const ROBOT_RADIUS: f64 = 0.30;
@@ -183,16 +183,6 @@ impl std::fmt::Debug for CompiledScene {
     }
 }
 
-/// The pose of the robot's collision cylinder for an agent at `position`.
-pub(crate) fn robot_pose(position: PlanPoint) -> Pose {
-    Pose::translation(position.x, ROBOT_HEIGHT / 2.0, position.z)
-}
-
-/// The world pose of an object's frame.
-pub(crate) fn object_pose(pose: &ObjectPose) -> Pose {
-    Pose::from_parts(Vector::new(pose.x, 0.0, pose.z), Rotation::from_rotation_y(pose.yaw))
-}
-
 fn part_pose(offset: [f64; 3], yaw: f64) -> Pose {
     Pose::from_parts(Vector::new(offset[0], offset[1], offset[2]), Rotation::from_rotation_y(yaw))
 }
@@ -331,22 +321,12 @@ fn local_footprint(aabb: &Aabb) -> LocalFootprint {
     }
 }
 
-/// Cuts the room's walls into boxes around their openings.
-fn build_walls(scene: &Scene, floor: &[PlanPoint]) -> Result<Vec<WallPiece>, SceneError> {
-    let room = &scene.room;
+/// Each opening on a wall of the floor, within its length and height, and clear of the other
+/// openings of its wall.
+fn validate_openings(scene: &Scene, floor: &[PlanPoint]) -> Result<(), SceneError> {
     let n = floor.len();
-    let orientation = signed_area(floor).signum();
-    let thickness = room.wall_thickness;
-    let height = room.wall_height;
-    let convex_at = |i: usize| {
-        let prev = floor[(i + n - 1) % n];
-        let here = floor[i];
-        let next = floor[(i + 1) % n];
-        let cross = (here.x - prev.x) * (next.z - here.z) - (here.z - prev.z) * (next.x - here.x);
-        orientation * cross > 0.0
-    };
-    let mut openings_by_wall: Vec<Vec<(usize, &crate::scene::Opening)>> = vec![Vec::new(); n];
-    for (index, opening) in room.openings.iter().enumerate() {
+    let height = scene.room.wall_height;
+    for (index, opening) in scene.room.openings.iter().enumerate() {
         let invalid = |reason: String| SceneError::InvalidOpening { index, reason };
         check_finite(
             || format!("room.openings[{index}]"),
@@ -373,19 +353,8 @@ fn build_walls(scene: &Scene, floor: &[PlanPoint]) -> Result<Vec<WallPiece>, Sce
                 opening.bottom, opening.top
             )));
         }
-        openings_by_wall[opening.wall].push((index, opening));
     }
-    let mut pieces = Vec::new();
-    for (wall, openings) in openings_by_wall.iter_mut().enumerate() {
-        let a = floor[wall];
-        let b = floor[(wall + 1) % n];
-        let length = a.distance(b);
-        let d = PlanPoint::new((b.x - a.x) / length, (b.z - a.z) / length);
-        let outward = PlanPoint::new(orientation * d.z, -orientation * d.x);
-        let yaw = (-d.z).atan2(d.x);
-        let start = if convex_at(wall) { -thickness } else { 0.0 };
-        let end = length + if convex_at((wall + 1) % n) { thickness } else { 0.0 };
-        openings.sort_by(|x, y| x.1.offset.total_cmp(&y.1.offset));
+    for (wall, openings) in collision::openings_by_wall(n, &scene.room.openings).iter().enumerate() {
         for pair in openings.windows(2) {
             if pair[1].1.offset < pair[0].1.offset + pair[0].1.width {
                 return Err(SceneError::InvalidOpening {
@@ -394,34 +363,8 @@ fn build_walls(scene: &Scene, floor: &[PlanPoint]) -> Result<Vec<WallPiece>, Sce
                 });
             }
         }
-        let mut piece = |u0: f64, u1: f64, y0: f64, y1: f64, kind: WallPieceKind| {
-            if u1 - u0 <= 1e-9 || y1 - y0 <= 1e-9 {
-                return;
-            }
-            let u = 0.5 * (u0 + u1);
-            let w = 0.5 * thickness;
-            pieces.push(WallPiece {
-                wall,
-                kind,
-                center: [a.x + d.x * u + outward.x * w, 0.5 * (y0 + y1), a.z + d.z * u + outward.z * w],
-                half_extents: [0.5 * (u1 - u0), 0.5 * (y1 - y0), 0.5 * thickness],
-                yaw,
-            });
-        };
-        let mut cursor = start;
-        for (_, opening) in openings.iter() {
-            let (u0, u1) = (opening.offset, opening.offset + opening.width);
-            piece(cursor, u0, 0.0, height, WallPieceKind::Wall);
-            piece(u0, u1, 0.0, opening.bottom, WallPieceKind::Wall);
-            piece(u0, u1, opening.top, height, WallPieceKind::Wall);
-            if opening.kind == OpeningKind::Door {
-                piece(u0, u1, opening.bottom, opening.top, WallPieceKind::Door);
-            }
-            cursor = u1;
-        }
-        piece(cursor, end, 0.0, height, WallPieceKind::Wall);
     }
-    Ok(pieces)
+    Ok(())
 }
 
 fn validate_room(scene: &Scene) -> Result<Vec<PlanPoint>, SceneError> {
@@ -513,17 +456,15 @@ impl CompiledScene {
             }
         }
         let floor = validate_room(&scene)?;
-        let wall_pieces = build_walls(&scene, &floor)?;
+        validate_openings(&scene, &floor)?;
+        let room = &scene.room;
+        let wall_pieces = collision::wall_pieces(&floor, room.wall_thickness, room.wall_height, &room.openings);
         let margin = rules.collision_margin;
 
         let mut static_parts: Vec<(Pose, SharedShape)> = Vec::new();
         let mut static_part_owner = Vec::new();
         for piece in &wall_pieces {
-            let [hx, hy, hz] = piece.half_extents;
-            static_parts.push((
-                Pose::from_parts(Vector::from(piece.center), Rotation::from_rotation_y(piece.yaw)),
-                SharedShape::new(Cuboid::new(Vector::new(hx, hy, hz))),
-            ));
+            static_parts.push(collision::wall_collider(piece));
             static_part_owner.push(Obstacle::Wall(piece.wall));
         }
         let mut fixed_footprints = Vec::new();
@@ -536,7 +477,7 @@ impl CompiledScene {
                 return Err(SceneError::OutsideRoom { object: object.id.clone(), layout: Layout::Initial });
             }
             fixed_footprints.push(footprint);
-            let placement = object_pose(&object.pose);
+            let placement = collision::object_pose(&object.pose);
             for (pose, shape) in parts.exact {
                 static_parts.push((placement * pose, shape));
                 static_part_owner.push(Obstacle::Fixed(i));
@@ -603,23 +544,18 @@ impl CompiledScene {
                 .map(|o| if layout == Layout::Initial { o.pose } else { o.target })
                 .collect();
             for (i, pose) in poses.iter().enumerate() {
-                let placement = object_pose(pose);
-                for (part_pose, part) in &self.movables[i].carried_parts {
-                    let world = placement * *part_pose;
-                    let obstacle = self.first_intersection(&world, part.as_ref(), &poses, Some(i));
-                    if let Some(other) = obstacle {
-                        return Err(SceneError::Overlap {
-                            object: self.scene.movable_objects[i].id.clone(),
-                            other: obstacle_name(&self.scene, other),
-                            layout,
-                            margin,
-                        });
-                    }
+                if let Some(other) = collision::object_obstruction(self, &poses, i, pose) {
+                    return Err(SceneError::Overlap {
+                        object: self.scene.movable_objects[i].id.clone(),
+                        other: obstacle_name(&self.scene, other),
+                        layout,
+                        margin,
+                    });
                 }
             }
             if layout == Layout::Initial {
-                let robot = robot_pose(PlanPoint::new(self.scene.agent.x, self.scene.agent.z));
-                if let Some(other) = self.first_intersection(&robot, self.robot_carried.as_ref(), &poses, None) {
+                let robot = collision::Body::robot(PlanPoint::new(self.scene.agent.x, self.scene.agent.z));
+                if let Some(other) = collision::obstruction(self, &poses, &robot) {
                     return Err(SceneError::AgentInCollision { obstacle: obstacle_name(&self.scene, other) });
                 }
             }
@@ -632,35 +568,6 @@ impl CompiledScene {
             footprint_iou(&g.footprint.at(&o.pose), &g.footprint.at(&o.target)) > self.rules.placement_iou
         });
         if placed { Err(SceneError::AlreadySolved) } else { Ok(()) }
-    }
-
-    /// The first obstacle that `shape` at `pose` intersects: the static world, then movable
-    /// objects at `poses` except `skip`.
-    pub(crate) fn first_intersection(
-        &self,
-        pose: &Pose,
-        shape: &dyn parry3d::shape::Shape,
-        poses: &[ObjectPose],
-        skip: Option<usize>,
-    ) -> Option<Obstacle> {
-        // Unsupported shape pairs cannot occur with the shapes built here; count one as a hit
-        // so that a bug can only make the simulator stricter, never let a body through.
-        let hit = query::intersection_test(pose, shape, &Pose::IDENTITY, &self.static_world)
-            .map_or(Some(0), |r| r.intersecting.then_some(r.subshape2 as usize));
-        if let Some(part) = hit {
-            return Some(self.static_part_owner.get(part).copied().unwrap_or(Obstacle::Wall(0)));
-        }
-        for (j, other) in poses.iter().enumerate() {
-            if Some(j) == skip {
-                continue;
-            }
-            let hit = query::intersection_test(pose, shape, &object_pose(other), &self.movables[j].obstacle)
-                .map_or(true, |r| r.intersecting);
-            if hit {
-                return Some(Obstacle::Movable(j));
-            }
-        }
-        None
     }
 
     /// The scene as given.

@@ -70,13 +70,12 @@ use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::{Path, PathBuf};
 
 use esrp_core::geometry::{PlanPoint, point_in_polygon, polygon_is_simple, signed_area};
-use esrp_core::parry3d;
 use esrp_core::{
     AgentStart, Difficulty, FixedObject, Heading, MovableCategory, MovableObject, ObjectPose, Opening, OpeningKind,
     Part, Room, SCENE_SCHEMA, Scene, Shape,
 };
-use parry3d::bounding_volume::{Aabb, BoundingVolume};
-use parry3d::math::{Pose, Rotation, Vector};
+use esrp_core::{collision, parry3d};
+use parry3d::math::{Pose, Vector};
 use parry3d::shape::SharedShape;
 use serde::Deserialize;
 
@@ -781,39 +780,6 @@ struct RoomDraft {
     pieces: Vec<Piece>,
 }
 
-/// Wall boxes on the floor polygon's edges, outside it, as esrp-core builds them (without
-/// openings, which only remove wall: conservative).
-fn wall_colliders(floor: &[PlanPoint], height: f64) -> Vec<(Pose, SharedShape)> {
-    let n = floor.len();
-    // The floor is counter-clockwise (positive signed area): a vertex is convex when the turn
-    // there is to the left.
-    let convex_at = |i: usize| {
-        let (prev, here, next) = (floor[(i + n - 1) % n], floor[i], floor[(i + 1) % n]);
-        (here.x - prev.x) * (next.z - here.z) - (here.z - prev.z) * (next.x - here.x) > 0.0
-    };
-    (0..n)
-        .map(|i| {
-            let (a, b) = (floor[i], floor[(i + 1) % n]);
-            let length = a.distance(b);
-            let d = PlanPoint::new((b.x - a.x) / length, (b.z - a.z) / length);
-            let outward = PlanPoint::new(d.z, -d.x);
-            let start = if convex_at(i) { -WALL_THICKNESS } else { 0.0 };
-            let end = length + if convex_at((i + 1) % n) { WALL_THICKNESS } else { 0.0 };
-            let (u, w) = ((start + end) / 2.0, WALL_THICKNESS / 2.0);
-            let centre = Vector::new(a.x + d.x * u + outward.x * w, height / 2.0, a.z + d.z * u + outward.z * w);
-            let yaw = (-d.z).atan2(d.x);
-            (
-                Pose::from_parts(centre, Rotation::from_rotation_y(yaw)),
-                SharedShape::cuboid((end - start) / 2.0, height / 2.0, w),
-            )
-        })
-        .collect()
-}
-
-fn object_pose(pose: &ObjectPose) -> Pose {
-    Pose::from_parts(Vector::new(pose.x, 0.0, pose.z), Rotation::from_rotation_y(pose.yaw))
-}
-
 /// Collision data of a draft: walls and each piece's shape in its frame.
 struct Clearances {
     walls: Vec<(Pose, SharedShape)>,
@@ -821,27 +787,33 @@ struct Clearances {
 }
 
 impl Clearances {
-    fn world(&self, i: usize, pose: &ObjectPose) -> Option<(Pose, &SharedShape, Aabb)> {
+    /// The draft's walls as esrp-core builds them (without openings, which only remove wall:
+    /// conservative) and its pieces' shapes.
+    fn of(draft: &RoomDraft) -> Self {
+        Self {
+            walls: collision::wall_pieces(&draft.floor, WALL_THICKNESS, draft.wall_height, &[])
+                .iter()
+                .map(collision::wall_collider)
+                .collect(),
+            colliders: draft.pieces.iter().map(Piece::collider).collect(),
+        }
+    }
+
+    fn world(&self, i: usize, pose: &ObjectPose) -> Option<(Pose, &SharedShape)> {
         let (local, shape) = self.colliders[i].as_ref()?;
-        let world = object_pose(pose) * *local;
-        Some((world, shape, shape.compute_aabb(&world)))
+        Some((collision::object_pose(pose) * *local, shape))
     }
 
     /// Whether piece `i` at `pose` is clear by [`CLEARANCE`] of the walls and of every other
     /// piece at `poses`.
     fn is_clear(&self, i: usize, pose: &ObjectPose, poses: &[ObjectPose]) -> bool {
-        let Some((world, shape, aabb)) = self.world(i, pose) else { return false };
-        let aabb = aabb.loosened(CLEARANCE);
+        let Some((world, shape)) = self.world(i, pose) else { return false };
         let apart = |other_pose: &Pose, other: &SharedShape| {
-            if !aabb.intersects(&other.compute_aabb(other_pose)) {
-                return true;
-            }
-            parry3d::query::distance(&world, shape.as_ref(), other_pose, other.as_ref())
-                .is_ok_and(|d| d.distance >= CLEARANCE)
+            collision::separated(&world, shape.as_ref(), other_pose, other.as_ref(), CLEARANCE)
         };
         self.walls.iter().all(|(p, s)| apart(p, s))
             && poses.iter().enumerate().filter(|(j, _)| *j != i).all(|(j, other)| match self.world(j, other) {
-                Some((p, s, _)) => apart(&p, s),
+                Some((p, s)) => apart(&p, s),
                 None => true,
             })
     }
@@ -1220,10 +1192,7 @@ pub fn import(
                     continue;
                 }
             };
-            let clearances = Clearances {
-                walls: wall_colliders(&draft.floor, draft.wall_height),
-                colliders: draft.pieces.iter().map(Piece::collider).collect(),
-            };
+            let clearances = Clearances::of(&draft);
             let mut last: Result<(), String> = Err("movables_overlap".to_owned());
             for attempt in 0..options.max_attempts.max(1) {
                 let mut dice = Dice::new(options.seed, stream_of(&id), attempt);
@@ -1373,14 +1342,10 @@ mod tests {
             openings: Vec::new(),
             pieces: vec![wardrobe.clone(), stool],
         };
-        let clearances_of = |draft: &RoomDraft| Clearances {
-            walls: wall_colliders(&draft.floor, draft.wall_height),
-            colliders: draft.pieces.iter().map(Piece::collider).collect(),
-        };
 
         // A stool 5 cm into the wardrobe's front is moved out and becomes movable.
         let draft = draft_with(box_piece("Stool", stool, [0.4, 0.45, 0.4], 1.0, 0.95));
-        let clearances = clearances_of(&draft);
+        let clearances = Clearances::of(&draft);
         let (chosen, poses, nudged, stuck) = choose_movables(&draft, &clearances, &mut Dice::new(0, 1, 0));
         assert_eq!((chosen.as_slice(), nudged, stuck), (&[1][..], 1, 0));
         let moved = poses[1].position().distance(draft.pieces[1].pose.position());
@@ -1394,7 +1359,7 @@ mod tests {
 
         // A stool deep inside the wardrobe cannot be freed: it stays fixed.
         let draft = draft_with(box_piece("Stool", stool, [0.4, 0.45, 0.4], 1.0, 0.5));
-        let (chosen, poses, nudged, stuck) = choose_movables(&draft, &clearances_of(&draft), &mut Dice::new(0, 1, 0));
+        let (chosen, poses, nudged, stuck) = choose_movables(&draft, &Clearances::of(&draft), &mut Dice::new(0, 1, 0));
         assert_eq!((chosen.len(), nudged, stuck), (0, 0, 1));
         assert!(target_scene("test/stuck", "Bedroom", &draft, &chosen, &poses).is_none());
     }

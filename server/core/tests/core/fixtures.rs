@@ -3,7 +3,7 @@
 use std::sync::Arc;
 
 use esrp_core::{
-    AgentStart, CompiledScene, Difficulty, Episode, EpisodeConfig, FixedObject, Heading, MovableCategory,
+    Action, AgentStart, CompiledScene, Difficulty, Episode, EpisodeConfig, FixedObject, Heading, MovableCategory,
     MovableObject, ObjectPose, Part, Room, SCENE_SCHEMA, Scene, Shape, Split,
 };
 
@@ -215,4 +215,19 @@ pub fn random_scene(seed: u64) -> Scene {
         }
     }
     b.build()
+}
+
+/// Random actions biased towards motion, with fetches and releases mixed in.
+pub fn random_actions(seed: u64, count: usize) -> Vec<Action> {
+    let mut rng = SplitMix(seed ^ 0xA5A5_5A5A);
+    (0..count)
+        .map(|_| match rng.below(12) {
+            0..=3 => Action::MoveForward,
+            4 | 5 => Action::MoveBackward,
+            6 | 7 => Action::TurnLeft,
+            8 | 9 => Action::TurnRight,
+            10 => Action::Fetch,
+            _ => Action::Release,
+        })
+        .collect()
 }

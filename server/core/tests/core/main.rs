@@ -1,5 +1,6 @@
 //! esrp-core's integration tests: one binary, one module per concern.
 
+mod collision;
 mod fixtures;
 mod properties;
 mod rules;

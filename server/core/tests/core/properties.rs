@@ -1,6 +1,7 @@
 //! Property tests over random valid scenes and random action sequences (SPEC §3–5).
 
-use esrp_core::parry3d::math::{Pose, Rotation, Vector};
+use esrp_core::collision::{object_pose, robot_pose};
+use esrp_core::parry3d::math::Pose;
 use esrp_core::parry3d::query;
 use esrp_core::{
     Action, CompiledScene, Episode, EpisodeConfig, ObjectPose, OrientedRect, PlanPoint, Rules, footprint_iou,
@@ -8,15 +9,7 @@ use esrp_core::{
 use proptest::prelude::*;
 use std::sync::Arc;
 
-use super::fixtures::{SplitMix, random_scene};
-
-fn object_pose(p: &ObjectPose) -> Pose {
-    Pose::from_parts(Vector::new(p.x, 0.0, p.z), Rotation::from_rotation_y(p.yaw))
-}
-
-fn robot_pose(p: PlanPoint) -> Pose {
-    Pose::translation(p.x, 0.55, p.z)
-}
+use super::fixtures::{SplitMix, random_actions, random_scene};
 
 /// Whether the robot (at `position`) or the held object (at `held_pose`) intersects any
 /// obstacle, by parry's intersection test on the exact shapes: independent of the casts that
@@ -48,21 +41,6 @@ fn body_intersects(
         }
     }
     None
-}
-
-/// Random actions biased towards motion, with fetches and releases mixed in.
-fn random_actions(seed: u64, count: usize) -> Vec<Action> {
-    let mut rng = SplitMix(seed ^ 0xA5A5_5A5A);
-    (0..count)
-        .map(|_| match rng.below(12) {
-            0..=3 => Action::MoveForward,
-            4 | 5 => Action::MoveBackward,
-            6 | 7 => Action::TurnLeft,
-            8 | 9 => Action::TurnRight,
-            10 => Action::Fetch,
-            _ => Action::Release,
-        })
-        .collect()
 }
 
 fn episode(seed: u64) -> Episode {

@@ -1,17 +1,14 @@
 //! One test per rule of SPEC §3–6, on small hand-made scenes.
 
-use esrp_core::parry3d::math::{Pose, Rotation, Vector};
+use esrp_core::collision::object_pose;
+use esrp_core::parry3d::math::Pose;
 use esrp_core::parry3d::query;
 use esrp_core::{
-    Action, CompiledScene, Episode, EpisodeConfig, EpisodeError, NoOpReason, ObjectPose, Obstacle, Opening,
-    OpeningKind, Scene, Stage,
+    Action, CompiledScene, Episode, EpisodeConfig, EpisodeError, NoOpReason, Obstacle, Opening, OpeningKind, Scene,
+    Stage,
 };
 
 use super::fixtures::{SceneBuilder, box_part, cylinder_part, pose, small_box};
-
-fn object_pose(p: &ObjectPose) -> Pose {
-    Pose::from_parts(Vector::new(p.x, 0.0, p.z), Rotation::from_rotation_y(p.yaw))
-}
 
 /// A 5 × 5 room with the agent at `(x, z)` facing `heading` and one small box far away in a
 /// corner, so that nothing is in reach.
