@@ -101,14 +101,19 @@ impl OrientedRect {
 
 /// Signed area of a polygon by the shoelace formula, positive when its vertices run
 /// counter-clockwise in the `(x, z)` coordinate system.
+///
+/// The vertices are taken relative to the first (a fan of triangles from it), so the rounding
+/// error scales with the polygon's size, not with its distance from the origin: with absolute
+/// coordinates, a 1 × 1.2 m floor at x = z = 10⁵ m measured 1.1999989 m², and at 10⁸ m 2 m².
 pub fn signed_area(polygon: &[PlanPoint]) -> f64 {
     let n = polygon.len();
     if n < 3 {
         return 0.0;
     }
+    let origin = polygon[0];
     let mut twice = 0.0;
-    for i in 0..n {
-        twice += polygon[i].cross(polygon[(i + 1) % n]);
+    for i in 1..n - 1 {
+        twice += polygon[i].sub(origin).cross(polygon[i + 1].sub(origin));
     }
     0.5 * twice
 }
@@ -332,6 +337,23 @@ mod tests {
         // Turned 90°: the long side now runs along z.
         assert!((turned.distance_to_point(PlanPoint::new(0.0, 1.5)) - 1.0).abs() < 1e-12);
         assert!((turned.distance_to_point(PlanPoint::new(1.25, 0.0)) - 1.0).abs() < 1e-12);
+    }
+
+    /// Regression: the area was summed from absolute coordinates, so far from the origin it
+    /// lost every digit that mattered (the floor check accepted or refused the wrong rooms).
+    #[test]
+    fn signed_area_is_exact_far_from_the_origin() {
+        for offset in [0.0, 1e3, 1e5, 1e7, 1e8, -1e8] {
+            let at = |x: f64, z: f64| PlanPoint::new(offset + x, offset + z);
+            let rectangle = [at(0.0, 0.0), at(1.0, 0.0), at(1.0, 1.2), at(0.0, 1.2)];
+            let area = signed_area(&rectangle);
+            assert!((area - 1.2).abs() < 1e-6, "a 1 × 1.2 rectangle at {offset}: {area}");
+            let reversed: Vec<PlanPoint> = rectangle.iter().rev().copied().collect();
+            assert!((signed_area(&reversed) + 1.2).abs() < 1e-6, "clockwise at {offset}");
+            // A non-convex L of area 12.
+            let l_shape = [at(0.0, 0.0), at(4.0, 0.0), at(4.0, 2.0), at(2.0, 2.0), at(2.0, 4.0), at(0.0, 4.0)];
+            assert!((signed_area(&l_shape) - 12.0).abs() < 1e-6, "L at {offset}");
+        }
     }
 
     #[test]

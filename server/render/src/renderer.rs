@@ -288,6 +288,22 @@ impl std::fmt::Debug for Renderer {
     }
 }
 
+/// The first instance of each backend that found an adapter, kept until the process exits so
+/// that the graphics driver it loaded stays loaded.
+///
+/// Dropping the last instance of a backend makes the driver stack unload Mesa's driver while
+/// the process goes on: wgpu terminates the EGL display when its last OpenGL instance goes, and
+/// Mesa's EGL then closes `swrast_dri.so` (llvmpipe); the Vulkan loader closes lavapipe's ICD
+/// with the last `VkInstance`. Mesa 22.3's driver stack leaves an exit handler behind that
+/// points into the unloaded code, so a process that had dropped its last renderer died in
+/// `exit` with SIGSEGV, or with heap corruption (`corrupted size vs. prev_size in fastbins`,
+/// `double free or corruption (out)`) where that memory had been reused: esrp-server after
+/// about one SIGTERM in ten. With one instance per backend held for good, no driver is unloaded
+/// early and each tears down in its own order at exit. Dropped renderers still release their
+/// devices, buffers, textures and pipelines; what stays is one instance (for OpenGL, one EGL
+/// context) per backend used.
+static KEPT_INSTANCES: Mutex<Vec<(wgpu::Backend, wgpu::Instance)>> = Mutex::new(Vec::new());
+
 fn request_adapter(backends: wgpu::Backends, power: wgpu::PowerPreference) -> Option<wgpu::Adapter> {
     let instance = wgpu::Instance::new(wgpu::InstanceDescriptor {
         backends,
@@ -295,7 +311,13 @@ fn request_adapter(backends: wgpu::Backends, power: wgpu::PowerPreference) -> Op
         ..wgpu::InstanceDescriptor::new_without_display_handle()
     });
     let options = wgpu::RequestAdapterOptions { power_preference: power, ..Default::default() };
-    pollster::block_on(instance.request_adapter(&options)).ok()
+    let adapter = pollster::block_on(instance.request_adapter(&options)).ok()?;
+    let backend = adapter.get_info().backend;
+    let mut kept = KEPT_INSTANCES.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+    if !kept.iter().any(|(b, _)| *b == backend) {
+        kept.push((backend, instance));
+    }
+    Some(adapter)
 }
 
 impl Renderer {

@@ -97,6 +97,7 @@ pub async fn run(
     shutdown: impl Future<Output = ()> + Send,
 ) -> anyhow::Result<()> {
     let shared = build_shared(&config)?;
+    let render = shared.render.clone();
     let address = listener.local_addr()?;
     tracing::info!(%address, dataset = shared.store.name(), scenes = shared.store.infos().len(), "serving esrp.v1");
 
@@ -171,9 +172,17 @@ pub async fn run(
             shutdown,
         )
         .await;
+    // Shut down in order: the calls have drained; end the background tasks, then render what
+    // was submitted and join the render threads, so that no rendering runs while the process
+    // exits (`main` then drops the runtime, and with it the episodes, before returning).
     reaper.abort();
+    let _ = reaper.await;
     if let Some(task) = metrics_server {
         task.abort();
+        let _ = task.await;
+    }
+    if let Err(e) = tokio::task::spawn_blocking(move || render.stop()).await {
+        tracing::error!("stopping the render thread failed: {e}");
     }
     tracing::info!("server stopped");
     Ok(result?)

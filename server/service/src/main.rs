@@ -4,25 +4,50 @@ use clap::Parser;
 use esrp_server::Config;
 use esrp_server::config::LogFormat;
 
-async fn shutdown_signal() {
-    let interrupt = tokio::signal::ctrl_c();
+/// SIGINT and SIGTERM, listened for from the moment this is made: a signal that arrives before
+/// anything awaits [`Signals::wait`] (while the renderer starts, say) is kept, not lost, and
+/// does not kill the process.
+struct Signals {
     #[cfg(unix)]
-    {
-        let mut terminate = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(s) => s,
-            Err(_) => {
-                let _ = interrupt.await;
-                return;
-            }
-        };
-        tokio::select! {
-            _ = interrupt => {},
-            _ = terminate.recv() => {},
+    interrupt: tokio::signal::unix::Signal,
+    #[cfg(unix)]
+    terminate: tokio::signal::unix::Signal,
+}
+
+impl Signals {
+    /// Installs the handlers (call before announcing the address: once a client or a script can
+    /// see the server, its signals must mean a graceful shutdown).
+    fn install() -> anyhow::Result<Self> {
+        #[cfg(unix)]
+        {
+            use tokio::signal::unix::{SignalKind, signal};
+            let error = |e: std::io::Error| anyhow::anyhow!("cannot install the SIGINT/SIGTERM handlers: {e}");
+            Ok(Self {
+                interrupt: signal(SignalKind::interrupt()).map_err(error)?,
+                terminate: signal(SignalKind::terminate()).map_err(error)?,
+            })
         }
+        #[cfg(not(unix))]
+        Ok(Self {})
     }
-    #[cfg(not(unix))]
-    let _ = interrupt.await;
-    tracing::info!("shutting down");
+
+    /// Completes on the first SIGINT or SIGTERM (Ctrl-C elsewhere).
+    async fn wait(self) {
+        #[cfg(unix)]
+        {
+            let Self { mut interrupt, mut terminate } = self;
+            tokio::select! {
+                _ = interrupt.recv() => {},
+                _ = terminate.recv() => {},
+            }
+        }
+        #[cfg(not(unix))]
+        {
+            let Self {} = self;
+            let _ = tokio::signal::ctrl_c().await;
+        }
+        tracing::info!("shutting down");
+    }
 }
 
 /// Mesa's CPU renderers (llvmpipe, lavapipe) rasterise with a pool of `LP_NUM_THREADS`
@@ -43,11 +68,14 @@ fn default_lavapipe_threads() {
 fn main() -> anyhow::Result<()> {
     default_lavapipe_threads();
     let config = Config::parse();
-    tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(config.worker_threads())
-        .enable_all()
-        .build()?
-        .block_on(serve(config))
+    let runtime =
+        tokio::runtime::Builder::new_multi_thread().worker_threads(config.worker_threads()).enable_all().build()?;
+    let result = runtime.block_on(serve(config));
+    // Dropping the runtime waits for its blocking tasks and drops every task, and with them the
+    // episodes, scenes and renderer they hold: all of that is released here, before `main`
+    // returns, never while the process runs its exit handlers.
+    drop(runtime);
+    result
 }
 
 async fn serve(config: Config) -> anyhow::Result<()> {
@@ -56,6 +84,7 @@ async fn serve(config: Config) -> anyhow::Result<()> {
         LogFormat::Text => tracing_subscriber::fmt().with_env_filter(filter).init(),
         LogFormat::Json => tracing_subscriber::fmt().json().with_env_filter(filter).init(),
     }
+    let signals = Signals::install()?;
     let listener = tokio::net::TcpListener::bind(config.listen)
         .await
         .map_err(|e| anyhow::anyhow!("cannot listen on {}: {e}", config.listen))?;
@@ -71,5 +100,5 @@ async fn serve(config: Config) -> anyhow::Result<()> {
         }
         None => None,
     };
-    esrp_server::run(listener, metrics_listener, config, shutdown_signal()).await
+    esrp_server::run(listener, metrics_listener, config, signals.wait()).await
 }

@@ -59,28 +59,65 @@ struct RenderJob {
     reply: oneshot::Sender<Result<Vec<ViewOutput>, String>>,
 }
 
+/// What the render threads receive.
+enum Message {
+    /// Views to render.
+    Job(RenderJob),
+    /// Finish the jobs sent before this one, then end (one per thread, from
+    /// [`RenderScheduler::stop`]).
+    Stop,
+}
+
 /// Handle to the render thread. Cheap to clone.
 #[derive(Clone)]
 pub struct RenderScheduler {
     renderer: Arc<Renderer>,
-    jobs: mpsc::Sender<RenderJob>,
+    jobs: mpsc::Sender<Message>,
+    /// The render threads, until [`RenderScheduler::stop`] joins them.
+    threads: Arc<std::sync::Mutex<Vec<std::thread::JoinHandle<()>>>>,
 }
 
 impl RenderScheduler {
     /// Starts the render thread around `renderer`.
     pub fn start(renderer: Renderer, metrics: Arc<Metrics>) -> Self {
         let renderer = Arc::new(renderer);
-        let (jobs, receiver) = mpsc::channel::<RenderJob>();
+        let (jobs, receiver) = mpsc::channel::<Message>();
         let receiver = Arc::new(std::sync::Mutex::new(receiver));
+        let mut threads = Vec::with_capacity(RENDER_THREADS);
         for i in 0..RENDER_THREADS {
             let (renderer, receiver, metrics) = (renderer.clone(), receiver.clone(), metrics.clone());
-            std::thread::Builder::new()
+            match std::thread::Builder::new()
                 .name(format!("esrp-render-{i}"))
                 .spawn(move || render_loop(&renderer, &receiver, &metrics))
-                .map(drop)
-                .unwrap_or_else(|e| tracing::error!("cannot start a render thread: {e}"));
+            {
+                Ok(thread) => threads.push(thread),
+                Err(e) => tracing::error!("cannot start a render thread: {e}"),
+            }
         }
-        Self { renderer, jobs }
+        Self { renderer, jobs, threads: Arc::new(std::sync::Mutex::new(threads)) }
+    }
+
+    /// Renders what was submitted before this call, then ends the render threads and waits for
+    /// them (blocking: call it off the async runtime). Later submissions fail with "the render
+    /// thread has stopped". Idempotent.
+    ///
+    /// The server calls it on shutdown, before `main` returns: a render thread still running
+    /// when the process exits would drop its share of the renderer (the last one, once the
+    /// episodes are gone) while the main thread runs the exit handlers, and with OpenGL that
+    /// tore the driver's state down twice at once (heap corruption, SIGSEGV/SIGABRT).
+    pub fn stop(&self) {
+        let threads = match self.threads.lock() {
+            Ok(mut threads) => std::mem::take(&mut *threads),
+            Err(poisoned) => std::mem::take(&mut *poisoned.into_inner()),
+        };
+        for _ in &threads {
+            let _ = self.jobs.send(Message::Stop);
+        }
+        for thread in threads {
+            if thread.join().is_err() {
+                tracing::error!("a render thread panicked");
+            }
+        }
     }
 
     /// The renderer (adapter information, scene uploads).
@@ -109,7 +146,7 @@ impl RenderScheduler {
             return RenderTicket::nothing();
         }
         let (reply, answer) = oneshot::channel();
-        match self.jobs.send(RenderJob { views, reply }) {
+        match self.jobs.send(Message::Job(RenderJob { views, reply })) {
             Ok(()) => RenderTicket(Ticket::Waiting(answer)),
             Err(_) => RenderTicket(Ticket::Done(Err(ServiceError::Render("the render thread has stopped".into())))),
         }
@@ -142,23 +179,38 @@ impl RenderTicket {
     }
 }
 
-fn render_loop(renderer: &Renderer, receiver: &std::sync::Mutex<mpsc::Receiver<RenderJob>>, metrics: &Metrics) {
+fn render_loop(renderer: &Renderer, receiver: &std::sync::Mutex<mpsc::Receiver<Message>>, metrics: &Metrics) {
     loop {
         // Gather under the lock, render without it: while one thread renders, the other
         // gathers the next batch and submits it as soon as it can.
         let Ok(receiver) = receiver.lock() else { return };
-        let Ok(first) = receiver.recv() else { return };
+        let first = match receiver.recv() {
+            Ok(Message::Job(job)) => job,
+            Ok(Message::Stop) | Err(_) => return,
+        };
         // Gather the jobs already waiting, about one renderer call's worth; render_jobs
         // splits whatever was gathered to the renderer's limits.
         let mut jobs = vec![first];
         let mut count = jobs[0].views.len();
+        let mut stop = false;
         while count < esrp_render::MAX_BATCH_VIEWS {
-            let Ok(job) = receiver.try_recv() else { break };
-            count += job.views.len();
-            jobs.push(job);
+            match receiver.try_recv() {
+                Ok(Message::Job(job)) => {
+                    count += job.views.len();
+                    jobs.push(job);
+                }
+                Ok(Message::Stop) => {
+                    stop = true;
+                    break;
+                }
+                Err(_) => break,
+            }
         }
         drop(receiver);
         render_jobs(renderer, jobs, metrics);
+        if stop {
+            return;
+        }
     }
 }
 
