@@ -367,7 +367,12 @@ fn main() -> anyhow::Result<()> {
         info.version, info.renderer_adapter, info.renderer_backend, info.dataset
     );
     println!("client machine: {cpus} CPUs, {cpu_model}");
-    println!("{:<20} {:>8} {:>9} {:>11} {:>9} {:>9}", "scenario", "episodes", "steps", "steps/s", "p50 ms", "p99 ms");
+    if args.scenarios.iter().any(|name| name != "soak") {
+        println!(
+            "{:<20} {:>8} {:>9} {:>11} {:>9} {:>9}",
+            "scenario", "episodes", "steps", "steps/s", "p50 ms", "p99 ms"
+        );
+    }
     let mut results = Vec::new();
     let mut soaks = Vec::new();
     for name in &args.scenarios {

@@ -713,7 +713,7 @@ impl Report {
     pub fn print(&self) {
         let rss = |r: Option<u64>| r.map_or("n/a".to_owned(), |b| format!("{:.1} MiB", mib(b)));
         let live = |s: Option<Sample>| s.and_then(|s| s.live).map_or("n/a".to_owned(), |n| n.to_string());
-        println!("soak: {} clients, {:.1} min, seed {}: {}", self.clients, self.minutes, self.seed, self.verdict());
+        println!("soak: {} clients, {} min, seed {}: {}", self.clients, self.minutes, self.seed, self.verdict());
         println!("  {:<44} {:>12}", "steps", self.steps);
         println!("  {:<44} {:>12.0}", "steps/s", self.steps as f64 / self.load_seconds.max(1e-9));
         println!(
@@ -877,7 +877,7 @@ pub async fn run(settings: Settings, server: Option<&LocalServer>) -> anyhow::Re
         .collect();
 
     println!(
-        "soak: {} clients for {:.1} min, seed {}; a line every {} (warm-up until {})",
+        "soak: {} clients for {} min, seed {}; a line every {} (warm-up until {})",
         settings.clients,
         settings.minutes,
         settings.seed,
