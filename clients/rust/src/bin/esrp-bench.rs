@@ -15,6 +15,11 @@
 //!   comes.
 //! - `batch-64`: 64 episodes, one `StepBatch` of 64 steps at a time.
 //! - `memory-1000`: the server's resident memory with 1,000 live episodes (local server only).
+//! - `soak` (only when named): load held for `--minutes` by `--clients` simulated clients, a
+//!   seeded random mix of creates, steps, batches, streams, resets, closes, abandoned calls and
+//!   disconnects; it checks that every episode is closed at the end, that the server's live
+//!   count is back down and that its resident memory stopped growing after the warm-up (see
+//!   `esrp-bench/soak.rs`). esrp-bench exits with an error when the soak fails.
 //!
 //! Latency is per step: from sending it to receiving its answer (for a batch, the whole call).
 //! Everything goes through `esrp-client`, as a Rust agent would.
@@ -30,6 +35,9 @@ use esrp_client::{
     Action, Answer, Client, ClientError, Episode, EpisodeOptions, LocalServer, RandomActions, SceneFilter, Split,
     StepResult, reach_or_start,
 };
+
+#[path = "esrp-bench/soak.rs"]
+mod soak;
 
 #[derive(Parser, Debug)]
 #[command(name = "esrp-bench", version, about = "End-to-end throughput and latency of esrp-server")]
@@ -47,7 +55,7 @@ struct Args {
     /// Measured seconds per scenario.
     #[arg(long, default_value_t = 5.0)]
     seconds: f64,
-    /// Scenarios to run (comma-separated); all by default.
+    /// Scenarios to run (comma-separated); all but `soak` by default.
     #[arg(
         long,
         value_delimiter = ',',
@@ -66,6 +74,23 @@ struct Args {
     /// Write the results as JSON to this file too.
     #[arg(long)]
     json: Option<PathBuf>,
+    /// Minutes of load in `soak`.
+    #[arg(long, default_value_t = 5.0)]
+    minutes: f64,
+    /// Concurrent simulated clients in `soak`.
+    #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    clients: u32,
+    /// Seed of the `soak` clients' choices (scenes, calls, actions, deadlines).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// `soak` fails when the server's RSS grows more than this, percent, from the end of the
+    /// warm-up (a fifth of the run, at most 5 minutes) to the end of the load.
+    #[arg(long, default_value_t = 10.0)]
+    rss_growth_limit: f64,
+    /// Report the episodes still live after `soak`'s cleanup without failing: a create
+    /// abandoned by its client may be finished by the server for nobody (issue 15 item 4).
+    #[arg(long)]
+    accept_leftover_episodes: bool,
 }
 
 /// One scenario's result.
@@ -342,9 +367,38 @@ fn main() -> anyhow::Result<()> {
         info.version, info.renderer_adapter, info.renderer_backend, info.dataset
     );
     println!("client machine: {cpus} CPUs, {cpu_model}");
-    println!("{:<20} {:>8} {:>9} {:>11} {:>9} {:>9}", "scenario", "episodes", "steps", "steps/s", "p50 ms", "p99 ms");
+    if args.scenarios.iter().any(|name| name != "soak") {
+        println!(
+            "{:<20} {:>8} {:>9} {:>11} {:>9} {:>9}",
+            "scenario", "episodes", "steps", "steps/s", "p50 ms", "p99 ms"
+        );
+    }
     let mut results = Vec::new();
+    let mut soaks = Vec::new();
     for name in &args.scenarios {
+        if name == "soak" {
+            let settings = soak::Settings {
+                address: address.clone(),
+                token: args.token.clone(),
+                minutes: args.minutes,
+                clients: args.clients as usize,
+                seed: args.seed,
+                rss_growth_limit_percent: args.rss_growth_limit,
+                accept_leftover_episodes: args.accept_leftover_episodes,
+            };
+            let report = runtime_for(name)?.block_on(soak::run(settings, local.as_ref())).context("scenario soak")?;
+            report.print();
+            results.push(Outcome {
+                name: name.clone(),
+                episodes: report.episodes() as usize,
+                steps: report.steps(),
+                seconds: report.seconds(),
+                latencies: Vec::new(),
+                note: report.verdict(),
+            });
+            soaks.push(report);
+            continue;
+        }
         let outcome = runtime_for(name)?
             .block_on(async { scenario(name, &args, &connect().await?, local.as_ref()).await })
             .with_context(|| format!("scenario {name}"))?;
@@ -369,7 +423,7 @@ fn main() -> anyhow::Result<()> {
             .map(|o| {
                 serde_json::json!({
                     "scenario": o.name, "episodes": o.episodes, "steps": o.steps, "seconds": o.seconds,
-                    "steps_per_second": if o.latencies.is_empty() { None } else { Some(o.rate()) },
+                    "steps_per_second": if o.latencies.is_empty() && o.name != "soak" { None } else { Some(o.rate()) },
                     "p50_ms": if o.latencies.is_empty() { None } else { Some(o.percentile(0.5) * 1e3) },
                     "p99_ms": if o.latencies.is_empty() { None } else { Some(o.percentile(0.99) * 1e3) },
                     "note": o.note,
@@ -379,8 +433,13 @@ fn main() -> anyhow::Result<()> {
         let report = serde_json::json!({
             "server": address, "renderer": info.renderer_adapter, "backend": info.renderer_backend,
             "cpus": cpus, "cpu": cpu_model, "results": rows,
+            "soak": soaks.iter().map(soak::Report::to_json).collect::<Vec<_>>(),
         });
         std::fs::write(path, serde_json::to_string_pretty(&report)?)?;
+    }
+    let failed: Vec<String> = soaks.iter().filter(|r| !r.failures.is_empty()).map(soak::Report::verdict).collect();
+    if !failed.is_empty() {
+        bail!("soak {}", failed.join("; "));
     }
     Ok(())
 }
