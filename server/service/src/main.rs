@@ -71,5 +71,5 @@ async fn serve(config: Config) -> anyhow::Result<()> {
         }
         None => None,
     };
-    esrp_server::run(listener, metrics_listener, config, shutdown_signal()).await
+    Ok(esrp_server::run(listener, metrics_listener, config, shutdown_signal()).await?)
 }
