@@ -30,14 +30,6 @@ pub enum RenderError {
         /// Why, as the driver reported it.
         reason: String,
     },
-    /// Too many views (or too many pixels) for one batch.
-    #[error("batch of {views} views does not fit: {reason}; split it into smaller batches")]
-    BatchTooLarge {
-        /// Number of views asked for.
-        views: usize,
-        /// The limit that was hit.
-        reason: String,
-    },
     /// A view asked for a resolution the renderer cannot produce.
     #[error("resolution {resolution} is not supported: it must be between 1 and {max} pixels")]
     InvalidResolution {

@@ -14,6 +14,9 @@
 //!
 //! - **Batch-first, one submit per batch.** Rendering costs per submit and per draw, so callers
 //!   batch across episodes; a batch's outputs are bit-identical to rendering each view alone.
+//!   A batch may hold any number of views of any sizes: the renderer draws it in chunks of up
+//!   to [`CHUNK_VIEWS`] views and [`CHUNK_PIXELS`] pixels (one submit each), so the batch
+//!   limits have one owner and callers never split.
 //!   Every view is drawn at the origin of its own page, so the viewport transform, and with it
 //!   every rounding of rasterisation and interpolation, never depends on the rest of the batch
 //!   (views packed side by side in one texture differ in the last bit of an interpolated
@@ -22,7 +25,7 @@
 //!   the world frame, movable objects in their own frames) never changes. What changes per view
 //!   is 240 bytes of uniforms: the camera and one pose per movable object, which the vertex
 //!   shader applies. Writing them every batch is cheaper than tracking which moved.
-//! - **Nothing panics on input.** Bad poses, resolutions, batch sizes, foreign scenes and a
+//! - **Nothing panics on input.** Bad poses, resolutions, foreign scenes and a
 //!   missing adapter are [`RenderError`] values; [`RenderError::NoAdapter`] says how to install
 //!   Mesa's CPU renderers.
 //! - **Culling changes no pixel.** An egocentric view skips the pieces (floor, wall pieces,
@@ -113,8 +116,8 @@ pub use images::{
 };
 pub use mesh::{SceneMesh, SegmentLabel, build_scene_mesh};
 pub use renderer::{
-    BackendPreference, DEFAULT_RESOLUTION, MAX_BATCH_PIXELS, MAX_BATCH_VIEWS, MAX_MOVABLE_OBJECTS, Outputs, Renderer,
-    RendererConfig, SceneHandle, ViewOutput, ViewRequest,
+    BackendPreference, CHUNK_PIXELS, CHUNK_VIEWS, DEFAULT_RESOLUTION, MAX_MOVABLE_OBJECTS, Outputs, Renderer,
+    RendererConfig, SceneHandle, UnknownBackend, ViewOutput, ViewRequest,
 };
 
 /// Re-export of wgpu, whose [`wgpu::AdapterInfo`] and [`wgpu::PowerPreference`] appear in this

@@ -28,10 +28,13 @@ use crate::mesh::{BACKGROUND_COLOUR, MeshPart, build_scene_mesh};
 
 /// Resolution of every view unless a request asks for another (SPEC §2, §4).
 pub const DEFAULT_RESOLUTION: u32 = 128;
-/// Most views in one batch.
-pub const MAX_BATCH_VIEWS: usize = 1024;
-/// Most pixels in one batch (1024 views of 128×128).
-pub const MAX_BATCH_PIXELS: u64 = 1 << 24;
+/// Most views drawn with one submit (1024 views of 128×128, fewer of larger views): a
+/// [`Renderer::render_batch`] of more is drawn in consecutive chunks. Callers that gather work
+/// for the renderer may use it as the size worth gathering; it is not a limit.
+pub const CHUNK_VIEWS: usize = 1024;
+/// Most page pixels drawn with one submit (1024 views of 128×128); a single view larger than
+/// this is drawn alone.
+pub const CHUNK_PIXELS: u64 = 1 << 24;
 /// Most movable objects a scene may have for this renderer (pose slots on the GPU).
 pub const MAX_MOVABLE_OBJECTS: usize = MAX_POSE_SLOTS - 1;
 
@@ -59,14 +62,46 @@ pub enum BackendPreference {
 }
 
 impl BackendPreference {
+    /// The names a preference is written as, one per variant: `auto`, `vulkan`, `gl`.
+    pub const NAMES: [&'static str; 3] = ["auto", "vulkan", "gl"];
+
     /// The preference named by `ESRP_RENDER_BACKEND` (`auto`, `vulkan` or `gl`), if set and
     /// valid.
     pub fn from_env() -> Option<Self> {
-        match std::env::var("ESRP_RENDER_BACKEND").ok()?.to_ascii_lowercase().as_str() {
-            "auto" => Some(Self::Auto),
-            "vulkan" => Some(Self::Vulkan),
-            "gl" | "gles" | "opengl" => Some(Self::Gl),
-            _ => None,
+        std::env::var("ESRP_RENDER_BACKEND").ok()?.parse().ok()
+    }
+
+    /// Its name: `auto`, `vulkan` or `gl`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Auto => "auto",
+            Self::Vulkan => "vulkan",
+            Self::Gl => "gl",
+        }
+    }
+}
+
+impl std::fmt::Display for BackendPreference {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// A name that is not a [`BackendPreference`].
+#[derive(Debug, thiserror::Error)]
+#[error("unknown render backend {0:?}: use auto, vulkan or gl")]
+pub struct UnknownBackend(pub String);
+
+impl std::str::FromStr for BackendPreference {
+    type Err = UnknownBackend;
+
+    /// `auto`, `vulkan` or `gl` (also `gles`, `opengl`), in any case.
+    fn from_str(name: &str) -> Result<Self, UnknownBackend> {
+        match name.to_ascii_lowercase().as_str() {
+            "auto" => Ok(Self::Auto),
+            "vulkan" => Ok(Self::Vulkan),
+            "gl" | "gles" | "opengl" => Ok(Self::Gl),
+            _ => Err(UnknownBackend(name.to_owned())),
         }
     }
 }
@@ -453,7 +488,7 @@ impl Renderer {
             pipeline_full,
             bind_group_layout,
             max_atlas,
-            max_pages: limits.max_texture_array_layers.clamp(1, 1024),
+            max_pages: limits.max_texture_array_layers.clamp(1, CHUNK_VIEWS as u32),
             cull: config.cull,
             lost,
             state: Mutex::new(BatchState { atlases: Vec::new(), batches: 0 }),
@@ -528,12 +563,6 @@ impl Renderer {
     }
 
     fn validate(&self, requests: &[ViewRequest<'_>]) -> Result<(), RenderError> {
-        if requests.len() > MAX_BATCH_VIEWS {
-            return Err(RenderError::BatchTooLarge {
-                views: requests.len(),
-                reason: format!("at most {MAX_BATCH_VIEWS} views per batch"),
-            });
-        }
         for (view, request) in requests.iter().enumerate() {
             if request.scene.renderer_id != self.id {
                 return Err(RenderError::ForeignScene { view });
@@ -568,13 +597,6 @@ impl Renderer {
                 }
             }
         }
-        let pixels: u64 = requests.iter().map(|r| u64::from(r.resolution).pow(2)).sum();
-        if pixels > MAX_BATCH_PIXELS {
-            return Err(RenderError::BatchTooLarge {
-                views: requests.len(),
-                reason: format!("{pixels} pixels, at most {MAX_BATCH_PIXELS} per batch"),
-            });
-        }
         Ok(())
     }
 
@@ -593,14 +615,15 @@ impl Renderer {
     }
 
     /// Splits a batch into consecutive chunks that each fit one atlas: at most `max_pages`
-    /// views and at most [`MAX_BATCH_PIXELS`] page pixels.
+    /// (itself at most [`CHUNK_VIEWS`]) views and at most [`CHUNK_PIXELS`] page pixels (a
+    /// larger view alone).
     fn chunks(&self, requests: &[ViewRequest<'_>]) -> Vec<std::ops::Range<usize>> {
         let mut chunks = Vec::new();
         let (mut start, mut side) = (0usize, 0u64);
         for (i, request) in requests.iter().enumerate() {
             let wider = side.max(u64::from(request.resolution.next_multiple_of(64)));
             let views = (i + 1 - start) as u64;
-            if i > start && (views > u64::from(self.max_pages) || views * wider * wider > MAX_BATCH_PIXELS) {
+            if i > start && (views > u64::from(self.max_pages) || views * wider * wider > CHUNK_PIXELS) {
                 chunks.push(start..i);
                 start = i;
                 side = u64::from(request.resolution.next_multiple_of(64));
@@ -716,11 +739,12 @@ impl Renderer {
         self.index_ranges(request).iter().map(|r| r.len()).sum::<usize>() / 3
     }
 
-    /// Renders any mix of views of any scenes into the pages of one atlas (one render pass per
-    /// page), with one submit and one readback. Outputs are in request order and
-    /// bit-identical to rendering each view alone. A batch larger than one atlas (more pages
-    /// than the device's texture array holds, or more than [`MAX_BATCH_PIXELS`] page pixels) is
-    /// drawn in consecutive chunks.
+    /// Renders any number and mix of views of any scenes into the pages of one atlas (one
+    /// render pass per page), with one submit and one readback per chunk. Outputs are in
+    /// request order and bit-identical to rendering each view alone. A batch larger than one
+    /// atlas (more than [`CHUNK_VIEWS`] views, more pages than the device's texture array
+    /// holds, or more than [`CHUNK_PIXELS`] page pixels) is drawn in consecutive chunks, so
+    /// callers never split batches themselves.
     ///
     /// If any view asks for depth or segmentation, the whole batch is drawn with the pipeline
     /// that writes them (a little slower); only the views that asked get them.
@@ -1065,5 +1089,17 @@ mod tests {
             let expected: Vec<u8> = src.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect();
             assert_eq!(dst, expected);
         }
+    }
+
+    #[test]
+    fn backend_names_round_trip_and_unknown_names_are_errors() {
+        use super::BackendPreference;
+        for name in BackendPreference::NAMES {
+            let backend: BackendPreference = name.parse().unwrap();
+            assert_eq!(backend.to_string(), name);
+        }
+        assert_eq!("OpenGL".parse::<BackendPreference>().unwrap(), BackendPreference::Gl);
+        let error = "metal".parse::<BackendPreference>().unwrap_err().to_string();
+        assert!(error.contains("\"metal\"") && error.contains("auto, vulkan or gl"), "{error}");
     }
 }

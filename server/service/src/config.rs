@@ -4,19 +4,9 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 
+use clap::builder::{PossibleValuesParser, TypedValueParser};
 use clap::{Parser, ValueEnum};
-
-/// Which rendering backend to use.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
-pub enum RenderBackend {
-    /// A GPU through Vulkan; otherwise OpenGL (a GPU, or Mesa's llvmpipe on the CPU, which
-    /// measured faster than lavapipe); otherwise Vulkan's lavapipe.
-    Auto,
-    /// Vulkan only.
-    Vulkan,
-    /// OpenGL (EGL) only.
-    Gl,
-}
+use esrp_render::BackendPreference;
 
 /// Log output format.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -54,9 +44,16 @@ pub struct Config {
     /// StepStream are closed with their stream instead.
     #[arg(long, env = "ESRP_IDLE_TIMEOUT", default_value_t = 600)]
     pub idle_timeout_seconds: u64,
-    /// Rendering backend.
-    #[arg(long, env = "ESRP_RENDER_BACKEND", value_enum, default_value_t = RenderBackend::Auto)]
-    pub render_backend: RenderBackend,
+    /// Rendering backend: auto (a GPU through Vulkan; otherwise OpenGL, a GPU or Mesa's
+    /// llvmpipe on the CPU, which measured faster than lavapipe; otherwise Vulkan's lavapipe),
+    /// vulkan (Vulkan only) or gl (OpenGL through EGL only).
+    #[arg(
+        long,
+        env = "ESRP_RENDER_BACKEND",
+        default_value_t = BackendPreference::Auto,
+        value_parser = PossibleValuesParser::new(BackendPreference::NAMES).try_map(|name| name.parse::<BackendPreference>()),
+    )]
+    pub render_backend: BackendPreference,
     /// Require `authorization: Bearer TOKEN` on every call.
     #[arg(long, env = "ESRP_TOKEN", hide_env_values = true)]
     pub token: Option<String>,
@@ -99,5 +96,21 @@ impl Config {
         let mut config = Config::parse_from(["esrp-server"]);
         config.listen = listen;
         config
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_render_backend_flag_takes_the_renderer_s_names() {
+        let parse = |args: &[&str]| Config::try_parse_from([&["esrp-server"], args].concat());
+        assert_eq!(parse(&[]).unwrap().render_backend, BackendPreference::Auto);
+        for (name, backend) in [("vulkan", BackendPreference::Vulkan), ("gl", BackendPreference::Gl)] {
+            assert_eq!(parse(&["--render-backend", name]).unwrap().render_backend, backend);
+        }
+        let error = parse(&["--render-backend", "metal"]).unwrap_err().to_string();
+        assert!(error.contains("auto, vulkan, gl"), "{error}");
     }
 }

@@ -1,6 +1,10 @@
-//! The service's errors and their one exhaustive mapping to gRPC status codes.
+//! The service's errors: [`ServiceError`] for calls on episodes, with its one exhaustive
+//! mapping to gRPC status codes, and [`ServeError`] for starting and running the server.
 
+use esrp_core::Split;
 use tonic::{Code, Status};
+
+use crate::episodes::EpisodeId;
 
 /// Why a call failed.
 #[derive(Debug, thiserror::Error)]
@@ -8,21 +12,95 @@ pub enum ServiceError {
     /// A request field is malformed.
     #[error("{0}")]
     InvalidArgument(String),
+    /// An action code is not one of SPEC §3 (`at` locates the step in its call).
+    #[error("{at}.action: {error}")]
+    InvalidAction {
+        /// Where: `step`, or `steps[3]` in a batch.
+        at: String,
+        /// What was wrong.
+        error: esrp_core::UnknownAction,
+    },
+    /// A batch steps one episode twice.
+    #[error("{at}: episode {episode} appears twice in one batch: send one step per episode")]
+    DuplicateStep {
+        /// Where: `steps[3]`.
+        at: String,
+        /// The episode.
+        episode: EpisodeId,
+    },
+    /// A resolution out of range.
+    #[error("sensors.resolution {resolution} is out of range: use 16 to {max} pixels (0 means 128)")]
+    InvalidResolution {
+        /// The resolution asked for.
+        resolution: u32,
+        /// The largest allowed.
+        max: u32,
+    },
+    /// The split chosen has no scenes in the served dataset.
+    #[error("the served dataset has no {} scenes: choose another split or a scene_id", .0.as_str())]
+    EmptySplit(Split),
     /// The episode id is unknown or closed.
-    #[error("no episode {0:?}: it never existed, was closed, or was closed after being idle")]
-    UnknownEpisode(String),
+    #[error("no episode {:?}: it never existed, was closed, or was closed after being idle", .0.as_str())]
+    UnknownEpisode(EpisodeId),
     /// The scene id is not in the served dataset.
     #[error("no scene {0:?} in the served dataset: ListScenes lists the ids")]
     UnknownScene(String),
-    /// The episode has ended.
+    /// A step of an episode that has ended (`at` locates the step in its call).
+    #[error("{at}: episode {episode} has ended after {steps} steps: Reset it or create a new one")]
+    EpisodeOver {
+        /// Where: `step`, or `steps[3]` in a batch.
+        at: String,
+        /// The episode.
+        episode: EpisodeId,
+        /// The steps it took.
+        steps: u32,
+    },
+    /// The simulator refused (an ended episode, a configuration it cannot run).
     #[error("{0}")]
-    EpisodeOver(String),
+    Simulator(esrp_core::EpisodeError),
     /// The call needs a privileged episode.
     #[error("episode {0} was not created with privileged = true: GetPrivilegedState is for privileged episodes only")]
-    NotPrivileged(String),
-    /// A server limit was reached.
-    #[error("{0}")]
-    Exhausted(String),
+    NotPrivileged(EpisodeId),
+    /// The server holds its maximum of live episodes.
+    #[error("the server holds its maximum of {max} live episodes: close some (CloseEpisode) or raise --max-episodes")]
+    TooManyEpisodes {
+        /// `--max-episodes`.
+        max: usize,
+    },
+    /// A batch of more steps than `--max-batch`.
+    #[error("a batch of {steps} steps exceeds the limit of {max} (--max-batch)")]
+    BatchTooLarge {
+        /// Steps in the batch.
+        steps: usize,
+        /// `--max-batch`.
+        max: usize,
+    },
+    /// The answer to one step would not fit in a message.
+    #[error(
+        "the answer to this step would take about {:.1} MB, over the {:.1} MB message limit \
+         (--max-message-bytes): ask for fewer sensors, a smaller resolution or no goal image",
+        *.bytes as f64 / 1e6, *.max as f64 / 1e6
+    )]
+    StepAnswerTooLarge {
+        /// An upper bound of the answer's size, bytes.
+        bytes: usize,
+        /// `--max-message-bytes`.
+        max: usize,
+    },
+    /// The answer to a batch would not fit in a message.
+    #[error(
+        "the answer to these {steps} steps would take about {:.1} MB, over the {:.1} MB message limit \
+         (--max-message-bytes): send fewer steps per call, or ask for goal images less often",
+        *.bytes as f64 / 1e6, *.max as f64 / 1e6
+    )]
+    BatchAnswerTooLarge {
+        /// Steps in the batch.
+        steps: usize,
+        /// An upper bound of the answer's size, bytes.
+        bytes: usize,
+        /// `--max-message-bytes`.
+        max: usize,
+    },
     /// Rendering failed.
     #[error("rendering failed: {0}")]
     Render(String),
@@ -31,17 +109,34 @@ pub enum ServiceError {
     Internal(String),
 }
 
+impl ServiceError {
+    /// Its gRPC status code: the one mapping, for every protocol.
+    pub fn code(&self) -> Code {
+        match self {
+            ServiceError::InvalidArgument(_)
+            | ServiceError::InvalidAction { .. }
+            | ServiceError::DuplicateStep { .. }
+            | ServiceError::InvalidResolution { .. }
+            | ServiceError::EmptySplit(_) => Code::InvalidArgument,
+            ServiceError::UnknownEpisode(_) | ServiceError::UnknownScene(_) => Code::NotFound,
+            ServiceError::EpisodeOver { .. } => Code::FailedPrecondition,
+            ServiceError::Simulator(e) => match e {
+                esrp_core::EpisodeError::Finished { .. } => Code::FailedPrecondition,
+                esrp_core::EpisodeError::InvalidConfig { .. } => Code::InvalidArgument,
+            },
+            ServiceError::NotPrivileged(_) => Code::PermissionDenied,
+            ServiceError::TooManyEpisodes { .. }
+            | ServiceError::BatchTooLarge { .. }
+            | ServiceError::StepAnswerTooLarge { .. }
+            | ServiceError::BatchAnswerTooLarge { .. } => Code::ResourceExhausted,
+            ServiceError::Render(_) | ServiceError::Internal(_) => Code::Internal,
+        }
+    }
+}
+
 impl From<ServiceError> for Status {
     fn from(error: ServiceError) -> Status {
-        let code = match &error {
-            ServiceError::InvalidArgument(_) => Code::InvalidArgument,
-            ServiceError::UnknownEpisode(_) | ServiceError::UnknownScene(_) => Code::NotFound,
-            ServiceError::EpisodeOver(_) => Code::FailedPrecondition,
-            ServiceError::NotPrivileged(_) => Code::PermissionDenied,
-            ServiceError::Exhausted(_) => Code::ResourceExhausted,
-            ServiceError::Render(_) | ServiceError::Internal(_) => Code::Internal,
-        };
-        Status::new(code, error.to_string())
+        Status::new(error.code(), error.to_string())
     }
 }
 
@@ -53,15 +148,90 @@ impl From<esrp_core::SceneError> for ServiceError {
 
 impl From<esrp_core::EpisodeError> for ServiceError {
     fn from(e: esrp_core::EpisodeError) -> Self {
-        match e {
-            esrp_core::EpisodeError::Finished { .. } => ServiceError::EpisodeOver(e.to_string()),
-            esrp_core::EpisodeError::InvalidConfig { .. } => ServiceError::InvalidArgument(e.to_string()),
-        }
+        ServiceError::Simulator(e)
     }
 }
 
 impl From<esrp_render::RenderError> for ServiceError {
     fn from(e: esrp_render::RenderError) -> Self {
         ServiceError::Render(e.to_string())
+    }
+}
+
+/// Why the server could not start, or stopped serving.
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    /// The dataset folder (`--dataset`) cannot be served.
+    #[error("cannot serve the dataset folder: {0}")]
+    Dataset(#[from] esrp_dataset::files::FilesError),
+    /// No renderer could be created.
+    #[error("cannot create the renderer: {0}")]
+    Renderer(#[from] esrp_render::RenderError),
+    /// A file or socket operation failed.
+    #[error("{what}: {source}")]
+    Io {
+        /// What was being done.
+        what: String,
+        /// The error.
+        source: std::io::Error,
+    },
+    /// gRPC reflection could not be set up (a bug in the embedded descriptors).
+    #[error("cannot set up gRPC reflection: {0}")]
+    Reflection(#[from] tonic_reflection::server::Error),
+    /// The gRPC transport failed (TLS configuration, serving).
+    #[error("gRPC transport: {0}")]
+    Transport(#[from] tonic::transport::Error),
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Each typed error has its code and says what to change.
+    fn check(error: ServiceError, code: Code, needle: &str) {
+        let status = Status::from(error);
+        assert_eq!(status.code(), code, "{status:?}");
+        assert!(status.message().contains(needle), "{:?} does not contain {needle:?}", status.message());
+    }
+
+    #[test]
+    fn typed_errors_map_to_their_codes_and_messages() {
+        check(ServiceError::TooManyEpisodes { max: 7 }, Code::ResourceExhausted, "maximum of 7 live episodes");
+        check(
+            ServiceError::BatchTooLarge { steps: 9, max: 8 },
+            Code::ResourceExhausted,
+            "9 steps exceeds the limit of 8",
+        );
+        check(
+            ServiceError::StepAnswerTooLarge { bytes: 2_500_000, max: 1_000_000 },
+            Code::ResourceExhausted,
+            "about 2.5 MB, over the 1.0 MB",
+        );
+        check(
+            ServiceError::BatchAnswerTooLarge { steps: 3, bytes: 2_500_000, max: 1_000_000 },
+            Code::ResourceExhausted,
+            "these 3 steps would take about 2.5 MB",
+        );
+        let episode = EpisodeId::from("e1");
+        check(
+            ServiceError::EpisodeOver { at: "steps[2]".into(), episode: episode.clone(), steps: 4 },
+            Code::FailedPrecondition,
+            "steps[2]: episode e1 has ended after 4 steps",
+        );
+        check(ServiceError::UnknownEpisode(episode.clone()), Code::NotFound, "no episode \"e1\"");
+        check(ServiceError::NotPrivileged(episode.clone()), Code::PermissionDenied, "episode e1 was not created");
+        check(
+            ServiceError::DuplicateStep { at: "steps[1]".into(), episode },
+            Code::InvalidArgument,
+            "e1 appears twice",
+        );
+        check(ServiceError::InvalidResolution { resolution: 9, max: 512 }, Code::InvalidArgument, "16 to 512");
+        check(ServiceError::EmptySplit(Split::Train), Code::InvalidArgument, "no train scenes");
+        let unknown = esrp_core::Action::from_code(6).unwrap_err();
+        check(
+            ServiceError::InvalidAction { at: "step".into(), error: unknown },
+            Code::InvalidArgument,
+            "step.action: ",
+        );
     }
 }

@@ -8,10 +8,15 @@
 //! - [`config`]: flags and environment variables.
 //! - [`scenes`]: the served scenes, built lazily and cached.
 //! - [`registry`]: live episodes by unguessable id, each locked alone; limits; idle reaping.
-//! - [`render`]: the render scheduler (one thread, batches of every waiting view).
-//! - [`service`]: the `esrp.v1.Esrp` handlers; proto ↔ core conversions at the edge.
+//! - [`render`]: the render scheduler (one thread, batches of every waiting view; the renderer
+//!   chunks them to its own limits).
+//! - [`episodes`]: the protocol-free core: [`episodes::Shared`] creates, steps (batches and
+//!   stream waves), resets and closes episodes in core types.
+//! - [`esrp_v1`]: the `esrp.v1.Esrp` adapter: tonic handlers, `TryFrom`/`From` conversions at
+//!   its edge.
+//! - [`dm_env`]: the `dm_env_rpc.v1.Environment` adapter, a sibling of `esrp_v1` over the same
+//!   core.
 //! - [`metrics`]: Prometheus metrics and their HTTP endpoint.
-//! - [`dm_env`]: `dm_env_rpc.v1.Environment`, the same episodes behind the dm_env_rpc protocol.
 //! - [`error`]: typed errors and their one mapping to gRPC status codes.
 //!
 //! # Invariants
@@ -21,6 +26,8 @@
 //!   thread behind a channel.
 //! - **Each episode is locked alone**; a batch locks its episodes in id order, so concurrent
 //!   batches cannot deadlock. The registry's own lock is held only for map operations.
+//! - **No proto type below the adapters**: [`episodes`], [`registry`], [`render`] and
+//!   [`scenes`] speak core types; only [`esrp_v1`] and [`dm_env`] know their protocols.
 //! - **No client input panics or stops the server**: every field is validated into a
 //!   [`error::ServiceError`] with a precise status code and a message that says what to change.
 //! - **Same scene and actions, same observations**, whatever else the server is doing: episodes
@@ -30,12 +37,13 @@
 
 pub mod config;
 pub mod dm_env;
+pub mod episodes;
 pub mod error;
+pub mod esrp_v1;
 pub mod metrics;
 pub mod registry;
 pub mod render;
 pub mod scenes;
-pub mod service;
 
 use std::future::Future;
 use std::sync::Arc;
@@ -47,6 +55,7 @@ use tonic::service::interceptor::InterceptedService;
 pub use esrp_proto::esrp::v1 as proto;
 
 pub use config::Config;
+pub use error::ServeError;
 
 /// Checks `authorization: Bearer TOKEN` in constant time.
 #[derive(Clone)]
@@ -70,22 +79,18 @@ impl tonic::service::Interceptor for TokenCheck {
 }
 
 /// Builds the shared state: the scene store, the renderer and its thread.
-pub fn build_shared(config: &Config) -> anyhow::Result<Arc<service::Shared>> {
+pub fn build_shared(config: &Config) -> Result<Arc<episodes::Shared>, ServeError> {
     let store = match &config.dataset {
         Some(dir) => scenes::SceneStore::folder(dir)?,
         None => scenes::SceneStore::built_in(config.bench_seed),
     };
-    let backends = match config.render_backend {
-        config::RenderBackend::Auto => esrp_render::BackendPreference::Auto,
-        config::RenderBackend::Vulkan => esrp_render::BackendPreference::Vulkan,
-        config::RenderBackend::Gl => esrp_render::BackendPreference::Gl,
-    };
+    let backends = config.render_backend;
     let renderer = esrp_render::Renderer::new(esrp_render::RendererConfig { backends, ..Default::default() })?;
     let info = renderer.adapter_info();
     tracing::info!(adapter = %info.name, backend = ?info.backend, software = renderer.is_software(), "renderer ready");
     let metrics = Arc::new(metrics::Metrics::new());
     let render = render::RenderScheduler::start(renderer, metrics.clone());
-    Ok(Arc::new(service::Shared::new(store, render, config.clone(), metrics)))
+    Ok(Arc::new(episodes::Shared::new(store, render, config.clone(), metrics)))
 }
 
 /// Serves gRPC on `listener` (and Prometheus metrics on `metrics_listener`, if given) until
@@ -95,10 +100,12 @@ pub async fn run(
     metrics_listener: Option<TcpListener>,
     config: Config,
     shutdown: impl Future<Output = ()> + Send,
-) -> anyhow::Result<()> {
+) -> Result<(), ServeError> {
     let shared = build_shared(&config)?;
     let render = shared.render.clone();
-    let address = listener.local_addr()?;
+    let address = listener
+        .local_addr()
+        .map_err(|source| ServeError::Io { what: "the listener has no address".into(), source })?;
     tracing::info!(%address, dataset = shared.store.name(), scenes = shared.store.infos().len(), "serving esrp.v1");
 
     // Close idle episodes.
@@ -139,7 +146,7 @@ pub async fn run(
     });
 
     let (health, health_service) = tonic_health::server::health_reporter();
-    health.set_serving::<proto::esrp_server::EsrpServer<service::EsrpService>>().await;
+    health.set_serving::<proto::esrp_server::EsrpServer<esrp_v1::EsrpService>>().await;
     health
         .set_serving::<dm_env::wire::dm_env_rpc::v1::environment_server::EnvironmentServer<dm_env::DmEnvService>>()
         .await;
@@ -147,16 +154,18 @@ pub async fn run(
         .register_encoded_file_descriptor_set(esrp_proto::FILE_DESCRIPTOR_SET)
         .build_v1()?;
     let dm_env = dm_env::server(shared.clone());
-    let esrp = proto::esrp_server::EsrpServer::new(service::EsrpService::new(shared))
+    let esrp = proto::esrp_server::EsrpServer::new(esrp_v1::EsrpService::new(shared))
         .max_decoding_message_size(config.max_message_bytes)
         .max_encoding_message_size(config.max_message_bytes);
     let check = TokenCheck { expected: config.token.as_ref().map(|t| Arc::new(format!("Bearer {t}").into_bytes())) };
 
     let mut builder = tonic::transport::Server::builder();
     if let (Some(cert), Some(key)) = (&config.tls_cert, &config.tls_key) {
-        let cert =
-            std::fs::read(cert).map_err(|e| anyhow::anyhow!("cannot read --tls-cert {}: {e}", cert.display()))?;
-        let key = std::fs::read(key).map_err(|e| anyhow::anyhow!("cannot read --tls-key {}: {e}", key.display()))?;
+        let read = |flag: &str, path: &std::path::Path| {
+            std::fs::read(path)
+                .map_err(|source| ServeError::Io { what: format!("cannot read {flag} {}", path.display()), source })
+        };
+        let (cert, key) = (read("--tls-cert", cert)?, read("--tls-key", key)?);
         builder = builder.tls_config(
             tonic::transport::ServerTlsConfig::new().identity(tonic::transport::Identity::from_pem(cert, key)),
         )?;

@@ -100,5 +100,5 @@ async fn serve(config: Config) -> anyhow::Result<()> {
         }
         None => None,
     };
-    esrp_server::run(listener, metrics_listener, config, signals.wait()).await
+    Ok(esrp_server::run(listener, metrics_listener, config, signals.wait()).await?)
 }

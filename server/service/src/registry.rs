@@ -5,24 +5,13 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use bytes::Bytes;
 use esrp_core::Episode;
 use esrp_render::{SceneHandle, TopDownFrame};
 
+use crate::episodes::{EpisodeId, SensorConfig};
 use crate::error::ServiceError;
-use crate::proto;
-
-/// The optional sensors of an episode.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct SensorConfig {
-    /// Egocentric depth.
-    pub depth: bool,
-    /// Egocentric instance segmentation.
-    pub segmentation: bool,
-    /// Top-down view of the current layout.
-    pub current_top_down: bool,
-    /// Square image side, pixels.
-    pub resolution: u32,
-}
+use crate::scenes::SceneInfo;
 
 /// One live episode and what the service keeps beside it.
 pub struct EpisodeEntry {
@@ -31,13 +20,13 @@ pub struct EpisodeEntry {
     /// The scene's geometry on the renderer.
     pub scene: Arc<SceneHandle>,
     /// The scene's summary.
-    pub summary: proto::SceneSummary,
+    pub summary: SceneInfo,
     /// Optional sensors.
     pub sensors: SensorConfig,
     /// Whether GetPrivilegedState is allowed.
     pub privileged: bool,
-    /// The goal image, rendered once.
-    pub goal: proto::Image,
+    /// The goal image (RGB at the sensors' resolution), rendered once.
+    pub goal: Bytes,
     /// Its pixel ↔ floor mapping.
     pub frame: TopDownFrame,
     /// Last time a call used it.
@@ -51,7 +40,7 @@ pub type SharedEpisode = Arc<tokio::sync::Mutex<EpisodeEntry>>;
 pub struct Registry {
     // A std mutex: held only for map operations, never across an await.
     // Each episode with the stream that created it (closed with that stream).
-    episodes: Mutex<HashMap<String, (Option<u64>, SharedEpisode)>>,
+    episodes: Mutex<HashMap<EpisodeId, (Option<u64>, SharedEpisode)>>,
     max_episodes: usize,
 }
 
@@ -61,7 +50,7 @@ impl Registry {
         Self { episodes: Mutex::new(HashMap::new()), max_episodes }
     }
 
-    fn map(&self) -> std::sync::MutexGuard<'_, HashMap<String, (Option<u64>, SharedEpisode)>> {
+    fn map(&self) -> std::sync::MutexGuard<'_, HashMap<EpisodeId, (Option<u64>, SharedEpisode)>> {
         // A panic while holding this lock cannot leave the map inconsistent (every operation is
         // a single insert or remove), so a poisoned lock is still safe to use.
         self.episodes.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
@@ -84,27 +73,24 @@ impl Registry {
 
     /// Adds an episode under a fresh random 128-bit id, owned by `stream` if it was created on
     /// one.
-    pub fn insert(&self, entry: EpisodeEntry, stream: Option<u64>) -> Result<String, ServiceError> {
+    pub fn insert(&self, entry: EpisodeEntry, stream: Option<u64>) -> Result<EpisodeId, ServiceError> {
         let mut map = self.map();
         if map.len() >= self.max_episodes {
-            return Err(ServiceError::Exhausted(format!(
-                "the server holds its maximum of {} live episodes: close some (CloseEpisode) or raise --max-episodes",
-                self.max_episodes
-            )));
+            return Err(ServiceError::TooManyEpisodes { max: self.max_episodes });
         }
-        let id = uuid::Uuid::new_v4().simple().to_string();
+        let id = EpisodeId::random();
         map.insert(id.clone(), (stream, Arc::new(tokio::sync::Mutex::new(entry))));
         Ok(id)
     }
 
     /// The episode `id`.
-    pub fn get(&self, id: &str) -> Result<SharedEpisode, ServiceError> {
-        self.map().get(id).map(|(_, e)| e.clone()).ok_or_else(|| ServiceError::UnknownEpisode(id.to_owned()))
+    pub fn get(&self, id: &EpisodeId) -> Result<SharedEpisode, ServiceError> {
+        self.map().get(id).map(|(_, e)| e.clone()).ok_or_else(|| ServiceError::UnknownEpisode(id.clone()))
     }
 
     /// Removes the episode `id`.
-    pub fn remove(&self, id: &str) -> Result<SharedEpisode, ServiceError> {
-        self.map().remove(id).map(|(_, e)| e).ok_or_else(|| ServiceError::UnknownEpisode(id.to_owned()))
+    pub fn remove(&self, id: &EpisodeId) -> Result<SharedEpisode, ServiceError> {
+        self.map().remove(id).map(|(_, e)| e).ok_or_else(|| ServiceError::UnknownEpisode(id.clone()))
     }
 
     /// Removes every episode created on stream `stream`; returns how many.

@@ -188,12 +188,12 @@ fn render_loop(renderer: &Renderer, receiver: &std::sync::Mutex<mpsc::Receiver<M
             Ok(Message::Job(job)) => job,
             Ok(Message::Stop) | Err(_) => return,
         };
-        // Gather the jobs already waiting, about one renderer call's worth; render_jobs
-        // splits whatever was gathered to the renderer's limits.
+        // Gather the jobs already waiting, about one submission's worth (the renderer takes
+        // any number of views and draws them in chunks of its own).
         let mut jobs = vec![first];
         let mut count = jobs[0].views.len();
         let mut stop = false;
-        while count < esrp_render::MAX_BATCH_VIEWS {
+        while count < esrp_render::CHUNK_VIEWS {
             match receiver.try_recv() {
                 Ok(Message::Job(job)) => {
                     count += job.views.len();
@@ -221,26 +221,8 @@ fn render_jobs(renderer: &Renderer, jobs: Vec<RenderJob>, metrics: &Metrics) {
         .map(|v| ViewRequest::new(&v.scene, v.camera, &v.poses).with_outputs(v.outputs).with_resolution(v.resolution))
         .collect();
     let started = std::time::Instant::now();
-    // The jobs (a large StepBatch alone) may exceed the renderer's limits per call: split them.
-    let mut result: Result<Vec<ViewOutput>, esrp_render::RenderError> = Ok(Vec::with_capacity(requests.len()));
-    let mut start = 0;
-    while start < requests.len()
-        && let Ok(done) = &mut result
-    {
-        let (mut end, mut area) = (start, 0u64);
-        while end < requests.len()
-            && end - start < esrp_render::MAX_BATCH_VIEWS
-            && (end == start || area + u64::from(requests[end].resolution).pow(2) <= esrp_render::MAX_BATCH_PIXELS)
-        {
-            area += u64::from(requests[end].resolution).pow(2);
-            end += 1;
-        }
-        match renderer.render_batch(&requests[start..end]) {
-            Ok(outputs) => done.extend(outputs),
-            Err(e) => result = Err(e),
-        }
-        start = end;
-    }
+    // Any number of views (a large StepBatch alone): the renderer chunks them itself.
+    let result = renderer.render_batch(&requests);
     metrics.batch_views.observe(requests.len() as f64);
     metrics.batch_seconds.observe(started.elapsed().as_secs_f64());
     drop(requests);

@@ -49,7 +49,7 @@ fn a_full_batch_of_scattered_views_matches_views_rendered_alone() {
     let (_, now) = start(&scene);
     let goal = targets(&scene);
     let mut unit = uniform(0x2545_f491_4f6c_dd1d);
-    let cameras: Vec<_> = (0..esrp_render::MAX_BATCH_VIEWS)
+    let cameras: Vec<_> = (0..esrp_render::CHUNK_VIEWS)
         .map(|_| ego_at(0.6 + 3.0 * unit(), 0.6 + 3.0 * unit(), (unit() * 16.0) as u8))
         .collect();
     let requests: Vec<_> = cameras
@@ -67,6 +67,52 @@ fn a_full_batch_of_scattered_views_matches_views_rendered_alone() {
     for (i, (request, batched)) in requests.iter().zip(&batch).enumerate() {
         let alone = renderer().render_one(request).unwrap();
         assert!(batched.rgb == alone.rgb, "view {i}: batched RGB differs from the view rendered alone");
+    }
+}
+
+/// A batch beyond what one submission holds (more views than [`esrp_render::CHUNK_VIEWS`],
+/// more pixels than [`esrp_render::CHUNK_PIXELS`]: both were errors when callers had to split)
+/// is drawn in chunks, and every view equals the view rendered alone.
+#[test]
+fn a_batch_beyond_one_submission_is_chunked_and_matches_views_rendered_alone() {
+    let scene = bedroom();
+    let handle = renderer().upload_scene(&scene).unwrap();
+    let (_, now) = start(&scene);
+    let goal = targets(&scene);
+    let mut unit = uniform(0x9e37_79b9_7f4a_7c15);
+    let cameras: Vec<_> = (0..esrp_render::CHUNK_VIEWS + 77)
+        .map(|_| ego_at(0.6 + 3.0 * unit(), 0.6 + 3.0 * unit(), (unit() * 16.0) as u8))
+        .collect();
+    let mut requests: Vec<_> = cameras
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            let request = if i % 5 == 2 {
+                ViewRequest::new(&handle, Camera::TopDown, &goal)
+            } else {
+                ViewRequest::new(&handle, Camera::Ego(*c), &now)
+            };
+            request.with_resolution(16 + 8 * (i % 3) as u32)
+        })
+        .collect();
+    // Five views of 2048² (4 Mpixels each) are over the pixels of one submission together;
+    // placed among the small ones, they also make chunks of mixed page sides.
+    let large = 2048.min(renderer().max_resolution());
+    for (k, at) in [3usize, 500, 501, 900, 1050].into_iter().enumerate() {
+        let request = ViewRequest::new(&handle, Camera::Ego(cameras[k]), &now).with_resolution(large);
+        requests.insert(at, if k == 1 { request.with_outputs(Outputs::ALL) } else { request });
+    }
+    let pixels: u64 = requests.iter().map(|r| u64::from(r.resolution).pow(2)).sum();
+    assert!(requests.len() > esrp_render::CHUNK_VIEWS);
+    assert!(large < 2048 || pixels > esrp_render::CHUNK_PIXELS, "{pixels} pixels");
+    let batch = renderer().render_batch(&requests).unwrap();
+    assert_eq!(batch.len(), requests.len());
+    for (i, (request, batched)) in requests.iter().zip(&batch).enumerate() {
+        let alone = renderer().render_one(request).unwrap();
+        assert_eq!(batched.resolution, request.resolution, "view {i}");
+        assert!(batched.rgb == alone.rgb, "view {i}: batched RGB differs from the view rendered alone");
+        assert!(batched.depth == alone.depth, "view {i}: depth differs");
+        assert!(batched.segmentation == alone.segmentation, "view {i}: segmentation differs");
     }
 }
 

@@ -144,7 +144,7 @@ impl Signalled {
     fn start(backend: &str) -> Signalled {
         use std::io::{BufRead, BufReader, Read};
         use std::process::Stdio;
-        let mut command = esrp_server::client::LocalServer::command(
+        let mut command = esrp_client::LocalServer::command(
             Some(env!("CARGO_BIN_EXE_esrp-server").into()),
             &["--render-backend", backend],
         )

@@ -1,0 +1,277 @@
+//! The core types the episode layer speaks: what a protocol adapter converts its messages into
+//! and out of. Nothing here knows a protocol.
+
+use std::sync::Arc;
+
+use bytes::Bytes;
+use esrp_core::{Action, EpisodeMetrics, RewardWeights, Split, StepOutcome};
+
+use crate::scenes::SceneInfo;
+
+/// The id of a live episode: 32 lowercase hex digits (a random 128-bit UUID), unguessable.
+#[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
+pub struct EpisodeId(String);
+
+impl EpisodeId {
+    /// A fresh random id.
+    pub fn random() -> Self {
+        Self(uuid::Uuid::new_v4().simple().to_string())
+    }
+
+    /// The id as text.
+    pub fn as_str(&self) -> &str {
+        &self.0
+    }
+}
+
+impl From<String> for EpisodeId {
+    /// Any text names an episode; an id the registry never gave is simply unknown.
+    fn from(id: String) -> Self {
+        Self(id)
+    }
+}
+
+impl From<&str> for EpisodeId {
+    fn from(id: &str) -> Self {
+        Self(id.to_owned())
+    }
+}
+
+impl From<EpisodeId> for String {
+    fn from(id: EpisodeId) -> Self {
+        id.0
+    }
+}
+
+impl std::fmt::Display for EpisodeId {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+/// Which scene an episode plays.
+#[derive(Clone, Debug, PartialEq)]
+pub enum SceneChoice {
+    /// A scene of the served dataset, by id.
+    SceneId(String),
+    /// A scene given as esrp-scene-v1 JSON.
+    SceneJson(String),
+    /// A scene of `split` (test if `None`): index `seed mod count` among that split's scenes.
+    FromSplit {
+        /// The split to choose from.
+        split: Option<Split>,
+        /// Which of its scenes.
+        seed: u64,
+    },
+}
+
+/// The sensors a client asks for; [`SensorConfig`] once validated.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SensorRequest {
+    /// Egocentric depth.
+    pub depth: bool,
+    /// Egocentric instance segmentation.
+    pub segmentation: bool,
+    /// Top-down view of the current layout.
+    pub current_top_down: bool,
+    /// Square image side, pixels; `None` for the default (128).
+    pub resolution: Option<u32>,
+}
+
+/// The sensors of an episode, validated.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SensorConfig {
+    /// Egocentric depth.
+    pub depth: bool,
+    /// Egocentric instance segmentation.
+    pub segmentation: bool,
+    /// Top-down view of the current layout.
+    pub current_top_down: bool,
+    /// Square image side, pixels.
+    pub resolution: u32,
+}
+
+/// How to create an episode.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CreateOptions {
+    /// Its scene.
+    pub scene: SceneChoice,
+    /// Its sensors.
+    pub sensors: SensorRequest,
+    /// Step limit; `None` for the scene's own.
+    pub horizon: Option<u32>,
+    /// Reward weights.
+    pub reward: RewardWeights,
+    /// Whether GetPrivilegedState is allowed.
+    pub privileged: bool,
+}
+
+/// The element type of an observation array.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ElementType {
+    /// `u8` (images).
+    Uint8,
+    /// `f32` (depth).
+    Float32,
+    /// `u32` (segmentation ids).
+    Uint32,
+    /// `bool` (grasping).
+    Bool,
+}
+
+impl ElementType {
+    /// Its numpy name: `uint8`, `float32`, `uint32` or `bool`.
+    pub fn name(self) -> &'static str {
+        match self {
+            ElementType::Uint8 => "uint8",
+            ElementType::Float32 => "float32",
+            ElementType::Uint32 => "uint32",
+            ElementType::Bool => "bool",
+        }
+    }
+}
+
+/// One array of an observation.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ArraySpec {
+    /// Its name (`ego_rgb`, `goal_rgb`, `grasping`, `ego_depth`, `ego_segmentation`,
+    /// `current_top_down`).
+    pub name: &'static str,
+    /// Its shape.
+    pub shape: Vec<u32>,
+    /// Its element type.
+    pub element_type: ElementType,
+}
+
+/// The action names by code (SPEC §3).
+pub const ACTIONS: [&str; 6] = ["move_forward", "move_backward", "turn_left", "turn_right", "fetch", "release"];
+
+impl SensorConfig {
+    /// The arrays of an observation of these sensors, in order: `ego_rgb`, `goal_rgb`,
+    /// `grasping`, then the optional sensors that are on.
+    pub fn observation_spec(&self) -> Vec<ArraySpec> {
+        let r = self.resolution;
+        let array = |name, shape, element_type| ArraySpec { name, shape, element_type };
+        let mut arrays = vec![
+            array("ego_rgb", vec![r, r, 3], ElementType::Uint8),
+            array("goal_rgb", vec![r, r, 3], ElementType::Uint8),
+            array("grasping", vec![], ElementType::Bool),
+        ];
+        if self.depth {
+            arrays.push(array("ego_depth", vec![r, r], ElementType::Float32));
+        }
+        if self.segmentation {
+            arrays.push(array("ego_segmentation", vec![r, r], ElementType::Uint32));
+        }
+        if self.current_top_down {
+            arrays.push(array("current_top_down", vec![r, r, 3], ElementType::Uint8));
+        }
+        arrays
+    }
+
+    /// An upper bound of the encoded size of one step's answer, bytes.
+    pub fn answer_bytes(&self, include_goal: bool) -> usize {
+        let pixels = (self.resolution as usize).pow(2);
+        let mut bytes = 512 + pixels * 3;
+        bytes += usize::from(self.depth) * pixels * 4;
+        bytes += usize::from(self.segmentation) * pixels * 4;
+        bytes += usize::from(self.current_top_down) * pixels * 3;
+        bytes += usize::from(include_goal) * pixels * 3;
+        bytes
+    }
+}
+
+/// What an agent observes: images as they came from the render readback (`Bytes`, shared,
+/// never copied on their way to a message), square with side `resolution`, row-major, top row
+/// first.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Observation {
+    /// Square image side, pixels.
+    pub resolution: u32,
+    /// Egocentric RGB, 3 bytes a pixel.
+    pub ego_rgb: Bytes,
+    /// The goal (top-down view of the target layout), where asked for.
+    pub goal_rgb: Option<Bytes>,
+    /// Whether the agent holds an object.
+    pub grasping: bool,
+    /// Egocentric view depth, metres, where the sensor is on.
+    pub depth: Option<Vec<f32>>,
+    /// Egocentric instance segmentation ids, where the sensor is on.
+    pub segmentation: Option<Vec<u32>>,
+    /// Top-down view of the current layout, where the sensor is on.
+    pub current_top_down: Option<Bytes>,
+}
+
+/// A step to take.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StepCall {
+    /// The episode.
+    pub episode: EpisodeId,
+    /// The action.
+    pub action: Action,
+    /// Whether the answer carries the goal image.
+    pub include_goal: bool,
+}
+
+/// The answer to a step.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StepResult {
+    /// What the agent observes after the step.
+    pub observation: Observation,
+    /// What the step did: reward terms, collision, no-op, fetch and release, termination.
+    pub outcome: StepOutcome,
+    /// The name of the obstacle a rejected motion hit, if any.
+    pub collided_with_name: Option<String>,
+    /// The episode's final metrics, if this step ended it.
+    pub metrics: Option<EpisodeMetrics>,
+}
+
+/// The answer to a create.
+#[derive(Clone, Debug)]
+pub struct Created {
+    /// The new episode.
+    pub episode: EpisodeId,
+    /// Its sensors.
+    pub sensors: SensorConfig,
+    /// Its first observation (with the goal image).
+    pub observation: Observation,
+    /// Its scene.
+    pub scene: SceneInfo,
+}
+
+/// The answer to a reset.
+#[derive(Clone, Debug)]
+pub struct ResetResult {
+    /// The first observation of the new run (with the goal image).
+    pub observation: Observation,
+    /// Its scene.
+    pub scene: SceneInfo,
+}
+
+/// An episode's goal image and its pixel ↔ floor mapping.
+#[derive(Clone, Debug)]
+pub struct Goal {
+    /// Top-down view of the target layout, RGB.
+    pub rgb: Bytes,
+    /// Its side, pixels.
+    pub resolution: u32,
+    /// Its pixel ↔ floor mapping.
+    pub frame: esrp_render::TopDownFrame,
+}
+
+/// An episode's privileged state and the scene it refers to.
+pub struct Privileged {
+    /// The state.
+    pub state: esrp_core::PrivilegedState,
+    /// The scene.
+    pub scene: Arc<esrp_core::CompiledScene>,
+}
+
+/// The metrics of an episode so far.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MetricsSoFar {
+    /// The metrics.
+    pub metrics: EpisodeMetrics,
+    /// Whether the episode has ended (the metrics are final).
+    pub ended: bool,
+}

@@ -1,0 +1,227 @@
+//! The `esrp.v1.Esrp` adapter: thin tonic handlers over [`Shared`]. Each converts its request
+//! into core types at the edge ([`convert`]), calls the episode layer, and converts the answer
+//! back; a [`ServiceError`] becomes a `tonic::Status` by its one mapping. StepStream's protocol
+//! (`StreamRequest`, `StreamResponse`) ends here: its waves run in
+//! [`crate::episodes::waves`].
+
+pub mod convert;
+
+use std::pin::Pin;
+use std::sync::Arc;
+
+use tokio::sync::mpsc;
+use tokio_stream::Stream;
+use tonic::{Request, Response, Status, Streaming};
+
+use crate::episodes::waves::{self, WaveAnswer, WaveRequest};
+use crate::episodes::{CreateOptions, EpisodeId, Shared, StepCall};
+use crate::error::ServiceError;
+use crate::proto;
+
+/// The tonic service.
+#[derive(Clone)]
+pub struct EsrpService {
+    shared: Arc<Shared>,
+}
+
+impl EsrpService {
+    /// A service over `shared`.
+    pub fn new(shared: Arc<Shared>) -> Self {
+        Self { shared }
+    }
+}
+
+/// A StreamRequest as a tagged wave request (the tag is its request id).
+fn read_stream_request(r: proto::StreamRequest) -> (u64, WaveRequest) {
+    use proto::stream_request::Request as Rq;
+    let request = match r.request {
+        Some(Rq::Create(c)) => CreateOptions::try_from(c).map_or_else(WaveRequest::Invalid, WaveRequest::Create),
+        Some(Rq::Step(s)) => StepCall::try_from(s).map_or_else(WaveRequest::Invalid, WaveRequest::Step),
+        Some(Rq::Reset(r)) => {
+            let (episode, scene) = convert::reset_of(r);
+            WaveRequest::Reset { episode, scene }
+        }
+        Some(Rq::Close(c)) => WaveRequest::Close(c.episode_id.into()),
+        None => WaveRequest::Invalid(ServiceError::InvalidArgument(
+            "empty StreamRequest: set create, step, reset or close".into(),
+        )),
+    };
+    (r.request_id, request)
+}
+
+/// The StreamResponse of an answer; an error travels in-band with its gRPC code.
+fn write_stream_response(request_id: u64, answer: Result<WaveAnswer, ServiceError>) -> proto::StreamResponse {
+    use proto::stream_response::Response as Rs;
+    let response = match answer {
+        Ok(WaveAnswer::Created(c)) => Rs::Created((*c).into()),
+        Ok(WaveAnswer::Stepped(s)) => Rs::Step((*s).into()),
+        Ok(WaveAnswer::Reset(r)) => Rs::Reset((*r).into()),
+        Ok(WaveAnswer::Closed(m)) => {
+            Rs::Closed(proto::CloseEpisodeResponse { metrics: Some(convert::metrics_to_proto(&m)) })
+        }
+        Err(e) => {
+            let status = Status::from(e);
+            Rs::Error(proto::StreamError { code: status.code() as i32, message: status.message().to_owned() })
+        }
+    };
+    proto::StreamResponse { request_id, response: Some(response) }
+}
+
+type StreamOut = Pin<Box<dyn Stream<Item = Result<proto::StreamResponse, Status>> + Send + 'static>>;
+
+#[tonic::async_trait]
+impl proto::esrp_server::Esrp for EsrpService {
+    async fn server_info(
+        &self,
+        _: Request<proto::ServerInfoRequest>,
+    ) -> Result<Response<proto::ServerInfoResponse>, Status> {
+        let s = &self.shared;
+        let renderer = s.render.renderer();
+        let info = renderer.adapter_info();
+        Ok(Response::new(proto::ServerInfoResponse {
+            version: env!("CARGO_PKG_VERSION").to_owned(),
+            renderer_adapter: info.name.clone(),
+            renderer_backend: format!("{:?}", info.backend).to_lowercase(),
+            software_renderer: renderer.is_software(),
+            limits: Some(proto::ServerLimits {
+                max_episodes: s.config.max_episodes as u32,
+                max_batch: s.config.max_batch as u32,
+                max_message_bytes: s.config.max_message_bytes as u32,
+                idle_timeout_seconds: s.config.idle_timeout_seconds as u32,
+                max_resolution: s.max_resolution(),
+            }),
+            live_episodes: s.registry.len() as u32,
+            dataset: s.store.name().to_owned(),
+        }))
+    }
+
+    async fn describe_dataset(
+        &self,
+        _: Request<proto::DescribeDatasetRequest>,
+    ) -> Result<Response<proto::DescribeDatasetResponse>, Status> {
+        let store = &self.shared.store;
+        let [by_split, by_difficulty, by_room_type] = store.counts();
+        Ok(Response::new(proto::DescribeDatasetResponse {
+            name: store.name().to_owned(),
+            scenes: store.infos().len() as u32,
+            by_split: by_split.into_iter().collect(),
+            by_difficulty: by_difficulty.into_iter().collect(),
+            by_room_type: by_room_type.into_iter().collect(),
+            source: store.description().to_owned(),
+        }))
+    }
+
+    async fn list_scenes(
+        &self,
+        request: Request<proto::ListScenesRequest>,
+    ) -> Result<Response<proto::ListScenesResponse>, Status> {
+        let r = request.into_inner();
+        let split = convert::split_of(r.split)?;
+        let difficulty = convert::difficulty_of(r.difficulty)?;
+        let page_size = match r.page_size {
+            0 => 100,
+            n @ 1..=1000 => n as usize,
+            n => return Err(ServiceError::InvalidArgument(format!("page_size {n} is too large: at most 1000")).into()),
+        };
+        let start: usize = if r.page_token.is_empty() {
+            0
+        } else {
+            r.page_token.parse().map_err(|_| {
+                ServiceError::InvalidArgument(format!("page_token {:?} is not one this server gave", r.page_token))
+            })?
+        };
+        let infos = self.shared.store.infos();
+        let mut scenes = Vec::new();
+        let mut next = infos.len();
+        for (i, info) in infos.iter().enumerate().skip(start) {
+            if split.is_some_and(|s| s != info.split) || difficulty.is_some_and(|d| d != info.difficulty) {
+                continue;
+            }
+            if scenes.len() == page_size {
+                next = i;
+                break;
+            }
+            scenes.push(info.into());
+        }
+        let next_page_token = if next < infos.len() { next.to_string() } else { String::new() };
+        Ok(Response::new(proto::ListScenesResponse { scenes, next_page_token }))
+    }
+
+    async fn create_episode(
+        &self,
+        request: Request<proto::CreateEpisodeRequest>,
+    ) -> Result<Response<proto::CreateEpisodeResponse>, Status> {
+        let options = CreateOptions::try_from(request.into_inner())?;
+        Ok(Response::new(self.shared.create(options, None).await?.into()))
+    }
+
+    async fn reset(&self, request: Request<proto::ResetRequest>) -> Result<Response<proto::ResetResponse>, Status> {
+        let (episode, scene) = convert::reset_of(request.into_inner());
+        Ok(Response::new(self.shared.reset(&episode, scene).await?.into()))
+    }
+
+    async fn step(&self, request: Request<proto::StepRequest>) -> Result<Response<proto::StepResponse>, Status> {
+        let step = StepCall::try_from(request.into_inner())?;
+        let result = self.shared.step_many(vec![step]).await?.pop();
+        let result = result.ok_or_else(|| ServiceError::Internal("a step without an answer".into()))?;
+        Ok(Response::new(result.into()))
+    }
+
+    async fn step_batch(
+        &self,
+        request: Request<proto::StepBatchRequest>,
+    ) -> Result<Response<proto::StepBatchResponse>, Status> {
+        let steps = request.into_inner().steps;
+        // The limit first: a batch too large is refused before any of it is read.
+        if steps.len() > self.shared.config.max_batch {
+            return Err(ServiceError::BatchTooLarge { steps: steps.len(), max: self.shared.config.max_batch }.into());
+        }
+        let results = self.shared.step_many(convert::step_calls(steps)?).await?;
+        Ok(Response::new(proto::StepBatchResponse { responses: results.into_iter().map(Into::into).collect() }))
+    }
+
+    type StepStreamStream = StreamOut;
+
+    async fn step_stream(
+        &self,
+        request: Request<Streaming<proto::StreamRequest>>,
+    ) -> Result<Response<Self::StepStreamStream>, Status> {
+        let (out, receiver) = mpsc::channel(256);
+        let shared = self.shared.clone();
+        tokio::spawn(waves::serve(shared, request.into_inner(), out, read_stream_request, write_stream_response));
+        Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(receiver))))
+    }
+
+    async fn get_goal(
+        &self,
+        request: Request<proto::GetGoalRequest>,
+    ) -> Result<Response<proto::GetGoalResponse>, Status> {
+        let episode = EpisodeId::from(request.into_inner().episode_id);
+        Ok(Response::new(self.shared.goal(&episode).await?.into()))
+    }
+
+    async fn get_privileged_state(
+        &self,
+        request: Request<proto::GetPrivilegedStateRequest>,
+    ) -> Result<Response<proto::GetPrivilegedStateResponse>, Status> {
+        let episode = EpisodeId::from(request.into_inner().episode_id);
+        Ok(Response::new(self.shared.privileged_state(&episode).await?.into()))
+    }
+
+    async fn get_metrics(
+        &self,
+        request: Request<proto::GetMetricsRequest>,
+    ) -> Result<Response<proto::GetMetricsResponse>, Status> {
+        let episode = EpisodeId::from(request.into_inner().episode_id);
+        Ok(Response::new(self.shared.metrics(&episode).await?.into()))
+    }
+
+    async fn close_episode(
+        &self,
+        request: Request<proto::CloseEpisodeRequest>,
+    ) -> Result<Response<proto::CloseEpisodeResponse>, Status> {
+        let episode = EpisodeId::from(request.into_inner().episode_id);
+        let metrics = self.shared.close(&episode).await?;
+        Ok(Response::new(proto::CloseEpisodeResponse { metrics: Some(convert::metrics_to_proto(&metrics)) }))
+    }
+}
