@@ -15,7 +15,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use crate::episodes::waves::{self, WaveAnswer, WaveRequest};
 use crate::episodes::{CreateOptions, EpisodeId, Shared, StepCall};
-use crate::error::ServiceError;
+use crate::error::{ServiceError, quoted};
 use crate::proto;
 
 /// The tonic service.
@@ -127,7 +127,10 @@ impl proto::esrp_server::Esrp for EsrpService {
             0
         } else {
             r.page_token.parse().map_err(|_| {
-                ServiceError::InvalidArgument(format!("page_token {:?} is not one this server gave", r.page_token))
+                ServiceError::InvalidArgument(format!(
+                    "page_token {} is not one this server gave",
+                    quoted(&r.page_token)
+                ))
             })?
         };
         let infos = self.shared.store.infos();
