@@ -4,6 +4,7 @@
 //! (`StreamRequest`, `StreamResponse`) ends here: its waves run in
 //! [`crate::episodes::waves`].
 
+pub mod answered;
 pub mod convert;
 
 use std::pin::Pin;
@@ -155,7 +156,12 @@ impl proto::esrp_server::Esrp for EsrpService {
         request: Request<proto::CreateEpisodeRequest>,
     ) -> Result<Response<proto::CreateEpisodeResponse>, Status> {
         let options = CreateOptions::try_from(request.into_inner())?;
-        Ok(Response::new(self.shared.create(options, None).await?.into()))
+        // The episode lives only if this answer is sent ([`answered`]): a dropped call, or a
+        // dropped answer, drops the guard and closes the episode.
+        let (created, unanswered) = self.shared.create_unanswered(options, None).await?;
+        let mut response = Response::new(created.into());
+        response.extensions_mut().insert(unanswered);
+        Ok(response)
     }
 
     async fn reset(&self, request: Request<proto::ResetRequest>) -> Result<Response<proto::ResetResponse>, Status> {
