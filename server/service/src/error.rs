@@ -6,6 +6,61 @@ use tonic::{Code, Status};
 
 use crate::episodes::EpisodeId;
 
+/// The most characters of a client-given value that an error message quotes.
+pub const MAX_QUOTED_CHARS: usize = 64;
+
+/// The most characters of a client-derived message (a scene's parse error) that an error
+/// message carries.
+pub const MAX_QUOTED_MESSAGE: usize = 1024;
+
+/// A client-given value as an error message shows it: whole if it has at most
+/// [`MAX_QUOTED_CHARS`] characters, else its first ones, an ellipsis and its length. Error
+/// messages travel in response metadata, which clients cap (16 KiB in grpcio), so no message
+/// may echo an unbounded value.
+#[derive(Clone, Copy, Debug)]
+pub struct Bounded<'a> {
+    text: &'a str,
+    quote: bool,
+}
+
+/// `text` quoted and escaped like `{:?}`: `"abc"`, or `"aaaa…" (20000 characters)`.
+pub fn quoted(text: &str) -> Bounded<'_> {
+    Bounded { text, quote: true }
+}
+
+/// `text` as it is: `abc`, or `aaaa… (20000 characters)`.
+pub fn bounded(text: &str) -> Bounded<'_> {
+    Bounded { text, quote: false }
+}
+
+/// The first `max` characters of `text` (char-boundary safe) and whether it was longer.
+fn head(text: &str, max: usize) -> (&str, bool) {
+    match text.char_indices().nth(max) {
+        Some((end, _)) => (&text[..end], true),
+        None => (text, false),
+    }
+}
+
+impl std::fmt::Display for Bounded<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let (head, cut) = head(self.text, MAX_QUOTED_CHARS);
+        match (cut, self.quote) {
+            (false, true) => write!(f, "{head:?}"),
+            (false, false) => f.write_str(head),
+            (true, true) => write!(f, "{:?} ({} characters)", format!("{head}…"), self.text.chars().count()),
+            (true, false) => write!(f, "{head}… ({} characters)", self.text.chars().count()),
+        }
+    }
+}
+
+/// `message` cut to its first `max` characters and an ellipsis if longer.
+pub fn bound_message(message: &str, max: usize) -> String {
+    match head(message, max) {
+        (head, true) => format!("{head}…"),
+        (head, false) => head.to_owned(),
+    }
+}
+
 /// Why a call failed.
 #[derive(Debug, thiserror::Error)]
 pub enum ServiceError {
@@ -21,7 +76,7 @@ pub enum ServiceError {
         error: esrp_core::UnknownAction,
     },
     /// A batch steps one episode twice.
-    #[error("{at}: episode {episode} appears twice in one batch: send one step per episode")]
+    #[error("{at}: episode {} appears twice in one batch: send one step per episode", bounded(.episode.as_str()))]
     DuplicateStep {
         /// Where: `steps[3]`.
         at: String,
@@ -40,13 +95,13 @@ pub enum ServiceError {
     #[error("the served dataset has no {} scenes: choose another split or a scene_id", .0.as_str())]
     EmptySplit(Split),
     /// The episode id is unknown or closed.
-    #[error("no episode {:?}: it never existed, was closed, or was closed after being idle", .0.as_str())]
+    #[error("no episode {}: it never existed, was closed, or was closed after being idle", quoted(.0.as_str()))]
     UnknownEpisode(EpisodeId),
     /// The scene id is not in the served dataset.
-    #[error("no scene {0:?} in the served dataset: ListScenes lists the ids")]
+    #[error("no scene {} in the served dataset: ListScenes lists the ids", quoted(.0))]
     UnknownScene(String),
     /// A step of an episode that has ended (`at` locates the step in its call).
-    #[error("{at}: episode {episode} has ended after {steps} steps: Reset it or create a new one")]
+    #[error("{at}: episode {} has ended after {steps} steps: Reset it or create a new one", bounded(.episode.as_str()))]
     EpisodeOver {
         /// Where: `step`, or `steps[3]` in a batch.
         at: String,
@@ -59,7 +114,10 @@ pub enum ServiceError {
     #[error("{0}")]
     Simulator(esrp_core::EpisodeError),
     /// The call needs a privileged episode.
-    #[error("episode {0} was not created with privileged = true: GetPrivilegedState is for privileged episodes only")]
+    #[error(
+        "episode {} was not created with privileged = true: GetPrivilegedState is for privileged episodes only",
+        bounded(.0.as_str())
+    )]
     NotPrivileged(EpisodeId),
     /// The server holds its maximum of live episodes.
     #[error("the server holds its maximum of {max} live episodes: close some (CloseEpisode) or raise --max-episodes")]
@@ -142,7 +200,8 @@ impl From<ServiceError> for Status {
 
 impl From<esrp_core::SceneError> for ServiceError {
     fn from(e: esrp_core::SceneError) -> Self {
-        ServiceError::InvalidArgument(format!("invalid scene: {e}"))
+        // A scene error may quote the client's JSON (a key, a string): bound the whole message.
+        ServiceError::InvalidArgument(format!("invalid scene: {}", bound_message(&e.to_string(), MAX_QUOTED_MESSAGE)))
     }
 }
 
@@ -192,6 +251,32 @@ mod tests {
         let status = Status::from(error);
         assert_eq!(status.code(), code, "{status:?}");
         assert!(status.message().contains(needle), "{:?} does not contain {needle:?}", status.message());
+    }
+
+    #[test]
+    fn client_values_in_messages_are_bounded() {
+        assert_eq!(quoted("e1").to_string(), "\"e1\"");
+        assert_eq!(bounded("e1").to_string(), "e1");
+        let long = "é".repeat(20_000);
+        let shown = quoted(&long).to_string();
+        assert!(shown.starts_with(&format!("\"{}…\"", "é".repeat(MAX_QUOTED_CHARS))), "{shown}");
+        assert!(shown.ends_with(" (20000 characters)"), "{shown}");
+        assert_eq!(bounded(&long).to_string(), format!("{}… (20000 characters)", "é".repeat(MAX_QUOTED_CHARS)));
+        let exact = "a".repeat(MAX_QUOTED_CHARS);
+        assert_eq!(bounded(&exact).to_string(), exact);
+        for error in [
+            ServiceError::UnknownEpisode(EpisodeId::from(long.as_str())),
+            ServiceError::NotPrivileged(EpisodeId::from(long.as_str())),
+            ServiceError::EpisodeOver { at: "step".into(), episode: EpisodeId::from(long.as_str()), steps: 1 },
+            ServiceError::DuplicateStep { at: "steps[1]".into(), episode: EpisodeId::from(long.as_str()) },
+            ServiceError::UnknownScene(long.clone()),
+        ] {
+            let message = error.to_string();
+            assert!(message.len() < 512, "{message}");
+            assert!(message.contains("(20000 characters)"), "{message}");
+        }
+        assert_eq!(bound_message(&long, 3), "ééé…");
+        assert_eq!(bound_message("abc", 3), "abc");
     }
 
     #[test]

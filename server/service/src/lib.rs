@@ -173,7 +173,7 @@ pub async fn run(
     let result = builder
         .add_service(health_service)
         .add_service(reflection)
-        .add_service(InterceptedService::new(esrp, check.clone()))
+        .add_service(InterceptedService::new(esrp_v1::answered::Answered::new(esrp), check.clone()))
         .add_service(InterceptedService::new(dm_env, check))
         // TCP_NODELAY: an agent waits for each answer, so Nagle + delayed ACK would add ~40 ms a step.
         .serve_with_incoming_shutdown(

@@ -11,7 +11,7 @@ use super::wire::dm_env_rpc::v1 as dm;
 use super::wire::dm_env_rpc::v1::tensor::Payload as Elements;
 use super::{ACTION_NAME, ACTION_UID, DmEnvError, MAX_ACTION};
 use crate::episodes::{CreateOptions, ElementType, Observation, SceneChoice, SensorConfig, SensorRequest};
-use crate::error::ServiceError;
+use crate::error::{ServiceError, quoted};
 
 /// The element type of `tensor`, for messages.
 fn element_type(tensor: &dm::Tensor) -> &'static str {
@@ -128,7 +128,8 @@ pub fn create_options(settings: HashMap<String, dm::Tensor>) -> Result<CreateOpt
                     "test" => Some(Split::Test),
                     other => {
                         return Err(DmEnvError::InvalidSetting(format!(
-                            "setting split: {other:?} is not a split: use \"train\" or \"test\""
+                            "setting split: {} is not a split: use \"train\" or \"test\"",
+                            quoted(other)
                         )));
                     }
                 }
@@ -141,7 +142,8 @@ pub fn create_options(settings: HashMap<String, dm::Tensor>) -> Result<CreateOpt
             "current_top_down" => sensors.current_top_down = bool_setting(&name, &value)?,
             other => {
                 return Err(DmEnvError::InvalidSetting(format!(
-                    "unknown CreateWorld setting {other:?}: the settings are {}",
+                    "unknown CreateWorld setting {}: the settings are {}",
+                    quoted(other),
                     CREATE_WORLD_SETTINGS.join(", ")
                 )));
             }
@@ -162,7 +164,8 @@ pub fn reset_world_scene(settings: HashMap<String, dm::Tensor>) -> Result<Option
             "scene" => scene = Some(string_setting(&name, &value)?).filter(|id| !id.is_empty()),
             other => {
                 return Err(DmEnvError::InvalidSetting(format!(
-                    "unknown ResetWorld setting {other:?}: the only one is \"scene\""
+                    "unknown ResetWorld setting {}: the only one is \"scene\"",
+                    quoted(other)
                 )));
             }
         }
@@ -174,9 +177,10 @@ pub fn reset_world_scene(settings: HashMap<String, dm::Tensor>) -> Result<Option
 pub fn no_settings(request: &str, settings: &HashMap<String, dm::Tensor>) -> Result<(), DmEnvError> {
     match sorted(settings.clone()).first() {
         None => Ok(()),
-        Some((name, _)) => {
-            Err(DmEnvError::InvalidSetting(format!("unknown {request} setting {name:?}: {request} takes no settings")))
-        }
+        Some((name, _)) => Err(DmEnvError::InvalidSetting(format!(
+            "unknown {request} setting {}: {request} takes no settings",
+            quoted(name)
+        ))),
     }
 }
 

@@ -57,7 +57,7 @@ use tokio_stream::StreamExt;
 use tonic::{Code, Request, Response, Status, Streaming};
 
 use crate::episodes::{EpisodeId, Observation, Shared, StepCall};
-use crate::error::ServiceError;
+use crate::error::{ServiceError, quoted};
 
 pub mod convert;
 
@@ -87,20 +87,21 @@ pub enum DmEnvError {
     Episode(#[from] ServiceError),
     /// The world name is not a live world.
     #[error(
-        "no world {0:?}: it was never created, was destroyed, or its creating connection ended; CreateWorld returns the names"
+        "no world {}: it was never created, was destroyed, or its creating connection ended; CreateWorld returns the names",
+        quoted(.0)
     )]
     UnknownWorld(String),
     /// Step or Reset before JoinWorld.
     #[error("this connection has not joined a world: send JoinWorld first")]
     NotJoined,
     /// JoinWorld while joined.
-    #[error("this connection is already joined to world {0:?}: send LeaveWorld first (one world per connection)")]
+    #[error("this connection is already joined to world {}: send LeaveWorld first (one world per connection)", quoted(.0))]
     AlreadyJoined(String),
     /// JoinWorld on a world that has its agent.
-    #[error("world {0:?} already has its agent (ESRP is single-agent): create another world")]
+    #[error("world {} already has its agent (ESRP is single-agent): create another world", quoted(.0))]
     WorldTaken(String),
     /// DestroyWorld on a world that has an agent.
-    #[error("world {0:?} has a joined agent: it must send LeaveWorld before the world can be destroyed")]
+    #[error("world {} has a joined agent: it must send LeaveWorld before the world can be destroyed", quoted(.0))]
     WorldInUse(String),
     /// A setting name or value is not accepted.
     #[error("{0}")]
@@ -257,8 +258,8 @@ impl Connection {
             }
             Rq::DestroyWorld(r) => self.destroy_world(r).await.map(Rs::DestroyWorld),
             Rq::Extension(any) => Err(DmEnvError::Unimplemented(format!(
-                "extension {:?} is not implemented: esrp-server has no dm_env_rpc extensions",
-                any.type_url
+                "extension {} is not implemented: esrp-server has no dm_env_rpc extensions",
+                quoted(&any.type_url)
             ))),
         }
     }

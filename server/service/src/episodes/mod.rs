@@ -55,6 +55,38 @@ pub struct Shared {
 /// The largest image side a client may ask for.
 pub const MAX_RESOLUTION: u32 = 512;
 
+/// A created episode whose answer has not reached its client yet: dropping the last clone
+/// before [`Unanswered::answered`] closes the episode. Clone (one shared state), so that it can
+/// travel in a response's extensions to where the answer is known to be sent.
+#[derive(Clone)]
+pub struct Unanswered(Arc<Pending>);
+
+/// The episode to close unless answered.
+struct Pending(std::sync::Mutex<Option<(Arc<Shared>, EpisodeId)>>);
+
+impl Unanswered {
+    fn new(shared: Arc<Shared>, episode: EpisodeId) -> Self {
+        Self(Arc::new(Pending(std::sync::Mutex::new(Some((shared, episode))))))
+    }
+
+    /// The answer was sent: the episode stays.
+    pub fn answered(&self) {
+        self.0.0.lock().unwrap_or_else(|poisoned| poisoned.into_inner()).take();
+    }
+}
+
+impl Drop for Pending {
+    fn drop(&mut self) {
+        let pending = self.0.get_mut().unwrap_or_else(|poisoned| poisoned.into_inner()).take();
+        if let Some((shared, episode)) = pending
+            && shared.registry.remove(&episode).is_ok()
+        {
+            shared.metrics.count_closed("unanswered", 1);
+            tracing::debug!(%episode, "closed an episode whose create was abandoned before its answer was sent");
+        }
+    }
+}
+
 /// A locked episode.
 pub(crate) type EpisodeGuard = tokio::sync::OwnedMutexGuard<EpisodeEntry>;
 
@@ -203,6 +235,22 @@ impl Shared {
         options: CreateOptions,
         stream: Option<u64>,
     ) -> Result<Created, ServiceError> {
+        let (created, unanswered) = self.create_unanswered(options, stream).await?;
+        unanswered.answered();
+        Ok(created)
+    }
+
+    /// Creates an episode that lives only if its answer reaches the client: the episode is
+    /// closed when the returned [`Unanswered`] (and every clone of it) is dropped before
+    /// [`Unanswered::answered`] is called. A client that gives up on a create (its deadline
+    /// expires while the episode renders or its answer travels) never learns the id, so
+    /// nothing else could close the episode before the idle reaper, and it would count
+    /// against `--max-episodes` meanwhile.
+    pub async fn create_unanswered(
+        self: &Arc<Self>,
+        options: CreateOptions,
+        stream: Option<u64>,
+    ) -> Result<(Created, Unanswered), ServiceError> {
         if self.registry.len() >= self.registry.max_episodes() {
             return Err(ServiceError::TooManyEpisodes { max: self.registry.max_episodes() });
         }
@@ -214,10 +262,18 @@ impl Shared {
         let episode = self.registry.insert(entry, stream)?;
         self.metrics.created.inc();
         tracing::debug!(%episode, scene = %summary.id, "episode created");
-        Ok(Created { episode, sensors, observation, scene: summary })
+        // No await from the insertion to here: the guard exists as soon as the episode does.
+        let unanswered = Unanswered::new(self.clone(), episode.clone());
+        Ok((Created { episode, sensors, observation, scene: summary }, unanswered))
     }
 
     /// Restarts an episode, on another scene if `scene` is given (its settings stay).
+    ///
+    /// A Reset abandoned by its client (the call dropped at an await) leaves nothing
+    /// half-done: the episode is locked throughout; without a new scene it is restarted in
+    /// one step before the render is awaited (the abandoned call leaves it restarted, exactly
+    /// as an answered one, and a Reset is idempotent), and with a new scene the fresh entry
+    /// replaces the old one only after every await, so until then the episode is untouched.
     pub async fn reset(
         self: &Arc<Self>,
         episode: &EpisodeId,

@@ -4,6 +4,7 @@
 //! (`StreamRequest`, `StreamResponse`) ends here: its waves run in
 //! [`crate::episodes::waves`].
 
+pub mod answered;
 pub mod convert;
 
 use std::pin::Pin;
@@ -15,7 +16,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use crate::episodes::waves::{self, WaveAnswer, WaveRequest};
 use crate::episodes::{CreateOptions, EpisodeId, Shared, StepCall};
-use crate::error::ServiceError;
+use crate::error::{ServiceError, quoted};
 use crate::proto;
 
 /// The tonic service.
@@ -127,7 +128,10 @@ impl proto::esrp_server::Esrp for EsrpService {
             0
         } else {
             r.page_token.parse().map_err(|_| {
-                ServiceError::InvalidArgument(format!("page_token {:?} is not one this server gave", r.page_token))
+                ServiceError::InvalidArgument(format!(
+                    "page_token {} is not one this server gave",
+                    quoted(&r.page_token)
+                ))
             })?
         };
         let infos = self.shared.store.infos();
@@ -152,7 +156,12 @@ impl proto::esrp_server::Esrp for EsrpService {
         request: Request<proto::CreateEpisodeRequest>,
     ) -> Result<Response<proto::CreateEpisodeResponse>, Status> {
         let options = CreateOptions::try_from(request.into_inner())?;
-        Ok(Response::new(self.shared.create(options, None).await?.into()))
+        // The episode lives only if this answer is sent ([`answered`]): a dropped call, or a
+        // dropped answer, drops the guard and closes the episode.
+        let (created, unanswered) = self.shared.create_unanswered(options, None).await?;
+        let mut response = Response::new(created.into());
+        response.extensions_mut().insert(unanswered);
+        Ok(response)
     }
 
     async fn reset(&self, request: Request<proto::ResetRequest>) -> Result<Response<proto::ResetResponse>, Status> {

@@ -255,6 +255,32 @@ async fn errors_are_in_band_and_the_stream_goes_on() {
     assert!(server.is_running());
 }
 
+/// Long client-given names are echoed bounded in the in-band errors.
+#[tokio::test]
+async fn long_client_values_are_echoed_bounded() {
+    let mut server = Server::start(&[]);
+    let mut connection = Connection::open(&server).await;
+    let long = "w".repeat(20_000);
+    let short = |result: Result<String, Status>, code: Code| {
+        let status = result.expect_err("the request fails");
+        assert_eq!(status.code, code as i32, "{status:?}");
+        assert!(status.message.len() < 512, "a message of {} bytes", status.message.len());
+        assert!(status.message.contains("(20000 characters)"), "{}", status.message);
+    };
+    short(connection.join_world(&long).await.map(|_| String::new()), Code::NotFound);
+    short(connection.destroy_world(&long).await.map(|_| String::new()), Code::NotFound);
+    short(connection.create_world(vec![(long.as_str(), int64(1))]).await, Code::InvalidArgument);
+    short(connection.create_world(vec![("scene", string(&long))]).await, Code::NotFound);
+    short(connection.create_world(vec![("split", string(&long))]).await, Code::InvalidArgument);
+    let join = dm::JoinWorldRequest { world_name: "w".into(), settings: [(long.clone(), int64(1))].into() };
+    let joined = connection.send(Rq::JoinWorld(join)).await;
+    short(joined.map(|_| String::new()), Code::InvalidArgument);
+    let extension =
+        esrp_server::dm_env::wire::google::protobuf::Any { type_url: long.clone(), value: Default::default() };
+    short(connection.send(Rq::Extension(extension)).await.map(|_| String::new()), Code::Unimplemented);
+    assert!(server.is_running());
+}
+
 #[tokio::test]
 async fn worlds_end_with_their_stream() {
     let server = Server::start(&["--token", "sesame"]);

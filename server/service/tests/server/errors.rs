@@ -203,3 +203,50 @@ async fn an_unreadable_stream_request_ends_the_stream_with_its_status() {
     assert!(server.is_running());
     client.server_info(proto::ServerInfoRequest {}).await.expect("the server keeps serving");
 }
+
+/// A long client-given value is echoed bounded: its first characters and its length, so that
+/// the message fits in response metadata (grpcio caps it at 16 KiB).
+#[tokio::test]
+async fn long_client_values_are_echoed_bounded() {
+    let mut server = Server::start(&[]);
+    let mut client = server.client().await;
+    let long = "a".repeat(20_000);
+    let short = |status: &tonic::Status, code: Code| {
+        assert_eq!(status.code(), code, "{status:?}");
+        let message = status.message();
+        assert!(message.len() < 512, "a message of {} bytes: {}…", message.len(), &message[..200.min(message.len())]);
+        message.to_owned()
+    };
+    let id = || long.clone();
+    let answers = [
+        client.step(step_request(&long, 0)).await.map(drop),
+        client.get_metrics(proto::GetMetricsRequest { episode_id: id() }).await.map(drop),
+        client.close_episode(proto::CloseEpisodeRequest { episode_id: id() }).await.map(drop),
+        client.reset(proto::ResetRequest { episode_id: id(), ..Default::default() }).await.map(drop),
+        client.get_goal(proto::GetGoalRequest { episode_id: id() }).await.map(drop),
+        client.get_privileged_state(proto::GetPrivilegedStateRequest { episode_id: id() }).await.map(drop),
+        client.step_batch(proto::StepBatchRequest { steps: vec![step_request(&long, 0)] }).await.map(drop),
+    ];
+    for answer in answers {
+        let message = short(&answer.expect_err("an unknown episode"), Code::NotFound);
+        assert!(message.contains("(20000 characters)"), "{message}");
+    }
+    let r = client.create_episode(create_request(&long, false)).await;
+    short(&r.expect_err("an unknown scene"), Code::NotFound);
+    let r = client.list_scenes(proto::ListScenesRequest { page_token: id(), ..Default::default() }).await;
+    short(&r.expect_err("a page token this server never gave"), Code::InvalidArgument);
+    // Invalid inline scene JSON whose parse error quotes a long key, or a long string.
+    for json in [format!("{{\"{long}\": 1}}"), format!("{{\"schema\": \"{long}\"}}")] {
+        let request = proto::CreateEpisodeRequest {
+            scene: Some(proto::create_episode_request::Scene::SceneJson(json)),
+            ..Default::default()
+        };
+        let r = client.create_episode(request).await;
+        let status = r.expect_err("invalid scene JSON");
+        assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+        assert!(status.message().len() < 2048, "a message of {} bytes", status.message().len());
+        assert!(status.message().contains("invalid scene"), "{}", status.message());
+    }
+    assert!(server.is_running(), "the server survives");
+    assert_eq!(live_episodes(&mut client).await, 0);
+}

@@ -284,3 +284,64 @@ async fn a_signal_right_after_listening_is_a_graceful_exit() {
         assert!(status.0.success(), "kill {signal} right after listening: {}; stderr:\n{}", status.0, status.1);
     }
 }
+
+/// A CreateEpisode whose client gives up (its deadline expires) before the answer is sent
+/// leaves no episode behind: the client never learns the id, so nothing could close it.
+#[tokio::test]
+async fn an_abandoned_create_leaves_no_episode() {
+    let server = Server::start(&[]);
+    // A small receive window: the answer (about 4.3 MB) travels for a while, in steps the
+    // client reads, so that many deadlines expire while it travels; once the server has
+    // written all of it, only the last 64 KiB are in flight.
+    let channel = tonic::transport::Endpoint::from_shared(server.address.clone())
+        .unwrap()
+        .initial_stream_window_size(65_535)
+        .initial_connection_window_size(65_535)
+        .connect()
+        .await
+        .expect("the client connects");
+    let mut client = proto::esrp_client::EsrpClient::new(channel).max_decoding_message_size(256 << 20);
+    let scene = scene_ids(&mut client, proto::Split::Test, 1).await.remove(0);
+    let request = || proto::CreateEpisodeRequest {
+        sensors: Some(proto::Sensors {
+            ego_depth: true,
+            ego_segmentation: true,
+            current_top_down: true,
+            resolution: 512,
+        }),
+        ..create_request(&scene, false)
+    };
+    // How long one create takes here, at best (the scene is compiled and uploaded by then).
+    let mut took = Duration::MAX;
+    for _ in 0..4 {
+        let started = Instant::now();
+        let created = client.create_episode(request()).await.expect("a create").into_inner();
+        took = took.min(started.elapsed());
+        client.close_episode(proto::CloseEpisodeRequest { episode_id: created.episode_id }).await.unwrap();
+    }
+    // Deadlines spread around that time, so that some expire while the server renders, some
+    // while the answer travels, some after it arrived.
+    let (mut abandoned, mut answered) = (0, 0);
+    for i in 0..60u32 {
+        let mut call = tonic::Request::new(request());
+        call.set_timeout(took * (20 + 4 * i) / 100);
+        match client.create_episode(call).await {
+            Ok(created) => {
+                answered += 1;
+                let episode_id = created.into_inner().episode_id;
+                client
+                    .close_episode(proto::CloseEpisodeRequest { episode_id })
+                    .await
+                    .expect("an episode whose id was answered is live");
+            }
+            Err(status) => {
+                assert!(matches!(status.code(), tonic::Code::DeadlineExceeded | tonic::Code::Cancelled), "{status:?}");
+                abandoned += 1;
+            }
+        }
+    }
+    eprintln!("{abandoned} creates abandoned, {answered} answered");
+    assert!(abandoned > 0, "some deadlines expired");
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert_eq!(live_episodes(&mut client).await, 0, "no abandoned create left its episode");
+}
