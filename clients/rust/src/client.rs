@@ -279,8 +279,25 @@ impl Client {
     }
 
     /// Creates an episode; returns its handle and its first observation (with the goal image).
+    ///
+    /// Cancellation-safe: the call runs in a task of its own, so a caller that gives up (a
+    /// `tokio::time::timeout`, a dropped future) leaves no episode behind — an answer that
+    /// arrives after the caller left is closed on the server at once. (The server closes the
+    /// episode itself when the call is abandoned before its answer is sent.)
     pub async fn create_episode(&self, options: EpisodeOptions) -> Result<(Episode, Observation)> {
-        let created = self.raw().create_episode(options.to_proto()).await?.into_inner();
+        let (answer, waiting) = tokio::sync::oneshot::channel();
+        let mut raw = self.raw();
+        let request = options.to_proto();
+        tokio::spawn(async move {
+            let result = raw.create_episode(request).await.map(tonic::Response::into_inner);
+            if let Err(Ok(created)) = answer.send(result) {
+                // Nobody waits for this episode any more.
+                let _ = raw.close_episode(proto::CloseEpisodeRequest { episode_id: created.episode_id }).await;
+            }
+        });
+        let created = waiting.await.map_err(|_| {
+            ClientError::Unavailable("the create task ended without an answer (runtime shutting down)".into())
+        })??;
         Episode::created(self.clone(), created)
     }
 

@@ -164,3 +164,36 @@ async fn token_and_tls() {
     let error = without_token.server_info().await.unwrap_err();
     assert!(matches!(error, esrp_client::ClientError::Unauthenticated(_)), "{error}");
 }
+
+#[tokio::test]
+async fn abandoned_creates_leave_no_episode() {
+    let server = start(&[]);
+    let client = client(&server).await;
+    let scene = test_scenes(&client, 1).await.remove(0);
+    let sensors = Sensors { ego_depth: true, ego_segmentation: true, current_top_down: true, resolution: 256 };
+    let options = EpisodeOptions::scene(&scene).sensors(sensors);
+    let started = std::time::Instant::now();
+    client.create_episode(options.clone()).await.unwrap().0.close().await.unwrap();
+    let create = started.elapsed();
+    // Deadlines from a fifth to twice a create's time: some calls are given up while the server
+    // renders, some while the answer travels or after it arrived, some complete.
+    let mut kept = Vec::new();
+    for i in 0..30u32 {
+        let deadline = create.mul_f64(0.2 + f64::from(i) * 0.06);
+        if let Ok(created) = tokio::time::timeout(deadline, client.create_episode(options.clone())).await {
+            kept.push(created.unwrap().0);
+        }
+    }
+    for episode in kept {
+        episode.close().await.expect("an answered create's episode exists");
+    }
+    let mut live = u32::MAX;
+    for _ in 0..100 {
+        live = client.server_info().await.unwrap().live_episodes;
+        if live == 0 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert_eq!(live, 0, "every abandoned create's episode is closed");
+}
