@@ -5,7 +5,7 @@ use std::time::Duration;
 use esrp_client::{Action, Difficulty, EpisodeOptions, RandomActions, SceneFilter, Sensors, Split, Tls};
 use tokio_stream::StreamExt;
 
-use crate::harness::{client, start, test_scenes};
+use crate::harness::{client, live_episodes_settled_at, start, test_scenes};
 
 #[tokio::test]
 async fn server_dataset_and_scene_listing() {
@@ -121,15 +121,11 @@ async fn dropped_episodes_are_closed() {
     let kept = client.create_episode(EpisodeOptions::scene(&scenes[0])).await.unwrap().0;
     let id = kept.detach();
     // Closing on drop is a task on the runtime: give it a moment.
-    let mut live = u32::MAX;
-    for _ in 0..100 {
-        live = client.server_info().await.unwrap().live_episodes;
-        if live == 1 {
-            break;
-        }
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
-    assert_eq!(live, 1, "dropped handles close their episodes; a detached one lives");
+    assert_eq!(
+        live_episodes_settled_at(&client, 1).await,
+        1,
+        "dropped handles close their episodes; a detached one lives"
+    );
     let attached = esrp_client::Episode::attach(&client, id, Default::default());
     attached.close().await.unwrap();
     assert_eq!(client.server_info().await.unwrap().live_episodes, 0);
@@ -187,13 +183,5 @@ async fn abandoned_creates_leave_no_episode() {
     for episode in kept {
         episode.close().await.expect("an answered create's episode exists");
     }
-    let mut live = u32::MAX;
-    for _ in 0..100 {
-        live = client.server_info().await.unwrap().live_episodes;
-        if live == 0 {
-            break;
-        }
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
-    assert_eq!(live, 0, "every abandoned create's episode is closed");
+    assert_eq!(live_episodes_settled_at(&client, 0).await, 0, "every abandoned create's episode is closed");
 }

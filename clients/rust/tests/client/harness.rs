@@ -20,3 +20,17 @@ pub async fn test_scenes(client: &Client, n: usize) -> Vec<String> {
     let filter = esrp_client::SceneFilter::split(esrp_client::Split::Test);
     client.scenes(filter).take(n).map(|s| s.expect("a scene").id).collect().await
 }
+
+/// The server's live episode count once it reaches `expected`, or after 5 s of polling (closes
+/// on drop and after abandoned calls happen in background tasks).
+pub async fn live_episodes_settled_at(client: &Client, expected: u32) -> u32 {
+    let mut live = u32::MAX;
+    for _ in 0..100 {
+        live = client.server_info().await.expect("ServerInfo answers").live_episodes;
+        if live == expected {
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+    }
+    live
+}
