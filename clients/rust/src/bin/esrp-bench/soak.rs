@@ -501,6 +501,18 @@ impl Worker {
     }
 
     /// One stream's life as `plan` says; an error here is the stream's own (it cannot go on).
+    /// Sends a random step of `episode` on `stream`, counted, its request remembered as a step.
+    async fn stream_step(
+        &mut self,
+        stream: &mut EpisodeStream,
+        episode: &str,
+        kinds: &mut HashMap<u64, &'static str>,
+    ) -> Result<(), ClientError> {
+        self.tally.call("stream_step");
+        kinds.insert(stream.step(episode, self.actions.next_action()).await?, "stream_step");
+        Ok(())
+    }
+
     async fn drive_stream(&mut self, stream: &mut EpisodeStream, plan: StreamPlan) -> Result<(), ClientError> {
         // What each request was, by request id, to count its answer.
         let mut kinds: HashMap<u64, &'static str> = HashMap::new();
@@ -539,8 +551,7 @@ impl Worker {
             for e in 0..ids.len() {
                 if left[e] > 0 {
                     left[e] -= 1;
-                    self.tally.call("stream_step");
-                    kinds.insert(stream.step(&ids[e], self.actions.next_action()).await?, "stream_step");
+                    self.stream_step(stream, &ids[e], &mut kinds).await?;
                     sent += 1;
                     if dropped(sent) {
                         self.tally.event("stream_dropped_mid_flight", 1);
@@ -584,8 +595,7 @@ impl Worker {
             };
             if step_answered && left[e] > 0 {
                 left[e] -= 1;
-                self.tally.call("stream_step");
-                kinds.insert(stream.step(&ids[e], self.actions.next_action()).await?, "stream_step");
+                self.stream_step(stream, &ids[e], &mut kinds).await?;
                 sent += 1;
             }
             if dropped(sent) {
