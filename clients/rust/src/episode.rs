@@ -5,7 +5,8 @@ use crate::client::Client;
 use crate::error::{ClientError, Result};
 use crate::proto;
 use crate::types::{
-    Action, EpisodeMetrics, Goal, Image, Observation, PrivilegedState, SceneSummary, Sensors, Split, StepResult,
+    Action, EpisodeMetrics, Goal, Image, Observation, PlanAnswer, PrivilegedState, SceneSummary, Sensors, Split,
+    StepResult,
 };
 
 /// Which scene an episode plays.
@@ -221,6 +222,18 @@ impl Episode {
     pub async fn privileged_state(&self) -> Result<PrivilegedState> {
         let request = proto::GetPrivilegedStateRequest { episode_id: self.id.clone() };
         Ok(PrivilegedState(self.client.raw().get_privileged_state(request).await?.into_inner()))
+    }
+
+    /// Asks the server's planner (ESRP-PLAN) for the next actions from the episode's current
+    /// state: at most `max_actions` of them (0: the whole plan), within `budget` of planning
+    /// time (`None`: the server's default; the server caps it). Only for episodes created with
+    /// `privileged` ([`ClientError::PermissionDenied`] otherwise); a plan not found in time is
+    /// [`ClientError::DeadlineExceeded`]; no plan at all is an answer with
+    /// [`PlanAnswer::failure`] set.
+    pub async fn plan_actions(&self, max_actions: u32, budget: Option<std::time::Duration>) -> Result<PlanAnswer> {
+        let budget_ms = budget.map_or(0, |b| u32::try_from(b.as_millis()).unwrap_or(u32::MAX).max(1));
+        let request = proto::PlanActionsRequest { episode_id: self.id.clone(), max_actions, budget_ms };
+        self.client.raw().plan_actions(request).await?.into_inner().try_into()
     }
 
     /// Closes the episode; returns its metrics at that moment.

@@ -26,17 +26,21 @@
 //! - [`client`]: [`Client`] — connecting (token, TLS), server info, the dataset and its
 //!   scenes (paged as a stream), creating episodes, [`Client::step_batch`].
 //! - [`episode`]: [`Episode`] — one live episode: step, reset, goal, metrics, privileged
-//!   state, close (also on drop, best effort).
+//!   state, the server's planner ([`Episode::plan_actions`]), close (also on drop, best
+//!   effort).
 //! - [`stream`]: [`EpisodeStream`] — a pipelined `StepStream` with up to N steps of each
 //!   episode in flight, answers in request order.
 //! - [`types`]: [`Action`], [`Observation`] (pixels shared with the answer, never copied),
 //!   [`StepResult`], [`EpisodeMetrics`], [`SceneSummary`].
 //! - [`local`]: [`LocalServer`] — an `esrp-server` child process on a free port.
 //! - [`random`]: [`RandomActions`] — seeded, portable uniform random actions.
+//! - [`results`]: the results schema `esrp.results/v1` of every evaluation tool
+//!   (`docs/evaluation.md`): [`results::EpisodeRecord`], reading, appending, summaries.
 //! - [`error`]: [`ClientError`], one variant per status a caller may handle.
 //!
-//! The crate's binaries are `esrp-demo` (the expert and a random agent on a few test scenes)
-//! and `esrp-bench` (end-to-end throughput and latency).
+//! The crate's binaries are `esrp-demo` (the expert and a random agent on a few test scenes),
+//! `esrp-eval` (an agent over a whole split, results in `esrp.results/v1`) and `esrp-bench`
+//! (end-to-end throughput and latency).
 //!
 //! Features: `image` adds [`Image::to_rgb_image`].
 
@@ -47,6 +51,7 @@ pub mod episode;
 pub mod error;
 pub mod local;
 pub mod random;
+pub mod results;
 pub mod stream;
 pub mod types;
 
@@ -62,5 +67,5 @@ pub use random::RandomActions;
 pub use stream::{Answer, EpisodeStream, StreamAnswer};
 pub use types::{
     Action, DepthImage, Difficulty, EpisodeMetrics, Goal, Image, LabelImage, Observation, Obstacle, ObstacleKind,
-    PrivilegedState, RewardTerms, SceneSummary, Sensors, ServerInfo, Split, StepInfo, StepResult, ValueImage,
+    PlanAnswer, PlanFailure, PlanStats, PrivilegedState, RewardTerms, SceneSummary, Sensors, ServerInfo, Split, StepInfo, StepResult, ValueImage,
 };

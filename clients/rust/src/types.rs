@@ -101,6 +101,14 @@ pub enum Split {
 }
 
 impl Split {
+    /// `train` or `test`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Split::Train => "train",
+            Split::Test => "test",
+        }
+    }
+
     pub(crate) fn to_proto(split: Option<Split>) -> i32 {
         (match split {
             None => proto::Split::Unspecified,
@@ -632,5 +640,109 @@ impl std::ops::Deref for PrivilegedState {
 
     fn deref(&self) -> &Self::Target {
         &self.0
+    }
+}
+
+/// Why the server's planner found no plan ([`PlanAnswer::failure`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum PlanFailure {
+    /// No pose from which `fetch` takes an object.
+    Unreachable,
+    /// No release pose places an object.
+    NoPlacement,
+    /// The search's node budget ran out.
+    BudgetExhausted,
+    /// A plan exists but does not fit the steps left before the horizon.
+    TooLong,
+    /// A reason this client does not know (a newer server).
+    Other(i32),
+}
+
+impl PlanFailure {
+    /// The reason's name as results files spell it (`unreachable`, `no_placement`,
+    /// `budget_exhausted`, `too_long`, `other`).
+    pub fn name(self) -> &'static str {
+        match self {
+            PlanFailure::Unreachable => "unreachable",
+            PlanFailure::NoPlacement => "no_placement",
+            PlanFailure::BudgetExhausted => "budget_exhausted",
+            PlanFailure::TooLong => "too_long",
+            PlanFailure::Other(_) => "other",
+        }
+    }
+
+    fn from_proto(code: i32) -> Option<Self> {
+        match proto::PlanFailure::try_from(code) {
+            Ok(proto::PlanFailure::Unspecified) => None,
+            Ok(proto::PlanFailure::Unreachable) => Some(PlanFailure::Unreachable),
+            Ok(proto::PlanFailure::NoPlacement) => Some(PlanFailure::NoPlacement),
+            Ok(proto::PlanFailure::BudgetExhausted) => Some(PlanFailure::BudgetExhausted),
+            Ok(proto::PlanFailure::TooLong) => Some(PlanFailure::TooLong),
+            Err(_) => Some(PlanFailure::Other(code)),
+        }
+    }
+}
+
+/// What the planning that made a plan cost.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PlanStats {
+    /// Search nodes expanded.
+    pub nodes_expanded: u64,
+    /// Searches run.
+    pub searches: u32,
+    /// Planning time on the server.
+    pub planning_seconds: f64,
+    /// Blockers moved aside to a buffer pose.
+    pub objects_relocated: u32,
+}
+
+/// The server planner's answer ([`crate::Episode::plan_actions`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct PlanAnswer {
+    /// The next actions of the plan (all of it, or at most the number asked for); empty when
+    /// there is no plan.
+    pub actions: Vec<Action>,
+    /// Whether the plan ends in success.
+    pub reaches_success: bool,
+    /// Length of the whole plan from the episode's current state.
+    pub plan_length: u32,
+    /// The plan was made by an earlier call and the episode has followed it.
+    pub cached: bool,
+    /// The cost of the planning that made the plan.
+    pub stats: PlanStats,
+    /// Why there is no plan, if there is none.
+    pub failure: Option<PlanFailure>,
+    /// The failure in the server's words (empty when a plan was found).
+    pub failure_message: String,
+    /// The id of the object a failure is about, if any.
+    pub failure_object: Option<String>,
+}
+
+impl TryFrom<proto::PlanActionsResponse> for PlanAnswer {
+    type Error = ClientError;
+
+    fn try_from(r: proto::PlanActionsResponse) -> Result<Self> {
+        let actions = r
+            .actions
+            .iter()
+            .map(|&code| Action::try_from(i64::from(code)))
+            .collect::<Result<Vec<_>>>()
+            .map_err(|e| ClientError::Protocol(format!("the planner's answer holds a bad action: {e}")))?;
+        let stats = r.stats.map_or_else(PlanStats::default, |s| PlanStats {
+            nodes_expanded: s.nodes_expanded,
+            searches: s.searches,
+            planning_seconds: s.planning_seconds,
+            objects_relocated: s.objects_relocated,
+        });
+        Ok(PlanAnswer {
+            actions,
+            reaches_success: r.reaches_success,
+            plan_length: r.plan_length,
+            cached: r.cached,
+            stats,
+            failure: PlanFailure::from_proto(r.failure),
+            failure_message: r.failure_message,
+            failure_object: (!r.failure_object.is_empty()).then_some(r.failure_object),
+        })
     }
 }

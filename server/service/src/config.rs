@@ -72,6 +72,15 @@ pub struct Config {
     /// steps/s with 64 episodes than two).
     #[arg(long, env = "ESRP_WORKER_THREADS", default_value_t = 0)]
     pub worker_threads: usize,
+    /// PlanActions: the planning time budget of a call that names none, in milliseconds.
+    #[arg(long, env = "ESRP_PLAN_BUDGET_MS", default_value_t = 10_000, value_parser = clap::value_parser!(u64).range(1..))]
+    pub plan_budget_ms: u64,
+    /// PlanActions: the most planning time a call may ask for, in milliseconds.
+    #[arg(long, env = "ESRP_MAX_PLAN_MS", default_value_t = 60_000, value_parser = clap::value_parser!(u64).range(1..))]
+    pub max_plan_ms: u64,
+    /// PlanActions: plans computed at once (each on a thread of its own); 0: one per core.
+    #[arg(long, env = "ESRP_PLANNER_THREADS", default_value_t = 0)]
+    pub planner_threads: usize,
     /// Log format.
     #[arg(long, env = "ESRP_LOG_FORMAT", value_enum, default_value_t = LogFormat::Text)]
     pub log_format: LogFormat,
@@ -84,6 +93,24 @@ impl Config {
             0 => std::thread::available_parallelism().map_or(1, |n| n.get()).saturating_sub(1).max(1),
             n => n,
         }
+    }
+
+    /// Plans computed at once: `planner_threads`, or for 0 one per core.
+    pub fn planner_threads(&self) -> usize {
+        match self.planner_threads {
+            0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
+            n => n,
+        }
+    }
+
+    /// The default planning budget of a PlanActions call.
+    pub fn plan_budget(&self) -> Duration {
+        Duration::from_millis(self.plan_budget_ms)
+    }
+
+    /// The largest planning budget a PlanActions call gets.
+    pub fn max_plan(&self) -> Duration {
+        Duration::from_millis(self.max_plan_ms)
     }
 
     /// The idle timeout as a duration.

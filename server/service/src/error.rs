@@ -115,10 +115,16 @@ pub enum ServiceError {
     Simulator(esrp_core::EpisodeError),
     /// The call needs a privileged episode.
     #[error(
-        "episode {} was not created with privileged = true: GetPrivilegedState is for privileged episodes only",
+        "episode {} was not created with privileged = true: GetPrivilegedState and PlanActions are for privileged episodes only",
         bounded(.0.as_str())
     )]
     NotPrivileged(EpisodeId),
+    /// PlanActions found no plan within its time budget.
+    #[error("the planner found no plan within its budget of {budget_ms} ms: ask with a larger budget_ms (the server caps it at --max-plan-ms)")]
+    PlanDeadline {
+        /// The budget the call had.
+        budget_ms: u64,
+    },
     /// The server holds its maximum of live episodes.
     #[error("the server holds its maximum of {max} live episodes: close some (CloseEpisode) or raise --max-episodes")]
     TooManyEpisodes {
@@ -183,6 +189,7 @@ impl ServiceError {
                 esrp_core::EpisodeError::InvalidConfig { .. } => Code::InvalidArgument,
             },
             ServiceError::NotPrivileged(_) => Code::PermissionDenied,
+            ServiceError::PlanDeadline { .. } => Code::DeadlineExceeded,
             ServiceError::TooManyEpisodes { .. }
             | ServiceError::BatchTooLarge { .. }
             | ServiceError::StepAnswerTooLarge { .. }

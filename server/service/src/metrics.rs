@@ -9,6 +9,7 @@
 //! | `esrp_live_episodes` | gauge | episodes alive now |
 //! | `esrp_render_batch_views` | histogram | views per render batch |
 //! | `esrp_render_batch_seconds` | histogram | time to render one batch |
+//! | `esrp_plans_total` | counter | PlanActions answers, by outcome (`planned`, `cached`, `failed`: no plan exists, `deadline`: none found in the budget) |
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -29,6 +30,13 @@ pub struct CloseReason {
     pub reason: &'static str,
 }
 
+/// How a PlanActions call ended.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct PlanOutcome {
+    /// `planned`, `cached`, `failed` or `deadline`.
+    pub outcome: &'static str,
+}
+
 /// Every metric the server keeps. Cheap to update from any thread.
 pub struct Metrics {
     registry: Registry,
@@ -46,6 +54,8 @@ pub struct Metrics {
     pub batch_views: Histogram,
     /// Seconds per render batch.
     pub batch_seconds: Histogram,
+    /// PlanActions answers, by outcome.
+    pub plans: Family<PlanOutcome, Counter>,
 }
 
 impl Default for Metrics {
@@ -64,6 +74,7 @@ impl Metrics {
         let live = Gauge::default();
         let batch_views = Histogram::new(exponential_buckets(1.0, 2.0, 11));
         let batch_seconds = Histogram::new(exponential_buckets(50e-6, 2.0, 16));
+        let plans = Family::<PlanOutcome, Counter>::default();
         let mut registry = Registry::with_prefix("esrp");
         registry.register("steps", "Steps taken, all episodes and APIs", steps.clone());
         registry.register(
@@ -76,12 +87,18 @@ impl Metrics {
         registry.register("live_episodes", "Episodes alive now", live.clone());
         registry.register("render_batch_views", "Views per render batch", batch_views.clone());
         registry.register("render_batch_seconds", "Time to render one batch", batch_seconds.clone());
-        Self { registry, steps, step_latency, created, closed, live, batch_views, batch_seconds }
+        registry.register("plans", "PlanActions answers, by outcome", plans.clone());
+        Self { registry, steps, step_latency, created, closed, live, batch_views, batch_seconds, plans }
     }
 
     /// Counts `n` closed episodes.
     pub fn count_closed(&self, reason: &'static str, n: usize) {
         self.closed.get_or_create(&CloseReason { reason }).inc_by(n as u64);
+    }
+
+    /// Counts a PlanActions answer.
+    pub fn count_plan(&self, outcome: &'static str) {
+        self.plans.get_or_create(&PlanOutcome { outcome }).inc();
     }
 
     /// The OpenMetrics text exposition.

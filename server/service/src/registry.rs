@@ -31,6 +31,8 @@ pub struct EpisodeEntry {
     pub frame: TopDownFrame,
     /// Last time a call used it.
     pub last_used: Instant,
+    /// The planner's last answer (PlanActions), reused while the episode follows it.
+    pub plan: Option<crate::episodes::planning::CachedPlan>,
 }
 
 /// A shared, individually locked episode.

@@ -3,5 +3,7 @@
 
 mod calls;
 mod errors;
+mod eval;
 mod harness;
+mod planning;
 mod streams;

@@ -11,9 +11,12 @@
 //! - [`stepping`]: Step and StepBatch (all or nothing) and the steps of a stream wave (each on
 //!   its own), rendered as one job.
 //! - [`waves`]: which stream requests may be answered together, and answering them.
+//! - [`planning`]: PlanActions, the server's planner on an episode's current state, off the
+//!   runtime, cached per episode.
 
 mod types;
 
+pub mod planning;
 pub mod stepping;
 pub mod waves;
 
@@ -24,6 +27,7 @@ use std::time::Instant;
 use esrp_core::{CompiledScene, Episode, EpisodeConfig, Scene, Split};
 use esrp_render::{Outputs, ViewOutput};
 
+pub use planning::{PlanCall, Planned};
 pub use stepping::Stepped;
 pub use types::{
     ACTIONS, ArraySpec, CreateOptions, Created, ElementType, EpisodeId, Goal, MetricsSoFar, Observation, Privileged,
@@ -48,6 +52,8 @@ pub struct Shared {
     /// The configuration.
     pub config: Config,
     next_stream: AtomicU64,
+    /// One permit per plan allowed to run at once (PlanActions).
+    planners: tokio::sync::Semaphore,
     /// Prometheus metrics.
     pub metrics: Arc<Metrics>,
 }
@@ -148,6 +154,7 @@ impl Shared {
             render,
             config,
             next_stream: AtomicU64::new(1),
+            planners: tokio::sync::Semaphore::new(config.planner_threads()),
             metrics,
         }
     }
@@ -218,6 +225,7 @@ impl Shared {
             goal: bytes::Bytes::new(),
             frame,
             last_used: Instant::now(),
+            plan: None,
         };
         let mut views = vec![View::top_down(&handle, &targets, sensors.resolution)];
         views.extend(observation_views(&entry));

@@ -15,7 +15,7 @@ use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::episodes::waves::{self, WaveAnswer, WaveRequest};
-use crate::episodes::{CreateOptions, EpisodeId, Shared, StepCall};
+use crate::episodes::{CreateOptions, EpisodeId, PlanCall, Shared, StepCall};
 use crate::error::{ServiceError, quoted};
 use crate::proto;
 
@@ -215,6 +215,14 @@ impl proto::esrp_server::Esrp for EsrpService {
     ) -> Result<Response<proto::GetPrivilegedStateResponse>, Status> {
         let episode = EpisodeId::from(request.into_inner().episode_id);
         Ok(Response::new(self.shared.privileged_state(&episode).await?.into()))
+    }
+
+    async fn plan_actions(
+        &self,
+        request: Request<proto::PlanActionsRequest>,
+    ) -> Result<Response<proto::PlanActionsResponse>, Status> {
+        let call = PlanCall::from(request.into_inner());
+        Ok(Response::new(self.shared.plan(call).await?.into()))
     }
 
     async fn get_metrics(

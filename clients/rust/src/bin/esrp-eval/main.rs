@@ -1,0 +1,318 @@
+//! `esrp-eval`: runs an agent (the server's planner, the expert, or a random agent) over the
+//! scenes of a split and writes one `esrp.results/v1` record per episode (docs/evaluation.md),
+//! with a progress bar, resumption, and a summary with the paper's rows beside it.
+//!
+//! Without `--server` it starts the `esrp-server` beside its own executable on a free port.
+
+mod agents;
+
+use std::collections::HashSet;
+use std::fs::OpenOptions;
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant, SystemTime};
+
+use anyhow::{Context, bail};
+use clap::Parser;
+use esrp_client::results::{self, EpisodeRecord, SCHEMA, Summary, Tally};
+use esrp_client::{Client, Difficulty, SceneFilter, SceneSummary, Split, reach_or_start};
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use futures_util::StreamExt as _;
+
+use agents::{AgentKind, AgentSettings};
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "esrp-eval",
+    version,
+    about = "Run an agent over the scenes of a split; write one esrp.results/v1 record per episode",
+    after_help = "The results schema and the summary are described in docs/evaluation.md."
+)]
+struct Args {
+    /// The agent: the server's planner (ESRP-PLAN), the scene's expert trajectory, or uniform
+    /// random actions.
+    #[arg(long, value_enum)]
+    agent: AgentKind,
+    /// The split whose scenes to run.
+    #[arg(long, value_enum, default_value_t = SplitArg::Test)]
+    split: SplitArg,
+    /// Only scenes of this difficulty.
+    #[arg(long, value_enum)]
+    difficulty: Option<DifficultyArg>,
+    /// Only these scene ids (comma-separated), in this order; they must be in the split.
+    #[arg(long, value_delimiter = ',')]
+    scenes: Vec<String>,
+    /// At most this many scenes (after the filters), the first in dataset order.
+    #[arg(long)]
+    limit: Option<usize>,
+    /// Episodes played at the same time.
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=1024))]
+    episodes_in_flight: u32,
+    /// The results file (JSON Lines). Scenes already in it are skipped.
+    #[arg(long)]
+    out: PathBuf,
+    /// Start the results file over instead of resuming it.
+    #[arg(long)]
+    fresh: bool,
+    /// The summary's Markdown file (default: the results file with `.md`).
+    #[arg(long)]
+    summary: Option<PathBuf>,
+    /// Base seed of seeded agents; scene `id` uses `seed XOR fnv1a64(id)`.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// The planner's time budget per call, in milliseconds (default: the server's).
+    #[arg(long)]
+    plan_budget_ms: Option<u64>,
+    /// Planner calls after the first when an episode goes on after a plan.
+    #[arg(long, default_value_t = 2)]
+    replans: u32,
+    /// A running server (`http://host:port`); without it, esrp-eval starts one.
+    #[arg(long)]
+    server: Option<String>,
+    /// An argument for the server esrp-eval starts (repeat it for several).
+    #[arg(long = "server-arg", allow_hyphen_values = true)]
+    server_args: Vec<String>,
+    /// Bearer token of a server started with `--token` (env ESRP_TOKEN).
+    #[arg(long, env = "ESRP_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum SplitArg {
+    Train,
+    Test,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum DifficultyArg {
+    Easy,
+    Medium,
+    Hard,
+}
+
+impl From<SplitArg> for Split {
+    fn from(s: SplitArg) -> Self {
+        match s {
+            SplitArg::Train => Split::Train,
+            SplitArg::Test => Split::Test,
+        }
+    }
+}
+
+impl From<DifficultyArg> for Difficulty {
+    fn from(d: DifficultyArg) -> Self {
+        match d {
+            DifficultyArg::Easy => Difficulty::Easy,
+            DifficultyArg::Medium => Difficulty::Medium,
+            DifficultyArg::Hard => Difficulty::Hard,
+        }
+    }
+}
+
+/// The scenes to run, fixed up front: the split's (filtered), or the ones named, in order.
+async fn pick_scenes(client: &Client, args: &Args) -> anyhow::Result<Vec<SceneSummary>> {
+    let split = Split::from(args.split);
+    let mut filter = SceneFilter { page_size: 1000, ..SceneFilter::split(split) };
+    if let Some(d) = args.difficulty {
+        filter = filter.difficulty(d.into());
+    }
+    let listed: Vec<SceneSummary> = tokio_stream::StreamExt::collect::<Result<_, _>>(client.scenes(filter)).await?;
+    let mut scenes = if args.scenes.is_empty() {
+        listed
+    } else {
+        let mut picked = Vec::new();
+        for id in &args.scenes {
+            match listed.iter().find(|s| &s.id == id) {
+                Some(s) => picked.push(s.clone()),
+                None => bail!(
+                    "scene {id:?} is not among the {} scenes of this dataset (check --split and --difficulty)",
+                    split.name()
+                ),
+            }
+        }
+        picked
+    };
+    if let Some(limit) = args.limit {
+        scenes.truncate(limit);
+    }
+    if scenes.is_empty() {
+        bail!("no scene matches: the {} split has none with these filters", split.name());
+    }
+    Ok(scenes)
+}
+
+/// Reads what an earlier run wrote (dropping a torn last line) and returns the scenes done.
+fn resume(path: &Path, agent: &str) -> anyhow::Result<Vec<EpisodeRecord>> {
+    if !path.exists() {
+        return Ok(Vec::new());
+    }
+    let read = results::read_records(path)?;
+    if read.torn_tail {
+        eprintln!("{}: dropping a last line an interruption cut short", path.display());
+        results::truncate_to(path, read.complete_bytes)
+            .with_context(|| format!("cannot cut the torn last line of {}", path.display()))?;
+    }
+    if let Some(other) = read.records.iter().find(|r| r.agent != agent) {
+        bail!(
+            "{} holds results of agent {:?}, not {agent:?}: write to another --out, or pass --fresh to start it over",
+            path.display(),
+            other.agent
+        );
+    }
+    Ok(read.records)
+}
+
+fn now_rfc3339() -> String {
+    humantime::format_rfc3339_seconds(SystemTime::now()).to_string()
+}
+
+fn progress_bar(total: u64, done: u64) -> ProgressBar {
+    let bar = ProgressBar::with_draw_target(Some(total), ProgressDrawTarget::stderr_with_hz(4));
+    bar.set_style(
+        ProgressStyle::with_template("{elapsed_precise} [{bar:32}] {pos}/{len} episodes, ETA {eta}  {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    bar.set_position(done);
+    bar
+}
+
+fn running(tally: &Tally) -> String {
+    if tally.episodes == 0 {
+        return String::new();
+    }
+    format!("SR {:.1} %  OSR {:.1} %  RDR {:.3}", 100.0 * tally.sr(), 100.0 * tally.osr(), tally.rdr())
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    let (address, _local) = reach_or_start(args.server.as_deref(), None, &args.server_args)?;
+    let client = Client::connect(&address).token_opt(args.token.as_deref()).await?;
+    let info = client.server_info().await?;
+    eprintln!("esrp-server {} at {address}: dataset {}, renderer {}", info.version, info.dataset, info.renderer_adapter);
+
+    let scenes = pick_scenes(&client, &args).await?;
+    let agent = args.agent.name();
+    if args.fresh && args.out.exists() {
+        std::fs::remove_file(&args.out).with_context(|| format!("cannot remove {}", args.out.display()))?;
+    }
+    if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    }
+    let mut records = resume(&args.out, agent)?;
+    let done: HashSet<String> = records.iter().map(|r| r.scene_id.clone()).collect();
+    let todo: Vec<SceneSummary> = scenes.iter().filter(|s| !done.contains(&s.id)).cloned().collect();
+    let wanted: HashSet<&str> = scenes.iter().map(|s| s.id.as_str()).collect();
+    let earlier = records.iter().filter(|r| wanted.contains(r.scene_id.as_str())).count();
+    if earlier > 0 {
+        eprintln!("resuming {}: {earlier} of {} scenes already done", args.out.display(), scenes.len());
+    }
+    let mut file = OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&args.out)
+        .with_context(|| format!("cannot open {}", args.out.display()))?;
+
+    let settings = AgentSettings {
+        kind: args.agent,
+        plan_budget: args.plan_budget_ms.map(Duration::from_millis),
+        replans: args.replans,
+    };
+    let config = settings.config();
+    let client_name = format!("esrp-eval {}", env!("CARGO_PKG_VERSION"));
+    let mut tally = Tally::default();
+    records.iter().filter(|r| wanted.contains(r.scene_id.as_str())).for_each(|r| tally.add(r));
+    let bar = progress_bar(scenes.len() as u64, earlier as u64);
+    let terminal = std::io::stderr().is_terminal();
+    let every = (scenes.len() / 20).max(1);
+    let started = Instant::now();
+
+    let mut episodes = futures_util::stream::iter(todo.into_iter().map(|scene| {
+        let client = client.clone();
+        let settings = settings.clone();
+        let seed = args.seed ^ agents::fnv1a64(&scene.id);
+        async move {
+            let clock = Instant::now();
+            let played = agents::play(&client, &scene.id, &settings, seed).await;
+            (scene, seed, clock.elapsed().as_secs_f64(), played)
+        }
+    }))
+    .buffer_unordered(args.episodes_in_flight as usize);
+
+    let mut failed: Vec<(String, String)> = Vec::new();
+    while let Some((scene, seed, wall_seconds, played)) = episodes.next().await {
+        let played = match played {
+            Ok(p) => p,
+            Err(e) => {
+                bar.suspend(|| eprintln!("{}: {e:#}", scene.id));
+                failed.push((scene.id, format!("{e:#}")));
+                bar.inc(1);
+                continue;
+            }
+        };
+        let m = &played.metrics;
+        let record = EpisodeRecord {
+            schema: SCHEMA.to_owned(),
+            scene_id: scene.id.clone(),
+            dataset: info.dataset.clone(),
+            split: scene.split.map_or("unknown", Split::name).to_owned(),
+            room_type: scene.room_type.clone(),
+            difficulty: scene.difficulty.map_or("unknown", Difficulty::name).to_owned(),
+            objects: scene.movable_objects,
+            agent: agent.to_owned(),
+            agent_config: config.clone(),
+            seed: settings.kind.seeded().then_some(seed),
+            success: m.success,
+            osr: m.object_success_rate,
+            rdr: m.remaining_distance_ratio,
+            stage: m.stage,
+            placed: m.placed,
+            steps: m.steps,
+            horizon: played.scene.horizon,
+            end: played.end.to_owned(),
+            total_reward: m.total_reward,
+            actions: played.actions.iter().map(|a| a.code()).collect(),
+            wall_seconds,
+            agent_stats: played.stats,
+            server_version: info.version.clone(),
+            client: client_name.clone(),
+            finished_at: now_rfc3339(),
+        };
+        results::append_record(&mut file, &record).with_context(|| format!("cannot write {}", args.out.display()))?;
+        tally.add(&record);
+        records.push(record);
+        bar.inc(1);
+        bar.set_message(running(&tally));
+        if !terminal && (bar.position() as usize).is_multiple_of(every) {
+            eprintln!("{}/{} episodes  {}", bar.position(), scenes.len(), running(&tally));
+        }
+    }
+    bar.finish_and_clear();
+
+    let mine: Vec<EpisodeRecord> = records.into_iter().filter(|r| wanted.contains(r.scene_id.as_str())).collect();
+    let summary = Summary::of(&mine);
+    println!("{agent} on {} scenes of {} ({:.0} s):", mine.len(), info.dataset, started.elapsed().as_secs_f64());
+    print!("{}", summary.text());
+    let summary_path = args.summary.clone().unwrap_or_else(|| args.out.with_extension("md"));
+    let title = format!("{agent} on {} ({} split)", info.dataset, Split::from(args.split).name());
+    let mut markdown = summary.markdown(&title);
+    markdown.push_str(&format!(
+        "\nWritten by esrp-eval {} against esrp-server {} ({} renderer) on {}; results in `{}`.\n",
+        env!("CARGO_PKG_VERSION"),
+        info.version,
+        info.renderer_adapter,
+        now_rfc3339(),
+        args.out.file_name().map_or_else(|| args.out.display().to_string(), |n| n.to_string_lossy().into_owned())
+    ));
+    std::fs::write(&summary_path, markdown).with_context(|| format!("cannot write {}", summary_path.display()))?;
+    println!("summary: {}", summary_path.display());
+    if !failed.is_empty() {
+        bail!(
+            "{} episodes failed with an error and were not recorded (rerun to retry them): {}",
+            failed.len(),
+            failed.iter().map(|(id, _)| id.as_str()).collect::<Vec<_>>().join(", ")
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,468 @@
+//! The results schema `esrp.results/v1` shared by every evaluation tool (Rust `esrp-eval`,
+//! Python `esrp eval`), as `docs/evaluation.md` describes it: one [`EpisodeRecord`] per line
+//! of a JSON Lines file; [`read_records`] reads a file back (dropping a last line that an
+//! interruption cut short), and [`Summary`] computes SR / OSR / RDR overall and per difficulty
+//! and writes the Markdown summary with the paper's rows beside it.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::io::{BufRead, BufReader, Write};
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::types::Difficulty;
+
+/// The schema tag of every record.
+pub const SCHEMA: &str = "esrp.results/v1";
+
+/// One finished episode (a line of a results file).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeRecord {
+    /// Always [`SCHEMA`].
+    pub schema: String,
+    /// The scene's id.
+    pub scene_id: String,
+    /// The served dataset's name.
+    pub dataset: String,
+    /// `train` or `test`.
+    pub split: String,
+    /// The room type.
+    pub room_type: String,
+    /// `easy`, `medium` or `hard`.
+    pub difficulty: String,
+    /// Number of movable objects.
+    pub objects: u32,
+    /// The agent's name.
+    pub agent: String,
+    /// The agent's settings.
+    pub agent_config: serde_json::Map<String, serde_json::Value>,
+    /// The per-scene seed the agent used, if it draws random numbers.
+    pub seed: Option<u64>,
+    /// Every object placed.
+    pub success: bool,
+    /// Objects placed over objects.
+    pub osr: f64,
+    /// Remaining over initial distance.
+    pub rdr: f64,
+    /// SPEC §5 stage, 1..=4.
+    pub stage: u32,
+    /// Objects placed at the end.
+    pub placed: u32,
+    /// Steps taken.
+    pub steps: u32,
+    /// The episode's step limit.
+    pub horizon: u32,
+    /// `success`, `horizon` or `agent`.
+    pub end: String,
+    /// The sum of the rewards.
+    pub total_reward: f64,
+    /// Every action taken, as codes 0..=5.
+    pub actions: Vec<u8>,
+    /// Wall time from creation to the end.
+    pub wall_seconds: f64,
+    /// Agent-specific statistics.
+    pub agent_stats: serde_json::Map<String, serde_json::Value>,
+    /// The server's version.
+    pub server_version: String,
+    /// The tool that wrote the record.
+    pub client: String,
+    /// RFC 3339 UTC time of the episode's end.
+    pub finished_at: String,
+}
+
+/// Why a results file could not be read.
+#[derive(Debug, thiserror::Error)]
+pub enum ResultsError {
+    /// The file could not be read.
+    #[error("cannot read {path}: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// A line (not the last) is not a record.
+    #[error("{path}:{line}: not an {SCHEMA} record: {reason}")]
+    BadLine {
+        /// The file.
+        path: String,
+        /// The 1-based line number.
+        line: usize,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+/// A results file read back.
+#[derive(Debug, Default)]
+pub struct ReadRecords {
+    /// The records, in file order.
+    pub records: Vec<EpisodeRecord>,
+    /// Byte length of the complete lines read: a last line cut short by an interruption ends
+    /// after this, and [`truncate_to`] removes it.
+    pub complete_bytes: u64,
+    /// Whether a last line was cut short (incomplete or unreadable).
+    pub torn_tail: bool,
+}
+
+/// Reads a results file. A last line that does not parse (an interrupted write) is reported in
+/// [`ReadRecords::torn_tail`], not an error; any other bad line is. Blank lines are skipped.
+pub fn read_records(path: &Path) -> Result<ReadRecords, ResultsError> {
+    let name = path.display().to_string();
+    let io = |source| ResultsError::Io { path: name.clone(), source };
+    let file = std::fs::File::open(path).map_err(io)?;
+    let mut reader = BufReader::new(file);
+    let mut out = ReadRecords::default();
+    let mut line = String::new();
+    let mut number = 0;
+    loop {
+        line.clear();
+        let n = reader.read_line(&mut line).map_err(io)?;
+        if n == 0 {
+            break;
+        }
+        number += 1;
+        let complete = line.ends_with('\n');
+        let text = line.trim();
+        if text.is_empty() {
+            if complete {
+                out.complete_bytes += n as u64;
+            }
+            continue;
+        }
+        match parse_record(text) {
+            Ok(record) if complete => {
+                out.records.push(record);
+                out.complete_bytes += n as u64;
+            }
+            // A record without its newline: the write was interrupted right before it.
+            Ok(_) => out.torn_tail = true,
+            Err(reason) => {
+                // Only the last line may be torn.
+                let mut rest = String::new();
+                reader.read_line(&mut rest).map_err(io)?;
+                if rest.is_empty() {
+                    out.torn_tail = true;
+                } else {
+                    return Err(ResultsError::BadLine { path: name, line: number, reason });
+                }
+            }
+        }
+    }
+    Ok(out)
+}
+
+fn parse_record(text: &str) -> Result<EpisodeRecord, String> {
+    let record: EpisodeRecord = serde_json::from_str(text).map_err(|e| e.to_string())?;
+    if record.schema != SCHEMA {
+        return Err(format!("schema is {:?}, not {SCHEMA:?}", record.schema));
+    }
+    Ok(record)
+}
+
+/// Cuts a results file to its first `bytes` bytes (dropping a torn last line).
+pub fn truncate_to(path: &Path, bytes: u64) -> std::io::Result<()> {
+    std::fs::OpenOptions::new().write(true).open(path)?.set_len(bytes)
+}
+
+/// Appends one record as a line and flushes it.
+pub fn append_record(out: &mut impl Write, record: &EpisodeRecord) -> std::io::Result<()> {
+    let mut line = serde_json::to_vec(record).map_err(std::io::Error::other)?;
+    line.push(b'\n');
+    out.write_all(&line)?;
+    out.flush()
+}
+
+/// SR / OSR / RDR and stage counts over a set of records.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Tally {
+    /// Episodes.
+    pub episodes: u32,
+    /// Successful episodes.
+    pub successes: u32,
+    /// Sum of OSR.
+    pub osr_sum: f64,
+    /// Sum of RDR.
+    pub rdr_sum: f64,
+    /// Episodes per stage 1..=4 (index 0 is stage 1).
+    pub stages: [u32; 4],
+    /// Sum of steps.
+    pub steps: u64,
+    /// Episodes the agent ended before success or the horizon.
+    pub ended_by_agent: u32,
+}
+
+impl Tally {
+    /// Adds a record.
+    pub fn add(&mut self, r: &EpisodeRecord) {
+        self.episodes += 1;
+        self.successes += u32::from(r.success);
+        self.osr_sum += r.osr;
+        self.rdr_sum += r.rdr;
+        if (1..=4).contains(&r.stage) {
+            self.stages[r.stage as usize - 1] += 1;
+        }
+        self.steps += u64::from(r.steps);
+        self.ended_by_agent += u32::from(r.end == "agent");
+    }
+
+    fn mean(&self, sum: f64) -> f64 {
+        if self.episodes == 0 { f64::NAN } else { sum / f64::from(self.episodes) }
+    }
+
+    /// Success rate, 0..=1 (NaN without episodes).
+    pub fn sr(&self) -> f64 {
+        self.mean(f64::from(self.successes))
+    }
+
+    /// Object success rate, 0..=1.
+    pub fn osr(&self) -> f64 {
+        self.mean(self.osr_sum)
+    }
+
+    /// Remaining distance ratio.
+    pub fn rdr(&self) -> f64 {
+        self.mean(self.rdr_sum)
+    }
+
+    /// Share of episodes in stage `stage` (1..=4).
+    pub fn stage_share(&self, stage: usize) -> f64 {
+        self.mean(f64::from(self.stages[stage - 1]))
+    }
+}
+
+/// The summary of one agent's records: overall and per difficulty.
+#[derive(Clone, Debug, Default)]
+pub struct Summary {
+    /// The agent's name (of the first record).
+    pub agent: String,
+    /// Every record.
+    pub overall: Tally,
+    /// Per difficulty name (`easy`, `medium`, `hard`).
+    pub by_difficulty: BTreeMap<String, Tally>,
+}
+
+/// A row of the paper's results (SPEC §8), percentages and RDR.
+struct PaperRow {
+    name: &'static str,
+    overall: [f64; 3],
+    by_difficulty: [[f64; 3]; 3],
+    stages: Option<[f64; 4]>,
+}
+
+/// The paper's Tables I–III (SPEC §8): SR % / OSR % / RDR overall, per difficulty (Easy,
+/// Medium, Hard), and the stage shares where it gives them.
+const PAPER: [PaperRow; 4] = [
+    PaperRow {
+        name: "ESRP-PPO (paper)",
+        overall: [20.18, 20.35, 0.9845],
+        by_difficulty: [[33.33, 33.33, 0.9040], [0.54, 0.54, 1.0645], [0.00, 0.00, 1.0048]],
+        stages: Some([13.21, 5.76, 60.85, 20.18]),
+    },
+    PaperRow {
+        name: "ESRP-BC (paper)",
+        overall: [19.09, 20.31, 1.0170],
+        by_difficulty: [[29.44, 29.44, 0.9631], [0.91, 4.20, 1.1157], [0.00, 4.44, 1.0704]],
+        stages: Some([11.33, 6.73, 62.85, 19.09]),
+    },
+    PaperRow {
+        name: "ESRP-VLM (paper)",
+        overall: [17.64, 18.97, 0.9830],
+        by_difficulty: [[27.64, 27.64, 0.9523], [0.00, 3.99, 1.0372], [0.00, 0.00, 1.0378]],
+        stages: Some([11.64, 4.18, 66.55, 17.64]),
+    },
+    PaperRow {
+        name: "ESRP-PLAN (paper)",
+        overall: [30.20, 36.59, 0.6916],
+        by_difficulty: [[35.73, 35.73, 0.7101], [22.40, 39.71, 0.6425], [0.00, 22.00, 0.8165]],
+        stages: None,
+    },
+];
+
+const DIFFICULTIES: [Difficulty; 3] = [Difficulty::Easy, Difficulty::Medium, Difficulty::Hard];
+
+impl Summary {
+    /// The summary of `records`.
+    pub fn of(records: &[EpisodeRecord]) -> Self {
+        let mut summary =
+            Summary { agent: records.first().map(|r| r.agent.clone()).unwrap_or_default(), ..Default::default() };
+        for r in records {
+            summary.overall.add(r);
+            summary.by_difficulty.entry(r.difficulty.clone()).or_default().add(r);
+        }
+        summary
+    }
+
+    /// A few lines for a terminal: SR / OSR / RDR overall and per difficulty.
+    pub fn text(&self) -> String {
+        let mut out = String::new();
+        let line = |out: &mut String, name: &str, t: &Tally| {
+            let _ = writeln!(
+                out,
+                "{name:<8} SR {:>6.2} %  OSR {:>6.2} %  RDR {:.4}  stages 1/2/3/4 {:.1}/{:.1}/{:.1}/{:.1} %  ({} episodes, {} ended by the agent)",
+                100.0 * t.sr(),
+                100.0 * t.osr(),
+                t.rdr(),
+                100.0 * t.stage_share(1),
+                100.0 * t.stage_share(2),
+                100.0 * t.stage_share(3),
+                100.0 * t.stage_share(4),
+                t.episodes,
+                t.ended_by_agent,
+            );
+        };
+        line(&mut out, "overall", &self.overall);
+        for d in DIFFICULTIES {
+            if let Some(t) = self.by_difficulty.get(d.name()) {
+                line(&mut out, d.name(), t);
+            }
+        }
+        out
+    }
+
+    /// The Markdown summary: the agent's SR / OSR / RDR overall and per difficulty with the
+    /// paper's rows (SPEC §8) beside it, then stage shares and step counts.
+    pub fn markdown(&self, title: &str) -> String {
+        let mut md = String::new();
+        let _ = writeln!(md, "# {title}\n");
+        let _ = writeln!(
+            md,
+            "SR and OSR in %, RDR as a ratio (lower is better). {} episodes. The paper's rows are its Tables I–III (SPEC §8).\n",
+            self.overall.episodes
+        );
+        let _ = writeln!(md, "| agent | overall SR / OSR / RDR | Easy | Medium | Hard |");
+        let _ = writeln!(md, "|---|---|---|---|---|");
+        let cell = |t: Option<&Tally>| match t {
+            Some(t) if t.episodes > 0 => {
+                format!("{:.2} / {:.2} / {:.4}", 100.0 * t.sr(), 100.0 * t.osr(), t.rdr())
+            }
+            _ => "–".to_owned(),
+        };
+        let _ = write!(md, "| **{}** (this run) | {} |", self.agent, cell(Some(&self.overall)));
+        for d in DIFFICULTIES {
+            let _ = write!(md, " {} |", cell(self.by_difficulty.get(d.name())));
+        }
+        md.push('\n');
+        for row in &PAPER {
+            let [sr, osr, rdr] = row.overall;
+            let _ = write!(md, "| {} | {sr:.2} / {osr:.2} / {rdr:.4} |", row.name);
+            for [sr, osr, rdr] in row.by_difficulty {
+                let _ = write!(md, " {sr:.2} / {osr:.2} / {rdr:.4} |");
+            }
+            md.push('\n');
+        }
+        let _ = writeln!(md, "\n## Failure stages (% of episodes in stage 1 / 2 / 3 / 4)\n");
+        let _ = writeln!(md, "| agent | 1 never in reach | 2 never fetched | 3 fetched, no success | 4 success |");
+        let _ = writeln!(md, "|---|---|---|---|---|");
+        let t = &self.overall;
+        let _ = writeln!(
+            md,
+            "| **{}** (this run) | {:.2} | {:.2} | {:.2} | {:.2} |",
+            self.agent,
+            100.0 * t.stage_share(1),
+            100.0 * t.stage_share(2),
+            100.0 * t.stage_share(3),
+            100.0 * t.stage_share(4)
+        );
+        for row in PAPER.iter().filter(|r| r.stages.is_some()) {
+            if let Some([a, b, c, d]) = row.stages {
+                let _ = writeln!(md, "| {} | {a:.2} | {b:.2} | {c:.2} | {d:.2} |", row.name);
+            }
+        }
+        let _ = writeln!(md, "\n## Episodes\n");
+        let _ = writeln!(md, "| difficulty | episodes | successes | mean steps | ended by the agent |");
+        let _ = writeln!(md, "|---|---|---|---|---|");
+        let rows = DIFFICULTIES
+            .iter()
+            .filter_map(|d| self.by_difficulty.get(d.name()).map(|t| (d.name(), t)))
+            .chain(std::iter::once(("all", &self.overall)));
+        for (name, t) in rows {
+            let mean_steps = if t.episodes == 0 { 0.0 } else { t.steps as f64 / f64::from(t.episodes) };
+            let _ =
+                writeln!(md, "| {name} | {} | {} | {mean_steps:.1} | {} |", t.episodes, t.successes, t.ended_by_agent);
+        }
+        md
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn record(scene: &str, difficulty: &str, success: bool, osr: f64, rdr: f64, stage: u32) -> EpisodeRecord {
+        EpisodeRecord {
+            schema: SCHEMA.into(),
+            scene_id: scene.into(),
+            dataset: "d".into(),
+            split: "test".into(),
+            room_type: "Bedroom".into(),
+            difficulty: difficulty.into(),
+            objects: 1,
+            agent: "random".into(),
+            agent_config: Default::default(),
+            seed: Some(3),
+            success,
+            osr,
+            rdr,
+            stage,
+            placed: u32::from(success),
+            steps: 10,
+            horizon: 200,
+            end: if success { "success" } else { "horizon" }.into(),
+            total_reward: 1.5,
+            actions: vec![0; 10],
+            wall_seconds: 0.1,
+            agent_stats: Default::default(),
+            server_version: "0.1.0".into(),
+            client: "test".into(),
+            finished_at: "2026-11-23T00:00:00Z".into(),
+        }
+    }
+
+    #[test]
+    fn summary_means_by_difficulty() {
+        let records = [
+            record("a", "easy", true, 1.0, 0.0, 4),
+            record("b", "easy", false, 0.0, 1.0, 3),
+            record("c", "hard", false, 0.5, 0.5, 1),
+        ];
+        let s = Summary::of(&records);
+        assert_eq!(s.overall.episodes, 3);
+        assert!((s.overall.sr() - 1.0 / 3.0).abs() < 1e-12);
+        assert!((s.overall.osr() - 0.5).abs() < 1e-12);
+        assert_eq!(s.by_difficulty["easy"].successes, 1);
+        assert!((s.by_difficulty["hard"].rdr() - 0.5).abs() < 1e-12);
+        assert_eq!(s.overall.stages, [1, 0, 1, 1]);
+        let md = s.markdown("random");
+        assert!(md.contains("| **random** (this run) | 33.33 / 50.00 / 0.5000 | 50.00 / 50.00 / 0.5000 | – | 0.00 / 50.00 / 0.5000 |"), "{md}");
+        assert!(md.contains("| ESRP-PLAN (paper) | 30.20 / 36.59 / 0.6916 |"));
+    }
+
+    #[test]
+    fn a_torn_last_line_is_dropped_and_other_bad_lines_are_errors() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("r.jsonl");
+        let mut bytes = Vec::new();
+        append_record(&mut bytes, &record("a", "easy", true, 1.0, 0.0, 4)).unwrap();
+        append_record(&mut bytes, &record("b", "easy", true, 1.0, 0.0, 4)).unwrap();
+        let whole = bytes.len() as u64;
+        bytes.extend_from_slice(br#"{"schema":"esrp.results/v1","scene_id":"c""#);
+        std::fs::write(&path, &bytes).unwrap();
+        let read = read_records(&path).unwrap();
+        assert_eq!(read.records.len(), 2);
+        assert!(read.torn_tail);
+        assert_eq!(read.complete_bytes, whole);
+        truncate_to(&path, read.complete_bytes).unwrap();
+        let again = read_records(&path).unwrap();
+        assert_eq!((again.records.len(), again.torn_tail), (2, false));
+        assert_eq!(again.records[1], record("b", "easy", true, 1.0, 0.0, 4));
+
+        // A bad line followed by a good one is not a torn tail.
+        let mut bad = b"not json\n".to_vec();
+        append_record(&mut bad, &record("a", "easy", true, 1.0, 0.0, 4)).unwrap();
+        std::fs::write(&path, &bad).unwrap();
+        let err = read_records(&path).unwrap_err();
+        assert!(matches!(err, ResultsError::BadLine { line: 1, .. }), "{err}");
+    }
+}

@@ -1,0 +1,128 @@
+//! `esrp-eval` end to end: the binary against a real server, its records, its resumption and
+//! its refusals.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+use esrp_client::results::{EpisodeRecord, read_records};
+use esrp_client::{Action, EpisodeOptions};
+
+use crate::harness::{client, start};
+
+fn eval(server: &str, args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_esrp-eval"))
+        .args(["--server", server])
+        .args(args)
+        .output()
+        .expect("esrp-eval runs")
+}
+
+fn ok(output: Output) -> String {
+    let stdout = String::from_utf8_lossy(&output.stdout).into_owned();
+    assert!(output.status.success(), "esrp-eval failed:\n{stdout}\n{}", String::from_utf8_lossy(&output.stderr));
+    stdout
+}
+
+fn records(path: &Path) -> Vec<EpisodeRecord> {
+    let read = read_records(path).expect("the results read back");
+    assert!(!read.torn_tail);
+    read.records
+}
+
+/// The records without what differs between runs (times, order).
+fn comparable(mut records: Vec<EpisodeRecord>) -> Vec<EpisodeRecord> {
+    for r in &mut records {
+        r.wall_seconds = 0.0;
+        r.finished_at.clear();
+    }
+    records.sort_by(|a, b| a.scene_id.cmp(&b.scene_id));
+    records
+}
+
+#[tokio::test]
+async fn the_expert_succeeds_and_its_actions_replay() {
+    let server = start(&[]);
+    let dir = tempfile::tempdir().expect("a temp dir");
+    let out = dir.path().join("expert.jsonl");
+    let stdout = ok(eval(&server.address, &["--agent", "expert", "--limit", "3", "--out", out.to_str().unwrap()]));
+    assert!(stdout.contains("SR 100.00 %"), "{stdout}");
+    let records = records(&out);
+    assert_eq!(records.len(), 3);
+    for r in &records {
+        assert!(r.success && r.end == "success" && r.stage == 4 && r.osr == 1.0, "{r:?}");
+        assert_eq!(r.actions.len(), r.steps as usize);
+        assert_eq!((r.split.as_str(), r.agent.as_str(), r.seed), ("test", "expert", None));
+        assert!(r.horizon >= 200 && r.steps <= r.horizon);
+    }
+    // The recorded actions replay to the same end.
+    let client = client(&server).await;
+    let r = &records[0];
+    let (mut episode, _) = client.create_episode(EpisodeOptions::scene(&r.scene_id)).await.expect("created");
+    let mut last = None;
+    for &code in &r.actions {
+        last = Some(episode.step(Action::try_from(i64::from(code)).expect("a code")).await.expect("a step"));
+    }
+    let metrics = last.and_then(|s| s.metrics).expect("the replay ends the episode");
+    assert_eq!((metrics.success, metrics.steps, metrics.total_reward), (r.success, r.steps, r.total_reward));
+    let summary = std::fs::read_to_string(out.with_extension("md")).expect("the summary");
+    assert!(summary.contains("| **expert** (this run) | 100.00 / 100.00 / 0.0000 |"), "{summary}");
+    assert!(summary.contains("| ESRP-PLAN (paper) | 30.20 / 36.59 / 0.6916 |"), "{summary}");
+}
+
+#[tokio::test]
+async fn an_interrupted_run_resumes_to_the_same_results() {
+    let server = start(&[]);
+    let dir = tempfile::tempdir().expect("a temp dir");
+    let whole = dir.path().join("whole.jsonl");
+    let parts = dir.path().join("parts.jsonl");
+    let base = ["--agent", "random", "--seed", "5", "--difficulty", "easy", "--episodes-in-flight", "3"];
+    ok(eval(&server.address, &[&base[..], &["--limit", "4", "--out", whole.to_str().unwrap()]].concat()));
+    // Two episodes, then a line cut short by a kill, then the rest.
+    ok(eval(&server.address, &[&base[..], &["--limit", "2", "--out", parts.to_str().unwrap()]].concat()));
+    let mut text = std::fs::read(&parts).expect("the first part");
+    text.extend_from_slice(br#"{"schema":"esrp.results/v1","scene_id":"esrp-bench"#);
+    std::fs::write(&parts, text).expect("a torn line");
+    let output = eval(&server.address, &[&base[..], &["--limit", "4", "--out", parts.to_str().unwrap()]].concat());
+    let stderr = String::from_utf8_lossy(&output.stderr).into_owned();
+    ok(output);
+    assert!(stderr.contains("dropping a last line") && stderr.contains("2 of 4 scenes already done"), "{stderr}");
+    let (whole, parts) = (records(&whole), records(&parts));
+    assert_eq!(comparable(parts), comparable(whole.clone()));
+    for r in &whole {
+        let expected_seed = 5 ^ r.scene_id.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+            (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
+        });
+        assert_eq!(r.seed, Some(expected_seed));
+        assert_eq!(r.difficulty, "easy");
+    }
+}
+
+#[tokio::test]
+async fn the_planner_agent_places_everything() {
+    let server = start(&[]);
+    let dir = tempfile::tempdir().expect("a temp dir");
+    let out = dir.path().join("plan.jsonl");
+    ok(eval(&server.address, &["--agent", "plan", "--difficulty", "easy", "--limit", "2", "--out", out.to_str().unwrap()]));
+    for r in records(&out) {
+        assert!(r.success, "{r:?}");
+        assert_eq!(r.agent_stats["plan_calls"], 1);
+        assert!(r.agent_stats["nodes_expanded"].as_u64().unwrap_or(0) > 0);
+        assert!(r.agent_stats["failure"].is_null());
+    }
+}
+
+#[tokio::test]
+async fn bad_requests_are_refused_with_a_reason() {
+    let server = start(&[]);
+    let dir = tempfile::tempdir().expect("a temp dir");
+    let out = dir.path().join("r.jsonl");
+    let output = eval(&server.address, &["--agent", "random", "--scenes", "no/such", "--out", out.to_str().unwrap()]);
+    assert!(!output.status.success());
+    assert!(String::from_utf8_lossy(&output.stderr).contains("scene \"no/such\" is not among the test scenes"));
+
+    ok(eval(&server.address, &["--agent", "expert", "--limit", "1", "--out", out.to_str().unwrap()]));
+    let output = eval(&server.address, &["--agent", "random", "--limit", "1", "--out", out.to_str().unwrap()]);
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("holds results of agent \"expert\"") && stderr.contains("--fresh"), "{stderr}");
+}

@@ -1,0 +1,139 @@
+//! PlanActions end to end: the server's planner from the current state of a real episode, its
+//! cache, its budget, and its errors.
+
+use std::time::Duration;
+
+use esrp_client::{Action, Client, ClientError, Difficulty, EpisodeOptions, RandomActions, SceneFilter, Split};
+use tokio_stream::StreamExt;
+
+use crate::harness::{client, start};
+
+/// The first `n` test scenes of `difficulty`.
+async fn scenes_of(client: &Client, difficulty: Difficulty, n: usize) -> Vec<String> {
+    let filter = SceneFilter::split(Split::Test).difficulty(difficulty);
+    client.scenes(filter).take(n).map(|s| s.expect("a scene").id).collect().await
+}
+
+/// Steps `actions` one by one; returns whether the last one ended the episode in success, and
+/// checks that no motion was refused.
+async fn follow(episode: &mut esrp_client::Episode, actions: &[Action]) -> bool {
+    let mut success = false;
+    for (i, &action) in actions.iter().enumerate() {
+        let r = episode.step(action).await.expect("a planned step is taken");
+        assert!(r.info.accepted || matches!(action, Action::Fetch | Action::Release), "step {i} ({action:?}) of the plan collided: {:?}", r.info);
+        if r.ended() {
+            assert_eq!(i + 1, actions.len(), "the episode ended before the plan did");
+            success = r.terminated;
+        }
+    }
+    success
+}
+
+#[tokio::test]
+async fn plans_from_the_start_and_from_any_state_reach_success() {
+    let server = start(&[]);
+    let client = client(&server).await;
+    let mut scenes = scenes_of(&client, Difficulty::Easy, 2).await;
+    scenes.extend(scenes_of(&client, Difficulty::Medium, 1).await);
+    for (k, scene) in scenes.iter().enumerate() {
+        let (mut episode, _) =
+            client.create_episode(EpisodeOptions::scene(scene).privileged(true)).await.expect("created");
+        // From a state the agent wandered into (it may hold something): a few random steps.
+        let mut random = RandomActions::new(k as u64 + 11);
+        for _ in 0..(6 * k) {
+            if episode.step(random.next_action()).await.expect("a step").ended() {
+                break;
+            }
+        }
+        let (metrics, ended) = episode.metrics().await.expect("metrics");
+        if ended {
+            continue;
+        }
+        let plan = episode.plan_actions(0, None).await.expect("PlanActions answers");
+        assert!(plan.reaches_success, "{scene}: {:?} {}", plan.failure, plan.failure_message);
+        assert_eq!(plan.failure, None);
+        assert_eq!(plan.plan_length as usize, plan.actions.len());
+        assert!(!plan.cached);
+        assert!(plan.stats.nodes_expanded > 0 && plan.stats.searches > 0, "{:?}", plan.stats);
+        assert!(plan.actions.len() as u32 + metrics.steps <= episode.scene().horizon, "the plan fits the horizon");
+        assert!(follow(&mut episode, &plan.actions).await, "{scene}: the plan did not end in success");
+        let (metrics, ended) = episode.metrics().await.expect("metrics");
+        assert!(ended && metrics.success && metrics.remaining_distance_ratio < 1.0, "{metrics:?}");
+    }
+}
+
+#[tokio::test]
+async fn the_plan_is_cached_while_the_episode_follows_it() {
+    let server = start(&["--metrics-listen", "127.0.0.1:0"]);
+    let client = client(&server).await;
+    let scene = scenes_of(&client, Difficulty::Medium, 1).await.remove(0);
+    let (mut episode, _) = client.create_episode(EpisodeOptions::scene(&scene).privileged(true)).await.expect("created");
+    let first = episode.plan_actions(5, None).await.expect("a plan");
+    assert!(first.reaches_success && !first.cached);
+    assert_eq!(first.actions.len(), 5.min(first.plan_length as usize));
+    let length = first.plan_length;
+    follow(&mut episode, &first.actions).await;
+
+    // Where the plan leads: answered from the cache, the rest of the same plan.
+    let rest = episode.plan_actions(0, None).await.expect("the rest");
+    assert!(rest.cached, "the episode followed the plan");
+    assert_eq!(rest.plan_length, length - first.actions.len() as u32);
+    assert_eq!(rest.stats, first.stats, "the stats of the planning that made the plan");
+
+    // Off the plan (a turn and back is another state: the step counter moved): planned anew,
+    // and the new plan still succeeds.
+    let off = rest.actions[0];
+    let detour = if off == Action::TurnLeft { [Action::TurnRight, Action::TurnLeft] } else { [Action::TurnLeft, Action::TurnRight] };
+    follow(&mut episode, &detour).await;
+    let fresh = episode.plan_actions(0, None).await.expect("a new plan");
+    assert!(!fresh.cached && fresh.reaches_success);
+    assert!(follow(&mut episode, &fresh.actions).await);
+
+    // Reset goes back to where the first plan started: cached again.
+    episode.reset().await.expect("reset");
+    let again = episode.plan_actions(0, None).await.expect("a plan");
+    assert!(again.cached && again.plan_length == length);
+
+    let text = server_scrape(&server);
+    assert!(text.contains("esrp_plans_total{outcome=\"cached\"} 2"), "{text}");
+    assert!(text.contains("esrp_plans_total{outcome=\"planned\"} 2"), "{text}");
+}
+
+fn server_scrape(server: &esrp_client::LocalServer) -> String {
+    use std::io::{Read, Write};
+    let url = server.metrics.as_deref().expect("started with --metrics-listen");
+    let host = url.trim_start_matches("http://").trim_end_matches("/metrics");
+    let mut socket = std::net::TcpStream::connect(host).expect("the metrics endpoint accepts");
+    write!(socket, "GET /metrics HTTP/1.0\r\nHost: {host}\r\n\r\n").expect("a request");
+    let mut response = String::new();
+    socket.read_to_string(&mut response).expect("a response");
+    response
+}
+
+#[tokio::test]
+async fn plan_errors_keep_their_kind() {
+    let server = start(&[]);
+    let client = client(&server).await;
+    let scene = scenes_of(&client, Difficulty::Hard, 1).await.remove(0);
+
+    let (plain, _) = client.create_episode(EpisodeOptions::scene(&scene)).await.expect("created");
+    let err = plain.plan_actions(0, None).await.unwrap_err();
+    assert!(matches!(&err, ClientError::PermissionDenied(m) if m.contains("privileged = true")), "{err}");
+
+    // A budget nothing can plan a Hard scene in.
+    let (privileged, _) = client.create_episode(EpisodeOptions::scene(&scene).privileged(true)).await.expect("created");
+    let err = privileged.plan_actions(0, Some(Duration::from_millis(1))).await.unwrap_err();
+    assert!(matches!(&err, ClientError::DeadlineExceeded(m) if m.contains("budget of 1 ms")), "{err}");
+
+    // An ended episode.
+    let expert = privileged.privileged_state().await.expect("state").expert_trajectory().expect("expert");
+    let mut privileged = privileged;
+    follow(&mut privileged, &expert).await;
+    let err = privileged.plan_actions(0, None).await.unwrap_err();
+    assert!(matches!(&err, ClientError::EpisodeEnded(_)), "{err}");
+
+    let ghost = esrp_client::Episode::attach(&client, "0".repeat(32), privileged.scene().clone());
+    let err = ghost.plan_actions(0, None).await.unwrap_err();
+    assert!(matches!(&err, ClientError::NotFound(_)), "{err}");
+    ghost.detach();
+}
