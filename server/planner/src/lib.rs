@@ -65,7 +65,9 @@ pub struct PlanOptions {
     /// Weight on the heuristic of the weighted A* (1.0: optimal A*; larger: faster, longer
     /// plans). At least 1.
     pub heuristic_weight: f64,
-    /// Nodes one search (one object's fetch and carry) may expand, at most.
+    /// Nodes one search (one object's fetch and carry) may expand, at most. When no object can
+    /// be placed within it, the task planner retries once with five times as many before it
+    /// moves anything aside.
     pub max_search_nodes: u64,
     /// Duplicate detection by cells of this size, metres; 0 detects only exact duplicates.
     ///
@@ -87,7 +89,7 @@ pub struct PlanOptions {
 impl Default for PlanOptions {
     fn default() -> Self {
         Self {
-            max_nodes: 600_000,
+            max_nodes: 1_000_000,
             deadline: None,
             heuristic_weight: 2.0,
             max_search_nodes: 40_000,

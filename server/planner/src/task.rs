@@ -30,11 +30,16 @@ const BUFFER_TIERS: [(f64, f64); 2] = [(0.3, 1.0), (0.0, 0.5)];
 /// others is better than putting it aside, when it costs fewer extra steps than this.
 const UNPLACE_COST: f64 = 8.0;
 
+/// How much more a round may spend per search, after a round whose searches ran out of nodes.
+const ESCALATION: u64 = 5;
+
 /// A failed search, as the task planner sees it.
 struct Failed {
     failure: PlanFailure,
     /// Whether the whole plan must stop (deadline, total budget).
     fatal: bool,
+    /// Whether the search stopped at its own node budget (more nodes might have found it).
+    out_of_nodes: bool,
     blocker_hits: Vec<u32>,
 }
 
@@ -46,6 +51,8 @@ pub(crate) struct TaskPlanner<'a> {
     actions: Vec<Action>,
     stats: PlanStats,
     relocations: Vec<u32>,
+    /// The per-search node budget now: `max_search_nodes`, or more after a round ran out.
+    search_nodes: u64,
 }
 
 impl<'a> TaskPlanner<'a> {
@@ -57,6 +64,7 @@ impl<'a> TaskPlanner<'a> {
             actions: Vec::new(),
             stats: PlanStats::default(),
             relocations: vec![0; episode.object_poses().len()],
+            search_nodes: options.max_search_nodes,
         }
     }
 
@@ -87,6 +95,7 @@ impl<'a> TaskPlanner<'a> {
             let mut failed: Vec<usize> = Vec::new();
             let mut last_failure = None;
             let mut placed_one = false;
+            let mut out_of_nodes = false;
             for object in self.order(&first, &tried_before) {
                 if let Some(occupant) = self.occupant(object) {
                     blockers[occupant] = blockers[occupant].saturating_add(ON_TARGET_WEIGHT);
@@ -109,6 +118,7 @@ impl<'a> TaskPlanner<'a> {
                             }
                         }
                         failed.push(object);
+                        out_of_nodes |= f.out_of_nodes;
                         last_failure = Some(f.failure);
                     }
                 }
@@ -116,6 +126,14 @@ impl<'a> TaskPlanner<'a> {
             if placed_one {
                 first.clear();
                 tried_before = failed;
+                self.search_nodes = self.options.max_search_nodes;
+                continue;
+            }
+            if out_of_nodes && self.search_nodes == self.options.max_search_nodes {
+                // Cheap searches first; before moving anything aside, search harder.
+                self.search_nodes = self.options.max_search_nodes.saturating_mul(ESCALATION);
+                first = failed;
+                tried_before.clear();
                 continue;
             }
             if !self.relocate_a_blocker(&blockers)? {
@@ -123,6 +141,7 @@ impl<'a> TaskPlanner<'a> {
             }
             first = failed;
             tried_before.clear();
+            self.search_nodes = self.options.max_search_nodes;
         }
     }
 
@@ -231,11 +250,12 @@ impl<'a> TaskPlanner<'a> {
             return Err(Failed {
                 failure: PlanFailure::BudgetExhausted { nodes: self.stats.nodes_expanded },
                 fatal: true,
+                out_of_nodes: true,
                 blocker_hits: Vec::new(),
             });
         }
         let limits = SearchLimits {
-            max_nodes: remaining.min(self.options.max_search_nodes),
+            max_nodes: remaining.min(self.search_nodes),
             weight: self.options.heuristic_weight,
             cell: self.options.duplicate_cell,
             iou_weight: self.options.iou_weight,
@@ -252,7 +272,7 @@ impl<'a> TaskPlanner<'a> {
             }
             Err(not_found) => {
                 self.stats.nodes_expanded += not_found.nodes;
-                Err(self.failed(object, not_found, limits.max_nodes < self.options.max_search_nodes))
+                Err(self.failed(object, not_found, limits.max_nodes < self.search_nodes))
             }
         }
     }
@@ -269,7 +289,7 @@ impl<'a> TaskPlanner<'a> {
                 None => (self.unreachable(object), false),
             },
         };
-        Failed { failure, fatal, blocker_hits: not_found.blocker_hits }
+        Failed { failure, fatal, out_of_nodes: not_found.miss == Miss::Budget, blocker_hits: not_found.blocker_hits }
     }
 
     /// The plan needs at least `until_step` steps from the episode's start (or more than the
