@@ -1,0 +1,5 @@
+//! esrp-planner's integration tests: one binary, one module per concern.
+
+mod fixtures;
+mod properties;
+mod states;
