@@ -67,5 +67,6 @@ pub use random::RandomActions;
 pub use stream::{Answer, EpisodeStream, StreamAnswer};
 pub use types::{
     Action, DepthImage, Difficulty, EpisodeMetrics, Goal, Image, LabelImage, Observation, Obstacle, ObstacleKind,
-    PlanAnswer, PlanFailure, PlanStats, PrivilegedState, RewardTerms, SceneSummary, Sensors, ServerInfo, Split, StepInfo, StepResult, ValueImage,
+    PlanAnswer, PlanFailure, PlanStats, PrivilegedState, RewardTerms, SceneSummary, Sensors, ServerInfo, Split,
+    StepInfo, StepResult, ValueImage,
 };

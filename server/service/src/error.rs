@@ -120,7 +120,9 @@ pub enum ServiceError {
     )]
     NotPrivileged(EpisodeId),
     /// PlanActions found no plan within its time budget.
-    #[error("the planner found no plan within its budget of {budget_ms} ms: ask with a larger budget_ms (the server caps it at --max-plan-ms)")]
+    #[error(
+        "the planner found no plan within its budget of {budget_ms} ms: ask with a larger budget_ms (the server caps it at --max-plan-ms)"
+    )]
     PlanDeadline {
         /// The budget the call had.
         budget_ms: u64,

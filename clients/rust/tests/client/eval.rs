@@ -89,9 +89,10 @@ async fn an_interrupted_run_resumes_to_the_same_results() {
     let (whole, parts) = (records(&whole), records(&parts));
     assert_eq!(comparable(parts), comparable(whole.clone()));
     for r in &whole {
-        let expected_seed = 5 ^ r.scene_id.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
-            (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
-        });
+        let expected_seed = 5 ^ r
+            .scene_id
+            .bytes()
+            .fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3));
         assert_eq!(r.seed, Some(expected_seed));
         assert_eq!(r.difficulty, "easy");
     }
@@ -102,7 +103,10 @@ async fn the_planner_agent_places_everything() {
     let server = start(&[]);
     let dir = tempfile::tempdir().expect("a temp dir");
     let out = dir.path().join("plan.jsonl");
-    ok(eval(&server.address, &["--agent", "plan", "--difficulty", "easy", "--limit", "2", "--out", out.to_str().unwrap()]));
+    ok(eval(
+        &server.address,
+        &["--agent", "plan", "--difficulty", "easy", "--limit", "2", "--out", out.to_str().unwrap()],
+    ));
     for r in records(&out) {
         assert!(r.success, "{r:?}");
         assert_eq!(r.agent_stats["plan_calls"], 1);

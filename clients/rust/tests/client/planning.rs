@@ -20,7 +20,11 @@ async fn follow(episode: &mut esrp_client::Episode, actions: &[Action]) -> bool 
     let mut success = false;
     for (i, &action) in actions.iter().enumerate() {
         let r = episode.step(action).await.expect("a planned step is taken");
-        assert!(r.info.accepted || matches!(action, Action::Fetch | Action::Release), "step {i} ({action:?}) of the plan collided: {:?}", r.info);
+        assert!(
+            r.info.accepted || matches!(action, Action::Fetch | Action::Release),
+            "step {i} ({action:?}) of the plan collided: {:?}",
+            r.info
+        );
         if r.ended() {
             assert_eq!(i + 1, actions.len(), "the episode ended before the plan did");
             success = r.terminated;
@@ -67,7 +71,8 @@ async fn the_plan_is_cached_while_the_episode_follows_it() {
     let server = start(&["--metrics-listen", "127.0.0.1:0"]);
     let client = client(&server).await;
     let scene = scenes_of(&client, Difficulty::Medium, 1).await.remove(0);
-    let (mut episode, _) = client.create_episode(EpisodeOptions::scene(&scene).privileged(true)).await.expect("created");
+    let (mut episode, _) =
+        client.create_episode(EpisodeOptions::scene(&scene).privileged(true)).await.expect("created");
     let first = episode.plan_actions(5, None).await.expect("a plan");
     assert!(first.reaches_success && !first.cached);
     assert_eq!(first.actions.len(), 5.min(first.plan_length as usize));
@@ -83,20 +88,29 @@ async fn the_plan_is_cached_while_the_episode_follows_it() {
     // Off the plan (a turn and back is another state: the step counter moved): planned anew,
     // and the new plan still succeeds.
     let off = rest.actions[0];
-    let detour = if off == Action::TurnLeft { [Action::TurnRight, Action::TurnLeft] } else { [Action::TurnLeft, Action::TurnRight] };
+    let detour = if off == Action::TurnLeft {
+        [Action::TurnRight, Action::TurnLeft]
+    } else {
+        [Action::TurnLeft, Action::TurnRight]
+    };
     follow(&mut episode, &detour).await;
     let fresh = episode.plan_actions(0, None).await.expect("a new plan");
     assert!(!fresh.cached && fresh.reaches_success);
     assert!(follow(&mut episode, &fresh.actions).await);
 
-    // Reset goes back to where the first plan started: cached again.
+    // Reset goes back to where the first plan started: planned again (the cache holds the last
+    // plan only), to the same plan (the planner is deterministic), then cached.
+    let whole: Vec<Action> = first.actions.iter().chain(&rest.actions).copied().collect();
     episode.reset().await.expect("reset");
     let again = episode.plan_actions(0, None).await.expect("a plan");
-    assert!(again.cached && again.plan_length == length);
+    assert!(!again.cached);
+    assert_eq!(again.actions, whole);
+    let cached = episode.plan_actions(3, None).await.expect("a plan");
+    assert!(cached.cached && cached.plan_length == length && cached.actions[..] == whole[..3]);
 
     let text = server_scrape(&server);
     assert!(text.contains("esrp_plans_total{outcome=\"cached\"} 2"), "{text}");
-    assert!(text.contains("esrp_plans_total{outcome=\"planned\"} 2"), "{text}");
+    assert!(text.contains("esrp_plans_total{outcome=\"planned\"} 3"), "{text}");
 }
 
 fn server_scrape(server: &esrp_client::LocalServer) -> String {

@@ -148,13 +148,14 @@ fn attach_images(observation: &mut Observation, sensors: &SensorConfig, outputs:
 impl Shared {
     /// Shared state for a server with `config`, serving `store` and rendering with `render`.
     pub fn new(store: SceneStore, render: RenderScheduler, config: Config, metrics: Arc<Metrics>) -> Self {
+        let planners = tokio::sync::Semaphore::new(config.planner_threads());
         Self {
             store,
             registry: Registry::new(config.max_episodes),
             render,
             config,
             next_stream: AtomicU64::new(1),
-            planners: tokio::sync::Semaphore::new(config.planner_threads()),
+            planners,
             metrics,
         }
     }

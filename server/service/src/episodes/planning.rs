@@ -12,8 +12,6 @@
 //!   plan, or reset to its start) answers from the cache without planning; any other state
 //!   plans afresh. A deadline is not cached (a larger budget may succeed).
 
-use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use esrp_core::{Action, Episode};
@@ -123,16 +121,6 @@ fn answer_from(
     }
 }
 
-/// Sets the planner's cancel flag when dropped: a call abandoned by its client (its future
-/// dropped at an await) stops the planning it started.
-struct CancelOnDrop(Arc<AtomicBool>);
-
-impl Drop for CancelOnDrop {
-    fn drop(&mut self) {
-        self.0.store(true, Ordering::Relaxed);
-    }
-}
-
 impl Shared {
     /// Plans from the episode's current state (see the module's notes).
     pub async fn plan(&self, call: PlanCall) -> Result<Planned, ServiceError> {
@@ -164,9 +152,7 @@ impl Shared {
             .await
             .map_err(|_| ServiceError::PlanDeadline { budget_ms: budget.as_millis() as u64 })?
             .map_err(|_| ServiceError::Internal("the planner pool is closed".into()))?;
-        let cancel = Arc::new(AtomicBool::new(false));
-        let _cancel_on_drop = CancelOnDrop(cancel.clone());
-        let options = PlanOptions { deadline: Some(deadline), cancel: Some(cancel), ..PlanOptions::default() };
+        let options = PlanOptions { deadline: Some(deadline), ..PlanOptions::default() };
         let job = move || {
             let outcome = esrp_planner::plan(&episode, &options);
             let cached = CachedPlan::of(&episode, &outcome);
@@ -176,7 +162,7 @@ impl Shared {
             tokio::task::spawn_blocking(job).await.map_err(|e| ServiceError::Internal(e.to_string()))?;
         drop(permit);
         if let Err(e) = &outcome
-            && matches!(e.reason, PlanFailure::DeadlineExceeded | PlanFailure::Cancelled)
+            && matches!(e.reason, PlanFailure::DeadlineExceeded)
         {
             self.metrics.count_plan("deadline");
             return Err(ServiceError::PlanDeadline { budget_ms: budget.as_millis() as u64 });
@@ -187,9 +173,9 @@ impl Shared {
             return Err(ServiceError::Internal("the planner found a running episode over".into()));
         }
         self.metrics.count_plan(if outcome.is_ok() { "planned" } else { "failed" });
-        let answer = cached.answer(fingerprint, call.max_actions).unwrap_or_else(|| {
-            answer_from(&cached.actions, &cached.stats, &cached.failure, call.max_actions, false)
-        });
+        let answer = cached
+            .answer(fingerprint, call.max_actions)
+            .unwrap_or_else(|| answer_from(&cached.actions, &cached.stats, &cached.failure, call.max_actions, false));
         let answer = Planned { cached: false, ..answer };
         // Keep the answer if the episode is still where the plan starts (it may have moved on
         // while the planner ran).

@@ -6,8 +6,8 @@ use bytes::Bytes;
 use esrp_core::{Action, CompiledScene, Difficulty, Split};
 
 use crate::episodes::{
-    ACTIONS, CreateOptions, Created, EpisodeId, Goal, MetricsSoFar, Observation, PlanCall, Planned, Privileged, ResetResult,
-    SceneChoice, SensorConfig, SensorRequest, StepCall, StepResult,
+    ACTIONS, CreateOptions, Created, EpisodeId, Goal, MetricsSoFar, Observation, PlanCall, Planned, Privileged,
+    ResetResult, SceneChoice, SensorConfig, SensorRequest, StepCall, StepResult,
 };
 use crate::error::ServiceError;
 use crate::proto;
@@ -326,6 +326,46 @@ impl From<Privileged> for proto::GetPrivilegedStateResponse {
     }
 }
 
+impl From<proto::PlanActionsRequest> for PlanCall {
+    fn from(r: proto::PlanActionsRequest) -> Self {
+        PlanCall {
+            episode: r.episode_id.into(),
+            max_actions: r.max_actions,
+            budget: (r.budget_ms > 0).then(|| std::time::Duration::from_millis(u64::from(r.budget_ms))),
+        }
+    }
+}
+
+impl From<Planned> for proto::PlanActionsResponse {
+    fn from(p: Planned) -> Self {
+        use esrp_planner::PlanFailure as F;
+        let failure = match &p.failure {
+            None => proto::PlanFailure::Unspecified,
+            Some(F::Unreachable { .. }) => proto::PlanFailure::Unreachable,
+            Some(F::NoPlacement { .. }) => proto::PlanFailure::NoPlacement,
+            Some(F::TooLong { .. }) => proto::PlanFailure::TooLong,
+            // Deadlines, cancels and ended episodes are statuses, never answers; a budget of
+            // nodes is what is left.
+            Some(_) => proto::PlanFailure::BudgetExhausted,
+        };
+        proto::PlanActionsResponse {
+            actions: p.actions.iter().map(|a| i32::from(a.code())).collect(),
+            reaches_success: p.reaches_success,
+            plan_length: p.plan_length,
+            cached: p.cached,
+            stats: Some(proto::PlanStats {
+                nodes_expanded: p.stats.nodes_expanded,
+                searches: p.stats.searches,
+                planning_seconds: p.stats.elapsed.as_secs_f64(),
+                objects_relocated: p.stats.objects_relocated,
+            }),
+            failure: failure as i32,
+            failure_message: p.failure.as_ref().map(ToString::to_string).unwrap_or_default(),
+            failure_object: p.failure_object.unwrap_or_default(),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -370,45 +410,5 @@ mod tests {
         assert_eq!(&message.ego_depth.unwrap().data[..4], &1.5f32.to_le_bytes());
         assert_eq!(&message.ego_segmentation.unwrap().data[..4], &3u32.to_le_bytes());
         assert!(message.goal_rgb.is_none() && message.current_top_down.is_none());
-    }
-}
-
-impl From<proto::PlanActionsRequest> for PlanCall {
-    fn from(r: proto::PlanActionsRequest) -> Self {
-        PlanCall {
-            episode: r.episode_id.into(),
-            max_actions: r.max_actions,
-            budget: (r.budget_ms > 0).then(|| std::time::Duration::from_millis(u64::from(r.budget_ms))),
-        }
-    }
-}
-
-impl From<Planned> for proto::PlanActionsResponse {
-    fn from(p: Planned) -> Self {
-        use esrp_planner::PlanFailure as F;
-        let failure = match &p.failure {
-            None => proto::PlanFailure::Unspecified,
-            Some(F::Unreachable { .. }) => proto::PlanFailure::Unreachable,
-            Some(F::NoPlacement { .. }) => proto::PlanFailure::NoPlacement,
-            Some(F::TooLong { .. }) => proto::PlanFailure::TooLong,
-            // Deadlines, cancels and ended episodes are statuses, never answers; a budget of
-            // nodes is what is left.
-            Some(_) => proto::PlanFailure::BudgetExhausted,
-        };
-        proto::PlanActionsResponse {
-            actions: p.actions.iter().map(|a| i32::from(a.code())).collect(),
-            reaches_success: p.reaches_success,
-            plan_length: p.plan_length,
-            cached: p.cached,
-            stats: Some(proto::PlanStats {
-                nodes_expanded: p.stats.nodes_expanded,
-                searches: p.stats.searches,
-                planning_seconds: p.stats.elapsed.as_secs_f64(),
-                objects_relocated: p.stats.objects_relocated,
-            }),
-            failure: failure as i32,
-            failure_message: p.failure.as_ref().map(ToString::to_string).unwrap_or_default(),
-            failure_object: p.failure_object.unwrap_or_default(),
-        }
     }
 }

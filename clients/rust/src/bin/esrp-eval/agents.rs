@@ -207,4 +207,3 @@ async fn plan(client: &Client, episode: &Episode, settings: &AgentSettings) -> a
 pub fn fnv1a64(text: &str) -> u64 {
     text.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3))
 }
-

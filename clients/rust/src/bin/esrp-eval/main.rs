@@ -16,8 +16,8 @@ use anyhow::{Context, bail};
 use clap::Parser;
 use esrp_client::results::{self, EpisodeRecord, SCHEMA, Summary, Tally};
 use esrp_client::{Client, Difficulty, SceneFilter, SceneSummary, Split, reach_or_start};
-use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use futures_util::StreamExt as _;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
 use agents::{AgentKind, AgentSettings};
 
@@ -190,7 +190,10 @@ async fn main() -> anyhow::Result<()> {
     let (address, _local) = reach_or_start(args.server.as_deref(), None, &args.server_args)?;
     let client = Client::connect(&address).token_opt(args.token.as_deref()).await?;
     let info = client.server_info().await?;
-    eprintln!("esrp-server {} at {address}: dataset {}, renderer {}", info.version, info.dataset, info.renderer_adapter);
+    eprintln!(
+        "esrp-server {} at {address}: dataset {}, renderer {}",
+        info.version, info.dataset, info.renderer_adapter
+    );
 
     let scenes = pick_scenes(&client, &args).await?;
     let agent = args.agent.name();
