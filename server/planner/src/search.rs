@@ -301,7 +301,7 @@ impl Search<'_> {
             if self.first_release_at.is_some_and(|at| expanded >= at.saturating_add(self.limits.polish_nodes)) {
                 break Miss::Budget;
             }
-            if expanded % 32 == 0 && self.limits.deadline.is_some_and(|d| Instant::now() >= d) {
+            if expanded.is_multiple_of(32) && self.limits.deadline.is_some_and(|d| Instant::now() >= d) {
                 break Miss::Deadline;
             }
             expanded += 1;
