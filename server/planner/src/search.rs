@@ -347,7 +347,14 @@ impl Search<'_> {
         } else {
             &[Action::MoveForward, Action::TurnLeft, Action::TurnRight, Action::MoveBackward]
         };
+        // The inverse of the motion that led here leads back to the parent, reached one step
+        // cheaper: duplicate detection would reject it, so do not pay for its collision check.
+        let incoming = self.nodes[node as usize].action;
+        let back = incoming.is_motion().then(|| incoming.inverse());
         for &action in actions {
+            if Some(action) == back {
+                continue;
+            }
             let mut child = episode.clone();
             let Ok(outcome) = child.step(action) else { continue };
             if !outcome.accepted {
