@@ -20,9 +20,9 @@
 use esrp_core::world::MOVE_DISTANCE;
 use esrp_core::{Episode, HEADING_COUNT, OrientedRect, PlanPoint, TURN_ANGLE, footprint_iou};
 
-/// Directions sampled on the circle when measuring a placement radius, beyond the rectangles'
-/// own axes.
-const RADIUS_DIRECTIONS: usize = 120;
+/// Directions sampled on half the circle when measuring a placement radius, beyond the
+/// rectangles' own axes.
+const RADIUS_DIRECTIONS: usize = 64;
 
 /// Relative slack on a measured placement radius: the radius is sampled in a finite set of
 /// directions, so it is grown a little to stay an upper bound.
@@ -73,10 +73,13 @@ impl PlacementGeometry {
         let threshold = scene.rules().placement_iou;
         let target = scene.movable_footprint(object, &scene.scene().movable_objects[object].target);
         let circumradius = target.half_x.hypot(target.half_z);
+        // A rectangle turned by half a turn is the same rectangle: yaw offsets k and k + 8 agree.
+        let half = usize::from(HEADING_COUNT / 2);
         let mut radius = [None; HEADING_COUNT as usize];
-        for (k, slot) in radius.iter_mut().enumerate() {
+        for k in 0..half {
             let yaw = pose.yaw + k as f64 * TURN_ANGLE;
-            *slot = placement_radius(&target, yaw, threshold, circumradius);
+            radius[k] = placement_radius(&target, yaw, threshold, circumradius);
+            radius[k + half] = radius[k];
         }
         Self { yaw0: pose.yaw, target, radius, circumradius }
     }
@@ -120,13 +123,15 @@ fn placement_radius(target: &OrientedRect, yaw: f64, threshold: f64, circumradiu
     if at(PlanPoint::new(0.0, 0.0)) <= threshold {
         return None;
     }
-    let axes = [target.yaw, yaw].into_iter().flat_map(|a| (0..4).map(move |q| a + f64::from(q) * TURN_ANGLE * 4.0));
-    let sampled = (0..RADIUS_DIRECTIONS).map(|i| i as f64 * std::f64::consts::TAU / RADIUS_DIRECTIONS as f64);
+    // The region is centrally symmetric (both rectangles are), so half the circle covers it:
+    // the rectangles' own axes and evenly spaced directions.
+    let axes = [target.yaw, yaw].into_iter().flat_map(|a| [a, a + std::f64::consts::FRAC_PI_2]);
+    let sampled = (0..RADIUS_DIRECTIONS).map(|i| i as f64 * std::f64::consts::PI / RADIUS_DIRECTIONS as f64);
     let mut largest: f64 = 0.0;
     for angle in axes.chain(sampled) {
         let (sin, cos) = angle.sin_cos();
         let (mut inside, mut outside) = (0.0, 2.0 * circumradius + 1e-6);
-        for _ in 0..24 {
+        for _ in 0..20 {
             let mid = 0.5 * (inside + outside);
             if at(PlanPoint::new(mid * cos, mid * sin)) > threshold {
                 inside = mid;

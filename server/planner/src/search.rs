@@ -301,7 +301,7 @@ impl Search<'_> {
             if self.first_release_at.is_some_and(|at| expanded >= at.saturating_add(self.limits.polish_nodes)) {
                 break Miss::Budget;
             }
-            if expanded % 32 == 0 && self.limits.deadline.is_some_and(|d| Instant::now() >= d) {
+            if expanded.is_multiple_of(32) && self.limits.deadline.is_some_and(|d| Instant::now() >= d) {
                 break Miss::Deadline;
             }
             expanded += 1;
@@ -347,7 +347,14 @@ impl Search<'_> {
         } else {
             &[Action::MoveForward, Action::TurnLeft, Action::TurnRight, Action::MoveBackward]
         };
+        // The inverse of the motion that led here leads back to the parent, reached one step
+        // cheaper: duplicate detection would reject it, so do not pay for its collision check.
+        let incoming = self.nodes[node as usize].action;
+        let back = incoming.is_motion().then(|| incoming.inverse());
         for &action in actions {
+            if Some(action) == back {
+                continue;
+            }
             let mut child = episode.clone();
             let Ok(outcome) = child.step(action) else { continue };
             if !outcome.accepted {
@@ -451,4 +458,193 @@ pub(crate) fn rect_distance(a: &OrientedRect, b: &OrientedRect) -> f64 {
     let from_a = a.corners().iter().map(|&p| b.distance_to_point(p)).fold(f64::INFINITY, f64::min);
     let from_b = b.corners().iter().map(|&p| a.distance_to_point(p)).fold(f64::INFINITY, f64::min);
     from_a.min(from_b)
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use std::sync::Arc;
+
+    use esrp_core::{CompiledScene, EpisodeConfig};
+
+    use super::*;
+
+    /// Benchmark scene `index` at its start.
+    pub(crate) fn bench_episode(index: usize) -> Episode {
+        let scene = esrp_dataset::Benchmark::new(esrp_dataset::DEFAULT_SEED)
+            .generate(index)
+            .expect("the scene generates")
+            .scene;
+        let compiled = CompiledScene::new(scene, esrp_core::Rules::default()).expect("a valid scene");
+        Episode::new(Arc::new(compiled), EpisodeConfig::default()).expect("a valid configuration")
+    }
+
+    fn limits() -> SearchLimits {
+        SearchLimits {
+            max_nodes: 40_000,
+            weight: 2.0,
+            cell: 0.05,
+            iou_weight: 12.0,
+            polish_nodes: 2_000,
+            deadline: None,
+        }
+    }
+
+    /// A tiny deterministic random source for sampling walks.
+    struct XorShift(u64);
+
+    impl XorShift {
+        fn below(&mut self, n: usize) -> usize {
+            self.0 ^= self.0 << 13;
+            self.0 ^= self.0 >> 7;
+            self.0 ^= self.0 << 17;
+            (self.0 % n as u64) as usize
+        }
+    }
+
+    const MOTIONS: [Action; 4] = [Action::MoveForward, Action::MoveBackward, Action::TurnLeft, Action::TurnRight];
+
+    /// The bound of a place search drops by at most one per real step and is at most one where
+    /// a release places the object (consistency, hence admissibility), on states along the
+    /// planner's own paths and on random walks off them, approaching and carrying.
+    #[test]
+    fn the_place_bound_is_consistent_on_sampled_states() {
+        let mut rng = XorShift(0x2545_f491_4f6c_dd1d);
+        let mut checked = 0;
+        for index in [50, 117] {
+            let start = bench_episode(index);
+            for object in 0..start.object_poses().len() {
+                let bound = Bound::new(&start, object, &Goal::Place);
+                let found = search(&start, object, &Goal::Place, limits()).expect("a path");
+                let mut on_path = start.clone();
+                let total = found.actions.len() as u32;
+                for (i, &action) in found.actions.iter().enumerate() {
+                    let h = bound.steps(&on_path).expect("a bound on the path");
+                    assert!(h <= total - i as u32, "scene {index} object {object}: h {h} beyond the path's rest");
+                    // Random walks off the path, checking every edge out of every state met.
+                    let mut walker = on_path.clone();
+                    for _ in 0..6 {
+                        checked += check_edges(&bound, object, &walker);
+                        let mut next = walker.clone();
+                        if next.step(MOTIONS[rng.below(4)]).is_ok_and(|o| o.accepted) && !next.is_over() {
+                            walker = next;
+                        }
+                    }
+                    on_path.step(action).expect("a running episode");
+                }
+            }
+        }
+        assert!(checked > 500, "only {checked} edges checked");
+    }
+
+    /// Checks `h(s) ≤ 1 + h(s')` on every accepted edge out of `state`; the edges checked.
+    fn check_edges(bound: &Bound<'_>, object: usize, state: &Episode) -> usize {
+        let Some(h) = bound.steps(state) else { return 0 };
+        let mut checked = 0;
+        for action in Action::ALL {
+            let mut next = state.clone();
+            let Ok(outcome) = next.step(action) else { continue };
+            if !outcome.accepted || next.held().is_some_and(|held| held != object) {
+                continue;
+            }
+            checked += 1;
+            if action == Action::Release {
+                if next.placed()[object] {
+                    assert!(h <= 1, "{h} steps bound where a release places the object");
+                }
+                continue;
+            }
+            if let Some(h_next) = bound.steps(&next) {
+                assert!(h <= 1 + h_next, "{action:?} drops the bound from {h} to {h_next}");
+            }
+        }
+        checked
+    }
+
+    #[test]
+    fn exact_keys_identify_states_reached_by_commuting_paths() {
+        let start = bench_episode(7);
+        let run = |actions: &[Action]| {
+            let mut e = start.clone();
+            actions.iter().all(|&a| e.step(a).is_ok_and(|o| o.accepted)).then_some(e)
+        };
+        let mut compared = 0;
+        for first in [Action::MoveForward, Action::MoveBackward] {
+            for turn in [Action::TurnLeft, Action::TurnRight] {
+                let back = turn.inverse();
+                // Two moves along two headings, in either order: the same integer move counts.
+                let (Some(a), Some(b)) = (run(&[turn, first, back, first]), run(&[first, turn, first, back])) else {
+                    continue;
+                };
+                assert_eq!(StateKey::of(&a, 0.0), StateKey::of(&b, 0.0));
+                assert_eq!(StateKey::of(&a, 0.05), StateKey::of(&b, 0.05));
+                assert!(a.same_state(&b));
+                // One more turn is another state.
+                let mut c = a.clone();
+                c.step(Action::TurnLeft).expect("a running episode");
+                assert_ne!(StateKey::of(&a, 0.0), StateKey::of(&c, 0.0));
+                assert_ne!(StateKey::of(&a, 0.05), StateKey::of(&c, 0.05));
+                compared += 1;
+            }
+        }
+        assert!(compared > 0, "no commuting pair was free of collisions");
+        // Holding the object is another state than standing in the same pose without it.
+        let mut held = start.clone();
+        if held.step(Action::Fetch).is_ok_and(|o| o.accepted) {
+            assert_ne!(StateKey::of(&start, 0.0), StateKey::of(&held, 0.0));
+        }
+        // Exact keys tell apart positions a cell would merge.
+        let mut moved = start.clone();
+        for action in [Action::TurnLeft, Action::MoveForward, Action::TurnRight, Action::MoveBackward] {
+            moved.step(action).expect("a running episode");
+        }
+        if moved.agent_pose().position != start.agent_pose().position {
+            assert_ne!(StateKey::of(&start, 0.0), StateKey::of(&moved, 0.0));
+        }
+    }
+
+    #[test]
+    fn rect_distance_of_simple_rectangles() {
+        let r = |x: f64, z: f64, yaw: f64| OrientedRect { center: PlanPoint::new(x, z), half_x: 0.5, half_z: 0.5, yaw };
+        for (a, b, expected) in [
+            (r(0.0, 0.0, 0.0), r(0.5, 0.0, 0.0), 0.0),
+            (r(0.0, 0.0, 0.0), r(2.0, 0.0, 0.0), 1.0),
+            (r(0.0, 0.0, 0.0), r(2.0, 2.0, 0.0), 2f64.sqrt()),
+            (r(0.0, 0.0, 0.0), r(2.0, 0.0, std::f64::consts::FRAC_PI_4), 1.5 - 0.5 * 2f64.sqrt()),
+        ] {
+            assert!((rect_distance(&a, &b) - expected).abs() < 1e-9, "{a:?} {b:?}");
+            assert!((rect_distance(&b, &a) - expected).abs() < 1e-9, "{b:?} {a:?}");
+        }
+    }
+
+    /// A buffer search sets the object down away from where it stood and clear of the
+    /// footprints it must keep clear of, and lets go of it.
+    #[test]
+    fn a_buffer_release_is_shifted_and_clear() {
+        let start = bench_episode(50);
+        let scene = start.compiled();
+        let object = 0;
+        let other_target = scene.movable_footprint(1, &scene.scene().movable_objects[1].target);
+        let origin = scene.movable_footprint(object, &start.object_poses()[object]).center;
+        let own_target = scene.movable_footprint(object, &scene.scene().movable_objects[object].target);
+        let goal = Goal::Buffer(BufferGoal {
+            keep_clear: vec![other_target, own_target],
+            clearance: 0.3,
+            origin,
+            min_shift: 1.0,
+            unplaced_cost: 0.0,
+        });
+        let found = search(&start, object, &goal, limits()).expect("a buffer pose");
+        assert_eq!(found.actions.last(), Some(&Action::Release));
+        assert_eq!(found.end.held(), None);
+        let footprint = scene.movable_footprint(object, &found.end.object_poses()[object]);
+        assert!(footprint.center.distance(origin) >= 1.0);
+        assert!(rect_distance(&footprint, &other_target) >= 0.3);
+        assert!(rect_distance(&footprint, &own_target) >= 0.3);
+        // The same path replays on the start episode.
+        let mut replay = start.clone();
+        for &action in &found.actions {
+            assert!(replay.step(action).is_ok_and(|o| o.accepted));
+        }
+        assert!(replay.same_state(&found.end));
+    }
 }

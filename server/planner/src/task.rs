@@ -312,3 +312,44 @@ impl<'a> TaskPlanner<'a> {
         self.state.compiled().scene().movable_objects.get(object).map(|o| o.id.clone()).unwrap_or_default()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::search::tests::bench_episode;
+
+    /// A buffer goal keeps clear of the targets of the other objects still to be placed, and
+    /// costs leaving a placed object unplaced.
+    #[test]
+    fn buffer_goals_keep_clear_of_the_other_unplaced_targets() {
+        let episode = bench_episode(117);
+        let scene = episode.compiled().clone();
+        let count = episode.object_poses().len();
+        assert!(count >= 2);
+        let options = PlanOptions::default();
+        let planner = TaskPlanner::new(&episode, &options);
+        let Goal::Buffer(goal) = planner.buffer_goal(0, BUFFER_TIERS[0]) else { panic!("a buffer goal") };
+        let expected: Vec<_> = (1..count)
+            .filter(|&i| !episode.placed()[i])
+            .map(|i| scene.movable_footprint(i, &scene.scene().movable_objects[i].target))
+            .collect();
+        assert_eq!(goal.keep_clear, expected);
+        assert_eq!(goal.origin, scene.movable_footprint(0, &episode.object_poses()[0]).center);
+        assert_eq!((goal.clearance, goal.min_shift), BUFFER_TIERS[0]);
+        assert_eq!(goal.unplaced_cost, if episode.placed()[0] { UNPLACE_COST } else { 0.0 });
+    }
+
+    /// Nearest first; objects a relocation freed before all; those tried last round after.
+    #[test]
+    fn order_puts_freed_objects_first_and_retried_ones_last() {
+        let episode = bench_episode(117);
+        let options = PlanOptions::default();
+        let planner = TaskPlanner::new(&episode, &options);
+        let natural = planner.order(&[], &[]);
+        assert!(natural.len() >= 2);
+        let last = *natural.last().expect("objects");
+        assert_eq!(planner.order(&[last], &[])[0], last);
+        let first = natural[0];
+        assert_eq!(planner.order(&[], &[first]).last(), Some(&first));
+    }
+}

@@ -82,7 +82,6 @@ pub fn placed_blocker_scene() -> Scene {
 }
 
 /// Shares a compiled scene.
-#[allow(dead_code)]
 pub fn compiled(scene: Scene) -> Arc<CompiledScene> {
     CompiledScene::shared(scene).expect("a valid scene")
 }
