@@ -51,7 +51,10 @@ def generate(out: Path) -> dict[str, str]:
         f"--mypy_grpc_out={out}",
         str(PROTO_FILE),
     ]
-    subprocess.run(command, check=True, capture_output=True, text=True)
+    out.mkdir(parents=True, exist_ok=True)
+    run = subprocess.run(command, capture_output=True, text=True)
+    if run.returncode != 0:
+        raise RuntimeError(f"protoc failed ({run.returncode}): {run.stderr}")
     folder = out / "esrp" / "v1"
     return {name: (folder / name).read_text() for name in GENERATED}
 

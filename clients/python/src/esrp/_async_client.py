@@ -87,7 +87,8 @@ class AsyncClient:
         else:
             self._channel = grpc.aio.secure_channel(host, creds, options=arguments)
         self._stub: Any = pb_grpc.EsrpStub(self._channel)
-        # Close calls for abandoned creates, kept referenced until they finish.
+        # Creates whose callers gave up, and the closes of their episodes: kept referenced until
+        # they finish, and awaited by close() so that closing the channel cancels none of them.
         self._background: set[asyncio.Task[Any]] = set()
 
     @property
@@ -106,10 +107,14 @@ class AsyncClient:
         """The call metadata (the bearer token), for calls through `raw`."""
         return self._metadata
 
-    async def close(self) -> None:
-        """Waits for pending background closes (briefly), then closes the channel."""
-        if self._background:
-            await asyncio.wait(self._background, timeout=5)
+    async def close(self, grace: float = 5.0) -> None:
+        """Closes the channel, after waiting up to `grace` seconds for abandoned creates to be
+        answered and their episodes closed.
+        """
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + grace
+        while self._background and loop.time() < deadline:
+            await asyncio.wait(set(self._background), timeout=deadline - loop.time())
         await self._channel.close()
 
     async def __aenter__(self) -> AsyncClient:
@@ -219,14 +224,20 @@ class AsyncClient:
         except grpc.aio.AioRpcError as error:
             raise from_rpc_error(error) from error
         except asyncio.TimeoutError:
-            task.add_done_callback(self._close_abandoned)
+            self._abandon(task)
             raise DeadlineExceeded(f"no answer to CreateEpisode within {wait} s") from None
         except BaseException:
-            task.add_done_callback(self._close_abandoned)
+            self._abandon(task)
             raise
         return AsyncEpisode(self, _convert.created(answer))
 
+    def _abandon(self, task: asyncio.Task[pb.CreateEpisodeResponse]) -> None:
+        """Lets a create nobody waits for run on; its episode is closed when the answer comes."""
+        self._background.add(task)
+        task.add_done_callback(self._close_abandoned)
+
     def _close_abandoned(self, task: asyncio.Task[pb.CreateEpisodeResponse]) -> None:
+        self._background.discard(task)
         if task.cancelled() or task.exception() is not None:
             return
         request = pb.CloseEpisodeRequest(episode_id=task.result().episode_id)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import queue
+import threading
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from types import TracebackType
@@ -114,6 +115,10 @@ class Client:
         else:
             self._channel = grpc.secure_channel(host, creds, options=arguments)
         self._stub = pb_grpc.EsrpStub(self._channel)
+        # Creates whose callers gave up, and the closes of their episodes, until they finish:
+        # close() waits for them so that closing the channel cancels none of them.
+        self._background: set[grpc.Future[Any]] = set()
+        self._background_done = threading.Condition()
 
     @property
     def raw(self) -> pb_grpc.EsrpStub:
@@ -130,8 +135,12 @@ class Client:
         """The call metadata (the bearer token), for calls through `raw`."""
         return self._metadata
 
-    def close(self) -> None:
-        """Closes the channel; calls in flight are cancelled."""
+    def close(self, grace: float = 5.0) -> None:
+        """Closes the channel (calls in flight are cancelled), after waiting up to `grace` seconds
+        for abandoned creates to be answered and their episodes closed.
+        """
+        with self._background_done:
+            self._background_done.wait_for(lambda: not self._background, timeout=grace)
         self._channel.close()
 
     def __enter__(self) -> Client:
@@ -253,14 +262,33 @@ class Client:
         try:
             answer = future.result(timeout=wait)
         except grpc.FutureTimeoutError:
-            future.add_done_callback(self._close_abandoned)
+            self._abandon(future)
             raise DeadlineExceeded(f"no answer to CreateEpisode within {wait} s") from None
         except grpc.RpcError as error:
             raise from_rpc_error(error) from error
         except BaseException:
-            future.add_done_callback(self._close_abandoned)
+            self._abandon(future)
             raise
         return Episode(self, _convert.created(answer))
+
+    def _track(self, future: grpc.Future[Any]) -> None:
+        with self._background_done:
+            self._background.add(future)
+        future.add_done_callback(self._untrack)
+
+    def _untrack(self, future: grpc.Future[Any]) -> None:
+        with self._background_done:
+            self._background.discard(future)
+            self._background_done.notify_all()
+
+    def _abandon(self, future: grpc.Future[pb.CreateEpisodeResponse]) -> None:
+        """Lets a create nobody waits for run on; its episode is closed when the answer comes."""
+        # Tracked first: the close is tracked by _close_abandoned before the create is untracked
+        # (callbacks run in the order added), so close() never sees a gap.
+        with self._background_done:
+            self._background.add(future)
+        future.add_done_callback(self._close_abandoned)
+        future.add_done_callback(self._untrack)
 
     def _close_abandoned(self, future: grpc.Future[pb.CreateEpisodeResponse]) -> None:
         """Closes the episode of a CreateEpisode answer nobody waits for any more (best effort)."""
@@ -268,9 +296,10 @@ class Client:
             if future.cancelled() or future.exception() is not None:
                 return
             episode_id = future.result().episode_id
-            self._stub.CloseEpisode.future(
+            close = self._stub.CloseEpisode.future(
                 pb.CloseEpisodeRequest(episode_id=episode_id), metadata=self._metadata
             )
+            self._track(close)
         except Exception:  # noqa: BLE001 - the channel may be closing; the server's reaper remains.
             return
 

@@ -59,10 +59,15 @@ def observation_space(sensors: Sensors) -> spaces.Dict:
 
 
 def _observation_dict(observation: Observation, goal: npt.NDArray[np.uint8]) -> ObsDict:
-    """An observation as the env returns it: the arrays are the client's read-only views."""
+    """An observation as the env returns it: the client's read-only views of the answer, and a
+    read-only copy of the goal image that the server sent at the reset (Gymnasium wants no two
+    observations to share memory, and the goal is the one array a step answer does not carry).
+    """
+    own_goal = goal.copy()
+    own_goal.flags.writeable = False
     result: ObsDict = {
         "ego_rgb": observation.ego_rgb,
-        "goal_rgb": goal,
+        "goal_rgb": own_goal,
         "grasping": np.int64(observation.grasping),
     }
     if observation.depth is not None:
