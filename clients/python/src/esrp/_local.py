@@ -72,7 +72,9 @@ class LocalServer:
     """An esrp-server child process on a free port of 127.0.0.1.
 
     `start()` (or entering the `with` block) runs `esrp-server --listen 127.0.0.1:0 ARGS...`, reads
-    the bound address from its first line, and waits until its health service says serving;
+    the bound address from its first line, and waits until its health service says serving (a
+    server started with `--tls-cert` is taken as ready once it prints its address, as the Rust
+    `LocalServer` does: its certificate is not known to be trusted here);
     `stop()` (or leaving the block) sends SIGTERM, waits `stop_timeout` seconds for the graceful
     shutdown, then kills it. A server that does not start raises `LocalServerError` with the tail
     of its stderr.
@@ -105,8 +107,8 @@ class LocalServer:
         self.process: subprocess.Popen[str] | None = None
         self._stderr: IO[bytes] | None = None
         self._address: str | None = None
-        self.metrics_address: str | None = None
-        """`host:port` of the Prometheus endpoint, when started with `--metrics-listen`."""
+        self.metrics_url: str | None = None
+        """`http://127.0.0.1:PORT/metrics`, the Prometheus endpoint, when started with `--metrics-listen`."""
 
     @property
     def address(self) -> str:
@@ -183,9 +185,11 @@ class LocalServer:
             found.append(line.removeprefix(prefix).strip())
         self._address = found[0]
         if len(found) > 1:
-            self.metrics_address = found[1]
+            self.metrics_url = found[1]
         # Keep reading stdout so that a chatty server never blocks on a full pipe.
         threading.Thread(target=_drain, args=(self.process.stdout,), daemon=True).start()
+        if "--tls-cert" in self.args:
+            return
         with grpc.insecure_channel(self._address) as channel:
             while not health_check(channel, timeout=max(min(deadline - time.monotonic(), 1.0), 0.01)):
                 if not self.is_running():
