@@ -58,16 +58,21 @@ def observation_space(sensors: Sensors) -> spaces.Dict:
     return spaces.Dict(members)
 
 
-def _observation_dict(observation: Observation, goal: npt.NDArray[np.uint8]) -> ObsDict:
+def _observation_dict(
+    observation: Observation, goal: npt.NDArray[np.uint8], *, copy_goal: bool = True
+) -> ObsDict:
     """An observation as the env returns it: the client's read-only views of the answer, and a
     read-only copy of the goal image that the server sent at the reset (Gymnasium wants no two
     observations to share memory, and the goal is the one array a step answer does not carry).
+    The vector env, which copies everything into fresh batch arrays anyway, passes
+    `copy_goal=False`.
     """
-    own_goal = goal.copy()
-    own_goal.flags.writeable = False
+    if copy_goal:
+        goal = goal.copy()
+        goal.flags.writeable = False
     result: ObsDict = {
         "ego_rgb": observation.ego_rgb,
-        "goal_rgb": own_goal,
+        "goal_rgb": goal,
         "grasping": np.int64(observation.grasping),
     }
     if observation.depth is not None:
@@ -407,7 +412,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         assert first.goal_rgb is not None
         self._goals[index] = first.goal_rgb
         self._last_observations[index] = first
-        return _observation_dict(first, first.goal_rgb)
+        return _observation_dict(first, first.goal_rgb, copy_goal=False)
 
     def reset(
         self,
@@ -517,7 +522,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             goal = self._goals[i]
             assert goal is not None
             self._last_observations[i] = result.observation
-            self._last[i] = _observation_dict(result.observation, goal)
+            self._last[i] = _observation_dict(result.observation, goal, copy_goal=False)
             rewards[i] = result.reward
             terminations[i] = result.terminated
             truncations[i] = result.truncated
@@ -527,7 +532,8 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         infos: dict[str, Any] = {}
         if self.autoreset_mode == AutoresetMode.SAME_STEP:
             ended = np.flatnonzero(terminations | truncations).tolist()
-            final = {i: (self._last[i], env_infos[i]) for i in ended}
+            # The final observations are handed out one by one: each gets a goal of its own.
+            final = {i: (self._final_observation(i), env_infos[i]) for i in ended}
             scenes = {i: self._send_reset(stream, i, None) for i in ended}
             for i in ended:
                 self._last[i] = self._take_reset(stream, i)
@@ -543,6 +549,12 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
                 infos = self._add_info(infos, env_infos[i], i)
         self._autoreset_envs = np.logical_or(terminations, truncations)
         return self._batch(), rewards, terminations, truncations, infos
+
+    def _final_observation(self, index: int) -> ObsDict:
+        observation, goal = self._last_observations[index], self._goals[index]
+        assert observation is not None
+        assert goal is not None
+        return _observation_dict(observation, goal)
 
     def _batch(self) -> ObsDict:
         """The sub-envs' last observations in fresh arrays (never reused, so keeping them is safe)."""
