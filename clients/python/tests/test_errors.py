@@ -129,6 +129,11 @@ def test_server_unavailable() -> None:
         client.server_info()
     assert caught.value.code == grpc.StatusCode.UNAVAILABLE
     assert isinstance(caught.value.__cause__, grpc.RpcError)
+    with (
+        esrp.Client(f"127.0.0.1:{port}") as client,
+        pytest.raises(esrp.DeadlineExceeded, match="not healthy"),
+    ):
+        client.wait_healthy(timeout=0.3)
 
 
 def test_abandoned_create_leaves_no_episode(client: esrp.Client) -> None:
