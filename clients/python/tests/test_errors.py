@@ -136,6 +136,34 @@ def test_server_unavailable() -> None:
         client.wait_healthy(timeout=0.3)
 
 
+def test_deadline_exceeded() -> None:
+    """A port that accepts connections and never speaks: the call's deadline passes."""
+    with socket.socket() as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(1)
+        port = silent.getsockname()[1]
+        with (
+            esrp.Client(f"127.0.0.1:{port}", timeout=0.3) as client,
+            pytest.raises(esrp.DeadlineExceeded) as caught,
+        ):
+            client.server_info()
+    assert caught.value.code == grpc.StatusCode.DEADLINE_EXCEEDED
+    assert isinstance(caught.value.__cause__, grpc.RpcError)
+
+
+def test_cancelled(client: esrp.Client) -> None:
+    before = client.server_info().live_episodes
+    stream = client.episode_stream()
+    stream.create(split="test")
+    stream.cancel()
+    with pytest.raises(esrp.Cancelled) as caught:
+        stream.next()
+    assert caught.value.code == grpc.StatusCode.CANCELLED
+    assert isinstance(caught.value.rpc_error, grpc.RpcError)
+    # The server closes what the cancelled stream created.
+    assert settled_live_episodes(client, before) == before
+
+
 def test_abandoned_create_leaves_no_episode(client: esrp.Client) -> None:
     """A create whose caller gives up is closed when its answer arrives (cancellation-safe)."""
     before = client.server_info().live_episodes
