@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
-# Runs the Python end-to-end tests (tests/python): dm_env_rpc's compliance suites and whole
-# DmEnvAdaptor episodes against the real esrp-server binary. Creates .venv (gitignored) with the
-# pinned packages, builds the binaries, then runs ruff, mypy and pytest. Works on a fresh machine
-# with a Rust toolchain; installs python3-venv (and the CPU Vulkan driver) if they are missing.
-# Usage: bash scripts/python-tests.sh [PYTEST ARGS...]
+# Runs the Python tests against the real esrp-server binary: the Python client package
+# (clients/python: `pip install ./clients/python[test]`, then ruff, mypy and its pytest suite) and
+# the end-to-end tests of tests/python (dm_env_rpc's compliance suites and whole DmEnvAdaptor
+# episodes). Creates .venv (gitignored) with the pinned packages of both, builds the binaries,
+# installs the client package as built from this tree, then lints and tests each. Works on a fresh
+# machine with a Rust toolchain; installs python3-venv (and the CPU Vulkan driver) if missing.
+# Usage: bash scripts/python-tests.sh [PYTEST ARGS for tests/python...]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -20,6 +22,8 @@ python="${PYTHON:-python3}"
 venv=.venv
 requirements=tests/python/requirements.txt
 constraints=tests/python/constraints.txt
+client=clients/python
+client_constraints=$client/constraints.txt
 
 step "python"
 if ! command -v "$python" >/dev/null 2>&1; then
@@ -43,14 +47,21 @@ fi
 if [ ! -x "$venv/bin/python" ]; then
     "$python" -m venv "$venv"
 fi
-# Reinstall only when the pins change.
+pip() { "$venv/bin/python" -m pip --disable-pip-version-check --quiet "$@"; }
+# Reinstall the dependencies only when the pins change. The client package builds with the pinned
+# hatchling from the venv (no build isolation), so every package that runs is pinned.
 stamp="$venv/.esrp-requirements"
-wanted="$(cat "$requirements" "$constraints" | sha256sum | cut -d' ' -f1)"
+wanted="$(cat "$requirements" "$constraints" "$client_constraints" "$client/pyproject.toml" | sha256sum | cut -d' ' -f1)"
 if [ "$(cat "$stamp" 2>/dev/null)" != "$wanted" ]; then
-    "$venv/bin/python" -m pip install --disable-pip-version-check --quiet -r "$requirements" -c "$constraints"
+    pip install -r "$requirements" -c "$constraints"
+    pip install hatchling -c "$client_constraints"
+    pip install --no-build-isolation "./$client[test]" -c "$client_constraints"
     echo "$wanted" >"$stamp"
 fi
-"$venv/bin/python" -m pip list --disable-pip-version-check --format=freeze | grep -iE '^(dm-env-rpc|grpcio|protobuf|numpy)=='
+# The package itself, as built from this tree, every time (a wheel: what `pip install` gives users).
+pip install --no-build-isolation --no-deps --force-reinstall "./$client"
+"$venv/bin/python" -m pip list --disable-pip-version-check --format=freeze \
+    | grep -iE '^(esrp|dm-env-rpc|grpcio|protobuf|numpy|gymnasium)=='
 
 step "binaries"
 # Without a GPU the server renders on Mesa's CPU renderer: llvmpipe through OpenGL (EGL), or
@@ -65,13 +76,23 @@ target_dir="$(cargo metadata --format-version 1 --no-deps | "$venv/bin/python" -
 export ESRP_SERVER_BIN="$target_dir/debug/esrp-server"
 export ESRP_DATASET_BIN="$target_dir/debug/esrp-dataset"
 
+step "python client: ruff ($client)"
+(cd "$client" && "../../$venv/bin/ruff" check . && "../../$venv/bin/ruff" format --check .)
+
+step "python client: mypy (strict)"
+(cd "$client" && "../../$venv/bin/mypy")
+
+step "python client: pytest (the installed package against the real server)"
+# The package has a src/ layout, so `import esrp` in the tests is the installed wheel.
+(cd "$client" && "../../$venv/bin/python" -m pytest -p no:cacheprovider tests)
+
 cd tests/python
-step "ruff"
+step "dm_env_rpc tests: ruff"
 "../../$venv/bin/ruff" check .
 "../../$venv/bin/ruff" format --check .
 
-step "mypy"
+step "dm_env_rpc tests: mypy"
 "../../$venv/bin/mypy" .
 
-step "pytest"
+step "dm_env_rpc tests: pytest"
 "../../$venv/bin/python" -m pytest "$@"

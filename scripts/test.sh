@@ -46,5 +46,5 @@ ESRP_RENDER_BACKEND=gl cargo test --locked -p esrp-render --test render
 step "benchmarks compile"
 cargo bench --workspace --locked --no-run
 
-step "python end-to-end tests (dm_env_rpc)"
+step "python: the client package (clients/python) and the dm_env_rpc end-to-end tests"
 bash scripts/python-tests.sh

@@ -1,0 +1,608 @@
+"""`Client`: a synchronous connection to an ESRP server; `Episode`, a handle to one live episode;
+`EpisodeStream`, a pipelined driver of one StepStream.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import queue
+import threading
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from types import TracebackType
+from typing import Any
+
+import grpc
+
+from . import _convert
+from ._common import (
+    ChannelOptions,
+    RequestKind,
+    StreamAnswer,
+    StreamLedger,
+    TlsSetting,
+    bearer_metadata,
+    channel_options,
+    collect_run,
+    credentials,
+    target,
+)
+from ._errors import DeadlineExceeded, EpisodeNotFound, EsrpError, ServerUnavailable, from_rpc_error
+from ._values import (
+    Action,
+    Created,
+    DatasetInfo,
+    Difficulty,
+    EpisodeMetrics,
+    Goal,
+    Observation,
+    ObservationSpec,
+    PrivilegedState,
+    Progress,
+    RewardWeights,
+    SceneSummary,
+    Sensors,
+    ServerInfo,
+    Split,
+    StepResult,
+)
+from .v1 import esrp_pb2 as pb
+from .v1 import esrp_pb2_grpc as pb_grpc
+
+__all__ = ["Client", "Episode", "EpisodeStream", "health_check"]
+
+# grpc.health.v1.Health/Check, hand-encoded: the request holds only its `service` string (field 1),
+# the answer only its `status` enum (field 1; SERVING is 1). Spares a dependency on
+# grpcio-health-checking for two bytes.
+_HEALTH_METHOD = "/grpc.health.v1.Health/Check"
+_SERVING = b"\x08\x01"
+
+
+def _health_request(service: str) -> bytes:
+    name = service.encode()
+    return b"\x0a" + bytes([len(name)]) + name
+
+
+def health_check(channel: grpc.Channel, timeout: float) -> bool:
+    """Whether the server's health service says `esrp.v1.Esrp` is serving (one call)."""
+    check: grpc.UnaryUnaryMultiCallable[bytes, bytes] = channel.unary_unary(_HEALTH_METHOD)
+    try:
+        answer = check(_health_request("esrp.v1.Esrp"), timeout=timeout)
+    except grpc.RpcError:
+        return False
+    return bool(answer == _SERVING)
+
+
+class Client:
+    """A synchronous connection to an ESRP server (esrp.v1 over gRPC).
+
+    One channel, shared by every call (HTTP/2 multiplexes them; it is safe to use from several
+    threads). Use it as a context manager, or call `close()`.
+
+    Args:
+        address: `host:port`, `http://host:port`, or `https://host:port` (TLS).
+        token: Sent as `authorization: Bearer TOKEN` on every call (the server's `--token`).
+        tls: TLS setting: True (system roots), the CA's PEM bytes, a path to the CA's PEM file, or
+            `grpc.ChannelCredentials`; None/False for a plain channel (unless `https://`).
+        tls_server_name: Check the server's certificate against this name instead of the host.
+        timeout: Default deadline of unary calls, seconds (None: none).
+        options: Extra gRPC channel arguments; they override the tuned defaults.
+
+    Example:
+        >>> with esrp.Client("127.0.0.1:50051") as client:            # doctest: +SKIP
+        ...     with client.create_episode("esrp-bench-v1/00017") as episode:
+        ...         result = episode.step(esrp.Action.LEFT)
+    """
+
+    def __init__(
+        self,
+        address: str = "127.0.0.1:50051",
+        *,
+        token: str | None = None,
+        tls: TlsSetting = None,
+        tls_server_name: str | None = None,
+        timeout: float | None = None,
+        options: ChannelOptions = (),
+    ) -> None:
+        host, https = target(address)
+        self.address = host
+        self.timeout = timeout
+        self._metadata = bearer_metadata(token)
+        creds = credentials(tls, https)
+        arguments = channel_options(tls_server_name, options)
+        if creds is None:
+            self._channel = grpc.insecure_channel(host, options=arguments)
+        else:
+            self._channel = grpc.secure_channel(host, creds, options=arguments)
+        self._stub = pb_grpc.EsrpStub(self._channel)
+        # Creates whose callers gave up, and the closes of their episodes, until they finish:
+        # close() waits for them so that closing the channel cancels none of them.
+        self._background: set[grpc.Future[Any]] = set()
+        self._background_done = threading.Condition()
+
+    @property
+    def raw(self) -> pb_grpc.EsrpStub:
+        """The generated stub, for what the typed API does not cover (pass `metadata=client.metadata`)."""
+        return self._stub
+
+    @property
+    def channel(self) -> grpc.Channel:
+        """The gRPC channel."""
+        return self._channel
+
+    @property
+    def metadata(self) -> tuple[tuple[str, str], ...] | None:
+        """The call metadata (the bearer token), for calls through `raw`."""
+        return self._metadata
+
+    def close(self, grace: float = 5.0) -> None:
+        """Closes the channel (calls in flight are cancelled), after waiting up to `grace` seconds
+        for abandoned creates to be answered and their episodes closed.
+        """
+        with self._background_done:
+            self._background_done.wait_for(lambda: not self._background, timeout=grace)
+        self._channel.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(
+        self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def wait_healthy(self, timeout: float = 10.0) -> None:
+        """Waits until the server's health service says `esrp.v1.Esrp` is serving, polling every
+        50 ms; raises `DeadlineExceeded` after `timeout` seconds.
+        """
+        deadline = time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise DeadlineExceeded(f"the server at {self.address} was not healthy within {timeout} s")
+            if health_check(self._channel, timeout=min(left, 1.0)):
+                return
+            time.sleep(min(0.05, max(deadline - time.monotonic(), 0)))
+
+    def server_info(self) -> ServerInfo:
+        """The server's version, renderer, limits and live episode count."""
+        try:
+            answer = self._stub.ServerInfo(
+                pb.ServerInfoRequest(), metadata=self._metadata, timeout=self.timeout
+            )
+        except grpc.RpcError as error:
+            raise from_rpc_error(error) from error
+        return _convert.server_info(answer)
+
+    def describe_dataset(self) -> DatasetInfo:
+        """The served dataset: name, size, counts by split, difficulty and room type."""
+        try:
+            answer = self._stub.DescribeDataset(
+                pb.DescribeDatasetRequest(), metadata=self._metadata, timeout=self.timeout
+            )
+        except grpc.RpcError as error:
+            raise from_rpc_error(error) from error
+        return _convert.dataset_info(answer)
+
+    def scenes(
+        self,
+        split: Split | str | None = None,
+        difficulty: Difficulty | str | None = None,
+        *,
+        page_size: int = 0,
+    ) -> Iterator[SceneSummary]:
+        """Every scene of `split` and `difficulty` (all when None), in dataset order, fetched page by
+        page (`page_size` per request; 0: the server's 100, at most 1,000) as the iterator is read.
+        """
+        request = pb.ListScenesRequest(
+            split=_convert.split_code(split),
+            difficulty=_convert.difficulty_code(difficulty),
+            page_size=page_size,
+        )
+        return self._scene_pages(request)
+
+    def _scene_pages(self, request: pb.ListScenesRequest) -> Iterator[SceneSummary]:
+        while True:
+            try:
+                page = self._stub.ListScenes(request, metadata=self._metadata, timeout=self.timeout)
+            except grpc.RpcError as error:
+                raise from_rpc_error(error) from error
+            for scene in page.scenes:
+                yield _convert.scene_summary(scene)
+            if not page.next_page_token:
+                return
+            request.page_token = page.next_page_token
+
+    def create_episode(
+        self,
+        scene: str | None = None,
+        *,
+        scene_json: str | None = None,
+        split: Split | str | None = None,
+        seed: int = 0,
+        horizon: int = 0,
+        reward: RewardWeights | None = None,
+        sensors: Sensors | None = None,
+        privileged: bool = False,
+        timeout: float | None = None,
+    ) -> Episode:
+        """Creates an episode and returns its handle, whose `observation` is the first one (with goal).
+
+        Args:
+            scene: A scene id of the served dataset (`scenes()` lists them).
+            scene_json: An inline `esrp.scene/v1` scene instead.
+            split: With neither: pick from this split (default test) ...
+            seed: ... its scene number `seed mod count`, in dataset order.
+            horizon: The step limit; 0: the scene's own.
+            reward: Reward weights (the server's defaults for fields left None).
+            sensors: Optional sensors and the image size (default: none, 128 px).
+            privileged: Allow `Episode.privileged_state()` (planners, debugging).
+            timeout: Give up waiting after this many seconds (default: the client's `timeout`).
+
+        Cancellation-safe, as the Rust client: the call runs to its end whatever happens to the
+        caller, and an answer that arrives after the caller gave up (a `timeout`, a
+        KeyboardInterrupt) is closed on the server at once, so no episode is left behind that
+        nobody knows of. (The server closes an episode whose call is abandoned before its answer
+        is sent.)
+        """
+        request = _convert.create_request(
+            scene,
+            scene_json=scene_json,
+            split=split,
+            seed=seed,
+            horizon=horizon,
+            reward=reward,
+            sensors=sensors,
+            privileged=privileged,
+        )
+        # No gRPC deadline: a deadline that expires while the answer travels would drop the answer,
+        # and with it the only copy of the new episode's id.
+        future = self._stub.CreateEpisode.future(request, metadata=self._metadata)
+        wait = timeout if timeout is not None else self.timeout
+        try:
+            answer = future.result(timeout=wait)
+        except grpc.FutureTimeoutError:
+            self._abandon(future)
+            raise DeadlineExceeded(f"no answer to CreateEpisode within {wait} s") from None
+        except grpc.RpcError as error:
+            raise from_rpc_error(error) from error
+        except BaseException:
+            self._abandon(future)
+            raise
+        return Episode(self, _convert.created(answer))
+
+    def _track(self, future: grpc.Future[Any]) -> None:
+        with self._background_done:
+            self._background.add(future)
+        future.add_done_callback(self._untrack)
+
+    def _untrack(self, future: grpc.Future[Any]) -> None:
+        with self._background_done:
+            self._background.discard(future)
+            self._background_done.notify_all()
+
+    def _abandon(self, future: grpc.Future[pb.CreateEpisodeResponse]) -> None:
+        """Lets a create nobody waits for run on; its episode is closed when the answer comes."""
+        # Tracked first: the close is tracked by _close_abandoned before the create is untracked
+        # (callbacks run in the order added), so close() never sees a gap.
+        with self._background_done:
+            self._background.add(future)
+        future.add_done_callback(self._close_abandoned)
+        future.add_done_callback(self._untrack)
+
+    def _close_abandoned(self, future: grpc.Future[pb.CreateEpisodeResponse]) -> None:
+        """Closes the episode of a CreateEpisode answer nobody waits for any more (best effort)."""
+        try:
+            if future.cancelled() or future.exception() is not None:
+                return
+            episode_id = future.result().episode_id
+            close = self._stub.CloseEpisode.future(
+                pb.CloseEpisodeRequest(episode_id=episode_id), metadata=self._metadata
+            )
+            self._track(close)
+        except Exception:  # noqa: BLE001 - the channel may be closing; the server's reaper remains.
+            return
+
+    def episode(self, episode_id: str) -> Episode:
+        """A handle to the live episode `episode_id` (made elsewhere); its scene and spec are unknown
+        (empty) and its `observation` None until a reset.
+        """
+        return Episode(self, None, episode_id=episode_id)
+
+    def step_batch(
+        self, steps: Sequence[tuple[Episode | str, Action | int]], *, include_goal: bool = False
+    ) -> list[StepResult]:
+        """One step in each of several episodes, in one call (at most one per episode; the server's
+        `max_batch` caps the count). All or nothing: a bad entry fails the call and no episode
+        moves. Results are in request order.
+        """
+        request = pb.StepBatchRequest(
+            steps=[
+                _convert.step_request(_episode_id(episode), action, include_goal) for episode, action in steps
+            ]
+        )
+        try:
+            answer = self._stub.StepBatch(request, metadata=self._metadata, timeout=self.timeout)
+        except grpc.RpcError as error:
+            raise from_rpc_error(error) from error
+        return _convert.step_results(answer.responses, len(steps))
+
+    def episode_stream(self, window: int = 8) -> EpisodeStream:
+        """Opens a StepStream driven by an `EpisodeStream` with up to `window` steps of each
+        episode in flight.
+        """
+        return EpisodeStream(self, window)
+
+
+def _episode_id(episode: Episode | str) -> str:
+    return episode if isinstance(episode, str) else episode.id
+
+
+class Episode:
+    """A live episode on the server. Use it as a context manager (closed on exit) or call `close()`.
+
+    Attributes:
+        id: The episode's id (32 hex digits).
+        scene: The scene it plays (updated by `reset`).
+        spec: Its observation arrays and the action names, as the server described them.
+        observation: The first observation of the last creation or reset (with the goal image).
+        closed: Whether `close()` was called.
+    """
+
+    def __init__(self, client: Client, created: Created | None, *, episode_id: str = "") -> None:
+        self.client = client
+        self.closed = False
+        self.observation: Observation | None
+        if created is None:
+            self.id = episode_id
+            self.scene = SceneSummary("", "", None, None, 0, 0, 0)
+            self.spec = ObservationSpec((), ())
+            self.observation = None
+        else:
+            self.id = created.episode_id
+            self.scene = created.scene
+            self.spec = created.spec
+            self.observation = created.observation
+
+    def __repr__(self) -> str:
+        return f"Episode(id={self.id!r}, scene={self.scene.id!r}, closed={self.closed})"
+
+    def _call(self, method: Any, request: Any) -> Any:  # noqa: ANN401
+        try:
+            return method(request, metadata=self.client.metadata, timeout=self.client.timeout)
+        except grpc.RpcError as error:
+            raise from_rpc_error(error) from error
+
+    def step(self, action: Action | int, *, include_goal: bool = False) -> StepResult:
+        """Takes `action`; with `include_goal` the observation carries the goal image too."""
+        answer = self._call(self.client.raw.Step, _convert.step_request(self.id, action, include_goal))
+        return _convert.step_result(answer)
+
+    def reset(self, scene: str | None = None, *, scene_json: str | None = None) -> Observation:
+        """Restarts the episode on the same scene (or another one); returns the first observation
+        (with the goal image). Works on an ended episode.
+        """
+        answer = self._call(self.client.raw.Reset, _convert.reset_request(self.id, scene, scene_json))
+        observation, summary = _convert.reset_observation(answer)
+        if summary is not None:
+            self.scene = summary
+        self.observation = observation
+        return observation
+
+    def goal(self) -> Goal:
+        """The goal image and its pixel ↔ floor frame."""
+        return _convert.goal(self._call(self.client.raw.GetGoal, pb.GetGoalRequest(episode_id=self.id)))
+
+    def metrics(self) -> Progress:
+        """The metrics so far (final once ended), and whether the episode has ended."""
+        answer = self._call(self.client.raw.GetMetrics, pb.GetMetricsRequest(episode_id=self.id))
+        return Progress(_convert.metrics(answer.metrics), answer.ended)
+
+    def privileged_state(self) -> PrivilegedState:
+        """The full state; only for episodes created with `privileged=True` (else `PermissionDenied`)."""
+        request = pb.GetPrivilegedStateRequest(episode_id=self.id)
+        return _convert.privileged_state(self._call(self.client.raw.GetPrivilegedState, request))
+
+    def close(self) -> EpisodeMetrics:
+        """Closes the episode on the server; returns its metrics at that moment."""
+        self.closed = True
+        answer = self._call(self.client.raw.CloseEpisode, pb.CloseEpisodeRequest(episode_id=self.id))
+        return _convert.closed_metrics(answer)
+
+    def detach(self) -> str:
+        """Gives up the handle without closing the episode (exiting a `with` block then does
+        nothing); returns the id, for `Client.episode`.
+        """
+        self.closed = True
+        return self.id
+
+    def __enter__(self) -> Episode:
+        return self
+
+    def __exit__(
+        self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None
+    ) -> None:
+        if self.closed:
+            return
+        # Already gone (closed elsewhere, reaped) or the server is: nothing is left to free.
+        with contextlib.suppress(EpisodeNotFound, ServerUnavailable):
+            self.close()
+
+
+_END = object()
+
+
+class _RequestQueue:
+    """The request iterator of a sync StepStream call: gRPC reads it on its own thread."""
+
+    def __init__(self) -> None:
+        self._queue: queue.SimpleQueue[object] = queue.SimpleQueue()
+
+    def put(self, request: pb.StreamRequest) -> None:
+        self._queue.put(request)
+
+    def end(self) -> None:
+        self._queue.put(_END)
+
+    def __iter__(self) -> _RequestQueue:
+        return self
+
+    def __next__(self) -> pb.StreamRequest:
+        item = self._queue.get()
+        if item is _END:
+            raise StopIteration
+        assert isinstance(item, pb.StreamRequest)
+        return item
+
+
+class EpisodeStream:
+    """A pipelined driver of one StepStream, as the Rust client's `EpisodeStream`.
+
+    It keeps up to `window` steps of each episode in flight: `step()` returns at once unless that
+    episode already has `window` steps unanswered, in which case it first reads answers (kept for
+    `next()`). Answers come in request order, exactly as the same requests made one by one would
+    answer; an error the server gives one request comes in-band in its `StreamAnswer` and the
+    stream goes on. Episodes created on the stream are closed by the server when the stream ends.
+    Use it as a context manager, or call `close()`.
+    """
+
+    def __init__(self, client: Client, window: int) -> None:
+        self._ledger = StreamLedger(window)
+        self._requests = _RequestQueue()
+        self._responses: Any = client.raw.StepStream(self._requests, metadata=client.metadata)
+        self._ended = False
+
+    @property
+    def window(self) -> int:
+        """The most steps of one episode in flight."""
+        return self._ledger.window
+
+    @property
+    def outstanding(self) -> int:
+        """Requests sent and not yet returned by `next()`."""
+        return self._ledger.outstanding
+
+    def _send(self, kind: RequestKind, episode_id: str, **body: Any) -> int:  # noqa: ANN401
+        if self._ended:
+            raise ServerUnavailable("the stream has ended")
+        request = self._ledger.request(kind, episode_id, **body)
+        self._requests.put(request)
+        return request.request_id
+
+    def create(
+        self,
+        scene: str | None = None,
+        *,
+        scene_json: str | None = None,
+        split: Split | str | None = None,
+        seed: int = 0,
+        horizon: int = 0,
+        reward: RewardWeights | None = None,
+        sensors: Sensors | None = None,
+        privileged: bool = False,
+    ) -> int:
+        """Sends a create (arguments as `Client.create_episode`); the episode lives as long as the
+        stream. Returns the request id; the answer's `created()` has the new episode's id.
+        """
+        request = _convert.create_request(
+            scene,
+            scene_json=scene_json,
+            split=split,
+            seed=seed,
+            horizon=horizon,
+            reward=reward,
+            sensors=sensors,
+            privileged=privileged,
+        )
+        return self._send(RequestKind.CREATE, "", create=request)
+
+    def step(self, episode_id: str, action: Action | int, *, include_goal: bool = False) -> int:
+        """Sends a step; first reads answers while the episode has `window` steps in flight."""
+        while self._ledger.window_full(episode_id):
+            self._ledger.ready.append(self._read())
+        return self._send(
+            RequestKind.STEP, episode_id, step=_convert.step_request(episode_id, action, include_goal)
+        )
+
+    def reset(self, episode_id: str, scene: str | None = None, *, scene_json: str | None = None) -> int:
+        """Sends a reset of `episode_id` (to `scene` if given)."""
+        return self._send(
+            RequestKind.RESET, episode_id, reset=_convert.reset_request(episode_id, scene, scene_json)
+        )
+
+    def close_episode(self, episode_id: str) -> int:
+        """Sends a close of `episode_id`."""
+        return self._send(RequestKind.CLOSE, episode_id, close=pb.CloseEpisodeRequest(episode_id=episode_id))
+
+    def next(self) -> StreamAnswer | None:
+        """The next answer in request order; None when every request sent has been answered.
+        Raises only when the stream itself failed (it cannot go on).
+        """
+        if self._ledger.ready:
+            return self._ledger.ready.popleft()
+        if not self._ledger.pending:
+            return None
+        return self._read()
+
+    def __iter__(self) -> Iterator[StreamAnswer]:
+        """Every answer not yet read, in request order."""
+        while (answer := self.next()) is not None:
+            yield answer
+
+    def _read(self) -> StreamAnswer:
+        try:
+            response = next(self._responses)
+        except StopIteration:
+            self._ended = True
+            raise ServerUnavailable("the server ended the stream with requests unanswered") from None
+        except grpc.RpcError as error:
+            self._ended = True
+            raise from_rpc_error(error) from error
+        return self._ledger.answer(response)
+
+    def run(self, plans: Mapping[str, Sequence[Action | int]]) -> dict[str, list[StepResult | EsrpError]]:
+        """Takes every episode's actions on this stream, up to `window` steps of each in flight,
+        episodes interleaved; returns each episode's results in order (an error for a step the
+        server refused, e.g. one sent after its episode ended).
+        """
+        if self.outstanding:
+            raise EsrpError("read the stream's earlier answers with next() before a run")
+        results: dict[str, list[StepResult | EsrpError]] = {episode: [] for episode in plans}
+        longest = max((len(actions) for actions in plans.values()), default=0)
+        for k in range(longest):
+            for episode, actions in plans.items():
+                if k < len(actions):
+                    self.step(episode, actions[k])
+            while self._ledger.ready:
+                collect_run(self._ledger.ready.popleft(), results)
+        for answer in self:
+            collect_run(answer, results)
+        return results
+
+    def close(self) -> None:
+        """Half-closes the stream and waits for the server to end it: the answers not yet read are
+        dropped, and the server closes the episodes created on the stream.
+        """
+        if self._ended:
+            return
+        self._ended = True
+        self._requests.end()
+        try:
+            for _ in self._responses:
+                pass
+        except grpc.RpcError:
+            pass
+
+    def cancel(self) -> None:
+        """Cancels the stream at once (the server closes the episodes created on it)."""
+        self._ended = True
+        self._responses.cancel()
+        self._requests.end()
+
+    def __enter__(self) -> EpisodeStream:
+        return self
+
+    def __exit__(
+        self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None
+    ) -> None:
+        self.close()

@@ -1,0 +1,242 @@
+"""What the sync and async clients share: channel settings, credentials, the bearer token, and the
+bookkeeping of a pipelined StepStream (request ids, pending requests, per-episode windows).
+"""
+
+from __future__ import annotations
+
+import enum
+import os
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar, Union
+
+import grpc
+
+from . import _convert
+from ._errors import EsrpError, InvalidRequest, ProtocolError, from_status
+from ._values import Created, EpisodeMetrics, Observation, StepResult
+from .v1 import esrp_pb2 as pb
+
+MAX_MESSAGE_BYTES = 256 << 20
+"""The largest message either side of a client sends (a StepBatch of many high-resolution views)."""
+
+STREAM_WINDOW_BYTES = 16 << 20
+"""HTTP/2 stream window the client asks for (gRPC core's `lookahead_bytes`), as the Rust client."""
+
+ChannelOptions = Sequence[tuple[str, Any]]
+
+TlsSetting = Union[bool, bytes, str, "os.PathLike[str]", grpc.ChannelCredentials, None]
+"""TLS: None/False (plain, unless the address starts with https://), True (the system's roots), the
+PEM bytes of the CA that signed the server's certificate, a path to that PEM file, or ready-made
+`grpc.ChannelCredentials` (e.g. `grpc.ssl_channel_credentials(...)`)."""
+
+
+def channel_options(tls_server_name: str | None, extra: ChannelOptions) -> list[tuple[str, Any]]:
+    """The channel arguments of every client.
+
+    An agent waits for every answer and a batch moves megabytes: gRPC core sets TCP_NODELAY on its
+    sockets itself; the message limits are raised from grpcio's 4 MiB (an observation is ~49 KB, so a
+    StepBatch of ~85 episodes exceeds that); each stream starts with a 16 MiB window, and BDP probing
+    (on by default) grows the connection's window as the Rust client's 64 MiB one. `extra` options
+    come last and win.
+    """
+    options: list[tuple[str, Any]] = [
+        ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+        ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
+        ("grpc.http2.lookahead_bytes", STREAM_WINDOW_BYTES),
+        ("grpc.http2.bdp_probe", 1),
+    ]
+    if tls_server_name is not None:
+        options.append(("grpc.ssl_target_name_override", tls_server_name))
+    names = {name for name, _ in extra}
+    return [option for option in options if option[0] not in names] + list(extra)
+
+
+def target(address: str) -> tuple[str, bool]:
+    """`host:port` of an address (`host:port`, `http://host:port` or `https://host:port`), and
+    whether its scheme asks for TLS.
+    """
+    for prefix, secure in (("http://", False), ("https://", True)):
+        if address.startswith(prefix):
+            return address[len(prefix) :].rstrip("/"), secure
+    return address, False
+
+
+def credentials(tls: TlsSetting, https: bool) -> grpc.ChannelCredentials | None:
+    """The channel credentials of a TLS setting, or None for a plain channel."""
+    if tls is None:
+        return grpc.ssl_channel_credentials() if https else None
+    if isinstance(tls, grpc.ChannelCredentials):
+        return tls
+    if isinstance(tls, bool):
+        return grpc.ssl_channel_credentials() if tls else None
+    if isinstance(tls, bytes):
+        return grpc.ssl_channel_credentials(root_certificates=tls)
+    path = Path(tls)
+    try:
+        return grpc.ssl_channel_credentials(root_certificates=path.read_bytes())
+    except OSError as error:
+        raise InvalidRequest(f"cannot read the TLS root certificate {path}: {error}") from error
+
+
+def bearer_metadata(token: str | None) -> tuple[tuple[str, str], ...] | None:
+    """The `authorization: Bearer TOKEN` metadata of every call, or None without a token."""
+    if token is None:
+        return None
+    if not token or not all(" " <= c <= "~" for c in token):
+        raise InvalidRequest("the token must be non-empty printable ASCII (the server's --token)")
+    return (("authorization", f"Bearer {token}"),)
+
+
+class RequestKind(enum.Enum):
+    """What a stream request asks."""
+
+    CREATE = "create"
+    STEP = "step"
+    RESET = "reset"
+    CLOSE = "close"
+
+
+AnswerValue = Created | StepResult | Observation | EpisodeMetrics
+_T = TypeVar("_T", Created, StepResult, Observation, EpisodeMetrics)
+
+
+@dataclass(frozen=True, eq=False)
+class StreamAnswer:
+    """One answer of an episode stream, in request order.
+
+    Attributes:
+        request_id: The id the stream gave the request (counting from 1 in sending order).
+        kind: What the request asked.
+        episode_id: The episode it was about (for a create, the new episode's id; empty if it failed).
+        value: `Created` (create), `StepResult` (step), `Observation` (reset, with the goal) or
+            `EpisodeMetrics` (close); None when the server refused the request.
+        error: The error the server gave this request alone (the stream goes on), or None.
+    """
+
+    request_id: int
+    kind: RequestKind
+    episode_id: str
+    value: AnswerValue | None
+    error: EsrpError | None
+
+    def unwrap(self) -> AnswerValue:
+        """The value; raises the request's error if the server refused it."""
+        if self.error is not None:
+            raise self.error
+        assert self.value is not None
+        return self.value
+
+    def _typed(self, kind: type[_T]) -> _T:
+        value = self.unwrap()
+        if not isinstance(value, kind):
+            raise ProtocolError(f"request {self.request_id} was a {self.kind.value}, not a {kind.__name__}")
+        return value
+
+    def created(self) -> Created:
+        """The created episode (raises the request's error)."""
+        return self._typed(Created)
+
+    def step_result(self) -> StepResult:
+        """The step's result (raises the request's error)."""
+        return self._typed(StepResult)
+
+    def observation(self) -> Observation:
+        """The first observation after a reset (raises the request's error)."""
+        return self._typed(Observation)
+
+    def metrics(self) -> EpisodeMetrics:
+        """The metrics of a closed episode (raises the request's error)."""
+        return self._typed(EpisodeMetrics)
+
+
+@dataclass
+class _Pending:
+    request_id: int
+    kind: RequestKind
+    episode_id: str
+
+
+class StreamLedger:
+    """The protocol-side state of a pipelined StepStream, without I/O: request ids, the requests
+    sent and not yet answered, each episode's steps in flight, and answers read early.
+    """
+
+    def __init__(self, window: int) -> None:
+        if window < 1:
+            raise InvalidRequest("an episode stream needs a window of at least 1")
+        self.window = window
+        self.pending: deque[_Pending] = deque()
+        self.ready: deque[StreamAnswer] = deque()
+        self.steps_in_flight: dict[str, int] = {}
+        self.next_request_id = 1
+
+    def request(self, kind: RequestKind, episode_id: str, **body: Any) -> pb.StreamRequest:  # noqa: ANN401
+        """The next request (its id assigned), recorded as pending."""
+        request_id = self.next_request_id
+        self.next_request_id += 1
+        self.pending.append(_Pending(request_id, kind, episode_id))
+        if kind is RequestKind.STEP:
+            self.steps_in_flight[episode_id] = self.steps_in_flight.get(episode_id, 0) + 1
+        return pb.StreamRequest(request_id=request_id, **body)
+
+    def window_full(self, episode_id: str) -> bool:
+        """Whether `episode_id` already has `window` steps in flight."""
+        return self.steps_in_flight.get(episode_id, 0) >= self.window
+
+    @property
+    def outstanding(self) -> int:
+        """Requests sent and not yet handed out."""
+        return len(self.pending) + len(self.ready)
+
+    def answer(self, response: pb.StreamResponse) -> StreamAnswer:
+        """The answer of the oldest pending request, from the server's response to it."""
+        if not self.pending:
+            raise ProtocolError(f"an answer to request {response.request_id}, which was never sent")
+        pending = self.pending.popleft()
+        if pending.kind is RequestKind.STEP:
+            left = self.steps_in_flight[pending.episode_id] - 1
+            if left:
+                self.steps_in_flight[pending.episode_id] = left
+            else:
+                del self.steps_in_flight[pending.episode_id]
+        if response.request_id != pending.request_id:
+            raise ProtocolError(
+                f"an answer to request {response.request_id} where request {pending.request_id} was due"
+            )
+        which = response.WhichOneof("response")
+        episode_id = pending.episode_id
+        value: AnswerValue | None = None
+        error: EsrpError | None = None
+        try:
+            if which == "error":
+                error = from_status(response.error.code, response.error.message)
+            elif pending.kind is RequestKind.CREATE and which == "created":
+                value = _convert.created(response.created)
+                episode_id = value.episode_id
+            elif pending.kind is RequestKind.STEP and which == "step":
+                value = _convert.step_result(response.step)
+            elif pending.kind is RequestKind.RESET and which == "reset":
+                value = _convert.reset_observation(response.reset)[0]
+            elif pending.kind is RequestKind.CLOSE and which == "closed":
+                value = _convert.closed_metrics(response.closed)
+            else:
+                raise ProtocolError(f"a {pending.kind.value} request answered with {which!r}")
+        except ProtocolError as protocol_error:
+            error = protocol_error
+        return StreamAnswer(pending.request_id, pending.kind, episode_id, value, error)
+
+
+def collect_run(answer: StreamAnswer, results: dict[str, list[StepResult | EsrpError]]) -> None:
+    """Files a step answer of `EpisodeStream.run` under its episode."""
+    if answer.episode_id not in results:
+        raise InvalidRequest(
+            f"an answer for episode {answer.episode_id!r} outside the run: "
+            "read earlier answers with next() first"
+        )
+    if answer.error is not None:
+        results[answer.episode_id].append(answer.error)
+    else:
+        results[answer.episode_id].append(answer.step_result())

@@ -1,0 +1,378 @@
+"""Conversions between the esrp.v1 messages and the package's values, at the edge.
+
+Every answer is checked for what it must hold (an image's byte count against its shape, the
+presence of required messages), so a malformed answer raises `ProtocolError`, never a numpy error.
+Images become read-only numpy views of the message's bytes: `np.frombuffer(...).reshape(...)`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from ._errors import InvalidRequest, ProtocolError
+from ._values import (
+    ArraySpec,
+    Created,
+    DatasetInfo,
+    Difficulty,
+    EpisodeMetrics,
+    Footprint,
+    Goal,
+    ObjectState,
+    Observation,
+    ObservationSpec,
+    Obstacle,
+    Pose2,
+    PrivilegedState,
+    RewardTerms,
+    RewardWeights,
+    SceneSummary,
+    Sensors,
+    ServerInfo,
+    ServerLimits,
+    Split,
+    StaticObstacle,
+    StepInfo,
+    StepResult,
+    TopDownFrame,
+)
+from .v1 import esrp_pb2 as pb
+
+_SPLITS = {pb.SPLIT_TRAIN: Split.TRAIN, pb.SPLIT_TEST: Split.TEST}
+_SPLIT_CODES = {value: code for code, value in _SPLITS.items()}
+_DIFFICULTIES = {
+    pb.DIFFICULTY_EASY: Difficulty.EASY,
+    pb.DIFFICULTY_MEDIUM: Difficulty.MEDIUM,
+    pb.DIFFICULTY_HARD: Difficulty.HARD,
+}
+_DIFFICULTY_CODES = {value: code for code, value in _DIFFICULTIES.items()}
+_OBSTACLE_KINDS = {
+    pb.Obstacle.KIND_WALL: "wall",
+    pb.Obstacle.KIND_FIXED: "fixed",
+    pb.Obstacle.KIND_MOVABLE: "movable",
+}
+_LITTLE_FLOAT32 = np.dtype("<f4")
+_LITTLE_UINT32 = np.dtype("<u4")
+
+
+# Requests.
+
+
+def split_code(split: Split | str | None) -> pb.Split.ValueType:
+    """The proto value of a split (`"train"`, `Split.TEST`, ...; None: unspecified)."""
+    if split is None:
+        return pb.SPLIT_UNSPECIFIED
+    try:
+        return _SPLIT_CODES[Split(split)]
+    except ValueError:
+        raise InvalidRequest(f"unknown split {split!r}: use 'train' or 'test'") from None
+
+
+def difficulty_code(difficulty: Difficulty | str | None) -> pb.Difficulty.ValueType:
+    """The proto value of a difficulty (`"easy"`, `Difficulty.HARD`, ...; None: unspecified)."""
+    if difficulty is None:
+        return pb.DIFFICULTY_UNSPECIFIED
+    try:
+        return _DIFFICULTY_CODES[Difficulty(difficulty)]
+    except ValueError:
+        raise InvalidRequest(f"unknown difficulty {difficulty!r}: use 'easy', 'medium' or 'hard'") from None
+
+
+def create_request(
+    scene: str | None,
+    *,
+    scene_json: str | None,
+    split: Split | str | None,
+    seed: int,
+    horizon: int,
+    reward: RewardWeights | None,
+    sensors: Sensors | None,
+    privileged: bool,
+) -> pb.CreateEpisodeRequest:
+    """The CreateEpisode request of `Client.create_episode`'s arguments."""
+    if scene is not None and scene_json is not None:
+        raise InvalidRequest("give either scene (an id) or scene_json, not both")
+    sensors = sensors or Sensors()
+    request = pb.CreateEpisodeRequest(
+        split=split_code(split),
+        seed=seed,
+        horizon=horizon,
+        sensors=pb.Sensors(
+            ego_depth=sensors.depth,
+            ego_segmentation=sensors.segmentation,
+            current_top_down=sensors.current_top_down,
+            resolution=sensors.resolution,
+        ),
+        privileged=privileged,
+    )
+    if scene is not None:
+        request.scene_id = scene
+    if scene_json is not None:
+        request.scene_json = scene_json
+    if reward is not None:
+        weights: dict[str, Any] = {k: v for k, v in vars(reward).items() if v is not None}
+        request.reward.CopyFrom(pb.RewardWeights(**weights))
+    return request
+
+
+def reset_request(episode_id: str, scene: str | None, scene_json: str | None) -> pb.ResetRequest:
+    """The Reset request of `Episode.reset`'s arguments."""
+    if scene is not None and scene_json is not None:
+        raise InvalidRequest("give either scene (an id) or scene_json, not both")
+    request = pb.ResetRequest(episode_id=episode_id)
+    if scene is not None:
+        request.scene_id = scene
+    if scene_json is not None:
+        request.scene_json = scene_json
+    return request
+
+
+def step_request(episode_id: str, action: int, include_goal: bool) -> pb.StepRequest:
+    """A Step request. The action is sent as given: the server checks it (INVALID_ARGUMENT)."""
+    return pb.StepRequest(episode_id=episode_id, action=int(action), include_goal=include_goal)
+
+
+# Answers.
+
+
+def _checked(what: str, height: int, width: int, per_pixel: int, data: bytes) -> None:
+    expected = height * width * per_pixel
+    if height == 0 or width == 0 or len(data) != expected:
+        raise ProtocolError(
+            f"{what} is {width}x{height} with {per_pixel} bytes per pixel but holds {len(data)} bytes"
+        )
+
+
+def rgb_image(what: str, image: pb.Image) -> npt.NDArray[np.uint8]:
+    """A read-only (H, W, C) uint8 view of an Image's bytes."""
+    data = image.data
+    _checked(what, image.height, image.width, image.channels, data)
+    return np.frombuffer(data, dtype=np.uint8).reshape(image.height, image.width, image.channels)
+
+
+def _depth_image(image: pb.FloatImage) -> npt.NDArray[np.float32]:
+    data = image.data
+    _checked("ego_depth", image.height, image.width, 4, data)
+    array: npt.NDArray[np.float32] = np.frombuffer(data, dtype=_LITTLE_FLOAT32).reshape(
+        image.height, image.width
+    )
+    return array
+
+
+def _label_image(image: pb.LabelImage) -> npt.NDArray[np.uint32]:
+    data = image.data
+    _checked("ego_segmentation", image.height, image.width, 4, data)
+    array: npt.NDArray[np.uint32] = np.frombuffer(data, dtype=_LITTLE_UINT32).reshape(
+        image.height, image.width
+    )
+    return array
+
+
+def observation(message: pb.Observation) -> Observation:
+    """An Observation of its message; images as read-only numpy views."""
+    if not message.HasField("ego_rgb"):
+        raise ProtocolError("an observation without ego_rgb")
+    return Observation(
+        ego_rgb=rgb_image("ego_rgb", message.ego_rgb),
+        grasping=message.grasping,
+        goal_rgb=rgb_image("goal_rgb", message.goal_rgb) if message.HasField("goal_rgb") else None,
+        depth=_depth_image(message.ego_depth) if message.HasField("ego_depth") else None,
+        segmentation=_label_image(message.ego_segmentation) if message.HasField("ego_segmentation") else None,
+        current_top_down=(
+            rgb_image("current_top_down", message.current_top_down)
+            if message.HasField("current_top_down")
+            else None
+        ),
+    )
+
+
+def obstacle(message: pb.Obstacle) -> Obstacle:
+    """An Obstacle of its message."""
+    return Obstacle(kind=_OBSTACLE_KINDS.get(message.kind, "unknown"), index=message.index, name=message.name)
+
+
+def metrics(message: pb.EpisodeMetrics) -> EpisodeMetrics:
+    """EpisodeMetrics of its message."""
+    return EpisodeMetrics(
+        success=message.success,
+        object_success_rate=message.object_success_rate,
+        remaining_distance_ratio=message.remaining_distance_ratio,
+        stage=message.stage,
+        placed=message.placed,
+        movable_objects=message.movable_objects,
+        steps=message.steps,
+        total_reward=message.total_reward,
+    )
+
+
+def step_result(message: pb.StepResponse) -> StepResult:
+    """A StepResult of a StepResponse."""
+    if not message.HasField("observation") or not message.HasField("info"):
+        raise ProtocolError("a step answer without observation or info")
+    info = message.info
+    terms = info.reward_terms
+    return StepResult(
+        observation=observation(message.observation),
+        reward=message.reward,
+        terminated=message.terminated,
+        truncated=message.truncated,
+        info=StepInfo(
+            accepted=info.accepted,
+            collided_with=obstacle(info.collided_with) if info.HasField("collided_with") else None,
+            no_op=info.no_op or None,
+            fetched=info.fetched if info.HasField("fetched") else None,
+            released=info.released if info.HasField("released") else None,
+            placed_count=info.placed_count,
+            step_index=info.step_index,
+            reward_terms=RewardTerms(
+                success=terms.success,
+                placement=terms.placement,
+                potential=terms.potential,
+                holding=terms.holding,
+                living=terms.living,
+            ),
+        ),
+        metrics=metrics(message.metrics) if message.HasField("metrics") else None,
+    )
+
+
+def step_results(messages: Sequence[pb.StepResponse], sent: int) -> list[StepResult]:
+    """The StepResults of a StepBatch answer to `sent` steps."""
+    if len(messages) != sent:
+        raise ProtocolError(f"{len(messages)} answers to a batch of {sent} steps")
+    return [step_result(m) for m in messages]
+
+
+def scene_summary(message: pb.SceneSummary) -> SceneSummary:
+    """A SceneSummary of its message."""
+    return SceneSummary(
+        id=message.id,
+        room_type=message.room_type,
+        difficulty=_DIFFICULTIES.get(message.difficulty),
+        split=_SPLITS.get(message.split),
+        movable_objects=message.movable_objects,
+        horizon=message.horizon,
+        expert_length=message.expert_length,
+    )
+
+
+def observation_spec(message: pb.ObservationSpec) -> ObservationSpec:
+    """An ObservationSpec of its message."""
+    return ObservationSpec(
+        arrays=tuple(ArraySpec(a.name, tuple(a.shape), a.dtype) for a in message.arrays),
+        actions=tuple(message.actions),
+    )
+
+
+def created(message: pb.CreateEpisodeResponse) -> Created:
+    """A Created of a CreateEpisode answer."""
+    if not message.HasField("observation") or not message.HasField("scene"):
+        raise ProtocolError("a create answer without observation or scene")
+    return Created(
+        episode_id=message.episode_id,
+        scene=scene_summary(message.scene),
+        spec=observation_spec(message.spec),
+        observation=observation(message.observation),
+    )
+
+
+def reset_observation(message: pb.ResetResponse) -> tuple[Observation, SceneSummary | None]:
+    """The first observation and the scene of a Reset answer."""
+    if not message.HasField("observation"):
+        raise ProtocolError("a reset answer without observation")
+    scene = scene_summary(message.scene) if message.HasField("scene") else None
+    return observation(message.observation), scene
+
+
+def closed_metrics(message: pb.CloseEpisodeResponse) -> EpisodeMetrics:
+    """The metrics of a CloseEpisode answer."""
+    if not message.HasField("metrics"):
+        raise ProtocolError("a close answer without metrics")
+    return metrics(message.metrics)
+
+
+def goal(message: pb.GetGoalResponse) -> Goal:
+    """A Goal of a GetGoal answer."""
+    if not message.HasField("goal_rgb") or not message.HasField("frame"):
+        raise ProtocolError("a goal answer without image or frame")
+    f = message.frame
+    return Goal(
+        image=rgb_image("goal_rgb", message.goal_rgb),
+        frame=TopDownFrame(f.min_x, f.min_z, f.metres_per_pixel, f.resolution),
+    )
+
+
+def _pose(message: pb.Pose2) -> Pose2:
+    return Pose2(message.x, message.z, message.yaw)
+
+
+def _footprint(message: pb.Footprint) -> Footprint:
+    return Footprint(message.center_x, message.center_z, message.half_x, message.half_z, message.yaw)
+
+
+def privileged_state(message: pb.GetPrivilegedStateResponse) -> PrivilegedState:
+    """A PrivilegedState of its message."""
+    floor = list(message.floor)
+    if len(floor) % 2:
+        raise ProtocolError(f"a floor polygon of {len(floor)} coordinates (x, z pairs expected)")
+    return PrivilegedState(
+        agent_x=message.agent_x,
+        agent_z=message.agent_z,
+        agent_heading=message.agent_heading,
+        held=message.held if message.HasField("held") else None,
+        objects=tuple(
+            ObjectState(
+                id=o.id,
+                category=o.category,
+                pose=_pose(o.pose),
+                target=_pose(o.target),
+                footprint=_footprint(o.footprint),
+                target_footprint=_footprint(o.target_footprint),
+                iou=o.iou,
+                placed=o.placed,
+                held=o.held,
+            )
+            for o in message.objects
+        ),
+        static_obstacles=tuple(
+            StaticObstacle(obstacle(s.obstacle), _footprint(s.footprint)) for s in message.static_obstacles
+        ),
+        floor=tuple(zip(floor[0::2], floor[1::2], strict=True)),
+        scene_json=message.scene_json,
+    )
+
+
+def server_info(message: pb.ServerInfoResponse) -> ServerInfo:
+    """A ServerInfo of its message."""
+    limits = message.limits
+    return ServerInfo(
+        version=message.version,
+        renderer_adapter=message.renderer_adapter,
+        renderer_backend=message.renderer_backend,
+        software_renderer=message.software_renderer,
+        limits=ServerLimits(
+            max_episodes=limits.max_episodes,
+            max_batch=limits.max_batch,
+            max_message_bytes=limits.max_message_bytes,
+            idle_timeout_seconds=limits.idle_timeout_seconds,
+            max_resolution=limits.max_resolution,
+        ),
+        live_episodes=message.live_episodes,
+        dataset=message.dataset,
+    )
+
+
+def dataset_info(message: pb.DescribeDatasetResponse) -> DatasetInfo:
+    """A DatasetInfo of its message."""
+    return DatasetInfo(
+        name=message.name,
+        scenes=message.scenes,
+        by_split=dict(message.by_split),
+        by_difficulty=dict(message.by_difficulty),
+        by_room_type=dict(message.by_room_type),
+        source=message.source,
+    )

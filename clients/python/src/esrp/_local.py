@@ -1,0 +1,258 @@
+"""`LocalServer`: an esrp-server child process on a free local port, for tests, notebooks and tools
+that want a server without a second terminal.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import tempfile
+import threading
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from types import TracebackType
+from typing import IO, Any
+
+import grpc
+
+from ._client import Client, health_check
+from ._errors import LocalServerError
+
+__all__ = ["LocalServer", "find_server_binary"]
+
+_LISTENING = "esrp-server listening on "
+_METRICS = "esrp-server metrics on "
+_BINARY = "esrp-server.exe" if os.name == "nt" else "esrp-server"
+
+
+def _checkout_targets() -> list[Path]:
+    """`target` folders of repository checkouts above this package and the working directory
+    (`CARGO_TARGET_DIR` first): `pip install ./clients/python` into a venv inside the checkout, an
+    editable install, or running from the checkout all find the workspace's build.
+    """
+    targets = []
+    if os.environ.get("CARGO_TARGET_DIR"):
+        targets.append(Path(os.environ["CARGO_TARGET_DIR"]))
+    for start in (Path(__file__).resolve().parent, Path.cwd().resolve()):
+        for folder in (start, *start.parents):
+            if (folder / "Cargo.toml").is_file() and (folder / "server" / "service").is_dir():
+                targets.append(folder / "target")
+                break
+    return targets
+
+
+def find_server_binary() -> Path:
+    """Where `LocalServer` finds esrp-server, in order: `ESRP_SERVER_BIN`; `PATH`; the repository's
+    `target/release` then `target/debug` (or `CARGO_TARGET_DIR`'s) when run from a checkout.
+    """
+    variable = os.environ.get("ESRP_SERVER_BIN")
+    if variable:
+        path = Path(variable)
+        if not path.is_file():
+            raise LocalServerError(f"ESRP_SERVER_BIN={variable} is not a file")
+        return path
+    on_path = shutil.which(_BINARY)
+    if on_path:
+        return Path(on_path)
+    for target in _checkout_targets():
+        for profile in ("release", "debug"):
+            candidate = target / profile / _BINARY
+            if candidate.is_file():
+                return candidate
+    raise LocalServerError(
+        f"cannot find {_BINARY}: build it with `cargo build --release -p esrp-server`, put it on PATH, "
+        "or set ESRP_SERVER_BIN"
+    )
+
+
+class LocalServer:
+    """An esrp-server child process on a free port of 127.0.0.1.
+
+    `start()` (or entering the `with` block) runs `esrp-server --listen 127.0.0.1:0 ARGS...`, reads
+    the bound address from its first line, and waits until its health service says serving (a
+    server started with `--tls-cert` is taken as ready once it prints its address, as the Rust
+    `LocalServer` does: its certificate is not known to be trusted here);
+    `stop()` (or leaving the block) sends SIGTERM, waits `stop_timeout` seconds for the graceful
+    shutdown, then kills it. A server that does not start raises `LocalServerError` with the tail
+    of its stderr.
+
+    Args:
+        *args: More server flags, e.g. `"--token", "s3cret"` or `"--max-episodes", "64"`.
+        binary: The esrp-server to run (default: `find_server_binary()`).
+        env: Extra environment variables of the process (`ESRP_LOG` defaults to `warn`).
+        startup_timeout: Seconds to wait for the address and for health.
+        stop_timeout: Seconds to wait after SIGTERM before killing.
+
+    Example:
+        >>> with esrp.LocalServer() as server, server.client() as client:    # doctest: +SKIP
+        ...     print(client.server_info().dataset)
+    """
+
+    def __init__(
+        self,
+        *args: str,
+        binary: str | os.PathLike[str] | None = None,
+        env: Mapping[str, str] | None = None,
+        startup_timeout: float = 60.0,
+        stop_timeout: float = 10.0,
+    ) -> None:
+        self.args: Sequence[str] = args
+        self.binary = Path(binary) if binary is not None else None
+        self.env = dict(env or {})
+        self.startup_timeout = startup_timeout
+        self.stop_timeout = stop_timeout
+        self.process: subprocess.Popen[str] | None = None
+        self._stderr: IO[bytes] | None = None
+        self._address: str | None = None
+        self.metrics_url: str | None = None
+        """`http://127.0.0.1:PORT/metrics`, the Prometheus endpoint, when started with `--metrics-listen`."""
+
+    @property
+    def address(self) -> str:
+        """`127.0.0.1:PORT` of the running server."""
+        if self._address is None:
+            raise LocalServerError("the server is not running: call start() or use `with`")
+        return self._address
+
+    @property
+    def pid(self) -> int:
+        """The process id."""
+        if self.process is None:
+            raise LocalServerError("the server is not running")
+        return self.process.pid
+
+    def is_running(self) -> bool:
+        """Whether the process is alive."""
+        return self.process is not None and self.process.poll() is None
+
+    def client(self, **options: Any) -> Client:  # noqa: ANN401
+        """A `Client` of this server; `options` as `Client`'s (token, timeout...)."""
+        return Client(self.address, **options)
+
+    def stderr_tail(self, lines: int = 40) -> str:
+        """The last `lines` lines the server wrote to stderr."""
+        if self._stderr is None:
+            return ""
+        self._stderr.flush()
+        self._stderr.seek(0)
+        text = self._stderr.read().decode(errors="replace")
+        return "\n".join(text.splitlines()[-lines:])
+
+    def start(self) -> LocalServer:
+        """Starts the server and waits until it is healthy; returns self."""
+        if self.process is not None:
+            raise LocalServerError("the server was already started")
+        binary = self.binary or find_server_binary()
+        environment = dict(os.environ)
+        environment.setdefault("ESRP_LOG", "warn")
+        environment.update(self.env)
+        # A file, not a pipe: nobody reads stderr while the server runs, and a pipe could fill up.
+        # It lives as long as the server and is closed by stop().
+        self._stderr = tempfile.TemporaryFile()  # noqa: SIM115
+        try:
+            self.process = subprocess.Popen(
+                [str(binary), "--listen", "127.0.0.1:0", *self.args],
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.PIPE,
+                stderr=self._stderr,
+                env=environment,
+                text=True,
+            )
+        except OSError as error:
+            raise LocalServerError(
+                f"cannot start {binary}: {error} (build it with `cargo build --release -p esrp-server`)"
+            ) from error
+        try:
+            self._await_start()
+        except BaseException:
+            self._terminate()
+            raise
+        return self
+
+    def _await_start(self) -> None:
+        assert self.process is not None
+        assert self.process.stdout is not None
+        deadline = time.monotonic() + self.startup_timeout
+        wanted = [_LISTENING] + ([_METRICS] if "--metrics-listen" in self.args else [])
+        found: list[str] = []
+        for prefix in wanted:
+            line = self._read_line(self.process.stdout, deadline)
+            if not line.startswith(prefix):
+                self._fail(f"printed {line!r} where {prefix!r} was expected")
+            found.append(line.removeprefix(prefix).strip())
+        self._address = found[0]
+        if len(found) > 1:
+            self.metrics_url = found[1]
+        # Keep reading stdout so that a chatty server never blocks on a full pipe.
+        threading.Thread(target=_drain, args=(self.process.stdout,), daemon=True).start()
+        if "--tls-cert" in self.args:
+            return
+        with grpc.insecure_channel(self._address) as channel:
+            while not health_check(channel, timeout=max(min(deadline - time.monotonic(), 1.0), 0.01)):
+                if not self.is_running():
+                    self._fail("exited before it was healthy")
+                if time.monotonic() >= deadline:
+                    self._fail(f"was not healthy within {self.startup_timeout} s")
+                time.sleep(0.05)
+
+    def _read_line(self, stream: IO[str], deadline: float) -> str:
+        """A line of stdout, read on a helper thread so that a silent server times out."""
+        result: list[str] = []
+        reader = threading.Thread(target=lambda: result.append(stream.readline()), daemon=True)
+        reader.start()
+        reader.join(max(deadline - time.monotonic(), 0))
+        if reader.is_alive():
+            self._fail(f"printed no address within {self.startup_timeout} s")
+        return result[0]
+
+    def _fail(self, what: str) -> None:
+        code = self.process.poll() if self.process is not None else None
+        status = f"exit code {code}" if code is not None else "still running"
+        tail = self.stderr_tail()
+        raise LocalServerError(
+            f"esrp-server did not start: it {what} ({status}); its stderr ends with:\n{tail or '(nothing)'}"
+        )
+
+    def stop(self) -> int | None:
+        """Stops the server (SIGTERM, then kill after `stop_timeout`); returns its exit code."""
+        code = self._terminate()
+        self._address = None
+        return code
+
+    def _terminate(self) -> int | None:
+        process, self.process = self.process, None
+        code = None
+        if process is not None:
+            if process.poll() is None:
+                process.send_signal(signal.SIGTERM)
+                try:
+                    process.wait(timeout=self.stop_timeout)
+                except subprocess.TimeoutExpired:
+                    process.kill()
+                    process.wait()
+            code = process.returncode
+            if process.stdout is not None:
+                process.stdout.close()
+        if self._stderr is not None:
+            self._stderr.close()
+            self._stderr = None
+        return code
+
+    def __enter__(self) -> LocalServer:
+        return self.start()
+
+    def __exit__(
+        self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None
+    ) -> None:
+        self.stop()
+
+
+def _drain(stream: IO[str]) -> None:
+    try:
+        for _ in stream:
+            pass
+    except (OSError, ValueError):
+        pass

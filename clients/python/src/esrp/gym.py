@@ -1,0 +1,595 @@
+"""The Gymnasium environment `esrp/Rearrange-v1` and its native vector env (needs the `gym` extra).
+
+`RearrangeEnv` owns one server episode and steps it with unary calls. `RearrangeVectorEnv` owns N
+episodes on one StepStream and advances them all with one pipelined round trip per step (steps and
+autoresets together): no subprocesses, no per-env threads. Both follow Gymnasium 1.x exactly:
+`reset(seed=s)` seeds the env's `np_random`, which picks the scene from the filtered scene list, so
+the same seed plays the same scene; the vector env seeds sub-env i with `s + i`, exactly as
+`SyncVectorEnv` over N `RearrangeEnv`s would, and gives bit-identical observations.
+
+Observations are dicts: `ego_rgb` and `goal_rgb` (R, R, 3) uint8, `grasping` 0/1 (Discrete(2)), and
+`depth` (R, R) float32, `segmentation` (R, R) uint32 and `current_top_down` (R, R, 3) uint8 for the
+sensors that are on. Actions are `Discrete(6)` with the codes of `esrp.Action`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, SupportsFloat, cast
+
+import gymnasium
+import numpy as np
+import numpy.typing as npt
+from gymnasium import spaces
+from gymnasium.utils import seeding
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space, concatenate, create_empty_array
+
+from ._client import Client, Episode, EpisodeStream
+from ._common import TlsSetting
+from ._errors import EpisodeEnded, EpisodeNotFound, EsrpError, InvalidRequest, ServerUnavailable
+from ._local import LocalServer
+from ._values import Difficulty, Observation, RewardWeights, Sensors, Split, StepResult
+
+__all__ = ["RearrangeEnv", "RearrangeVectorEnv", "observation_space"]
+
+ObsDict = dict[str, npt.NDArray[Any]]
+
+_METADATA: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+
+def observation_space(sensors: Sensors) -> spaces.Dict:
+    """The observation space of one env with these sensors."""
+    side = sensors.resolution
+    image = spaces.Box(0, 255, (side, side, 3), np.uint8)
+    members: dict[str, spaces.Space[Any]] = {
+        "ego_rgb": image,
+        "goal_rgb": image,
+        "grasping": spaces.Discrete(2),
+    }
+    if sensors.depth:
+        members["depth"] = spaces.Box(0.0, np.inf, (side, side), np.float32)
+    if sensors.segmentation:
+        members["segmentation"] = spaces.Box(0, np.iinfo(np.uint32).max, (side, side), np.uint32)
+    if sensors.current_top_down:
+        members["current_top_down"] = image
+    return spaces.Dict(members)
+
+
+def _observation_dict(
+    observation: Observation, goal: npt.NDArray[np.uint8], *, copy_goal: bool = True
+) -> ObsDict:
+    """An observation as the env returns it: the client's read-only views of the answer, and a
+    read-only copy of the goal image that the server sent at the reset (Gymnasium wants no two
+    observations to share memory, and the goal is the one array a step answer does not carry).
+    The vector env, which copies everything into fresh batch arrays anyway, passes
+    `copy_goal=False`.
+    """
+    if copy_goal:
+        goal = goal.copy()
+        goal.flags.writeable = False
+    result: ObsDict = {
+        "ego_rgb": observation.ego_rgb,
+        "goal_rgb": goal,
+        "grasping": np.int64(observation.grasping),
+    }
+    if observation.depth is not None:
+        result["depth"] = observation.depth
+    if observation.segmentation is not None:
+        result["segmentation"] = observation.segmentation
+    if observation.current_top_down is not None:
+        result["current_top_down"] = observation.current_top_down
+    return result
+
+
+def _step_info(result: StepResult) -> dict[str, Any]:
+    """A step's info: plain scalars (so vector infos batch them into arrays), and the episode's
+    final metrics under `metrics` on the step that ends it.
+    """
+    info: dict[str, Any] = {
+        "accepted": result.info.accepted,
+        "collided": result.info.collided_with is not None,
+        "placed_count": result.info.placed_count,
+        "step_index": result.info.step_index,
+    }
+    if result.metrics is not None:
+        m = result.metrics
+        info["metrics"] = {
+            "success": m.success,
+            "object_success_rate": m.object_success_rate,
+            "remaining_distance_ratio": m.remaining_distance_ratio,
+            "stage": m.stage,
+            "placed": m.placed,
+            "steps": m.steps,
+            "total_reward": m.total_reward,
+        }
+    return info
+
+
+def _frame(observation: Observation, goal: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
+    """The ego view, the goal and (when the sensor is on) the current top-down, side by side."""
+    views = [observation.ego_rgb, goal]
+    if observation.current_top_down is not None:
+        views.append(observation.current_top_down)
+    return np.concatenate(views, axis=1)
+
+
+@dataclass
+class _Setup:
+    """What the single and the vector env share: the connection (owned or not), the episode
+    settings, and the scene list the seeds pick from.
+    """
+
+    client: Client
+    owned_client: bool
+    server: LocalServer | None
+    scenes: tuple[str, ...]
+    sensors: Sensors
+    horizon: int
+    reward: RewardWeights | None
+
+    @classmethod
+    def connect(
+        cls,
+        address: str | None,
+        client: Client | None,
+        token: str | None,
+        tls: TlsSetting,
+        split: Split | str | None,
+        difficulty: Difficulty | str | None,
+        scene: str | None,
+        sensors: Sensors | None,
+        horizon: int,
+        reward: RewardWeights | None,
+    ) -> _Setup:
+        server = None
+        owned = client is None
+        if client is None:
+            if address is None:
+                server = LocalServer().start()
+                address = server.address
+            client = Client(address, token=token, tls=tls)
+        try:
+            if scene is not None:
+                scenes: tuple[str, ...] = (scene,)
+            else:
+                scenes = tuple(s.id for s in client.scenes(split, difficulty, page_size=1000))
+                if not scenes:
+                    raise InvalidRequest(
+                        f"the served dataset has no scenes of split {split!r}, difficulty {difficulty!r}"
+                    )
+        except BaseException:
+            if owned:
+                client.close()
+            if server is not None:
+                server.stop()
+            raise
+        return cls(client, owned, server, scenes, sensors or Sensors(), horizon, reward)
+
+    def pick_scene(self, rng: np.random.Generator, options: Mapping[str, Any] | None) -> str:
+        """The scene of a reset: drawn from the list with the env's generator (always, so the
+        generator advances the same way), unless `options["scene"]` names one.
+        """
+        drawn = self.scenes[int(rng.integers(len(self.scenes)))]
+        if options and options.get("scene") is not None:
+            return str(options["scene"])
+        return drawn
+
+    def close(self) -> None:
+        if self.owned_client:
+            self.client.close()
+        if self.server is not None:
+            self.server.stop()
+            self.server = None
+
+
+class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
+    """The ESRP task as a Gymnasium env (`gymnasium.make("esrp/Rearrange-v1", ...)`).
+
+    Args:
+        address: The server (`host:port`); None starts a `LocalServer` that the env owns.
+        client: A `Client` to share instead (the env then does not close it).
+        token: The server's bearer token.
+        tls: TLS setting, as `Client`'s.
+        split: Scenes to draw from: `train` (default), `test`, or None for all.
+        difficulty: Only `easy`, `medium` or `hard` scenes (None: all).
+        scene: Always play this scene id (ignores split and difficulty).
+        sensors: Optional sensors and image size (default: none, 128 px).
+        horizon: Step limit; 0: each scene's own (the server truncates).
+        reward: Reward weights (the server's defaults for fields left None).
+        render_mode: None or `rgb_array` (ego view, goal and, with the sensor, current top-down).
+
+    `reset(seed=s)` seeds `np_random`, which draws the scene; `reset(options={"scene": id})` plays
+    `id` instead. The reset info has `scene_id`; a step's info has `accepted`, `collided`,
+    `placed_count`, `step_index` and, on the step that ends the episode, `metrics`.
+    """
+
+    metadata = _METADATA
+
+    def __init__(
+        self,
+        address: str | None = None,
+        *,
+        client: Client | None = None,
+        token: str | None = None,
+        tls: TlsSetting = None,
+        split: Split | str | None = "train",
+        difficulty: Difficulty | str | None = None,
+        scene: str | None = None,
+        sensors: Sensors | None = None,
+        horizon: int = 0,
+        reward: RewardWeights | None = None,
+        render_mode: str | None = None,
+    ) -> None:
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode {render_mode!r}: use None or 'rgb_array'")
+        self.render_mode = render_mode
+        self._setup = _Setup.connect(
+            address, client, token, tls, split, difficulty, scene, sensors, horizon, reward
+        )
+        self.observation_space = cast(spaces.Space[ObsDict], observation_space(self._setup.sensors))
+        self.action_space = spaces.Discrete(6)
+        self._episode: Episode | None = None
+        self._goal: npt.NDArray[np.uint8] | None = None
+        self._last: Observation | None = None
+
+    @property
+    def client(self) -> Client:
+        """The client the env uses."""
+        return self._setup.client
+
+    @property
+    def scenes(self) -> tuple[str, ...]:
+        """The scene ids `reset` draws from."""
+        return self._setup.scenes
+
+    @property
+    def episode(self) -> Episode | None:
+        """The server episode (None before the first reset)."""
+        return self._episode
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[ObsDict, dict[str, Any]]:
+        """Starts an episode on a scene drawn with `np_random` (or `options["scene"]`)."""
+        super().reset(seed=seed)
+        scene = self._setup.pick_scene(self.np_random, options)
+        if self._episode is None:
+            setup = self._setup
+            self._episode = setup.client.create_episode(
+                scene, sensors=setup.sensors, horizon=setup.horizon, reward=setup.reward
+            )
+            first = self._episode.observation
+        else:
+            first = self._episode.reset(scene)
+        assert first is not None
+        assert first.goal_rgb is not None
+        self._goal = first.goal_rgb
+        self._last = first
+        return _observation_dict(first, self._goal), {"scene_id": scene}
+
+    def step(self, action: np.int64 | int) -> tuple[ObsDict, SupportsFloat, bool, bool, dict[str, Any]]:
+        """Takes one action (0..5, see `esrp.Action`)."""
+        if self._episode is None or self._goal is None:
+            raise gymnasium.error.ResetNeeded("call reset() before step()")
+        result = self._episode.step(int(action))
+        self._last = result.observation
+        observation = _observation_dict(result.observation, self._goal)
+        return observation, result.reward, result.terminated, result.truncated, _step_info(result)
+
+    def render(self) -> npt.NDArray[np.uint8] | None:
+        """With `render_mode="rgb_array"`: the ego view, the goal and the current top-down (when
+        the sensor is on) side by side, (R, 2R or 3R, 3) uint8.
+        """
+        if self.render_mode != "rgb_array" or self._last is None or self._goal is None:
+            return None
+        return _frame(self._last, self._goal)
+
+    def close(self) -> None:
+        """Closes the server episode (and the client and server the env started)."""
+        episode, self._episode = self._episode, None
+        if episode is not None:
+            with contextlib.suppress(EpisodeNotFound, ServerUnavailable):
+                episode.close()
+        self._setup.close()
+        super().close()
+
+
+class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[Any]]):
+    """N ESRP episodes stepped together over one pipelined StepStream (`gymnasium.make_vec(
+    "esrp/Rearrange-v1", num_envs=N, vectorization_mode="vector_entry_point", ...)`).
+
+    Arguments as `RearrangeEnv`'s, plus `num_envs` and `autoreset_mode` (`AutoresetMode` or its
+    value; declared in `metadata["autoreset_mode"]`):
+
+    - `NEXT_STEP` (default): the step after an episode ended resets it instead of stepping it, with
+      reward 0, not terminated, not truncated and the reset's info.
+    - `SAME_STEP`: an episode that ends is reset in the same step; the returned observation is the
+      reset's, and `infos["final_obs"]` / `infos["final_info"]` (masks `_final_obs`,
+      `_final_info`) hold the last step's.
+    - `DISABLED`: no autoreset; reset ended episodes with `reset(options={"reset_mask": mask})`.
+      Stepping an ended one raises `EpisodeEnded` and moves no episode.
+
+    Infos are dicts of arrays with `_key` masks, as Gymnasium's `VectorEnv._add_info` builds them.
+    The episodes are created on the env's stream at the first reset and closed by `close()` (and by
+    the server, should the stream break).
+    """
+
+    metadata = {**_METADATA, "autoreset_mode": AutoresetMode.NEXT_STEP}
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        address: str | None = None,
+        *,
+        client: Client | None = None,
+        token: str | None = None,
+        tls: TlsSetting = None,
+        split: Split | str | None = "train",
+        difficulty: Difficulty | str | None = None,
+        scene: str | None = None,
+        sensors: Sensors | None = None,
+        horizon: int = 0,
+        reward: RewardWeights | None = None,
+        render_mode: str | None = None,
+        autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+    ) -> None:
+        if num_envs < 1:
+            raise ValueError(f"num_envs must be at least 1, got {num_envs}")
+        if render_mode is not None and render_mode not in _METADATA["render_modes"]:
+            raise ValueError(f"render_mode {render_mode!r}: use None or 'rgb_array'")
+        self.autoreset_mode = (
+            autoreset_mode if isinstance(autoreset_mode, AutoresetMode) else AutoresetMode(autoreset_mode)
+        )
+        self.metadata = {**_METADATA, "autoreset_mode": self.autoreset_mode}
+        self.num_envs = num_envs
+        self.render_mode = render_mode
+        self._setup = _Setup.connect(
+            address, client, token, tls, split, difficulty, scene, sensors, horizon, reward
+        )
+        self.single_observation_space = observation_space(self._setup.sensors)
+        self.observation_space = batch_space(self.single_observation_space, num_envs)
+        self.single_action_space = spaces.Discrete(6)
+        self.action_space = batch_space(self.single_action_space, num_envs)
+        self._stream: EpisodeStream | None = None
+        self._episode_ids: list[str | None] = [None] * num_envs
+        self._rngs: list[np.random.Generator | None] = [None] * num_envs
+        self._goals: list[npt.NDArray[np.uint8] | None] = [None] * num_envs
+        self._last: list[ObsDict | None] = [None] * num_envs
+        self._last_observations: list[Observation | None] = [None] * num_envs
+        self._autoreset_envs = np.zeros(num_envs, dtype=np.bool_)
+
+    @property
+    def client(self) -> Client:
+        """The client the env uses."""
+        return self._setup.client
+
+    @property
+    def scenes(self) -> tuple[str, ...]:
+        """The scene ids resets draw from."""
+        return self._setup.scenes
+
+    @property
+    def episode_ids(self) -> tuple[str | None, ...]:
+        """The server episode of each sub-env (None before its first reset)."""
+        return tuple(self._episode_ids)
+
+    def _rng(self, index: int) -> np.random.Generator:
+        rng = self._rngs[index]
+        if rng is None:
+            rng, _ = seeding.np_random()
+            self._rngs[index] = rng
+        return rng
+
+    def _open_stream(self) -> EpisodeStream:
+        if self._stream is None:
+            self._stream = self._setup.client.episode_stream(window=1)
+        return self._stream
+
+    def _send_reset(self, stream: EpisodeStream, index: int, options: Mapping[str, Any] | None) -> str:
+        """Sends sub-env `index`'s reset (its creation, the first time); returns the scene."""
+        scene = self._setup.pick_scene(self._rng(index), options)
+        episode = self._episode_ids[index]
+        if episode is None:
+            setup = self._setup
+            stream.create(scene, sensors=setup.sensors, horizon=setup.horizon, reward=setup.reward)
+        else:
+            stream.reset(episode, scene)
+        return scene
+
+    def _take_reset(self, stream: EpisodeStream, index: int) -> ObsDict:
+        """Reads sub-env `index`'s reset answer (sent by `_send_reset`); returns its observation."""
+        answer = stream.next()
+        assert answer is not None
+        if self._episode_ids[index] is None:
+            created = answer.created()
+            self._episode_ids[index] = created.episode_id
+            first = created.observation
+        else:
+            first = answer.observation()
+        assert first.goal_rgb is not None
+        self._goals[index] = first.goal_rgb
+        self._last_observations[index] = first
+        return _observation_dict(first, first.goal_rgb, copy_goal=False)
+
+    def reset(
+        self,
+        *,
+        seed: int | list[int | None] | None = None,
+        options: dict[str, Any] | None = None,
+    ) -> tuple[ObsDict, dict[str, Any]]:
+        """Resets every sub-env, or those of `options["reset_mask"]` (a bool array of shape
+        (num_envs,)). `seed`: None, an int (sub-env i gets seed + i) or one seed per sub-env.
+        """
+        if seed is None:
+            seeds: list[int | None] = [None] * self.num_envs
+        elif isinstance(seed, int):
+            seeds = [seed + i for i in range(self.num_envs)]
+        else:
+            seeds = list(seed)
+        if len(seeds) != self.num_envs:
+            raise ValueError(
+                "If seeds are passed as a list the length must match "
+                f"num_envs={self.num_envs} but got length={len(seeds)}."
+            )
+        options = dict(options) if options is not None else None
+        mask = self._reset_mask(options)
+        self._autoreset_envs[mask] = False
+        if any(self._last[index] is None for index in np.flatnonzero(~mask).tolist()):
+            raise ValueError("the first reset must reset every sub-environment (no reset_mask)")
+        stream = self._open_stream()
+        scenes: dict[int, str] = {}
+        for index in np.flatnonzero(mask).tolist():
+            if seeds[index] is not None:
+                self._rngs[index], _ = seeding.np_random(seeds[index])
+            scenes[index] = self._send_reset(stream, index, options)
+        infos: dict[str, Any] = {}
+        for i, scene in scenes.items():
+            self._last[i] = self._take_reset(stream, i)
+            infos = self._add_info(infos, {"scene_id": scene}, i)
+        return self._batch(), infos
+
+    def _reset_mask(self, options: dict[str, Any] | None) -> npt.NDArray[np.bool_]:
+        if options is None or "reset_mask" not in options:
+            return np.ones(self.num_envs, dtype=np.bool_)
+        mask = options.pop("reset_mask")
+        if not isinstance(mask, np.ndarray):
+            raise TypeError(f"`options['reset_mask']` must be a numpy array, got {type(mask)}")
+        if mask.shape != (self.num_envs,):
+            raise ValueError(
+                f"`options['reset_mask']` must have shape `({self.num_envs},)`, got {mask.shape}"
+            )
+        if mask.dtype != np.bool_:
+            raise TypeError(f"`options['reset_mask']` must have `dtype=np.bool_`, got {mask.dtype}")
+        if not np.any(mask):
+            raise ValueError(
+                "`options['reset_mask']` must contain a boolean array with at least one True value, "
+                f"got reset_mask={mask}"
+            )
+        return mask
+
+    def step(
+        self, actions: npt.NDArray[np.int64] | Sequence[int]
+    ) -> tuple[
+        ObsDict, npt.NDArray[np.float64], npt.NDArray[np.bool_], npt.NDArray[np.bool_], dict[str, Any]
+    ]:
+        """Steps every sub-env (or autoresets it, in NEXT_STEP mode) in one pipelined round trip."""
+        actions = np.asarray(actions)
+        if actions.shape != (self.num_envs,):
+            raise ValueError(f"actions must have shape ({self.num_envs},), got {actions.shape}")
+        if np.any((actions < 0) | (actions > 5)):
+            raise InvalidRequest(f"actions must be codes 0..5 (esrp.Action), got {actions}")
+        if any(episode is None for episode in self._episode_ids) or self._stream is None:
+            raise gymnasium.error.ResetNeeded("call reset() before step()")
+        if self.autoreset_mode == AutoresetMode.DISABLED and np.any(self._autoreset_envs):
+            ended = np.flatnonzero(self._autoreset_envs).tolist()
+            raise EpisodeEnded(
+                f"sub-environments {ended} have ended and autoreset_mode is DISABLED: reset them with "
+                "reset(options={'reset_mask': mask}) first (no episode moved)"
+            )
+        stream = self._stream
+        if self.autoreset_mode == AutoresetMode.NEXT_STEP:
+            resets = self._autoreset_envs
+        else:
+            resets = np.zeros(self.num_envs, dtype=np.bool_)
+        sent: list[tuple[int, str | None]] = []  # (sub-env, scene of a reset or None for a step)
+        for i in range(self.num_envs):
+            if resets[i]:
+                sent.append((i, self._send_reset(stream, i, None)))
+            else:
+                episode = self._episode_ids[i]
+                assert episode is not None
+                stream.step(episode, int(actions[i]))
+                sent.append((i, None))
+        rewards = np.zeros(self.num_envs, dtype=np.float64)
+        terminations = np.zeros(self.num_envs, dtype=np.bool_)
+        truncations = np.zeros(self.num_envs, dtype=np.bool_)
+        env_infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
+        failure: EsrpError | None = None
+        for i, scene in sent:
+            if scene is not None:
+                self._last[i] = self._take_reset(stream, i)
+                env_infos[i] = {"scene_id": scene}
+                continue
+            answer = stream.next()
+            assert answer is not None
+            if answer.error is not None:
+                failure = failure or answer.error
+                continue
+            result = answer.step_result()
+            goal = self._goals[i]
+            assert goal is not None
+            self._last_observations[i] = result.observation
+            self._last[i] = _observation_dict(result.observation, goal, copy_goal=False)
+            rewards[i] = result.reward
+            terminations[i] = result.terminated
+            truncations[i] = result.truncated
+            env_infos[i] = _step_info(result)
+        if failure is not None:
+            raise failure
+        infos: dict[str, Any] = {}
+        if self.autoreset_mode == AutoresetMode.SAME_STEP:
+            ended = np.flatnonzero(terminations | truncations).tolist()
+            # The final observations are handed out one by one: each gets a goal of its own.
+            final = {i: (self._final_observation(i), env_infos[i]) for i in ended}
+            scenes = {i: self._send_reset(stream, i, None) for i in ended}
+            for i in ended:
+                self._last[i] = self._take_reset(stream, i)
+            for i in range(self.num_envs):
+                if i in final:
+                    final_obs, final_info = final[i]
+                    infos = self._add_info(infos, {"final_obs": final_obs, "final_info": final_info}, i)
+                    infos = self._add_info(infos, {"scene_id": scenes[i]}, i)
+                else:
+                    infos = self._add_info(infos, env_infos[i], i)
+        else:
+            for i in range(self.num_envs):
+                infos = self._add_info(infos, env_infos[i], i)
+        self._autoreset_envs = np.logical_or(terminations, truncations)
+        return self._batch(), rewards, terminations, truncations, infos
+
+    def _final_observation(self, index: int) -> ObsDict:
+        observation, goal = self._last_observations[index], self._goals[index]
+        assert observation is not None
+        assert goal is not None
+        return _observation_dict(observation, goal)
+
+    def _batch(self) -> ObsDict:
+        """The sub-envs' last observations in fresh arrays (never reused, so keeping them is safe)."""
+        out = create_empty_array(self.single_observation_space, n=self.num_envs, fn=np.zeros)
+        assert isinstance(out, dict)
+        return cast(ObsDict, concatenate(self.single_observation_space, self._last, out))
+
+    def render(self) -> tuple[npt.NDArray[np.uint8], ...] | None:
+        """With `render_mode="rgb_array"`: one frame per sub-env, as `RearrangeEnv.render`."""
+        if self.render_mode != "rgb_array":
+            return None
+        frames = []
+        for observation, goal in zip(self._last_observations, self._goals, strict=True):
+            if observation is None or goal is None:
+                return None
+            frames.append(_frame(observation, goal))
+        return tuple(frames)
+
+    def close_extras(self, **kwargs: Any) -> None:  # noqa: ANN401
+        """Closes every server episode (on the stream, waiting for the answers), the stream, and
+        the client and server the env started.
+        """
+        stream, self._stream = self._stream, None
+        if stream is not None:
+            try:
+                for answer in stream:  # answers of a step that raised
+                    del answer
+                for episode in self._episode_ids:
+                    if episode is not None:
+                        stream.close_episode(episode)
+                for answer in stream:
+                    del answer  # An episode already gone is as good as closed.
+            except EsrpError:
+                pass  # The stream broke: the server closes its episodes with it.
+            finally:
+                stream.close()
+        self._episode_ids = [None] * self.num_envs
+        self._setup.close()

@@ -1,0 +1,42 @@
+"""Session fixtures: one real esrp-server (started by `esrp.LocalServer` on a free port) and a
+client of it; a helper that waits for the server's live-episode count to settle."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+
+import pytest
+
+import esrp
+
+
+@pytest.fixture(scope="session")
+def server() -> Iterator[esrp.LocalServer]:
+    """esrp-server on the built-in benchmark (ESRP_SERVER_BIN, else PATH, else the checkout's build)."""
+    with esrp.LocalServer() as running:
+        yield running
+
+
+@pytest.fixture(scope="session")
+def client(server: esrp.LocalServer) -> Iterator[esrp.Client]:
+    """A client of the session's server."""
+    with server.client(timeout=60) as connected:
+        yield connected
+
+
+@pytest.fixture(scope="session")
+def easy_scenes(client: esrp.Client) -> list[str]:
+    """The ids of the easy test scenes."""
+    return [scene.id for scene in client.scenes("test", "easy", page_size=1000)]
+
+
+def settled_live_episodes(client: esrp.Client, expected: int, timeout: float = 10.0) -> int:
+    """The server's live-episode count once it equals `expected` (closes on a stream that ended are
+    asynchronous), or whatever it is after `timeout` seconds."""
+    deadline = time.monotonic() + timeout
+    while True:
+        live = client.server_info().live_episodes
+        if live == expected or time.monotonic() > deadline:
+            return live
+        time.sleep(0.02)

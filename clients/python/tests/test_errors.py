@@ -1,0 +1,235 @@
+"""Each error class from a real bad request, with the server's message, code and gRPC error kept."""
+
+from __future__ import annotations
+
+import socket
+from collections.abc import Iterator
+from pathlib import Path
+
+import grpc
+import pytest
+from conftest import settled_live_episodes
+
+import esrp
+
+
+def check(error: esrp.EsrpError, code: grpc.StatusCode, needle: str) -> None:
+    """The error has the status code, the server's message, and the gRPC error as its cause."""
+    assert error.code == code
+    assert needle in error.message
+    assert needle in str(error)
+    assert isinstance(error.rpc_error, grpc.RpcError)
+    assert error.__cause__ is error.rpc_error
+    assert error.rpc_error.details() == error.message
+
+
+@pytest.fixture(scope="module")
+def strict_server() -> Iterator[esrp.LocalServer]:
+    """A server with a token and tiny limits."""
+    with esrp.LocalServer("--token", "s3cret", "--max-episodes", "2", "--max-batch", "2") as running:
+        yield running
+
+
+def test_episode_not_found(client: esrp.Client) -> None:
+    with pytest.raises(esrp.EpisodeNotFound) as caught:
+        client.episode("0" * 32).step(esrp.Action.LEFT)
+    check(caught.value, grpc.StatusCode.NOT_FOUND, 'no episode "00000000')
+    assert isinstance(caught.value, esrp.NotFound)
+    episode = client.create_episode(split="test")
+    episode.close()
+    with pytest.raises(esrp.EpisodeNotFound):
+        episode.close()
+    with pytest.raises(esrp.EpisodeNotFound):
+        episode.metrics()
+
+
+def test_scene_not_found(client: esrp.Client) -> None:
+    with pytest.raises(esrp.SceneNotFound) as caught:
+        client.create_episode("esrp-bench-v1/99999")
+    check(caught.value, grpc.StatusCode.NOT_FOUND, 'no scene "esrp-bench-v1/99999"')
+
+
+def test_invalid_request(client: esrp.Client) -> None:
+    with client.create_episode(split="test") as episode:
+        with pytest.raises(esrp.InvalidRequest) as caught:
+            episode.step(9)
+        check(caught.value, grpc.StatusCode.INVALID_ARGUMENT, "unknown action code 9")
+        assert episode.metrics().metrics.steps == 0  # a refused step does not count
+        with pytest.raises(esrp.InvalidRequest) as caught:
+            client.step_batch([(episode, 0), (episode, 1)])
+        check(caught.value, grpc.StatusCode.INVALID_ARGUMENT, "appears twice in one batch")
+    with pytest.raises(esrp.InvalidRequest) as caught:
+        client.create_episode(split="test", sensors=esrp.Sensors(resolution=5))
+    check(caught.value, grpc.StatusCode.INVALID_ARGUMENT, "sensors.resolution 5 is out of range")
+    with pytest.raises(esrp.InvalidRequest) as caught:
+        client.create_episode(scene_json="{not json")
+    check(caught.value, grpc.StatusCode.INVALID_ARGUMENT, "invalid scene")
+    with pytest.raises(esrp.InvalidRequest) as caught:
+        list(client.scenes(page_size=5000))
+    check(caught.value, grpc.StatusCode.INVALID_ARGUMENT, "5000")
+    # Client-side checks raise the same class, without a gRPC error.
+    with pytest.raises(esrp.InvalidRequest, match="unknown split"):
+        client.scenes("validation")
+    with pytest.raises(esrp.InvalidRequest, match="not both"):
+        client.create_episode("esrp-bench-v1/00000", scene_json="{}")
+
+
+def test_episode_ended(client: esrp.Client) -> None:
+    with client.create_episode(split="test", horizon=1) as episode:
+        assert episode.step(esrp.Action.LEFT).truncated
+        with pytest.raises(esrp.EpisodeEnded) as caught:
+            episode.step(esrp.Action.LEFT)
+        check(caught.value, grpc.StatusCode.FAILED_PRECONDITION, "has ended after 1 steps")
+        episode.reset()  # a reset starts it over
+        assert episode.step(esrp.Action.LEFT).truncated
+
+
+def test_permission_denied(client: esrp.Client) -> None:
+    with client.create_episode(split="test") as episode:
+        with pytest.raises(esrp.PermissionDenied) as caught:
+            episode.privileged_state()
+        check(caught.value, grpc.StatusCode.PERMISSION_DENIED, "privileged = true")
+
+
+def test_unauthenticated(strict_server: esrp.LocalServer) -> None:
+    for token in (None, "wrong"):
+        with strict_server.client(token=token) as anonymous, pytest.raises(esrp.Unauthenticated) as caught:
+            anonymous.server_info()
+        assert caught.value.code == grpc.StatusCode.UNAUTHENTICATED
+        assert isinstance(caught.value.rpc_error, grpc.RpcError)
+    with strict_server.client(token="s3cret") as allowed:
+        assert allowed.server_info().limits.max_episodes == 2
+    with pytest.raises(esrp.InvalidRequest, match="printable ASCII"):
+        strict_server.client(token="bad\ntoken")
+
+
+def test_server_busy(strict_server: esrp.LocalServer) -> None:
+    with strict_server.client(token="s3cret") as client:
+        with client.create_episode(split="test") as a, client.create_episode(split="test", seed=1) as b:
+            with pytest.raises(esrp.ServerBusy) as caught:
+                client.create_episode(split="test", seed=2)
+            check(caught.value, grpc.StatusCode.RESOURCE_EXHAUSTED, "maximum of 2 live episodes")
+            with pytest.raises(esrp.ServerBusy) as caught:
+                client.step_batch([(a, 0), (b, 0), ("0" * 32, 0)])
+            check(
+                caught.value, grpc.StatusCode.RESOURCE_EXHAUSTED, "a batch of 3 steps exceeds the limit of 2"
+            )
+        assert client.server_info().live_episodes == 0
+
+
+def test_server_unavailable() -> None:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    # Nothing listens there any more.
+    with (
+        esrp.Client(f"127.0.0.1:{port}", timeout=10) as client,
+        pytest.raises(esrp.ServerUnavailable) as caught,
+    ):
+        client.server_info()
+    assert caught.value.code == grpc.StatusCode.UNAVAILABLE
+    assert isinstance(caught.value.__cause__, grpc.RpcError)
+    with (
+        esrp.Client(f"127.0.0.1:{port}") as client,
+        pytest.raises(esrp.DeadlineExceeded, match="not healthy"),
+    ):
+        client.wait_healthy(timeout=0.3)
+
+
+def test_deadline_exceeded() -> None:
+    """A port that accepts connections and never speaks: the call's deadline passes."""
+    with socket.socket() as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(1)
+        port = silent.getsockname()[1]
+        with (
+            esrp.Client(f"127.0.0.1:{port}", timeout=0.3) as client,
+            pytest.raises(esrp.DeadlineExceeded) as caught,
+        ):
+            client.server_info()
+    assert caught.value.code == grpc.StatusCode.DEADLINE_EXCEEDED
+    assert isinstance(caught.value.__cause__, grpc.RpcError)
+
+
+def test_cancelled(client: esrp.Client) -> None:
+    before = client.server_info().live_episodes
+    stream = client.episode_stream()
+    stream.create(split="test")
+    stream.cancel()
+    with pytest.raises(esrp.Cancelled) as caught:
+        stream.next()
+    assert caught.value.code == grpc.StatusCode.CANCELLED
+    assert isinstance(caught.value.rpc_error, grpc.RpcError)
+    # The server closes what the cancelled stream created.
+    assert settled_live_episodes(client, before) == before
+
+
+def test_abandoned_create_leaves_no_episode(client: esrp.Client) -> None:
+    """A create whose caller gives up is closed when its answer arrives (cancellation-safe)."""
+    before = client.server_info().live_episodes
+    abandoned: list[esrp.DeadlineExceeded] = []
+    for seed, timeout in enumerate([0, 0.0002, 0.0005, 0.001, 0.002, 0.005, 0]):
+        try:
+            client.create_episode(split="test", seed=seed, timeout=timeout).close()
+        except esrp.DeadlineExceeded as error:
+            abandoned.append(error)
+    assert abandoned
+    # Given up on the client side (no status): the call itself ran on.
+    assert all(error.code is None for error in abandoned)
+    assert settled_live_episodes(client, before) == before
+
+
+def test_stream_errors_are_in_band(client: esrp.Client) -> None:
+    with client.episode_stream() as stream:
+        stream.create(split="test")
+        created = stream.next()
+        assert created is not None
+        episode = created.created().episode_id
+        stream.step(episode, 9)
+        stream.step("f" * 32, 0)
+        stream.step(episode, esrp.Action.LEFT)
+        bad, missing, good = (stream.next() for _ in range(3))
+        assert bad is not None
+        assert isinstance(bad.error, esrp.InvalidRequest)
+        assert bad.error.code == grpc.StatusCode.INVALID_ARGUMENT
+        assert bad.error.rpc_error is None
+        assert "unknown action code 9" in bad.error.message
+        with pytest.raises(esrp.InvalidRequest):
+            bad.step_result()
+        assert missing is not None
+        assert isinstance(missing.error, esrp.EpisodeNotFound)
+        assert good is not None
+        assert good.step_result().info.step_index == 1  # the stream went on
+
+
+def test_local_server_that_does_not_start(tmp_path: Path) -> None:
+    with pytest.raises(esrp.LocalServerError) as caught:
+        esrp.LocalServer("--no-such-flag").start()
+    assert "did not start" in caught.value.message
+    assert "--no-such-flag" in caught.value.message  # the tail of its stderr says why
+    with pytest.raises(esrp.LocalServerError, match="cannot start"):
+        esrp.LocalServer(binary=tmp_path / "missing").start()
+
+
+def test_error_mapping_covers_every_code() -> None:
+    from esrp._errors import from_status
+
+    expected = {
+        grpc.StatusCode.INVALID_ARGUMENT: esrp.InvalidRequest,
+        grpc.StatusCode.OUT_OF_RANGE: esrp.InvalidRequest,
+        grpc.StatusCode.NOT_FOUND: esrp.EpisodeNotFound,
+        grpc.StatusCode.FAILED_PRECONDITION: esrp.EpisodeEnded,
+        grpc.StatusCode.RESOURCE_EXHAUSTED: esrp.ServerBusy,
+        grpc.StatusCode.UNAUTHENTICATED: esrp.Unauthenticated,
+        grpc.StatusCode.PERMISSION_DENIED: esrp.PermissionDenied,
+        grpc.StatusCode.UNAVAILABLE: esrp.ServerUnavailable,
+        grpc.StatusCode.DEADLINE_EXCEEDED: esrp.DeadlineExceeded,
+        grpc.StatusCode.CANCELLED: esrp.Cancelled,
+        grpc.StatusCode.INTERNAL: esrp.ServerError,
+        grpc.StatusCode.UNKNOWN: esrp.ServerError,
+    }
+    for code, kind in expected.items():
+        error = from_status(code.value[0], "message")
+        assert type(error) is kind
+        assert error.code == code
+    assert type(from_status(5, 'no scene "x" in the served dataset')) is esrp.SceneNotFound

@@ -1,0 +1,149 @@
+"""The Gymnasium env esrp/Rearrange-v1: registration, spaces, check_env, seeding, render, close."""
+
+from __future__ import annotations
+
+import warnings
+
+import gymnasium
+import numpy as np
+import pytest
+from conftest import settled_live_episodes
+from gymnasium.utils.env_checker import check_env
+
+import esrp
+from esrp.gym import RearrangeEnv
+
+
+def test_registered_on_import() -> None:
+    spec = gymnasium.spec(esrp.ENV_ID)
+    assert spec.entry_point == "esrp.gym:RearrangeEnv"
+    assert spec.vector_entry_point == "esrp.gym:RearrangeVectorEnv"
+
+
+def test_check_env(server: esrp.LocalServer, client: esrp.Client) -> None:
+    before = client.server_info().live_episodes
+    env = gymnasium.make(esrp.ENV_ID, address=server.address, split="test", difficulty="easy", horizon=20)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # check_env warns about anything dubious: fail on it
+        check_env(env.unwrapped)
+    env.close()
+    env.close()  # closing twice is allowed
+    assert settled_live_episodes(client, before) == before
+
+
+def test_spaces_and_observations(server: esrp.LocalServer, easy_scenes: list[str]) -> None:
+    sensors = esrp.Sensors(depth=True, segmentation=True, current_top_down=True, resolution=32)
+    env = gymnasium.make(esrp.ENV_ID, address=server.address, scene=easy_scenes[0], sensors=sensors)
+    try:
+        assert env.action_space == gymnasium.spaces.Discrete(6)
+        space = env.observation_space
+        assert isinstance(space, gymnasium.spaces.Dict)
+        assert set(space.spaces) == {
+            "ego_rgb",
+            "goal_rgb",
+            "grasping",
+            "depth",
+            "segmentation",
+            "current_top_down",
+        }
+        observation, info = env.reset(seed=0)
+        assert info == {"scene_id": easy_scenes[0]}
+        assert space.contains(observation)
+        assert observation["ego_rgb"].shape == (32, 32, 3)
+        assert observation["depth"].dtype == np.float32
+        assert observation["segmentation"].dtype == np.uint32
+        assert observation["grasping"] == 0
+        observation, reward, terminated, truncated, info = env.step(esrp.Action.FETCH)
+        assert space.contains(observation)
+        assert isinstance(reward, float)
+        assert not terminated
+        assert not truncated
+        assert set(info) == {"accepted", "collided", "placed_count", "step_index"}
+        assert info["step_index"] == 1
+    finally:
+        env.close()
+
+
+def test_seed_picks_the_scene_deterministically(server: esrp.LocalServer, client: esrp.Client) -> None:
+    first = RearrangeEnv(server.address, split="test", difficulty="medium")
+    second = RearrangeEnv(client=client, split="test", difficulty="medium")
+    try:
+        medium = [s.id for s in client.scenes("test", "medium", page_size=1000)]
+        assert first.scenes == tuple(medium)
+        chosen = []
+        for seed in (1, 2, 3, 1):
+            a, info_a = first.reset(seed=seed)
+            b, info_b = second.reset(seed=seed)
+            assert info_a == info_b
+            assert info_a["scene_id"] in medium
+            assert np.array_equal(a["ego_rgb"], b["ego_rgb"])
+            assert np.array_equal(a["goal_rgb"], b["goal_rgb"])
+            chosen.append(info_a["scene_id"])
+        assert chosen[0] == chosen[3]
+        assert len(set(chosen)) > 1
+        # Without a seed the generator goes on: the same sequence in both envs.
+        assert first.reset()[1] == second.reset()[1]
+        assert first.reset(options={"scene": medium[0]})[1] == {"scene_id": medium[0]}
+    finally:
+        first.close()
+        second.close()
+    assert second.client.server_info().dataset == "esrp-bench-v1"  # the shared client was not closed
+
+
+def test_episode_ends_and_metrics(server: esrp.LocalServer, easy_scenes: list[str]) -> None:
+    env = RearrangeEnv(server.address, scene=easy_scenes[0], horizon=3)
+    try:
+        env.reset(seed=5)
+        ended = [env.step(esrp.Action.LEFT) for _ in range(3)]
+        assert [step[3] for step in ended] == [False, False, True]
+        metrics = ended[-1][4]["metrics"]
+        assert metrics["steps"] == 3
+        assert metrics["stage"] in (1, 2)
+        with pytest.raises(esrp.EpisodeEnded):
+            env.step(esrp.Action.LEFT)
+        env.reset()
+        assert env.step(esrp.Action.LEFT)[4]["step_index"] == 1
+    finally:
+        env.close()
+
+
+def test_render(server: esrp.LocalServer, easy_scenes: list[str]) -> None:
+    env = gymnasium.make(esrp.ENV_ID, address=server.address, scene=easy_scenes[0], render_mode="rgb_array")
+    try:
+        observation, _ = env.reset(seed=0)
+        frame = env.render()
+        assert isinstance(frame, np.ndarray)
+        assert frame.shape == (128, 256, 3)
+        assert frame.dtype == np.uint8
+        assert np.array_equal(frame[:, :128], observation["ego_rgb"])
+        assert np.array_equal(frame[:, 128:], observation["goal_rgb"])
+    finally:
+        env.close()
+    top_down = esrp.Sensors(current_top_down=True)
+    env = gymnasium.make(
+        esrp.ENV_ID, address=server.address, scene=easy_scenes[0], sensors=top_down, render_mode="rgb_array"
+    )
+    try:
+        observation, _ = env.reset(seed=0)
+        frame = env.render()
+        assert isinstance(frame, np.ndarray)
+        assert frame.shape == (128, 384, 3)
+        assert np.array_equal(frame[:, 256:], observation["current_top_down"])
+    finally:
+        env.close()
+
+
+def test_env_starts_its_own_server() -> None:
+    """Without an address the env runs a LocalServer of its own, and stops it on close."""
+    env = RearrangeEnv(split="test", difficulty="hard")
+    server = env._setup.server  # noqa: SLF001
+    assert server is not None
+    assert server.is_running()
+    env.reset(seed=0)
+    env.close()
+    assert not server.is_running()
+
+
+def test_bad_render_mode(server: esrp.LocalServer) -> None:
+    with pytest.raises(ValueError, match="render_mode"):
+        RearrangeEnv(server.address, render_mode="human")

@@ -1,0 +1,38 @@
+"""LocalServer: finding the binary, the metrics address, a graceful stop."""
+
+from __future__ import annotations
+
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+import esrp
+
+
+def test_stop_is_graceful_and_metrics_are_served() -> None:
+    server = esrp.LocalServer("--metrics-listen", "127.0.0.1:0").start()
+    try:
+        assert server.is_running()
+        assert server.metrics_url is not None
+        assert server.metrics_url.startswith("http://127.0.0.1:")
+        with server.client() as client, client.create_episode(split="test"):
+            with urllib.request.urlopen(server.metrics_url, timeout=10) as answer:
+                text = answer.read().decode()
+            assert "esrp_live_episodes 1" in text.splitlines()
+    finally:
+        # SIGTERM: in-flight calls drain, the process exits 0.
+        assert server.stop() == 0
+    assert not server.is_running()
+    with pytest.raises(esrp.LocalServerError, match="not running"):
+        _ = server.address
+
+
+def test_find_server_binary(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    found = esrp.find_server_binary()
+    assert found.is_file()
+    monkeypatch.setenv("ESRP_SERVER_BIN", str(tmp_path / "nothing"))
+    with pytest.raises(esrp.LocalServerError, match="ESRP_SERVER_BIN"):
+        esrp.find_server_binary()
+    monkeypatch.setenv("ESRP_SERVER_BIN", str(found))
+    assert esrp.find_server_binary() == found

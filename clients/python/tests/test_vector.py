@@ -1,0 +1,239 @@
+"""The native vector env against Gymnasium's own SyncVectorEnv over N single envs: the same
+observations (bit for bit), rewards, terminations, truncations and infos, in every autoreset mode."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import gymnasium
+import numpy as np
+import pytest
+from conftest import settled_live_episodes
+from gymnasium.vector import AutoresetMode
+
+import esrp
+from esrp.gym import RearrangeVectorEnv
+
+NUM_ENVS = 3
+SMALL = esrp.Sensors(resolution=32)
+
+
+def assert_same(a: Any, b: Any, path: str = "") -> None:  # noqa: ANN401
+    """Deep equality of observations and infos: dicts, arrays (object arrays element-wise), scalars."""
+    if isinstance(a, dict):
+        assert isinstance(b, dict), path
+        assert a.keys() == b.keys(), f"{path}: {sorted(a)} != {sorted(b)}"
+        for key in a:
+            assert_same(a[key], b[key], f"{path}.{key}")
+    elif isinstance(a, np.ndarray):
+        assert isinstance(b, np.ndarray), path
+        assert (a.dtype, a.shape) == (b.dtype, b.shape), path
+        if a.dtype == object:
+            for i, (x, y) in enumerate(zip(a.flat, b.flat, strict=True)):
+                assert_same(x, y, f"{path}[{i}]")
+        else:
+            assert np.array_equal(a, b), path
+    else:
+        assert a == b, f"{path}: {a!r} != {b!r}"
+
+
+def make_pair(address: str, mode: AutoresetMode, **kwargs: Any) -> tuple[Any, Any]:  # noqa: ANN401
+    """The native vector env and Gymnasium's SyncVectorEnv over the same settings."""
+    settings: dict[str, Any] = {"address": address, "split": "test", "difficulty": "easy", "sensors": SMALL}
+    settings.update(kwargs)
+    native = gymnasium.make_vec(
+        esrp.ENV_ID,
+        num_envs=NUM_ENVS,
+        vectorization_mode="vector_entry_point",
+        autoreset_mode=mode,
+        **settings,
+    )
+    reference = gymnasium.make_vec(
+        esrp.ENV_ID,
+        num_envs=NUM_ENVS,
+        vectorization_mode="sync",
+        vector_kwargs={"autoreset_mode": mode},
+        **settings,
+    )
+    return native, reference
+
+
+def drive(envs: Any, steps: int, seed: int) -> list[Any]:  # noqa: ANN401
+    """Resets with `seed`, steps with seeded actions, resets sub-env 0 alone after the first step
+    (so the episodes end at different steps); returns everything the env returned."""
+    actions = np.random.default_rng(seed).integers(0, 6, size=(steps, NUM_ENVS))
+    record: list[Any] = [envs.reset(seed=seed)]
+    for t in range(steps):
+        record.append(envs.step(actions[t]))
+        if t == 0:
+            mask = np.zeros(NUM_ENVS, dtype=np.bool_)
+            mask[0] = True
+            record.append(envs.reset(options={"reset_mask": mask}))
+    return record
+
+
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_identical_to_sync_vector_env(
+    server: esrp.LocalServer, client: esrp.Client, mode: AutoresetMode
+) -> None:
+    before = client.server_info().live_episodes
+    native, reference = make_pair(server.address, mode, horizon=3)
+    try:
+        assert isinstance(native.unwrapped, RearrangeVectorEnv)
+        assert native.metadata["autoreset_mode"] is mode
+        assert native.single_observation_space == reference.single_observation_space
+        assert native.observation_space == reference.observation_space
+        assert native.action_space == reference.action_space
+        got, expected = drive(native, 8, seed=11), drive(reference, 8, seed=11)
+        assert client.server_info().live_episodes == before + 2 * NUM_ENVS
+        ended = 0
+        for g, e in zip(got, expected, strict=True):
+            assert len(g) == len(e)
+            for part_g, part_e in zip(g, e, strict=True):
+                assert_same(part_g, part_e)
+            if len(g) == 5:
+                ended += int(np.sum(g[2] | g[3]))
+        assert ended >= NUM_ENVS  # the horizon of 3 ended episodes, which were autoreset
+        if mode is AutoresetMode.SAME_STEP:
+            assert any("final_obs" in g[4] for g in got if len(g) == 5)
+    finally:
+        native.close()
+        reference.close()
+    assert settled_live_episodes(client, before) == before
+
+
+def test_same_step_on_success(server: esrp.LocalServer, client: esrp.Client, easy_scenes: list[str]) -> None:
+    """Sub-env 0 replays the expert and terminates; SAME_STEP reports it in final_obs/final_info."""
+    scene = easy_scenes[3]
+    with client.create_episode(scene, privileged=True) as episode:
+        expert = json.loads(episode.privileged_state().scene_json)["expert_trajectory"]
+    native, reference = make_pair(server.address, AutoresetMode.SAME_STEP, scene=scene)
+    try:
+        for envs in (native, reference):
+            envs.reset(seed=0)
+        for code in expert:
+            actions = np.array([code, esrp.Action.LEFT, esrp.Action.RIGHT])
+            got, expected = native.step(actions), reference.step(actions)
+            for part_g, part_e in zip(got, expected, strict=True):
+                assert_same(part_g, part_e)
+        observations, rewards, terminated, truncated, infos = got
+        assert terminated.tolist() == [True, False, False]
+        assert rewards[0] >= 10
+        assert infos["_final_obs"].tolist() == [True, False, False]
+        assert infos["final_info"]["metrics"]["success"][0]
+        assert infos["final_info"]["_metrics"].tolist() == [True, False, False]
+        assert infos["scene_id"][0] == scene
+        # The observation returned is the reset's; the last step's is in final_obs.
+        assert not np.array_equal(infos["final_obs"][0]["ego_rgb"], observations["ego_rgb"][0])
+    finally:
+        native.close()
+        reference.close()
+
+
+def test_next_step_autoreset(server: esrp.LocalServer) -> None:
+    envs = RearrangeVectorEnv(2, server.address, split="test", sensors=SMALL, horizon=2)
+    try:
+        first, infos = envs.reset(seed=3)
+        assert set(infos) == {"scene_id", "_scene_id"}
+        envs.step(np.array([2, 2]))
+        _, rewards, terminated, truncated, infos = envs.step(np.array([2, 2]))
+        assert truncated.tolist() == [True, True]
+        assert infos["metrics"]["steps"].tolist() == [2, 2]
+        # The next step resets instead of stepping: reward 0, not ended, the reset's info.
+        observations, rewards, terminated, truncated, infos = envs.step(np.array([0, 0]))
+        assert rewards.tolist() == [0.0, 0.0]
+        assert not terminated.any()
+        assert not truncated.any()
+        assert set(infos) == {"scene_id", "_scene_id"}
+        _, step_infos = envs.step(np.array([0, 0]))[::4]
+        assert step_infos["step_index"].tolist() == [1, 1]
+    finally:
+        envs.close()
+
+
+def test_disabled_mode_and_reset_mask(server: esrp.LocalServer) -> None:
+    envs = RearrangeVectorEnv(
+        3, server.address, split="test", sensors=SMALL, horizon=1, autoreset_mode=AutoresetMode.DISABLED
+    )
+    try:
+        assert envs.metadata["autoreset_mode"] is AutoresetMode.DISABLED
+        start, _ = envs.reset(seed=[7, 8, 9])
+        ended = envs.step(np.array([2, 3, 2]))
+        assert ended[3].tolist() == [True, True, True]
+        with pytest.raises(esrp.EpisodeEnded, match="reset_mask"):
+            envs.step(np.array([0, 0, 0]))
+        mask = np.array([True, False, True])
+        observations, infos = envs.reset(seed=[7, None, 9], options={"reset_mask": mask})
+        assert infos["_scene_id"].tolist() == [True, False, True]
+        # Reset sub-envs start over (the same seeds: the same scenes); the other keeps its last
+        # observation.
+        assert np.array_equal(observations["ego_rgb"][0], start["ego_rgb"][0])
+        assert np.array_equal(observations["ego_rgb"][1], ended[0]["ego_rgb"][1])
+        with pytest.raises(esrp.EpisodeEnded, match=r"\[1\]"):
+            envs.step(np.array([0, 0, 0]))
+        for bad, error in [
+            ([True, False, True], TypeError),
+            (np.array([True, False]), ValueError),
+            (np.array([0, 1, 0]), TypeError),
+            (np.zeros(3, dtype=np.bool_), ValueError),
+        ]:
+            with pytest.raises(error):
+                envs.reset(options={"reset_mask": bad})
+    finally:
+        envs.close()
+
+
+def test_observations_are_fresh_arrays(server: esrp.LocalServer) -> None:
+    envs = RearrangeVectorEnv(2, server.address, split="test", sensors=SMALL)
+    try:
+        first, _ = envs.reset(seed=0)
+        second = envs.step(np.array([2, 2]))[0]
+        for key in first:
+            assert not np.shares_memory(first[key], second[key])
+        assert second["ego_rgb"].shape == (2, 32, 32, 3)
+        assert second["grasping"].dtype == np.int64
+        frames = envs.render()
+        assert frames is None
+    finally:
+        envs.close()
+
+
+def test_close_frees_every_episode(server: esrp.LocalServer, client: esrp.Client) -> None:
+    before = client.server_info().live_episodes
+    envs = gymnasium.make_vec(
+        esrp.ENV_ID,
+        num_envs=4,
+        vectorization_mode="vector_entry_point",
+        address=server.address,
+        split="test",
+        sensors=SMALL,
+        render_mode="rgb_array",
+    )
+    envs.reset(seed=1)
+    envs.step(np.array([0, 1, 2, 3]))
+    frames = envs.render()
+    assert isinstance(frames, tuple)
+    assert len(frames) == 4
+    assert all(isinstance(frame, np.ndarray) and frame.shape == (32, 64, 3) for frame in frames)
+    assert client.server_info().live_episodes == before + 4
+    envs.close()
+    # Closed on the stream, waiting for the answers: no delay.
+    assert client.server_info().live_episodes == before
+    envs.close()
+
+
+def test_bad_actions_move_nothing(server: esrp.LocalServer) -> None:
+    envs = RearrangeVectorEnv(2, server.address, split="test", sensors=SMALL)
+    try:
+        with pytest.raises(gymnasium.error.ResetNeeded):
+            envs.step(np.array([0, 0]))
+        envs.reset(seed=0)
+        with pytest.raises(esrp.InvalidRequest):
+            envs.step(np.array([0, 6]))
+        with pytest.raises(ValueError, match="shape"):
+            envs.step(np.array([0, 0, 0]))
+        infos = envs.step(np.array([0, 0]))[4]
+        assert infos["step_index"].tolist() == [1, 1]
+    finally:
+        envs.close()
