@@ -699,8 +699,9 @@ pub struct PlanStats {
 /// The server planner's answer ([`crate::Episode::plan_actions`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct PlanAnswer {
-    /// The next actions of the plan (all of it, or at most the number asked for); empty when
-    /// there is no plan.
+    /// The next actions of the plan (all of it, or at most the number asked for); with a
+    /// [`PlanAnswer::failure`], the next of the actions the planner took before it failed
+    /// (they place what they can; possibly none).
     pub actions: Vec<Action>,
     /// Whether the plan ends in success.
     pub reaches_success: bool,

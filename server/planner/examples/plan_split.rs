@@ -309,14 +309,5 @@ fn report(rows: &[Row], wall: Duration) {
 }
 
 fn failure_kind(failure: &PlanFailure) -> &'static str {
-    match failure {
-        PlanFailure::EpisodeOver => "episode_over",
-        PlanFailure::Unreachable { .. } => "unreachable",
-        PlanFailure::NoPlacement { .. } => "no_placement",
-        PlanFailure::BudgetExhausted { .. } => "budget_exhausted",
-        PlanFailure::DeadlineExceeded => "deadline_exceeded",
-        PlanFailure::TooLong { .. } => "too_long",
-        PlanFailure::InvalidOptions { .. } => "invalid_options",
-        PlanFailure::ReplayFailed { .. } => "replay_failed",
-    }
+    failure.name()
 }

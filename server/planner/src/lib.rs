@@ -54,6 +54,34 @@ use std::time::{Duration, Instant};
 
 use esrp_core::{Action, Episode};
 
+/// A flag that stops a running [`plan`] call from another thread: clones share it; equal
+/// when they are clones of one token.
+#[derive(Clone, Debug, Default)]
+pub struct CancelToken(std::sync::Arc<std::sync::atomic::AtomicBool>);
+
+impl CancelToken {
+    /// A token not cancelled yet.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Cancels every [`plan`] call that holds a clone of this token.
+    pub fn cancel(&self) {
+        self.0.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// Whether [`CancelToken::cancel`] was called.
+    pub fn is_cancelled(&self) -> bool {
+        self.0.load(std::sync::atomic::Ordering::Relaxed)
+    }
+}
+
+impl PartialEq for CancelToken {
+    fn eq(&self, other: &Self) -> bool {
+        std::sync::Arc::ptr_eq(&self.0, &other.0)
+    }
+}
+
 /// How hard [`plan`] may try. Every field has a default that plans the benchmark's test split
 /// (see the crate's README for what they cost).
 #[derive(Clone, Debug, PartialEq)]
@@ -62,6 +90,9 @@ pub struct PlanOptions {
     pub max_nodes: u64,
     /// Give up at this instant (checked inside the search loops).
     pub deadline: Option<Instant>,
+    /// Give up as soon as this is cancelled (checked with the deadline): a caller that no
+    /// longer wants the plan (a server whose client went away) frees the thread at once.
+    pub cancel: Option<CancelToken>,
     /// Weight on the heuristic of the weighted A* (1.0: optimal A*; larger: faster, longer
     /// plans). At least 1.
     pub heuristic_weight: f64,
@@ -91,6 +122,7 @@ impl Default for PlanOptions {
         Self {
             max_nodes: 1_000_000,
             deadline: None,
+            cancel: None,
             heuristic_weight: 2.0,
             max_search_nodes: 40_000,
             duplicate_cell: 0.05,
@@ -174,6 +206,9 @@ pub enum PlanFailure {
     /// The deadline passed.
     #[error("the deadline passed before a plan was found (give the planner more time)")]
     DeadlineExceeded,
+    /// The caller cancelled the planning ([`PlanOptions::cancel`]).
+    #[error("the planning was cancelled")]
+    Cancelled,
     /// A plan exists (or may) but needs more steps than the horizon leaves.
     #[error("a plan needs at least {steps} steps but only {steps_left} remain before the horizon")]
     TooLong {
@@ -196,6 +231,25 @@ pub enum PlanFailure {
         /// without success.
         step: usize,
     },
+}
+
+impl PlanFailure {
+    /// A short stable name of the failure's kind (`unreachable`, `no_placement`,
+    /// `budget_exhausted`, `deadline_exceeded`, `cancelled`, `too_long`, `episode_over`,
+    /// `invalid_options`, `replay_failed`), for reports and logs.
+    pub fn name(&self) -> &'static str {
+        match self {
+            PlanFailure::EpisodeOver => "episode_over",
+            PlanFailure::Unreachable { .. } => "unreachable",
+            PlanFailure::NoPlacement { .. } => "no_placement",
+            PlanFailure::BudgetExhausted { .. } => "budget_exhausted",
+            PlanFailure::DeadlineExceeded => "deadline_exceeded",
+            PlanFailure::Cancelled => "cancelled",
+            PlanFailure::TooLong { .. } => "too_long",
+            PlanFailure::InvalidOptions { .. } => "invalid_options",
+            PlanFailure::ReplayFailed { .. } => "replay_failed",
+        }
+    }
 }
 
 /// Plans from `episode`'s current state: actions that, stepped on a clone of it, end in

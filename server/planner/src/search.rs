@@ -50,7 +50,7 @@ pub(crate) struct BufferGoal {
 }
 
 /// The knobs of one search.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 pub(crate) struct SearchLimits {
     /// Nodes this search may expand.
     pub max_nodes: u64,
@@ -65,6 +65,8 @@ pub(crate) struct SearchLimits {
     pub polish_nodes: u64,
     /// Give up when this instant passes.
     pub deadline: Option<Instant>,
+    /// Give up when this is cancelled.
+    pub cancel: Option<crate::CancelToken>,
 }
 
 /// A path found: the actions (ending with the release) and the episode after them.
@@ -84,7 +86,7 @@ pub(crate) enum Miss {
     NoGoal,
     /// The search's node budget ran out.
     Budget,
-    /// The deadline passed.
+    /// The deadline passed, or the caller cancelled.
     Deadline,
 }
 
@@ -301,7 +303,10 @@ impl Search<'_> {
             if self.first_release_at.is_some_and(|at| expanded >= at.saturating_add(self.limits.polish_nodes)) {
                 break Miss::Budget;
             }
-            if expanded.is_multiple_of(32) && self.limits.deadline.is_some_and(|d| Instant::now() >= d) {
+            if expanded.is_multiple_of(32)
+                && (self.limits.deadline.is_some_and(|d| Instant::now() >= d)
+                    || self.limits.cancel.as_ref().is_some_and(crate::CancelToken::is_cancelled))
+            {
                 break Miss::Deadline;
             }
             expanded += 1;
@@ -486,6 +491,7 @@ pub(crate) mod tests {
             iou_weight: 12.0,
             polish_nodes: 2_000,
             deadline: None,
+            cancel: None,
         }
     }
 

@@ -261,8 +261,10 @@ impl<'a> TaskPlanner<'a> {
             iou_weight: self.options.iou_weight,
             polish_nodes: self.options.polish_nodes,
             deadline: self.options.deadline,
+            cancel: self.options.cancel.clone(),
         };
         self.stats.searches += 1;
+        let max_nodes = limits.max_nodes;
         match search(&self.state, object, &goal, limits) {
             Ok(found) => {
                 self.stats.nodes_expanded += found.nodes;
@@ -272,13 +274,16 @@ impl<'a> TaskPlanner<'a> {
             }
             Err(not_found) => {
                 self.stats.nodes_expanded += not_found.nodes;
-                Err(self.failed(object, not_found, limits.max_nodes < self.search_nodes))
+                Err(self.failed(object, not_found, max_nodes < self.search_nodes))
             }
         }
     }
 
     fn failed(&self, object: usize, not_found: NotFound, total_budget_bound: bool) -> Failed {
         let (failure, fatal) = match not_found.miss {
+            Miss::Deadline if self.options.cancel.as_ref().is_some_and(crate::CancelToken::is_cancelled) => {
+                (PlanFailure::Cancelled, true)
+            }
             Miss::Deadline => (PlanFailure::DeadlineExceeded, true),
             Miss::Budget if total_budget_bound => {
                 (PlanFailure::BudgetExhausted { nodes: self.stats.nodes_expanded }, true)

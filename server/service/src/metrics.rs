@@ -9,7 +9,7 @@
 //! | `esrp_live_episodes` | gauge | episodes alive now |
 //! | `esrp_render_batch_views` | histogram | views per render batch |
 //! | `esrp_render_batch_seconds` | histogram | time to render one batch |
-//! | `esrp_plans_total` | counter | PlanActions answers, by outcome (`planned`, `cached`, `failed`: no plan exists, `deadline`: none found in the budget) |
+//! | `esrp_plans_total` | counter | PlanActions calls, by outcome (`planned`, `cached`, `failed`: no plan found, `deadline`: none found in the budget, `cancelled`: the client went away and the planner stopped) |
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -33,7 +33,7 @@ pub struct CloseReason {
 /// How a PlanActions call ended.
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 pub struct PlanOutcome {
-    /// `planned`, `cached`, `failed` or `deadline`.
+    /// `planned`, `cached`, `failed`, `deadline` or `cancelled`.
     pub outcome: &'static str,
 }
 

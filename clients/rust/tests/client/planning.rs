@@ -146,8 +146,44 @@ async fn plan_errors_keep_their_kind() {
     let err = privileged.plan_actions(0, None).await.unwrap_err();
     assert!(matches!(&err, ClientError::EpisodeEnded(_)), "{err}");
 
+    // A plan that cannot fit the horizon: a failure in the answer, not an error.
+    let (short, _) =
+        client.create_episode(EpisodeOptions::scene(&scene).privileged(true).horizon(3)).await.expect("created");
+    let answer = short.plan_actions(0, None).await.expect("an answer");
+    assert!(!answer.reaches_success);
+    assert_eq!(answer.failure, Some(esrp_client::PlanFailure::TooLong), "{}", answer.failure_message);
+    assert!(answer.failure_message.contains("before the horizon"), "{}", answer.failure_message);
+
     let ghost = esrp_client::Episode::attach(&client, "0".repeat(32), privileged.scene().clone());
     let err = ghost.plan_actions(0, None).await.unwrap_err();
     assert!(matches!(&err, ClientError::NotFound(_)), "{err}");
     ghost.detach();
+}
+
+/// A plan whose client goes away stops: with one planner thread, a long plan abandoned by its
+/// caller is counted as cancelled (without the cancel it would run to its 60 s budget).
+#[tokio::test]
+async fn an_abandoned_plan_stops_its_planner() {
+    let server = start(&["--planner-threads", "1", "--metrics-listen", "127.0.0.1:0"]);
+    let client = client(&server).await;
+    // The slowest test scene to plan (seconds in a release build).
+    let (episode, _) =
+        client.create_episode(EpisodeOptions::scene("esrp-bench-v1/03437").privileged(true)).await.expect("created");
+    let mut request = tonic::Request::new(esrp_client::proto::PlanActionsRequest {
+        episode_id: episode.id().to_owned(),
+        max_actions: 0,
+        budget_ms: 60_000,
+    });
+    request.set_timeout(Duration::from_millis(300));
+    let err = client.raw().plan_actions(request).await.expect_err("given up after 300 ms");
+    assert!(matches!(err.code(), tonic::Code::DeadlineExceeded | tonic::Code::Cancelled), "{err}");
+    let mut text = String::new();
+    for _ in 0..300 {
+        text = server_scrape(&server);
+        if text.contains("esrp_plans_total{outcome=\"cancelled\"} 1") {
+            return;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    panic!("the abandoned plan was not cancelled:\n{text}");
 }

@@ -109,6 +109,16 @@ fn a_past_deadline_is_exceeded() {
 }
 
 #[test]
+fn a_cancelled_plan_stops_and_says_so() {
+    let episode = bench_episode(MEDIUM);
+    let cancel = esrp_planner::CancelToken::new();
+    let options = PlanOptions { cancel: Some(cancel.clone()), ..PlanOptions::default() };
+    assert!(plan(&episode, &options).is_ok(), "a token not cancelled changes nothing");
+    cancel.cancel();
+    assert_eq!(failure(&episode, &options), PlanFailure::Cancelled);
+}
+
+#[test]
 fn a_plan_longer_than_the_horizon_is_too_long() {
     let scene = bench_scene(MEDIUM);
     let config = EpisodeConfig { horizon: Some(6), ..EpisodeConfig::default() };

@@ -15,7 +15,7 @@
 use std::time::{Duration, Instant};
 
 use esrp_core::{Action, Episode};
-use esrp_planner::{PlanFailure, PlanOptions, PlanStats};
+use esrp_planner::{CancelToken, PlanFailure, PlanOptions, PlanStats};
 
 use super::{EpisodeId, Shared};
 use crate::error::ServiceError;
@@ -34,7 +34,8 @@ pub struct PlanCall {
 /// The answer to a PlanActions call.
 #[derive(Clone, Debug)]
 pub struct Planned {
-    /// The next actions (at most `max_actions`).
+    /// The next actions (at most `max_actions`); with a failure, the next of the actions the
+    /// planner took before it failed (they place what they can).
     pub actions: Vec<Action>,
     /// Whether the plan ends in success (false: there is no plan, see `failure`).
     pub reaches_success: bool,
@@ -53,10 +54,9 @@ pub struct Planned {
 /// A planner's answer kept with its episode.
 #[derive(Clone, Debug)]
 pub struct CachedPlan {
-    /// `state_fingerprint` of the state before each action, then after the last one (for a
-    /// failure: only the state planned from).
+    /// `state_fingerprint` of the state before each action, then after the last one.
     fingerprints: Vec<u64>,
-    /// The plan (empty for a failure).
+    /// The plan; for a failure, the actions the planner took before it failed (possibly none).
     actions: Vec<Action>,
     stats: PlanStats,
     failure: Option<PlanFailure>,
@@ -64,10 +64,13 @@ pub struct CachedPlan {
 
 impl CachedPlan {
     /// The answer for an episode now in state `fingerprint`, if it is one the plan passes
-    /// through (the state after the last action has ended the episode, so it never asks).
+    /// through.
     fn answer(&self, fingerprint: u64, max_actions: u32) -> Option<Planned> {
         let at = self.fingerprints.iter().position(|&f| f == fingerprint)?;
-        if self.failure.is_none() && at >= self.actions.len() {
+        // Where a plan ends the episode has ended; where a failure's partial actions end the
+        // planner may find more from there: plan again. (A failure with no actions answers
+        // at the state it was planned from.)
+        if at >= self.actions.len() && !(self.failure.is_some() && at == 0) {
             return None;
         }
         Some(answer_from(&self.actions[at.min(self.actions.len())..], &self.stats, &self.failure, max_actions, true))
@@ -77,25 +80,32 @@ impl CachedPlan {
     fn of(episode: &Episode, outcome: &Result<esrp_planner::Plan, esrp_planner::PlanError>) -> Self {
         match outcome {
             Ok(plan) => {
-                let mut replay = episode.clone();
-                let mut fingerprints = Vec::with_capacity(plan.actions.len() + 1);
-                fingerprints.push(replay.state_fingerprint());
-                for &action in &plan.actions {
-                    if replay.step(action).is_err() {
-                        break;
-                    }
-                    fingerprints.push(replay.state_fingerprint());
-                }
-                CachedPlan { fingerprints, actions: plan.actions.clone(), stats: plan.stats.clone(), failure: None }
+                let (fingerprints, actions) = states_along(episode, &plan.actions);
+                CachedPlan { fingerprints, actions, stats: plan.stats.clone(), failure: None }
             }
-            Err(e) => CachedPlan {
-                fingerprints: vec![episode.state_fingerprint()],
-                actions: Vec::new(),
-                stats: e.stats.clone(),
-                failure: Some(e.reason.clone()),
-            },
+            Err(e) => {
+                let (fingerprints, actions) = states_along(episode, &e.partial);
+                CachedPlan { fingerprints, actions, stats: e.stats.clone(), failure: Some(e.reason.clone()) }
+            }
         }
     }
+}
+
+/// The fingerprints of the states `actions` pass through from `episode` (before each action,
+/// then after the last), and the actions that could be taken (all, for a planner's output).
+fn states_along(episode: &Episode, actions: &[Action]) -> (Vec<u64>, Vec<Action>) {
+    let mut replay = episode.clone();
+    let mut fingerprints = Vec::with_capacity(actions.len() + 1);
+    fingerprints.push(replay.state_fingerprint());
+    let mut taken = Vec::with_capacity(actions.len());
+    for &action in actions {
+        if replay.step(action).is_err() {
+            break;
+        }
+        taken.push(action);
+        fingerprints.push(replay.state_fingerprint());
+    }
+    (fingerprints, taken)
 }
 
 fn answer_from(
@@ -118,6 +128,16 @@ fn answer_from(
         stats: stats.clone(),
         failure: failure.clone(),
         failure_object,
+    }
+}
+
+/// Cancels the planner's token when dropped: a call abandoned by its client (its future
+/// dropped at an await) stops the planning it started at the planner's next check.
+struct CancelOnDrop(CancelToken);
+
+impl Drop for CancelOnDrop {
+    fn drop(&mut self) {
+        self.0.cancel();
     }
 }
 
@@ -152,25 +172,36 @@ impl Shared {
             .await
             .map_err(|_| ServiceError::PlanDeadline { budget_ms: budget.as_millis() as u64 })?
             .map_err(|_| ServiceError::Internal("the planner pool is closed".into()))?;
-        let options = PlanOptions { deadline: Some(deadline), ..PlanOptions::default() };
+        let cancel = CancelOnDrop(CancelToken::new());
+        let options =
+            PlanOptions { deadline: Some(deadline), cancel: Some(cancel.0.clone()), ..PlanOptions::default() };
+        let metrics = self.metrics.clone();
         let job = move || {
             let outcome = esrp_planner::plan(&episode, &options);
+            // Counted here: a cancelled call's handler is gone by now.
+            if outcome.as_ref().is_err_and(|e| e.reason == PlanFailure::Cancelled) {
+                metrics.count_plan("cancelled");
+            }
             let cached = CachedPlan::of(&episode, &outcome);
             (outcome, cached)
         };
         let (outcome, cached) =
             tokio::task::spawn_blocking(job).await.map_err(|e| ServiceError::Internal(e.to_string()))?;
         drop(permit);
+        drop(cancel);
         if let Err(e) = &outcome
-            && matches!(e.reason, PlanFailure::DeadlineExceeded)
+            && matches!(e.reason, PlanFailure::DeadlineExceeded | PlanFailure::Cancelled)
         {
             self.metrics.count_plan("deadline");
             return Err(ServiceError::PlanDeadline { budget_ms: budget.as_millis() as u64 });
         }
         if let Err(e) = &outcome
-            && e.reason == PlanFailure::EpisodeOver
+            && matches!(
+                e.reason,
+                PlanFailure::EpisodeOver | PlanFailure::InvalidOptions { .. } | PlanFailure::ReplayFailed { .. }
+            )
         {
-            return Err(ServiceError::Internal("the planner found a running episode over".into()));
+            return Err(ServiceError::Internal(format!("planner: {}", e.reason)));
         }
         self.metrics.count_plan(if outcome.is_ok() { "planned" } else { "failed" });
         let answer = cached

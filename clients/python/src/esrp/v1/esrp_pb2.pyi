@@ -75,6 +75,38 @@ DIFFICULTY_HARD: Difficulty.ValueType  # 3
 """4-6 objects"""
 Global___Difficulty: _TypeAlias = Difficulty  # noqa: Y015
 
+class _PlanFailure:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _PlanFailureEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_PlanFailure.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    PLAN_FAILURE_UNSPECIFIED: _PlanFailure.ValueType  # 0
+    """none: a plan was found"""
+    PLAN_FAILURE_UNREACHABLE: _PlanFailure.ValueType  # 1
+    """no pose from which fetch takes an object (failure_object)"""
+    PLAN_FAILURE_NO_PLACEMENT: _PlanFailure.ValueType  # 2
+    """no release pose places an object (failure_object)"""
+    PLAN_FAILURE_BUDGET_EXHAUSTED: _PlanFailure.ValueType  # 3
+    """the search's node budget ran out"""
+    PLAN_FAILURE_TOO_LONG: _PlanFailure.ValueType  # 4
+    """a plan exists but does not fit the steps left"""
+
+class PlanFailure(_PlanFailure, metaclass=_PlanFailureEnumTypeWrapper):
+    """Why the planner found no plan."""
+
+PLAN_FAILURE_UNSPECIFIED: PlanFailure.ValueType  # 0
+"""none: a plan was found"""
+PLAN_FAILURE_UNREACHABLE: PlanFailure.ValueType  # 1
+"""no pose from which fetch takes an object (failure_object)"""
+PLAN_FAILURE_NO_PLACEMENT: PlanFailure.ValueType  # 2
+"""no release pose places an object (failure_object)"""
+PLAN_FAILURE_BUDGET_EXHAUSTED: PlanFailure.ValueType  # 3
+"""the search's node budget ran out"""
+PLAN_FAILURE_TOO_LONG: PlanFailure.ValueType  # 4
+"""a plan exists but does not fit the steps left"""
+Global___PlanFailure: _TypeAlias = PlanFailure  # noqa: Y015
+
 @_typing.final
 class Image(_message.Message):
     """An 8-bit image, row-major, top row first, `channels` bytes per pixel (3: RGB)."""
@@ -1555,3 +1587,116 @@ class ListScenesResponse(_message.Message):
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___ListScenesResponse: _TypeAlias = ListScenesResponse  # noqa: Y015
+
+@_typing.final
+class PlanActionsRequest(_message.Message):
+    DESCRIPTOR: _descriptor.Descriptor
+
+    EPISODE_ID_FIELD_NUMBER: _builtins.int
+    MAX_ACTIONS_FIELD_NUMBER: _builtins.int
+    BUDGET_MS_FIELD_NUMBER: _builtins.int
+    episode_id: _builtins.str
+    max_actions: _builtins.int
+    """At most this many next actions; 0: the whole plan."""
+    budget_ms: _builtins.int
+    """Planning time budget in milliseconds; 0: the server's default. The server caps it at its
+    --max-plan-ms. A plan not found within it answers DEADLINE_EXCEEDED.
+    """
+    def __init__(
+        self,
+        *,
+        episode_id: _builtins.str = ...,
+        max_actions: _builtins.int = ...,
+        budget_ms: _builtins.int = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["budget_ms", b"budget_ms", "episode_id", b"episode_id", "max_actions", b"max_actions"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___PlanActionsRequest: _TypeAlias = PlanActionsRequest  # noqa: Y015
+
+@_typing.final
+class PlanStats(_message.Message):
+    """What the planning that made a plan cost."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    NODES_EXPANDED_FIELD_NUMBER: _builtins.int
+    SEARCHES_FIELD_NUMBER: _builtins.int
+    PLANNING_SECONDS_FIELD_NUMBER: _builtins.int
+    OBJECTS_RELOCATED_FIELD_NUMBER: _builtins.int
+    nodes_expanded: _builtins.int
+    searches: _builtins.int
+    planning_seconds: _builtins.float
+    objects_relocated: _builtins.int
+    """blockers moved to a buffer pose"""
+    def __init__(
+        self,
+        *,
+        nodes_expanded: _builtins.int = ...,
+        searches: _builtins.int = ...,
+        planning_seconds: _builtins.float = ...,
+        objects_relocated: _builtins.int = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["nodes_expanded", b"nodes_expanded", "objects_relocated", b"objects_relocated", "planning_seconds", b"planning_seconds", "searches", b"searches"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___PlanStats: _TypeAlias = PlanStats  # noqa: Y015
+
+@_typing.final
+class PlanActionsResponse(_message.Message):
+    DESCRIPTOR: _descriptor.Descriptor
+
+    ACTIONS_FIELD_NUMBER: _builtins.int
+    REACHES_SUCCESS_FIELD_NUMBER: _builtins.int
+    PLAN_LENGTH_FIELD_NUMBER: _builtins.int
+    CACHED_FIELD_NUMBER: _builtins.int
+    STATS_FIELD_NUMBER: _builtins.int
+    FAILURE_FIELD_NUMBER: _builtins.int
+    FAILURE_MESSAGE_FIELD_NUMBER: _builtins.int
+    FAILURE_OBJECT_FIELD_NUMBER: _builtins.int
+    reaches_success: _builtins.bool
+    """Whether the plan (of which these are the next actions) ends in success."""
+    plan_length: _builtins.int
+    """Length of the whole plan from the current state."""
+    cached: _builtins.bool
+    """The plan was cached from an earlier call and the episode has followed it."""
+    failure: Global___PlanFailure.ValueType
+    failure_message: _builtins.str
+    """The failure in words (empty when a plan was found)."""
+    failure_object: _builtins.str
+    """The object a failure is about (its id in the scene), if any."""
+    @_builtins.property
+    def actions(self) -> _containers.RepeatedScalarFieldContainer[_builtins.int]:
+        """The next actions (codes 0..5), at most max_actions. With a failure: the next of the
+        actions the planner took before it failed (they place what they can; possibly none).
+        """
+
+    @_builtins.property
+    def stats(self) -> Global___PlanStats:
+        """The cost of the planning that made the plan."""
+
+    def __init__(
+        self,
+        *,
+        actions: _abc.Iterable[_builtins.int] | None = ...,
+        reaches_success: _builtins.bool = ...,
+        plan_length: _builtins.int = ...,
+        cached: _builtins.bool = ...,
+        stats: Global___PlanStats | None = ...,
+        failure: Global___PlanFailure.ValueType = ...,
+        failure_message: _builtins.str = ...,
+        failure_object: _builtins.str = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _typing.Literal["stats", b"stats"]  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["actions", b"actions", "cached", b"cached", "failure", b"failure", "failure_message", b"failure_message", "failure_object", b"failure_object", "plan_length", b"plan_length", "reaches_success", b"reaches_success", "stats", b"stats"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___PlanActionsResponse: _TypeAlias = PlanActionsResponse  # noqa: Y015

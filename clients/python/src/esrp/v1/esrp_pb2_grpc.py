@@ -95,6 +95,11 @@ class EsrpStub:
                 request_serializer=esrp_dot_v1_dot_esrp__pb2.CloseEpisodeRequest.SerializeToString,
                 response_deserializer=esrp_dot_v1_dot_esrp__pb2.CloseEpisodeResponse.FromString,
                 _registered_method=True)
+        self.PlanActions = channel.unary_unary(
+                '/esrp.v1.Esrp/PlanActions',
+                request_serializer=esrp_dot_v1_dot_esrp__pb2.PlanActionsRequest.SerializeToString,
+                response_deserializer=esrp_dot_v1_dot_esrp__pb2.PlanActionsResponse.FromString,
+                _registered_method=True)
 
 
 class EsrpServicer:
@@ -190,6 +195,18 @@ class EsrpServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def PlanActions(self, request, context):
+        """The server's planner (ESRP-PLAN) from the episode's current state: the next actions of a
+        plan that reaches success, or why there is none. Only for episodes created with
+        privileged = true (PERMISSION_DENIED otherwise); FAILED_PRECONDITION once the episode has
+        ended; DEADLINE_EXCEEDED when the planning time budget runs out. Planning runs off the
+        server's request threads; the plan is cached per episode and reused while the episode
+        follows it.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_EsrpServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -252,6 +269,11 @@ def add_EsrpServicer_to_server(servicer, server):
                     servicer.CloseEpisode,
                     request_deserializer=esrp_dot_v1_dot_esrp__pb2.CloseEpisodeRequest.FromString,
                     response_serializer=esrp_dot_v1_dot_esrp__pb2.CloseEpisodeResponse.SerializeToString,
+            ),
+            'PlanActions': grpc.unary_unary_rpc_method_handler(
+                    servicer.PlanActions,
+                    request_deserializer=esrp_dot_v1_dot_esrp__pb2.PlanActionsRequest.FromString,
+                    response_serializer=esrp_dot_v1_dot_esrp__pb2.PlanActionsResponse.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -579,6 +601,33 @@ class Esrp:
             '/esrp.v1.Esrp/CloseEpisode',
             esrp_dot_v1_dot_esrp__pb2.CloseEpisodeRequest.SerializeToString,
             esrp_dot_v1_dot_esrp__pb2.CloseEpisodeResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def PlanActions(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/esrp.v1.Esrp/PlanActions',
+            esrp_dot_v1_dot_esrp__pb2.PlanActionsRequest.SerializeToString,
+            esrp_dot_v1_dot_esrp__pb2.PlanActionsResponse.FromString,
             options,
             channel_credentials,
             insecure,

@@ -78,6 +78,14 @@ class EsrpStub:
     """The episode's metrics so far (final once it has ended)."""
     CloseEpisode: _grpc.UnaryUnaryMultiCallable[_esrp_pb2.CloseEpisodeRequest, _esrp_pb2.CloseEpisodeResponse]
     """Closes an episode and frees it."""
+    PlanActions: _grpc.UnaryUnaryMultiCallable[_esrp_pb2.PlanActionsRequest, _esrp_pb2.PlanActionsResponse]
+    """The server's planner (ESRP-PLAN) from the episode's current state: the next actions of a
+    plan that reaches success, or why there is none. Only for episodes created with
+    privileged = true (PERMISSION_DENIED otherwise); FAILED_PRECONDITION once the episode has
+    ended; DEADLINE_EXCEEDED when the planning time budget runs out. Planning runs off the
+    server's request threads; the plan is cached per episode and reused while the episode
+    follows it.
+    """
 
 @_typing.type_check_only
 class EsrpAsyncStub(EsrpStub):
@@ -117,6 +125,14 @@ class EsrpAsyncStub(EsrpStub):
     """The episode's metrics so far (final once it has ended)."""
     CloseEpisode: _aio.UnaryUnaryMultiCallable[_esrp_pb2.CloseEpisodeRequest, _esrp_pb2.CloseEpisodeResponse]  # type: ignore[assignment]
     """Closes an episode and frees it."""
+    PlanActions: _aio.UnaryUnaryMultiCallable[_esrp_pb2.PlanActionsRequest, _esrp_pb2.PlanActionsResponse]  # type: ignore[assignment]
+    """The server's planner (ESRP-PLAN) from the episode's current state: the next actions of a
+    plan that reaches success, or why there is none. Only for episodes created with
+    privileged = true (PERMISSION_DENIED otherwise); FAILED_PRECONDITION once the episode has
+    ended; DEADLINE_EXCEEDED when the planning time budget runs out. Planning runs off the
+    server's request threads; the plan is cached per episode and reused while the episode
+    follows it.
+    """
 
 class EsrpServicer(metaclass=_abc_1.ABCMeta):
     """The ESRP environment service."""
@@ -225,5 +241,19 @@ class EsrpServicer(metaclass=_abc_1.ABCMeta):
         context: _ServicerContext,
     ) -> _typing.Union[_esrp_pb2.CloseEpisodeResponse, _abc.Awaitable[_esrp_pb2.CloseEpisodeResponse]]:
         """Closes an episode and frees it."""
+
+    @_abc_1.abstractmethod
+    def PlanActions(
+        self,
+        request: _esrp_pb2.PlanActionsRequest,
+        context: _ServicerContext,
+    ) -> _typing.Union[_esrp_pb2.PlanActionsResponse, _abc.Awaitable[_esrp_pb2.PlanActionsResponse]]:
+        """The server's planner (ESRP-PLAN) from the episode's current state: the next actions of a
+        plan that reaches success, or why there is none. Only for episodes created with
+        privileged = true (PERMISSION_DENIED otherwise); FAILED_PRECONDITION once the episode has
+        ended; DEADLINE_EXCEEDED when the planning time budget runs out. Planning runs off the
+        server's request threads; the plan is cached per episode and reused while the episode
+        follows it.
+        """
 
 def add_EsrpServicer_to_server(servicer: EsrpServicer, server: _typing.Union[_grpc.Server, _aio.Server]) -> None: ...

@@ -181,8 +181,10 @@ async fn plan(client: &Client, episode: &Episode, settings: &AgentSettings) -> a
             seconds += answer.stats.planning_seconds;
             relocated += answer.stats.objects_relocated;
         }
-        if let Some(reason) = answer.failure {
-            failure = Some((reason.name().into(), answer.failure_message));
+        // A failure may come with the actions the planner took before it failed: step them
+        // (they place what they can) and ask again from there.
+        failure = answer.failure.map(|reason| (reason.name().to_owned(), answer.failure_message.clone()));
+        if answer.actions.is_empty() {
             break;
         }
         let (taken, ended) = take(client, episode, &answer.actions).await?;

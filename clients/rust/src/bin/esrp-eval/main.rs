@@ -60,9 +60,10 @@ struct Args {
     /// Base seed of seeded agents; scene `id` uses `seed XOR fnv1a64(id)`.
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// The planner's time budget per call, in milliseconds (default: the server's).
-    #[arg(long)]
-    plan_budget_ms: Option<u64>,
+    /// The planner's time budget per call, in milliseconds (the server caps it at its
+    /// --max-plan-ms, 60000 by default).
+    #[arg(long, default_value_t = 60_000)]
+    plan_budget_ms: u64,
     /// Planner calls after the first when an episode goes on after a plan.
     #[arg(long, default_value_t = 2)]
     replans: u32,
@@ -219,7 +220,7 @@ async fn main() -> anyhow::Result<()> {
 
     let settings = AgentSettings {
         kind: args.agent,
-        plan_budget: args.plan_budget_ms.map(Duration::from_millis),
+        plan_budget: Some(Duration::from_millis(args.plan_budget_ms)),
         replans: args.replans,
     };
     let config = settings.config();
