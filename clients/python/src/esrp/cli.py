@@ -47,7 +47,9 @@ def _sensors(text: str) -> Sensors:
     if names - known:
         raise argparse.ArgumentTypeError(f"unknown sensors {sorted(names - known)}: use {sorted(known)}")
     return Sensors(
-        depth="depth" in names, segmentation="segmentation" in names, current_top_down="current_top_down" in names
+        depth="depth" in names,
+        segmentation="segmentation" in names,
+        current_top_down="current_top_down" in names,
     )
 
 
@@ -90,20 +92,33 @@ def _parser() -> argparse.ArgumentParser:
     )
     ev.add_argument("--split", choices=("train", "test"), default="test")
     ev.add_argument("--difficulty", choices=("easy", "medium", "hard"))
-    ev.add_argument("--scenes", type=_comma_list, default=[], metavar="ID,...", help="only these scenes, in order")
-    ev.add_argument("--limit", type=_positive, metavar="N", help="at most N scenes (the first after the filters)")
+    ev.add_argument(
+        "--scenes", type=_comma_list, default=[], metavar="ID,...", help="only these scenes, in order"
+    )
+    ev.add_argument(
+        "--limit", type=_positive, metavar="N", help="at most N scenes (the first after the filters)"
+    )
     ev.add_argument("--episodes-in-flight", type=_positive, default=8, metavar="N")
     ev.add_argument("--seed", type=int, default=0, help="base seed; scene ID uses seed XOR fnv1a64(ID)")
     ev.add_argument("--out", type=Path, required=True, help="the results file (JSON Lines)")
     ev.add_argument("--fresh", action="store_true", help="start --out over instead of resuming it")
     ev.add_argument("--summary", type=Path, help="the Markdown summary (default: --out with .md)")
     ev.add_argument(
-        "--agent-config", type=_json_object, default={}, metavar="JSON", help="a MODULE:CALLABLE agent's config"
+        "--agent-config",
+        type=_json_object,
+        default={},
+        metavar="JSON",
+        help="a MODULE:CALLABLE agent's config",
     )
-    ev.add_argument("--plan-budget-ms", type=_positive, default=60_000, help="plan: budget per PlanActions call")
+    ev.add_argument(
+        "--plan-budget-ms", type=_positive, default=60_000, help="plan: budget per PlanActions call"
+    )
     ev.add_argument("--replans", type=int, default=2, help="plan: PlanActions calls after the first")
     ev.add_argument(
-        "--sensors", type=_sensors, metavar="NAME,...", help="MODULE:CALLABLE: depth,segmentation,current_top_down"
+        "--sensors",
+        type=_sensors,
+        metavar="NAME,...",
+        help="MODULE:CALLABLE: depth,segmentation,current_top_down",
     )
     ev.add_argument("--privileged", action="store_true", help="MODULE:CALLABLE: privileged episodes")
     ev.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar or lines")

@@ -14,6 +14,7 @@ takes. Records are appended and flushed in completion order.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import json
 import sys
@@ -187,7 +188,9 @@ def expert_trajectory(scene_json: str) -> list[Action]:
         trajectory = scene["expert_trajectory"]
         return [_API_CODES[a] if isinstance(a, str) else Action(a) for a in trajectory]
     except (ValueError, KeyError, TypeError) as error:
-        raise ProtocolError(f"the privileged scene JSON holds no readable expert_trajectory: {error}") from None
+        raise ProtocolError(
+            f"the privileged scene JSON holds no readable expert_trajectory: {error}"
+        ) from None
 
 
 async def _play_expert(client: AsyncClient, episode: AsyncEpisode) -> tuple[list[int], EpisodeMetrics | None]:
@@ -300,10 +303,8 @@ async def _play(
             actions, metrics, stats = await _play_agent(episode, factory, settings, seed)
     except BaseException:
         # The agent's error comes first; the close is best effort.
-        try:
+        with contextlib.suppress(EsrpError, asyncio.CancelledError):
             await asyncio.shield(episode.close())
-        except (EsrpError, asyncio.CancelledError):
-            pass
         raise
     closed = await episode.close()
     end = "agent" if metrics is None else _end_of(metrics)
@@ -488,9 +489,7 @@ async def evaluate(client: AsyncClient, settings: EvalSettings) -> EvalOutcome:
 
     mine = [r for r in records if r.scene_id in wanted]
     summary = Summary.of(mine)
-    print(
-        f"{settings.agent} on {len(mine)} scenes of {info.dataset} ({time.monotonic() - started:.0f} s):"
-    )
+    print(f"{settings.agent} on {len(mine)} scenes of {info.dataset} ({time.monotonic() - started:.0f} s):")
     print(summary.text(), end="")
     summary_path = settings.summary or out.with_suffix(".md")
     markdown = summary.markdown(f"{settings.agent} on {info.dataset} ({settings.split} split)")
@@ -529,4 +528,3 @@ def format_failures(failed: Sequence[tuple[str, str]]) -> str:
     """The closing message of a run with failed episodes."""
     ids = ", ".join(scene for scene, _ in failed)
     return f"{len(failed)} episodes failed with an error and were not recorded (rerun to retry them): {ids}"
-

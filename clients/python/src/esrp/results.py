@@ -93,7 +93,9 @@ class EpisodeRecord:
 
     def to_json(self) -> str:
         """The record as one line of compact JSON (no newline), UTF-8 text as is."""
-        return json.dumps(dataclasses.asdict(self), separators=(",", ":"), ensure_ascii=False, allow_nan=False)
+        return json.dumps(
+            dataclasses.asdict(self), separators=(",", ":"), ensure_ascii=False, allow_nan=False
+        )
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> EpisodeRecord:
