@@ -104,6 +104,10 @@ def _pil() -> Any:  # noqa: ANN401 - PIL's modules, imported lazily (the report 
 
 def _upscale(image: npt.NDArray[np.uint8], size: int) -> npt.NDArray[np.uint8]:
     """Nearest-neighbour resize of a square image to `size` pixels (integer factors stay exact)."""
+    if size % image.shape[0] == 0 and image.shape[0] == image.shape[1]:
+        factor = size // image.shape[0]
+        repeated: npt.NDArray[np.uint8] = image.repeat(factor, axis=0).repeat(factor, axis=1)
+        return repeated
     rows = (np.arange(size) * image.shape[0]) // size
     cols = (np.arange(size) * image.shape[1]) // size
     resized: npt.NDArray[np.uint8] = image[rows][:, cols]
@@ -131,7 +135,7 @@ def compose_frame(
     width = 3 * side + 2 * _GAP
     canvas: Image.Image = image_module.new("RGB", (width, side + _HEADER), (255, 255, 255))
     for k, panel in enumerate(panels):
-        canvas.paste(image_module.fromarray(np.ascontiguousarray(panel)), (k * (side + _GAP), _HEADER))
+        canvas.paste(image_module.fromarray(panel), (k * (side + _GAP), _HEADER))
     draw = draw_module.Draw(canvas)
     draw.text((2, 1), caption, fill=(0, 0, 0))
     # Floor (x, z) to the top-down panel's pixels: col = (x - min_x) / m, row = (z - min_z) / m in
