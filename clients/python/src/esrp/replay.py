@@ -200,9 +200,13 @@ def replay_record(
     sensors = Sensors(current_top_down=True)
     frames: list[Frame] = []
     paths = _Paths()
-    with client.create_episode(
-        record.scene_id, privileged=True, sensors=sensors, horizon=record.horizon
-    ) as episode:
+    try:
+        episode = client.create_episode(
+            record.scene_id, privileged=True, sensors=sensors, horizon=record.horizon
+        )
+    except EsrpError as error:
+        raise ReplayError(f"cannot create an episode of {record.scene_id!r}: {error}") from error
+    with episode:
         goal = episode.goal()
         observation = episode.observation
         assert observation is not None
