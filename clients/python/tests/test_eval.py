@@ -113,13 +113,13 @@ def test_expert_and_plan(server: esrp.LocalServer, tmp_path: Path, easy_ids: str
     assert all(r.agent_stats["plan_calls"] == 1 and r.agent_stats["failure"] is None for r in plan)
 
 
-def test_a_medium_plan_and_a_limit(server: esrp.LocalServer, tmp_path: Path) -> None:
+def test_a_medium_plan_and_a_limit(server: esrp.LocalServer, client: esrp.Client, tmp_path: Path) -> None:
     out = tmp_path / "plan.jsonl"
     args = ["eval", "--agent", "plan", "--difficulty", "medium", "--limit", "2", "--out", str(out)]
     assert main([*args, "--server", server.address, "--episodes-in-flight", "2"]) == 0
     records = read_records(out).records
     assert [r.difficulty for r in records] == ["medium", "medium"]
-    listed = [s.id for s in esrp.Client(server.address).scenes("test", "medium")][:2]
+    listed = [s.id for s in client.scenes("test", "medium")][:2]
     assert sorted(r.scene_id for r in records) == sorted(listed)
     assert all(r.success for r in records)
 

@@ -16,6 +16,7 @@ import pytest
 
 import esrp
 from esrp.cli import main
+from esrp.replay import replay_record
 from esrp.results import Summary, read_records
 
 REPOSITORY = Path(__file__).resolve().parents[3]
@@ -59,9 +60,9 @@ def run_rust(binary: Path, server: esrp.LocalServer, *args: str) -> None:
 
 
 def test_python_reads_the_rust_tools_files(
-    rust_eval: Path, server: esrp.LocalServer, tmp_path: Path, easy_scenes: list[str]
+    rust_eval: Path, server: esrp.LocalServer, client: esrp.Client, tmp_path: Path, easy_scenes: list[str]
 ) -> None:
-    scenes = ",".join([*easy_scenes[:2], next(esrp.Client(server.address).scenes("test", "medium")).id])
+    scenes = ",".join([*easy_scenes[:2], next(client.scenes("test", "medium")).id])
     for agent in ("random", "expert"):
         out = tmp_path / f"rust-{agent}.jsonl"
         run_rust(rust_eval, server, "--agent", agent, "--scenes", scenes, "--seed", "9", "--out", str(out))
@@ -73,10 +74,7 @@ def test_python_reads_the_rust_tools_files(
         python_summary = Summary.of(records).markdown(f"{agent} on esrp-bench-v1 (test split)")
         assert tables(python_summary) == tables(out.with_suffix(".md").read_text())
         # The Rust tool's records replay on the server with the Python client.
-        from esrp.replay import replay_record
-
-        with esrp.Client(server.address, timeout=60) as client:
-            replay_record(client, records[0], every_frame=False)
+        replay_record(client, records[0], every_frame=False)
 
 
 def test_the_rust_tool_resumes_and_summarises_a_python_file(
