@@ -221,6 +221,7 @@ def test_resume_after_an_interrupted_run_gives_the_same_file(
                 break
             time.sleep(0.005)
         child.wait(30)
+    assert child.returncode == -signal.SIGKILL, "the run ended before it could be interrupted"
     lines = cut.read_bytes().splitlines(keepends=True)
     # Keep what was complete (at most five records) and end with a line cut in the middle of its
     # write, as an interruption would leave it.
