@@ -4,7 +4,9 @@
 # the end-to-end tests of tests/python (dm_env_rpc's compliance suites and whole DmEnvAdaptor
 # episodes). Creates .venv (gitignored) with the pinned packages of both, builds the binaries,
 # installs the client package as built from this tree, then lints and tests each. Works on a fresh
-# machine with a Rust toolchain; installs python3-venv (and the CPU Vulkan driver) if missing.
+# machine with a Rust toolchain; installs python3-venv (and the CPU Vulkan driver) if missing, and
+# Debian's chromium for the browser test of `esrp report`'s HTML page (Playwright drives that
+# browser; Playwright's own browser downloads are never used).
 # Usage: bash scripts/python-tests.sh [PYTEST ARGS for tests/python...]
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -63,6 +65,12 @@ pip install --no-build-isolation --no-deps --force-reinstall "./$client"
 "$venv/bin/python" -m pip list --disable-pip-version-check --format=freeze \
     | grep -iE '^(esrp|dm-env-rpc|grpcio|protobuf|numpy|gymnasium)=='
 
+step "chromium (the browser test of esrp report)"
+if [ ! -x /usr/bin/chromium ]; then
+    apt_install chromium
+fi
+/usr/bin/chromium --version 2>/dev/null || true  # its wrapper script warns about the machine on stderr
+
 step "binaries"
 # Without a GPU the server renders on Mesa's CPU renderer: llvmpipe through OpenGL (EGL), or
 # lavapipe through Vulkan.
@@ -72,9 +80,13 @@ if ! ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1 || ! ldconfig -p |
 fi
 export NODEVICE_SELECT=1
 cargo build --locked -p esrp-server -p esrp-dataset
+# The Rust esrp-eval: the Python tests check that both evaluation tools read each other's results.
+cargo build --locked -p esrp-client --bin esrp-eval
 target_dir="$(cargo metadata --format-version 1 --no-deps | "$venv/bin/python" -c 'import json, sys; print(json.load(sys.stdin)["target_directory"])')"
 export ESRP_SERVER_BIN="$target_dir/debug/esrp-server"
 export ESRP_DATASET_BIN="$target_dir/debug/esrp-dataset"
+export ESRP_EVAL_BIN="$target_dir/debug/esrp-eval"
+export ESRP_CHROMIUM=/usr/bin/chromium
 
 step "python client: ruff ($client)"
 (cd "$client" && "../../$venv/bin/ruff" check . && "../../$venv/bin/ruff" format --check .)

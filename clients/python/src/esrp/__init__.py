@@ -10,6 +10,9 @@
 - With the `gym` extra: the Gymnasium env `esrp/Rearrange-v1` (registered on import) and its native
   vector env, in `esrp.gym`.
 
+- The `esrp` command (`esrp.cli`): `esrp eval` (`esrp.evaluation`, agents in `esrp.agents`, the
+  results schema in `esrp.results`), `esrp report` (`esrp.report`), `esrp replay` (`esrp.replay`).
+
 The generated protobuf messages and gRPC stubs are in `esrp.v1`.
 """
 
@@ -51,6 +54,9 @@ from ._values import (
     Observation,
     ObservationSpec,
     Obstacle,
+    PlanAnswer,
+    PlanFailure,
+    PlanStats,
     Pose2,
     PrivilegedState,
     Progress,
@@ -102,6 +108,9 @@ __all__ = [
     "ObservationSpec",
     "Obstacle",
     "PermissionDenied",
+    "PlanAnswer",
+    "PlanFailure",
+    "PlanStats",
     "Pose2",
     "PrivilegedState",
     "Progress",

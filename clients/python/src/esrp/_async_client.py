@@ -36,6 +36,7 @@ from ._values import (
     Goal,
     Observation,
     ObservationSpec,
+    PlanAnswer,
     PrivilegedState,
     Progress,
     RewardWeights,
@@ -329,6 +330,31 @@ class AsyncEpisode:
         request = pb.GetPrivilegedStateRequest(episode_id=self.id)
         answer = await self.client._call(self.client._stub.GetPrivilegedState, request)  # noqa: SLF001
         return _convert.privileged_state(answer)
+
+    async def plan_actions(self, max_actions: int = 0, budget_ms: int | None = None) -> PlanAnswer:
+        """The next actions of the server's planner (ESRP-PLAN) from the episode's current state;
+        only for episodes created with `privileged=True` (else `PermissionDenied`).
+
+        Args:
+            max_actions: At most this many next actions; 0: the whole plan.
+            budget_ms: Planning time in milliseconds, counted from the call (waiting for a planner
+                thread included); None: the server's `--plan-budget-ms` (10 s by default). The
+                server caps it at its `--max-plan-ms` (60 s by default).
+
+        Returns the plan's next actions and how it was made; a plan that does not exist comes back
+        as a `PlanAnswer` with `failure` set (and the actions the planner took before failing).
+        The answer is cached with the episode: after stepping part of the plan, the next call
+        answers the rest at once (`cached`).
+
+        Raises:
+            DeadlineExceeded: No plan was found within the budget.
+            EpisodeEnded: The episode has ended.
+            PermissionDenied: The episode is not privileged.
+        """
+        request = _convert.plan_request(self.id, max_actions, budget_ms)
+        timeout = _convert.plan_timeout(self.client.timeout, budget_ms)
+        answer = await self.client._call(self.client._stub.PlanActions, request, timeout)  # noqa: SLF001
+        return _convert.plan_answer(answer)
 
     async def close(self) -> EpisodeMetrics:
         """Closes the episode on the server; returns its metrics at that moment."""

@@ -15,6 +15,7 @@ import numpy.typing as npt
 
 from ._errors import InvalidRequest, ProtocolError
 from ._values import (
+    Action,
     ArraySpec,
     Created,
     DatasetInfo,
@@ -26,6 +27,9 @@ from ._values import (
     Observation,
     ObservationSpec,
     Obstacle,
+    PlanAnswer,
+    PlanFailure,
+    PlanStats,
     Pose2,
     PrivilegedState,
     RewardTerms,
@@ -54,6 +58,12 @@ _OBSTACLE_KINDS = {
     pb.Obstacle.KIND_WALL: "wall",
     pb.Obstacle.KIND_FIXED: "fixed",
     pb.Obstacle.KIND_MOVABLE: "movable",
+}
+_PLAN_FAILURES = {
+    pb.PLAN_FAILURE_UNREACHABLE: PlanFailure.UNREACHABLE,
+    pb.PLAN_FAILURE_NO_PLACEMENT: PlanFailure.NO_PLACEMENT,
+    pb.PLAN_FAILURE_BUDGET_EXHAUSTED: PlanFailure.BUDGET_EXHAUSTED,
+    pb.PLAN_FAILURE_TOO_LONG: PlanFailure.TOO_LONG,
 }
 _LITTLE_FLOAT32 = np.dtype("<f4")
 _LITTLE_UINT32 = np.dtype("<u4")
@@ -134,6 +144,28 @@ def reset_request(episode_id: str, scene: str | None, scene_json: str | None) ->
 def step_request(episode_id: str, action: int, include_goal: bool) -> pb.StepRequest:
     """A Step request. The action is sent as given: the server checks it (INVALID_ARGUMENT)."""
     return pb.StepRequest(episode_id=episode_id, action=int(action), include_goal=include_goal)
+
+
+def plan_request(episode_id: str, max_actions: int, budget_ms: int | None) -> pb.PlanActionsRequest:
+    """The PlanActions request of `Episode.plan_actions`'s arguments (checked here: the fields are
+    unsigned 32-bit, and protobuf would raise a ValueError).
+    """
+    if not 0 <= max_actions < 2**32:
+        raise InvalidRequest(f"max_actions must be 0 (the whole plan) or a positive count, not {max_actions}")
+    if budget_ms is not None and not 0 < budget_ms < 2**32:
+        raise InvalidRequest(f"budget_ms must be positive milliseconds (None: the server's), not {budget_ms}")
+    return pb.PlanActionsRequest(episode_id=episode_id, max_actions=max_actions, budget_ms=budget_ms or 0)
+
+
+def plan_timeout(timeout: float | None, budget_ms: int | None) -> float | None:
+    """The gRPC deadline of a PlanActions call: the client's `timeout`, but never shorter than the
+    planning budget plus 5 s (the server's cap, 60 s, where the budget is the server's), so that a
+    short default deadline does not cancel (and stop) a planner the caller gave more time.
+    """
+    if timeout is None:
+        return None
+    budget = (budget_ms if budget_ms is not None else 60_000) / 1000
+    return max(timeout, budget + 5.0)
 
 
 # Answers.
@@ -375,4 +407,32 @@ def dataset_info(message: pb.DescribeDatasetResponse) -> DatasetInfo:
         by_difficulty=dict(message.by_difficulty),
         by_room_type=dict(message.by_room_type),
         source=message.source,
+    )
+
+
+def plan_answer(message: pb.PlanActionsResponse) -> PlanAnswer:
+    """A PlanAnswer of a PlanActions answer; an action code outside 0..5 is a `ProtocolError`."""
+    try:
+        actions = tuple(Action(code) for code in message.actions)
+    except ValueError:
+        codes = list(message.actions)[:16]
+        raise ProtocolError(f"a plan with an action code outside 0..5: {codes}") from None
+    stats = message.stats
+    failure = _PLAN_FAILURES.get(message.failure)
+    if message.failure and failure is None:
+        raise ProtocolError(f"a plan failure this client does not know: {message.failure}")
+    return PlanAnswer(
+        actions=actions,
+        reaches_success=message.reaches_success,
+        plan_length=message.plan_length,
+        cached=message.cached,
+        stats=PlanStats(
+            nodes_expanded=stats.nodes_expanded,
+            searches=stats.searches,
+            planning_seconds=stats.planning_seconds,
+            objects_relocated=stats.objects_relocated,
+        ),
+        failure=failure,
+        failure_message=message.failure_message,
+        failure_object=message.failure_object,
     )

@@ -29,6 +29,9 @@ __all__ = [
     "Observation",
     "ObservationSpec",
     "Obstacle",
+    "PlanAnswer",
+    "PlanFailure",
+    "PlanStats",
     "Pose2",
     "PrivilegedState",
     "Progress",
@@ -446,3 +449,61 @@ class DatasetInfo:
     by_difficulty: Mapping[str, int]
     by_room_type: Mapping[str, int]
     source: str
+
+
+class PlanFailure(str, enum.Enum):
+    """Why the server's planner found no plan (`PlanAnswer.failure`)."""
+
+    UNREACHABLE = "unreachable"
+    """No pose from which `fetch` takes an object (`PlanAnswer.failure_object`)."""
+    NO_PLACEMENT = "no_placement"
+    """No release pose places an object (`PlanAnswer.failure_object`)."""
+    BUDGET_EXHAUSTED = "budget_exhausted"
+    """The search's node budget ran out."""
+    TOO_LONG = "too_long"
+    """A plan exists but does not fit the steps left before the horizon."""
+
+
+@dataclass(frozen=True)
+class PlanStats:
+    """What the planning that made a plan cost.
+
+    Attributes:
+        nodes_expanded: Search nodes expanded.
+        searches: Searches run (one per object attempt).
+        planning_seconds: Wall time of the planning, seconds.
+        objects_relocated: Blockers moved aside to buffer poses.
+    """
+
+    nodes_expanded: int
+    searches: int
+    planning_seconds: float
+    objects_relocated: int
+
+
+@dataclass(frozen=True)
+class PlanAnswer:
+    """The answer of `Episode.plan_actions`: the next actions of a plan from the current state.
+
+    Attributes:
+        actions: The next actions, at most `max_actions`. With a `failure`: the next of the actions
+            the planner took before it failed (they place what they can, possibly none: step them
+            and ask again from there).
+        reaches_success: The plan ends in success (False only with a `failure`).
+        plan_length: Length of the whole plan from the current state.
+        cached: Answered from the plan cached with the episode (no planning; `stats` are the
+            planning that made it).
+        stats: The planning's cost.
+        failure: Why there is no plan, or None when a plan was found.
+        failure_message: The failure in words ("" without one).
+        failure_object: The id of the object a failure is about ("" if none).
+    """
+
+    actions: tuple[Action, ...]
+    reaches_success: bool
+    plan_length: int
+    cached: bool
+    stats: PlanStats
+    failure: PlanFailure | None
+    failure_message: str
+    failure_object: str

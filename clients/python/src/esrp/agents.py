@@ -1,0 +1,112 @@
+"""Agents for `esrp eval`: the `Agent` protocol (and its asyncio twin `AsyncAgent`), the uniform
+`RandomAgent`, and `load_factory`, which turns `--agent MODULE:CALLABLE` into a factory.
+
+An agent plays one episode at a time: `reset(observation, info)` at the start, then `act(observation)`
+after each step, until the episode ends (success or the horizon) or `act` returns None (the agent
+stops; the record's `end` is `"agent"`). Every observation it is given carries the goal image
+(`observation.goal_rgb`). `esrp eval` makes one agent per episode by calling the factory with the
+agent configuration, so instances never see two episodes at once:
+
+    factory(config: dict[str, Any]) -> Agent | AsyncAgent
+
+`config` is `--agent-config` (a JSON object, `{}` by default); it is recorded as `agent_config`.
+An agent may define `stats() -> dict` (recorded as `agent_stats` at the end of its episode).
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+from collections.abc import Callable, Mapping
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from ._values import Action, Observation
+
+__all__ = ["Agent", "AgentFactory", "AsyncAgent", "RandomAgent", "load_factory"]
+
+
+@runtime_checkable
+class Agent(Protocol):
+    """An agent whose calls return at once (or block: they run on the evaluation's event loop, so a
+    slow one holds up every other episode; make a slow agent an `AsyncAgent`).
+    """
+
+    def reset(self, observation: Observation, info: Mapping[str, Any]) -> None:
+        """Starts an episode.
+
+        Args:
+            observation: The first observation (`ego_rgb`, `goal_rgb`, `grasping`, the sensors).
+            info: `scene_id`, `room_type`, `difficulty`, `objects` (movable objects), `horizon`,
+                `split`, `seed` (the per-scene seed: draw your random numbers from it),
+                `episode_id`.
+        """
+
+    def act(self, observation: Observation) -> Action | int | None:
+        """The next action (an `Action` or its code 0..5), or None to stop the episode here."""
+
+
+@runtime_checkable
+class AsyncAgent(Protocol):
+    """The asyncio twin of `Agent`, for agents that wait on a model (a server, a GPU queue): while one
+    episode's agent awaits, the other episodes go on.
+    """
+
+    async def reset(self, observation: Observation, info: Mapping[str, Any]) -> None:
+        """Starts an episode (as `Agent.reset`)."""
+
+    async def act(self, observation: Observation) -> Action | int | None:
+        """The next action, or None to stop (as `Agent.act`)."""
+
+
+AgentFactory = Callable[[dict[str, Any]], "Agent | AsyncAgent"]
+"""What `--agent MODULE:CALLABLE` names: called with the agent config, once per episode."""
+
+
+class RandomAgent:
+    """Uniform random actions, seeded per episode.
+
+    Its generator is numpy's `default_rng(info["seed"])` (PCG64), one `integers(0, 6)` per step: the
+    same seed gives the same actions, on any machine. (The Rust `esrp-eval` draws from ChaCha8, so
+    the two tools' random agents play different action streams from the same seed.)
+    """
+
+    def __init__(self, config: Mapping[str, Any] | None = None) -> None:
+        self.config = dict(config or {})
+        self._rng = np.random.default_rng(0)
+
+    def reset(self, observation: Observation, info: Mapping[str, Any]) -> None:
+        """Seeds the generator with the episode's seed."""
+        self._rng = np.random.default_rng(int(info["seed"]))
+
+    def act(self, observation: Observation) -> Action:
+        """A uniform random action."""
+        return Action(int(self._rng.integers(0, 6)))
+
+
+def is_async_agent(agent: object) -> bool:
+    """Whether `agent`'s `act` is a coroutine function (an `AsyncAgent`)."""
+    return inspect.iscoroutinefunction(getattr(agent, "act", None))
+
+
+def load_factory(spec: str) -> AgentFactory:
+    """The callable named by `MODULE:CALLABLE` (e.g. `my_agents:make_agent`, `pkg.mod:Agent`): the
+    module is imported (the working directory is on the path when `esrp` runs), and CALLABLE may be
+    dotted (`module:Class.create`). Raises `ValueError` saying what is missing.
+    """
+    module_name, sep, attribute = spec.partition(":")
+    if not sep or not module_name or not attribute:
+        raise ValueError(f"agent {spec!r} is neither random, expert, plan nor MODULE:CALLABLE")
+    try:
+        target: Any = importlib.import_module(module_name)
+    except ImportError as error:
+        raise ValueError(f"cannot import {module_name!r} for agent {spec!r}: {error}") from error
+    for part in attribute.split("."):
+        if not hasattr(target, part):
+            raise ValueError(f"{module_name!r} has no {attribute!r} (agent {spec!r})")
+        target = getattr(target, part)
+    if not callable(target):
+        raise ValueError(f"{spec!r} is not callable: it must be a factory called with the agent config")
+    factory: AgentFactory = target
+    return factory

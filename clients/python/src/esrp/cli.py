@@ -1,0 +1,256 @@
+"""The `esrp` command: `esrp eval` (run an agent over a split, write `esrp.results/v1` records),
+`esrp report` (tables and plots of results files as Markdown and one self-contained HTML page) and
+`esrp replay` (re-run a recorded episode on the server and write it as a GIF, MP4 or PNG).
+`esrp COMMAND --help` says more; docs/evaluation.md describes the results files.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from . import __version__
+from ._errors import EsrpError
+from ._values import Sensors
+
+__all__ = ["main"]
+
+
+def _comma_list(text: str) -> list[str]:
+    return [part.strip() for part in text.split(",") if part.strip()]
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, not {value}")
+    return value
+
+
+def _json_object(text: str) -> dict[str, object]:
+    try:
+        value = json.loads(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"not JSON: {error}") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError("must be a JSON object, e.g. '{\"temperature\": 0.2}'")
+    return value
+
+
+def _sensors(text: str) -> Sensors:
+    names = set(_comma_list(text))
+    known = {"depth", "segmentation", "current_top_down"}
+    if names - known:
+        raise argparse.ArgumentTypeError(f"unknown sensors {sorted(names - known)}: use {sorted(known)}")
+    return Sensors(
+        depth="depth" in names,
+        segmentation="segmentation" in names,
+        current_top_down="current_top_down" in names,
+    )
+
+
+def _server_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--server", metavar="ADDR", help="a running esrp-server (host:port); without it, one is started"
+    )
+    parser.add_argument(
+        "--server-arg",
+        dest="server_args",
+        action="append",
+        default=[],
+        metavar="ARG",
+        help="an argument for the server started here (repeat for several)",
+    )
+    parser.add_argument(
+        "--token",
+        default=os.environ.get("ESRP_TOKEN"),
+        help="bearer token of a server started with --token (default: $ESRP_TOKEN)",
+    )
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="esrp", description=__doc__.split("\n\n")[0] if __doc__ else None)
+    parser.add_argument("--version", action="version", version=f"esrp {__version__}")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    ev = commands.add_parser(
+        "eval",
+        help="run an agent over the scenes of a split; write one esrp.results/v1 record per episode",
+        description="Run an agent over the scenes of a split and write one esrp.results/v1 record per "
+        "episode (docs/evaluation.md), resuming what --out already holds; a Markdown summary is written "
+        "beside it. The exit status is 1 when episodes failed with an error (they are not recorded).",
+    )
+    ev.add_argument(
+        "--agent",
+        required=True,
+        help="random, expert, plan, or MODULE:CALLABLE (a factory called with the agent config, once "
+        "per episode, returning an esrp.agents.Agent or AsyncAgent)",
+    )
+    ev.add_argument("--split", choices=("train", "test"), default="test")
+    ev.add_argument("--difficulty", choices=("easy", "medium", "hard"))
+    ev.add_argument(
+        "--scenes", type=_comma_list, default=[], metavar="ID,...", help="only these scenes, in order"
+    )
+    ev.add_argument(
+        "--limit", type=_positive, metavar="N", help="at most N scenes (the first after the filters)"
+    )
+    ev.add_argument("--episodes-in-flight", type=_positive, default=8, metavar="N")
+    ev.add_argument("--seed", type=int, default=0, help="base seed; scene ID uses seed XOR fnv1a64(ID)")
+    ev.add_argument("--out", type=Path, required=True, help="the results file (JSON Lines)")
+    ev.add_argument("--fresh", action="store_true", help="start --out over instead of resuming it")
+    ev.add_argument("--summary", type=Path, help="the Markdown summary (default: --out with .md)")
+    ev.add_argument(
+        "--agent-config",
+        type=_json_object,
+        default={},
+        metavar="JSON",
+        help="a MODULE:CALLABLE agent's config",
+    )
+    ev.add_argument(
+        "--plan-budget-ms", type=_positive, default=60_000, help="plan: budget per PlanActions call"
+    )
+    ev.add_argument("--replans", type=int, default=2, help="plan: PlanActions calls after the first")
+    ev.add_argument(
+        "--sensors",
+        type=_sensors,
+        metavar="NAME,...",
+        help="MODULE:CALLABLE: depth,segmentation,current_top_down",
+    )
+    ev.add_argument("--privileged", action="store_true", help="MODULE:CALLABLE: privileged episodes")
+    ev.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar or lines")
+    _server_options(ev)
+
+    rep = commands.add_parser(
+        "report",
+        help="tables and plots of results files: Markdown and one self-contained HTML page",
+        description="Read esrp.results/v1 files and write report.md and report.html (images inlined) "
+        "with the paper's Table I/II/III layouts for every run, the paper's rows beside them, plots, "
+        "and replay stills of chosen episodes (those need a server).",
+    )
+    rep.add_argument("results", nargs="+", type=Path, help="results files (JSON Lines)")
+    rep.add_argument("--out", type=Path, required=True, help="the report's folder")
+    rep.add_argument("--replays", type=int, default=0, metavar="N", help="stills of N episodes per run")
+    rep.add_argument(
+        "--replay-scenes", type=_comma_list, default=[], metavar="ID,...", help="stills of these scenes"
+    )
+    rep.add_argument("--title", default="ESRP evaluation report")
+    _server_options(rep)
+
+    rp = commands.add_parser(
+        "replay",
+        help="re-run a recorded episode on the server; write it as a GIF, MP4 or PNG",
+        description="Re-run the recorded actions of one episode on the server (privileged, with the "
+        "current top-down view) and write its frames: ego view | goal | current top-down with the "
+        "agent's path (red) and each carried object's path (blue). The format follows --out's "
+        "extension: .gif, .mp4 (needs imageio-ffmpeg) or .png (the final frame). Fails when the "
+        "replay does not reproduce the record's metrics.",
+    )
+    rp.add_argument("--results", type=Path, required=True, help="the results file")
+    rp.add_argument("--scene", required=True, help="the scene id of the episode to replay")
+    rp.add_argument("--out", type=Path, required=True, help="ep.gif, ep.mp4 or ep.png")
+    rp.add_argument("--fps", type=float, default=10.0)
+    rp.add_argument("--scale", type=_positive, default=2, help="pixels per image pixel")
+    _server_options(rp)
+    return parser
+
+
+def _eval(args: argparse.Namespace) -> int:
+    from .evaluation import EvalError, EvalSettings, format_failures, run_eval
+
+    # `--agent my_agents:make` imports from the working directory, as `python -m` would.
+    if "" not in sys.path and os.getcwd() not in sys.path:
+        sys.path.insert(0, os.getcwd())
+    settings = EvalSettings(
+        agent=args.agent,
+        out=args.out,
+        split=args.split,
+        difficulty=args.difficulty,
+        scenes=args.scenes,
+        limit=args.limit,
+        episodes_in_flight=args.episodes_in_flight,
+        seed=args.seed,
+        fresh=args.fresh,
+        summary=args.summary,
+        agent_config=args.agent_config,
+        plan_budget_ms=args.plan_budget_ms,
+        replans=args.replans,
+        sensors=args.sensors,
+        privileged=args.privileged,
+        progress=args.progress,
+    )
+    try:
+        outcome = run_eval(settings, server=args.server, token=args.token, server_args=args.server_args)
+    except EvalError as error:
+        print(f"esrp eval: {error}", file=sys.stderr)
+        return 2
+    if outcome.failed:
+        print(f"esrp eval: {format_failures(outcome.failed)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _report(args: argparse.Namespace) -> int:
+    from .report import ReportError, write_report
+
+    try:
+        paths = write_report(
+            args.results,
+            args.out,
+            title=args.title,
+            replays=args.replays,
+            replay_scenes=args.replay_scenes,
+            server=args.server,
+            token=args.token,
+            server_args=args.server_args,
+        )
+    except ReportError as error:
+        print(f"esrp report: {error}", file=sys.stderr)
+        return 2
+    for path in paths:
+        print(path)
+    return 0
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from .replay import ReplayError, replay_to_file
+
+    try:
+        replay_to_file(
+            args.results,
+            args.scene,
+            args.out,
+            fps=args.fps,
+            scale=args.scale,
+            server=args.server,
+            token=args.token,
+            server_args=args.server_args,
+        )
+    except ReplayError as error:
+        print(f"esrp replay: {error}", file=sys.stderr)
+        return 2
+    print(args.out)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Runs `esrp ARGS` (`argv` without the program name; default `sys.argv[1:]`); returns the exit
+    status: 0 done, 1 episodes failed (eval), 2 bad arguments or input, 130 interrupted.
+    """
+    args = _parser().parse_args(argv)
+    handlers = {"eval": _eval, "report": _report, "replay": _replay}
+    try:
+        return handlers[args.command](args)
+    except EsrpError as error:
+        print(f"esrp {args.command}: {type(error).__name__}: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"esrp {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,530 @@
+"""`esrp eval`: runs an agent over the scenes of a split and writes one `esrp.results/v1` record
+per episode (docs/evaluation.md), with a progress bar, resumption, and the Markdown summary with the
+paper's rows beside it — the Python twin of the Rust `esrp-eval`, writing the same files.
+
+Agents: `plan` (the server's planner through PlanActions: the whole plan, stepped, then replanned
+as the Rust agent does), `expert` (the scene's expert trajectory), `random` (`RandomAgent`), or
+`MODULE:CALLABLE`, a factory of `esrp.agents.Agent` / `AsyncAgent` called with the agent config.
+
+Episodes run concurrently on one `AsyncClient` (`episodes_in_flight` at a time); the scenes are
+fixed up front, in dataset order, and taken in that order, so no scene waits on how long another
+takes. Records are appended and flushed in completion order.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import json
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import IO, Any
+
+from . import __version__
+from ._async_client import AsyncClient, AsyncEpisode
+from ._errors import DeadlineExceeded, EsrpError, ProtocolError
+from ._local import LocalServer
+from ._values import Action, EpisodeMetrics, SceneSummary, Sensors, ServerInfo
+from .agents import AgentFactory, RandomAgent, is_async_agent, load_factory
+from .results import (
+    SCHEMA,
+    EpisodeRecord,
+    Summary,
+    Tally,
+    append_record,
+    read_records,
+    scene_seed,
+    truncate_to,
+)
+
+__all__ = [
+    "BUILTIN_AGENTS",
+    "CLIENT_NAME",
+    "EvalError",
+    "EvalOutcome",
+    "EvalSettings",
+    "evaluate",
+    "expert_trajectory",
+    "format_failures",
+    "run_eval",
+]
+
+BUILTIN_AGENTS = ("random", "expert", "plan")
+"""The agents `esrp eval` knows by name."""
+
+CLIENT_NAME = f"esrp eval (Python) {__version__}"
+"""The `client` field of the records this tool writes."""
+
+_API_CODES = {action.api_name: action for action in Action}
+
+
+class EvalError(Exception):
+    """The evaluation cannot run as asked (bad arguments, a results file of another agent)."""
+
+
+@dataclass
+class EvalSettings:
+    """What `esrp eval` runs; the fields are its flags.
+
+    Attributes:
+        agent: `random`, `expert`, `plan`, or `MODULE:CALLABLE` (a factory of agents).
+        out: The results file (JSON Lines); scenes already in it are skipped.
+        split: The split whose scenes to run (`train` or `test`).
+        difficulty: Only scenes of this difficulty (`easy`, `medium`, `hard`).
+        scenes: Only these scene ids, in this order (they must be in the split).
+        limit: At most this many scenes (after the filters), the first in order.
+        episodes_in_flight: Episodes played at the same time.
+        seed: Base seed; scene `id` plays with `seed XOR fnv1a64(id)`.
+        fresh: Start the results file over instead of resuming it.
+        summary: The Markdown summary's path (default: `out` with `.md`).
+        agent_config: The agent's settings (a factory's argument; recorded as `agent_config`).
+        plan_budget_ms: The planner's time budget per PlanActions call (plan agent).
+        replans: PlanActions calls after the first when the episode goes on (plan agent).
+        sensors: Optional sensors of a `MODULE:CALLABLE` agent's episodes.
+        privileged: Create a `MODULE:CALLABLE` agent's episodes privileged (for reference agents
+            that read the state or call PlanActions; not an ESRP agent proper then).
+        progress: Show a progress bar (on a terminal) or a line every 5 % (otherwise).
+    """
+
+    agent: str
+    out: Path
+    split: str = "test"
+    difficulty: str | None = None
+    scenes: Sequence[str] = ()
+    limit: int | None = None
+    episodes_in_flight: int = 8
+    seed: int = 0
+    fresh: bool = False
+    summary: Path | None = None
+    agent_config: dict[str, Any] = field(default_factory=dict)
+    plan_budget_ms: int = 60_000
+    replans: int = 2
+    sensors: Sensors | None = None
+    privileged: bool = False
+    progress: bool = True
+
+    def recorded_config(self) -> dict[str, Any]:
+        """The record's `agent_config`: the plan agent's settings as the Rust tool writes them, `{}`
+        for expert and random, the given config for a factory.
+        """
+        if self.agent == "plan":
+            return {"budget_ms": self.plan_budget_ms, "replans": self.replans}
+        if self.agent in ("expert", "random"):
+            return {}
+        return dict(self.agent_config)
+
+    def seeded(self) -> bool:
+        """Whether the agent gets (and the record stores) a per-scene seed: random and factories."""
+        return self.agent not in ("plan", "expert")
+
+
+@dataclass
+class EvalOutcome:
+    """What an evaluation did.
+
+    Attributes:
+        records: The records of the chosen scenes: earlier runs' and this one's, in file order.
+        written: How many records this run wrote.
+        failed: `(scene_id, error)` of the episodes that failed and were not recorded.
+        summary: The summary of `records`.
+        summary_path: Where the Markdown summary was written.
+    """
+
+    records: list[EpisodeRecord]
+    written: int
+    failed: list[tuple[str, str]]
+    summary: Summary
+    summary_path: Path
+
+
+@dataclass
+class _Played:
+    scene: SceneSummary
+    metrics: EpisodeMetrics
+    actions: list[int]
+    end: str
+    stats: dict[str, Any]
+
+
+def _now_rfc3339() -> str:
+    return datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def _end_of(metrics: EpisodeMetrics) -> str:
+    return "success" if metrics.success else "horizon"
+
+
+async def _take(
+    client: AsyncClient, episode: AsyncEpisode, actions: Sequence[Action | int]
+) -> tuple[list[int], EpisodeMetrics | None]:
+    """Steps `actions` on a pipelined stream until the episode ends; returns the actions taken
+    and, if the episode ended, its final metrics.
+    """
+    if not actions:
+        return [], None
+    async with await client.episode_stream(window=min(len(actions), 64)) as stream:
+        results = (await stream.run({episode.id: actions}))[episode.id]
+    taken: list[int] = []
+    for action, result in zip(actions, results, strict=True):
+        if isinstance(result, EsrpError):
+            raise result
+        taken.append(int(action))
+        if result.ended:
+            if result.metrics is None:
+                raise ProtocolError("an ended step without metrics")
+            return taken, result.metrics
+    return taken, None
+
+
+def expert_trajectory(scene_json: str) -> list[Action]:
+    """The expert trajectory of a scene's JSON (`expert_trajectory`: action codes or API names)."""
+    try:
+        scene = json.loads(scene_json)
+        trajectory = scene["expert_trajectory"]
+        return [_API_CODES[a] if isinstance(a, str) else Action(a) for a in trajectory]
+    except (ValueError, KeyError, TypeError) as error:
+        raise ProtocolError(
+            f"the privileged scene JSON holds no readable expert_trajectory: {error}"
+        ) from None
+
+
+async def _play_expert(client: AsyncClient, episode: AsyncEpisode) -> tuple[list[int], EpisodeMetrics | None]:
+    trajectory = expert_trajectory((await episode.privileged_state()).scene_json)
+    return await _take(client, episode, trajectory)
+
+
+async def _play_plan(
+    client: AsyncClient, episode: AsyncEpisode, settings: EvalSettings
+) -> tuple[list[int], EpisodeMetrics | None, dict[str, Any]]:
+    """ESRP-PLAN as the Rust agent plays it: the whole plan, stepped; asked again while the episode
+    goes on (at most `replans` more calls); after a failure, the actions the planner took before
+    failing are stepped and the planner asked again; no actions ends the episode's play.
+    """
+    actions: list[int] = []
+    calls, nodes, seconds, relocated = 0, 0, 0.0, 0
+    failure: tuple[str, str] | None = None
+    metrics: EpisodeMetrics | None = None
+    while calls <= settings.replans:
+        calls += 1
+        try:
+            answer = await episode.plan_actions(0, settings.plan_budget_ms)
+        except DeadlineExceeded as error:
+            failure = ("deadline_exceeded", error.message)
+            break
+        if not answer.cached:
+            nodes += answer.stats.nodes_expanded
+            seconds += answer.stats.planning_seconds
+            relocated += answer.stats.objects_relocated
+        failure = None if answer.failure is None else (answer.failure.value, answer.failure_message)
+        if not answer.actions:
+            break
+        taken, metrics = await _take(client, episode, answer.actions)
+        actions.extend(taken)
+        if metrics is not None:
+            break
+    stats = {
+        "plan_calls": calls,
+        "nodes_expanded": nodes,
+        "planning_seconds": seconds,
+        "objects_relocated": relocated,
+        "failure": None if failure is None else failure[0],
+        "failure_message": None if failure is None else failure[1],
+    }
+    return actions, metrics, stats
+
+
+async def _play_agent(
+    episode: AsyncEpisode, factory: AgentFactory, settings: EvalSettings, seed: int
+) -> tuple[list[int], EpisodeMetrics | None, dict[str, Any]]:
+    """Plays an `Agent` or `AsyncAgent`: reset, then act and step until the episode ends or the agent
+    returns None. Each observation is given the goal image of the first one.
+    """
+    agent: Any = factory(dict(settings.agent_config))
+    asynchronous = is_async_agent(agent)
+    first = episode.observation
+    if first is None:
+        raise ProtocolError("a created episode without its first observation")
+    goal = first.goal_rgb
+    scene = episode.scene
+    info = {
+        "scene_id": scene.id,
+        "room_type": scene.room_type,
+        "difficulty": None if scene.difficulty is None else scene.difficulty.value,
+        "objects": scene.movable_objects,
+        "horizon": scene.horizon,
+        "split": None if scene.split is None else scene.split.value,
+        "seed": seed,
+        "episode_id": episode.id,
+    }
+    if asynchronous:
+        await agent.reset(first, info)
+    else:
+        agent.reset(first, info)
+    observation = first
+    actions: list[int] = []
+    metrics: EpisodeMetrics | None = None
+    while True:
+        action = await agent.act(observation) if asynchronous else agent.act(observation)
+        if action is None:
+            break
+        result = await episode.step(action)
+        actions.append(int(action))
+        if result.ended:
+            metrics = result.metrics
+            if metrics is None:
+                raise ProtocolError("an ended step without metrics")
+            break
+        observation = dataclasses.replace(result.observation, goal_rgb=goal)
+    stats_method = getattr(agent, "stats", None)
+    stats = dict(stats_method()) if callable(stats_method) else {}
+    return actions, metrics, stats
+
+
+async def _play(
+    client: AsyncClient, scene: SceneSummary, settings: EvalSettings, factory: AgentFactory | None, seed: int
+) -> _Played:
+    kind = settings.agent
+    privileged = kind in ("plan", "expert") or (factory is not None and settings.privileged)
+    sensors = settings.sensors if factory is not None else None
+    episode = await client.create_episode(scene.id, privileged=privileged, sensors=sensors)
+    stats: dict[str, Any] = {}
+    try:
+        if kind == "expert":
+            actions, metrics = await _play_expert(client, episode)
+        elif kind == "plan":
+            actions, metrics, stats = await _play_plan(client, episode, settings)
+        else:
+            assert factory is not None
+            actions, metrics, stats = await _play_agent(episode, factory, settings, seed)
+    except BaseException:
+        # The agent's error comes first; the close is best effort.
+        with contextlib.suppress(EsrpError, asyncio.CancelledError):
+            await asyncio.shield(episode.close())
+        raise
+    closed = await episode.close()
+    end = "agent" if metrics is None else _end_of(metrics)
+    return _Played(episode.scene, metrics if metrics is not None else closed, actions, end, stats)
+
+
+async def _pick_scenes(client: AsyncClient, settings: EvalSettings) -> list[SceneSummary]:
+    """The scenes to run, fixed up front: the split's (filtered), or the ones named, in order."""
+    listed = [s async for s in client.scenes(settings.split, settings.difficulty, page_size=1000)]
+    if settings.scenes:
+        by_id = {s.id: s for s in listed}
+        missing = [s for s in settings.scenes if s not in by_id]
+        if missing:
+            raise EvalError(
+                f"scene {missing[0]!r} is not among the {settings.split} scenes of this dataset "
+                "(check --split and --difficulty)"
+            )
+        picked = [by_id[s] for s in settings.scenes]
+    else:
+        picked = listed
+    if settings.limit is not None:
+        picked = picked[: settings.limit]
+    if not picked:
+        raise EvalError(f"no scene matches: the {settings.split} split has none with these filters")
+    return picked
+
+
+def _resume(path: Path, agent: str) -> list[EpisodeRecord]:
+    """What an earlier run wrote (a torn last line is cut off first)."""
+    if not path.exists():
+        return []
+    read = read_records(path)
+    if read.torn_tail:
+        print(f"{path}: dropping a last line an interruption cut short", file=sys.stderr)
+        truncate_to(path, read.complete_bytes)
+    for record in read.records:
+        if record.agent != agent:
+            raise EvalError(
+                f"{path} holds results of agent {record.agent!r}, not {agent!r}: write to another --out, "
+                "or pass --fresh to start it over"
+            )
+    return read.records
+
+
+def _running(tally: Tally) -> str:
+    if tally.episodes == 0:
+        return ""
+    return f"SR {100 * tally.sr:.1f} %  OSR {100 * tally.osr:.1f} %  RDR {tally.rdr:.3f}"
+
+
+class _Progress:
+    """tqdm on a terminal (episodes, ETA, running SR); a plain line every 5 % otherwise."""
+
+    def __init__(self, total: int, done: int, enabled: bool) -> None:
+        self.total = total
+        self.position = done
+        self.enabled = enabled
+        self.every = max(total // 20, 1)
+        self._bar: Any = None
+        if enabled and sys.stderr.isatty():
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total, initial=done, unit="episode", file=sys.stderr, dynamic_ncols=True)
+
+    def note(self, message: str) -> None:
+        if self._bar is not None:
+            self._bar.write(message, file=sys.stderr)
+        else:
+            print(message, file=sys.stderr)
+
+    def advance(self, tally: Tally) -> None:
+        self.position += 1
+        if self._bar is not None:
+            self._bar.set_postfix_str(_running(tally), refresh=False)
+            self._bar.update(1)
+        elif self.enabled and self.position % self.every == 0:
+            print(f"{self.position}/{self.total} episodes  {_running(tally)}", file=sys.stderr)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+
+
+async def evaluate(client: AsyncClient, settings: EvalSettings) -> EvalOutcome:
+    """Runs `settings.agent` over the chosen scenes on `client`'s server; appends a record per
+    finished episode to `settings.out`, writes the summary beside it, and returns what happened.
+    Episodes that fail with an error are not recorded (a rerun retries them).
+    """
+    if settings.episodes_in_flight < 1:
+        raise EvalError("--episodes-in-flight must be at least 1")
+    factory: AgentFactory | None = None
+    if settings.agent == "random":
+        factory = RandomAgent
+    elif settings.agent not in BUILTIN_AGENTS:
+        try:
+            factory = load_factory(settings.agent)
+        except ValueError as error:
+            raise EvalError(str(error)) from None
+    info: ServerInfo = await client.server_info()
+    print(
+        f"esrp-server {info.version} at {client.address}: dataset {info.dataset}, "
+        f"renderer {info.renderer_adapter}",
+        file=sys.stderr,
+    )
+    scenes = await _pick_scenes(client, settings)
+    out = settings.out
+    if settings.fresh and out.exists():
+        out.unlink()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    records = _resume(out, settings.agent)
+    done = {r.scene_id for r in records}
+    wanted = {s.id for s in scenes}
+    todo = [s for s in scenes if s.id not in done]
+    earlier = sum(1 for r in records if r.scene_id in wanted)
+    if earlier:
+        print(f"resuming {out}: {earlier} of {len(scenes)} scenes already done", file=sys.stderr)
+
+    config = settings.recorded_config()
+    tally = Tally.of(r for r in records if r.scene_id in wanted)
+    progress = _Progress(len(scenes), earlier, settings.progress)
+    failed: list[tuple[str, str]] = []
+    written = 0
+    started = time.monotonic()
+    queue = iter(todo)
+
+    def record_of(scene: SceneSummary, seed: int, wall: float, played: _Played) -> EpisodeRecord:
+        m = played.metrics
+        return EpisodeRecord(
+            schema=SCHEMA,
+            scene_id=scene.id,
+            dataset=info.dataset,
+            split=scene.split.value if scene.split is not None else "unknown",
+            room_type=scene.room_type,
+            difficulty=scene.difficulty.value if scene.difficulty is not None else "unknown",
+            objects=scene.movable_objects,
+            agent=settings.agent,
+            agent_config=config,
+            seed=seed if settings.seeded() else None,
+            success=m.success,
+            osr=m.object_success_rate,
+            rdr=m.remaining_distance_ratio,
+            stage=m.stage,
+            placed=m.placed,
+            steps=m.steps,
+            horizon=played.scene.horizon,
+            end=played.end,
+            total_reward=m.total_reward,
+            actions=played.actions,
+            wall_seconds=wall,
+            agent_stats=played.stats,
+            server_version=info.version,
+            client=CLIENT_NAME,
+            finished_at=_now_rfc3339(),
+        )
+
+    async def worker(file: IO[bytes]) -> None:
+        nonlocal written
+        for scene in queue:  # shared: each scene is taken once, in order
+            seed = scene_seed(settings.seed, scene.id)
+            clock = time.monotonic()
+            try:
+                played = await _play(client, scene, settings, factory, seed)
+            except Exception as error:  # noqa: BLE001 - reported, not recorded; a rerun retries it.
+                message = f"{type(error).__name__}: {error}"
+                progress.note(f"{scene.id}: {message}")
+                failed.append((scene.id, message))
+                progress.advance(tally)
+                continue
+            record = record_of(scene, seed, time.monotonic() - clock, played)
+            append_record(file, record)
+            written += 1
+            records.append(record)
+            tally.add(record)
+            progress.advance(tally)
+
+    try:
+        with open(out, "ab") as file:
+            workers = min(settings.episodes_in_flight, max(len(todo), 1))
+            await asyncio.gather(*(worker(file) for _ in range(workers)))
+    finally:
+        progress.close()
+
+    mine = [r for r in records if r.scene_id in wanted]
+    summary = Summary.of(mine)
+    print(f"{settings.agent} on {len(mine)} scenes of {info.dataset} ({time.monotonic() - started:.0f} s):")
+    print(summary.text(), end="")
+    summary_path = settings.summary or out.with_suffix(".md")
+    markdown = summary.markdown(f"{settings.agent} on {info.dataset} ({settings.split} split)")
+    markdown += (
+        f"\nWritten by {CLIENT_NAME} against esrp-server {info.version} ({info.renderer_adapter} renderer) "
+        f"on {_now_rfc3339()}; results in `{out.name}`.\n"
+    )
+    summary_path.write_text(markdown, encoding="utf-8")
+    print(f"summary: {summary_path}")
+    return EvalOutcome(mine, written, failed, summary, summary_path)
+
+
+def run_eval(
+    settings: EvalSettings,
+    *,
+    server: str | None = None,
+    token: str | None = None,
+    server_args: Sequence[str] = (),
+) -> EvalOutcome:
+    """`evaluate` against `server` (`host:port`), or against a `LocalServer` started for the run
+    (with `server_args`) and stopped at its end.
+    """
+
+    async def main(address: str) -> EvalOutcome:
+        async with AsyncClient(address, token=token, timeout=120) as client:
+            await client.wait_healthy(30)
+            return await evaluate(client, settings)
+
+    if server is not None:
+        return asyncio.run(main(server))
+    with LocalServer(*server_args) as local:
+        return asyncio.run(main(local.address))
+
+
+def format_failures(failed: Sequence[tuple[str, str]]) -> str:
+    """The closing message of a run with failed episodes."""
+    ids = ", ".join(scene for scene, _ in failed)
+    return f"{len(failed)} episodes failed with an error and were not recorded (rerun to retry them): {ids}"

@@ -1,0 +1,492 @@
+"""`esrp report`: tables and plots of `esrp.results/v1` files, as Markdown and as one self-contained
+HTML page (plots and replay stills inlined as PNG data URLs; no script, no external resource).
+
+For every run (a file, or each agent of a file that holds several) it lays out the paper's tables
+with the paper's rows (SPEC §8) beside them: Table I (SR / OSR / RDR overall), Table II (the same
+per difficulty) and Table III (failure stages); then plots (SR and OSR by difficulty, stage shares,
+the RDR distribution, steps against the horizon) and, for chosen episodes, a replay still (the final
+frame of `esrp.replay`). Needs the `report` extra (matplotlib, Pillow); stills need a server.
+
+The HTML marks its numbers for machines: each table has an `id` (`table-overall`,
+`table-difficulty`, `table-stages`), each row a `data-run` (the run's label; the paper's rows
+`data-paper`), each cell a `data-key` (`episodes`, `sr`, `osr`, `rdr`, `easy-sr`..., `stage-1`...).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import os
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from . import __version__
+from ._client import Client
+from ._local import LocalServer
+from .results import DIFFICULTIES, PAPER, EpisodeRecord, ResultsError, Tally, fixed, read_records
+
+__all__ = ["ReportError", "Run", "load_runs", "write_report"]
+
+_DIFFICULTY_TITLES = {"easy": "Easy", "medium": "Medium", "hard": "Hard"}
+_STAGE_TITLES = ("1 never in reach", "2 never fetched", "3 fetched, no success", "4 success")
+
+
+class ReportError(Exception):
+    """A report cannot be made from these inputs."""
+
+
+@dataclass
+class Run:
+    """One agent's records from one results file."""
+
+    label: str
+    path: Path
+    agent: str
+    records: list[EpisodeRecord]
+
+    @property
+    def overall(self) -> Tally:
+        """The tally of every record."""
+        return Tally.of(self.records)
+
+    def by_difficulty(self, difficulty: str) -> Tally:
+        """The tally of the records of one difficulty."""
+        return Tally.of(r for r in self.records if r.difficulty == difficulty)
+
+
+def load_runs(paths: Sequence[str | os.PathLike[str]]) -> list[Run]:
+    """The runs of results files: one per (file, agent), labelled by the agent's name, with the
+    file's name added where two runs share an agent.
+    """
+    runs: list[Run] = []
+    for raw in paths:
+        path = Path(raw)
+        try:
+            records = read_records(path).records
+        except (OSError, ResultsError) as error:
+            raise ReportError(str(error)) from None
+        agents: dict[str, list[EpisodeRecord]] = {}
+        for record in records:
+            agents.setdefault(record.agent, []).append(record)
+        runs.extend(Run(agent, path, agent, group) for agent, group in agents.items())
+    if not runs:
+        raise ReportError("the results files hold no records")
+    counts: dict[str, int] = {}
+    for run in runs:
+        counts[run.agent] = counts.get(run.agent, 0) + 1
+    for run in runs:
+        if counts[run.agent] > 1:
+            run.label = f"{run.agent} ({run.path.stem})"
+    return runs
+
+
+# Tables: each a header and rows of (cells, marks); cells are text, marks say what they hold.
+
+
+@dataclass
+class _Row:
+    name: str
+    cells: list[tuple[str, str]]  # (data-key, text)
+    paper: bool
+
+
+@dataclass
+class _Table:
+    table_id: str
+    title: str
+    note: str
+    header: list[str]
+    rows: list[_Row]
+
+
+def _pct(value: float) -> str:
+    return fixed(100 * value, 2)
+
+
+def _tables(runs: Sequence[Run]) -> list[_Table]:
+    overall = _Table(
+        "table-overall",
+        "Table I — overall",
+        "SR and OSR in %, RDR as a ratio (lower is better).",
+        ["run", "episodes", "SR", "OSR", "RDR"],
+        [],
+    )
+    for run in runs:
+        t = run.overall
+        overall.rows.append(
+            _Row(
+                run.label,
+                [
+                    ("episodes", str(t.episodes)),
+                    ("sr", _pct(t.sr)),
+                    ("osr", _pct(t.osr)),
+                    ("rdr", fixed(t.rdr, 4)),
+                ],
+                False,
+            )
+        )
+    for paper in PAPER:
+        sr, osr, rdr = paper.overall
+        overall.rows.append(
+            _Row(
+                paper.name,
+                [("episodes", "–"), ("sr", f"{sr:.2f}"), ("osr", f"{osr:.2f}"), ("rdr", f"{rdr:.4f}")],
+                True,
+            )
+        )
+
+    header = ["run"]
+    for d in DIFFICULTIES:
+        header += [f"{_DIFFICULTY_TITLES[d]} {name}" for name in ("n", "SR", "OSR", "RDR")]
+    by_difficulty = _Table(
+        "table-difficulty",
+        "Table II — by difficulty",
+        "Easy: 1 object, Medium: 2–3, Hard: 4–6. SR and OSR in %.",
+        header,
+        [],
+    )
+    for run in runs:
+        cells: list[tuple[str, str]] = []
+        for d in DIFFICULTIES:
+            t = run.by_difficulty(d)
+            if t.episodes:
+                cells += [
+                    (f"{d}-episodes", str(t.episodes)),
+                    (f"{d}-sr", _pct(t.sr)),
+                    (f"{d}-osr", _pct(t.osr)),
+                    (f"{d}-rdr", fixed(t.rdr, 4)),
+                ]
+            else:
+                cells += [(f"{d}-episodes", "0"), (f"{d}-sr", "–"), (f"{d}-osr", "–"), (f"{d}-rdr", "–")]
+        by_difficulty.rows.append(_Row(run.label, cells, False))
+    for paper in PAPER:
+        cells = []
+        for d, (sr, osr, rdr) in zip(DIFFICULTIES, paper.by_difficulty, strict=True):
+            cells += [
+                (f"{d}-episodes", "–"),
+                (f"{d}-sr", f"{sr:.2f}"),
+                (f"{d}-osr", f"{osr:.2f}"),
+                (f"{d}-rdr", f"{rdr:.4f}"),
+            ]
+        by_difficulty.rows.append(_Row(paper.name, cells, True))
+
+    stages = _Table(
+        "table-stages",
+        "Table III — failure stages",
+        "% of episodes in each stage (SPEC §5).",
+        ["run", *_STAGE_TITLES],
+        [],
+    )
+    for run in runs:
+        t = run.overall
+        stages.rows.append(
+            _Row(run.label, [(f"stage-{s}", _pct(t.stage_share(s))) for s in range(1, 5)], False)
+        )
+    for paper in PAPER:
+        if paper.stages is not None:
+            stages.rows.append(
+                _Row(
+                    paper.name,
+                    [(f"stage-{s}", f"{v:.2f}") for s, v in enumerate(paper.stages, start=1)],
+                    True,
+                )
+            )
+    return [overall, by_difficulty, stages]
+
+
+def _markdown_table(table: _Table) -> str:
+    lines = [f"## {table.title}\n", f"{table.note}\n", "| " + " | ".join(table.header) + " |"]
+    lines.append("|" + "---|" * len(table.header))
+    for row in table.rows:
+        name = row.name if row.paper else f"**{row.name}**"
+        lines.append("| " + " | ".join([name, *(text for _, text in row.cells)]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _html_table(table: _Table) -> str:
+    e = html.escape
+    head = "".join(f"<th>{e(h)}</th>" for h in table.header)
+    body = []
+    for row in table.rows:
+        mark = f'data-paper="{e(row.name)}" class="paper"' if row.paper else f'data-run="{e(row.name)}"'
+        cells = "".join(f'<td data-key="{e(key)}">{e(text)}</td>' for key, text in row.cells)
+        body.append(f'<tr {mark}><th scope="row">{e(row.name)}</th>{cells}</tr>')
+    return (
+        f'<h2>{e(table.title)}</h2>\n<p class="note">{e(table.note)}</p>\n'
+        f'<table id="{e(table.table_id)}">\n<thead><tr>{head}</tr></thead>\n<tbody>\n'
+        + "\n".join(body)
+        + "\n</tbody>\n</table>\n"
+    )
+
+
+# Plots.
+
+
+def _figure(width: float = 7.0, height: float = 3.6) -> Any:  # noqa: ANN401 - a matplotlib Figure
+    try:
+        from matplotlib.figure import Figure
+    except ImportError:
+        raise ReportError("esrp report needs matplotlib: pip install 'esrp[report]'") from None
+    return Figure(figsize=(width, height), dpi=100, layout="constrained")
+
+
+def _png(figure: Any) -> bytes:  # noqa: ANN401
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", metadata={"Software": None})
+    return buffer.getvalue()
+
+
+def _colour(k: int) -> str:
+    palette = ("#4e79a7", "#f28e2b", "#59a14f", "#e15759", "#76b7b2", "#edc948", "#b07aa1", "#9c755f")
+    return palette[k % len(palette)]
+
+
+def _plot_by_difficulty(runs: Sequence[Run]) -> bytes:
+    figure = _figure()
+    sr_axes, osr_axes = figure.subplots(1, 2, sharey=True)
+    groups = [*DIFFICULTIES, "overall"]
+    width = 0.8 / len(runs)
+    for k, run in enumerate(runs):
+        tallies = [run.by_difficulty(d) for d in DIFFICULTIES] + [run.overall]
+        xs = [g + (k - (len(runs) - 1) / 2) * width for g in range(len(groups))]
+        sr = [100 * t.sr if t.episodes else 0.0 for t in tallies]
+        osr = [100 * t.osr if t.episodes else 0.0 for t in tallies]
+        sr_axes.bar(xs, sr, width, label=run.label, color=_colour(k))
+        osr_axes.bar(xs, osr, width, label=run.label, color=_colour(k))
+    for axes, name in ((sr_axes, "SR %"), (osr_axes, "OSR %")):
+        axes.set_xticks(range(len(groups)), [g.capitalize() for g in groups])
+        axes.set_title(name)
+        axes.set_ylim(0, 105)
+        axes.grid(axis="y", alpha=0.3)
+    sr_axes.legend(fontsize="small")
+    return _png(figure)
+
+
+def _plot_stages(runs: Sequence[Run]) -> bytes:
+    rows: list[tuple[str, list[float]]] = [
+        (run.label, [100 * run.overall.stage_share(s) for s in range(1, 5)]) for run in runs
+    ]
+    rows += [(p.name, list(p.stages)) for p in PAPER if p.stages is not None]
+    figure = _figure(7.0, 0.5 * len(rows) + 1.2)
+    axes = figure.subplots()
+    colours = ("#bab0ac", "#f28e2b", "#e15759", "#59a14f")
+    for k, (_, shares) in enumerate(rows):
+        left = 0.0
+        for s, share in enumerate(shares):
+            axes.barh(k, share, left=left, color=colours[s], label=_STAGE_TITLES[s] if k == 0 else None)
+            left += share
+    axes.set_yticks(range(len(rows)), [name for name, _ in rows])
+    axes.invert_yaxis()
+    axes.set_xlim(0, 100)
+    axes.set_xlabel("% of episodes")
+    axes.set_title("Failure stages")
+    axes.legend(fontsize="small", ncols=4, loc="upper center", bbox_to_anchor=(0.5, -0.25))
+    return _png(figure)
+
+
+def _plot_rdr(runs: Sequence[Run]) -> bytes:
+    figure = _figure()
+    axes = figure.subplots()
+    values = [[r.rdr for r in run.records] for run in runs]
+    top = max((max(v) for v in values if v), default=1.0)
+    bins = [i * max(top, 1.0) / 20 for i in range(21)]
+    for k, (run, rdr) in enumerate(zip(runs, values, strict=True)):
+        axes.hist(rdr, bins=bins, alpha=0.6, label=run.label, color=_colour(k))
+    axes.axvline(1.0, color="black", linewidth=0.8, linestyle="--")
+    axes.set_xlabel("RDR (remaining / initial distance; 1 = no progress)")
+    axes.set_ylabel("episodes")
+    axes.set_title("RDR distribution")
+    axes.legend(fontsize="small")
+    return _png(figure)
+
+
+def _plot_steps(runs: Sequence[Run]) -> bytes:
+    figure = _figure()
+    axes = figure.subplots()
+    top = 1
+    for k, run in enumerate(runs):
+        horizons = [r.horizon for r in run.records]
+        steps = [r.steps for r in run.records]
+        top = max(top, *horizons, *steps)
+        markers = ["o" if r.success else "x" for r in run.records]
+        for marker in ("o", "x"):
+            xs = [h for h, m in zip(horizons, markers, strict=True) if m == marker]
+            ys = [s for s, m in zip(steps, markers, strict=True) if m == marker]
+            if xs:
+                label = f"{run.label} ({'success' if marker == 'o' else 'failure'})"
+                axes.scatter(xs, ys, marker=marker, color=_colour(k), alpha=0.7, label=label)
+    axes.plot([0, top], [0, top], color="black", linewidth=0.8, linestyle="--")
+    axes.set_xlabel("horizon (steps)")
+    axes.set_ylabel("steps taken")
+    axes.set_title("Steps against the horizon")
+    axes.legend(fontsize="small")
+    return _png(figure)
+
+
+# Replay stills.
+
+
+def _choose(runs: Sequence[Run], count: int, scenes: Sequence[str]) -> list[tuple[Run, EpisodeRecord]]:
+    """The episodes to draw: per run, the named scenes it holds, then its first `count` records in
+    scene order that are not among them.
+    """
+    chosen: list[tuple[Run, EpisodeRecord]] = []
+    for run in runs:
+        by_scene = {r.scene_id: r for r in run.records}
+        picked = [by_scene[s] for s in scenes if s in by_scene]
+        rest = [r for r in sorted(run.records, key=lambda r: r.scene_id) if r.scene_id not in scenes]
+        picked += rest[: max(count, 0)]
+        chosen.extend((run, r) for r in picked)
+    return chosen
+
+
+def _stills(
+    chosen: Sequence[tuple[Run, EpisodeRecord]],
+    server: str | None,
+    token: str | None,
+    server_args: Sequence[str],
+) -> list[tuple[Run, EpisodeRecord, bytes | str]]:
+    """The final frame of each chosen episode as PNG bytes (or the reason it could not be made)."""
+    from .replay import ReplayError, replay_record
+
+    def draw(client: Client) -> list[tuple[Run, EpisodeRecord, bytes | str]]:
+        out: list[tuple[Run, EpisodeRecord, bytes | str]] = []
+        for run, record in chosen:
+            try:
+                replay = replay_record(client, record, every_frame=False)
+            except ReplayError as error:
+                print(f"esrp report: {error}", file=sys.stderr)
+                out.append((run, record, str(error)))
+                continue
+            buffer = io.BytesIO()
+            _pil_png(replay.frames[-1], buffer)
+            out.append((run, record, buffer.getvalue()))
+        return out
+
+    if not chosen:
+        return []
+    if server is not None:
+        with Client(server, token=token, timeout=120) as client:
+            return draw(client)
+    with LocalServer(*server_args) as local, local.client(timeout=120) as client:
+        return draw(client)
+
+
+def _pil_png(frame: Any, buffer: io.BytesIO) -> None:  # noqa: ANN401 - a numpy frame
+    from PIL import Image
+
+    Image.fromarray(frame).save(buffer, format="PNG")
+
+
+# The report.
+
+
+def _data_url(png: bytes) -> str:
+    return "data:image/png;base64," + base64.b64encode(png).decode("ascii")
+
+
+_STYLE = """
+body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1100px; color: #222; }
+table { border-collapse: collapse; margin: 0.5em 0 1.5em; font-size: 0.9em; }
+th, td { border: 1px solid #ccc; padding: 0.25em 0.6em; text-align: right; }
+th[scope=row], thead th:first-child { text-align: left; }
+tr.paper { color: #666; background: #f6f6f6; }
+.note { color: #555; font-size: 0.9em; }
+figure { display: inline-block; margin: 0.5em; vertical-align: top; }
+figcaption { font-size: 0.85em; color: #444; }
+img { max-width: 100%; border: 1px solid #ddd; }
+"""
+
+
+def write_report(
+    results: Sequence[str | os.PathLike[str]],
+    out: str | os.PathLike[str],
+    *,
+    title: str = "ESRP evaluation report",
+    replays: int = 0,
+    replay_scenes: Sequence[str] = (),
+    server: str | None = None,
+    token: str | None = None,
+    server_args: Sequence[str] = (),
+) -> list[Path]:
+    """Writes `report.md` (with its plots and stills as PNG files beside it) and `report.html` (one
+    self-contained page) into `out`; returns their paths. Stills (`replays` per run, and the
+    `replay_scenes`) replay their records on `server`, or on a `LocalServer` started for them.
+    """
+    runs = load_runs(results)
+    folder = Path(out)
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    tables = _tables(runs)
+    plots = [
+        ("sr_osr_by_difficulty", "SR and OSR by difficulty", _plot_by_difficulty(runs)),
+        ("stages", "Failure stages (the paper's rows below the runs)", _plot_stages(runs)),
+        ("rdr", "RDR distribution", _plot_rdr(runs)),
+        ("steps_vs_horizon", "Steps taken against the horizon (o success, x failure)", _plot_steps(runs)),
+    ]
+    stills = _stills(_choose(runs, replays, replay_scenes), server, token, server_args)
+
+    sources = ", ".join(f"`{run.path.name}` ({run.label}, {len(run.records)} episodes)" for run in runs)
+    md = [f"# {title}\n", f"Runs: {sources}. The paper's rows are its Tables I–III (SPEC §8).\n"]
+    md += [_markdown_table(t) for t in tables]
+    md.append("## Plots\n")
+    for name, caption, png in plots:
+        (folder / "images" / f"{name}.png").write_bytes(png)
+        md.append(f"![{caption}](images/{name}.png)\n")
+    if stills:
+        md.append("## Replays (final frames: ego | goal | now, agent path red, carried objects blue)\n")
+    for k, (run, record, still) in enumerate(stills):
+        caption = (
+            f"{run.label}: {record.scene_id} ({record.end}, {record.steps} steps, OSR {_pct(record.osr)} %)"
+        )
+        if isinstance(still, bytes):
+            name = f"replay_{k}.png"
+            (folder / "images" / name).write_bytes(still)
+            md.append(f"![{caption}](images/{name})\n")
+        else:
+            md.append(f"{caption}: no still ({still})\n")
+    md.append(f"Written by esrp report {__version__}.\n")
+    markdown_path = folder / "report.md"
+    markdown_path.write_text("\n".join(md), encoding="utf-8")
+
+    e = html.escape
+    page = [
+        "<!DOCTYPE html>",
+        '<html lang="en"><head><meta charset="utf-8">',
+        f"<title>{e(title)}</title><style>{_STYLE}</style></head><body>",
+        f"<h1>{e(title)}</h1>",
+        f'<p class="note">Runs: {e(sources.replace("`", ""))}. '
+        "The paper&#8217;s rows (grey) are its Tables I–III (SPEC §8).</p>",
+    ]
+    page += [_html_table(t) for t in tables]
+    page.append("<h2>Plots</h2>")
+    for name, caption, png in plots:
+        page.append(
+            f'<figure id="plot-{name}"><img class="plot" alt="{e(caption)}" src="{_data_url(png)}">'
+            f"<figcaption>{e(caption)}</figcaption></figure>"
+        )
+    if stills:
+        page.append("<h2>Replays</h2>")
+        page.append(
+            '<p class="note">Final frames: ego view | goal | current top-down, with the agent&#8217;s '
+            "path in red and carried objects&#8217; paths in blue.</p>"
+        )
+    for run, record, still in stills:
+        caption = (
+            f"{run.label}: {record.scene_id} ({record.end}, {record.steps} steps, OSR {_pct(record.osr)} %)"
+        )
+        if isinstance(still, bytes):
+            page.append(
+                f'<figure class="replay" data-scene="{e(record.scene_id)}">'
+                f'<img class="replay" alt="{e(caption)}" src="{_data_url(still)}">'
+                f"<figcaption>{e(caption)}</figcaption></figure>"
+            )
+        else:
+            page.append(f'<p class="replay-error">{e(caption)}: no still ({e(still)})</p>')
+    page.append(f'<p class="note">Written by esrp report {e(__version__)}.</p></body></html>')
+    html_path = folder / "report.html"
+    html_path.write_text("\n".join(page) + "\n", encoding="utf-8")
+    return [markdown_path, html_path]

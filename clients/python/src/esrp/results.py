@@ -1,0 +1,404 @@
+"""The results schema `esrp.results/v1` shared by every evaluation tool (the Rust `esrp-eval`, the
+Python `esrp eval`), as `docs/evaluation.md` describes it: one `EpisodeRecord` per line of a JSON
+Lines file; `read_records` reads a file back (dropping a last line that an interruption cut short),
+and `Summary` computes SR / OSR / RDR overall and per difficulty and writes the Markdown summary with
+the paper's rows beside it — the same text as the Rust tool's (`clients/rust/src/results.rs`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+__all__ = [
+    "DIFFICULTIES",
+    "PAPER",
+    "SCHEMA",
+    "EpisodeRecord",
+    "PaperRow",
+    "ReadRecords",
+    "ResultsError",
+    "Summary",
+    "Tally",
+    "append_record",
+    "fnv1a64",
+    "read_records",
+    "scene_seed",
+    "truncate_to",
+]
+
+SCHEMA = "esrp.results/v1"
+"""The schema tag of every record."""
+
+DIFFICULTIES = ("easy", "medium", "hard")
+"""The difficulty names, in the order tables list them."""
+
+_U64 = (1 << 64) - 1
+
+
+def fnv1a64(text: str) -> int:
+    """FNV-1a, 64 bits, over `text`'s UTF-8 bytes (docs/evaluation.md, "Seeds")."""
+    value = 0xCBF29CE484222325
+    for byte in text.encode():
+        value = ((value ^ byte) * 0x100000001B3) & _U64
+    return value
+
+
+def scene_seed(base_seed: int, scene_id: str) -> int:
+    """The per-scene seed of a seeded agent: `base_seed XOR fnv1a64(scene_id)` (64 bits)."""
+    return (base_seed & _U64) ^ fnv1a64(scene_id)
+
+
+class ResultsError(Exception):
+    """A results file could not be read: a line (not the last) is not an `esrp.results/v1` record."""
+
+
+@dataclass
+class EpisodeRecord:
+    """One finished episode: a line of a results file. Fields as docs/evaluation.md lists them,
+    in the same order (the order they are written in).
+    """
+
+    schema: str
+    scene_id: str
+    dataset: str
+    split: str
+    room_type: str
+    difficulty: str
+    objects: int
+    agent: str
+    agent_config: dict[str, Any]
+    seed: int | None
+    success: bool
+    osr: float
+    rdr: float
+    stage: int
+    placed: int
+    steps: int
+    horizon: int
+    end: str
+    total_reward: float
+    actions: list[int]
+    wall_seconds: float
+    agent_stats: dict[str, Any]
+    server_version: str
+    client: str
+    finished_at: str
+
+    def to_json(self) -> str:
+        """The record as one line of compact JSON (no newline), UTF-8 text as is."""
+        return json.dumps(
+            dataclasses.asdict(self), separators=(",", ":"), ensure_ascii=False, allow_nan=False
+        )
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> EpisodeRecord:
+        """A record of a parsed JSON object; unknown fields are ignored. Raises `ValueError` naming
+        the first missing or mistyped field, or a schema other than `esrp.results/v1`.
+        """
+        if data.get("schema") != SCHEMA:
+            raise ValueError(f"schema is {data.get('schema')!r}, not {SCHEMA!r}")
+        values: dict[str, Any] = {}
+        for name, kinds in _FIELD_TYPES.items():
+            if name not in data:
+                raise ValueError(f"missing field {name!r}")
+            value = data[name]
+            if not _is(value, kinds):
+                raise ValueError(f"field {name!r} is {value!r}, not {' or '.join(k.__name__ for k in kinds)}")
+            values[name] = float(value) if float in kinds and not isinstance(value, bool) else value
+        if not all(isinstance(a, int) and not isinstance(a, bool) and 0 <= a <= 5 for a in values["actions"]):
+            raise ValueError("field 'actions' holds something other than action codes 0..5")
+        return cls(**values)
+
+
+_FIELD_TYPES: dict[str, tuple[type, ...]] = {
+    "schema": (str,),
+    "scene_id": (str,),
+    "dataset": (str,),
+    "split": (str,),
+    "room_type": (str,),
+    "difficulty": (str,),
+    "objects": (int,),
+    "agent": (str,),
+    "agent_config": (dict,),
+    "seed": (int, type(None)),
+    "success": (bool,),
+    "osr": (float, int),
+    "rdr": (float, int),
+    "stage": (int,),
+    "placed": (int,),
+    "steps": (int,),
+    "horizon": (int,),
+    "end": (str,),
+    "total_reward": (float, int),
+    "actions": (list,),
+    "wall_seconds": (float, int),
+    "agent_stats": (dict,),
+    "server_version": (str,),
+    "client": (str,),
+    "finished_at": (str,),
+}
+
+
+def _is(value: object, kinds: tuple[type, ...]) -> bool:
+    if isinstance(value, bool):
+        return bool in kinds
+    return isinstance(value, kinds)
+
+
+@dataclass
+class ReadRecords:
+    """A results file read back.
+
+    Attributes:
+        records: The records, in file order.
+        complete_bytes: Byte length of the complete lines read: a last line cut short by an
+            interruption starts there, and `truncate_to` removes it.
+        torn_tail: Whether a last line was cut short (incomplete or unreadable).
+    """
+
+    records: list[EpisodeRecord] = field(default_factory=list)
+    complete_bytes: int = 0
+    torn_tail: bool = False
+
+
+def read_records(path: str | os.PathLike[str]) -> ReadRecords:
+    """Reads a results file. A last line that does not parse (an interrupted write), or that lacks
+    its newline, is reported in `torn_tail`, not an error; any other bad line raises
+    `ResultsError`. Blank lines are skipped.
+    """
+    out = ReadRecords()
+    with open(path, "rb") as file:
+        lines = file.readlines()
+    for number, raw in enumerate(lines, start=1):
+        complete = raw.endswith(b"\n")
+        text = raw.strip()
+        if not text:
+            if complete:
+                out.complete_bytes += len(raw)
+            continue
+        try:
+            record = EpisodeRecord.from_dict(json.loads(text.decode()))
+        except (ValueError, TypeError) as error:
+            if number == len(lines):  # only the last line may be torn
+                out.torn_tail = True
+                break
+            raise ResultsError(f"{path}:{number}: not an {SCHEMA} record: {error}") from None
+        if complete:
+            out.records.append(record)
+            out.complete_bytes += len(raw)
+        else:
+            # A record without its newline: the write was interrupted right before it.
+            out.torn_tail = True
+    return out
+
+
+def read_many(paths: Iterable[str | os.PathLike[str]]) -> list[tuple[Path, list[EpisodeRecord]]]:
+    """The records of several results files (each with a torn last line dropped), by file."""
+    return [(Path(p), read_records(p).records) for p in paths]
+
+
+def truncate_to(path: str | os.PathLike[str], size: int) -> None:
+    """Cuts a results file to its first `size` bytes (dropping a torn last line)."""
+    with open(path, "r+b") as file:
+        file.truncate(size)
+
+
+def append_record(file: IO[bytes], record: EpisodeRecord) -> None:
+    """Appends one record as a line and flushes it (to the OS: an interruption loses at most the
+    line being written, which the next read drops).
+    """
+    file.write(record.to_json().encode() + b"\n")
+    file.flush()
+
+
+@dataclass
+class Tally:
+    """SR / OSR / RDR and stage counts over a set of records."""
+
+    episodes: int = 0
+    successes: int = 0
+    osr_sum: float = 0.0
+    rdr_sum: float = 0.0
+    stages: list[int] = field(default_factory=lambda: [0, 0, 0, 0])
+    """Episodes per stage 1..4 (index 0 is stage 1)."""
+    steps: int = 0
+    ended_by_agent: int = 0
+
+    def add(self, record: EpisodeRecord) -> None:
+        """Adds a record."""
+        self.episodes += 1
+        self.successes += int(record.success)
+        self.osr_sum += record.osr
+        self.rdr_sum += record.rdr
+        if 1 <= record.stage <= 4:
+            self.stages[record.stage - 1] += 1
+        self.steps += record.steps
+        self.ended_by_agent += int(record.end == "agent")
+
+    @classmethod
+    def of(cls, records: Iterable[EpisodeRecord]) -> Tally:
+        """The tally of `records`."""
+        tally = cls()
+        for record in records:
+            tally.add(record)
+        return tally
+
+    def _mean(self, total: float) -> float:
+        return math.nan if self.episodes == 0 else total / self.episodes
+
+    @property
+    def sr(self) -> float:
+        """Success rate, 0..1 (NaN without episodes)."""
+        return self._mean(self.successes)
+
+    @property
+    def osr(self) -> float:
+        """Object success rate, 0..1."""
+        return self._mean(self.osr_sum)
+
+    @property
+    def rdr(self) -> float:
+        """Remaining distance ratio (lower is better)."""
+        return self._mean(self.rdr_sum)
+
+    def stage_share(self, stage: int) -> float:
+        """Share of episodes in stage `stage` (1..4), 0..1."""
+        return self._mean(self.stages[stage - 1])
+
+    @property
+    def mean_steps(self) -> float:
+        """Mean steps per episode (0 without episodes)."""
+        return 0.0 if self.episodes == 0 else self.steps / self.episodes
+
+
+@dataclass(frozen=True)
+class PaperRow:
+    """A row of the paper's results (SPEC §8): SR % / OSR % / RDR overall and per difficulty
+    (easy, medium, hard), and the stage shares % (1..4) where the paper gives them.
+    """
+
+    name: str
+    overall: tuple[float, float, float]
+    by_difficulty: tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
+    stages: tuple[float, float, float, float] | None
+
+
+PAPER: tuple[PaperRow, ...] = (
+    PaperRow(
+        "ESRP-PPO (paper)",
+        (20.18, 20.35, 0.9845),
+        ((33.33, 33.33, 0.9040), (0.54, 0.54, 1.0645), (0.00, 0.00, 1.0048)),
+        (13.21, 5.76, 60.85, 20.18),
+    ),
+    PaperRow(
+        "ESRP-BC (paper)",
+        (19.09, 20.31, 1.0170),
+        ((29.44, 29.44, 0.9631), (0.91, 4.20, 1.1157), (0.00, 4.44, 1.0704)),
+        (11.33, 6.73, 62.85, 19.09),
+    ),
+    PaperRow(
+        "ESRP-VLM (paper)",
+        (17.64, 18.97, 0.9830),
+        ((27.64, 27.64, 0.9523), (0.00, 3.99, 1.0372), (0.00, 0.00, 1.0378)),
+        (11.64, 4.18, 66.55, 17.64),
+    ),
+    PaperRow(
+        "ESRP-PLAN (paper)",
+        (30.20, 36.59, 0.6916),
+        ((35.73, 35.73, 0.7101), (22.40, 39.71, 0.6425), (0.00, 22.00, 0.8165)),
+        None,
+    ),
+)
+"""The paper's Tables I–III (SPEC §8)."""
+
+
+def fixed(value: float, digits: int) -> str:
+    """`value` with `digits` decimals, as Rust's `{:.N}` writes it (`NaN`, `inf` included)."""
+    if math.isnan(value):
+        return "NaN"
+    if math.isinf(value):
+        return "inf" if value > 0 else "-inf"
+    return f"{value:.{digits}f}"
+
+
+def triple(tally: Tally | None) -> str:
+    """`SR / OSR / RDR` of a tally as the summary's cells write them (`–` without episodes)."""
+    if tally is None or tally.episodes == 0:
+        return "–"
+    return f"{fixed(100 * tally.sr, 2)} / {fixed(100 * tally.osr, 2)} / {fixed(tally.rdr, 4)}"
+
+
+@dataclass
+class Summary:
+    """The summary of one agent's records: overall and per difficulty."""
+
+    agent: str
+    overall: Tally
+    by_difficulty: dict[str, Tally]
+
+    @classmethod
+    def of(cls, records: Sequence[EpisodeRecord]) -> Summary:
+        """The summary of `records` (the agent's name is the first record's)."""
+        by_difficulty: dict[str, Tally] = {}
+        for record in records:
+            by_difficulty.setdefault(record.difficulty, Tally()).add(record)
+        return cls(records[0].agent if records else "", Tally.of(records), by_difficulty)
+
+    def text(self) -> str:
+        """A few lines for a terminal: SR / OSR / RDR overall and per difficulty."""
+        lines = []
+        for name, tally in [("overall", self.overall)] + [
+            (d, self.by_difficulty[d]) for d in DIFFICULTIES if d in self.by_difficulty
+        ]:
+            shares = "/".join(fixed(100 * tally.stage_share(s), 1) for s in range(1, 5))
+            lines.append(
+                f"{name:<8} SR {fixed(100 * tally.sr, 2):>6} %  OSR {fixed(100 * tally.osr, 2):>6} %  "
+                f"RDR {fixed(tally.rdr, 4)}  stages 1/2/3/4 {shares} %  "
+                f"({tally.episodes} episodes, {tally.ended_by_agent} ended by the agent)"
+            )
+        return "".join(line + "\n" for line in lines)
+
+    def markdown(self, title: str) -> str:
+        """The Markdown summary: SR / OSR / RDR overall and per difficulty with the paper's rows
+        (SPEC §8) beside them, then stage shares and step counts — the Rust tool's text.
+        """
+        t = self.overall
+        md = [
+            f"# {title}\n\n",
+            f"SR and OSR in %, RDR as a ratio (lower is better). {t.episodes} episodes. "
+            "The paper's rows are its Tables I–III (SPEC §8).\n\n",
+            "| agent | overall SR / OSR / RDR | Easy | Medium | Hard |\n",
+            "|---|---|---|---|---|\n",
+        ]
+        row = f"| **{self.agent}** (this run) | {triple(t)} |"
+        row += "".join(f" {triple(self.by_difficulty.get(d))} |" for d in DIFFICULTIES)
+        md.append(row + "\n")
+        for paper in PAPER:
+            sr, osr, rdr = paper.overall
+            cells = "".join(f" {a:.2f} / {b:.2f} / {c:.4f} |" for a, b, c in paper.by_difficulty)
+            md.append(f"| {paper.name} | {sr:.2f} / {osr:.2f} / {rdr:.4f} |{cells}\n")
+        md.append("\n## Failure stages (% of episodes in stage 1 / 2 / 3 / 4)\n\n")
+        md.append("| agent | 1 never in reach | 2 never fetched | 3 fetched, no success | 4 success |\n")
+        md.append("|---|---|---|---|---|\n")
+        shares = " | ".join(fixed(100 * t.stage_share(s), 2) for s in range(1, 5))
+        md.append(f"| **{self.agent}** (this run) | {shares} |\n")
+        for paper in PAPER:
+            if paper.stages is not None:
+                md.append(f"| {paper.name} | {' | '.join(f'{s:.2f}' for s in paper.stages)} |\n")
+        md.append("\n## Episodes\n\n")
+        md.append("| difficulty | episodes | successes | mean steps | ended by the agent |\n")
+        md.append("|---|---|---|---|---|\n")
+        rows = [(d, self.by_difficulty[d]) for d in DIFFICULTIES if d in self.by_difficulty]
+        for name, tally in [*rows, ("all", t)]:
+            md.append(
+                f"| {name} | {tally.episodes} | {tally.successes} | {tally.mean_steps:.1f} | "
+                f"{tally.ended_by_agent} |\n"
+            )
+        return "".join(md)

@@ -1,0 +1,242 @@
+"""`esrp eval` against the real server: the built-in agents, agents from a module, records that
+follow the schema, resumption after an interrupted run, and failed episodes."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import esrp
+from esrp.cli import main
+from esrp.results import EpisodeRecord, read_records, scene_seed
+
+AGENTS_MODULE = '''
+import asyncio
+
+import esrp
+
+
+class Turner:
+    """Turns left `steps` times, then stops; checks what it is given."""
+
+    def __init__(self, config):
+        self.config = config
+        self.count = 0
+
+    def reset(self, observation, info):
+        assert observation.goal_rgb is not None
+        assert observation.ego_rgb.shape == (128, 128, 3)
+        self.info = dict(info)
+        if info["scene_id"] == self.config.get("fail_on"):
+            raise RuntimeError("this agent fails on " + info["scene_id"])
+
+    def act(self, observation):
+        assert observation.goal_rgb is not None  # every observation carries the goal image
+        self.count += 1
+        return None if self.count > self.config["steps"] else esrp.Action.LEFT
+
+    def stats(self):
+        return {"seed": self.info["seed"], "horizon": self.info["horizon"]}
+
+
+class AsyncTurner(Turner):
+    async def reset(self, observation, info):
+        await asyncio.sleep(0)
+        super().reset(observation, info)
+
+    async def act(self, observation):
+        await asyncio.sleep(0.001)
+        return super().act(observation)
+
+
+def make(config):
+    return Turner(config)
+
+
+def make_async(config):
+    return AsyncTurner(config)
+'''
+
+TIME_FIELDS = ("wall_seconds", "finished_at")
+
+
+def normalized(path: Path) -> list[dict[str, Any]]:
+    """The records of a file without their time fields, sorted by scene."""
+    rows = [{k: v for k, v in vars(r).items() if k not in TIME_FIELDS} for r in read_records(path).records]
+    return sorted(rows, key=lambda r: str(r["scene_id"]))
+
+
+def check_records(records: list[EpisodeRecord], agent: str) -> None:
+    for r in records:
+        assert r.agent == agent
+        assert r.schema == "esrp.results/v1"
+        assert r.dataset == "esrp-bench-v1"
+        assert r.split == "test"
+        assert len(r.actions) == r.steps
+        assert r.end in ("success", "horizon", "agent")
+        assert r.success == (r.end == "success") == (r.stage == 4)
+        assert 0 <= r.osr <= 1
+        assert r.osr == r.placed / r.objects
+        assert r.steps <= r.horizon
+        assert r.client.startswith("esrp eval (Python)")
+        assert r.finished_at.endswith("Z")
+
+
+@pytest.fixture(scope="module")
+def easy_ids(easy_scenes: list[str]) -> str:
+    return ",".join(easy_scenes[:4])
+
+
+def test_expert_and_plan(server: esrp.LocalServer, tmp_path: Path, easy_ids: str) -> None:
+    for agent in ("expert", "plan"):
+        out = tmp_path / f"{agent}.jsonl"
+        status = main(
+            ["eval", "--agent", agent, "--scenes", easy_ids, "--out", str(out), "--server", server.address]
+        )
+        assert status == 0
+        records = read_records(out).records
+        assert sorted(r.scene_id for r in records) == sorted(easy_ids.split(","))
+        check_records(records, agent)
+        assert all(r.success and r.seed is None for r in records)
+        summary = out.with_suffix(".md").read_text()
+        assert f"| **{agent}** (this run) | 100.00 / 100.00 / 0.0000 |" in summary
+    plan = read_records(tmp_path / "plan.jsonl").records
+    assert all(r.agent_config == {"budget_ms": 60000, "replans": 2} for r in plan)
+    assert all(r.agent_stats["plan_calls"] == 1 and r.agent_stats["failure"] is None for r in plan)
+
+
+def test_a_medium_plan_and_a_limit(server: esrp.LocalServer, client: esrp.Client, tmp_path: Path) -> None:
+    out = tmp_path / "plan.jsonl"
+    args = ["eval", "--agent", "plan", "--difficulty", "medium", "--limit", "2", "--out", str(out)]
+    assert main([*args, "--server", server.address, "--episodes-in-flight", "2"]) == 0
+    records = read_records(out).records
+    assert [r.difficulty for r in records] == ["medium", "medium"]
+    listed = [s.id for s in client.scenes("test", "medium")][:2]
+    assert sorted(r.scene_id for r in records) == sorted(listed)
+    assert all(r.success for r in records)
+
+
+def test_agents_from_a_module(
+    server: esrp.LocalServer, tmp_path: Path, easy_ids: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    (tmp_path / "my_agents.py").write_text(AGENTS_MODULE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for factory in ("my_agents:make", "my_agents:make_async"):
+        out = tmp_path / f"{factory.replace(':', '-')}.jsonl"
+        args = ["eval", "--agent", factory, "--agent-config", '{"steps": 5}', "--seed", "11"]
+        assert main([*args, "--scenes", easy_ids, "--out", str(out), "--server", server.address]) == 0
+        records = read_records(out).records
+        check_records(records, factory)
+        for r in records:
+            assert r.seed == scene_seed(11, r.scene_id)
+            assert r.agent_config == {"steps": 5}
+            assert (r.end, r.steps, r.actions) == ("agent", 5, [2] * 5)
+            assert r.agent_stats == {"seed": r.seed, "horizon": r.horizon}
+
+
+def test_failed_episodes_are_not_recorded_and_a_rerun_retries_them(
+    server: esrp.LocalServer,
+    tmp_path: Path,
+    easy_scenes: list[str],
+    easy_ids: str,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    (tmp_path / "my_agents.py").write_text(AGENTS_MODULE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    out = tmp_path / "turner.jsonl"
+    base = [
+        "eval",
+        "--agent",
+        "my_agents:make",
+        "--scenes",
+        easy_ids,
+        "--out",
+        str(out),
+        "--server",
+        server.address,
+    ]
+    bad = easy_scenes[1]
+    assert main([*base, "--agent-config", json.dumps({"steps": 3, "fail_on": bad})]) == 1
+    assert f"1 episodes failed with an error and were not recorded (rerun to retry them): {bad}" in (
+        capsys.readouterr().err
+    )
+    assert bad not in {r.scene_id for r in read_records(out).records}
+    assert len(read_records(out).records) == 3
+    assert main([*base, "--agent-config", json.dumps({"steps": 3})]) == 0
+    assert "resuming" in capsys.readouterr().err
+    assert sorted(r.scene_id for r in read_records(out).records) == sorted(easy_ids.split(","))
+    # Another agent's file is refused.
+    assert (
+        main(
+            ["eval", "--agent", "random", "--scenes", easy_ids, "--out", str(out), "--server", server.address]
+        )
+        == 2
+    )
+    assert "holds results of agent 'my_agents:make'" in capsys.readouterr().err
+    # Unknown scenes and agents are bad arguments.
+    assert (
+        main([*base[:3], "--scenes", "nope", "--out", str(tmp_path / "x.jsonl"), "--server", server.address])
+        == 2
+    )
+    assert (
+        main(["eval", "--agent", "nope", "--out", str(tmp_path / "y.jsonl"), "--server", server.address]) == 2
+    )
+
+
+def test_resume_after_an_interrupted_run_gives_the_same_file(
+    server: esrp.LocalServer, tmp_path: Path, easy_scenes: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    ids = ",".join(easy_scenes[:6])
+    args = ["eval", "--agent", "random", "--seed", "3", "--scenes", ids, "--episodes-in-flight", "2"]
+    whole = tmp_path / "whole.jsonl"
+    assert main([*args, "--out", str(whole), "--server", server.address]) == 0
+    expected = normalized(whole)
+    assert len(expected) == 6
+    assert all(r["seed"] == scene_seed(3, str(r["scene_id"])) for r in expected)
+
+    # The same run, killed (SIGKILL) once it has written a record, on a server of its own.
+    cut = tmp_path / "cut.jsonl"
+    with esrp.LocalServer() as own:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        command = [sys.executable, "-m", "esrp.cli", *args, "--episodes-in-flight", "1", "--no-progress"]
+        child = subprocess.Popen(
+            [*command, "--out", str(cut), "--server", own.address],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        deadline = time.monotonic() + 120
+        while child.poll() is None and time.monotonic() < deadline:
+            if cut.exists() and cut.read_bytes().count(b"\n") >= 1:
+                child.send_signal(signal.SIGKILL)
+                break
+            time.sleep(0.005)
+        child.wait(30)
+    assert child.returncode == -signal.SIGKILL, "the run ended before it could be interrupted"
+    lines = cut.read_bytes().splitlines(keepends=True)
+    # Keep what was complete (at most five records) and end with a line cut in the middle of its
+    # write, as an interruption would leave it.
+    kept = [line for line in lines if line.endswith(b"\n")][:5]
+    done = {json.loads(line)["scene_id"] for line in kept}
+    torn = next(line for line in whole.read_bytes().splitlines() if json.loads(line)["scene_id"] not in done)
+    cut.write_bytes(b"".join(kept) + torn[: len(torn) // 2])
+
+    capsys.readouterr()
+    assert main([*args, "--out", str(cut), "--server", server.address]) == 0
+    err = capsys.readouterr().err
+    assert "dropping a last line an interruption cut short" in err
+    assert f"resuming {cut}: {len(kept)} of 6 scenes already done" in err
+    assert normalized(cut) == expected
+    assert (
+        cut.with_suffix(".md").read_text().split("Written by")[0]
+        == whole.with_suffix(".md").read_text().split("Written by")[0]
+    )

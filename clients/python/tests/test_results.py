@@ -1,0 +1,135 @@
+"""The results schema: records, reading with a torn last line, seeds, and the summary's text (the
+Rust tool's, checked against the same expectations as clients/rust/src/results.rs)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from esrp.results import (
+    SCHEMA,
+    EpisodeRecord,
+    ResultsError,
+    Summary,
+    append_record,
+    fnv1a64,
+    read_records,
+    scene_seed,
+    truncate_to,
+)
+
+
+def record(scene: str, difficulty: str, success: bool, osr: float, rdr: float, stage: int) -> EpisodeRecord:
+    return EpisodeRecord(
+        schema=SCHEMA,
+        scene_id=scene,
+        dataset="d",
+        split="test",
+        room_type="Bedroom",
+        difficulty=difficulty,
+        objects=1,
+        agent="random",
+        agent_config={},
+        seed=3,
+        success=success,
+        osr=osr,
+        rdr=rdr,
+        stage=stage,
+        placed=int(success),
+        steps=10,
+        horizon=200,
+        end="success" if success else "horizon",
+        total_reward=1.5,
+        actions=[0] * 10,
+        wall_seconds=0.1,
+        agent_stats={},
+        server_version="0.1.0",
+        client="test",
+        finished_at="2026-11-23T00:00:00Z",
+    )
+
+
+def test_fnv1a64_and_scene_seeds() -> None:
+    assert fnv1a64("") == 0xCBF29CE484222325
+    assert fnv1a64("a") == 0xAF63DC4C8601EC8C
+    assert fnv1a64("foobar") == 0x85944171F73967E8
+    assert scene_seed(0, "a") == fnv1a64("a")
+    assert scene_seed(7, "a") == 7 ^ fnv1a64("a")
+    assert scene_seed(-1, "a") == ((1 << 64) - 1) ^ fnv1a64("a")
+
+
+def test_summary_means_by_difficulty() -> None:
+    records = [
+        record("a", "easy", True, 1.0, 0.0, 4),
+        record("b", "easy", False, 0.0, 1.0, 3),
+        record("c", "hard", False, 0.5, 0.5, 1),
+    ]
+    summary = Summary.of(records)
+    assert summary.overall.episodes == 3
+    assert summary.overall.sr == pytest.approx(1 / 3)
+    assert summary.overall.osr == pytest.approx(0.5)
+    assert summary.by_difficulty["easy"].successes == 1
+    assert summary.by_difficulty["hard"].rdr == pytest.approx(0.5)
+    assert summary.overall.stages == [1, 0, 1, 1]
+    md = summary.markdown("random")
+    row = "| **random** (this run) | 33.33 / 50.00 / 0.5000 | 50.00 / 50.00 / 0.5000 | – |"
+    assert row + " 0.00 / 50.00 / 0.5000 |" in md
+    assert "| ESRP-PLAN (paper) | 30.20 / 36.59 / 0.6916 |" in md
+    assert "| **random** (this run) | 33.33 | 0.00 | 33.33 | 33.33 |" in md
+    assert "| all | 3 | 1 | 10.0 | 0 |" in md
+    assert summary.text().startswith("overall  SR  33.33 %  OSR  50.00 %  RDR 0.5000")
+
+
+def test_round_trip_and_a_torn_last_line(tmp_path: Path) -> None:
+    path = tmp_path / "r.jsonl"
+    with open(path, "wb") as file:
+        append_record(file, record("a", "easy", True, 1.0, 0.0, 4))
+        append_record(file, record("b", "easy", True, 1.0, 0.0, 4))
+    whole = path.stat().st_size
+    with open(path, "ab") as file:
+        file.write(b'{"schema":"esrp.results/v1","scene_id":"c"')
+    read = read_records(path)
+    assert [r.scene_id for r in read.records] == ["a", "b"]
+    assert read.torn_tail
+    assert read.complete_bytes == whole
+    truncate_to(path, read.complete_bytes)
+    again = read_records(path)
+    assert (len(again.records), again.torn_tail) == (2, False)
+    assert again.records[1] == record("b", "easy", True, 1.0, 0.0, 4)
+    # Field order and types as docs/evaluation.md lists them.
+    line = json.loads(path.read_text().splitlines()[0])
+    assert list(line)[:3] == ["schema", "scene_id", "dataset"]
+    assert list(line)[-1] == "finished_at"
+
+
+def test_a_complete_record_without_its_newline_is_torn(tmp_path: Path) -> None:
+    path = tmp_path / "r.jsonl"
+    path.write_text(record("a", "easy", True, 1.0, 0.0, 4).to_json())
+    read = read_records(path)
+    assert read.records == []
+    assert read.torn_tail
+    assert read.complete_bytes == 0
+
+
+def test_bad_lines_and_unknown_fields(tmp_path: Path) -> None:
+    path = tmp_path / "r.jsonl"
+    good = record("a", "easy", True, 1.0, 0.0, 4).to_json()
+    path.write_text("not json\n" + good + "\n")
+    with pytest.raises(ResultsError, match=":1: not an esrp.results/v1 record"):
+        read_records(path)
+    wrong = json.loads(good) | {"schema": "esrp.results/v2"}
+    path.write_text(json.dumps(wrong) + "\n" + good + "\n")
+    with pytest.raises(ResultsError, match="schema"):
+        read_records(path)
+    missing = json.loads(good)
+    del missing["rdr"]
+    path.write_text(json.dumps(missing) + "\n" + good + "\n")
+    with pytest.raises(ResultsError, match="rdr"):
+        read_records(path)
+    # Readers ignore fields they do not know; integers are numbers too.
+    extra = json.loads(good) | {"later_field": [1, 2], "osr": 1}
+    path.write_text(json.dumps(extra) + "\n")
+    (only,) = read_records(path).records
+    assert only.osr == 1.0
