@@ -46,14 +46,21 @@ __all__ = [
     "ACTION_NAMES",
     "API_KEY_VARIABLES",
     "CONSTRAINED_MODES",
+    "HistoryEntry",
     "ParsedAnswer",
     "VlmAgent",
     "VlmAgentFactory",
     "VlmSettings",
+    "api_key",
+    "correction_message",
     "default_trace_dir",
     "encode_png",
+    "outcome_of",
+    "parse_action_value",
     "parse_answer",
     "system_prompt",
+    "trace_file_name",
+    "user_text",
 ]
 
 ACTION_NAMES: tuple[str, ...] = tuple(action.api_name for action in Action)
