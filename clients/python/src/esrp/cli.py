@@ -87,8 +87,9 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument(
         "--agent",
         required=True,
-        help="random, expert, plan, or MODULE:CALLABLE (a factory called with the agent config, once "
-        "per episode, returning an esrp.agents.Agent or AsyncAgent)",
+        help="random, expert, plan, vlm (ESRP-VLM over an OpenAI-compatible endpoint: --base-url, "
+        "--model), or MODULE:CALLABLE (a factory called with the agent config, once per episode, "
+        "returning an esrp.agents.Agent or AsyncAgent)",
     )
     ev.add_argument("--split", choices=("train", "test"), default="test")
     ev.add_argument("--difficulty", choices=("easy", "medium", "hard"))
@@ -108,7 +109,20 @@ def _parser() -> argparse.ArgumentParser:
         type=_json_object,
         default={},
         metavar="JSON",
-        help="a MODULE:CALLABLE agent's config",
+        help="a vlm or MODULE:CALLABLE agent's config",
+    )
+    ev.add_argument(
+        "--base-url",
+        metavar="URL",
+        help="vlm: the OpenAI-compatible endpoint, e.g. http://localhost:8000/v1 (the config's base_url); "
+        "the API key is $ESRP_VLM_API_KEY or $OPENAI_API_KEY",
+    )
+    ev.add_argument("--model", metavar="NAME", help="vlm: the model it serves (the config's model)")
+    ev.add_argument(
+        "--trace-dir",
+        type=Path,
+        metavar="DIR",
+        help="vlm: the per-episode traces' folder (default: --out without .jsonl, plus .traces)",
     )
     ev.add_argument(
         "--plan-budget-ms", type=_positive, default=60_000, help="plan: budget per PlanActions call"
@@ -164,6 +178,14 @@ def _eval(args: argparse.Namespace) -> int:
     # `--agent my_agents:make` imports from the working directory, as `python -m` would.
     if "" not in sys.path and os.getcwd() not in sys.path:
         sys.path.insert(0, os.getcwd())
+    agent_config = dict(args.agent_config)
+    vlm_flags = {"base_url": args.base_url, "model": args.model, "trace_dir": args.trace_dir}
+    given = {key: value for key, value in vlm_flags.items() if value is not None}
+    if given and args.agent != "vlm":
+        flags = ", ".join("--" + key.replace("_", "-") for key in given)
+        print(f"esrp eval: {flags} only apply to --agent vlm", file=sys.stderr)
+        return 2
+    agent_config.update({key: str(value) for key, value in given.items()})
     settings = EvalSettings(
         agent=args.agent,
         out=args.out,
@@ -175,7 +197,7 @@ def _eval(args: argparse.Namespace) -> int:
         seed=args.seed,
         fresh=args.fresh,
         summary=args.summary,
-        agent_config=args.agent_config,
+        agent_config=agent_config,
         plan_budget_ms=args.plan_budget_ms,
         replans=args.replans,
         sensors=args.sensors,

@@ -3,7 +3,8 @@ per episode (docs/evaluation.md), with a progress bar, resumption, and the Markd
 paper's rows beside it — the Python twin of the Rust `esrp-eval`, writing the same files.
 
 Agents: `plan` (the server's planner through PlanActions: the whole plan, stepped, then replanned
-as the Rust agent does), `expert` (the scene's expert trajectory), `random` (`RandomAgent`), or
+as the Rust agent does), `expert` (the scene's expert trajectory), `random` (`RandomAgent`), `vlm`
+(ESRP-VLM, `esrp.agents.vlm`: a ReAct agent over an OpenAI-compatible endpoint), or
 `MODULE:CALLABLE`, a factory of `esrp.agents.Agent` / `AsyncAgent` called with the agent config.
 
 Episodes run concurrently on one `AsyncClient` (`episodes_in_flight` at a time); the scenes are
@@ -54,7 +55,7 @@ __all__ = [
     "run_eval",
 ]
 
-BUILTIN_AGENTS = ("random", "expert", "plan")
+BUILTIN_AGENTS = ("random", "expert", "plan", "vlm")
 """The agents `esrp eval` knows by name."""
 
 CLIENT_NAME = f"esrp eval (Python) {__version__}"
@@ -72,7 +73,8 @@ class EvalSettings:
     """What `esrp eval` runs; the fields are its flags.
 
     Attributes:
-        agent: `random`, `expert`, `plan`, or `MODULE:CALLABLE` (a factory of agents).
+        agent: `random`, `expert`, `plan`, `vlm` (`esrp.agents.vlm`, configured by `agent_config`),
+            or `MODULE:CALLABLE` (a factory of agents).
         out: The results file (JSON Lines); scenes already in it are skipped.
         split: The split whose scenes to run (`train` or `test`).
         difficulty: Only scenes of this difficulty (`easy`, `medium`, `hard`).
@@ -398,6 +400,13 @@ async def evaluate(client: AsyncClient, settings: EvalSettings) -> EvalOutcome:
     factory: AgentFactory | None = None
     if settings.agent == "random":
         factory = RandomAgent
+    elif settings.agent == "vlm":
+        from .agents.vlm import VlmAgentFactory
+
+        try:
+            factory = VlmAgentFactory(settings.agent_config, results_path=settings.out)
+        except ValueError as error:
+            raise EvalError(str(error)) from None
     elif settings.agent not in BUILTIN_AGENTS:
         try:
             factory = load_factory(settings.agent)
@@ -486,6 +495,9 @@ async def evaluate(client: AsyncClient, settings: EvalSettings) -> EvalOutcome:
             await asyncio.gather(*(worker(file) for _ in range(workers)))
     finally:
         progress.close()
+        close = getattr(factory, "aclose", None)  # a factory holding a connection (vlm)
+        if close is not None:
+            await close()
 
     mine = [r for r in records if r.scene_id in wanted]
     summary = Summary.of(mine)

@@ -22,7 +22,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from ._values import Action, Observation
+from .._values import Action, Observation
 
 __all__ = ["Agent", "AgentFactory", "AsyncAgent", "RandomAgent", "load_factory"]
 

@@ -1,0 +1,459 @@
+"""ESRP-VLM (`esrp eval --agent vlm`) without a model: a fake OpenAI-compatible server answers from a
+script and checks what it gets — two PNG images that are exactly the episode's ego view and goal
+image, the grasp flag and the action history — against a parallel episode of the same scene on the
+real server. A "model" that answers with the scene's expert trajectory solves it; malformed
+answers are asked again and counted; 429 and 500 are retried; traces are written and overwritten."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from fake_openai import FakeServer, Reply, Request, fake_openai
+
+import esrp
+from esrp.agents import is_async_agent
+from esrp.agents.vlm import (
+    ACTION_NAMES,
+    VlmAgentFactory,
+    VlmSettings,
+    default_trace_dir,
+    encode_png,
+    parse_answer,
+    trace_file_name,
+)
+from esrp.cli import main
+from esrp.evaluation import expert_trajectory
+from esrp.results import read_records
+
+# ---------------------------------------------------------------------------------------------
+# Parsing and settings
+
+
+PARSE_CASES: list[tuple[str, str, str | None, str | None]] = [
+    # (answer, constrained mode, the action it gives, or the kind of error)
+    ("Thought: the chair is ahead.\nAction: move_forward", "none", "move_forward", None),
+    ("Thought: turn.\nAction: 3", "none", "turn_right", None),
+    ("**Thought:** go\n**Action:** `fetch`", "none", "fetch", None),
+    ("Thought: x\nAction: Turn left.", "none", "turn_left", None),
+    ("Thought: x\nAction: 2 (turn_left)", "none", "turn_left", None),
+    ("action: RELEASE", "none", "release", None),
+    ("<think>long musing</think>\nThought: x\nAction: move_backward", "none", "move_backward", None),
+    ("turn_right", "none", "turn_right", None),
+    ("", "none", None, "empty"),
+    ("I would move forward and then fetch.", "none", None, "no_action"),
+    ("Thought: x\nAction: move_forward\nAction: turn_left", "none", None, "several_actions"),
+    ("Thought: x\nAction: move_forward, then turn_left", "none", None, "not_one_action"),
+    ("Thought: x\nAction: 2 (fetch)", "none", None, "not_one_action"),
+    ("Thought: x\nAction: jump", "none", None, "not_one_action"),
+    ("Thought: x\nAction: 7", "none", None, "not_one_action"),
+    ("Thought: x\nAction: forward", "none", None, "not_one_action"),
+    ('{"thought": "go", "action": "turn_left"}', "json_schema", "turn_left", None),
+    ('```json\n{"thought": "go", "action": 4}\n```', "json_schema", "fetch", None),
+    ('{"thought": "go", "action": "fly"}', "json_schema", None, "not_one_action"),
+    ('{"thought": "go"}', "json_schema", None, "not_json"),
+    ("Action: turn_left", "json_schema", None, "not_json"),
+]
+
+
+@pytest.mark.parametrize(("answer", "mode", "action", "kind"), PARSE_CASES)
+def test_parse_answer(answer: str, mode: str, action: str | None, kind: str | None) -> None:
+    parsed = parse_answer(answer, mode)
+    assert (None if parsed.action is None else parsed.action.api_name) == action
+    assert parsed.kind == kind
+    assert (parsed.error is None) == (kind is None)
+
+
+def test_parse_answer_keeps_the_thought() -> None:
+    assert parse_answer("Thought: the sofa is left.\nAction: turn_left").thought == "the sofa is left."
+    assert parse_answer("<think>hmm</think>Thought: go\nAction: fetch").thought == "hmm\ngo"
+
+
+@pytest.mark.parametrize(
+    ("config", "message"),
+    [
+        ({}, "needs a model"),
+        ({"model": "m", "temprature": 0.2}, "unknown vlm agent config keys ['temprature']"),
+        ({"model": "m", "history": "8"}, "'history' must be int"),
+        ({"model": "m", "history": True}, "'history' must be int"),
+        ({"model": "m", "constrained": "grammar"}, "constrained must be one of"),
+        ({"model": "m", "fallback_action": "jump"}, "is not an action"),
+        ({"model": "m", "max_concurrent_requests": 0}, "must be at least 1"),
+    ],
+)
+def test_settings_say_what_is_wrong(config: dict[str, Any], message: str) -> None:
+    with pytest.raises(ValueError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        VlmSettings.from_config(config)
+
+
+def test_settings_defaults_and_paths() -> None:
+    settings = VlmSettings.from_config({"model": "m", "temperature": 1, "fallback_action": 3})
+    assert settings.fallback == esrp.Action.RIGHT
+    assert settings.temperature == 1
+    assert default_trace_dir(Path("runs/qwen.jsonl")) == Path("runs/qwen.traces")
+    assert trace_file_name("esrp-bench-v1/00007") == "esrp-bench-v1_00007.jsonl"
+    assert is_async_agent(VlmAgentFactory({"model": "m"}, client=object())())
+
+
+# ---------------------------------------------------------------------------------------------
+# A scripted "model" checked against a parallel episode
+
+
+@dataclass
+class Parallel:
+    """A privileged episode of the same scene, stepped with the actions the fake model answers: what
+    the agent's next request must show."""
+
+    scene_id: str
+    episode: esrp.Episode
+    trajectory: list[esrp.Action]
+    observation: esrp.Observation
+    horizon: int
+    taken: list[esrp.Action] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def check(self, request: Request, history: int) -> None:
+        """The request shows this episode's state now: the images, the step, the flag, the history."""
+        assert len(request.images) == 2, f"{len(request.images)} images"
+        ego, goal = request.images
+        assert ego.shape == goal.shape == (128, 128, 3)
+        assert np.array_equal(ego, self.observation.ego_rgb), f"{self.scene_id}: ego view differs"
+        step = len(self.taken)
+        text = request.text
+        assert f"Step {step + 1} of {self.horizon} " in text
+        assert f"Holding an object: {'yes' if self.observation.grasping else 'no'}." in text
+        lines = [line for line in text.splitlines() if line.startswith("- step ")]
+        recent = list(enumerate(self.taken, start=1))[-history:] if history else []
+        assert [line.split(" (")[0] for line in lines] == [f"- step {i}: {a.api_name}" for i, a in recent]
+        if not self.taken:
+            assert "Your last actions: none yet." in text
+
+    def take(self, action: esrp.Action) -> None:
+        self.taken.append(action)
+        self.observation = self.episode.step(action).observation
+
+
+class Scenes:
+    """Parallel episodes by goal image, so that the fake model knows which episode a request is of."""
+
+    def __init__(self, client: esrp.Client, scene_ids: list[str]) -> None:
+        self.by_goal: dict[bytes, Parallel] = {}
+        self.episodes: list[esrp.Episode] = []
+        for scene_id in scene_ids:
+            episode = client.create_episode(scene_id, privileged=True)
+            self.episodes.append(episode)
+            first = episode.observation
+            assert first is not None
+            assert first.goal_rgb is not None
+            trajectory = expert_trajectory(episode.privileged_state().scene_json)
+            parallel = Parallel(scene_id, episode, trajectory, first, episode.scene.horizon)
+            self.by_goal[first.goal_rgb.tobytes()] = parallel
+
+    def of(self, request: Request) -> Parallel:
+        assert len(request.images) == 2
+        return self.by_goal[request.images[1].tobytes()]
+
+    def close(self) -> None:
+        for episode in self.episodes:
+            episode.close()
+
+
+@pytest.fixture
+def scenes(client: esrp.Client, easy_scenes: list[str]) -> Iterator[Scenes]:
+    opened = Scenes(client, easy_scenes[:3])
+    yield opened
+    opened.close()
+
+
+def eval_args(fake: FakeServer, server: esrp.LocalServer, out: Path, scene_ids: list[str]) -> list[str]:
+    return [
+        "eval",
+        "--agent",
+        "vlm",
+        "--base-url",
+        fake.base_url,
+        "--model",
+        "fake-vlm",
+        "--scenes",
+        ",".join(scene_ids),
+        "--out",
+        str(out),
+        "--server",
+        server.address,
+        "--no-progress",
+    ]
+
+
+def trace_lines(path: Path) -> list[dict[str, Any]]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def test_an_expert_model_solves_its_scenes_through_esrp_eval(
+    server: esrp.LocalServer, scenes: Scenes, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("ESRP_VLM_API_KEY", "test-key")
+    history = 4
+
+    def expert(request: Request) -> Reply:
+        parallel = scenes.of(request)
+        with parallel.lock:
+            parallel.check(request, history)
+            assert request.headers["authorization"] == "Bearer test-key"
+            assert request.body["model"] == "fake-vlm"
+            assert request.body["temperature"] == 0.0
+            assert not request.corrections
+            action = parallel.trajectory[len(parallel.taken)]
+            parallel.take(action)
+        return Reply(f"Thought: expert step {len(parallel.taken)}.\nAction: {action.api_name}")
+
+    out = tmp_path / "vlm.jsonl"
+    ids = [p.scene_id for p in scenes.by_goal.values()]
+    config = json.dumps({"history": history, "max_concurrent_requests": 2})
+    with fake_openai(expert) as fake:
+        args = [*eval_args(fake, server, out, ids), "--agent-config", config, "--episodes-in-flight", "3"]
+        assert main(args) == 0
+    assert fake.failures == []
+    assert 1 <= fake.most_in_flight <= 2  # the factory's semaphore, shared by the three episodes
+
+    records = {r.scene_id: r for r in read_records(out).records}
+    assert sorted(records) == sorted(ids)
+    for parallel in scenes.by_goal.values():
+        record = records[parallel.scene_id]
+        steps = len(parallel.trajectory)
+        assert record.agent == "vlm"
+        assert record.success
+        assert record.end == "success"
+        assert record.actions == [int(a) for a in parallel.trajectory]
+        assert record.agent_config == {
+            "history": 4,
+            "max_concurrent_requests": 2,
+            "base_url": fake.base_url,
+            "model": "fake-vlm",
+        }
+        stats = record.agent_stats
+        assert stats["model"] == "fake-vlm"
+        assert stats["steps"] == stats["requests"] == steps
+        assert stats["invalid_answers"] == stats["reprompts"] == stats["fallbacks"] == 0
+        assert stats["http_retries"] == 0
+        assert stats["prompt_tokens"] == 100 * steps
+        assert stats["completion_tokens"] == 10 * steps
+        assert stats["total_tokens"] == 110 * steps
+        assert stats["model_seconds"] > 0
+        assert stats["model_seconds_max"] >= stats["model_seconds_mean"]
+
+        trace = Path(stats["trace"])
+        assert trace.parent == tmp_path / "vlm.traces"
+        lines = trace_lines(trace)
+        assert [line["type"] for line in lines] == ["episode"] + ["step"] * steps + ["end"]
+        assert lines[0]["scene_id"] == parallel.scene_id
+        assert lines[0]["model"] == "fake-vlm"
+        assert "move_forward (0)" in lines[0]["system_prompt"]
+        assert lines[-1]["stats"] == stats
+        sent = [r for r in fake.requests if scenes.of(r) is parallel]
+        for line, request, action in zip(lines[1:-1], sent, parallel.trajectory, strict=True):
+            assert line["prompt"] == request.texts[0]
+            assert line["ego_image"]["png_bytes"] == len(request.pngs[0])
+            assert line["action"] == action.api_name
+            assert line["source"] == "model"
+            (attempt,) = line["attempts"]
+            assert attempt["thought"].startswith("expert step")
+            assert attempt["usage"] == {"prompt_tokens": 100, "completion_tokens": 10, "total_tokens": 110}
+    assert "**vlm** (this run)" in (tmp_path / "vlm.md").read_text()
+
+
+Scripted = list[tuple[Reply, "esrp.Action | None"]]
+
+
+def scripted(replies: Scripted, scenes: Scenes, checks: list[str]) -> Any:  # noqa: ANN401
+    """A fake model answering `replies` in order, each with the action the agent then plays (the
+    parallel episode takes it), checking every request against the parallel episode; a correction
+    request must repeat the step's images and carry the correction.
+    """
+    queue = list(replies)
+
+    def script(request: Request) -> Reply:
+        parallel = scenes.of(request)
+        reply, then = queue.pop(0)
+        if request.corrections:
+            checks.append("correction")
+            assert len(request.answers) == len(request.corrections)
+            assert "could not be used" in request.corrections[-1]
+            assert all(name in request.corrections[-1] for name in ACTION_NAMES)
+        parallel.check(request, 8)
+        if then is not None:
+            parallel.take(then)
+        return reply
+
+    return script
+
+
+def test_malformed_answers_are_asked_again_then_fall_back(
+    server: esrp.LocalServer, scenes: Scenes, tmp_path: Path
+) -> None:
+    parallel = next(iter(scenes.by_goal.values()))
+    checks: list[str] = []
+    left, right = esrp.Action.LEFT, esrp.Action.RIGHT
+    replies: Scripted = [
+        (Reply("I will go forward."), None),  # no Action line: asked again
+        (Reply("Thought: fine.\nAction: turn_left"), left),
+        (Reply("Action: move_forward\nAction: turn_left"), None),  # two actions: asked again
+        (Reply("Thought: x\nAction: fly"), right),  # still unusable: the fallback (turn_right here)
+        (Reply("Thought: x\nAction: 2"), left),
+    ]
+    out = tmp_path / "vlm.jsonl"
+    config = json.dumps({"max_steps": 3, "fallback_action": "turn_right"})
+    with fake_openai(scripted(replies, scenes, checks)) as fake:
+        assert main([*eval_args(fake, server, out, [parallel.scene_id]), "--agent-config", config]) == 0
+    assert fake.failures == []
+    assert checks == ["correction", "correction"]
+    (record,) = read_records(out).records
+    assert record.actions == [2, 3, 2]
+    assert record.end == "agent"
+    stats = record.agent_stats
+    assert stats["steps"] == 3
+    assert stats["requests"] == 5
+    assert stats["invalid_answers"] == 3
+    assert stats["reprompts"] == 2
+    assert stats["fallbacks"] == 1
+    assert stats["invalid_kinds"] == {"no_action": 1, "several_actions": 1, "not_one_action": 1}
+    lines = trace_lines(Path(stats["trace"]))
+    steps = [line for line in lines if line["type"] == "step"]
+    assert [s["source"] for s in steps] == ["model", "fallback", "model"]
+    assert [len(s["attempts"]) for s in steps] == [2, 2, 1]
+    assert steps[1]["attempts"][0]["error"] == "it has several 'Action:' lines"
+    # What the history told the model: the turns were done (the view changed).
+    assert "- step 1: turn_left (done)\n- step 2: turn_right (done)" in steps[2]["prompt"]
+
+
+def test_http_429_and_500_are_retried(server: esrp.LocalServer, scenes: Scenes, tmp_path: Path) -> None:
+    parallel = next(iter(scenes.by_goal.values()))
+    turn = Reply("Thought: go\nAction: turn_left")
+    left = esrp.Action.LEFT
+    replies: Scripted = [(Reply(status=429), None), (Reply(status=500), None), (turn, left)]
+    replies += [(Reply(status=503), None), (turn, left)]
+    out = tmp_path / "vlm.jsonl"
+    with fake_openai(scripted(replies, scenes, [])) as fake:
+        args = [*eval_args(fake, server, out, [parallel.scene_id]), "--agent-config", '{"max_steps": 2}']
+        assert main(args) == 0
+    assert fake.failures == []
+    assert len(fake.requests) == 5
+    (record,) = read_records(out).records
+    assert record.actions == [2, 2]
+    stats = record.agent_stats
+    assert stats["requests"] == 2
+    assert stats["http_retries"] == 3
+    assert stats["invalid_answers"] == 0
+    steps = [line for line in trace_lines(Path(stats["trace"])) if line["type"] == "step"]
+    assert [s["attempts"][0]["http_retries"] for s in steps] == [2, 1]
+
+
+def test_a_model_that_keeps_failing_fails_the_episode_and_a_rerun_overwrites_its_trace(
+    server: esrp.LocalServer, scenes: Scenes, tmp_path: Path
+) -> None:
+    parallel = next(iter(scenes.by_goal.values()))
+    out = tmp_path / "vlm.jsonl"
+    trace_dir = tmp_path / "traces"
+    config = json.dumps({"max_steps": 2, "max_retries": 1})
+
+    def turn_then_fail(request: Request) -> Reply:
+        if len(parallel.taken) == 0:
+            parallel.check(request, 8)
+            parallel.take(esrp.Action.LEFT)
+            return Reply("Thought: go\nAction: turn_left")
+        return Reply(status=500)
+
+    with fake_openai(turn_then_fail) as fake:
+        args = [*eval_args(fake, server, out, [parallel.scene_id]), "--agent-config", config]
+        assert main([*args, "--trace-dir", str(trace_dir)]) == 1  # failed, not recorded
+    assert len(fake.requests) == 1 + 2  # one answer, then a 500 retried once
+    assert read_records(out).records == []
+    trace = trace_dir / trace_file_name(parallel.scene_id)
+    assert [line["type"] for line in trace_lines(trace)] == ["episode", "step"]
+
+    def fetcher(request: Request) -> Reply:
+        return Reply("Thought: grab\nAction: fetch")
+
+    with fake_openai(fetcher) as fake:
+        args = [*eval_args(fake, server, out, [parallel.scene_id]), "--agent-config", config]
+        assert main([*args, "--trace-dir", str(trace_dir)]) == 0  # the rerun retries the episode
+    (record,) = read_records(out).records
+    assert record.actions == [4, 4]
+    assert record.agent_stats["trace"] == str(trace)
+    lines = trace_lines(trace)
+    assert [line["type"] for line in lines] == ["episode", "step", "step", "end"]
+    assert [line["action"] for line in lines[1:3]] == ["fetch", "fetch"]
+
+
+def test_vlm_flags_and_config_errors(server: esrp.LocalServer, tmp_path: Path) -> None:
+    out = str(tmp_path / "x.jsonl")
+    base = ["eval", "--out", out, "--server", server.address, "--limit", "1", "--no-progress"]
+    assert main([*base, "--agent", "random", "--model", "m"]) == 2
+    assert main([*base, "--agent", "vlm"]) == 2  # no model
+    assert main([*base, "--agent", "vlm", "--model", "m", "--agent-config", '{"colour": 1}']) == 2
+
+
+# ---------------------------------------------------------------------------------------------
+# Constrained decoding: what each mode sends
+
+
+@pytest.mark.parametrize(
+    ("mode", "answer"),
+    [
+        ("json_schema", '{"thought": "go", "action": "turn_right"}'),
+        ("vllm", "Thought: go\nAction: turn_right"),
+        ("vllm-guided", "Thought: go\nAction: turn_right"),
+    ],
+)
+def test_constrained_decoding_requests(mode: str, answer: str, tmp_path: Path) -> None:
+    bodies: list[dict[str, Any]] = []
+
+    def script(request: Request) -> Reply:
+        bodies.append(request.body)
+        return Reply(answer)
+
+    rng = np.random.default_rng(1)
+    ego = rng.integers(0, 256, (128, 128, 3), dtype=np.uint8)
+    goal = rng.integers(0, 256, (128, 128, 3), dtype=np.uint8)
+    first = esrp.Observation(ego_rgb=ego, grasping=False, goal_rgb=goal)
+    config = {
+        "model": "m",
+        "constrained": mode,
+        "extra_body": {"top_k": 20},
+        "send_seed": True,
+        "image_scale": 2,
+    }
+
+    async def one_step(base_url: str) -> esrp.Action | None:
+        factory = VlmAgentFactory({**config, "base_url": base_url}, results_path=tmp_path / "r.jsonl")
+        agent = factory()
+        await agent.reset(first, {"scene_id": "s/1", "horizon": 200, "seed": 7})
+        action = await agent.act(first)
+        await factory.aclose()
+        return action
+
+    with fake_openai(script) as fake:
+        assert asyncio.run(one_step(fake.base_url)) == esrp.Action.RIGHT
+        (request,) = fake.requests
+    assert fake.failures == []
+    (body,) = bodies
+    assert body["top_k"] == 20
+    assert body["seed"] == 7
+    # image_scale 2: the images are sent at 256x256, each pixel a 2x2 block.
+    assert np.array_equal(request.images[0], np.repeat(np.repeat(ego, 2, axis=0), 2, axis=1))
+    assert request.pngs[1] == encode_png(goal, 2)
+    if mode == "json_schema":
+        schema = body["response_format"]["json_schema"]["schema"]
+        assert schema["properties"]["action"]["enum"] == list(ACTION_NAMES)
+        assert "Answer with one JSON object" in body["messages"][0]["content"]
+    elif mode == "vllm":
+        assert body["structured_outputs"]["regex"].startswith("Thought: ")
+    else:
+        assert body["guided_regex"].endswith("|fetch|release)")
+    assert (tmp_path / "r.traces" / "s_1.jsonl").exists()
