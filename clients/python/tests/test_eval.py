@@ -20,6 +20,7 @@ from esrp.results import EpisodeRecord, read_records, scene_seed
 
 AGENTS_MODULE = '''
 import asyncio
+import pathlib
 
 import esrp
 
@@ -35,7 +36,9 @@ class Turner:
         assert observation.goal_rgb is not None
         assert observation.ego_rgb.shape == (128, 128, 3)
         self.info = dict(info)
-        if info["scene_id"] == self.config.get("fail_on"):
+        # A failure that the next run does not meet: the scene named in the file FAIL_ON, if any.
+        fail_on = pathlib.Path("FAIL_ON")
+        if fail_on.exists() and info["scene_id"] == fail_on.read_text():
             raise RuntimeError("this agent fails on " + info["scene_id"])
 
     def act(self, observation):
@@ -165,12 +168,15 @@ def test_failed_episodes_are_not_recorded_and_a_rerun_retries_them(
         server.address,
     ]
     bad = easy_scenes[1]
-    assert main([*base, "--agent-config", json.dumps({"steps": 3, "fail_on": bad})]) == 1
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "FAIL_ON").write_text(bad)
+    assert main([*base, "--agent-config", json.dumps({"steps": 3})]) == 1
     assert f"1 episodes failed with an error and were not recorded (rerun to retry them): {bad}" in (
         capsys.readouterr().err
     )
     assert bad not in {r.scene_id for r in read_records(out).records}
     assert len(read_records(out).records) == 3
+    (tmp_path / "FAIL_ON").unlink()
     assert main([*base, "--agent-config", json.dumps({"steps": 3})]) == 0
     assert "resuming" in capsys.readouterr().err
     assert sorted(r.scene_id for r in read_records(out).records) == sorted(easy_ids.split(","))
@@ -182,6 +188,9 @@ def test_failed_episodes_are_not_recorded_and_a_rerun_retries_them(
         == 2
     )
     assert "holds results of agent 'my_agents:make'" in capsys.readouterr().err
+    # The same agent with other settings is another run: refused too.
+    assert main([*base, "--agent-config", json.dumps({"steps": 4})]) == 2
+    assert "with other settings" in capsys.readouterr().err
     # Unknown scenes and agents are bad arguments.
     assert (
         main([*base[:3], "--scenes", "nope", "--out", str(tmp_path / "x.jsonl"), "--server", server.address])

@@ -334,8 +334,10 @@ async def _pick_scenes(client: AsyncClient, settings: EvalSettings) -> list[Scen
     return picked
 
 
-def _resume(path: Path, agent: str) -> list[EpisodeRecord]:
-    """What an earlier run wrote (a torn last line is cut off first)."""
+def _resume(path: Path, agent: str, config: dict[str, Any]) -> list[EpisodeRecord]:
+    """What an earlier run wrote (a torn last line is cut off first). Refuses a file of another
+    agent, or of the same agent with other settings (another model, budget, ...): one file, one run.
+    """
     if not path.exists():
         return []
     read = read_records(path)
@@ -347,6 +349,11 @@ def _resume(path: Path, agent: str) -> list[EpisodeRecord]:
             raise EvalError(
                 f"{path} holds results of agent {record.agent!r}, not {agent!r}: write to another --out, "
                 "or pass --fresh to start it over"
+            )
+        if record.agent_config != config:
+            raise EvalError(
+                f"{path} holds results of agent {agent!r} with other settings ({record.agent_config}, not "
+                f"{config}): write to another --out, or pass --fresh to start it over"
             )
     return read.records
 
@@ -423,7 +430,7 @@ async def evaluate(client: AsyncClient, settings: EvalSettings) -> EvalOutcome:
     if settings.fresh and out.exists():
         out.unlink()
     out.parent.mkdir(parents=True, exist_ok=True)
-    records = _resume(out, settings.agent)
+    records = _resume(out, settings.agent, settings.recorded_config())
     done = {r.scene_id for r in records}
     wanted = {s.id for s in scenes}
     todo = [s for s in scenes if s.id not in done]

@@ -129,4 +129,15 @@ async fn bad_requests_are_refused_with_a_reason() {
     assert!(!output.status.success());
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.contains("holds results of agent \"expert\"") && stderr.contains("--fresh"), "{stderr}");
+
+    // The same agent with other settings is another run.
+    let plan = dir.path().join("plan.jsonl");
+    ok(eval(&server.address, &["--agent", "plan", "--limit", "1", "--out", plan.to_str().unwrap()]));
+    let output = eval(
+        &server.address,
+        &["--agent", "plan", "--limit", "2", "--plan-budget-ms", "5000", "--out", plan.to_str().unwrap()],
+    );
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("with other settings") && stderr.contains("\"budget_ms\":5000"), "{stderr}");
 }

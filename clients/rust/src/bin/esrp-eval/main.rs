@@ -143,7 +143,11 @@ async fn pick_scenes(client: &Client, args: &Args) -> anyhow::Result<Vec<SceneSu
 }
 
 /// Reads what an earlier run wrote (dropping a torn last line) and returns the scenes done.
-fn resume(path: &Path, agent: &str) -> anyhow::Result<Vec<EpisodeRecord>> {
+fn resume(
+    path: &Path,
+    agent: &str,
+    config: &serde_json::Map<String, serde_json::Value>,
+) -> anyhow::Result<Vec<EpisodeRecord>> {
     if !path.exists() {
         return Ok(Vec::new());
     }
@@ -158,6 +162,15 @@ fn resume(path: &Path, agent: &str) -> anyhow::Result<Vec<EpisodeRecord>> {
             "{} holds results of agent {:?}, not {agent:?}: write to another --out, or pass --fresh to start it over",
             path.display(),
             other.agent
+        );
+    }
+    // One file, one run: the same agent with other settings (a budget, a model) is another run.
+    if let Some(other) = read.records.iter().find(|r| &r.agent_config != config) {
+        bail!(
+            "{} holds results of agent {agent:?} with other settings ({}, not {}): write to another --out, or pass --fresh to start it over",
+            path.display(),
+            serde_json::Value::Object(other.agent_config.clone()),
+            serde_json::Value::Object(config.clone())
         );
     }
     Ok(read.records)
@@ -204,7 +217,13 @@ async fn main() -> anyhow::Result<()> {
     if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     }
-    let mut records = resume(&args.out, agent)?;
+    let settings = AgentSettings {
+        kind: args.agent,
+        plan_budget: Some(Duration::from_millis(args.plan_budget_ms)),
+        replans: args.replans,
+    };
+    let config = settings.config();
+    let mut records = resume(&args.out, agent, &config)?;
     let done: HashSet<String> = records.iter().map(|r| r.scene_id.clone()).collect();
     let todo: Vec<SceneSummary> = scenes.iter().filter(|s| !done.contains(&s.id)).cloned().collect();
     let wanted: HashSet<&str> = scenes.iter().map(|s| s.id.as_str()).collect();
@@ -218,12 +237,6 @@ async fn main() -> anyhow::Result<()> {
         .open(&args.out)
         .with_context(|| format!("cannot open {}", args.out.display()))?;
 
-    let settings = AgentSettings {
-        kind: args.agent,
-        plan_budget: Some(Duration::from_millis(args.plan_budget_ms)),
-        replans: args.replans,
-    };
-    let config = settings.config();
     let client_name = format!("esrp-eval {}", env!("CARGO_PKG_VERSION"));
     let mut tally = Tally::default();
     records.iter().filter(|r| wanted.contains(r.scene_id.as_str())).for_each(|r| tally.add(r));
