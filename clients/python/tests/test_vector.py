@@ -23,7 +23,7 @@ def assert_same(a: Any, b: Any, path: str = "") -> None:  # noqa: ANN401
     """Deep equality of observations and infos: dicts, arrays (object arrays element-wise), scalars."""
     if isinstance(a, dict):
         assert isinstance(b, dict), path
-        assert a.keys() == b.keys(), f"{path}: {sorted(a)} != {sorted(b)}"
+        assert list(a) == list(b), f"{path}: {list(a)} != {list(b)}"  # the same keys in the same order
         for key in a:
             assert_same(a[key], b[key], f"{path}.{key}")
     elif isinstance(a, np.ndarray):

@@ -327,6 +327,17 @@ class Client:
             raise from_rpc_error(error) from error
         return _convert.step_results(answer.responses, len(steps))
 
+    def _step_batch_messages(self, episode_ids: Sequence[str], actions: Sequence[int]) -> Sequence[Any]:
+        """`step_batch` for the vector env's hot path: the answer's StepResponse messages, in
+        request order, for `_convert.step_columns` (no per-step values are built).
+        """
+        request = _convert.step_batch_request(episode_ids, actions)
+        try:
+            answer = self._stub.StepBatch(request, metadata=self._metadata, timeout=self.timeout)
+        except grpc.RpcError as error:
+            raise from_rpc_error(error) from error
+        return _convert.batch_responses(answer, len(episode_ids))
+
     def episode_stream(self, window: int = 8) -> EpisodeStream:
         """Opens a StepStream driven by an `EpisodeStream` with up to `window` steps of each
         episode in flight.

@@ -25,13 +25,14 @@ import numpy.typing as npt
 from gymnasium import spaces
 from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
-from gymnasium.vector.utils import batch_space, concatenate, create_empty_array
+from gymnasium.vector.utils import batch_space
 
+from . import _convert
 from ._client import Client, Episode, EpisodeStream
 from ._common import TlsSetting
 from ._errors import EpisodeEnded, EpisodeNotFound, EsrpError, InvalidRequest, ServerUnavailable
 from ._local import LocalServer
-from ._values import Difficulty, Observation, RewardWeights, Sensors, Split, StepResult
+from ._values import Difficulty, EpisodeMetrics, Observation, RewardWeights, Sensors, Split, StepResult
 
 __all__ = ["RearrangeEnv", "RearrangeVectorEnv", "observation_space"]
 
@@ -297,9 +298,34 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
         super().close()
 
 
+_STEP_KEYS = ("accepted", "collided", "placed_count", "step_index")
+_ENDED_KEYS = (*_STEP_KEYS, "metrics")
+# The dtypes `_add_info` gives the step keys: those of their Python values.
+_STEP_DTYPES = (("accepted", bool), ("collided", bool), ("placed_count", int), ("step_index", int))
+_RESET_KEYS = ("scene_id",)
+_FINAL_KEYS = ("final_obs", "final_info", "scene_id")
+
+# Reserve for a StepBatch answer's framing, per step (the info, reward and flags take ~60 bytes).
+_STEP_OVERHEAD_BYTES = 512
+
+
+def _metrics_info(metrics: EpisodeMetrics) -> dict[str, Any]:
+    """The `metrics` entry of a step info (as `_step_info` makes it)."""
+    return {
+        "success": metrics.success,
+        "object_success_rate": metrics.object_success_rate,
+        "remaining_distance_ratio": metrics.remaining_distance_ratio,
+        "stage": metrics.stage,
+        "placed": metrics.placed,
+        "steps": metrics.steps,
+        "total_reward": metrics.total_reward,
+    }
+
+
 class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[Any]]):
-    """N ESRP episodes stepped together over one pipelined StepStream (`gymnasium.make_vec(
-    "esrp/Rearrange-v1", num_envs=N, vectorization_mode="vector_entry_point", ...)`).
+    """N ESRP episodes stepped together (`gymnasium.make_vec("esrp/Rearrange-v1", num_envs=N,
+    vectorization_mode="vector_entry_point", ...)`): one StepBatch call per step, no subprocesses,
+    no per-env threads.
 
     Arguments as `RearrangeEnv`'s, plus `num_envs` and `autoreset_mode` (`AutoresetMode` or its
     value; declared in `metadata["autoreset_mode"]`):
@@ -312,9 +338,12 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
     - `DISABLED`: no autoreset; reset ended episodes with `reset(options={"reset_mask": mask})`.
       Stepping an ended one raises `EpisodeEnded` and moves no episode.
 
-    Infos are dicts of arrays with `_key` masks, as Gymnasium's `VectorEnv._add_info` builds them.
-    The episodes are created on the env's stream at the first reset and closed by `close()` (and by
-    the server, should the stream break).
+    Infos are dicts of arrays with `_key` masks, exactly as Gymnasium's `VectorEnv._add_info`
+    builds them (here a column at a time). Observations are fresh arrays at every call (keeping
+    them is safe). The episodes are created, reset and closed on the env's StepStream, so the
+    server closes them should the env's process die; the steps of a wave go in one StepBatch
+    (split only beyond the server's `max_batch` or half its message limit), whose single answer
+    costs far less to receive in Python than one stream answer per episode.
     """
 
     metadata = {**_METADATA, "autoreset_mode": AutoresetMode.NEXT_STEP}
@@ -353,13 +382,25 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.single_action_space = spaces.Discrete(6)
         self.action_space = batch_space(self.single_action_space, num_envs)
+        side = self._setup.sensors.resolution
+        # The sensor images (all but the goal): key, message field, bytes per pixel, dtype.
+        self._layout = _convert.image_layout(self._setup.sensors)
+        self._shapes = {
+            key: (side, side, 3) if size == 3 else (side, side) for key, _, size, _ in self._layout
+        }
+        # The observation keys in the space's order (that of Gymnasium's batches).
+        self._keys = tuple(self.single_observation_space.spaces)
         self._stream: EpisodeStream | None = None
         self._episode_ids: list[str | None] = [None] * num_envs
         self._rngs: list[np.random.Generator | None] = [None] * num_envs
-        self._goals: list[npt.NDArray[np.uint8] | None] = [None] * num_envs
-        self._last: list[ObsDict | None] = [None] * num_envs
-        self._last_observations: list[Observation | None] = [None] * num_envs
+        # Each sub-env's last observation: its images as the answer's bytes or read-only views (never
+        # written), whether it grasps, and its goal, in a batch array that only resets write to.
+        self._images: dict[str, list[Any]] = {key: [None] * num_envs for key, _, _, _ in self._layout}
+        self._grasping = np.zeros(num_envs, dtype=np.int64)
+        self._goals = np.zeros((num_envs, side, side, 3), dtype=np.uint8)
+        self._started = np.zeros(num_envs, dtype=np.bool_)
         self._autoreset_envs = np.zeros(num_envs, dtype=np.bool_)
+        self._chunk: int | None = None  # steps per StepBatch, from the server's limits
 
     @property
     def client(self) -> Client:
@@ -399,8 +440,8 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             stream.reset(episode, scene)
         return scene
 
-    def _take_reset(self, stream: EpisodeStream, index: int) -> ObsDict:
-        """Reads sub-env `index`'s reset answer (sent by `_send_reset`); returns its observation."""
+    def _take_reset(self, stream: EpisodeStream, index: int) -> None:
+        """Reads sub-env `index`'s reset answer (sent by `_send_reset`) into its last observation."""
         answer = stream.next()
         assert answer is not None
         if self._episode_ids[index] is None:
@@ -410,9 +451,11 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         else:
             first = answer.observation()
         assert first.goal_rgb is not None
+        for key, _, _, _ in self._layout:
+            self._images[key][index] = getattr(first, key)
+        self._grasping[index] = first.grasping
         self._goals[index] = first.goal_rgb
-        self._last_observations[index] = first
-        return _observation_dict(first, first.goal_rgb, copy_goal=False)
+        self._started[index] = True
 
     def reset(
         self,
@@ -437,7 +480,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         options = dict(options) if options is not None else None
         mask = self._reset_mask(options)
         self._autoreset_envs[mask] = False
-        if any(self._last[index] is None for index in np.flatnonzero(~mask).tolist()):
+        if not np.all(self._started[~mask]):
             raise ValueError("the first reset must reset every sub-environment (no reset_mask)")
         stream = self._open_stream()
         scenes: dict[int, str] = {}
@@ -445,11 +488,12 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             if seeds[index] is not None:
                 self._rngs[index], _ = seeding.np_random(seeds[index])
             scenes[index] = self._send_reset(stream, index, options)
-        infos: dict[str, Any] = {}
-        for i, scene in scenes.items():
-            self._last[i] = self._take_reset(stream, i)
-            infos = self._add_info(infos, {"scene_id": scene}, i)
-        return self._batch(), infos
+        for index in scenes:
+            self._take_reset(stream, index)
+        scene_ids = np.full(self.num_envs, None, dtype=object)
+        for index, scene in scenes.items():
+            scene_ids[index] = scene
+        return self._batch(), {"scene_id": scene_ids, "_scene_id": mask.copy()}
 
     def _reset_mask(self, options: dict[str, Any] | None) -> npt.NDArray[np.bool_]:
         if options is None or "reset_mask" not in options:
@@ -475,13 +519,16 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
     ) -> tuple[
         ObsDict, npt.NDArray[np.float64], npt.NDArray[np.bool_], npt.NDArray[np.bool_], dict[str, Any]
     ]:
-        """Steps every sub-env (or autoresets it, in NEXT_STEP mode) in one pipelined round trip."""
+        """Steps every sub-env (or autoresets it, in NEXT_STEP mode) in one StepBatch round trip;
+        the autoresets go on the stream at the same time.
+        """
         actions = np.asarray(actions)
-        if actions.shape != (self.num_envs,):
-            raise ValueError(f"actions must have shape ({self.num_envs},), got {actions.shape}")
+        n = self.num_envs
+        if actions.shape != (n,):
+            raise ValueError(f"actions must have shape ({n},), got {actions.shape}")
         if np.any((actions < 0) | (actions > 5)):
             raise InvalidRequest(f"actions must be codes 0..5 (esrp.Action), got {actions}")
-        if any(episode is None for episode in self._episode_ids) or self._stream is None:
+        if self._stream is None or not np.all(self._started):
             raise gymnasium.error.ResetNeeded("call reset() before step()")
         if self.autoreset_mode == AutoresetMode.DISABLED and np.any(self._autoreset_envs):
             ended = np.flatnonzero(self._autoreset_envs).tolist()
@@ -490,87 +537,198 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
                 "reset(options={'reset_mask': mask}) first (no episode moved)"
             )
         stream = self._stream
-        if self.autoreset_mode == AutoresetMode.NEXT_STEP:
-            resets = self._autoreset_envs
+        resets: dict[int, str] = {}
+        if self.autoreset_mode == AutoresetMode.NEXT_STEP and np.any(self._autoreset_envs):
+            resets = {
+                i: self._send_reset(stream, i, None) for i in np.flatnonzero(self._autoreset_envs).tolist()
+            }
+            stepped: list[int] = np.flatnonzero(~self._autoreset_envs).tolist()
         else:
-            resets = np.zeros(self.num_envs, dtype=np.bool_)
-        sent: list[tuple[int, str | None]] = []  # (sub-env, scene of a reset or None for a step)
-        for i in range(self.num_envs):
-            if resets[i]:
-                sent.append((i, self._send_reset(stream, i, None)))
-            else:
-                episode = self._episode_ids[i]
-                assert episode is not None
-                stream.step(episode, int(actions[i]))
-                sent.append((i, None))
-        rewards = np.zeros(self.num_envs, dtype=np.float64)
-        terminations = np.zeros(self.num_envs, dtype=np.bool_)
-        truncations = np.zeros(self.num_envs, dtype=np.bool_)
-        env_infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
-        failure: EsrpError | None = None
-        for i, scene in sent:
-            if scene is not None:
-                self._last[i] = self._take_reset(stream, i)
-                env_infos[i] = {"scene_id": scene}
-                continue
-            answer = stream.next()
-            assert answer is not None
-            if answer.error is not None:
-                failure = failure or answer.error
-                continue
-            result = answer.step_result()
-            goal = self._goals[i]
-            assert goal is not None
-            self._last_observations[i] = result.observation
-            self._last[i] = _observation_dict(result.observation, goal, copy_goal=False)
-            rewards[i] = result.reward
-            terminations[i] = result.terminated
-            truncations[i] = result.truncated
-            env_infos[i] = _step_info(result)
-        if failure is not None:
-            raise failure
-        infos: dict[str, Any] = {}
+            stepped = list(range(n))
+        try:
+            columns = self._step_batch(stepped, actions)
+        finally:
+            # The resets were answered on the stream meanwhile (whatever became of the batch).
+            for i in resets:
+                self._take_reset(stream, i)
+        rewards = np.zeros(n, dtype=np.float64)
+        terminations = np.zeros(n, dtype=np.bool_)
+        truncations = np.zeros(n, dtype=np.bool_)
+        if stepped:
+            rewards[stepped] = columns.rewards
+            terminations[stepped] = columns.terminated
+            truncations[stepped] = columns.truncated
+            self._grasping[stepped] = columns.grasping
+            for key, column in columns.images.items():
+                if len(stepped) == n:
+                    self._images[key] = column
+                else:
+                    images = self._images[key]
+                    for i, data in zip(stepped, column, strict=True):
+                        images[i] = data
+        finals: dict[int, tuple[ObsDict, dict[str, Any]]] = {}
         if self.autoreset_mode == AutoresetMode.SAME_STEP:
             ended = np.flatnonzero(terminations | truncations).tolist()
             # The final observations are handed out one by one: each gets a goal of its own.
-            final = {i: (self._final_observation(i), env_infos[i]) for i in ended}
-            scenes = {i: self._send_reset(stream, i, None) for i in ended}
+            finals = {i: (self._single_observation(i), self._single_info(columns, i)) for i in ended}
+            resets = {i: self._send_reset(stream, i, None) for i in ended}
             for i in ended:
-                self._last[i] = self._take_reset(stream, i)
-            for i in range(self.num_envs):
-                if i in final:
-                    final_obs, final_info = final[i]
-                    infos = self._add_info(infos, {"final_obs": final_obs, "final_info": final_info}, i)
-                    infos = self._add_info(infos, {"scene_id": scenes[i]}, i)
-                else:
-                    infos = self._add_info(infos, env_infos[i], i)
-        else:
-            for i in range(self.num_envs):
-                infos = self._add_info(infos, env_infos[i], i)
+                self._take_reset(stream, i)
+        infos = self._step_infos(columns, stepped, resets, finals)
         self._autoreset_envs = np.logical_or(terminations, truncations)
         return self._batch(), rewards, terminations, truncations, infos
 
-    def _final_observation(self, index: int) -> ObsDict:
-        observation, goal = self._last_observations[index], self._goals[index]
-        assert observation is not None
-        assert goal is not None
-        return _observation_dict(observation, goal)
+    def _step_batch(self, stepped: list[int], actions: npt.NDArray[Any]) -> _convert.StepColumns:
+        """Steps sub-envs `stepped` (in order) with one StepBatch, or several when the server's
+        limits want it; their answers as columns in the same order.
+        """
+        columns = _convert.StepColumns([key for key, _, _, _ in self._layout])
+        if not stepped:
+            return columns
+        client = self._setup.client
+        if self._chunk is None:
+            limits = client.server_info().limits
+            per_step = _STEP_OVERHEAD_BYTES + sum(
+                self._setup.sensors.resolution**2 * size for _, _, size, _ in self._layout
+            )
+            self._chunk = max(1, min(limits.max_batch, limits.max_message_bytes // 2 // per_step))
+        episode_ids = self._episode_ids
+        codes = actions.tolist()
+        resolution = self._setup.sensors.resolution
+        for start in range(0, len(stepped), self._chunk):
+            chunk = stepped[start : start + self._chunk]
+            messages = client._step_batch_messages(  # noqa: SLF001 - the package's own hot path
+                [cast(str, episode_ids[i]) for i in chunk], [codes[i] for i in chunk]
+            )
+            _convert.step_columns(messages, self._layout, resolution, into=columns)
+        return columns
+
+    def _single_info(self, columns: _convert.StepColumns, index: int) -> dict[str, Any]:
+        """Sub-env `index`'s step info as `RearrangeEnv.step` gives it (for `final_info`); only
+        when every sub-env was stepped (SAME_STEP), so `index` is its position in `columns`.
+        """
+        info: dict[str, Any] = {
+            "accepted": columns.accepted[index],
+            "collided": columns.collided[index],
+            "placed_count": columns.placed_count[index],
+            "step_index": columns.step_index[index],
+        }
+        if index in columns.metrics:
+            info["metrics"] = _metrics_info(columns.metrics[index])
+        return info
+
+    def _step_infos(
+        self,
+        columns: _convert.StepColumns,
+        stepped: list[int],
+        resets: Mapping[int, str],
+        finals: Mapping[int, tuple[ObsDict, dict[str, Any]]],
+    ) -> dict[str, Any]:
+        """The step's infos, equal to what `_add_info` over each sub-env's info makes (the same
+        keys in the same order, arrays of the same dtypes, masks), built a column at a time.
+        """
+        n = self.num_envs
+        kinds: list[tuple[str, ...]] = [_STEP_KEYS] * n
+        metrics_envs: dict[int, EpisodeMetrics] = {}
+        for position, metrics in columns.metrics.items():
+            metrics_envs[stepped[position]] = metrics
+            kinds[stepped[position]] = _ENDED_KEYS
+        for i in resets:
+            kinds[i] = _RESET_KEYS
+        for i in finals:
+            kinds[i] = _FINAL_KEYS
+        # `_add_info` adds a key (then its mask) when the first sub-env that has it comes.
+        order: dict[str, None] = {}
+        for kind in dict.fromkeys(kinds):
+            order.update(dict.fromkeys(kind))
+        values: dict[str, Any] = {}
+        masks: dict[str, npt.NDArray[np.bool_]] = {}
+        if stepped:
+            step_mask = np.zeros(n, dtype=np.bool_)
+            step_mask[stepped] = True
+            step_mask[list(finals)] = False
+            for key, dtype in _STEP_DTYPES:
+                column = np.zeros(n, dtype=dtype)
+                column[stepped] = getattr(columns, key)
+                column[~step_mask] = 0
+                values[key], masks[key] = column, step_mask.copy()
+        metrics_infos: dict[str, Any] = {}
+        for i, metrics in metrics_envs.items():
+            if i not in finals:
+                metrics_infos = self._add_info(metrics_infos, _metrics_info(metrics), i)
+        if metrics_infos:
+            values["metrics"] = metrics_infos
+            masks["metrics"] = np.zeros(n, dtype=np.bool_)
+            masks["metrics"][[i for i in metrics_envs if i not in finals]] = True
+        final_infos: dict[str, Any] = {}
+        if finals:
+            final_obs = np.full(n, None, dtype=object)
+            for i, (observation, info) in finals.items():
+                final_obs[i] = observation
+                final_infos = self._add_info(final_infos, info, i)
+            values["final_obs"], values["final_info"] = final_obs, final_infos
+            masks["final_obs"] = np.zeros(n, dtype=np.bool_)
+            masks["final_obs"][list(finals)] = True
+            masks["final_info"] = masks["final_obs"].copy()
+        if resets:
+            scene_ids = np.full(n, None, dtype=object)
+            for i, scene in resets.items():
+                scene_ids[i] = scene
+            values["scene_id"] = scene_ids
+            masks["scene_id"] = np.zeros(n, dtype=np.bool_)
+            masks["scene_id"][list(resets)] = True
+        infos: dict[str, Any] = {}
+        for key in order:
+            infos[key], infos[f"_{key}"] = values[key], masks[key]
+        return infos
+
+    def _view(self, key: str, index: int) -> npt.NDArray[Any]:
+        """A read-only view of sub-env `index`'s last `key` image."""
+        image = self._images[key][index]
+        if isinstance(image, np.ndarray):
+            return image
+        dtype = next(dtype for name, _, _, dtype in self._layout if name == key)
+        return np.frombuffer(image, dtype=dtype).reshape(self._shapes[key])
+
+    def _single_observation(self, index: int) -> ObsDict:
+        """Sub-env `index`'s last observation as `RearrangeEnv` gives it (views, a goal copy)."""
+        goal = self._goals[index].copy()
+        goal.flags.writeable = False
+        result: ObsDict = {
+            "ego_rgb": self._view("ego_rgb", index),
+            "goal_rgb": goal,
+            "grasping": np.int64(self._grasping[index]),
+        }
+        for key, _, _, _ in self._layout[1:]:
+            result[key] = self._view(key, index)
+        return result
 
     def _batch(self) -> ObsDict:
-        """The sub-envs' last observations in fresh arrays (never reused, so keeping them is safe)."""
-        out = create_empty_array(self.single_observation_space, n=self.num_envs, fn=np.zeros)
-        assert isinstance(out, dict)
-        return cast(ObsDict, concatenate(self.single_observation_space, self._last, out))
+        """The sub-envs' last observations in fresh arrays (never reused, so keeping them is safe),
+        in the key order of the observation space.
+        """
+        n = self.num_envs
+        batch: dict[str, npt.NDArray[Any]] = {
+            "goal_rgb": self._goals.copy(),
+            "grasping": self._grasping.copy(),
+        }
+        for key, _, _, dtype in self._layout:
+            # One copy of every sub-env's bytes into a new buffer (the answers' bytes and views
+            # export their memory as they are).
+            joined = bytearray().join(self._images[key])
+            batch[key] = np.frombuffer(joined, dtype=dtype).reshape(n, *self._shapes[key])
+        return {key: batch[key] for key in self._keys}
 
     def render(self) -> tuple[npt.NDArray[np.uint8], ...] | None:
         """With `render_mode="rgb_array"`: one frame per sub-env, as `RearrangeEnv.render`."""
-        if self.render_mode != "rgb_array":
+        if self.render_mode != "rgb_array" or not np.all(self._started):
             return None
         frames = []
-        for observation, goal in zip(self._last_observations, self._goals, strict=True):
-            if observation is None or goal is None:
-                return None
-            frames.append(_frame(observation, goal))
+        for index in range(self.num_envs):
+            views = [self._view("ego_rgb", index), self._goals[index]]
+            if self._setup.sensors.current_top_down:
+                views.append(self._view("current_top_down", index))
+            frames.append(np.concatenate(views, axis=1))
         return tuple(frames)
 
     def close_extras(self, **kwargs: Any) -> None:  # noqa: ANN401
