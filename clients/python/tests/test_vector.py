@@ -103,6 +103,23 @@ def test_identical_to_sync_vector_env(
     assert settled_live_episodes(client, before) == before
 
 
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_identical_with_every_sensor(server: esrp.LocalServer, mode: AutoresetMode) -> None:
+    """Depth (float32), segmentation (uint32) and the current top-down batch bit for bit too."""
+    sensors = esrp.Sensors(depth=True, segmentation=True, current_top_down=True, resolution=16)
+    native, reference = make_pair(server.address, mode, horizon=2, sensors=sensors)
+    try:
+        got, expected = drive(native, 5, seed=3), drive(reference, 5, seed=3)
+        for g, e in zip(got, expected, strict=True):
+            for part_g, part_e in zip(g, e, strict=True):
+                assert_same(part_g, part_e)
+        assert got[-1][0]["depth"].dtype == np.float32
+        assert got[-1][0]["segmentation"].shape == (NUM_ENVS, 16, 16)
+    finally:
+        native.close()
+        reference.close()
+
+
 def test_same_step_on_success(server: esrp.LocalServer, client: esrp.Client, easy_scenes: list[str]) -> None:
     """Sub-env 0 replays the expert and terminates; SAME_STEP reports it in final_obs/final_info."""
     scene = easy_scenes[3]

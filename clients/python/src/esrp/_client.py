@@ -389,6 +389,12 @@ class Episode:
         answer = self._call(self.client.raw.Step, _convert.step_request(self.id, action, include_goal))
         return _convert.step_result(answer)
 
+    def _step_message(self, action: Action | int) -> Any:  # noqa: ANN401
+        """`step` for the Gymnasium env's hot path: the StepResponse message, for
+        `_convert.step_columns` (no values are built).
+        """
+        return self._call(self.client.raw.Step, _convert.step_request(self.id, action, False))
+
     def reset(self, scene: str | None = None, *, scene_json: str | None = None) -> Observation:
         """Restarts the episode on the same scene (or another one); returns the first observation
         (with the goal image). Works on an ended episode.

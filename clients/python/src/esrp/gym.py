@@ -32,7 +32,7 @@ from ._client import Client, Episode, EpisodeStream
 from ._common import TlsSetting
 from ._errors import EpisodeEnded, EpisodeNotFound, EsrpError, InvalidRequest, ServerUnavailable
 from ._local import LocalServer
-from ._values import Difficulty, EpisodeMetrics, Observation, RewardWeights, Sensors, Split, StepResult
+from ._values import Difficulty, EpisodeMetrics, RewardWeights, Sensors, Split
 
 __all__ = ["RearrangeEnv", "RearrangeVectorEnv", "observation_space"]
 
@@ -59,62 +59,79 @@ def observation_space(sensors: Sensors) -> spaces.Dict:
     return spaces.Dict(members)
 
 
-def _observation_dict(
-    observation: Observation, goal: npt.NDArray[np.uint8], *, copy_goal: bool = True
-) -> ObsDict:
-    """An observation as the env returns it: the client's read-only views of the answer, and a
-    read-only copy of the goal image that the server sent at the reset (Gymnasium wants no two
-    observations to share memory, and the goal is the one array a step answer does not carry).
-    The vector env, which copies everything into fresh batch arrays anyway, passes
-    `copy_goal=False`.
-    """
-    if copy_goal:
-        goal = goal.copy()
-        goal.flags.writeable = False
-    result: ObsDict = {
-        "ego_rgb": observation.ego_rgb,
-        "goal_rgb": goal,
-        "grasping": np.int64(observation.grasping),
-    }
-    if observation.depth is not None:
-        result["depth"] = observation.depth
-    if observation.segmentation is not None:
-        result["segmentation"] = observation.segmentation
-    if observation.current_top_down is not None:
-        result["current_top_down"] = observation.current_top_down
-    return result
-
-
-def _step_info(result: StepResult) -> dict[str, Any]:
-    """A step's info: plain scalars (so vector infos batch them into arrays), and the episode's
-    final metrics under `metrics` on the step that ends it.
+def _step_info(columns: _convert.StepColumns, position: int) -> dict[str, Any]:
+    """The info of the step at `position` of `columns`: plain scalars (so vector infos batch them
+    into arrays), and the episode's final metrics under `metrics` on the step that ends it.
     """
     info: dict[str, Any] = {
-        "accepted": result.info.accepted,
-        "collided": result.info.collided_with is not None,
-        "placed_count": result.info.placed_count,
-        "step_index": result.info.step_index,
+        "accepted": columns.accepted[position],
+        "collided": columns.collided[position],
+        "placed_count": columns.placed_count[position],
+        "step_index": columns.step_index[position],
     }
-    if result.metrics is not None:
-        m = result.metrics
-        info["metrics"] = {
-            "success": m.success,
-            "object_success_rate": m.object_success_rate,
-            "remaining_distance_ratio": m.remaining_distance_ratio,
-            "stage": m.stage,
-            "placed": m.placed,
-            "steps": m.steps,
-            "total_reward": m.total_reward,
-        }
+    metrics = columns.metrics.get(position)
+    if metrics is not None:
+        info["metrics"] = _metrics_info(metrics)
     return info
 
 
-def _frame(observation: Observation, goal: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
+def _metrics_info(metrics: EpisodeMetrics) -> dict[str, Any]:
+    """The `metrics` entry of a step info."""
+    return {
+        "success": metrics.success,
+        "object_success_rate": metrics.object_success_rate,
+        "remaining_distance_ratio": metrics.remaining_distance_ratio,
+        "stage": metrics.stage,
+        "placed": metrics.placed,
+        "steps": metrics.steps,
+        "total_reward": metrics.total_reward,
+    }
+
+
+def _frame(observation: ObsDict, goal: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
     """The ego view, the goal and (when the sensor is on) the current top-down, side by side."""
-    views = [observation.ego_rgb, goal]
-    if observation.current_top_down is not None:
-        views.append(observation.current_top_down)
+    views = [observation["ego_rgb"], goal]
+    if "current_top_down" in observation:
+        views.append(observation["current_top_down"])
     return np.concatenate(views, axis=1)
+
+
+class _Images:
+    """Where a step answer's images go in an observation: the sensors' layout (key, message field,
+    bytes per pixel, dtype), and each key's array shape.
+    """
+
+    def __init__(self, sensors: Sensors) -> None:
+        side = sensors.resolution
+        self.resolution = side
+        self.layout = _convert.image_layout(sensors)
+        self.keys = tuple(key for key, _, _, _ in self.layout)
+        self.shapes = {key: (side, side, 3) if size == 3 else (side, side) for key, _, size, _ in self.layout}
+        self.dtypes = {key: dtype for key, _, _, dtype in self.layout}
+
+    def view(self, key: str, image: Any) -> npt.NDArray[Any]:  # noqa: ANN401
+        """A read-only array of an answer's `key` image (its bytes, or already an array)."""
+        if isinstance(image, np.ndarray):
+            return image
+        return np.frombuffer(image, dtype=self.dtypes[key]).reshape(self.shapes[key])
+
+    def observation(
+        self, images: Mapping[str, Any], grasping: bool | np.integer[Any], goal: npt.NDArray[np.uint8]
+    ) -> ObsDict:
+        """An observation as the envs return it: read-only views of the answer's images, and a
+        read-only copy of the goal image that the server sent at the reset (Gymnasium wants no two
+        observations to share memory, and the goal is the one image a step answer does not carry).
+        """
+        goal = goal.copy()
+        goal.flags.writeable = False
+        result: ObsDict = {
+            "ego_rgb": self.view("ego_rgb", images["ego_rgb"]),
+            "goal_rgb": goal,
+            "grasping": np.int64(grasping),
+        }
+        for key in self.keys[1:]:
+            result[key] = self.view(key, images[key])
+        return result
 
 
 @dataclass
@@ -232,9 +249,10 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
         )
         self.observation_space = cast(spaces.Space[ObsDict], observation_space(self._setup.sensors))
         self.action_space = spaces.Discrete(6)
+        self._image_spec = _Images(self._setup.sensors)
         self._episode: Episode | None = None
         self._goal: npt.NDArray[np.uint8] | None = None
-        self._last: Observation | None = None
+        self._last: ObsDict | None = None
 
     @property
     def client(self) -> Client:
@@ -268,17 +286,28 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
         assert first is not None
         assert first.goal_rgb is not None
         self._goal = first.goal_rgb
-        self._last = first
-        return _observation_dict(first, self._goal), {"scene_id": scene}
+        images = {key: getattr(first, key) for key in self._image_spec.keys}
+        self._last = self._image_spec.observation(images, first.grasping, self._goal)
+        return self._last, {"scene_id": scene}
 
     def step(self, action: np.int64 | int) -> tuple[ObsDict, SupportsFloat, bool, bool, dict[str, Any]]:
         """Takes one action (0..5, see `esrp.Action`)."""
         if self._episode is None or self._goal is None:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
-        result = self._episode.step(int(action))
-        self._last = result.observation
-        observation = _observation_dict(result.observation, self._goal)
-        return observation, result.reward, result.terminated, result.truncated, _step_info(result)
+        message = self._episode._step_message(int(action))  # noqa: SLF001 - the package's own hot path
+        spec = self._image_spec
+        columns = _convert.step_columns((message,), spec.layout, spec.resolution)
+        observation = spec.observation(
+            {key: column[0] for key, column in columns.images.items()}, columns.grasping[0], self._goal
+        )
+        self._last = observation
+        return (
+            observation,
+            columns.rewards[0],
+            columns.terminated[0],
+            columns.truncated[0],
+            _step_info(columns, 0),
+        )
 
     def render(self) -> npt.NDArray[np.uint8] | None:
         """With `render_mode="rgb_array"`: the ego view, the goal and the current top-down (when
@@ -307,19 +336,6 @@ _FINAL_KEYS = ("final_obs", "final_info", "scene_id")
 
 # Reserve for a StepBatch answer's framing, per step (the info, reward and flags take ~60 bytes).
 _STEP_OVERHEAD_BYTES = 512
-
-
-def _metrics_info(metrics: EpisodeMetrics) -> dict[str, Any]:
-    """The `metrics` entry of a step info (as `_step_info` makes it)."""
-    return {
-        "success": metrics.success,
-        "object_success_rate": metrics.object_success_rate,
-        "remaining_distance_ratio": metrics.remaining_distance_ratio,
-        "stage": metrics.stage,
-        "placed": metrics.placed,
-        "steps": metrics.steps,
-        "total_reward": metrics.total_reward,
-    }
 
 
 class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[Any]]):
@@ -383,11 +399,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         self.single_action_space = spaces.Discrete(6)
         self.action_space = batch_space(self.single_action_space, num_envs)
         side = self._setup.sensors.resolution
-        # The sensor images (all but the goal): key, message field, bytes per pixel, dtype.
-        self._layout = _convert.image_layout(self._setup.sensors)
-        self._shapes = {
-            key: (side, side, 3) if size == 3 else (side, side) for key, _, size, _ in self._layout
-        }
+        self._image_spec = _Images(self._setup.sensors)
         # The observation keys in the space's order (that of Gymnasium's batches).
         self._keys = tuple(self.single_observation_space.spaces)
         self._stream: EpisodeStream | None = None
@@ -395,7 +407,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         self._rngs: list[np.random.Generator | None] = [None] * num_envs
         # Each sub-env's last observation: its images as the answer's bytes or read-only views (never
         # written), whether it grasps, and its goal, in a batch array that only resets write to.
-        self._images: dict[str, list[Any]] = {key: [None] * num_envs for key, _, _, _ in self._layout}
+        self._last_images: dict[str, list[Any]] = {key: [None] * num_envs for key in self._image_spec.keys}
         self._grasping = np.zeros(num_envs, dtype=np.int64)
         self._goals = np.zeros((num_envs, side, side, 3), dtype=np.uint8)
         self._started = np.zeros(num_envs, dtype=np.bool_)
@@ -451,8 +463,8 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         else:
             first = answer.observation()
         assert first.goal_rgb is not None
-        for key, _, _, _ in self._layout:
-            self._images[key][index] = getattr(first, key)
+        for key in self._image_spec.keys:
+            self._last_images[key][index] = getattr(first, key)
         self._grasping[index] = first.grasping
         self._goals[index] = first.goal_rgb
         self._started[index] = True
@@ -561,16 +573,17 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             self._grasping[stepped] = columns.grasping
             for key, column in columns.images.items():
                 if len(stepped) == n:
-                    self._images[key] = column
+                    self._last_images[key] = column
                 else:
-                    images = self._images[key]
+                    images = self._last_images[key]
                     for i, data in zip(stepped, column, strict=True):
                         images[i] = data
         finals: dict[int, tuple[ObsDict, dict[str, Any]]] = {}
         if self.autoreset_mode == AutoresetMode.SAME_STEP:
             ended = np.flatnonzero(terminations | truncations).tolist()
             # The final observations are handed out one by one: each gets a goal of its own.
-            finals = {i: (self._single_observation(i), self._single_info(columns, i)) for i in ended}
+            # (Every sub-env was stepped, so sub-env i's answer is at position i.)
+            finals = {i: (self._single_observation(i), _step_info(columns, i)) for i in ended}
             resets = {i: self._send_reset(stream, i, None) for i in ended}
             for i in ended:
                 self._take_reset(stream, i)
@@ -582,40 +595,24 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         """Steps sub-envs `stepped` (in order) with one StepBatch, or several when the server's
         limits want it; their answers as columns in the same order.
         """
-        columns = _convert.StepColumns([key for key, _, _, _ in self._layout])
+        spec = self._image_spec
+        columns = _convert.StepColumns(spec.keys)
         if not stepped:
             return columns
         client = self._setup.client
         if self._chunk is None:
             limits = client.server_info().limits
-            per_step = _STEP_OVERHEAD_BYTES + sum(
-                self._setup.sensors.resolution**2 * size for _, _, size, _ in self._layout
-            )
+            per_step = _STEP_OVERHEAD_BYTES + sum(spec.resolution**2 * size for _, _, size, _ in spec.layout)
             self._chunk = max(1, min(limits.max_batch, limits.max_message_bytes // 2 // per_step))
         episode_ids = self._episode_ids
         codes = actions.tolist()
-        resolution = self._setup.sensors.resolution
         for start in range(0, len(stepped), self._chunk):
             chunk = stepped[start : start + self._chunk]
             messages = client._step_batch_messages(  # noqa: SLF001 - the package's own hot path
                 [cast(str, episode_ids[i]) for i in chunk], [codes[i] for i in chunk]
             )
-            _convert.step_columns(messages, self._layout, resolution, into=columns)
+            _convert.step_columns(messages, spec.layout, spec.resolution, into=columns)
         return columns
-
-    def _single_info(self, columns: _convert.StepColumns, index: int) -> dict[str, Any]:
-        """Sub-env `index`'s step info as `RearrangeEnv.step` gives it (for `final_info`); only
-        when every sub-env was stepped (SAME_STEP), so `index` is its position in `columns`.
-        """
-        info: dict[str, Any] = {
-            "accepted": columns.accepted[index],
-            "collided": columns.collided[index],
-            "placed_count": columns.placed_count[index],
-            "step_index": columns.step_index[index],
-        }
-        if index in columns.metrics:
-            info["metrics"] = _metrics_info(columns.metrics[index])
-        return info
 
     def _step_infos(
         self,
@@ -682,26 +679,10 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             infos[key], infos[f"_{key}"] = values[key], masks[key]
         return infos
 
-    def _view(self, key: str, index: int) -> npt.NDArray[Any]:
-        """A read-only view of sub-env `index`'s last `key` image."""
-        image = self._images[key][index]
-        if isinstance(image, np.ndarray):
-            return image
-        dtype = next(dtype for name, _, _, dtype in self._layout if name == key)
-        return np.frombuffer(image, dtype=dtype).reshape(self._shapes[key])
-
     def _single_observation(self, index: int) -> ObsDict:
         """Sub-env `index`'s last observation as `RearrangeEnv` gives it (views, a goal copy)."""
-        goal = self._goals[index].copy()
-        goal.flags.writeable = False
-        result: ObsDict = {
-            "ego_rgb": self._view("ego_rgb", index),
-            "goal_rgb": goal,
-            "grasping": np.int64(self._grasping[index]),
-        }
-        for key, _, _, _ in self._layout[1:]:
-            result[key] = self._view(key, index)
-        return result
+        images = {key: column[index] for key, column in self._last_images.items()}
+        return self._image_spec.observation(images, self._grasping[index], self._goals[index])
 
     def _batch(self) -> ObsDict:
         """The sub-envs' last observations in fresh arrays (never reused, so keeping them is safe),
@@ -712,24 +693,19 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             "goal_rgb": self._goals.copy(),
             "grasping": self._grasping.copy(),
         }
-        for key, _, _, dtype in self._layout:
+        spec = self._image_spec
+        for key in spec.keys:
             # One copy of every sub-env's bytes into a new buffer (the answers' bytes and views
             # export their memory as they are).
-            joined = bytearray().join(self._images[key])
-            batch[key] = np.frombuffer(joined, dtype=dtype).reshape(n, *self._shapes[key])
+            joined = bytearray().join(self._last_images[key])
+            batch[key] = np.frombuffer(joined, dtype=spec.dtypes[key]).reshape(n, *spec.shapes[key])
         return {key: batch[key] for key in self._keys}
 
     def render(self) -> tuple[npt.NDArray[np.uint8], ...] | None:
         """With `render_mode="rgb_array"`: one frame per sub-env, as `RearrangeEnv.render`."""
         if self.render_mode != "rgb_array" or not np.all(self._started):
             return None
-        frames = []
-        for index in range(self.num_envs):
-            views = [self._view("ego_rgb", index), self._goals[index]]
-            if self._setup.sensors.current_top_down:
-                views.append(self._view("current_top_down", index))
-            frames.append(np.concatenate(views, axis=1))
-        return tuple(frames)
+        return tuple(_frame(self._single_observation(i), self._goals[i]) for i in range(self.num_envs))
 
     def close_extras(self, **kwargs: Any) -> None:  # noqa: ANN401
         """Closes every server episode (on the stream, waiting for the answers), the stream, and
