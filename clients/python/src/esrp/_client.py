@@ -8,7 +8,7 @@ import contextlib
 import queue
 import threading
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from types import TracebackType
 from typing import Any
 
@@ -337,6 +337,24 @@ class Client:
         except grpc.RpcError as error:
             raise from_rpc_error(error) from error
         return _convert.batch_responses(answer, len(episode_ids))
+
+    def _step_batch_started(
+        self, episode_ids: Sequence[str], actions: Sequence[int]
+    ) -> Callable[[], Sequence[Any]]:
+        """Starts `_step_batch_messages` without waiting; returns the function that waits for its
+        answer (raising its error).
+        """
+        request = _convert.step_batch_request(episode_ids, actions)
+        future = self._stub.StepBatch.future(request, metadata=self._metadata, timeout=self.timeout)
+
+        def wait() -> Sequence[Any]:
+            try:
+                answer = future.result()
+            except grpc.RpcError as error:
+                raise from_rpc_error(error) from error
+            return _convert.batch_responses(answer, len(episode_ids))
+
+        return wait
 
     def episode_stream(self, window: int = 8) -> EpisodeStream:
         """Opens a StepStream driven by an `EpisodeStream` with up to `window` steps of each
