@@ -80,6 +80,8 @@ class Measurement:
         steps: Steps taken in the measured window.
         seconds: Length of the measured window.
         latencies: Seconds per `step` call (per wave for vec-64), measured steps only.
+        cpu_seconds: CPU time of this process (all its threads) over the measured steps, for the
+            scenarios that run in it (0 for the Rust client's).
         skipped: Why it did not run, if it did not.
         note: Anything else worth printing.
     """
@@ -89,6 +91,7 @@ class Measurement:
     steps: int = 0
     seconds: float = 0.0
     latencies: list[float] = field(default_factory=list, repr=False)
+    cpu_seconds: float = 0.0
     skipped: str | None = None
     note: str = ""
 
@@ -96,6 +99,11 @@ class Measurement:
     def steps_per_second(self) -> float:
         """Steps per second over the measured window (0 when skipped)."""
         return self.steps / self.seconds if self.seconds > 0 else 0.0
+
+    @property
+    def cpu_per_step(self) -> float | None:
+        """This process's CPU seconds per measured step (None when not measured)."""
+        return self.cpu_seconds / self.steps if self.cpu_seconds > 0 and self.steps else None
 
     def percentile(self, p: float) -> float | None:
         """The `p` (0..1) quantile of the step latency in seconds, as esrp-bench picks it."""
@@ -119,15 +127,20 @@ def _closed_loop(name: str, episodes: int, window: _Window, step: Callable[[], i
     counts the calls that started after the warm-up and ended before the window did.
     """
     result = Measurement(name, episodes=episodes, seconds=window.seconds)
+    cpu_from: float | None = None
     while True:
         start = time.perf_counter()
         if start >= window.until:
             return result
+        if cpu_from is None and start >= window.measure_from:
+            cpu_from = time.process_time()
         steps = step()
         end = time.perf_counter()
         if start >= window.measure_from and end <= window.until:
             result.steps += steps
             result.latencies.append(end - start)
+            assert cpu_from is not None
+            result.cpu_seconds = time.process_time() - cpu_from
 
 
 def _test_scenes(client: Client, count: int) -> list[str]:
@@ -212,8 +225,13 @@ def bench_stream_64(address: str, token: str | None, window_of: Callable[[], _Wi
             stream.step(episode, actions[taken & 0xFFFF])
             taken += 1
         head = 0
+        cpu_from: float | None = None
         while (answer := stream.next()) is not None:
             now = time.perf_counter()
+            if cpu_from is None and now >= window.measure_from:
+                cpu_from = time.process_time()
+            elif cpu_from is not None and now <= window.until:
+                result.cpu_seconds = time.process_time() - cpu_from
             sent, index, is_step = in_flight[head]
             head += 1
             if not is_step:
@@ -329,7 +347,8 @@ def bench_miniworld(window_of: Callable[[], _Window]) -> Measurement:
     except Exception as error:  # noqa: BLE001 - no OpenGL context: skip with the reason
         return Measurement("miniworld", skipped=f"MiniWorld could not start: {type(error).__name__}: {error}")
     try:
-        actions = np.random.default_rng(5).integers(0, int(env.action_space.n), size=1 << 16).tolist()  # type: ignore[attr-defined]
+        choices = int(getattr(env.action_space, "n", 3))
+        actions = np.random.default_rng(5).integers(0, choices, size=1 << 16).tolist()
         taken = 0
 
         def step() -> int:
@@ -422,6 +441,7 @@ class _Row:
     rates: list[float]
     p50: list[float]
     p99: list[float]
+    cpu: list[float]
     ratios: list[float]
     skipped: str | None
     note: str
@@ -447,6 +467,7 @@ def _rows(rounds: Sequence[Sequence[Measurement]]) -> list[_Row]:
                 rates=[m.steps_per_second for m in ran],
                 p50=[p for m in ran if (p := m.percentile(0.5)) is not None],
                 p99=[p for m in ran if (p := m.percentile(0.99)) is not None],
+                cpu=[c for m in ran if (c := m.cpu_per_step) is not None],
                 ratios=ratios,
                 skipped=found[0].skipped if not ran else None,
                 note=next((m.note for m in ran if m.note), ""),
@@ -459,15 +480,22 @@ def _median(values: Sequence[float]) -> float | None:
     return statistics.median(values) if values else None
 
 
+def _scaled(value: float | None, factor: float) -> float | None:
+    return None if value is None else value * factor
+
+
 def format_table(rounds: Sequence[Sequence[Measurement]]) -> str:
     """The results as a text table: medians over the rounds."""
-    header = f"{'scenario':<20} {'envs':>5} {'steps/s':>9} {'p50 ms':>8} {'p99 ms':>8} {'vs Rust':>8}  note"
+    header = (
+        f"{'scenario':<20} {'envs':>5} {'steps/s':>9} {'p50 ms':>8} {'p99 ms':>8} {'vs Rust':>8} "
+        f"{'cpu us/step':>11}  note"
+    )
     lines = [header]
     for row in _rows(rounds):
         if row.skipped is not None:
             lines.append(f"{row.scenario:<20} {'':>5} {'skipped':>9}  {row.skipped}")
             continue
-        rate, p50, p99, ratio = (_median(v) for v in (row.rates, row.p50, row.p99, row.ratios))
+        rate, p50, p99, ratio, cpu = (_median(v) for v in (row.rates, row.p50, row.p99, row.ratios, row.cpu))
         spread = ""
         if len(row.rates) > 1:
             spread = f"rounds {min(row.rates):,.0f}-{max(row.rates):,.0f}"
@@ -477,7 +505,8 @@ def format_table(rounds: Sequence[Sequence[Measurement]]) -> str:
         lines.append(
             f"{row.scenario:<20} {row.episodes:>5} {rate or 0:>9,.0f} "
             f"{'' if p50 is None else f'{p50 * 1e3:.2f}':>8} {'' if p99 is None else f'{p99 * 1e3:.2f}':>8} "
-            f"{'' if ratio is None else f'{ratio:.2f}x':>8}  {note}"
+            f"{'' if ratio is None else f'{ratio:.2f}x':>8} "
+            f"{'' if cpu is None else f'{cpu * 1e6:.0f}':>11}  {note}"
         )
     return "\n".join(lines)
 
@@ -491,9 +520,10 @@ def _json_report(rounds: Sequence[Sequence[Measurement]], info: dict[str, Any]) 
                 "episodes": row.episodes,
                 "skipped": row.skipped,
                 "steps_per_second": _median(row.rates),
-                "p50_ms": None if not row.p50 else _median(row.p50) * 1e3,  # type: ignore[operator]
-                "p99_ms": None if not row.p99 else _median(row.p99) * 1e3,  # type: ignore[operator]
+                "p50_ms": _scaled(_median(row.p50), 1e3),
+                "p99_ms": _scaled(_median(row.p99), 1e3),
                 "ratio_to_rust": _median(row.ratios),
+                "client_cpu_us_per_step": _scaled(_median(row.cpu), 1e6),
                 "rounds_steps_per_second": row.rates,
                 "note": row.note,
             }
