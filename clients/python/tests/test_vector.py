@@ -23,7 +23,7 @@ def assert_same(a: Any, b: Any, path: str = "") -> None:  # noqa: ANN401
     """Deep equality of observations and infos: dicts, arrays (object arrays element-wise), scalars."""
     if isinstance(a, dict):
         assert isinstance(b, dict), path
-        assert a.keys() == b.keys(), f"{path}: {sorted(a)} != {sorted(b)}"
+        assert list(a) == list(b), f"{path}: {list(a)} != {list(b)}"  # the same keys in the same order
         for key in a:
             assert_same(a[key], b[key], f"{path}.{key}")
     elif isinstance(a, np.ndarray):
@@ -101,6 +101,23 @@ def test_identical_to_sync_vector_env(
         native.close()
         reference.close()
     assert settled_live_episodes(client, before) == before
+
+
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_identical_with_every_sensor(server: esrp.LocalServer, mode: AutoresetMode) -> None:
+    """Depth (float32), segmentation (uint32) and the current top-down batch bit for bit too."""
+    sensors = esrp.Sensors(depth=True, segmentation=True, current_top_down=True, resolution=16)
+    native, reference = make_pair(server.address, mode, horizon=2, sensors=sensors)
+    try:
+        got, expected = drive(native, 5, seed=3), drive(reference, 5, seed=3)
+        for g, e in zip(got, expected, strict=True):
+            for part_g, part_e in zip(g, e, strict=True):
+                assert_same(part_g, part_e)
+        assert got[-1][0]["depth"].dtype == np.float32
+        assert got[-1][0]["segmentation"].shape == (NUM_ENVS, 16, 16)
+    finally:
+        native.close()
+        reference.close()
 
 
 def test_same_step_on_success(server: esrp.LocalServer, client: esrp.Client, easy_scenes: list[str]) -> None:

@@ -8,7 +8,7 @@ import contextlib
 import queue
 import threading
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from types import TracebackType
 from typing import Any
 
@@ -328,6 +328,35 @@ class Client:
             raise from_rpc_error(error) from error
         return _convert.step_results(answer.responses, len(steps))
 
+    def _step_batch_messages(self, episode_ids: Sequence[str], actions: Sequence[int]) -> Sequence[Any]:
+        """`step_batch` for the vector env's hot path: the answer's StepResponse messages, in
+        request order, for `_convert.step_columns` (no per-step values are built).
+        """
+        request = _convert.step_batch_request(episode_ids, actions)
+        try:
+            answer = self._stub.StepBatch(request, metadata=self._metadata, timeout=self.timeout)
+        except grpc.RpcError as error:
+            raise from_rpc_error(error) from error
+        return _convert.batch_responses(answer, len(episode_ids))
+
+    def _step_batch_started(
+        self, episode_ids: Sequence[str], actions: Sequence[int]
+    ) -> Callable[[], Sequence[Any]]:
+        """Starts `_step_batch_messages` without waiting; returns the function that waits for its
+        answer (raising its error).
+        """
+        request = _convert.step_batch_request(episode_ids, actions)
+        future = self._stub.StepBatch.future(request, metadata=self._metadata, timeout=self.timeout)
+
+        def wait() -> Sequence[Any]:
+            try:
+                answer = future.result()
+            except grpc.RpcError as error:
+                raise from_rpc_error(error) from error
+            return _convert.batch_responses(answer, len(episode_ids))
+
+        return wait
+
     def episode_stream(self, window: int = 8) -> EpisodeStream:
         """Opens a StepStream driven by an `EpisodeStream` with up to `window` steps of each
         episode in flight.
@@ -378,6 +407,12 @@ class Episode:
         """Takes `action`; with `include_goal` the observation carries the goal image too."""
         answer = self._call(self.client.raw.Step, _convert.step_request(self.id, action, include_goal))
         return _convert.step_result(answer)
+
+    def _step_message(self, action: Action | int) -> Any:  # noqa: ANN401
+        """`step` for the Gymnasium env's hot path: the StepResponse message, for
+        `_convert.step_columns` (no values are built).
+        """
+        return self._call(self.client.raw.Step, _convert.step_request(self.id, action, False))
 
     def reset(self, scene: str | None = None, *, scene_json: str | None = None) -> Observation:
         """Restarts the episode on the same scene (or another one); returns the first observation

@@ -169,6 +169,12 @@ def _parser() -> argparse.ArgumentParser:
     rp.add_argument("--fps", type=float, default=10.0)
     rp.add_argument("--scale", type=_positive, default=2, help="pixels per image pixel")
     _server_options(rp)
+    commands.add_parser(
+        "bench",
+        add_help=False,
+        help="throughput of the Python client and env beside the Rust client and MiniWorld "
+        "(python -m esrp.bench; `esrp bench --help` lists its options)",
+    )
     return parser
 
 
@@ -262,7 +268,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Runs `esrp ARGS` (`argv` without the program name; default `sys.argv[1:]`); returns the exit
     status: 0 done, 1 episodes failed (eval), 2 bad arguments or input, 130 interrupted.
     """
-    args = _parser().parse_args(argv)
+    arguments = list(sys.argv[1:] if argv is None else argv)
+    if arguments[:1] == ["bench"]:
+        # Its own parser and options (also `python -m esrp.bench`).
+        from . import bench
+
+        return bench.main(arguments[1:])
+    args = _parser().parse_args(arguments)
     handlers = {"eval": _eval, "report": _report, "replay": _replay}
     try:
         return handlers[args.command](args)

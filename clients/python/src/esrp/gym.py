@@ -25,13 +25,14 @@ import numpy.typing as npt
 from gymnasium import spaces
 from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
-from gymnasium.vector.utils import batch_space, concatenate, create_empty_array
+from gymnasium.vector.utils import batch_space
 
+from . import _convert
 from ._client import Client, Episode, EpisodeStream
 from ._common import TlsSetting
 from ._errors import EpisodeEnded, EpisodeNotFound, EsrpError, InvalidRequest, ServerUnavailable
 from ._local import LocalServer
-from ._values import Difficulty, Observation, RewardWeights, Sensors, Split, StepResult
+from ._values import Difficulty, EpisodeMetrics, RewardWeights, Sensors, Split
 
 __all__ = ["RearrangeEnv", "RearrangeVectorEnv", "observation_space"]
 
@@ -58,62 +59,79 @@ def observation_space(sensors: Sensors) -> spaces.Dict:
     return spaces.Dict(members)
 
 
-def _observation_dict(
-    observation: Observation, goal: npt.NDArray[np.uint8], *, copy_goal: bool = True
-) -> ObsDict:
-    """An observation as the env returns it: the client's read-only views of the answer, and a
-    read-only copy of the goal image that the server sent at the reset (Gymnasium wants no two
-    observations to share memory, and the goal is the one array a step answer does not carry).
-    The vector env, which copies everything into fresh batch arrays anyway, passes
-    `copy_goal=False`.
-    """
-    if copy_goal:
-        goal = goal.copy()
-        goal.flags.writeable = False
-    result: ObsDict = {
-        "ego_rgb": observation.ego_rgb,
-        "goal_rgb": goal,
-        "grasping": np.int64(observation.grasping),
-    }
-    if observation.depth is not None:
-        result["depth"] = observation.depth
-    if observation.segmentation is not None:
-        result["segmentation"] = observation.segmentation
-    if observation.current_top_down is not None:
-        result["current_top_down"] = observation.current_top_down
-    return result
-
-
-def _step_info(result: StepResult) -> dict[str, Any]:
-    """A step's info: plain scalars (so vector infos batch them into arrays), and the episode's
-    final metrics under `metrics` on the step that ends it.
+def _step_info(columns: _convert.StepColumns, position: int) -> dict[str, Any]:
+    """The info of the step at `position` of `columns`: plain scalars (so vector infos batch them
+    into arrays), and the episode's final metrics under `metrics` on the step that ends it.
     """
     info: dict[str, Any] = {
-        "accepted": result.info.accepted,
-        "collided": result.info.collided_with is not None,
-        "placed_count": result.info.placed_count,
-        "step_index": result.info.step_index,
+        "accepted": columns.accepted[position],
+        "collided": columns.collided[position],
+        "placed_count": columns.placed_count[position],
+        "step_index": columns.step_index[position],
     }
-    if result.metrics is not None:
-        m = result.metrics
-        info["metrics"] = {
-            "success": m.success,
-            "object_success_rate": m.object_success_rate,
-            "remaining_distance_ratio": m.remaining_distance_ratio,
-            "stage": m.stage,
-            "placed": m.placed,
-            "steps": m.steps,
-            "total_reward": m.total_reward,
-        }
+    metrics = columns.metrics.get(position)
+    if metrics is not None:
+        info["metrics"] = _metrics_info(metrics)
     return info
 
 
-def _frame(observation: Observation, goal: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
+def _metrics_info(metrics: EpisodeMetrics) -> dict[str, Any]:
+    """The `metrics` entry of a step info."""
+    return {
+        "success": metrics.success,
+        "object_success_rate": metrics.object_success_rate,
+        "remaining_distance_ratio": metrics.remaining_distance_ratio,
+        "stage": metrics.stage,
+        "placed": metrics.placed,
+        "steps": metrics.steps,
+        "total_reward": metrics.total_reward,
+    }
+
+
+def _frame(observation: ObsDict, goal: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
     """The ego view, the goal and (when the sensor is on) the current top-down, side by side."""
-    views = [observation.ego_rgb, goal]
-    if observation.current_top_down is not None:
-        views.append(observation.current_top_down)
+    views = [observation["ego_rgb"], goal]
+    if "current_top_down" in observation:
+        views.append(observation["current_top_down"])
     return np.concatenate(views, axis=1)
+
+
+class _Images:
+    """Where a step answer's images go in an observation: the sensors' layout (key, message field,
+    bytes per pixel, dtype), and each key's array shape.
+    """
+
+    def __init__(self, sensors: Sensors) -> None:
+        side = sensors.resolution
+        self.resolution = side
+        self.layout = _convert.image_layout(sensors)
+        self.keys = tuple(key for key, _, _, _ in self.layout)
+        self.shapes = {key: (side, side, 3) if size == 3 else (side, side) for key, _, size, _ in self.layout}
+        self.dtypes = {key: dtype for key, _, _, dtype in self.layout}
+
+    def view(self, key: str, image: Any) -> npt.NDArray[Any]:  # noqa: ANN401
+        """A read-only array of an answer's `key` image (its bytes, or already an array)."""
+        if isinstance(image, np.ndarray):
+            return image
+        return np.frombuffer(image, dtype=self.dtypes[key]).reshape(self.shapes[key])
+
+    def observation(
+        self, images: Mapping[str, Any], grasping: bool | np.integer[Any], goal: npt.NDArray[np.uint8]
+    ) -> ObsDict:
+        """An observation as the envs return it: read-only views of the answer's images, and a
+        read-only copy of the goal image that the server sent at the reset (Gymnasium wants no two
+        observations to share memory, and the goal is the one image a step answer does not carry).
+        """
+        goal = goal.copy()
+        goal.flags.writeable = False
+        result: ObsDict = {
+            "ego_rgb": self.view("ego_rgb", images["ego_rgb"]),
+            "goal_rgb": goal,
+            "grasping": np.int64(grasping),
+        }
+        for key in self.keys[1:]:
+            result[key] = self.view(key, images[key])
+        return result
 
 
 @dataclass
@@ -231,9 +249,10 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
         )
         self.observation_space = cast(spaces.Space[ObsDict], observation_space(self._setup.sensors))
         self.action_space = spaces.Discrete(6)
+        self._image_spec = _Images(self._setup.sensors)
         self._episode: Episode | None = None
         self._goal: npt.NDArray[np.uint8] | None = None
-        self._last: Observation | None = None
+        self._last: ObsDict | None = None
 
     @property
     def client(self) -> Client:
@@ -267,17 +286,28 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
         assert first is not None
         assert first.goal_rgb is not None
         self._goal = first.goal_rgb
-        self._last = first
-        return _observation_dict(first, self._goal), {"scene_id": scene}
+        images = {key: getattr(first, key) for key in self._image_spec.keys}
+        self._last = self._image_spec.observation(images, first.grasping, self._goal)
+        return self._last, {"scene_id": scene}
 
     def step(self, action: np.int64 | int) -> tuple[ObsDict, SupportsFloat, bool, bool, dict[str, Any]]:
         """Takes one action (0..5, see `esrp.Action`)."""
         if self._episode is None or self._goal is None:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
-        result = self._episode.step(int(action))
-        self._last = result.observation
-        observation = _observation_dict(result.observation, self._goal)
-        return observation, result.reward, result.terminated, result.truncated, _step_info(result)
+        message = self._episode._step_message(int(action))  # noqa: SLF001 - the package's own hot path
+        spec = self._image_spec
+        columns = _convert.step_columns((message,), spec.layout, spec.resolution)
+        observation = spec.observation(
+            {key: column[0] for key, column in columns.images.items()}, columns.grasping[0], self._goal
+        )
+        self._last = observation
+        return (
+            observation,
+            columns.rewards[0],
+            columns.terminated[0],
+            columns.truncated[0],
+            _step_info(columns, 0),
+        )
 
     def render(self) -> npt.NDArray[np.uint8] | None:
         """With `render_mode="rgb_array"`: the ego view, the goal and the current top-down (when
@@ -297,9 +327,21 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
         super().close()
 
 
+_STEP_KEYS = ("accepted", "collided", "placed_count", "step_index")
+_ENDED_KEYS = (*_STEP_KEYS, "metrics")
+# The dtypes `_add_info` gives the step keys: those of their Python values.
+_STEP_DTYPES = (("accepted", bool), ("collided", bool), ("placed_count", int), ("step_index", int))
+_RESET_KEYS = ("scene_id",)
+_FINAL_KEYS = ("final_obs", "final_info", "scene_id")
+
+# Reserve for a StepBatch answer's framing, per step (the info, reward and flags take ~60 bytes).
+_STEP_OVERHEAD_BYTES = 512
+
+
 class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[Any]]):
-    """N ESRP episodes stepped together over one pipelined StepStream (`gymnasium.make_vec(
-    "esrp/Rearrange-v1", num_envs=N, vectorization_mode="vector_entry_point", ...)`).
+    """N ESRP episodes stepped together (`gymnasium.make_vec("esrp/Rearrange-v1", num_envs=N,
+    vectorization_mode="vector_entry_point", ...)`): one StepBatch call per step, no subprocesses,
+    no per-env threads.
 
     Arguments as `RearrangeEnv`'s, plus `num_envs` and `autoreset_mode` (`AutoresetMode` or its
     value; declared in `metadata["autoreset_mode"]`):
@@ -312,9 +354,12 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
     - `DISABLED`: no autoreset; reset ended episodes with `reset(options={"reset_mask": mask})`.
       Stepping an ended one raises `EpisodeEnded` and moves no episode.
 
-    Infos are dicts of arrays with `_key` masks, as Gymnasium's `VectorEnv._add_info` builds them.
-    The episodes are created on the env's stream at the first reset and closed by `close()` (and by
-    the server, should the stream break).
+    Infos are dicts of arrays with `_key` masks, exactly as Gymnasium's `VectorEnv._add_info`
+    builds them (here a column at a time). Observations are fresh arrays at every call (keeping
+    them is safe). The episodes are created, reset and closed on the env's StepStream, so the
+    server closes them should the env's process die; the steps of a wave go in one StepBatch
+    (split only beyond the server's `max_batch` or half its message limit), whose single answer
+    costs far less to receive in Python than one stream answer per episode.
     """
 
     metadata = {**_METADATA, "autoreset_mode": AutoresetMode.NEXT_STEP}
@@ -353,13 +398,21 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.single_action_space = spaces.Discrete(6)
         self.action_space = batch_space(self.single_action_space, num_envs)
+        side = self._setup.sensors.resolution
+        self._image_spec = _Images(self._setup.sensors)
+        # The observation keys in the space's order (that of Gymnasium's batches).
+        self._keys = tuple(self.single_observation_space.spaces)
         self._stream: EpisodeStream | None = None
         self._episode_ids: list[str | None] = [None] * num_envs
         self._rngs: list[np.random.Generator | None] = [None] * num_envs
-        self._goals: list[npt.NDArray[np.uint8] | None] = [None] * num_envs
-        self._last: list[ObsDict | None] = [None] * num_envs
-        self._last_observations: list[Observation | None] = [None] * num_envs
+        # Each sub-env's last observation: its images as the answer's bytes or read-only views (never
+        # written), whether it grasps, and its goal, in a batch array that only resets write to.
+        self._last_images: dict[str, list[Any]] = {key: [None] * num_envs for key in self._image_spec.keys}
+        self._grasping = np.zeros(num_envs, dtype=np.int64)
+        self._goals = np.zeros((num_envs, side, side, 3), dtype=np.uint8)
+        self._started = np.zeros(num_envs, dtype=np.bool_)
         self._autoreset_envs = np.zeros(num_envs, dtype=np.bool_)
+        self._chunk: int | None = None  # steps per StepBatch, from the server's limits
 
     @property
     def client(self) -> Client:
@@ -399,8 +452,8 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             stream.reset(episode, scene)
         return scene
 
-    def _take_reset(self, stream: EpisodeStream, index: int) -> ObsDict:
-        """Reads sub-env `index`'s reset answer (sent by `_send_reset`); returns its observation."""
+    def _take_reset(self, stream: EpisodeStream, index: int) -> None:
+        """Reads sub-env `index`'s reset answer (sent by `_send_reset`) into its last observation."""
         answer = stream.next()
         assert answer is not None
         if self._episode_ids[index] is None:
@@ -410,9 +463,11 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         else:
             first = answer.observation()
         assert first.goal_rgb is not None
+        for key in self._image_spec.keys:
+            self._last_images[key][index] = getattr(first, key)
+        self._grasping[index] = first.grasping
         self._goals[index] = first.goal_rgb
-        self._last_observations[index] = first
-        return _observation_dict(first, first.goal_rgb, copy_goal=False)
+        self._started[index] = True
 
     def reset(
         self,
@@ -437,7 +492,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         options = dict(options) if options is not None else None
         mask = self._reset_mask(options)
         self._autoreset_envs[mask] = False
-        if any(self._last[index] is None for index in np.flatnonzero(~mask).tolist()):
+        if not np.all(self._started[~mask]):
             raise ValueError("the first reset must reset every sub-environment (no reset_mask)")
         stream = self._open_stream()
         scenes: dict[int, str] = {}
@@ -445,11 +500,12 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             if seeds[index] is not None:
                 self._rngs[index], _ = seeding.np_random(seeds[index])
             scenes[index] = self._send_reset(stream, index, options)
-        infos: dict[str, Any] = {}
-        for i, scene in scenes.items():
-            self._last[i] = self._take_reset(stream, i)
-            infos = self._add_info(infos, {"scene_id": scene}, i)
-        return self._batch(), infos
+        for index in scenes:
+            self._take_reset(stream, index)
+        scene_ids = np.full(self.num_envs, None, dtype=object)
+        for index, scene in scenes.items():
+            scene_ids[index] = scene
+        return self._batch(), {"scene_id": scene_ids, "_scene_id": mask.copy()}
 
     def _reset_mask(self, options: dict[str, Any] | None) -> npt.NDArray[np.bool_]:
         if options is None or "reset_mask" not in options:
@@ -475,13 +531,16 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
     ) -> tuple[
         ObsDict, npt.NDArray[np.float64], npt.NDArray[np.bool_], npt.NDArray[np.bool_], dict[str, Any]
     ]:
-        """Steps every sub-env (or autoresets it, in NEXT_STEP mode) in one pipelined round trip."""
+        """Steps every sub-env (or autoresets it, in NEXT_STEP mode) in one StepBatch round trip;
+        the autoresets go on the stream at the same time.
+        """
         actions = np.asarray(actions)
-        if actions.shape != (self.num_envs,):
-            raise ValueError(f"actions must have shape ({self.num_envs},), got {actions.shape}")
+        n = self.num_envs
+        if actions.shape != (n,):
+            raise ValueError(f"actions must have shape ({n},), got {actions.shape}")
         if np.any((actions < 0) | (actions > 5)):
             raise InvalidRequest(f"actions must be codes 0..5 (esrp.Action), got {actions}")
-        if any(episode is None for episode in self._episode_ids) or self._stream is None:
+        if self._stream is None or not np.all(self._started):
             raise gymnasium.error.ResetNeeded("call reset() before step()")
         if self.autoreset_mode == AutoresetMode.DISABLED and np.any(self._autoreset_envs):
             ended = np.flatnonzero(self._autoreset_envs).tolist()
@@ -490,88 +549,175 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
                 "reset(options={'reset_mask': mask}) first (no episode moved)"
             )
         stream = self._stream
-        if self.autoreset_mode == AutoresetMode.NEXT_STEP:
-            resets = self._autoreset_envs
+        resets: dict[int, str] = {}
+        if self.autoreset_mode == AutoresetMode.NEXT_STEP and np.any(self._autoreset_envs):
+            resets = {
+                i: self._send_reset(stream, i, None) for i in np.flatnonzero(self._autoreset_envs).tolist()
+            }
+            stepped: list[int] = np.flatnonzero(~self._autoreset_envs).tolist()
         else:
-            resets = np.zeros(self.num_envs, dtype=np.bool_)
-        sent: list[tuple[int, str | None]] = []  # (sub-env, scene of a reset or None for a step)
-        for i in range(self.num_envs):
-            if resets[i]:
-                sent.append((i, self._send_reset(stream, i, None)))
-            else:
-                episode = self._episode_ids[i]
-                assert episode is not None
-                stream.step(episode, int(actions[i]))
-                sent.append((i, None))
-        rewards = np.zeros(self.num_envs, dtype=np.float64)
-        terminations = np.zeros(self.num_envs, dtype=np.bool_)
-        truncations = np.zeros(self.num_envs, dtype=np.bool_)
-        env_infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
-        failure: EsrpError | None = None
-        for i, scene in sent:
-            if scene is not None:
-                self._last[i] = self._take_reset(stream, i)
-                env_infos[i] = {"scene_id": scene}
-                continue
-            answer = stream.next()
-            assert answer is not None
-            if answer.error is not None:
-                failure = failure or answer.error
-                continue
-            result = answer.step_result()
-            goal = self._goals[i]
-            assert goal is not None
-            self._last_observations[i] = result.observation
-            self._last[i] = _observation_dict(result.observation, goal, copy_goal=False)
-            rewards[i] = result.reward
-            terminations[i] = result.terminated
-            truncations[i] = result.truncated
-            env_infos[i] = _step_info(result)
-        if failure is not None:
-            raise failure
-        infos: dict[str, Any] = {}
+            stepped = list(range(n))
+        try:
+            columns = self._step_batch(stepped, actions)
+        finally:
+            # The resets were answered on the stream meanwhile (whatever became of the batch).
+            for i in resets:
+                self._take_reset(stream, i)
+        rewards = np.zeros(n, dtype=np.float64)
+        terminations = np.zeros(n, dtype=np.bool_)
+        truncations = np.zeros(n, dtype=np.bool_)
+        if stepped:
+            rewards[stepped] = columns.rewards
+            terminations[stepped] = columns.terminated
+            truncations[stepped] = columns.truncated
+            self._grasping[stepped] = columns.grasping
+            for key, column in columns.images.items():
+                if len(stepped) == n:
+                    self._last_images[key] = column
+                else:
+                    images = self._last_images[key]
+                    for i, data in zip(stepped, column, strict=True):
+                        images[i] = data
+        finals: dict[int, tuple[ObsDict, dict[str, Any]]] = {}
         if self.autoreset_mode == AutoresetMode.SAME_STEP:
             ended = np.flatnonzero(terminations | truncations).tolist()
             # The final observations are handed out one by one: each gets a goal of its own.
-            final = {i: (self._final_observation(i), env_infos[i]) for i in ended}
-            scenes = {i: self._send_reset(stream, i, None) for i in ended}
+            # (Every sub-env was stepped, so sub-env i's answer is at position i.)
+            finals = {i: (self._single_observation(i), _step_info(columns, i)) for i in ended}
+            resets = {i: self._send_reset(stream, i, None) for i in ended}
             for i in ended:
-                self._last[i] = self._take_reset(stream, i)
-            for i in range(self.num_envs):
-                if i in final:
-                    final_obs, final_info = final[i]
-                    infos = self._add_info(infos, {"final_obs": final_obs, "final_info": final_info}, i)
-                    infos = self._add_info(infos, {"scene_id": scenes[i]}, i)
-                else:
-                    infos = self._add_info(infos, env_infos[i], i)
-        else:
-            for i in range(self.num_envs):
-                infos = self._add_info(infos, env_infos[i], i)
+                self._take_reset(stream, i)
+        infos = self._step_infos(columns, stepped, resets, finals)
         self._autoreset_envs = np.logical_or(terminations, truncations)
         return self._batch(), rewards, terminations, truncations, infos
 
-    def _final_observation(self, index: int) -> ObsDict:
-        observation, goal = self._last_observations[index], self._goals[index]
-        assert observation is not None
-        assert goal is not None
-        return _observation_dict(observation, goal)
+    def _step_batch(self, stepped: list[int], actions: npt.NDArray[Any]) -> _convert.StepColumns:
+        """Steps sub-envs `stepped` (in order) with one StepBatch, or several when the server's
+        limits want it; their answers as columns in the same order.
+        """
+        spec = self._image_spec
+        columns = _convert.StepColumns(spec.keys)
+        if not stepped:
+            return columns
+        client = self._setup.client
+        if self._chunk is None:
+            limits = client.server_info().limits
+            per_step = _STEP_OVERHEAD_BYTES + sum(spec.resolution**2 * size for _, _, size, _ in spec.layout)
+            self._chunk = max(1, min(limits.max_batch, limits.max_message_bytes // 2 // per_step))
+        episode_ids = self._episode_ids
+        codes = actions.tolist()
+        size = self._chunk
+        # Beyond the limits, the chunks go at once (the server renders one while another's answer
+        # travels); below them one call is best: splitting a wave measured no faster and costs
+        # the client more.
+        chunks = [stepped[start : start + size] for start in range(0, len(stepped), size)]
+        waits = [
+            client._step_batch_started(  # noqa: SLF001 - the package's own hot path
+                [cast(str, episode_ids[i]) for i in chunk], [codes[i] for i in chunk]
+            )
+            for chunk in chunks[:-1]
+        ]
+        last = chunks[-1]
+        messages = client._step_batch_messages(  # noqa: SLF001
+            [cast(str, episode_ids[i]) for i in last], [codes[i] for i in last]
+        )
+        for wait in waits:
+            _convert.step_columns(wait(), spec.layout, spec.resolution, into=columns)
+        _convert.step_columns(messages, spec.layout, spec.resolution, into=columns)
+        return columns
+
+    def _step_infos(
+        self,
+        columns: _convert.StepColumns,
+        stepped: list[int],
+        resets: Mapping[int, str],
+        finals: Mapping[int, tuple[ObsDict, dict[str, Any]]],
+    ) -> dict[str, Any]:
+        """The step's infos, equal to what `_add_info` over each sub-env's info makes (the same
+        keys in the same order, arrays of the same dtypes, masks), built a column at a time.
+        """
+        n = self.num_envs
+        kinds: list[tuple[str, ...]] = [_STEP_KEYS] * n
+        metrics_envs: dict[int, EpisodeMetrics] = {}
+        for position, metrics in columns.metrics.items():
+            metrics_envs[stepped[position]] = metrics
+            kinds[stepped[position]] = _ENDED_KEYS
+        for i in resets:
+            kinds[i] = _RESET_KEYS
+        for i in finals:
+            kinds[i] = _FINAL_KEYS
+        # `_add_info` adds a key (then its mask) when the first sub-env that has it comes.
+        order: dict[str, None] = {}
+        for kind in dict.fromkeys(kinds):
+            order.update(dict.fromkeys(kind))
+        values: dict[str, Any] = {}
+        masks: dict[str, npt.NDArray[np.bool_]] = {}
+        if stepped:
+            step_mask = np.zeros(n, dtype=np.bool_)
+            step_mask[stepped] = True
+            step_mask[list(finals)] = False
+            for key, dtype in _STEP_DTYPES:
+                column = np.zeros(n, dtype=dtype)
+                column[stepped] = getattr(columns, key)
+                column[~step_mask] = 0
+                values[key], masks[key] = column, step_mask.copy()
+        metrics_infos: dict[str, Any] = {}
+        for i, metrics in metrics_envs.items():
+            if i not in finals:
+                metrics_infos = self._add_info(metrics_infos, _metrics_info(metrics), i)
+        if metrics_infos:
+            values["metrics"] = metrics_infos
+            masks["metrics"] = np.zeros(n, dtype=np.bool_)
+            masks["metrics"][[i for i in metrics_envs if i not in finals]] = True
+        final_infos: dict[str, Any] = {}
+        if finals:
+            final_obs = np.full(n, None, dtype=object)
+            for i, (observation, info) in finals.items():
+                final_obs[i] = observation
+                final_infos = self._add_info(final_infos, info, i)
+            values["final_obs"], values["final_info"] = final_obs, final_infos
+            masks["final_obs"] = np.zeros(n, dtype=np.bool_)
+            masks["final_obs"][list(finals)] = True
+            masks["final_info"] = masks["final_obs"].copy()
+        if resets:
+            scene_ids = np.full(n, None, dtype=object)
+            for i, scene in resets.items():
+                scene_ids[i] = scene
+            values["scene_id"] = scene_ids
+            masks["scene_id"] = np.zeros(n, dtype=np.bool_)
+            masks["scene_id"][list(resets)] = True
+        infos: dict[str, Any] = {}
+        for key in order:
+            infos[key], infos[f"_{key}"] = values[key], masks[key]
+        return infos
+
+    def _single_observation(self, index: int) -> ObsDict:
+        """Sub-env `index`'s last observation as `RearrangeEnv` gives it (views, a goal copy)."""
+        images = {key: column[index] for key, column in self._last_images.items()}
+        return self._image_spec.observation(images, self._grasping[index], self._goals[index])
 
     def _batch(self) -> ObsDict:
-        """The sub-envs' last observations in fresh arrays (never reused, so keeping them is safe)."""
-        out = create_empty_array(self.single_observation_space, n=self.num_envs, fn=np.zeros)
-        assert isinstance(out, dict)
-        return cast(ObsDict, concatenate(self.single_observation_space, self._last, out))
+        """The sub-envs' last observations in fresh arrays (never reused, so keeping them is safe),
+        in the key order of the observation space.
+        """
+        n = self.num_envs
+        batch: dict[str, npt.NDArray[Any]] = {
+            "goal_rgb": self._goals.copy(),
+            "grasping": self._grasping.copy(),
+        }
+        spec = self._image_spec
+        for key in spec.keys:
+            # One copy of every sub-env's bytes into a new buffer (the answers' bytes and views
+            # export their memory as they are).
+            joined = bytearray().join(self._last_images[key])
+            batch[key] = np.frombuffer(joined, dtype=spec.dtypes[key]).reshape(n, *spec.shapes[key])
+        return {key: batch[key] for key in self._keys}
 
     def render(self) -> tuple[npt.NDArray[np.uint8], ...] | None:
         """With `render_mode="rgb_array"`: one frame per sub-env, as `RearrangeEnv.render`."""
-        if self.render_mode != "rgb_array":
+        if self.render_mode != "rgb_array" or not np.all(self._started):
             return None
-        frames = []
-        for observation, goal in zip(self._last_observations, self._goals, strict=True):
-            if observation is None or goal is None:
-                return None
-            frames.append(_frame(observation, goal))
-        return tuple(frames)
+        return tuple(_frame(self._single_observation(i), self._goals[i]) for i in range(self.num_envs))
 
     def close_extras(self, **kwargs: Any) -> None:  # noqa: ANN401
         """Closes every server episode (on the stream, waiting for the answers), the stream, and

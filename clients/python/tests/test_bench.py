@@ -1,0 +1,63 @@
+"""`python -m esrp.bench` runs every scenario against the real server and prints it (tiny windows:
+the performance goals live in the benchmark, never in tests)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from conftest import settled_live_episodes
+
+import esrp
+from esrp import bench
+
+
+def test_bench_prints_every_scenario(
+    server: esrp.LocalServer, client: esrp.Client, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    before = client.server_info().live_episodes
+    report = tmp_path / "bench.json"
+    arguments = ["--server", server.address, "--seconds", "0.3", "--warmup", "0.1", "--json", str(report)]
+    assert bench.main(arguments) == 0
+    out = capsys.readouterr().out
+    rows = {line.split()[0]: line for line in out.splitlines() if line and not line.startswith(" ")}
+    assert "machine:" in rows
+    assert out.count("load average") == 2
+    for name in ("client-1", "env-1", "stream-64", "vec-64"):
+        assert name in rows, out
+        assert "skipped" not in rows[name]
+        assert float(rows[name].split()[2].replace(",", "")) > 0
+    # The Rust client and MiniWorld run where they are installed, and say why not otherwise.
+    assert "rust:unary-1" in rows or "skipped" in rows["rust"]
+    assert "miniworld" in rows
+    results = {row["scenario"]: row for row in json.loads(report.read_text())["results"]}
+    assert results["vec-64"]["episodes"] == 64
+    assert results["vec-64"]["steps_per_second"] > 0
+    if "rust:unary-1" in results:
+        assert results["env-1"]["ratio_to_rust"] > 0
+    assert settled_live_episodes(client, before) == before
+
+
+def test_bench_rejects_unknown_scenarios(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        bench.main(["--scenarios", "env-1,warp-9"])
+    assert "warp-9" in capsys.readouterr().err
+
+
+def test_esrp_bench_is_the_same_command(capsys: pytest.CaptureFixture[str]) -> None:
+    from esrp.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["bench", "--scenarios", "env-1,warp-9"])
+    assert "warp-9" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["bench", "--help"])
+    assert "--scenarios" in capsys.readouterr().out
+
+
+def test_rust_bench_missing(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setenv("ESRP_BENCH_BIN", str(tmp_path / "absent"))
+    [skipped] = bench.bench_rust("127.0.0.1:1", None, 0.1, ["unary-1"])
+    assert skipped.skipped is not None
+    assert "ESRP_BENCH_BIN" in skipped.skipped
