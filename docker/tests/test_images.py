@@ -78,7 +78,7 @@ def wait_for_health(container: str, timeout: float = 60.0) -> str:
 
 
 @contextlib.contextmanager
-def running_server() -> Iterator[str]:
+def running_server(*server_args: str) -> Iterator[str]:
     """The server image running on a free port of the host's network, as Kubernetes runs it: as
     the image's user, read-only root and /tmp on tmpfs, no capabilities. Yields its address."""
     port = free_port()
@@ -89,7 +89,7 @@ def running_server() -> Iterator[str]:
         # The image's own HEALTHCHECK command, asked every second instead of every 10 s.
         "--health-interval", "1s",
         "--env", f"ESRP_LISTEN=127.0.0.1:{port}", "--env", "NO_COLOR=1",
-        SERVER_IMAGE,
+        SERVER_IMAGE, *server_args,
     )  # fmt: skip
     try:
         yield f"127.0.0.1:{port}"
@@ -134,6 +134,14 @@ def test_the_container_becomes_healthy_and_answers_health_checks_from_the_host(s
     logs = container_logs(container_of(server))
     assert "renderer ready" in logs, logs
     assert "llvmpipe" in logs, logs
+
+
+def test_lavapipe_renders_in_the_container_too() -> None:
+    """The Vulkan loader and Mesa's Vulkan driver are in the image (the path a GPU takes too)."""
+    with running_server("--render-backend", "vulkan") as address:
+        assert wait_for_health(container_of(address)) == "healthy"
+        logs = container_logs(container_of(address))
+        assert "backend=Vulkan" in logs, logs
 
 
 def records(path: Path) -> list[dict[str, Any]]:
