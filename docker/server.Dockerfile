@@ -27,9 +27,11 @@ RUN apt-get update \
 # NVIDIA_DRIVER_CAPABILITIES: with `--gpus all` (or a Kubernetes GPU), the toolkit mounts the
 # driver's Vulkan and EGL libraries (graphics) and nvidia-smi (utility); its default,
 # compute,utility, would leave the GPU invisible to the renderer. It is inert without a GPU.
+# NO_COLOR: plain log lines (no terminal escapes) in `docker logs`; ESRP_LOG_FORMAT=json for JSON.
 ENV ESRP_LISTEN=0.0.0.0:50051 \
     NODEVICE_SELECT=1 \
-    NVIDIA_DRIVER_CAPABILITIES=graphics,utility
+    NVIDIA_DRIVER_CAPABILITIES=graphics,utility \
+    NO_COLOR=1
 # gRPC (esrp.v1, dm_env_rpc, grpc.health.v1, reflection); Prometheus metrics when the server is
 # started with --metrics-listen 0.0.0.0:9090 (ESRP_METRICS_LISTEN), off by default.
 EXPOSE 50051 9090

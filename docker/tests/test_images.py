@@ -88,7 +88,7 @@ def running_server(*server_args: str) -> Iterator[str]:
         "--read-only", "--tmpfs", "/tmp", "--cap-drop", "ALL", "--security-opt", "no-new-privileges",
         # The image's own HEALTHCHECK command, asked every second instead of every 10 s.
         "--health-interval", "1s",
-        "--env", f"ESRP_LISTEN=127.0.0.1:{port}", "--env", "NO_COLOR=1",
+        "--env", f"ESRP_LISTEN=127.0.0.1:{port}",
         SERVER_IMAGE, *server_args,
     )  # fmt: skip
     try:
@@ -117,6 +117,7 @@ def test_the_image_runs_unprivileged_and_says_what_it_is() -> None:
     assert environment["ESRP_LISTEN"] == "0.0.0.0:50051"
     assert environment["NODEVICE_SELECT"] == "1"
     assert environment["NVIDIA_DRIVER_CAPABILITIES"] == "graphics,utility"
+    assert environment["NO_COLOR"] == "1"
     assert {"50051/tcp", "9090/tcp"} <= set(config["ExposedPorts"])
     assert config["Labels"]["org.opencontainers.image.title"] == "esrp-server"
     size = inspect(SERVER_IMAGE)["Size"]
