@@ -48,3 +48,6 @@ cargo bench --workspace --locked --no-run
 
 step "python: the client package (clients/python) and the dm_env_rpc end-to-end tests"
 bash scripts/python-tests.sh
+
+step "docker: the images against a Docker engine, compose and the Kubernetes manifests"
+bash scripts/docker-tests.sh

@@ -1,8 +1,35 @@
-//! `esrp-server`: parses the configuration, sets up logging and serves until SIGINT/SIGTERM.
+//! `esrp-server`: parses the configuration, sets up logging and serves until SIGINT/SIGTERM;
+//! `esrp-server health-check` asks a running server whether it is serving.
 
-use clap::Parser;
+mod health_check;
+
+use clap::{Parser, Subcommand};
 use esrp_server::Config;
 use esrp_server::config::LogFormat;
+
+/// The command line: the server's flags, or a subcommand.
+#[derive(Debug, Parser)]
+#[command(
+    name = "esrp-server",
+    version,
+    about = "The ESRP environment server (gRPC)",
+    args_conflicts_with_subcommands = true
+)]
+struct Cli {
+    #[command(flatten)]
+    config: Config,
+    #[command(subcommand)]
+    command: Option<Command>,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Ask a running server's grpc.health.v1 service whether it is serving: exit 0 if it is,
+    /// 1 with a one-line reason otherwise (container HEALTHCHECK, Kubernetes exec probes). It
+    /// reads the server's ESRP_* variables for its defaults (the address from ESRP_LISTEN, TLS
+    /// from ESRP_TLS_CERT).
+    HealthCheck(health_check::HealthCheckArgs),
+}
 
 /// SIGINT and SIGTERM, listened for from the moment this is made: a signal that arrives before
 /// anything awaits [`Signals::wait`] (while the renderer starts, say) is kept, not lost, and
@@ -59,15 +86,29 @@ impl Signals {
 fn default_lavapipe_threads() {
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     if std::env::var_os("LP_NUM_THREADS").is_none() && cores <= 4 {
-        // SAFETY: called first thing in `main`, before any other thread exists (the async
-        // runtime is built after), so nothing reads the environment concurrently.
+        // SAFETY: called in `main` right after parsing the command line, before any other
+        // thread exists (the async runtime is built after), so nothing reads the environment
+        // concurrently.
         unsafe { std::env::set_var("LP_NUM_THREADS", "0") };
     }
 }
 
 fn main() -> anyhow::Result<()> {
+    let Cli { config, command } = Cli::parse();
+    if let Some(Command::HealthCheck(args)) = command {
+        match health_check::run(&args, &config) {
+            Ok(answer) => {
+                println!("{answer}");
+                return Ok(());
+            }
+            Err(error) => {
+                // One line, for `docker inspect` and probe events.
+                eprintln!("esrp-server health-check: {}", health_check::one_line(&error));
+                std::process::exit(1);
+            }
+        }
+    }
     default_lavapipe_threads();
-    let config = Config::parse();
     let runtime =
         tokio::runtime::Builder::new_multi_thread().worker_threads(config.worker_threads()).enable_all().build()?;
     let result = runtime.block_on(serve(config));

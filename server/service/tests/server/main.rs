@@ -6,5 +6,6 @@ mod dm_env;
 mod episodes;
 mod errors;
 mod harness;
+mod health_check;
 mod lifecycle;
 mod smoke;

@@ -1,0 +1,199 @@
+//! `esrp-server health-check`: asks a running server's `grpc.health.v1` service whether it is
+//! serving. Part of the binary (not the library), so that a container image that holds only
+//! `esrp-server` can check itself (Docker `HEALTHCHECK`, a Kubernetes exec probe) without a
+//! `grpc_health_probe` or a shell.
+//!
+//! Exit status: 0 when the answer is SERVING; 1 otherwise (not serving, unknown service, no
+//! answer in time, refused connection, TLS failure), with a one-line reason on stderr. 1 is the
+//! only failure status because Docker reserves 2 for itself.
+//!
+//! The health service answers without a bearer token (kubelet's gRPC probes cannot send one),
+//! so the check needs none against a server started with `--token`. TLS: with an `https://`
+//! address, or when the server's `--tls-cert` (`ESRP_TLS_CERT`) is set in the environment the
+//! check runs in, as it is inside the server's own container, the check speaks TLS and trusts
+//! `--tls-ca` (by default that certificate chain).
+
+use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::{Context, anyhow, bail};
+use esrp_server::Config;
+use tonic::transport::{Certificate, ClientTlsConfig, Endpoint};
+use tonic_health::pb::HealthCheckRequest;
+use tonic_health::pb::health_check_response::ServingStatus;
+use tonic_health::pb::health_client::HealthClient;
+
+/// Flags of `esrp-server health-check`.
+#[derive(Clone, Debug, clap::Args)]
+pub struct HealthCheckArgs {
+    /// The server: `HOST:PORT`, `http://HOST:PORT` or `https://HOST:PORT`. Default: the
+    /// server's own --listen (`ESRP_LISTEN`), with an unspecified address (0.0.0.0, [::]) asked
+    /// on loopback.
+    pub address: Option<String>,
+    /// The service whose health to ask for; the empty name is the whole server.
+    #[arg(long, env = "ESRP_HEALTH_CHECK_SERVICE", default_value = "")]
+    pub service: String,
+    /// Give up after this many milliseconds, connecting included.
+    #[arg(long, env = "ESRP_HEALTH_CHECK_TIMEOUT_MS", default_value_t = 3000, value_parser = clap::value_parser!(u64).range(1..))]
+    pub timeout_ms: u64,
+    /// TLS: the certificates to trust (PEM). Default: the server's --tls-cert (`ESRP_TLS_CERT`).
+    #[arg(long, env = "ESRP_HEALTH_CHECK_TLS_CA")]
+    pub tls_ca: Option<PathBuf>,
+    /// TLS: the name the server's certificate must carry. Default: the address's host.
+    #[arg(long, env = "ESRP_HEALTH_CHECK_TLS_DOMAIN")]
+    pub tls_domain: Option<String>,
+}
+
+/// Runs the check; `Ok` means SERVING. `config` is the server's configuration as the same
+/// environment gives it (the default address and TLS certificate come from it).
+pub fn run(args: &HealthCheckArgs, config: &Config) -> anyhow::Result<String> {
+    let target = Target::new(args, config)?;
+    let timeout = Duration::from_millis(args.timeout_ms);
+    let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
+    runtime.block_on(async {
+        match tokio::time::timeout(timeout, target.check(&args.service)).await {
+            Ok(answer) => answer,
+            Err(_) => bail!("{}: no answer within {} ms", target.url, args.timeout_ms),
+        }
+    })
+}
+
+/// Where to connect and how.
+struct Target {
+    url: String,
+    tls: Option<ClientTlsConfig>,
+}
+
+impl Target {
+    fn new(args: &HealthCheckArgs, config: &Config) -> anyhow::Result<Self> {
+        let address = match &args.address {
+            Some(address) => address.clone(),
+            None => loopback_for(config.listen).to_string(),
+        };
+        let (scheme, rest) = match address.split_once("://") {
+            Some((scheme @ ("http" | "https"), rest)) => (scheme, rest.to_owned()),
+            Some((scheme, _)) => bail!("unknown scheme {scheme:?} in {address:?}: use http:// or https://"),
+            None => ("", address.clone()),
+        };
+        let ca = args.tls_ca.clone().or_else(|| config.tls_cert.clone());
+        let use_tls = match scheme {
+            "https" => true,
+            "http" => false,
+            _ => ca.is_some(),
+        };
+        let tls = if use_tls {
+            let mut tls = ClientTlsConfig::new();
+            match &ca {
+                Some(path) => {
+                    let pem =
+                        std::fs::read(path).with_context(|| format!("cannot read --tls-ca {}", path.display()))?;
+                    tls = tls.ca_certificate(Certificate::from_pem(pem));
+                }
+                None => bail!("{address:?}: TLS needs --tls-ca (the certificates to trust, PEM)"),
+            }
+            if let Some(domain) = &args.tls_domain {
+                tls = tls.domain_name(domain.clone());
+            }
+            Some(tls)
+        } else {
+            None
+        };
+        let url = format!("{}://{rest}", if use_tls { "https" } else { "http" });
+        Ok(Self { url, tls })
+    }
+
+    /// Connects and asks; the caller bounds the time of the whole (one clock for connecting and
+    /// answering, one message for running out of it).
+    async fn check(&self, service: &str) -> anyhow::Result<String> {
+        let mut endpoint =
+            Endpoint::from_shared(self.url.clone()).map_err(|e| anyhow!("{:?} is not an address: {e}", self.url))?;
+        if let Some(tls) = &self.tls {
+            endpoint = endpoint.tls_config(tls.clone()).with_context(|| format!("{}: TLS settings", self.url))?;
+        }
+        let channel = endpoint.connect().await.with_context(|| format!("{}: cannot connect", self.url))?;
+        let answer = HealthClient::new(channel)
+            .check(HealthCheckRequest { service: service.to_owned() })
+            .await
+            .map_err(|status| {
+                anyhow!("{}: the health check failed: {:?}: {}", self.url, status.code(), status.message())
+            })?
+            .into_inner();
+        let status = ServingStatus::try_from(answer.status).unwrap_or(ServingStatus::Unknown);
+        let what = if service.is_empty() { "the server".to_owned() } else { format!("service {service:?}") };
+        match status {
+            ServingStatus::Serving => Ok(format!("{}: {what} is SERVING", self.url)),
+            other => bail!("{}: {what} is {}", self.url, other.as_str_name()),
+        }
+    }
+}
+
+/// `error` and its causes on one line, `: ` between them, a cause that repeats the one before it
+/// (hyper's connect errors do) left out.
+pub fn one_line(error: &anyhow::Error) -> String {
+    let mut parts: Vec<String> = Vec::new();
+    for cause in error.chain() {
+        let text = cause.to_string();
+        if parts.last() != Some(&text) {
+            parts.push(text);
+        }
+    }
+    parts.join(": ").replace('\n', " ")
+}
+
+/// The address to ask a server that listens on `listen`: loopback for an unspecified address.
+fn loopback_for(listen: SocketAddr) -> SocketAddr {
+    match listen.ip() {
+        IpAddr::V4(ip) if ip.is_unspecified() => SocketAddr::new(Ipv4Addr::LOCALHOST.into(), listen.port()),
+        IpAddr::V6(ip) if ip.is_unspecified() => SocketAddr::new(Ipv6Addr::LOCALHOST.into(), listen.port()),
+        _ => listen,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_unspecified_listen_address_is_asked_on_loopback() {
+        let check = |listen: &str, expected: &str| {
+            assert_eq!(loopback_for(listen.parse().unwrap()).to_string(), expected, "{listen}");
+        };
+        check("0.0.0.0:50051", "127.0.0.1:50051");
+        check("[::]:7", "[::1]:7");
+        check("10.1.2.3:50051", "10.1.2.3:50051");
+        check("127.0.0.1:1", "127.0.0.1:1");
+    }
+
+    #[test]
+    fn an_error_and_its_causes_make_one_line_without_repeats() {
+        let error = anyhow!("refused").context("tcp connect").context("tcp connect").context("h:1: cannot\nconnect");
+        assert_eq!(one_line(&error), "h:1: cannot connect: tcp connect: refused");
+    }
+
+    #[test]
+    fn the_scheme_and_the_server_s_certificate_choose_tls() {
+        let args = |address: &str| HealthCheckArgs {
+            address: Some(address.to_owned()),
+            service: String::new(),
+            timeout_ms: 1000,
+            tls_ca: None,
+            tls_domain: None,
+        };
+        let plain = Config::with_listen("0.0.0.0:50051".parse().unwrap());
+        let target = |address: &str, config: &Config| Target::new(&args(address), config);
+        assert_eq!(target("127.0.0.1:9", &plain).unwrap().url, "http://127.0.0.1:9");
+        assert_eq!(target("http://h:9", &plain).unwrap().url, "http://h:9");
+        let error = target("https://h:9", &plain).err().unwrap().to_string();
+        assert!(error.contains("TLS needs --tls-ca"), "{error}");
+        let error = target("ftp://h:9", &plain).err().unwrap().to_string();
+        assert!(error.contains("unknown scheme"), "{error}");
+        // A server configured for TLS is checked over TLS, trusting its own certificate (which
+        // must be readable).
+        let mut tls = plain.clone();
+        tls.tls_cert = Some("/nonexistent/cert.pem".into());
+        let error = target("127.0.0.1:9", &tls).err().unwrap().to_string();
+        assert!(error.contains("cannot read --tls-ca /nonexistent/cert.pem"), "{error}");
+        assert_eq!(target("http://127.0.0.1:9", &tls).unwrap().url, "http://127.0.0.1:9");
+    }
+}
