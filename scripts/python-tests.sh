@@ -57,7 +57,7 @@ wanted="$(cat "$requirements" "$constraints" "$client_constraints" "$client/pypr
 if [ "$(cat "$stamp" 2>/dev/null)" != "$wanted" ]; then
     pip install -r "$requirements" -c "$constraints"
     pip install hatchling -c "$client_constraints"
-    pip install --no-build-isolation "./$client[test]" -c "$client_constraints"
+    pip install --no-build-isolation "./$client[test,train,ray]" -c "$client_constraints"
     echo "$wanted" >"$stamp"
 fi
 # The package itself, as built from this tree, every time (a wheel: what `pip install` gives users).
