@@ -98,6 +98,31 @@ step "python client: pytest (the installed package against the real server)"
 # The package has a src/ layout, so `import esrp` in the tests is the installed wheel.
 (cd "$client" && "../../$venv/bin/python" -m pytest -p no:cacheprovider tests)
 
+# The oldest Python the package supports (requires-python >= 3.10) gets the client's suite too,
+# with its own pins (numpy 2.2 is the last for 3.10), when this machine has one.
+python310=""
+for candidate in ${PYTHON310:-} python3.10 "$HOME"/.pyenv/versions/3.10.*/bin/python; do
+    if "$candidate" -c 'import sys; assert sys.version_info[:2] == (3, 10)' >/dev/null 2>&1; then
+        python310="$candidate"
+        break
+    fi
+done
+if [ -n "$python310" ]; then
+    step "python client on $("$python310" --version) (.venv-py310)"
+    if [ ! -x .venv-py310/bin/python ] || ! .venv-py310/bin/python -c '' >/dev/null 2>&1; then
+        rm -rf .venv-py310
+        "$python310" -m venv .venv-py310
+    fi
+    pip310() { .venv-py310/bin/python -m pip --disable-pip-version-check --quiet "$@"; }
+    pip310 install hatchling -c "$client/constraints-py310.txt"
+    pip310 install --no-build-isolation "./$client[test]" -c "$client/constraints-py310.txt"
+    pip310 install --no-build-isolation --no-deps --force-reinstall "./$client"
+    (cd "$client" && ../../.venv-py310/bin/python -m pytest -p no:cacheprovider -q tests \
+        --ignore=tests/test_bc.py --ignore=tests/test_ppo.py --ignore=tests/test_demos.py --ignore=tests/test_ray.py)
+else
+    step "python client on Python 3.10: skipped (no python3.10 here; set PYTHON310 to test the oldest supported Python)"
+fi
+
 cd tests/python
 step "dm_env_rpc tests: ruff"
 "../../$venv/bin/ruff" check .
