@@ -78,6 +78,11 @@ pub struct Config {
     /// PlanActions: the most planning time a call may ask for, in milliseconds.
     #[arg(long, env = "ESRP_MAX_PLAN_MS", default_value_t = 60_000, value_parser = clap::value_parser!(u64).range(1..))]
     pub max_plan_ms: u64,
+    /// Shutdown: how long, after SIGTERM/SIGINT, calls in flight and open streams may take to
+    /// finish, in milliseconds; then the server stops anyway (clients still connected see their
+    /// calls fail with UNAVAILABLE) and exits 0.
+    #[arg(long, env = "ESRP_SHUTDOWN_GRACE_MS", default_value_t = 5_000)]
+    pub shutdown_grace_ms: u64,
     /// PlanActions: plans computed at once (each on a thread of its own); 0: one per core.
     #[arg(long, env = "ESRP_PLANNER_THREADS", default_value_t = 0)]
     pub planner_threads: usize,
@@ -111,6 +116,11 @@ impl Config {
     /// The largest planning budget a PlanActions call gets.
     pub fn max_plan(&self) -> Duration {
         Duration::from_millis(self.max_plan_ms)
+    }
+
+    /// The shutdown grace as a duration.
+    pub fn shutdown_grace(&self) -> Duration {
+        Duration::from_millis(self.shutdown_grace_ms)
     }
 
     /// The idle timeout as a duration.

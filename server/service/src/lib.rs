@@ -94,7 +94,7 @@ pub fn build_shared(config: &Config) -> Result<Arc<episodes::Shared>, ServeError
 }
 
 /// Serves gRPC on `listener` (and Prometheus metrics on `metrics_listener`, if given) until
-/// `shutdown` completes, then drains in-flight calls.
+/// `shutdown` completes, then drains in-flight calls for at most `--shutdown-grace-ms`.
 pub async fn run(
     listener: TcpListener,
     metrics_listener: Option<TcpListener>,
@@ -170,7 +170,22 @@ pub async fn run(
             tonic::transport::ServerTlsConfig::new().identity(tonic::transport::Identity::from_pem(cert, key)),
         )?;
     }
-    let result = builder
+    // The drain after the signal is bounded: a client that keeps a stream open (or a call
+    // that does not end) would otherwise hold the server up for as long as it likes.
+    let (signalled, on_signal) = tokio::sync::oneshot::channel::<()>();
+    let shutdown = async move {
+        shutdown.await;
+        let _ = signalled.send(());
+    };
+    let grace = config.shutdown_grace();
+    let drain_timeout = async move {
+        if on_signal.await.is_err() {
+            // The server ended without a signal: nothing to bound.
+            std::future::pending::<()>().await;
+        }
+        tokio::time::sleep(grace).await;
+    };
+    let serve = builder
         .add_service(health_service)
         .add_service(reflection)
         .add_service(InterceptedService::new(esrp_v1::answered::Answered::new(esrp), check.clone()))
@@ -179,9 +194,17 @@ pub async fn run(
         .serve_with_incoming_shutdown(
             tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true)),
             shutdown,
-        )
-        .await;
-    // Shut down in order: the calls have drained; end the background tasks, then render what
+        );
+    let result = tokio::select! {
+        result = serve => result,
+        () = drain_timeout => {
+            // The connections still open are dropped with the runtime, after the render
+            // thread has stopped (below): their clients see UNAVAILABLE.
+            tracing::warn!(grace_ms = grace.as_millis() as u64, "calls or streams still open after the shutdown grace: stopping anyway");
+            Ok(())
+        }
+    };
+    // Shut down in order: the calls have drained (or the grace is over); end the background tasks, then render what
     // was submitted and join the render threads, so that no rendering runs while the process
     // exits (`main` then drops the runtime, and with it the episodes, before returning).
     reaper.abort();

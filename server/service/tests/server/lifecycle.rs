@@ -142,13 +142,15 @@ struct Signalled {
 
 impl Signalled {
     fn start(backend: &str) -> Signalled {
+        Signalled::start_with(&["--render-backend", backend])
+    }
+
+    /// A server started with `args`.
+    fn start_with(args: &[&str]) -> Signalled {
         use std::io::{BufRead, BufReader, Read};
         use std::process::Stdio;
-        let mut command = esrp_client::LocalServer::command(
-            Some(env!("CARGO_BIN_EXE_esrp-server").into()),
-            &["--render-backend", backend],
-        )
-        .expect("the server command");
+        let mut command = esrp_client::LocalServer::command(Some(env!("CARGO_BIN_EXE_esrp-server").into()), args)
+            .expect("the server command");
         command.env("NODEVICE_SELECT", "1").env("ESRP_LOG", "warn").stdout(Stdio::piped()).stderr(Stdio::piped());
         let mut child = command.spawn().expect("the server binary starts");
         let mut stdout = BufReader::new(child.stdout.take().expect("piped stdout"));
@@ -262,6 +264,31 @@ async fn sigterm_exits_with_status_zero_every_time() {
         failures.extend(failed.into_iter().map(|f| format!("{backend}: {f}")));
     }
     assert!(failures.is_empty(), "SIGTERM did not end the server with status 0:\n{}", failures.join("\n"));
+}
+
+/// A client that keeps a stream open, idle, does not hold the server up: SIGTERM ends it with
+/// status 0 once the shutdown grace is over (without the bound it waited for the client for
+/// ever; this test then fails after 30 s), and the client's stream ends with an error.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_open_stream_does_not_hold_up_shutdown() {
+    let server = Signalled::start_with(&["--shutdown-grace-ms", "500"]);
+    let mut client = proto::esrp_client::EsrpClient::connect(server.address.clone()).await.expect("connects");
+    let scene = scene_ids(&mut client, proto::Split::Test, 1).await.remove(0);
+    let (tx, rx) = tokio::sync::mpsc::channel::<proto::StreamRequest>(4);
+    let mut inbound = client.step_stream(tokio_stream::wrappers::ReceiverStream::new(rx)).await.unwrap().into_inner();
+    tx.send(proto::StreamRequest { request_id: 1, request: Some(Rq::Create(create_request(&scene, false))) })
+        .await
+        .unwrap();
+    assert!(matches!(inbound.next().await.unwrap().unwrap().response, Some(Rs::Created(_))));
+    // The stream stays open (`tx` lives) and idle through the signal.
+    let signalled = Instant::now();
+    let (status, stderr) = tokio::task::spawn_blocking(move || server.terminate()).await.unwrap();
+    let took = signalled.elapsed();
+    assert!(status.success(), "SIGTERM with an open stream: {status}; stderr:\n{stderr}");
+    assert!(took < Duration::from_secs(10), "the server took {took:?} to exit with a 0.5 s grace");
+    let end = tokio::time::timeout(Duration::from_secs(5), inbound.next()).await.expect("the stream ends");
+    assert!(!matches!(end, Some(Ok(_))), "no answer after the server stopped: {end:?}");
+    drop(tx);
 }
 
 /// A SIGTERM or SIGINT sent as soon as the "listening" line is read is a graceful exit
