@@ -54,8 +54,9 @@ pub struct Config {
         value_parser = PossibleValuesParser::new(BackendPreference::NAMES).try_map(|name| name.parse::<BackendPreference>()),
     )]
     pub render_backend: BackendPreference,
-    /// Require `authorization: Bearer TOKEN` on every call.
-    #[arg(long, env = "ESRP_TOKEN", hide_env_values = true)]
+    /// Require `authorization: Bearer TOKEN` on every call (not empty: an empty `ESRP_TOKEN`
+    /// is refused rather than taken as "no token" or as a token anyone could send).
+    #[arg(long, env = "ESRP_TOKEN", hide_env_values = true, value_parser = non_empty_token)]
     pub token: Option<String>,
     /// TLS certificate chain (PEM); needs --tls-key.
     #[arg(long, env = "ESRP_TLS_CERT", requires = "tls_key")]
@@ -136,6 +137,16 @@ impl Config {
     }
 }
 
+/// `--token`'s value: anything but an empty or blank string.
+fn non_empty_token(value: &str) -> Result<String, String> {
+    if value.trim().is_empty() {
+        return Err("the token is empty: give a non-empty token, or unset ESRP_TOKEN (and drop --token) to serve \
+                    without one"
+            .to_owned());
+    }
+    Ok(value.to_owned())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -149,5 +160,16 @@ mod tests {
         }
         let error = parse(&["--render-backend", "metal"]).unwrap_err().to_string();
         assert!(error.contains("auto, vulkan, gl"), "{error}");
+    }
+
+    #[test]
+    fn an_empty_token_is_refused() {
+        let parse = |args: &[&str]| Config::try_parse_from([&["esrp-server"], args].concat());
+        assert_eq!(parse(&[]).unwrap().token, None);
+        assert_eq!(parse(&["--token", "s3cret"]).unwrap().token.as_deref(), Some("s3cret"));
+        for empty in ["", "  "] {
+            let error = parse(&["--token", empty]).unwrap_err().to_string();
+            assert!(error.contains("the token is empty") && error.contains("unset ESRP_TOKEN"), "{error}");
+        }
     }
 }
