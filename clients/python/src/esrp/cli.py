@@ -136,6 +136,43 @@ def _parser() -> argparse.ArgumentParser:
     )
     ev.add_argument("--privileged", action="store_true", help="MODULE:CALLABLE: privileged episodes")
     ev.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar or lines")
+    ray = ev.add_argument_group(
+        "Ray",
+        "distribute the evaluation over a Ray cluster (pip install 'esrp[ray]'): one actor per server, "
+        "--episodes-in-flight episodes on each; the same results file as a local run",
+    )
+    ray.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        metavar="ADDRESS",
+        help="run on Ray: no ADDRESS starts a local Ray for the run, `auto` joins this machine's "
+        "cluster, or ray://HOST:PORT",
+    )
+    ray.add_argument(
+        "--servers",
+        type=_comma_list,
+        default=[],
+        metavar="HOST:PORT,...",
+        help="--ray: pin one actor to each of these servers (default: actors spawn their own)",
+    )
+    ray.add_argument(
+        "--spawn-servers",
+        type=_positive,
+        metavar="N",
+        help="--ray: N actors, each starting an esrp-server next to itself (default: one per CPU of the "
+        "cluster; --server-arg flags apply to them)",
+    )
+    ray.add_argument(
+        "--cpus-per-actor", type=float, default=1.0, metavar="N", help="--ray: CPUs each actor reserves"
+    )
+    ray.add_argument(
+        "--max-restarts",
+        type=int,
+        default=3,
+        metavar="N",
+        help="--ray: restarts of an actor whose server died (its episodes are re-run from their start)",
+    )
     _server_options(ev)
 
     rep = commands.add_parser(
@@ -210,8 +247,32 @@ def _eval(args: argparse.Namespace) -> int:
         privileged=args.privileged,
         progress=args.progress,
     )
+    ray_only = (("--servers", args.servers), ("--spawn-servers", args.spawn_servers))
+    ray_flags = [flag for flag, given in ray_only if given]
+    if args.ray is None and ray_flags:
+        print(f"esrp eval: {', '.join(ray_flags)} only apply with --ray", file=sys.stderr)
+        return 2
+    if args.ray is not None and (args.server is not None or (args.servers and args.spawn_servers)):
+        message = "with --ray, name servers with --servers, or spawn them (--spawn-servers)"
+        print(f"esrp eval: {message}", file=sys.stderr)
+        return 2
     try:
-        outcome = run_eval(settings, server=args.server, token=args.token, server_args=args.server_args)
+        if args.ray is not None:
+            from .ray_eval import RaySettings, run_ray_eval
+
+            cluster = RaySettings(
+                address=None if args.ray == "local" else args.ray,
+                servers=args.servers,
+                spawn_servers=args.spawn_servers or 0,
+                cpus_per_actor=args.cpus_per_actor,
+                episodes_per_actor=args.episodes_in_flight,
+                max_restarts=args.max_restarts,
+                token=args.token,
+                server_args=args.server_args,
+            )
+            outcome = run_ray_eval(settings, cluster)
+        else:
+            outcome = run_eval(settings, server=args.server, token=args.token, server_args=args.server_args)
     except EvalError as error:
         print(f"esrp eval: {error}", file=sys.stderr)
         return 2

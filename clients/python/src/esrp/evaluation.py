@@ -313,7 +313,76 @@ async def _play(
     return _Played(episode.scene, metrics if metrics is not None else closed, actions, end, stats)
 
 
-async def _pick_scenes(client: AsyncClient, settings: EvalSettings) -> list[SceneSummary]:
+def agent_factory(settings: EvalSettings) -> AgentFactory | None:
+    """The factory of `settings.agent`'s agents; None for the server-driven `expert` and `plan`.
+    Raises `EvalError` when a named module or callable cannot be loaded, or the vlm config is bad.
+    """
+    if settings.agent == "random":
+        return RandomAgent
+    if settings.agent == "vlm":
+        from .agents.vlm import VlmAgentFactory
+
+        try:
+            return VlmAgentFactory(settings.agent_config, results_path=settings.out)
+        except ValueError as error:
+            raise EvalError(str(error)) from None
+    if settings.agent not in BUILTIN_AGENTS:
+        try:
+            return load_factory(settings.agent)
+        except ValueError as error:
+            raise EvalError(str(error)) from None
+    return None
+
+
+def episode_record(
+    settings: EvalSettings, info: ServerInfo, scene: SceneSummary, seed: int, wall: float, played: _Played
+) -> EpisodeRecord:
+    """The `esrp.results/v1` record of an episode played on the server described by `info`."""
+    m = played.metrics
+    return EpisodeRecord(
+        schema=SCHEMA,
+        scene_id=scene.id,
+        dataset=info.dataset,
+        split=scene.split.value if scene.split is not None else "unknown",
+        room_type=scene.room_type,
+        difficulty=scene.difficulty.value if scene.difficulty is not None else "unknown",
+        objects=scene.movable_objects,
+        agent=settings.agent,
+        agent_config=settings.recorded_config(),
+        seed=seed if settings.seeded() else None,
+        success=m.success,
+        osr=m.object_success_rate,
+        rdr=m.remaining_distance_ratio,
+        stage=m.stage,
+        placed=m.placed,
+        steps=m.steps,
+        horizon=played.scene.horizon,
+        end=played.end,
+        total_reward=m.total_reward,
+        actions=played.actions,
+        wall_seconds=wall,
+        agent_stats=played.stats,
+        server_version=info.version,
+        client=CLIENT_NAME,
+        finished_at=_now_rfc3339(),
+    )
+
+
+async def play_episode(
+    client: AsyncClient,
+    info: ServerInfo,
+    scene: SceneSummary,
+    settings: EvalSettings,
+    factory: AgentFactory | None,
+) -> EpisodeRecord:
+    """Plays one episode of `scene` as `esrp eval` does and returns its record (errors propagate)."""
+    seed = scene_seed(settings.seed, scene.id)
+    clock = time.monotonic()
+    played = await _play(client, scene, settings, factory, seed)
+    return episode_record(settings, info, scene, seed, time.monotonic() - clock, played)
+
+
+async def pick_scenes(client: AsyncClient, settings: EvalSettings) -> list[SceneSummary]:
     """The scenes to run, fixed up front: the split's (filtered), or the ones named, in order."""
     listed = [s async for s in client.scenes(settings.split, settings.difficulty, page_size=1000)]
     if settings.scenes:
@@ -334,7 +403,7 @@ async def _pick_scenes(client: AsyncClient, settings: EvalSettings) -> list[Scen
     return picked
 
 
-def _resume(path: Path, agent: str, config: dict[str, Any]) -> list[EpisodeRecord]:
+def resume_records(path: Path, agent: str, config: dict[str, Any]) -> list[EpisodeRecord]:
     """What an earlier run wrote (a torn last line is cut off first). Refuses a file of another
     agent, or of the same agent with other settings (another model, budget, ...): one file, one run.
     """
@@ -364,7 +433,7 @@ def _running(tally: Tally) -> str:
     return f"SR {100 * tally.sr:.1f} %  OSR {100 * tally.osr:.1f} %  RDR {tally.rdr:.3f}"
 
 
-class _Progress:
+class Progress:
     """tqdm on a terminal (episodes, ETA, running SR); a plain line every 5 % otherwise."""
 
     def __init__(self, total: int, done: int, enabled: bool) -> None:
@@ -404,33 +473,19 @@ async def evaluate(client: AsyncClient, settings: EvalSettings) -> EvalOutcome:
     """
     if settings.episodes_in_flight < 1:
         raise EvalError("--episodes-in-flight must be at least 1")
-    factory: AgentFactory | None = None
-    if settings.agent == "random":
-        factory = RandomAgent
-    elif settings.agent == "vlm":
-        from .agents.vlm import VlmAgentFactory
-
-        try:
-            factory = VlmAgentFactory(settings.agent_config, results_path=settings.out)
-        except ValueError as error:
-            raise EvalError(str(error)) from None
-    elif settings.agent not in BUILTIN_AGENTS:
-        try:
-            factory = load_factory(settings.agent)
-        except ValueError as error:
-            raise EvalError(str(error)) from None
+    factory = agent_factory(settings)
     info: ServerInfo = await client.server_info()
     print(
         f"esrp-server {info.version} at {client.address}: dataset {info.dataset}, "
         f"renderer {info.renderer_adapter}",
         file=sys.stderr,
     )
-    scenes = await _pick_scenes(client, settings)
+    scenes = await pick_scenes(client, settings)
     out = settings.out
     if settings.fresh and out.exists():
         out.unlink()
     out.parent.mkdir(parents=True, exist_ok=True)
-    records = _resume(out, settings.agent, settings.recorded_config())
+    records = resume_records(out, settings.agent, settings.recorded_config())
     done = {r.scene_id for r in records}
     wanted = {s.id for s in scenes}
     todo = [s for s in scenes if s.id not in done]
@@ -438,43 +493,12 @@ async def evaluate(client: AsyncClient, settings: EvalSettings) -> EvalOutcome:
     if earlier:
         print(f"resuming {out}: {earlier} of {len(scenes)} scenes already done", file=sys.stderr)
 
-    config = settings.recorded_config()
     tally = Tally.of(r for r in records if r.scene_id in wanted)
-    progress = _Progress(len(scenes), earlier, settings.progress)
+    progress = Progress(len(scenes), earlier, settings.progress)
     failed: list[tuple[str, str]] = []
     written = 0
     started = time.monotonic()
     queue = iter(todo)
-
-    def record_of(scene: SceneSummary, seed: int, wall: float, played: _Played) -> EpisodeRecord:
-        m = played.metrics
-        return EpisodeRecord(
-            schema=SCHEMA,
-            scene_id=scene.id,
-            dataset=info.dataset,
-            split=scene.split.value if scene.split is not None else "unknown",
-            room_type=scene.room_type,
-            difficulty=scene.difficulty.value if scene.difficulty is not None else "unknown",
-            objects=scene.movable_objects,
-            agent=settings.agent,
-            agent_config=config,
-            seed=seed if settings.seeded() else None,
-            success=m.success,
-            osr=m.object_success_rate,
-            rdr=m.remaining_distance_ratio,
-            stage=m.stage,
-            placed=m.placed,
-            steps=m.steps,
-            horizon=played.scene.horizon,
-            end=played.end,
-            total_reward=m.total_reward,
-            actions=played.actions,
-            wall_seconds=wall,
-            agent_stats=played.stats,
-            server_version=info.version,
-            client=CLIENT_NAME,
-            finished_at=_now_rfc3339(),
-        )
 
     async def worker(file: IO[bytes]) -> None:
         nonlocal written
@@ -489,7 +513,7 @@ async def evaluate(client: AsyncClient, settings: EvalSettings) -> EvalOutcome:
                 failed.append((scene.id, message))
                 progress.advance(tally)
                 continue
-            record = record_of(scene, seed, time.monotonic() - clock, played)
+            record = episode_record(settings, info, scene, seed, time.monotonic() - clock, played)
             append_record(file, record)
             written += 1
             records.append(record)
@@ -507,14 +531,28 @@ async def evaluate(client: AsyncClient, settings: EvalSettings) -> EvalOutcome:
             await close()
 
     mine = [r for r in records if r.scene_id in wanted]
+    return finish(settings, info, mine, written, failed, time.monotonic() - started)
+
+
+def finish(
+    settings: EvalSettings,
+    info: ServerInfo,
+    mine: list[EpisodeRecord],
+    written: int,
+    failed: list[tuple[str, str]],
+    seconds: float,
+) -> EvalOutcome:
+    """Prints the summary of a run's records (`mine`: those of its scenes), writes it as Markdown
+    beside the results file, and returns the outcome.
+    """
     summary = Summary.of(mine)
-    print(f"{settings.agent} on {len(mine)} scenes of {info.dataset} ({time.monotonic() - started:.0f} s):")
+    print(f"{settings.agent} on {len(mine)} scenes of {info.dataset} ({seconds:.0f} s):")
     print(summary.text(), end="")
-    summary_path = settings.summary or out.with_suffix(".md")
+    summary_path = settings.summary or settings.out.with_suffix(".md")
     markdown = summary.markdown(f"{settings.agent} on {info.dataset} ({settings.split} split)")
     markdown += (
         f"\nWritten by {CLIENT_NAME} against esrp-server {info.version} ({info.renderer_adapter} renderer) "
-        f"on {_now_rfc3339()}; results in `{out.name}`.\n"
+        f"on {_now_rfc3339()}; results in `{settings.out.name}`.\n"
     )
     summary_path.write_text(markdown, encoding="utf-8")
     print(f"summary: {summary_path}")

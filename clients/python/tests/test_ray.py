@@ -1,0 +1,169 @@
+"""`esrp eval --ray` on a local Ray cluster: two actors, each with its own spawned esrp-server, play
+40 test scenes with the expert and the random agents; every episode is recorded exactly once and
+its metrics and actions are those of the same evaluation run locally without Ray. The same when
+one actor's server is killed (SIGKILL) mid-run: Ray restarts the actor with a new server and its
+unfinished episodes are played again from their start.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from esrp.cli import main
+from esrp.evaluation import EvalSettings, run_eval
+from esrp.results import EpisodeRecord, read_records
+
+ray = pytest.importorskip("ray", reason="esrp[ray] is not installed")
+
+SCENES = 40
+
+# What must not differ between a local and a Ray run of the same evaluation (not the wall times,
+# the finishing times or the order of the file).
+SAME: tuple[str, ...] = ("agent", "agent_config", "seed", "success", "osr", "rdr", "stage", "placed")
+SAME += ("steps", "end", "actions")
+
+
+@pytest.fixture(scope="module")
+def ray_cluster() -> Iterator[None]:
+    """A local Ray cluster for this module: 2 CPUs (one per actor), no dashboard."""
+    try:
+        ray.init(
+            num_cpus=2,
+            include_dashboard=False,
+            object_store_memory=128 * 1024 * 1024,
+            log_to_driver=False,
+        )
+    except Exception as error:  # noqa: BLE001 - the engine cannot start on this machine.
+        pytest.skip(f"a local Ray cluster cannot start here: {error}")
+    yield
+    ray.shutdown()
+
+
+def by_scene(path: Path) -> dict[str, EpisodeRecord]:
+    records = read_records(path).records
+    ids = [r.scene_id for r in records]
+    assert len(ids) == len(set(ids)), "an episode was recorded twice"
+    return {r.scene_id: r for r in records}
+
+
+def assert_same(local: dict[str, EpisodeRecord], distributed: dict[str, EpisodeRecord]) -> None:
+    assert sorted(distributed) == sorted(local), "the Ray run recorded other episodes"
+    for scene_id, record in local.items():
+        other = distributed[scene_id]
+        for name in SAME:
+            assert getattr(other, name) == getattr(record, name), f"{scene_id}: {name} differs"
+
+
+@pytest.fixture(scope="module")
+def local_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, EpisodeRecord]]:
+    """The expert's and the random agent's records of the first 40 test scenes, run locally."""
+    folder = tmp_path_factory.mktemp("local")
+    runs = {}
+    for agent in ("expert", "random"):
+        out = folder / f"{agent}.jsonl"
+        settings = EvalSettings(agent=agent, out=out, split="test", limit=SCENES, progress=False)
+        outcome = run_eval(settings)
+        assert not outcome.failed
+        runs[agent] = by_scene(out)
+        assert len(runs[agent]) == SCENES
+    return runs
+
+
+def ray_eval(out: Path, agent: str, *more: str) -> int:
+    """`esrp eval --ray` in this process (the module's Ray cluster): 2 actors, spawned servers."""
+    return main(
+        [
+            "eval",
+            "--agent",
+            agent,
+            "--split",
+            "test",
+            "--limit",
+            str(SCENES),
+            "--out",
+            str(out),
+            "--no-progress",
+            "--ray",
+            "--spawn-servers",
+            "2",
+            "--episodes-in-flight",
+            "4",
+            *more,
+        ]
+    )
+
+
+@pytest.mark.usefixtures("ray_cluster")
+@pytest.mark.parametrize("agent", ["expert", "random"])
+def test_a_ray_run_records_every_episode_once_as_a_local_run(
+    agent: str, local_runs: dict[str, dict[str, EpisodeRecord]], tmp_path: Path
+) -> None:
+    out = tmp_path / f"{agent}.jsonl"
+    assert ray_eval(out, agent) == 0
+    assert_same(local_runs[agent], by_scene(out))
+    # Resuming a complete file plays nothing again.
+    before = out.read_bytes()
+    assert ray_eval(out, agent) == 0
+    assert out.read_bytes() == before
+
+
+def actor_servers() -> list[int]:
+    """The pids of the esrp-server processes whose parent is a Ray actor of the evaluation."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            command = (entry / "cmdline").read_bytes().split(b"\0")
+            if not command[0].endswith(b"esrp-server"):
+                continue
+            parent = (entry / "stat").read_text().rsplit(")", 1)[1].split()[1]
+            parent_command = Path(f"/proc/{parent}/cmdline").read_bytes()
+        except (OSError, IndexError):
+            continue
+        if b"EvalActor" in parent_command:
+            pids.append(int(entry.name))
+    return pids
+
+
+@pytest.mark.usefixtures("ray_cluster")
+def test_a_server_killed_mid_run_changes_nothing(
+    local_runs: dict[str, dict[str, EpisodeRecord]], tmp_path: Path
+) -> None:
+    # The random agent's episodes run to the horizon: the run lasts long enough to be interrupted.
+    out = tmp_path / "random.jsonl"
+    killed: list[int] = []
+
+    def kill_one_when_started() -> None:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            lines = out.read_bytes().count(b"\n") if out.exists() else 0
+            servers = actor_servers()
+            if lines >= 3 and len(servers) == 2:
+                os.kill(servers[0], signal.SIGKILL)
+                killed.append(servers[0])
+                return
+            time.sleep(0.01)
+
+    killer = threading.Thread(target=kill_one_when_started)
+    killer.start()
+    status = ray_eval(out, "random", "--episodes-in-flight", "2")
+    killer.join()
+    assert killed, "no server was killed: the run ended before 3 episodes were recorded"
+    assert status == 0
+    assert_same(local_runs["random"], by_scene(out))
+
+
+def test_ray_flags_need_ray(tmp_path: Path, capsys: Any) -> None:  # noqa: ANN401
+    out = tmp_path / "x.jsonl"
+    assert main(["eval", "--agent", "expert", "--out", str(out), "--servers", "127.0.0.1:1"]) == 2
+    assert "only apply with --ray" in capsys.readouterr().err
+    assert not out.exists()
