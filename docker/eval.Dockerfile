@@ -1,9 +1,9 @@
 # esrp-eval: an image for evaluation jobs against running esrp-servers. It holds the Python package
-# `esrp` with its Gymnasium env (`pip install ./clients/python[gym]`, in the venv /opt/esrp, on PATH)
-# and the Rust evaluation tool `esrp-eval` (docs/evaluation.md). It renders nothing and starts no
-# server: point it at servers (`esrp-eval --server http://HOST:PORT`, `esrp.Client("HOST:PORT")`).
-# The Python `esrp eval` command, and with it `esrp eval --ray`, lands later in clients/python; this
-# image will carry it with no change here.
+# `esrp` with its Gymnasium env and Ray (`pip install ./clients/python[gym,ray]`, in the venv
+# /opt/esrp, on PATH: `esrp eval`, `esrp eval --ray`) and the Rust evaluation tool `esrp-eval`
+# (docs/evaluation.md). It renders nothing and starts no server: point it at servers
+# (`esrp eval --server HOST:PORT`, `esrp eval --ray auto --servers HOST:PORT,...`,
+# `esrp-eval --server http://HOST:PORT`).
 #
 # Targets (docker/README.md has the commands):
 #   eval (the default, last)  build esrp-eval from source in a Rust image; install the package and
@@ -12,6 +12,9 @@
 #   eval-prebuilt             copy wheels and an esrp-eval binary made on the host (ARG WHEELS, a
 #                             folder of wheels for CPython 3.11 on x86_64 Linux; ARG EVAL_BINARY):
 #                             nothing fetched during the build but Debian packages
+#   eval-ray                  `eval` plus what KubeRay expects of a Ray node image: Ray's dashboard
+#                             agent (`ray[default]`, whose raylet health endpoint KubeRay's probes
+#                             ask with wget) and wget; the image of docker/k8s/ray/rayjob.yaml
 # As in server.Dockerfile, the stages are ordered so that `--target eval-prebuilt` needs no Rust image.
 
 ARG BASE=debian:bookworm-slim
@@ -42,7 +45,7 @@ LABEL org.opencontainers.image.title="esrp-eval" \
 FROM eval-base AS venv-prebuilt
 ARG WHEELS=wheels
 COPY ${WHEELS} /tmp/wheels
-RUN pip install --no-index --find-links /tmp/wheels 'esrp[gym]'
+RUN pip install --no-index --find-links /tmp/wheels 'esrp[gym,ray]'
 
 FROM eval-base AS eval-prebuilt
 COPY --from=venv-prebuilt /opt/esrp /opt/esrp
@@ -60,10 +63,23 @@ RUN cargo build --release --locked -p esrp-client --bin esrp-eval \
 
 FROM eval-base AS venv
 COPY clients/python /tmp/esrp-python
-RUN pip install '/tmp/esrp-python[gym]' -c /tmp/esrp-python/constraints.txt
+RUN pip install '/tmp/esrp-python[gym,ray]' -c /tmp/esrp-python/constraints.txt
+
+# --- For KubeRay: Ray's dashboard agent (the raylet health endpoint its probes ask) and wget. ---
+FROM eval-base AS eval-ray
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends wget \
+    && rm -rf /var/lib/apt/lists/*
+COPY --from=venv /opt/esrp /opt/esrp
+COPY clients/python/constraints.txt /tmp/constraints.txt
+RUN pip install "ray[default]" -c /tmp/constraints.txt && rm /tmp/constraints.txt
+COPY --from=builder /esrp-eval /usr/local/bin/esrp-eval
+USER 10001:10001
+CMD ["esrp-eval", "--help"]
 
 FROM eval-base AS eval
 COPY --from=venv /opt/esrp /opt/esrp
 COPY --from=builder /esrp-eval /usr/local/bin/esrp-eval
 USER 10001:10001
 CMD ["esrp-eval", "--help"]
+

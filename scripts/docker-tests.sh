@@ -130,7 +130,7 @@ if [ -z "$unavailable" ]; then
         --find-links "$work/eval-context/wheels" --only-binary=:all: --python-version 3.11 \
         --implementation cp --abi cp311 --abi abi3 --abi none --platform manylinux_2_28_x86_64 \
         --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
-        -c clients/python/constraints.txt 'esrp[gym]'
+        -c clients/python/constraints.txt 'esrp[gym,ray]'
     build --network host -f docker/eval.Dockerfile --target eval-prebuilt \
         --build-arg BASE=esrp-base:bookworm --build-arg WHEELS=wheels --build-arg EVAL_BINARY=esrp-eval \
         --build-arg VERSION="$version" -t esrp-eval:test "$work/eval-context"

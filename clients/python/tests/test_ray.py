@@ -17,6 +17,7 @@ from typing import Any
 
 import pytest
 
+import esrp
 from esrp.cli import main
 from esrp.evaluation import EvalSettings, run_eval
 from esrp.results import EpisodeRecord, read_records
@@ -160,6 +161,21 @@ def test_a_server_killed_mid_run_changes_nothing(
     assert killed, "no server was killed: the run ended before 3 episodes were recorded"
     assert status == 0
     assert_same(local_runs["random"], by_scene(out))
+
+
+@pytest.mark.usefixtures("ray_cluster")
+def test_actors_pinned_to_given_servers(
+    server: esrp.LocalServer, local_runs: dict[str, dict[str, EpisodeRecord]], tmp_path: Path
+) -> None:
+    out = tmp_path / "expert.jsonl"
+    with esrp.LocalServer() as other:
+        servers = f"{server.address},{other.address}"
+        arguments = ["eval", "--agent", "expert", "--split", "test", "--limit", "10", "--out", str(out)]
+        status = main([*arguments, "--no-progress", "--ray", "--servers", servers])
+    assert status == 0
+    pinned = by_scene(out)
+    assert len(pinned) == 10
+    assert_same({scene: local_runs["expert"][scene] for scene in pinned}, pinned)
 
 
 def test_ray_flags_need_ray(tmp_path: Path, capsys: Any) -> None:  # noqa: ANN401

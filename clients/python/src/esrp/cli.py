@@ -152,9 +152,9 @@ def _parser() -> argparse.ArgumentParser:
     ray.add_argument(
         "--servers",
         type=_comma_list,
-        default=[],
         metavar="HOST:PORT,...",
-        help="--ray: pin one actor to each of these servers (default: actors spawn their own)",
+        help="--ray: pin one actor to each of these servers (default: $ESRP_SERVERS; without it, actors "
+        "spawn their own)",
     )
     ray.add_argument(
         "--spawn-servers",
@@ -247,12 +247,13 @@ def _eval(args: argparse.Namespace) -> int:
         privileged=args.privileged,
         progress=args.progress,
     )
-    ray_only = (("--servers", args.servers), ("--spawn-servers", args.spawn_servers))
+    ray_only = (("--servers", args.servers is not None), ("--spawn-servers", args.spawn_servers))
     ray_flags = [flag for flag, given in ray_only if given]
     if args.ray is None and ray_flags:
         print(f"esrp eval: {', '.join(ray_flags)} only apply with --ray", file=sys.stderr)
         return 2
-    if args.ray is not None and (args.server is not None or (args.servers and args.spawn_servers)):
+    servers = args.servers if args.servers is not None else _comma_list(os.environ.get("ESRP_SERVERS", ""))
+    if args.ray is not None and (args.server is not None or (servers and args.spawn_servers)):
         message = "with --ray, name servers with --servers, or spawn them (--spawn-servers)"
         print(f"esrp eval: {message}", file=sys.stderr)
         return 2
@@ -262,7 +263,7 @@ def _eval(args: argparse.Namespace) -> int:
 
             cluster = RaySettings(
                 address=None if args.ray == "local" else args.ray,
-                servers=args.servers,
+                servers=servers,
                 spawn_servers=args.spawn_servers or 0,
                 cpus_per_actor=args.cpus_per_actor,
                 episodes_per_actor=args.episodes_in_flight,
