@@ -206,6 +206,29 @@ def _parser() -> argparse.ArgumentParser:
     rp.add_argument("--fps", type=float, default=10.0)
     rp.add_argument("--scale", type=_positive, default=2, help="pixels per image pixel")
     _server_options(rp)
+    demos = commands.add_parser(
+        "demos",
+        help="expert demonstrations for imitation learning (zarr; docs/demonstrations.md)",
+        description="Expert demonstrations for imitation learning.",
+    )
+    demo_commands = demos.add_subparsers(dest="demos_command", required=True, metavar="COMMAND")
+    export = demo_commands.add_parser(
+        "export",
+        help="replay the scenes' expert trajectories on the server into a zarr store",
+        description="Replay each chosen scene's expert trajectory on the server and append its "
+        "observations (ego view, grasp flag), actions and goal image to a zarr store "
+        "(docs/demonstrations.md), resuming a store an interrupted run left.",
+    )
+    export.add_argument("--split", choices=("train", "test"), default="train")
+    export.add_argument("--difficulty", choices=("easy", "medium", "hard"))
+    export.add_argument(
+        "--scenes", type=_comma_list, default=[], metavar="ID,...", help="only these scenes, in order"
+    )
+    export.add_argument("--limit", type=_positive, metavar="N", help="at most N scenes")
+    export.add_argument("--resolution", type=int, default=0, help="the views' side in pixels (0: 128)")
+    export.add_argument("--out", type=Path, required=True, help="the zarr store (a folder)")
+    export.add_argument("--no-progress", dest="progress", action="store_false")
+    _server_options(export)
     commands.add_parser(
         "bench",
         add_help=False,
@@ -283,6 +306,41 @@ def _eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _demos(args: argparse.Namespace) -> int:
+    try:
+        from .demos import DemoExportError, DemoSettings, export_demos
+    except ImportError as error:
+        print(f"esrp demos: {error} (pip install 'esrp[train]')", file=sys.stderr)
+        return 2
+    settings = DemoSettings(
+        out=args.out,
+        split=args.split,
+        difficulty=args.difficulty,
+        scenes=args.scenes,
+        limit=args.limit,
+        resolution=args.resolution,
+        progress=args.progress,
+    )
+
+    from ._client import Client
+    from ._local import LocalServer
+
+    def run(address: str) -> int:
+        with Client(address, token=args.token, timeout=120) as client:
+            outcome = export_demos(client, settings)
+        print(f"{args.out}: {outcome.episodes} episodes, {outcome.steps} steps ({outcome.added} added now)")
+        return 0
+
+    try:
+        if args.server is not None:
+            return run(args.server)
+        with LocalServer(*args.server_args) as local:
+            return run(local.address)
+    except DemoExportError as error:
+        print(f"esrp demos export: {error}", file=sys.stderr)
+        return 2
+
+
 def _report(args: argparse.Namespace) -> int:
     from .report import ReportError, write_report
 
@@ -337,7 +395,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         return bench.main(arguments[1:])
     args = _parser().parse_args(arguments)
-    handlers = {"eval": _eval, "report": _report, "replay": _replay}
+    handlers = {"eval": _eval, "report": _report, "replay": _replay, "demos": _demos}
     try:
         return handlers[args.command](args)
     except EsrpError as error:
