@@ -88,7 +88,8 @@ def _parser() -> argparse.ArgumentParser:
         "--agent",
         required=True,
         help="random, expert, plan, vlm (ESRP-VLM over an OpenAI-compatible endpoint: --base-url, "
-        "--model), or MODULE:CALLABLE (a factory called with the agent config, once per episode, "
+        "--model), bc (ESRP-BC: --checkpoint), or MODULE:CALLABLE (a factory called with the agent "
+        "config, once per episode, "
         "returning an esrp.agents.Agent or AsyncAgent)",
     )
     ev.add_argument("--split", choices=("train", "test"), default="test")
@@ -118,6 +119,12 @@ def _parser() -> argparse.ArgumentParser:
         "the API key is $ESRP_VLM_API_KEY or $OPENAI_API_KEY",
     )
     ev.add_argument("--model", metavar="NAME", help="vlm: the model it serves (the config's model)")
+    ev.add_argument(
+        "--checkpoint",
+        type=Path,
+        metavar="PATH",
+        help="bc: the trained policy (RUN/ckpt.pt of esrp train; the config's checkpoint)",
+    )
     ev.add_argument(
         "--trace-dir",
         type=Path,
@@ -229,6 +236,23 @@ def _parser() -> argparse.ArgumentParser:
     export.add_argument("--out", type=Path, required=True, help="the zarr store (a folder)")
     export.add_argument("--no-progress", dest="progress", action="store_false")
     _server_options(export)
+    train = commands.add_parser(
+        "train",
+        help="train a learning baseline (ESRP-BC) from a config file",
+        description="Train a learning baseline. Configs: clients/python/configs/ "
+        "(pip install 'esrp[train]').",
+    )
+    train_commands = train.add_subparsers(dest="train_command", required=True, metavar="AGENT")
+    bc = train_commands.add_parser(
+        "bc",
+        help="ESRP-BC (Diffusion Policy) on an esrp demos export store",
+        description="Train ESRP-BC on the demonstrations its config names; writes RUN/config.json, "
+        "RUN/log.csv and RUN/ckpt.pt (esrp eval --agent bc --checkpoint RUN/ckpt.pt plays it).",
+    )
+    bc.add_argument("--config", type=Path, required=True, help="a TOML file with a [bc] table, or JSON")
+    bc.add_argument("--out", type=Path, default=Path("runs/bc"), help="the run folder (default runs/bc)")
+    bc.add_argument("--resume", action="store_true", help="go on from RUN/ckpt.pt")
+    bc.add_argument("--no-progress", dest="progress", action="store_false")
     commands.add_parser(
         "bench",
         add_help=False,
@@ -252,6 +276,11 @@ def _eval(args: argparse.Namespace) -> int:
         print(f"esrp eval: {flags} only apply to --agent vlm", file=sys.stderr)
         return 2
     agent_config.update({key: str(value) for key, value in given.items()})
+    if args.checkpoint is not None:
+        if args.agent != "bc":
+            print("esrp eval: --checkpoint only applies to --agent bc", file=sys.stderr)
+            return 2
+        agent_config["checkpoint"] = str(args.checkpoint)
     settings = EvalSettings(
         agent=args.agent,
         out=args.out,
@@ -341,6 +370,22 @@ def _demos(args: argparse.Namespace) -> int:
         return 2
 
 
+def _train(args: argparse.Namespace) -> int:
+    try:
+        from .train_bc import load_config, train
+    except ImportError as error:
+        print(f"esrp train: {error} (pip install 'esrp[train]')", file=sys.stderr)
+        return 2
+    try:
+        config = load_config(args.config)
+        checkpoint = train(config, args.out, resume=args.resume, progress=args.progress)
+    except (OSError, ValueError) as error:
+        print(f"esrp train bc: {error}", file=sys.stderr)
+        return 2
+    print(f"checkpoint: {checkpoint}")
+    return 0
+
+
 def _report(args: argparse.Namespace) -> int:
     from .report import ReportError, write_report
 
@@ -395,7 +440,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         return bench.main(arguments[1:])
     args = _parser().parse_args(arguments)
-    handlers = {"eval": _eval, "report": _report, "replay": _replay, "demos": _demos}
+    handlers = {"eval": _eval, "report": _report, "replay": _replay, "demos": _demos, "train": _train}
     try:
         return handlers[args.command](args)
     except EsrpError as error:

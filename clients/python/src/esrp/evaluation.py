@@ -55,7 +55,7 @@ __all__ = [
     "run_eval",
 ]
 
-BUILTIN_AGENTS = ("random", "expert", "plan", "vlm")
+BUILTIN_AGENTS = ("random", "expert", "plan", "vlm", "bc")
 """The agents `esrp eval` knows by name."""
 
 CLIENT_NAME = f"esrp eval (Python) {__version__}"
@@ -324,6 +324,17 @@ def agent_factory(settings: EvalSettings) -> AgentFactory | None:
 
         try:
             return VlmAgentFactory(settings.agent_config, results_path=settings.out)
+        except ValueError as error:
+            raise EvalError(str(error)) from None
+    if settings.agent == "bc":
+        try:
+            from .agents.bc import BcPolicy
+        except ImportError as error:
+            raise EvalError(
+                f"--agent bc needs the train extra (pip install 'esrp[train]'): {error}"
+            ) from None
+        try:
+            return BcPolicy(settings.agent_config)
         except ValueError as error:
             raise EvalError(str(error)) from None
     if settings.agent not in BUILTIN_AGENTS:

@@ -1,0 +1,419 @@
+"""ESRP-BC: a conditional Diffusion Policy over one-hot action chunks (SPEC §8), and its agent.
+
+The condition c_t = MLP(concat(encoder features of the last n ego views, encoder features of the
+goal image, embeddings of the last n grasp flags)). The expert's next h actions, as one-hot vectors
+scaled to [-1, 1], are noised by DDPM (`diffusers`' `DDPMScheduler`, 50 steps) and a conditional 1D
+U-Net (FiLM-conditioned residual blocks over the h positions) predicts the noise. Loss: noise MSE +
+λ_CE × cross-entropy of the denoised chunk (clipped to [-1, 1] as sampling clips it, read as
+per-position logits) against the expert's actions. At inference `diffusers`' `DDIMScheduler`
+denoises in 16 steps; the agent executes the first 6 of the 8 predicted actions, each replaced by a
+uniform random one with probability ε.
+
+The paper's image encoders are ImageNet-pretrained ResNet-50s; no weights can be downloaded here,
+so the encoder is trained from scratch: a small CNN by default (`encoder = "cnn"`, for CPUs), or a
+ResNet-18-style network (`encoder = "resnet18"`, written here, no torchvision).
+
+`esrp eval --agent bc --checkpoint RUN/ckpt.pt` plays a trained policy (`esrp train bc` makes one).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any, cast
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F  # noqa: N812 - the usual name
+
+from .._values import Action, Observation
+
+__all__ = ["BcAgent", "BcConfig", "BcPolicy", "DiffusionPolicy", "load_policy"]
+
+ACTIONS = len(Action)
+
+
+@dataclass
+class BcConfig:
+    """The model's and the training's settings (the `[bc]` table of a training config).
+
+    Defaults are the paper's (SPEC §8) except the encoder (from scratch: no pretrained weights).
+    """
+
+    demos: str = "demos/train.zarr"
+    encoder: str = "cnn"
+    feature_dim: int = 256
+    grasp_dim: int = 16
+    cond_dim: int = 256
+    unet_channels: tuple[int, ...] = (64, 128, 256)
+    kernel_size: int = 3
+    n_obs: int = 4
+    horizon: int = 8
+    n_execute: int = 6
+    diffusion_steps: int = 50
+    ddim_steps: int = 16
+    lambda_ce: float = 0.2
+    epsilon: float = 0.1
+    lr: float = 1e-4
+    weight_decay: float = 1e-6
+    batch_size: int = 1024
+    epochs: int = 500
+    seed: int = 0
+    threads: int = 0
+    checkpoint_every: int = 10
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any]) -> BcConfig:
+        """A config from a mapping (a TOML/JSON table); unknown keys raise `ValueError`."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown bc settings {unknown}: known are {sorted(known)}")
+        given: dict[str, Any] = {k: tuple(v) if k == "unet_channels" else v for k, v in values.items()}
+        config = cls(**given)
+        if config.encoder not in ("cnn", "resnet18"):
+            raise ValueError(f"encoder {config.encoder!r}: cnn or resnet18")
+        if not 1 <= config.n_execute <= config.horizon:
+            raise ValueError("n_execute must be between 1 and horizon")
+        if config.horizon % 2 ** (len(config.unet_channels) - 1):
+            raise ValueError("horizon must be divisible by 2 ** (len(unet_channels) - 1)")
+        return config
+
+    def to_dict(self) -> dict[str, Any]:
+        """The config as plain values (for checkpoints and logs)."""
+        values = asdict(self)
+        values["unet_channels"] = list(self.unet_channels)
+        return values
+
+
+# --- Encoders ---
+
+
+class SmallCnn(nn.Module):
+    """Four strided 3×3 convolutions (32-64-128-128 channels), global average pooling, a linear layer."""
+
+    def __init__(self, out: int) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        channels = 3
+        for width in (32, 64, 128, 128):
+            layers += [nn.Conv2d(channels, width, 3, stride=2, padding=1), nn.GroupNorm(8, width), nn.ReLU()]
+            channels = width
+        self.body = nn.Sequential(*layers)
+        self.head = nn.Linear(channels, out)
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        out: torch.Tensor = self.head(self.body(images).mean(dim=(2, 3)))
+        return out
+
+
+class _Basic(nn.Module):
+    def __init__(self, cin: int, cout: int, stride: int) -> None:
+        super().__init__()
+        self.conv1 = nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False)
+        self.norm1 = nn.GroupNorm(8, cout)
+        self.conv2 = nn.Conv2d(cout, cout, 3, padding=1, bias=False)
+        self.norm2 = nn.GroupNorm(8, cout)
+        self.skip: nn.Module = (
+            nn.Identity()
+            if stride == 1 and cin == cout
+            else nn.Sequential(nn.Conv2d(cin, cout, 1, stride=stride, bias=False), nn.GroupNorm(8, cout))
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = F.relu(self.norm1(self.conv1(x)))
+        return F.relu(self.norm2(self.conv2(y)) + self.skip(x))
+
+
+class ResNet18(nn.Module):
+    """ResNet-18's layout (GroupNorm instead of BatchNorm, as Diffusion Policy does), from scratch."""
+
+    def __init__(self, out: int) -> None:
+        super().__init__()
+        self.stem = nn.Sequential(
+            nn.Conv2d(3, 64, 7, stride=2, padding=3, bias=False),
+            nn.GroupNorm(8, 64),
+            nn.ReLU(),
+            nn.MaxPool2d(3, 2, 1),
+        )
+        blocks: list[nn.Module] = []
+        cin = 64
+        for cout, stride in ((64, 1), (128, 2), (256, 2), (512, 2)):
+            blocks += [_Basic(cin, cout, stride), _Basic(cout, cout, 1)]
+            cin = cout
+        self.blocks = nn.Sequential(*blocks)
+        self.head = nn.Linear(512, out)
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        out: torch.Tensor = self.head(self.blocks(self.stem(images)).mean(dim=(2, 3)))
+        return out
+
+
+def _encoder(kind: str, out: int) -> nn.Module:
+    return ResNet18(out) if kind == "resnet18" else SmallCnn(out)
+
+
+# --- The conditional 1D U-Net ---
+
+
+def _step_embedding(steps: torch.Tensor, dim: int) -> torch.Tensor:
+    half = dim // 2
+    scale = math.log(10_000) / max(half - 1, 1)
+    frequencies = torch.exp(torch.arange(half, device=steps.device) * -scale)
+    angles = steps.float()[:, None] * frequencies[None]
+    return torch.cat([angles.sin(), angles.cos()], dim=-1)
+
+
+class _FilmBlock(nn.Module):
+    """Two 1D convolutions; the condition scales and shifts the first's output (FiLM)."""
+
+    def __init__(self, cin: int, cout: int, cond: int, kernel: int) -> None:
+        super().__init__()
+        self.conv1 = nn.Sequential(
+            nn.Conv1d(cin, cout, kernel, padding=kernel // 2), nn.GroupNorm(8, cout), nn.Mish()
+        )
+        self.conv2 = nn.Sequential(
+            nn.Conv1d(cout, cout, kernel, padding=kernel // 2), nn.GroupNorm(8, cout), nn.Mish()
+        )
+        self.film = nn.Sequential(nn.Mish(), nn.Linear(cond, 2 * cout))
+        self.skip: nn.Module = nn.Conv1d(cin, cout, 1) if cin != cout else nn.Identity()
+
+    def forward(self, x: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        scale, shift = self.film(cond)[:, :, None].chunk(2, dim=1)
+        y = self.conv1(x) * (1 + scale) + shift
+        out: torch.Tensor = self.conv2(y) + self.skip(x)
+        return out
+
+
+class ConditionalUnet1d(nn.Module):
+    """Diffusion Policy's conditional 1D U-Net, over (batch, actions, horizon)."""
+
+    def __init__(self, channels: tuple[int, ...], cond_dim: int, kernel: int) -> None:
+        super().__init__()
+        step_dim = channels[0]
+        self.step_mlp = nn.Sequential(
+            nn.Linear(step_dim, 4 * step_dim), nn.Mish(), nn.Linear(4 * step_dim, step_dim)
+        )
+        self.step_dim = step_dim
+        cond = cond_dim + step_dim
+        self.down = nn.ModuleList()
+        cin = ACTIONS
+        for i, width in enumerate(channels):
+            last = i == len(channels) - 1
+            sample: nn.Module = nn.Identity() if last else nn.Conv1d(width, width, 3, stride=2, padding=1)
+            self.down.append(
+                nn.ModuleList(
+                    [_FilmBlock(cin, width, cond, kernel), _FilmBlock(width, width, cond, kernel), sample]
+                )
+            )
+            cin = width
+        self.mid = nn.ModuleList([_FilmBlock(cin, cin, cond, kernel), _FilmBlock(cin, cin, cond, kernel)])
+        self.up = nn.ModuleList()
+        for width in reversed(channels[:-1]):
+            self.up.append(
+                nn.ModuleList(
+                    [
+                        nn.ConvTranspose1d(cin, cin, 4, stride=2, padding=1),
+                        _FilmBlock(cin + width, width, cond, kernel),
+                        _FilmBlock(width, width, cond, kernel),
+                    ]
+                )
+            )
+            cin = width
+        self.out = nn.Sequential(
+            nn.Conv1d(cin, cin, kernel, padding=kernel // 2), nn.Mish(), nn.Conv1d(cin, ACTIONS, 1)
+        )
+
+    def forward(self, x: torch.Tensor, steps: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        c = torch.cat([self.step_mlp(_step_embedding(steps, self.step_dim)), cond], dim=-1)
+        skips: list[torch.Tensor] = []
+        for level in self.down:
+            first, second, sample = cast(nn.ModuleList, level)
+            x = second(first(x, c), c)
+            skips.append(x)
+            x = sample(x)
+        skips.pop()
+        for block in self.mid:
+            x = block(x, c)
+        for level in self.up:
+            upsample, first, second = cast(nn.ModuleList, level)
+            x = second(first(torch.cat([upsample(x), skips.pop()], dim=1), c), c)
+        out: torch.Tensor = self.out(x)
+        return out
+
+
+class DiffusionPolicy(nn.Module):
+    """Observation encoders, the condition MLP and the denoiser."""
+
+    def __init__(self, config: BcConfig) -> None:
+        super().__init__()
+        self.config = config
+        self.ego = _encoder(config.encoder, config.feature_dim)
+        self.goal = _encoder(config.encoder, config.feature_dim)
+        self.grasp = nn.Embedding(2, config.grasp_dim)
+        width = (config.n_obs + 1) * config.feature_dim + config.n_obs * config.grasp_dim
+        self.cond = nn.Sequential(
+            nn.Linear(width, config.cond_dim), nn.Mish(), nn.Linear(config.cond_dim, config.cond_dim)
+        )
+        self.unet = ConditionalUnet1d(config.unet_channels, config.cond_dim, config.kernel_size)
+
+    def condition(self, ego: torch.Tensor, goal: torch.Tensor, grasping: torch.Tensor) -> torch.Tensor:
+        """c_t from uint8 images: ego (B, n, R, R, 3), goal (B, R, R, 3), grasping (B, n) bool."""
+        batch, n = ego.shape[:2]
+        ego_features = self.ego(_images(ego.reshape(batch * n, *ego.shape[2:]))).reshape(batch, -1)
+        goal_features = self.goal(_images(goal))
+        grasp = self.grasp(grasping.long()).reshape(batch, -1)
+        out: torch.Tensor = self.cond(torch.cat([ego_features, goal_features, grasp], dim=-1))
+        return out
+
+
+def _images(rgb: torch.Tensor) -> torch.Tensor:
+    """uint8 (B, R, R, 3) → float (B, 3, R, R) in [-1, 1]."""
+    return rgb.permute(0, 3, 1, 2).float() / 127.5 - 1.0
+
+
+def schedulers(config: BcConfig) -> tuple[Any, Any]:  # noqa: ANN401 - diffusers' classes
+    """The DDPM scheduler of training and the DDIM scheduler of inference (same noise schedule)."""
+    from diffusers import DDIMScheduler, DDPMScheduler
+
+    common = {
+        "num_train_timesteps": config.diffusion_steps,
+        "beta_schedule": "squaredcos_cap_v2",
+        "clip_sample": True,
+        "prediction_type": "epsilon",
+    }
+    return DDPMScheduler(**common), DDIMScheduler(**common)  # type: ignore[no-untyped-call]
+
+
+def bc_loss(
+    model: DiffusionPolicy,
+    scheduler: Any,  # noqa: ANN401 - diffusers' DDPMScheduler
+    batch: Mapping[str, torch.Tensor],
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(total, noise MSE, cross-entropy) of a batch: `ego` (B, n, R, R, 3) uint8, `goal` (B, R, R, 3)
+    uint8, `grasping` (B, n) bool, `actions` (B, h) int64.
+    """
+    actions = batch["actions"]
+    x0 = F.one_hot(actions, ACTIONS).float().transpose(1, 2) * 2 - 1  # (B, 6, h) in [-1, 1]
+    noise = torch.randn(x0.shape, generator=generator)
+    steps = torch.randint(0, scheduler.config.num_train_timesteps, (x0.shape[0],), generator=generator)
+    noisy = scheduler.add_noise(x0, noise, steps)
+    cond = model.condition(batch["ego"], batch["goal"], batch["grasping"])
+    predicted = model.unet(noisy, steps, cond)
+    mse = F.mse_loss(predicted, noise)
+    alpha = scheduler.alphas_cumprod[steps].float()[:, None, None]
+    # The denoised chunk, clipped to the one-hot range as sampling clips it, read as logits: at
+    # high noise levels the unclipped estimate divides by a tiny sqrt(alpha) and would swamp the MSE.
+    denoised = ((noisy - (1 - alpha).sqrt() * predicted) / alpha.sqrt()).clamp(-1, 1)
+    ce = F.cross_entropy(denoised, actions)  # logits (B, 6, h) against (B, h)
+    return mse + model.config.lambda_ce * ce, mse, ce
+
+
+# --- Checkpoints and the agent ---
+
+
+def load_policy(path: str | Path) -> DiffusionPolicy:
+    """The policy of a checkpoint `esrp train bc` wrote, in eval mode."""
+    state = torch.load(Path(path), map_location="cpu", weights_only=False)
+    if state.get("kind") != "esrp-bc":
+        raise ValueError(f"{path} is not an ESRP-BC checkpoint")
+    model = DiffusionPolicy(BcConfig.from_mapping(state["config"]))
+    model.load_state_dict(state["model"])
+    model.eval()
+    return model
+
+
+@torch.no_grad()
+def sample_actions(
+    model: DiffusionPolicy,
+    scheduler: Any,  # noqa: ANN401 - diffusers' DDIMScheduler
+    ego: torch.Tensor,
+    goal: torch.Tensor,
+    grasping: torch.Tensor,
+    generator: torch.Generator,
+) -> torch.Tensor:
+    """The h actions DDIM denoises for a batch of observation histories: (B, h) int64."""
+    config = model.config
+    scheduler.set_timesteps(config.ddim_steps)
+    cond = model.condition(ego, goal, grasping)
+    x = torch.randn((ego.shape[0], ACTIONS, config.horizon), generator=generator)
+    for step in scheduler.timesteps:
+        predicted = model.unet(x, torch.full((ego.shape[0],), int(step)), cond)
+        x = scheduler.step(predicted, step, x, generator=generator).prev_sample
+    return x.argmax(dim=1)
+
+
+class BcAgent:
+    """Plays a `DiffusionPolicy`: keeps the last n ego views and grasp flags, asks the policy for h
+    actions when its queue is empty, executes the first `n_execute`, each replaced by a random
+    action with probability ε. Seeded per episode by `info["seed"]` (same seed, same actions).
+    """
+
+    def __init__(self, model: DiffusionPolicy, config: Mapping[str, Any]) -> None:
+        self.model = model
+        self.epsilon = float(config.get("epsilon", model.config.epsilon))
+        self.deterministic = bool(config.get("deterministic", False))
+        _, self.scheduler = schedulers(model.config)
+        self.queue: deque[int] = deque()
+        self.egos: deque[np.ndarray] = deque(maxlen=model.config.n_obs)
+        self.grasps: deque[bool] = deque(maxlen=model.config.n_obs)
+        self.goal: np.ndarray | None = None
+        self.rng = np.random.default_rng(0)
+        self.generator = torch.Generator().manual_seed(0)
+
+    def reset(self, observation: Observation, info: Mapping[str, Any]) -> None:
+        """Starts an episode: the history is the first observation, repeated."""
+        seed = int(info["seed"])
+        self.rng = np.random.default_rng(seed)
+        self.generator = torch.Generator().manual_seed(seed)
+        self.goal = np.array(observation.goal_rgb)  # a writable copy, for torch
+        self.queue.clear()
+        self.egos.clear()
+        self.grasps.clear()
+        for _ in range(self.model.config.n_obs):
+            self.egos.append(observation.ego_rgb)
+            self.grasps.append(observation.grasping)
+
+    def act(self, observation: Observation) -> Action:
+        """The next action."""
+        if self.goal is None:
+            raise RuntimeError("act() before reset()")
+        self.egos.append(observation.ego_rgb)
+        self.grasps.append(observation.grasping)
+        if not self.queue:
+            ego = torch.from_numpy(np.stack(self.egos))[None]  # np.stack copies
+            goal = torch.from_numpy(self.goal)[None]
+            grasping = torch.tensor([list(self.grasps)])
+            chunk = sample_actions(self.model, self.scheduler, ego, goal, grasping, self.generator)[0]
+            self.queue.extend(int(a) for a in chunk[: self.model.config.n_execute])
+        action = self.queue.popleft()
+        if not self.deterministic and self.rng.random() < self.epsilon:
+            action = int(self.rng.integers(0, ACTIONS))
+        return Action(action)
+
+
+class BcPolicy:
+    """The agent factory of `esrp eval --agent bc`: loads the checkpoint (`config["checkpoint"]`)
+    once; each call makes an agent for one episode. Config keys: `checkpoint`, `epsilon` (default
+    the training config's, 0.1), `deterministic` (no random replacements), `threads` (torch's).
+    """
+
+    def __init__(self, config: Mapping[str, Any]) -> None:
+        checkpoint = config.get("checkpoint")
+        if not checkpoint:
+            raise ValueError("--agent bc needs --checkpoint RUN/ckpt.pt (made by esrp train bc)")
+        if not Path(str(checkpoint)).is_file():
+            raise ValueError(f"no checkpoint at {checkpoint}")
+        threads = int(config.get("threads", 1))
+        if threads > 0:
+            torch.set_num_threads(threads)
+        self.model = load_policy(str(checkpoint))
+
+    def __call__(self, config: dict[str, Any]) -> BcAgent:
+        """An agent for one episode."""
+        return BcAgent(self.model, config)

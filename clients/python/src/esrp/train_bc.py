@@ -1,0 +1,172 @@
+"""`esrp train bc`: trains ESRP-BC (`esrp.agents.bc`) on an `esrp.demos/v1` store.
+
+Samples are windows of the store: for step t of an episode, the ego views and grasp flags of steps
+t-n+1..t (the episode's first repeated before its start) and the goal image, and the expert's
+actions t..t+h-1 (its last repeated past its end), as Diffusion Policy pads. Each epoch visits every
+step once in a seeded random order; a batch reads only the chunks its windows touch.
+
+A run folder holds `config.json` (the settings), `log.csv` (one line per epoch: epoch, optimizer
+steps, mean loss, noise MSE and cross-entropy, learning rate, seconds) and `ckpt.pt` (model,
+optimizer, epoch, random states: `--resume` goes on from it; `esrp eval --agent bc --checkpoint`
+plays it).
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any, cast
+
+import numpy as np
+import torch
+
+from .agents.bc import BcConfig, DiffusionPolicy, bc_loss, schedulers
+
+__all__ = ["DemoWindows", "load_config", "train"]
+
+
+def load_config(path: Path) -> BcConfig:
+    """The `[bc]` table of a TOML file (or the top level of a JSON file) as a `BcConfig`."""
+    text = path.read_text(encoding="utf-8")
+    if path.suffix == ".json":
+        values: dict[str, Any] = json.loads(text)
+    else:
+        # tomllib is Python 3.11's; on 3.10, tomli (the same parser) if installed.
+        name = "tomllib" if sys.version_info >= (3, 11) else "tomli"
+        values = importlib.import_module(name).loads(text)
+    table = values.get("bc", values)
+    try:
+        return BcConfig.from_mapping(table)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{path}: {error}") from None
+
+
+class DemoWindows:
+    """The training windows of an `esrp.demos/v1` store, read a batch at a time."""
+
+    def __init__(self, path: str | Path, n_obs: int, horizon: int) -> None:
+        import zarr
+
+        self.store = cast(Any, zarr.open_group(str(path), mode="r"))
+        if self.store.attrs.get("format") != "esrp.demos/v1":
+            raise ValueError(f"{path} is not an esrp.demos/v1 store (esrp demos export makes one)")
+        ends = np.asarray(self.store["meta/episode_ends"][:], dtype=np.int64)
+        if len(ends) == 0:
+            raise ValueError(f"{path} holds no episode")
+        self.n_obs, self.horizon = n_obs, horizon
+        starts = np.concatenate([[0], ends[:-1]])
+        self.episode = np.repeat(np.arange(len(ends)), ends - starts)
+        self.start, self.end = starts[self.episode], ends[self.episode]
+        # Actions and flags are small: read once.
+        self.actions = np.asarray(self.store["data/action"][:], dtype=np.int64)
+        self.grasping = np.asarray(self.store["data/grasping"][:], dtype=bool)
+
+    def __len__(self) -> int:
+        return len(self.episode)
+
+    def batch(self, steps: np.ndarray) -> dict[str, torch.Tensor]:
+        """The windows of `steps` (indices into the store's steps) as tensors."""
+        offsets = np.arange(-self.n_obs + 1, 1)
+        frames = np.maximum(steps[:, None] + offsets[None], self.start[steps][:, None])
+        future = np.minimum(steps[:, None] + np.arange(self.horizon)[None], self.end[steps][:, None] - 1)
+        unique, inverse = np.unique(frames, return_inverse=True)
+        ego = np.asarray(self.store["data/ego_rgb"].get_orthogonal_selection((unique,)))[
+            inverse.reshape(frames.shape)
+        ]
+        episodes, inverse_goal = np.unique(self.episode[steps], return_inverse=True)
+        goal = np.asarray(self.store["meta/goal_rgb"].get_orthogonal_selection((episodes,)))[inverse_goal]
+        return {
+            "ego": torch.from_numpy(ego),
+            "goal": torch.from_numpy(goal),
+            "grasping": torch.from_numpy(self.grasping[frames]),
+            "actions": torch.from_numpy(self.actions[future]),
+        }
+
+
+def _save(
+    path: Path, model: DiffusionPolicy, optimizer: torch.optim.Optimizer, epoch: int, steps: int
+) -> None:
+    state = {
+        "kind": "esrp-bc",
+        "config": model.config.to_dict(),
+        "model": model.state_dict(),
+        "optimizer": optimizer.state_dict(),
+        "epoch": epoch,
+        "steps": steps,
+        "torch_rng": torch.get_rng_state(),
+    }
+    partial = path.with_suffix(".partial")
+    torch.save(state, partial)
+    partial.replace(path)  # a crash never leaves half a checkpoint
+
+
+def train(config: BcConfig, out: Path, *, resume: bool = False, progress: bool = True) -> Path:
+    """Trains for `config.epochs` epochs (from the checkpoint in `out` with `resume`); returns the
+    checkpoint's path.
+    """
+    if config.threads > 0:
+        torch.set_num_threads(config.threads)
+    out.mkdir(parents=True, exist_ok=True)
+    checkpoint = out / "ckpt.pt"
+    if not resume and checkpoint.exists():
+        raise ValueError(f"{out} already holds a run: pass --resume to go on with it, or another --out")
+    torch.manual_seed(config.seed)
+    windows = DemoWindows(config.demos, config.n_obs, config.horizon)
+    model = DiffusionPolicy(config)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    epoch, steps = 0, 0
+    if resume and checkpoint.exists():
+        state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+        # More epochs (or another checkpoint interval or thread count) may be asked of a resumed run.
+        free = {"epochs", "checkpoint_every", "threads"}
+        trained = {k: v for k, v in state["config"].items() if k not in free}
+        if trained != {k: v for k, v in config.to_dict().items() if k not in free}:
+            raise ValueError(f"{checkpoint} was trained with other settings: {state['config']}")
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        epoch, steps = int(state["epoch"]), int(state["steps"])
+        torch.set_rng_state(state["torch_rng"])
+        print(f"resuming {checkpoint} after epoch {epoch}", file=sys.stderr)
+    (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")
+    noise_scheduler, _ = schedulers(config)
+    log_path = out / "log.csv"
+    new_log = not log_path.exists() or epoch == 0
+    if new_log:
+        with open(log_path, "w", newline="") as file:
+            csv.writer(file).writerow(["epoch", "steps", "loss", "mse", "ce", "lr", "seconds"])
+    started = time.monotonic()
+    model.train()
+    while epoch < config.epochs:
+        order = np.random.default_rng(config.seed + epoch).permutation(len(windows))
+        sums = np.zeros(3)
+        batches = 0
+        for first in range(0, len(order), config.batch_size):
+            batch = windows.batch(np.sort(order[first : first + config.batch_size]))
+            loss, mse, ce = bc_loss(model, noise_scheduler, batch)
+            if not torch.isfinite(loss):
+                raise FloatingPointError(f"epoch {epoch + 1}: the loss is {loss.item()}")
+            optimizer.zero_grad()
+            loss.backward()  # type: ignore[no-untyped-call]
+            optimizer.step()
+            sums += (loss.item(), mse.item(), ce.item())
+            batches += 1
+            steps += 1
+        epoch += 1
+        mean = sums / max(batches, 1)
+        with open(log_path, "a", newline="") as file:
+            row = [epoch, steps, *(f"{v:.6f}" for v in mean), config.lr, f"{time.monotonic() - started:.1f}"]
+            csv.writer(file).writerow(row)
+        if progress:
+            print(
+                f"epoch {epoch}/{config.epochs}  loss {mean[0]:.4f} (mse {mean[1]:.4f}, ce {mean[2]:.4f})",
+                file=sys.stderr,
+            )
+        if epoch % config.checkpoint_every == 0 or epoch == config.epochs:
+            _save(checkpoint, model, optimizer, epoch, steps)
+    if not checkpoint.exists():
+        _save(checkpoint, model, optimizer, epoch, steps)
+    return checkpoint
