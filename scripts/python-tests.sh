@@ -117,8 +117,8 @@ if [ -n "$python310" ]; then
     pip310 install hatchling -c "$client/constraints-py310.txt"
     pip310 install --no-build-isolation "./$client[test]" -c "$client/constraints-py310.txt"
     pip310 install --no-build-isolation --no-deps --force-reinstall "./$client"
-    (cd "$client" && ../../.venv-py310/bin/python -m pytest -p no:cacheprovider -q tests \
-        --ignore=tests/test_bc.py --ignore=tests/test_ppo.py --ignore=tests/test_demos.py --ignore=tests/test_ray.py)
+    # Without the train and ray extras there: their tests skip themselves (pytest.importorskip).
+    (cd "$client" && ../../.venv-py310/bin/python -m pytest -p no:cacheprovider -q tests)
 else
     step "python client on Python 3.10: skipped (no python3.10 here; set PYTHON310 to test the oldest supported Python)"
 fi
