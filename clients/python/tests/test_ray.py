@@ -1,6 +1,7 @@
-"""`esrp eval --ray` on a local Ray cluster: two actors, each with its own spawned esrp-server, play
-40 test scenes with the expert and the random agents; every episode is recorded exactly once and
-its metrics and actions are those of the same evaluation run locally without Ray. The same when
+"""`esrp eval --ray` on a Ray cluster on this machine (a head and two worker nodes): two actors,
+each with its own spawned esrp-server, play 40 test scenes with the expert and the random agents;
+every episode is recorded exactly once and its metrics and actions are those of the same
+evaluation run locally without Ray. The same when
 one actor's server is killed (SIGKILL) mid-run: Ray restarts the actor with a new server and its
 unfinished episodes are played again from their start.
 """
@@ -34,18 +35,26 @@ SAME += ("steps", "end", "actions")
 
 @pytest.fixture(scope="module")
 def ray_cluster() -> Iterator[None]:
-    """A local Ray cluster for this module: 2 CPUs (one per actor), no dashboard."""
+    """A Ray cluster on this machine for this module: a head that runs no tasks (the driver's, as
+    on Kubernetes) and two worker nodes of one CPU each, so each actor and its server live on a
+    node of their own; no dashboard.
+    """
+    from ray.cluster_utils import Cluster
+
+    store = 100 * 1024 * 1024
     try:
-        ray.init(
-            num_cpus=2,
-            include_dashboard=False,
-            object_store_memory=128 * 1024 * 1024,
-            log_to_driver=False,
+        cluster = Cluster(
+            initialize_head=True,
+            head_node_args={"num_cpus": 0, "include_dashboard": False, "object_store_memory": store},
         )
+        for _ in range(2):
+            cluster.add_node(num_cpus=1, object_store_memory=store)
+        ray.init(address=cluster.address, log_to_driver=False)
     except Exception as error:  # noqa: BLE001 - the engine cannot start on this machine.
         pytest.skip(f"a local Ray cluster cannot start here: {error}")
     yield
     ray.shutdown()
+    cluster.shutdown()  # type: ignore[no-untyped-call]
 
 
 def by_scene(path: Path) -> dict[str, EpisodeRecord]:
