@@ -249,3 +249,45 @@ def test_resume_after_an_interrupted_run_gives_the_same_file(
         cut.with_suffix(".md").read_text().split("Written by")[0]
         == whole.with_suffix(".md").read_text().split("Written by")[0]
     )
+
+
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is `pid` (from /proc)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            # pid (comm) state ppid ...: comm may hold spaces, so split after its closing paren.
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                found.append(int(entry.name))
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+def test_sigterm_unwinds_the_command_and_stops_its_server(tmp_path: Path) -> None:
+    out = tmp_path / "random.jsonl"
+    command = [sys.executable, "-m", "esrp.cli", "eval", "--agent", "random", "--split", "test"]
+    command += ["--episodes-in-flight", "1", "--no-progress", "--out", str(out)]
+    child = subprocess.Popen(
+        command, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+    )
+    deadline = time.monotonic() + 120
+    while child.poll() is None and time.monotonic() < deadline:
+        if out.exists() and out.read_bytes().count(b"\n") >= 1:
+            break
+        time.sleep(0.01)
+    servers = _children(child.pid)
+    assert servers, "the command started no server"
+    child.send_signal(signal.SIGTERM)
+    _, err = child.communicate(timeout=60)
+    assert child.returncode == 143, err
+    assert "esrp eval: terminated" in err.decode()
+    deadline = time.monotonic() + 10
+    while any(Path(f"/proc/{pid}").exists() for pid in servers) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(Path(f"/proc/{pid}").exists() for pid in servers), "the server outlived the command"
+    # What was written is whole records: the run resumes from it.
+    assert all(json.loads(line)["agent"] == "random" for line in out.read_bytes().splitlines())

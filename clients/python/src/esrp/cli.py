@@ -9,7 +9,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -88,8 +90,8 @@ def _parser() -> argparse.ArgumentParser:
         "--agent",
         required=True,
         help="random, expert, plan, vlm (ESRP-VLM over an OpenAI-compatible endpoint: --base-url, "
-        "--model), bc (ESRP-BC: --checkpoint), or MODULE:CALLABLE (a factory called with the agent "
-        "config, once per episode, "
+        "--model), bc (ESRP-BC: --checkpoint), ppo (ESRP-PPO: --checkpoint), or MODULE:CALLABLE "
+        "(a factory called with the agent config, once per episode, "
         "returning an esrp.agents.Agent or AsyncAgent)",
     )
     ev.add_argument("--split", choices=("train", "test"), default="test")
@@ -123,7 +125,7 @@ def _parser() -> argparse.ArgumentParser:
         "--checkpoint",
         type=Path,
         metavar="PATH",
-        help="bc: the trained policy (RUN/ckpt.pt of esrp train; the config's checkpoint)",
+        help="bc, ppo: the trained policy (RUN/ckpt.pt of esrp train; the config's checkpoint)",
     )
     ev.add_argument(
         "--trace-dir",
@@ -234,11 +236,33 @@ def _parser() -> argparse.ArgumentParser:
     export.add_argument("--limit", type=_positive, metavar="N", help="at most N scenes")
     export.add_argument("--resolution", type=int, default=0, help="the views' side in pixels (0: 128)")
     export.add_argument("--out", type=Path, required=True, help="the zarr store (a folder)")
+    export.add_argument(
+        "--dagger",
+        metavar="AGENT",
+        help="DAgger: let AGENT (random, bc, ppo, vlm or MODULE:CALLABLE) drive and record the "
+        "server planner's action at each state it visits, instead of the expert's demonstrations",
+    )
+    export.add_argument("--checkpoint", type=Path, metavar="PATH", help="--dagger bc or ppo: the policy")
+    export.add_argument(
+        "--agent-config", type=_json_object, default={}, metavar="JSON", help="--dagger: the agent's config"
+    )
+    export.add_argument(
+        "--beta",
+        type=float,
+        default=0.0,
+        help="--dagger: probability of stepping the planner's label instead of the agent's action (0)",
+    )
+    export.add_argument(
+        "--seed", type=int, default=0, help="--dagger: base seed (scene ID: seed XOR fnv1a64(ID))"
+    )
+    export.add_argument(
+        "--plan-budget-ms", type=_positive, default=10_000, help="--dagger: planning budget per label"
+    )
     export.add_argument("--no-progress", dest="progress", action="store_false")
     _server_options(export)
     train = commands.add_parser(
         "train",
-        help="train a learning baseline (ESRP-BC) from a config file",
+        help="train a learning baseline (ESRP-BC, ESRP-PPO) from a config file",
         description="Train a learning baseline. Configs: clients/python/configs/ "
         "(pip install 'esrp[train]').",
     )
@@ -253,6 +277,18 @@ def _parser() -> argparse.ArgumentParser:
     bc.add_argument("--out", type=Path, default=Path("runs/bc"), help="the run folder (default runs/bc)")
     bc.add_argument("--resume", action="store_true", help="go on from RUN/ckpt.pt")
     bc.add_argument("--no-progress", dest="progress", action="store_false")
+    ppo = train_commands.add_parser(
+        "ppo",
+        help="ESRP-PPO (CNN + LSTM) on the native vector env, with the dense reward",
+        description="Train ESRP-PPO on the scenes its config names, on a server (one is started "
+        "without --server); writes RUN/config.json, RUN/log.csv, RUN/episodes.csv and RUN/ckpt.pt "
+        "(esrp eval --agent ppo --checkpoint RUN/ckpt.pt plays it).",
+    )
+    ppo.add_argument("--config", type=Path, required=True, help="a TOML file with a [ppo] table, or JSON")
+    ppo.add_argument("--out", type=Path, default=Path("runs/ppo"), help="the run folder (default runs/ppo)")
+    ppo.add_argument("--resume", action="store_true", help="go on from RUN/ckpt.pt (with fresh episodes)")
+    ppo.add_argument("--no-progress", dest="progress", action="store_false")
+    _server_options(ppo)
     commands.add_parser(
         "bench",
         add_help=False,
@@ -277,8 +313,8 @@ def _eval(args: argparse.Namespace) -> int:
         return 2
     agent_config.update({key: str(value) for key, value in given.items()})
     if args.checkpoint is not None:
-        if args.agent != "bc":
-            print("esrp eval: --checkpoint only applies to --agent bc", file=sys.stderr)
+        if args.agent not in ("bc", "ppo"):
+            print("esrp eval: --checkpoint only applies to --agent bc or ppo", file=sys.stderr)
             return 2
         agent_config["checkpoint"] = str(args.checkpoint)
     settings = EvalSettings(
@@ -349,7 +385,26 @@ def _demos(args: argparse.Namespace) -> int:
         limit=args.limit,
         resolution=args.resolution,
         progress=args.progress,
+        dagger=args.dagger,
+        agent_config=dict(args.agent_config),
+        beta=args.beta,
+        seed=args.seed,
+        plan_budget_ms=args.plan_budget_ms,
     )
+    dagger_flags = [
+        flag
+        for flag, given in (
+            ("--checkpoint", args.checkpoint is not None),
+            ("--agent-config", bool(args.agent_config)),
+            ("--beta", args.beta != 0.0),
+        )
+        if given
+    ]
+    if args.dagger is None and dagger_flags:
+        print(f"esrp demos export: {', '.join(dagger_flags)} only apply with --dagger", file=sys.stderr)
+        return 2
+    if args.checkpoint is not None:
+        settings.agent_config["checkpoint"] = str(args.checkpoint)
 
     from ._client import Client
     from ._local import LocalServer
@@ -371,19 +426,50 @@ def _demos(args: argparse.Namespace) -> int:
 
 
 def _train(args: argparse.Namespace) -> int:
+    name = f"esrp train {args.train_command}"
     try:
+        if args.train_command == "ppo":
+            return _train_ppo(args, name)
         from .train_bc import load_config, train
     except ImportError as error:
-        print(f"esrp train: {error} (pip install 'esrp[train]')", file=sys.stderr)
+        print(f"{name}: {error} (pip install 'esrp[train]')", file=sys.stderr)
         return 2
     try:
         config = load_config(args.config)
         checkpoint = train(config, args.out, resume=args.resume, progress=args.progress)
     except (OSError, ValueError) as error:
-        print(f"esrp train bc: {error}", file=sys.stderr)
+        print(f"{name}: {error}", file=sys.stderr)
         return 2
     print(f"checkpoint: {checkpoint}")
     return 0
+
+
+def _train_ppo(args: argparse.Namespace, name: str) -> int:
+    from ._client import Client
+    from ._errors import EsrpError
+    from ._local import LocalServer
+    from .train_ppo import load_config, train
+
+    try:
+        config = load_config(args.config)
+    except ValueError as error:
+        print(f"{name}: {error}", file=sys.stderr)
+        return 2
+
+    def run(address: str) -> int:
+        with Client(address, token=args.token, timeout=120) as client:
+            checkpoint = train(config, args.out, client, resume=args.resume, progress=args.progress)
+        print(f"checkpoint: {checkpoint}")
+        return 0
+
+    try:
+        if args.server is not None:
+            return run(args.server)
+        with LocalServer(*args.server_args) as local:
+            return run(local.address)
+    except (OSError, ValueError, EsrpError) as error:
+        print(f"{name}: {error}", file=sys.stderr)
+        return 2
 
 
 def _report(args: argparse.Namespace) -> int:
@@ -431,7 +517,8 @@ def _replay(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Runs `esrp ARGS` (`argv` without the program name; default `sys.argv[1:]`); returns the exit
-    status: 0 done, 1 episodes failed (eval), 2 bad arguments or input, 130 interrupted.
+    status: 0 done, 1 episodes failed (eval), 2 bad arguments or input, 130 interrupted, 143
+    terminated (SIGTERM, when run as the `esrp` command).
     """
     arguments = list(sys.argv[1:] if argv is None else argv)
     if arguments[:1] == ["bench"]:
@@ -441,6 +528,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return bench.main(arguments[1:])
     args = _parser().parse_args(arguments)
     handlers = {"eval": _eval, "report": _report, "replay": _replay, "demos": _demos, "train": _train}
+    if argv is None and threading.current_thread() is threading.main_thread():
+        # The command line's process: SIGTERM (kill, a job scheduler) unwinds as Ctrl-C does, so a
+        # server started here is stopped and files are closed instead of being left behind.
+        signal.signal(signal.SIGTERM, _terminate)
     try:
         return handlers[args.command](args)
     except EsrpError as error:
@@ -449,6 +540,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"esrp {args.command}: interrupted", file=sys.stderr)
         return 130
+    except _Terminated:
+        print(f"esrp {args.command}: terminated", file=sys.stderr)
+        return 143
+
+
+class _Terminated(BaseException):
+    """SIGTERM arrived (raised in the main thread by `_terminate`)."""
+
+
+def _terminate(signum: int, frame: object) -> None:
+    raise _Terminated
 
 
 if __name__ == "__main__":

@@ -6,21 +6,31 @@ gets, per step, the observation the agent saw before acting (ego view, grasp fla
 action, and per episode the goal image and the scene id. Episodes are appended whole, in the order
 of the scenes chosen; an interrupted export resumes where it stopped (a partly written episode is
 cut off first), and the store records the dataset and resolution it was made with.
+
+With `dagger` (DAgger's data collection), another policy drives instead: at every state it visits,
+the server's planner (`PlanActions`) gives the label, the action the store records, and the
+policy's own action is the one stepped (the label with probability `beta`). An episode ends when
+the episode does (success or the horizon), when the policy stops, or when the planner finds no
+way on from the state (its last state then has no label and is not recorded).
 """
 
 from __future__ import annotations
 
+import asyncio
+import dataclasses
 import sys
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ._client import Client
-from ._values import SceneSummary, Sensors
-from .evaluation import expert_trajectory
+from ._values import Action, SceneSummary, Sensors
+from .agents import is_async_agent
+from .evaluation import EvalError, agent_info, expert_trajectory, make_factory
+from .results import scene_seed
 
 __all__ = ["FORMAT", "DemoExportError", "DemoSettings", "ExportOutcome", "export_demos"]
 
@@ -47,6 +57,13 @@ class DemoSettings:
         limit: At most this many scenes (after the filters).
         resolution: The views' side in pixels (0: the server's default, 128).
         progress: Print a line every 5 % of the scenes.
+        dagger: The agent whose visited states get the planner's labels (random, bc, ppo, vlm or
+            MODULE:CALLABLE, as `esrp eval --agent`); None: the expert's demonstrations.
+        agent_config: The dagger agent's config (`checkpoint` for bc and ppo).
+        beta: With `dagger`, the probability that the planner's label, not the agent's action, is
+            stepped (DAgger's mixing; 0: the agent alone).
+        seed: With `dagger`, the base seed: scene `id` plays with `seed XOR fnv1a64(id)`.
+        plan_budget_ms: With `dagger`, the planning budget of each label.
     """
 
     out: Path
@@ -56,6 +73,16 @@ class DemoSettings:
     limit: int | None = None
     resolution: int = 0
     progress: bool = True
+    dagger: str | None = None
+    agent_config: dict[str, Any] = field(default_factory=dict)
+    beta: float = 0.0
+    seed: int = 0
+    plan_budget_ms: int = 10_000
+
+    @property
+    def labels(self) -> str:
+        """Whose actions the store records: `expert` or `planner`."""
+        return "expert" if self.dagger is None else "planner"
 
 
 @dataclass
@@ -89,7 +116,7 @@ _Episode = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 class _Store:
     """The zarr group and its arrays; `episode_ends` is written last, so it says what is whole."""
 
-    def __init__(self, path: Path, dataset: str, resolution: int) -> None:
+    def __init__(self, path: Path, dataset: str, resolution: int, labels: str, policy: str | None) -> None:
         import zarr
 
         self.group: Any = zarr.open_group(str(path), mode="a")
@@ -102,8 +129,19 @@ class _Store:
                     f"{path} holds demonstrations of {attrs.get('dataset')} at {attrs.get('resolution')} px, "
                     f"not {dataset} at {resolution} px: write to another --out"
                 )
+            # Stores written before DAgger existed hold the expert's actions.
+            held_labels, held_policy = str(attrs.get("labels", "expert")), attrs.get("policy")
+            if (held_labels, held_policy) != (labels, policy):
+                held = _describe(held_labels, None if held_policy is None else str(held_policy))
+                raise DemoExportError(
+                    f"{path} holds {held}, not {_describe(labels, policy)}: use another --out"
+                )
         else:
-            self.group.attrs.update({"format": FORMAT, "dataset": dataset, "resolution": resolution})
+            self.group.attrs.update(
+                {"format": FORMAT, "dataset": dataset, "resolution": resolution, "labels": labels}
+            )
+            if policy is not None:
+                self.group.attrs["policy"] = policy
         side = resolution
 
         def array(name: str, shape: tuple[int, ...], dtype: str, chunk: int) -> Any:  # noqa: ANN401
@@ -150,6 +188,10 @@ class _Store:
         self.ends.append(np.array([end], dtype=np.int64), axis=0)  # last: the episode is whole
 
 
+def _describe(labels: str, policy: str | None) -> str:
+    return "expert demonstrations" if labels == "expert" else f"planner labels on states of {policy}"
+
+
 def _replay(
     client: Client, scene: SceneSummary, resolution: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -184,12 +226,76 @@ def _replay(
         )
 
 
+def _dagger(client: Client, scene: SceneSummary, settings: DemoSettings, factory: Any) -> _Episode:  # noqa: ANN401
+    """Runs `settings.dagger`'s agent on `scene` and labels each state it visits with the planner's
+    next action: (goal, ego views, grasp flags, labels).
+    """
+    sensors = Sensors(resolution=settings.resolution) if settings.resolution else None
+    seed = scene_seed(settings.seed, scene.id)
+    rng = np.random.default_rng(seed)
+    loop = asyncio.new_event_loop()
+    try:
+        with client.create_episode(scene.id, privileged=True, sensors=sensors) as episode:
+            first = episode.observation
+            if first is None or first.goal_rgb is None:
+                raise DemoExportError(f"{scene.id}: the created episode came without its first observation")
+            agent = factory(dict(settings.agent_config))
+            asynchronous = is_async_agent(agent)
+
+            def call(result: Any) -> Any:  # noqa: ANN401 - an agent's answer
+                return loop.run_until_complete(result) if asynchronous else result
+
+            call(agent.reset(first, agent_info(episode.scene, seed, episode.id)))
+            observation = first
+            egos: list[np.ndarray] = []
+            grasps: list[bool] = []
+            labels: list[int] = []
+            while True:
+                answer = episode.plan_actions(max_actions=1, budget_ms=settings.plan_budget_ms)
+                if not answer.actions:
+                    break  # no way on from here: this state has no label
+                label = int(answer.actions[0])
+                egos.append(observation.ego_rgb)
+                grasps.append(observation.grasping)
+                labels.append(label)
+                action = call(agent.act(observation))
+                if action is None:
+                    break
+                stepped = label if rng.random() < settings.beta else int(Action(int(action)))
+                result = episode.step(stepped)
+                if result.terminated or result.truncated:
+                    break
+                observation = dataclasses.replace(result.observation, goal_rgb=first.goal_rgb)
+    finally:
+        loop.close()
+    if not labels:
+        raise DemoExportError(f"{scene.id}: the planner found no plan from the scene's start")
+    return (
+        np.array(first.goal_rgb),
+        np.stack(egos),
+        np.array(grasps, dtype=bool),
+        np.array(labels, dtype=np.uint8),
+    )
+
+
 def export_demos(client: Client, settings: DemoSettings) -> ExportOutcome:
     """Exports the expert demonstrations of the chosen scenes into `settings.out` (resuming it)."""
     info = client.server_info()
     scenes = _pick(client, settings)
     resolution = settings.resolution or 128
-    store = _Store(settings.out, info.dataset, resolution)
+    factory = None
+    if settings.dagger is not None:
+        if not 0.0 <= settings.beta <= 1.0:
+            raise DemoExportError(f"beta must be between 0 and 1, got {settings.beta}")
+        if settings.dagger in ("expert", "plan"):
+            raise DemoExportError(
+                f"--dagger {settings.dagger}: the policy must be an agent, not the labeller"
+            )
+        try:
+            factory = make_factory(settings.dagger, dict(settings.agent_config), settings.out)
+        except EvalError as error:
+            raise DemoExportError(str(error)) from None
+    store = _Store(settings.out, info.dataset, resolution, settings.labels, settings.dagger)
     done = set(store.scene_ids)
     todo = [s for s in scenes if s.id not in done]
     if done:
@@ -200,7 +306,10 @@ def export_demos(client: Client, settings: DemoSettings) -> ExportOutcome:
     every = max(len(scenes) // 20, 1)
     added = 0
     for scene in todo:
-        store.append(scene.id, _replay(client, scene, settings.resolution))
+        if factory is None:
+            store.append(scene.id, _replay(client, scene, settings.resolution))
+        else:
+            store.append(scene.id, _dagger(client, scene, settings, factory))
         added += 1
         position = len(scenes) - len(todo) + added
         if settings.progress and (position % every == 0 or position == len(scenes)):

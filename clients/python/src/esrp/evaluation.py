@@ -55,7 +55,7 @@ __all__ = [
     "run_eval",
 ]
 
-BUILTIN_AGENTS = ("random", "expert", "plan", "vlm", "bc")
+BUILTIN_AGENTS = ("random", "expert", "plan", "vlm", "bc", "ppo")
 """The agents `esrp eval` knows by name."""
 
 CLIENT_NAME = f"esrp eval (Python) {__version__}"
@@ -240,6 +240,20 @@ async def _play_plan(
     return actions, metrics, stats
 
 
+def agent_info(scene: SceneSummary, seed: int, episode_id: str) -> dict[str, Any]:
+    """The `info` an agent's `reset` is given (see `esrp.agents.Agent.reset`)."""
+    return {
+        "scene_id": scene.id,
+        "room_type": scene.room_type,
+        "difficulty": None if scene.difficulty is None else scene.difficulty.value,
+        "objects": scene.movable_objects,
+        "horizon": scene.horizon,
+        "split": None if scene.split is None else scene.split.value,
+        "seed": seed,
+        "episode_id": episode_id,
+    }
+
+
 async def _play_agent(
     episode: AsyncEpisode, factory: AgentFactory, settings: EvalSettings, seed: int
 ) -> tuple[list[int], EpisodeMetrics | None, dict[str, Any]]:
@@ -252,17 +266,7 @@ async def _play_agent(
     if first is None:
         raise ProtocolError("a created episode without its first observation")
     goal = first.goal_rgb
-    scene = episode.scene
-    info = {
-        "scene_id": scene.id,
-        "room_type": scene.room_type,
-        "difficulty": None if scene.difficulty is None else scene.difficulty.value,
-        "objects": scene.movable_objects,
-        "horizon": scene.horizon,
-        "split": None if scene.split is None else scene.split.value,
-        "seed": seed,
-        "episode_id": episode.id,
-    }
+    info = agent_info(episode.scene, seed, episode.id)
     if asynchronous:
         await agent.reset(first, info)
     else:
@@ -317,29 +321,39 @@ def agent_factory(settings: EvalSettings) -> AgentFactory | None:
     """The factory of `settings.agent`'s agents; None for the server-driven `expert` and `plan`.
     Raises `EvalError` when a named module or callable cannot be loaded, or the vlm config is bad.
     """
-    if settings.agent == "random":
+    return make_factory(settings.agent, settings.agent_config, settings.out)
+
+
+def make_factory(agent: str, config: dict[str, Any], results_path: Path) -> AgentFactory | None:
+    """The factory of agent `agent` (random, vlm, bc, ppo or MODULE:CALLABLE) with `config`; None
+    for the server-driven `expert` and `plan`. `results_path` places a vlm agent's traces. Raises
+    `EvalError` when a named module or callable cannot be loaded, or the config is bad.
+    """
+    if agent == "random":
         return RandomAgent
-    if settings.agent == "vlm":
+    if agent == "vlm":
         from .agents.vlm import VlmAgentFactory
 
         try:
-            return VlmAgentFactory(settings.agent_config, results_path=settings.out)
+            return VlmAgentFactory(config, results_path=results_path)
         except ValueError as error:
             raise EvalError(str(error)) from None
-    if settings.agent == "bc":
+    if agent in ("bc", "ppo"):
         try:
             from .agents.bc import BcPolicy
+            from .agents.ppo import PpoPolicy
         except ImportError as error:
             raise EvalError(
-                f"--agent bc needs the train extra (pip install 'esrp[train]'): {error}"
+                f"--agent {agent} needs the train extra (pip install 'esrp[train]'): {error}"
             ) from None
         try:
-            return BcPolicy(settings.agent_config)
+            policy = BcPolicy if agent == "bc" else PpoPolicy
+            return policy(config)
         except ValueError as error:
             raise EvalError(str(error)) from None
-    if settings.agent not in BUILTIN_AGENTS:
+    if agent not in BUILTIN_AGENTS:
         try:
-            return load_factory(settings.agent)
+            return load_factory(agent)
         except ValueError as error:
             raise EvalError(str(error)) from None
     return None

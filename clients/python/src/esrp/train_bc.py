@@ -14,16 +14,17 @@ plays it).
 from __future__ import annotations
 
 import csv
-import importlib
 import json
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
 import torch
 
+from ._config import read_table
 from .agents.bc import BcConfig, DiffusionPolicy, bc_loss, schedulers
 
 __all__ = ["DemoWindows", "load_config", "train"]
@@ -31,14 +32,7 @@ __all__ = ["DemoWindows", "load_config", "train"]
 
 def load_config(path: Path) -> BcConfig:
     """The `[bc]` table of a TOML file (or the top level of a JSON file) as a `BcConfig`."""
-    text = path.read_text(encoding="utf-8")
-    if path.suffix == ".json":
-        values: dict[str, Any] = json.loads(text)
-    else:
-        # tomllib is Python 3.11's; on 3.10, tomli (the same parser) if installed.
-        name = "tomllib" if sys.version_info >= (3, 11) else "tomli"
-        values = importlib.import_module(name).loads(text)
-    table = values.get("bc", values)
+    table = read_table(path, "bc")
     try:
         return BcConfig.from_mapping(table)
     except (TypeError, ValueError) as error:
@@ -46,39 +40,71 @@ def load_config(path: Path) -> BcConfig:
 
 
 class DemoWindows:
-    """The training windows of an `esrp.demos/v1` store, read a batch at a time."""
+    """The training windows of one or more `esrp.demos/v1` stores (expert demonstrations and DAgger
+    exports aggregated), read a batch at a time.
+    """
 
-    def __init__(self, path: str | Path, n_obs: int, horizon: int) -> None:
+    def __init__(self, paths: str | Path | Sequence[str | Path], n_obs: int, horizon: int) -> None:
         import zarr
 
-        self.store = cast(Any, zarr.open_group(str(path), mode="r"))
-        if self.store.attrs.get("format") != "esrp.demos/v1":
-            raise ValueError(f"{path} is not an esrp.demos/v1 store (esrp demos export makes one)")
-        ends = np.asarray(self.store["meta/episode_ends"][:], dtype=np.int64)
-        if len(ends) == 0:
-            raise ValueError(f"{path} holds no episode")
+        listed = [paths] if isinstance(paths, str | Path) else list(paths)
+        if not listed:
+            raise ValueError("no demonstration store given")
+        self.stores: list[Any] = []
+        ends_list: list[np.ndarray] = []
+        actions, grasping = [], []
+        resolution = None
+        offset = 0
+        for path in listed:
+            store = cast(Any, zarr.open_group(str(path), mode="r"))
+            if store.attrs.get("format") != "esrp.demos/v1":
+                raise ValueError(f"{path} is not an esrp.demos/v1 store (esrp demos export makes one)")
+            if resolution is not None and store.attrs.get("resolution") != resolution:
+                raise ValueError(
+                    f"{path} holds {store.attrs.get('resolution')} px views, the others {resolution} px"
+                )
+            resolution = store.attrs.get("resolution")
+            ends = np.asarray(store["meta/episode_ends"][:], dtype=np.int64)
+            if len(ends) == 0:
+                raise ValueError(f"{path} holds no episode")
+            self.stores.append(store)
+            ends_list.append(ends + offset)
+            # Actions and flags are small: read once (only the whole episodes).
+            actions.append(np.asarray(store["data/action"][: ends[-1]], dtype=np.int64))
+            grasping.append(np.asarray(store["data/grasping"][: ends[-1]], dtype=bool))
+            offset += int(ends[-1])
+        ends = np.concatenate(ends_list)
         self.n_obs, self.horizon = n_obs, horizon
         starts = np.concatenate([[0], ends[:-1]])
         self.episode = np.repeat(np.arange(len(ends)), ends - starts)
         self.start, self.end = starts[self.episode], ends[self.episode]
-        # Actions and flags are small: read once.
-        self.actions = np.asarray(self.store["data/action"][:], dtype=np.int64)
-        self.grasping = np.asarray(self.store["data/grasping"][:], dtype=bool)
+        self.actions = np.concatenate(actions)
+        self.grasping = np.concatenate(grasping)
+        # Where each store's steps and episodes begin in the joined numbering.
+        self.step_offsets = np.cumsum([0, *(len(a) for a in actions)])
+        self.episode_offsets = np.cumsum([0, *(len(e) for e in ends_list)])
 
     def __len__(self) -> int:
         return len(self.episode)
 
+    def _read(self, name: str, indices: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+        """Rows `indices` (sorted, in the joined numbering) of array `name` of every store."""
+        parts = []
+        for i, store in enumerate(self.stores):
+            mine = indices[(indices >= offsets[i]) & (indices < offsets[i + 1])] - offsets[i]
+            if len(mine):
+                parts.append(np.asarray(store[name].get_orthogonal_selection((mine,))))
+        return np.concatenate(parts)
+
     def batch(self, steps: np.ndarray) -> dict[str, torch.Tensor]:
-        """The windows of `steps` (indices into the store's steps) as tensors."""
+        """The windows of `steps` (indices into the stores' joined steps) as tensors."""
         offsets = np.arange(-self.n_obs + 1, 1)
         frames = np.maximum(steps[:, None] + offsets[None], self.start[steps][:, None])
         future = np.minimum(steps[:, None] + np.arange(self.horizon)[None], self.end[steps][:, None] - 1)
         unique, inverse = np.unique(frames, return_inverse=True)
-        ego = np.asarray(self.store["data/ego_rgb"].get_orthogonal_selection((unique,)))[
-            inverse.reshape(frames.shape)
-        ]
+        ego = self._read("data/ego_rgb", unique, self.step_offsets)[inverse.reshape(frames.shape)]
         episodes, inverse_goal = np.unique(self.episode[steps], return_inverse=True)
-        goal = np.asarray(self.store["meta/goal_rgb"].get_orthogonal_selection((episodes,)))[inverse_goal]
+        goal = self._read("meta/goal_rgb", episodes, self.episode_offsets)[inverse_goal]
         return {
             "ego": torch.from_numpy(ego),
             "goal": torch.from_numpy(goal),

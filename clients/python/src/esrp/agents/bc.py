@@ -31,6 +31,7 @@ from torch import nn
 from torch.nn import functional as F  # noqa: N812 - the usual name
 
 from .._values import Action, Observation
+from .encoders import float_images, make_encoder
 
 __all__ = ["BcAgent", "BcConfig", "BcPolicy", "DiffusionPolicy", "load_policy"]
 
@@ -44,7 +45,7 @@ class BcConfig:
     Defaults are the paper's (SPEC §8) except the encoder (from scratch: no pretrained weights).
     """
 
-    demos: str = "demos/train.zarr"
+    demos: str | list[str] = "demos/train.zarr"
     encoder: str = "cnn"
     feature_dim: int = 256
     grasp_dim: int = 16
@@ -88,73 +89,6 @@ class BcConfig:
         values = asdict(self)
         values["unet_channels"] = list(self.unet_channels)
         return values
-
-
-# --- Encoders ---
-
-
-class SmallCnn(nn.Module):
-    """Four strided 3×3 convolutions (32-64-128-128 channels), global average pooling, a linear layer."""
-
-    def __init__(self, out: int) -> None:
-        super().__init__()
-        layers: list[nn.Module] = []
-        channels = 3
-        for width in (32, 64, 128, 128):
-            layers += [nn.Conv2d(channels, width, 3, stride=2, padding=1), nn.GroupNorm(8, width), nn.ReLU()]
-            channels = width
-        self.body = nn.Sequential(*layers)
-        self.head = nn.Linear(channels, out)
-
-    def forward(self, images: torch.Tensor) -> torch.Tensor:
-        out: torch.Tensor = self.head(self.body(images).mean(dim=(2, 3)))
-        return out
-
-
-class _Basic(nn.Module):
-    def __init__(self, cin: int, cout: int, stride: int) -> None:
-        super().__init__()
-        self.conv1 = nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False)
-        self.norm1 = nn.GroupNorm(8, cout)
-        self.conv2 = nn.Conv2d(cout, cout, 3, padding=1, bias=False)
-        self.norm2 = nn.GroupNorm(8, cout)
-        self.skip: nn.Module = (
-            nn.Identity()
-            if stride == 1 and cin == cout
-            else nn.Sequential(nn.Conv2d(cin, cout, 1, stride=stride, bias=False), nn.GroupNorm(8, cout))
-        )
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y = F.relu(self.norm1(self.conv1(x)))
-        return F.relu(self.norm2(self.conv2(y)) + self.skip(x))
-
-
-class ResNet18(nn.Module):
-    """ResNet-18's layout (GroupNorm instead of BatchNorm, as Diffusion Policy does), from scratch."""
-
-    def __init__(self, out: int) -> None:
-        super().__init__()
-        self.stem = nn.Sequential(
-            nn.Conv2d(3, 64, 7, stride=2, padding=3, bias=False),
-            nn.GroupNorm(8, 64),
-            nn.ReLU(),
-            nn.MaxPool2d(3, 2, 1),
-        )
-        blocks: list[nn.Module] = []
-        cin = 64
-        for cout, stride in ((64, 1), (128, 2), (256, 2), (512, 2)):
-            blocks += [_Basic(cin, cout, stride), _Basic(cout, cout, 1)]
-            cin = cout
-        self.blocks = nn.Sequential(*blocks)
-        self.head = nn.Linear(512, out)
-
-    def forward(self, images: torch.Tensor) -> torch.Tensor:
-        out: torch.Tensor = self.head(self.blocks(self.stem(images)).mean(dim=(2, 3)))
-        return out
-
-
-def _encoder(kind: str, out: int) -> nn.Module:
-    return ResNet18(out) if kind == "resnet18" else SmallCnn(out)
 
 
 # --- The conditional 1D U-Net ---
@@ -252,8 +186,8 @@ class DiffusionPolicy(nn.Module):
     def __init__(self, config: BcConfig) -> None:
         super().__init__()
         self.config = config
-        self.ego = _encoder(config.encoder, config.feature_dim)
-        self.goal = _encoder(config.encoder, config.feature_dim)
+        self.ego = make_encoder(config.encoder, config.feature_dim)
+        self.goal = make_encoder(config.encoder, config.feature_dim)
         self.grasp = nn.Embedding(2, config.grasp_dim)
         width = (config.n_obs + 1) * config.feature_dim + config.n_obs * config.grasp_dim
         self.cond = nn.Sequential(
@@ -264,16 +198,11 @@ class DiffusionPolicy(nn.Module):
     def condition(self, ego: torch.Tensor, goal: torch.Tensor, grasping: torch.Tensor) -> torch.Tensor:
         """c_t from uint8 images: ego (B, n, R, R, 3), goal (B, R, R, 3), grasping (B, n) bool."""
         batch, n = ego.shape[:2]
-        ego_features = self.ego(_images(ego.reshape(batch * n, *ego.shape[2:]))).reshape(batch, -1)
-        goal_features = self.goal(_images(goal))
+        ego_features = self.ego(float_images(ego.reshape(batch * n, *ego.shape[2:]))).reshape(batch, -1)
+        goal_features = self.goal(float_images(goal))
         grasp = self.grasp(grasping.long()).reshape(batch, -1)
         out: torch.Tensor = self.cond(torch.cat([ego_features, goal_features, grasp], dim=-1))
         return out
-
-
-def _images(rgb: torch.Tensor) -> torch.Tensor:
-    """uint8 (B, R, R, 3) → float (B, 3, R, R) in [-1, 1]."""
-    return rgb.permute(0, 3, 1, 2).float() / 127.5 - 1.0
 
 
 def schedulers(config: BcConfig) -> tuple[Any, Any]:  # noqa: ANN401 - diffusers' classes

@@ -1,0 +1,419 @@
+"""`esrp train ppo`: trains ESRP-PPO (`esrp.agents.ppo`) on the native vector env, CleanRL-style.
+
+One readable loop, as CleanRL's `ppo_atari_lstm.py`: `num_envs` episodes run on one
+`RearrangeVectorEnv` (SAME_STEP autoreset, the server's dense reward of SPEC §6 unless the config
+sets weights); each update collects `num_steps` steps of every episode, computes GAE advantages
+and runs `update_epochs` epochs of clipped PPO over minibatches of whole sequences, the LSTM
+starting from the state it had at the rollout's start. Truncated episodes (the horizon) are
+bootstrapped with the value of their final observation; terminated ones (success) are not.
+
+A run folder holds `config.json`, `log.csv` (one line per update: steps, episodes finished,
+their mean return, length and success rate, the losses, approximate KL, clip fraction, explained
+variance, learning rate, steps per second, seconds), `episodes.csv` (every finished episode:
+step, return, length, success) and `ckpt.pt` (network, optimizer, update, step, random states:
+`--resume` goes on from it with fresh episodes; `esrp eval --agent ppo --checkpoint` plays it).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import sys
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from gymnasium.vector import AutoresetMode
+from torch import nn
+
+from ._client import Client
+from ._config import read_table
+from ._values import Sensors
+from .agents.ppo import LstmState, PpoConfig, PpoNet
+from .gym import RearrangeVectorEnv
+
+__all__ = ["UpdateStats", "load_config", "ppo_loss", "train"]
+
+LOG_FIELDS = (
+    "update",
+    "steps",
+    "episodes",
+    "return_mean",
+    "length_mean",
+    "success_rate",
+    "policy_loss",
+    "value_loss",
+    "entropy",
+    "approx_kl",
+    "clipfrac",
+    "explained_variance",
+    "lr",
+    "steps_per_second",
+    "seconds",
+)
+# Settings a resumed run may change: its length, its checkpoint interval, where and how it runs.
+RESUMABLE = {"total_steps", "checkpoint_every", "threads", "device"}
+
+
+def load_config(path: Path) -> PpoConfig:
+    """The `[ppo]` table of a TOML file (or the top level of a JSON file) as a `PpoConfig`."""
+    table = read_table(path, "ppo")
+    try:
+        return PpoConfig.from_mapping(table)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{path}: {error}") from None
+
+
+@dataclass
+class UpdateStats:
+    """What one update did (a line of `log.csv`)."""
+
+    update: int
+    steps: int
+    episodes: int
+    return_mean: float
+    length_mean: float
+    success_rate: float
+    policy_loss: float
+    value_loss: float
+    entropy: float
+    approx_kl: float
+    clipfrac: float
+    explained_variance: float
+    lr: float
+    steps_per_second: float
+    seconds: float
+
+
+def _device(setting: str) -> torch.device:
+    if setting == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if setting.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device {setting!r}: torch sees no CUDA device here")
+    return torch.device(setting)
+
+
+def _save(path: Path, network: PpoNet, optimizer: torch.optim.Optimizer, update: int, steps: int) -> None:
+    state = {
+        "kind": "esrp-ppo",
+        "config": network.config.to_dict(),
+        "model": network.state_dict(),
+        "optimizer": optimizer.state_dict(),
+        "update": update,
+        "steps": steps,
+        "torch_rng": torch.get_rng_state(),
+    }
+    partial = path.with_suffix(".partial")
+    torch.save(state, partial)
+    partial.replace(path)  # a crash never leaves half a checkpoint
+
+
+def _tensor(array: np.ndarray, device: torch.device) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(array)).to(device)
+
+
+def train(
+    config: PpoConfig,
+    out: Path,
+    client: Client,
+    *,
+    resume: bool = False,
+    progress: bool = True,
+    on_update: Callable[[UpdateStats], None] | None = None,
+) -> Path:
+    """Trains until `config.total_steps` environment steps (from the checkpoint in `out` with
+    `resume`) on the server behind `client`; returns the checkpoint's path.
+    """
+    device = _device(config.device)
+    if config.threads > 0:
+        torch.set_num_threads(config.threads)
+    out.mkdir(parents=True, exist_ok=True)
+    checkpoint = out / "ckpt.pt"
+    if not resume and checkpoint.exists():
+        raise ValueError(f"{out} already holds a run: pass --resume to go on with it, or another --out")
+    torch.manual_seed(config.seed)
+    network = PpoNet(config).to(device)
+    optimizer = torch.optim.Adam(network.parameters(), lr=config.lr, eps=1e-5)
+    update, global_step = 0, 0
+    if resume and checkpoint.exists():
+        state = torch.load(checkpoint, map_location=device, weights_only=False)
+        if state.get("kind") != "esrp-ppo":
+            raise ValueError(f"{checkpoint} is not an ESRP-PPO checkpoint")
+        trained = {k: v for k, v in state["config"].items() if k not in RESUMABLE}
+        if trained != {k: v for k, v in config.to_dict().items() if k not in RESUMABLE}:
+            raise ValueError(f"{checkpoint} was trained with other settings: {state['config']}")
+        network.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        update, global_step = int(state["update"]), int(state["steps"])
+        torch.set_rng_state(state["torch_rng"])
+        print(f"resuming {checkpoint} after update {update} ({global_step} steps)", file=sys.stderr)
+        _trim_logs(out, update, global_step)
+    (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")
+    log_path, episodes_path = out / "log.csv", out / "episodes.csv"
+    if update == 0:
+        with open(log_path, "w", newline="") as file:
+            csv.writer(file).writerow(LOG_FIELDS)
+        with open(episodes_path, "w", newline="") as file:
+            csv.writer(file).writerow(["steps", "return", "length", "success"])
+
+    env = RearrangeVectorEnv(
+        config.num_envs,
+        client=client,
+        split=config.split,
+        difficulty=config.difficulty,
+        scene=config.scene,
+        sensors=Sensors(resolution=config.resolution),
+        horizon=config.horizon,
+        reward=config.reward_weights(),
+        autoreset_mode=AutoresetMode.SAME_STEP,
+    )
+    try:
+        _loop(config, network, optimizer, env, device, out, update, global_step, progress, on_update)
+    finally:
+        env.close()
+    return checkpoint
+
+
+def _loop(
+    config: PpoConfig,
+    network: PpoNet,
+    optimizer: torch.optim.Optimizer,
+    env: RearrangeVectorEnv,
+    device: torch.device,
+    out: Path,
+    update: int,
+    global_step: int,
+    progress: bool,
+    on_update: Callable[[UpdateStats], None] | None,
+) -> None:
+    steps_, n = config.num_steps, config.num_envs
+    # A resumed run starts fresh episodes, seeded apart from the ones before.
+    observations, _ = env.reset(seed=config.seed + update)
+    side = config.resolution // config.pool
+    # Images are kept preprocessed (float, pooled): the epochs read them without converting again.
+    ego = torch.zeros((steps_, n, 3, side, side), device=device)
+    goal = torch.zeros_like(ego)
+    grasping = torch.zeros((steps_, n), dtype=torch.long, device=device)
+    actions = torch.zeros((steps_, n), dtype=torch.long, device=device)
+    logprobs = torch.zeros((steps_, n), device=device)
+    rewards = torch.zeros((steps_, n), device=device)
+    starts = torch.zeros((steps_, n), device=device)
+    values = torch.zeros((steps_, n), device=device)
+    next_start = torch.ones(n, device=device)  # every sub-env begins an episode
+    state = network.initial_state(n, device)
+    episode_return = np.zeros(n)
+    episode_length = np.zeros(n, dtype=np.int64)
+    started = time.monotonic()
+    while update < config.num_updates:
+        update_started = time.monotonic()
+        initial = (state[0].clone(), state[1].clone())
+        lr = config.lr * (1.0 - update / config.num_updates) if config.anneal_lr else config.lr
+        for param_group in optimizer.param_groups:
+            param_group["lr"] = lr
+        finished: list[tuple[int, float, int, bool]] = []
+        for t in range(steps_):
+            ego[t] = network.preprocess(_tensor(observations["ego_rgb"], device))
+            goal[t] = network.preprocess(_tensor(observations["goal_rgb"], device))
+            grasping[t] = _tensor(observations["grasping"], device)
+            starts[t] = next_start
+            with torch.no_grad():
+                logits, value, state = network(ego[t], goal[t], grasping[t], state, next_start)
+                action = torch.multinomial(torch.softmax(logits, dim=-1), 1).squeeze(-1)
+                logprob, _ = _log_prob_entropy(logits, action)
+            actions[t], logprobs[t], values[t] = action, logprob, value
+            observations, reward, terminated, truncated, infos = env.step(action.cpu().numpy())
+            global_step += n
+            episode_return += reward
+            episode_length += 1
+            reward = reward.copy()
+            cut = np.flatnonzero(truncated & ~terminated)
+            if cut.size:
+                # The horizon cut these episodes short: bootstrap with their final observation's
+                # value (from the state that saw the step before it).
+                finals = [infos["final_obs"][i] for i in cut]
+                keep = (state[0][:, cut], state[1][:, cut])
+                with torch.no_grad():
+                    _, final_value, _ = network(
+                        network.preprocess(_tensor(np.stack([f["ego_rgb"] for f in finals]), device)),
+                        network.preprocess(_tensor(np.stack([f["goal_rgb"] for f in finals]), device)),
+                        _tensor(np.array([f["grasping"] for f in finals]), device),
+                        keep,
+                        torch.zeros(cut.size, device=device),
+                    )
+                reward[cut] += config.gamma * final_value.cpu().numpy()
+            rewards[t] = _tensor(reward.astype(np.float32), device)
+            done = terminated | truncated
+            for i in np.flatnonzero(done).tolist():
+                success = bool(infos["final_info"]["metrics"]["success"][i])
+                finished.append((global_step, float(episode_return[i]), int(episode_length[i]), success))
+                episode_return[i], episode_length[i] = 0.0, 0
+            next_start = _tensor(done.astype(np.float32), device)
+
+        # Generalised advantage estimation.
+        with torch.no_grad():
+            _, next_value, _ = network(
+                network.preprocess(_tensor(observations["ego_rgb"], device)),
+                network.preprocess(_tensor(observations["goal_rgb"], device)),
+                _tensor(observations["grasping"], device),
+                state,
+                next_start,
+            )
+            advantages = torch.zeros_like(rewards)
+            last = torch.zeros(n, device=device)
+            for t in reversed(range(steps_)):
+                if t == steps_ - 1:
+                    continuing, following = 1.0 - next_start, next_value
+                else:
+                    continuing, following = 1.0 - starts[t + 1], values[t + 1]
+                delta = rewards[t] + config.gamma * following * continuing - values[t]
+                last = delta + config.gamma * config.gae_lambda * continuing * last
+                advantages[t] = last
+            returns = advantages + values
+
+        # PPO epochs over minibatches of whole sequences (sub-envs), time-major within each.
+        def flat(x: torch.Tensor) -> torch.Tensor:
+            return x.reshape(steps_ * n, *x.shape[2:])
+
+        columns = {
+            "ego": flat(ego),
+            "goal": flat(goal),
+            "grasping": flat(grasping),
+            "starts": flat(starts),
+            "actions": flat(actions),
+            "logprobs": flat(logprobs),
+            "advantages": flat(advantages),
+            "returns": flat(returns),
+            "values": flat(values),
+        }
+        b_returns, b_values = columns["returns"], columns["values"]
+        indices = np.arange(steps_ * n).reshape(steps_, n)
+        envs_per_batch = config.minibatch_size // steps_
+        rng = np.random.default_rng(config.seed * 1_000_003 + update)
+        order = np.arange(n)
+        sums = np.zeros(5)
+        batches = 0
+        for _ in range(config.update_epochs):
+            rng.shuffle(order)
+            approx_kl = torch.zeros(())
+            for first in range(0, n, envs_per_batch):
+                group_envs = order[first : first + envs_per_batch]
+                mb = torch.from_numpy(indices[:, group_envs].ravel()).to(device)
+                envs = torch.from_numpy(group_envs).to(device)
+                minibatch = {key: column[mb] for key, column in columns.items()}
+                loss, losses = ppo_loss(
+                    network, config, minibatch, (initial[0][:, envs], initial[1][:, envs])
+                )
+                approx_kl = losses[3]
+                if not torch.isfinite(loss):
+                    raise FloatingPointError(f"update {update + 1}: the loss is {loss.item()}")
+                optimizer.zero_grad()
+                loss.backward()  # type: ignore[no-untyped-call]
+                nn.utils.clip_grad_norm_(network.parameters(), config.max_grad_norm)
+                optimizer.step()
+                sums += [x.item() for x in losses]
+                batches += 1
+            if config.target_kl > 0 and approx_kl.item() > config.target_kl:
+                break
+        update += 1
+        variance = b_returns.var()
+        explained = float("nan") if variance == 0 else float(1 - (b_returns - b_values).var() / variance)
+        mean = sums / max(batches, 1)
+        seconds = time.monotonic() - update_started
+        stats = UpdateStats(
+            update=update,
+            steps=global_step,
+            episodes=len(finished),
+            return_mean=float(np.mean([f[1] for f in finished])) if finished else float("nan"),
+            length_mean=float(np.mean([f[2] for f in finished])) if finished else float("nan"),
+            success_rate=float(np.mean([f[3] for f in finished])) if finished else float("nan"),
+            policy_loss=float(mean[0]),
+            value_loss=float(mean[1]),
+            entropy=float(mean[2]),
+            approx_kl=float(mean[3]),
+            clipfrac=float(mean[4]),
+            explained_variance=explained,
+            lr=lr,
+            steps_per_second=config.batch_size / seconds,
+            seconds=time.monotonic() - started,
+        )
+        _log(out, stats, finished)
+        if progress:
+            print(
+                f"update {update}/{config.num_updates}  steps {global_step}  episodes {stats.episodes}  "
+                f"return {stats.return_mean:.2f}  success {stats.success_rate:.2f}  "
+                f"entropy {stats.entropy:.3f}  {stats.steps_per_second:.0f} steps/s",
+                file=sys.stderr,
+            )
+        if on_update is not None:
+            on_update(stats)
+        if update % config.checkpoint_every == 0 or update == config.num_updates:
+            _save(out / "ckpt.pt", network, optimizer, update, global_step)
+
+
+def ppo_loss(
+    network: PpoNet, config: PpoConfig, batch: Mapping[str, torch.Tensor], state: LstmState
+) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+    """The clipped PPO loss of a minibatch of whole sequences (time-major, flattened: `ego`, `goal`
+    preprocessed images, `grasping`, `starts`, `actions`, and the rollout's `logprobs`,
+    `advantages`, `returns`, `values`), the LSTM starting from `state`; and (policy loss, value
+    loss, entropy, approximate KL, clip fraction), the last two without gradients.
+    """
+    logits, new_value, _ = network(batch["ego"], batch["goal"], batch["grasping"], state, batch["starts"])
+    new_logprob, entropy = _log_prob_entropy(logits, batch["actions"])
+    log_ratio = new_logprob - batch["logprobs"]
+    ratio = log_ratio.exp()
+    with torch.no_grad():
+        approx_kl = ((ratio - 1) - log_ratio).mean()
+        clipfrac = ((ratio - 1.0).abs() > config.clip_coef).float().mean()
+    advantage = batch["advantages"]
+    if config.norm_adv and advantage.numel() > 1:
+        advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
+    policy_loss = torch.max(
+        -advantage * ratio, -advantage * torch.clamp(ratio, 1 - config.clip_coef, 1 + config.clip_coef)
+    ).mean()
+    returns, values = batch["returns"], batch["values"]
+    if config.clip_vloss:
+        clipped = values + torch.clamp(new_value - values, -config.clip_coef, config.clip_coef)
+        value_loss = 0.5 * torch.max((new_value - returns) ** 2, (clipped - returns) ** 2).mean()
+    else:
+        value_loss = 0.5 * ((new_value - returns) ** 2).mean()
+    loss = policy_loss - config.ent_coef * entropy + config.vf_coef * value_loss
+    return loss, (policy_loss, value_loss, entropy, approx_kl, clipfrac)
+
+
+def _log_prob_entropy(logits: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The log-probabilities of `actions` and the mean entropy under the policy's `logits`."""
+    log_probs = torch.log_softmax(logits, dim=-1)
+    entropy = -(log_probs.exp() * log_probs).sum(dim=-1).mean()
+    return log_probs.gather(-1, actions[:, None]).squeeze(-1), entropy
+
+
+def _log(out: Path, stats: UpdateStats, finished: list[tuple[int, float, int, bool]]) -> None:
+    values: dict[str, Any] = vars(stats)
+    row = [f"{values[k]:.6g}" if isinstance(values[k], float) else values[k] for k in LOG_FIELDS]
+    with open(out / "log.csv", "a", newline="") as file:
+        csv.writer(file).writerow(row)
+    with open(out / "episodes.csv", "a", newline="") as file:
+        writer = csv.writer(file)
+        for steps, episode_return, length, success in finished:
+            writer.writerow([steps, f"{episode_return:.4f}", length, int(success)])
+
+
+def _trim_logs(out: Path, update: int, steps: int) -> None:
+    """Drops the log lines written after the checkpoint a run resumes from (they are done again)."""
+    for name, column, last in (("log.csv", "update", update), ("episodes.csv", "steps", steps)):
+        path = out / name
+        if not path.exists():
+            continue
+        with open(path, newline="") as file:
+            rows = list(csv.reader(file))
+        if not rows:
+            continue
+        at = rows[0].index(column)
+        kept = [rows[0], *(row for row in rows[1:] if int(row[at]) <= last)]
+        with open(path, "w", newline="") as file:
+            csv.writer(file).writerows(kept)

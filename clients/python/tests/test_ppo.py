@@ -1,0 +1,245 @@
+"""ESRP-PPO smoke tests on the real server with a tiny network: one update trains with finite losses
+(episodes cut by a short horizon included), the loss falls over a few steps of a fixed batch, the
+LSTM state restarts at episode starts, checkpoints reload to identical outputs, training resumes,
+`esrp train ppo` and `esrp eval --agent ppo` work end to end, and bad configs are refused."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import settled_live_episodes
+
+import esrp
+from esrp.cli import main
+from esrp.results import read_records
+
+torch = pytest.importorskip("torch", reason="esrp[train] is not installed")
+
+from esrp.agents.ppo import PpoAgent, PpoConfig, PpoNet, PpoPolicy, load_network  # noqa: E402
+from esrp.train_ppo import _save, load_config, ppo_loss, train  # noqa: E402
+
+
+def tiny(scene: str, **more: object) -> PpoConfig:
+    values: dict[str, object] = {
+        "split": "test",
+        "scene": scene,
+        "horizon": 5,
+        "encoder": "nature",
+        "pool": 2,
+        "feature_dim": 16,
+        "grasp_dim": 4,
+        "hidden": 16,
+        "num_envs": 2,
+        "num_steps": 8,
+        "minibatch_size": 8,
+        "update_epochs": 2,
+        "total_steps": 16,
+        "threads": 1,
+        "checkpoint_every": 1,
+        "device": "cpu",
+    }
+    values.update(more)
+    return PpoConfig.from_mapping(values)
+
+
+def rows(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as file:
+        return list(csv.DictReader(file))
+
+
+def test_one_update_trains_with_finite_losses(
+    tmp_path: Path, client: esrp.Client, easy_scenes: list[str]
+) -> None:
+    run = tmp_path / "run"
+    checkpoint = train(tiny(easy_scenes[0]), run, client, progress=False)
+    assert checkpoint == run / "ckpt.pt"
+    assert checkpoint.is_file()
+    (row,) = rows(run / "log.csv")
+    assert row["update"] == "1"
+    assert row["steps"] == "16"
+    for key in ("policy_loss", "value_loss", "entropy", "approx_kl", "clipfrac", "lr"):
+        assert math.isfinite(float(row[key])), key
+    assert 0 < float(row["entropy"]) <= math.log(6) + 1e-6
+    # A horizon of 5 ends episodes inside the rollout (SAME_STEP autoreset, truncation bootstrap).
+    episodes = rows(run / "episodes.csv")
+    assert int(row["episodes"]) == len(episodes) >= 2
+    assert all(int(e["length"]) <= 5 for e in episodes)
+    assert all(int(e["length"]) == 5 for e in episodes if e["success"] == "0")
+    assert settled_live_episodes(client, 0) == 0, "the env closed its episodes"
+    state = torch.load(checkpoint, weights_only=False)
+    assert state["kind"] == "esrp-ppo"
+    assert state["update"] == 1
+    assert state["steps"] == 16
+
+
+def test_the_loss_falls_on_a_fixed_batch() -> None:
+    config = PpoConfig.from_mapping(
+        {"feature_dim": 16, "grasp_dim": 4, "hidden": 16, "pool": 2, "num_steps": 8, "minibatch_size": 8}
+    )
+    torch.manual_seed(0)
+    network = PpoNet(config)
+    generator = torch.Generator().manual_seed(1)
+    steps, envs = 8, 2
+    images = torch.randint(0, 256, (steps * envs, 128, 128, 3), dtype=torch.uint8, generator=generator)
+    with torch.no_grad():
+        ego = network.preprocess(images)
+        goal = network.preprocess(images.flip(0))
+    batch = {
+        "ego": ego,
+        "goal": goal,
+        "grasping": torch.randint(0, 2, (steps * envs,), generator=generator),
+        "starts": torch.zeros(steps * envs),
+        "actions": torch.randint(0, 6, (steps * envs,), generator=generator),
+        "logprobs": torch.full((steps * envs,), -math.log(6)),
+        "advantages": torch.randn(steps * envs, generator=generator),
+        "returns": torch.randn(steps * envs, generator=generator) + 2,
+        "values": torch.zeros(steps * envs),
+    }
+    optimizer = torch.optim.Adam(network.parameters(), lr=1e-3)
+    losses = []
+    for _ in range(12):
+        loss, parts = ppo_loss(network, config, batch, network.initial_state(envs))
+        assert all(torch.isfinite(part) for part in parts)
+        optimizer.zero_grad()
+        loss.backward()  # type: ignore[no-untyped-call]
+        optimizer.step()
+        losses.append(loss.item())
+    assert losses[-1] < losses[0], losses
+
+
+def test_the_lstm_state_restarts_at_episode_starts() -> None:
+    config = PpoConfig.from_mapping({"feature_dim": 16, "grasp_dim": 4, "hidden": 8})
+    torch.manual_seed(0)
+    network = PpoNet(config)
+    steps, envs = 6, 2
+    features = torch.randn(steps * envs, 8)
+    state = (torch.randn(1, envs, 8), torch.randn(1, envs, 8))
+    starts = torch.zeros(steps, envs)
+    starts[3, 0] = 1.0  # sub-env 0 begins a new episode at step 3
+    with torch.no_grad():
+        out, _ = network.recurrent(features, state, starts.reshape(-1))
+        tail = features.reshape(steps, envs, 8)[3:, :1].reshape(-1, 8)
+        fresh, _ = network.recurrent(tail, network.initial_state(1), torch.zeros(3))
+        carried, _ = network.recurrent(features, state, torch.zeros(steps * envs))
+    out = out.reshape(steps, envs, 8)
+    carried = carried.reshape(steps, envs, 8)
+    assert torch.allclose(out[3:, 0], fresh.reshape(3, 8), atol=1e-6), "a start zeroes the state"
+    assert torch.allclose(out[:3], carried[:3])
+    assert torch.allclose(out[:, 1], carried[:, 1])
+    assert not torch.allclose(out[3:, 0], carried[3:, 0]), "without a start the state carries over"
+
+
+def test_a_checkpoint_reloads_to_identical_outputs(
+    tmp_path: Path, client: esrp.Client, easy_scenes: list[str]
+) -> None:
+    config = tiny(easy_scenes[0])
+    torch.manual_seed(3)
+    network = PpoNet(config)
+    path = tmp_path / "ckpt.pt"
+    _save(path, network, torch.optim.Adam(network.parameters()), 1, 16)
+    loaded = load_network(path)
+    with client.create_episode(easy_scenes[0]) as episode:
+        first = episode.observation
+    assert first is not None
+    ego = network.preprocess(torch.from_numpy(np.array(first.ego_rgb))[None])
+    goal = network.preprocess(torch.from_numpy(np.array(first.goal_rgb))[None])
+    grasping = torch.tensor([int(first.grasping)])
+    with torch.no_grad():
+        expected = network(ego, goal, grasping, network.initial_state(1), torch.zeros(1))
+        got = loaded(ego, goal, grasping, loaded.initial_state(1), torch.zeros(1))
+    assert torch.equal(expected[0], got[0])
+    assert torch.equal(expected[1], got[1])
+
+    def actions(seed: int) -> list[int]:
+        agent = PpoAgent(loaded, {})
+        agent.reset(first, {"seed": seed})
+        return [int(agent.act(first)) for _ in range(12)]
+
+    assert actions(7) == actions(7), "same seed, same actions (the state restarts at reset)"
+    assert all(0 <= a < 6 for a in actions(7))
+    greedy = PpoAgent(loaded, {"deterministic": True})
+    with pytest.raises(RuntimeError, match="before reset"):
+        greedy.act(first)
+    torch.save({"kind": "esrp-bc"}, tmp_path / "bc.pt")
+    with pytest.raises(ValueError, match="not an ESRP-PPO checkpoint"):
+        load_network(tmp_path / "bc.pt")
+
+
+def test_training_resumes_from_its_checkpoint(
+    tmp_path: Path, client: esrp.Client, easy_scenes: list[str]
+) -> None:
+    run = tmp_path / "run"
+    train(tiny(easy_scenes[0]), run, client, progress=False)
+    with pytest.raises(ValueError, match="--resume"):
+        train(tiny(easy_scenes[0], total_steps=32), run, client, progress=False)
+    with pytest.raises(ValueError, match="other settings"):
+        train(tiny(easy_scenes[0], total_steps=32, lr=1e-3), run, client, resume=True, progress=False)
+    train(tiny(easy_scenes[0], total_steps=32), run, client, resume=True, progress=False)
+    assert [row["update"] for row in rows(run / "log.csv")] == ["1", "2"]
+    assert [row["steps"] for row in rows(run / "log.csv")] == ["16", "32"]
+    state = torch.load(run / "ckpt.pt", weights_only=False)
+    assert (state["update"], state["steps"]) == (2, 32)
+
+
+def test_esrp_train_and_eval_end_to_end(
+    tmp_path: Path, server: esrp.LocalServer, easy_scenes: list[str]
+) -> None:
+    config = tmp_path / "ppo.toml"
+    config.write_text(
+        "[ppo]\n"
+        f'split = "test"\nscene = "{easy_scenes[0]}"\nhorizon = 5\npool = 2\nfeature_dim = 16\n'
+        "grasp_dim = 4\nhidden = 16\nnum_envs = 2\nnum_steps = 8\nminibatch_size = 8\n"
+        'total_steps = 16\nthreads = 1\ndevice = "cpu"\n',
+        encoding="utf-8",
+    )
+    run = tmp_path / "run"
+    arguments = ["train", "ppo", "--config", str(config), "--out", str(run), "--server", server.address]
+    assert main([*arguments, "--no-progress"]) == 0
+    assert load_config(config).scene == easy_scenes[0]
+    checkpoint = run / "ckpt.pt"
+    evaluation = ["eval", "--agent", "ppo", "--checkpoint", str(checkpoint), "--split", "test"]
+    evaluation += ["--scenes", easy_scenes[0], "--server", server.address, "--no-progress"]
+    assert main([*evaluation, "--out", str(tmp_path / "ppo.jsonl")]) == 0
+    (record,) = read_records(tmp_path / "ppo.jsonl").records
+    assert record.agent == "ppo"
+    assert record.agent_config == {"checkpoint": str(checkpoint)}
+    assert record.actions
+    assert all(0 <= a < 6 for a in record.actions)
+    # The same checkpoint and seed play the same episode again.
+    assert main([*evaluation, "--out", str(tmp_path / "again.jsonl")]) == 0
+    assert read_records(tmp_path / "again.jsonl").records[0].actions == record.actions
+
+
+def test_bad_configs_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(ValueError, match="multiple of num_steps"):
+        PpoConfig.from_mapping({"num_steps": 64, "minibatch_size": 96})
+    with pytest.raises(ValueError, match="unknown ppo settings"):
+        PpoConfig.from_mapping({"learning_rate": 1e-3})
+    with pytest.raises(ValueError, match="encoder"):
+        PpoConfig.from_mapping({"encoder": "vit"})
+    with pytest.raises(ValueError, match="pool"):
+        PpoConfig.from_mapping({"pool": 3})
+    with pytest.raises(ValueError, match="reward terms"):
+        PpoConfig.from_mapping({"reward": {"bonus": 1.0}})
+    config = tmp_path / "bad.toml"
+    config.write_text("[ppo]\nnum_envs = 3\nnum_steps = 64\nminibatch_size = 128\n", encoding="utf-8")
+    assert main(["train", "ppo", "--config", str(config), "--out", str(tmp_path / "run")]) == 2
+    assert "must be a multiple of minibatch_size" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists(), "nothing is started or written for a bad config"
+    with pytest.raises(ValueError, match="needs --checkpoint"):
+        PpoPolicy({})
+    with pytest.raises(ValueError, match="no checkpoint at"):
+        PpoPolicy({"checkpoint": str(tmp_path / "missing.pt")})
+
+
+def test_the_shipped_configs_load() -> None:
+    configs = sorted((Path(__file__).parent.parent / "configs").glob("ppo-*.toml"))
+    assert len(configs) >= 2
+    loaded = {path.stem: load_config(path) for path in configs}
+    paper = loaded["ppo-paper"]
+    assert (paper.lr, paper.vf_coef, paper.batch_size, paper.minibatch_size) == (1.5e-4, 5e-3, 2048, 64)
+    assert (paper.num_steps, paper.total_steps) == (64, 6_000_000)
