@@ -141,3 +141,15 @@ def test_esrp_eval_plays_a_checkpoint(
     assert all(0 <= a < 6 for a in record.actions)
     other = ["eval", "--agent", "random", "--checkpoint", str(checkpoint), "--out", str(tmp_path / "r.jsonl")]
     assert main(other) == 2, "--checkpoint only applies to bc"
+
+
+def test_devices_are_checked(demos: Path, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="device 'tpu'"):
+        tiny(demos, device="tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="no CUDA device"):
+            train(tiny(demos, device="cuda"), tmp_path / "run", progress=False)
+    # A resumed run may move to another device.
+    train(tiny(demos, device="cpu"), tmp_path / "cpu", progress=False)
+    train(tiny(demos, device="auto", epochs=2), tmp_path / "cpu", resume=True, progress=False)
+    assert [row["epoch"] for row in log_rows(tmp_path / "cpu")] == ["1", "2"]

@@ -20,7 +20,7 @@ from esrp.results import read_records
 torch = pytest.importorskip("torch", reason="esrp[train] is not installed")
 
 from esrp.agents.ppo import PpoAgent, PpoConfig, PpoNet, PpoPolicy, load_network  # noqa: E402
-from esrp.train_ppo import _save, load_config, ppo_loss, train  # noqa: E402
+from esrp.train_ppo import _save, gae, load_config, ppo_loss, train  # noqa: E402
 
 
 def tiny(scene: str, **more: object) -> PpoConfig:
@@ -243,3 +243,31 @@ def test_the_shipped_configs_load() -> None:
     paper = loaded["ppo-paper"]
     assert (paper.lr, paper.vf_coef, paper.batch_size, paper.minibatch_size) == (1.5e-4, 5e-3, 2048, 64)
     assert (paper.num_steps, paper.total_steps) == (64, 6_000_000)
+
+
+def test_advantages_stop_at_episode_starts() -> None:
+    # One sub-env; a new episode begins at step 2. By hand (γ = 0.9, λ = 0.8):
+    # t=2: δ = 3 + 0.9·1.0 − 0.5 = 3.4;  t=1: δ = 2 − 0.5 = 1.5 (the next step starts an episode)
+    # t=0: δ = 1 + 0.9·0.5 − 0.5 = 0.95, A = 0.95 + 0.9·0.8·1.5 = 2.03.
+    rewards = torch.tensor([[1.0], [2.0], [3.0]])
+    values = torch.full((3, 1), 0.5)
+    starts = torch.tensor([[1.0], [0.0], [1.0]])
+    advantages, returns = gae(rewards, values, starts, torch.tensor([1.0]), torch.tensor([0.0]), 0.9, 0.8)
+    assert torch.allclose(advantages[:, 0], torch.tensor([2.03, 1.5, 3.4]))
+    assert torch.allclose(returns, advantages + values)
+    # When the step after the rollout starts an episode, its value is not used.
+    cut, _ = gae(rewards, values, starts, torch.tensor([100.0]), torch.tensor([1.0]), 0.9, 0.8)
+    assert torch.allclose(cut[2, 0], torch.tensor(2.5))
+
+
+def test_training_is_deterministic(tmp_path: Path, client: esrp.Client, easy_scenes: list[str]) -> None:
+    config = tiny(easy_scenes[0], total_steps=32)
+    runs = [tmp_path / "a", tmp_path / "b"]
+    for run in runs:
+        train(config, run, client, progress=False)
+    timing = {"steps_per_second", "seconds"}
+    logs = [[{k: v for k, v in r.items() if k not in timing} for r in rows(run / "log.csv")] for run in runs]
+    assert logs[0] == logs[1]
+    assert (runs[0] / "episodes.csv").read_text() == (runs[1] / "episodes.csv").read_text()
+    models = [torch.load(run / "ckpt.pt", weights_only=False)["model"] for run in runs]
+    assert all(torch.equal(models[0][key], models[1][key]) for key in models[0])

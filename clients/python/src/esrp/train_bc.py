@@ -26,6 +26,7 @@ import torch
 
 from ._config import read_table
 from .agents.bc import BcConfig, DiffusionPolicy, bc_loss, schedulers
+from .agents.encoders import resolve_device
 
 __all__ = ["DemoWindows", "load_config", "train"]
 
@@ -140,22 +141,24 @@ def train(config: BcConfig, out: Path, *, resume: bool = False, progress: bool =
     checkpoint = out / "ckpt.pt"
     if not resume and checkpoint.exists():
         raise ValueError(f"{out} already holds a run: pass --resume to go on with it, or another --out")
+    device = resolve_device(config.device)
     torch.manual_seed(config.seed)
     windows = DemoWindows(config.demos, config.n_obs, config.horizon)
-    model = DiffusionPolicy(config)
+    model = DiffusionPolicy(config).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     epoch, steps = 0, 0
     if resume and checkpoint.exists():
-        state = torch.load(checkpoint, map_location="cpu", weights_only=False)
-        # More epochs (or another checkpoint interval or thread count) may be asked of a resumed run.
-        free = {"epochs", "checkpoint_every", "threads"}
+        state = torch.load(checkpoint, map_location=device, weights_only=False)
+        # More epochs (or another checkpoint interval, thread count or device) may be asked of a
+        # resumed run.
+        free = {"epochs", "checkpoint_every", "threads", "device"}
         trained = {k: v for k, v in state["config"].items() if k not in free}
         if trained != {k: v for k, v in config.to_dict().items() if k not in free}:
             raise ValueError(f"{checkpoint} was trained with other settings: {state['config']}")
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         epoch, steps = int(state["epoch"]), int(state["steps"])
-        torch.set_rng_state(state["torch_rng"])
+        torch.set_rng_state(state["torch_rng"].cpu())
         print(f"resuming {checkpoint} after epoch {epoch}", file=sys.stderr)
     (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")
     noise_scheduler, _ = schedulers(config)
@@ -171,7 +174,10 @@ def train(config: BcConfig, out: Path, *, resume: bool = False, progress: bool =
         sums = np.zeros(3)
         batches = 0
         for first in range(0, len(order), config.batch_size):
-            batch = windows.batch(np.sort(order[first : first + config.batch_size]))
+            batch = {
+                key: value.to(device)
+                for key, value in windows.batch(np.sort(order[first : first + config.batch_size])).items()
+            }
             loss, mse, ce = bc_loss(model, noise_scheduler, batch)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"epoch {epoch + 1}: the loss is {loss.item()}")

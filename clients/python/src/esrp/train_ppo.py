@@ -33,10 +33,11 @@ from torch import nn
 from ._client import Client
 from ._config import read_table
 from ._values import Sensors
+from .agents.encoders import resolve_device
 from .agents.ppo import LstmState, PpoConfig, PpoNet
 from .gym import RearrangeVectorEnv
 
-__all__ = ["UpdateStats", "load_config", "ppo_loss", "train"]
+__all__ = ["UpdateStats", "gae", "load_config", "ppo_loss", "train"]
 
 LOG_FIELDS = (
     "update",
@@ -89,14 +90,6 @@ class UpdateStats:
     seconds: float
 
 
-def _device(setting: str) -> torch.device:
-    if setting == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if setting.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"device {setting!r}: torch sees no CUDA device here")
-    return torch.device(setting)
-
-
 def _save(path: Path, network: PpoNet, optimizer: torch.optim.Optimizer, update: int, steps: int) -> None:
     state = {
         "kind": "esrp-ppo",
@@ -128,7 +121,7 @@ def train(
     """Trains until `config.total_steps` environment steps (from the checkpoint in `out` with
     `resume`) on the server behind `client`; returns the checkpoint's path.
     """
-    device = _device(config.device)
+    device = resolve_device(config.device)
     if config.threads > 0:
         torch.set_num_threads(config.threads)
     out.mkdir(parents=True, exist_ok=True)
@@ -149,7 +142,7 @@ def train(
         network.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         update, global_step = int(state["update"]), int(state["steps"])
-        torch.set_rng_state(state["torch_rng"])
+        torch.set_rng_state(state["torch_rng"].cpu())
         print(f"resuming {checkpoint} after update {update} ({global_step} steps)", file=sys.stderr)
         _trim_logs(out, update, global_step)
     (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")
@@ -262,17 +255,9 @@ def _loop(
                 state,
                 next_start,
             )
-            advantages = torch.zeros_like(rewards)
-            last = torch.zeros(n, device=device)
-            for t in reversed(range(steps_)):
-                if t == steps_ - 1:
-                    continuing, following = 1.0 - next_start, next_value
-                else:
-                    continuing, following = 1.0 - starts[t + 1], values[t + 1]
-                delta = rewards[t] + config.gamma * following * continuing - values[t]
-                last = delta + config.gamma * config.gae_lambda * continuing * last
-                advantages[t] = last
-            returns = advantages + values
+            advantages, returns = gae(
+                rewards, values, starts, next_value, next_start, config.gamma, config.gae_lambda
+            )
 
         # PPO epochs over minibatches of whole sequences (sub-envs), time-major within each.
         def flat(x: torch.Tensor) -> torch.Tensor:
@@ -352,6 +337,33 @@ def _loop(
             on_update(stats)
         if update % config.checkpoint_every == 0 or update == config.num_updates:
             _save(out / "ckpt.pt", network, optimizer, update, global_step)
+
+
+def gae(
+    rewards: torch.Tensor,
+    values: torch.Tensor,
+    starts: torch.Tensor,
+    next_value: torch.Tensor,
+    next_start: torch.Tensor,
+    gamma: float,
+    gae_lambda: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Generalised advantage estimates and returns of a rollout: `rewards`, `values` and `starts`
+    (1 where step t is an episode's first) are (T, N); `next_value` and `next_start` are the step
+    after the rollout's. No value is carried across an episode start.
+    """
+    advantages = torch.zeros_like(rewards)
+    last = torch.zeros_like(next_value)
+    steps = rewards.shape[0]
+    for t in reversed(range(steps)):
+        if t == steps - 1:
+            continuing, following = 1.0 - next_start, next_value
+        else:
+            continuing, following = 1.0 - starts[t + 1], values[t + 1]
+        delta = rewards[t] + gamma * following * continuing - values[t]
+        last = delta + gamma * gae_lambda * continuing * last
+        advantages[t] = last
+    return advantages, advantages + values
 
 
 def ppo_loss(

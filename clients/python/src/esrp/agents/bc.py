@@ -31,7 +31,7 @@ from torch import nn
 from torch.nn import functional as F  # noqa: N812 - the usual name
 
 from .._values import Action, Observation
-from .encoders import float_images, make_encoder
+from .encoders import check_device, float_images, make_encoder
 
 __all__ = ["BcAgent", "BcConfig", "BcPolicy", "DiffusionPolicy", "load_policy"]
 
@@ -66,6 +66,7 @@ class BcConfig:
     seed: int = 0
     threads: int = 0
     checkpoint_every: int = 10
+    device: str = "auto"
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> BcConfig:
@@ -78,6 +79,7 @@ class BcConfig:
         config = cls(**given)
         if config.encoder not in ("cnn", "resnet18"):
             raise ValueError(f"encoder {config.encoder!r}: cnn or resnet18")
+        check_device(config.device)
         if not 1 <= config.n_execute <= config.horizon:
             raise ValueError("n_execute must be between 1 and horizon")
         if config.horizon % 2 ** (len(config.unet_channels) - 1):
@@ -229,13 +231,15 @@ def bc_loss(
     """
     actions = batch["actions"]
     x0 = F.one_hot(actions, ACTIONS).float().transpose(1, 2) * 2 - 1  # (B, 6, h) in [-1, 1]
-    noise = torch.randn(x0.shape, generator=generator)
+    # Drawn on the CPU (where a seeded generator lives), then moved: the same draws on any device.
+    noise = torch.randn(x0.shape, generator=generator).to(x0.device)
     steps = torch.randint(0, scheduler.config.num_train_timesteps, (x0.shape[0],), generator=generator)
+    steps = steps.to(x0.device)
     noisy = scheduler.add_noise(x0, noise, steps)
     cond = model.condition(batch["ego"], batch["goal"], batch["grasping"])
     predicted = model.unet(noisy, steps, cond)
     mse = F.mse_loss(predicted, noise)
-    alpha = scheduler.alphas_cumprod[steps].float()[:, None, None]
+    alpha = scheduler.alphas_cumprod.to(x0.device)[steps].float()[:, None, None]
     # The denoised chunk, clipped to the one-hot range as sampling clips it, read as logits: at
     # high noise levels the unclipped estimate divides by a tiny sqrt(alpha) and would swamp the MSE.
     denoised = ((noisy - (1 - alpha).sqrt() * predicted) / alpha.sqrt()).clamp(-1, 1)

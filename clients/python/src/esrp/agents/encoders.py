@@ -15,7 +15,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F  # noqa: N812 - the usual name
 
-__all__ = ["ENCODERS", "float_images", "make_encoder"]
+__all__ = ["ENCODERS", "check_device", "float_images", "make_encoder", "resolve_device"]
 
 ENCODERS = ("cnn", "nature", "resnet18")
 
@@ -118,3 +118,19 @@ def make_encoder(kind: str, out: int, resolution: int = 128) -> nn.Module:
     if kind == "cnn":
         return SmallCnn(out)
     raise ValueError(f"encoder {kind!r}: one of {', '.join(ENCODERS)}")
+
+
+def check_device(setting: str) -> None:
+    """Raises `ValueError` unless `setting` names a training device: auto, cpu, cuda or cuda:N."""
+    if setting not in ("auto", "cpu", "cuda") and not (setting.startswith("cuda:") and setting[5:].isdigit()):
+        raise ValueError(f"device {setting!r}: auto, cpu, cuda or cuda:N")
+
+
+def resolve_device(setting: str) -> torch.device:
+    """The torch device of a config's `device`: `auto` is CUDA when torch sees a GPU, else the CPU."""
+    check_device(setting)
+    if setting == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if setting.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device {setting!r}: torch sees no CUDA device here")
+    return torch.device(setting)

@@ -23,7 +23,7 @@ from torch import nn
 from torch.nn import functional as F  # noqa: N812 - the usual name
 
 from .._values import Action, Observation, RewardWeights
-from .encoders import ENCODERS, make_encoder
+from .encoders import ENCODERS, check_device, make_encoder
 
 __all__ = ["PpoAgent", "PpoConfig", "PpoNet", "PpoPolicy", "load_network"]
 
@@ -115,8 +115,7 @@ class PpoConfig:
             )
         if not 0 < self.gamma <= 1 or not 0 <= self.gae_lambda <= 1:
             raise ValueError("gamma must be in (0, 1] and gae_lambda in [0, 1]")
-        if self.device not in ("auto", "cpu") and not self.device.startswith("cuda"):
-            raise ValueError(f"device {self.device!r}: auto, cpu, cuda or cuda:N")
+        check_device(self.device)
         terms = {f.name for f in fields(RewardWeights)}
         if set(self.reward) - terms:
             raise ValueError(
