@@ -428,6 +428,44 @@ async def pick_scenes(client: AsyncClient, settings: EvalSettings) -> list[Scene
     return picked
 
 
+@dataclasses.dataclass
+class Resumed:
+    """A run's results file, ready to append to (`open_results`).
+
+    Attributes:
+        records: The records the file holds of the run's scenes (the run appends its own).
+        done: Scenes the file already holds.
+        todo: The run's scenes still to play, in order.
+        earlier: How many of the run's scenes the file already holds.
+        tally: Their metrics, for the progress line.
+    """
+
+    records: list[EpisodeRecord]
+    done: set[str]
+    todo: list[SceneSummary]
+    earlier: int
+    tally: Tally
+
+
+def open_results(settings: EvalSettings, scenes: Sequence[SceneSummary]) -> Resumed:
+    """Prepares `settings.out` for a run over `scenes`: started over with `fresh`, else what an
+    earlier run of the same agent and settings wrote is kept (`resume_records`) and said.
+    """
+    out = settings.out
+    if settings.fresh and out.exists():
+        out.unlink()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    records = resume_records(out, settings.agent, settings.recorded_config())
+    done = {r.scene_id for r in records}
+    wanted = {s.id for s in scenes}
+    earlier = sum(1 for r in records if r.scene_id in wanted)
+    if earlier:
+        print(f"resuming {out}: {earlier} of {len(scenes)} scenes already done", file=sys.stderr)
+    todo = [s for s in scenes if s.id not in done]
+    mine = [r for r in records if r.scene_id in wanted]
+    return Resumed(mine, done, todo, earlier, Tally.of(mine))
+
+
 def resume_records(path: Path, agent: str, config: dict[str, Any]) -> list[EpisodeRecord]:
     """What an earlier run wrote (a torn last line is cut off first). Refuses a file of another
     agent, or of the same agent with other settings (another model, budget, ...): one file, one run.
@@ -507,18 +545,8 @@ async def evaluate(client: AsyncClient, settings: EvalSettings) -> EvalOutcome:
     )
     scenes = await pick_scenes(client, settings)
     out = settings.out
-    if settings.fresh and out.exists():
-        out.unlink()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    records = resume_records(out, settings.agent, settings.recorded_config())
-    done = {r.scene_id for r in records}
-    wanted = {s.id for s in scenes}
-    todo = [s for s in scenes if s.id not in done]
-    earlier = sum(1 for r in records if r.scene_id in wanted)
-    if earlier:
-        print(f"resuming {out}: {earlier} of {len(scenes)} scenes already done", file=sys.stderr)
-
-    tally = Tally.of(r for r in records if r.scene_id in wanted)
+    resumed = open_results(settings, scenes)
+    records, todo, earlier, tally = resumed.records, resumed.todo, resumed.earlier, resumed.tally
     progress = Progress(len(scenes), earlier, settings.progress)
     failed: list[tuple[str, str]] = []
     written = 0
@@ -555,8 +583,7 @@ async def evaluate(client: AsyncClient, settings: EvalSettings) -> EvalOutcome:
         if close is not None:
             await close()
 
-    mine = [r for r in records if r.scene_id in wanted]
-    return finish(settings, info, mine, written, failed, time.monotonic() - started)
+    return finish(settings, info, records, written, failed, time.monotonic() - started)
 
 
 def finish(

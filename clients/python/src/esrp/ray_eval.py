@@ -44,11 +44,11 @@ from .evaluation import (
     Progress,
     agent_factory,
     finish,
+    open_results,
     pick_scenes,
     play_episode,
-    resume_records,
 )
-from .results import EpisodeRecord, Tally, append_record
+from .results import EpisodeRecord, append_record
 
 __all__ = ["EvalActor", "RaySettings", "run_ray_eval"]
 
@@ -210,17 +210,9 @@ def _drive(ray: Any, settings: EvalSettings, cluster: RaySettings) -> EvalOutcom
     )
 
     out = settings.out
-    if settings.fresh and out.exists():
-        out.unlink()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    records = resume_records(out, settings.agent, settings.recorded_config())
-    wanted = {s.id for s in scenes}
-    done = {r.scene_id for r in records}
-    earlier = sum(1 for r in records if r.scene_id in wanted)
-    if earlier:
-        print(f"resuming {out}: {earlier} of {len(scenes)} scenes already done", file=sys.stderr)
-    pending = deque(s for s in scenes if s.id not in done)
-    tally = Tally.of(r for r in records if r.scene_id in wanted)
+    resumed = open_results(settings, scenes)
+    records, done, earlier, tally = resumed.records, resumed.done, resumed.earlier, resumed.tally
+    pending = deque(resumed.todo)
     progress = Progress(len(scenes), earlier, settings.progress)
     failed: list[tuple[str, str]] = []
     written = 0
@@ -280,8 +272,7 @@ def _drive(ray: Any, settings: EvalSettings, cluster: RaySettings) -> EvalOutcom
             with contextlib.suppress(Exception):
                 ray.kill(actor, no_restart=True)
 
-    mine = [r for r in records if r.scene_id in wanted]
-    return finish(settings, info, mine, written, failed, time.monotonic() - started)
+    return finish(settings, info, records, written, failed, time.monotonic() - started)
 
 
 def _first_answer(ray: Any, refs: list[Any]) -> tuple[ServerInfo, list[SceneSummary]]:  # noqa: ANN401
