@@ -9,16 +9,10 @@ use esrp_server::dm_env::convert::{action_of, create_options, no_settings, reset
 use esrp_server::dm_env::wire::dm_env_rpc::v1 as dm;
 use libfuzzer_sys::fuzz_target;
 use prost::Message;
-use tonic::Code;
 
-/// The longest message an error about client input may have (as the property tests of
-/// `server/service/tests/server/conversions.rs`).
-const MAX_MESSAGE: usize = 1200;
-
-fn refused(code: Code, message: &str) {
-    assert!(matches!(code, Code::InvalidArgument | Code::NotFound), "{code:?}: {message}");
-    assert!(message.len() <= MAX_MESSAGE, "a {}-byte message", message.len());
-}
+#[path = "common/refusal.rs"]
+mod refusal;
+use refusal::refused;
 
 fuzz_target!(|data: &[u8]| {
     use dm::environment_request::Payload;
