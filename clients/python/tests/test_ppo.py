@@ -19,8 +19,9 @@ from esrp.results import read_records
 
 torch = pytest.importorskip("torch", reason="esrp[train] is not installed")
 
+from esrp._training import save_checkpoint  # noqa: E402
 from esrp.agents.ppo import PpoAgent, PpoConfig, PpoNet, PpoPolicy, load_network  # noqa: E402
-from esrp.train_ppo import _save, gae, load_config, ppo_loss, train  # noqa: E402
+from esrp.train_ppo import gae, load_config, ppo_loss, train  # noqa: E402
 
 
 def tiny(scene: str, **more: object) -> PpoConfig:
@@ -140,7 +141,7 @@ def test_a_checkpoint_reloads_to_identical_outputs(
     torch.manual_seed(3)
     network = PpoNet(config)
     path = tmp_path / "ckpt.pt"
-    _save(path, network, torch.optim.Adam(network.parameters()), 1, 16)
+    save_checkpoint(path, "esrp-ppo", network, torch.optim.Adam(network.parameters()), update=1, steps=16)
     loaded = load_network(path)
     with client.create_episode(easy_scenes[0]) as episode:
         first = episode.observation

@@ -4,8 +4,8 @@
         --json docs/results/ppo-easy1.json
 
 Plays `--episodes` episodes with uniform random actions and as many with the run's final policy
-(actions drawn from it, as in training; `--greedy` takes its most likely action) on a
-`RearrangeVectorEnv` set up as the run's (scenes, horizon, reward, resolution), on a server started
+(actions drawn from it, as in training; `--greedy` takes its most likely action) on the run's own
+vector env (`esrp.train_ppo.make_env`: its scenes, horizon, reward, resolution), on a server started
 here (or `--server`); then plots the return of every training episode (and its moving average) and
 the success rate against environment steps, with the random agent's and the final policy's means
 as lines. Prints (and with `--json` writes) the numbers.
@@ -25,7 +25,7 @@ import torch
 
 import esrp
 from esrp.agents.ppo import PpoConfig, PpoNet, load_network
-from esrp.gym import RearrangeVectorEnv
+from esrp.train_ppo import make_env
 
 
 def play(
@@ -34,17 +34,7 @@ def play(
     """Mean return, success rate and length over `episodes` episodes (random actions without a
     network), `config.num_envs` at a time.
     """
-    env = RearrangeVectorEnv(
-        config.num_envs,
-        client=client,
-        split=config.split,
-        difficulty=config.difficulty,
-        scene=config.scene,
-        sensors=esrp.Sensors(resolution=config.resolution),
-        horizon=config.horizon,
-        reward=config.reward_weights(),
-        autoreset_mode="SameStep",
-    )
+    env = make_env(config, client)
     rng = np.random.default_rng(seed)
     generator = torch.Generator().manual_seed(seed)
     returns: list[float] = []

@@ -12,7 +12,7 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from . import __version__
@@ -371,6 +371,16 @@ def _eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _on_server(args: argparse.Namespace, run: Callable[[str], int]) -> int:
+    """`run(address)` on the server `--server` names, or on one started here (`--server-arg`)."""
+    if args.server is not None:
+        return run(args.server)
+    from ._local import LocalServer
+
+    with LocalServer(*args.server_args) as local:
+        return run(local.address)
+
+
 def _demos(args: argparse.Namespace) -> int:
     try:
         from .demos import DemoExportError, DemoSettings, export_demos
@@ -407,7 +417,6 @@ def _demos(args: argparse.Namespace) -> int:
         settings.agent_config["checkpoint"] = str(args.checkpoint)
 
     from ._client import Client
-    from ._local import LocalServer
 
     def run(address: str) -> int:
         with Client(address, token=args.token, timeout=120) as client:
@@ -416,10 +425,7 @@ def _demos(args: argparse.Namespace) -> int:
         return 0
 
     try:
-        if args.server is not None:
-            return run(args.server)
-        with LocalServer(*args.server_args) as local:
-            return run(local.address)
+        return _on_server(args, run)
     except DemoExportError as error:
         print(f"esrp demos export: {error}", file=sys.stderr)
         return 2
@@ -447,7 +453,6 @@ def _train(args: argparse.Namespace) -> int:
 def _train_ppo(args: argparse.Namespace, name: str) -> int:
     from ._client import Client
     from ._errors import EsrpError
-    from ._local import LocalServer
     from .train_ppo import load_config, train
 
     try:
@@ -463,10 +468,7 @@ def _train_ppo(args: argparse.Namespace, name: str) -> int:
         return 0
 
     try:
-        if args.server is not None:
-            return run(args.server)
-        with LocalServer(*args.server_args) as local:
-            return run(local.address)
+        return _on_server(args, run)
     except (OSError, ValueError, EsrpError) as error:
         print(f"{name}: {error}", file=sys.stderr)
         return 2

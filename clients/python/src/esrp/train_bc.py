@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from ._config import read_table
+from ._training import load_resumable, save_checkpoint
 from .agents.bc import BcConfig, DiffusionPolicy, bc_loss, schedulers
 from .agents.encoders import resolve_device
 
@@ -114,23 +115,6 @@ class DemoWindows:
         }
 
 
-def _save(
-    path: Path, model: DiffusionPolicy, optimizer: torch.optim.Optimizer, epoch: int, steps: int
-) -> None:
-    state = {
-        "kind": "esrp-bc",
-        "config": model.config.to_dict(),
-        "model": model.state_dict(),
-        "optimizer": optimizer.state_dict(),
-        "epoch": epoch,
-        "steps": steps,
-        "torch_rng": torch.get_rng_state(),
-    }
-    partial = path.with_suffix(".partial")
-    torch.save(state, partial)
-    partial.replace(path)  # a crash never leaves half a checkpoint
-
-
 def train(config: BcConfig, out: Path, *, resume: bool = False, progress: bool = True) -> Path:
     """Trains for `config.epochs` epochs (from the checkpoint in `out` with `resume`); returns the
     checkpoint's path.
@@ -148,17 +132,13 @@ def train(config: BcConfig, out: Path, *, resume: bool = False, progress: bool =
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     epoch, steps = 0, 0
     if resume and checkpoint.exists():
-        state = torch.load(checkpoint, map_location=device, weights_only=False)
         # More epochs (or another checkpoint interval, thread count or device) may be asked of a
         # resumed run.
         free = {"epochs", "checkpoint_every", "threads", "device"}
-        trained = {k: v for k, v in state["config"].items() if k not in free}
-        if trained != {k: v for k, v in config.to_dict().items() if k not in free}:
-            raise ValueError(f"{checkpoint} was trained with other settings: {state['config']}")
+        state = load_resumable(checkpoint, "esrp-bc", config.to_dict(), free, device)
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         epoch, steps = int(state["epoch"]), int(state["steps"])
-        torch.set_rng_state(state["torch_rng"].cpu())
         print(f"resuming {checkpoint} after epoch {epoch}", file=sys.stderr)
     (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")
     noise_scheduler, _ = schedulers(config)
@@ -198,7 +178,7 @@ def train(config: BcConfig, out: Path, *, resume: bool = False, progress: bool =
                 file=sys.stderr,
             )
         if epoch % config.checkpoint_every == 0 or epoch == config.epochs:
-            _save(checkpoint, model, optimizer, epoch, steps)
+            save_checkpoint(checkpoint, "esrp-bc", model, optimizer, epoch=epoch, steps=steps)
     if not checkpoint.exists():
-        _save(checkpoint, model, optimizer, epoch, steps)
+        save_checkpoint(checkpoint, "esrp-bc", model, optimizer, epoch=epoch, steps=steps)
     return checkpoint

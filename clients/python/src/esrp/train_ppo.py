@@ -32,12 +32,13 @@ from torch import nn
 
 from ._client import Client
 from ._config import read_table
+from ._training import load_resumable, save_checkpoint
 from ._values import Sensors
 from .agents.encoders import resolve_device
 from .agents.ppo import LstmState, PpoConfig, PpoNet
 from .gym import RearrangeVectorEnv
 
-__all__ = ["UpdateStats", "gae", "load_config", "ppo_loss", "train"]
+__all__ = ["UpdateStats", "gae", "load_config", "make_env", "ppo_loss", "train"]
 
 LOG_FIELDS = (
     "update",
@@ -90,23 +91,25 @@ class UpdateStats:
     seconds: float
 
 
-def _save(path: Path, network: PpoNet, optimizer: torch.optim.Optimizer, update: int, steps: int) -> None:
-    state = {
-        "kind": "esrp-ppo",
-        "config": network.config.to_dict(),
-        "model": network.state_dict(),
-        "optimizer": optimizer.state_dict(),
-        "update": update,
-        "steps": steps,
-        "torch_rng": torch.get_rng_state(),
-    }
-    partial = path.with_suffix(".partial")
-    torch.save(state, partial)
-    partial.replace(path)  # a crash never leaves half a checkpoint
-
-
 def _tensor(array: np.ndarray, device: torch.device) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(array)).to(device)
+
+
+def make_env(config: PpoConfig, client: Client) -> RearrangeVectorEnv:
+    """The vector env a config trains on: `num_envs` episodes of its scenes with its horizon, reward
+    weights and resolution, SAME_STEP autoreset.
+    """
+    return RearrangeVectorEnv(
+        config.num_envs,
+        client=client,
+        split=config.split,
+        difficulty=config.difficulty,
+        scene=config.scene,
+        sensors=Sensors(resolution=config.resolution),
+        horizon=config.horizon,
+        reward=config.reward_weights(),
+        autoreset_mode=AutoresetMode.SAME_STEP,
+    )
 
 
 def train(
@@ -133,16 +136,10 @@ def train(
     optimizer = torch.optim.Adam(network.parameters(), lr=config.lr, eps=1e-5)
     update, global_step = 0, 0
     if resume and checkpoint.exists():
-        state = torch.load(checkpoint, map_location=device, weights_only=False)
-        if state.get("kind") != "esrp-ppo":
-            raise ValueError(f"{checkpoint} is not an ESRP-PPO checkpoint")
-        trained = {k: v for k, v in state["config"].items() if k not in RESUMABLE}
-        if trained != {k: v for k, v in config.to_dict().items() if k not in RESUMABLE}:
-            raise ValueError(f"{checkpoint} was trained with other settings: {state['config']}")
+        state = load_resumable(checkpoint, "esrp-ppo", config.to_dict(), RESUMABLE, device)
         network.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         update, global_step = int(state["update"]), int(state["steps"])
-        torch.set_rng_state(state["torch_rng"].cpu())
         print(f"resuming {checkpoint} after update {update} ({global_step} steps)", file=sys.stderr)
         _trim_logs(out, update, global_step)
     (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")
@@ -153,17 +150,7 @@ def train(
         with open(episodes_path, "w", newline="") as file:
             csv.writer(file).writerow(["steps", "return", "length", "success"])
 
-    env = RearrangeVectorEnv(
-        config.num_envs,
-        client=client,
-        split=config.split,
-        difficulty=config.difficulty,
-        scene=config.scene,
-        sensors=Sensors(resolution=config.resolution),
-        horizon=config.horizon,
-        reward=config.reward_weights(),
-        autoreset_mode=AutoresetMode.SAME_STEP,
-    )
+    env = make_env(config, client)
     try:
         _loop(config, network, optimizer, env, device, out, update, global_step, progress, on_update)
     finally:
@@ -336,7 +323,7 @@ def _loop(
         if on_update is not None:
             on_update(stats)
         if update % config.checkpoint_every == 0 or update == config.num_updates:
-            _save(out / "ckpt.pt", network, optimizer, update, global_step)
+            save_checkpoint(out / "ckpt.pt", "esrp-ppo", network, optimizer, update=update, steps=global_step)
 
 
 def gae(

@@ -30,6 +30,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F  # noqa: N812 - the usual name
 
+from .._training import policy_checkpoint
 from .._values import Action, Observation
 from .encoders import check_device, float_images, make_encoder
 
@@ -337,15 +338,7 @@ class BcPolicy:
     """
 
     def __init__(self, config: Mapping[str, Any]) -> None:
-        checkpoint = config.get("checkpoint")
-        if not checkpoint:
-            raise ValueError("--agent bc needs --checkpoint RUN/ckpt.pt (made by esrp train bc)")
-        if not Path(str(checkpoint)).is_file():
-            raise ValueError(f"no checkpoint at {checkpoint}")
-        threads = int(config.get("threads", 1))
-        if threads > 0:
-            torch.set_num_threads(threads)
-        self.model = load_policy(str(checkpoint))
+        self.model = load_policy(policy_checkpoint(config, "bc"))
 
     def __call__(self, config: dict[str, Any]) -> BcAgent:
         """An agent for one episode."""

@@ -22,6 +22,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F  # noqa: N812 - the usual name
 
+from .._training import policy_checkpoint
 from .._values import Action, Observation, RewardWeights
 from .encoders import ENCODERS, check_device, make_encoder
 
@@ -287,15 +288,7 @@ class PpoPolicy:
     """
 
     def __init__(self, config: Mapping[str, Any]) -> None:
-        checkpoint = config.get("checkpoint")
-        if not checkpoint:
-            raise ValueError("--agent ppo needs --checkpoint RUN/ckpt.pt (made by esrp train ppo)")
-        if not Path(str(checkpoint)).is_file():
-            raise ValueError(f"no checkpoint at {checkpoint}")
-        threads = int(config.get("threads", 1))
-        if threads > 0:
-            torch.set_num_threads(threads)
-        self.network = load_network(str(checkpoint))
+        self.network = load_network(policy_checkpoint(config, "ppo"))
 
     def __call__(self, config: dict[str, Any]) -> PpoAgent:
         """An agent for one episode."""

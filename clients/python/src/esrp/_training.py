@@ -1,0 +1,67 @@
+"""What `esrp train bc` and `esrp train ppo` and their agents share: checkpoints written atomically,
+resumption that refuses other settings, and the agents' checkpoint option.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection, Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+__all__ = ["load_resumable", "policy_checkpoint", "save_checkpoint"]
+
+
+def save_checkpoint(
+    path: Path, kind: str, model: nn.Module, optimizer: torch.optim.Optimizer, **progress: int
+) -> None:
+    """Writes `model` (with its `config`), `optimizer`, `progress` (epoch, update, steps...) and
+    torch's random state to `path` as checkpoint kind `kind`, atomically: a crash never leaves half
+    a checkpoint.
+    """
+    config: Any = model.config
+    state = {
+        "kind": kind,
+        "config": config.to_dict(),
+        "model": model.state_dict(),
+        "optimizer": optimizer.state_dict(),
+        **progress,
+        "torch_rng": torch.get_rng_state(),
+    }
+    partial = path.with_suffix(".partial")
+    torch.save(state, partial)
+    partial.replace(path)
+
+
+def load_resumable(
+    path: Path, kind: str, settings: Mapping[str, Any], free: Collection[str], device: torch.device
+) -> dict[str, Any]:
+    """The checkpoint at `path` to resume a run with `settings` (a config's `to_dict()`); raises
+    `ValueError` for another kind of checkpoint or other settings than `free` ones. Restores
+    torch's random state.
+    """
+    state: dict[str, Any] = torch.load(path, map_location=device, weights_only=False)
+    if not isinstance(state, dict) or state.get("kind") != kind:
+        raise ValueError(f"{path} is not an {kind} checkpoint")
+    trained = {k: v for k, v in state["config"].items() if k not in free}
+    if trained != {k: v for k, v in settings.items() if k not in free}:
+        raise ValueError(f"{path} was trained with other settings: {state['config']}")
+    torch.set_rng_state(state["torch_rng"].cpu())
+    return state
+
+
+def policy_checkpoint(config: Mapping[str, Any], agent: str) -> str:
+    """The `checkpoint` of an agent's config (`esrp eval --agent bc|ppo --checkpoint`), checked to
+    exist; sets torch's thread count to the config's `threads` (default 1: one per evaluation).
+    """
+    checkpoint = config.get("checkpoint")
+    if not checkpoint:
+        raise ValueError(f"--agent {agent} needs --checkpoint RUN/ckpt.pt (made by esrp train {agent})")
+    if not Path(str(checkpoint)).is_file():
+        raise ValueError(f"no checkpoint at {checkpoint}")
+    threads = int(config.get("threads", 1))
+    if threads > 0:
+        torch.set_num_threads(threads)
+    return str(checkpoint)
