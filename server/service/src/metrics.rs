@@ -9,6 +9,7 @@
 //! | `esrp_live_episodes` | gauge | episodes alive now |
 //! | `esrp_render_batch_views` | histogram | views per render batch |
 //! | `esrp_render_batch_seconds` | histogram | time to render one batch |
+//! | `esrp_render_views_reused_total` | counter | views answered from an episode's last images instead of rendered (steps that changed nothing they show) |
 //! | `esrp_plans_total` | counter | PlanActions calls, by outcome (`planned`, `cached`, `failed`: no plan found, `deadline`: none found in the budget, `cancelled`: the client went away and the planner stopped) |
 
 use std::net::SocketAddr;
@@ -56,6 +57,8 @@ pub struct Metrics {
     pub batch_seconds: Histogram,
     /// PlanActions answers, by outcome.
     pub plans: Family<PlanOutcome, Counter>,
+    /// Views answered from an episode's last images instead of rendered.
+    pub reused_views: Counter,
 }
 
 impl Default for Metrics {
@@ -75,6 +78,7 @@ impl Metrics {
         let batch_views = Histogram::new(exponential_buckets(1.0, 2.0, 11));
         let batch_seconds = Histogram::new(exponential_buckets(50e-6, 2.0, 16));
         let plans = Family::<PlanOutcome, Counter>::default();
+        let reused_views = Counter::default();
         let mut registry = Registry::with_prefix("esrp");
         registry.register("steps", "Steps taken, all episodes and APIs", steps.clone());
         registry.register(
@@ -88,7 +92,12 @@ impl Metrics {
         registry.register("render_batch_views", "Views per render batch", batch_views.clone());
         registry.register("render_batch_seconds", "Time to render one batch", batch_seconds.clone());
         registry.register("plans", "PlanActions answers, by outcome", plans.clone());
-        Self { registry, steps, step_latency, created, closed, live, batch_views, batch_seconds, plans }
+        registry.register(
+            "render_views_reused",
+            "Views answered from an episode's last images (the step changed nothing they show) instead of rendered",
+            reused_views.clone(),
+        );
+        Self { registry, steps, step_latency, created, closed, live, batch_views, batch_seconds, plans, reused_views }
     }
 
     /// Counts `n` closed episodes.

@@ -33,6 +33,8 @@ pub struct EpisodeEntry {
     pub last_used: Instant,
     /// The planner's last answer (PlanActions), reused while the episode follows it.
     pub plan: Option<crate::episodes::planning::CachedPlan>,
+    /// The last observation's images, answered again by steps that change nothing they show.
+    pub frames: crate::render::FrameCache,
 }
 
 /// A shared, individually locked episode.

@@ -38,7 +38,7 @@ use crate::config::Config;
 use crate::error::ServiceError;
 use crate::metrics::Metrics;
 use crate::registry::{EpisodeEntry, Registry};
-use crate::render::{RenderScheduler, View};
+use crate::render::{FrameCache, RenderScheduler, View};
 use crate::scenes::{SceneInfo, SceneStore};
 
 /// State shared by every handler of both protocols.
@@ -227,12 +227,15 @@ impl Shared {
             frame,
             last_used: Instant::now(),
             plan: None,
+            frames: FrameCache::default(),
         };
+        let first = observation_views(&entry);
         let mut views = vec![View::top_down(&handle, &targets, sensors.resolution)];
-        views.extend(observation_views(&entry));
+        views.extend(first.iter().cloned());
         let mut outputs = self.render.render(views).await?;
         let goal = outputs.remove(0);
         entry.goal = goal.rgb;
+        entry.frames.store(first, &outputs);
         let mut observation = observation(&entry, true);
         attach_images(&mut observation, &sensors, outputs);
         Ok((entry, observation))
@@ -293,7 +296,18 @@ impl Shared {
         let Some(scene) = scene else {
             entry.episode.reset();
             entry.last_used = Instant::now();
-            let outputs = self.render.render(observation_views(&entry)).await?;
+            let views = observation_views(&entry);
+            let outputs = match entry.frames.lookup(&views) {
+                Some(outputs) => {
+                    self.metrics.reused_views.inc_by(outputs.len() as u64);
+                    outputs
+                }
+                None => {
+                    let outputs = self.render.render(views.clone()).await?;
+                    entry.frames.store(views, &outputs);
+                    outputs
+                }
+            };
             let mut observation = observation(&entry, true);
             attach_images(&mut observation, &entry.sensors, outputs);
             return Ok(ResetResult { observation, scene: entry.summary.clone() });

@@ -13,7 +13,7 @@ use super::{EpisodeGuard, EpisodeId, SensorConfig, Shared, StepCall, StepResult,
 use crate::error::ServiceError;
 use crate::metrics::Metrics;
 use crate::registry::SharedEpisode;
-use crate::render::{RenderTicket, View};
+use crate::render::{FrameCache, RenderTicket, View};
 
 /// Batches of at most this many steps are stepped on the async runtime itself.
 const INLINE_STEPS: usize = 4;
@@ -27,15 +27,23 @@ struct PlannedStep {
     include_goal: bool,
 }
 
-/// A step taken: its answer without images, the views that make them, and the sensors that
-/// say how they fit in the answer.
+/// A step taken: its answer without images, where they come from, and the sensors that say how
+/// they fit in the answer.
 struct TakenStep {
     result: StepResult,
     /// An upper bound of the answer's encoded size.
     bytes: usize,
-    views: Vec<View>,
-    view_count: usize,
+    images: Images,
     sensors: SensorConfig,
+}
+
+/// Where a step's images come from.
+enum Images {
+    /// Views to render (moved into the render job when it is submitted), how many, and the
+    /// episode's cache with a copy of the views, to keep the images once they are rendered.
+    Render { views: Vec<View>, count: usize, keep: (FrameCache, Vec<View>) },
+    /// The episode's last images: the step changed nothing they show.
+    Reused(Vec<ViewOutput>),
 }
 
 /// Takes `plan` in order on the locked `guards` (`ids` names them): each step sees the state
@@ -63,6 +71,10 @@ fn take_planned(
             }
             let outcome = g.episode.step(step.action)?;
             let views = super::observation_views(g);
+            let images = match g.frames.lookup(&views) {
+                Some(outputs) => Images::Reused(outputs),
+                None => Images::Render { count: views.len(), keep: (g.frames.clone(), views.clone()), views },
+            };
             let ended = outcome.terminated || outcome.truncated;
             let result = StepResult {
                 observation: observation(g, step.include_goal),
@@ -70,7 +82,7 @@ fn take_planned(
                 collided_with_name: outcome.collided_with.map(|o| g.episode.compiled().obstacle_name(o)),
                 metrics: ended.then(|| g.episode.metrics()),
             };
-            Ok(TakenStep { result, bytes, view_count: views.len(), views, sensors: g.sensors })
+            Ok(TakenStep { result, bytes, images, sensors: g.sensors })
         })
         .collect()
 }
@@ -114,7 +126,14 @@ impl Stepped {
                     .into_iter()
                     .map(|t| {
                         let mut t = t?;
-                        let mine: Vec<ViewOutput> = outputs.by_ref().take(t.view_count).collect();
+                        let mine: Vec<ViewOutput> = match t.images {
+                            Images::Render { count, keep: (frames, views), .. } => {
+                                let mine: Vec<ViewOutput> = outputs.by_ref().take(count).collect();
+                                frames.store(views, &mine);
+                                mine
+                            }
+                            Images::Reused(mine) => mine,
+                        };
                         attach_images(&mut t.result.observation, &t.sensors, mine);
                         Ok(t.result)
                     })
@@ -257,8 +276,15 @@ impl Shared {
             guards = guards_back;
             taken
         };
-        let views: Vec<View> =
-            taken.iter_mut().filter_map(|t| t.as_mut().ok()).flat_map(|t| std::mem::take(&mut t.views)).collect();
+        let mut views = Vec::new();
+        let mut reused = 0;
+        for t in taken.iter_mut().filter_map(|t| t.as_mut().ok()) {
+            match &mut t.images {
+                Images::Render { views: mine, .. } => views.append(mine),
+                Images::Reused(outputs) => reused += outputs.len(),
+            }
+        }
+        self.metrics.reused_views.inc_by(reused as u64);
         let render = self.render.submit(views);
         let now = Instant::now();
         for g in &mut guards {

@@ -337,3 +337,53 @@ async fn a_batch_beyond_one_render_call_is_rendered_in_parts() {
     // Same scene, same action: every episode sees the same thing.
     assert!(responses.iter().all(|r| r.observation.as_ref().unwrap().ego_rgb.as_ref().unwrap().data == first.data));
 }
+
+/// A step that changes nothing its views show (a rejected motion, a fetch with nothing in
+/// reach) answers the episode's last images instead of rendering them again, and they are
+/// exactly what rendering gives: a second episode that takes only the first one's accepted
+/// actions reaches the same states and renders each of them, with every sensor on.
+#[tokio::test]
+async fn steps_that_change_nothing_answer_the_last_images() {
+    let server = Server::start(&["--metrics-listen", "127.0.0.1:0"]);
+    let mut client = server.client().await;
+    let sensors = proto::Sensors { ego_depth: true, ego_segmentation: true, current_top_down: true, resolution: 64 };
+    let create =
+        || proto::CreateEpisodeRequest { sensors: Some(sensors), ..create_request("esrp-bench-v1/00003", false) };
+    let first = client.create_episode(create()).await.unwrap().into_inner();
+    let mut previous = first.observation.unwrap();
+    previous.goal_rgb = None;
+    let mut dice = Dice::new(11, 0, 0);
+    let mut accepted = Vec::new();
+    let mut rejected = 0;
+    for _ in 0..120 {
+        let action = random_action(&mut dice);
+        let response = client.step(step_request(&first.episode_id, action)).await.unwrap().into_inner();
+        let observation = response.observation.clone().unwrap();
+        if response.info.as_ref().unwrap().accepted {
+            accepted.push((action, observation.clone()));
+        } else {
+            rejected += 1;
+            assert_eq!(observation, previous, "a rejected step shows what the step before it showed");
+        }
+        previous = observation;
+        if response.terminated || response.truncated {
+            break;
+        }
+    }
+    assert!(rejected >= 10 && accepted.len() >= 10, "{rejected} rejected, {} accepted", accepted.len());
+    let text = server.scrape();
+    let reused = text
+        .lines()
+        .find_map(|l| l.strip_prefix("esrp_render_views_reused_total "))
+        .unwrap_or_else(|| panic!("the reuse counter in {text}"));
+    // Two views per observation: the ego view (with depth and labels) and the top-down one.
+    // Some accepted steps change nothing visible either.
+    assert!(reused.parse::<u64>().unwrap() >= 2 * rejected, "{reused} views reused, {rejected} steps rejected");
+
+    let second = client.create_episode(create()).await.unwrap().into_inner();
+    for (i, (action, expected)) in accepted.iter().enumerate() {
+        let response = client.step(step_request(&second.episode_id, *action)).await.unwrap().into_inner();
+        assert!(response.info.unwrap().accepted, "accepted action {i} is accepted again");
+        assert_eq!(&response.observation.unwrap(), expected, "accepted action {i}");
+    }
+}
