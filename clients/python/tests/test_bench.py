@@ -18,9 +18,13 @@ def test_bench_prints_every_scenario(
 ) -> None:
     before = client.server_info().live_episodes
     report = tmp_path / "bench.json"
-    arguments = ["--server", server.address, "--seconds", "0.3", "--warmup", "0.1", "--json", str(report)]
+    arguments = ["--server", server.address, "--seconds", "0.3", "--warmup", "0.1", "--warmup-rounds", "1"]
+    arguments += ["--json", str(report)]
     assert bench.main(arguments) == 0
-    out = capsys.readouterr().out
+    out, err = capsys.readouterr()
+    # One unmeasured round first, then the measured one.
+    assert "warm-up round 1: vec-64 (not counted)" in err, err
+    assert "\n  round 1: vec-64" in err, err
     rows = {line.split()[0]: line for line in out.splitlines() if line and not line.startswith(" ")}
     assert "machine:" in rows
     assert out.count("load average") == 2

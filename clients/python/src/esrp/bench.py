@@ -19,7 +19,10 @@ action, as an agent that looks at every observation does; episodes that end are 
 
 Steps/s counts the steps taken in the measured window; latency is per `step` call (for vec-64,
 per wave of 64). With `--repeat K` the scenarios run K rounds one after the other and the table
-shows the medians (ratios to Rust: the median of each round's ratio).
+shows the medians (ratios to Rust: the median of each round's ratio). Before them, `--warmup-rounds`
+(1) rounds run the same scenarios unmeasured: a server generates and compiles each scene of the
+built-in benchmark on its first use (a vec-64 round on a fresh server measured a third of a warm
+one's steps/s), and the measured rounds then visit the same scenes, from the same seeds.
 """
 
 from __future__ import annotations
@@ -564,14 +567,22 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--repeat", type=int, default=1, help="rounds of every scenario; the table shows medians"
     )
+    parser.add_argument(
+        "--warmup-rounds",
+        type=int,
+        default=1,
+        help="unmeasured rounds first, so that the server has generated the scenes (default 1)",
+    )
     parser.add_argument("--json", type=Path, help="also write the results to this JSON file")
     args = parser.parse_args(argv)
     args.scenarios = [name.strip() for name in args.scenarios.split(",") if name.strip()]
     unknown = [name for name in args.scenarios if name not in SCENARIOS]
     if unknown:
         parser.error(f"unknown scenario(s) {', '.join(unknown)}: use {', '.join(SCENARIOS)}")
-    if args.repeat < 1 or args.seconds <= 0 or args.warmup < 0:
-        parser.error("--repeat must be at least 1, --seconds positive, --warmup not negative")
+    if args.repeat < 1 or args.seconds <= 0 or args.warmup < 0 or args.warmup_rounds < 0:
+        parser.error(
+            "--repeat must be at least 1, --seconds positive, --warmup and --warmup-rounds not negative"
+        )
     return args
 
 
@@ -603,6 +614,16 @@ def _main(args: argparse.Namespace) -> int:
             f"({info.renderer_backend}), dataset {info.dataset}",
             flush=True,
         )
+        for index in range(args.warmup_rounds):
+            run(
+                address,
+                scenarios=args.scenarios,
+                seconds=args.seconds,
+                warmup=args.warmup,
+                token=args.token,
+                round_index=index,
+                log=lambda line: print(f"  warm-up {line} (not counted)", file=sys.stderr, flush=True),
+            )
         for index in range(args.repeat):
             rounds.append(
                 run(
@@ -630,6 +651,7 @@ def _main(args: argparse.Namespace) -> int:
                 "seconds": args.seconds,
                 "warmup": args.warmup,
                 "repeat": args.repeat,
+                "warmup_rounds": args.warmup_rounds,
                 "machine": before,
                 "load_average_after": after["load_average"],
             },
