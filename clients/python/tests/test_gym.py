@@ -147,3 +147,17 @@ def test_env_starts_its_own_server() -> None:
 def test_bad_render_mode(server: esrp.LocalServer) -> None:
     with pytest.raises(ValueError, match="render_mode"):
         RearrangeEnv(server.address, render_mode="human")
+
+
+def test_scene_list_is_drawn_from(client: esrp.Client, easy_scenes: list[str]) -> None:
+    chosen = easy_scenes[:3]
+    env = RearrangeEnv(client=client, scene=chosen)
+    try:
+        assert env.scenes == tuple(chosen)
+        drawn = {env.reset(seed=seed)[1]["scene_id"] for seed in range(12)}
+        assert drawn == set(chosen)
+    finally:
+        env.close()
+    for bad in ([], ["esrp-bench-v1/00003", ""], [3]):
+        with pytest.raises(ValueError, match="scene"):
+            RearrangeEnv(client=client, scene=bad)  # type: ignore[arg-type]

@@ -8,7 +8,8 @@ action, as an agent that looks at every observation does; episodes that end are 
 - `client-1`: one episode, `Episode.step` (unary Step).
 - `env-1`: one `RearrangeEnv` (`esrp/Rearrange-v1`), `env.step` closed loop.
 - `stream-64`: 64 episodes on one `EpisodeStream`, each sending its next step when its answer comes.
-- `vec-64`: one `RearrangeVectorEnv` of 64 envs, `envs.step` closed loop (NEXT_STEP autoreset).
+- `vec-64`: one `RearrangeVectorEnv` of 64 envs, `envs.step` closed loop (NEXT_STEP autoreset),
+  drawing its scenes from the 64 that esrp-bench's batch-64 plays.
 - `rust`: the Rust client `esrp-bench` against the same server, for the matching scenarios
   (`unary-1` for client-1 and env-1, `stream-mux-64` for stream-64, `batch-64` for vec-64, whose
   calls are the same: one StepBatch of 64 at a time). Found as `ESRP_BENCH_BIN`, on `PATH`, or in
@@ -191,10 +192,12 @@ def bench_env_1(address: str, token: str | None, window_of: Callable[[], _Window
 
 
 def bench_vec_64(address: str, token: str | None, window_of: Callable[[], _Window]) -> Measurement:
-    """`vec-64`: the native vector env of 64 envs, closed loop."""
+    """`vec-64`: the native vector env of 64 envs, closed loop, on the 64 scenes batch-64 plays."""
     from .gym import RearrangeVectorEnv
 
-    envs = RearrangeVectorEnv(_EPISODES, address, token=token, split="test")
+    with Client(address, token=token) as client:
+        scenes = _test_scenes(client, _EPISODES)
+    envs = RearrangeVectorEnv(_EPISODES, address, token=token, scene=scenes)
     try:
         envs.reset(seed=0)
         rng = np.random.default_rng(4)

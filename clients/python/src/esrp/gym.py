@@ -157,7 +157,7 @@ class _Setup:
         tls: TlsSetting,
         split: Split | str | None,
         difficulty: Difficulty | str | None,
-        scene: str | None,
+        scene: str | Sequence[str] | None,
         sensors: Sensors | None,
         horizon: int,
         reward: RewardWeights | None,
@@ -170,8 +170,12 @@ class _Setup:
                 address = server.address
             client = Client(address, token=token, tls=tls)
         try:
-            if scene is not None:
+            if isinstance(scene, str):
                 scenes: tuple[str, ...] = (scene,)
+            elif scene is not None:
+                scenes = tuple(scene)
+                if not scenes or not all(isinstance(s, str) and s for s in scenes):
+                    raise ValueError(f"scene: a scene id or a non-empty list of scene ids, got {scene!r}")
             else:
                 scenes = tuple(s.id for s in client.scenes(split, difficulty, page_size=1000))
                 if not scenes:
@@ -213,7 +217,7 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
         tls: TLS setting, as `Client`'s.
         split: Scenes to draw from: `train` (default), `test`, or None for all.
         difficulty: Only `easy`, `medium` or `hard` scenes (None: all).
-        scene: Always play this scene id (ignores split and difficulty).
+        scene: Always play this scene id, or draw from these ids (ignores split and difficulty).
         sensors: Optional sensors and image size (default: none, 128 px).
         horizon: Step limit; 0: each scene's own (the server truncates).
         reward: Reward weights (the server's defaults for fields left None).
@@ -235,7 +239,7 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
         tls: TlsSetting = None,
         split: Split | str | None = "train",
         difficulty: Difficulty | str | None = None,
-        scene: str | None = None,
+        scene: str | Sequence[str] | None = None,
         sensors: Sensors | None = None,
         horizon: int = 0,
         reward: RewardWeights | None = None,
@@ -374,7 +378,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         tls: TlsSetting = None,
         split: Split | str | None = "train",
         difficulty: Difficulty | str | None = None,
-        scene: str | None = None,
+        scene: str | Sequence[str] | None = None,
         sensors: Sensors | None = None,
         horizon: int = 0,
         reward: RewardWeights | None = None,
