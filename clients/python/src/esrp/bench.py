@@ -6,7 +6,8 @@ with fixed seeds; every client waits for a step's answer before it sends that ep
 action, as an agent that looks at every observation does; episodes that end are reset):
 
 - `client-1`: one episode, `Episode.step` (unary Step).
-- `env-1`: one `RearrangeEnv` (`esrp/Rearrange-v1`), `env.step` closed loop.
+- `env-1`: one `RearrangeEnv` (`esrp/Rearrange-v1`), `env.step` closed loop, on the scene that
+  client-1 and esrp-bench's unary-1 play.
 - `stream-64`: 64 episodes on one `EpisodeStream`, each sending its next step when its answer comes.
 - `vec-64`: one `RearrangeVectorEnv` of 64 envs, `envs.step` closed loop (NEXT_STEP autoreset),
   drawing its scenes from the 64 that esrp-bench's batch-64 plays.
@@ -169,10 +170,12 @@ def bench_client_1(address: str, token: str | None, window_of: Callable[[], _Win
 
 
 def bench_env_1(address: str, token: str | None, window_of: Callable[[], _Window]) -> Measurement:
-    """`env-1`: one Gymnasium env, closed loop."""
+    """`env-1`: one Gymnasium env, closed loop, on the scene unary-1 plays."""
     from .gym import RearrangeEnv
 
-    env = RearrangeEnv(address, token=token, split="test")
+    with Client(address, token=token) as client:
+        scene = _test_scenes(client, 1)[0]
+    env = RearrangeEnv(address, token=token, scene=scene)
     try:
         env.reset(seed=0)
         actions = np.random.default_rng(2).integers(0, 6, size=1 << 16).tolist()
