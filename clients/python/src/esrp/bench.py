@@ -620,28 +620,25 @@ def _main(args: argparse.Namespace) -> int:
             f"({info.renderer_backend}), dataset {info.dataset}",
             flush=True,
         )
-        for index in range(args.warmup_rounds):
-            run(
+        # The warm-up rounds first, unmeasured, then the measured ones: the same scenarios.
+        for index in range(-args.warmup_rounds, args.repeat):
+            warm = index < 0
+            label = "  warm-up {} (not counted)" if warm else "  {}"
+
+            def log(line: str, label: str = label) -> None:
+                print(label.format(line), file=sys.stderr, flush=True)
+
+            results = run(
                 address,
                 scenarios=args.scenarios,
                 seconds=args.seconds,
                 warmup=args.warmup,
                 token=args.token,
-                round_index=index,
-                log=lambda line: print(f"  warm-up {line} (not counted)", file=sys.stderr, flush=True),
+                round_index=index + args.warmup_rounds if warm else index,
+                log=log,
             )
-        for index in range(args.repeat):
-            rounds.append(
-                run(
-                    address,
-                    scenarios=args.scenarios,
-                    seconds=args.seconds,
-                    warmup=args.warmup,
-                    token=args.token,
-                    round_index=index,
-                    log=lambda line: print(f"  {line}", file=sys.stderr, flush=True),
-                )
-            )
+            if not warm:
+                rounds.append(results)
     after = machine()
     print(format_table(rounds))
     print(f"load average after: {' '.join(f'{x:.2f}' for x in after['load_average'])}")
