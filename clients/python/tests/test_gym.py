@@ -161,3 +161,36 @@ def test_scene_list_is_drawn_from(client: esrp.Client, easy_scenes: list[str]) -
     for bad in ([], ["esrp-bench-v1/00003", ""], [3]):
         with pytest.raises(ValueError, match="scene"):
             RearrangeEnv(client=client, scene=bad)  # type: ignore[arg-type]
+
+
+def test_a_reset_on_the_same_scene_starts_as_a_fresh_episode(
+    client: esrp.Client, easy_scenes: list[str]
+) -> None:
+    # Resetting onto the scene the episode plays restarts it in place (no new scene sent); the
+    # first observation and the goal must be those of a fresh episode, sensors included.
+    sensors = esrp.Sensors(depth=True, segmentation=True, current_top_down=True, resolution=32)
+    scenes = easy_scenes[:2]
+    played = RearrangeEnv(client=client, scene=scenes, sensors=sensors)
+    fresh = RearrangeEnv(client=client, scene=scenes, sensors=sensors)
+    try:
+        seeds = [0, 1, 2, 3, 4, 5, 6, 7]
+        drawn = []
+        for seed in seeds:
+            observation, info = played.reset(seed=seed)
+            drawn.append(info["scene_id"])
+            expected, expected_info = fresh.reset(seed=seed)
+            fresh.close()
+            fresh = RearrangeEnv(client=client, scene=scenes, sensors=sensors)
+            assert info == expected_info
+            assert observation.keys() == expected.keys()
+            for key in expected:
+                assert np.array_equal(observation[key], expected[key]), (seed, key)
+            # Move something (a fetch where one is in reach, turns and moves otherwise).
+            for action in (0, 4, 2, 0, 0, 5, 3):
+                played.step(action)
+        # Both kinds of reset were met: onto the same scene and onto the other one.
+        repeats = [a == b for a, b in zip(drawn, drawn[1:])]
+        assert any(repeats) and not all(repeats), drawn
+    finally:
+        played.close()
+        fresh.close()

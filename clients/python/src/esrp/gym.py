@@ -255,6 +255,7 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
         self.action_space = spaces.Discrete(6)
         self._image_spec = _Images(self._setup.sensors)
         self._episode: Episode | None = None
+        self._scene: str | None = None  # the episode's scene id
         self._goal: npt.NDArray[np.uint8] | None = None
         self._last: ObsDict | None = None
 
@@ -286,7 +287,10 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
             )
             first = self._episode.observation
         else:
-            first = self._episode.reset(scene)
+            # The same scene again restarts the episode where it is (the same first observation
+            # and goal as a fresh one, without building the episode anew).
+            first = self._episode.reset(None if scene == self._scene else scene)
+        self._scene = scene
         assert first is not None
         assert first.goal_rgb is not None
         self._goal = first.goal_rgb
@@ -408,6 +412,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         self._keys = tuple(self.single_observation_space.spaces)
         self._stream: EpisodeStream | None = None
         self._episode_ids: list[str | None] = [None] * num_envs
+        self._scene_ids: list[str | None] = [None] * num_envs  # each episode's scene
         self._rngs: list[np.random.Generator | None] = [None] * num_envs
         # Each sub-env's last observation: its images as the answer's bytes or read-only views (never
         # written), whether it grasps, and its goal, in a batch array that only resets write to.
@@ -453,11 +458,14 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             setup = self._setup
             stream.create(scene, sensors=setup.sensors, horizon=setup.horizon, reward=setup.reward)
         else:
-            stream.reset(episode, scene)
+            # The same scene again restarts the episode where it is (see `RearrangeEnv.reset`).
+            stream.reset(episode, None if scene == self._scene_ids[index] else scene)
         return scene
 
-    def _take_reset(self, stream: EpisodeStream, index: int) -> None:
-        """Reads sub-env `index`'s reset answer (sent by `_send_reset`) into its last observation."""
+    def _take_reset(self, stream: EpisodeStream, index: int, scene: str) -> None:
+        """Reads sub-env `index`'s reset answer (sent by `_send_reset` for `scene`) into its last
+        observation.
+        """
         answer = stream.next()
         assert answer is not None
         if self._episode_ids[index] is None:
@@ -466,6 +474,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             first = created.observation
         else:
             first = answer.observation()
+        self._scene_ids[index] = scene
         assert first.goal_rgb is not None
         for key in self._image_spec.keys:
             self._last_images[key][index] = getattr(first, key)
@@ -504,8 +513,8 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             if seeds[index] is not None:
                 self._rngs[index], _ = seeding.np_random(seeds[index])
             scenes[index] = self._send_reset(stream, index, options)
-        for index in scenes:
-            self._take_reset(stream, index)
+        for index, scene in scenes.items():
+            self._take_reset(stream, index, scene)
         scene_ids = np.full(self.num_envs, None, dtype=object)
         for index, scene in scenes.items():
             scene_ids[index] = scene
@@ -565,8 +574,8 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             columns = self._step_batch(stepped, actions)
         finally:
             # The resets were answered on the stream meanwhile (whatever became of the batch).
-            for i in resets:
-                self._take_reset(stream, i)
+            for i, scene in resets.items():
+                self._take_reset(stream, i, scene)
         rewards = np.zeros(n, dtype=np.float64)
         terminations = np.zeros(n, dtype=np.bool_)
         truncations = np.zeros(n, dtype=np.bool_)
@@ -590,7 +599,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             finals = {i: (self._single_observation(i), _step_info(columns, i)) for i in ended}
             resets = {i: self._send_reset(stream, i, None) for i in ended}
             for i in ended:
-                self._take_reset(stream, i)
+                self._take_reset(stream, i, resets[i])
         infos = self._step_infos(columns, stepped, resets, finals)
         self._autoreset_envs = np.logical_or(terminations, truncations)
         return self._batch(), rewards, terminations, truncations, infos
