@@ -56,14 +56,19 @@ stamp="$venv/.esrp-requirements"
 wanted="$(cat "$requirements" "$constraints" "$client_constraints" "$client/pyproject.toml" | sha256sum | cut -d' ' -f1)"
 if [ "$(cat "$stamp" 2>/dev/null)" != "$wanted" ]; then
     pip install -r "$requirements" -c "$constraints"
-    pip install hatchling -c "$client_constraints"
+    pip install hatchling maturin -c "$client_constraints"
     pip install --no-build-isolation "./$client[test,train,ray]" -c "$client_constraints"
     echo "$wanted" >"$stamp"
 fi
 # The package itself, as built from this tree, every time (a wheel: what `pip install` gives users).
 pip install --no-build-isolation --no-deps --force-reinstall "./$client"
+step "the native transport (esrp-native: $client/native, built with maturin)"
+# Optional for users; here it is installed, so this suite runs the client's hot path through it
+# (tests/test_native.py compares it with grpcio's), while the Python 3.10 run below goes through
+# grpcio. maturin runs cargo, which it looks for beside itself and on PATH.
+PATH="$PWD/$venv/bin:$PATH" pip install --no-build-isolation --no-deps --force-reinstall "./$client/native"
 "$venv/bin/python" -m pip list --disable-pip-version-check --format=freeze \
-    | grep -iE '^(esrp|dm-env-rpc|grpcio|protobuf|numpy|gymnasium)=='
+    | grep -iE '^(esrp|esrp-native|esrp_native|dm-env-rpc|grpcio|protobuf|numpy|gymnasium)=='
 
 step "chromium (the browser test of esrp report)"
 if [ ! -x /usr/bin/chromium ]; then

@@ -189,8 +189,9 @@ def test_a_reset_on_the_same_scene_starts_as_a_fresh_episode(
             for action in (0, 4, 2, 0, 0, 5, 3):
                 played.step(action)
         # Both kinds of reset were met: onto the same scene and onto the other one.
-        repeats = [a == b for a, b in zip(drawn, drawn[1:])]
-        assert any(repeats) and not all(repeats), drawn
+        repeats = [a == b for a, b in zip(drawn, drawn[1:], strict=False)]
+        assert any(repeats), drawn
+        assert not all(repeats), drawn
     finally:
         played.close()
         fresh.close()

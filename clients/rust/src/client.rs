@@ -34,7 +34,7 @@ impl tonic::service::Interceptor for Bearer {
 pub type RawClient = EsrpClient<tonic::service::interceptor::InterceptedService<Channel, Bearer>>;
 
 /// Largest message either side sends: a StepBatch of many high-resolution views.
-const MAX_MESSAGE_BYTES: usize = 256 << 20;
+pub const MAX_MESSAGE_BYTES: usize = 256 << 20;
 
 /// TLS settings: the certificate authority that signed the server's certificate, and the name
 /// the certificate was issued for.
@@ -193,6 +193,12 @@ impl Client {
     /// set the token and TLS on the builder, then `.await` it.
     pub fn connect(url: impl Into<String>) -> ConnectBuilder {
         ConnectBuilder { url: url.into(), token: None, tls: None, connect_timeout: Duration::from_secs(10) }
+    }
+
+    /// The connection itself (tuned as above, without the bearer token): for callers that
+    /// speak to it below the generated stub, such as the Python client's native transport.
+    pub fn channel(&self) -> Channel {
+        self.channel.clone()
     }
 
     /// The generated stub, for RPCs and fields the typed API does not cover.

@@ -59,7 +59,7 @@ pub mod types;
 /// not cover.
 pub use esrp_proto::esrp::v1 as proto;
 
-pub use client::{Client, ConnectBuilder, RawClient, SceneFilter, Tls};
+pub use client::{Client, ConnectBuilder, MAX_MESSAGE_BYTES, RawClient, SceneFilter, Tls};
 pub use episode::{Episode, EpisodeOptions, SceneChoice};
 pub use error::{ClientError, Result};
 pub use local::{LocalServer, find_server_binary, reach_or_start};

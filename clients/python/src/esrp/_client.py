@@ -14,7 +14,7 @@ from typing import Any
 
 import grpc
 
-from . import _convert
+from . import _convert, _native
 from ._common import (
     ChannelOptions,
     RequestKind,
@@ -88,6 +88,11 @@ class Client:
         tls_server_name: Check the server's certificate against this name instead of the host.
         timeout: Default deadline of unary calls, seconds (None: none).
         options: Extra gRPC channel arguments; they override the tuned defaults.
+        transport: What carries the hot-path calls (Step, Reset, StepBatch): `auto` (default) the
+            native transport where the `esrp-native` package is installed and the channel is
+            plain, else grpcio; `native` insists on it (ValueError where it cannot be had);
+            `grpcio` never uses it. Every other call goes through grpcio. `client.transport`
+            says which one is used.
 
     Example:
         >>> with esrp.Client("127.0.0.1:50051") as client:            # doctest: +SKIP
@@ -104,18 +109,22 @@ class Client:
         tls_server_name: str | None = None,
         timeout: float | None = None,
         options: ChannelOptions = (),
+        transport: _native.Transport = "auto",
     ) -> None:
         host, https = target(address)
         self.address = host
         self.timeout = timeout
         self._metadata = bearer_metadata(token)
         creds = credentials(tls, https)
+        self.transport = _native.resolve(transport, creds is not None)
         arguments = channel_options(tls_server_name, options)
         if creds is None:
             self._channel = grpc.insecure_channel(host, options=arguments)
         else:
             self._channel = grpc.secure_channel(host, creds, options=arguments)
         self._stub = pb_grpc.EsrpStub(self._channel)
+        # Step, Reset and StepBatch: the stub's or the native transport's (called alike).
+        self._hot: Any = _native.HotPath(host, token) if self.transport == "native" else self._stub
         # Creates whose callers gave up, and the closes of their episodes, until they finish:
         # close() waits for them so that closing the channel cancels none of them.
         self._background: set[grpc.Future[Any]] = set()
@@ -142,6 +151,8 @@ class Client:
         """
         with self._background_done:
             self._background_done.wait_for(lambda: not self._background, timeout=grace)
+        if isinstance(self._hot, _native.HotPath):
+            self._hot.close()
         self._channel.close()
 
     def __enter__(self) -> Client:
@@ -323,7 +334,7 @@ class Client:
             ]
         )
         try:
-            answer = self._stub.StepBatch(request, metadata=self._metadata, timeout=self.timeout)
+            answer = self._hot.StepBatch(request, metadata=self._metadata, timeout=self.timeout)
         except grpc.RpcError as error:
             raise from_rpc_error(error) from error
         return _convert.step_results(answer.responses, len(steps))
@@ -334,7 +345,7 @@ class Client:
         """
         request = _convert.step_batch_request(episode_ids, actions)
         try:
-            answer = self._stub.StepBatch(request, metadata=self._metadata, timeout=self.timeout)
+            answer = self._hot.StepBatch(request, metadata=self._metadata, timeout=self.timeout)
         except grpc.RpcError as error:
             raise from_rpc_error(error) from error
         return _convert.batch_responses(answer, len(episode_ids))
@@ -405,20 +416,20 @@ class Episode:
 
     def step(self, action: Action | int, *, include_goal: bool = False) -> StepResult:
         """Takes `action`; with `include_goal` the observation carries the goal image too."""
-        answer = self._call(self.client.raw.Step, _convert.step_request(self.id, action, include_goal))
+        answer = self._call(self.client._hot.Step, _convert.step_request(self.id, action, include_goal))
         return _convert.step_result(answer)
 
     def _step_message(self, action: Action | int) -> Any:  # noqa: ANN401
         """`step` for the Gymnasium env's hot path: the StepResponse message, for
         `_convert.step_columns` (no values are built).
         """
-        return self._call(self.client.raw.Step, _convert.step_request(self.id, action, False))
+        return self._call(self.client._hot.Step, _convert.step_request(self.id, action, False))
 
     def reset(self, scene: str | None = None, *, scene_json: str | None = None) -> Observation:
         """Restarts the episode on the same scene (or another one); returns the first observation
         (with the goal image). Works on an ended episode.
         """
-        answer = self._call(self.client.raw.Reset, _convert.reset_request(self.id, scene, scene_json))
+        answer = self._call(self.client._hot.Reset, _convert.reset_request(self.id, scene, scene_json))
         observation, summary = _convert.reset_observation(answer)
         if summary is not None:
             self.scene = summary

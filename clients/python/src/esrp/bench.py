@@ -6,6 +6,9 @@ with fixed seeds; every client waits for a step's answer before it sends that ep
 action, as an agent that looks at every observation does; episodes that end are reset):
 
 - `client-1`: one episode, `Episode.step` (unary Step).
+  client-1, env-1 and vec-64 run once per `--transport` (`Client`'s: `auto`, the default, is the
+  native transport where the `esrp-native` package is installed; `native,grpcio` measures both
+  side by side, the second as `env-1@grpcio`, ...).
 - `env-1`: one `RearrangeEnv` (`esrp/Rearrange-v1`), `env.step` closed loop, on the scene that
   client-1 and esrp-bench's unary-1 play.
 - `stream-64`: 64 episodes on one `EpisodeStream`, each sending its next step when its answer comes.
@@ -49,10 +52,11 @@ from typing import Any
 
 import numpy as np
 
-from . import __version__
+from . import __version__, _native
 from ._client import Client
 from ._errors import EsrpError
 from ._local import LocalServer, _checkout_targets
+from ._native import Transport
 
 __all__ = ["SCENARIOS", "Measurement", "main", "run"]
 
@@ -154,9 +158,15 @@ def _test_scenes(client: Client, count: int) -> list[str]:
     return [scenes[i % len(scenes)] for i in range(count)]
 
 
-def bench_client_1(address: str, token: str | None, window_of: Callable[[], _Window]) -> Measurement:
+def bench_client_1(
+    address: str,
+    token: str | None,
+    window_of: Callable[[], _Window],
+    transport: Transport = "auto",
+    label: str | None = None,
+) -> Measurement:
     """`client-1`: unary steps of one episode."""
-    with Client(address, token=token) as client:
+    with Client(address, token=token, transport=transport) as client:
         rng = np.random.default_rng(1)
         with client.create_episode(_test_scenes(client, 1)[0]) as episode:
 
@@ -166,16 +176,21 @@ def bench_client_1(address: str, token: str | None, window_of: Callable[[], _Win
                     episode.reset()
                 return 1
 
-            return _closed_loop("client-1", 1, window_of(), step)
+            return _closed_loop(label or "client-1", 1, window_of(), step)
 
 
-def bench_env_1(address: str, token: str | None, window_of: Callable[[], _Window]) -> Measurement:
+def bench_env_1(
+    address: str,
+    token: str | None,
+    window_of: Callable[[], _Window],
+    transport: Transport = "auto",
+    label: str | None = None,
+) -> Measurement:
     """`env-1`: one Gymnasium env, closed loop, on the scene unary-1 plays."""
     from .gym import RearrangeEnv
 
-    with Client(address, token=token) as client:
-        scene = _test_scenes(client, 1)[0]
-    env = RearrangeEnv(address, token=token, scene=scene)
+    client = Client(address, token=token, transport=transport)
+    env = RearrangeEnv(client=client, scene=_test_scenes(client, 1)[0])
     try:
         env.reset(seed=0)
         actions = np.random.default_rng(2).integers(0, 6, size=1 << 16).tolist()
@@ -189,18 +204,24 @@ def bench_env_1(address: str, token: str | None, window_of: Callable[[], _Window
                 env.reset()
             return 1
 
-        return _closed_loop("env-1", 1, window_of(), step)
+        return _closed_loop(label or "env-1", 1, window_of(), step)
     finally:
         env.close()
+        client.close()
 
 
-def bench_vec_64(address: str, token: str | None, window_of: Callable[[], _Window]) -> Measurement:
+def bench_vec_64(
+    address: str,
+    token: str | None,
+    window_of: Callable[[], _Window],
+    transport: Transport = "auto",
+    label: str | None = None,
+) -> Measurement:
     """`vec-64`: the native vector env of 64 envs, closed loop, on the 64 scenes batch-64 plays."""
     from .gym import RearrangeVectorEnv
 
-    with Client(address, token=token) as client:
-        scenes = _test_scenes(client, _EPISODES)
-    envs = RearrangeVectorEnv(_EPISODES, address, token=token, scene=scenes)
+    client = Client(address, token=token, transport=transport)
+    envs = RearrangeVectorEnv(_EPISODES, client=client, scene=_test_scenes(client, _EPISODES))
     try:
         envs.reset(seed=0)
         rng = np.random.default_rng(4)
@@ -209,16 +230,26 @@ def bench_vec_64(address: str, token: str | None, window_of: Callable[[], _Windo
             envs.step(rng.integers(0, 6, size=_EPISODES))
             return _EPISODES
 
-        return _closed_loop("vec-64", _EPISODES, window_of(), step)
+        return _closed_loop(label or "vec-64", _EPISODES, window_of(), step)
     finally:
         envs.close()
+        client.close()
 
 
-def bench_stream_64(address: str, token: str | None, window_of: Callable[[], _Window]) -> Measurement:
+def bench_stream_64(
+    address: str,
+    token: str | None,
+    window_of: Callable[[], _Window],
+    transport: Transport = "auto",
+    label: str | None = None,
+) -> Measurement:
     """`stream-64`: 64 episodes on one stream; each answer sends that episode's next step (a reset
     first when it ended), as esrp-bench's `stream-mux-64`.
     """
-    with Client(address, token=token) as client, client.episode_stream(window=1) as stream:
+    with (
+        Client(address, token=token, transport=transport) as client,
+        client.episode_stream(window=1) as stream,
+    ):
         for scene in _test_scenes(client, _EPISODES):
             stream.create(scene)
         episodes = [answer.created().episode_id for answer in stream]
@@ -390,7 +421,7 @@ def machine() -> dict[str, Any]:
     versions = {"esrp": __version__, "python": platform.python_version()}
     # From the installed metadata: importing pyglet (through miniworld) before its headless option
     # is set would pin it to X11.
-    for package in ("grpcio", "protobuf", "numpy", "gymnasium", "miniworld"):
+    for package in ("grpcio", "protobuf", "numpy", "gymnasium", "miniworld", "esrp-native"):
         with contextlib.suppress(importlib.metadata.PackageNotFoundError):
             versions[package] = importlib.metadata.version(package)
     return {
@@ -413,8 +444,13 @@ def run(
     token: str | None = None,
     round_index: int = 0,
     log: Callable[[str], None] = lambda line: None,
+    transports: Sequence[Transport] = ("auto",),
 ) -> list[Measurement]:
-    """One round of `scenarios` against the server at `address`; their Measurements in order."""
+    """One round of `scenarios` against the server at `address`; their Measurements in order.
+    client-1, env-1 and vec-64 run once per transport (`Client`'s `transport`): under their own
+    name with the first, as `env-1@grpcio` (...) with the others. stream-64 runs once (streams
+    always go through grpcio).
+    """
 
     def window_of() -> _Window:
         return _Window(warmup, seconds)
@@ -423,14 +459,12 @@ def run(
     python_names = [name for name in scenarios if name in _RUST_SCENARIOS]
     for name in scenarios:
         log(f"round {round_index + 1}: {name}")
-        if name == "client-1":
-            results.append(bench_client_1(address, token, window_of))
-        elif name == "env-1":
-            results.append(bench_env_1(address, token, window_of))
+        if name in _BY_TRANSPORT:
+            for index, transport in enumerate(transports):
+                label = name if index == 0 else f"{name}@{transport}"
+                results.append(_BY_TRANSPORT[name](address, token, window_of, transport, label))
         elif name == "stream-64":
             results.append(bench_stream_64(address, token, window_of))
-        elif name == "vec-64":
-            results.append(bench_vec_64(address, token, window_of))
         elif name == "rust":
             wanted = list(dict.fromkeys(_RUST_SCENARIOS[n] for n in python_names)) or ["unary-1"]
             results.extend(bench_rust(address, token, seconds, wanted))
@@ -439,6 +473,14 @@ def run(
         else:
             raise ValueError(f"unknown scenario {name!r}: use {', '.join(SCENARIOS)}")
     return results
+
+
+_BY_TRANSPORT: dict[str, Callable[[str, str | None, Callable[[], _Window], Transport, str], Measurement]] = {
+    "client-1": bench_client_1,
+    "env-1": bench_env_1,
+    "vec-64": bench_vec_64,
+}
+"""The scenarios that run once per transport."""
 
 
 @dataclass
@@ -465,7 +507,7 @@ def _rows(rounds: Sequence[Sequence[Measurement]]) -> list[_Row]:
         ratios = []
         for results in rounds:
             mine = next((m for m in results if m.scenario == name and m.skipped is None), None)
-            twin = _RUST_SCENARIOS.get(name)
+            twin = _RUST_SCENARIOS.get(name.split("@")[0])
             rust = next((m for m in results if m.scenario == f"rust:{twin}" and m.skipped is None), None)
             if mine is not None and rust is not None and rust.steps_per_second > 0:
                 ratios.append(mine.steps_per_second / rust.steps_per_second)
@@ -579,8 +621,22 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         default=1,
         help="unmeasured rounds first, so that the server has generated the scenes (default 1)",
     )
+    parser.add_argument(
+        "--transport",
+        default="auto",
+        help="comma-separated transports of client-1, env-1 and vec-64: auto (native where esrp-native "
+        "is installed), native, grpcio; the first one's rows have the plain names (default auto)",
+    )
     parser.add_argument("--json", type=Path, help="also write the results to this JSON file")
     args = parser.parse_args(argv)
+    args.transports = [name.strip() for name in args.transport.split(",") if name.strip()]
+    for transport in args.transports:
+        try:
+            _native.resolve(transport, secure=False)
+        except ValueError as error:
+            parser.error(f"--transport: {error}")
+    if not args.transports or len(set(args.transports)) != len(args.transports):
+        parser.error("--transport: give one or more different transports")
     args.scenarios = [name.strip() for name in args.scenarios.split(",") if name.strip()]
     unknown = [name for name in args.scenarios if name not in SCENARIOS]
     if unknown:
@@ -615,9 +671,14 @@ def _main(args: argparse.Namespace) -> int:
     with _server(args.server) as address:
         with Client(address, token=args.token) as client:
             info = client.server_info()
+        transports = {}
+        for transport in args.transports:
+            with Client(address, token=args.token, transport=transport) as client:
+                transports[transport] = client.transport
         print(
             f"server {address}: esrp-server {info.version}, renderer {info.renderer_adapter} "
-            f"({info.renderer_backend}), dataset {info.dataset}",
+            f"({info.renderer_backend}), dataset {info.dataset}; transport "
+            + ", ".join(f"{t} = {resolved}" if t == "auto" else t for t, resolved in transports.items()),
             flush=True,
         )
         # The warm-up rounds first, unmeasured, then the measured ones: the same scenarios.
@@ -636,6 +697,7 @@ def _main(args: argparse.Namespace) -> int:
                 token=args.token,
                 round_index=index + args.warmup_rounds if warm else index,
                 log=log,
+                transports=args.transports,
             )
             if not warm:
                 rounds.append(results)
@@ -655,6 +717,7 @@ def _main(args: argparse.Namespace) -> int:
                 "warmup": args.warmup,
                 "repeat": args.repeat,
                 "warmup_rounds": args.warmup_rounds,
+                "transports": transports,
                 "machine": before,
                 "load_average_after": after["load_average"],
             },

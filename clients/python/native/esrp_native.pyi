@@ -1,0 +1,11 @@
+"""Type stubs of the native transport (see src/lib.rs); `esrp._native` wraps it."""
+
+METHODS: list[str]
+
+class CallError(Exception):
+    """A call that failed with a gRPC status: `args` is (code, message), code the status's number."""
+
+class Channel:
+    def __init__(self, url: str, token: str | None = None, connect_timeout: float = 10.0) -> None: ...
+    def unary(self, method: str, request: bytes, timeout: float | None = None) -> bytes: ...
+    def close(self) -> None: ...

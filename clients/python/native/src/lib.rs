@@ -1,0 +1,194 @@
+//! `esrp_native`: the optional native transport of the `esrp` Python client.
+//!
+//! grpcio spends about twice the Rust client's CPU on each unary call, and for one agent
+//! stepping one episode that per-call cost is most of a step. This module lets the Python
+//! client send the calls of its hot path (Step, Reset, StepBatch) over the Rust client's
+//! channel instead: the same tuned connection (`esrp_client::Client`: no Nagle, large HTTP/2
+//! windows), driven by a current-thread Tokio runtime on the calling thread while the GIL is
+//! released. It moves serialized messages only: Python builds and parses the protobufs as it
+//! does for grpcio, so both transports share every conversion and check.
+//!
+//! Python API (used by `esrp._native`, not meant to be called directly):
+//! `Channel(url, token=None, connect_timeout=10.0)`, `Channel.unary(method, request,
+//! timeout=None) -> bytes`, and `CallError(code, message)` for a call that failed with a gRPC
+//! status (`code` is the status's number).
+
+use std::sync::Mutex;
+use std::time::Duration;
+
+use bytes::{Buf, BufMut, Bytes};
+use pyo3::create_exception;
+use pyo3::exceptions::{PyException, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::PyBytes;
+use tonic::codec::{Codec, DecodeBuf, Decoder, EncodeBuf, Encoder};
+use tonic::metadata::{Ascii, MetadataValue};
+use tonic::{Code, Status};
+
+create_exception!(
+    esrp_native,
+    CallError,
+    PyException,
+    "A call that failed with a gRPC status: args are (code, message), code the status's number."
+);
+
+/// Passes serialized messages through unchanged (Python encodes and decodes them).
+#[derive(Clone, Copy, Default)]
+struct RawCodec;
+
+impl Codec for RawCodec {
+    type Encode = Bytes;
+    type Decode = Bytes;
+    type Encoder = RawCodec;
+    type Decoder = RawCodec;
+
+    fn encoder(&mut self) -> Self::Encoder {
+        RawCodec
+    }
+
+    fn decoder(&mut self) -> Self::Decoder {
+        RawCodec
+    }
+}
+
+impl Encoder for RawCodec {
+    type Item = Bytes;
+    type Error = Status;
+
+    fn encode(&mut self, item: Bytes, dst: &mut EncodeBuf<'_>) -> Result<(), Status> {
+        dst.put(item);
+        Ok(())
+    }
+}
+
+impl Decoder for RawCodec {
+    type Item = Bytes;
+    type Error = Status;
+
+    fn decode(&mut self, src: &mut DecodeBuf<'_>) -> Result<Option<Bytes>, Status> {
+        let length = src.remaining();
+        Ok(Some(src.copy_to_bytes(length)))
+    }
+}
+
+/// The methods the channel carries: the Python client's hot path.
+const METHODS: [&str; 3] = ["/esrp.v1.Esrp/Step", "/esrp.v1.Esrp/Reset", "/esrp.v1.Esrp/StepBatch"];
+
+/// A connection to an ESRP server for unary calls of serialized messages.
+#[pyclass(frozen, module = "esrp_native")]
+struct Channel {
+    /// Driven by whichever thread is in a call (calls from several Python threads take
+    /// turns driving it; the connection is shared).
+    runtime: tokio::runtime::Runtime,
+    grpc: tonic::client::Grpc<tonic::transport::Channel>,
+    authorization: Option<MetadataValue<Ascii>>,
+    /// Closed channels refuse calls.
+    closed: Mutex<bool>,
+}
+
+#[pymethods]
+impl Channel {
+    /// Connects lazily to `url` (`http://host:port`): the first call opens the connection.
+    #[new]
+    #[pyo3(signature = (url, token = None, connect_timeout = 10.0))]
+    fn new(url: &str, token: Option<&str>, connect_timeout: f64) -> PyResult<Self> {
+        let connect_timeout = duration(connect_timeout, "connect_timeout")?;
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .map_err(|e| PyValueError::new_err(format!("cannot start the native transport's runtime: {e}")))?;
+        let client = {
+            // connect_lazy spawns nothing until the first call, but needs a runtime entered.
+            let _entered = runtime.enter();
+            esrp_client::Client::connect(url)
+                .token_opt(token)
+                .connect_timeout(connect_timeout)
+                .connect_lazy()
+                .map_err(|e| PyValueError::new_err(e.to_string()))?
+        };
+        let authorization = token
+            .map(|t| format!("Bearer {t}").parse::<MetadataValue<Ascii>>())
+            .transpose()
+            .map_err(|_| PyValueError::new_err("the token must be printable ASCII (no control characters)"))?;
+        let grpc = tonic::client::Grpc::new(client.channel())
+            .max_decoding_message_size(esrp_client::MAX_MESSAGE_BYTES)
+            .max_encoding_message_size(esrp_client::MAX_MESSAGE_BYTES);
+        Ok(Channel { runtime, grpc, authorization, closed: Mutex::new(false) })
+    }
+
+    /// Calls `method` (`/esrp.v1.Esrp/Step`, `/esrp.v1.Esrp/Reset` or `/esrp.v1.Esrp/StepBatch`)
+    /// with the serialized `request`; the serialized answer, or `CallError(code, message)`.
+    /// `timeout` in seconds (None: none), sent to the server as the call's deadline too.
+    #[pyo3(signature = (method, request, timeout = None))]
+    fn unary<'py>(
+        &self,
+        py: Python<'py>,
+        method: &str,
+        request: &[u8],
+        timeout: Option<f64>,
+    ) -> PyResult<Bound<'py, PyBytes>> {
+        let Some(path) = METHODS.iter().find(|m| **m == method) else {
+            return Err(PyValueError::new_err(format!("{method:?} is not one of {METHODS:?}")));
+        };
+        let timeout = timeout.map(|t| duration(t, "timeout")).transpose()?;
+        if *self.closed.lock().unwrap_or_else(std::sync::PoisonError::into_inner) {
+            return Err(CallError::new_err((Code::Cancelled as i32, "the channel is closed")));
+        }
+        let mut message = tonic::Request::new(Bytes::copy_from_slice(request));
+        if let Some(value) = &self.authorization {
+            message.metadata_mut().insert("authorization", value.clone());
+        }
+        if let Some(timeout) = timeout {
+            message.set_timeout(timeout);
+        }
+        let mut grpc = self.grpc.clone();
+        let call = async move {
+            grpc.ready().await.map_err(|e| Status::unavailable(format!("cannot reach the server: {e}")))?;
+            let path = tonic::codegen::http::uri::PathAndQuery::from_static(path);
+            grpc.unary(message, path, RawCodec).await
+        };
+        let started = std::time::Instant::now();
+        let answer = py.detach(|| {
+            self.runtime.block_on(async {
+                match timeout {
+                    None => call.await,
+                    Some(limit) => match tokio::time::timeout(limit, call).await {
+                        Ok(answer) => answer,
+                        Err(_) => Err(Status::deadline_exceeded("Deadline Exceeded")),
+                    },
+                }
+            })
+        });
+        // tonic ends a call whose deadline passed as CANCELLED ("Timeout expired"); grpcio, and
+        // so the rest of the Python client, say DEADLINE_EXCEEDED.
+        let answer = answer.map_err(|status| match timeout {
+            Some(limit) if status.code() == Code::Cancelled && started.elapsed() >= limit => {
+                Status::deadline_exceeded("Deadline Exceeded")
+            }
+            _ => status,
+        });
+        match answer {
+            Ok(response) => Ok(PyBytes::new(py, response.get_ref())),
+            Err(status) => Err(CallError::new_err((status.code() as i32, status.message().to_owned()))),
+        }
+    }
+
+    /// Refuses further calls; the connection closes when the channel is dropped.
+    fn close(&self) {
+        *self.closed.lock().unwrap_or_else(std::sync::PoisonError::into_inner) = true;
+    }
+}
+
+/// `seconds` as a duration, or a ValueError naming `what`.
+fn duration(seconds: f64, what: &str) -> PyResult<Duration> {
+    Duration::try_from_secs_f64(seconds)
+        .map_err(|_| PyValueError::new_err(format!("{what} must be a non-negative number of seconds, got {seconds}")))
+}
+
+#[pymodule]
+fn esrp_native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<Channel>()?;
+    m.add("CallError", m.py().get_type::<CallError>())?;
+    m.add("METHODS", METHODS.to_vec())?;
+    Ok(())
+}

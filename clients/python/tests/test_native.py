@@ -1,0 +1,162 @@
+"""The native transport (the esrp-native package): the same answers and errors as grpcio's."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import esrp
+from esrp import _native
+from esrp.gym import RearrangeEnv, RearrangeVectorEnv
+
+pytest.importorskip("esrp_native", reason="the esrp-native package is not installed")
+
+ACTIONS = [0, 4, 2, 0, 0, 5, 3, 1, 4, 0, 2, 2, 5, 0, 1]
+
+
+def test_auto_picks_the_native_transport(server: esrp.LocalServer) -> None:
+    with server.client() as auto, server.client(transport="grpcio") as plain:
+        assert auto.transport == "native"
+        assert plain.transport == "grpcio"
+    with pytest.raises(ValueError, match="transport"):
+        esrp.Client(server.address, transport="carrier-pigeon")  # type: ignore[arg-type]
+
+
+def test_native_refuses_tls(tmp_path: Path) -> None:
+    pem = b"-----BEGIN CERTIFICATE-----\n-----END CERTIFICATE-----\n"
+    with pytest.raises(ValueError, match="plain HTTP/2"):
+        esrp.Client("127.0.0.1:1", tls=pem, transport="native")
+    # auto falls back to grpcio for a TLS channel.
+    with esrp.Client("127.0.0.1:1", tls=pem) as client:
+        assert client.transport == "grpcio"
+
+
+def test_the_same_answers_as_grpcio(server: esrp.LocalServer, easy_scenes: list[str]) -> None:
+    sensors = esrp.Sensors(depth=True, segmentation=True, current_top_down=True, resolution=32)
+    answers: dict[str, list[object]] = {}
+    for transport in ("native", "grpcio"):
+        with server.client(transport=transport) as client:
+            seen: list[object] = []
+            with client.create_episode(easy_scenes[0], sensors=sensors, horizon=10) as episode:
+                for action in ACTIONS[:10]:
+                    result = episode.step(action, include_goal=action == 0)
+                    seen.append(result)
+                with pytest.raises(esrp.EpisodeEnded):
+                    episode.step(0)
+                seen.append(episode.reset())
+                seen.append(episode.reset(easy_scenes[1]))
+                other = client.create_episode(easy_scenes[2], sensors=sensors)
+                with other:
+                    for action in ACTIONS[:5]:
+                        seen.append(client.step_batch([(episode, action), (other, (action + 1) % 6)]))
+            answers[transport] = seen
+    native, grpcio = answers["native"], answers["grpcio"]
+    assert len(native) == len(grpcio) == 17
+    for a, b in zip(native, grpcio, strict=True):
+        assert _plain(a) == _plain(b)
+
+
+def _plain(value: object) -> object:
+    """`value` with its arrays as (dtype, shape, bytes), for comparing whole results."""
+    if isinstance(value, np.ndarray):
+        return (str(value.dtype), value.shape, value.tobytes())
+    if isinstance(value, dict):
+        return {key: _plain(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    if hasattr(value, "__dataclass_fields__"):
+        return {name: _plain(getattr(value, name)) for name in value.__dataclass_fields__}
+    return value
+
+
+def test_errors_are_the_same_classes(server: esrp.LocalServer, easy_scenes: list[str]) -> None:
+    with server.client(transport="native") as client:
+        episode = client.create_episode(easy_scenes[0])
+        with pytest.raises(esrp.InvalidRequest):
+            client.step_batch([(episode, 0), (episode, 1)])  # one step per episode
+        episode.close()
+        with pytest.raises(esrp.EpisodeNotFound, match="no episode"):
+            episode.step(esrp.Action.LEFT)
+        with pytest.raises(esrp.EpisodeNotFound):
+            episode.reset()
+    with server.client(transport="native", timeout=1e-6) as hurried:
+        with server.client(transport="grpcio") as slow:
+            episode = slow.create_episode(easy_scenes[0])
+            attached = hurried.episode(episode.id)
+            with pytest.raises(esrp.DeadlineExceeded):
+                attached.step(esrp.Action.LEFT)
+            episode.close()
+    with esrp.Client("127.0.0.1:1", transport="native", timeout=5) as nowhere:
+        with pytest.raises(esrp.ServerUnavailable):
+            nowhere.episode("x").step(esrp.Action.LEFT)
+
+
+def test_the_token_goes_with_every_call() -> None:
+    with esrp.LocalServer("--token", "s3cret") as server:
+        with server.client(token="s3cret", transport="native") as client:
+            with client.create_episode(split="test") as episode:
+                assert episode.step(esrp.Action.LEFT).info.step_index == 1
+                with server.client(token="wrong", transport="native") as intruder:
+                    with pytest.raises(esrp.Unauthenticated):
+                        intruder.episode(episode.id).step(esrp.Action.LEFT)
+
+
+def test_threads_share_one_native_client(server: esrp.LocalServer, easy_scenes: list[str]) -> None:
+    # Four threads step four episodes through one client at once; each must see exactly what a
+    # lone grpcio client sees for its actions.
+    def play(client: esrp.Client, scene: str) -> list[bytes]:
+        seen = []
+        with client.create_episode(scene, horizon=100) as episode:
+            for action in ACTIONS:
+                result = episode.step(action)
+                seen.append(result.observation.ego_rgb.tobytes())
+                if result.ended:
+                    break
+        return seen
+
+    with server.client(transport="grpcio") as plain:
+        expected = [play(plain, scene) for scene in easy_scenes[:4]]
+    got: list[list[bytes] | BaseException] = [[] for _ in range(4)]
+    with server.client(transport="native") as shared:
+
+        def run(index: int) -> None:
+            try:
+                got[index] = play(shared, easy_scenes[index])
+            except BaseException as error:  # noqa: BLE001 - reported by the assertion below
+                got[index] = error
+
+        threads = [threading.Thread(target=run, args=(i,)) for i in range(4)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(60)
+    assert got == expected
+
+
+def test_envs_are_bit_identical_on_both_transports(server: esrp.LocalServer, easy_scenes: list[str]) -> None:
+    runs = {}
+    for transport in ("native", "grpcio"):
+        with server.client(transport=transport) as client:
+            env = RearrangeEnv(client=client, scene=easy_scenes[:3], horizon=6)
+            envs = RearrangeVectorEnv(3, client=client, scene=easy_scenes[:3], horizon=6)
+            try:
+                seen = [env.reset(seed=7), envs.reset(seed=7)]
+                for action in ACTIONS:
+                    seen.append(env.step(action))
+                    if seen[-1][2] or seen[-1][3]:
+                        seen.append(env.reset())
+                    seen.append(envs.step(np.array([action, (action + 2) % 6, 5])))
+            finally:
+                env.close()
+                envs.close()
+            runs[transport] = _plain(seen)
+    assert runs["native"] == runs["grpcio"]
+
+
+def test_resolve() -> None:
+    assert _native.resolve("grpcio", secure=False) == "grpcio"
+    assert _native.resolve("auto", secure=True) == "grpcio"
+    assert _native.resolve("native", secure=False) == "native"
