@@ -65,3 +65,29 @@ def test_rust_bench_missing(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> 
     [skipped] = bench.bench_rust("127.0.0.1:1", None, 0.1, ["unary-1"])
     assert skipped.skipped is not None
     assert "ESRP_BENCH_BIN" in skipped.skipped
+
+
+def test_bench_runs_each_transport(
+    server: esrp.LocalServer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    report = tmp_path / "bench.json"
+    arguments = ["--server", server.address, "--seconds", "0.2", "--warmup", "0.05", "--warmup-rounds", "0"]
+    arguments += ["--scenarios", "client-1,env-1,stream-64", "--transport", "grpcio,auto"]
+    arguments += ["--json", str(report)]
+    assert bench.main(arguments) == 0
+    out, _ = capsys.readouterr()
+    rows = {line.split()[0] for line in out.splitlines() if line and not line.startswith(" ")}
+    # The first transport's rows keep the plain names; stream-64 (always grpcio) runs once.
+    assert {"client-1", "client-1@auto", "env-1", "env-1@auto", "stream-64"} <= rows, out
+    assert "stream-64@auto" not in rows
+    data = json.loads(report.read_text())
+    with server.client() as auto:
+        assert data["transports"] == {"grpcio": "grpcio", "auto": auto.transport}
+    assert all(row["steps_per_second"] > 0 for row in data["results"])
+
+
+def test_bench_rejects_unknown_transports(capsys: pytest.CaptureFixture[str]) -> None:
+    for bad in ("pigeon", "grpcio,grpcio", ","):
+        with pytest.raises(SystemExit):
+            bench.main(["--transport", bad])
+        assert "--transport" in capsys.readouterr().err

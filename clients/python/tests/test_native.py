@@ -82,26 +82,27 @@ def test_errors_are_the_same_classes(server: esrp.LocalServer, easy_scenes: list
             episode.step(esrp.Action.LEFT)
         with pytest.raises(esrp.EpisodeNotFound):
             episode.reset()
-    with server.client(transport="native", timeout=1e-6) as hurried:
-        with server.client(transport="grpcio") as slow:
-            episode = slow.create_episode(easy_scenes[0])
-            attached = hurried.episode(episode.id)
-            with pytest.raises(esrp.DeadlineExceeded):
-                attached.step(esrp.Action.LEFT)
-            episode.close()
-    with esrp.Client("127.0.0.1:1", transport="native", timeout=5) as nowhere:
-        with pytest.raises(esrp.ServerUnavailable):
-            nowhere.episode("x").step(esrp.Action.LEFT)
+    with server.client(transport="native", timeout=1e-6) as hurried, server.client() as slow:
+        episode = slow.create_episode(easy_scenes[0])
+        attached = hurried.episode(episode.id)
+        with pytest.raises(esrp.DeadlineExceeded):
+            attached.step(esrp.Action.LEFT)
+        episode.close()
+    nowhere = esrp.Client("127.0.0.1:1", transport="native", timeout=5)
+    with nowhere, pytest.raises(esrp.ServerUnavailable):
+        nowhere.episode("x").step(esrp.Action.LEFT)
 
 
 def test_the_token_goes_with_every_call() -> None:
-    with esrp.LocalServer("--token", "s3cret") as server:
-        with server.client(token="s3cret", transport="native") as client:
-            with client.create_episode(split="test") as episode:
-                assert episode.step(esrp.Action.LEFT).info.step_index == 1
-                with server.client(token="wrong", transport="native") as intruder:
-                    with pytest.raises(esrp.Unauthenticated):
-                        intruder.episode(episode.id).step(esrp.Action.LEFT)
+    with (
+        esrp.LocalServer("--token", "s3cret") as server,
+        server.client(token="s3cret", transport="native") as client,
+        client.create_episode(split="test") as episode,
+    ):
+        assert episode.step(esrp.Action.LEFT).info.step_index == 1
+        intruder = server.client(token="wrong", transport="native")
+        with intruder, pytest.raises(esrp.Unauthenticated):
+            intruder.episode(episode.id).step(esrp.Action.LEFT)
 
 
 def test_threads_share_one_native_client(server: esrp.LocalServer, easy_scenes: list[str]) -> None:
@@ -143,10 +144,11 @@ def test_envs_are_bit_identical_on_both_transports(server: esrp.LocalServer, eas
             env = RearrangeEnv(client=client, scene=easy_scenes[:3], horizon=6)
             envs = RearrangeVectorEnv(3, client=client, scene=easy_scenes[:3], horizon=6)
             try:
-                seen = [env.reset(seed=7), envs.reset(seed=7)]
+                seen: list[tuple[object, ...]] = [env.reset(seed=7), envs.reset(seed=7)]
                 for action in ACTIONS:
-                    seen.append(env.step(action))
-                    if seen[-1][2] or seen[-1][3]:
+                    step = env.step(action)
+                    seen.append(step)
+                    if step[2] or step[3]:
                         seen.append(env.reset())
                     seen.append(envs.step(np.array([action, (action + 2) % 6, 5])))
             finally:
