@@ -158,15 +158,23 @@ def _test_scenes(client: Client, count: int) -> list[str]:
     return [scenes[i % len(scenes)] for i in range(count)]
 
 
+@dataclass(frozen=True)
+class _Target:
+    """The server a Python scenario connects to, and how."""
+
+    address: str
+    token: str | None
+    transport: Transport = "auto"
+
+    def client(self) -> Client:
+        return Client(self.address, token=self.token, transport=self.transport)
+
+
 def bench_client_1(
-    address: str,
-    token: str | None,
-    window_of: Callable[[], _Window],
-    transport: Transport = "auto",
-    label: str | None = None,
+    target: _Target, window_of: Callable[[], _Window], label: str | None = None
 ) -> Measurement:
     """`client-1`: unary steps of one episode."""
-    with Client(address, token=token, transport=transport) as client:
+    with target.client() as client:
         rng = np.random.default_rng(1)
         with client.create_episode(_test_scenes(client, 1)[0]) as episode:
 
@@ -179,17 +187,11 @@ def bench_client_1(
             return _closed_loop(label or "client-1", 1, window_of(), step)
 
 
-def bench_env_1(
-    address: str,
-    token: str | None,
-    window_of: Callable[[], _Window],
-    transport: Transport = "auto",
-    label: str | None = None,
-) -> Measurement:
+def bench_env_1(target: _Target, window_of: Callable[[], _Window], label: str | None = None) -> Measurement:
     """`env-1`: one Gymnasium env, closed loop, on the scene unary-1 plays."""
     from .gym import RearrangeEnv
 
-    client = Client(address, token=token, transport=transport)
+    client = target.client()
     env = RearrangeEnv(client=client, scene=_test_scenes(client, 1)[0])
     try:
         env.reset(seed=0)
@@ -210,17 +212,11 @@ def bench_env_1(
         client.close()
 
 
-def bench_vec_64(
-    address: str,
-    token: str | None,
-    window_of: Callable[[], _Window],
-    transport: Transport = "auto",
-    label: str | None = None,
-) -> Measurement:
+def bench_vec_64(target: _Target, window_of: Callable[[], _Window], label: str | None = None) -> Measurement:
     """`vec-64`: the native vector env of 64 envs, closed loop, on the 64 scenes batch-64 plays."""
     from .gym import RearrangeVectorEnv
 
-    client = Client(address, token=token, transport=transport)
+    client = target.client()
     envs = RearrangeVectorEnv(_EPISODES, client=client, scene=_test_scenes(client, _EPISODES))
     try:
         envs.reset(seed=0)
@@ -236,18 +232,12 @@ def bench_vec_64(
         client.close()
 
 
-def bench_stream_64(
-    address: str,
-    token: str | None,
-    window_of: Callable[[], _Window],
-    transport: Transport = "auto",
-    label: str | None = None,
-) -> Measurement:
+def bench_stream_64(target: _Target, window_of: Callable[[], _Window]) -> Measurement:
     """`stream-64`: 64 episodes on one stream; each answer sends that episode's next step (a reset
     first when it ended), as esrp-bench's `stream-mux-64`.
     """
     with (
-        Client(address, token=token, transport=transport) as client,
+        target.client() as client,
         client.episode_stream(window=1) as stream,
     ):
         for scene in _test_scenes(client, _EPISODES):
@@ -462,9 +452,9 @@ def run(
         if name in _BY_TRANSPORT:
             for index, transport in enumerate(transports):
                 label = name if index == 0 else f"{name}@{transport}"
-                results.append(_BY_TRANSPORT[name](address, token, window_of, transport, label))
+                results.append(_BY_TRANSPORT[name](_Target(address, token, transport), window_of, label))
         elif name == "stream-64":
-            results.append(bench_stream_64(address, token, window_of))
+            results.append(bench_stream_64(_Target(address, token), window_of))
         elif name == "rust":
             wanted = list(dict.fromkeys(_RUST_SCENARIOS[n] for n in python_names)) or ["unary-1"]
             results.extend(bench_rust(address, token, seconds, wanted))
@@ -475,7 +465,7 @@ def run(
     return results
 
 
-_BY_TRANSPORT: dict[str, Callable[[str, str | None, Callable[[], _Window], Transport, str], Measurement]] = {
+_BY_TRANSPORT: dict[str, Callable[[_Target, Callable[[], _Window], str], Measurement]] = {
     "client-1": bench_client_1,
     "env-1": bench_env_1,
     "vec-64": bench_vec_64,
