@@ -39,9 +39,9 @@ struct TakenStep {
 
 /// Where a step's images come from.
 enum Images {
-    /// Views to render (moved into the render job when it is submitted), how many, and the
-    /// episode's cache with a copy of the views, to keep the images once they are rendered.
-    Render { views: Vec<View>, count: usize, keep: (FrameCache, Vec<View>) },
+    /// Views to render (copies go into the render job), and the episode's cache, to keep the
+    /// images with these views once they are rendered.
+    Render { views: Vec<View>, frames: FrameCache },
     /// The episode's last images: the step changed nothing they show.
     Reused(Vec<ViewOutput>),
 }
@@ -73,7 +73,7 @@ fn take_planned(
             let views = super::observation_views(g);
             let images = match g.frames.lookup(&views) {
                 Some(outputs) => Images::Reused(outputs),
-                None => Images::Render { count: views.len(), keep: (g.frames.clone(), views.clone()), views },
+                None => Images::Render { views, frames: g.frames.clone() },
             };
             let ended = outcome.terminated || outcome.truncated;
             let result = StepResult {
@@ -127,8 +127,8 @@ impl Stepped {
                     .map(|t| {
                         let mut t = t?;
                         let mine: Vec<ViewOutput> = match t.images {
-                            Images::Render { count, keep: (frames, views), .. } => {
-                                let mine: Vec<ViewOutput> = outputs.by_ref().take(count).collect();
+                            Images::Render { views, frames } => {
+                                let mine: Vec<ViewOutput> = outputs.by_ref().take(views.len()).collect();
                                 frames.store(views, &mine);
                                 mine
                             }
@@ -264,7 +264,7 @@ impl Shared {
         // A step costs microseconds (a rejected turn, the worst case, well under 0.1 ms): a few
         // run inline, which spares a thread hand-off per step; more go to a blocking thread so
         // that the runtime never stalls.
-        let mut taken = if plan.len() <= INLINE_STEPS {
+        let taken = if plan.len() <= INLINE_STEPS {
             take_planned(&mut guards, &ids, plan, max_message_bytes)
         } else {
             let (guards_back, taken) = tokio::task::spawn_blocking(move || {
@@ -278,9 +278,9 @@ impl Shared {
         };
         let mut views = Vec::new();
         let mut reused = 0;
-        for t in taken.iter_mut().filter_map(|t| t.as_mut().ok()) {
-            match &mut t.images {
-                Images::Render { views: mine, .. } => views.append(mine),
+        for t in taken.iter().filter_map(|t| t.as_ref().ok()) {
+            match &t.images {
+                Images::Render { views: mine, .. } => views.extend(mine.iter().cloned()),
                 Images::Reused(outputs) => reused += outputs.len(),
             }
         }
