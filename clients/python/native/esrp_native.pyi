@@ -1,5 +1,11 @@
 """Type stubs of the native transport (see src/lib.rs); `esrp._native` wraps it."""
 
+from typing import TypeVar, overload
+
+from google.protobuf.message import Message
+
+M = TypeVar("M", bound=Message)
+
 METHODS: list[str]
 
 class CallError(Exception):
@@ -7,5 +13,10 @@ class CallError(Exception):
 
 class Channel:
     def __init__(self, url: str, token: str | None = None, connect_timeout: float = 10.0) -> None: ...
-    def unary(self, method: str, request: bytes, timeout: float | None = None) -> bytes: ...
+    @overload
+    def unary(
+        self, method: str, request: bytes, timeout: float | None = None, response: None = None
+    ) -> bytes: ...
+    @overload
+    def unary(self, method: str, request: bytes, timeout: float | None, response: type[M]) -> M: ...
     def close(self) -> None: ...

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -162,3 +163,33 @@ def test_resolve() -> None:
     assert _native.resolve("grpcio", secure=False) == "grpcio"
     assert _native.resolve("auto", secure=True) == "grpcio"
     assert _native.resolve("native", secure=False) == "native"
+
+
+def test_answers_are_parsed_in_place(server: esrp.LocalServer, easy_scenes: list[str]) -> None:
+    """`Channel.unary(..., response=cls)` parses the answer from the received bytes with protobuf:
+    the same message as parsing the `bytes` it returns without; nothing but a message class is
+    let near the received memory.
+    """
+    import esrp_native
+
+    from esrp.v1 import esrp_pb2 as pb
+
+    channel = esrp_native.Channel(f"http://{server.address}")
+    with server.client(transport="grpcio") as client, client.create_episode(easy_scenes[0]) as episode:
+        request = pb.StepRequest(episode_id=episode.id, action=int(esrp.Action.LEFT)).SerializeToString()
+        raw = channel.unary("/esrp.v1.Esrp/Step", request)
+        assert isinstance(raw, bytes)
+        parsed = channel.unary("/esrp.v1.Esrp/Step", request, None, pb.StepResponse)
+        assert isinstance(parsed, pb.StepResponse)
+        answers = [pb.StepResponse.FromString(raw), parsed]
+        # Two left turns: the step index counts up, each answer carries its 128x128 RGB image.
+        assert [a.info.step_index for a in answers] == [1, 2]
+        assert [len(a.observation.ego_rgb.data) for a in answers] == [128 * 128 * 3] * 2
+        assert answers[1].observation.ego_rgb.data != answers[0].observation.ego_rgb.data
+        not_messages: list[Any] = [bytes, memoryview, pb.StepResponse.FromString]
+        for not_a_message in not_messages:
+            with pytest.raises(TypeError, match="protobuf message class|cast as .type"):
+                channel.unary("/esrp.v1.Esrp/Step", request, None, not_a_message)
+        # Refused before anything was sent: the episode is still at step 2.
+        assert client.episode(episode.id).step(esrp.Action.LEFT).info.step_index == 3
+    channel.close()

@@ -84,16 +84,16 @@ class _Method:
     def __init__(self, channel: Any, path: str, response: Any) -> None:  # noqa: ANN401
         self._unary = channel.unary
         self._path = path
-        self._parse = response.FromString
+        self._response = response
 
     def __call__(self, request: Any, metadata: object = None, timeout: float | None = None) -> Any:  # noqa: ANN401
         assert _extension is not None
         try:
-            answer = self._unary(self._path, request.SerializeToString(), timeout)
+            # Parsed in place, from the bytes as they were received (no copy into `bytes`).
+            return self._unary(self._path, request.SerializeToString(), timeout, self._response)
         except _extension.CallError as error:
             code, details = error.args
             raise NativeRpcError(_CODES.get(code, grpc.StatusCode.UNKNOWN), details) from None
-        return self._parse(answer)
 
 
 class HotPath:
