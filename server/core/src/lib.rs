@@ -4,7 +4,8 @@
 //! 0.25 m and turns of 22.5°, fetches movable objects within 1.0 m and releases them, until every
 //! object's footprint overlaps its target with IoU > 0.3. Every motion is checked for collision
 //! along its whole sweep against full 3D shapes, with parry's linear shape cast for translations
-//! and its nonlinear shape cast for rotations, and rejected whole if it would collide. The rules
+//! and a rotational shape cast by conservative advancement over parry's distance queries for
+//! rotations, and rejected whole if it would collide. The rules
 //! are those of `SPEC.md` §1–6 in the project's shared documents.
 //!
 //! # Module map

@@ -11,7 +11,7 @@
 //! obstacle. The moving shapes are the exact shapes dilated by the margin (parry's round shapes:
 //! the Minkowski sum with a ball), so a cast at zero distance between a dilated moving shape and
 //! an exact obstacle is a cast at the margin between the exact shapes. Linear (translation) and
-//! nonlinear (rotation) casts use the same shapes, so both obey the same margin.
+//! rotational casts use the same shapes, so both obey the same margin.
 
 use std::sync::Arc;
 
