@@ -169,6 +169,31 @@ def test_next_step_autoreset(server: esrp.LocalServer) -> None:
         envs.close()
 
 
+def test_scene_per_env(server: esrp.LocalServer, easy_scenes: list[str]) -> None:
+    scenes = [easy_scenes[1], easy_scenes[0]]
+    envs = RearrangeVectorEnv(2, server.address, scene=scenes, scene_per_env=True, sensors=SMALL, horizon=2)
+    try:
+        for seed in range(3):
+            _, infos = envs.reset(seed=seed)
+            assert infos["scene_id"].tolist() == scenes
+        first = envs.reset(seed=5)[0]
+        envs.step(np.array([0, 2]))
+        assert envs.step(np.array([2, 0]))[3].tolist() == [True, True]
+        # The autoreset restarts each episode on its own scene: the first observation again.
+        observations, _, _, _, infos = envs.step(np.array([0, 0]))
+        assert infos["scene_id"].tolist() == scenes
+        assert_same(observations, first)
+        # options["scene"] still names another.
+        mask = np.array([True, False])
+        _, infos = envs.reset(options={"reset_mask": mask, "scene": scenes[1]})
+        assert infos["scene_id"].tolist() == [scenes[1], None]
+    finally:
+        envs.close()
+    for bad in (None, scenes[0], [*scenes, easy_scenes[2]]):
+        with pytest.raises(ValueError, match="one scene id per sub-env"):
+            RearrangeVectorEnv(2, server.address, scene=bad, scene_per_env=True)
+
+
 def test_disabled_mode_and_reset_mask(server: esrp.LocalServer) -> None:
     envs = RearrangeVectorEnv(
         3, server.address, split="test", sensors=SMALL, horizon=1, autoreset_mode=AutoresetMode.DISABLED

@@ -13,7 +13,8 @@ action, as an agent that looks at every observation does; episodes that end are 
   client-1 and esrp-bench's unary-1 play.
 - `stream-64`: 64 episodes on one `EpisodeStream`, each sending its next step when its answer comes.
 - `vec-64`: one `RearrangeVectorEnv` of 64 envs, `envs.step` closed loop (NEXT_STEP autoreset),
-  drawing its scenes from the 64 that esrp-bench's batch-64 plays.
+  sub-env i on the i-th of the 64 scenes that esrp-bench's batch-64 plays, each restarted in place
+  when it ends as batch-64's are (`scene_per_env=True`).
 - `rust`: the Rust client `esrp-bench` against the same server, for the matching scenarios
   (`unary-1` for client-1 and env-1, `stream-mux-64` for stream-64, `batch-64` for vec-64, whose
   calls are the same: one StepBatch of 64 at a time). Found as `ESRP_BENCH_BIN`, on `PATH`, or in
@@ -217,7 +218,9 @@ def bench_vec_64(target: _Target, window_of: Callable[[], _Window], label: str |
     from .gym import RearrangeVectorEnv
 
     client = target.client()
-    envs = RearrangeVectorEnv(_EPISODES, client=client, scene=_test_scenes(client, _EPISODES))
+    envs = RearrangeVectorEnv(
+        _EPISODES, client=client, scene=_test_scenes(client, _EPISODES), scene_per_env=True
+    )
     try:
         envs.reset(seed=0)
         rng = np.random.default_rng(4)

@@ -190,14 +190,16 @@ class _Setup:
             raise
         return cls(client, owned, server, scenes, sensors or Sensors(), horizon, reward)
 
-    def pick_scene(self, rng: np.random.Generator, options: Mapping[str, Any] | None) -> str:
+    def pick_scene(
+        self, rng: np.random.Generator, options: Mapping[str, Any] | None, own: str | None = None
+    ) -> str:
         """The scene of a reset: drawn from the list with the env's generator (always, so the
-        generator advances the same way), unless `options["scene"]` names one.
+        generator advances the same way), or `own` where given, unless `options["scene"]` names one.
         """
         drawn = self.scenes[int(rng.integers(len(self.scenes)))]
         if options and options.get("scene") is not None:
             return str(options["scene"])
-        return drawn
+        return drawn if own is None else own
 
     def close(self) -> None:
         if self.owned_client:
@@ -362,6 +364,11 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
     - `DISABLED`: no autoreset; reset ended episodes with `reset(options={"reset_mask": mask})`.
       Stepping an ended one raises `EpisodeEnded` and moves no episode.
 
+    With `scene_per_env=True`, `scene` lists one scene id per sub-env and sub-env i plays
+    `scene[i]` at every reset (unless `options["scene"]` names another): a fixed set of scenes,
+    each episode restarted where it is when it ends (no new scene sent, no episode built anew).
+    Seeds still advance each sub-env's generator as a drawn scene would.
+
     Infos are dicts of arrays with `_key` masks, exactly as Gymnasium's `VectorEnv._add_info`
     builds them (here a column at a time). Observations are fresh arrays at every call (keeping
     them is safe). The episodes are created, reset and closed on the env's StepStream, so the
@@ -388,6 +395,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         reward: RewardWeights | None = None,
         render_mode: str | None = None,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+        scene_per_env: bool = False,
     ) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be at least 1, got {num_envs}")
@@ -399,9 +407,14 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         self.metadata = {**_METADATA, "autoreset_mode": self.autoreset_mode}
         self.num_envs = num_envs
         self.render_mode = render_mode
+        if scene_per_env and (scene is None or (1 if isinstance(scene, str) else len(scene)) != num_envs):
+            raise ValueError(
+                f"scene_per_env: scene must list one scene id per sub-env ({num_envs}), got {scene!r}"
+            )
         self._setup = _Setup.connect(
             address, client, token, tls, split, difficulty, scene, sensors, horizon, reward
         )
+        self._scene_per_env = scene_per_env
         self.single_observation_space = observation_space(self._setup.sensors)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.single_action_space = spaces.Discrete(6)
@@ -430,7 +443,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
 
     @property
     def scenes(self) -> tuple[str, ...]:
-        """The scene ids resets draw from."""
+        """The scene ids resets draw from (with `scene_per_env`, sub-env i's is the i-th)."""
         return self._setup.scenes
 
     @property
@@ -452,7 +465,8 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
 
     def _send_reset(self, stream: EpisodeStream, index: int, options: Mapping[str, Any] | None) -> str:
         """Sends sub-env `index`'s reset (its creation, the first time); returns the scene."""
-        scene = self._setup.pick_scene(self._rng(index), options)
+        own = self._setup.scenes[index] if self._scene_per_env else None
+        scene = self._setup.pick_scene(self._rng(index), options, own)
         episode = self._episode_ids[index]
         if episode is None:
             setup = self._setup
