@@ -22,6 +22,7 @@ import importlib.util
 
 # First: grpcio reads its core settings when it is imported (see esrp._grpc_setup).
 from . import _grpc_setup  # noqa: F401  # isort: skip
+from . import _malloc_setup  # noqa: F401  # isort: skip  (malloc thresholds, see there)
 from ._async_client import AsyncClient, AsyncEpisode, AsyncEpisodeStream
 from ._client import Client, Episode, EpisodeStream
 from ._common import RequestKind, StreamAnswer
