@@ -23,8 +23,9 @@
 //! - **Whole sweeps.** A translation is one linear shape cast per moving part over the whole
 //!   move; a rotation (about the robot's vertical axis) is one rotational shape cast per moving
 //!   part against each convex obstacle part the arc's box meets, by conservative advancement
-//!   (distance queries, each certifying the arc up to the next: no contact is skipped). The robot itself is skipped in
-//!   rotations: a cylinder turning about its own axis sweeps no new space.
+//!   (distance queries, each certifying the arc up to the next: no contact is skipped). The
+//!   robot itself is skipped in rotations: a cylinder turning about its own axis sweeps no new
+//!   space.
 //! - **Stricter on doubt.** A shape pair parry cannot query counts as a hit at the start of the
 //!   motion (or as too close), so a bug can only reject motions, never let a body through.
 //! - **Deterministic.** The same inputs give bit-identical answers: the queries run in a fixed
@@ -481,7 +482,8 @@ fn cast_linear(
 const ROTATION_CONTACT: f64 = 1e-7;
 
 /// Conservative-advancement steps one rotating part may take against one obstacle part before
-/// the pair counts as a hit (a grazing pass needs a few thousand at most).
+/// the pair counts as a hit. Steps shrink with the gap: an arc that grazes an obstacle just above
+/// [`ROTATION_CONTACT`] takes on the order of ten thousand; anything else, far fewer.
 const ROTATION_MAX_STEPS: u32 = 100_000;
 
 /// A rotational shape cast of a part turning by `motion` (about the vertical axis, no point of
