@@ -291,3 +291,58 @@ def test_sigterm_unwinds_the_command_and_stops_its_server(tmp_path: Path) -> Non
     assert not any(Path(f"/proc/{pid}").exists() for pid in servers), "the server outlived the command"
     # What was written is whole records: the run resumes from it.
     assert all(json.loads(line)["agent"] == "random" for line in out.read_bytes().splitlines())
+
+
+def _eval_until_records(command: list[str], out: Path, records: int) -> subprocess.Popen[bytes]:
+    child = subprocess.Popen(
+        command, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+    )
+    deadline = time.monotonic() + 120
+    while not (out.exists() and out.read_bytes().count(b"\n") >= records):
+        assert child.poll() is None, child.communicate()[1].decode()
+        assert time.monotonic() < deadline, "no records within 120 s"
+        time.sleep(0.01)
+    return child
+
+
+def test_a_dead_local_server_stops_the_run_at_once(tmp_path: Path) -> None:
+    out = tmp_path / "random.jsonl"
+    command = [sys.executable, "-m", "esrp.cli", "eval", "--agent", "random", "--split", "test"]
+    command += ["--episodes-in-flight", "2", "--no-progress", "--out", str(out)]
+    child = _eval_until_records(command, out, 2)
+    servers = _children(child.pid)
+    assert len(servers) == 1
+    os.kill(servers[0], signal.SIGKILL)
+    _, err = child.communicate(timeout=60)
+    text = err.decode()
+    assert child.returncode == 3, text
+    assert "the local esrp-server exited with signal 9 after" in text, text
+    assert "re-run the same command to resume" in text
+    # One message, not one line per remaining scene.
+    assert text.count("ServerUnavailable") <= 1, text
+    written = out.read_bytes().splitlines()
+    assert len(written) >= 2
+    assert all(json.loads(line)["agent"] == "random" for line in written)
+
+
+def test_a_server_that_goes_away_stops_the_run(tmp_path: Path) -> None:
+    out = tmp_path / "random.jsonl"
+    server = esrp.LocalServer().start()
+    try:
+        command = [sys.executable, "-m", "esrp.cli", "eval", "--agent", "random", "--split", "test"]
+        command += ["--server", server.address, "--no-progress", "--out", str(out)]
+        child = _eval_until_records(command, out, 1)
+        os.kill(server.pid, signal.SIGKILL)
+        _, err = child.communicate(timeout=90)
+    finally:
+        server.stop()
+    text = err.decode()
+    assert child.returncode == 3, text
+    assert f"the server at {server_address(text)} has been unavailable for 10 s after" in text, text
+    assert out.read_bytes().count(b"\n") >= 1
+
+
+def server_address(stderr: str) -> str:
+    """The address the run's first line names (`esrp-server VERSION at ADDRESS: ...`)."""
+    first = next(line for line in stderr.splitlines() if line.startswith("esrp-server "))
+    return first.split(" at ", 1)[1].split(": ", 1)[0]

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+import time
 import urllib.request
 from pathlib import Path
 
@@ -36,3 +41,27 @@ def test_find_server_binary(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> 
         esrp.find_server_binary()
     monkeypatch.setenv("ESRP_SERVER_BIN", str(found))
     assert esrp.find_server_binary() == found
+
+
+def _alive(pid: int) -> bool:
+    """Whether process `pid` runs (a zombie not yet reaped by its new parent does not)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def test_the_server_stops_when_its_python_process_is_killed() -> None:
+    # SIGKILL runs no clean-up: the server sees its stdin pipe close and stops by itself.
+    script = "import esrp, time; s = esrp.LocalServer().start(); print(s.pid, flush=True); time.sleep(600)"
+    child = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    assert child.stdout is not None
+    server = int(child.stdout.readline())
+    assert _alive(server)
+    os.kill(child.pid, signal.SIGKILL)
+    child.wait()
+    deadline = time.monotonic() + 15
+    while _alive(server) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not _alive(server), "the server outlived its killed parent"

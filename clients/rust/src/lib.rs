@@ -34,6 +34,7 @@
 //!   [`StepResult`], [`EpisodeMetrics`], [`SceneSummary`].
 //! - [`local`]: [`LocalServer`] — an `esrp-server` child process on a free port.
 //! - [`random`]: [`RandomActions`] — seeded, portable uniform random actions.
+//! - [`signals`]: [`signals::exit_on_signals`] — how the tools stop on SIGTERM and SIGINT.
 //! - [`results`]: the results schema `esrp.results/v1` of every evaluation tool
 //!   (`docs/evaluation.md`): [`results::EpisodeRecord`], reading, appending, summaries.
 //! - [`error`]: [`ClientError`], one variant per status a caller may handle.
@@ -52,6 +53,7 @@ pub mod error;
 pub mod local;
 pub mod random;
 pub mod results;
+pub mod signals;
 pub mod stream;
 pub mod types;
 

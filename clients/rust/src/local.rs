@@ -4,7 +4,7 @@
 use std::ffi::OsStr;
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, ChildStdout, Command, Stdio};
+use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
 
 use crate::client::{Client, ConnectBuilder};
 use crate::error::{ClientError, Result};
@@ -47,10 +47,14 @@ pub fn find_server_binary() -> Result<PathBuf> {
     })
 }
 
-/// An `esrp-server` child process on a free local port, killed on drop.
+/// An `esrp-server` child process on a free local port, killed on drop. It is started with
+/// `--stop-on-stdin-close` and a pipe on its stdin held here, so it also stops when this
+/// process ends without dropping it (a signal's default action, `std::process::exit`, SIGKILL).
 #[derive(Debug)]
 pub struct LocalServer {
     child: Child,
+    /// The server's stdin: the server stops when it is closed (by drop or by this process's end).
+    _stdin: Option<ChildStdin>,
     /// The server's stdout, kept open: a closed pipe would make its later prints fail.
     _stdout: BufReader<ChildStdout>,
     /// `http://127.0.0.1:PORT`.
@@ -90,8 +94,8 @@ impl LocalServer {
     }
 
     /// The command [`LocalServer::start`] runs, for callers that adjust it (environment,
-    /// stderr) before [`LocalServer::spawn`]: `esrp-server --listen 127.0.0.1:0 ARGS`, with
-    /// `ESRP_LOG` at `warn` unless set.
+    /// stderr) before [`LocalServer::spawn`]: `esrp-server --listen 127.0.0.1:0
+    /// --stop-on-stdin-close ARGS`, with `ESRP_LOG` at `warn` unless set.
     pub fn command<S: AsRef<OsStr>>(binary: Option<PathBuf>, args: &[S]) -> Result<Command> {
         let binary = match binary {
             Some(b) => b,
@@ -99,18 +103,18 @@ impl LocalServer {
         };
         let mut command = Command::new(binary);
         command
-            .args(["--listen", "127.0.0.1:0"])
+            .args(["--listen", "127.0.0.1:0", "--stop-on-stdin-close"])
             .args(args)
             .env("ESRP_LOG", std::env::var("ESRP_LOG").unwrap_or_else(|_| "warn".into()));
         Ok(command)
     }
 
-    /// Spawns a server `command` with its stdout piped and waits until it listens; with
+    /// Spawns a server `command` with its stdin and stdout piped and waits until it listens; with
     /// `--metrics-listen` among its arguments, reads the metrics address too.
     pub fn spawn(mut command: Command) -> Result<Self> {
         let with_metrics = command.get_args().any(|a| a == "--metrics-listen");
         let program = Path::new(command.get_program()).display().to_string();
-        let mut child = command.stdout(Stdio::piped()).spawn().map_err(|e| {
+        let mut child = command.stdin(Stdio::piped()).stdout(Stdio::piped()).spawn().map_err(|e| {
             ClientError::LocalServer(format!(
                 "cannot start {program}: {e} (build it with `cargo build --release -p esrp-server`)"
             ))
@@ -128,7 +132,7 @@ impl LocalServer {
         };
         let address = format!("http://{}", read_line("esrp-server listening on ")?);
         let metrics = if with_metrics { Some(read_line("esrp-server metrics on ")?) } else { None };
-        Ok(Self { child, _stdout: stdout, address, metrics })
+        Ok(Self { _stdin: child.stdin.take(), child, _stdout: stdout, address, metrics })
     }
 
     /// Connection settings for this server (add a token or TLS, then `.await`).
@@ -144,6 +148,11 @@ impl LocalServer {
     /// Whether the process is still running.
     pub fn is_running(&mut self) -> bool {
         self.child.try_wait().map(|s| s.is_none()).unwrap_or(false)
+    }
+
+    /// The process's exit status if it has exited, `None` while it runs.
+    pub fn try_wait(&mut self) -> Option<std::process::ExitStatus> {
+        self.child.try_wait().ok().flatten()
     }
 
     /// The process's resident memory in bytes (Linux; `None` elsewhere).

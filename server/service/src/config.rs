@@ -44,6 +44,15 @@ pub struct Config {
     /// StepStream are closed with their stream instead.
     #[arg(long, env = "ESRP_IDLE_TIMEOUT", default_value_t = 600)]
     pub idle_timeout_seconds: u64,
+    /// Episodes that no call has named this long after their create are closed, seconds (0:
+    /// never). A client that gave up on a CreateEpisode after the server sent its answer never
+    /// learnt the episode's id, so no one else could close it. Any call naming the episode (Step,
+    /// StepBatch, StepStream, Reset, GetGoal, GetMetrics, GetPrivilegedState, PlanActions,
+    /// CloseEpisode) claims it for good; episodes created on a StepStream or a dm_env_rpc
+    /// connection are claimed by it. The default of five minutes leaves an agent that thinks for
+    /// minutes before its first step (a VLM waiting on its model) uncut.
+    #[arg(long, env = "ESRP_CLAIM_TIMEOUT", default_value_t = 300)]
+    pub claim_timeout_seconds: u64,
     /// Rendering backend: auto (a GPU through Vulkan; otherwise OpenGL, a GPU or Mesa's
     /// llvmpipe on the CPU, which measured faster than lavapipe; otherwise Vulkan's lavapipe),
     /// vulkan (Vulkan only) or gl (OpenGL through EGL only).
@@ -84,6 +93,11 @@ pub struct Config {
     /// calls fail with UNAVAILABLE) and exits 0.
     #[arg(long, env = "ESRP_SHUTDOWN_GRACE_MS", default_value_t = 5_000)]
     pub shutdown_grace_ms: u64,
+    /// Shutdown: also stop, as on SIGTERM, when standard input reaches its end. A parent that
+    /// starts the server with a pipe on its stdin (the Rust and Python `LocalServer`s do) takes it
+    /// down with it however the parent ends, SIGKILL included: the kernel closes the pipe.
+    #[arg(long, env = "ESRP_STOP_ON_STDIN_CLOSE")]
+    pub stop_on_stdin_close: bool,
     /// PlanActions: plans computed at once (each on a thread of its own); 0: one per core.
     #[arg(long, env = "ESRP_PLANNER_THREADS", default_value_t = 0)]
     pub planner_threads: usize,
@@ -127,6 +141,11 @@ impl Config {
     /// The idle timeout as a duration.
     pub fn idle_timeout(&self) -> Duration {
         Duration::from_secs(self.idle_timeout_seconds)
+    }
+
+    /// The claim timeout as a duration.
+    pub fn claim_timeout(&self) -> Duration {
+        Duration::from_secs(self.claim_timeout_seconds)
     }
 
     /// A configuration with every default, listening on `listen` (tests, embedding).

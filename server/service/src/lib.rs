@@ -108,23 +108,31 @@ pub async fn run(
         .map_err(|source| ServeError::Io { what: "the listener has no address".into(), source })?;
     tracing::info!(%address, dataset = shared.store.name(), scenes = shared.store.infos().len(), "serving esrp.v1");
 
-    // Close idle episodes.
+    // Close idle episodes, and unclaimed ones (registry::Registry::reap_unclaimed).
     let reaper = {
         let shared = shared.clone();
-        let idle = config.idle_timeout();
+        let (idle, claim) = (config.idle_timeout(), config.claim_timeout());
+        let shortest = [idle, claim].into_iter().filter(|t| !t.is_zero()).min();
         tokio::spawn(async move {
+            let Some(shortest) = shortest else { return }; // both 0: never reap
             let mut tick = tokio::time::interval(
-                (idle / 10).clamp(std::time::Duration::from_secs(1), std::time::Duration::from_secs(60)),
+                (shortest / 10).clamp(std::time::Duration::from_secs(1), std::time::Duration::from_secs(60)),
             );
             loop {
                 tick.tick().await;
-                if idle.is_zero() {
-                    continue; // --idle-timeout-seconds 0: never reap
+                if !idle.is_zero() {
+                    let reaped = shared.registry.reap(idle);
+                    if reaped > 0 {
+                        shared.metrics.count_closed("idle", reaped);
+                        tracing::info!(reaped, "closed idle episodes");
+                    }
                 }
-                let reaped = shared.registry.reap(idle);
-                if reaped > 0 {
-                    shared.metrics.count_closed("idle", reaped);
-                    tracing::info!(reaped, "closed idle episodes");
+                if !claim.is_zero() {
+                    let reaped = shared.registry.reap_unclaimed(claim);
+                    if reaped > 0 {
+                        shared.metrics.count_closed("unclaimed", reaped);
+                        tracing::info!(reaped, "closed episodes whose id no call named (their create was abandoned)");
+                    }
                 }
             }
         })

@@ -33,18 +33,20 @@ enum Command {
 
 /// SIGINT and SIGTERM, listened for from the moment this is made: a signal that arrives before
 /// anything awaits [`Signals::wait`] (while the renderer starts, say) is kept, not lost, and
-/// does not kill the process.
+/// does not kill the process. With `--stop-on-stdin-close`, the end of standard input too.
 struct Signals {
     #[cfg(unix)]
     interrupt: tokio::signal::unix::Signal,
     #[cfg(unix)]
     terminate: tokio::signal::unix::Signal,
+    stdin_closed: Option<tokio::sync::oneshot::Receiver<()>>,
 }
 
 impl Signals {
     /// Installs the handlers (call before announcing the address: once a client or a script can
     /// see the server, its signals must mean a graceful shutdown).
-    fn install() -> anyhow::Result<Self> {
+    fn install(stop_on_stdin_close: bool) -> anyhow::Result<Self> {
+        let stdin_closed = if stop_on_stdin_close { Some(watch_stdin()?) } else { None };
         #[cfg(unix)]
         {
             use tokio::signal::unix::{SignalKind, signal};
@@ -52,29 +54,57 @@ impl Signals {
             Ok(Self {
                 interrupt: signal(SignalKind::interrupt()).map_err(error)?,
                 terminate: signal(SignalKind::terminate()).map_err(error)?,
+                stdin_closed,
             })
         }
         #[cfg(not(unix))]
-        Ok(Self {})
+        Ok(Self { stdin_closed })
     }
 
-    /// Completes on the first SIGINT or SIGTERM (Ctrl-C elsewhere).
+    /// Completes on the first SIGINT or SIGTERM (Ctrl-C elsewhere), or the end of stdin when
+    /// watched.
     async fn wait(self) {
+        let stdin_closed = async move {
+            match self.stdin_closed {
+                Some(closed) => {
+                    let _ = closed.await;
+                    tracing::info!("standard input closed (--stop-on-stdin-close)");
+                }
+                None => std::future::pending().await,
+            }
+        };
         #[cfg(unix)]
         {
-            let Self { mut interrupt, mut terminate } = self;
+            let (mut interrupt, mut terminate) = (self.interrupt, self.terminate);
             tokio::select! {
                 _ = interrupt.recv() => {},
                 _ = terminate.recv() => {},
+                () = stdin_closed => {},
             }
         }
         #[cfg(not(unix))]
-        {
-            let Self {} = self;
-            let _ = tokio::signal::ctrl_c().await;
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => {},
+            () = stdin_closed => {},
         }
         tracing::info!("shutting down");
     }
+}
+
+/// Reads standard input to its end on a thread of its own (not the runtime's: a blocking read
+/// there would hold up the runtime's shutdown while the parent keeps the pipe open); the receiver
+/// completes at the end, or at a read error.
+fn watch_stdin() -> anyhow::Result<tokio::sync::oneshot::Receiver<()>> {
+    let (closed, receiver) = tokio::sync::oneshot::channel();
+    std::thread::Builder::new()
+        .name("esrp-stdin-watch".into())
+        .spawn(move || {
+            let mut sink = std::io::sink();
+            let _ = std::io::copy(&mut std::io::stdin().lock(), &mut sink);
+            let _ = closed.send(());
+        })
+        .map_err(|e| anyhow::anyhow!("cannot start the thread that watches stdin: {e}"))?;
+    Ok(receiver)
 }
 
 /// Mesa's CPU renderers (llvmpipe, lavapipe) rasterise with a pool of `LP_NUM_THREADS`
@@ -125,7 +155,7 @@ async fn serve(config: Config) -> anyhow::Result<()> {
         LogFormat::Text => tracing_subscriber::fmt().with_env_filter(filter).init(),
         LogFormat::Json => tracing_subscriber::fmt().json().with_env_filter(filter).init(),
     }
-    let signals = Signals::install()?;
+    let signals = Signals::install(config.stop_on_stdin_close)?;
     let listener = tokio::net::TcpListener::bind(config.listen)
         .await
         .map_err(|e| anyhow::anyhow!("cannot listen on {}: {e}", config.listen))?;

@@ -5,7 +5,7 @@
 //! | `esrp_steps_total` | counter | steps taken, all episodes and APIs |
 //! | `esrp_step_latency_seconds` | histogram | time from receiving a step (or a batch, counted once per step) to its response being ready, rendering included |
 //! | `esrp_episodes_created_total` | counter | episodes created |
-//! | `esrp_episodes_closed_total` | counter | episodes closed, by reason (`client`, `stream_ended`, `idle`, `unanswered`: a create abandoned before its answer was sent) |
+//! | `esrp_episodes_closed_total` | counter | episodes closed, by reason (`client`, `stream_ended`, `idle`, `unanswered`: a create abandoned before its answer was sent, `unclaimed`: no call named it within `--claim-timeout-seconds` of its create) |
 //! | `esrp_live_episodes` | gauge | episodes alive now |
 //! | `esrp_render_batch_views` | histogram | views per render batch |
 //! | `esrp_render_batch_seconds` | histogram | time to render one batch |

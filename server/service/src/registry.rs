@@ -1,5 +1,5 @@
 //! The episode registry: live episodes by unguessable id, each behind its own lock, with a
-//! limit on their number and a reaper for idle ones.
+//! limit on their number and reapers for idle and for unclaimed ones.
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
@@ -40,11 +40,22 @@ pub struct EpisodeEntry {
 /// A shared, individually locked episode.
 pub type SharedEpisode = Arc<tokio::sync::Mutex<EpisodeEntry>>;
 
+/// A live episode in the registry.
+struct Slot {
+    /// The stream that created it, if any (it closes with that stream).
+    stream: Option<u64>,
+    /// When it was inserted (its create answer leaves right after).
+    created: Instant,
+    /// Whether a call has named it since (or a stream owns it): its client has its id. An
+    /// unclaimed episode is closed by [`Registry::reap_unclaimed`].
+    claimed: bool,
+    episode: SharedEpisode,
+}
+
 /// Live episodes.
 pub struct Registry {
     // A std mutex: held only for map operations, never across an await.
-    // Each episode with the stream that created it (closed with that stream).
-    episodes: Mutex<HashMap<EpisodeId, (Option<u64>, SharedEpisode)>>,
+    episodes: Mutex<HashMap<EpisodeId, Slot>>,
     max_episodes: usize,
 }
 
@@ -54,7 +65,7 @@ impl Registry {
         Self { episodes: Mutex::new(HashMap::new()), max_episodes }
     }
 
-    fn map(&self) -> std::sync::MutexGuard<'_, HashMap<EpisodeId, (Option<u64>, SharedEpisode)>> {
+    fn map(&self) -> std::sync::MutexGuard<'_, HashMap<EpisodeId, Slot>> {
         // A panic while holding this lock cannot leave the map inconsistent (every operation is
         // a single insert or remove), so a poisoned lock is still safe to use.
         self.episodes.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
@@ -76,32 +87,48 @@ impl Registry {
     }
 
     /// Adds an episode under a fresh random 128-bit id, owned by `stream` if it was created on
-    /// one.
+    /// one (then it is claimed: the stream holds it); unclaimed otherwise.
     pub fn insert(&self, entry: EpisodeEntry, stream: Option<u64>) -> Result<EpisodeId, ServiceError> {
         let mut map = self.map();
         if map.len() >= self.max_episodes {
             return Err(ServiceError::TooManyEpisodes { max: self.max_episodes });
         }
         let id = EpisodeId::random();
-        map.insert(id.clone(), (stream, Arc::new(tokio::sync::Mutex::new(entry))));
+        let slot = Slot {
+            stream,
+            created: Instant::now(),
+            claimed: stream.is_some(),
+            episode: Arc::new(tokio::sync::Mutex::new(entry)),
+        };
+        map.insert(id.clone(), slot);
         Ok(id)
     }
 
-    /// The episode `id`.
+    /// The episode `id`, which this claims: every call that names an episode gets it here.
     pub fn get(&self, id: &EpisodeId) -> Result<SharedEpisode, ServiceError> {
-        self.map().get(id).map(|(_, e)| e.clone()).ok_or_else(|| ServiceError::UnknownEpisode(id.clone()))
+        let mut map = self.map();
+        let slot = map.get_mut(id).ok_or_else(|| ServiceError::UnknownEpisode(id.clone()))?;
+        slot.claimed = true;
+        Ok(slot.episode.clone())
+    }
+
+    /// Claims the episode `id` for its creator (a dm_env_rpc world holds it), if it is live.
+    pub fn claim(&self, id: &EpisodeId) {
+        if let Some(slot) = self.map().get_mut(id) {
+            slot.claimed = true;
+        }
     }
 
     /// Removes the episode `id`.
     pub fn remove(&self, id: &EpisodeId) -> Result<SharedEpisode, ServiceError> {
-        self.map().remove(id).map(|(_, e)| e).ok_or_else(|| ServiceError::UnknownEpisode(id.clone()))
+        self.map().remove(id).map(|slot| slot.episode).ok_or_else(|| ServiceError::UnknownEpisode(id.clone()))
     }
 
     /// Removes every episode created on stream `stream`; returns how many.
     pub fn remove_stream(&self, stream: u64) -> usize {
         let mut map = self.map();
         let before = map.len();
-        map.retain(|_, (owner, _)| *owner != Some(stream));
+        map.retain(|_, slot| slot.stream != Some(stream));
         before - map.len()
     }
 
@@ -111,9 +138,19 @@ impl Registry {
         let before = map.len();
         // An episode that is locked right now is in use, hence not idle.
         // Episodes of an open stream live as long as the stream.
-        map.retain(|_, (stream, e)| {
-            stream.is_some() || e.try_lock().map(|e| e.last_used.elapsed() <= idle).unwrap_or(true)
+        map.retain(|_, slot| {
+            slot.stream.is_some() || slot.episode.try_lock().map(|e| e.last_used.elapsed() <= idle).unwrap_or(true)
         });
+        before - map.len()
+    }
+
+    /// Removes the episodes that no call has named within `timeout` of their creation (their
+    /// client never learnt their id: a create abandoned after its answer left); returns how
+    /// many.
+    pub fn reap_unclaimed(&self, timeout: Duration) -> usize {
+        let mut map = self.map();
+        let before = map.len();
+        map.retain(|_, slot| slot.claimed || slot.created.elapsed() <= timeout);
         before - map.len()
     }
 }

@@ -18,6 +18,7 @@ from typing import IO, Any
 
 import grpc
 
+from . import _signals
 from ._client import Client, health_check
 from ._errors import LocalServerError
 
@@ -71,8 +72,10 @@ def find_server_binary() -> Path:
 class LocalServer:
     """An esrp-server child process on a free port of 127.0.0.1.
 
-    `start()` (or entering the `with` block) runs `esrp-server --listen 127.0.0.1:0 ARGS...`, reads
-    the bound address from its first line, and waits until its health service says serving (a
+    `start()` (or entering the `with` block) runs `esrp-server --listen 127.0.0.1:0
+    --stop-on-stdin-close ARGS...` with a pipe on its stdin (so that the server stops when this
+    process ends, however it ends: the system closes the pipe), reads the bound address from its
+    first line, and waits until its health service says serving (a
     server started with `--tls-cert` is taken as ready once it prints its address, as the Rust
     `LocalServer` does: its certificate is not known to be trusted here);
     `stop()` (or leaving the block) sends SIGTERM, waits `stop_timeout` seconds for the graceful
@@ -152,19 +155,23 @@ class LocalServer:
         # A file, not a pipe: nobody reads stderr while the server runs, and a pipe could fill up.
         # It lives as long as the server and is closed by stop().
         self._stderr = tempfile.TemporaryFile()  # noqa: SIM115
-        try:
-            self.process = subprocess.Popen(
-                [str(binary), "--listen", "127.0.0.1:0", *self.args],
-                stdin=subprocess.DEVNULL,
-                stdout=subprocess.PIPE,
-                stderr=self._stderr,
-                env=environment,
-                text=True,
-            )
-        except OSError as error:
-            raise LocalServerError(
-                f"cannot start {binary}: {error} (build it with `cargo build --release -p esrp-server`)"
-            ) from error
+        # A command's SIGTERM must not come between the child's start and its tracking: a server
+        # nobody knows of would outlive the command.
+        with _signals.deferred():
+            try:
+                self.process = subprocess.Popen(
+                    [str(binary), "--listen", "127.0.0.1:0", "--stop-on-stdin-close", *self.args],
+                    stdin=subprocess.PIPE,
+                    stdout=subprocess.PIPE,
+                    stderr=self._stderr,
+                    env=environment,
+                    text=True,
+                )
+            except OSError as error:
+                raise LocalServerError(
+                    f"cannot start {binary}: {error} (build it with `cargo build --release -p esrp-server`)"
+                ) from error
+            _signals.track(self.process)
         try:
             self._await_start()
         except BaseException:
@@ -223,19 +230,22 @@ class LocalServer:
         return code
 
     def _terminate(self) -> int | None:
-        process, self.process = self.process, None
-        code = None
-        if process is not None:
-            if process.poll() is None:
-                process.send_signal(signal.SIGTERM)
-                try:
-                    process.wait(timeout=self.stop_timeout)
-                except subprocess.TimeoutExpired:
-                    process.kill()
-                    process.wait()
-            code = process.returncode
-            if process.stdout is not None:
-                process.stdout.close()
+        with _signals.deferred():  # a signal now would leave the server running
+            process, self.process = self.process, None
+            code = None
+            if process is not None:
+                if process.poll() is None:
+                    process.send_signal(signal.SIGTERM)
+                    try:
+                        process.wait(timeout=self.stop_timeout)
+                    except subprocess.TimeoutExpired:
+                        process.kill()
+                        process.wait()
+                _signals.untrack(process)
+                code = process.returncode
+                for pipe in (process.stdin, process.stdout):
+                    if pipe is not None:
+                        pipe.close()
         if self._stderr is not None:
             self._stderr.close()
             self._stderr = None

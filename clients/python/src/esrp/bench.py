@@ -45,6 +45,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
@@ -58,6 +59,7 @@ from ._client import Client
 from ._errors import EsrpError
 from ._local import LocalServer, _checkout_targets
 from ._native import Transport
+from ._signals import run_command
 
 __all__ = ["SCENARIOS", "Measurement", "main", "run"]
 
@@ -643,6 +645,11 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """The command line: runs the rounds, prints the machine and the table, writes the JSON."""
+    handle_signals = argv is None and threading.current_thread() is threading.main_thread()
+    return run_command("esrp.bench", lambda: _checked(argv), handle_signals=handle_signals)
+
+
+def _checked(argv: Sequence[str] | None) -> int:
     args = _parse_args(argv)
     try:
         return _main(args)

@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import sys
 import threading
 from collections.abc import Callable, Sequence
@@ -17,6 +16,7 @@ from pathlib import Path
 
 from . import __version__
 from ._errors import EsrpError
+from ._signals import run_command
 from ._values import Sensors
 
 __all__ = ["main"]
@@ -299,7 +299,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _eval(args: argparse.Namespace) -> int:
-    from .evaluation import EvalError, EvalSettings, format_failures, run_eval
+    from .evaluation import EvalError, EvalSettings, ServerGone, format_failures, run_eval
 
     # `--agent my_agents:make` imports from the working directory, as `python -m` would.
     if "" not in sys.path and os.getcwd() not in sys.path:
@@ -362,6 +362,9 @@ def _eval(args: argparse.Namespace) -> int:
             outcome = run_ray_eval(settings, cluster)
         else:
             outcome = run_eval(settings, server=args.server, token=args.token, server_args=args.server_args)
+    except ServerGone as error:
+        print(f"esrp eval: {error}", file=sys.stderr)
+        return 3
     except EvalError as error:
         print(f"esrp eval: {error}", file=sys.stderr)
         return 2
@@ -519,10 +522,20 @@ def _replay(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Runs `esrp ARGS` (`argv` without the program name; default `sys.argv[1:]`); returns the exit
-    status: 0 done, 1 episodes failed (eval), 2 bad arguments or input, 130 interrupted, 143
-    terminated (SIGTERM, when run as the `esrp` command).
+    status: 0 done, 1 episodes failed (eval), 2 bad arguments or input, 3 the server died or stayed
+    unreachable (eval: the run stopped there), 130 interrupted, 143 terminated (SIGTERM, when run
+    as the `esrp` command).
     """
     arguments = list(sys.argv[1:] if argv is None else argv)
+    command = f"esrp {arguments[0]}" if arguments and not arguments[0].startswith("-") else "esrp"
+    # The command line's process (not a call from Python code): SIGTERM (kill, a job scheduler)
+    # unwinds as Ctrl-C does, so a server started here is stopped and files are closed instead of
+    # being left behind, and neither signal is ever lost (esrp._signals).
+    handle_signals = argv is None and threading.current_thread() is threading.main_thread()
+    return run_command(command, lambda: _run(arguments), handle_signals=handle_signals)
+
+
+def _run(arguments: list[str]) -> int:
     if arguments[:1] == ["bench"]:
         # Its own parser and options (also `python -m esrp.bench`).
         from . import bench
@@ -530,29 +543,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return bench.main(arguments[1:])
     args = _parser().parse_args(arguments)
     handlers = {"eval": _eval, "report": _report, "replay": _replay, "demos": _demos, "train": _train}
-    if argv is None and threading.current_thread() is threading.main_thread():
-        # The command line's process: SIGTERM (kill, a job scheduler) unwinds as Ctrl-C does, so a
-        # server started here is stopped and files are closed instead of being left behind.
-        signal.signal(signal.SIGTERM, _terminate)
     try:
         return handlers[args.command](args)
     except EsrpError as error:
         print(f"esrp {args.command}: {type(error).__name__}: {error}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"esrp {args.command}: interrupted", file=sys.stderr)
-        return 130
-    except _Terminated:
-        print(f"esrp {args.command}: terminated", file=sys.stderr)
-        return 143
-
-
-class _Terminated(BaseException):
-    """SIGTERM arrived (raised in the main thread by `_terminate`)."""
-
-
-def _terminate(signum: int, frame: object) -> None:
-    raise _Terminated
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ from typing import IO, Any
 
 from . import __version__
 from ._async_client import AsyncClient, AsyncEpisode
-from ._errors import DeadlineExceeded, EsrpError, ProtocolError
+from ._errors import DeadlineExceeded, EsrpError, ProtocolError, ServerUnavailable
 from ._local import LocalServer
 from ._values import Action, EpisodeMetrics, SceneSummary, Sensors, ServerInfo
 from .agents import AgentFactory, RandomAgent, is_async_agent, load_factory
@@ -66,6 +66,15 @@ _API_CODES = {action.api_name: action for action in Action}
 
 class EvalError(Exception):
     """The evaluation cannot run as asked (bad arguments, a results file of another agent)."""
+
+
+class ServerGone(EvalError):
+    """The server died, or stayed unreachable, in the middle of the run: it stopped there. The
+    records of the episodes that ended are kept; running the same command again resumes."""
+
+
+SERVER_RETRY_SECONDS = 10.0
+"""How long a run waits for a server that stopped answering before it stops (`ServerGone`)."""
 
 
 @dataclass
@@ -529,10 +538,39 @@ class Progress:
             self._bar.close()
 
 
-async def evaluate(client: AsyncClient, settings: EvalSettings) -> EvalOutcome:
+async def _server_gone(client: AsyncClient, local: LocalServer | None, episodes: int) -> str | None:
+    """Why the run cannot go on after a call found the server unavailable: the local server
+    exited, or the server stayed unhealthy for `SERVER_RETRY_SECONDS`; None if it answers again.
+    """
+    resume = "re-run the same command to resume"
+    if local is not None and not local.is_running():
+        return _local_exit(local, episodes, resume)
+    try:
+        await client.wait_healthy(SERVER_RETRY_SECONDS)
+    except EsrpError:
+        if local is not None and not local.is_running():
+            return _local_exit(local, episodes, resume)
+        return (
+            f"the server at {client.address} has been unavailable for {SERVER_RETRY_SECONDS:.0f} s "
+            f"after {episodes} episodes of this run; {resume} once it is back"
+        )
+    return None
+
+
+def _local_exit(local: LocalServer, episodes: int, resume: str) -> str:
+    code = local.process.poll() if local.process is not None else None
+    how = "stopped" if code is None else f"exited with signal {-code}" if code < 0 else f"exited with status {code}"
+    tail = local.stderr_tail(10).strip()
+    lines = f"; its last log lines:\n{tail}\n" if tail else " (it logged nothing); "
+    return f"the local esrp-server {how} after {episodes} episodes of this run{lines}{resume}"
+
+
+async def evaluate(client: AsyncClient, settings: EvalSettings, local: LocalServer | None = None) -> EvalOutcome:
     """Runs `settings.agent` over the chosen scenes on `client`'s server; appends a record per
     finished episode to `settings.out`, writes the summary beside it, and returns what happened.
-    Episodes that fail with an error are not recorded (a rerun retries them).
+    Episodes that fail with an error are not recorded (a rerun retries them). A server that dies
+    (`local`, the server started for the run, exits) or stays unreachable stops the run at once
+    with `ServerGone`.
     """
     if settings.episodes_in_flight < 1:
         raise EvalError("--episodes-in-flight must be at least 1")
@@ -561,6 +599,10 @@ async def evaluate(client: AsyncClient, settings: EvalSettings) -> EvalOutcome:
             try:
                 played = await _play(client, scene, settings, factory, seed)
             except Exception as error:  # noqa: BLE001 - reported, not recorded; a rerun retries it.
+                if isinstance(error, ServerUnavailable):
+                    gone = await _server_gone(client, local, written)
+                    if gone is not None:
+                        raise ServerGone(gone) from error
                 message = f"{type(error).__name__}: {error}"
                 progress.note(f"{scene.id}: {message}")
                 failed.append((scene.id, message))
@@ -576,7 +618,16 @@ async def evaluate(client: AsyncClient, settings: EvalSettings) -> EvalOutcome:
     try:
         with open(out, "ab") as file:
             workers = min(settings.episodes_in_flight, max(len(todo), 1))
-            await asyncio.gather(*(worker(file) for _ in range(workers)))
+            tasks = [asyncio.ensure_future(worker(file)) for _ in range(workers)]
+            try:
+                await asyncio.gather(*tasks)
+            except BaseException:
+                # One worker stopped the run (ServerGone, a signal): the others stop with it
+                # before the file closes.
+                for task in tasks:
+                    task.cancel()
+                await asyncio.gather(*tasks, return_exceptions=True)
+                raise
     finally:
         progress.close()
         close = getattr(factory, "aclose", None)  # a factory holding a connection (vlm)
@@ -622,15 +673,15 @@ def run_eval(
     (with `server_args`) and stopped at its end.
     """
 
-    async def main(address: str) -> EvalOutcome:
+    async def main(address: str, local: LocalServer | None = None) -> EvalOutcome:
         async with AsyncClient(address, token=token, timeout=120) as client:
             await client.wait_healthy(30)
-            return await evaluate(client, settings)
+            return await evaluate(client, settings, local)
 
     if server is not None:
         return asyncio.run(main(server))
     with LocalServer(*server_args) as local:
-        return asyncio.run(main(local.address))
+        return asyncio.run(main(local.address, local))
 
 
 def format_failures(failed: Sequence[tuple[str, str]]) -> str:

@@ -33,6 +33,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from . import _signals
 from ._async_client import AsyncClient
 from ._errors import EsrpError, ServerUnavailable
 from ._local import LocalServer
@@ -180,6 +181,7 @@ def run_ray_eval(settings: EvalSettings, cluster: RaySettings) -> EvalOutcome:
         else:
             ray.init(address=cluster.address, **options)
         started_ray = True
+        _signals.reclaim()  # ray.init replaced the command's SIGTERM handler with one of its own
     try:
         return _drive(ray, settings, cluster)
     finally:

@@ -87,11 +87,15 @@ struct Args {
     /// warm-up (a fifth of the run, at most 5 minutes) to the end of the load.
     #[arg(long, default_value_t = 10.0)]
     rss_growth_limit: f64,
-    /// Report the episodes still live after `soak`'s cleanup without failing: a create
-    /// abandoned by its client may be finished by the server for nobody (issue 15 item 4).
-    #[arg(long)]
-    accept_leftover_episodes: bool,
+    /// `soak`: the claim timeout of the server named by `--server` (its `--claim-timeout-seconds`),
+    /// which the cleanup waits for. A server started here gets `--claim-timeout-seconds 10`
+    /// unless `--server-arg` sets it.
+    #[arg(long, default_value_t = 300)]
+    server_claim_timeout: u64,
 }
+
+/// The claim timeout given to a server started here (soak's cleanup waits for it).
+const LOCAL_CLAIM_TIMEOUT: u64 = 10;
 
 /// One scenario's result.
 #[derive(Debug, Default, Clone)]
@@ -352,7 +356,21 @@ fn runtime_for(scenario: &str) -> std::io::Result<tokio::runtime::Runtime> {
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let (address, local) = reach_or_start(args.server.as_deref(), args.server_binary.clone(), &args.server_args)?;
+    esrp_client::signals::exit_on_signals("esrp-bench")?;
+    let mut server_args = args.server_args.clone();
+    let claim_flag = |a: &String| a.starts_with("--claim-timeout-seconds");
+    let claim_timeout = match server_args.iter().position(claim_flag) {
+        _ if args.server.is_some() => args.server_claim_timeout,
+        Some(i) => {
+            let value = server_args[i].split_once('=').map(|(_, v)| v.to_owned()).or_else(|| server_args.get(i + 1).cloned());
+            value.and_then(|v| v.parse().ok()).context("--server-arg --claim-timeout-seconds needs a number")?
+        }
+        None => {
+            server_args.extend(["--claim-timeout-seconds".to_owned(), LOCAL_CLAIM_TIMEOUT.to_string()]);
+            LOCAL_CLAIM_TIMEOUT
+        }
+    };
+    let (address, local) = reach_or_start(args.server.as_deref(), args.server_binary.clone(), &server_args)?;
     let connect = async || Client::connect(&address).token_opt(args.token.as_deref()).await;
     let info = runtime_for("")?.block_on(async { anyhow::Ok(connect().await?.server_info().await?) })?;
     let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
@@ -384,7 +402,7 @@ fn main() -> anyhow::Result<()> {
                 clients: args.clients as usize,
                 seed: args.seed,
                 rss_growth_limit_percent: args.rss_growth_limit,
-                accept_leftover_episodes: args.accept_leftover_episodes,
+                claim_timeout: Duration::from_secs(claim_timeout),
             };
             let report = runtime_for(name)?.block_on(soak::run(settings, local.as_ref())).context("scenario soak")?;
             report.print();

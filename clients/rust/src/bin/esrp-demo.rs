@@ -133,6 +133,7 @@ async fn random(client: &Client, scenes: &[String], seed: u64) -> anyhow::Result
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
+    esrp_client::signals::exit_on_signals("esrp-demo")?;
     let (address, _local) = reach_or_start(args.server.as_deref(), None, &[])?;
     let client = Client::connect(&address).token_opt(args.token.as_deref()).await?;
     let info = client.server_info().await?;

@@ -141,3 +141,103 @@ async fn bad_requests_are_refused_with_a_reason() {
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.contains("with other settings") && stderr.contains("\"budget_ms\":5000"), "{stderr}");
 }
+
+/// The processes whose parent is `pid` (Linux's /proc).
+fn children(pid: u32) -> Vec<u32> {
+    let mut found = Vec::new();
+    for entry in std::fs::read_dir("/proc").expect("/proc").flatten() {
+        let Ok(child) = entry.file_name().to_string_lossy().parse::<u32>() else { continue };
+        let Ok(stat) = std::fs::read_to_string(entry.path().join("stat")) else { continue };
+        // pid (comm) state ppid ...: comm may hold spaces, so split after its closing paren.
+        let parent = stat.rsplit_once(')').and_then(|(_, rest)| rest.split_whitespace().nth(1)?.parse::<u32>().ok());
+        if parent == Some(pid) {
+            found.push(child);
+        }
+    }
+    found
+}
+
+/// Whether process `pid` runs (a zombie, exited but not yet reaped by its new parent, does not).
+fn alive(pid: u32) -> bool {
+    std::fs::read_to_string(format!("/proc/{pid}/stat"))
+        .is_ok_and(|stat| stat.rsplit_once(')').is_some_and(|(_, rest)| !rest.trim_start().starts_with('Z')))
+}
+
+/// SIGTERM (a job scheduler, `kill`) ends `esrp-eval` with status 143 and its one line, keeps
+/// the records already written whole, and takes down the server it started; SIGKILL too leaves
+/// no server (it stops when its stdin pipe closes).
+#[test]
+fn a_signal_ends_the_run_and_its_server() {
+    use std::time::{Duration, Instant};
+    for (signal, status) in [("-TERM", Some(143)), ("-KILL", None)] {
+        let dir = tempfile::tempdir().expect("a temp dir");
+        let out = dir.path().join("random.jsonl");
+        let mut child = Command::new(env!("CARGO_BIN_EXE_esrp-eval"))
+            .args(["--agent", "random", "--split", "train", "--out", out.to_str().unwrap()])
+            .env("ESRP_SERVER_BIN", env!("CARGO_BIN_EXE_esrp-server"))
+            .env("NODEVICE_SELECT", "1")
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .expect("esrp-eval starts");
+        let deadline = Instant::now() + Duration::from_secs(120);
+        while std::fs::read(&out).map_or(0, |b| b.iter().filter(|&&c| c == b'\n').count()) < 2 {
+            assert!(child.try_wait().unwrap().is_none(), "esrp-eval ended before the signal");
+            assert!(Instant::now() < deadline, "no records within 120 s");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let servers = children(child.id());
+        assert_eq!(servers.len(), 1, "one server started: {servers:?}");
+        let sent = Command::new("kill").args([signal, &child.id().to_string()]).status().expect("kill(1) runs");
+        assert!(sent.success());
+        let output = child.wait_with_output().expect("waitpid");
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert_eq!(output.status.code(), status, "{signal}: {}; stderr:\n{stderr}", output.status);
+        if status.is_some() {
+            assert!(stderr.contains("esrp-eval: terminated"), "{stderr}");
+        }
+        let deadline = Instant::now() + Duration::from_secs(15);
+        while servers.iter().any(|&pid| alive(pid)) && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        assert!(!servers.iter().any(|&pid| alive(pid)), "{signal}: the server lives on");
+        // What was written is whole records.
+        let read = read_records(&out).expect("the results read back");
+        assert!(!read.torn_tail && read.records.len() >= 2);
+    }
+}
+
+/// A local server that dies under a run stops the run at once with one message (not one failure
+/// per remaining scene), keeping the records written.
+#[test]
+fn a_dead_local_server_stops_the_run() {
+    use std::time::{Duration, Instant};
+    let dir = tempfile::tempdir().expect("a temp dir");
+    let out = dir.path().join("random.jsonl");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_esrp-eval"))
+        .args(["--agent", "random", "--split", "test", "--episodes-in-flight", "2", "--out", out.to_str().unwrap()])
+        .env("ESRP_SERVER_BIN", env!("CARGO_BIN_EXE_esrp-server"))
+        .env("NODEVICE_SELECT", "1")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("esrp-eval starts");
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while std::fs::read(&out).map_or(0, |b| b.iter().filter(|&&c| c == b'\n').count()) < 2 {
+        assert!(child.try_wait().unwrap().is_none(), "esrp-eval ended before the server died");
+        assert!(Instant::now() < deadline, "no records within 120 s");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let servers = children(child.id());
+    assert_eq!(servers.len(), 1);
+    let killed = Command::new("kill").args(["-KILL", &servers[0].to_string()]).status().expect("kill(1) runs");
+    assert!(killed.success());
+    let output = child.wait_with_output().expect("waitpid");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success(), "{stderr}");
+    assert!(stderr.contains("the local esrp-server exited with signal 9 after"), "{stderr}");
+    assert!(stderr.contains("re-run the same command to resume"), "{stderr}");
+    assert!(stderr.matches("unavailable").count() <= 2, "one message, not one per scene:\n{stderr}");
+    let read = read_records(&out).expect("the results read back");
+    assert!(!read.torn_tail && read.records.len() >= 2);
+}

@@ -267,6 +267,8 @@ impl Connection {
     async fn create_world(&mut self, request: dm::CreateWorldRequest) -> Result<dm::CreateWorldResponse, DmEnvError> {
         let options = create_options(request.settings)?;
         let created = self.shared.create(options, None).await?;
+        // The world holds the episode from here (and closes it with the connection).
+        self.shared.registry.claim(&created.episode);
         let (specs, observation_names) = specs_of(&created.sensors);
         let world_name = format!("esrp-world-{}", uuid::Uuid::new_v4().simple());
         let world = World {

@@ -136,6 +136,8 @@ const WORK: [Work; 4] = [Work::Nothing, Work::ListScenes, Work::FiveSteps, Work:
 /// A server process started for one SIGTERM cycle, with its stdout and stderr drained.
 struct Signalled {
     child: std::process::Child,
+    /// The server's stdin (`--stop-on-stdin-close`: it stops when this is dropped).
+    stdin: Option<std::process::ChildStdin>,
     address: String,
     stderr: std::thread::JoinHandle<String>,
 }
@@ -151,8 +153,14 @@ impl Signalled {
         use std::process::Stdio;
         let mut command = esrp_client::LocalServer::command(Some(env!("CARGO_BIN_EXE_esrp-server").into()), args)
             .expect("the server command");
-        command.env("NODEVICE_SELECT", "1").env("ESRP_LOG", "warn").stdout(Stdio::piped()).stderr(Stdio::piped());
+        command
+            .env("NODEVICE_SELECT", "1")
+            .env("ESRP_LOG", "warn")
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped());
         let mut child = command.spawn().expect("the server binary starts");
+        let stdin = child.stdin.take();
         let mut stdout = BufReader::new(child.stdout.take().expect("piped stdout"));
         let mut line = String::new();
         stdout.read_line(&mut line).expect("the server's first line");
@@ -166,7 +174,7 @@ impl Signalled {
             let _ = stderr.read_to_string(&mut text);
             text
         });
-        Signalled { child, address, stderr }
+        Signalled { child, stdin, address, stderr }
     }
 
     /// Sends SIGTERM and waits (at most 30 s) for the process to end; its status and stderr.
@@ -289,6 +297,32 @@ async fn an_open_stream_does_not_hold_up_shutdown() {
     let end = tokio::time::timeout(Duration::from_secs(5), inbound.next()).await.expect("the stream ends");
     assert!(!matches!(end, Some(Ok(_))), "no answer after the server stopped: {end:?}");
     drop(tx);
+}
+
+/// With `--stop-on-stdin-close` (which `LocalServer` passes), the end of stdin is a graceful
+/// shutdown: a tool that dies without stopping its server (SIGKILL) takes the server with it.
+#[tokio::test]
+async fn the_server_stops_when_its_stdin_closes() {
+    let mut server = Signalled::start_with(&["--shutdown-grace-ms", "500"]);
+    let mut client = proto::esrp_client::EsrpClient::connect(server.address.clone()).await.expect("connects");
+    assert!(!scene_ids(&mut client, proto::Split::Test, 1).await.is_empty(), "it serves with stdin open");
+    let closed = Instant::now();
+    drop(server.stdin.take());
+    let (status, stderr) = tokio::task::spawn_blocking(move || {
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while server.child.try_wait().expect("waitpid").is_none() {
+            if Instant::now() > deadline {
+                let _ = server.child.kill();
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        (server.child.wait().expect("waitpid"), server.stderr.join().unwrap_or_default())
+    })
+    .await
+    .unwrap();
+    assert!(status.success(), "stdin closed: {status}; stderr:\n{stderr}");
+    assert!(closed.elapsed() < Duration::from_secs(10), "the server took {:?} to stop", closed.elapsed());
 }
 
 /// A SIGTERM or SIGINT sent as soon as the "listening" line is read is a graceful exit

@@ -69,8 +69,9 @@ pub struct Settings {
     pub seed: u64,
     /// Largest RSS growth from the end of the warm-up to the end of the load, percent.
     pub rss_growth_limit_percent: f64,
-    /// Report episodes still live after the cleanup without failing the run.
-    pub accept_leftover_episodes: bool,
+    /// The server's `--claim-timeout-seconds`: the cleanup waits that long (and the reaper's
+    /// tick) for the episodes of creates abandoned after their answer left to be closed.
+    pub claim_timeout: Duration,
 }
 
 impl Settings {
@@ -946,8 +947,10 @@ pub async fn run(settings: Settings, server: Option<&LocalServer>) -> anyhow::Re
             Err(error) => tally.error("close", &error, false),
         }
     }
-    // Streams' episodes close when the server has finished their stream: wait for that.
-    let settle_until = Instant::now() + SETTLE;
+    // Streams' episodes close when the server has finished their stream, and the episodes of
+    // creates abandoned after their answer left when no call has claimed them within the
+    // server's claim timeout (its reaper ticks every second at least): wait for both.
+    let settle_until = Instant::now() + SETTLE + settings.claim_timeout;
     let mut live_after_cleanup = monitor.server_info().await?.live_episodes;
     while live_after_cleanup > live_before && Instant::now() < settle_until {
         tokio::time::sleep(Duration::from_millis(200)).await;
@@ -999,16 +1002,11 @@ fn judge(report: &mut Report, settings: &Settings, local: bool) {
     }
     let leftover = report.leftover();
     if leftover > 0 {
-        let why = format!(
-            "{leftover} episodes still live after the cleanup ({} creates were abandoned before their answer: \
-             the server may finish such a create for nobody, issue 15 item 4)",
+        report.failures.push(format!(
+            "{leftover} episodes still live {} s after the cleanup ({} creates were abandoned by their client)",
+            (SETTLE + settings.claim_timeout).as_secs(),
             report.abandoned_creates()
-        );
-        if settings.accept_leftover_episodes {
-            report.notes.push(format!("{why}; accepted (--accept-leftover-episodes)"));
-        } else {
-            report.failures.push(why);
-        }
+        ));
     }
     match report.rss_growth() {
         Some((growth, percent)) if percent > settings.rss_growth_limit_percent => report.failures.push(format!(

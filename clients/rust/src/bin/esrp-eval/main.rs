@@ -15,7 +15,7 @@ use std::time::{Duration, Instant, SystemTime};
 use anyhow::{Context, bail};
 use clap::Parser;
 use esrp_client::results::{self, EpisodeRecord, SCHEMA, Summary, Tally};
-use esrp_client::{Client, Difficulty, SceneFilter, SceneSummary, Split, reach_or_start};
+use esrp_client::{Client, ClientError, Difficulty, LocalServer, SceneFilter, SceneSummary, Split, reach_or_start};
 use futures_util::StreamExt as _;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
@@ -198,10 +198,55 @@ fn running(tally: &Tally) -> String {
     format!("SR {:.1} %  OSR {:.1} %  RDR {:.3}", 100.0 * tally.sr(), 100.0 * tally.osr(), tally.rdr())
 }
 
+/// How long a run waits for a server that stopped answering before it stops.
+const SERVER_RETRY: Duration = Duration::from_secs(10);
+
+/// Why the run cannot go on after a call found the server unavailable: the local server exited,
+/// or the server stayed unhealthy for [`SERVER_RETRY`]; `None` if it answers again.
+async fn server_gone(
+    client: &Client,
+    address: &str,
+    mut local: Option<&mut LocalServer>,
+    episodes: usize,
+) -> Option<String> {
+    let exited = |local: &mut Option<&mut LocalServer>| {
+        let status = local.as_mut()?.try_wait()?;
+        Some(format!(
+            "the local esrp-server {} after {episodes} episodes of this run (its log is above)",
+            describe_exit(status)
+        ))
+    };
+    if let Some(why) = exited(&mut local) {
+        return Some(why);
+    }
+    if client.wait_healthy(SERVER_RETRY).await.is_ok() {
+        return None;
+    }
+    exited(&mut local).or_else(|| {
+        Some(format!(
+            "the server at {address} has been unavailable for {} s after {episodes} episodes of this run",
+            SERVER_RETRY.as_secs()
+        ))
+    })
+}
+
+/// "exited with signal 9", "exited with status 1".
+fn describe_exit(status: std::process::ExitStatus) -> String {
+    #[cfg(unix)]
+    {
+        use std::os::unix::process::ExitStatusExt;
+        if let Some(signal) = status.signal() {
+            return format!("exited with signal {signal}");
+        }
+    }
+    status.code().map_or_else(|| format!("exited ({status})"), |code| format!("exited with status {code}"))
+}
+
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let (address, _local) = reach_or_start(args.server.as_deref(), None, &args.server_args)?;
+    esrp_client::signals::exit_on_signals("esrp-eval")?;
+    let (address, mut local) = reach_or_start(args.server.as_deref(), None, &args.server_args)?;
     let client = Client::connect(&address).token_opt(args.token.as_deref()).await?;
     let info = client.server_info().await?;
     eprintln!(
@@ -258,10 +303,16 @@ async fn main() -> anyhow::Result<()> {
     .buffer_unordered(args.episodes_in_flight as usize);
 
     let mut failed: Vec<(String, String)> = Vec::new();
+    let mut written = 0;
     while let Some((scene, seed, wall_seconds, played)) = episodes.next().await {
         let played = match played {
             Ok(p) => p,
             Err(e) => {
+                let unavailable = e.chain().any(|c| matches!(c.downcast_ref(), Some(ClientError::Unavailable(_))));
+                if unavailable && let Some(why) = server_gone(&client, &address, local.as_mut(), written).await {
+                    bar.finish_and_clear();
+                    bail!("{why}; re-run the same command to resume");
+                }
                 bar.suspend(|| eprintln!("{}: {e:#}", scene.id));
                 failed.push((scene.id, format!("{e:#}")));
                 bar.inc(1);
@@ -297,6 +348,7 @@ async fn main() -> anyhow::Result<()> {
             finished_at: now_rfc3339(),
         };
         results::append_record(&mut file, &record).with_context(|| format!("cannot write {}", args.out.display()))?;
+        written += 1;
         tally.add(&record);
         records.push(record);
         bar.inc(1);

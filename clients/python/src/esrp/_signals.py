@@ -1,0 +1,255 @@
+"""How the `esrp` commands stop on SIGTERM and SIGINT, every time (`stop_on_signals`).
+
+A Python signal handler runs between two bytecodes of the main thread, wherever that thread is,
+and an exception it raises unwinds the command from there: the `with` blocks close the episodes,
+the files and the server the command started. Raised inside a finalizer (`__del__`), a weakref or
+GC callback, the interpreter reports the exception ("Exception ignored in ...") and drops it; code
+that catches every exception drops it too. So that no signal is lost:
+
+- the first SIGTERM raises `Terminated` (a `SystemExit` with status 143, which asyncio passes on as
+  it does `SystemExit`) and the first SIGINT `KeyboardInterrupt` (status 130);
+- when the interpreter drops that exception as unraisable, the same signal is sent again a moment
+  later, so that the handler raises it again at another bytecode;
+- a watchdog thread waits `grace` seconds from the first signal; if the command has not returned by
+  then, it stops the child processes the command tracks (the servers `LocalServer` started),
+  prints the command's one-line message and exits with the signal's status at once. Records
+  already appended stay: they are flushed to the OS as each is written.
+
+Later signals while the command unwinds are not raised again: that would cut its clean-up short
+(stopping the server); the watchdog bounds how long the clean-up may take. A signal that arrives
+inside `deferred()` (starting or stopping a child, which must not be cut in two) is raised when
+that section ends. Leaving the block after a signal stops any tracked child still running.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import threading
+from collections.abc import Callable, Iterator
+from typing import Any
+
+__all__ = [
+    "STATUS",
+    "Terminated",
+    "deferred",
+    "reclaim",
+    "run_command",
+    "stop_on_signals",
+    "stop_tracked",
+    "track",
+    "untrack",
+]
+
+STATUS = {signal.SIGTERM: 143, signal.SIGINT: 130}
+"""The exit status of a command stopped by each signal (128 + its number)."""
+
+_REDELIVERY_DELAY = 0.01
+"""Seconds between a dropped signal exception and the signal sent again: the unraisable hook has
+returned by then, so the handler does not raise inside the hook (whose own exceptions are dropped)."""
+
+
+class Terminated(SystemExit):
+    """SIGTERM arrived: raised in the main thread by the handler of `stop_on_signals`."""
+
+    def __init__(self) -> None:
+        super().__init__(STATUS[signal.SIGTERM])
+
+
+class _State:
+    """What the handlers of one `stop_on_signals` block share."""
+
+    def __init__(self, grace: float, on_timeout: Callable[[int], None]) -> None:
+        self.grace = grace
+        self.on_timeout = on_timeout
+        self.signum: int | None = None  # the first signal
+        self.redeliver = False  # the first signal's exception was dropped: raise it again
+        self.done = threading.Event()  # the command returned or raised out of the block
+        self.defer = 0  # depth of the main thread's `deferred()` sections
+        self.held = False  # a signal's exception waits for the end of a deferred section
+        self.timers: list[threading.Timer] = []
+
+    def exception(self) -> BaseException:
+        return Terminated() if self.signum == signal.SIGTERM else KeyboardInterrupt()
+
+    def handle(self, signum: int, frame: object) -> None:
+        if self.done.is_set():
+            return
+        if self.signum is None:
+            self.signum = signum
+            threading.Thread(target=self._watch, name="esrp-signal-watchdog", daemon=True).start()
+        elif not self.redeliver:
+            return  # a later signal while the command unwinds
+        self.redeliver = False
+        if self.defer:
+            self.held = True
+            return
+        raise self.exception()
+
+    def dropped(self, unraisable: Any) -> bool:  # noqa: ANN401 - sys.UnraisableHookArgs
+        """Whether `unraisable` is this block's signal exception; if so, the signal is sent again."""
+        exception = unraisable.exc_value
+        ours = isinstance(exception, Terminated) or (
+            isinstance(exception, KeyboardInterrupt) and self.signum == signal.SIGINT
+        )
+        if not ours or self.signum is None or self.done.is_set():
+            return False
+        self.redeliver = True
+        timer = threading.Timer(_REDELIVERY_DELAY, os.kill, (os.getpid(), self.signum))
+        timer.daemon = True
+        self.timers.append(timer)
+        timer.start()
+        return True
+
+    def _watch(self) -> None:
+        if self.done.wait(self.grace):
+            return
+        assert self.signum is not None
+        self.on_timeout(self.signum)
+
+
+_active: _State | None = None
+"""The state of the `stop_on_signals` block the process is in, if any."""
+
+_tracked: set[subprocess.Popen[Any]] = set()
+_tracked_lock = threading.Lock()
+
+
+def track(process: subprocess.Popen[Any]) -> None:
+    """Makes `process` one of the children stopped when the command is stopped by a signal."""
+    with _tracked_lock:
+        _tracked.add(process)
+
+
+def untrack(process: subprocess.Popen[Any]) -> None:
+    """Forgets `process` (it was stopped and waited for)."""
+    with _tracked_lock:
+        _tracked.discard(process)
+
+
+def stop_tracked(timeout: float = 3.0) -> int:
+    """Stops every tracked child still running (SIGTERM, then SIGKILL after `timeout` seconds) and
+    waits for it; returns how many were running.
+    """
+    with _tracked_lock:
+        processes = list(_tracked)
+        _tracked.clear()
+    running = [process for process in processes if process.poll() is None]
+    for process in running:
+        with contextlib.suppress(OSError):
+            process.terminate()
+    for process in running:
+        try:
+            process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(OSError):
+                process.kill()
+            process.wait()
+    return len(running)
+
+
+@contextlib.contextmanager
+def deferred() -> Iterator[None]:
+    """A section that a signal must not cut in two (a child started but not yet tracked, or
+    signalled but not yet waited for): inside it, in the main thread of a `stop_on_signals` block,
+    the signal's exception is held and raised when the section ends. Elsewhere it does nothing.
+    """
+    state = _active
+    if state is None or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    state.defer += 1
+    try:
+        yield
+    finally:
+        state.defer -= 1
+        if not state.defer and state.held and not state.done.is_set():
+            state.held = False
+            raise state.exception()
+
+
+def reclaim() -> None:
+    """Puts the handlers of the `stop_on_signals` block the process is in back, after a library
+    replaced them (`ray.init` installs a SIGTERM handler of its own, which exits with status 15).
+    """
+    state = _active
+    if state is not None and threading.current_thread() is threading.main_thread():
+        for signum in STATUS:
+            signal.signal(signum, state.handle)
+
+
+def _stop_now(command: str) -> Callable[[int], None]:
+    def stop(signum: int) -> None:
+        stopped = stop_tracked()
+        what = "terminated" if signum == signal.SIGTERM else "interrupted"
+        servers = f"; stopped the {stopped} server(s) it started" if stopped else ""
+        with contextlib.suppress(Exception):
+            sys.stdout.flush()
+        with contextlib.suppress(Exception):
+            print(
+                f"{command}: {what} (it had not stopped within the grace after the signal{servers})",
+                file=sys.stderr,
+                flush=True,
+            )
+        os._exit(STATUS[signal.Signals(signum)])
+
+    return stop
+
+
+@contextlib.contextmanager
+def stop_on_signals(command: str, *, grace: float = 10.0) -> Iterator[None]:
+    """Inside the block, SIGTERM raises `Terminated` and SIGINT `KeyboardInterrupt` in the main
+    thread, never lost (see the module's text); after `grace` seconds without leaving the block, the
+    process stops the children it tracks and exits with status 143 (SIGTERM) or 130 (SIGINT),
+    printing `COMMAND: terminated (...)`. Only in the main thread and not nested; elsewhere the
+    block does nothing. The unraisable hook in force before is put back on leaving, and so are the
+    signal handlers unless a signal came.
+    """
+    global _active
+    if threading.current_thread() is not threading.main_thread() or _active is not None:
+        yield
+        return
+    state = _active = _State(grace, _stop_now(command))
+    previous_hook = sys.unraisablehook
+
+    def hook(unraisable: Any) -> None:  # noqa: ANN401 - sys.UnraisableHookArgs
+        if not state.dropped(unraisable):
+            previous_hook(unraisable)
+
+    previous = {signum: signal.signal(signum, state.handle) for signum in STATUS}
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        state.done.set()
+        _active = None
+        sys.unraisablehook = previous_hook
+        for timer in state.timers:
+            timer.cancel()
+        if state.signum is None:
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
+        else:
+            # Left as they are (they ignore every signal now): a signal sent again that is still on
+            # its way must not kill the process with the default action while it exits.
+            stop_tracked()
+
+
+def run_command(name: str, body: Callable[[], int], *, handle_signals: bool) -> int:
+    """Runs a command's `body` and returns its exit status; a SIGINT that reaches here prints
+    `NAME: interrupted` and gives 130, a SIGTERM `NAME: terminated` and 143. With `handle_signals`
+    (the command's own process, not a call from Python code) inside `stop_on_signals(name)`;
+    otherwise SIGTERM keeps the handler the process has.
+    """
+    try:
+        with stop_on_signals(name) if handle_signals else contextlib.nullcontext():
+            return body()
+    except KeyboardInterrupt:
+        print(f"{name}: interrupted", file=sys.stderr)
+        return STATUS[signal.SIGINT]
+    except Terminated:
+        print(f"{name}: terminated", file=sys.stderr)
+        return STATUS[signal.SIGTERM]
