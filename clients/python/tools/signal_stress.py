@@ -1,6 +1,8 @@
 """Stress test of how `esrp eval` stops on a signal: runs the command many times, sends SIGTERM (or
-SIGINT) to each run at a random moment — while it imports, starts its server, creates, steps and
-closes episodes, and while finalizers run (the agent leaves garbage whose `__del__` takes time, the
+SIGINT) to each run at a random moment — a third of the runs within `--max-delay` seconds of the
+start (while Python imports, the command starts its server), the others within `--max-delay`
+seconds of the run's first line (while it creates, steps and closes episodes), and while
+finalizers run (the agent leaves garbage whose `__del__` takes time, the
 place where a signal's exception used to be dropped) — and checks that every run exits with 143
 (130) and the line `esrp eval: terminated` (`interrupted`) within a bound, and leaves no server.
 
@@ -29,6 +31,7 @@ from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO
 
 AGENT_MODULE = '''
 import gc
@@ -75,6 +78,7 @@ class Outcome:
 
     index: int
     delay: float
+    after_start: bool  # the delay counted from the start (else from the run's first line)
     kind: str  # "ok", "before handlers", "finished early" or a failure's description
     seconds: float  # from the signal to the command's exit
     stderr: str
@@ -100,12 +104,14 @@ def signalled_run(
     *,
     folder: Path,
     delay: float,
+    after_start: bool = True,
     signum: int = signal.SIGTERM,
     bound: float = 60.0,
     python: str = sys.executable,
 ) -> Outcome:
     """Starts `esrp eval` (the littering agent on the test split, its own server), sends `signum`
-    after `delay` seconds and checks how it ends."""
+    `delay` seconds after its start (`after_start`) or after its first line on stderr (`esrp-server
+    VERSION at ADDRESS`: the server is up), and checks how it ends."""
     marker = f"ESRP_SIGNAL_STRESS_RUN={uuid.uuid4().hex}"
     out = folder / f"run-{index}.jsonl"
     command = [python, "-m", "esrp.cli", "eval", "--agent", "littering_agent:make", "--split", "test"]
@@ -116,6 +122,10 @@ def signalled_run(
     environment[name] = value
     with tempfile.TemporaryFile() as err:
         child = subprocess.Popen(command, env=environment, stdout=subprocess.DEVNULL, stderr=err, cwd=folder)
+        if not after_start:
+            deadline = time.monotonic() + bound
+            while child.poll() is None and time.monotonic() < deadline and b"esrp-server" not in _read(err):
+                time.sleep(0.01)
         time.sleep(delay)
         sent = time.monotonic()
         finished_before = child.poll() is not None
@@ -153,23 +163,34 @@ def signalled_run(
         kind = "ok"
     out.unlink(missing_ok=True)
     out.with_suffix(".md").unlink(missing_ok=True)
-    return Outcome(index, delay, kind, seconds, stderr)
+    return Outcome(index, delay, after_start, kind, seconds, stderr)
+
+
+def _read(file: IO[bytes]) -> bytes:
+    """What was written to `file` so far (from its start; the position is kept)."""
+    position = file.tell()
+    file.seek(0)
+    data = file.read()
+    file.seek(position)
+    return data
 
 
 def stress(
     runs: int,
     *,
     jobs: int = 2,
-    max_delay: float = 4.0,
+    max_delay: float = 3.0,
     seed: int = 0,
     signum: int = signal.SIGTERM,
     bound: float = 60.0,
     log: bool = False,
 ) -> list[Outcome]:
     """`runs` signalled runs, `jobs` at a time, each signalled after a delay drawn uniformly from
-    [0, max_delay) seconds; returns their outcomes in order."""
+    [0, max_delay) seconds (from the start for a third of them, else from the first line); returns
+    their outcomes in order."""
     rng = random.Random(seed)
     delays = [rng.uniform(0.0, max_delay) for _ in range(runs)]
+    from_start = [rng.random() < 1 / 3 for _ in range(runs)]
     with tempfile.TemporaryDirectory(prefix="esrp-signal-stress-") as name:
         folder = Path(name)
         (folder / "littering_agent.py").write_text(AGENT_MODULE)
@@ -177,13 +198,21 @@ def stress(
         started = time.monotonic()
 
         def one(index: int) -> Outcome:
-            outcome = signalled_run(index, folder=folder, delay=delays[index], signum=signum, bound=bound)
+            outcome = signalled_run(
+                index,
+                folder=folder,
+                delay=delays[index],
+                after_start=from_start[index],
+                signum=signum,
+                bound=bound,
+            )
             if log:
                 outcomes.append(outcome)
                 failed = sum(o.kind not in ("ok", "before handlers", "finished early") for o in outcomes)
                 print(
                     f"[{len(outcomes)}/{runs}, {time.monotonic() - started:.0f} s] run {index}: "
-                    f"signal at {outcome.delay:.2f} s, {outcome.kind}, exit after {outcome.seconds:.2f} s"
+                    f"signal {outcome.delay:.2f} s after {'start' if outcome.after_start else 'first line'}, "
+                    f"{outcome.kind}, exit after {outcome.seconds:.2f} s"
                     f" ({failed} failed so far)",
                     flush=True,
                 )
@@ -199,7 +228,12 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0] if __doc__ else None)
     parser.add_argument("--runs", type=int, default=1000)
     parser.add_argument("--jobs", type=int, default=2, help="runs at a time")
-    parser.add_argument("--max-delay", type=float, default=4.0, help="signal within [0, this) s of the start")
+    parser.add_argument(
+        "--max-delay",
+        type=float,
+        default=3.0,
+        help="signal within [0, this) s of the start or of the first line",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--signal", choices=["TERM", "INT"], default="TERM")
     parser.add_argument("--bound", type=float, default=60.0, help="seconds a run may take to exit")

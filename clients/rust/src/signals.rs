@@ -7,29 +7,45 @@ use std::io;
 /// terminated` (or `NAME: interrupted`) and exits with status 143 (130). Destructors do not run,
 /// and need not: what the tools write (results records, one `write` each) is already with the
 /// system, and a [`crate::LocalServer`] stops by itself when its stdin pipe closes with this
-/// process. Watched on a thread of its own, so a signal is acted on wherever the tool is.
+/// process. Watched on a thread of its own with a runtime of its own (so it may be called inside
+/// another runtime), and acted on wherever the tool is; returns once the handlers are installed.
 pub fn exit_on_signals(name: &'static str) -> io::Result<()> {
-    let runtime = tokio::runtime::Builder::new_current_thread().enable_io().build()?;
-    #[cfg(unix)]
-    let (mut terminate, mut interrupt) = runtime.block_on(async {
-        use tokio::signal::unix::{SignalKind, signal};
-        io::Result::Ok((signal(SignalKind::terminate())?, signal(SignalKind::interrupt())?))
-    })?;
+    let (installed, outcome) = std::sync::mpsc::channel::<io::Result<()>>();
     std::thread::Builder::new().name("esrp-signals".into()).spawn(move || {
-        #[cfg(unix)]
-        let (word, status) = runtime.block_on(async {
-            tokio::select! {
-                _ = terminate.recv() => ("terminated", 143),
-                _ = interrupt.recv() => ("interrupted", 130),
+        let runtime = match tokio::runtime::Builder::new_current_thread().enable_io().build() {
+            Ok(runtime) => runtime,
+            Err(error) => {
+                let _ = installed.send(Err(error));
+                return;
             }
-        });
-        #[cfg(not(unix))]
-        let (word, status) = runtime.block_on(async {
-            let _ = tokio::signal::ctrl_c().await;
-            ("interrupted", 130)
+        };
+        let (word, status) = runtime.block_on(async move {
+            #[cfg(unix)]
+            {
+                use tokio::signal::unix::{SignalKind, signal};
+                let handlers = signal(SignalKind::terminate()).and_then(|t| Ok((t, signal(SignalKind::interrupt())?)));
+                let (mut terminate, mut interrupt) = match handlers {
+                    Ok(handlers) => handlers,
+                    Err(error) => {
+                        let _ = installed.send(Err(error));
+                        return std::future::pending().await;
+                    }
+                };
+                let _ = installed.send(Ok(()));
+                tokio::select! {
+                    _ = terminate.recv() => ("terminated", 143),
+                    _ = interrupt.recv() => ("interrupted", 130),
+                }
+            }
+            #[cfg(not(unix))]
+            {
+                let _ = installed.send(Ok(()));
+                let _ = tokio::signal::ctrl_c().await;
+                ("interrupted", 130)
+            }
         });
         eprintln!("{name}: {word}");
         std::process::exit(status);
     })?;
-    Ok(())
+    outcome.recv().map_err(|_| io::Error::other("the signal thread ended before installing its handlers"))?
 }

@@ -70,7 +70,8 @@ class EvalError(Exception):
 
 class ServerGone(EvalError):
     """The server died, or stayed unreachable, in the middle of the run: it stopped there. The
-    records of the episodes that ended are kept; running the same command again resumes."""
+    records of the episodes that ended are kept; running the same command again resumes.
+    """
 
 
 SERVER_RETRY_SECONDS = 10.0
@@ -559,13 +560,18 @@ async def _server_gone(client: AsyncClient, local: LocalServer | None, episodes:
 
 def _local_exit(local: LocalServer, episodes: int, resume: str) -> str:
     code = local.process.poll() if local.process is not None else None
-    how = "stopped" if code is None else f"exited with signal {-code}" if code < 0 else f"exited with status {code}"
+    if code is None:
+        how = "stopped answering"
+    else:
+        how = f"exited with signal {-code}" if code < 0 else f"exited with status {code}"
     tail = local.stderr_tail(10).strip()
     lines = f"; its last log lines:\n{tail}\n" if tail else " (it logged nothing); "
     return f"the local esrp-server {how} after {episodes} episodes of this run{lines}{resume}"
 
 
-async def evaluate(client: AsyncClient, settings: EvalSettings, local: LocalServer | None = None) -> EvalOutcome:
+async def evaluate(
+    client: AsyncClient, settings: EvalSettings, local: LocalServer | None = None
+) -> EvalOutcome:
     """Runs `settings.agent` over the chosen scenes on `client`'s server; appends a record per
     finished episode to `settings.out`, writes the summary beside it, and returns what happened.
     Episodes that fail with an error are not recorded (a rerun retries them). A server that dies

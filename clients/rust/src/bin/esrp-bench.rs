@@ -362,7 +362,8 @@ fn main() -> anyhow::Result<()> {
     let claim_timeout = match server_args.iter().position(claim_flag) {
         _ if args.server.is_some() => args.server_claim_timeout,
         Some(i) => {
-            let value = server_args[i].split_once('=').map(|(_, v)| v.to_owned()).or_else(|| server_args.get(i + 1).cloned());
+            let value =
+                server_args[i].split_once('=').map(|(_, v)| v.to_owned()).or_else(|| server_args.get(i + 1).cloned());
             value.and_then(|v| v.parse().ok()).context("--server-arg --claim-timeout-seconds needs a number")?
         }
         None => {

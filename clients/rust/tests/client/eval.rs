@@ -174,7 +174,6 @@ fn a_signal_ends_the_run_and_its_server() {
         let out = dir.path().join("random.jsonl");
         let mut child = Command::new(env!("CARGO_BIN_EXE_esrp-eval"))
             .args(["--agent", "random", "--split", "train", "--out", out.to_str().unwrap()])
-            .env("ESRP_SERVER_BIN", env!("CARGO_BIN_EXE_esrp-server"))
             .env("NODEVICE_SELECT", "1")
             .stdout(std::process::Stdio::null())
             .stderr(std::process::Stdio::piped())
@@ -216,7 +215,6 @@ fn a_dead_local_server_stops_the_run() {
     let out = dir.path().join("random.jsonl");
     let mut child = Command::new(env!("CARGO_BIN_EXE_esrp-eval"))
         .args(["--agent", "random", "--split", "test", "--episodes-in-flight", "2", "--out", out.to_str().unwrap()])
-        .env("ESRP_SERVER_BIN", env!("CARGO_BIN_EXE_esrp-server"))
         .env("NODEVICE_SELECT", "1")
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::piped())
