@@ -64,6 +64,44 @@ def target(address: str) -> tuple[str, bool]:
     return address, False
 
 
+def parsed_address(address: str) -> tuple[str, str]:
+    """The `host:port` gRPC connects to for an address (after `target`), and what it made of an
+    address without a port: `127.0.0.1` is `127.0.0.1:443` (gRPC's default port), `50051` is host
+    `50051` on port 443. The note is empty for a `host:port` address, or another gRPC target form
+    (`unix:...`, `dns:///...`).
+    """
+    host, _ = target(address)
+    if "/" in host or host.startswith(("unix:", "unix-abstract:", "vsock:", "ipv4:", "ipv6:")):
+        return host, ""
+    if host.startswith("["):  # [IPv6] or [IPv6]:port
+        name, _, port = host[1:].partition("]")
+        port = port.removeprefix(":")
+        name = f"[{name}]"
+    elif host.count(":") == 1:
+        name, port = host.split(":")
+    elif host.count(":") > 1:  # a bare IPv6 address
+        name, port = f"[{host}]", ""
+    else:
+        name, port = host, ""
+    if port:
+        return f"{name}:{port}", ""
+    note = f"{address!r} has no port, so gRPC's default, 443, is used"
+    if name.isdigit():
+        note += f": {name!r} is read as a host name (did you mean 127.0.0.1:{name}?)"
+    elif not name:
+        note = f"{address!r} has no host or port"
+    return f"{name}:443", note
+
+
+def unreachable(address: str, error: EsrpError) -> str:
+    """A one-line message for a server that cannot be reached at `address` (a `ServerUnavailable`
+    `error`): the address as gRPC read it, what it made of a missing port, and gRPC's reason.
+    """
+    parsed, note = parsed_address(address)
+    given = f" ({note})" if note else "" if parsed == address else f" (from {address!r})"
+    return f"no esrp-server answers at {parsed}{given}: {error.message}"
+
+
 def credentials(tls: TlsSetting, https: bool) -> grpc.ChannelCredentials | None:
     """The channel credentials of a TLS setting, or None for a plain channel."""
     if tls is None:

@@ -32,7 +32,7 @@ from ._client import Client, Episode, EpisodeStream
 from ._common import TlsSetting
 from ._errors import EpisodeEnded, EpisodeNotFound, EsrpError, InvalidRequest, ServerUnavailable
 from ._local import LocalServer
-from ._values import Difficulty, EpisodeMetrics, RewardWeights, Sensors, Split
+from ._values import ActionLike, Difficulty, EpisodeMetrics, RewardWeights, Sensors, Split
 
 __all__ = ["RearrangeEnv", "RearrangeVectorEnv", "observation_space"]
 
@@ -300,11 +300,11 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
         self._last = self._image_spec.observation(images, first.grasping, self._goal)
         return self._last, {"scene_id": scene}
 
-    def step(self, action: np.int64 | int) -> tuple[ObsDict, SupportsFloat, bool, bool, dict[str, Any]]:
+    def step(self, action: ActionLike) -> tuple[ObsDict, SupportsFloat, bool, bool, dict[str, Any]]:
         """Takes one action (0..5, see `esrp.Action`)."""
         if self._episode is None or self._goal is None:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
-        message = self._episode._step_message(int(action))  # noqa: SLF001 - the package's own hot path
+        message = self._episode._step_message(action)  # noqa: SLF001 - the package's own hot path
         spec = self._image_spec
         columns = _convert.step_columns((message,), spec.layout, spec.resolution)
         observation = spec.observation(
@@ -565,7 +565,9 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         n = self.num_envs
         if actions.shape != (n,):
             raise ValueError(f"actions must have shape ({n},), got {actions.shape}")
-        if np.any((actions < 0) | (actions > 5)):
+        if actions.dtype.kind == "f" and np.all(np.isfinite(actions) & (actions == np.round(actions))):
+            actions = actions.astype(np.int64)  # integer-valued floats, as RearrangeEnv takes them
+        if actions.dtype.kind not in "iu" or np.any((actions < 0) | (actions > 5)):
             raise InvalidRequest(f"actions must be codes 0..5 (esrp.Action), got {actions}")
         if self._stream is None or not np.all(self._started):
             raise gymnasium.error.ResetNeeded("call reset() before step()")

@@ -41,6 +41,7 @@ from .evaluation import (
     EvalError,
     EvalOutcome,
     EvalSettings,
+    FailureLog,
     Progress,
     agent_factory,
     finish,
@@ -214,7 +215,7 @@ def _drive(ray: Any, settings: EvalSettings, cluster: RaySettings) -> EvalOutcom
     records, done, earlier, tally = resumed.records, resumed.done, resumed.earlier, resumed.tally
     pending = deque(resumed.todo)
     progress = Progress(len(scenes), earlier, settings.progress)
-    failed: list[tuple[str, str]] = []
+    failures = FailureLog(out, progress)
     written = 0
     started = time.monotonic()
     live = set(range(len(actors)))
@@ -252,9 +253,8 @@ def _drive(ray: Any, settings: EvalSettings, cluster: RaySettings) -> EvalOutcom
                             ) from error
                         pending.appendleft(scene)  # played again from its start elsewhere
                     else:
-                        message = f"{type(cause).__name__}: {cause}"
-                        progress.note(f"{scene.id}: {message}")
-                        failed.append((scene.id, message))
+                        # A task's error carries the worker's traceback in its text.
+                        failures.add(scene.id, cause, trace=str(error))
                         progress.advance(tally)
                     hand_out()
                     continue
@@ -272,7 +272,7 @@ def _drive(ray: Any, settings: EvalSettings, cluster: RaySettings) -> EvalOutcom
             with contextlib.suppress(Exception):
                 ray.kill(actor, no_restart=True)
 
-    return finish(settings, info, records, written, failed, time.monotonic() - started)
+    return finish(settings, info, records, written, failures, time.monotonic() - started)
 
 
 def _first_answer(ray: Any, refs: list[Any]) -> tuple[ServerInfo, list[SceneSummary]]:  # noqa: ANN401

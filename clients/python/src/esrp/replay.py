@@ -25,10 +25,11 @@ import numpy as np
 import numpy.typing as npt
 
 from ._client import Client
-from ._errors import EsrpError
+from ._common import unreachable
+from ._errors import EsrpError, ServerUnavailable
 from ._local import LocalServer
 from ._values import EpisodeMetrics, Observation, PrivilegedState, Sensors, TopDownFrame
-from .results import EpisodeRecord, read_records
+from .results import EpisodeRecord, ResultsError, read_records
 
 if TYPE_CHECKING:
     from PIL import Image
@@ -297,9 +298,17 @@ def write_frames(frames: Sequence[Frame], path: str | os.PathLike[str], *, fps: 
 
 def find_record(results: str | os.PathLike[str], scene_id: str) -> EpisodeRecord:
     """The record of `scene_id` in a results file (the last one, if the file holds several)."""
-    found = [r for r in read_records(results).records if r.scene_id == scene_id]
+    try:
+        records = read_records(results).records
+    except OSError as error:
+        raise ReplayError(f"cannot read {results}: {error.strerror or error}") from None
+    except ResultsError as error:
+        raise ReplayError(str(error)) from None
+    found = [r for r in records if r.scene_id == scene_id]
     if not found:
-        raise ReplayError(f"{results} has no record of scene {scene_id!r}")
+        ends = sorted({r.scene_id for r in records if r.scene_id.endswith("/" + scene_id)})
+        hint = f" (did you mean {ends[0]!r}?)" if len(ends) == 1 else ""
+        raise ReplayError(f"{results} has no record of scene {scene_id!r}{hint}")
     return found[-1]
 
 
@@ -322,6 +331,11 @@ def replay_to_file(
 
     def run(address: str) -> Replay:
         with Client(address, token=token, timeout=120) as client:
+            if server is not None:
+                try:
+                    client.server_info()  # fails at once when nothing answers there
+                except ServerUnavailable as error:
+                    raise ReplayError(unreachable(server, error)) from None
             client.wait_healthy(30)
             return replay_record(client, record, scale=scale, every_frame=every_frame)
 

@@ -26,6 +26,8 @@ from typing import Any
 
 from . import __version__
 from ._client import Client
+from ._common import unreachable
+from ._errors import ServerUnavailable
 from ._local import LocalServer
 from .results import DIFFICULTIES, PAPER, EpisodeRecord, ResultsError, Tally, fixed, read_records
 
@@ -371,6 +373,10 @@ def _stills(
         return []
     if server is not None:
         with Client(server, token=token, timeout=120) as client:
+            try:
+                client.server_info()  # fails at once when nothing answers there
+            except ServerUnavailable as error:
+                raise ReportError(unreachable(server, error)) from None
             return draw(client)
     with LocalServer(*server_args) as local, local.client(timeout=120) as client:
         return draw(client)

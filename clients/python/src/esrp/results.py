@@ -344,15 +344,20 @@ class Summary:
     by_difficulty: dict[str, Tally]
 
     @classmethod
-    def of(cls, records: Sequence[EpisodeRecord]) -> Summary:
-        """The summary of `records` (the agent's name is the first record's)."""
+    def of(cls, records: Sequence[EpisodeRecord], agent: str | None = None) -> Summary:
+        """The summary of `records`; the agent's name is `agent`, else the first record's."""
         by_difficulty: dict[str, Tally] = {}
         for record in records:
             by_difficulty.setdefault(record.difficulty, Tally()).add(record)
-        return cls(records[0].agent if records else "", Tally.of(records), by_difficulty)
+        name = agent if agent is not None else records[0].agent if records else "?"
+        return cls(name, Tally.of(records), by_difficulty)
 
     def text(self) -> str:
-        """A few lines for a terminal: SR / OSR / RDR overall and per difficulty."""
+        """A few lines for a terminal: SR / OSR / RDR overall and per difficulty (one line saying so
+        when there are no episodes).
+        """
+        if self.overall.episodes == 0:
+            return "no episodes recorded: no SR, OSR or RDR to give\n"
         lines = []
         for name, tally in [("overall", self.overall)] + [
             (d, self.by_difficulty[d]) for d in DIFFICULTIES if d in self.by_difficulty
@@ -370,6 +375,11 @@ class Summary:
         (SPEC §8) beside them, then stage shares and step counts — the Rust tool's text.
         """
         t = self.overall
+        if t.episodes == 0:
+            return (
+                f"# {title}\n\nNo episodes recorded for **{self.agent}**: there is no SR, OSR or RDR "
+                "to give (every episode failed with an error, or none was played).\n"
+            )
         md = [
             f"# {title}\n\n",
             f"SR and OSR in %, RDR as a ratio (lower is better). {t.episodes} episodes. "
