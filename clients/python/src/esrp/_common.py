@@ -16,7 +16,7 @@ import grpc
 
 from . import _convert
 from ._errors import EsrpError, InvalidRequest, ProtocolError, from_status
-from ._values import Created, EpisodeMetrics, Observation, StepResult
+from ._values import Created, EpisodeMetrics, Observation, SceneSummary, StepResult
 from .v1 import esrp_pb2 as pb
 
 MAX_MESSAGE_BYTES = 256 << 20
@@ -152,6 +152,7 @@ class StreamAnswer:
         value: `Created` (create), `StepResult` (step), `Observation` (reset, with the goal) or
             `EpisodeMetrics` (close); None when the server refused the request.
         error: The error the server gave this request alone (the stream goes on), or None.
+        scene: The scene the episode plays, on the answer of a create or a reset (else None).
     """
 
     request_id: int
@@ -159,6 +160,7 @@ class StreamAnswer:
     episode_id: str
     value: AnswerValue | None
     error: EsrpError | None
+    scene: SceneSummary | None = None
 
     def unwrap(self) -> AnswerValue:
         """The value; raises the request's error if the server refused it."""
@@ -248,23 +250,25 @@ class StreamLedger:
         episode_id = pending.episode_id
         value: AnswerValue | None = None
         error: EsrpError | None = None
+        scene: SceneSummary | None = None
         try:
             if which == "error":
                 error = from_status(response.error.code, response.error.message)
             elif pending.kind is RequestKind.CREATE and which == "created":
                 value = _convert.created(response.created)
                 episode_id = value.episode_id
+                scene = value.scene
             elif pending.kind is RequestKind.STEP and which == "step":
                 value = _convert.step_result(response.step)
             elif pending.kind is RequestKind.RESET and which == "reset":
-                value = _convert.reset_observation(response.reset)[0]
+                value, scene = _convert.reset_observation(response.reset)
             elif pending.kind is RequestKind.CLOSE and which == "closed":
                 value = _convert.closed_metrics(response.closed)
             else:
                 raise ProtocolError(f"a {pending.kind.value} request answered with {which!r}")
         except ProtocolError as protocol_error:
             error = protocol_error
-        return StreamAnswer(pending.request_id, pending.kind, episode_id, value, error)
+        return StreamAnswer(pending.request_id, pending.kind, episode_id, value, error, scene)
 
 
 def collect_run(answer: StreamAnswer, results: dict[str, list[StepResult | EsrpError]]) -> None:

@@ -82,7 +82,8 @@ class LocalServer:
     Args:
         *args: More server flags, e.g. `"--token", "s3cret"` or `"--max-episodes", "64"`.
         binary: The esrp-server to run (default: `find_server_binary()`).
-        env: Extra environment variables of the process (`ESRP_LOG` defaults to `warn`).
+        env: Extra environment variables of the process (`ESRP_LOG` defaults to `warn`; `NO_COLOR`
+            is set, so that its log, a file, holds no ANSI colour codes).
         startup_timeout: Seconds to wait for the address and for health.
         stop_timeout: Seconds to wait after SIGTERM before killing.
 
@@ -148,6 +149,9 @@ class LocalServer:
         binary = self.binary or find_server_binary()
         environment = dict(os.environ)
         environment.setdefault("ESRP_LOG", "warn")
+        # Its stderr goes to a file (read back into errors), never to a terminal: no ANSI colours,
+        # which the server's log formatter writes unless NO_COLOR is set.
+        environment["NO_COLOR"] = "1"
         environment.update(self.env)
         # A file, not a pipe: nobody reads stderr while the server runs, and a pipe could fill up.
         # It lives as long as the server and is closed by stop().

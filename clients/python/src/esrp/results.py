@@ -19,6 +19,9 @@ from typing import IO, Any
 __all__ = [
     "DIFFICULTIES",
     "PAPER",
+    "PAPER_DATASET",
+    "PAPER_TEST_SCENES",
+    "PRIVILEGED_AGENTS",
     "SCHEMA",
     "EpisodeRecord",
     "PaperRow",
@@ -31,6 +34,7 @@ __all__ = [
     "read_records",
     "scene_seed",
     "truncate_to",
+    "wilson",
 ]
 
 SCHEMA = "esrp.results/v1"
@@ -317,6 +321,30 @@ PAPER: tuple[PaperRow, ...] = (
     ),
 )
 """The paper's Tables I–III (SPEC §8)."""
+
+
+PAPER_DATASET = "esrp-bench-v1"
+"""The dataset of the paper's rows."""
+
+PAPER_TEST_SCENES = 544
+"""The scenes of esrp-bench-v1's test split, over which the paper's rows were measured."""
+
+PRIVILEGED_AGENTS = ("plan", "expert")
+"""The agents that read the simulator's privileged state (SPEC §4): references, not ESRP agents
+proper. The paper's ESRP-PLAN is privileged too."""
+
+
+def wilson(successes: int, trials: int, z: float = 1.959964) -> tuple[float, float]:
+    """The Wilson score interval of a success rate, 0..1 (95 % with the default `z`); `(0, 1)`
+    without trials.
+    """
+    if trials == 0:
+        return 0.0, 1.0
+    p = successes / trials
+    z2 = z * z
+    centre = (p + z2 / (2 * trials)) / (1 + z2 / trials)
+    half = z / (1 + z2 / trials) * math.sqrt(p * (1 - p) / trials + z2 / (4 * trials * trials))
+    return max(0.0, centre - half), min(1.0, centre + half)
 
 
 def fixed(value: float, digits: int) -> str:
