@@ -36,3 +36,14 @@ def test_find_server_binary(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> 
         esrp.find_server_binary()
     monkeypatch.setenv("ESRP_SERVER_BIN", str(found))
     assert esrp.find_server_binary() == found
+
+
+def test_the_server_log_file_holds_no_ansi_colours() -> None:
+    """LocalServer sends the server's stderr to a file (shown in its errors): the server's log
+    formatter wrote ANSI colour codes into it, as if it were a terminal."""
+    with esrp.LocalServer(env={"ESRP_LOG": "info"}) as server:
+        with server.client() as client, client.create_episode(split="test"):
+            pass
+        log = server.stderr_tail(200)
+    assert "INFO" in log  # it did log
+    assert "\x1b[" not in log
