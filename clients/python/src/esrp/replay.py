@@ -3,10 +3,12 @@
 The simulator is deterministic, so a record's `actions` stepped from its scene's start reproduce the
 episode exactly (docs/evaluation.md); `replay_record` checks that the final metrics equal the
 record's and raises `ReplayError` when they do not (another dataset, another server version, an
-edited file). Each frame shows, side by side: the egocentric view, the goal image, and the current
-top-down view (the episode's `current_top_down` sensor) with the agent's path in red and each
-carried object's path in blue, drawn from the privileged state (the replay's episode is created with
-`privileged=True`) through the goal's pixel ↔ floor frame (`GetGoal`).
+edited file). Each frame shows, side by side and labelled: the egocentric view, the goal image, and
+the current top-down view (the episode's `current_top_down` sensor) with the agent's path in red and
+each carried object's path in blue, outlined in white, drawn from the privileged state (the
+replay's episode is created with `privileged=True`) through the goal's pixel ↔ floor frame
+(`GetGoal`); a header says the step, the action taken and whether it was accepted, collided or had
+no effect, the grasp flag and the reward.
 
 Needs Pillow (the `report` extra); MP4 output needs imageio-ffmpeg besides.
 """
