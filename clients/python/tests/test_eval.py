@@ -473,10 +473,20 @@ def test_a_bad_server_address_is_said_at_once(
     )
     assert err.startswith(expected), err
     assert ("Connection refused" in err) == (address != "50051")
-    for command in (["replay", "--results", str(out), "--scene", "s", "--out", str(tmp_path / "x.gif")],):
-        out.write_text("")
+    # esrp replay and esrp report (its stills) likewise.
+    record = EpisodeRecord(
+        "esrp.results/v1", "esrp-bench-v1/00001", "esrp-bench-v1", "test", "Bedroom", "easy", 1,
+        "random", {}, 0, False, 0.0, 1.0, 1, 0, 1, 200, "agent", 0.0, [0], 0.1, {}, "0.1.0", "test",
+        "2026-11-25T00:00:00Z",
+    )  # fmt: skip
+    out.write_text(record.to_json() + "\n")
+    replay = ["replay", "--results", str(out), "--scene", record.scene_id, "--out", str(tmp_path / "x.gif")]
+    report = ["report", str(out), "--out", str(tmp_path / "report"), "--replays", "1"]
+    for command in (replay, report):
         assert main([*command, "--server", address]) == 2
-        assert capsys.readouterr().err.startswith(f"esrp replay: no esrp-server answers at {parsed}")
+        err = capsys.readouterr().err
+        assert err.startswith(f"esrp {command[0]}: no esrp-server answers at {parsed}"), err
+        assert err.count("\n") == 1, err
 
 
 def test_cli_errors_are_one_line(

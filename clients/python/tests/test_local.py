@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 import urllib.request
 from pathlib import Path
 
@@ -38,12 +39,17 @@ def test_find_server_binary(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> 
     assert esrp.find_server_binary() == found
 
 
-def test_the_server_log_file_holds_no_ansi_colours() -> None:
-    """LocalServer sends the server's stderr to a file (shown in its errors): the server's log
-    formatter wrote ANSI colour codes into it, as if it were a terminal."""
+def test_the_server_log_is_kept_without_ansi_colours() -> None:
+    """esrp-server's log formatter writes ANSI colour codes wherever its output goes (a file, a
+    pipe); LocalServer threw the log away. It keeps it now (`log_tail`, and in its errors), with
+    the server run with NO_COLOR set: no colour codes."""
     with esrp.LocalServer(env={"ESRP_LOG": "info"}) as server:
         with server.client() as client, client.create_episode(split="test"):
             pass
-        log = server.stderr_tail(200)
-    assert "INFO" in log  # it did log
+        deadline = time.monotonic() + 10
+        while "serving esrp.v1" not in server.log_tail(200) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        log = server.log_tail(200)
+    assert " INFO esrp_server: serving esrp.v1 address=" in log
     assert "\x1b[" not in log
+    assert server.log_tail() == ""  # stopped: the log went with it

@@ -152,17 +152,19 @@ def test_next_step_autoreset(server: esrp.LocalServer) -> None:
     envs = RearrangeVectorEnv(2, server.address, split="test", sensors=SMALL, horizon=2)
     try:
         first, infos = envs.reset(seed=3)
-        assert set(infos) == {"scene_id", "_scene_id"}
+        reset_keys = {"scene_id", "difficulty", "room_type", "objects", "horizon"}
+        assert set(infos) == reset_keys | {f"_{key}" for key in reset_keys}
         envs.step(np.array([2, 2]))
         _, rewards, terminated, truncated, infos = envs.step(np.array([2, 2]))
         assert truncated.tolist() == [True, True]
         assert infos["metrics"]["steps"].tolist() == [2, 2]
+        assert infos["is_success"].tolist() == [False, False]
         # The next step resets instead of stepping: reward 0, not ended, the reset's info.
         observations, rewards, terminated, truncated, infos = envs.step(np.array([0, 0]))
         assert rewards.tolist() == [0.0, 0.0]
         assert not terminated.any()
         assert not truncated.any()
-        assert set(infos) == {"scene_id", "_scene_id"}
+        assert set(infos) == reset_keys | {f"_{key}" for key in reset_keys}
         _, step_infos = envs.step(np.array([0, 0]))[::4]
         assert step_infos["step_index"].tolist() == [1, 1]
     finally:
