@@ -122,7 +122,7 @@ def _upscale(image: npt.NDArray[np.uint8], size: int) -> npt.NDArray[np.uint8]:
     return resized
 
 
-PANEL_TITLES = ("ego view", "goal", "now, from above (agent red, carried blue)")
+PANEL_TITLES = ("ego view", "goal", "now, from above")
 """The labels above the three panels."""
 
 _ACCEPTED = (0, 110, 0)
@@ -238,6 +238,13 @@ def compose_frame(
         draw.text((3, 2 + row * line_height), text, fill=colour, font=font)
     for k, title in enumerate(PANEL_TITLES):
         draw.text((k * (side + _GAP) + 3, 2 + 3 * line_height), title, fill=(60, 60, 60), font=font)
+    # The paths' colours, at the right of the caption line where there is room.
+    key = [("paths: ", (60, 60, 60)), ("agent", AGENT_PATH), (", ", (60, 60, 60)), ("carried", OBJECT_PATH)]
+    x = width - 3 - sum(draw.textlength(text, font=font) for text, _ in key)
+    if x > 3 + draw.textlength(lines[0], font=font) + 10:
+        for text, colour in key:
+            draw.text((x, 2), text, fill=colour, font=font)
+            x += draw.textlength(text, font=font)
     # Floor (x, z) to the top-down panel's pixels: col = (x - min_x) / m, row = (z - min_z) / m in
     # the frame's resolution, scaled to the panel.
     per_metre = side / (frame.resolution * frame.metres_per_pixel)
