@@ -173,6 +173,10 @@ def run_ray_eval(settings: EvalSettings, cluster: RaySettings) -> EvalOutcome:
     if settings.episodes_in_flight < 1 or cluster.episodes_per_actor < 1:
         raise EvalError("episodes in flight must be at least 1")
     agent_factory(settings)  # a bad agent spec fails here, before any actor starts
+    if not sys.stderr.isatty():
+        # Ray colours the prefix of the workers' lines it prints here (`(EvalActor pid=...)`)
+        # whatever stderr is: not into a file or a pipe.
+        os.environ.setdefault("RAY_COLOR_PREFIX", "0")
     started_ray = False
     if not ray.is_initialized():
         options: dict[str, Any] = {"include_dashboard": False, "log_to_driver": True}
