@@ -52,9 +52,9 @@ __all__ = [
     "EvalError",
     "EvalOutcome",
     "EvalSettings",
+    "errors_log_path",
     "evaluate",
     "expert_trajectory",
-    "errors_log_path",
     "format_failures",
     "run_eval",
 ]

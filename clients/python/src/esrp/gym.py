@@ -9,7 +9,9 @@ the same seed plays the same scene; the vector env seeds sub-env i with `s + i`,
 
 Observations are dicts: `ego_rgb` and `goal_rgb` (R, R, 3) uint8, `grasping` 0/1 (Discrete(2)), and
 `depth` (R, R) float32, `segmentation` (R, R) uint32 and `current_top_down` (R, R, 3) uint8 for the
-sensors that are on. Actions are `Discrete(6)` with the codes of `esrp.Action`.
+sensors that are on. Actions are `Discrete(6)` with the codes of `esrp.Action`. Infos: the scene's
+id, difficulty, room type, object count and horizon on resets; `is_success` on the step that ends an
+episode.
 """
 
 from __future__ import annotations
@@ -247,8 +249,14 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
         render_mode: None or `rgb_array` (ego view, goal and, with the sensor, current top-down).
 
     `reset(seed=s)` seeds `np_random`, which draws the scene; `reset(options={"scene": id})` plays
-    `id` instead. The reset info has `scene_id`; a step's info has `accepted`, `collided`,
-    `placed_count`, `step_index` and, on the step that ends the episode, `metrics`.
+    `id` instead. The reset info has `scene_id`, `difficulty`, `room_type`, `objects` (movable
+    objects) and `horizon` (the episode's step limit); a step's info has `accepted`, `collided`,
+    `placed_count`, `step_index` and, on the step that ends the episode, `metrics` and
+    `is_success` (Stable-Baselines3's convention). The horizon is each scene's and the server
+    truncates at it: the registered spec has no `max_episode_steps` (no `TimeLimit`).
+
+    Actions: an `esrp.ActionLike` (an int 0..5, a numpy integer, an integer-valued float, or a numpy
+    array of one); any other value raises `InvalidRequest` before anything is sent.
     """
 
     metadata = _METADATA
