@@ -180,7 +180,11 @@ def test_wilson_interval() -> None:
     low, high = wilson(1, 4)
     assert (round(low, 4), round(high, 4)) == (0.0456, 0.6994)
     assert wilson(0, 10)[0] == 0.0
-    assert wilson(10, 10)[1] == pytest.approx(1.0)
+    assert wilson(10, 10)[1] == 1.0  # exactly: a report of an all-success run drew a negative error bar
+    for trials in range(1, 60):
+        low, high = wilson(trials, trials)
+        assert high == 1.0
+        assert 0.0 < low < 1.0
     assert wilson(0, 0) == (0.0, 1.0)
 
 
@@ -265,7 +269,7 @@ def test_warns_about_different_scene_sets_and_partial_splits_and_marks_privilege
     plan, mine = bench("plan", 4), bench("mine", 6)
     markdown, page = write_report([plan, mine], tmp_path / "report")
     err = capsys.readouterr().err
-    assert "esrp report: warning: the runs cover different scenes (plan 4, mine 6; 4 in common)" in err
+    assert "esrp report: warning: the runs cover different scenes (plan 4, mine 6; 4 common to all)" in err
     assert "plan covers 4 of the 544 test scenes; the paper's rows are full-test-split figures" in err
     assert "mine covers 6 of the 544 test scenes" in err
     text = markdown.read_text()

@@ -122,7 +122,7 @@ def coverage_warnings(runs: Sequence[Run]) -> list[str]:
         common = set.intersection(*scenes)
         counts = ", ".join(f"{run.label} {len(s)}" for run, s in zip(runs, scenes, strict=True))
         warnings.append(
-            f"the runs cover different scenes ({counts}; {len(common)} in common): their rows compare "
+            f"the runs cover different scenes ({counts}; {len(common)} common to all): their rows compare "
             "different episodes"
         )
     for run, ids in zip(runs, scenes, strict=True):
@@ -351,8 +351,8 @@ def _plot_by_difficulty(runs: Sequence[Run]) -> bytes:
             wilson(t.successes, t.episodes) if t.episodes else (v / 100, v / 100)
             for t, v in zip(tallies, sr, strict=True)
         ]
-        below = [v - 100 * low for v, (low, _) in zip(sr, intervals, strict=True)]
-        above = [100 * high - v for v, (_, high) in zip(sr, intervals, strict=True)]
+        below = [max(0.0, v - 100 * low) for v, (low, _) in zip(sr, intervals, strict=True)]
+        above = [max(0.0, 100 * high - v) for v, (_, high) in zip(sr, intervals, strict=True)]
         sr_axes.bar(
             xs,
             sr,

@@ -344,7 +344,10 @@ def wilson(successes: int, trials: int, z: float = 1.959964) -> tuple[float, flo
     z2 = z * z
     centre = (p + z2 / (2 * trials)) / (1 + z2 / trials)
     half = z / (1 + z2 / trials) * math.sqrt(p * (1 - p) / trials + z2 / (4 * trials * trials))
-    return max(0.0, centre - half), min(1.0, centre + half)
+    # Exact at the ends (rounding would leave 0.9999999999999999 for all successes).
+    low = 0.0 if successes == 0 else max(0.0, centre - half)
+    high = 1.0 if successes == trials else min(1.0, centre + half)
+    return low, high
 
 
 def fixed(value: float, digits: int) -> str:
