@@ -346,3 +346,276 @@ def server_address(stderr: str) -> str:
     """The address the run's first line names (`esrp-server VERSION at ADDRESS: ...`)."""
     first = next(line for line in stderr.splitlines() if line.startswith("esrp-server "))
     return first.split(" at ", 1)[1].split(": ", 1)[0]
+
+
+FAULTY_AGENTS = """
+class Crasher:
+    def __init__(self, config):
+        pass
+
+    def reset(self, observation, info):
+        pass
+
+    def act(self, observation):
+        raise RuntimeError("my policy crashed")
+
+
+class HalfAsync:
+    def reset(self, observation, info):
+        pass
+
+    async def act(self, observation):
+        return 0
+
+
+def make(config):
+    return Crasher(config)
+
+
+def make_none(config):
+    return None
+
+
+def make_half_async(config):
+    return HalfAsync()
+
+
+def make_failing(config):
+    return {}["steps"]
+"""
+
+
+def test_an_agent_that_raises_gets_its_traceback_printed_and_logged(
+    server: esrp.LocalServer,
+    tmp_path: Path,
+    easy_ids: str,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """An exception of the agent printed one line (no traceback): the first failure's traceback is
+    printed now, and every one's goes to <results>.errors.log."""
+    (tmp_path / "faulty.py").write_text(FAULTY_AGENTS)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    out = tmp_path / "crash.jsonl"
+    ids = easy_ids.split(",")[:3]
+    args = ["eval", "--agent", "faulty:make", "--scenes", ",".join(ids), "--episodes-in-flight", "1"]
+    assert main([*args, "--out", str(out), "--server", server.address]) == 1
+    captured = capsys.readouterr()
+    log = tmp_path / "crash.errors.log"
+    assert captured.err.count("Traceback (most recent call last):") == 1
+    assert f"{ids[0]}: RuntimeError: my policy crashed\nTraceback (most recent call last):" in captured.err
+    assert 'in act\n    raise RuntimeError("my policy crashed")' in captured.err
+    assert f"every failure's goes to {log}" in captured.err
+    assert f"{ids[1]}: RuntimeError: my policy crashed\n" in captured.err
+    assert "3 episodes failed with an error and were not recorded (rerun to retry them): " in captured.err
+    assert captured.err.rstrip().endswith(f"; tracebacks in {log}")
+    text = log.read_text()
+    assert text.count("Traceback (most recent call last):") == 3
+    for scene in ids:
+        assert f"## {scene}: RuntimeError: my policy crashed" in text
+    # No episode recorded: the summary says so instead of holding NaN and an empty agent name.
+    assert "no episodes recorded" in captured.out
+    assert "NaN" not in captured.out
+    summary = out.with_suffix(".md").read_text()
+    assert "NaN" not in summary
+    assert "****" not in summary
+    assert "No episodes recorded for **faulty:make**" in summary
+    # A run without failures leaves no log of an earlier one.
+    random_out = tmp_path / "random.jsonl"
+    assert (
+        main(
+            [
+                "eval",
+                "--agent",
+                "random",
+                "--scenes",
+                ids[0],
+                "--out",
+                str(random_out),
+                "--server",
+                server.address,
+            ]
+        )
+        == 0
+    )
+    (tmp_path / "random.errors.log").write_text("stale")
+    assert (
+        main(
+            [
+                "eval",
+                "--agent",
+                "random",
+                "--scenes",
+                ids[0],
+                "--out",
+                str(random_out),
+                "--server",
+                server.address,
+            ]
+        )
+        == 0
+    )
+    assert not (tmp_path / "random.errors.log").exists()
+
+
+@pytest.mark.parametrize(
+    ("factory", "message"),
+    [
+        (
+            "faulty:make_none",
+            "esrp eval: --agent faulty:make_none returned None, not an esrp.agents.Agent, with "
+            "reset(observation, info) and act(observation) methods",
+        ),
+        (
+            "faulty:make_half_async",
+            "esrp eval: --agent faulty:make_half_async returned a HalfAsync whose reset and act are not both "
+            "`async def` (an AsyncAgent) or both plain (an Agent)",
+        ),
+        (
+            "faulty:make_failing",
+            "esrp eval: --agent faulty:make_failing: the factory raised KeyError: 'steps' (faulty.py:34) "
+            "(called with the agent config {})",
+        ),
+    ],
+)
+def test_a_factory_that_makes_no_agent_is_refused_up_front(
+    server: esrp.LocalServer,
+    client: esrp.Client,
+    tmp_path: Path,
+    easy_ids: str,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    factory: str,
+    message: str,
+) -> None:
+    """A factory returning None failed every episode with AttributeError: 'NoneType' object has no
+    attribute 'reset'. It is checked once, before any episode: one line, exit status 2."""
+    (tmp_path / "faulty.py").write_text(FAULTY_AGENTS)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    out = tmp_path / "none.jsonl"
+    args = ["eval", "--agent", factory, "--scenes", easy_ids, "--out", str(out), "--server", server.address]
+    assert main(args) == 2
+    assert capsys.readouterr().err == message + "\n"
+    assert not out.exists()  # no episode was played
+
+
+@pytest.mark.parametrize(
+    ("address", "parsed", "note"),
+    [
+        ("127.0.0.1:1", "127.0.0.1:1", ""),
+        (
+            "50051",
+            "50051:443",
+            "'50051' has no port, so gRPC's default, 443, is used: '50051' is read as a host "
+            "name (did you mean 127.0.0.1:50051?)",
+        ),
+        ("127.0.0.1", "127.0.0.1:443", "'127.0.0.1' has no port, so gRPC's default, 443, is used"),
+    ],
+)
+def test_a_bad_server_address_is_said_at_once(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], address: str, parsed: str, note: str
+) -> None:
+    """`esrp eval --server 127.0.0.1:1` waited 30 s for health and said DeadlineExceeded; nothing
+    answers there, which it now says at once, naming the address as gRPC read it."""
+    started = time.monotonic()
+    out = tmp_path / "x.jsonl"
+    assert main(["eval", "--agent", "random", "--out", str(out), "--server", address]) == 2
+    assert time.monotonic() - started < 10
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    expected = f"esrp eval: no esrp-server answers at {parsed}" + (f" ({note})" if note else "") + ": "
+    assert err.startswith(expected), err
+    assert ("Connection refused" in err) == (address != "50051")
+    # esrp replay and esrp report (its stills) likewise.
+    record = EpisodeRecord(
+        "esrp.results/v1", "esrp-bench-v1/00001", "esrp-bench-v1", "test", "Bedroom", "easy", 1,
+        "random", {}, 0, False, 0.0, 1.0, 1, 0, 1, 200, "agent", 0.0, [0], 0.1, {}, "0.1.0", "test",
+        "2026-11-25T00:00:00Z",
+    )  # fmt: skip
+    out.write_text(record.to_json() + "\n")
+    replay = ["replay", "--results", str(out), "--scene", record.scene_id, "--out", str(tmp_path / "x.gif")]
+    report = ["report", str(out), "--out", str(tmp_path / "report"), "--replays", "1"]
+    for command in (replay, report):
+        assert main([*command, "--server", address]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"esrp {command[0]}: no esrp-server answers at {parsed}"), err
+        assert err.count("\n") == 1, err
+
+
+def test_cli_errors_are_one_line(
+    server: esrp.LocalServer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`esrp replay --results nosuch.jsonl` printed a Python traceback; usage errors took two lines."""
+    missing = tmp_path / "nosuch.jsonl"
+    cases = [
+        (
+            ["replay", "--results", str(missing), "--scene", "s", "--out", str(tmp_path / "x.gif")],
+            f"esrp replay: cannot read {missing}: No such file or directory",
+        ),
+        (["report", str(missing), "--out", str(tmp_path / "r")], "esrp report: "),
+    ]
+    not_results = tmp_path / "other.jsonl"
+    not_results.write_text('{"hello": 1}\n{"hello": 2}\n')
+    cases += [
+        (
+            ["eval", "--agent", "random", "--out", str(not_results), "--server", server.address],
+            f"esrp eval: {not_results}:1: not an esrp.results/v1 record",
+        ),
+        (
+            ["replay", "--results", str(not_results), "--scene", "s", "--out", str(tmp_path / "x.gif")],
+            f"esrp replay: {not_results}:1: not an esrp.results/v1 record",
+        ),
+        (
+            ["eval", "--agent", "random", "--out", str(tmp_path), "--server", server.address],
+            f"esrp eval: Is a directory: {tmp_path}",
+        ),
+    ]
+    for args, start in cases:
+        assert main(args) == 2, args
+        err = capsys.readouterr().err
+        assert "Traceback" not in err
+        # The error is the last line; a line before it may say which server the run uses.
+        assert err.splitlines()[-1].startswith(start), (args, err)
+        assert all(line.startswith("esrp-server ") for line in err.splitlines()[:-1]), err
+    for args in (
+        ["eval"],
+        ["replay", "--results", "r.jsonl", "--scene", "s", "--out", "x.gif", "--fps", "0"],
+    ):
+        with pytest.raises(SystemExit) as exited:
+            main(args)
+        assert exited.value.code == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1, err
+        assert f"(see esrp {args[0]} --help)" in err
+
+
+def test_scene_and_agent_names_are_helped(
+    server: esrp.LocalServer,
+    client: esrp.Client,
+    tmp_path: Path,
+    easy_scenes: list[str],
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """`--scenes 00003` suggests the full id; an unknown agent's message lists every agent."""
+    from esrp.evaluation import BUILTIN_AGENTS
+
+    out = str(tmp_path / "x.jsonl")
+    short = easy_scenes[0].split("/")[-1]
+    assert (
+        main(["eval", "--agent", "random", "--scenes", short, "--out", out, "--server", server.address]) == 2
+    )
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        f"esrp eval: scene {short!r} is not a scene id: did you mean {easy_scenes[0]!r}?"
+    )
+    train = next(iter(client.scenes("train", "hard"))).id
+    args = ["eval", "--agent", "random", "--difficulty", "easy", "--scenes", train.split("/")[-1]]
+    assert main([*args, "--out", out, "--server", server.address]) == 2
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        f"esrp eval: scene {train.split('/')[-1]!r} (did you mean {train!r}?) is not among the test easy "
+        "scenes of this dataset: it is a train hard scene (check --split and --difficulty)"
+    )
+    assert main(["eval", "--agent", "nope", "--out", out, "--server", server.address]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    for name in (*BUILTIN_AGENTS, "MODULE:CALLABLE"):
+        assert name in err, name

@@ -47,7 +47,7 @@ def test_spaces_and_observations(server: esrp.LocalServer, easy_scenes: list[str
             "current_top_down",
         }
         observation, info = env.reset(seed=0)
-        assert info == {"scene_id": easy_scenes[0]}
+        assert info["scene_id"] == easy_scenes[0]
         assert space.contains(observation)
         assert observation["ego_rgb"].shape == (32, 32, 3)
         assert observation["depth"].dtype == np.float32
@@ -83,7 +83,7 @@ def test_seed_picks_the_scene_deterministically(server: esrp.LocalServer, client
         assert len(set(chosen)) > 1
         # Without a seed the generator goes on: the same sequence in both envs.
         assert first.reset()[1] == second.reset()[1]
-        assert first.reset(options={"scene": medium[0]})[1] == {"scene_id": medium[0]}
+        assert first.reset(options={"scene": medium[0]})[1]["scene_id"] == medium[0]
     finally:
         first.close()
         second.close()
@@ -195,3 +195,68 @@ def test_a_reset_on_the_same_scene_starts_as_a_fresh_episode(
     finally:
         played.close()
         fresh.close()
+
+
+def test_reset_info_describes_the_scene(server: esrp.LocalServer, client: esrp.Client) -> None:
+    """The reset info held the scene id alone: it now has the scene's difficulty, room type,
+    movable-object count and the episode's step limit (the env's horizon, else the scene's)."""
+    summaries = {s.id: s for s in client.scenes("test", page_size=1000)}
+    for horizon in (0, 7):
+        env = gymnasium.make(esrp.ENV_ID, address=server.address, split="test", horizon=horizon)
+        try:
+            for seed in (0, 1, 2):
+                _, info = env.reset(seed=seed)
+                assert list(info) == ["scene_id", "difficulty", "room_type", "objects", "horizon"]
+                scene = summaries[info["scene_id"]]
+                assert scene.difficulty is not None
+                assert info["difficulty"] == scene.difficulty.value
+                assert info["room_type"] == scene.room_type
+                assert info["objects"] == scene.movable_objects
+                with client.create_episode(scene.id) as episode:
+                    scene_horizon = episode.scene.horizon  # built now, so known
+                assert info["horizon"] == (horizon or scene_horizon)
+                assert scene_horizon > 0
+        finally:
+            env.close()
+
+
+def test_max_episode_steps_is_the_scenes(server: esrp.LocalServer, easy_scenes: list[str]) -> None:
+    """No TimeLimit: the server truncates at the horizon, which is each scene's (so the spec has no
+    max_episode_steps); the reset info gives it."""
+    env = gymnasium.make(esrp.ENV_ID, address=server.address, scene=easy_scenes[0], horizon=4)
+    try:
+        assert env.spec is not None
+        assert env.spec.max_episode_steps is None
+        _, info = env.reset(seed=0)
+        steps = [env.step(esrp.Action.LEFT) for _ in range(info["horizon"])]
+        assert [truncated for *_, truncated, _ in steps] == [False, False, False, True]
+    finally:
+        env.close()
+
+
+def test_is_success_on_the_last_step(
+    server: esrp.LocalServer, client: esrp.Client, easy_scenes: list[str]
+) -> None:
+    """The SB3 convention: info["is_success"] on the step that ends the episode, true on success."""
+    from esrp.evaluation import expert_trajectory
+
+    with client.create_episode(easy_scenes[0], privileged=True) as episode:
+        expert = expert_trajectory(episode.privileged_state().scene_json)
+    env = RearrangeEnv(server.address, scene=easy_scenes[0])
+    try:
+        env.reset(seed=0)
+        infos = []
+        for action in expert:
+            _, _, terminated, truncated, info = env.step(action)
+            infos.append(info)
+        assert terminated
+        assert not truncated
+        assert infos[-1]["is_success"] is True
+        assert infos[-1]["metrics"]["success"] is True
+        assert all("is_success" not in info for info in infos[:-1])
+        _, reset_info = env.reset(seed=0)
+        ends = [env.step(esrp.Action.LEFT)[4] for _ in range(reset_info["horizon"])]
+        assert ends[-1]["is_success"] is False
+        assert all("is_success" not in info for info in ends[:-1])
+    finally:
+        env.close()

@@ -65,3 +65,19 @@ def test_the_server_stops_when_its_python_process_is_killed() -> None:
     while _alive(server) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert not _alive(server), "the server outlived its killed parent"
+
+
+def test_the_server_log_is_kept_without_ansi_colours() -> None:
+    """esrp-server's log formatter writes ANSI colour codes wherever its output goes (a file, a
+    pipe); LocalServer threw the log away. It keeps it now (`log_tail`, and in its errors), with
+    the server run with NO_COLOR set: no colour codes."""
+    with esrp.LocalServer(env={"ESRP_LOG": "info"}) as server:
+        with server.client() as client, client.create_episode(split="test"):
+            pass
+        deadline = time.monotonic() + 10
+        while "serving esrp.v1" not in server.log_tail(200) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        log = server.log_tail(200)
+    assert " INFO esrp_server: serving esrp.v1 address=" in log
+    assert "\x1b[" not in log
+    assert server.log_tail() == ""  # stopped: the log went with it

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -201,3 +203,52 @@ def test_ray_flags_need_ray(tmp_path: Path, capsys: Any) -> None:  # noqa: ANN40
     assert main(["eval", "--agent", "expert", "--out", str(out), "--servers", "127.0.0.1:1"]) == 2
     assert "only apply with --ray" in capsys.readouterr().err
     assert not out.exists()
+
+
+PRINTING_AGENT = """
+import sys
+import time
+
+
+class Printer:
+    def reset(self, observation, info):
+        print("reset on", info["scene_id"], flush=True)
+        print("reset on", info["scene_id"], file=sys.stderr, flush=True)
+        time.sleep(3)  # Ray forwards the lines to the driver meanwhile
+
+    def act(self, observation):
+        return None
+
+
+def make(config):
+    return Printer()
+"""
+
+
+def test_worker_lines_reach_a_log_file_without_colour_codes(tmp_path: Path) -> None:
+    """Ray printed the workers' lines on the driver's stderr with a coloured prefix even when stderr
+    was a file: `esrp eval --ray 2> eval.log` held ANSI codes."""
+    (tmp_path / "printing.py").write_text(PRINTING_AGENT)
+    log, out = tmp_path / "eval.log", tmp_path / "eval.out"
+    arguments = ["eval", "--agent", "printing:make", "--split", "test", "--limit", "2"]
+    arguments += ["--out", str(tmp_path / "p.jsonl"), "--no-progress", "--ray", "--spawn-servers", "1"]
+    environment = {k: v for k, v in os.environ.items() if k not in ("RAY_ADDRESS", "RAY_COLOR_PREFIX")}
+    # The agent's module importable in the command and its Ray workers (and the package as here).
+    paths = [str(tmp_path), str(Path(esrp.__file__).resolve().parent.parent)]
+    environment["PYTHONPATH"] = os.pathsep.join(paths)
+    with open(log, "wb") as stderr, open(out, "wb") as stdout:
+        status = subprocess.run(
+            [sys.executable, "-m", "esrp.cli", *arguments],
+            cwd=tmp_path,
+            env=environment,
+            stdout=stdout,
+            stderr=stderr,
+            timeout=300,
+            check=False,
+        ).returncode
+    for path in (log, out):  # a worker's stderr lines come to the command's stderr, its stdout's to stdout
+        text = path.read_text()
+        assert status == 0, text
+        assert "(EvalActor pid=" in text  # the actor's lines came through
+        assert "reset on esrp-bench-v1/" in text
+        assert "\x1b[" not in text, path

@@ -32,10 +32,13 @@ def test_replay_frames_are_identical_across_runs(client: esrp.Client, random_rec
     assert first.metrics.steps == record.steps
     assert first.metrics.object_success_rate == record.osr
     assert first.metrics.remaining_distance_ratio == record.rdr
-    # Three panels side by side under a caption, the paths drawn on the top-down view.
+    # Three panels side by side under a header, the paths drawn on the top-down view.
+    from esrp.replay import header_height
+
+    header = header_height(2)
     last = first.frames[-1]
-    assert last.shape == (256 + 14, 3 * 256 + 8, 3)
-    top_down = last[14:, 2 * (256 + 4) :]
+    assert last.shape == (256 + header, 3 * 256 + 8, 3)
+    top_down = last[header:, 2 * (256 + 4) :]
     assert (top_down == AGENT_PATH).all(axis=-1).sum() > 50
     if record.stage >= 3:  # something was carried
         assert (top_down == OBJECT_PATH).all(axis=-1).sum() > 10
@@ -63,8 +66,10 @@ def test_replay_files(server: esrp.LocalServer, random_records: Path, tmp_path: 
             "1",
         ]
         assert main([*args, "--server", server.address]) == 0
+        from esrp.replay import header_height
+
         with Image.open(out) as image:
-            assert image.size == (3 * 128 + 8, 128 + 14)
+            assert image.size == (3 * 128 + 8, 128 + header_height(1))
             frames = getattr(image, "n_frames", 1)
         record = read_records(random_records).records[1]
         assert frames == (len(record.actions) + 1 if name.endswith(".gif") else 1)
@@ -86,3 +91,71 @@ def test_a_record_that_does_not_replay_is_an_error(
     args = ["replay", "--results", str(random_records), "--scene", "nope", "--out", "x.gif"]
     assert main([*args, "--server", server.address]) == 2
     assert "has no record of scene 'nope'" in capsys.readouterr().err
+
+
+def test_frames_say_what_each_step_did(client: esrp.Client, random_records: Path) -> None:
+    """Frames carried a one-line caption alone: each now names its action, whether it was accepted,
+    collided or had no effect, the grasp flag and the reward, and labels its three panels."""
+    from esrp.replay import PANEL_TITLES, header_height
+
+    record = read_records(random_records).records[0]
+    replay = replay_record(client, record, scale=2)
+    assert len(replay.notes) == len(replay.frames) == len(record.actions) + 1
+    assert replay.notes[0].action == "start (no action yet)"
+    assert replay.notes[0].state == "grasping: no  reward +0.000  total +0.000"
+    # The same steps again, to compare each note with what the step answered.
+    total = 0.0
+    outcomes = set()
+    with client.create_episode(record.scene_id, horizon=record.horizon) as episode:
+        for k, action in enumerate(record.actions, start=1):
+            result = episode.step(action)
+            total += result.reward
+            note = replay.notes[k]
+            assert note.caption == f"{record.scene_id}  random  step {k}/{len(record.actions)}"
+            assert note.action.startswith(f"{esrp.Action(action).api_name} ({action}): ")
+            if result.info.collided_with is not None:
+                expected = "collided"
+                assert f"rejected, collided with {result.info.collided_with.name}" in note.action
+            elif not result.info.accepted:
+                expected = "no effect"
+            else:
+                expected = "accepted"
+            assert note.outcome == expected, (k, note, result.info)
+            outcomes.add(expected)
+            grasping = "yes" if result.observation.grasping else "no"
+            assert note.state == f"grasping: {grasping}  reward {result.reward:+.3f}  total {total:+.3f}"
+    assert {"accepted", "collided"} <= outcomes  # a random walk of 200 steps bumps into things
+    # The panels' labels: text (dark pixels) in the header above each of the three panels.
+    assert len(PANEL_TITLES) == 3
+    header, side = header_height(2), 256
+    frame = replay.frames[5]
+    for k in range(3):
+        strip = frame[header - header // 4 : header - 2, k * (side + 4) : k * (side + 4) + side]
+        assert (strip.max(axis=-1) < 120).sum() > 20, k
+
+
+def test_a_carried_path_is_outlined_so_it_shows_over_a_blue_object(client: esrp.Client) -> None:
+    """The blue path of a carried object vanished where it crossed a blue object: it is drawn
+    with a white outline now."""
+    from esrp.replay import _Paths, compose_frame, header_height, step_note
+
+    with client.create_episode(split="test", sensors=esrp.Sensors(current_top_down=True)) as episode:
+        observation = episode.observation
+        assert observation is not None
+        goal = episode.goal()
+    frame = goal.frame
+    # The floor all blue, as under a blue object, and an object carried across it.
+    blue = np.empty_like(observation.current_top_down)
+    blue[...] = OBJECT_PATH
+    observation = dataclasses.replace(observation, current_top_down=blue)
+    span = frame.resolution * frame.metres_per_pixel
+    paths = _Paths()
+    paths.carried[0] = [[(frame.min_x + span * t, frame.min_z + span / 2) for t in (0.2, 0.5, 0.8)]]
+    note = step_note("caption", None, None, False, 0.0)
+    image = compose_frame(observation, goal.image, frame, paths, scale=2, note=note)
+    panel = image[header_height(2) :, 2 * (256 + 4) :]
+    row = panel[:, 128]  # a column across the path, in the middle of the panel
+    white = np.flatnonzero((row == 255).all(axis=-1))
+    assert len(white) >= 2, "no outline"
+    assert white.min() < 128 < white.max()  # on both sides of the path
+    assert (row[white.min() + 1 : white.max()] == OBJECT_PATH).all(axis=-1).any()  # the path between

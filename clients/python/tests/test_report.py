@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 import esrp
+from esrp import report
 from esrp.cli import main
 from esrp.report import load_runs, write_report
 from esrp.results import SCHEMA, EpisodeRecord, Tally, append_record, fixed, read_records
@@ -153,8 +155,9 @@ def test_markdown_tables_hold_the_hand_computed_numbers(tmp_path: Path) -> None:
     paths = write_fixture(tmp_path)
     markdown, page = write_report(paths, tmp_path / "report")
     text = markdown.read_text()
-    assert "| **alpha** | 4 | 25.00 | 37.50 | 0.6875 |" in text
-    assert "| **beta** | 3 | 33.33 | 33.33 | 0.6667 |" in text
+    # SR 95 % CI, Wilson: 1 of 4 is 4.56–69.94 %, 1 of 3 is 6.15–79.23 % (by hand).
+    assert "| **alpha** | 4 | 25.00 | 4.56–69.94 | 37.50 | 0.6875 |" in text
+    assert "| **beta** | 3 | 33.33 | 6.15–79.23 | 33.33 | 0.6667 |" in text
     assert (
         "| **alpha** | 2 | 50.00 | 50.00 | 0.7500 | 1 | 0.00 | 50.00 | 0.2500 | 1 | 0.00 | 0.00 | 1.0000 |"
         in text
@@ -162,12 +165,129 @@ def test_markdown_tables_hold_the_hand_computed_numbers(tmp_path: Path) -> None:
     assert "| **beta** | 3 | 33.33 | 33.33 | 0.6667 | 0 | – | – | – | 0 | – | – | – |" in text
     assert "| **alpha** | 25.00 | 0.00 | 50.00 | 25.00 |" in text
     assert "| **beta** | 0.00 | 33.33 | 33.33 | 33.33 |" in text
-    assert "| ESRP-PLAN (paper) | – | 30.20 | 36.59 | 0.6916 |" in text
+    assert "| ESRP-PLAN (paper, privileged) | – | 30.20 | – | 36.59 | 0.6916 |" in text
     assert "| ESRP-VLM (paper) | 11.64 | 4.18 | 66.55 | 17.64 |" in text
-    for name in ("sr_osr_by_difficulty", "stages", "rdr", "steps_vs_horizon"):
+    for name in ("sr_osr_by_difficulty", "stages", "rdr", "solved_by_steps"):
         assert f"(images/{name}.png)" in text
         assert (tmp_path / "report" / "images" / f"{name}.png").stat().st_size > 1000
     assert page.read_text().count('src="data:image/png;base64,') == 4
+
+
+def test_wilson_interval() -> None:
+    from esrp.results import wilson
+
+    # Hand-computed: 1 of 4 at 95 %: centre (0.25 + 0.9604) / 1.9604, half-width 0.8123...
+    low, high = wilson(1, 4)
+    assert (round(low, 4), round(high, 4)) == (0.0456, 0.6994)
+    assert wilson(0, 10)[0] == 0.0
+    assert wilson(10, 10)[1] == 1.0  # exactly: a report of an all-success run drew a negative error bar
+    for trials in range(1, 60):
+        low, high = wilson(trials, trials)
+        assert high == 1.0
+        assert 0.0 < low < 1.0
+    assert wilson(0, 0) == (0.0, 1.0)
+
+
+def capture_figures(monkeypatch: pytest.MonkeyPatch) -> list[Any]:
+    """The report's figures, kept as they are instead of being drawn into PNGs."""
+    figures: list[Any] = []
+
+    def keep(figure: Any) -> bytes:  # noqa: ANN401
+        figures.append(figure)
+        return b"png"
+
+    monkeypatch.setattr(report, "_png", keep)
+    return figures
+
+
+def _legends_and_axes(figure: Any) -> tuple[list[Any], list[Any]]:  # noqa: ANN401
+    figure.draw_without_rendering()
+    axes = list(figure.axes)
+    legends = list(figure.legends) + [a.get_legend() for a in axes if a.get_legend() is not None]
+    return legends, axes
+
+
+def test_plots_keep_their_legends_off_the_data_and_inside_the_picture(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The SR legend covered the bars, and the stage legend was cut off at the picture's edge
+    ("4 succes"): every legend now lies inside the figure and outside every plot area."""
+    figures = capture_figures(monkeypatch)
+    # A long run label widens the stage plot's row labels, which pushed its legend off the picture.
+    long = tmp_path / "long.jsonl"
+    with open(long, "wb") as file:
+        append_record(file, record("my_agents:make_a_careful_agent", "f/1", "easy", 4, 1.0, 0.0, 50))
+    write_report([*write_fixture(tmp_path), long], tmp_path / "report")
+    assert len(figures) == 4
+    for figure in figures:
+        legends, axes = _legends_and_axes(figure)
+        assert legends, figure
+        whole = figure.bbox
+        for legend in legends:
+            box = legend.get_window_extent()
+            assert whole.x0 <= box.x0, (figure, box)
+            assert box.x1 <= whole.x1, (figure, box)
+            assert whole.y0 <= box.y0, (figure, box)
+            assert box.y1 <= whole.y1, (figure, box)
+            for area in axes:
+                assert not box.overlaps(area.get_window_extent()), (figure, box)
+
+
+def test_steps_plot_shows_the_share_solved_within_k_steps(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every test horizon is 200, so a plot of steps against the horizon put all failures on one
+    point; the plot is now each run's share of episodes solved within k steps."""
+    figures = capture_figures(monkeypatch)
+    markdown, _ = write_report(write_fixture(tmp_path), tmp_path / "report")
+    assert "steps_vs_horizon" not in markdown.read_text()
+    assert "(images/solved_by_steps.png)" in markdown.read_text()
+    axes = figures[3].axes[0]
+    assert axes.get_title() == "Episodes solved within k steps"
+    curves = {line.get_label(): line for line in axes.get_lines() if not line.get_label().startswith("_")}
+    alpha = curves["alpha (SR 25.00 %)"]
+    # alpha solved f/1 in 20 steps: 0 % before, 25 % (its SR) from step 20 on.
+    assert list(alpha.get_xdata())[:2] == [0, 20]
+    assert list(alpha.get_ydata()) == [0.0, 25.0, 25.0]
+    beta = curves["beta (SR 33.33 %)"]
+    assert list(beta.get_xdata())[1] == 30
+    assert list(beta.get_ydata())[-1] == pytest.approx(100 / 3)
+
+
+def test_warns_about_different_scene_sets_and_partial_splits_and_marks_privileged_agents(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def bench(agent: str, count: int) -> Path:
+        path = tmp_path / f"{agent}.jsonl"
+        with open(path, "wb") as file:
+            for k in range(count):
+                r = record(agent, f"esrp-bench-v1/{k:05d}", "easy", 4 if k % 2 else 1, 0.5, 0.5, 40)
+                r.dataset = "esrp-bench-v1"
+                append_record(file, r)
+        return path
+
+    plan, mine = bench("plan", 4), bench("mine", 6)
+    markdown, page = write_report([plan, mine], tmp_path / "report")
+    err = capsys.readouterr().err
+    assert "esrp report: warning: the runs cover different scenes (plan 4, mine 6; 4 common to all)" in err
+    assert "plan covers 4 of the 544 test scenes; the paper's rows are full-test-split figures" in err
+    assert "mine covers 6 of the 544 test scenes" in err
+    text = markdown.read_text()
+    assert "**Read with care:**" in text
+    assert "- the runs cover different scenes" in text
+    assert "| **plan (privileged)** | 4 | 50.00 |" in text
+    assert "| **mine** | 6 | 50.00 |" in text
+    assert 'data-run="plan"><th scope="row">plan (privileged)</th>' in page.read_text()
+    assert '<div class="warnings">' in page.read_text()
+    # Runs over the same scenes: only the partial split is said (2 of 4: 15.00–85.00 %, Wilson).
+    assert (
+        report.coverage_warnings(load_runs([plan, plan]))
+        == [
+            "plan (plan) covers 4 of the 544 test scenes; the paper's rows are full-test-split figures "
+            "(this run's SR: 50.00 %, 95 % interval 15.00–85.00 %)"
+        ]
+        * 2
+    )
 
 
 def test_runs_of_one_agent_are_told_apart_by_their_file(tmp_path: Path) -> None:

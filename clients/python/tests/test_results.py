@@ -82,6 +82,18 @@ def test_summary_means_by_difficulty() -> None:
     assert summary.text().startswith("overall  SR  33.33 %  OSR  50.00 %  RDR 0.5000")
 
 
+def test_a_summary_of_no_records_says_so() -> None:
+    """A run whose episodes all failed wrote `**** (this run)` and `SR NaN %`."""
+    summary = Summary.of([], "my_agents:make")
+    assert summary.agent == "my_agents:make"
+    assert summary.text() == "no episodes recorded: no SR, OSR or RDR to give\n"
+    md = summary.markdown("my_agents:make on esrp-bench-v1 (test split)")
+    assert "No episodes recorded for **my_agents:make**" in md
+    assert "NaN" not in md
+    assert "****" not in md
+    assert "**?**" in Summary.of([]).markdown("x")  # no name at all
+
+
 def test_round_trip_and_a_torn_last_line(tmp_path: Path) -> None:
     path = tmp_path / "r.jsonl"
     with open(path, "wb") as file:

@@ -152,17 +152,19 @@ def test_next_step_autoreset(server: esrp.LocalServer) -> None:
     envs = RearrangeVectorEnv(2, server.address, split="test", sensors=SMALL, horizon=2)
     try:
         first, infos = envs.reset(seed=3)
-        assert set(infos) == {"scene_id", "_scene_id"}
+        reset_keys = {"scene_id", "difficulty", "room_type", "objects", "horizon"}
+        assert set(infos) == reset_keys | {f"_{key}" for key in reset_keys}
         envs.step(np.array([2, 2]))
         _, rewards, terminated, truncated, infos = envs.step(np.array([2, 2]))
         assert truncated.tolist() == [True, True]
         assert infos["metrics"]["steps"].tolist() == [2, 2]
+        assert infos["is_success"].tolist() == [False, False]
         # The next step resets instead of stepping: reward 0, not ended, the reset's info.
         observations, rewards, terminated, truncated, infos = envs.step(np.array([0, 0]))
         assert rewards.tolist() == [0.0, 0.0]
         assert not terminated.any()
         assert not truncated.any()
-        assert set(infos) == {"scene_id", "_scene_id"}
+        assert set(infos) == reset_keys | {f"_{key}" for key in reset_keys}
         _, step_infos = envs.step(np.array([0, 0]))[::4]
         assert step_infos["step_index"].tolist() == [1, 1]
     finally:
@@ -279,3 +281,36 @@ def test_bad_actions_move_nothing(server: esrp.LocalServer) -> None:
         assert infos["step_index"].tolist() == [1, 1]
     finally:
         envs.close()
+
+
+def test_reset_infos_and_is_success(server: esrp.LocalServer, client: esrp.Client) -> None:
+    """As the single env's: the reset infos give each scene's difficulty, room type, object count and
+    horizon; the step that ends an episode gives is_success (in final_info with SAME_STEP)."""
+    summaries = {s.id: s for s in client.scenes("test", "easy", page_size=1000)}
+    for mode in (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP):
+        native, reference = make_pair(server.address, mode, horizon=2)
+        reference.close()
+        try:
+            _, infos = native.reset(seed=4)
+            for key in ("scene_id", "difficulty", "room_type", "objects", "horizon"):
+                assert infos[f"_{key}"].all(), key
+            assert infos["objects"].dtype == np.int64
+            for i in range(NUM_ENVS):
+                scene = summaries[infos["scene_id"][i]]
+                assert infos["difficulty"][i] == "easy"
+                assert infos["room_type"][i] == scene.room_type
+                assert infos["objects"][i] == scene.movable_objects
+                assert infos["horizon"][i] == 2
+            native.step(np.full(NUM_ENVS, 2))
+            _, _, _, truncated, infos = native.step(np.full(NUM_ENVS, 2))
+            assert truncated.all()
+            ended = infos["final_info"] if mode is AutoresetMode.SAME_STEP else infos
+            assert ended["_is_success"].all()
+            assert not ended["is_success"].any()
+            assert ended["is_success"].dtype == np.bool_
+            if mode is AutoresetMode.NEXT_STEP:
+                _, _, _, _, infos = native.step(np.full(NUM_ENVS, 2))  # the autoresets
+                assert infos["_horizon"].all()
+                assert "is_success" not in infos
+        finally:
+            native.close()

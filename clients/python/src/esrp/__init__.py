@@ -46,6 +46,7 @@ from ._errors import (
 from ._local import LocalServer, find_server_binary
 from ._values import (
     Action,
+    ActionLike,
     ArraySpec,
     Created,
     DatasetInfo,
@@ -84,6 +85,7 @@ ENV_ID = "esrp/Rearrange-v1"
 __all__ = [
     "ENV_ID",
     "Action",
+    "ActionLike",
     "ArraySpec",
     "AsyncClient",
     "AsyncEpisode",

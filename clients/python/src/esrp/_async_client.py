@@ -28,7 +28,7 @@ from ._common import (
 )
 from ._errors import DeadlineExceeded, EpisodeNotFound, EsrpError, ServerUnavailable, from_rpc_error
 from ._values import (
-    Action,
+    ActionLike,
     Created,
     DatasetInfo,
     Difficulty,
@@ -256,15 +256,15 @@ class AsyncClient:
         return AsyncEpisode(self, None, episode_id=episode_id)
 
     async def step_batch(
-        self, steps: Sequence[tuple[AsyncEpisode | str, Action | int]], *, include_goal: bool = False
+        self, steps: Sequence[tuple[AsyncEpisode | str, ActionLike]], *, include_goal: bool = False
     ) -> list[StepResult]:
         """One step in each of several episodes in one call; all or nothing; results in order."""
         request = pb.StepBatchRequest(
             steps=[
                 _convert.step_request(
-                    episode if isinstance(episode, str) else episode.id, action, include_goal
+                    episode if isinstance(episode, str) else episode.id, action, include_goal, f"steps[{k}]"
                 )
-                for episode, action in steps
+                for k, (episode, action) in enumerate(steps)
             ]
         )
         answer = await self._call(self._stub.StepBatch, request)
@@ -298,7 +298,7 @@ class AsyncEpisode:
     def __repr__(self) -> str:
         return f"AsyncEpisode(id={self.id!r}, scene={self.scene.id!r}, closed={self.closed})"
 
-    async def step(self, action: Action | int, *, include_goal: bool = False) -> StepResult:
+    async def step(self, action: ActionLike, *, include_goal: bool = False) -> StepResult:
         """Takes `action`; with `include_goal` the observation carries the goal image too."""
         raw = self.client._stub  # noqa: SLF001 - the episode is part of the client.
         answer = await self.client._call(raw.Step, _convert.step_request(self.id, action, include_goal))  # noqa: SLF001
@@ -435,7 +435,7 @@ class AsyncEpisodeStream:
         )
         return await self._send(RequestKind.CREATE, "", create=request)
 
-    async def step(self, episode_id: str, action: Action | int, *, include_goal: bool = False) -> int:
+    async def step(self, episode_id: str, action: ActionLike, *, include_goal: bool = False) -> int:
         """Sends a step; first reads answers while the episode has `window` steps in flight."""
         while self._ledger.window_full(episode_id):
             self._ledger.ready.append(await self._read())
@@ -478,9 +478,7 @@ class AsyncEpisodeStream:
             raise ServerUnavailable("the server ended the stream with requests unanswered")
         return self._ledger.answer(response)
 
-    async def run(
-        self, plans: Mapping[str, Sequence[Action | int]]
-    ) -> dict[str, list[StepResult | EsrpError]]:
+    async def run(self, plans: Mapping[str, Sequence[ActionLike]]) -> dict[str, list[StepResult | EsrpError]]:
         """Takes every episode's actions, up to `window` of each in flight, episodes interleaved;
         returns each episode's results in order (errors for refused steps).
         """

@@ -29,7 +29,7 @@ from ._common import (
 )
 from ._errors import DeadlineExceeded, EpisodeNotFound, EsrpError, ServerUnavailable, from_rpc_error
 from ._values import (
-    Action,
+    ActionLike,
     Created,
     DatasetInfo,
     Difficulty,
@@ -322,7 +322,7 @@ class Client:
         return Episode(self, None, episode_id=episode_id)
 
     def step_batch(
-        self, steps: Sequence[tuple[Episode | str, Action | int]], *, include_goal: bool = False
+        self, steps: Sequence[tuple[Episode | str, ActionLike]], *, include_goal: bool = False
     ) -> list[StepResult]:
         """One step in each of several episodes, in one call (at most one per episode; the server's
         `max_batch` caps the count). All or nothing: a bad entry fails the call and no episode
@@ -330,7 +330,8 @@ class Client:
         """
         request = pb.StepBatchRequest(
             steps=[
-                _convert.step_request(_episode_id(episode), action, include_goal) for episode, action in steps
+                _convert.step_request(_episode_id(episode), action, include_goal, f"steps[{k}]")
+                for k, (episode, action) in enumerate(steps)
             ]
         )
         try:
@@ -414,12 +415,12 @@ class Episode:
         except grpc.RpcError as error:
             raise from_rpc_error(error) from error
 
-    def step(self, action: Action | int, *, include_goal: bool = False) -> StepResult:
+    def step(self, action: ActionLike, *, include_goal: bool = False) -> StepResult:
         """Takes `action`; with `include_goal` the observation carries the goal image too."""
         answer = self._call(self.client._hot.Step, _convert.step_request(self.id, action, include_goal))
         return _convert.step_result(answer)
 
-    def _step_message(self, action: Action | int) -> Any:  # noqa: ANN401
+    def _step_message(self, action: ActionLike) -> Any:  # noqa: ANN401
         """`step` for the Gymnasium env's hot path: the StepResponse message, for
         `_convert.step_columns` (no values are built).
         """
@@ -594,7 +595,7 @@ class EpisodeStream:
         )
         return self._send(RequestKind.CREATE, "", create=request)
 
-    def step(self, episode_id: str, action: Action | int, *, include_goal: bool = False) -> int:
+    def step(self, episode_id: str, action: ActionLike, *, include_goal: bool = False) -> int:
         """Sends a step; first reads answers while the episode has `window` steps in flight."""
         while self._ledger.window_full(episode_id):
             self._ledger.ready.append(self._read())
@@ -638,7 +639,7 @@ class EpisodeStream:
             raise from_rpc_error(error) from error
         return self._ledger.answer(response)
 
-    def run(self, plans: Mapping[str, Sequence[Action | int]]) -> dict[str, list[StepResult | EsrpError]]:
+    def run(self, plans: Mapping[str, Sequence[ActionLike]]) -> dict[str, list[StepResult | EsrpError]]:
         """Takes every episode's actions on this stream, up to `window` steps of each in flight,
         episodes interleaved; returns each episode's results in order (an error for a step the
         server refused, e.g. one sent after its episode ended).

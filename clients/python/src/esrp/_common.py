@@ -16,7 +16,7 @@ import grpc
 
 from . import _convert
 from ._errors import EsrpError, InvalidRequest, ProtocolError, from_status
-from ._values import Created, EpisodeMetrics, Observation, StepResult
+from ._values import Created, EpisodeMetrics, Observation, SceneSummary, StepResult
 from .v1 import esrp_pb2 as pb
 
 MAX_MESSAGE_BYTES = 256 << 20
@@ -62,6 +62,44 @@ def target(address: str) -> tuple[str, bool]:
         if address.startswith(prefix):
             return address[len(prefix) :].rstrip("/"), secure
     return address, False
+
+
+def parsed_address(address: str) -> tuple[str, str]:
+    """The `host:port` gRPC connects to for an address (after `target`), and what it made of an
+    address without a port: `127.0.0.1` is `127.0.0.1:443` (gRPC's default port), `50051` is host
+    `50051` on port 443. The note is empty for a `host:port` address, or another gRPC target form
+    (`unix:...`, `dns:///...`).
+    """
+    host, _ = target(address)
+    if "/" in host or host.startswith(("unix:", "unix-abstract:", "vsock:", "ipv4:", "ipv6:")):
+        return host, ""
+    if host.startswith("["):  # [IPv6] or [IPv6]:port
+        name, _, port = host[1:].partition("]")
+        port = port.removeprefix(":")
+        name = f"[{name}]"
+    elif host.count(":") == 1:
+        name, port = host.split(":")
+    elif host.count(":") > 1:  # a bare IPv6 address
+        name, port = f"[{host}]", ""
+    else:
+        name, port = host, ""
+    if port:
+        return f"{name}:{port}", ""
+    note = f"{address!r} has no port, so gRPC's default, 443, is used"
+    if name.isdigit():
+        note += f": {name!r} is read as a host name (did you mean 127.0.0.1:{name}?)"
+    elif not name:
+        note = f"{address!r} has no host or port"
+    return f"{name}:443", note
+
+
+def unreachable(address: str, error: EsrpError) -> str:
+    """A one-line message for a server that cannot be reached at `address` (a `ServerUnavailable`
+    `error`): the address as gRPC read it, what it made of a missing port, and gRPC's reason.
+    """
+    parsed, note = parsed_address(address)
+    given = f" ({note})" if note else "" if parsed == address else f" (from {address!r})"
+    return f"no esrp-server answers at {parsed}{given}: {error.message}"
 
 
 def credentials(tls: TlsSetting, https: bool) -> grpc.ChannelCredentials | None:
@@ -114,6 +152,7 @@ class StreamAnswer:
         value: `Created` (create), `StepResult` (step), `Observation` (reset, with the goal) or
             `EpisodeMetrics` (close); None when the server refused the request.
         error: The error the server gave this request alone (the stream goes on), or None.
+        scene: The scene the episode plays, on the answer of a create or a reset (else None).
     """
 
     request_id: int
@@ -121,6 +160,7 @@ class StreamAnswer:
     episode_id: str
     value: AnswerValue | None
     error: EsrpError | None
+    scene: SceneSummary | None = None
 
     def unwrap(self) -> AnswerValue:
         """The value; raises the request's error if the server refused it."""
@@ -210,23 +250,25 @@ class StreamLedger:
         episode_id = pending.episode_id
         value: AnswerValue | None = None
         error: EsrpError | None = None
+        scene: SceneSummary | None = None
         try:
             if which == "error":
                 error = from_status(response.error.code, response.error.message)
             elif pending.kind is RequestKind.CREATE and which == "created":
                 value = _convert.created(response.created)
                 episode_id = value.episode_id
+                scene = value.scene
             elif pending.kind is RequestKind.STEP and which == "step":
                 value = _convert.step_result(response.step)
             elif pending.kind is RequestKind.RESET and which == "reset":
-                value = _convert.reset_observation(response.reset)[0]
+                value, scene = _convert.reset_observation(response.reset)
             elif pending.kind is RequestKind.CLOSE and which == "closed":
                 value = _convert.closed_metrics(response.closed)
             else:
                 raise ProtocolError(f"a {pending.kind.value} request answered with {which!r}")
         except ProtocolError as protocol_error:
             error = protocol_error
-        return StreamAnswer(pending.request_id, pending.kind, episode_id, value, error)
+        return StreamAnswer(pending.request_id, pending.kind, episode_id, value, error, scene)
 
 
 def collect_run(answer: StreamAnswer, results: dict[str, list[StepResult | EsrpError]]) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+import grpc
 import numpy as np
 import numpy.typing as npt
 
@@ -141,9 +142,40 @@ def reset_request(episode_id: str, scene: str | None, scene_json: str | None) ->
     return request
 
 
-def step_request(episode_id: str, action: int, include_goal: bool) -> pb.StepRequest:
-    """A Step request. The action is sent as given: the server checks it (INVALID_ARGUMENT)."""
-    return pb.StepRequest(episode_id=episode_id, action=int(action), include_goal=include_goal)
+ACTION_CODES_HELP = "use 0 move_forward, 1 move_backward, 2 turn_left, 3 turn_right, 4 fetch, 5 release"
+"""The end of the server's message for an unknown action code."""
+
+
+def action_code(action: object, at: str = "step") -> int:
+    """The integer of an action as a step sends it: an `Action` or int, a numpy integer, an
+    integer-valued float (`2.0`), or a numpy array holding one of these (shape `()` or `(1,)`).
+    Anything else (`2.7`, a string, an array of several) raises `InvalidRequest` with the words
+    the server uses for a code outside 0..5 (`at` places it: `step`, `steps[3]`); the range itself
+    is the server's to check.
+    """
+    if type(action) is int or isinstance(action, Action):  # the common case, first
+        return int(action)
+    value = action
+    if isinstance(value, np.ndarray) and value.shape in ((), (1,)):
+        value = value.reshape(()).item()
+    elif isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, int):
+        return int(value)
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    shown = f"array of shape {value.shape}" if isinstance(value, np.ndarray) else repr(value)
+    raise InvalidRequest(
+        f"{at}.action: unknown action code {shown}: {ACTION_CODES_HELP}",
+        code=grpc.StatusCode.INVALID_ARGUMENT,
+    )
+
+
+def step_request(episode_id: str, action: object, include_goal: bool, at: str = "step") -> pb.StepRequest:
+    """A Step request. Its action is `action_code(action)`; its range is the server's to check
+    (INVALID_ARGUMENT).
+    """
+    return pb.StepRequest(episode_id=episode_id, action=action_code(action, at), include_goal=include_goal)
 
 
 def plan_request(episode_id: str, max_actions: int, budget_ms: int | None) -> pb.PlanActionsRequest:

@@ -85,7 +85,8 @@ class LocalServer:
     Args:
         *args: More server flags, e.g. `"--token", "s3cret"` or `"--max-episodes", "64"`.
         binary: The esrp-server to run (default: `find_server_binary()`).
-        env: Extra environment variables of the process (`ESRP_LOG` defaults to `warn`).
+        env: Extra environment variables of the process (`ESRP_LOG` defaults to `warn`; `NO_COLOR`
+            is set, so that its log, kept for `log_tail`, holds no ANSI colour codes).
         startup_timeout: Seconds to wait for the address and for health.
         stop_timeout: Seconds to wait after SIGTERM before killing.
 
@@ -109,6 +110,7 @@ class LocalServer:
         self.stop_timeout = stop_timeout
         self.process: subprocess.Popen[str] | None = None
         self._stderr: IO[bytes] | None = None
+        self._log = _Log()
         self._address: str | None = None
         self.metrics_url: str | None = None
         """`http://127.0.0.1:PORT/metrics`, the Prometheus endpoint, when started with `--metrics-listen`."""
@@ -144,6 +146,12 @@ class LocalServer:
         text = self._stderr.read().decode(errors="replace")
         return "\n".join(text.splitlines()[-lines:])
 
+    def log_tail(self, lines: int = 40) -> str:
+        """The last `lines` lines of the server's log: what it wrote to stdout after its address
+        (esrp-server logs there, at the level `ESRP_LOG` sets), without colour codes.
+        """
+        return self._log.tail(lines)
+
     def start(self) -> LocalServer:
         """Starts the server and waits until it is healthy; returns self."""
         if self.process is not None:
@@ -151,6 +159,9 @@ class LocalServer:
         binary = self.binary or find_server_binary()
         environment = dict(os.environ)
         environment.setdefault("ESRP_LOG", "warn")
+        # Its output goes to files and pipes (read back into `log_tail` and errors), never to a
+        # terminal: no ANSI colours, which the server's log formatter writes unless NO_COLOR is set.
+        environment["NO_COLOR"] = "1"
         environment.update(self.env)
         # A file, not a pipe: nobody reads stderr while the server runs, and a pipe could fill up.
         # It lives as long as the server and is closed by stop().
@@ -193,8 +204,9 @@ class LocalServer:
         self._address = found[0]
         if len(found) > 1:
             self.metrics_url = found[1]
-        # Keep reading stdout so that a chatty server never blocks on a full pipe.
-        threading.Thread(target=_drain, args=(self.process.stdout,), daemon=True).start()
+        # Keep reading stdout, the server's log, so that a chatty server never blocks on a full pipe;
+        # its lines are kept (in a file) for `log_tail` and for errors.
+        threading.Thread(target=self._log.drain, args=(self.process.stdout,), daemon=True).start()
         if "--tls-cert" in self.args:
             return
         with grpc.insecure_channel(self._address) as channel:
@@ -219,8 +231,11 @@ class LocalServer:
         code = self.process.poll() if self.process is not None else None
         status = f"exit code {code}" if code is not None else "still running"
         tail = self.stderr_tail()
+        log = self.log_tail(20)
+        logged = f"\nits log ends with:\n{log}" if log else ""
         raise LocalServerError(
             f"esrp-server did not start: it {what} ({status}); its stderr ends with:\n{tail or '(nothing)'}"
+            + logged
         )
 
     def stop(self) -> int | None:
@@ -249,6 +264,7 @@ class LocalServer:
         if self._stderr is not None:
             self._stderr.close()
             self._stderr = None
+        self._log.close()
         return code
 
     def __enter__(self) -> LocalServer:
@@ -260,9 +276,38 @@ class LocalServer:
         self.stop()
 
 
-def _drain(stream: IO[str]) -> None:
-    try:
-        for _ in stream:
+class _Log:
+    """The server's log lines (its stdout after the address), kept in a temporary file while it
+    runs: written by the thread that drains the pipe, read by `tail`.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._file: IO[bytes] | None = None
+
+    def drain(self, stream: IO[str]) -> None:
+        with self._lock:
+            self._file = tempfile.TemporaryFile()  # noqa: SIM115 - closed by close()
+        try:
+            for line in stream:
+                with self._lock:
+                    if self._file is None:
+                        continue  # closed: keep draining
+                    self._file.seek(0, os.SEEK_END)
+                    self._file.write(line.encode(errors="replace"))
+        except (OSError, ValueError):
             pass
-    except (OSError, ValueError):
-        pass
+
+    def tail(self, lines: int) -> str:
+        with self._lock:
+            if self._file is None:
+                return ""
+            self._file.seek(0)
+            text = self._file.read().decode(errors="replace")
+        return "\n".join(text.splitlines()[-lines:])
+
+    def close(self) -> None:
+        with self._lock:
+            if self._file is not None:
+                self._file.close()
+                self._file = None

@@ -11,13 +11,14 @@ import enum
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple, TypeAlias
 
 import numpy as np
 import numpy.typing as npt
 
 __all__ = [
     "Action",
+    "ActionLike",
     "ArraySpec",
     "Created",
     "DatasetInfo",
@@ -72,6 +73,12 @@ class Action(enum.IntEnum):
     def api_name(self) -> str:
         """The name the API uses (`move_forward`, ..., `release`), as in `ObservationSpec.actions`."""
         return _API_NAMES[self]
+
+
+ActionLike: TypeAlias = Action | int | np.integer[Any] | npt.NDArray[np.integer[Any]]
+"""What a step takes: an `Action`, its code 0..5, a numpy integer, or a numpy array of one (shape
+`()` or `(1,)`). An integer-valued float (`2.0`) passes too; any other value (`2.7`) is refused
+with `InvalidRequest`, in the server's words for a code outside 0..5."""
 
 
 _API_NAMES = {

@@ -7,19 +7,49 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import NoReturn
 
 from . import __version__
 from ._errors import EsrpError
 from ._signals import run_command
 from ._values import Sensors
+from .results import ResultsError
 
 __all__ = ["main"]
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line: `esrp eval: error: ... (esrp eval --help)`."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _one_line_errors(handler: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """`handler`, with files that cannot be read or written, and results files that are not
+    esrp.results/v1, said in one line (exit status 2) instead of a traceback.
+    """
+
+    @functools.wraps(handler)
+    def run(args: argparse.Namespace) -> int:
+        try:
+            return handler(args)
+        except OSError as error:
+            what = f"{error.strerror}: {error.filename}" if error.strerror and error.filename else error
+            print(f"esrp {args.command}: {what}", file=sys.stderr)
+            return 2
+        except ResultsError as error:
+            print(f"esrp {args.command}: {error}", file=sys.stderr)
+            return 2
+
+    return run
 
 
 def _comma_list(text: str) -> list[str]:
@@ -30,6 +60,13 @@ def _positive(text: str) -> int:
     value = int(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, not {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be positive, not {text}")
     return value
 
 
@@ -75,7 +112,7 @@ def _server_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="esrp", description=__doc__.split("\n\n")[0] if __doc__ else None)
+    parser = _Parser(prog="esrp", description=__doc__.split("\n\n")[0] if __doc__ else None)
     parser.add_argument("--version", action="version", version=f"esrp {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -212,7 +249,7 @@ def _parser() -> argparse.ArgumentParser:
     rp.add_argument("--results", type=Path, required=True, help="the results file")
     rp.add_argument("--scene", required=True, help="the scene id of the episode to replay")
     rp.add_argument("--out", type=Path, required=True, help="ep.gif, ep.mp4 or ep.png")
-    rp.add_argument("--fps", type=float, default=10.0)
+    rp.add_argument("--fps", type=_positive_float, default=10.0, help="frames per second (10)")
     rp.add_argument("--scale", type=_positive, default=2, help="pixels per image pixel")
     _server_options(rp)
     demos = commands.add_parser(
@@ -298,6 +335,7 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+@_one_line_errors
 def _eval(args: argparse.Namespace) -> int:
     from .evaluation import EvalError, EvalSettings, ServerGone, format_failures, run_eval
 
@@ -369,7 +407,7 @@ def _eval(args: argparse.Namespace) -> int:
         print(f"esrp eval: {error}", file=sys.stderr)
         return 2
     if outcome.failed:
-        print(f"esrp eval: {format_failures(outcome.failed)}", file=sys.stderr)
+        print(f"esrp eval: {format_failures(outcome.failed, outcome.errors_log)}", file=sys.stderr)
         return 1
     return 0
 
@@ -384,6 +422,7 @@ def _on_server(args: argparse.Namespace, run: Callable[[str], int]) -> int:
         return run(local.address)
 
 
+@_one_line_errors
 def _demos(args: argparse.Namespace) -> int:
     try:
         from .demos import DemoExportError, DemoSettings, export_demos
@@ -434,6 +473,7 @@ def _demos(args: argparse.Namespace) -> int:
         return 2
 
 
+@_one_line_errors
 def _train(args: argparse.Namespace) -> int:
     name = f"esrp train {args.train_command}"
     try:
@@ -477,6 +517,7 @@ def _train_ppo(args: argparse.Namespace, name: str) -> int:
         return 2
 
 
+@_one_line_errors
 def _report(args: argparse.Namespace) -> int:
     from .report import ReportError, write_report
 
@@ -499,6 +540,7 @@ def _report(args: argparse.Namespace) -> int:
     return 0
 
 
+@_one_line_errors
 def _replay(args: argparse.Namespace) -> int:
     from .replay import ReplayError, replay_to_file
 

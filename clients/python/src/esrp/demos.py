@@ -29,7 +29,7 @@ import numpy as np
 from ._client import Client
 from ._values import Action, SceneSummary, Sensors
 from .agents import is_async_agent
-from .evaluation import EvalError, agent_info, expert_trajectory, make_factory
+from .evaluation import EvalError, agent_info, expert_trajectory, make_factory, missing_scene
 from .results import scene_seed
 
 __all__ = ["FORMAT", "DemoExportError", "DemoSettings", "ExportOutcome", "export_demos"]
@@ -100,7 +100,10 @@ def _pick(client: Client, settings: DemoSettings) -> list[SceneSummary]:
         by_id = {s.id: s for s in listed}
         missing = [s for s in settings.scenes if s not in by_id]
         if missing:
-            raise DemoExportError(f"scene {missing[0]!r} is not among the {settings.split} scenes")
+            every = list(client.scenes(page_size=1000))
+            raise DemoExportError(
+                missing_scene(missing[0], settings.split, settings.difficulty, by_id, every)
+            )
         listed = [by_id[s] for s in settings.scenes]
     if settings.limit is not None:
         listed = listed[: settings.limit]

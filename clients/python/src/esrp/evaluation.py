@@ -17,21 +17,24 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import inspect
 import json
 import sys
 import time
-from collections.abc import Sequence
+import traceback
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import IO, Any
 
-from . import __version__
+from . import __version__, _convert
 from ._async_client import AsyncClient, AsyncEpisode
+from ._common import unreachable
 from ._errors import DeadlineExceeded, EsrpError, ProtocolError, ServerUnavailable
 from ._local import LocalServer
 from ._values import Action, EpisodeMetrics, SceneSummary, Sensors, ServerInfo
-from .agents import AgentFactory, RandomAgent, is_async_agent, load_factory
+from .agents import Agent, AgentFactory, AsyncAgent, RandomAgent, is_async_agent, load_factory
 from .results import (
     SCHEMA,
     EpisodeRecord,
@@ -49,6 +52,7 @@ __all__ = [
     "EvalError",
     "EvalOutcome",
     "EvalSettings",
+    "errors_log_path",
     "evaluate",
     "expert_trajectory",
     "format_failures",
@@ -145,6 +149,7 @@ class EvalOutcome:
         failed: `(scene_id, error)` of the episodes that failed and were not recorded.
         summary: The summary of `records`.
         summary_path: Where the Markdown summary was written.
+        errors_log: The tracebacks of the failed episodes (None when none failed).
     """
 
     records: list[EpisodeRecord]
@@ -152,6 +157,7 @@ class EvalOutcome:
     failed: list[tuple[str, str]]
     summary: Summary
     summary_path: Path
+    errors_log: Path | None = None
 
 
 @dataclass
@@ -289,7 +295,7 @@ async def _play_agent(
         if action is None:
             break
         result = await episode.step(action)
-        actions.append(int(action))
+        actions.append(_convert.action_code(action))
         if result.ended:
             metrics = result.metrics
             if metrics is None:
@@ -363,10 +369,58 @@ def make_factory(agent: str, config: dict[str, Any], results_path: Path) -> Agen
             raise EvalError(str(error)) from None
     if agent not in BUILTIN_AGENTS:
         try:
-            return load_factory(agent)
+            factory = load_factory(agent)
         except ValueError as error:
             raise EvalError(str(error)) from None
+        return checked_factory(factory, agent, config)
     return None
+
+
+def _where(error: BaseException) -> str:
+    """` (file.py:line)` of the innermost frame of `error`'s traceback, or nothing."""
+    frames = traceback.extract_tb(error.__traceback__)
+    if not frames:
+        return ""
+    last = frames[-1]
+    return f" ({Path(last.filename).name}:{last.lineno})"
+
+
+def check_agent(agent: object, spec: str) -> None:
+    """Raises `EvalError` unless `agent` (what `spec`'s factory returned) follows the `Agent` or
+    `AsyncAgent` protocol: callable `reset` and `act`, both `async def` or neither.
+    """
+    wanted = "an esrp.agents.Agent, with reset(observation, info) and act(observation) methods"
+    missing = [name for name in ("reset", "act") if not callable(getattr(agent, name, None))]
+    if missing:
+        what = "None" if agent is None else f"a {type(agent).__name__} object without {' or '.join(missing)}"
+        raise EvalError(f"--agent {spec} returned {what}, not {wanted}")
+    asynchronous = [inspect.iscoroutinefunction(getattr(agent, name)) for name in ("reset", "act")]
+    if asynchronous[0] != asynchronous[1]:
+        raise EvalError(
+            f"--agent {spec} returned a {type(agent).__name__} whose reset and act are not both "
+            "`async def` (an AsyncAgent) or both plain (an Agent)"
+        )
+
+
+def checked_factory(factory: AgentFactory, spec: str, config: dict[str, Any]) -> AgentFactory:
+    """`factory`, called once here, before any episode, with `config`: raises `EvalError` when it
+    raises or returns something that is not an agent (`check_agent`). The agent it made is handed
+    to the first episode, so the factory is still called once per episode.
+    """
+    try:
+        agent = factory(dict(config))
+    except Exception as error:  # noqa: BLE001 - the user's factory: said in one line.
+        raise EvalError(
+            f"--agent {spec}: the factory raised {type(error).__name__}: {error}{_where(error)} "
+            f"(called with the agent config {config})"
+        ) from error
+    check_agent(agent, spec)
+    first: list[Agent | AsyncAgent] = [agent]
+
+    def make(config: dict[str, Any]) -> Agent | AsyncAgent:
+        return first.pop() if first else factory(config)
+
+    return make
 
 
 def episode_record(
@@ -417,6 +471,37 @@ async def play_episode(
     return episode_record(settings, info, scene, seed, time.monotonic() - clock, played)
 
 
+def missing_scene(
+    wanted: str,
+    split: str,
+    difficulty: str | None,
+    chosen: Mapping[str, SceneSummary],
+    every: Sequence[SceneSummary],
+) -> str:
+    """Why `--scenes` id `wanted` is not among the `chosen` scenes (those of `split` and
+    `difficulty`), with the full id where `wanted` is its end (`00003` for `esrp-bench-v1/00003`)
+    and the split and difficulty of a scene the filters leave out.
+    """
+    where = f"{split}{'' if difficulty is None else ' ' + difficulty} scenes"
+    known = {s.id: s for s in every}
+    scene = known.get(wanted)
+    if scene is None:
+        ends = [s for s in every if s.id.endswith("/" + wanted)]
+        if len(ends) != 1:
+            example = f" (ids look like {every[0].id!r})" if every else ""
+            return f"scene {wanted!r} is not in the served dataset{example}"
+        scene = ends[0]
+        if scene.id in chosen:
+            return f"scene {wanted!r} is not a scene id: did you mean {scene.id!r}?"
+    named = "" if scene.id == wanted else f" (did you mean {scene.id!r}?)"
+    its_split = "unknown" if scene.split is None else scene.split.value
+    its_difficulty = "unknown" if scene.difficulty is None else scene.difficulty.value
+    return (
+        f"scene {wanted!r}{named} is not among the {where} of this dataset: it is a {its_split} "
+        f"{its_difficulty} scene (check --split and --difficulty)"
+    )
+
+
 async def pick_scenes(client: AsyncClient, settings: EvalSettings) -> list[SceneSummary]:
     """The scenes to run, fixed up front: the split's (filtered), or the ones named, in order."""
     listed = [s async for s in client.scenes(settings.split, settings.difficulty, page_size=1000)]
@@ -424,10 +509,8 @@ async def pick_scenes(client: AsyncClient, settings: EvalSettings) -> list[Scene
         by_id = {s.id: s for s in listed}
         missing = [s for s in settings.scenes if s not in by_id]
         if missing:
-            raise EvalError(
-                f"scene {missing[0]!r} is not among the {settings.split} scenes of this dataset "
-                "(check --split and --difficulty)"
-            )
+            every = [s async for s in client.scenes(page_size=1000)]
+            raise EvalError(missing_scene(missing[0], settings.split, settings.difficulty, by_id, every))
         picked = [by_id[s] for s in settings.scenes]
     else:
         picked = listed
@@ -564,9 +647,52 @@ def _local_exit(local: LocalServer, episodes: int, resume: str) -> str:
         how = "stopped answering"
     else:
         how = f"exited with signal {-code}" if code < 0 else f"exited with status {code}"
-    tail = local.stderr_tail(10).strip()
+    tail = "\n".join(part for part in (local.log_tail(10).strip(), local.stderr_tail(10).strip()) if part)
     lines = f"; its last log lines:\n{tail}\n" if tail else " (it logged nothing); "
     return f"the local esrp-server {how} after {episodes} episodes of this run{lines}{resume}"
+
+
+def errors_log_path(out: Path) -> Path:
+    """The errors log of results file `out`: `out` with `.errors.log` (`results/mine.errors.log`)."""
+    return out.with_suffix(".errors.log")
+
+
+class FailureLog:
+    """The episodes of a run that failed with an error: the first one's traceback is printed, each
+    one's is written to the errors log beside the results file (`errors_log_path`). The log
+    describes the last run: an earlier run's is removed when the run starts.
+    """
+
+    def __init__(self, out: Path, progress: Progress) -> None:
+        self.path = errors_log_path(out)
+        self.progress = progress
+        self.failed: list[tuple[str, str]] = []
+        self.path.unlink(missing_ok=True)
+
+    def add(self, scene_id: str, error: BaseException, trace: str | None = None) -> None:
+        """Records that `scene_id`'s episode failed with `error` (`trace`: its traceback as text,
+        where it is not `error`'s own, e.g. a Ray worker's).
+        """
+        message = f"{type(error).__name__}: {error}"
+        if trace is None:
+            trace = "".join(traceback.format_exception(type(error), error, error.__traceback__))
+        if not self.failed:
+            self.progress.note(
+                f"{scene_id}: {message}\n{trace.rstrip()}\n(the first failure's traceback; "
+                f"every failure's goes to {self.path})"
+            )
+        else:
+            self.progress.note(f"{scene_id}: {message}")
+        with open(self.path, "a", encoding="utf-8") as log:
+            if not self.failed:
+                log.write(f"# esrp eval: episodes that failed with an error, {_now_rfc3339()}\n")
+            log.write(f"\n## {scene_id}: {message}\n\n{trace.rstrip()}\n")
+        self.failed.append((scene_id, message))
+
+    @property
+    def written(self) -> Path | None:
+        """The log's path, if any episode failed."""
+        return self.path if self.failed else None
 
 
 async def evaluate(
@@ -592,7 +718,7 @@ async def evaluate(
     resumed = open_results(settings, scenes)
     records, todo, earlier, tally = resumed.records, resumed.todo, resumed.earlier, resumed.tally
     progress = Progress(len(scenes), earlier, settings.progress)
-    failed: list[tuple[str, str]] = []
+    failures = FailureLog(out, progress)
     written = 0
     started = time.monotonic()
     queue = iter(todo)
@@ -609,9 +735,7 @@ async def evaluate(
                     gone = await _server_gone(client, local, written)
                     if gone is not None:
                         raise ServerGone(gone) from error
-                message = f"{type(error).__name__}: {error}"
-                progress.note(f"{scene.id}: {message}")
-                failed.append((scene.id, message))
+                failures.add(scene.id, error)
                 progress.advance(tally)
                 continue
             record = episode_record(settings, info, scene, seed, time.monotonic() - clock, played)
@@ -640,7 +764,7 @@ async def evaluate(
         if close is not None:
             await close()
 
-    return finish(settings, info, records, written, failed, time.monotonic() - started)
+    return finish(settings, info, records, written, failures, time.monotonic() - started)
 
 
 def finish(
@@ -648,13 +772,13 @@ def finish(
     info: ServerInfo,
     mine: list[EpisodeRecord],
     written: int,
-    failed: list[tuple[str, str]],
+    failures: FailureLog,
     seconds: float,
 ) -> EvalOutcome:
     """Prints the summary of a run's records (`mine`: those of its scenes), writes it as Markdown
     beside the results file, and returns the outcome.
     """
-    summary = Summary.of(mine)
+    summary = Summary.of(mine, settings.agent)
     print(f"{settings.agent} on {len(mine)} scenes of {info.dataset} ({seconds:.0f} s):")
     print(summary.text(), end="")
     summary_path = settings.summary or settings.out.with_suffix(".md")
@@ -665,7 +789,7 @@ def finish(
     )
     summary_path.write_text(markdown, encoding="utf-8")
     print(f"summary: {summary_path}")
-    return EvalOutcome(mine, written, failed, summary, summary_path)
+    return EvalOutcome(mine, written, failures.failed, summary, summary_path, failures.written)
 
 
 def run_eval(
@@ -681,6 +805,8 @@ def run_eval(
 
     async def main(address: str, local: LocalServer | None = None) -> EvalOutcome:
         async with AsyncClient(address, token=token, timeout=120) as client:
+            if server is not None:
+                await reach(client, server)
             await client.wait_healthy(30)
             return await evaluate(client, settings, local)
 
@@ -690,7 +816,21 @@ def run_eval(
         return asyncio.run(main(local.address, local))
 
 
-def format_failures(failed: Sequence[tuple[str, str]]) -> str:
-    """The closing message of a run with failed episodes."""
+async def reach(client: AsyncClient, address: str) -> None:
+    """One call to the server `address` names, which fails at once (`EvalError`, naming the address
+    as gRPC read it) when nothing answers there, instead of waiting for it to become healthy.
+    """
+    try:
+        await client.server_info()
+    except ServerUnavailable as error:
+        raise EvalError(unreachable(address, error)) from None
+
+
+def format_failures(failed: Sequence[tuple[str, str]], errors_log: Path | None = None) -> str:
+    """The closing message of a run with failed episodes (and where their tracebacks are)."""
     ids = ", ".join(scene for scene, _ in failed)
-    return f"{len(failed)} episodes failed with an error and were not recorded (rerun to retry them): {ids}"
+    where = f"; tracebacks in {errors_log}" if errors_log is not None else ""
+    return (
+        f"{len(failed)} episodes failed with an error and were not recorded (rerun to retry them): {ids}"
+        + where
+    )

@@ -9,7 +9,9 @@ the same seed plays the same scene; the vector env seeds sub-env i with `s + i`,
 
 Observations are dicts: `ego_rgb` and `goal_rgb` (R, R, 3) uint8, `grasping` 0/1 (Discrete(2)), and
 `depth` (R, R) float32, `segmentation` (R, R) uint32 and `current_top_down` (R, R, 3) uint8 for the
-sensors that are on. Actions are `Discrete(6)` with the codes of `esrp.Action`.
+sensors that are on. Actions are `Discrete(6)` with the codes of `esrp.Action`. Infos: the scene's
+id, difficulty, room type, object count and horizon on resets; `is_success` on the step that ends an
+episode.
 """
 
 from __future__ import annotations
@@ -30,9 +32,16 @@ from gymnasium.vector.utils import batch_space
 from . import _convert
 from ._client import Client, Episode, EpisodeStream
 from ._common import TlsSetting
-from ._errors import EpisodeEnded, EpisodeNotFound, EsrpError, InvalidRequest, ServerUnavailable
+from ._errors import (
+    EpisodeEnded,
+    EpisodeNotFound,
+    EsrpError,
+    InvalidRequest,
+    ProtocolError,
+    ServerUnavailable,
+)
 from ._local import LocalServer
-from ._values import Difficulty, EpisodeMetrics, RewardWeights, Sensors, Split
+from ._values import ActionLike, Difficulty, EpisodeMetrics, RewardWeights, SceneSummary, Sensors, Split
 
 __all__ = ["RearrangeEnv", "RearrangeVectorEnv", "observation_space"]
 
@@ -72,7 +81,21 @@ def _step_info(columns: _convert.StepColumns, position: int) -> dict[str, Any]:
     metrics = columns.metrics.get(position)
     if metrics is not None:
         info["metrics"] = _metrics_info(metrics)
+        info["is_success"] = metrics.success
     return info
+
+
+def _reset_info(scene: SceneSummary, horizon: int) -> dict[str, Any]:
+    """The info of a reset onto `scene`: its id, difficulty, room type, movable-object count, and the
+    episode's step limit (`horizon`, the env's, else the scene's).
+    """
+    return {
+        "scene_id": scene.id,
+        "difficulty": None if scene.difficulty is None else scene.difficulty.value,
+        "room_type": scene.room_type,
+        "objects": scene.movable_objects,
+        "horizon": horizon or scene.horizon,
+    }
 
 
 def _metrics_info(metrics: EpisodeMetrics) -> dict[str, Any]:
@@ -226,8 +249,14 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
         render_mode: None or `rgb_array` (ego view, goal and, with the sensor, current top-down).
 
     `reset(seed=s)` seeds `np_random`, which draws the scene; `reset(options={"scene": id})` plays
-    `id` instead. The reset info has `scene_id`; a step's info has `accepted`, `collided`,
-    `placed_count`, `step_index` and, on the step that ends the episode, `metrics`.
+    `id` instead. The reset info has `scene_id`, `difficulty`, `room_type`, `objects` (movable
+    objects) and `horizon` (the episode's step limit); a step's info has `accepted`, `collided`,
+    `placed_count`, `step_index` and, on the step that ends the episode, `metrics` and
+    `is_success` (Stable-Baselines3's convention). The horizon is each scene's and the server
+    truncates at it: the registered spec has no `max_episode_steps` (no `TimeLimit`).
+
+    Actions: an `esrp.ActionLike` (an int 0..5, a numpy integer, an integer-valued float, or a numpy
+    array of one); any other value raises `InvalidRequest` before anything is sent.
     """
 
     metadata = _METADATA
@@ -298,13 +327,13 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
         self._goal = first.goal_rgb
         images = {key: getattr(first, key) for key in self._image_spec.keys}
         self._last = self._image_spec.observation(images, first.grasping, self._goal)
-        return self._last, {"scene_id": scene}
+        return self._last, _reset_info(self._episode.scene, self._setup.horizon)
 
-    def step(self, action: np.int64 | int) -> tuple[ObsDict, SupportsFloat, bool, bool, dict[str, Any]]:
+    def step(self, action: ActionLike) -> tuple[ObsDict, SupportsFloat, bool, bool, dict[str, Any]]:
         """Takes one action (0..5, see `esrp.Action`)."""
         if self._episode is None or self._goal is None:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
-        message = self._episode._step_message(int(action))  # noqa: SLF001 - the package's own hot path
+        message = self._episode._step_message(action)  # noqa: SLF001 - the package's own hot path
         spec = self._image_spec
         columns = _convert.step_columns((message,), spec.layout, spec.resolution)
         observation = spec.observation(
@@ -338,11 +367,11 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
 
 
 _STEP_KEYS = ("accepted", "collided", "placed_count", "step_index")
-_ENDED_KEYS = (*_STEP_KEYS, "metrics")
+_ENDED_KEYS = (*_STEP_KEYS, "metrics", "is_success")
 # The dtypes `_add_info` gives the step keys: those of their Python values.
 _STEP_DTYPES = (("accepted", bool), ("collided", bool), ("placed_count", int), ("step_index", int))
-_RESET_KEYS = ("scene_id",)
-_FINAL_KEYS = ("final_obs", "final_info", "scene_id")
+_RESET_KEYS = ("scene_id", "difficulty", "room_type", "objects", "horizon")
+_FINAL_KEYS = ("final_obs", "final_info", *_RESET_KEYS)
 
 # Reserve for a StepBatch answer's framing, per step (the info, reward and flags take ~60 bytes).
 _STEP_OVERHEAD_BYTES = 512
@@ -476,9 +505,9 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             stream.reset(episode, None if scene == self._scene_ids[index] else scene)
         return scene
 
-    def _take_reset(self, stream: EpisodeStream, index: int, scene: str) -> None:
+    def _take_reset(self, stream: EpisodeStream, index: int, scene: str) -> dict[str, Any]:
         """Reads sub-env `index`'s reset answer (sent by `_send_reset` for `scene`) into its last
-        observation.
+        observation; returns the reset's info (as `RearrangeEnv.reset`'s).
         """
         answer = stream.next()
         assert answer is not None
@@ -488,6 +517,8 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             first = created.observation
         else:
             first = answer.observation()
+        if answer.scene is None:
+            raise ProtocolError(f"the answer to the reset of sub-env {index} names no scene")
         self._scene_ids[index] = scene
         assert first.goal_rgb is not None
         for key in self._image_spec.keys:
@@ -495,6 +526,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         self._grasping[index] = first.grasping
         self._goals[index] = first.goal_rgb
         self._started[index] = True
+        return _reset_info(answer.scene, self._setup.horizon)
 
     def reset(
         self,
@@ -527,12 +559,10 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             if seeds[index] is not None:
                 self._rngs[index], _ = seeding.np_random(seeds[index])
             scenes[index] = self._send_reset(stream, index, options)
+        infos: dict[str, Any] = {}
         for index, scene in scenes.items():
-            self._take_reset(stream, index, scene)
-        scene_ids = np.full(self.num_envs, None, dtype=object)
-        for index, scene in scenes.items():
-            scene_ids[index] = scene
-        return self._batch(), {"scene_id": scene_ids, "_scene_id": mask.copy()}
+            infos = self._add_info(infos, self._take_reset(stream, index, scene), index)
+        return self._batch(), infos
 
     def _reset_mask(self, options: dict[str, Any] | None) -> npt.NDArray[np.bool_]:
         if options is None or "reset_mask" not in options:
@@ -565,7 +595,9 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         n = self.num_envs
         if actions.shape != (n,):
             raise ValueError(f"actions must have shape ({n},), got {actions.shape}")
-        if np.any((actions < 0) | (actions > 5)):
+        if actions.dtype.kind == "f" and np.all(np.isfinite(actions) & (actions == np.round(actions))):
+            actions = actions.astype(np.int64)  # integer-valued floats, as RearrangeEnv takes them
+        if actions.dtype.kind not in "iu" or np.any((actions < 0) | (actions > 5)):
             raise InvalidRequest(f"actions must be codes 0..5 (esrp.Action), got {actions}")
         if self._stream is None or not np.all(self._started):
             raise gymnasium.error.ResetNeeded("call reset() before step()")
@@ -576,9 +608,10 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
                 "reset(options={'reset_mask': mask}) first (no episode moved)"
             )
         stream = self._stream
-        resets: dict[int, str] = {}
+        sent: dict[int, str] = {}
+        resets: dict[int, dict[str, Any]] = {}
         if self.autoreset_mode == AutoresetMode.NEXT_STEP and np.any(self._autoreset_envs):
-            resets = {
+            sent = {
                 i: self._send_reset(stream, i, None) for i in np.flatnonzero(self._autoreset_envs).tolist()
             }
             stepped: list[int] = np.flatnonzero(~self._autoreset_envs).tolist()
@@ -588,8 +621,8 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             columns = self._step_batch(stepped, actions)
         finally:
             # The resets were answered on the stream meanwhile (whatever became of the batch).
-            for i, scene in resets.items():
-                self._take_reset(stream, i, scene)
+            for i, scene in sent.items():
+                resets[i] = self._take_reset(stream, i, scene)
         rewards = np.zeros(n, dtype=np.float64)
         terminations = np.zeros(n, dtype=np.bool_)
         truncations = np.zeros(n, dtype=np.bool_)
@@ -611,9 +644,8 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             # The final observations are handed out one by one: each gets a goal of its own.
             # (Every sub-env was stepped, so sub-env i's answer is at position i.)
             finals = {i: (self._single_observation(i), _step_info(columns, i)) for i in ended}
-            resets = {i: self._send_reset(stream, i, None) for i in ended}
-            for i in ended:
-                self._take_reset(stream, i, resets[i])
+            sent = {i: self._send_reset(stream, i, None) for i in ended}
+            resets = {i: self._take_reset(stream, i, sent[i]) for i in ended}
         infos = self._step_infos(columns, stepped, resets, finals)
         self._autoreset_envs = np.logical_or(terminations, truncations)
         return self._batch(), rewards, terminations, truncations, infos
@@ -657,7 +689,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         self,
         columns: _convert.StepColumns,
         stepped: list[int],
-        resets: Mapping[int, str],
+        resets: Mapping[int, dict[str, Any]],
         finals: Mapping[int, tuple[ObsDict, dict[str, Any]]],
     ) -> dict[str, Any]:
         """The step's infos, equal to what `_add_info` over each sub-env's info makes (the same
@@ -693,9 +725,13 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             if i not in finals:
                 metrics_infos = self._add_info(metrics_infos, _metrics_info(metrics), i)
         if metrics_infos:
+            ended_here = [i for i in metrics_envs if i not in finals]
             values["metrics"] = metrics_infos
             masks["metrics"] = np.zeros(n, dtype=np.bool_)
-            masks["metrics"][[i for i in metrics_envs if i not in finals]] = True
+            masks["metrics"][ended_here] = True
+            values["is_success"] = np.zeros(n, dtype=bool)
+            values["is_success"][ended_here] = [metrics_envs[i].success for i in ended_here]
+            masks["is_success"] = masks["metrics"].copy()
         final_infos: dict[str, Any] = {}
         if finals:
             final_obs = np.full(n, None, dtype=object)
@@ -707,12 +743,11 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             masks["final_obs"][list(finals)] = True
             masks["final_info"] = masks["final_obs"].copy()
         if resets:
-            scene_ids = np.full(n, None, dtype=object)
-            for i, scene in resets.items():
-                scene_ids[i] = scene
-            values["scene_id"] = scene_ids
-            masks["scene_id"] = np.zeros(n, dtype=np.bool_)
-            masks["scene_id"][list(resets)] = True
+            reset_infos: dict[str, Any] = {}
+            for i, info in resets.items():
+                reset_infos = self._add_info(reset_infos, info, i)
+            for key in _RESET_KEYS:
+                values[key], masks[key] = reset_infos[key], reset_infos[f"_{key}"]
         infos: dict[str, Any] = {}
         for key in order:
             infos[key], infos[f"_{key}"] = values[key], masks[key]

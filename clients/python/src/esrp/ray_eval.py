@@ -42,6 +42,7 @@ from .evaluation import (
     EvalError,
     EvalOutcome,
     EvalSettings,
+    FailureLog,
     Progress,
     agent_factory,
     finish,
@@ -173,6 +174,10 @@ def run_ray_eval(settings: EvalSettings, cluster: RaySettings) -> EvalOutcome:
     if settings.episodes_in_flight < 1 or cluster.episodes_per_actor < 1:
         raise EvalError("episodes in flight must be at least 1")
     agent_factory(settings)  # a bad agent spec fails here, before any actor starts
+    if not sys.stderr.isatty():
+        # Ray colours the prefix of the workers' lines it prints here (`(EvalActor pid=...)`)
+        # whatever stderr is: not into a file or a pipe.
+        os.environ.setdefault("RAY_COLOR_PREFIX", "0")
     started_ray = False
     if not ray.is_initialized():
         options: dict[str, Any] = {"include_dashboard": False, "log_to_driver": True}
@@ -216,7 +221,7 @@ def _drive(ray: Any, settings: EvalSettings, cluster: RaySettings) -> EvalOutcom
     records, done, earlier, tally = resumed.records, resumed.done, resumed.earlier, resumed.tally
     pending = deque(resumed.todo)
     progress = Progress(len(scenes), earlier, settings.progress)
-    failed: list[tuple[str, str]] = []
+    failures = FailureLog(out, progress)
     written = 0
     started = time.monotonic()
     live = set(range(len(actors)))
@@ -254,9 +259,8 @@ def _drive(ray: Any, settings: EvalSettings, cluster: RaySettings) -> EvalOutcom
                             ) from error
                         pending.appendleft(scene)  # played again from its start elsewhere
                     else:
-                        message = f"{type(cause).__name__}: {cause}"
-                        progress.note(f"{scene.id}: {message}")
-                        failed.append((scene.id, message))
+                        # A task's error carries the worker's traceback in its text.
+                        failures.add(scene.id, cause, trace=str(error))
                         progress.advance(tally)
                     hand_out()
                     continue
@@ -274,7 +278,7 @@ def _drive(ray: Any, settings: EvalSettings, cluster: RaySettings) -> EvalOutcom
             with contextlib.suppress(Exception):
                 ray.kill(actor, no_restart=True)
 
-    return finish(settings, info, records, written, failed, time.monotonic() - started)
+    return finish(settings, info, records, written, failures, time.monotonic() - started)
 
 
 def _first_answer(ray: Any, refs: list[Any]) -> tuple[ServerInfo, list[SceneSummary]]:  # noqa: ANN401

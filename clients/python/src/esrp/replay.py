@@ -3,10 +3,12 @@
 The simulator is deterministic, so a record's `actions` stepped from its scene's start reproduce the
 episode exactly (docs/evaluation.md); `replay_record` checks that the final metrics equal the
 record's and raises `ReplayError` when they do not (another dataset, another server version, an
-edited file). Each frame shows, side by side: the egocentric view, the goal image, and the current
-top-down view (the episode's `current_top_down` sensor) with the agent's path in red and each
-carried object's path in blue, drawn from the privileged state (the replay's episode is created with
-`privileged=True`) through the goal's pixel ↔ floor frame (`GetGoal`).
+edited file). Each frame shows, side by side and labelled: the egocentric view, the goal image, and
+the current top-down view (the episode's `current_top_down` sensor) with the agent's path in red and
+each carried object's path in blue, outlined in white, drawn from the privileged state (the
+replay's episode is created with `privileged=True`) through the goal's pixel ↔ floor frame
+(`GetGoal`); a header says the step, the action taken and whether it was accepted, collided or had
+no effect, the grasp flag and the reward.
 
 Needs Pillow (the `report` extra); MP4 output needs imageio-ffmpeg besides.
 """
@@ -25,10 +27,11 @@ import numpy as np
 import numpy.typing as npt
 
 from ._client import Client
-from ._errors import EsrpError
+from ._common import unreachable
+from ._errors import EsrpError, ServerUnavailable
 from ._local import LocalServer
-from ._values import EpisodeMetrics, Observation, PrivilegedState, Sensors, TopDownFrame
-from .results import EpisodeRecord, read_records
+from ._values import Action, EpisodeMetrics, Observation, PrivilegedState, Sensors, StepResult, TopDownFrame
+from .results import EpisodeRecord, ResultsError, read_records
 
 if TYPE_CHECKING:
     from PIL import Image
@@ -36,10 +39,14 @@ if TYPE_CHECKING:
 __all__ = [
     "AGENT_PATH",
     "OBJECT_PATH",
+    "PANEL_TITLES",
     "Replay",
     "ReplayError",
+    "StepNote",
+    "header_height",
     "replay_record",
     "replay_to_file",
+    "step_note",
     "write_frames",
 ]
 
@@ -48,7 +55,6 @@ AGENT_PATH = (230, 25, 25)
 OBJECT_PATH = (20, 90, 255)
 """The colour of carried objects' paths (blue)."""
 
-_HEADER = 14  # pixels of the caption strip above the panels
 _GAP = 4  # pixels between panels
 
 Frame = npt.NDArray[np.uint8]
@@ -88,11 +94,13 @@ class Replay:
         frames: The composed frames (H, W, 3) uint8: the start, then one per action (only the last
             with `every_frame=False`).
         metrics: The replay's final metrics (they equal the record's).
+        notes: What each frame's header says (its step, action, outcome, grasp flag and reward).
     """
 
     record: EpisodeRecord
     frames: list[Frame]
     metrics: EpisodeMetrics
+    notes: list[StepNote] = field(default_factory=list)
 
 
 def _pil() -> Any:  # noqa: ANN401 - PIL's modules, imported lazily (the report extra).
@@ -114,6 +122,86 @@ def _upscale(image: npt.NDArray[np.uint8], size: int) -> npt.NDArray[np.uint8]:
     return resized
 
 
+PANEL_TITLES = ("ego view", "goal", "now, from above")
+"""The labels above the three panels."""
+
+_ACCEPTED = (0, 110, 0)
+_REFUSED = (200, 0, 0)
+_NO_EFFECT = (170, 95, 0)
+_OUTLINE = (255, 255, 255)
+
+
+@dataclass(frozen=True)
+class StepNote:
+    """What a frame says about its step: the caption (scene, agent, step), the action and what
+    became of it, and the grasp flag and reward.
+
+    Attributes:
+        caption: `scene  agent  step k/n`.
+        action: `turn_left (2): accepted`, `move_forward (0): rejected, collided with wall 3`,
+            `fetch (4): no effect (...)`, or `start` before the first action.
+        state: `grasping: yes  reward +0.050  total +1.230`.
+        outcome: `accepted`, `collided`, `no effect` or `start` (the action line's colour).
+    """
+
+    caption: str
+    action: str
+    state: str
+    outcome: str
+
+    @property
+    def lines(self) -> tuple[str, str, str]:
+        """The header's three lines."""
+        return self.caption, self.action, self.state
+
+
+def step_note(
+    caption: str, action: int | None, result: StepResult | None, grasping: bool, total_reward: float
+) -> StepNote:
+    """The note of a frame: `action` and its `result` (None for the start), the grasp flag after
+    it, and the episode's reward so far.
+    """
+    if action is None or result is None:
+        text, outcome, reward = "start (no action yet)", "start", 0.0
+    else:
+        try:
+            name = f"{Action(action).api_name} ({action})"
+        except ValueError:
+            name = f"action {action}"
+        info = result.info
+        reward = result.reward
+        if info.collided_with is not None:
+            text, outcome = f"{name}: rejected, collided with {info.collided_with.name}", "collided"
+        elif not info.accepted:
+            why = f" ({info.no_op})" if info.no_op else ""
+            text, outcome = f"{name}: no effect{why}", "no effect"
+        else:
+            text, outcome = f"{name}: accepted", "accepted"
+            if info.fetched is not None:
+                text += f", fetched object {info.fetched}"
+            if info.released is not None:
+                text += f", released object {info.released}"
+    state = f"grasping: {'yes' if grasping else 'no'}  reward {reward:+.3f}  total {total_reward:+.3f}"
+    return StepNote(caption, text, state, outcome)
+
+
+def _font(scale: int) -> Any:  # noqa: ANN401 - a PIL font
+    font_module = importlib.import_module("PIL.ImageFont")
+    try:
+        return font_module.load_default(size=5 * scale + 6)
+    except TypeError:  # Pillow without FreeType: the fixed bitmap font
+        return font_module.load_default()
+
+
+def header_height(scale: int) -> int:
+    """Pixels of the header above the panels: three lines of text and the panels' labels."""
+    return 4 * _line_height(scale) + 4
+
+
+def _line_height(scale: int) -> int:
+    return 5 * scale + 10
+
+
 def compose_frame(
     observation: Observation,
     goal: npt.NDArray[np.uint8],
@@ -121,42 +209,68 @@ def compose_frame(
     paths: _Paths,
     *,
     scale: int,
-    caption: str,
+    note: StepNote | str,
 ) -> Frame:
     """One frame: ego | goal | current top-down with the paths, each panel `128 * scale` pixels
-    (the ego view's resolution times `scale`), under a caption strip.
+    (the ego view's resolution times `scale`), each under its label, under a header of three lines
+    (`note`: the caption, the action and what became of it, the grasp flag and reward; a plain
+    caption alone where `note` is a string). The paths are outlined in white, so a blue path shows
+    over a blue object.
     """
     image_module, draw_module = _pil()
     side = observation.ego_rgb.shape[0] * scale
     top_down = observation.current_top_down
     if top_down is None:
         raise ReplayError("the replay's episode answered no current_top_down view")
+    header = header_height(scale)
+    line_height = _line_height(scale)
     panels = [_upscale(observation.ego_rgb, side), _upscale(goal, side), _upscale(top_down, side)]
     width = 3 * side + 2 * _GAP
-    canvas: Image.Image = image_module.new("RGB", (width, side + _HEADER), (255, 255, 255))
+    canvas: Image.Image = image_module.new("RGB", (width, side + header), (255, 255, 255))
     for k, panel in enumerate(panels):
-        canvas.paste(image_module.fromarray(panel), (k * (side + _GAP), _HEADER))
+        canvas.paste(image_module.fromarray(panel), (k * (side + _GAP), header))
     draw = draw_module.Draw(canvas)
-    draw.text((2, 1), caption, fill=(0, 0, 0))
+    font = _font(scale)
+    lines = note.lines if isinstance(note, StepNote) else (note, "", "")
+    colours = {"accepted": _ACCEPTED, "collided": _REFUSED, "no effect": _NO_EFFECT}
+    action_colour = colours.get(note.outcome, (0, 0, 0)) if isinstance(note, StepNote) else (0, 0, 0)
+    for row, (text, colour) in enumerate(zip(lines, ((0, 0, 0), action_colour, (0, 0, 0)), strict=True)):
+        draw.text((3, 2 + row * line_height), text, fill=colour, font=font)
+    for k, title in enumerate(PANEL_TITLES):
+        draw.text((k * (side + _GAP) + 3, 2 + 3 * line_height), title, fill=(60, 60, 60), font=font)
+    # The paths' colours, at the right of the caption line where there is room.
+    key = [("paths: ", (60, 60, 60)), ("agent", AGENT_PATH), (", ", (60, 60, 60)), ("carried", OBJECT_PATH)]
+    x = width - 3 - sum(draw.textlength(text, font=font) for text, _ in key)
+    if x > 3 + draw.textlength(lines[0], font=font) + 10:
+        for text, colour in key:
+            draw.text((x, 2), text, fill=colour, font=font)
+            x += draw.textlength(text, font=font)
     # Floor (x, z) to the top-down panel's pixels: col = (x - min_x) / m, row = (z - min_z) / m in
     # the frame's resolution, scaled to the panel.
     per_metre = side / (frame.resolution * frame.metres_per_pixel)
     left = 2 * (side + _GAP)
 
     def pixel(point: tuple[float, float]) -> tuple[float, float]:
-        return (left + (point[0] - frame.min_x) * per_metre, _HEADER + (point[1] - frame.min_z) * per_metre)
+        return (left + (point[0] - frame.min_x) * per_metre, header + (point[1] - frame.min_z) * per_metre)
 
     line = max(1, scale)
+    outline = line + 2 * max(1, (scale + 1) // 2)
+
+    def path(points: list[tuple[float, float]], colour: tuple[int, int, int]) -> None:
+        xy = [pixel(p) for p in points]
+        draw.line(xy, fill=_OUTLINE, width=outline, joint="curve")
+        draw.line(xy, fill=colour, width=line, joint="curve")
+
     for stretches in paths.carried.values():
         for stretch in stretches:
             if len(stretch) > 1:
-                draw.line([pixel(p) for p in stretch], fill=OBJECT_PATH, width=line)
+                path(stretch, OBJECT_PATH)
     if len(paths.agent) > 1:
-        draw.line([pixel(p) for p in paths.agent], fill=AGENT_PATH, width=line)
+        path(paths.agent, AGENT_PATH)
     if paths.agent:
         x, y = pixel(paths.agent[-1])
         r = 1.5 * line
-        draw.ellipse((x - r, y - r, x + r, y + r), fill=AGENT_PATH)
+        draw.ellipse((x - r, y - r, x + r, y + r), fill=AGENT_PATH, outline=_OUTLINE)
     composed: Frame = np.asarray(canvas, dtype=np.uint8)
     return composed
 
@@ -199,6 +313,7 @@ def replay_record(
         )
     sensors = Sensors(current_top_down=True)
     frames: list[Frame] = []
+    notes: list[StepNote] = []
     paths = _Paths()
     try:
         episode = client.create_episode(
@@ -212,15 +327,17 @@ def replay_record(
         assert observation is not None
         paths.add(episode.privileged_state())
         total = len(record.actions)
+        reward = 0.0
 
-        def draw(observation: Observation, step: int) -> None:
+        def draw(observation: Observation, step: int, result: StepResult | None) -> None:
             caption = f"{record.scene_id}  {record.agent}  step {step}/{total}"
-            frames.append(
-                compose_frame(observation, goal.image, goal.frame, paths, scale=scale, caption=caption)
-            )
+            action = record.actions[step - 1] if step else None
+            note = step_note(caption, action, result, observation.grasping, reward)
+            notes.append(note)
+            frames.append(compose_frame(observation, goal.image, goal.frame, paths, scale=scale, note=note))
 
         if every_frame or total == 0:
-            draw(observation, 0)
+            draw(observation, 0, None)
         metrics: EpisodeMetrics | None = None
         for k, action in enumerate(record.actions, start=1):
             if metrics is not None:
@@ -232,9 +349,10 @@ def replay_record(
                 result = episode.step(action)
             except EsrpError as error:
                 raise ReplayError(f"step {k} of {record.scene_id} failed: {error}") from error
+            reward += result.reward
             paths.add(episode.privileged_state())
             if every_frame or k == total:
-                draw(result.observation, k)
+                draw(result.observation, k, result)
             if result.ended:
                 metrics = result.metrics
             if progress is not None:
@@ -246,7 +364,7 @@ def replay_record(
         raise ReplayError(
             f"the replay of {record.scene_id} does not reproduce the record: " + "; ".join(different)
         )
-    return Replay(record, frames, metrics)
+    return Replay(record, frames, metrics, notes)
 
 
 def _even(frame: Frame, multiple: int = 16) -> Frame:
@@ -297,9 +415,17 @@ def write_frames(frames: Sequence[Frame], path: str | os.PathLike[str], *, fps: 
 
 def find_record(results: str | os.PathLike[str], scene_id: str) -> EpisodeRecord:
     """The record of `scene_id` in a results file (the last one, if the file holds several)."""
-    found = [r for r in read_records(results).records if r.scene_id == scene_id]
+    try:
+        records = read_records(results).records
+    except OSError as error:
+        raise ReplayError(f"cannot read {results}: {error.strerror or error}") from None
+    except ResultsError as error:
+        raise ReplayError(str(error)) from None
+    found = [r for r in records if r.scene_id == scene_id]
     if not found:
-        raise ReplayError(f"{results} has no record of scene {scene_id!r}")
+        ends = sorted({r.scene_id for r in records if r.scene_id.endswith("/" + scene_id)})
+        hint = f" (did you mean {ends[0]!r}?)" if len(ends) == 1 else ""
+        raise ReplayError(f"{results} has no record of scene {scene_id!r}{hint}")
     return found[-1]
 
 
@@ -322,6 +448,11 @@ def replay_to_file(
 
     def run(address: str) -> Replay:
         with Client(address, token=token, timeout=120) as client:
+            if server is not None:
+                try:
+                    client.server_info()  # fails at once when nothing answers there
+                except ServerUnavailable as error:
+                    raise ReplayError(unreachable(server, error)) from None
             client.wait_healthy(30)
             return replay_record(client, record, scale=scale, every_frame=every_frame)
 

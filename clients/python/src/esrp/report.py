@@ -3,13 +3,16 @@ HTML page (plots and replay stills inlined as PNG data URLs; no script, no exter
 
 For every run (a file, or each agent of a file that holds several) it lays out the paper's tables
 with the paper's rows (SPEC §8) beside them: Table I (SR / OSR / RDR overall), Table II (the same
-per difficulty) and Table III (failure stages); then plots (SR and OSR by difficulty, stage shares,
-the RDR distribution, steps against the horizon) and, for chosen episodes, a replay still (the final
-frame of `esrp.replay`). Needs the `report` extra (matplotlib, Pillow); stills need a server.
+per difficulty, the SR with its 95 % Wilson interval) and Table III (failure stages); then plots
+(SR and OSR by difficulty, stage shares, the RDR distribution, the share of episodes solved within
+k steps) and, for chosen episodes, a replay still (the final frame of `esrp.replay`). Privileged
+agents (plan, expert) are marked as such, and runs over different scenes, or over less than the full
+test split the paper's rows were measured on, are warned about. Needs the `report` extra
+(matplotlib, Pillow); stills need a server.
 
 The HTML marks its numbers for machines: each table has an `id` (`table-overall`,
 `table-difficulty`, `table-stages`), each row a `data-run` (the run's label; the paper's rows
-`data-paper`), each cell a `data-key` (`episodes`, `sr`, `osr`, `rdr`, `easy-sr`..., `stage-1`...).
+`data-paper`), each cell a `data-key` (`episodes`, `sr`, `sr-ci`, `osr`, `rdr`, `easy-sr`..., `stage-1`...).
 """
 
 from __future__ import annotations
@@ -26,10 +29,24 @@ from typing import Any
 
 from . import __version__
 from ._client import Client
+from ._common import unreachable
+from ._errors import ServerUnavailable
 from ._local import LocalServer
-from .results import DIFFICULTIES, PAPER, EpisodeRecord, ResultsError, Tally, fixed, read_records
+from .results import (
+    DIFFICULTIES,
+    PAPER,
+    PAPER_DATASET,
+    PAPER_TEST_SCENES,
+    PRIVILEGED_AGENTS,
+    EpisodeRecord,
+    ResultsError,
+    Tally,
+    fixed,
+    read_records,
+    wilson,
+)
 
-__all__ = ["ReportError", "Run", "load_runs", "write_report"]
+__all__ = ["ReportError", "Run", "coverage_warnings", "load_runs", "write_report"]
 
 _DIFFICULTY_TITLES = {"easy": "Easy", "medium": "Medium", "hard": "Hard"}
 _STAGE_TITLES = ("1 never in reach", "2 never fetched", "3 fetched, no success", "4 success")
@@ -47,6 +64,16 @@ class Run:
     path: Path
     agent: str
     records: list[EpisodeRecord]
+
+    @property
+    def privileged(self) -> bool:
+        """Whether the agent reads the privileged state (plan, expert): a reference."""
+        return self.agent in PRIVILEGED_AGENTS
+
+    @property
+    def shown(self) -> str:
+        """The label as tables and plots show it: privileged agents marked as such."""
+        return f"{self.label} (privileged)" if self.privileged else self.label
 
     @property
     def overall(self) -> Tally:
@@ -84,14 +111,66 @@ def load_runs(paths: Sequence[str | os.PathLike[str]]) -> list[Run]:
     return runs
 
 
+def coverage_warnings(runs: Sequence[Run]) -> list[str]:
+    """What makes the runs' numbers hard to compare with each other or with the paper's rows: runs
+    over different scenes, and runs that are not over the full test split of the paper's dataset
+    (the paper's rows are full-test-split figures).
+    """
+    warnings: list[str] = []
+    scenes = [{r.scene_id for r in run.records} for run in runs]
+    if len(runs) > 1 and any(s != scenes[0] for s in scenes[1:]):
+        common = set.intersection(*scenes)
+        counts = ", ".join(f"{run.label} {len(s)}" for run, s in zip(runs, scenes, strict=True))
+        warnings.append(
+            f"the runs cover different scenes ({counts}; {len(common)} common to all): their rows compare "
+            "different episodes"
+        )
+    for run, ids in zip(runs, scenes, strict=True):
+        datasets = sorted({r.dataset for r in run.records})
+        if datasets != [PAPER_DATASET]:
+            warnings.append(
+                f"{run.label} is of dataset {', '.join(datasets)}; the paper's rows are of {PAPER_DATASET}"
+            )
+            continue
+        test = {r.scene_id for r in run.records if r.split == "test"}
+        if len(test) != len(ids):
+            warnings.append(
+                f"{run.label} holds {len(ids) - len(test)} scenes outside the test split; the paper's rows "
+                "are of the test split"
+            )
+        if len(test) < PAPER_TEST_SCENES:
+            low, high = wilson(run.overall.successes, run.overall.episodes)
+            warnings.append(
+                f"{run.label} covers {len(test)} of the {PAPER_TEST_SCENES} test scenes; the paper's rows "
+                f"are full-test-split figures (this run's SR: {_pct(run.overall.sr)} %, 95 % interval "
+                f"{_pct(low)}–{_pct(high)} %)"
+            )
+    return warnings
+
+
 # Tables: each a header and rows of (cells, marks); cells are text, marks say what they hold.
 
 
 @dataclass
 class _Row:
-    name: str
+    name: str  # the row's data-run / data-paper
     cells: list[tuple[str, str]]  # (data-key, text)
     paper: bool
+    shown: str = ""  # the row's header, where it differs from `name`
+
+    @property
+    def header(self) -> str:
+        return self.shown or self.name
+
+
+def _paper_shown(name: str) -> str:
+    """A paper row's header: its ESRP-PLAN, like ours, reads the privileged state."""
+    return name.replace("(paper)", "(paper, privileged)") if name.startswith("ESRP-PLAN") else name
+
+
+def _sr_interval(t: Tally) -> str:
+    low, high = wilson(t.successes, t.episodes)
+    return f"{_pct(low)}–{_pct(high)}"
 
 
 @dataclass
@@ -111,8 +190,10 @@ def _tables(runs: Sequence[Run]) -> list[_Table]:
     overall = _Table(
         "table-overall",
         "Table I — overall",
-        "SR and OSR in %, RDR as a ratio (lower is better).",
-        ["run", "episodes", "SR", "OSR", "RDR"],
+        "SR and OSR in %, RDR as a ratio (lower is better); SR 95 % CI: the Wilson score interval "
+        "of the SR over the run's episodes. Privileged agents read the simulator's state (SPEC §4): "
+        "references, not ESRP agents proper.",
+        ["run", "episodes", "SR", "SR 95 % CI", "OSR", "RDR"],
         [],
     )
     for run in runs:
@@ -123,10 +204,12 @@ def _tables(runs: Sequence[Run]) -> list[_Table]:
                 [
                     ("episodes", str(t.episodes)),
                     ("sr", _pct(t.sr)),
+                    ("sr-ci", _sr_interval(t)),
                     ("osr", _pct(t.osr)),
                     ("rdr", fixed(t.rdr, 4)),
                 ],
                 False,
+                run.shown,
             )
         )
     for paper in PAPER:
@@ -134,8 +217,15 @@ def _tables(runs: Sequence[Run]) -> list[_Table]:
         overall.rows.append(
             _Row(
                 paper.name,
-                [("episodes", "–"), ("sr", f"{sr:.2f}"), ("osr", f"{osr:.2f}"), ("rdr", f"{rdr:.4f}")],
+                [
+                    ("episodes", "–"),
+                    ("sr", f"{sr:.2f}"),
+                    ("sr-ci", "–"),
+                    ("osr", f"{osr:.2f}"),
+                    ("rdr", f"{rdr:.4f}"),
+                ],
                 True,
+                _paper_shown(paper.name),
             )
         )
 
@@ -162,7 +252,7 @@ def _tables(runs: Sequence[Run]) -> list[_Table]:
                 ]
             else:
                 cells += [(f"{d}-episodes", "0"), (f"{d}-sr", "–"), (f"{d}-osr", "–"), (f"{d}-rdr", "–")]
-        by_difficulty.rows.append(_Row(run.label, cells, False))
+        by_difficulty.rows.append(_Row(run.label, cells, False, run.shown))
     for paper in PAPER:
         cells = []
         for d, (sr, osr, rdr) in zip(DIFFICULTIES, paper.by_difficulty, strict=True):
@@ -172,7 +262,7 @@ def _tables(runs: Sequence[Run]) -> list[_Table]:
                 (f"{d}-osr", f"{osr:.2f}"),
                 (f"{d}-rdr", f"{rdr:.4f}"),
             ]
-        by_difficulty.rows.append(_Row(paper.name, cells, True))
+        by_difficulty.rows.append(_Row(paper.name, cells, True, _paper_shown(paper.name)))
 
     stages = _Table(
         "table-stages",
@@ -184,7 +274,7 @@ def _tables(runs: Sequence[Run]) -> list[_Table]:
     for run in runs:
         t = run.overall
         stages.rows.append(
-            _Row(run.label, [(f"stage-{s}", _pct(t.stage_share(s))) for s in range(1, 5)], False)
+            _Row(run.label, [(f"stage-{s}", _pct(t.stage_share(s))) for s in range(1, 5)], False, run.shown)
         )
     for paper in PAPER:
         if paper.stages is not None:
@@ -193,6 +283,7 @@ def _tables(runs: Sequence[Run]) -> list[_Table]:
                     paper.name,
                     [(f"stage-{s}", f"{v:.2f}") for s, v in enumerate(paper.stages, start=1)],
                     True,
+                    _paper_shown(paper.name),
                 )
             )
     return [overall, by_difficulty, stages]
@@ -202,7 +293,7 @@ def _markdown_table(table: _Table) -> str:
     lines = [f"## {table.title}\n", f"{table.note}\n", "| " + " | ".join(table.header) + " |"]
     lines.append("|" + "---|" * len(table.header))
     for row in table.rows:
-        name = row.name if row.paper else f"**{row.name}**"
+        name = row.header if row.paper else f"**{row.header}**"
         lines.append("| " + " | ".join([name, *(text for _, text in row.cells)]) + " |")
     return "\n".join(lines) + "\n"
 
@@ -214,7 +305,7 @@ def _html_table(table: _Table) -> str:
     for row in table.rows:
         mark = f'data-paper="{e(row.name)}" class="paper"' if row.paper else f'data-run="{e(row.name)}"'
         cells = "".join(f'<td data-key="{e(key)}">{e(text)}</td>' for key, text in row.cells)
-        body.append(f'<tr {mark}><th scope="row">{e(row.name)}</th>{cells}</tr>')
+        body.append(f'<tr {mark}><th scope="row">{e(row.header)}</th>{cells}</tr>')
     return (
         f'<h2>{e(table.title)}</h2>\n<p class="note">{e(table.note)}</p>\n'
         f'<table id="{e(table.table_id)}">\n<thead><tr>{head}</tr></thead>\n<tbody>\n'
@@ -246,7 +337,7 @@ def _colour(k: int) -> str:
 
 
 def _plot_by_difficulty(runs: Sequence[Run]) -> bytes:
-    figure = _figure()
+    figure = _figure(7.0, 3.9)
     sr_axes, osr_axes = figure.subplots(1, 2, sharey=True)
     groups = [*DIFFICULTIES, "overall"]
     width = 0.8 / len(runs)
@@ -255,23 +346,39 @@ def _plot_by_difficulty(runs: Sequence[Run]) -> bytes:
         xs = [g + (k - (len(runs) - 1) / 2) * width for g in range(len(groups))]
         sr = [100 * t.sr if t.episodes else 0.0 for t in tallies]
         osr = [100 * t.osr if t.episodes else 0.0 for t in tallies]
-        sr_axes.bar(xs, sr, width, label=run.label, color=_colour(k))
-        osr_axes.bar(xs, osr, width, label=run.label, color=_colour(k))
-    for axes, name in ((sr_axes, "SR %"), (osr_axes, "OSR %")):
+        # The SR's 95 % Wilson interval as an error bar (none where there are no episodes).
+        intervals = [
+            wilson(t.successes, t.episodes) if t.episodes else (v / 100, v / 100)
+            for t, v in zip(tallies, sr, strict=True)
+        ]
+        below = [max(0.0, v - 100 * low) for v, (low, _) in zip(sr, intervals, strict=True)]
+        above = [max(0.0, 100 * high - v) for v, (_, high) in zip(sr, intervals, strict=True)]
+        sr_axes.bar(
+            xs,
+            sr,
+            width,
+            label=run.shown,
+            color=_colour(k),
+            yerr=[below, above],
+            error_kw={"elinewidth": 0.8, "capsize": 2, "ecolor": "#333333"},
+        )
+        osr_axes.bar(xs, osr, width, color=_colour(k))
+    for axes, name in ((sr_axes, "SR % (95 % Wilson interval)"), (osr_axes, "OSR %")):
         axes.set_xticks(range(len(groups)), [g.capitalize() for g in groups])
         axes.set_title(name)
         axes.set_ylim(0, 105)
         axes.grid(axis="y", alpha=0.3)
-    sr_axes.legend(fontsize="small")
+    # Below the plots, not over the bars.
+    figure.legend(fontsize="small", loc="outside lower center", ncols=min(len(runs), 4))
     return _png(figure)
 
 
 def _plot_stages(runs: Sequence[Run]) -> bytes:
     rows: list[tuple[str, list[float]]] = [
-        (run.label, [100 * run.overall.stage_share(s) for s in range(1, 5)]) for run in runs
+        (run.shown, [100 * run.overall.stage_share(s) for s in range(1, 5)]) for run in runs
     ]
-    rows += [(p.name, list(p.stages)) for p in PAPER if p.stages is not None]
-    figure = _figure(7.0, 0.5 * len(rows) + 1.2)
+    rows += [(_paper_shown(p.name), list(p.stages)) for p in PAPER if p.stages is not None]
+    figure = _figure(7.0, 0.45 * len(rows) + 1.6)
     axes = figure.subplots()
     colours = ("#bab0ac", "#f28e2b", "#e15759", "#59a14f")
     for k, (_, shares) in enumerate(rows):
@@ -284,46 +391,52 @@ def _plot_stages(runs: Sequence[Run]) -> bytes:
     axes.set_xlim(0, 100)
     axes.set_xlabel("% of episodes")
     axes.set_title("Failure stages")
-    axes.legend(fontsize="small", ncols=4, loc="upper center", bbox_to_anchor=(0.5, -0.25))
+    # Outside the axes, in space the layout makes for it (a legend anchored below them is cut off).
+    figure.legend(fontsize="small", ncols=4, loc="outside lower center")
     return _png(figure)
 
 
 def _plot_rdr(runs: Sequence[Run]) -> bytes:
-    figure = _figure()
+    figure = _figure(7.0, 3.9)
     axes = figure.subplots()
     values = [[r.rdr for r in run.records] for run in runs]
     top = max((max(v) for v in values if v), default=1.0)
     bins = [i * max(top, 1.0) / 20 for i in range(21)]
     for k, (run, rdr) in enumerate(zip(runs, values, strict=True)):
-        axes.hist(rdr, bins=bins, alpha=0.6, label=run.label, color=_colour(k))
+        axes.hist(rdr, bins=bins, alpha=0.6, label=run.shown, color=_colour(k))
     axes.axvline(1.0, color="black", linewidth=0.8, linestyle="--")
     axes.set_xlabel("RDR (remaining / initial distance; 1 = no progress)")
     axes.set_ylabel("episodes")
     axes.set_title("RDR distribution")
-    axes.legend(fontsize="small")
+    figure.legend(fontsize="small", loc="outside lower center", ncols=min(len(runs), 4))
     return _png(figure)
 
 
-def _plot_steps(runs: Sequence[Run]) -> bytes:
-    figure = _figure()
+def _plot_solved_by_steps(runs: Sequence[Run]) -> bytes:
+    """The share of each run's episodes solved within k steps, for every k up to the horizon: how
+    fast an agent succeeds, and what a shorter horizon would have cost it (each curve ends at the
+    run's SR).
+    """
+    figure = _figure(7.0, 3.9)
     axes = figure.subplots()
-    top = 1
+    horizons = sorted({r.horizon for run in runs for r in run.records})
+    top = max([*horizons, *(r.steps for run in runs for r in run.records), 1])
     for k, run in enumerate(runs):
-        horizons = [r.horizon for r in run.records]
-        steps = [r.steps for r in run.records]
-        top = max(top, *horizons, *steps)
-        markers = ["o" if r.success else "x" for r in run.records]
-        for marker in ("o", "x"):
-            xs = [h for h, m in zip(horizons, markers, strict=True) if m == marker]
-            ys = [s for s, m in zip(steps, markers, strict=True) if m == marker]
-            if xs:
-                label = f"{run.label} ({'success' if marker == 'o' else 'failure'})"
-                axes.scatter(xs, ys, marker=marker, color=_colour(k), alpha=0.7, label=label)
-    axes.plot([0, top], [0, top], color="black", linewidth=0.8, linestyle="--")
-    axes.set_xlabel("horizon (steps)")
-    axes.set_ylabel("steps taken")
-    axes.set_title("Steps against the horizon")
-    axes.legend(fontsize="small")
+        solved = sorted(r.steps for r in run.records if r.success)
+        total = len(run.records)
+        xs = [0, *solved, top]
+        ys = [0.0, *(100 * (i + 1) / total for i in range(len(solved))), 100 * len(solved) / total]
+        axes.step(xs, ys, where="post", color=_colour(k), label=f"{run.shown} (SR {_pct(run.overall.sr)} %)")
+    for horizon in horizons:
+        axes.axvline(horizon, color="black", linewidth=0.8, linestyle="--")
+    shown = ", ".join(str(h) for h in horizons[:4]) + (" ..." if len(horizons) > 4 else "")
+    axes.set_xlim(0, top * 1.02)
+    axes.set_ylim(0, 105)
+    axes.set_xlabel(f"steps (dashed: the horizon, {shown})")
+    axes.set_ylabel("% of episodes solved")
+    axes.set_title("Episodes solved within k steps")
+    axes.grid(alpha=0.3)
+    figure.legend(fontsize="small", loc="outside lower center", ncols=min(len(runs), 3))
     return _png(figure)
 
 
@@ -371,6 +484,10 @@ def _stills(
         return []
     if server is not None:
         with Client(server, token=token, timeout=120) as client:
+            try:
+                client.server_info()  # fails at once when nothing answers there
+            except ServerUnavailable as error:
+                raise ReportError(unreachable(server, error)) from None
             return draw(client)
     with LocalServer(*server_args) as local, local.client(timeout=120) as client:
         return draw(client)
@@ -399,6 +516,7 @@ tr.paper { color: #666; background: #f6f6f6; }
 figure { display: inline-block; margin: 0.5em; vertical-align: top; }
 figcaption { font-size: 0.85em; color: #444; }
 img { max-width: 100%; border: 1px solid #ddd; }
+.warnings { background: #fff6e0; border: 1px solid #e8c36a; padding: 0.2em 1em; }
 """
 
 
@@ -425,12 +543,21 @@ def write_report(
         ("sr_osr_by_difficulty", "SR and OSR by difficulty", _plot_by_difficulty(runs)),
         ("stages", "Failure stages (the paper's rows below the runs)", _plot_stages(runs)),
         ("rdr", "RDR distribution", _plot_rdr(runs)),
-        ("steps_vs_horizon", "Steps taken against the horizon (o success, x failure)", _plot_steps(runs)),
+        (
+            "solved_by_steps",
+            "Episodes solved within k steps (each curve ends at the run's SR; dashed: the horizon)",
+            _plot_solved_by_steps(runs),
+        ),
     ]
     stills = _stills(_choose(runs, replays, replay_scenes), server, token, server_args)
 
+    warnings = coverage_warnings(runs)
+    for warning in warnings:
+        print(f"esrp report: warning: {warning}", file=sys.stderr)
     sources = ", ".join(f"`{run.path.name}` ({run.label}, {len(run.records)} episodes)" for run in runs)
     md = [f"# {title}\n", f"Runs: {sources}. The paper's rows are its Tables I–III (SPEC §8).\n"]
+    if warnings:
+        md.append("**Read with care:**\n\n" + "".join(f"- {w}\n" for w in warnings))
     md += [_markdown_table(t) for t in tables]
     md.append("## Plots\n")
     for name, caption, png in plots:
@@ -461,6 +588,12 @@ def write_report(
         f'<p class="note">Runs: {e(sources.replace("`", ""))}. '
         "The paper&#8217;s rows (grey) are its Tables I–III (SPEC §8).</p>",
     ]
+    if warnings:
+        page.append(
+            '<div class="warnings"><p><strong>Read with care:</strong></p><ul>'
+            + "".join(f"<li>{e(w)}</li>" for w in warnings)
+            + "</ul></div>"
+        )
     page += [_html_table(t) for t in tables]
     page.append("<h2>Plots</h2>")
     for name, caption, png in plots:

@@ -19,6 +19,9 @@ from typing import IO, Any
 __all__ = [
     "DIFFICULTIES",
     "PAPER",
+    "PAPER_DATASET",
+    "PAPER_TEST_SCENES",
+    "PRIVILEGED_AGENTS",
     "SCHEMA",
     "EpisodeRecord",
     "PaperRow",
@@ -31,6 +34,7 @@ __all__ = [
     "read_records",
     "scene_seed",
     "truncate_to",
+    "wilson",
 ]
 
 SCHEMA = "esrp.results/v1"
@@ -319,6 +323,33 @@ PAPER: tuple[PaperRow, ...] = (
 """The paper's Tables I–III (SPEC §8)."""
 
 
+PAPER_DATASET = "esrp-bench-v1"
+"""The dataset of the paper's rows."""
+
+PAPER_TEST_SCENES = 544
+"""The scenes of esrp-bench-v1's test split, over which the paper's rows were measured."""
+
+PRIVILEGED_AGENTS = ("plan", "expert")
+"""The agents that read the simulator's privileged state (SPEC §4): references, not ESRP agents
+proper. The paper's ESRP-PLAN is privileged too."""
+
+
+def wilson(successes: int, trials: int, z: float = 1.959964) -> tuple[float, float]:
+    """The Wilson score interval of a success rate, 0..1 (95 % with the default `z`); `(0, 1)`
+    without trials.
+    """
+    if trials == 0:
+        return 0.0, 1.0
+    p = successes / trials
+    z2 = z * z
+    centre = (p + z2 / (2 * trials)) / (1 + z2 / trials)
+    half = z / (1 + z2 / trials) * math.sqrt(p * (1 - p) / trials + z2 / (4 * trials * trials))
+    # Exact at the ends (rounding would leave 0.9999999999999999 for all successes).
+    low = 0.0 if successes == 0 else max(0.0, centre - half)
+    high = 1.0 if successes == trials else min(1.0, centre + half)
+    return low, high
+
+
 def fixed(value: float, digits: int) -> str:
     """`value` with `digits` decimals, as Rust's `{:.N}` writes it (`NaN`, `inf` included)."""
     if math.isnan(value):
@@ -344,15 +375,20 @@ class Summary:
     by_difficulty: dict[str, Tally]
 
     @classmethod
-    def of(cls, records: Sequence[EpisodeRecord]) -> Summary:
-        """The summary of `records` (the agent's name is the first record's)."""
+    def of(cls, records: Sequence[EpisodeRecord], agent: str | None = None) -> Summary:
+        """The summary of `records`; the agent's name is `agent`, else the first record's."""
         by_difficulty: dict[str, Tally] = {}
         for record in records:
             by_difficulty.setdefault(record.difficulty, Tally()).add(record)
-        return cls(records[0].agent if records else "", Tally.of(records), by_difficulty)
+        name = agent if agent is not None else records[0].agent if records else "?"
+        return cls(name, Tally.of(records), by_difficulty)
 
     def text(self) -> str:
-        """A few lines for a terminal: SR / OSR / RDR overall and per difficulty."""
+        """A few lines for a terminal: SR / OSR / RDR overall and per difficulty (one line saying so
+        when there are no episodes).
+        """
+        if self.overall.episodes == 0:
+            return "no episodes recorded: no SR, OSR or RDR to give\n"
         lines = []
         for name, tally in [("overall", self.overall)] + [
             (d, self.by_difficulty[d]) for d in DIFFICULTIES if d in self.by_difficulty
@@ -370,6 +406,11 @@ class Summary:
         (SPEC §8) beside them, then stage shares and step counts — the Rust tool's text.
         """
         t = self.overall
+        if t.episodes == 0:
+            return (
+                f"# {title}\n\nNo episodes recorded for **{self.agent}**: there is no SR, OSR or RDR "
+                "to give (every episode failed with an error, or none was played).\n"
+            )
         md = [
             f"# {title}\n\n",
             f"SR and OSR in %, RDR as a ratio (lower is better). {t.episodes} episodes. "

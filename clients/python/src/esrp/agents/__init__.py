@@ -97,7 +97,10 @@ def load_factory(spec: str) -> AgentFactory:
     """
     module_name, sep, attribute = spec.partition(":")
     if not sep or not module_name or not attribute:
-        raise ValueError(f"agent {spec!r} is neither random, expert, plan nor MODULE:CALLABLE")
+        raise ValueError(
+            f"agent {spec!r} is none of random, expert, plan, vlm, bc, ppo, nor MODULE:CALLABLE "
+            "(a factory of agents, e.g. my_agents:make_agent)"
+        )
     try:
         target: Any = importlib.import_module(module_name)
     except ImportError as error:
