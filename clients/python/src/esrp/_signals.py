@@ -23,6 +23,7 @@ that section ends. Leaving the block after a signal stops any tracked child stil
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import os
 import signal
@@ -219,11 +220,22 @@ def stop_on_signals(command: str, *, grace: float = 10.0) -> Iterator[None]:
         if not state.dropped(unraisable):
             previous_hook(unraisable)
 
+    def at_exit() -> None:
+        # Where C code calls back into Python and meets a `SystemExit`, the interpreter exits at
+        # once (`PyErr_Print`), with the status (143) but without unwinding this block: say what
+        # happened, and stop the children, here.
+        if state.signum is not None:
+            stop_tracked()
+            word = "terminated" if state.signum == signal.SIGTERM else "interrupted"
+            print(f"{command}: {word}", file=sys.stderr, flush=True)
+
     previous = {signum: signal.signal(signum, state.handle) for signum in STATUS}
     sys.unraisablehook = hook
+    atexit.register(at_exit)
     try:
         yield
     finally:
+        atexit.unregister(at_exit)
         state.done.set()
         _active = None
         sys.unraisablehook = previous_hook
