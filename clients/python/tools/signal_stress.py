@@ -141,7 +141,10 @@ def signalled_run(
         seconds = time.monotonic() - sent
         err.seek(0)
         stderr = err.read().decode(errors="replace")
-    left = [pid for pid in _leftovers(marker) if pid != child.pid]
+    # The server gets a moment to finish its own graceful exit.
+    settle = time.monotonic() + 10
+    while (left := [pid for pid in _leftovers(marker) if pid != child.pid]) and time.monotonic() < settle:
+        time.sleep(0.05)
     for pid in left:
         with contextlib.suppress(OSError):
             os.kill(pid, signal.SIGKILL)

@@ -88,14 +88,15 @@ struct Args {
     #[arg(long, default_value_t = 10.0)]
     rss_growth_limit: f64,
     /// `soak`: the claim timeout of the server named by `--server` (its `--claim-timeout-seconds`),
-    /// which the cleanup waits for. A server started here gets `--claim-timeout-seconds 10`
-    /// unless `--server-arg` sets it.
+    /// which the cleanup waits for. A server started here gets `--claim-timeout-seconds 60`
+    /// unless `--server-arg` sets it (the soak's clients leave some episodes unnamed for many
+    /// seconds under load: a shorter timeout closes episodes they still hold).
     #[arg(long, default_value_t = 300)]
     server_claim_timeout: u64,
 }
 
 /// The claim timeout given to a server started here (soak's cleanup waits for it).
-const LOCAL_CLAIM_TIMEOUT: u64 = 10;
+const LOCAL_CLAIM_TIMEOUT: u64 = 60;
 
 /// One scenario's result.
 #[derive(Debug, Default, Clone)]
