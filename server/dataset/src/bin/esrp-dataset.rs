@@ -237,10 +237,11 @@ fn generate(
         let n = starts.len() as f64;
         let fallbacks = starts.iter().filter(|s| s.fallback).count();
         let min_rule = bench.start_rule().min_clearance;
+        let coarse = bench.start_rule().cells[0];
         println!(
             "start poses: {} of {} at least {min_rule} m from every object, {fallbacks} the farthest reachable \
-             ({} within fetch reach); {:.2} m from the nearest object on average; drive {:.1} actions, search \
-             {:.0} positions on average (at most {})",
+             ({} within fetch reach); {:.2} m from the nearest object on average; drive {:.1} actions; search \
+             {:.0} positions on average (at most {}), {} on a grid finer than {coarse} m",
             starts.len() - fallbacks,
             starts.len(),
             starts.iter().filter(|s| s.clearance <= esrp_core::Rules::default().fetch_reach).count(),
@@ -248,6 +249,7 @@ fn generate(
             starts.iter().map(|s| s.drive as f64).sum::<f64>() / n,
             starts.iter().map(|s| s.searched as f64).sum::<f64>() / n,
             starts.iter().map(|s| s.searched).max().unwrap_or(0),
+            starts.iter().filter(|s| s.cell < coarse).count(),
         );
     }
     if failures > 0 {
