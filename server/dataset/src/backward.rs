@@ -223,24 +223,30 @@ pub fn plan_to_fetch(start: &Episode, target: usize, max_nodes: usize) -> Option
         let turns = ((bearing_to(e, target) - MAX_FETCH_BEARING).max(0.0) / esrp_core::TURN_ANGLE).floor();
         moves + turns
     };
-    let key = |e: &Episode| {
-        let p = e.agent_pose();
+    let key = |p: esrp_core::AgentPose| {
         ((p.position.x / 0.02).round() as i64, (p.position.z / 0.02).round() as i64, p.heading.index())
     };
     // Nodes: (episode, parent, action, cost so far).
     let mut nodes: Vec<(Episode, usize, Action, f64)> = vec![(start.clone(), usize::MAX, Action::Fetch, 0.0)];
-    let mut seen = HashSet::from([key(start)]);
+    let mut seen = HashSet::from([key(start.agent_pose())]);
     let mut frontier = BinaryHeap::from([Frontier { priority: heuristic(start), node: 0 }]);
     while let Some(Frontier { node, .. }) = frontier.pop() {
         if nodes.len() > max_nodes {
             return None;
         }
         for action in [Action::MoveForward, Action::TurnLeft, Action::TurnRight, Action::MoveBackward] {
-            let mut next = nodes[node].0.clone();
-            let Ok(outcome) = next.step(action) else { continue };
-            if !outcome.accepted || !seen.insert(key(&next)) {
+            // A motion into a pose already seen is skipped whether or not it is accepted, so it
+            // is skipped before its collision check (`pose_after` is the pose `step` gives).
+            let pose_key = key(nodes[node].0.pose_after(action));
+            if seen.contains(&pose_key) {
                 continue;
             }
+            let mut next = nodes[node].0.clone();
+            let Ok(outcome) = next.step(action) else { continue };
+            if !outcome.accepted {
+                continue;
+            }
+            seen.insert(pose_key);
             let cost = nodes[node].3 + 1.0;
             if can_fetch_facing(&next, target) {
                 let mut path = vec![action];
