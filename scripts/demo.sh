@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The main job: builds esrp-server, starts it on the built-in benchmark esrp-bench-v1 (on a free
+# The main job: builds esrp-server, starts it on the built-in benchmark esrp-bench-v2 (on a free
 # local port, rendering on the GPU or on lavapipe), and runs a short evaluation against it over
 # gRPC: the expert and a random agent on a few test scenes, printing SR / OSR / RDR.
 # Usage: bash scripts/demo.sh [SCENES]   (default 6)

@@ -32,13 +32,13 @@ def esrp_v1() -> None:
     def put(name: str, message_kind: str, message: object) -> None:
         write("esrp_v1_requests", name, bytes([kind[message_kind]]) + message.SerializeToString())  # type: ignore[attr-defined]
 
-    put("create-scene-id", "create", pb.CreateEpisodeRequest(scene_id="esrp-bench-v1/00003", seed=7))
+    put("create-scene-id", "create", pb.CreateEpisodeRequest(scene_id="esrp-bench-v2/00003", seed=7))
     put("create-split", "create", pb.CreateEpisodeRequest(split=pb.SPLIT_TEST, horizon=300))
     put(
         "create-sensors-reward",
         "create",
         pb.CreateEpisodeRequest(
-            scene_id="esrp-bench-v1/00000",
+            scene_id="esrp-bench-v2/00000",
             sensors=pb.Sensors(ego_depth=True, ego_segmentation=True, current_top_down=True, resolution=256),
             reward=pb.RewardWeights(success=10.0, place=1.0, unplace=-1.0, potential=0.1, holding=0.0, living=-0.01),
             privileged=True,
@@ -51,7 +51,7 @@ def esrp_v1() -> None:
     put("batch", "batch", pb.StepBatchRequest(steps=steps))
     put("batch-duplicate", "batch", pb.StepBatchRequest(steps=[steps[0], steps[0]]))
     put("reset", "reset", pb.ResetRequest(episode_id="episode-0"))
-    put("reset-scene", "reset", pb.ResetRequest(episode_id="episode-0", scene_id="esrp-bench-v1/00001"))
+    put("reset-scene", "reset", pb.ResetRequest(episode_id="episode-0", scene_id="esrp-bench-v2/00001"))
     put("reset-json", "reset", pb.ResetRequest(episode_id="episode-0", scene_json=SCENES[0].read_text()))
     put("plan", "plan", pb.PlanActionsRequest(episode_id="episode-0", max_actions=20, budget_ms=500))
 
@@ -64,7 +64,7 @@ def dm_env() -> None:
         return {key: tensor_utils.pack_tensor(value) for key, value in values.items()}
 
     create = dm.CreateWorldRequest(
-        settings=settings(scene="esrp-bench-v1/00002", seed=3, horizon=250, resolution=64, ego_depth=True)
+        settings=settings(scene="esrp-bench-v2/00002", seed=3, horizon=250, resolution=64, ego_depth=True)
     )
     put("create-world", dm.EnvironmentRequest(create_world=create))
     split = dm.CreateWorldRequest(settings=settings(split="test", current_top_down=True, ego_segmentation=False))
@@ -73,7 +73,7 @@ def dm_env() -> None:
     step = dm.StepRequest(actions={1: tensor_utils.pack_tensor(2)}, requested_observations=[1, 2, 3])
     put("step", dm.EnvironmentRequest(step=step))
     put("reset", dm.EnvironmentRequest(reset=dm.ResetRequest()))
-    reset_world = dm.ResetWorldRequest(world_name="world-0", settings=settings(scene="esrp-bench-v1/00000"))
+    reset_world = dm.ResetWorldRequest(world_name="world-0", settings=settings(scene="esrp-bench-v2/00000"))
     put("reset-world", dm.EnvironmentRequest(reset_world=reset_world))
     put("destroy-world", dm.EnvironmentRequest(destroy_world=dm.DestroyWorldRequest(world_name="world-0")))
 

@@ -18,7 +18,7 @@ def server() -> Iterator[RunningServer]:
 
 @pytest.fixture(scope="session")
 def expert() -> ExpertScene:
-    """esrp-bench-v1/00003 and its expert actions."""
+    """esrp-bench-v2/00003 and its expert actions."""
     return expert_scene(3)
 
 

@@ -97,7 +97,7 @@ class ExpertScene:
 
 
 def expert_scene(index: int) -> ExpertScene:
-    """Scene `index` of esrp-bench-v1 as `esrp-dataset generate` writes it.
+    """Scene `index` of esrp-bench-v2 as `esrp-dataset generate` writes it.
 
     Generation depends only on (seed, index), so this is the scene the server builds for the same
     id; its file carries the expert trajectory, which the dm_env_rpc API does not reveal.

@@ -19,7 +19,7 @@ from harness import RunningServer, Session
 # Small images: the suites step often and look at specs, not pixels.
 WORLD_SETTINGS = {
     "resolution": tensor_utils.pack_tensor(32),
-    "scene": tensor_utils.pack_tensor("esrp-bench-v1/00003"),
+    "scene": tensor_utils.pack_tensor("esrp-bench-v2/00003"),
 }
 TURN_LEFT = 2
 

@@ -23,7 +23,7 @@ def buffer_of(array: npt.NDArray[np.generic]) -> object:
 def test_server_info(client: esrp.Client) -> None:
     info = client.server_info()
     assert info.version
-    assert info.dataset == "esrp-bench-v1"
+    assert info.dataset == "esrp-bench-v2"
     assert info.renderer_backend in ("gl", "vulkan")
     assert info.limits.max_batch == 1024
     assert info.limits.max_message_bytes == 64 << 20
@@ -33,7 +33,7 @@ def test_server_info(client: esrp.Client) -> None:
 
 def test_describe_dataset(client: esrp.Client) -> None:
     dataset = client.describe_dataset()
-    assert dataset.name == "esrp-bench-v1"
+    assert dataset.name == "esrp-bench-v2"
     assert dataset.scenes == 5495
     assert dataset.by_split == {"train": 4951, "test": 544}
     assert sum(dataset.by_difficulty.values()) == dataset.scenes
@@ -53,7 +53,7 @@ def test_scenes_are_paged_and_filtered(client: esrp.Client) -> None:
     assert all(scene.difficulty is esrp.Difficulty.HARD and 4 <= scene.movable_objects <= 6 for scene in hard)
     assert [s.id for s in hard] == [s.id for s in test if s.difficulty is esrp.Difficulty.HARD]
     first = next(iter(client.scenes(page_size=1)))
-    assert first.id == "esrp-bench-v1/00000"
+    assert first.id == "esrp-bench-v2/00000"
 
 
 def test_episode_lifecycle(client: esrp.Client, easy_scenes: list[str]) -> None:

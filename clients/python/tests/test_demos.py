@@ -78,7 +78,7 @@ def test_a_store_of_another_resolution_is_refused(
     out = tmp_path / "demos.zarr"
     assert export(server, out, "--split", "test", "--scenes", easy_scenes[0], "--resolution", "64") == 0
     assert export(server, out, "--split", "test", "--scenes", easy_scenes[0]) == 2
-    assert "at 64 px, not esrp-bench-v1 at 128 px" in capsys.readouterr().err
+    assert "at 64 px, not esrp-bench-v2 at 128 px" in capsys.readouterr().err
 
 
 def test_dagger_records_the_planners_label_at_each_state_the_agent_visits(

@@ -45,8 +45,8 @@ def test_episode_not_found(client: esrp.Client) -> None:
 
 def test_scene_not_found(client: esrp.Client) -> None:
     with pytest.raises(esrp.SceneNotFound) as caught:
-        client.create_episode("esrp-bench-v1/99999")
-    check(caught.value, grpc.StatusCode.NOT_FOUND, 'no scene "esrp-bench-v1/99999"')
+        client.create_episode("esrp-bench-v2/99999")
+    check(caught.value, grpc.StatusCode.NOT_FOUND, 'no scene "esrp-bench-v2/99999"')
 
 
 def test_invalid_request(client: esrp.Client) -> None:
@@ -71,7 +71,7 @@ def test_invalid_request(client: esrp.Client) -> None:
     with pytest.raises(esrp.InvalidRequest, match="unknown split"):
         client.scenes("validation")
     with pytest.raises(esrp.InvalidRequest, match="not both"):
-        client.create_episode("esrp-bench-v1/00000", scene_json="{}")
+        client.create_episode("esrp-bench-v2/00000", scene_json="{}")
 
 
 def test_episode_ended(client: esrp.Client) -> None:

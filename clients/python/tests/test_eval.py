@@ -81,7 +81,7 @@ def check_records(records: list[EpisodeRecord], agent: str) -> None:
     for r in records:
         assert r.agent == agent
         assert r.schema == "esrp.results/v1"
-        assert r.dataset == "esrp-bench-v1"
+        assert r.dataset == "esrp-bench-v2"
         assert r.split == "test"
         assert len(r.actions) == r.steps
         assert r.end in ("success", "horizon", "agent")

@@ -54,4 +54,4 @@ def test_calls_work_with_the_setting(server: esrp.LocalServer) -> None:
         "        print((await c.server_info()).dataset)\n"
         "asyncio.run(main())\n"
     )
-    assert _run(code).split() == ["esrp-bench-v1", "esrp-bench-v1"]
+    assert _run(code).split() == ["esrp-bench-v2", "esrp-bench-v2"]

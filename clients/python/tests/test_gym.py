@@ -87,7 +87,7 @@ def test_seed_picks_the_scene_deterministically(server: esrp.LocalServer, client
     finally:
         first.close()
         second.close()
-    assert second.client.server_info().dataset == "esrp-bench-v1"  # the shared client was not closed
+    assert second.client.server_info().dataset == "esrp-bench-v2"  # the shared client was not closed
 
 
 def test_episode_ends_and_metrics(server: esrp.LocalServer, easy_scenes: list[str]) -> None:
@@ -158,7 +158,7 @@ def test_scene_list_is_drawn_from(client: esrp.Client, easy_scenes: list[str]) -
         assert drawn == set(chosen)
     finally:
         env.close()
-    for bad in ([], ["esrp-bench-v1/00003", ""], [3]):
+    for bad in ([], ["esrp-bench-v2/00003", ""], [3]):
         with pytest.raises(ValueError, match="scene"):
             RearrangeEnv(client=client, scene=bad)  # type: ignore[arg-type]
 

@@ -86,7 +86,7 @@ def test_a_record_that_does_not_replay_is_an_error(
     with pytest.raises(ReplayError, match="steps 200 \\(replay 10\\)"):
         replay_record(client, fewer, every_frame=False)
     other = dataclasses.replace(record, dataset="another-dataset")
-    with pytest.raises(ReplayError, match="serves 'esrp-bench-v1'"):
+    with pytest.raises(ReplayError, match="serves 'esrp-bench-v2'"):
         replay_record(client, other, every_frame=False)
     args = ["replay", "--results", str(random_records), "--scene", "nope", "--out", "x.gif"]
     assert main([*args, "--server", server.address]) == 2

@@ -71,7 +71,7 @@ def test_python_reads_the_rust_tools_files(
         records = read.records
         assert sorted(r.scene_id for r in records) == sorted(scenes.split(","))
         assert all(r.client.startswith("esrp-eval ") and r.agent == agent for r in records)
-        python_summary = Summary.of(records).markdown(f"{agent} on esrp-bench-v1 (test split)")
+        python_summary = Summary.of(records).markdown(f"{agent} on esrp-bench-v2 (test split)")
         assert tables(python_summary) == tables(out.with_suffix(".md").read_text())
         # The Rust tool's records replay on the server with the Python client.
         replay_record(client, records[0], every_frame=False)

@@ -35,7 +35,7 @@ def test_tls_and_token(tmp_path: Path) -> None:
         for tls in (cert.read_bytes(), cert, grpc.ssl_channel_credentials(cert.read_bytes())):
             with esrp.Client(f"localhost:{port}", tls=tls, token="s3cret", timeout=30) as client:
                 client.wait_healthy()
-                assert client.server_info().dataset == "esrp-bench-v1"
+                assert client.server_info().dataset == "esrp-bench-v2"
                 with client.create_episode(split="test") as episode:
                     assert episode.step(esrp.Action.LEFT).info.step_index == 1
         # https:// with the name checked against the certificate's, not the address's.

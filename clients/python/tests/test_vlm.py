@@ -98,7 +98,7 @@ def test_settings_defaults_and_paths() -> None:
     assert settings.fallback == esrp.Action.RIGHT
     assert settings.temperature == 1
     assert default_trace_dir(Path("runs/qwen.jsonl")) == Path("runs/qwen.traces")
-    assert trace_file_name("esrp-bench-v1/00007") == "esrp-bench-v1_00007.jsonl"
+    assert trace_file_name("esrp-bench-v2/00007") == "esrp-bench-v2_00007.jsonl"
     assert is_async_agent(VlmAgentFactory({"model": "m"}, client=object())())
 
 

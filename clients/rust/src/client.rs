@@ -175,7 +175,7 @@ impl SceneFilter {
 /// # async fn demo() -> Result<(), esrp_client::ClientError> {
 /// use esrp_client::{Action, Client, EpisodeOptions};
 /// let client = Client::connect("http://127.0.0.1:50051").token("secret").await?;
-/// let (mut episode, first) = client.create_episode(EpisodeOptions::scene("esrp-bench-v1/00017")).await?;
+/// let (mut episode, first) = client.create_episode(EpisodeOptions::scene("esrp-bench-v2/00017")).await?;
 /// assert_eq!(first.ego_rgb.width(), 128);
 /// let result = episode.step(Action::TurnLeft).await?;
 /// println!("reward {}", result.reward);

@@ -705,6 +705,24 @@ impl Episode {
         AgentPose { position: self.state.position, heading: self.state.heading }
     }
 
+    /// The pose the agent would have after `action` if it were accepted, with exactly the
+    /// arithmetic of [`Episode::step`] (bit for bit), without checking the motion: the current
+    /// pose for `fetch` and `release`. A search can skip the collision check of a motion that
+    /// leads to a pose it has already seen.
+    pub fn pose_after(&self, action: Action) -> AgentPose {
+        let heading = self.state.heading;
+        match action {
+            Action::MoveForward | Action::MoveBackward => {
+                let sign = if action == Action::MoveForward { 1 } else { -1 };
+                let position = self.state.counts.moved(heading, sign).position(self.start_position());
+                AgentPose { position, heading }
+            }
+            Action::TurnLeft => AgentPose { position: self.state.position, heading: heading.left() },
+            Action::TurnRight => AgentPose { position: self.state.position, heading: heading.right() },
+            Action::Fetch | Action::Release => self.agent_pose(),
+        }
+    }
+
     /// The held object, if any (the observation's `grasping` flag is `held().is_some()`).
     pub fn held(&self) -> Option<usize> {
         self.state.grip.map(|g| g.object)

@@ -39,6 +39,13 @@ pub enum Rejection {
     /// The expert trajectory did not replay to success.
     #[error("the expert replay did not succeed")]
     ReplayFailed,
+    /// The drive to the esrp-bench-v2 start pose was not accepted (esrp-core rules it out).
+    #[error("the drive to the start pose was not accepted")]
+    StartDrive,
+    /// The expert trajectory from the esrp-bench-v2 start pose did not replay to success (the
+    /// drive is reversible, so this should not happen).
+    #[error("the expert replay from the start pose did not succeed")]
+    StartReplay,
 }
 
 impl Rejection {
@@ -51,6 +58,8 @@ impl Rejection {
             Rejection::NoReleaseSpot(_) => "no_release_spot",
             Rejection::Invalid(_) => "invalid",
             Rejection::ReplayFailed => "replay_failed",
+            Rejection::StartDrive => "start_drive",
+            Rejection::StartReplay => "start_replay",
         }
     }
 }
@@ -214,24 +223,30 @@ pub fn plan_to_fetch(start: &Episode, target: usize, max_nodes: usize) -> Option
         let turns = ((bearing_to(e, target) - MAX_FETCH_BEARING).max(0.0) / esrp_core::TURN_ANGLE).floor();
         moves + turns
     };
-    let key = |e: &Episode| {
-        let p = e.agent_pose();
+    let key = |p: esrp_core::AgentPose| {
         ((p.position.x / 0.02).round() as i64, (p.position.z / 0.02).round() as i64, p.heading.index())
     };
     // Nodes: (episode, parent, action, cost so far).
     let mut nodes: Vec<(Episode, usize, Action, f64)> = vec![(start.clone(), usize::MAX, Action::Fetch, 0.0)];
-    let mut seen = HashSet::from([key(start)]);
+    let mut seen = HashSet::from([key(start.agent_pose())]);
     let mut frontier = BinaryHeap::from([Frontier { priority: heuristic(start), node: 0 }]);
     while let Some(Frontier { node, .. }) = frontier.pop() {
         if nodes.len() > max_nodes {
             return None;
         }
         for action in [Action::MoveForward, Action::TurnLeft, Action::TurnRight, Action::MoveBackward] {
-            let mut next = nodes[node].0.clone();
-            let Ok(outcome) = next.step(action) else { continue };
-            if !outcome.accepted || !seen.insert(key(&next)) {
+            // A motion into a pose already seen is skipped whether or not it is accepted, so it
+            // is skipped before its collision check (`pose_after` is the pose `step` gives).
+            let pose_key = key(nodes[node].0.pose_after(action));
+            if seen.contains(&pose_key) {
                 continue;
             }
+            let mut next = nodes[node].0.clone();
+            let Ok(outcome) = next.step(action) else { continue };
+            if !outcome.accepted {
+                continue;
+            }
+            seen.insert(pose_key);
             let cost = nodes[node].3 + 1.0;
             if can_fetch_facing(&next, target) {
                 let mut path = vec![action];
@@ -253,8 +268,31 @@ pub fn plan_to_fetch(start: &Episode, target: usize, max_nodes: usize) -> Option
 
 /// Runs backward construction on `target` (a scene whose movable objects stand at their
 /// targets), returning the finished scene: initial layout, agent start, expert trajectory and
-/// horizon, validated by esrp-core and replayed to success.
-pub fn construct(mut target: Scene, dice: &mut Dice, params: &ConstructionParams) -> Result<Scene, Rejection> {
+/// horizon, validated by esrp-core and replayed to success. The agent starts where the
+/// generator released its last object (esrp-bench-v1's rule).
+pub fn construct(target: Scene, dice: &mut Dice, params: &ConstructionParams) -> Result<Scene, Rejection> {
+    construct_run(target, dice, params).map(|c| c.scene)
+}
+
+/// A finished backward construction: the scene of [`construct`] and the generator's state after
+/// its last release, from which esrp-bench-v2 drives the agent away ([`crate::start`]).
+#[derive(Clone, Debug)]
+pub struct Construction {
+    /// The scene, starting at the last release pose, validated and replayed to success.
+    pub scene: Scene,
+    /// The generator's episode after its last release (nothing held).
+    pub episode: Episode,
+    /// The generator's accepted actions from its first fetch to its last release: the expert
+    /// trajectory is this reversed and inverted.
+    pub run: Vec<Action>,
+}
+
+/// [`construct`], keeping the generator's final state and run.
+pub fn construct_run(
+    mut target: Scene,
+    dice: &mut Dice,
+    params: &ConstructionParams,
+) -> Result<Construction, Rejection> {
     target.agent = place_agent(&target, dice).ok_or(Rejection::NoAgentStart)?;
     let compiled = CompiledScene::for_backward_construction(target.clone(), Rules::default()).map_err(|e| match e {
         esrp_core::SceneError::AgentInCollision { .. } | esrp_core::SceneError::AgentOutsideRoom => {
@@ -289,10 +327,11 @@ pub fn construct(mut target: Scene, dice: &mut Dice, params: &ConstructionParams
     // The approach to the first object is not part of the demonstration: reversed, it would
     // trail after the final release, which already ends the episode in success.
     let first_fetch = run.iter().position(|a| *a == Action::Fetch).unwrap_or(0);
-    scene.expert_trajectory = reverse_trajectory(&run[first_fetch..]);
+    run.drain(..first_fetch);
+    scene.expert_trajectory = reverse_trajectory(&run);
     scene.horizon = horizon_for(scene.expert_trajectory.len());
     validate_by_replay(&scene)?;
-    Ok(scene)
+    Ok(Construction { scene, episode, run })
 }
 
 /// Steps `action`, recording it when it took effect; returns whether it did.

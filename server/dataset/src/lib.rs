@@ -9,7 +9,10 @@
 //! - [`layout`]: room plans and furnishing rules per room type; the choice of movable pieces.
 //! - [`backward`]: the rule-based agent that moves objects away from their targets, the expert
 //!   trajectory and the replay check.
-//! - [`benchmark`]: `esrp-bench-v1`, 5,495 scenes defined by a seed, any one generated alone.
+//! - [`benchmark`]: `esrp-bench-v2` (the default) and `esrp-bench-v1`, 5,495 scenes defined by a
+//!   seed, any one generated alone.
+//! - [`start`]: esrp-bench-v2's start pose away from the objects, drawn among the poses the
+//!   generator can reach after its last release, and the check of that rule.
 //! - [`front`]: the 3D-FRONT importer: houses and 3D-FUTURE models to scene pairs.
 //! - [`files`]: the on-disk format (`manifest.json` and `scenes/*.json`), written atomically.
 //! - [`stats`]: dataset statistics as JSON and PNG plots.
@@ -34,7 +37,12 @@ pub mod dice;
 pub mod files;
 pub mod front;
 pub mod layout;
+pub mod start;
 pub mod stats;
 
-pub use backward::{ConstructionParams, Rejection, construct, validate_by_replay};
-pub use benchmark::{BENCH_NAME, BENCH_SCENES, Benchmark, DEFAULT_SEED, Generated, GenerationFailed, split_for_id};
+pub use backward::{Construction, ConstructionParams, Rejection, construct, construct_run, validate_by_replay};
+pub use benchmark::{
+    BENCH_SCENES, BENCH_V1, BENCH_V2, BenchVersion, Benchmark, DEFAULT_SEED, Generated, GenerationFailed,
+    UnknownBenchmark, split_for_id,
+};
+pub use start::{StartReport, StartRule, StartViolation, check_start};

@@ -1,11 +1,13 @@
 //! Dataset statistics (the paper's Fig. 4 and §IV-B): counts by room type, movable category,
-//! difficulty and split, and the clutter level — the sum over a scene's movable objects of the
-//! plan distance between initial and target positions — as JSON and as PNG plots.
+//! difficulty and split, the clutter level — the sum over a scene's movable objects of the plan
+//! distance between initial and target positions — and where the agent starts: its plan distance
+//! to the nearest movable footprint and the index of the expert's first `fetch` (0 in
+//! esrp-bench-v1, the length of the drive back in esrp-bench-v2), as JSON and as PNG plots.
 
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use esrp_core::Scene;
+use esrp_core::{CompiledScene, Rules, Scene};
 use plotters::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -13,6 +15,10 @@ use crate::files::{FilesError, write_atomic};
 
 /// Width of one clutter histogram bin, metres.
 pub const CLUTTER_BIN: f64 = 0.5;
+/// Width of one start-distance histogram bin, metres.
+pub const START_DISTANCE_BIN: f64 = 0.25;
+/// Width of one first-fetch histogram bin, steps.
+pub const FIRST_FETCH_BIN: usize = 5;
 
 /// Statistics of a set of scenes.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -40,6 +46,36 @@ pub struct Stats {
     pub mean_expert_length: f64,
     /// Mean fixed objects per scene.
     pub mean_fixed_objects: f64,
+    /// Scenes per bin of [`START_DISTANCE_BIN`] metres of the start's plan distance to the
+    /// nearest movable footprint (key: bin's lower edge in centimetres).
+    #[serde(default)]
+    pub start_distance_histogram: BTreeMap<u32, usize>,
+    /// Mean plan distance from the agent's start to the nearest movable footprint, metres.
+    #[serde(default)]
+    pub mean_start_distance: f64,
+    /// Scenes whose agent starts within fetch reach of a movable object.
+    #[serde(default)]
+    pub starts_within_reach: usize,
+    /// Scenes per bin of [`FIRST_FETCH_BIN`] steps of the index of the expert's first `fetch`
+    /// (key: bin's lower edge).
+    #[serde(default)]
+    pub first_fetch_histogram: BTreeMap<usize, usize>,
+    /// Mean index of the expert's first `fetch` (the steps before it), steps.
+    #[serde(default)]
+    pub mean_first_fetch: f64,
+}
+
+/// The plan distance from the agent's start to the nearest movable object's footprint at its
+/// initial pose (`None` if the scene does not compile; infinite without movable objects).
+pub fn start_distance(scene: &Scene) -> Option<f64> {
+    let compiled = CompiledScene::new(scene.clone(), Rules::default()).ok()?;
+    let poses: Vec<_> = scene.movable_objects.iter().map(|o| o.pose).collect();
+    Some(crate::start::object_clearance(&compiled, &poses, esrp_core::PlanPoint::new(scene.agent.x, scene.agent.z)))
+}
+
+/// The index of the expert trajectory's first `fetch` (its length if it has none).
+pub fn first_fetch(scene: &Scene) -> usize {
+    scene.expert_trajectory.iter().position(|a| *a == esrp_core::Action::Fetch).unwrap_or(scene.expert_trajectory.len())
 }
 
 /// The clutter level of a scene: the sum over movable objects of the plan distance between
@@ -67,10 +103,22 @@ impl Stats {
         self.mean_clutter += (level - self.mean_clutter) / n;
         self.mean_expert_length += (scene.expert_trajectory.len() as f64 - self.mean_expert_length) / n;
         self.mean_fixed_objects += (scene.fixed_objects.len() as f64 - self.mean_fixed_objects) / n;
+        if let Some(distance) = start_distance(scene).filter(|d| d.is_finite()) {
+            let bin = ((distance / START_DISTANCE_BIN).floor() * START_DISTANCE_BIN * 100.0).round() as u32;
+            *self.start_distance_histogram.entry(bin).or_default() += 1;
+            let measured = self.start_distance_histogram.values().sum::<usize>() as f64;
+            self.mean_start_distance += (distance - self.mean_start_distance) / measured;
+            if distance <= Rules::default().fetch_reach {
+                self.starts_within_reach += 1;
+            }
+        }
+        let fetch = first_fetch(scene);
+        *self.first_fetch_histogram.entry(fetch / FIRST_FETCH_BIN * FIRST_FETCH_BIN).or_default() += 1;
+        self.mean_first_fetch += (fetch as f64 - self.mean_first_fetch) / n;
     }
 
-    /// Writes `stats.json` and the plots `room_types.png`, `categories.png`, `difficulty.png`
-    /// and `clutter.png` into `out`.
+    /// Writes `stats.json` and the plots `room_types.png`, `categories.png`, `difficulty.png`,
+    /// `clutter.png`, `start_distance.png` and `first_fetch.png` into `out`.
     pub fn write(&self, out: &Path) -> Result<(), StatsError> {
         std::fs::create_dir_all(out).map_err(|source| FilesError::Io { path: out.to_owned(), source })?;
         let mut json = serde_json::to_string_pretty(self).unwrap_or_default();
@@ -98,6 +146,17 @@ impl Stats {
             &clutter,
             900,
         )?;
+        let starts: Vec<(String, usize)> =
+            self.start_distance_histogram.iter().map(|(k, v)| (format!("{:.2}", f64::from(*k) / 100.0), *v)).collect();
+        bar_chart(
+            &out.join("start_distance.png"),
+            "Start: distance to the nearest movable object (m, bin lower edge)",
+            &starts,
+            900,
+        )?;
+        let fetches: Vec<(String, usize)> =
+            self.first_fetch_histogram.iter().map(|(k, v)| (format!("{k}-{}", k + FIRST_FETCH_BIN - 1), *v)).collect();
+        bar_chart(&out.join("first_fetch.png"), "Expert: steps before the first fetch", &fetches, 900)?;
         Ok(())
     }
 }

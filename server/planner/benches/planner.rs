@@ -6,14 +6,14 @@ use std::sync::Arc;
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use esrp_core::{CompiledScene, Episode, EpisodeConfig, Rules};
-use esrp_dataset::{Benchmark, DEFAULT_SEED};
+use esrp_dataset::{BenchVersion, Benchmark, DEFAULT_SEED};
 use esrp_planner::{PlanOptions, plan};
 
 /// Test-split scenes: one of each difficulty.
 const SCENES: [(&str, usize); 3] = [("easy_00047", 47), ("medium_00117", 117), ("hard_00168", 168)];
 
 fn episode(index: usize) -> Episode {
-    let scene = Benchmark::new(DEFAULT_SEED).generate(index).expect("the scene generates").scene;
+    let scene = Benchmark::new(BenchVersion::V1, DEFAULT_SEED).generate(index).expect("the scene generates").scene;
     let compiled = CompiledScene::new(scene, Rules::default()).expect("a valid scene");
     Episode::new(Arc::new(compiled), EpisodeConfig::default()).expect("a valid configuration")
 }

@@ -1,7 +1,8 @@
-//! `cargo run --release -p esrp-planner --example plan_split -- [--limit N] [--difficulty hard]
-//! [--scenes ID,..] [--threads 2] [--verbose]`
+//! `cargo run --release -p esrp-planner --example plan_split -- [--benchmark esrp-bench-v1]
+//! [--limit N] [--difficulty hard] [--scenes ID,..] [--threads 2] [--verbose]`
 //!
-//! Generates the benchmark's test split (esrp-bench-v1, the default seed), plans every scene
+//! Generates the benchmark's test split (esrp-bench-v2 unless `--benchmark` says, the default
+//! seed), plans every scene
 //! from its start with the default options, replays each plan on a fresh episode, and prints
 //! SR / OSR / RDR overall and per difficulty, plan length against the expert's, planning time
 //! (median, p99, max) and the failures with their scene ids. A failed plan is scored by
@@ -15,19 +16,22 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, bail};
 use clap::Parser;
 use esrp_core::{AggregateMetrics, CompiledScene, Difficulty, Episode, EpisodeConfig, EpisodeMetrics, Split};
-use esrp_dataset::{Benchmark, DEFAULT_SEED, split_for_id};
+use esrp_dataset::{BenchVersion, Benchmark, DEFAULT_SEED};
 use esrp_planner::{PlanFailure, PlanOptions, plan};
 
 #[derive(Parser, Debug)]
 #[command(about = "Plan the benchmark's test split and report SR / OSR / RDR and planning time")]
 struct Args {
+    /// The built-in benchmark: esrp-bench-v2 or esrp-bench-v1.
+    #[arg(long, default_value_t = BenchVersion::default(), value_parser = parse_version)]
+    benchmark: BenchVersion,
     /// Plan at most this many scenes (in index order).
     #[arg(long)]
     limit: Option<usize>,
     /// Only scenes of this difficulty.
     #[arg(long, value_parser = parse_difficulty)]
     difficulty: Option<Difficulty>,
-    /// Only these scenes (ids like esrp-bench-v1/00042, or indices), comma-separated; any split.
+    /// Only these scenes (ids like esrp-bench-v2/00042, or indices), comma-separated; any split.
     #[arg(long, value_delimiter = ',')]
     scenes: Vec<String>,
     /// Worker threads (each generates and plans its own scenes).
@@ -71,6 +75,10 @@ impl Args {
     }
 }
 
+fn parse_version(name: &str) -> Result<BenchVersion, String> {
+    name.parse().map_err(|e: esrp_dataset::UnknownBenchmark| e.to_string())
+}
+
 fn parse_difficulty(text: &str) -> Result<Difficulty, String> {
     match text {
         "easy" => Ok(Difficulty::Easy),
@@ -96,9 +104,9 @@ struct Row {
 
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
-    let bench = Arc::new(Benchmark::new(DEFAULT_SEED));
+    let bench = Arc::new(Benchmark::new(args.benchmark, DEFAULT_SEED));
     let mut indices: Vec<usize> = if args.scenes.is_empty() {
-        (0..bench.len()).filter(|&i| split_for_id(&bench.scene_id(i)) == Split::Test).collect()
+        (0..bench.len()).filter(|&i| bench.split(i) == Split::Test).collect()
     } else {
         args.scenes
             .iter()
@@ -107,7 +115,7 @@ fn main() -> anyhow::Result<()> {
                     .ok()
                     .filter(|&i| i < bench.len())
                     .or_else(|| bench.index_of(s.trim()))
-                    .with_context(|| format!("no scene {s:?} in {}", esrp_dataset::BENCH_NAME))
+                    .with_context(|| format!("no scene {s:?} in {}", bench.name()))
             })
             .collect::<anyhow::Result<_>>()?
     };

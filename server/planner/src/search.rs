@@ -475,7 +475,7 @@ pub(crate) mod tests {
 
     /// Benchmark scene `index` at its start.
     pub(crate) fn bench_episode(index: usize) -> Episode {
-        let scene = esrp_dataset::Benchmark::new(esrp_dataset::DEFAULT_SEED)
+        let scene = esrp_dataset::Benchmark::new(esrp_dataset::BenchVersion::V1, esrp_dataset::DEFAULT_SEED)
             .generate(index)
             .expect("the scene generates")
             .scene;

@@ -6,6 +6,7 @@ use std::time::Duration;
 
 use clap::builder::{PossibleValuesParser, TypedValueParser};
 use clap::{Parser, ValueEnum};
+use esrp_dataset::BenchVersion;
 use esrp_render::BackendPreference;
 
 /// Log output format.
@@ -25,10 +26,20 @@ pub struct Config {
     #[arg(long, env = "ESRP_LISTEN", default_value = "127.0.0.1:50051")]
     pub listen: SocketAddr,
     /// Serve this dataset folder (from `esrp-dataset generate` or `import-3dfront`) instead of
-    /// the built-in benchmark esrp-bench-v1.
+    /// the built-in benchmark.
     #[arg(long, env = "ESRP_DATASET")]
     pub dataset: Option<PathBuf>,
-    /// Seed of the built-in benchmark (0 is esrp-bench-v1).
+    /// The built-in benchmark: esrp-bench-v2 (the agent starts away from the objects) or
+    /// esrp-bench-v1 (it starts within reach of the last object the generator put down; kept
+    /// unchanged for published results). Not used with --dataset.
+    #[arg(
+        long,
+        env = "ESRP_BENCHMARK",
+        default_value_t = BenchVersion::default(),
+        value_parser = PossibleValuesParser::new(BenchVersion::NAMES).try_map(|name| name.parse::<BenchVersion>()),
+    )]
+    pub benchmark: BenchVersion,
+    /// Seed of the built-in benchmark (0 is the published one).
     #[arg(long, env = "ESRP_BENCH_SEED", default_value_t = 0)]
     pub bench_seed: u64,
     /// Most live episodes; CreateEpisode beyond it fails with RESOURCE_EXHAUSTED.

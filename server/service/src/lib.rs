@@ -1,7 +1,8 @@
 //! **esrp-server**: the ESRP environment server. A tonic gRPC service (`esrp.v1.Esrp`) hosting
 //! many concurrent episodes, each with its own simulator state (esrp-core) and views rendered
 //! in batches across all episodes by one render thread (esrp-render), on the built-in
-//! benchmark esrp-bench-v1 (scenes generated lazily by index) or a dataset folder.
+//! benchmark esrp-bench-v2 or esrp-bench-v1 (`--benchmark`; scenes generated lazily by index) or a
+//! dataset folder.
 //!
 //! # Module map
 //!
@@ -82,7 +83,7 @@ impl tonic::service::Interceptor for TokenCheck {
 pub fn build_shared(config: &Config) -> Result<Arc<episodes::Shared>, ServeError> {
     let store = match &config.dataset {
         Some(dir) => scenes::SceneStore::folder(dir)?,
-        None => scenes::SceneStore::built_in(config.bench_seed),
+        None => scenes::SceneStore::built_in(config.benchmark, config.bench_seed),
     };
     let backends = config.render_backend;
     let renderer = esrp_render::Renderer::new(esrp_render::RendererConfig { backends, ..Default::default() })?;

@@ -6,8 +6,8 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 
 use esrp_core::{CompiledScene, Difficulty, Scene, Split};
-use esrp_dataset::Benchmark;
 use esrp_dataset::files::Dataset;
+use esrp_dataset::{BenchVersion, Benchmark};
 
 use crate::error::ServiceError;
 
@@ -52,15 +52,15 @@ pub struct SceneStore {
 }
 
 impl SceneStore {
-    /// The built-in benchmark of `seed`.
-    pub fn built_in(seed: u64) -> Self {
-        let bench = Benchmark::new(seed);
+    /// The built-in benchmark `version` of `seed`.
+    pub fn built_in(version: BenchVersion, seed: u64) -> Self {
+        let bench = Benchmark::new(version, seed);
         let infos: Vec<SceneInfo> = (0..bench.len())
             .map(|i| {
                 let id = bench.scene_id(i);
                 let count = bench.object_count(i);
                 SceneInfo {
-                    split: esrp_dataset::split_for_id(&id),
+                    split: bench.split(i),
                     id,
                     room_type: bench.room_type(i).to_owned(),
                     difficulty: Difficulty::for_object_count(count).unwrap_or(Difficulty::Hard),
@@ -70,12 +70,8 @@ impl SceneStore {
                 }
             })
             .collect();
-        let name = if seed == esrp_dataset::DEFAULT_SEED {
-            esrp_dataset::BENCH_NAME.to_owned()
-        } else {
-            format!("{}-s{seed}", esrp_dataset::BENCH_NAME)
-        };
-        Self::new(Source::BuiltIn(bench), infos, name, format!("built-in (seed {seed})"))
+        let name = bench.name();
+        Self::new(Source::BuiltIn(bench), infos, name, format!("built-in {version} (seed {seed})"))
     }
 
     /// A dataset folder.

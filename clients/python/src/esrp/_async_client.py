@@ -63,7 +63,7 @@ class AsyncClient:
 
     Example:
         >>> async with esrp.AsyncClient("127.0.0.1:50051") as client:            # doctest: +SKIP
-        ...     async with await client.create_episode("esrp-bench-v1/00017") as episode:
+        ...     async with await client.create_episode("esrp-bench-v2/00017") as episode:
         ...         result = await episode.step(esrp.Action.LEFT)
     """
 

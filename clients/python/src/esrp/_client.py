@@ -96,7 +96,7 @@ class Client:
 
     Example:
         >>> with esrp.Client("127.0.0.1:50051") as client:            # doctest: +SKIP
-        ...     with client.create_episode("esrp-bench-v1/00017") as episode:
+        ...     with client.create_episode("esrp-bench-v2/00017") as episode:
         ...         result = episode.step(esrp.Action.LEFT)
     """
 

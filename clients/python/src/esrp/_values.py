@@ -282,7 +282,7 @@ class SceneSummary:
     """A summary of one scene.
 
     Attributes:
-        id: The scene id, e.g. `esrp-bench-v1/00042`.
+        id: The scene id, e.g. `esrp-bench-v2/00042`.
         room_type: The 3D-FRONT room type, e.g. `MasterBedroom`.
         difficulty: Easy, medium or hard (None if the server sent an unknown value).
         split: Train or test (None if the server sent an unknown value).

@@ -13,10 +13,10 @@ async fn server_dataset_and_scene_listing() {
     let client = client(&server).await;
     client.wait_healthy(Duration::from_secs(10)).await.expect("healthy");
     let info = client.server_info().await.unwrap();
-    assert_eq!(info.dataset, "esrp-bench-v1");
+    assert_eq!(info.dataset, "esrp-bench-v2");
     assert!(info.limits.max_episodes > 0);
     let dataset = client.describe_dataset().await.unwrap();
-    assert_eq!(dataset.name, "esrp-bench-v1");
+    assert_eq!(dataset.name, "esrp-bench-v2");
     let tests = dataset.by_split["test"] as usize;
 
     // Paging: small pages give the same scenes, in the same order, as one listing.

@@ -168,7 +168,7 @@ async fn an_abandoned_plan_stops_its_planner() {
     let client = client(&server).await;
     // The slowest test scene to plan (seconds in a release build).
     let (episode, _) =
-        client.create_episode(EpisodeOptions::scene("esrp-bench-v1/03437").privileged(true)).await.expect("created");
+        client.create_episode(EpisodeOptions::scene("esrp-bench-v2/03437").privileged(true)).await.expect("created");
     let mut request = tonic::Request::new(esrp_client::proto::PlanActionsRequest {
         episode_id: episode.id().to_owned(),
         max_actions: 0,

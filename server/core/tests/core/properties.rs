@@ -178,6 +178,21 @@ proptest! {
         }
         prop_assert_eq!(a.metrics(), b.metrics());
     }
+
+    /// (e) `pose_after` predicts, bit for bit, the pose every accepted action leads to.
+    #[test]
+    fn pose_after_is_the_pose_an_accepted_action_leads_to(seed in any::<u64>()) {
+        let mut e = episode(seed);
+        for action in random_actions(seed, 80) {
+            if e.is_over() {
+                break;
+            }
+            let predicted = e.pose_after(action);
+            if e.step(action).unwrap().accepted {
+                prop_assert_eq!(e.agent_pose(), predicted, "seed {}: {:?}", seed, action);
+            }
+        }
+    }
 }
 
 proptest! {

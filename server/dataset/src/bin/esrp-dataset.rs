@@ -11,7 +11,7 @@ use clap::{Parser, Subcommand};
 use esrp_dataset::files::{Dataset, MANIFEST_SCHEMA, Manifest, write_manifest, write_scene};
 use esrp_dataset::front::{ImportOptions, import};
 use esrp_dataset::stats::Stats;
-use esrp_dataset::{BENCH_NAME, Benchmark, DEFAULT_SEED, validate_by_replay};
+use esrp_dataset::{BenchVersion, Benchmark, DEFAULT_SEED, StartRule, check_start, validate_by_replay};
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 
@@ -24,7 +24,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Generate scenes of the built-in benchmark (esrp-bench-v1) into a folder.
+    /// Generate scenes of a built-in benchmark (esrp-bench-v2 unless --benchmark says) into a
+    /// folder.
     Generate {
         /// Output folder (gets manifest.json and scenes/).
         #[arg(long)]
@@ -35,7 +36,12 @@ enum Command {
         /// Index of the first scene.
         #[arg(long, default_value_t = 0)]
         first: usize,
-        /// Benchmark seed (0 is esrp-bench-v1 itself).
+        /// The built-in benchmark: esrp-bench-v2 (the agent starts away from the objects) or
+        /// esrp-bench-v1 (it starts at the generator's last release; kept unchanged for
+        /// published results).
+        #[arg(long, default_value_t = BenchVersion::default(), value_parser = parse_version)]
+        benchmark: BenchVersion,
+        /// Benchmark seed (0 is the published benchmark itself).
         #[arg(long, default_value_t = DEFAULT_SEED)]
         seed: u64,
         /// Worker threads (default: all cores).
@@ -45,7 +51,8 @@ enum Command {
         #[arg(long)]
         force: bool,
     },
-    /// Check every scene of a dataset: schema, esrp-core validation and expert replay.
+    /// Check every scene of a dataset: schema, esrp-core validation and expert replay, and for
+    /// esrp-bench-v2 scenes the start-pose rule (away from every object, SPEC §7).
     Validate {
         /// Dataset folder.
         dir: PathBuf,
@@ -93,6 +100,9 @@ enum Command {
         /// Read scenes from this dataset folder instead of generating them.
         #[arg(long)]
         dataset: Option<PathBuf>,
+        /// The built-in benchmark when generating (a scene id names its own).
+        #[arg(long, default_value_t = BenchVersion::default(), value_parser = parse_version)]
+        benchmark: BenchVersion,
         /// Benchmark seed when generating.
         #[arg(long, default_value_t = DEFAULT_SEED)]
         seed: u64,
@@ -105,15 +115,22 @@ enum Command {
     },
     /// Print one scene as JSON: from a dataset folder, or generated from the built-in benchmark.
     Show {
-        /// Scene id (e.g. esrp-bench-v1/00042) or index into the built-in benchmark.
+        /// Scene id (e.g. esrp-bench-v2/00042) or index into the built-in benchmark.
         id: String,
         /// Read the scene from this dataset folder instead of generating it.
         #[arg(long)]
         dataset: Option<PathBuf>,
+        /// The built-in benchmark of an index (a scene id names its own).
+        #[arg(long, default_value_t = BenchVersion::default(), value_parser = parse_version)]
+        benchmark: BenchVersion,
         /// Benchmark seed when generating.
         #[arg(long, default_value_t = DEFAULT_SEED)]
         seed: u64,
     },
+}
+
+fn parse_version(name: &str) -> Result<BenchVersion, String> {
+    name.parse().map_err(|e: esrp_dataset::UnknownBenchmark| e.to_string())
 }
 
 fn progress(len: usize, what: &str) -> ProgressBar {
@@ -126,8 +143,15 @@ fn progress(len: usize, what: &str) -> ProgressBar {
     bar
 }
 
-fn generate(out: &Path, scenes: Option<usize>, first: usize, seed: u64, force: bool) -> Result<bool> {
-    let bench = Benchmark::new(seed);
+fn generate(
+    out: &Path,
+    scenes: Option<usize>,
+    first: usize,
+    version: BenchVersion,
+    seed: u64,
+    force: bool,
+) -> Result<bool> {
+    let bench = Benchmark::new(version, seed);
     if first >= bench.len() {
         bail!("--first {first} is past the end: the benchmark has {} scenes (0..{})", bench.len(), bench.len());
     }
@@ -141,6 +165,7 @@ fn generate(out: &Path, scenes: Option<usize>, first: usize, seed: u64, force: b
     let started = Instant::now();
     let bar = progress(count, "generate");
     let rejections: Mutex<BTreeMap<String, usize>> = Mutex::new(BTreeMap::new());
+    let starts: Mutex<Vec<esrp_dataset::StartReport>> = Mutex::new(Vec::new());
     let results: Vec<(Result<esrp_dataset::files::ManifestEntry, String>, f64)> = (first..first + count)
         .into_par_iter()
         .map(|index| {
@@ -153,6 +178,9 @@ fn generate(out: &Path, scenes: Option<usize>, first: usize, seed: u64, force: b
                         for (reason, n) in &generated.rejections {
                             *totals.entry((*reason).to_owned()).or_default() += n;
                         }
+                    }
+                    if let (Some(start), Ok(mut starts)) = (generated.start, starts.lock()) {
+                        starts.push(start);
                     }
                     write_scene(out, &generated.scene).map_err(|e| e.to_string())
                 }
@@ -180,7 +208,7 @@ fn generate(out: &Path, scenes: Option<usize>, first: usize, seed: u64, force: b
     let rejections = rejections.into_inner().unwrap_or_default();
     let manifest = Manifest {
         schema: MANIFEST_SCHEMA.to_owned(),
-        name: if seed == DEFAULT_SEED { BENCH_NAME.to_owned() } else { format!("{BENCH_NAME}-s{seed}") },
+        name: bench.name(),
         generator: format!("esrp-dataset {}", env!("CARGO_PKG_VERSION")),
         seed: Some(seed),
         rejections: rejections.clone(),
@@ -204,6 +232,26 @@ fn generate(out: &Path, scenes: Option<usize>, first: usize, seed: u64, force: b
     );
     let rejected: usize = rejections.values().sum();
     println!("rejected attempts: {rejected} {rejections:?}");
+    let starts = starts.into_inner().unwrap_or_default();
+    if !starts.is_empty() {
+        let n = starts.len() as f64;
+        let fallbacks = starts.iter().filter(|s| s.fallback).count();
+        let min_rule = bench.start_rule().min_clearance;
+        let coarse = bench.start_rule().cells[0];
+        println!(
+            "start poses: {} of {} at least {min_rule} m from every object, {fallbacks} the farthest reachable \
+             ({} within fetch reach); {:.2} m from the nearest object on average; drive {:.1} actions; search \
+             {:.0} positions on average (at most {}), {} on a grid finer than {coarse} m",
+            starts.len() - fallbacks,
+            starts.len(),
+            starts.iter().filter(|s| s.clearance <= esrp_core::Rules::default().fetch_reach).count(),
+            starts.iter().map(|s| s.clearance).sum::<f64>() / n,
+            starts.iter().map(|s| s.drive as f64).sum::<f64>() / n,
+            starts.iter().map(|s| s.searched as f64).sum::<f64>() / n,
+            starts.iter().map(|s| s.searched).max().unwrap_or(0),
+            starts.iter().filter(|s| s.cell < coarse).count(),
+        );
+    }
     if failures > 0 {
         eprintln!("{failures} scene(s) could not be generated");
     }
@@ -271,7 +319,15 @@ fn validate(dir: &Path) -> Result<bool> {
                 Ok(scene) if scene.id != entry.id => {
                     Some(format!("the file holds scene {:?}, the manifest says {:?}", scene.id, entry.id))
                 }
-                Ok(scene) => validate_by_replay(&scene).err().map(|e| e.to_string()),
+                Ok(scene) => validate_by_replay(&scene)
+                    .map_err(|e| e.to_string())
+                    .and_then(|()| match BenchVersion::of_scene_id(&scene.id) {
+                        Some(BenchVersion::V2) => check_start(&scene, &StartRule::default())
+                            .map(|_| ())
+                            .map_err(|e| format!("start pose: {e}")),
+                        _ => Ok(()),
+                    })
+                    .err(),
             };
             bar.inc(1);
             outcome.map(|reason| (entry.id.clone(), reason))
@@ -297,26 +353,26 @@ fn stats(dir: &Path, out: &Path) -> Result<()> {
     Ok(())
 }
 
-fn show(id: &str, dataset: Option<&Path>, seed: u64) -> Result<()> {
-    println!("{}", load_scene(id, dataset, seed)?.to_json_pretty());
+fn show(id: &str, dataset: Option<&Path>, version: BenchVersion, seed: u64) -> Result<()> {
+    println!("{}", load_scene(id, dataset, version, seed)?.to_json_pretty());
     Ok(())
 }
 
-/// A scene by id: read from a dataset folder, or generated from the built-in benchmark (by id or
-/// index).
-fn load_scene(id: &str, dataset: Option<&Path>, seed: u64) -> Result<esrp_core::Scene> {
+/// A scene by id: read from a dataset folder, or generated from the built-in benchmark (by id,
+/// whose prefix names the version, or by index into `version`).
+fn load_scene(id: &str, dataset: Option<&Path>, version: BenchVersion, seed: u64) -> Result<esrp_core::Scene> {
     Ok(match dataset {
         Some(dir) => {
             Dataset::open(dir)?.scene_by_id(id).with_context(|| format!("no scene {id:?} in {}", dir.display()))??
         }
         None => {
-            let bench = Benchmark::new(seed);
+            let bench = Benchmark::new(BenchVersion::of_scene_id(id).unwrap_or(version), seed);
             let index = match id.parse::<usize>() {
                 Ok(i) if i < bench.len() => i,
                 _ => bench.index_of(id).with_context(|| {
                     format!(
                         "{id:?} is not a scene of {} (ids {} to {})",
-                        BENCH_NAME,
+                        bench.name(),
                         bench.scene_id(0),
                         bench.scene_id(bench.len() - 1)
                     )
@@ -332,6 +388,7 @@ fn render(
     scene: Option<&str>,
     sheet: Option<usize>,
     dataset: Option<&Path>,
+    version: BenchVersion,
     seed: u64,
     resolution: u32,
     out: &Path,
@@ -351,7 +408,7 @@ fn render(
                 data.manifest().scenes.iter().take(count).map(|e| data.read_scene(e)).collect::<Result<_, _>>()?
             }
             None => {
-                let bench = Benchmark::new(seed);
+                let bench = Benchmark::new(version, seed);
                 (0..count.min(bench.len()))
                     .into_par_iter()
                     .map(|i| bench.generate(i).map(|g| g.scene))
@@ -366,7 +423,7 @@ fn render(
         return Ok(());
     }
     let id = scene.context("give --scene ID or --sheet N")?;
-    let compiled = compile(load_scene(id, dataset, seed)?)?;
+    let compiled = compile(load_scene(id, dataset, version, seed)?)?;
     let pngs = esrp_render::render_scene_pngs(&renderer, &compiled, resolution)?;
     for (name, bytes) in [("ego.png", &pngs.ego), ("goal.png", &pngs.goal), ("current.png", &pngs.current)] {
         esrp_dataset::files::write_atomic(&out.join(name), bytes)?;
@@ -378,12 +435,12 @@ fn render(
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::Generate { out, scenes, first, seed, threads, force } => {
+        Command::Generate { out, scenes, first, benchmark, seed, threads, force } => {
             if let Some(threads) = threads {
                 // Only fails if a pool was already built, which cannot happen here.
                 let _ = rayon::ThreadPoolBuilder::new().num_threads(threads).build_global();
             }
-            generate(&out, scenes, first, seed, force)
+            generate(&out, scenes, first, benchmark, seed, force)
         }
         Command::Import3dFront { front, future, out, seed, max_houses, force } => {
             let options = ImportOptions { seed, max_houses, ..ImportOptions::default() };
@@ -392,10 +449,10 @@ fn main() -> ExitCode {
         Command::Validate { dir } => validate(&dir),
         Command::Stats { dir, out } => stats(&dir, &out).map(|()| true),
         #[cfg(feature = "render")]
-        Command::Render { scene, sheet, dataset, seed, resolution, out } => {
-            render(scene.as_deref(), sheet, dataset.as_deref(), seed, resolution, &out).map(|()| true)
+        Command::Render { scene, sheet, dataset, benchmark, seed, resolution, out } => {
+            render(scene.as_deref(), sheet, dataset.as_deref(), benchmark, seed, resolution, &out).map(|()| true)
         }
-        Command::Show { id, dataset, seed } => show(&id, dataset.as_deref(), seed).map(|()| true),
+        Command::Show { id, dataset, benchmark, seed } => show(&id, dataset.as_deref(), benchmark, seed).map(|()| true),
     };
     match result {
         Ok(true) => ExitCode::SUCCESS,

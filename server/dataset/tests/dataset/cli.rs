@@ -36,7 +36,8 @@ fn generate_validate_stats_and_show() {
     let files = files_in(&a);
     assert_eq!(files.len(), 6);
     assert_eq!(files, files_in(&b));
-    assert!(files[0].0.starts_with("esrp-bench-v1_00010"));
+    // esrp-bench-v2 is the default.
+    assert!(files[0].0.starts_with("esrp-bench-v2_00010"));
     // Refuses to overwrite without --force.
     let out = run(&["generate", "--out", a.to_str().unwrap(), "--scenes", "1"]);
     assert!(!out.status.success() && text(&out).contains("--force"), "{}", text(&out));
@@ -48,21 +49,68 @@ fn generate_validate_stats_and_show() {
     let stats = tmp.path().join("stats");
     let out = run(&["stats", a.to_str().unwrap(), "--out", stats.to_str().unwrap()]);
     assert!(out.status.success(), "{}", text(&out));
-    for plot in ["room_types.png", "categories.png", "difficulty.png", "clutter.png"] {
+    for plot in
+        ["room_types.png", "categories.png", "difficulty.png", "clutter.png", "start_distance.png", "first_fetch.png"]
+    {
         let bytes = std::fs::read(stats.join(plot)).unwrap();
         assert_eq!(&bytes[1..4], b"PNG", "{plot}");
     }
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(stats.join("stats.json")).unwrap()).unwrap();
     assert_eq!(json["scenes"], 6);
+    // v2 starts away from the objects: the expert drives before its first fetch.
+    assert!(json["mean_first_fetch"].as_f64().unwrap() > 0.0, "{json}");
+    assert!(json["mean_start_distance"].as_f64().unwrap() > 1.0, "{json}");
 
     // `show` by id from the folder equals the file; by index it generates the same scene.
-    let out = run(&["show", "esrp-bench-v1/00012", "--dataset", a.to_str().unwrap()]);
+    let out = run(&["show", "esrp-bench-v2/00012", "--dataset", a.to_str().unwrap()]);
     assert!(out.status.success(), "{}", text(&out));
     let shown = String::from_utf8(out.stdout).unwrap();
     let generated = run(&["show", "12"]);
     assert_eq!(shown, String::from_utf8(generated.stdout).unwrap());
-    let file = std::fs::read_to_string(a.join("scenes/esrp-bench-v1_00012.json")).unwrap();
+    let file = std::fs::read_to_string(a.join("scenes/esrp-bench-v2_00012.json")).unwrap();
     assert_eq!(shown, file);
+}
+
+#[test]
+fn esrp_bench_v1_stays_selectable() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("v1");
+    let out = run(&["generate", "--benchmark", "esrp-bench-v1", "--out", dir.to_str().unwrap(), "--scenes", "2"]);
+    assert!(out.status.success(), "{}", text(&out));
+    let manifest: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("manifest.json")).unwrap()).unwrap();
+    assert_eq!(manifest["name"], "esrp-bench-v1");
+    let file = std::fs::read_to_string(dir.join("scenes/esrp-bench-v1_00001.json")).unwrap();
+    // A v1 id names its version; an index takes --benchmark.
+    let by_id = run(&["show", "esrp-bench-v1/00001"]);
+    assert_eq!(String::from_utf8(by_id.stdout).unwrap(), file);
+    let by_index = run(&["show", "1", "--benchmark", "esrp-bench-v1"]);
+    assert_eq!(String::from_utf8(by_index.stdout).unwrap(), file);
+    let stats = tmp.path().join("stats");
+    assert!(run(&["stats", dir.to_str().unwrap(), "--out", stats.to_str().unwrap()]).status.success());
+    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(stats.join("stats.json")).unwrap()).unwrap();
+    assert_eq!(json["mean_first_fetch"], 0.0, "{json}");
+    assert_eq!(json["starts_within_reach"], 2, "{json}");
+    let out = run(&["validate", dir.to_str().unwrap()]);
+    assert!(out.status.success() && text(&out).contains("2 of 2 scenes valid"), "{}", text(&out));
+    let out = run(&["generate", "--benchmark", "esrp-bench-v3", "--out", dir.to_str().unwrap()]);
+    assert!(!out.status.success() && text(&out).contains("unknown benchmark"), "{}", text(&out));
+}
+
+#[test]
+fn validate_checks_the_v2_start_rule() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("d");
+    assert!(run(&["generate", "--out", dir.to_str().unwrap(), "--scenes", "1", "--first", "3"]).status.success());
+    // Scene 3 of v1 (the agent at the last release) under its v2 id: it replays, but starts
+    // within reach of an object where the room has poses 1.5 m away.
+    let v1 = run(&["show", "esrp-bench-v1/00003"]);
+    let mut scene: serde_json::Value = serde_json::from_slice(&v1.stdout).unwrap();
+    scene["id"] = serde_json::json!("esrp-bench-v2/00003");
+    std::fs::write(dir.join("scenes/esrp-bench-v2_00003.json"), scene.to_string()).unwrap();
+    let out = run(&["validate", dir.to_str().unwrap()]);
+    let t = text(&out);
+    assert!(!out.status.success() && t.contains("start pose") && t.contains("0 of 1 scenes valid"), "{t}");
 }
 
 #[test]
@@ -70,14 +118,14 @@ fn validate_reports_a_broken_scene_and_fails() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("d");
     assert!(run(&["generate", "--out", dir.to_str().unwrap(), "--scenes", "2"]).status.success());
-    let path = dir.join("scenes/esrp-bench-v1_00001.json");
+    let path = dir.join("scenes/esrp-bench-v2_00001.json");
     let mut scene: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
     scene["expert_trajectory"] = serde_json::json!([0, 1]);
     std::fs::write(&path, scene.to_string()).unwrap();
     let out = run(&["validate", dir.to_str().unwrap()]);
     assert!(!out.status.success());
     let t = text(&out);
-    assert!(t.contains("esrp-bench-v1/00001") && t.contains("replay") && t.contains("1 of 2 scenes valid"), "{t}");
+    assert!(t.contains("esrp-bench-v2/00001") && t.contains("replay") && t.contains("1 of 2 scenes valid"), "{t}");
 }
 
 #[test]
@@ -85,7 +133,7 @@ fn bad_arguments_get_clear_errors() {
     let out = run(&["generate", "--out", "/tmp/never-written", "--first", "99999"]);
     assert!(!out.status.success() && text(&out).contains("past the end"), "{}", text(&out));
     let out = run(&["show", "no-such-scene"]);
-    assert!(!out.status.success() && text(&out).contains("is not a scene of esrp-bench-v1"), "{}", text(&out));
+    assert!(!out.status.success() && text(&out).contains("is not a scene of esrp-bench-v2"), "{}", text(&out));
     let out = run(&["validate", "/nonexistent/dataset"]);
     assert!(!out.status.success() && text(&out).contains("manifest.json"), "{}", text(&out));
 }

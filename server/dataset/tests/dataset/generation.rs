@@ -4,7 +4,7 @@ use esrp_core::{Action, CompiledScene, Episode, EpisodeConfig, Rules, footprint_
 use esrp_dataset::benchmark::OBJECT_COUNT_MIX;
 use esrp_dataset::catalogue::by_name;
 use esrp_dataset::layout::ROOM_TYPES;
-use esrp_dataset::{BENCH_SCENES, Benchmark, DEFAULT_SEED, validate_by_replay};
+use esrp_dataset::{BENCH_SCENES, BenchVersion, Benchmark, DEFAULT_SEED, validate_by_replay};
 
 /// A spread of indices with every object count (1 to 6) among them.
 fn sample_indices(bench: &Benchmark) -> Vec<usize> {
@@ -18,7 +18,7 @@ fn sample_indices(bench: &Benchmark) -> Vec<usize> {
 
 #[test]
 fn the_benchmark_has_the_documented_structure() {
-    let bench = Benchmark::new(DEFAULT_SEED);
+    let bench = Benchmark::new(BenchVersion::default(), DEFAULT_SEED);
     assert_eq!(bench.len(), BENCH_SCENES);
     for (room_type, count) in ROOM_TYPES {
         assert_eq!((0..bench.len()).filter(|&i| bench.room_type(i) == room_type).count(), count, "{room_type}");
@@ -27,13 +27,13 @@ fn the_benchmark_has_the_documented_structure() {
         assert_eq!((0..bench.len()).filter(|&i| bench.object_count(i) == objects).count(), count, "{objects} objects");
     }
     // Another seed shuffles differently but keeps the counts.
-    let other = Benchmark::new(1);
+    let other = Benchmark::new(BenchVersion::default(), 1);
     assert!((0..50).any(|i| other.room_type(i) != bench.room_type(i)));
 }
 
 #[test]
 fn generated_scenes_follow_every_curation_rule_and_replay() {
-    let bench = Benchmark::new(DEFAULT_SEED);
+    let bench = Benchmark::new(BenchVersion::default(), DEFAULT_SEED);
     for index in sample_indices(&bench) {
         let scene = bench.generate(index).unwrap_or_else(|e| panic!("{e}")).scene;
         let id = &scene.id;
@@ -41,7 +41,7 @@ fn generated_scenes_follow_every_curation_rule_and_replay() {
         assert_eq!(scene.room_type, bench.room_type(index));
         assert_eq!(scene.movable_objects.len(), bench.object_count(index), "{id}");
         assert_eq!(Some(scene.difficulty), esrp_core::Difficulty::for_object_count(scene.movable_objects.len()));
-        assert_eq!(scene.split, esrp_dataset::split_for_id(id));
+        assert_eq!(scene.split, bench.split(index));
         // Movable pieces are carryable catalogue models; the room stays within its triangle budget.
         let mut triangles = 0;
         for o in &scene.movable_objects {
@@ -76,21 +76,23 @@ fn generated_scenes_follow_every_curation_rule_and_replay() {
 
 #[test]
 fn generation_is_deterministic_and_a_scene_alone_equals_the_same_scene_in_a_run() {
-    let bench = Benchmark::new(DEFAULT_SEED);
-    for index in [0, 7, 33] {
-        let a = bench.generate(index).unwrap().scene.to_json_pretty();
-        let b = Benchmark::new(DEFAULT_SEED).generate(index).unwrap().scene.to_json_pretty();
-        assert_eq!(a, b, "scene {index}");
+    for version in BenchVersion::ALL {
+        let bench = Benchmark::new(version, DEFAULT_SEED);
+        for index in [0, 7, 33] {
+            let a = bench.generate(index).unwrap().scene.to_json_pretty();
+            let b = Benchmark::new(version, DEFAULT_SEED).generate(index).unwrap().scene.to_json_pretty();
+            assert_eq!(a, b, "scene {index}");
+        }
+        // A different seed gives different scenes.
+        let other = Benchmark::new(version, 5).generate(0).unwrap().scene;
+        assert_ne!(other.to_json_pretty(), bench.generate(0).unwrap().scene.to_json_pretty());
+        assert_eq!(other.id, format!("{version}-s5/00000"));
     }
-    // A different seed gives different scenes.
-    let other = Benchmark::new(5).generate(0).unwrap().scene;
-    assert_ne!(other.to_json_pretty(), bench.generate(0).unwrap().scene.to_json_pretty());
-    assert_eq!(other.id, "esrp-bench-v1-s5/00000");
 }
 
 #[test]
 fn a_broken_expert_is_caught_by_the_replay_check() {
-    let mut scene = Benchmark::new(DEFAULT_SEED).generate(3).unwrap().scene;
+    let mut scene = Benchmark::new(BenchVersion::default(), DEFAULT_SEED).generate(3).unwrap().scene;
     scene.expert_trajectory.truncate(scene.expert_trajectory.len() - 1);
     assert!(validate_by_replay(&scene).is_err());
 }

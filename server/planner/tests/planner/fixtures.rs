@@ -6,11 +6,11 @@ use esrp_core::{
     Action, AgentStart, CompiledScene, Difficulty, Episode, EpisodeConfig, EpisodeStatus, Heading, MovableCategory,
     MovableObject, ObjectPose, Part, Room, SCENE_SCHEMA, Scene, Shape, Split,
 };
-use esrp_dataset::{Benchmark, DEFAULT_SEED};
+use esrp_dataset::{BenchVersion, Benchmark, DEFAULT_SEED};
 
-/// Scene `index` of esrp-bench-v1 as generated.
+/// Scene `index` of esrp-bench-v1 as generated (the scenes these tests were written against).
 pub fn bench_scene(index: usize) -> Scene {
-    match Benchmark::new(DEFAULT_SEED).generate(index) {
+    match Benchmark::new(BenchVersion::V1, DEFAULT_SEED).generate(index) {
         Ok(generated) => generated.scene,
         Err(error) => panic!("scene {index} failed to generate: {error:?}"),
     }

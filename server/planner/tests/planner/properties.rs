@@ -3,7 +3,7 @@
 //! every action accepted, within the horizon.
 
 use esrp_core::{Action, Difficulty, Split};
-use esrp_dataset::{Benchmark, DEFAULT_SEED, split_for_id};
+use esrp_dataset::{BenchVersion, Benchmark, DEFAULT_SEED};
 use esrp_planner::{PlanFailure, PlanOptions, plan};
 use proptest::prelude::*;
 
@@ -11,9 +11,9 @@ use crate::fixtures::{assert_replays_to_success, bench_episode};
 
 /// The easy and medium test scenes among the first 300 (quick to generate in a debug build).
 fn small_scenes() -> Vec<usize> {
-    let bench = Benchmark::new(DEFAULT_SEED);
+    let bench = Benchmark::new(BenchVersion::V1, DEFAULT_SEED);
     (0..300)
-        .filter(|&i| split_for_id(&bench.scene_id(i)) == Split::Test)
+        .filter(|&i| bench.split(i) == Split::Test)
         .filter(|&i| Difficulty::for_object_count(bench.object_count(i)) != Some(Difficulty::Hard))
         .collect()
 }

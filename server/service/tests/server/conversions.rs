@@ -21,7 +21,7 @@ fn text() -> impl Strategy<Value = String> {
     prop_oneof![
         4 => prop::collection::vec(any::<char>(), 0..24).prop_map(|v| v.into_iter().collect()),
         1 => prop::collection::vec(any::<char>(), 0..5000).prop_map(|v| v.into_iter().collect()),
-        1 => Just("esrp-bench-v1/00003".to_owned()),
+        1 => Just("esrp-bench-v2/00003".to_owned()),
     ]
 }
 

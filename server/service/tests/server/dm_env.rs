@@ -142,9 +142,9 @@ async fn expert_actions(server: &Server, scene_id: &str) -> Vec<i32> {
 #[tokio::test]
 async fn the_expert_succeeds_through_dm_env_rpc() {
     let server = Server::start(&[]);
-    let expert = expert_actions(&server, "esrp-bench-v1/00003").await;
+    let expert = expert_actions(&server, "esrp-bench-v2/00003").await;
     let mut connection = Connection::open(&server).await;
-    let world = connection.create_world(vec![("scene", string("esrp-bench-v1/00003"))]).await.unwrap();
+    let world = connection.create_world(vec![("scene", string("esrp-bench-v2/00003"))]).await.unwrap();
     let specs = connection.join_world(&world).await.unwrap();
 
     let names: Vec<(u64, String, Vec<i32>, i32)> = {
@@ -311,13 +311,13 @@ async fn reset_world_interrupts_the_agent_of_another_connection() {
     let mut host = Connection::open(&server).await;
     let mut agent = Connection::open(&server).await;
     let world =
-        host.create_world(vec![("resolution", int64(32)), ("scene", string("esrp-bench-v1/00003"))]).await.unwrap();
+        host.create_world(vec![("resolution", int64(32)), ("scene", string("esrp-bench-v2/00003"))]).await.unwrap();
     agent.join_world(&world).await.unwrap();
     let start = agent.step(None, &[1]).await.unwrap();
     assert_eq!(state(&agent.step(Some(action(2)), &[]).await.unwrap()), dm::EnvironmentStateType::Running);
 
     // The host moves the world to another scene: the agent is told once, then starts over there.
-    let settings = [("scene".to_owned(), string("esrp-bench-v1/00000"))].into();
+    let settings = [("scene".to_owned(), string("esrp-bench-v2/00000"))].into();
     let reset = dm::ResetWorldRequest { world_name: world.clone(), settings };
     assert!(matches!(host.send(Rq::ResetWorld(reset)).await, Ok(Rs::ResetWorld(_))));
     let bad = dm::ResetWorldRequest { world_name: world.clone(), settings: [("horizon".to_owned(), int64(3))].into() };

@@ -348,7 +348,7 @@ async fn steps_that_change_nothing_answer_the_last_images() {
     let mut client = server.client().await;
     let sensors = proto::Sensors { ego_depth: true, ego_segmentation: true, current_top_down: true, resolution: 64 };
     let create =
-        || proto::CreateEpisodeRequest { sensors: Some(sensors), ..create_request("esrp-bench-v1/00003", false) };
+        || proto::CreateEpisodeRequest { sensors: Some(sensors), ..create_request("esrp-bench-v2/00003", false) };
     let first = client.create_episode(create()).await.unwrap().into_inner();
     let mut previous = first.observation.unwrap();
     previous.goal_rgb = None;

@@ -22,7 +22,7 @@ async fn assert_fails<T: std::fmt::Debug>(
     assert!(status.message().contains(needle), "message {:?} should mention {needle:?}", status.message());
     assert!(server.is_running(), "the server survives");
     let info = client.server_info(proto::ServerInfoRequest {}).await.expect("the server keeps serving");
-    assert_eq!(info.into_inner().dataset, "esrp-bench-v1");
+    assert_eq!(info.into_inner().dataset, "esrp-bench-v2");
 }
 
 async fn first_episode(client: &mut EsrpClient<Channel>, privileged: bool) -> String {
@@ -44,7 +44,7 @@ async fn unknown_episode_is_not_found() {
 async fn unknown_scene_is_not_found() {
     let mut server = Server::start(&[]);
     let mut client = server.client().await;
-    let r = client.create_episode(create_request("esrp-bench-v1/99999", false)).await;
+    let r = client.create_episode(create_request("esrp-bench-v2/99999", false)).await;
     assert_fails(&mut server, &mut client, r, Code::NotFound, "ListScenes").await;
     let r = client.create_episode(create_request("kitchen", false)).await;
     assert_fails(&mut server, &mut client, r, Code::NotFound, "kitchen").await;
@@ -143,7 +143,7 @@ async fn wrong_or_missing_token_is_unauthenticated() {
     assert!(server.is_running());
     let mut right = EsrpClient::with_interceptor(channel, with_token("s3cret"));
     let info = right.server_info(proto::ServerInfoRequest {}).await.expect("the right token is served").into_inner();
-    assert_eq!(info.dataset, "esrp-bench-v1");
+    assert_eq!(info.dataset, "esrp-bench-v2");
 }
 
 #[tokio::test]

@@ -9,10 +9,10 @@ async fn the_expert_succeeds_through_unary_steps() {
     let server = Server::start(&[]);
     let mut client = server.client().await;
     let info = client.server_info(proto::ServerInfoRequest {}).await.unwrap().into_inner();
-    assert_eq!(info.dataset, "esrp-bench-v1");
+    assert_eq!(info.dataset, "esrp-bench-v2");
     let created = client
         .create_episode(proto::CreateEpisodeRequest {
-            scene: Some(proto::create_episode_request::Scene::SceneId("esrp-bench-v1/00003".into())),
+            scene: Some(proto::create_episode_request::Scene::SceneId("esrp-bench-v2/00003".into())),
             privileged: true,
             ..Default::default()
         })
@@ -53,7 +53,7 @@ async fn metrics_count_steps_episodes_and_render_batches() {
     let mut client = server.client().await;
     let created = client
         .create_episode(proto::CreateEpisodeRequest {
-            scene: Some(proto::create_episode_request::Scene::SceneId("esrp-bench-v1/00003".into())),
+            scene: Some(proto::create_episode_request::Scene::SceneId("esrp-bench-v2/00003".into())),
             ..Default::default()
         })
         .await
@@ -111,7 +111,42 @@ async fn tls_serves_clients_that_trust_the_certificate() {
         .await
         .unwrap()
         .into_inner();
-    assert_eq!(info.dataset, "esrp-bench-v1");
+    assert_eq!(info.dataset, "esrp-bench-v2");
     let mut plain = server.client_unchecked().await;
     assert!(plain.server_info(proto::ServerInfoRequest {}).await.is_err(), "plaintext is refused");
+}
+
+/// esrp-bench-v2 is served by default and esrp-bench-v1 on request, with the same split of each
+/// index; a v1 episode starts within reach of an object, a v2 episode of the same index away
+/// from them all (stage 1 if the agent does nothing).
+#[tokio::test]
+async fn both_benchmarks_are_served() {
+    let v2 = Server::start(&[]);
+    let v1 = Server::start(&["--benchmark", "esrp-bench-v1"]);
+    let (mut c2, mut c1) = (v2.client().await, v1.client().await);
+    assert_eq!(c1.server_info(proto::ServerInfoRequest {}).await.unwrap().into_inner().dataset, "esrp-bench-v1");
+    let test_ids = |ids: Vec<String>| ids.into_iter().map(|id| id[14..].to_owned()).collect::<Vec<_>>();
+    let ids1 = super::harness::scene_ids(&mut c1, proto::Split::Test, 20).await;
+    let ids2 = super::harness::scene_ids(&mut c2, proto::Split::Test, 20).await;
+    assert!(ids1[0].starts_with("esrp-bench-v1/") && ids2[0].starts_with("esrp-bench-v2/"), "{ids1:?} {ids2:?}");
+    assert_eq!(test_ids(ids1), test_ids(ids2.clone()));
+    let episode_id =
+        c2.create_episode(super::harness::create_request(&ids2[0], false)).await.unwrap().into_inner().episode_id;
+    let metrics =
+        c2.close_episode(proto::CloseEpisodeRequest { episode_id }).await.unwrap().into_inner().metrics.unwrap();
+    assert_eq!(metrics.stage, 1, "{metrics:?}");
+    let episode_id = c1
+        .create_episode(super::harness::create_request(&ids2[0].replace("-v2/", "-v1/"), false))
+        .await
+        .unwrap()
+        .into_inner()
+        .episode_id;
+    let metrics =
+        c1.close_episode(proto::CloseEpisodeRequest { episode_id }).await.unwrap().into_inner().metrics.unwrap();
+    assert_eq!(metrics.stage, 2, "{metrics:?}");
+    let bad = esrp_client::LocalServer::command(Some(env!("CARGO_BIN_EXE_esrp-server").into()), &["--benchmark", "v3"])
+        .unwrap()
+        .output()
+        .unwrap();
+    assert!(!bad.status.success() && String::from_utf8_lossy(&bad.stderr).contains("esrp-bench-v2"));
 }

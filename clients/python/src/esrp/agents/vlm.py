@@ -215,7 +215,7 @@ def default_trace_dir(results: Path) -> Path:
 
 def trace_file_name(scene_id: str) -> str:
     """The trace file of a scene: its id with anything but letters, digits, `.`, `_`, `-` replaced
-    by `_` (`esrp-bench-v1/00007` -> `esrp-bench-v1_00007.jsonl`).
+    by `_` (`esrp-bench-v2/00007` -> `esrp-bench-v2_00007.jsonl`).
     """
     return re.sub(r"[^A-Za-z0-9._-]", "_", scene_id) + ".jsonl"
 
