@@ -250,5 +250,5 @@ def test_worker_lines_reach_a_log_file_without_colour_codes(tmp_path: Path) -> N
         text = path.read_text()
         assert status == 0, text
         assert "(EvalActor pid=" in text  # the actor's lines came through
-        assert "reset on esrp-bench-v1/" in text
+        assert "reset on esrp-bench-v2/" in text
         assert "\x1b[" not in text, path
