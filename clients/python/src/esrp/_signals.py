@@ -30,6 +30,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -68,10 +69,11 @@ class _State:
         self.on_timeout = on_timeout
         self.signum: int | None = None  # the first signal
         self.redeliver = False  # the first signal's exception was dropped: raise it again
+        self.in_hook = False  # the unraisable hook runs: an exception raised now would be dropped
+        self.wakeup = threading.Event()  # asks the watchdog thread to send the signal again
         self.done = threading.Event()  # the command returned or raised out of the block
         self.defer = 0  # depth of the main thread's `deferred()` sections
         self.held = False  # a signal's exception waits for the end of a deferred section
-        self.timers: list[threading.Timer] = []
 
     def exception(self) -> BaseException:
         return Terminated() if self.signum == signal.SIGTERM else KeyboardInterrupt()
@@ -84,6 +86,9 @@ class _State:
             threading.Thread(target=self._watch, name="esrp-signal-watchdog", daemon=True).start()
         elif not self.redeliver:
             return  # a later signal while the command unwinds
+        if self.in_hook:
+            self.wakeup.set()  # inside the hook its own exception would be dropped: later
+            return
         self.redeliver = False
         if self.defer:
             self.held = True
@@ -91,25 +96,39 @@ class _State:
         raise self.exception()
 
     def dropped(self, unraisable: Any) -> bool:  # noqa: ANN401 - sys.UnraisableHookArgs
-        """Whether `unraisable` is this block's signal exception; if so, the signal is sent again."""
-        exception = unraisable.exc_value
-        ours = isinstance(exception, Terminated) or (
-            isinstance(exception, KeyboardInterrupt) and self.signum == signal.SIGINT
-        )
-        if not ours or self.signum is None or self.done.is_set():
-            return False
-        self.redeliver = True
-        timer = threading.Timer(_REDELIVERY_DELAY, os.kill, (os.getpid(), self.signum))
-        timer.daemon = True
-        self.timers.append(timer)
-        timer.start()
-        return True
+        """Whether `unraisable` is this block's signal exception; if so, the signal is sent again
+        (by the watchdog thread, `_REDELIVERY_DELAY` later: this hook returns first).
+        """
+        self.in_hook = True
+        try:
+            exception = unraisable.exc_value
+            ours = isinstance(exception, Terminated) or (
+                isinstance(exception, KeyboardInterrupt) and self.signum == signal.SIGINT
+            )
+            if not ours or self.signum is None or self.done.is_set():
+                return False
+            self.redeliver = True
+            self.wakeup.set()
+            return True
+        finally:
+            self.in_hook = False
 
     def _watch(self) -> None:
-        if self.done.wait(self.grace):
-            return
+        """The first signal's thread: sends the signal again when asked (`wakeup`), and stops the
+        process if the block has not been left `grace` seconds after the signal.
+        """
         assert self.signum is not None
-        self.on_timeout(self.signum)
+        deadline = time.monotonic() + self.grace
+        while not self.done.is_set():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                self.on_timeout(self.signum)
+                return
+            if self.wakeup.wait(left):
+                self.wakeup.clear()
+                time.sleep(_REDELIVERY_DELAY)
+                if not self.done.is_set():
+                    os.kill(os.getpid(), self.signum)
 
 
 _active: _State | None = None
@@ -239,8 +258,7 @@ def stop_on_signals(command: str, *, grace: float = 10.0) -> Iterator[None]:
         state.done.set()
         _active = None
         sys.unraisablehook = previous_hook
-        for timer in state.timers:
-            timer.cancel()
+        state.wakeup.set()  # the watchdog thread sees `done` and ends
         if state.signum is None:
             for signum, handler in previous.items():
                 signal.signal(signum, handler)
