@@ -15,7 +15,10 @@
 //!   the start is placed, or set down in a buffer pose, first.
 //! - The **motion planner** (`search`) is one weighted A* per object over the exact action
 //!   lattice: approach, `fetch` (where [`Episode::fetch_candidate`] is that object), carry,
-//!   `release`. Its bounds (`bounds`) are consistent; a goal's cost favours a high IoU.
+//!   `release`. Its bounds (`bounds`) are consistent; a goal's cost favours a high IoU. When
+//!   the object is out of reach, an **approach** (`approach`: a weighted A* to a pose from which
+//!   `fetch` takes it, facing it) runs first and the fetch-and-carry search starts there; if
+//!   that fails, the search runs from where the agent stood.
 //!
 //! # Invariants
 //!
@@ -46,6 +49,7 @@
 
 #![warn(missing_docs)]
 
+mod approach;
 mod bounds;
 mod search;
 mod task;

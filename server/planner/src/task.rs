@@ -12,6 +12,7 @@
 use esrp_core::collision::object_obstruction;
 use esrp_core::{Action, Episode, Obstacle};
 
+use crate::approach::{ApproachLimits, approach};
 use crate::search::{BufferGoal, Goal, Miss, NotFound, SearchLimits, search};
 use crate::{PlanFailure, PlanOptions, PlanStats};
 
@@ -263,6 +264,23 @@ impl<'a> TaskPlanner<'a> {
             deadline: self.options.deadline,
             cancel: self.options.cancel.clone(),
         };
+        // Out of reach: approach first (see `approach`), then the fetch-and-carry search from
+        // there; if that fails, the search from here as ever.
+        if self.state.held().is_none() && self.state.fetch_candidate() != Some(object) {
+            if let Some(done) = self.approach_then_search(object, &goal, &limits) {
+                return done;
+            }
+            if self.options.max_nodes <= self.stats.nodes_expanded {
+                return Err(Failed {
+                    failure: PlanFailure::BudgetExhausted { nodes: self.stats.nodes_expanded },
+                    fatal: true,
+                    out_of_nodes: true,
+                    blocker_hits: Vec::new(),
+                });
+            }
+        }
+        let remaining = self.options.max_nodes.saturating_sub(self.stats.nodes_expanded);
+        let limits = SearchLimits { max_nodes: remaining.min(self.search_nodes), ..limits };
         self.stats.searches += 1;
         let max_nodes = limits.max_nodes;
         match search(&self.state, object, &goal, limits) {
@@ -275,6 +293,47 @@ impl<'a> TaskPlanner<'a> {
             Err(not_found) => {
                 self.stats.nodes_expanded += not_found.nodes;
                 Err(self.failed(object, not_found, max_nodes < self.search_nodes))
+            }
+        }
+    }
+
+    /// An approach to a pose from which `fetch` takes `object`, facing it, then the
+    /// fetch-and-carry search from there. `Some` when done: committed, or a fatal failure;
+    /// `None` to search from where the agent stands.
+    fn approach_then_search(
+        &mut self,
+        object: usize,
+        goal: &Goal,
+        limits: &SearchLimits,
+    ) -> Option<Result<(), Failed>> {
+        let approach_limits = ApproachLimits {
+            max_nodes: self.options.max_nodes.saturating_sub(self.stats.nodes_expanded).min(self.search_nodes),
+            weight: limits.weight,
+            cell: limits.cell,
+            deadline: limits.deadline,
+            cancel: limits.cancel.clone(),
+        };
+        let found = approach(&self.state, object, &approach_limits);
+        self.stats.nodes_expanded += found.nodes;
+        let path = found.actions?;
+        let mut there = self.state.clone();
+        if !path.iter().all(|&a| there.step(a).is_ok_and(|o| o.accepted)) || there.is_over() {
+            return None;
+        }
+        let remaining = self.options.max_nodes.saturating_sub(self.stats.nodes_expanded);
+        let limits = SearchLimits { max_nodes: remaining.min(self.search_nodes), ..limits.clone() };
+        self.stats.searches += 1;
+        match search(&there, object, goal, limits) {
+            Ok(found) => {
+                self.stats.nodes_expanded += found.nodes;
+                self.actions.extend_from_slice(&path);
+                self.actions.extend_from_slice(&found.actions);
+                self.state = found.end;
+                Some(Ok(()))
+            }
+            Err(not_found) => {
+                self.stats.nodes_expanded += not_found.nodes;
+                (not_found.miss == Miss::Deadline).then(|| Err(self.failed(object, not_found, false)))
             }
         }
     }
