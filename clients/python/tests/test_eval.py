@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import child_pids
 
 import esrp
 from esrp.cli import main
@@ -251,21 +252,6 @@ def test_resume_after_an_interrupted_run_gives_the_same_file(
     )
 
 
-def _children(pid: int) -> list[int]:
-    """The processes whose parent is `pid` (from /proc)."""
-    found = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                stat = (entry / "stat").read_text()
-            except OSError:
-                continue
-            # pid (comm) state ppid ...: comm may hold spaces, so split after its closing paren.
-            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
-                found.append(int(entry.name))
-    return found
-
-
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
 def test_sigterm_unwinds_the_command_and_stops_its_server(tmp_path: Path) -> None:
     out = tmp_path / "random.jsonl"
@@ -279,7 +265,7 @@ def test_sigterm_unwinds_the_command_and_stops_its_server(tmp_path: Path) -> Non
         if out.exists() and out.read_bytes().count(b"\n") >= 1:
             break
         time.sleep(0.01)
-    servers = _children(child.pid)
+    servers = child_pids(child.pid)
     assert servers, "the command started no server"
     child.send_signal(signal.SIGTERM)
     _, err = child.communicate(timeout=60)
@@ -310,7 +296,7 @@ def test_a_dead_local_server_stops_the_run_at_once(tmp_path: Path) -> None:
     command = [sys.executable, "-m", "esrp.cli", "eval", "--agent", "random", "--split", "test"]
     command += ["--episodes-in-flight", "2", "--no-progress", "--out", str(out)]
     child = _eval_until_records(command, out, 2)
-    servers = _children(child.pid)
+    servers = child_pids(child.pid)
     assert len(servers) == 1
     os.kill(servers[0], signal.SIGKILL)
     _, err = child.communicate(timeout=60)

@@ -16,6 +16,7 @@ from pathlib import Path
 from types import ModuleType
 
 import pytest
+from conftest import child_pids
 
 from esrp import _signals
 
@@ -77,19 +78,6 @@ def make(config):
 """
 
 
-def _children(pid: int) -> list[int]:
-    found = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                stat = (entry / "stat").read_text()
-            except OSError:
-                continue
-            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
-                found.append(int(entry.name))
-    return found
-
-
 def _start(command: list[str], cwd: Path, until: str | None) -> tuple[subprocess.Popen[bytes], Path]:
     """Starts `command` with stderr in a file; returns once the file holds `until` (None: once the
     command has started its server), within 120 s."""
@@ -99,7 +87,7 @@ def _start(command: list[str], cwd: Path, until: str | None) -> tuple[subprocess
         child = subprocess.Popen(command, env=environment, cwd=cwd, stdout=subprocess.DEVNULL, stderr=err)
     deadline = time.monotonic() + 120
     try:
-        while (until not in err_path.read_text(errors="replace")) if until else not _children(child.pid):
+        while (until not in err_path.read_text(errors="replace")) if until else not child_pids(child.pid):
             assert child.poll() is None, err_path.read_text()
             assert time.monotonic() < deadline, err_path.read_text()
             time.sleep(0.05)
@@ -129,7 +117,7 @@ def test_a_command_that_swallows_the_signal_is_stopped_by_the_watchdog(tmp_path:
     command += ["--no-progress", "--out", str(tmp_path / "out.jsonl")]
     child, err = _start(command, tmp_path, until="esrp-server")
     time.sleep(1.0)  # the agent is in its loop
-    servers = _children(child.pid)
+    servers = child_pids(child.pid)
     assert servers
     sent = time.monotonic()
     child.send_signal(signal.SIGTERM)
@@ -151,7 +139,7 @@ def test_sigterm_stops_esrp_bench_and_its_server(tmp_path: Path) -> None:
     ]
     command += ["--warmup-rounds", "0"]
     child, err = _start(command, tmp_path, until="client-1")
-    servers = _children(child.pid)
+    servers = child_pids(child.pid)
     assert servers
     child.send_signal(signal.SIGTERM)
     _assert_stopped(child, servers, err, 143, "esrp.bench: terminated")
@@ -163,7 +151,7 @@ def test_sigterm_stops_demos_export_and_keeps_what_it_wrote(tmp_path: Path) -> N
     command = [sys.executable, "-m", "esrp.cli", "demos", "export", "--split", "train", "--out", str(store)]
     child, err = _start(command, tmp_path, until=None)
     time.sleep(3.0)
-    servers = _children(child.pid)
+    servers = child_pids(child.pid)
     assert servers
     child.send_signal(signal.SIGTERM)
     _assert_stopped(child, servers, err, 143, "esrp demos: terminated")
