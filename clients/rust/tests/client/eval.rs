@@ -157,6 +157,28 @@ fn children(pid: u32) -> Vec<u32> {
     found
 }
 
+/// `esrp-eval ARGS --out DIR/random.jsonl` on a server it starts, once it has written two
+/// records: the process (stderr piped) and the results file.
+fn eval_with_two_records(dir: &Path, args: &[&str]) -> (std::process::Child, std::path::PathBuf) {
+    use std::time::{Duration, Instant};
+    let out = dir.join("random.jsonl");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_esrp-eval"))
+        .args(args)
+        .args(["--out", out.to_str().unwrap()])
+        .env("NODEVICE_SELECT", "1")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("esrp-eval starts");
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while std::fs::read(&out).map_or(0, |b| b.iter().filter(|&&c| c == b'\n').count()) < 2 {
+        assert!(child.try_wait().unwrap().is_none(), "esrp-eval ended early");
+        assert!(Instant::now() < deadline, "no records within 120 s");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    (child, out)
+}
+
 /// Whether process `pid` runs (a zombie, exited but not yet reaped by its new parent, does not).
 fn alive(pid: u32) -> bool {
     std::fs::read_to_string(format!("/proc/{pid}/stat"))
@@ -171,20 +193,7 @@ fn a_signal_ends_the_run_and_its_server() {
     use std::time::{Duration, Instant};
     for (signal, status) in [("-TERM", Some(143)), ("-KILL", None)] {
         let dir = tempfile::tempdir().expect("a temp dir");
-        let out = dir.path().join("random.jsonl");
-        let mut child = Command::new(env!("CARGO_BIN_EXE_esrp-eval"))
-            .args(["--agent", "random", "--split", "train", "--out", out.to_str().unwrap()])
-            .env("NODEVICE_SELECT", "1")
-            .stdout(std::process::Stdio::null())
-            .stderr(std::process::Stdio::piped())
-            .spawn()
-            .expect("esrp-eval starts");
-        let deadline = Instant::now() + Duration::from_secs(120);
-        while std::fs::read(&out).map_or(0, |b| b.iter().filter(|&&c| c == b'\n').count()) < 2 {
-            assert!(child.try_wait().unwrap().is_none(), "esrp-eval ended before the signal");
-            assert!(Instant::now() < deadline, "no records within 120 s");
-            std::thread::sleep(Duration::from_millis(20));
-        }
+        let (child, out) = eval_with_two_records(dir.path(), &["--agent", "random", "--split", "train"]);
         let servers = children(child.id());
         assert_eq!(servers.len(), 1, "one server started: {servers:?}");
         let sent = Command::new("kill").args([signal, &child.id().to_string()]).status().expect("kill(1) runs");
@@ -210,22 +219,9 @@ fn a_signal_ends_the_run_and_its_server() {
 /// per remaining scene), keeping the records written.
 #[test]
 fn a_dead_local_server_stops_the_run() {
-    use std::time::{Duration, Instant};
     let dir = tempfile::tempdir().expect("a temp dir");
-    let out = dir.path().join("random.jsonl");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_esrp-eval"))
-        .args(["--agent", "random", "--split", "test", "--episodes-in-flight", "2", "--out", out.to_str().unwrap()])
-        .env("NODEVICE_SELECT", "1")
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .expect("esrp-eval starts");
-    let deadline = Instant::now() + Duration::from_secs(120);
-    while std::fs::read(&out).map_or(0, |b| b.iter().filter(|&&c| c == b'\n').count()) < 2 {
-        assert!(child.try_wait().unwrap().is_none(), "esrp-eval ended before the server died");
-        assert!(Instant::now() < deadline, "no records within 120 s");
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    let (child, out) =
+        eval_with_two_records(dir.path(), &["--agent", "random", "--split", "test", "--episodes-in-flight", "2"]);
     let servers = children(child.id());
     assert_eq!(servers.len(), 1);
     let killed = Command::new("kill").args(["-KILL", &servers[0].to_string()]).status().expect("kill(1) runs");
