@@ -325,8 +325,12 @@ async def _play(
             actions, metrics, stats = await _play_agent(episode, factory, settings, seed)
     except BaseException:
         # The agent's error comes first; the close is best effort.
+        closing = asyncio.ensure_future(episode.close())
+        # Cancelled while it closes (the run stops), the close goes on alone: its outcome is
+        # taken when it ends, so that asyncio reports no "exception never retrieved".
+        closing.add_done_callback(lambda task: task.cancelled() or task.exception())
         with contextlib.suppress(EsrpError, asyncio.CancelledError):
-            await asyncio.shield(episode.close())
+            await asyncio.shield(closing)
         raise
     closed = await episode.close()
     end = "agent" if metrics is None else _end_of(metrics)
