@@ -166,9 +166,10 @@ async fn plan_errors_keep_their_kind() {
 async fn an_abandoned_plan_stops_its_planner() {
     let server = start(&["--planner-threads", "1", "--metrics-listen", "127.0.0.1:0"]);
     let client = client(&server).await;
-    // The slowest test scene to plan (seconds in a release build).
+    // The slowest test scene to plan (the planner's whole node budget, tens of seconds in a
+    // release build).
     let (episode, _) =
-        client.create_episode(EpisodeOptions::scene("esrp-bench-v2/03437").privileged(true)).await.expect("created");
+        client.create_episode(EpisodeOptions::scene("esrp-bench-v2/04304").privileged(true)).await.expect("created");
     let mut request = tonic::Request::new(esrp_client::proto::PlanActionsRequest {
         episode_id: episode.id().to_owned(),
         max_actions: 0,
