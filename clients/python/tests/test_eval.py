@@ -411,39 +411,10 @@ def test_an_agent_that_raises_gets_its_traceback_printed_and_logged(
     assert "No episodes recorded for **faulty:make**" in summary
     # A run without failures leaves no log of an earlier one.
     random_out = tmp_path / "random.jsonl"
-    assert (
-        main(
-            [
-                "eval",
-                "--agent",
-                "random",
-                "--scenes",
-                ids[0],
-                "--out",
-                str(random_out),
-                "--server",
-                server.address,
-            ]
-        )
-        == 0
-    )
+    random_run = ["eval", "--agent", "random", "--scenes", ids[0], "--out", str(random_out)]
+    assert main([*random_run, "--server", server.address]) == 0
     (tmp_path / "random.errors.log").write_text("stale")
-    assert (
-        main(
-            [
-                "eval",
-                "--agent",
-                "random",
-                "--scenes",
-                ids[0],
-                "--out",
-                str(random_out),
-                "--server",
-                server.address,
-            ]
-        )
-        == 0
-    )
+    assert main([*random_run, "--server", server.address]) == 0
     assert not (tmp_path / "random.errors.log").exists()
 
 

@@ -4,7 +4,6 @@ watchdog ends it), `esrp bench` and `esrp demos export`, and the block's own rul
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import signal
 import subprocess
@@ -13,28 +12,15 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
-from types import ModuleType
 
 import pytest
-from conftest import child_pids
+from conftest import child_pids, load_tool
 
 from esrp import _signals
 
-TOOLS = Path(__file__).resolve().parents[1] / "tools"
-
-
-def _stress_module() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("signal_stress", TOOLS / "signal_stress.py")
-    assert spec is not None
-    assert spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["signal_stress"] = module
-    spec.loader.exec_module(module)
-    return module
-
 
 def test_signalled_runs_all_stop_with_their_status() -> None:
-    stress = _stress_module()
+    stress = load_tool("signal_stress")
     outcomes = stress.stress(12, jobs=2, max_delay=3.0, seed=7)
     kinds = Counter(outcome.kind for outcome in outcomes)
     failures = [o for o in outcomes if o.kind not in ("ok", "before handlers")]
@@ -47,7 +33,7 @@ def test_signalled_runs_all_stop_with_their_status() -> None:
 
 
 def test_sigint_stops_the_command_too() -> None:
-    stress = _stress_module()
+    stress = load_tool("signal_stress")
     outcomes = stress.stress(4, jobs=2, max_delay=3.0, seed=3, signum=signal.SIGINT)
     failures = [o for o in outcomes if o.kind not in ("ok", "before handlers")]
     assert not failures, "\n\n".join(f"run {o.index}: {o.kind}\n{o.stderr[-2000:]}" for o in failures)

@@ -2,26 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
-from types import ModuleType
 
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "generate_proto.py"
-
-
-def load_tool() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("generate_proto", TOOL)
-    assert spec is not None
-    assert spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["generate_proto"] = module
-    spec.loader.exec_module(module)
-    return module
+from conftest import load_tool
 
 
 def test_checked_in_stubs_are_fresh(tmp_path: Path) -> None:
-    tool = load_tool()
+    tool = load_tool("generate_proto")
     generated = tool.generate(tmp_path)
     assert sorted(generated) == sorted(tool.GENERATED)
     stale = tool.stale_files(generated)
@@ -32,7 +19,7 @@ def test_checked_in_stubs_are_fresh(tmp_path: Path) -> None:
 
 def test_staleness_is_detected(tmp_path: Path) -> None:
     """The comparison itself works: a copy with one changed line is reported."""
-    tool = load_tool()
+    tool = load_tool("generate_proto")
     generated = tool.generate(tmp_path / "generated")
     copy = tmp_path / "copy"
     copy.mkdir()
@@ -47,6 +34,6 @@ def test_installed_stubs_match_the_source() -> None:
     """The installed package carries the checked-in stubs (the wheel is built from them)."""
     import esrp.v1.esrp_pb2 as installed
 
-    source = TOOL.parents[1] / "src" / "esrp" / "v1" / "esrp_pb2.py"
+    source = Path(__file__).resolve().parents[1] / "src" / "esrp" / "v1" / "esrp_pb2.py"
     assert Path(installed.__file__).read_text() == source.read_text()
     assert installed.DESCRIPTOR.name == "esrp/v1/esrp.proto"

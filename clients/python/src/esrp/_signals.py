@@ -49,6 +49,9 @@ __all__ = [
 STATUS = {signal.SIGTERM: 143, signal.SIGINT: 130}
 """The exit status of a command stopped by each signal (128 + its number)."""
 
+_WORD = {signal.SIGTERM: "terminated", signal.SIGINT: "interrupted"}
+"""What a command stopped by each signal says: `COMMAND: terminated`."""
+
 _REDELIVERY_DELAY = 0.01
 """Seconds between a dropped signal exception and the signal sent again: the unraisable hook has
 returned by then, so the handler does not raise inside the hook (whose own exceptions are dropped)."""
@@ -204,13 +207,13 @@ def reclaim() -> None:
 def _stop_now(command: str) -> Callable[[int], None]:
     def stop(signum: int) -> None:
         stopped = stop_tracked()
-        what = "terminated" if signum == signal.SIGTERM else "interrupted"
         servers = f"; stopped the {stopped} server(s) it started" if stopped else ""
+        word = _WORD[signal.Signals(signum)]
         with contextlib.suppress(Exception):
             sys.stdout.flush()
         with contextlib.suppress(Exception):
             print(
-                f"{command}: {what} (it had not stopped within the grace after the signal{servers})",
+                f"{command}: {word} (it had not stopped within the grace after the signal{servers})",
                 file=sys.stderr,
                 flush=True,
             )
@@ -245,8 +248,7 @@ def stop_on_signals(command: str, *, grace: float = 10.0) -> Iterator[None]:
         # happened, and stop the children, here.
         if state.signum is not None:
             stop_tracked()
-            word = "terminated" if state.signum == signal.SIGTERM else "interrupted"
-            print(f"{command}: {word}", file=sys.stderr, flush=True)
+            print(f"{command}: {_WORD[signal.Signals(state.signum)]}", file=sys.stderr, flush=True)
 
     previous = {signum: signal.signal(signum, state.handle) for signum in STATUS}
     sys.unraisablehook = hook
@@ -278,8 +280,8 @@ def run_command(name: str, body: Callable[[], int], *, handle_signals: bool) -> 
         with stop_on_signals(name) if handle_signals else contextlib.nullcontext():
             return body()
     except KeyboardInterrupt:
-        print(f"{name}: interrupted", file=sys.stderr)
+        print(f"{name}: {_WORD[signal.SIGINT]}", file=sys.stderr)
         return STATUS[signal.SIGINT]
     except Terminated:
-        print(f"{name}: terminated", file=sys.stderr)
+        print(f"{name}: {_WORD[signal.SIGTERM]}", file=sys.stderr)
         return STATUS[signal.SIGTERM]
