@@ -201,3 +201,28 @@ def test_an_exception_dropped_in_a_finalizer_is_raised_again() -> None:
 
     _signalled_in_block(body)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def test_a_signal_stops_the_children_started_in_the_block_only() -> None:
+    """A server started before the command's block (a test session's, a notebook's) is not the
+    command's: the CI run whose in-process signal tests stopped the session's server failed every
+    later test that used it."""
+    before = subprocess.Popen(["sleep", "60"])
+    inside: list[subprocess.Popen[bytes]] = []
+    try:
+        _signals.track(before)
+
+        def body() -> None:
+            inside.append(subprocess.Popen(["sleep", "60"]))
+            _signals.track(inside[0])
+            signal.raise_signal(signal.SIGTERM)
+            time.sleep(5)
+
+        _signalled_in_block(body)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        assert inside[0].wait(5) == -signal.SIGTERM
+        assert before.poll() is None, "the block stopped a child started before it"
+    finally:
+        for process in (before, *inside):
+            process.kill()
+            process.wait()

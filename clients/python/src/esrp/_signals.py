@@ -11,9 +11,13 @@ that catches every exception drops it too. So that no signal is lost:
 - when the interpreter drops that exception as unraisable, the same signal is sent again a moment
   later, so that the handler raises it again at another bytecode;
 - a watchdog thread waits `grace` seconds from the first signal; if the command has not returned by
-  then, it stops the child processes the command tracks (the servers `LocalServer` started),
-  prints the command's one-line message and exits with the signal's status at once. Records
-  already appended stay: they are flushed to the OS as each is written.
+  then, it stops the child processes the command tracks (the servers `LocalServer` started inside
+  the block), prints the command's one-line message and exits with the signal's status at once.
+  Records already appended stay: they are flushed to the OS as each is written.
+
+Only the children started inside the block are the command's: a server started before it (a test
+session's, a notebook's) belongs to whoever started it, and a signal that stops the block leaves it
+running.
 
 Later signals while the command unwinds are not raised again: that would cut its clean-up short
 (stopping the server); the watchdog bounds how long the clean-up may take. A signal that arrives
@@ -41,7 +45,6 @@ __all__ = [
     "reclaim",
     "run_command",
     "stop_on_signals",
-    "stop_tracked",
     "track",
     "untrack",
 ]
@@ -67,9 +70,9 @@ class Terminated(SystemExit):
 class _State:
     """What the handlers of one `stop_on_signals` block share."""
 
-    def __init__(self, grace: float, on_timeout: Callable[[int], None]) -> None:
+    def __init__(self, command: str, grace: float) -> None:
+        self.command = command
         self.grace = grace
-        self.on_timeout = on_timeout
         self.signum: int | None = None  # the first signal
         self.redeliver = False  # the first signal's exception was dropped: raise it again
         self.in_hook = False  # the unraisable hook runs: an exception raised now would be dropped
@@ -77,6 +80,9 @@ class _State:
         self.done = threading.Event()  # the command returned or raised out of the block
         self.defer = 0  # depth of the main thread's `deferred()` sections
         self.held = False  # a signal's exception waits for the end of a deferred section
+        # The children started inside the block (any thread), stopped when a signal stops it.
+        self.children: set[subprocess.Popen[Any]] = set()
+        self.children_lock = threading.Lock()
 
     def exception(self) -> BaseException:
         return Terminated() if self.signum == signal.SIGTERM else KeyboardInterrupt()
@@ -125,7 +131,7 @@ class _State:
         while not self.done.is_set():
             left = deadline - time.monotonic()
             if left <= 0:
-                self.on_timeout(self.signum)
+                _stop_now(self, self.signum)
                 return
             if self.wakeup.wait(left):
                 self.wakeup.clear()
@@ -137,29 +143,31 @@ class _State:
 _active: _State | None = None
 """The state of the `stop_on_signals` block the process is in, if any."""
 
-_tracked: set[subprocess.Popen[Any]] = set()
-_tracked_lock = threading.Lock()
-
-
 def track(process: subprocess.Popen[Any]) -> None:
-    """Makes `process` one of the children stopped when the command is stopped by a signal."""
-    with _tracked_lock:
-        _tracked.add(process)
+    """Makes `process` one of the children stopped when the command is stopped by a signal: inside a
+    `stop_on_signals` block (from any thread); outside one it stays its starter's to stop.
+    """
+    state = _active
+    if state is not None:
+        with state.children_lock:
+            state.children.add(process)
 
 
 def untrack(process: subprocess.Popen[Any]) -> None:
     """Forgets `process` (it was stopped and waited for)."""
-    with _tracked_lock:
-        _tracked.discard(process)
+    state = _active
+    if state is not None:
+        with state.children_lock:
+            state.children.discard(process)
 
 
-def stop_tracked(timeout: float = 3.0) -> int:
-    """Stops every tracked child still running (SIGTERM, then SIGKILL after `timeout` seconds) and
-    waits for it; returns how many were running.
+def _stop_children(state: _State, timeout: float = 3.0) -> int:
+    """Stops every child the block `state` tracks that still runs (SIGTERM, then SIGKILL after
+    `timeout` seconds) and waits for it; returns how many were running.
     """
-    with _tracked_lock:
-        processes = list(_tracked)
-        _tracked.clear()
+    with state.children_lock:
+        processes = list(state.children)
+        state.children.clear()
     running = [process for process in processes if process.poll() is None]
     for process in running:
         with contextlib.suppress(OSError):
@@ -204,22 +212,22 @@ def reclaim() -> None:
             signal.signal(signum, state.handle)
 
 
-def _stop_now(command: str) -> Callable[[int], None]:
-    def stop(signum: int) -> None:
-        stopped = stop_tracked()
-        servers = f"; stopped the {stopped} server(s) it started" if stopped else ""
-        word = _WORD[signal.Signals(signum)]
-        with contextlib.suppress(Exception):
-            sys.stdout.flush()
-        with contextlib.suppress(Exception):
-            print(
-                f"{command}: {word} (it had not stopped within the grace after the signal{servers})",
-                file=sys.stderr,
-                flush=True,
-            )
-        os._exit(STATUS[signal.Signals(signum)])
-
-    return stop
+def _stop_now(state: _State, signum: int) -> None:
+    """The watchdog's end: stops the block's children, prints the command's line and exits with the
+    signal's status at once.
+    """
+    stopped = _stop_children(state)
+    servers = f"; stopped the {stopped} server(s) it started" if stopped else ""
+    word = _WORD[signal.Signals(signum)]
+    with contextlib.suppress(Exception):
+        sys.stdout.flush()
+    with contextlib.suppress(Exception):
+        print(
+            f"{state.command}: {word} (it had not stopped within the grace after the signal{servers})",
+            file=sys.stderr,
+            flush=True,
+        )
+    os._exit(STATUS[signal.Signals(signum)])
 
 
 @contextlib.contextmanager
@@ -235,7 +243,7 @@ def stop_on_signals(command: str, *, grace: float = 10.0) -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread() or _active is not None:
         yield
         return
-    state = _active = _State(grace, _stop_now(command))
+    state = _active = _State(command, grace)
     previous_hook = sys.unraisablehook
 
     def hook(unraisable: Any) -> None:  # noqa: ANN401 - sys.UnraisableHookArgs
@@ -247,7 +255,7 @@ def stop_on_signals(command: str, *, grace: float = 10.0) -> Iterator[None]:
         # once (`PyErr_Print`), with the status (143) but without unwinding this block: say what
         # happened, and stop the children, here.
         if state.signum is not None:
-            stop_tracked()
+            _stop_children(state)
             print(f"{command}: {_WORD[signal.Signals(state.signum)]}", file=sys.stderr, flush=True)
 
     previous = {signum: signal.signal(signum, state.handle) for signum in STATUS}
@@ -267,7 +275,7 @@ def stop_on_signals(command: str, *, grace: float = 10.0) -> Iterator[None]:
         else:
             # Left as they are (they ignore every signal now): a signal sent again that is still on
             # its way must not kill the process with the default action while it exits.
-            stop_tracked()
+            _stop_children(state)
 
 
 def run_command(name: str, body: Callable[[], int], *, handle_signals: bool) -> int:

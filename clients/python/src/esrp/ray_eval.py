@@ -181,10 +181,9 @@ def run_ray_eval(settings: EvalSettings, cluster: RaySettings) -> EvalOutcome:
     started_ray = False
     if not ray.is_initialized():
         options: dict[str, Any] = {"include_dashboard": False, "log_to_driver": True}
-        if cluster.address is None:
-            ray.init(**options)
-        else:
-            ray.init(address=cluster.address, **options)
+        # `ray.init()` with no address joins the newest cluster started on this machine (or
+        # $RAY_ADDRESS's) when there is one; "local" always starts a cluster of the run's own.
+        ray.init(address=cluster.address or "local", **options)
         started_ray = True
         _signals.reclaim()  # ray.init replaced the command's SIGTERM handler with one of its own
     try:
