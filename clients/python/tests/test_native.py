@@ -61,8 +61,12 @@ def test_the_same_answers_as_grpcio(server: esrp.LocalServer, easy_scenes: list[
 
 
 def _plain(value: object) -> object:
-    """`value` with its arrays as (dtype, shape, bytes), for comparing whole results."""
+    """`value` with its arrays as (dtype, shape, bytes), for comparing whole results; arrays of
+    Python objects (the vector env's `scene_id` and `room_type` infos) as their items, since their
+    bytes are the objects' addresses."""
     if isinstance(value, np.ndarray):
+        if value.dtype == object:
+            return (str(value.dtype), value.shape, [_plain(item) for item in value.tolist()])
         return (str(value.dtype), value.shape, value.tobytes())
     if isinstance(value, dict):
         return {key: _plain(item) for key, item in value.items()}
