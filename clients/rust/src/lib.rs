@@ -52,6 +52,7 @@ pub mod episode;
 pub mod error;
 pub mod local;
 pub mod random;
+pub mod raw;
 pub mod results;
 pub mod signals;
 pub mod stream;
@@ -61,14 +62,15 @@ pub mod types;
 /// not cover.
 pub use esrp_proto::esrp::v1 as proto;
 
-pub use client::{Client, ConnectBuilder, MAX_MESSAGE_BYTES, RawClient, SceneFilter, Tls};
-pub use episode::{Episode, EpisodeOptions, SceneChoice};
+pub use client::{Client, ConnectBuilder, MAX_MESSAGE_BYTES, SceneFilter, Tls};
+pub use episode::Episode;
 pub use error::{ClientError, Result};
 pub use local::{LocalServer, find_server_binary, reach_or_start};
 pub use random::RandomActions;
+pub use raw::{Bearer, RawClient};
 pub use stream::{Answer, EpisodeStream, StreamAnswer};
 pub use types::{
-    Action, DepthImage, Difficulty, EpisodeMetrics, Goal, Image, LabelImage, Observation, Obstacle, ObstacleKind,
-    PlanAnswer, PlanFailure, PlanStats, PrivilegedState, RewardTerms, SceneSummary, Sensors, ServerInfo, Split,
-    StepInfo, StepResult, ValueImage,
+    Action, DepthImage, Difficulty, EpisodeMetrics, EpisodeOptions, Goal, Image, LabelImage, Observation, Obstacle,
+    ObstacleKind, PlanAnswer, PlanFailure, PlanStats, PrivilegedState, RewardTerms, SceneChoice, SceneSummary, Sensors,
+    ServerInfo, Split, StepInfo, StepResult, ValueImage,
 };

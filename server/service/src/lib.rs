@@ -11,7 +11,7 @@
 //! - [`registry`]: live episodes by unguessable id, each locked alone; limits; idle reaping.
 //! - [`render`]: the render scheduler (one thread, batches of every waiting view; the renderer
 //!   chunks them to its own limits).
-//! - [`episodes`]: the protocol-free core: [`episodes::Shared`] creates, steps (batches and
+//! - [`episodes`]: the protocol-free core: [`episodes::Episodes`] creates, steps (batches and
 //!   stream waves), resets and closes episodes in core types.
 //! - [`esrp_v1`]: the `esrp.v1.Esrp` adapter: tonic handlers, `TryFrom`/`From` conversions at
 //!   its edge.
@@ -45,6 +45,7 @@ pub mod metrics;
 pub mod registry;
 pub mod render;
 pub mod scenes;
+pub mod types;
 
 use std::future::Future;
 use std::sync::Arc;
@@ -80,7 +81,7 @@ impl tonic::service::Interceptor for TokenCheck {
 }
 
 /// Builds the shared state: the scene store, the renderer and its thread.
-pub fn build_shared(config: &Config) -> Result<Arc<episodes::Shared>, ServeError> {
+pub fn build_shared(config: &Config) -> Result<Arc<episodes::Episodes>, ServeError> {
     let store = match &config.dataset {
         Some(dir) => scenes::SceneStore::folder(dir)?,
         None => scenes::SceneStore::built_in(config.benchmark, config.bench_seed),
@@ -91,7 +92,7 @@ pub fn build_shared(config: &Config) -> Result<Arc<episodes::Shared>, ServeError
     tracing::info!(adapter = %info.name, backend = ?info.backend, software = renderer.is_software(), "renderer ready");
     let metrics = Arc::new(metrics::Metrics::new());
     let render = render::RenderScheduler::start(renderer, metrics.clone());
-    Ok(Arc::new(episodes::Shared::new(store, render, config.clone(), metrics)))
+    Ok(Arc::new(episodes::Episodes::new(store, render, config.clone(), metrics)))
 }
 
 /// Serves gRPC on `listener` (and Prometheus metrics on `metrics_listener`, if given) until
@@ -109,7 +110,7 @@ pub async fn run(
         .map_err(|source| ServeError::Io { what: "the listener has no address".into(), source })?;
     tracing::info!(%address, dataset = shared.store.name(), scenes = shared.store.infos().len(), "serving esrp.v1");
 
-    // Close idle episodes, and unclaimed ones (registry::Registry::reap_unclaimed).
+    // Close idle episodes, and unclaimed ones (`Episodes::reap_unclaimed`).
     let reaper = {
         let shared = shared.clone();
         let (idle, claim) = (config.idle_timeout(), config.claim_timeout());
@@ -122,16 +123,14 @@ pub async fn run(
             loop {
                 tick.tick().await;
                 if !idle.is_zero() {
-                    let reaped = shared.registry.reap(idle);
+                    let reaped = shared.reap_idle(idle);
                     if reaped > 0 {
-                        shared.metrics.count_closed("idle", reaped);
                         tracing::info!(reaped, "closed idle episodes");
                     }
                 }
                 if !claim.is_zero() {
-                    let reaped = shared.registry.reap_unclaimed(claim);
+                    let reaped = shared.reap_unclaimed(claim);
                     if reaped > 0 {
-                        shared.metrics.count_closed("unclaimed", reaped);
                         tracing::info!(reaped, "closed episodes whose id no call named (their create was abandoned)");
                     }
                 }
@@ -144,7 +143,7 @@ pub async fn run(
         let refresh = {
             let shared = shared.clone();
             move || {
-                shared.metrics.live.set(shared.registry.len() as i64);
+                shared.metrics.live.set(shared.live() as i64);
             }
         };
         tokio::spawn(async move {

@@ -1,4 +1,4 @@
-//! The `esrp.v1.Esrp` adapter: thin tonic handlers over [`Shared`]. Each converts its request
+//! The `esrp.v1.Esrp` adapter: thin tonic handlers over [`Episodes`]. Each converts its request
 //! into core types at the edge ([`convert`]), calls the episode layer, and converts the answer
 //! back; a [`ServiceError`] becomes a `tonic::Status` by its one mapping. StepStream's protocol
 //! (`StreamRequest`, `StreamResponse`) ends here: its waves run in
@@ -14,20 +14,21 @@ use tokio::sync::mpsc;
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
 
+use crate::episodes::Episodes;
 use crate::episodes::waves::{self, WaveAnswer, WaveRequest};
-use crate::episodes::{CreateOptions, EpisodeId, PlanCall, Shared, StepCall};
 use crate::error::{ServiceError, quoted};
 use crate::proto;
+use crate::types::{CreateOptions, EpisodeId, PlanCall, StepCall};
 
 /// The tonic service.
 #[derive(Clone)]
 pub struct EsrpService {
-    shared: Arc<Shared>,
+    shared: Arc<Episodes>,
 }
 
 impl EsrpService {
     /// A service over `shared`.
-    pub fn new(shared: Arc<Shared>) -> Self {
+    pub fn new(shared: Arc<Episodes>) -> Self {
         Self { shared }
     }
 }
@@ -91,7 +92,7 @@ impl proto::esrp_server::Esrp for EsrpService {
                 idle_timeout_seconds: s.config.idle_timeout_seconds as u32,
                 max_resolution: s.max_resolution(),
             }),
-            live_episodes: s.registry.len() as u32,
+            live_episodes: s.live() as u32,
             dataset: s.store.name().to_owned(),
         }))
     }
@@ -182,9 +183,7 @@ impl proto::esrp_server::Esrp for EsrpService {
     ) -> Result<Response<proto::StepBatchResponse>, Status> {
         let steps = request.into_inner().steps;
         // The limit first: a batch too large is refused before any of it is read.
-        if steps.len() > self.shared.config.max_batch {
-            return Err(ServiceError::BatchTooLarge { steps: steps.len(), max: self.shared.config.max_batch }.into());
-        }
+        self.shared.check_batch_len(steps.len())?;
         let results = self.shared.step_many(convert::step_calls(steps)?).await?;
         Ok(Response::new(proto::StepBatchResponse { responses: results.into_iter().map(Into::into).collect() }))
     }
