@@ -58,12 +58,14 @@
 
 pub mod action;
 pub mod collision;
+mod compile;
 pub mod episode;
 pub mod error;
 pub mod geometry;
 pub mod heading;
 pub mod metrics;
 pub mod scene;
+mod shapes;
 pub mod world;
 
 pub use action::{Action, UnknownAction, reverse_trajectory};
