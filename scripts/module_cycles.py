@@ -9,7 +9,8 @@ belong to their file. Every strongly connected set of more than one module is a 
 its modules and the lines that make each edge.
 
 Usage: python3 scripts/module_cycles.py CRATE_SRC_DIR [CRATE_SRC_DIR ...]
-(e.g. server/service/src). Exit status 1 when any crate has a circle.
+(e.g. server/service/src). Exit status 1 when any crate has a circle. `--self-test` checks first
+that circles put in on purpose are found (and that what is no circle is not reported).
 """
 
 from __future__ import annotations
@@ -188,7 +189,56 @@ def name(module: tuple[str, ...]) -> str:
     return "::".join(module) or "(crate root)"
 
 
+SELF_TESTS = {
+    # name: ({file: text}, circles expected)
+    "two modules using each other": (
+        {"lib.rs": "mod a;\nmod b;\n", "a.rs": "use crate::b::B;\npub struct A;\n", "b.rs": "pub struct B(crate::a::A);\n"},
+        [["a", "b"]],
+    ),
+    "a child using its parent's item, the parent its child's": (
+        {"lib.rs": "pub mod p;\n", "p/mod.rs": "mod c;\npub use c::C;\npub struct P;\n", "p/c.rs": "use super::P;\npub struct C;\n"},
+        [["p", "p::c"]],
+    ),
+    "through a re-export": (
+        {"lib.rs": "mod a;\nmod b;\npub use a::A;\n", "a.rs": "use crate::b::B;\npub struct A;\n", "b.rs": "use crate::A;\npub struct B;\n"},
+        [["a", "b"]],
+    ),
+    "no circle: siblings over a leaf, inline test modules, another crate's items": (
+        {
+            "lib.rs": "mod a;\nmod b;\nmod leaf;\npub use std::sync as sync;\n",
+            "a.rs": "use crate::leaf::L;\nuse crate::b::B;\n#[cfg(test)]\nmod tests {\n    use super::*;\n}\n",
+            "b.rs": "use crate::leaf::L;\nuse crate::sync::Arc;\npub struct B;\n",
+            "leaf.rs": "pub struct L;\n",
+        },
+        [],
+    ),
+}
+
+
+def self_test() -> bool:
+    """Whether every case of `SELF_TESTS` finds exactly its circles."""
+    import tempfile
+
+    good = True
+    for name, (files, expected) in SELF_TESTS.items():
+        with tempfile.TemporaryDirectory() as folder:
+            for path, text in files.items():
+                (Path(folder) / path).parent.mkdir(parents=True, exist_ok=True)
+                (Path(folder) / path).write_text(text)
+            cycles, _ = analyse(Path(folder))
+        found = sorted(sorted("::".join(m) for m in c) for c in cycles)
+        if found != expected:
+            print(f"module_cycles self-test failed: {name}: found {found}, expected {expected}", file=sys.stderr)
+            good = False
+    return good
+
+
 def main(argv: list[str]) -> int:
+    if argv and argv[0] == "--self-test":
+        if not self_test():
+            return 1
+        print(f"module_cycles: self-test passed ({len(SELF_TESTS)} cases)")
+        argv = argv[1:]
     if not argv:
         print(__doc__, file=sys.stderr)
         return 2

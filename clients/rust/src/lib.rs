@@ -31,7 +31,9 @@
 //! - [`stream`]: [`EpisodeStream`] — a pipelined `StepStream` with up to N steps of each
 //!   episode in flight, answers in request order.
 //! - [`types`]: [`Action`], [`Observation`] (pixels shared with the answer, never copied),
-//!   [`StepResult`], [`EpisodeMetrics`], [`SceneSummary`].
+//!   [`StepResult`], [`EpisodeMetrics`], [`SceneSummary`], [`EpisodeOptions`].
+//! - [`raw`]: [`RawClient`], the generated stub with the bearer token, which every handle
+//!   holds (handles never hold each other: no module imports one that imports it).
 //! - [`local`]: [`LocalServer`] — an `esrp-server` child process on a free port.
 //! - [`random`]: [`RandomActions`] — seeded, portable uniform random actions.
 //! - [`signals`]: [`signals::exit_on_signals`] — how the tools stop on SIGTERM and SIGINT.
@@ -43,7 +45,9 @@
 //! `esrp-eval` (an agent over a whole split, results in `esrp.results/v1`) and `esrp-bench`
 //! (end-to-end throughput and latency).
 //!
-//! Features: `image` adds [`Image::to_rgb_image`].
+//! Features: `image` adds [`Image::to_rgb_image`]; `tools` (default) builds the binaries and
+//! their dependencies (clap, indicatif, anyhow, humantime), which a library user turns off with
+//! `default-features = false`.
 
 #![warn(missing_docs)]
 

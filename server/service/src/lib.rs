@@ -6,13 +6,17 @@
 //!
 //! # Module map
 //!
+//! - [`types`]: the values the episode layer speaks (ids, options, observations, answers); the
+//!   leaf every other module may use.
 //! - [`config`]: flags and environment variables.
 //! - [`scenes`]: the served scenes, built lazily and cached.
-//! - [`registry`]: live episodes by unguessable id, each locked alone; limits; idle reaping.
+//! - [`registry`]: a plain map from unguessable id to entry, each locked alone; limits; idle
+//!   and unclaimed reaping.
 //! - [`render`]: the render scheduler (one thread, batches of every waiting view; the renderer
 //!   chunks them to its own limits).
-//! - [`episodes`]: the protocol-free core: [`episodes::Episodes`] creates, steps (batches and
-//!   stream waves), resets and closes episodes in core types.
+//! - [`episodes`]: the protocol-free episode layer: [`episodes::Episodes`] creates, steps
+//!   (batches and stream waves), resets, plans for and closes episodes in [`types`], its
+//!   public methods listed in one `impl`.
 //! - [`esrp_v1`]: the `esrp.v1.Esrp` adapter: tonic handlers, `TryFrom`/`From` conversions at
 //!   its edge.
 //! - [`dm_env`]: the `dm_env_rpc.v1.Environment` adapter, a sibling of `esrp_v1` over the same
@@ -29,6 +33,8 @@
 //!   batches cannot deadlock. The registry's own lock is held only for map operations.
 //! - **No proto type below the adapters**: [`episodes`], [`registry`], [`render`] and
 //!   [`scenes`] speak core types; only [`esrp_v1`] and [`dm_env`] know their protocols.
+//! - **No import circle**: `types` ← `error` ← {`scenes`, `registry`, `render`} ← `episodes` ←
+//!   the adapters ← the crate root (`scripts/module_cycles.py`, run by the tests).
 //! - **No client input panics or stops the server**: every field is validated into a
 //!   [`error::ServiceError`] with a precise status code and a message that says what to change.
 //! - **Same scene and actions, same observations**, whatever else the server is doing: episodes
@@ -80,8 +86,8 @@ impl tonic::service::Interceptor for TokenCheck {
     }
 }
 
-/// Builds the shared state: the scene store, the renderer and its thread.
-pub fn build_shared(config: &Config) -> Result<Arc<episodes::Episodes>, ServeError> {
+/// Builds the episode layer: the scene store, the renderer and its thread.
+pub fn build_episodes(config: &Config) -> Result<Arc<episodes::Episodes>, ServeError> {
     let store = match &config.dataset {
         Some(dir) => scenes::SceneStore::folder(dir)?,
         None => scenes::SceneStore::built_in(config.benchmark, config.bench_seed),
@@ -103,7 +109,7 @@ pub async fn run(
     config: Config,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), ServeError> {
-    let shared = build_shared(&config)?;
+    let shared = build_episodes(&config)?;
     let render = shared.render.clone();
     let address = listener
         .local_addr()
