@@ -109,16 +109,16 @@ pub async fn run(
     config: Config,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), ServeError> {
-    let shared = build_episodes(&config)?;
-    let render = shared.render.clone();
+    let episodes = build_episodes(&config)?;
+    let render = episodes.render.clone();
     let address = listener
         .local_addr()
         .map_err(|source| ServeError::Io { what: "the listener has no address".into(), source })?;
-    tracing::info!(%address, dataset = shared.store.name(), scenes = shared.store.infos().len(), "serving esrp.v1");
+    tracing::info!(%address, dataset = episodes.store.name(), scenes = episodes.store.infos().len(), "serving esrp.v1");
 
     // Close idle episodes, and unclaimed ones (`Episodes::reap_unclaimed`).
     let reaper = {
-        let shared = shared.clone();
+        let episodes = episodes.clone();
         let (idle, claim) = (config.idle_timeout(), config.claim_timeout());
         let shortest = [idle, claim].into_iter().filter(|t| !t.is_zero()).min();
         tokio::spawn(async move {
@@ -129,13 +129,13 @@ pub async fn run(
             loop {
                 tick.tick().await;
                 if !idle.is_zero() {
-                    let reaped = shared.reap_idle(idle);
+                    let reaped = episodes.reap_idle(idle);
                     if reaped > 0 {
                         tracing::info!(reaped, "closed idle episodes");
                     }
                 }
                 if !claim.is_zero() {
-                    let reaped = shared.reap_unclaimed(claim);
+                    let reaped = episodes.reap_unclaimed(claim);
                     if reaped > 0 {
                         tracing::info!(reaped, "closed episodes whose id no call named (their create was abandoned)");
                     }
@@ -145,15 +145,15 @@ pub async fn run(
     };
 
     let metrics_server = metrics_listener.map(|listener| {
-        let shared = shared.clone();
+        let episodes = episodes.clone();
         let refresh = {
-            let shared = shared.clone();
+            let episodes = episodes.clone();
             move || {
-                shared.metrics.live.set(shared.live() as i64);
+                episodes.metrics.live.set(episodes.live() as i64);
             }
         };
         tokio::spawn(async move {
-            if let Err(e) = metrics::serve(listener, shared.metrics.clone(), refresh).await {
+            if let Err(e) = metrics::serve(listener, episodes.metrics.clone(), refresh).await {
                 tracing::error!("the metrics endpoint stopped: {e}");
             }
         })
@@ -167,8 +167,8 @@ pub async fn run(
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(esrp_proto::FILE_DESCRIPTOR_SET)
         .build_v1()?;
-    let dm_env = dm_env::server(shared.clone());
-    let esrp = proto::esrp_server::EsrpServer::new(esrp_v1::EsrpService::new(shared))
+    let dm_env = dm_env::server(episodes.clone());
+    let esrp = proto::esrp_server::EsrpServer::new(esrp_v1::EsrpService::new(episodes))
         .max_decoding_message_size(config.max_message_bytes)
         .max_encoding_message_size(config.max_message_bytes);
     let check = TokenCheck { expected: config.token.as_ref().map(|t| Arc::new(format!("Bearer {t}").into_bytes())) };

@@ -136,7 +136,7 @@ struct Joined {
 /// One stream: its joined world and the worlds it created.
 struct Connection {
     id: u64,
-    shared: Arc<Episodes>,
+    episodes: Arc<Episodes>,
     worlds: Arc<Worlds>,
     joined: Option<Joined>,
 }
@@ -193,9 +193,9 @@ impl Connection {
 
     async fn create_world(&mut self, request: dm::CreateWorldRequest) -> Result<dm::CreateWorldResponse, DmEnvError> {
         let options = create_options(request.settings)?;
-        let created = self.shared.create(options, None).await?;
+        let created = self.episodes.create(options, None).await?;
         // The world holds the episode from here (and closes it with the connection).
-        self.shared.claim(&created.episode);
+        self.episodes.claim(&created.episode);
         let (specs, observation_names) = specs_of(&created.sensors);
         let world_name = format!("esrp-world-{}", uuid::Uuid::new_v4().simple());
         let world = World {
@@ -279,7 +279,7 @@ impl Connection {
             let fresh = self.worlds.map().get_mut(&joined.world).and_then(|w| w.fresh.take());
             let observation = match fresh {
                 Some(observation) => observation,
-                None => self.shared.reset(&joined.episode_id, None).await?.observation,
+                None => self.episodes.reset(&joined.episode_id, None).await?.observation,
             };
             joined.running = true;
             return respond(dm::EnvironmentStateType::Running, observation, 0.0, 1.0);
@@ -289,7 +289,7 @@ impl Connection {
         let include_goal = requested.iter().any(|&uid| names[uid as usize - 1] == "goal_rgb");
         let step = StepCall { episode: joined.episode_id.clone(), action, include_goal };
         let result = self
-            .shared
+            .episodes
             .step_many(vec![step])
             .await?
             .pop()
@@ -323,7 +323,7 @@ impl Connection {
                 .map(|w| w.episode_id.clone())
                 .ok_or_else(|| DmEnvError::UnknownWorld(request.world_name.clone()))?
         };
-        let reset = self.shared.reset(&episode_id, scene).await?;
+        let reset = self.episodes.reset(&episode_id, scene).await?;
         let mut map = self.worlds.map();
         if let Some(world) = map.get_mut(&request.world_name) {
             world.generation += 1;
@@ -366,7 +366,7 @@ impl Connection {
     }
 
     async fn close_episode(&self, episode_id: EpisodeId) -> Result<(), DmEnvError> {
-        match self.shared.close(&episode_id).await {
+        match self.episodes.close(&episode_id).await {
             // Closed already, as idle.
             Ok(_) | Err(ServiceError::UnknownEpisode(_)) => Ok(()),
             Err(e) => Err(e.into()),
@@ -401,14 +401,14 @@ impl Connection {
 /// The tonic service.
 #[derive(Clone)]
 pub struct DmEnvService {
-    shared: Arc<Episodes>,
+    episodes: Arc<Episodes>,
     worlds: Arc<Worlds>,
 }
 
 impl DmEnvService {
-    /// A service over `shared`, with no worlds yet.
-    pub fn new(shared: Arc<Episodes>) -> Self {
-        Self { shared, worlds: Arc::new(Worlds::default()) }
+    /// A service over `episodes`, with no worlds yet.
+    pub fn new(episodes: Arc<Episodes>) -> Self {
+        Self { episodes, worlds: Arc::new(Worlds::default()) }
     }
 
     /// The live worlds.
@@ -431,7 +431,7 @@ impl dm::environment_server::Environment for DmEnvService {
         let (out, receiver) = mpsc::channel(16);
         let connection = Connection {
             id: self.worlds.next_connection.fetch_add(1, Ordering::Relaxed),
-            shared: self.shared.clone(),
+            episodes: self.episodes.clone(),
             worlds: self.worlds.clone(),
             joined: None,
         };
@@ -440,10 +440,10 @@ impl dm::environment_server::Environment for DmEnvService {
     }
 }
 
-/// The tonic server of [`DmEnvService`] over `shared`, with the configured message limits.
-pub fn server(shared: Arc<Episodes>) -> dm::environment_server::EnvironmentServer<DmEnvService> {
-    let limit = shared.config.max_message_bytes;
-    dm::environment_server::EnvironmentServer::new(DmEnvService::new(shared))
+/// The tonic server of [`DmEnvService`] over `episodes`, with the configured message limits.
+pub fn server(episodes: Arc<Episodes>) -> dm::environment_server::EnvironmentServer<DmEnvService> {
+    let limit = episodes.config.max_message_bytes;
+    dm::environment_server::EnvironmentServer::new(DmEnvService::new(episodes))
         .max_decoding_message_size(limit)
         .max_encoding_message_size(limit)
 }
