@@ -90,7 +90,8 @@ if [ -z "$unavailable" ]; then
     target_dir="$(cargo metadata --format-version 1 --no-deps | "$venv/bin/python" -c 'import json, sys; print(json.load(sys.stdin)["target_directory"])')"
     # The debug builds the tests made (or those named by ESRP_SERVER_BIN and ESRP_EVAL_BIN).
     if [ -z "${ESRP_SERVER_BIN:-}" ] || [ -z "${ESRP_EVAL_BIN:-}" ]; then
-        cargo build --locked -p esrp-server -p esrp-client --bin esrp-server --bin esrp-eval
+        # With the features `cargo test --workspace` resolves: nothing is compiled again after it.
+        cargo build --locked --workspace --bins
         export ESRP_SERVER_BIN="$target_dir/debug/esrp-server" ESRP_EVAL_BIN="$target_dir/debug/esrp-eval"
     fi
     export ESRP_SERVER_BIN ESRP_EVAL_BIN

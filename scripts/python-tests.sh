@@ -84,9 +84,10 @@ if ! ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1 || ! ldconfig -p |
     apt_install mesa-vulkan-drivers libvulkan1 libegl1 libegl-mesa0 libgl1-mesa-dri
 fi
 export NODEVICE_SELECT=1
-cargo build --locked -p esrp-server -p esrp-dataset
-# The Rust esrp-eval: the Python tests check that both evaluation tools read each other's results.
-cargo build --locked -p esrp-client --bin esrp-eval
+# Every binary of the workspace (esrp-server, esrp-dataset, and the Rust esrp-eval: the Python
+# tests check that both evaluation tools read each other's results), with the features
+# `cargo test --workspace` resolves, so that after the Rust tests nothing is compiled again.
+cargo build --locked --workspace --bins
 target_dir="$(cargo metadata --format-version 1 --no-deps | "$venv/bin/python" -c 'import json, sys; print(json.load(sys.stdin)["target_directory"])')"
 export ESRP_SERVER_BIN="$target_dir/debug/esrp-server"
 export ESRP_DATASET_BIN="$target_dir/debug/esrp-dataset"

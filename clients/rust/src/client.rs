@@ -9,29 +9,13 @@ use std::time::Duration;
 use tokio_stream::Stream;
 use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint};
 
-use crate::episode::{Episode, EpisodeOptions};
+use crate::episode::Episode;
 use crate::error::{ClientError, Result};
 use crate::proto;
 use crate::proto::esrp_client::EsrpClient;
+use crate::raw::{Bearer, RawClient};
 use crate::stream::EpisodeStream;
-use crate::types::{Action, Difficulty, Observation, SceneSummary, ServerInfo, Split, StepResult};
-
-/// Adds `authorization: Bearer TOKEN` to every call when a token is set.
-#[derive(Clone, Debug, Default)]
-pub struct Bearer(Option<tonic::metadata::MetadataValue<tonic::metadata::Ascii>>);
-
-impl tonic::service::Interceptor for Bearer {
-    fn call(&mut self, mut request: tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> {
-        if let Some(value) = &self.0 {
-            request.metadata_mut().insert("authorization", value.clone());
-        }
-        Ok(request)
-    }
-}
-
-/// The generated `esrp.v1` stub with the bearer token attached: every RPC, unwrapped, for
-/// what the typed API does not cover.
-pub type RawClient = EsrpClient<tonic::service::interceptor::InterceptedService<Channel, Bearer>>;
+use crate::types::{Action, Difficulty, EpisodeOptions, Observation, SceneSummary, ServerInfo, Split, StepResult};
 
 /// Largest message either side sends: a StepBatch of many high-resolution views.
 pub const MAX_MESSAGE_BYTES: usize = 256 << 20;
@@ -106,13 +90,7 @@ impl ConnectBuilder {
     }
 
     fn bearer(&self) -> Result<Bearer> {
-        match &self.token {
-            None => Ok(Bearer(None)),
-            Some(token) => format!("Bearer {token}")
-                .parse()
-                .map(|v| Bearer(Some(v)))
-                .map_err(|_| ClientError::Config("the token must be printable ASCII (no control characters)".into())),
-        }
+        Bearer::new(self.token.as_deref())
     }
 
     fn wrap(&self, channel: Channel) -> Result<Client> {
@@ -304,7 +282,7 @@ impl Client {
         let created = waiting.await.map_err(|_| {
             ClientError::Unavailable("the create task ended without an answer (runtime shutting down)".into())
         })??;
-        Episode::created(self.clone(), created)
+        Episode::created(self.raw(), created)
     }
 
     /// Takes one step in each of several episodes in one call (at most one step per episode;
@@ -336,5 +314,12 @@ impl Client {
     /// each episode in flight.
     pub async fn episode_stream(&self, window: usize) -> Result<EpisodeStream> {
         EpisodeStream::open(self.raw(), window).await
+    }
+}
+
+impl From<&Client> for RawClient {
+    /// The client's generated stub ([`Client::raw`]): what episode and stream handles call.
+    fn from(client: &Client) -> Self {
+        client.raw()
     }
 }

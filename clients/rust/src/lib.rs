@@ -31,7 +31,9 @@
 //! - [`stream`]: [`EpisodeStream`] — a pipelined `StepStream` with up to N steps of each
 //!   episode in flight, answers in request order.
 //! - [`types`]: [`Action`], [`Observation`] (pixels shared with the answer, never copied),
-//!   [`StepResult`], [`EpisodeMetrics`], [`SceneSummary`].
+//!   [`StepResult`], [`EpisodeMetrics`], [`SceneSummary`], [`EpisodeOptions`].
+//! - [`raw`]: [`RawClient`], the generated stub with the bearer token, which every handle
+//!   holds (handles never hold each other: no module imports one that imports it).
 //! - [`local`]: [`LocalServer`] — an `esrp-server` child process on a free port.
 //! - [`random`]: [`RandomActions`] — seeded, portable uniform random actions.
 //! - [`signals`]: [`signals::exit_on_signals`] — how the tools stop on SIGTERM and SIGINT.
@@ -43,7 +45,9 @@
 //! `esrp-eval` (an agent over a whole split, results in `esrp.results/v1`) and `esrp-bench`
 //! (end-to-end throughput and latency).
 //!
-//! Features: `image` adds [`Image::to_rgb_image`].
+//! Features: `image` adds [`Image::to_rgb_image`]; `tools` (default) builds the binaries and
+//! their dependencies (clap, indicatif, anyhow, humantime), which a library user turns off with
+//! `default-features = false`.
 
 #![warn(missing_docs)]
 
@@ -52,6 +56,7 @@ pub mod episode;
 pub mod error;
 pub mod local;
 pub mod random;
+pub mod raw;
 pub mod results;
 pub mod signals;
 pub mod stream;
@@ -61,14 +66,15 @@ pub mod types;
 /// not cover.
 pub use esrp_proto::esrp::v1 as proto;
 
-pub use client::{Client, ConnectBuilder, MAX_MESSAGE_BYTES, RawClient, SceneFilter, Tls};
-pub use episode::{Episode, EpisodeOptions, SceneChoice};
+pub use client::{Client, ConnectBuilder, MAX_MESSAGE_BYTES, SceneFilter, Tls};
+pub use episode::Episode;
 pub use error::{ClientError, Result};
 pub use local::{LocalServer, find_server_binary, reach_or_start};
 pub use random::RandomActions;
+pub use raw::{Bearer, RawClient};
 pub use stream::{Answer, EpisodeStream, StreamAnswer};
 pub use types::{
-    Action, DepthImage, Difficulty, EpisodeMetrics, Goal, Image, LabelImage, Observation, Obstacle, ObstacleKind,
-    PlanAnswer, PlanFailure, PlanStats, PrivilegedState, RewardTerms, SceneSummary, Sensors, ServerInfo, Split,
-    StepInfo, StepResult, ValueImage,
+    Action, DepthImage, Difficulty, EpisodeMetrics, EpisodeOptions, Goal, Image, LabelImage, Observation, Obstacle,
+    ObstacleKind, PlanAnswer, PlanFailure, PlanStats, PrivilegedState, RewardTerms, SceneChoice, SceneSummary, Sensors,
+    ServerInfo, Split, StepInfo, StepResult, ValueImage,
 };

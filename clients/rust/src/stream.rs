@@ -8,13 +8,12 @@ use std::collections::{HashMap, VecDeque};
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::UnboundedReceiverStream;
 
-use crate::client::RawClient;
-use crate::episode::EpisodeOptions;
 use crate::error::{ClientError, Result};
 use crate::proto;
 use crate::proto::stream_request::Request as Rq;
 use crate::proto::stream_response::Response as Rs;
-use crate::types::{Action, EpisodeMetrics, Observation, SceneSummary, StepResult};
+use crate::raw::RawClient;
+use crate::types::{Action, EpisodeMetrics, EpisodeOptions, Observation, SceneSummary, StepResult};
 
 /// What a stream request did.
 #[derive(Clone, Debug, PartialEq)]

@@ -747,3 +747,104 @@ impl TryFrom<proto::PlanActionsResponse> for PlanAnswer {
         })
     }
 }
+
+/// Which scene an episode plays.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum SceneChoice {
+    /// A scene of the served dataset, by id.
+    Id(String),
+    /// An inline scene (`esrp.scene/v1` JSON).
+    Json(String),
+    /// A scene of `split` picked deterministically from `seed` (index `seed mod count`).
+    Seeded {
+        /// The split (test when `None`).
+        split: Option<Split>,
+        /// The seed.
+        seed: u64,
+    },
+}
+
+/// How to create an episode: the scene, the horizon, the reward weights, the sensors and
+/// whether privileged state may be read.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EpisodeOptions {
+    /// The scene.
+    pub scene: SceneChoice,
+    /// The step limit; 0: the scene's own.
+    pub horizon: u32,
+    /// Reward weights (the server's defaults for fields left `None`).
+    pub reward: Option<proto::RewardWeights>,
+    /// Optional sensors and the image size.
+    pub sensors: Sensors,
+    /// Allow [`Episode::privileged_state`].
+    pub privileged: bool,
+}
+
+impl EpisodeOptions {
+    /// An episode of the served scene `id`.
+    pub fn scene(id: impl Into<String>) -> Self {
+        Self::with_scene(SceneChoice::Id(id.into()))
+    }
+
+    /// An episode of an inline scene (`esrp.scene/v1` JSON).
+    pub fn scene_json(json: impl Into<String>) -> Self {
+        Self::with_scene(SceneChoice::Json(json.into()))
+    }
+
+    /// An episode of a scene of `split` chosen from `seed`.
+    pub fn seeded(split: Split, seed: u64) -> Self {
+        Self::with_scene(SceneChoice::Seeded { split: Some(split), seed })
+    }
+
+    fn with_scene(scene: SceneChoice) -> Self {
+        EpisodeOptions { scene, horizon: 0, reward: None, sensors: Sensors::default(), privileged: false }
+    }
+
+    /// Sets the step limit (0: the scene's own).
+    pub fn horizon(mut self, horizon: u32) -> Self {
+        self.horizon = horizon;
+        self
+    }
+
+    /// Sets the sensors and image size.
+    pub fn sensors(mut self, sensors: Sensors) -> Self {
+        self.sensors = sensors;
+        self
+    }
+
+    /// Sets the reward weights.
+    pub fn reward(mut self, reward: proto::RewardWeights) -> Self {
+        self.reward = Some(reward);
+        self
+    }
+
+    /// Allows reading the privileged state (for planners and debugging).
+    pub fn privileged(mut self, privileged: bool) -> Self {
+        self.privileged = privileged;
+        self
+    }
+
+    /// The `CreateEpisode` request these options make.
+    pub fn to_proto(&self) -> proto::CreateEpisodeRequest {
+        use proto::create_episode_request::Scene;
+        let (scene, split, seed) = match &self.scene {
+            SceneChoice::Id(id) => (Some(Scene::SceneId(id.clone())), None, 0),
+            SceneChoice::Json(json) => (Some(Scene::SceneJson(json.clone())), None, 0),
+            SceneChoice::Seeded { split, seed } => (None, *split, *seed),
+        };
+        proto::CreateEpisodeRequest {
+            scene,
+            split: Split::to_proto(split),
+            seed,
+            horizon: self.horizon,
+            reward: self.reward,
+            sensors: Some(proto::Sensors {
+                ego_depth: self.sensors.ego_depth,
+                ego_segmentation: self.sensors.ego_segmentation,
+                current_top_down: self.sensors.current_top_down,
+                resolution: self.sensors.resolution,
+            }),
+            privileged: self.privileged,
+        }
+    }
+}

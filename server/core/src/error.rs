@@ -1,6 +1,5 @@
-//! Typed errors: what was wrong with a scene or a request, and how to fix it.
-
-use crate::scene::SCENE_SCHEMA;
+//! Typed errors: what was wrong with a scene or a request, and how to fix it. A leaf: it
+//! names no other module of the crate.
 
 /// Which of a scene's two layouts a problem was found in.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -29,8 +28,9 @@ pub enum SceneError {
         /// The parser's message, with line and column.
         message: String,
     },
-    /// The `schema` field names a format this version does not read.
-    #[error("unknown scene schema {found:?}: this server reads {SCENE_SCHEMA:?}")]
+    /// The `schema` field names a format this version does not read (the one it reads is
+    /// `crate::scene::SCENE_SCHEMA`; a test in `scene` keeps the message in step with it).
+    #[error("unknown scene schema {found:?}: this server reads \"esrp.scene/v1\"")]
     UnknownSchema {
         /// The schema string found.
         found: String,

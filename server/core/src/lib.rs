@@ -12,11 +12,15 @@
 //!
 //! - [`scene`]: the scene format `esrp.scene/v1` (plain serde data, documented there with an
 //!   example).
-//! - [`world`]: [`CompiledScene`] — validation ([`SceneError`]), walls cut around openings,
-//!   collision shapes, footprints; immutable and shared by every episode of a scene.
+//! - [`world`]: the data of a [`CompiledScene`] — the task's constants, rules, obstacles, wall
+//!   pieces, footprints and collision shapes; immutable and shared by every episode of a scene.
+//! - `compile`: [`CompiledScene::new`] — validation ([`SceneError`]) and building the collision
+//!   world, clearances checked through `collision`.
+//! - `shapes`: poses and wall boxes as parry shapes, for `compile` and `collision` alike.
 //! - [`collision`]: every collision question, asked without an episode — pose conversion, wall
 //!   boxes, "does this body fit here" ([`collision::obstruction`]) and "what does this motion hit
 //!   first" ([`collision::first_hit`]); [`Episode::step`] and the planners ask the same functions.
+//! - [`error`]: [`SceneError`] and [`EpisodeError`], a leaf every module may use.
 //! - [`episode`]: [`Episode`] — the mutable state and the one [`Episode::step`]; outcomes,
 //!   rewards, metrics, privileged state and the camera pose for renderers.
 //! - [`metrics`]: aggregation of episode metrics over many episodes (SR, OSR, RDR, stages,
@@ -37,6 +41,9 @@
 //!   [`StepOutcome`], not an error; the only step error is stepping a finished episode.
 //! - **One simulator.** Dataset generation, the server and the planners all step this code, so
 //!   an expert trajectory that replays here replays everywhere.
+//! - **Data below processing, no import circle.** `scene`, `error`, `geometry`, `heading` and
+//!   `world` are data; `shapes`, `collision`, `compile` and `episode` process it; no module
+//!   imports one that imports it (`scripts/module_cycles.py`, run by the tests).
 //!
 //! # Example
 //!
@@ -58,12 +65,14 @@
 
 pub mod action;
 pub mod collision;
+mod compile;
 pub mod episode;
 pub mod error;
 pub mod geometry;
 pub mod heading;
 pub mod metrics;
 pub mod scene;
+mod shapes;
 pub mod world;
 
 pub use action::{Action, UnknownAction, reverse_trajectory};

@@ -388,3 +388,14 @@ impl Scene {
         serde_json::to_string_pretty(self).unwrap_or_default()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_unknown_schema_message_names_the_schema_read() {
+        let message = crate::SceneError::UnknownSchema { found: "esrp.scene/v2".into() }.to_string();
+        assert!(message.ends_with(&format!("this server reads {SCENE_SCHEMA:?}")), "{message}");
+    }
+}

@@ -1,4 +1,6 @@
-//! Scene compilation: validation, walls, collision shapes and footprints.
+//! The compiled scene's data: the task's constants, [`Rules`], obstacles, wall pieces, footprints
+//! and [`CompiledScene`] with its accessors. Building one (validation, shapes) is `compile`'s
+//! job, and asking it collision questions is [`crate::collision`]'s: this module names neither.
 //!
 //! A [`CompiledScene`] is immutable and shared (behind an `Arc`) by every episode of the same
 //! scene. It holds the static world (walls and fixed furniture, one parry [`Compound`] with its
@@ -13,19 +15,13 @@
 //! an exact obstacle is a cast at the margin between the exact shapes. Linear (translation) and
 //! rotational casts use the same shapes, so both obey the same margin.
 
-use std::sync::Arc;
+use parry3d::math::Pose;
+use parry3d::shape::{Compound, SharedShape};
 
-use parry3d::bounding_volume::{Aabb, BoundingVolume};
-use parry3d::math::{Pose, Rotation, Vector};
-use parry3d::shape::{Compound, ConvexPolyhedron, Cuboid, Cylinder, Shape as _, SharedShape, Triangle};
-
-use crate::collision;
-use crate::error::{Layout, SceneError};
-use crate::geometry::{
-    OrientedRect, PlanPoint, footprint_iou, point_in_polygon, polygon_is_simple, rotate_plan, signed_area,
-};
+use crate::error::SceneError;
+use crate::geometry::{OrientedRect, PlanPoint, rotate_plan};
 use crate::heading::Heading;
-use crate::scene::{Difficulty, ObjectPose, Part, SCENE_SCHEMA, Scene, Shape};
+use crate::scene::{ObjectPose, Scene};
 
 /// The robot's collision radius, metres (SPEC §2).
 pub const ROBOT_RADIUS: f64 = 0.30;
@@ -61,7 +57,7 @@ impl Default for Rules {
 }
 
 impl Rules {
-    fn validate(&self) -> Result<(), SceneError> {
+    pub(crate) fn validate(&self) -> Result<(), SceneError> {
         let bad = |reason: String| Err(SceneError::InvalidRules { reason });
         if !(self.collision_margin.is_finite() && self.collision_margin > 0.0 && self.collision_margin <= 0.1) {
             return bad(format!("collision_margin {} must be in (0, 0.1] metres", self.collision_margin));
@@ -164,237 +160,23 @@ pub(crate) struct MovableGeometry {
 /// A validated scene with its collision world, ready for episodes. Immutable; share it with
 /// `Arc` between every episode of the scene.
 pub struct CompiledScene {
-    scene: Scene,
-    rules: Rules,
-    floor: Vec<PlanPoint>,
-    wall_pieces: Vec<WallPiece>,
-    static_world: Compound,
-    static_part_owner: Vec<Obstacle>,
-    fixed_footprints: Vec<OrientedRect>,
+    pub(crate) scene: Scene,
+    pub(crate) rules: Rules,
+    pub(crate) floor: Vec<PlanPoint>,
+    pub(crate) wall_pieces: Vec<WallPiece>,
+    pub(crate) static_world: Compound,
+    pub(crate) static_part_owner: Vec<Obstacle>,
+    pub(crate) fixed_footprints: Vec<OrientedRect>,
     pub(crate) movables: Vec<MovableGeometry>,
     pub(crate) robot_carried: SharedShape,
-    robot_exact: SharedShape,
-    initial_distance: f64,
+    pub(crate) robot_exact: SharedShape,
+    pub(crate) initial_distance: f64,
 }
 
 impl std::fmt::Debug for CompiledScene {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("CompiledScene").field("id", &self.scene.id).field("rules", &self.rules).finish_non_exhaustive()
     }
-}
-
-fn part_pose(offset: [f64; 3], yaw: f64) -> Pose {
-    Pose::from_parts(Vector::new(offset[0], offset[1], offset[2]), Rotation::from_rotation_y(yaw))
-}
-
-fn check_finite(path: impl FnOnce() -> String, values: &[f64]) -> Result<(), SceneError> {
-    if values.iter().all(|v| v.is_finite()) { Ok(()) } else { Err(SceneError::NonFinite { path: path() }) }
-}
-
-/// Exact and dilated convex parts of a shape, in the object's frame.
-struct PartShapes {
-    exact: Vec<(Pose, SharedShape)>,
-    dilated: Vec<(Pose, SharedShape)>,
-    local_aabb: Aabb,
-}
-
-/// Builds a shape's convex parts. A mesh becomes its triangles for a fixed object
-/// (`as_triangles`) and its convex hull for a movable one.
-fn build_parts(
-    object: &str,
-    path: &str,
-    shape: &Shape,
-    margin: f64,
-    as_triangles: bool,
-) -> Result<PartShapes, SceneError> {
-    let invalid = |reason: String| SceneError::InvalidShape { object: object.to_owned(), reason };
-    let mut exact = Vec::new();
-    let mut dilated = Vec::new();
-    match shape {
-        Shape::Parts(parts) => {
-            if parts.is_empty() {
-                return Err(invalid("`shape.parts` is empty: give at least one box, cylinder or convex hull".into()));
-            }
-            for (i, part) in parts.iter().enumerate() {
-                let (offset, yaw) = part.placement();
-                check_finite(|| format!("{path}.shape.parts[{i}].offset"), &offset)?;
-                check_finite(|| format!("{path}.shape.parts[{i}].yaw"), &[yaw])?;
-                let pose = part_pose(offset, yaw);
-                let (e, d) = match part {
-                    Part::Box { half_extents, .. } => {
-                        check_finite(|| format!("{path}.shape.parts[{i}].half_extents"), half_extents)?;
-                        if half_extents.iter().any(|&h| h <= 0.0) {
-                            return Err(invalid(format!(
-                                "part {i}: box half extents {half_extents:?} must all be positive"
-                            )));
-                        }
-                        let [x, y, z] = *half_extents;
-                        (
-                            SharedShape::new(Cuboid::new(Vector::new(x, y, z))),
-                            SharedShape::round_cuboid(x, y, z, margin),
-                        )
-                    }
-                    Part::Cylinder { radius, half_height, .. } => {
-                        check_finite(|| format!("{path}.shape.parts[{i}]"), &[*radius, *half_height])?;
-                        if *radius <= 0.0 || *half_height <= 0.0 {
-                            return Err(invalid(format!("part {i}: cylinder radius and half height must be positive")));
-                        }
-                        (
-                            SharedShape::new(Cylinder::new(*half_height, *radius)),
-                            SharedShape::round_cylinder(*half_height, *radius, margin),
-                        )
-                    }
-                    Part::ConvexHull { points, .. } => {
-                        for (j, p) in points.iter().enumerate() {
-                            check_finite(|| format!("{path}.shape.parts[{i}].points[{j}]"), p)?;
-                        }
-                        let points: Vec<Vector> = points.iter().map(|p| Vector::new(p[0], p[1], p[2])).collect();
-                        hull_pair(&points, margin).ok_or_else(|| {
-                            invalid(format!("part {i}: the convex hull of its points is degenerate (give at least 4 points not in one plane)"))
-                        })?
-                    }
-                };
-                exact.push((pose, e));
-                dilated.push((pose, d));
-            }
-        }
-        Shape::Mesh(mesh) => {
-            for (j, p) in mesh.vertices.iter().enumerate() {
-                check_finite(|| format!("{path}.shape.mesh.vertices[{j}]"), p)?;
-            }
-            if mesh.triangles.is_empty() {
-                return Err(invalid("`shape.mesh.triangles` is empty".into()));
-            }
-            let vertices: Vec<Vector> = mesh.vertices.iter().map(|p| Vector::new(p[0], p[1], p[2])).collect();
-            for (t, tri) in mesh.triangles.iter().enumerate() {
-                if let Some(&bad) = tri.iter().find(|&&v| v as usize >= vertices.len()) {
-                    return Err(invalid(format!(
-                        "mesh triangle {t} uses vertex {bad}, but the mesh has only {} vertices",
-                        vertices.len()
-                    )));
-                }
-            }
-            if as_triangles {
-                for tri in &mesh.triangles {
-                    let [a, b, c] = tri.map(|v| vertices[v as usize]);
-                    if (b - a).cross(c - a).length() <= 1e-12 {
-                        continue; // A degenerate triangle has no surface to hit.
-                    }
-                    exact.push((Pose::IDENTITY, SharedShape::new(Triangle::new(a, b, c))));
-                    dilated.push((Pose::IDENTITY, SharedShape::round_triangle(a, b, c, margin)));
-                }
-                if exact.is_empty() {
-                    return Err(invalid("every mesh triangle is degenerate (zero area)".into()));
-                }
-            } else {
-                let (e, d) = hull_pair(&vertices, margin).ok_or_else(|| {
-                    invalid("the convex hull of the mesh is degenerate (flat or fewer than 4 vertices)".into())
-                })?;
-                exact.push((Pose::IDENTITY, e));
-                dilated.push((Pose::IDENTITY, d));
-            }
-        }
-    }
-    let mut local_aabb = Aabb::new_invalid();
-    for (pose, shape) in &exact {
-        local_aabb.merge(&shape.compute_aabb(pose));
-    }
-    Ok(PartShapes { exact, dilated, local_aabb })
-}
-
-/// The exact and dilated convex hulls of `points`, or `None` if the hull has no volume (fewer
-/// than four points, or all in one plane).
-fn hull_pair(points: &[Vector], margin: f64) -> Option<(SharedShape, SharedShape)> {
-    let hull = ConvexPolyhedron::from_convex_hull(points)?;
-    if hull.mass_properties(1.0).mass() <= 1e-9 {
-        return None;
-    }
-    let dilated = SharedShape::round_convex_hull(points, margin)?;
-    Some((SharedShape::new(hull), dilated))
-}
-
-fn local_footprint(aabb: &Aabb) -> LocalFootprint {
-    LocalFootprint {
-        center: PlanPoint::new(0.5 * (aabb.mins.x + aabb.maxs.x), 0.5 * (aabb.mins.z + aabb.maxs.z)),
-        half_x: 0.5 * (aabb.maxs.x - aabb.mins.x),
-        half_z: 0.5 * (aabb.maxs.z - aabb.mins.z),
-    }
-}
-
-/// Each opening on a wall of the floor, within its length and height, and clear of the other
-/// openings of its wall.
-fn validate_openings(scene: &Scene, floor: &[PlanPoint]) -> Result<(), SceneError> {
-    let n = floor.len();
-    let height = scene.room.wall_height;
-    for (index, opening) in scene.room.openings.iter().enumerate() {
-        let invalid = |reason: String| SceneError::InvalidOpening { index, reason };
-        check_finite(
-            || format!("room.openings[{index}]"),
-            &[opening.offset, opening.width, opening.bottom, opening.top],
-        )?;
-        if opening.wall >= n {
-            return Err(invalid(format!(
-                "wall {} does not exist: the floor has {n} edges (walls 0..{n})",
-                opening.wall
-            )));
-        }
-        let length = floor[opening.wall].distance(floor[(opening.wall + 1) % n]);
-        if opening.offset < 0.0 || opening.width <= 0.0 || opening.offset + opening.width > length {
-            return Err(invalid(format!(
-                "it spans {}..{} m along wall {}, which is {length:.3} m long",
-                opening.offset,
-                opening.offset + opening.width,
-                opening.wall
-            )));
-        }
-        if !(opening.bottom >= 0.0 && opening.top > opening.bottom && opening.top <= height) {
-            return Err(invalid(format!(
-                "bottom {} and top {} must satisfy 0 <= bottom < top <= wall height {height}",
-                opening.bottom, opening.top
-            )));
-        }
-    }
-    for (wall, openings) in collision::openings_by_wall(n, &scene.room.openings).iter().enumerate() {
-        for pair in openings.windows(2) {
-            if pair[1].1.offset < pair[0].1.offset + pair[0].1.width {
-                return Err(SceneError::InvalidOpening {
-                    index: pair[1].0,
-                    reason: format!("it overlaps opening {} on wall {wall}", pair[0].0),
-                });
-            }
-        }
-    }
-    Ok(())
-}
-
-fn validate_room(scene: &Scene) -> Result<Vec<PlanPoint>, SceneError> {
-    let room = &scene.room;
-    for (i, p) in room.floor.iter().enumerate() {
-        check_finite(|| format!("room.floor[{i}]"), p)?;
-    }
-    check_finite(|| "room.wall_height".into(), &[room.wall_height])?;
-    check_finite(|| "room.wall_thickness".into(), &[room.wall_thickness])?;
-    let invalid = |reason: String| Err(SceneError::InvalidRoom { reason });
-    let floor = room.floor_points();
-    if floor.len() < 3 {
-        return invalid(format!("`room.floor` has {} vertices: a floor polygon needs at least 3", floor.len()));
-    }
-    if !polygon_is_simple(&floor) {
-        return invalid("`room.floor` is not a simple polygon: its edges cross, touch or repeat a vertex".into());
-    }
-    if signed_area(&floor).abs() < 1.0 {
-        return invalid("`room.floor` encloses less than 1 m²".into());
-    }
-    if room.wall_height < ROBOT_HEIGHT || room.wall_height > 20.0 {
-        return invalid(format!(
-            "`room.wall_height` {} must be between the robot's height {ROBOT_HEIGHT} m and 20 m",
-            room.wall_height
-        ));
-    }
-    if !(0.01..=1.0).contains(&room.wall_thickness) {
-        return invalid(format!("`room.wall_thickness` {} must be between 0.01 and 1 m", room.wall_thickness));
-    }
-    Ok(floor)
 }
 
 fn obstacle_name(scene: &Scene, obstacle: Obstacle) -> String {
@@ -406,170 +188,6 @@ fn obstacle_name(scene: &Scene, obstacle: Obstacle) -> String {
 }
 
 impl CompiledScene {
-    /// Validates `scene` under `rules` and builds its collision world.
-    ///
-    /// Checks, each with its own [`SceneError`]: schema, finite numbers, room and openings,
-    /// non-empty shapes, unique ids, 1–6 movable objects matching the difficulty, every
-    /// object's footprint centre inside the room, movable objects' 3D shapes clear (by the
-    /// collision margin) of walls, fixed objects and each other in both layouts, the agent
-    /// inside the room and clear of everything, not every object already placed, and a positive
-    /// horizon. (A footprint's corners may reach past the floor polygon — a round stool turned
-    /// 45° has a bounding box wider than itself — but never its 3D shape, which the wall
-    /// clearance check keeps inside.)
-    pub fn new(scene: Scene, rules: Rules) -> Result<Self, SceneError> {
-        let compiled = Self::for_backward_construction(scene, rules)?;
-        compiled.check_not_solved()?;
-        Ok(compiled)
-    }
-
-    /// Like [`CompiledScene::new`], but accepts an initial layout in which every object is
-    /// already placed: the starting point of backward construction (SPEC §7), where the
-    /// generator begins at the target layout and moves objects away. Every other check applies.
-    pub fn for_backward_construction(scene: Scene, rules: Rules) -> Result<Self, SceneError> {
-        rules.validate()?;
-        if scene.schema != SCENE_SCHEMA {
-            return Err(SceneError::UnknownSchema { found: scene.schema });
-        }
-        if scene.id.trim().is_empty() {
-            return Err(SceneError::EmptyField { field: "id".into() });
-        }
-        let count = scene.movable_objects.len();
-        if count == 0 {
-            return Err(SceneError::NoMovableObjects);
-        }
-        if count > MAX_MOVABLE_OBJECTS {
-            return Err(SceneError::TooManyMovableObjects { count });
-        }
-        if Difficulty::for_object_count(count) != Some(scene.difficulty) {
-            return Err(SceneError::DifficultyMismatch { difficulty: scene.difficulty.as_str(), count });
-        }
-        if scene.horizon == 0 {
-            return Err(SceneError::ZeroHorizon);
-        }
-        let mut ids = std::collections::HashSet::new();
-        for id in scene.fixed_objects.iter().map(|o| &o.id).chain(scene.movable_objects.iter().map(|o| &o.id)) {
-            if id.is_empty() {
-                return Err(SceneError::EmptyField { field: "object id".into() });
-            }
-            if !ids.insert(id.as_str()) {
-                return Err(SceneError::DuplicateId { id: id.clone() });
-            }
-        }
-        let floor = validate_room(&scene)?;
-        validate_openings(&scene, &floor)?;
-        let room = &scene.room;
-        let wall_pieces = collision::wall_pieces(&floor, room.wall_thickness, room.wall_height, &room.openings);
-        let margin = rules.collision_margin;
-
-        let mut static_parts: Vec<(Pose, SharedShape)> = Vec::new();
-        let mut static_part_owner = Vec::new();
-        for piece in &wall_pieces {
-            static_parts.push(collision::wall_collider(piece));
-            static_part_owner.push(Obstacle::Wall(piece.wall));
-        }
-        let mut fixed_footprints = Vec::new();
-        for (i, object) in scene.fixed_objects.iter().enumerate() {
-            let path = format!("fixed_objects[{i}]");
-            check_finite(|| format!("{path}.pose"), &[object.pose.x, object.pose.z, object.pose.yaw])?;
-            let parts = build_parts(&object.id, &path, &object.shape, margin, true)?;
-            let footprint = local_footprint(&parts.local_aabb).at(&object.pose);
-            if !point_in_polygon(footprint.center, &floor) {
-                return Err(SceneError::OutsideRoom { object: object.id.clone(), layout: Layout::Initial });
-            }
-            fixed_footprints.push(footprint);
-            let placement = collision::object_pose(&object.pose);
-            for (pose, shape) in parts.exact {
-                static_parts.push((placement * pose, shape));
-                static_part_owner.push(Obstacle::Fixed(i));
-            }
-        }
-        let static_world = Compound::new(static_parts);
-
-        let mut movables = Vec::with_capacity(count);
-        for (i, object) in scene.movable_objects.iter().enumerate() {
-            let path = format!("movable_objects[{i}]");
-            check_finite(|| format!("{path}.pose"), &[object.pose.x, object.pose.z, object.pose.yaw])?;
-            check_finite(|| format!("{path}.target"), &[object.target.x, object.target.z, object.target.yaw])?;
-            let parts = build_parts(&object.id, &path, &object.shape, margin, false)?;
-            let footprint = local_footprint(&parts.local_aabb);
-            for (layout, pose) in [(Layout::Initial, &object.pose), (Layout::Target, &object.target)] {
-                if !point_in_polygon(footprint.at(pose).center, &floor) {
-                    return Err(SceneError::OutsideRoom { object: object.id.clone(), layout });
-                }
-            }
-            movables.push(MovableGeometry {
-                obstacle: Compound::new(parts.exact),
-                carried_parts: parts.dilated,
-                footprint,
-            });
-        }
-
-        let agent = PlanPoint::new(scene.agent.x, scene.agent.z);
-        check_finite(|| "agent".into(), &[agent.x, agent.z])?;
-        if !point_in_polygon(agent, &floor) {
-            return Err(SceneError::AgentOutsideRoom);
-        }
-        let initial_distance = scene
-            .movable_objects
-            .iter()
-            .zip(&movables)
-            .map(|(o, g)| g.footprint.at(&o.pose).center.distance(g.footprint.at(&o.target).center))
-            .sum();
-        let compiled = CompiledScene {
-            robot_carried: SharedShape::round_cylinder(ROBOT_HEIGHT / 2.0, ROBOT_RADIUS, margin),
-            robot_exact: SharedShape::cylinder(ROBOT_HEIGHT / 2.0, ROBOT_RADIUS),
-            scene,
-            rules,
-            floor,
-            wall_pieces,
-            static_world,
-            static_part_owner,
-            fixed_footprints,
-            movables,
-            initial_distance,
-        };
-        compiled.check_clearances()?;
-        Ok(compiled)
-    }
-
-    /// Movable objects must be clear of everything by the margin in both layouts, and the agent
-    /// clear of everything in the initial layout.
-    fn check_clearances(&self) -> Result<(), SceneError> {
-        let margin = self.rules.collision_margin;
-        for layout in [Layout::Initial, Layout::Target] {
-            let poses: Vec<ObjectPose> = self
-                .scene
-                .movable_objects
-                .iter()
-                .map(|o| if layout == Layout::Initial { o.pose } else { o.target })
-                .collect();
-            for (i, pose) in poses.iter().enumerate() {
-                if let Some(other) = collision::object_obstruction(self, &poses, i, pose) {
-                    return Err(SceneError::Overlap {
-                        object: self.scene.movable_objects[i].id.clone(),
-                        other: obstacle_name(&self.scene, other),
-                        layout,
-                        margin,
-                    });
-                }
-            }
-            if layout == Layout::Initial {
-                let robot = collision::Body::robot(PlanPoint::new(self.scene.agent.x, self.scene.agent.z));
-                if let Some(other) = collision::obstruction(self, &poses, &robot) {
-                    return Err(SceneError::AgentInCollision { obstacle: obstacle_name(&self.scene, other) });
-                }
-            }
-        }
-        Ok(())
-    }
-
-    fn check_not_solved(&self) -> Result<(), SceneError> {
-        let placed = self.scene.movable_objects.iter().zip(&self.movables).all(|(o, g)| {
-            footprint_iou(&g.footprint.at(&o.pose), &g.footprint.at(&o.target)) > self.rules.placement_iou
-        });
-        if placed { Err(SceneError::AlreadySolved) } else { Ok(()) }
-    }
-
     /// The scene as given.
     pub fn scene(&self) -> &Scene {
         &self.scene
@@ -636,11 +254,6 @@ impl CompiledScene {
     /// part `i` belongs to [`CompiledScene::static_part_owner`]`(i)`.
     pub fn static_shape(&self) -> &Compound {
         &self.static_world
-    }
-
-    /// Validates and compiles a scene under the default rules, behind an `Arc`.
-    pub fn shared(scene: Scene) -> Result<Arc<Self>, SceneError> {
-        Self::new(scene, Rules::default()).map(Arc::new)
     }
 
     /// The start heading.

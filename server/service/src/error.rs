@@ -4,7 +4,7 @@
 use esrp_core::Split;
 use tonic::{Code, Status};
 
-use crate::episodes::EpisodeId;
+use crate::types::EpisodeId;
 
 /// The most characters of a client-given value that an error message quotes.
 pub const MAX_QUOTED_CHARS: usize = 64;

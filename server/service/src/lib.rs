@@ -6,13 +6,17 @@
 //!
 //! # Module map
 //!
+//! - [`types`]: the values the episode layer speaks (ids, options, observations, answers); the
+//!   leaf every other module may use.
 //! - [`config`]: flags and environment variables.
 //! - [`scenes`]: the served scenes, built lazily and cached.
-//! - [`registry`]: live episodes by unguessable id, each locked alone; limits; idle reaping.
+//! - [`registry`]: a plain map from unguessable id to entry, each locked alone; limits; idle
+//!   and unclaimed reaping.
 //! - [`render`]: the render scheduler (one thread, batches of every waiting view; the renderer
 //!   chunks them to its own limits).
-//! - [`episodes`]: the protocol-free core: [`episodes::Shared`] creates, steps (batches and
-//!   stream waves), resets and closes episodes in core types.
+//! - [`episodes`]: the protocol-free episode layer: [`episodes::Episodes`] creates, steps
+//!   (batches and stream waves), resets, plans for and closes episodes in [`types`], its
+//!   public methods listed in one `impl`.
 //! - [`esrp_v1`]: the `esrp.v1.Esrp` adapter: tonic handlers, `TryFrom`/`From` conversions at
 //!   its edge.
 //! - [`dm_env`]: the `dm_env_rpc.v1.Environment` adapter, a sibling of `esrp_v1` over the same
@@ -29,6 +33,8 @@
 //!   batches cannot deadlock. The registry's own lock is held only for map operations.
 //! - **No proto type below the adapters**: [`episodes`], [`registry`], [`render`] and
 //!   [`scenes`] speak core types; only [`esrp_v1`] and [`dm_env`] know their protocols.
+//! - **No import circle**: `types` ← `error` ← {`scenes`, `registry`, `render`} ← `episodes` ←
+//!   the adapters ← the crate root (`scripts/module_cycles.py`, run by the tests).
 //! - **No client input panics or stops the server**: every field is validated into a
 //!   [`error::ServiceError`] with a precise status code and a message that says what to change.
 //! - **Same scene and actions, same observations**, whatever else the server is doing: episodes
@@ -45,6 +51,7 @@ pub mod metrics;
 pub mod registry;
 pub mod render;
 pub mod scenes;
+pub mod types;
 
 use std::future::Future;
 use std::sync::Arc;
@@ -79,8 +86,8 @@ impl tonic::service::Interceptor for TokenCheck {
     }
 }
 
-/// Builds the shared state: the scene store, the renderer and its thread.
-pub fn build_shared(config: &Config) -> Result<Arc<episodes::Shared>, ServeError> {
+/// Builds the episode layer: the scene store, the renderer and its thread.
+pub fn build_episodes(config: &Config) -> Result<Arc<episodes::Episodes>, ServeError> {
     let store = match &config.dataset {
         Some(dir) => scenes::SceneStore::folder(dir)?,
         None => scenes::SceneStore::built_in(config.benchmark, config.bench_seed),
@@ -91,7 +98,7 @@ pub fn build_shared(config: &Config) -> Result<Arc<episodes::Shared>, ServeError
     tracing::info!(adapter = %info.name, backend = ?info.backend, software = renderer.is_software(), "renderer ready");
     let metrics = Arc::new(metrics::Metrics::new());
     let render = render::RenderScheduler::start(renderer, metrics.clone());
-    Ok(Arc::new(episodes::Shared::new(store, render, config.clone(), metrics)))
+    Ok(Arc::new(episodes::Episodes::new(store, render, config.clone(), metrics)))
 }
 
 /// Serves gRPC on `listener` (and Prometheus metrics on `metrics_listener`, if given) until
@@ -102,16 +109,16 @@ pub async fn run(
     config: Config,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), ServeError> {
-    let shared = build_shared(&config)?;
-    let render = shared.render.clone();
+    let episodes = build_episodes(&config)?;
+    let render = episodes.render.clone();
     let address = listener
         .local_addr()
         .map_err(|source| ServeError::Io { what: "the listener has no address".into(), source })?;
-    tracing::info!(%address, dataset = shared.store.name(), scenes = shared.store.infos().len(), "serving esrp.v1");
+    tracing::info!(%address, dataset = episodes.store.name(), scenes = episodes.store.infos().len(), "serving esrp.v1");
 
-    // Close idle episodes, and unclaimed ones (registry::Registry::reap_unclaimed).
+    // Close idle episodes, and unclaimed ones (`Episodes::reap_unclaimed`).
     let reaper = {
-        let shared = shared.clone();
+        let episodes = episodes.clone();
         let (idle, claim) = (config.idle_timeout(), config.claim_timeout());
         let shortest = [idle, claim].into_iter().filter(|t| !t.is_zero()).min();
         tokio::spawn(async move {
@@ -122,16 +129,14 @@ pub async fn run(
             loop {
                 tick.tick().await;
                 if !idle.is_zero() {
-                    let reaped = shared.registry.reap(idle);
+                    let reaped = episodes.reap_idle(idle);
                     if reaped > 0 {
-                        shared.metrics.count_closed("idle", reaped);
                         tracing::info!(reaped, "closed idle episodes");
                     }
                 }
                 if !claim.is_zero() {
-                    let reaped = shared.registry.reap_unclaimed(claim);
+                    let reaped = episodes.reap_unclaimed(claim);
                     if reaped > 0 {
-                        shared.metrics.count_closed("unclaimed", reaped);
                         tracing::info!(reaped, "closed episodes whose id no call named (their create was abandoned)");
                     }
                 }
@@ -140,15 +145,15 @@ pub async fn run(
     };
 
     let metrics_server = metrics_listener.map(|listener| {
-        let shared = shared.clone();
+        let episodes = episodes.clone();
         let refresh = {
-            let shared = shared.clone();
+            let episodes = episodes.clone();
             move || {
-                shared.metrics.live.set(shared.registry.len() as i64);
+                episodes.metrics.live.set(episodes.live() as i64);
             }
         };
         tokio::spawn(async move {
-            if let Err(e) = metrics::serve(listener, shared.metrics.clone(), refresh).await {
+            if let Err(e) = metrics::serve(listener, episodes.metrics.clone(), refresh).await {
                 tracing::error!("the metrics endpoint stopped: {e}");
             }
         })
@@ -162,8 +167,8 @@ pub async fn run(
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(esrp_proto::FILE_DESCRIPTOR_SET)
         .build_v1()?;
-    let dm_env = dm_env::server(shared.clone());
-    let esrp = proto::esrp_server::EsrpServer::new(esrp_v1::EsrpService::new(shared))
+    let dm_env = dm_env::server(episodes.clone());
+    let esrp = proto::esrp_server::EsrpServer::new(esrp_v1::EsrpService::new(episodes))
         .max_decoding_message_size(config.max_message_bytes)
         .max_encoding_message_size(config.max_message_bytes);
     let check = TokenCheck { expected: config.token.as_ref().map(|t| Arc::new(format!("Bearer {t}").into_bytes())) };

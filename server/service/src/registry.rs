@@ -1,47 +1,20 @@
-//! The episode registry: live episodes by unguessable id, each behind its own lock, with a
-//! limit on their number and reapers for idle and for unclaimed ones.
+//! The episode registry: a plain map from unguessable id to entry, each entry behind its own
+//! lock, with a limit on their number, the stream that owns an entry, and reapers for idle and
+//! for unclaimed entries. What an entry holds is the episode layer's business
+//! (`episodes::entry`): the registry knows it only as `E`.
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use bytes::Bytes;
-use esrp_core::Episode;
-use esrp_render::{SceneHandle, TopDownFrame};
-
-use crate::episodes::{EpisodeId, SensorConfig};
 use crate::error::ServiceError;
-use crate::scenes::SceneInfo;
+use crate::types::EpisodeId;
 
-/// One live episode and what the service keeps beside it.
-pub struct EpisodeEntry {
-    /// The simulator state.
-    pub episode: Episode,
-    /// The scene's geometry on the renderer.
-    pub scene: Arc<SceneHandle>,
-    /// The scene's summary.
-    pub summary: SceneInfo,
-    /// Optional sensors.
-    pub sensors: SensorConfig,
-    /// Whether GetPrivilegedState is allowed.
-    pub privileged: bool,
-    /// The goal image (RGB at the sensors' resolution), rendered once.
-    pub goal: Bytes,
-    /// Its pixel ↔ floor mapping.
-    pub frame: TopDownFrame,
-    /// Last time a call used it.
-    pub last_used: Instant,
-    /// The planner's last answer (PlanActions), reused while the episode follows it.
-    pub plan: Option<crate::episodes::planning::CachedPlan>,
-    /// The last observation's images, answered again by steps that change nothing they show.
-    pub frames: crate::render::FrameCache,
-}
-
-/// A shared, individually locked episode.
-pub type SharedEpisode = Arc<tokio::sync::Mutex<EpisodeEntry>>;
+/// A shared, individually locked entry.
+pub type Locked<E> = Arc<tokio::sync::Mutex<E>>;
 
 /// A live episode in the registry.
-struct Slot {
+struct Slot<E> {
     /// The stream that created it, if any (it closes with that stream).
     stream: Option<u64>,
     /// When it was inserted (its create answer leaves right after).
@@ -49,23 +22,23 @@ struct Slot {
     /// Whether a call has named it since (or a stream owns it): its client has its id. An
     /// unclaimed episode is closed by [`Registry::reap_unclaimed`].
     claimed: bool,
-    episode: SharedEpisode,
+    episode: Locked<E>,
 }
 
 /// Live episodes.
-pub struct Registry {
+pub struct Registry<E> {
     // A std mutex: held only for map operations, never across an await.
-    episodes: Mutex<HashMap<EpisodeId, Slot>>,
+    episodes: Mutex<HashMap<EpisodeId, Slot<E>>>,
     max_episodes: usize,
 }
 
-impl Registry {
+impl<E> Registry<E> {
     /// An empty registry holding at most `max_episodes`.
     pub fn new(max_episodes: usize) -> Self {
         Self { episodes: Mutex::new(HashMap::new()), max_episodes }
     }
 
-    fn map(&self) -> std::sync::MutexGuard<'_, HashMap<EpisodeId, Slot>> {
+    fn map(&self) -> std::sync::MutexGuard<'_, HashMap<EpisodeId, Slot<E>>> {
         // A panic while holding this lock cannot leave the map inconsistent (every operation is
         // a single insert or remove), so a poisoned lock is still safe to use.
         self.episodes.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
@@ -88,7 +61,7 @@ impl Registry {
 
     /// Adds an episode under a fresh random 128-bit id, owned by `stream` if it was created on
     /// one (then it is claimed: the stream holds it); unclaimed otherwise.
-    pub fn insert(&self, entry: EpisodeEntry, stream: Option<u64>) -> Result<EpisodeId, ServiceError> {
+    pub fn insert(&self, entry: E, stream: Option<u64>) -> Result<EpisodeId, ServiceError> {
         let mut map = self.map();
         if map.len() >= self.max_episodes {
             return Err(ServiceError::TooManyEpisodes { max: self.max_episodes });
@@ -105,7 +78,7 @@ impl Registry {
     }
 
     /// The episode `id`, which this claims: every call that names an episode gets it here.
-    pub fn get(&self, id: &EpisodeId) -> Result<SharedEpisode, ServiceError> {
+    pub fn get(&self, id: &EpisodeId) -> Result<Locked<E>, ServiceError> {
         let mut map = self.map();
         let slot = map.get_mut(id).ok_or_else(|| ServiceError::UnknownEpisode(id.clone()))?;
         slot.claimed = true;
@@ -120,7 +93,7 @@ impl Registry {
     }
 
     /// Removes the episode `id`.
-    pub fn remove(&self, id: &EpisodeId) -> Result<SharedEpisode, ServiceError> {
+    pub fn remove(&self, id: &EpisodeId) -> Result<Locked<E>, ServiceError> {
         self.map().remove(id).map(|slot| slot.episode).ok_or_else(|| ServiceError::UnknownEpisode(id.clone()))
     }
 
@@ -132,15 +105,13 @@ impl Registry {
         before - map.len()
     }
 
-    /// Removes episodes idle for longer than `idle`; returns how many.
-    pub fn reap(&self, idle: Duration) -> usize {
+    /// Removes the episodes not owned by a stream whose entry `idle` says is idle; returns how
+    /// many. An episode that is locked right now is in use, hence not idle; episodes of an open
+    /// stream live as long as the stream.
+    pub fn reap(&self, idle: impl Fn(&E) -> bool) -> usize {
         let mut map = self.map();
         let before = map.len();
-        // An episode that is locked right now is in use, hence not idle.
-        // Episodes of an open stream live as long as the stream.
-        map.retain(|_, slot| {
-            slot.stream.is_some() || slot.episode.try_lock().map(|e| e.last_used.elapsed() <= idle).unwrap_or(true)
-        });
+        map.retain(|_, slot| slot.stream.is_some() || slot.episode.try_lock().map(|e| !idle(&e)).unwrap_or(true));
         before - map.len()
     }
 

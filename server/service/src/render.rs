@@ -54,52 +54,6 @@ impl View {
     }
 }
 
-/// Whether two views draw the same pixels: the same scene upload, camera, object poses,
-/// outputs and resolution are everything the renderer reads, and rendering is deterministic.
-fn same_view(a: &View, b: &View) -> bool {
-    Arc::ptr_eq(&a.scene, &b.scene)
-        && a.camera == b.camera
-        && a.poses == b.poses
-        && a.outputs == b.outputs
-        && a.resolution == b.resolution
-}
-
-/// An episode's last rendered observation: its views and their images. A step that leaves
-/// what the views show unchanged (a rejected motion, a fetch with nothing in reach, a release
-/// with nothing held: about a third of a random agent's steps) answers these images again
-/// instead of rendering them anew; they are the pixels a new render would give, as the views
-/// are equal. Cheap to clone; shared between the episode and the steps rendering for it.
-#[derive(Clone, Default)]
-pub struct FrameCache(Arc<std::sync::Mutex<Option<Frames>>>);
-
-/// Views with their rendered images, in the same order.
-struct Frames {
-    views: Vec<View>,
-    outputs: Vec<ViewOutput>,
-}
-
-impl FrameCache {
-    /// The images of `views` if they are the last ones stored.
-    pub fn lookup(&self, views: &[View]) -> Option<Vec<ViewOutput>> {
-        let cached = self.0.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-        match &*cached {
-            Some(frames)
-                if frames.views.len() == views.len()
-                    && frames.views.iter().zip(views).all(|(a, b)| same_view(a, b)) =>
-            {
-                Some(frames.outputs.clone())
-            }
-            _ => None,
-        }
-    }
-
-    /// Keeps `outputs` as the images of `views` (replacing what was kept).
-    pub fn store(&self, views: Vec<View>, outputs: &[ViewOutput]) {
-        *self.0.lock().unwrap_or_else(std::sync::PoisonError::into_inner) =
-            Some(Frames { views, outputs: outputs.to_vec() });
-    }
-}
-
 struct RenderJob {
     views: Vec<View>,
     reply: oneshot::Sender<Result<Vec<ViewOutput>, String>>,

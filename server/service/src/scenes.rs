@@ -10,25 +10,7 @@ use esrp_dataset::files::Dataset;
 use esrp_dataset::{BenchVersion, Benchmark};
 
 use crate::error::ServiceError;
-
-/// A scene's summary, known without building it where possible.
-#[derive(Clone, Debug)]
-pub struct SceneInfo {
-    /// Scene id.
-    pub id: String,
-    /// Room type.
-    pub room_type: String,
-    /// Difficulty.
-    pub difficulty: Difficulty,
-    /// Split.
-    pub split: Split,
-    /// Movable objects.
-    pub movable_objects: usize,
-    /// Horizon and expert length, once known (0 until the scene is built).
-    pub horizon: u32,
-    /// Expert trajectory length, once known.
-    pub expert_length: usize,
-}
+use crate::types::SceneInfo;
 
 enum Source {
     BuiltIn(Benchmark),

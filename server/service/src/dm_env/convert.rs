@@ -7,11 +7,19 @@ use std::collections::HashMap;
 
 use esrp_core::{Action, Split};
 
-use super::wire::dm_env_rpc::v1 as dm;
-use super::wire::dm_env_rpc::v1::tensor::Payload as Elements;
-use super::{ACTION_NAME, ACTION_UID, DmEnvError, MAX_ACTION};
-use crate::episodes::{CreateOptions, ElementType, Observation, SceneChoice, SensorConfig, SensorRequest};
+use esrp_proto::dm_env_rpc::v1 as dm;
+use esrp_proto::dm_env_rpc::v1::tensor::Payload as Elements;
+
+use super::error::DmEnvError;
 use crate::error::{ServiceError, quoted};
+use crate::types::{CreateOptions, ElementType, Observation, SceneChoice, SensorConfig, SensorRequest};
+
+/// The uid of the only action.
+pub const ACTION_UID: u64 = 1;
+/// The action's name in the specs.
+pub const ACTION_NAME: &str = "action";
+/// The largest action code.
+pub const MAX_ACTION: i32 = 5;
 
 /// The element type of `tensor`, for messages.
 fn element_type(tensor: &dm::Tensor) -> &'static str {

@@ -4,7 +4,7 @@
 //! A **world** is one ESRP episode with the settings that made it (CreateWorld); a connection
 //! **joins** a world to become its only agent (the task is single-agent); each **sequence** of
 //! the agent is one run of the episode from its start. Every request is answered by the same
-//! [`Shared`] calls as `esrp.v1` (`create`, `reset`, `step_many`, `close`), in core types, so
+//! [`Episodes`] calls as `esrp.v1` (`create`, `reset`, `step_many`, `close`), in core types, so
 //! the rules, the rendering and the limits are the native API's. Tensors and settings convert
 //! at this edge ([`convert`]); nothing here builds or decodes an `esrp.v1` message.
 //!
@@ -54,15 +54,18 @@ use std::sync::{Arc, Mutex};
 
 use tokio::sync::mpsc;
 use tokio_stream::StreamExt;
-use tonic::{Code, Request, Response, Status, Streaming};
+use tonic::{Request, Response, Status, Streaming};
 
-use crate::episodes::{EpisodeId, Observation, Shared, StepCall};
+use crate::episodes::Episodes;
 use crate::error::{ServiceError, quoted};
+use crate::types::{EpisodeId, Observation, StepCall};
 
 pub mod convert;
+mod error;
 
-pub use convert::CREATE_WORLD_SETTINGS;
+pub use convert::{ACTION_NAME, ACTION_UID, CREATE_WORLD_SETTINGS, MAX_ACTION};
 use convert::{action_of, create_options, no_settings, observation_tensor, reset_world_scene, specs_of};
+pub use error::DmEnvError;
 
 /// Generated protobuf messages and gRPC stubs of `dm_env_rpc.v1` and the `google.rpc` and
 /// `google.protobuf` messages it uses (from esrp-proto).
@@ -71,82 +74,6 @@ pub use esrp_proto as wire;
 use wire::dm_env_rpc::v1 as dm;
 use wire::dm_env_rpc::v1::environment_request::Payload as Rq;
 use wire::dm_env_rpc::v1::environment_response::Payload as Rs;
-
-/// The uid of the only action.
-pub const ACTION_UID: u64 = 1;
-/// The action's name in the specs.
-pub const ACTION_NAME: &str = "action";
-/// The largest action code.
-pub const MAX_ACTION: i32 = 5;
-
-/// Why a dm_env_rpc request failed. Sent in-band as a `google.rpc.Status`.
-#[derive(Debug, thiserror::Error)]
-pub enum DmEnvError {
-    /// A failure of the underlying episode call, with the code the native API gives it.
-    #[error("{0}")]
-    Episode(#[from] ServiceError),
-    /// The world name is not a live world.
-    #[error(
-        "no world {}: it was never created, was destroyed, or its creating connection ended; CreateWorld returns the names",
-        quoted(.0)
-    )]
-    UnknownWorld(String),
-    /// Step or Reset before JoinWorld.
-    #[error("this connection has not joined a world: send JoinWorld first")]
-    NotJoined,
-    /// JoinWorld while joined.
-    #[error("this connection is already joined to world {}: send LeaveWorld first (one world per connection)", quoted(.0))]
-    AlreadyJoined(String),
-    /// JoinWorld on a world that has its agent.
-    #[error("world {} already has its agent (ESRP is single-agent): create another world", quoted(.0))]
-    WorldTaken(String),
-    /// DestroyWorld on a world that has an agent.
-    #[error("world {} has a joined agent: it must send LeaveWorld before the world can be destroyed", quoted(.0))]
-    WorldInUse(String),
-    /// A setting name or value is not accepted.
-    #[error("{0}")]
-    InvalidSetting(String),
-    /// The actions of a running step are wrong.
-    #[error("{0}")]
-    InvalidAction(String),
-    /// A requested observation uid is not in the specs.
-    #[error("unknown observation uid {0}: request uids from the JoinWorld specs")]
-    UnknownObservation(u64),
-    /// An EnvironmentRequest without a payload.
-    #[error(
-        "empty EnvironmentRequest: set one of create_world, join_world, step, reset, reset_world, leave_world, destroy_world"
-    )]
-    EmptyRequest,
-    /// A request this server does not implement.
-    #[error("{0}")]
-    Unimplemented(String),
-}
-
-impl DmEnvError {
-    /// The gRPC status code.
-    pub fn code(&self) -> Code {
-        match self {
-            // The native API's one mapping of episode errors to codes.
-            DmEnvError::Episode(error) => error.code(),
-            DmEnvError::UnknownWorld(_) => Code::NotFound,
-            DmEnvError::NotJoined
-            | DmEnvError::AlreadyJoined(_)
-            | DmEnvError::WorldTaken(_)
-            | DmEnvError::WorldInUse(_) => Code::FailedPrecondition,
-            DmEnvError::InvalidSetting(_)
-            | DmEnvError::InvalidAction(_)
-            | DmEnvError::UnknownObservation(_)
-            | DmEnvError::EmptyRequest => Code::InvalidArgument,
-            DmEnvError::Unimplemented(_) => Code::Unimplemented,
-        }
-    }
-}
-
-impl From<DmEnvError> for wire::google::rpc::Status {
-    fn from(error: DmEnvError) -> Self {
-        Self { code: error.code() as i32, message: error.to_string(), details: Vec::new() }
-    }
-}
 
 // Worlds and connections.
 
@@ -209,7 +136,7 @@ struct Joined {
 /// One stream: its joined world and the worlds it created.
 struct Connection {
     id: u64,
-    shared: Arc<Shared>,
+    episodes: Arc<Episodes>,
     worlds: Arc<Worlds>,
     joined: Option<Joined>,
 }
@@ -266,9 +193,9 @@ impl Connection {
 
     async fn create_world(&mut self, request: dm::CreateWorldRequest) -> Result<dm::CreateWorldResponse, DmEnvError> {
         let options = create_options(request.settings)?;
-        let created = self.shared.create(options, None).await?;
+        let created = self.episodes.create(options, None).await?;
         // The world holds the episode from here (and closes it with the connection).
-        self.shared.registry.claim(&created.episode);
+        self.episodes.claim(&created.episode);
         let (specs, observation_names) = specs_of(&created.sensors);
         let world_name = format!("esrp-world-{}", uuid::Uuid::new_v4().simple());
         let world = World {
@@ -352,7 +279,7 @@ impl Connection {
             let fresh = self.worlds.map().get_mut(&joined.world).and_then(|w| w.fresh.take());
             let observation = match fresh {
                 Some(observation) => observation,
-                None => self.shared.reset(&joined.episode_id, None).await?.observation,
+                None => self.episodes.reset(&joined.episode_id, None).await?.observation,
             };
             joined.running = true;
             return respond(dm::EnvironmentStateType::Running, observation, 0.0, 1.0);
@@ -362,7 +289,7 @@ impl Connection {
         let include_goal = requested.iter().any(|&uid| names[uid as usize - 1] == "goal_rgb");
         let step = StepCall { episode: joined.episode_id.clone(), action, include_goal };
         let result = self
-            .shared
+            .episodes
             .step_many(vec![step])
             .await?
             .pop()
@@ -396,7 +323,7 @@ impl Connection {
                 .map(|w| w.episode_id.clone())
                 .ok_or_else(|| DmEnvError::UnknownWorld(request.world_name.clone()))?
         };
-        let reset = self.shared.reset(&episode_id, scene).await?;
+        let reset = self.episodes.reset(&episode_id, scene).await?;
         let mut map = self.worlds.map();
         if let Some(world) = map.get_mut(&request.world_name) {
             world.generation += 1;
@@ -439,7 +366,7 @@ impl Connection {
     }
 
     async fn close_episode(&self, episode_id: EpisodeId) -> Result<(), DmEnvError> {
-        match self.shared.close(&episode_id).await {
+        match self.episodes.close(&episode_id).await {
             // Closed already, as idle.
             Ok(_) | Err(ServiceError::UnknownEpisode(_)) => Ok(()),
             Err(e) => Err(e.into()),
@@ -474,14 +401,14 @@ impl Connection {
 /// The tonic service.
 #[derive(Clone)]
 pub struct DmEnvService {
-    shared: Arc<Shared>,
+    episodes: Arc<Episodes>,
     worlds: Arc<Worlds>,
 }
 
 impl DmEnvService {
-    /// A service over `shared`, with no worlds yet.
-    pub fn new(shared: Arc<Shared>) -> Self {
-        Self { shared, worlds: Arc::new(Worlds::default()) }
+    /// A service over `episodes`, with no worlds yet.
+    pub fn new(episodes: Arc<Episodes>) -> Self {
+        Self { episodes, worlds: Arc::new(Worlds::default()) }
     }
 
     /// The live worlds.
@@ -504,7 +431,7 @@ impl dm::environment_server::Environment for DmEnvService {
         let (out, receiver) = mpsc::channel(16);
         let connection = Connection {
             id: self.worlds.next_connection.fetch_add(1, Ordering::Relaxed),
-            shared: self.shared.clone(),
+            episodes: self.episodes.clone(),
             worlds: self.worlds.clone(),
             joined: None,
         };
@@ -513,16 +440,18 @@ impl dm::environment_server::Environment for DmEnvService {
     }
 }
 
-/// The tonic server of [`DmEnvService`] over `shared`, with the configured message limits.
-pub fn server(shared: Arc<Shared>) -> dm::environment_server::EnvironmentServer<DmEnvService> {
-    let limit = shared.config.max_message_bytes;
-    dm::environment_server::EnvironmentServer::new(DmEnvService::new(shared))
+/// The tonic server of [`DmEnvService`] over `episodes`, with the configured message limits.
+pub fn server(episodes: Arc<Episodes>) -> dm::environment_server::EnvironmentServer<DmEnvService> {
+    let limit = episodes.config.max_message_bytes;
+    dm::environment_server::EnvironmentServer::new(DmEnvService::new(episodes))
         .max_decoding_message_size(limit)
         .max_encoding_message_size(limit)
 }
 
 #[cfg(test)]
 mod tests {
+    use tonic::Code;
+
     use super::*;
 
     #[test]

@@ -7,82 +7,70 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use esrp_core::Action;
-use esrp_render::ViewOutput;
 
-use super::{EpisodeGuard, EpisodeId, SensorConfig, Shared, StepCall, StepResult, attach_images, observation};
+use super::entry::{EpisodeGuard, SharedEpisode};
+use super::observe::Prepared;
+use super::state::Episodes;
 use crate::error::ServiceError;
 use crate::metrics::Metrics;
-use crate::registry::SharedEpisode;
-use crate::render::{FrameCache, RenderTicket, View};
+use crate::render::RenderTicket;
+use crate::types::{EpisodeId, StepCall, StepResult};
 
 /// Batches of at most this many steps are stepped on the async runtime itself.
 const INLINE_STEPS: usize = 4;
 
-/// A step to take: where it is in its call (for messages), its episode (an index into the
-/// call's locked episodes), its action and whether its answer carries the goal image.
-struct PlannedStep {
+/// A step queued for taking: where it is in its call (for messages), its episode (an index
+/// into the call's locked episodes), its action and whether its answer carries the goal image.
+struct QueuedStep {
     at: String,
     episode: usize,
     action: Action,
     include_goal: bool,
 }
 
-/// A step taken: its answer without images, where they come from, and the sensors that say how
-/// they fit in the answer.
+/// A step taken: its answer, its observation still without images, and an upper bound of the
+/// answer's encoded size.
 struct TakenStep {
     result: StepResult,
-    /// An upper bound of the answer's encoded size.
+    observation: Prepared,
     bytes: usize,
-    images: Images,
-    sensors: SensorConfig,
 }
 
-/// Where a step's images come from.
-enum Images {
-    /// Views to render (copies go into the render job), and the episode's cache, to keep the
-    /// images with these views once they are rendered.
-    Render { views: Vec<View>, frames: FrameCache },
-    /// The episode's last images: the step changed nothing they show.
-    Reused(Vec<ViewOutput>),
+/// The one limit on a StepBatch's length (`--max-batch`): the adapters check it before they
+/// read a batch's steps, and [`step_many`] again for any other caller.
+pub(super) fn check_batch_len(episodes: &Episodes, steps: usize) -> Result<(), ServiceError> {
+    let max = episodes.config.max_batch;
+    if steps > max {
+        return Err(ServiceError::BatchTooLarge { steps, max });
+    }
+    Ok(())
 }
 
-/// Takes `plan` in order on the locked `guards` (`ids` names them): each step sees the state
-/// the previous one left, and one that cannot be taken answers its error without moving.
-fn take_planned(
+/// Takes the `queue` of steps in order on the locked `guards` (`ids` names them): each step
+/// sees the state the previous one left, and one that cannot be taken answers its error
+/// without moving.
+fn take_queued(
     guards: &mut [EpisodeGuard],
     ids: &[EpisodeId],
-    plan: Vec<Result<PlannedStep, ServiceError>>,
+    queue: Vec<Result<QueuedStep, ServiceError>>,
     max_message_bytes: usize,
 ) -> Vec<Result<TakenStep, ServiceError>> {
-    plan.into_iter()
+    queue
+        .into_iter()
         .map(|step| {
             let step = step?;
             let g = &mut guards[step.episode];
-            if g.episode.is_over() {
-                return Err(ServiceError::EpisodeOver {
-                    at: step.at,
-                    episode: ids[step.episode].clone(),
-                    steps: g.episode.steps(),
-                });
-            }
-            let bytes = g.sensors.answer_bytes(step.include_goal);
-            if bytes > max_message_bytes {
-                return Err(ServiceError::StepAnswerTooLarge { bytes, max: max_message_bytes });
-            }
+            let bytes = g.ensure_steppable(&step.at, &ids[step.episode], step.include_goal, max_message_bytes)?;
             let outcome = g.episode.step(step.action)?;
-            let views = super::observation_views(g);
-            let images = match g.frames.lookup(&views) {
-                Some(outputs) => Images::Reused(outputs),
-                None => Images::Render { views, frames: g.frames.clone() },
-            };
+            let observation = g.observer.prepare(&g.episode, step.include_goal);
             let ended = outcome.terminated || outcome.truncated;
             let result = StepResult {
-                observation: observation(g, step.include_goal),
+                observation: Default::default(),
                 outcome,
                 collided_with_name: outcome.collided_with.map(|o| g.episode.compiled().obstacle_name(o)),
                 metrics: ended.then(|| g.episode.metrics()),
             };
-            Ok(TakenStep { result, bytes, images, sensors: g.sensors })
+            Ok(TakenStep { result, observation, bytes })
         })
         .collect()
 }
@@ -125,17 +113,9 @@ impl Stepped {
                 taken
                     .into_iter()
                     .map(|t| {
-                        let mut t = t?;
-                        let mine: Vec<ViewOutput> = match t.images {
-                            Images::Render { views, frames } => {
-                                let mine: Vec<ViewOutput> = outputs.by_ref().take(views.len()).collect();
-                                frames.store(views, &mine);
-                                mine
-                            }
-                            Images::Reused(mine) => mine,
-                        };
-                        attach_images(&mut t.result.observation, &t.sensors, mine);
-                        Ok(t.result)
+                        let TakenStep { mut result, observation, .. } = t?;
+                        result.observation = observation.finish(&mut outputs);
+                        Ok(result)
                     })
                     .collect()
             }
@@ -151,145 +131,127 @@ impl Stepped {
     }
 }
 
-impl Shared {
-    /// Step and StepBatch, all or nothing: validates the whole batch (one step per episode, no
-    /// ended episode, an answer that fits in a message) before any episode moves, then steps
-    /// every episode and renders every view in one job.
-    pub async fn step_many(self: &Arc<Self>, steps: Vec<StepCall>) -> Result<Vec<StepResult>, ServiceError> {
-        if steps.len() > self.config.max_batch {
-            return Err(ServiceError::BatchTooLarge { steps: steps.len(), max: self.config.max_batch });
+/// Step and StepBatch, all or nothing (see `Episodes::step_many`).
+pub(super) async fn step_many(episodes: &Arc<Episodes>, steps: Vec<StepCall>) -> Result<Vec<StepResult>, ServiceError> {
+    check_batch_len(episodes, steps.len())?;
+    // "steps[3]" in a batch, "step" alone.
+    let batch = steps.len() > 1;
+    let at = |i: usize| if batch { format!("steps[{i}]") } else { "step".to_owned() };
+    let mut seen = HashSet::new();
+    let mut locked = Vec::with_capacity(steps.len());
+    let mut queue = Vec::with_capacity(steps.len());
+    for (i, s) in steps.iter().enumerate() {
+        if !seen.insert(&s.episode) {
+            return Err(ServiceError::DuplicateStep { at: at(i), episode: s.episode.clone() });
         }
-        // "steps[3]" in a batch, "step" alone.
-        let batch = steps.len() > 1;
-        let at = |i: usize| if batch { format!("steps[{i}]") } else { "step".to_owned() };
-        let mut seen = HashSet::new();
-        let mut episodes = Vec::with_capacity(steps.len());
-        let mut plan = Vec::with_capacity(steps.len());
-        for (i, s) in steps.iter().enumerate() {
-            if !seen.insert(&s.episode) {
-                return Err(ServiceError::DuplicateStep { at: at(i), episode: s.episode.clone() });
-            }
-            episodes.push((s.episode.clone(), self.registry.get(&s.episode)?));
-            plan.push(Ok(PlannedStep { at: at(i), episode: i, action: s.action, include_goal: s.include_goal }));
-        }
-        let max_message_bytes = self.config.max_message_bytes;
-        let check = |guards: &[EpisodeGuard], plan: &[Result<PlannedStep, ServiceError>]| {
-            if let Some(i) = plan.iter().position(Result::is_err) {
-                return Err(ServiceError::UnknownEpisode(steps[i].episode.clone()));
-            }
-            let mut bytes = 0usize;
-            for (i, g) in guards.iter().enumerate() {
-                if g.episode.is_over() {
-                    return Err(ServiceError::EpisodeOver {
-                        at: at(i),
-                        episode: steps[i].episode.clone(),
-                        steps: g.episode.steps(),
-                    });
-                }
-                bytes += g.sensors.answer_bytes(steps[i].include_goal);
-            }
-            // Refuse, before anything moves, a batch whose answer could not be sent.
-            if bytes > max_message_bytes {
-                return Err(ServiceError::BatchAnswerTooLarge { steps: steps.len(), bytes, max: max_message_bytes });
-            }
-            Ok(())
-        };
-        let stepped = self.take_steps(episodes, plan, check).await?;
-        stepped.finish(&self.metrics).await.into_iter().collect()
+        locked.push((s.episode.clone(), episodes.registry.get(&s.episode)?));
+        queue.push(Ok(QueuedStep { at: at(i), episode: i, action: s.action, include_goal: s.include_goal }));
     }
+    let max_message_bytes = episodes.config.max_message_bytes;
+    let check = |guards: &[EpisodeGuard], queue: &[Result<QueuedStep, ServiceError>]| {
+        if let Some(i) = queue.iter().position(Result::is_err) {
+            return Err(ServiceError::UnknownEpisode(steps[i].episode.clone()));
+        }
+        let mut bytes = 0usize;
+        for (i, g) in guards.iter().enumerate() {
+            g.ensure_running(&at(i), &steps[i].episode)?;
+            bytes += g.observer.sensors.answer_bytes(steps[i].include_goal);
+        }
+        // Refuse, before anything moves, a batch whose answer could not be sent.
+        if bytes > max_message_bytes {
+            return Err(ServiceError::BatchAnswerTooLarge { steps: steps.len(), bytes, max: max_message_bytes });
+        }
+        Ok(())
+    };
+    let stepped = take_steps(episodes, locked, queue, check).await?;
+    stepped.finish(&episodes.metrics).await.into_iter().collect()
+}
 
-    /// Takes the steps of a stream wave, each answered on its own: an episode may be stepped
-    /// several times (in order, each step seeing the state the previous one left), a bad step
-    /// answers its error without disturbing the others, and every view of the wave is
-    /// rendered as one job. Returns once the steps are taken; the answers come from
-    /// [`Stepped::finish`]. The caller bounds the number of steps (`--max-batch`).
-    pub async fn step_each(self: &Arc<Self>, steps: Vec<StepCall>) -> Stepped {
-        let count = steps.len();
-        let mut episodes: Vec<(EpisodeId, SharedEpisode)> = Vec::new();
-        let mut index: HashMap<EpisodeId, usize> = HashMap::new();
-        let mut plan = Vec::with_capacity(count);
-        for s in steps {
-            let episode = match index.get(&s.episode) {
-                Some(&e) => Ok(e),
-                None => self.registry.get(&s.episode).map(|shared| {
-                    episodes.push((s.episode.clone(), shared));
-                    index.insert(s.episode.clone(), episodes.len() - 1);
-                    episodes.len() - 1
-                }),
-            };
-            plan.push(episode.map(|episode| PlannedStep {
-                at: "step".to_owned(),
-                episode,
-                action: s.action,
-                include_goal: s.include_goal,
-            }));
-        }
-        match self.take_steps(episodes, plan, |_, _| Ok(())).await {
-            Ok(stepped) => stepped,
-            Err(e) => Stepped::failed(count, &e),
-        }
-    }
-
-    /// Locks `episodes` (in id order, so that concurrent calls cannot deadlock), turns the
-    /// steps of any closed while this call waited into NOT_FOUND, runs `check` on the locked
-    /// episodes and the plan (its error fails the whole call before anything moves), takes the
-    /// planned steps in order (a few inline, more on a blocking thread), hands all their views
-    /// to the render thread as one job and unlocks the episodes: the views are snapshots, so
-    /// the episodes may take their next steps while these render.
-    async fn take_steps(
-        self: &Arc<Self>,
-        episodes: Vec<(EpisodeId, SharedEpisode)>,
-        mut plan: Vec<Result<PlannedStep, ServiceError>>,
-        check: impl FnOnce(&[EpisodeGuard], &[Result<PlannedStep, ServiceError>]) -> Result<(), ServiceError>,
-    ) -> Result<Stepped, ServiceError> {
-        let started = Instant::now();
-        let mut order: Vec<usize> = (0..episodes.len()).collect();
-        order.sort_by(|&a, &b| episodes[a].0.cmp(&episodes[b].0));
-        let mut slots: Vec<Option<EpisodeGuard>> = (0..episodes.len()).map(|_| None).collect();
-        for &e in &order {
-            slots[e] = Some(episodes[e].1.clone().lock_owned().await);
-        }
-        let mut guards: Vec<EpisodeGuard> = slots.into_iter().flatten().collect();
-        // Closed (or reaped) while this call waited for its lock.
-        for (e, (id, _)) in episodes.iter().enumerate() {
-            if self.registry.get(id).is_err() {
-                for step in plan.iter_mut().filter(|s| s.as_ref().is_ok_and(|s| s.episode == e)) {
-                    *step = Err(ServiceError::UnknownEpisode(id.clone()));
-                }
-            }
-        }
-        check(&guards, &plan)?;
-        let ids: Vec<EpisodeId> = episodes.into_iter().map(|(id, _)| id).collect();
-        let max_message_bytes = self.config.max_message_bytes;
-        // A step costs microseconds (a rejected turn, the worst case, well under 0.1 ms): a few
-        // run inline, which spares a thread hand-off per step; more go to a blocking thread so
-        // that the runtime never stalls.
-        let taken = if plan.len() <= INLINE_STEPS {
-            take_planned(&mut guards, &ids, plan, max_message_bytes)
-        } else {
-            let (guards_back, taken) = tokio::task::spawn_blocking(move || {
-                let taken = take_planned(&mut guards, &ids, plan, max_message_bytes);
-                (guards, taken)
-            })
-            .await
-            .map_err(|e| ServiceError::Internal(e.to_string()))?;
-            guards = guards_back;
-            taken
+/// The steps of a stream wave, each answered on its own (see `Episodes::step_each`).
+pub(super) async fn step_each(episodes: &Arc<Episodes>, steps: Vec<StepCall>) -> Stepped {
+    let count = steps.len();
+    let mut locked: Vec<(EpisodeId, SharedEpisode)> = Vec::new();
+    let mut index: HashMap<EpisodeId, usize> = HashMap::new();
+    let mut queue = Vec::with_capacity(count);
+    for s in steps {
+        let episode = match index.get(&s.episode) {
+            Some(&e) => Ok(e),
+            None => episodes.registry.get(&s.episode).map(|shared| {
+                locked.push((s.episode.clone(), shared));
+                index.insert(s.episode.clone(), locked.len() - 1);
+                locked.len() - 1
+            }),
         };
-        let mut views = Vec::new();
-        let mut reused = 0;
-        for t in taken.iter().filter_map(|t| t.as_ref().ok()) {
-            match &t.images {
-                Images::Render { views: mine, .. } => views.extend(mine.iter().cloned()),
-                Images::Reused(outputs) => reused += outputs.len(),
+        queue.push(episode.map(|episode| QueuedStep {
+            at: "step".to_owned(),
+            episode,
+            action: s.action,
+            include_goal: s.include_goal,
+        }));
+    }
+    match take_steps(episodes, locked, queue, |_, _| Ok(())).await {
+        Ok(stepped) => stepped,
+        Err(e) => Stepped::failed(count, &e),
+    }
+}
+
+/// Locks `locked` (in id order, so that concurrent calls cannot deadlock), turns the steps of
+/// any closed while this call waited into NOT_FOUND, runs `check` on the locked episodes and
+/// the queue (its error fails the whole call before anything moves), takes the queued steps
+/// in order (a few inline, more on a blocking thread), hands all their views to the render
+/// thread as one job and unlocks the episodes: the views are snapshots, so the episodes may
+/// take their next steps while these render.
+async fn take_steps(
+    episodes: &Arc<Episodes>,
+    locked: Vec<(EpisodeId, SharedEpisode)>,
+    mut queue: Vec<Result<QueuedStep, ServiceError>>,
+    check: impl FnOnce(&[EpisodeGuard], &[Result<QueuedStep, ServiceError>]) -> Result<(), ServiceError>,
+) -> Result<Stepped, ServiceError> {
+    let started = Instant::now();
+    let mut order: Vec<usize> = (0..locked.len()).collect();
+    order.sort_by(|&a, &b| locked[a].0.cmp(&locked[b].0));
+    let mut slots: Vec<Option<EpisodeGuard>> = (0..locked.len()).map(|_| None).collect();
+    for &e in &order {
+        slots[e] = Some(locked[e].1.clone().lock_owned().await);
+    }
+    let mut guards: Vec<EpisodeGuard> = slots.into_iter().flatten().collect();
+    // Closed (or reaped) while this call waited for its lock.
+    for (e, (id, _)) in locked.iter().enumerate() {
+        if episodes.registry.get(id).is_err() {
+            for step in queue.iter_mut().filter(|s| s.as_ref().is_ok_and(|s| s.episode == e)) {
+                *step = Err(ServiceError::UnknownEpisode(id.clone()));
             }
         }
-        self.metrics.reused_views.inc_by(reused as u64);
-        let render = self.render.submit(views);
-        let now = Instant::now();
-        for g in &mut guards {
-            g.last_used = now;
-        }
-        Ok(Stepped { taken, render, started })
     }
+    check(&guards, &queue)?;
+    let ids: Vec<EpisodeId> = locked.into_iter().map(|(id, _)| id).collect();
+    let max_message_bytes = episodes.config.max_message_bytes;
+    // A step costs microseconds (a rejected turn, the worst case, well under 0.1 ms): a few
+    // run inline, which spares a thread hand-off per step; more go to a blocking thread so
+    // that the runtime never stalls.
+    let taken = if queue.len() <= INLINE_STEPS {
+        take_queued(&mut guards, &ids, queue, max_message_bytes)
+    } else {
+        let (guards_back, taken) = tokio::task::spawn_blocking(move || {
+            let taken = take_queued(&mut guards, &ids, queue, max_message_bytes);
+            (guards, taken)
+        })
+        .await
+        .map_err(|e| ServiceError::Internal(e.to_string()))?;
+        guards = guards_back;
+        taken
+    };
+    let mut views = Vec::new();
+    let mut reused = 0;
+    for t in taken.iter().filter_map(|t| t.as_ref().ok()) {
+        views.extend(t.observation.views().iter().cloned());
+        reused += t.observation.reused();
+    }
+    episodes.metrics.reused_views.inc_by(reused as u64);
+    let render = episodes.render.submit(views);
+    let now = Instant::now();
+    for g in &mut guards {
+        g.last_used = now;
+    }
+    Ok(Stepped { taken, render, started })
 }

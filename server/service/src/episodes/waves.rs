@@ -7,7 +7,9 @@
 //!
 //! The machinery is written against core types: a protocol's stream handler ([`serve`])
 //! passes a function that turns each message into a tag (its request id, say) and a
-//! [`WaveRequest`], and one that turns a tag and an answer into its message.
+//! [`WaveRequest`], and one that turns a tag and an answer into its message. The stream's own
+//! errors (a message that could not be read, a broken connection) are the protocol's type,
+//! passed through as they came.
 
 use std::collections::HashSet;
 use std::pin::Pin;
@@ -15,10 +17,12 @@ use std::sync::Arc;
 
 use tokio::sync::mpsc;
 use tokio_stream::{Stream, StreamExt};
-use tonic::Status;
 
-use super::{CreateOptions, Created, EpisodeId, Observation, ResetResult, SceneChoice, Shared, StepCall, StepResult};
+use super::lifecycle;
+use super::state::Episodes;
+use super::stepping::{self, Stepped};
 use crate::error::ServiceError;
+use crate::types::{CreateOptions, Created, EpisodeId, Observation, ResetResult, SceneChoice, StepCall, StepResult};
 
 /// Waves of a stream whose answers may wait at once: enough to keep the render thread busy
 /// while the next wave is read and stepped, few enough to bound what a stream holds.
@@ -137,60 +141,62 @@ impl<T> Wave<T> {
 /// A wave's answers, tagged, in request order, once its views are rendered.
 type Answers<T> = Pin<Box<dyn std::future::Future<Output = Vec<(T, Result<WaveAnswer, ServiceError>)>> + Send>>;
 
-impl Shared {
-    /// Takes a wave's steps (their views go to the render thread), then its creates, resets
-    /// and closes one by one; the answers, in request order, come from the returned future,
-    /// with an upper bound of their encoded size.
-    pub async fn answer_wave<T: Send + 'static>(self: &Arc<Self>, wave: Wave<T>, stream: u64) -> (Answers<T>, usize) {
-        let (tags, requests): (Vec<T>, Vec<WaveRequest>) = wave.requests.into_iter().unzip();
-        // Steps first, together, then the rest one by one (in order).
-        let mut step_positions = Vec::new();
-        let mut steps = Vec::new();
-        let mut rest = Vec::new();
-        for (i, request) in requests.into_iter().enumerate() {
-            match request {
-                WaveRequest::Step(s) => {
-                    step_positions.push(i);
-                    steps.push(s);
-                }
-                WaveRequest::Create(options) => rest.push((i, Other::Create(options))),
-                WaveRequest::Reset { episode, scene } => rest.push((i, Other::Reset(episode, scene))),
-                WaveRequest::Close(episode) => rest.push((i, Other::Close(episode))),
-                WaveRequest::Invalid(error) => rest.push((i, Other::Invalid(error))),
+/// Takes a wave's steps (their views go to the render thread), then its creates, resets and
+/// closes one by one; the answers, in request order, come from the returned future, with an
+/// upper bound of their encoded size.
+pub async fn answer_wave<T: Send + 'static>(
+    episodes: &Arc<Episodes>,
+    wave: Wave<T>,
+    stream: u64,
+) -> (Answers<T>, usize) {
+    let (tags, requests): (Vec<T>, Vec<WaveRequest>) = wave.requests.into_iter().unzip();
+    // Steps first, together, then the rest one by one (in order).
+    let mut step_positions = Vec::new();
+    let mut steps = Vec::new();
+    let mut rest = Vec::new();
+    for (i, request) in requests.into_iter().enumerate() {
+        match request {
+            WaveRequest::Step(s) => {
+                step_positions.push(i);
+                steps.push(s);
             }
+            WaveRequest::Create(options) => rest.push((i, Other::Create(options))),
+            WaveRequest::Reset { episode, scene } => rest.push((i, Other::Reset(episode, scene))),
+            WaveRequest::Close(episode) => rest.push((i, Other::Close(episode))),
+            WaveRequest::Invalid(error) => rest.push((i, Other::Invalid(error))),
         }
-        let stepped = if steps.is_empty() { None } else { Some(self.step_each(steps).await) };
-        let mut answers: Vec<Option<Result<WaveAnswer, ServiceError>>> = (0..tags.len()).map(|_| None).collect();
-        for (i, request) in rest {
-            answers[i] = Some(match request {
-                Other::Create(options) => {
-                    self.create(options, Some(stream)).await.map(|c| WaveAnswer::Created(Box::new(c)))
-                }
-                Other::Reset(episode, scene) => {
-                    self.reset(&episode, scene).await.map(|r| WaveAnswer::Reset(Box::new(r)))
-                }
-                Other::Close(episode) => self.close(&episode).await.map(WaveAnswer::Closed),
-                Other::Invalid(error) => Err(error),
-            });
-        }
-        let metrics = self.metrics.clone();
-        let bytes = stepped.as_ref().map_or(0, super::Stepped::answer_bytes)
-            + answers.iter().flatten().map(|a| a.as_ref().map_or(256, WaveAnswer::bytes) + 16).sum::<usize>();
-        let future: Answers<T> = Box::pin(async move {
-            if let Some(stepped) = stepped {
-                for (&i, result) in step_positions.iter().zip(stepped.finish(&metrics).await) {
-                    answers[i] = Some(result.map(|s| WaveAnswer::Stepped(Box::new(s))));
-                }
-            }
-            tags.into_iter()
-                .zip(answers)
-                .map(|(tag, answer)| {
-                    (tag, answer.unwrap_or_else(|| Err(ServiceError::Internal("a request without an answer".into()))))
-                })
-                .collect()
-        });
-        (future, bytes)
     }
+    let stepped = if steps.is_empty() { None } else { Some(stepping::step_each(episodes, steps).await) };
+    let mut answers: Vec<Option<Result<WaveAnswer, ServiceError>>> = (0..tags.len()).map(|_| None).collect();
+    for (i, request) in rest {
+        answers[i] = Some(match request {
+            Other::Create(options) => {
+                lifecycle::create(episodes, options, Some(stream)).await.map(|c| WaveAnswer::Created(Box::new(c)))
+            }
+            Other::Reset(episode, scene) => {
+                lifecycle::reset(episodes, &episode, scene).await.map(|r| WaveAnswer::Reset(Box::new(r)))
+            }
+            Other::Close(episode) => lifecycle::close(episodes, &episode).await.map(WaveAnswer::Closed),
+            Other::Invalid(error) => Err(error),
+        });
+    }
+    let metrics = episodes.metrics.clone();
+    let bytes = stepped.as_ref().map_or(0, Stepped::answer_bytes)
+        + answers.iter().flatten().map(|a| a.as_ref().map_or(256, WaveAnswer::bytes) + 16).sum::<usize>();
+    let future: Answers<T> = Box::pin(async move {
+        if let Some(stepped) = stepped {
+            for (&i, result) in step_positions.iter().zip(stepped.finish(&metrics).await) {
+                answers[i] = Some(result.map(|s| WaveAnswer::Stepped(Box::new(s))));
+            }
+        }
+        tags.into_iter()
+            .zip(answers)
+            .map(|(tag, answer)| {
+                (tag, answer.unwrap_or_else(|| Err(ServiceError::Internal("a request without an answer".into()))))
+            })
+            .collect()
+    });
+    (future, bytes)
 }
 
 /// A request of a wave answered on its own, after the wave's steps.
@@ -212,35 +218,37 @@ fn ready_now<S: Stream + Unpin>(inbound: &mut S) -> Option<Option<S::Item>> {
     }
 }
 
-/// A wave's answers as messages, in request order, once its views are rendered.
-type Messages<M> = Pin<Box<dyn std::future::Future<Output = Vec<Result<M, Status>>> + Send>>;
+/// A wave's answers as messages, in request order, once its views are rendered (or the error
+/// that ended the stream).
+type Messages<M, E> = Pin<Box<dyn std::future::Future<Output = Vec<Result<M, E>>> + Send>>;
 
 /// A wave's answers as messages, and the permits of the stream's byte budget it holds until
 /// they are sent.
-type Outgoing<M> = (Messages<M>, Option<tokio::sync::OwnedSemaphorePermit>);
+type Outgoing<M, E> = (Messages<M, E>, Option<tokio::sync::OwnedSemaphorePermit>);
 
 /// Serves one stream: reads `inbound` in waves (everything already sent, see
 /// [`Wave::admits`]), each message made a tagged request by `read`; answers each wave
-/// ([`Shared::answer_wave`]) and sends each answer, made a message by `write`, down `out` in
-/// request order. An unreadable message (too large, not protobuf) or a broken connection ends
-/// the stream after saying why. When the stream ends, after every answer is sent (or the
-/// client is gone), its episodes close.
-pub async fn serve<S, I, M, T>(
-    shared: Arc<Shared>,
+/// ([`answer_wave`]) and sends each answer, made a message by `write`, down `out` in
+/// request order. An unreadable message (too large, not protobuf) or a broken connection (an
+/// `E` of the inbound stream) ends the stream after passing the error on. When the stream
+/// ends, after every answer is sent (or the client is gone), its episodes close.
+pub async fn serve<S, I, M, T, E>(
+    episodes: Arc<Episodes>,
     mut inbound: S,
-    out: mpsc::Sender<Result<M, Status>>,
+    out: mpsc::Sender<Result<M, E>>,
     read: fn(I) -> (T, WaveRequest),
     write: fn(T, Result<WaveAnswer, ServiceError>) -> M,
 ) where
-    S: Stream<Item = Result<I, Status>> + Unpin + Send,
+    S: Stream<Item = Result<I, E>> + Unpin + Send,
     M: Send + 'static,
     T: Send + 'static,
+    E: std::fmt::Display + Send + 'static,
 {
-    let stream = shared.stream_id();
+    let stream = episodes.next_stream.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     // Answers of each wave, in wave order, to a task that sends them in order. Each wave
     // holds permits of the stream's budget of answer bytes until its answers are sent.
-    let (answers, mut waiting) = mpsc::channel::<Outgoing<M>>(WAVES_IN_FLIGHT);
-    let budget_kib = (shared.config.max_message_bytes / 1024).clamp(1, u32::MAX as usize) as u32;
+    let (answers, mut waiting) = mpsc::channel::<Outgoing<M, E>>(WAVES_IN_FLIGHT);
+    let budget_kib = (episodes.config.max_message_bytes / 1024).clamp(1, u32::MAX as usize) as u32;
     let budget = Arc::new(tokio::sync::Semaphore::new(budget_kib as usize));
     let sender = tokio::spawn(async move {
         while let Some((wave, permit)) = waiting.recv().await {
@@ -252,7 +260,7 @@ pub async fn serve<S, I, M, T>(
             drop(permit);
         }
     });
-    let failed = |status: Status| -> Outgoing<M> { (Box::pin(std::future::ready(vec![Err(status)])), None) };
+    let failed = |status: E| -> Outgoing<M, E> { (Box::pin(std::future::ready(vec![Err(status)])), None) };
     let mut pending: Option<(T, WaveRequest)> = None;
     loop {
         let (tag, first) = match pending.take() {
@@ -273,8 +281,8 @@ pub async fn serve<S, I, M, T>(
         // wave's answers (see `Wave::admits`).
         let mut wave = Wave::default();
         wave.push(tag, first);
-        let mut end: Option<Option<Status>> = None;
-        while wave.len() < shared.config.max_batch {
+        let mut end: Option<Option<E>> = None;
+        while wave.len() < episodes.config.max_batch {
             match ready_now(&mut inbound) {
                 Some(Some(Ok(message))) => {
                     let (tag, r) = read(message);
@@ -296,8 +304,8 @@ pub async fn serve<S, I, M, T>(
                 None => break,
             }
         }
-        let (wave, bytes) = shared.answer_wave(wave, stream).await;
-        let wave: Messages<M> =
+        let (wave, bytes) = answer_wave(&episodes, wave, stream).await;
+        let wave: Messages<M, E> =
             Box::pin(async move { wave.await.into_iter().map(|(tag, answer)| Ok(write(tag, answer))).collect() });
         // Wait while the answers of earlier waves hold the stream's byte budget (a wave
         // larger than the whole budget waits for all of it), so that a client that sends
@@ -320,7 +328,7 @@ pub async fn serve<S, I, M, T>(
     // Every answer is sent (or the client is gone) before the stream's episodes close.
     drop(answers);
     let _ = sender.await;
-    shared.end_stream(stream);
+    lifecycle::end_stream(&episodes, stream);
 }
 
 #[cfg(test)]

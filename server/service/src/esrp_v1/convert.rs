@@ -5,13 +5,12 @@
 use bytes::Bytes;
 use esrp_core::{Action, CompiledScene, Difficulty, Split};
 
-use crate::episodes::{
-    ACTIONS, CreateOptions, Created, EpisodeId, Goal, MetricsSoFar, Observation, PlanCall, Planned, Privileged,
-    ResetResult, SceneChoice, SensorConfig, SensorRequest, StepCall, StepResult,
-};
 use crate::error::ServiceError;
 use crate::proto;
-use crate::scenes::SceneInfo;
+use crate::types::{
+    ACTIONS, CreateOptions, Created, EpisodeId, Goal, MetricsSoFar, Observation, PlanCall, Planned, Privileged,
+    ResetResult, SceneChoice, SceneInfo, SensorConfig, SensorRequest, StepCall, StepResult,
+};
 
 /// The split of a request: `None` for unspecified.
 pub fn split_of(split: i32) -> Result<Option<Split>, ServiceError> {

@@ -1,4 +1,4 @@
-//! The `esrp.v1.Esrp` adapter: thin tonic handlers over [`Shared`]. Each converts its request
+//! The `esrp.v1.Esrp` adapter: thin tonic handlers over [`Episodes`]. Each converts its request
 //! into core types at the edge ([`convert`]), calls the episode layer, and converts the answer
 //! back; a [`ServiceError`] becomes a `tonic::Status` by its one mapping. StepStream's protocol
 //! (`StreamRequest`, `StreamResponse`) ends here: its waves run in
@@ -14,21 +14,22 @@ use tokio::sync::mpsc;
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
 
+use crate::episodes::Episodes;
 use crate::episodes::waves::{self, WaveAnswer, WaveRequest};
-use crate::episodes::{CreateOptions, EpisodeId, PlanCall, Shared, StepCall};
 use crate::error::{ServiceError, quoted};
 use crate::proto;
+use crate::types::{CreateOptions, EpisodeId, PlanCall, StepCall};
 
 /// The tonic service.
 #[derive(Clone)]
 pub struct EsrpService {
-    shared: Arc<Shared>,
+    episodes: Arc<Episodes>,
 }
 
 impl EsrpService {
-    /// A service over `shared`.
-    pub fn new(shared: Arc<Shared>) -> Self {
-        Self { shared }
+    /// A service over `episodes`.
+    pub fn new(episodes: Arc<Episodes>) -> Self {
+        Self { episodes }
     }
 }
 
@@ -76,7 +77,7 @@ impl proto::esrp_server::Esrp for EsrpService {
         &self,
         _: Request<proto::ServerInfoRequest>,
     ) -> Result<Response<proto::ServerInfoResponse>, Status> {
-        let s = &self.shared;
+        let s = &self.episodes;
         let renderer = s.render.renderer();
         let info = renderer.adapter_info();
         Ok(Response::new(proto::ServerInfoResponse {
@@ -91,7 +92,7 @@ impl proto::esrp_server::Esrp for EsrpService {
                 idle_timeout_seconds: s.config.idle_timeout_seconds as u32,
                 max_resolution: s.max_resolution(),
             }),
-            live_episodes: s.registry.len() as u32,
+            live_episodes: s.live() as u32,
             dataset: s.store.name().to_owned(),
         }))
     }
@@ -100,7 +101,7 @@ impl proto::esrp_server::Esrp for EsrpService {
         &self,
         _: Request<proto::DescribeDatasetRequest>,
     ) -> Result<Response<proto::DescribeDatasetResponse>, Status> {
-        let store = &self.shared.store;
+        let store = &self.episodes.store;
         let [by_split, by_difficulty, by_room_type] = store.counts();
         Ok(Response::new(proto::DescribeDatasetResponse {
             name: store.name().to_owned(),
@@ -134,7 +135,7 @@ impl proto::esrp_server::Esrp for EsrpService {
                 ))
             })?
         };
-        let infos = self.shared.store.infos();
+        let infos = self.episodes.store.infos();
         let mut scenes = Vec::new();
         let mut next = infos.len();
         for (i, info) in infos.iter().enumerate().skip(start) {
@@ -158,7 +159,7 @@ impl proto::esrp_server::Esrp for EsrpService {
         let options = CreateOptions::try_from(request.into_inner())?;
         // The episode lives only if this answer is sent ([`answered`]): a dropped call, or a
         // dropped answer, drops the guard and closes the episode.
-        let (created, unanswered) = self.shared.create_unanswered(options, None).await?;
+        let (created, unanswered) = self.episodes.create_unanswered(options, None).await?;
         let mut response = Response::new(created.into());
         response.extensions_mut().insert(unanswered);
         Ok(response)
@@ -166,12 +167,12 @@ impl proto::esrp_server::Esrp for EsrpService {
 
     async fn reset(&self, request: Request<proto::ResetRequest>) -> Result<Response<proto::ResetResponse>, Status> {
         let (episode, scene) = convert::reset_of(request.into_inner());
-        Ok(Response::new(self.shared.reset(&episode, scene).await?.into()))
+        Ok(Response::new(self.episodes.reset(&episode, scene).await?.into()))
     }
 
     async fn step(&self, request: Request<proto::StepRequest>) -> Result<Response<proto::StepResponse>, Status> {
         let step = StepCall::try_from(request.into_inner())?;
-        let result = self.shared.step_many(vec![step]).await?.pop();
+        let result = self.episodes.step_many(vec![step]).await?.pop();
         let result = result.ok_or_else(|| ServiceError::Internal("a step without an answer".into()))?;
         Ok(Response::new(result.into()))
     }
@@ -182,10 +183,8 @@ impl proto::esrp_server::Esrp for EsrpService {
     ) -> Result<Response<proto::StepBatchResponse>, Status> {
         let steps = request.into_inner().steps;
         // The limit first: a batch too large is refused before any of it is read.
-        if steps.len() > self.shared.config.max_batch {
-            return Err(ServiceError::BatchTooLarge { steps: steps.len(), max: self.shared.config.max_batch }.into());
-        }
-        let results = self.shared.step_many(convert::step_calls(steps)?).await?;
+        self.episodes.check_batch_len(steps.len())?;
+        let results = self.episodes.step_many(convert::step_calls(steps)?).await?;
         Ok(Response::new(proto::StepBatchResponse { responses: results.into_iter().map(Into::into).collect() }))
     }
 
@@ -196,8 +195,8 @@ impl proto::esrp_server::Esrp for EsrpService {
         request: Request<Streaming<proto::StreamRequest>>,
     ) -> Result<Response<Self::StepStreamStream>, Status> {
         let (out, receiver) = mpsc::channel(256);
-        let shared = self.shared.clone();
-        tokio::spawn(waves::serve(shared, request.into_inner(), out, read_stream_request, write_stream_response));
+        let episodes = self.episodes.clone();
+        tokio::spawn(waves::serve(episodes, request.into_inner(), out, read_stream_request, write_stream_response));
         Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(receiver))))
     }
 
@@ -206,7 +205,7 @@ impl proto::esrp_server::Esrp for EsrpService {
         request: Request<proto::GetGoalRequest>,
     ) -> Result<Response<proto::GetGoalResponse>, Status> {
         let episode = EpisodeId::from(request.into_inner().episode_id);
-        Ok(Response::new(self.shared.goal(&episode).await?.into()))
+        Ok(Response::new(self.episodes.goal(&episode).await?.into()))
     }
 
     async fn get_privileged_state(
@@ -214,7 +213,7 @@ impl proto::esrp_server::Esrp for EsrpService {
         request: Request<proto::GetPrivilegedStateRequest>,
     ) -> Result<Response<proto::GetPrivilegedStateResponse>, Status> {
         let episode = EpisodeId::from(request.into_inner().episode_id);
-        Ok(Response::new(self.shared.privileged_state(&episode).await?.into()))
+        Ok(Response::new(self.episodes.privileged_state(&episode).await?.into()))
     }
 
     async fn plan_actions(
@@ -222,7 +221,7 @@ impl proto::esrp_server::Esrp for EsrpService {
         request: Request<proto::PlanActionsRequest>,
     ) -> Result<Response<proto::PlanActionsResponse>, Status> {
         let call = PlanCall::from(request.into_inner());
-        Ok(Response::new(self.shared.plan(call).await?.into()))
+        Ok(Response::new(self.episodes.plan(call).await?.into()))
     }
 
     async fn get_metrics(
@@ -230,7 +229,7 @@ impl proto::esrp_server::Esrp for EsrpService {
         request: Request<proto::GetMetricsRequest>,
     ) -> Result<Response<proto::GetMetricsResponse>, Status> {
         let episode = EpisodeId::from(request.into_inner().episode_id);
-        Ok(Response::new(self.shared.metrics(&episode).await?.into()))
+        Ok(Response::new(self.episodes.metrics(&episode).await?.into()))
     }
 
     async fn close_episode(
@@ -238,7 +237,7 @@ impl proto::esrp_server::Esrp for EsrpService {
         request: Request<proto::CloseEpisodeRequest>,
     ) -> Result<Response<proto::CloseEpisodeResponse>, Status> {
         let episode = EpisodeId::from(request.into_inner().episode_id);
-        let metrics = self.shared.close(&episode).await?;
+        let metrics = self.episodes.close(&episode).await?;
         Ok(Response::new(proto::CloseEpisodeResponse { metrics: Some(convert::metrics_to_proto(&metrics)) }))
     }
 }

@@ -6,9 +6,9 @@ use std::collections::HashMap;
 
 use esrp_server::dm_env::convert::{action_of, create_options, reset_world_scene};
 use esrp_server::dm_env::wire::dm_env_rpc::v1 as dm;
-use esrp_server::episodes::{CreateOptions, PlanCall, StepCall};
 use esrp_server::esrp_v1::convert::{reset_of, step_calls};
 use esrp_server::proto;
+use esrp_server::types::{CreateOptions, PlanCall, StepCall};
 use proptest::prelude::*;
 use prost::Message;
 use tonic::Code;

@@ -1,12 +1,13 @@
-//! The core types the episode layer speaks: what a protocol adapter converts its messages into
-//! and out of. Nothing here knows a protocol.
+//! The values the episode layer speaks: ids, what a protocol adapter converts its messages into
+//! and out of, and the answers. Plain data, the leaf of the crate's modules: it imports no other
+//! module of the service, and nothing here knows a protocol.
 
 use std::sync::Arc;
+use std::time::Duration;
 
 use bytes::Bytes;
-use esrp_core::{Action, EpisodeMetrics, RewardWeights, Split, StepOutcome};
-
-use crate::scenes::SceneInfo;
+use esrp_core::{Action, Difficulty, EpisodeMetrics, RewardWeights, Split, StepOutcome};
+use esrp_planner::{PlanFailure, PlanStats};
 
 /// The id of a live episode: 32 lowercase hex digits (a random 128-bit UUID), unguessable.
 #[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
@@ -274,4 +275,54 @@ pub struct MetricsSoFar {
     pub metrics: EpisodeMetrics,
     /// Whether the episode has ended (the metrics are final).
     pub ended: bool,
+}
+
+/// A scene's summary, known without building it where possible.
+#[derive(Clone, Debug)]
+pub struct SceneInfo {
+    /// Scene id.
+    pub id: String,
+    /// Room type.
+    pub room_type: String,
+    /// Difficulty.
+    pub difficulty: Difficulty,
+    /// Split.
+    pub split: Split,
+    /// Movable objects.
+    pub movable_objects: usize,
+    /// Horizon and expert length, once known (0 until the scene is built).
+    pub horizon: u32,
+    /// Expert trajectory length, once known.
+    pub expert_length: usize,
+}
+
+/// A PlanActions call.
+#[derive(Clone, Debug)]
+pub struct PlanCall {
+    /// The episode.
+    pub episode: EpisodeId,
+    /// At most this many next actions; 0: all.
+    pub max_actions: u32,
+    /// The time budget; `None`: the server's default.
+    pub budget: Option<Duration>,
+}
+
+/// The answer to a PlanActions call.
+#[derive(Clone, Debug)]
+pub struct Planned {
+    /// The next actions (at most `max_actions`); with a failure, the next of the actions the
+    /// planner took before it failed (they place what they can).
+    pub actions: Vec<Action>,
+    /// Whether the plan ends in success (false: there is no plan, see `failure`).
+    pub reaches_success: bool,
+    /// Length of the whole plan from the current state.
+    pub plan_length: u32,
+    /// Answered from the cache.
+    pub cached: bool,
+    /// The cost of the planning that made the answer.
+    pub stats: PlanStats,
+    /// Why there is no plan.
+    pub failure: Option<PlanFailure>,
+    /// The id of the object a failure is about.
+    pub failure_object: Option<String>,
 }

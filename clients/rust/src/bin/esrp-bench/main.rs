@@ -36,7 +36,6 @@ use esrp_client::{
     StepResult, reach_or_start,
 };
 
-#[path = "esrp-bench/soak.rs"]
 mod soak;
 
 #[derive(Parser, Debug)]

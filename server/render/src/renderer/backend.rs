@@ -1,0 +1,121 @@
+//! Which graphics backend and adapter the renderer runs on ([`BackendPreference`],
+//! [`RendererConfig`]), and the instances kept for the life of the process.
+
+use std::sync::Mutex;
+
+/// Which graphics backends the renderer may use.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum BackendPreference {
+    /// A GPU through Vulkan; otherwise OpenGL (a GPU without a Vulkan driver, or Mesa's CPU
+    /// renderer llvmpipe, which measured faster than lavapipe); otherwise lavapipe.
+    #[default]
+    Auto,
+    /// Vulkan only.
+    Vulkan,
+    /// OpenGL (EGL) only.
+    Gl,
+}
+
+impl BackendPreference {
+    /// The names a preference is written as, one per variant: `auto`, `vulkan`, `gl`.
+    pub const NAMES: [&'static str; 3] = ["auto", "vulkan", "gl"];
+
+    /// The preference named by `ESRP_RENDER_BACKEND` (`auto`, `vulkan` or `gl`), if set and
+    /// valid.
+    pub fn from_env() -> Option<Self> {
+        std::env::var("ESRP_RENDER_BACKEND").ok()?.parse().ok()
+    }
+
+    /// Its name: `auto`, `vulkan` or `gl`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Auto => "auto",
+            Self::Vulkan => "vulkan",
+            Self::Gl => "gl",
+        }
+    }
+}
+
+impl std::fmt::Display for BackendPreference {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// A name that is not a [`BackendPreference`].
+#[derive(Debug, thiserror::Error)]
+#[error("unknown render backend {0:?}: use auto, vulkan or gl")]
+pub struct UnknownBackend(pub String);
+
+impl std::str::FromStr for BackendPreference {
+    type Err = UnknownBackend;
+
+    /// `auto`, `vulkan` or `gl` (also `gles`, `opengl`), in any case.
+    fn from_str(name: &str) -> Result<Self, UnknownBackend> {
+        match name.to_ascii_lowercase().as_str() {
+            "auto" => Ok(Self::Auto),
+            "vulkan" => Ok(Self::Vulkan),
+            "gl" | "gles" | "opengl" => Ok(Self::Gl),
+            _ => Err(UnknownBackend(name.to_owned())),
+        }
+    }
+}
+
+/// How to create a [`Renderer`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RendererConfig {
+    /// Which backends to try.
+    pub backends: BackendPreference,
+    /// Prefer a discrete GPU (`HighPerformance`) or an integrated one.
+    pub power_preference: wgpu::PowerPreference,
+    /// Largest side of the atlas texture, pixels (rounded down to a power of two and capped by
+    /// the adapter). 4096 holds 1024 views of 128×128.
+    pub max_atlas_size: u32,
+    /// Skip the pieces of a scene (floor, wall pieces, objects) that an egocentric view cannot
+    /// see, by their bounding spheres: less vertex work, the same images bit for bit. `false`
+    /// draws every piece in every view (for comparison).
+    pub cull: bool,
+}
+
+impl Default for RendererConfig {
+    fn default() -> Self {
+        Self {
+            backends: BackendPreference::Auto,
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            max_atlas_size: 4096,
+            cull: true,
+        }
+    }
+}
+
+/// The first instance of each backend that found an adapter, kept until the process exits so
+/// that the graphics driver it loaded stays loaded.
+///
+/// Dropping the last instance of a backend makes the driver stack unload Mesa's driver while
+/// the process goes on: wgpu terminates the EGL display when its last OpenGL instance goes, and
+/// Mesa's EGL then closes `swrast_dri.so` (llvmpipe); the Vulkan loader closes lavapipe's ICD
+/// with the last `VkInstance`. Mesa 22.3's driver stack leaves an exit handler behind that
+/// points into the unloaded code, so a process that had dropped its last renderer died in
+/// `exit` with SIGSEGV, or with heap corruption (`corrupted size vs. prev_size in fastbins`,
+/// `double free or corruption (out)`) where that memory had been reused: esrp-server after
+/// about one SIGTERM in ten. With one instance per backend held for good, no driver is unloaded
+/// early and each tears down in its own order at exit. Dropped renderers still release their
+/// devices, buffers, textures and pipelines; what stays is one instance (for OpenGL, one EGL
+/// context) per backend used.
+pub(super) static KEPT_INSTANCES: Mutex<Vec<(wgpu::Backend, wgpu::Instance)>> = Mutex::new(Vec::new());
+
+pub(super) fn request_adapter(backends: wgpu::Backends, power: wgpu::PowerPreference) -> Option<wgpu::Adapter> {
+    let instance = wgpu::Instance::new(wgpu::InstanceDescriptor {
+        backends,
+        flags: wgpu::InstanceFlags::from_build_config().with_env(),
+        ..wgpu::InstanceDescriptor::new_without_display_handle()
+    });
+    let options = wgpu::RequestAdapterOptions { power_preference: power, ..Default::default() };
+    let adapter = pollster::block_on(instance.request_adapter(&options)).ok()?;
+    let backend = adapter.get_info().backend;
+    let mut kept = KEPT_INSTANCES.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+    if !kept.iter().any(|(b, _)| *b == backend) {
+        kept.push((backend, instance));
+    }
+    Some(adapter)
+}

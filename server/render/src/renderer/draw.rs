@@ -1,0 +1,254 @@
+//! Drawing a chunk of views into an atlas and reading it back: one encoder, one submit, one
+//! readback per chunk.
+
+use std::time::Instant;
+
+use crate::camera::{Camera, EgoFrustum, ego_view, top_down_view};
+use crate::error::RenderError;
+use crate::gpu::{GpuView, VIEW_STRIDE};
+use crate::mesh::BACKGROUND_COLOUR;
+
+use super::atlas::{Atlas, Tile};
+use super::readback::{Planes, extract_all};
+use super::requests::{ViewOutput, ViewRequest};
+use super::{CACHED_ATLASES, Renderer};
+
+impl Renderer {
+    /// The runs of `request.scene`'s indices to draw for `request`: all of them, or with
+    /// culling on, for an egocentric view, those of the pieces whose bounding spheres are not
+    /// wholly outside the view volume (consecutive ones merged into one draw).
+    pub(super) fn index_ranges(&self, request: &ViewRequest<'_>) -> Vec<std::ops::Range<u32>> {
+        let scene = request.scene;
+        let everything = std::iter::once(0..scene.index_count).collect();
+        let Camera::Ego(camera) = request.camera else { return everything };
+        if !self.cull {
+            return everything;
+        }
+        let frustum = EgoFrustum::new(&camera);
+        let mut ranges: Vec<std::ops::Range<u32>> = Vec::new();
+        for part in &scene.parts {
+            let centre = match part.slot.checked_sub(1).and_then(|i| request.object_poses.get(i as usize)) {
+                None => part.centre,
+                Some(pose) => {
+                    // As the shader places a movable object's vertices.
+                    let (s, c) = pose.yaw.sin_cos();
+                    let [x, y, z] = part.centre;
+                    [c * x + s * z + pose.x, y, -s * x + c * z + pose.z]
+                }
+            };
+            if frustum.excludes(centre, part.radius) {
+                continue;
+            }
+            let range = part.first..part.first + part.count;
+            match ranges.last_mut() {
+                Some(last) if last.end == range.start => last.end = range.end,
+                _ => ranges.push(range),
+            }
+        }
+        ranges
+    }
+
+    /// Renders a validated chunk of a batch with one submit and one readback.
+    pub(super) fn render_chunk(
+        &self,
+        requests: &[ViewRequest<'_>],
+        full: bool,
+    ) -> Result<Vec<ViewOutput>, RenderError> {
+        let (tiles, side, pages) = self.layout(requests);
+
+        let t0 = Instant::now();
+        let (taken, now) = {
+            let mut state = self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+            state.batches += 1;
+            let taken = state
+                .atlases
+                .iter()
+                .position(|a| a.side == side && a.pages == pages && a.full == full)
+                .map(|i| state.atlases.swap_remove(i));
+            (taken, state.batches)
+        };
+        let mut atlas = taken.unwrap_or_else(|| self.create_atlas(side, pages, full));
+        let result = self.draw_and_read(&atlas, requests, &tiles, t0);
+        atlas.last_used = now;
+        let mut state = self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        state.atlases.push(atlas);
+        if state.atlases.len() > CACHED_ATLASES
+            && let Some(oldest) = (0..state.atlases.len()).min_by_key(|&i| state.atlases[i].last_used)
+        {
+            state.atlases.swap_remove(oldest);
+        }
+        result
+    }
+
+    /// Draws `requests` into `atlas` (one page each), submits, waits for that submission and
+    /// extracts every view.
+    pub(super) fn draw_and_read(
+        &self,
+        atlas: &Atlas,
+        requests: &[ViewRequest<'_>],
+        tiles: &[Tile],
+        t0: Instant,
+    ) -> Result<Vec<ViewOutput>, RenderError> {
+        // Per-view uniforms: camera and the movable objects' poses.
+        let mut uniforms = vec![0u8; requests.len() * VIEW_STRIDE as usize];
+        for (i, request) in requests.iter().enumerate() {
+            let mut view = match request.camera {
+                Camera::Ego(camera) => ego_view(&camera),
+                Camera::TopDown => top_down_view(&request.scene.frame, request.scene.max_height),
+            };
+            for (slot, pose) in view.poses[1..].iter_mut().zip(request.object_poses) {
+                let (s, c) = pose.yaw.sin_cos();
+                // Poses are relative to nothing: f32 keeps millimetres over kilometres.
+                *slot = [c as f32, s as f32, pose.x as f32, pose.z as f32];
+            }
+            let start = i * VIEW_STRIDE as usize;
+            uniforms[start..start + std::mem::size_of::<GpuView>()].copy_from_slice(bytemuck::bytes_of(&view));
+        }
+
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        self.queue.write_buffer(&atlas.uniforms, 0, &uniforms);
+        let mut encoder =
+            self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("esrp-render batch") });
+        let used_pages = tiles.iter().map(|t| t.page + 1).max().unwrap_or(1);
+        let [r, g, b] = BACKGROUND_COLOUR.map(f64::from);
+        let clear_colour = wgpu::Color { r, g, b, a: 1.0 };
+        for page in 0..used_pages {
+            let attachment = |view, clear| {
+                Some(wgpu::RenderPassColorAttachment {
+                    view,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations { load: wgpu::LoadOp::Clear(clear), store: wgpu::StoreOp::Store },
+                })
+            };
+            let mut attachments = vec![attachment(&atlas.colour.layers[page as usize], clear_colour)];
+            if let Some(extras) = &atlas.extras {
+                attachments.push(attachment(&extras[0].layers[page as usize], wgpu::Color::TRANSPARENT));
+                attachments.push(attachment(&extras[1].layers[page as usize], wgpu::Color::TRANSPARENT));
+            }
+            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("esrp-render page"),
+                color_attachments: &attachments,
+                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                    view: &atlas.depth,
+                    depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(0.0), store: wgpu::StoreOp::Discard }),
+                    stencil_ops: None,
+                }),
+                timestamp_writes: None,
+                occlusion_query_set: None,
+                multiview_mask: None,
+            });
+            pass.set_pipeline(if atlas.full { &self.pipeline_full } else { &self.pipeline_rgb });
+            for (i, (request, tile)) in requests.iter().zip(tiles).enumerate() {
+                let scene = request.scene;
+                if tile.page != page || scene.index_count == 0 {
+                    continue;
+                }
+                pass.set_viewport(tile.x as f32, tile.y as f32, tile.size as f32, tile.size as f32, 0.0, 1.0);
+                pass.set_scissor_rect(tile.x, tile.y, tile.size, tile.size);
+                pass.set_bind_group(0, &atlas.bind_group, &[(i as u64 * VIEW_STRIDE) as u32]);
+                pass.set_vertex_buffer(0, scene.vertex_buffer.slice(..));
+                pass.set_index_buffer(scene.index_buffer.slice(..), wgpu::IndexFormat::Uint32);
+                for range in self.index_ranges(request) {
+                    pass.draw_indexed(range, 0, 0..1);
+                }
+            }
+        }
+        let copy = |encoder: &mut wgpu::CommandEncoder, texture: &wgpu::Texture, plane: u64| {
+            encoder.copy_texture_to_buffer(
+                wgpu::TexelCopyTextureInfo {
+                    texture,
+                    mip_level: 0,
+                    origin: wgpu::Origin3d::ZERO,
+                    aspect: wgpu::TextureAspect::All,
+                },
+                wgpu::TexelCopyBufferInfo {
+                    buffer: &atlas.readback,
+                    layout: wgpu::TexelCopyBufferLayout {
+                        offset: plane * atlas.plane_bytes(),
+                        bytes_per_row: Some(atlas.side * 4),
+                        rows_per_image: Some(atlas.side),
+                    },
+                },
+                wgpu::Extent3d { width: atlas.side, height: atlas.side, depth_or_array_layers: used_pages },
+            );
+        };
+        copy(&mut encoder, &atlas.colour.texture, 0);
+        if let Some(extras) = &atlas.extras {
+            copy(&mut encoder, &extras[0].texture, 1);
+            copy(&mut encoder, &extras[1].texture, 2);
+        }
+        let t1 = Instant::now();
+        let submission = self.queue.submit([encoder.finish()]);
+
+        let (sender, receiver) = std::sync::mpsc::channel();
+        let planes = if atlas.full { 3 } else { 1 };
+        atlas.readback.map_async(wgpu::MapMode::Read, 0..atlas.plane_bytes() * planes, move |result| {
+            let _ = sender.send(result);
+        });
+        // Wait for this submission only: another thread's later batch may still be running.
+        let polled = self.device.poll(wgpu::PollType::Wait { submission_index: Some(submission), timeout: None });
+        // Another thread's poll may be the one that runs our map callback: wait for it a
+        // little, polling again meanwhile, rather than assuming our poll ran it.
+        let mut mapped = false;
+        if polled.is_ok() {
+            let deadline = Instant::now() + std::time::Duration::from_secs(10);
+            loop {
+                match receiver.recv_timeout(std::time::Duration::from_millis(1)) {
+                    Ok(result) => {
+                        mapped = result.is_ok();
+                        break;
+                    }
+                    Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => break,
+                    Err(std::sync::mpsc::RecvTimeoutError::Timeout) if Instant::now() < deadline => {
+                        let _ = self.device.poll(wgpu::PollType::Poll);
+                    }
+                    Err(std::sync::mpsc::RecvTimeoutError::Timeout) => break,
+                }
+            }
+        }
+        let failure = if let Some(error) = pollster::block_on(scope.pop()) {
+            Some(RenderError::Gpu { reason: error.to_string() })
+        } else if let Some(reason) = self.lost.lock().ok().and_then(|slot| slot.clone()) {
+            Some(RenderError::DeviceLost { reason })
+        } else if let Err(e) = polled {
+            Some(RenderError::Readback { reason: e.to_string() })
+        } else if !mapped {
+            Some(RenderError::Readback { reason: "the readback buffer could not be mapped".into() })
+        } else {
+            None
+        };
+        if let Some(error) = failure {
+            if mapped {
+                atlas.readback.unmap();
+            }
+            return Err(error);
+        }
+        let t2 = Instant::now();
+        let outputs = {
+            let mapped =
+                atlas.readback.get_mapped_range(..).map_err(|e| RenderError::Readback { reason: format!("{e:?}") })?;
+            let planes = Planes {
+                bytes: &mapped,
+                plane_bytes: atlas.plane_bytes() as usize,
+                page_bytes: atlas.page_bytes() as usize,
+                row_bytes: atlas.side as usize * 4,
+                full: atlas.full,
+            };
+            extract_all(&planes, requests, tiles)
+        };
+        atlas.readback.unmap();
+        let outputs = outputs?;
+        log::trace!(
+            "esrp-render: {} views, {} pages of {}x{}: encode {:?}, device {:?}, extract {:?}",
+            requests.len(),
+            atlas.pages,
+            atlas.side,
+            atlas.side,
+            t1 - t0,
+            t2 - t1,
+            t2.elapsed()
+        );
+        Ok(outputs)
+    }
+}

@@ -1,0 +1,361 @@
+//! The long-lived [`Renderer`]: device, queue, pipelines, scene uploads and batched rendering
+//! into an atlas. `backend` chooses the graphics backend and adapter, `requests` holds what the
+//! renderer is asked and answers, `atlas` the textures a batch draws into and how a batch is
+//! chunked, `draw` one chunk's encoder, submit and readback, and `readback` the images cut
+//! out of the read-back planes.
+//!
+//! # Concurrency
+//!
+//! [`Renderer`] is `Send + Sync`. [`Renderer::render_batch`] takes `&self`; each batch takes an
+//! atlas (textures, uniform buffer, readback buffer, reused from batch to batch) out of a small
+//! pool under a mutex, renders with it alone, waits for its own submission and puts it back. So
+//! batches on a few threads overlap — one encodes and submits while another waits for the
+//! device or extracts pixels — and outputs never depend on what else is being rendered. The
+//! intended use is one or two dedicated render threads that gather view requests into large
+//! batches.
+//! [`Renderer::upload_scene`] does not take that mutex and may run on any thread.
+
+use std::num::NonZeroU64;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+
+use esrp_core::CompiledScene;
+use wgpu::util::DeviceExt;
+
+use crate::camera::TopDownFrame;
+use crate::error::RenderError;
+use crate::gpu::{GpuVertex, GpuView, MAX_POSE_SLOTS, SHADER_SOURCE};
+use crate::mesh::build_scene_mesh;
+
+mod atlas;
+mod backend;
+mod draw;
+mod readback;
+mod requests;
+
+use atlas::BatchState;
+use backend::request_adapter;
+pub use backend::{BackendPreference, RendererConfig, UnknownBackend};
+#[cfg(test)]
+use readback::rgba_to_rgb;
+
+pub use requests::{Outputs, SceneHandle, ViewOutput, ViewRequest};
+
+/// Resolution of every view unless a request asks for another (SPEC §2, §4).
+pub const DEFAULT_RESOLUTION: u32 = 128;
+/// Most views drawn with one submit (1024 views of 128×128, fewer of larger views): a
+/// [`Renderer::render_batch`] of more is drawn in consecutive chunks. Callers that gather work
+/// for the renderer may use it as the size worth gathering; it is not a limit.
+pub const CHUNK_VIEWS: usize = 1024;
+/// Most page pixels drawn with one submit (1024 views of 128×128); a single view larger than
+/// this is drawn alone.
+pub const CHUNK_PIXELS: u64 = 1 << 24;
+/// Most movable objects a scene may have for this renderer (pose slots on the GPU).
+pub const MAX_MOVABLE_OBJECTS: usize = MAX_POSE_SLOTS - 1;
+
+const COLOUR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
+const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
+/// View depth as the bits of an `f32` (R32Float is not renderable on OpenGL ES).
+const DEPTH_OUT_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::R32Uint;
+const SEGMENT_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::R32Uint;
+/// Atlas textures kept for reuse (one per distinct size and output set).
+const CACHED_ATLASES: usize = 4;
+
+static NEXT_RENDERER_ID: AtomicU64 = AtomicU64::new(1);
+
+/// The renderer: one per process, long-lived. See the module docs for its concurrency.
+pub struct Renderer {
+    id: u64,
+    adapter_info: wgpu::AdapterInfo,
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    pipeline_rgb: wgpu::RenderPipeline,
+    pipeline_full: wgpu::RenderPipeline,
+    bind_group_layout: wgpu::BindGroupLayout,
+    max_atlas: u32,
+    max_pages: u32,
+    cull: bool,
+    lost: Arc<Mutex<Option<String>>>,
+    state: Mutex<BatchState>,
+}
+
+impl std::fmt::Debug for Renderer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Renderer")
+            .field("adapter", &self.adapter_info.name)
+            .field("backend", &self.adapter_info.backend)
+            .finish()
+    }
+}
+
+impl Renderer {
+    /// Creates the device, the pipelines and the uniform buffer, and logs the adapter.
+    ///
+    /// Fails with [`RenderError::NoAdapter`] (never panics) when no adapter exists.
+    pub fn new(config: RendererConfig) -> Result<Self, RenderError> {
+        let power = config.power_preference;
+        let (adapter, tried) = match config.backends {
+            BackendPreference::Auto => {
+                // A GPU through Vulkan first. Without one, both APIs reach Mesa's CPU
+                // rasteriser: OpenGL (llvmpipe) draws in the calling thread where Vulkan
+                // (lavapipe) hands every submission to a queue thread, and measured faster
+                // end to end (README), so it comes before lavapipe.
+                let adapter = match request_adapter(wgpu::Backends::VULKAN, power) {
+                    Some(vulkan) if vulkan.get_info().device_type != wgpu::DeviceType::Cpu => Some(vulkan),
+                    vulkan => request_adapter(wgpu::Backends::GL, power).or(vulkan),
+                };
+                (adapter, "vulkan, gl")
+            }
+            BackendPreference::Vulkan => (request_adapter(wgpu::Backends::VULKAN, power), "vulkan"),
+            BackendPreference::Gl => (request_adapter(wgpu::Backends::GL, power), "gl"),
+        };
+        let adapter = adapter.ok_or_else(|| RenderError::NoAdapter { tried: tried.to_owned() })?;
+        let adapter_info = adapter.get_info();
+        log::info!(
+            "esrp-render: adapter {} ({:?}, {:?}, driver {} {})",
+            adapter_info.name,
+            adapter_info.backend,
+            adapter_info.device_type,
+            adapter_info.driver,
+            adapter_info.driver_info
+        );
+        let limits = adapter.limits();
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("esrp-render"),
+            required_features: wgpu::Features::empty(),
+            required_limits: limits.clone(),
+            ..Default::default()
+        }))
+        .map_err(|e| RenderError::RequestDevice { adapter: adapter_info.name.clone(), reason: e.to_string() })?;
+
+        let lost = Arc::new(Mutex::new(None));
+        let lost_flag = Arc::clone(&lost);
+        device.set_device_lost_callback(move |reason, message| {
+            if let Ok(mut slot) = lost_flag.lock() {
+                *slot = Some(format!("{reason:?}: {message}"));
+            }
+        });
+
+        // Errors are returned from the operations that cause them (error scopes); anything else
+        // is logged rather than aborting the process, as wgpu does by default.
+        device.on_uncaptured_error(Arc::new(|error| log::error!("esrp-render: uncaptured wgpu error: {error}")));
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+
+        let max_side = config.max_atlas_size.min(limits.max_texture_dimension_2d).max(64);
+        let max_atlas = 1u32 << (31 - max_side.leading_zeros());
+
+        let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("esrp-render shader"),
+            source: wgpu::ShaderSource::Wgsl(SHADER_SOURCE.into()),
+        });
+        let bind_group_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("esrp-render view"),
+            entries: &[wgpu::BindGroupLayoutEntry {
+                binding: 0,
+                visibility: wgpu::ShaderStages::VERTEX,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Uniform,
+                    has_dynamic_offset: true,
+                    min_binding_size: NonZeroU64::new(std::mem::size_of::<GpuView>() as u64),
+                },
+                count: None,
+            }],
+        });
+        let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("esrp-render"),
+            bind_group_layouts: &[Some(&bind_group_layout)],
+            immediate_size: 0,
+        });
+        let pipeline = |vs: &str, fs: &str, targets: &[Option<wgpu::ColorTargetState>]| {
+            device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+                label: Some(vs),
+                layout: Some(&layout),
+                vertex: wgpu::VertexState {
+                    module: &shader,
+                    entry_point: Some(vs),
+                    compilation_options: Default::default(),
+                    buffers: &[Some(GpuVertex::layout())],
+                },
+                primitive: wgpu::PrimitiveState {
+                    topology: wgpu::PrimitiveTopology::TriangleList,
+                    front_face: wgpu::FrontFace::Ccw,
+                    cull_mode: Some(wgpu::Face::Back),
+                    ..Default::default()
+                },
+                depth_stencil: Some(wgpu::DepthStencilState {
+                    format: DEPTH_FORMAT,
+                    depth_write_enabled: Some(true),
+                    depth_compare: Some(wgpu::CompareFunction::Greater),
+                    stencil: Default::default(),
+                    bias: Default::default(),
+                }),
+                multisample: Default::default(),
+                fragment: Some(wgpu::FragmentState {
+                    module: &shader,
+                    entry_point: Some(fs),
+                    compilation_options: Default::default(),
+                    targets,
+                }),
+                multiview_mask: None,
+                cache: None,
+            })
+        };
+        let target = |format| Some(wgpu::ColorTargetState { format, blend: None, write_mask: wgpu::ColorWrites::ALL });
+        let pipeline_rgb = pipeline("vs_rgb", "fs_rgb", &[target(COLOUR_FORMAT)]);
+        let pipeline_full =
+            pipeline("vs_full", "fs_full", &[target(COLOUR_FORMAT), target(DEPTH_OUT_FORMAT), target(SEGMENT_FORMAT)]);
+
+        if let Some(error) = pollster::block_on(scope.pop()) {
+            return Err(RenderError::RequestDevice {
+                adapter: adapter_info.name.clone(),
+                reason: format!("the adapter cannot build the pipelines: {error}"),
+            });
+        }
+
+        Ok(Self {
+            id: NEXT_RENDERER_ID.fetch_add(1, Ordering::Relaxed),
+            adapter_info,
+            device,
+            queue,
+            pipeline_rgb,
+            pipeline_full,
+            bind_group_layout,
+            max_atlas,
+            max_pages: limits.max_texture_array_layers.clamp(1, CHUNK_VIEWS as u32),
+            cull: config.cull,
+            lost,
+            state: Mutex::new(BatchState { atlases: Vec::new(), batches: 0 }),
+        })
+    }
+
+    /// The adapter in use (name, backend, driver).
+    pub fn adapter_info(&self) -> &wgpu::AdapterInfo {
+        &self.adapter_info
+    }
+
+    /// Whether the adapter is a CPU rasteriser (lavapipe, llvmpipe).
+    pub fn is_software(&self) -> bool {
+        self.adapter_info.device_type == wgpu::DeviceType::Cpu
+    }
+
+    /// Largest resolution of one view.
+    pub fn max_resolution(&self) -> u32 {
+        self.max_atlas
+    }
+
+    /// Builds a scene's triangle mesh and uploads it. Do this once per scene and share the
+    /// handle (it is `Send + Sync`).
+    pub fn upload_scene(&self, scene: &CompiledScene) -> Result<Arc<SceneHandle>, RenderError> {
+        let movable_count = scene.scene().movable_objects.len();
+        if movable_count > MAX_MOVABLE_OBJECTS {
+            return Err(RenderError::TooManyObjects {
+                scene: scene.scene().id.clone(),
+                count: movable_count,
+                max: MAX_MOVABLE_OBJECTS,
+            });
+        }
+        let mesh = build_scene_mesh(scene)?;
+        let mut vertices = mesh.vertices;
+        let mut indices = mesh.indices;
+        let index_count = indices.len() as u32;
+        // wgpu buffers cannot be empty; an empty scene draws nothing anyway.
+        if vertices.is_empty() {
+            vertices.push(bytemuck::Zeroable::zeroed());
+        }
+        if indices.is_empty() {
+            indices.push(0);
+        }
+        let vertex_buffer = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("esrp-render scene vertices"),
+            contents: bytemuck::cast_slice(&vertices),
+            usage: wgpu::BufferUsages::VERTEX,
+        });
+        let index_buffer = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("esrp-render scene indices"),
+            contents: bytemuck::cast_slice(&indices),
+            usage: wgpu::BufferUsages::INDEX,
+        });
+        Ok(Arc::new(SceneHandle {
+            renderer_id: self.id,
+            scene_id: scene.scene().id.clone(),
+            vertex_buffer,
+            index_buffer,
+            index_count,
+            parts: mesh.parts,
+            vertex_count: vertices.len(),
+            movable_count,
+            frame: TopDownFrame::for_scene(scene, DEFAULT_RESOLUTION),
+            max_height: mesh.max_height,
+        }))
+    }
+
+    /// Renders one view (a batch of one).
+    pub fn render_one(&self, request: &ViewRequest<'_>) -> Result<ViewOutput, RenderError> {
+        let mut out = self.render_batch(std::slice::from_ref(request))?;
+        out.pop().ok_or_else(|| RenderError::Readback { reason: "no output for the view".into() })
+    }
+
+    /// Number of triangles `request` draws after culling (every triangle of its scene with
+    /// culling off, or for a top-down view).
+    pub fn triangles_drawn(&self, request: &ViewRequest<'_>) -> usize {
+        self.index_ranges(request).iter().map(|r| r.len()).sum::<usize>() / 3
+    }
+
+    /// Renders any number and mix of views of any scenes into the pages of one atlas (one
+    /// render pass per page), with one submit and one readback per chunk. Outputs are in
+    /// request order and bit-identical to rendering each view alone. A batch larger than one
+    /// atlas (more than [`CHUNK_VIEWS`] views, more pages than the device's texture array
+    /// holds, or more than [`CHUNK_PIXELS`] page pixels) is drawn in consecutive chunks, so
+    /// callers never split batches themselves.
+    ///
+    /// If any view asks for depth or segmentation, the whole batch is drawn with the pipeline
+    /// that writes them (a little slower); only the views that asked get them.
+    pub fn render_batch(&self, requests: &[ViewRequest<'_>]) -> Result<Vec<ViewOutput>, RenderError> {
+        if let Some(reason) = self.lost.lock().ok().and_then(|slot| slot.clone()) {
+            return Err(RenderError::DeviceLost { reason });
+        }
+        if requests.is_empty() {
+            return Ok(Vec::new());
+        }
+        self.validate(requests)?;
+        let full = requests.iter().any(|r| r.outputs.any_extra());
+        let mut outputs = Vec::with_capacity(requests.len());
+        for chunk in self.chunks(requests) {
+            outputs.extend(self.render_chunk(&requests[chunk], full)?);
+        }
+        Ok(outputs)
+    }
+}
+
+/// The renderer and scene handles are shared across threads (see the module docs).
+const _: () = {
+    const fn check<T: Send + Sync>() {}
+    check::<Renderer>();
+    check::<SceneHandle>();
+};
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn rgba_to_rgb_drops_alpha_for_every_length() {
+        for pixels in 0..11usize {
+            let src: Vec<u8> = (0..pixels * 4).map(|i| if i % 4 == 3 { 255 } else { i as u8 }).collect();
+            let mut dst = vec![0u8; pixels * 3];
+            super::rgba_to_rgb(&src, &mut dst);
+            let expected: Vec<u8> = src.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect();
+            assert_eq!(dst, expected);
+        }
+    }
+
+    #[test]
+    fn backend_names_round_trip_and_unknown_names_are_errors() {
+        use super::BackendPreference;
+        for name in BackendPreference::NAMES {
+            let backend: BackendPreference = name.parse().unwrap();
+            assert_eq!(backend.to_string(), name);
+        }
+        assert_eq!("OpenGL".parse::<BackendPreference>().unwrap(), BackendPreference::Gl);
+        let error = "metal".parse::<BackendPreference>().unwrap_err().to_string();
+        assert!(error.contains("\"metal\"") && error.contains("auto, vulkan or gl"), "{error}");
+    }
+}

@@ -1,0 +1,85 @@
+//! One live episode and what the service keeps beside it ([`EpisodeEntry`]), and the checks a
+//! call makes on it before it moves.
+
+use std::time::Instant;
+
+use esrp_core::{Episode, Scene};
+
+use super::observe::Observer;
+use super::plan_cache::CachedPlan;
+use crate::error::ServiceError;
+use crate::registry::Locked;
+use crate::types::{EpisodeId, SceneInfo};
+
+/// One live episode: the simulator state and what the service keeps beside it.
+pub struct EpisodeEntry {
+    /// The simulator state.
+    pub episode: Episode,
+    /// What its observations are made from, and the last ones made.
+    pub observer: Observer,
+    /// The scene's summary.
+    pub summary: SceneInfo,
+    /// Whether GetPrivilegedState and PlanActions are allowed.
+    pub privileged: bool,
+    /// Last time a call used it.
+    pub last_used: Instant,
+    /// The planner's last answer (PlanActions), reused while the episode follows it.
+    pub plan: Option<CachedPlan>,
+}
+
+/// A live episode as the registry holds it: shared, locked alone.
+pub type SharedEpisode = Locked<EpisodeEntry>;
+
+/// A locked episode.
+pub type EpisodeGuard = tokio::sync::OwnedMutexGuard<EpisodeEntry>;
+
+impl EpisodeEntry {
+    /// A fresh entry for `episode`, observed by `observer`.
+    pub fn new(episode: Episode, observer: Observer, privileged: bool) -> Self {
+        let summary = summary_of(episode.compiled().scene());
+        Self { episode, observer, summary, privileged, last_used: Instant::now(), plan: None }
+    }
+
+    /// The one check before any call moves the episode `id` (`at` names the call's step in
+    /// messages: "step", "steps[3]", "plan"): an ended episode is [`ServiceError::EpisodeOver`].
+    pub fn ensure_running(&self, at: &str, id: &EpisodeId) -> Result<(), ServiceError> {
+        if self.episode.is_over() {
+            return Err(ServiceError::EpisodeOver {
+                at: at.to_owned(),
+                episode: id.clone(),
+                steps: self.episode.steps(),
+            });
+        }
+        Ok(())
+    }
+
+    /// [`EpisodeEntry::ensure_running`], then the size of a step's answer (with the goal image
+    /// if `include_goal`), which must fit in `max_message_bytes`; returns that size.
+    pub fn ensure_steppable(
+        &self,
+        at: &str,
+        id: &EpisodeId,
+        include_goal: bool,
+        max_message_bytes: usize,
+    ) -> Result<usize, ServiceError> {
+        self.ensure_running(at, id)?;
+        let bytes = self.observer.sensors.answer_bytes(include_goal);
+        if bytes > max_message_bytes {
+            return Err(ServiceError::StepAnswerTooLarge { bytes, max: max_message_bytes });
+        }
+        Ok(bytes)
+    }
+}
+
+/// The summary of a built scene.
+fn summary_of(scene: &Scene) -> SceneInfo {
+    SceneInfo {
+        id: scene.id.clone(),
+        room_type: scene.room_type.clone(),
+        difficulty: scene.difficulty,
+        split: scene.split,
+        movable_objects: scene.movable_objects.len(),
+        horizon: scene.horizon,
+        expert_length: scene.expert_trajectory.len(),
+    }
+}

@@ -1,0 +1,177 @@
+//! Observing an episode: which views an observation needs, the episode's last frames
+//! ([`FrameCache`]), and the images put into the [`Observation`]. Creates, resets and steps all
+//! observe through [`Observer::prepare`] → render what it asks for → [`Prepared::finish`].
+
+use std::sync::Arc;
+
+use bytes::Bytes;
+use esrp_core::Episode;
+use esrp_render::{Outputs, SceneHandle, TopDownFrame, ViewOutput};
+
+use crate::render::View;
+use crate::types::{Observation, SensorConfig};
+
+/// What an episode's observations are made from, and the last ones made.
+pub struct Observer {
+    /// The scene's geometry on the renderer.
+    pub scene: Arc<SceneHandle>,
+    /// The episode's sensors.
+    pub sensors: SensorConfig,
+    /// The goal image (RGB at the sensors' resolution), rendered once.
+    pub goal: Bytes,
+    /// Its pixel ↔ floor mapping.
+    pub frame: TopDownFrame,
+    /// The last observation's images, answered again by steps that change nothing they show.
+    frames: FrameCache,
+}
+
+impl Observer {
+    /// An observer of `scene` with `sensors`, whose goal image is not rendered yet (see
+    /// [`Observer::goal_view`]).
+    pub fn new(scene: Arc<SceneHandle>, sensors: SensorConfig) -> Self {
+        let frame = scene.top_down_frame(sensors.resolution);
+        Self { scene, sensors, goal: Bytes::new(), frame, frames: FrameCache::default() }
+    }
+
+    /// The view of the goal image: the top-down view of `episode`'s target layout.
+    pub fn goal_view(&self, episode: &Episode) -> View {
+        let targets: Vec<esrp_core::ObjectPose> =
+            episode.compiled().scene().movable_objects.iter().map(|o| o.target).collect();
+        View::top_down(&self.scene, &targets, self.sensors.resolution)
+    }
+
+    /// The views an observation of `episode` needs: the ego view, then the current top-down
+    /// view if that sensor is on.
+    fn views(&self, episode: &Episode) -> Vec<View> {
+        let outputs = Outputs { depth: self.sensors.depth, segmentation: self.sensors.segmentation };
+        let poses = episode.object_poses();
+        let resolution = self.sensors.resolution;
+        let mut views = vec![View::ego(&self.scene, episode.ego_camera(), poses, outputs, resolution)];
+        if self.sensors.current_top_down {
+            views.push(View::top_down(&self.scene, poses, resolution));
+        }
+        views
+    }
+
+    /// The observation of `episode` now, its images to come from [`Prepared::finish`]: the
+    /// episode's last images if it shows what they show, else views to render.
+    pub fn prepare(&self, episode: &Episode, include_goal: bool) -> Prepared {
+        let views = self.views(episode);
+        let images = match self.frames.lookup(&views) {
+            Some(outputs) => Images::Reused(outputs),
+            None => Images::Render { views, frames: self.frames.clone() },
+        };
+        let observation = Observation {
+            resolution: self.sensors.resolution,
+            grasping: episode.held().is_some(),
+            goal_rgb: include_goal.then(|| self.goal.clone()),
+            ..Default::default()
+        };
+        Prepared { observation, images, current_top_down: self.sensors.current_top_down }
+    }
+}
+
+/// An observation whose images are to come: rendered, or the episode's last ones.
+pub struct Prepared {
+    observation: Observation,
+    images: Images,
+    current_top_down: bool,
+}
+
+/// Where an observation's images come from.
+enum Images {
+    /// Views to render, and the episode's cache, to keep the images with these views once they
+    /// are rendered.
+    Render { views: Vec<View>, frames: FrameCache },
+    /// The episode's last images: nothing they show changed.
+    Reused(Vec<ViewOutput>),
+}
+
+impl Prepared {
+    /// The views to render for it (none when its images are reused).
+    pub fn views(&self) -> &[View] {
+        match &self.images {
+            Images::Render { views, .. } => views,
+            Images::Reused(_) => &[],
+        }
+    }
+
+    /// How many images it reuses instead of rendering.
+    pub fn reused(&self) -> usize {
+        match &self.images {
+            Images::Render { .. } => 0,
+            Images::Reused(outputs) => outputs.len(),
+        }
+    }
+
+    /// The observation with its images: the reused ones, or as many of `rendered` as
+    /// [`Prepared::views`] asked for (in that order), which the episode keeps as its last
+    /// images. The pixels move: RGB is the readback's `Bytes`, never copied.
+    pub fn finish(self, rendered: &mut impl Iterator<Item = ViewOutput>) -> Observation {
+        let Prepared { mut observation, images, current_top_down } = self;
+        let outputs = match images {
+            Images::Render { views, frames } => {
+                let mine: Vec<ViewOutput> = rendered.take(views.len()).collect();
+                frames.store(views, &mine);
+                mine
+            }
+            Images::Reused(outputs) => outputs,
+        };
+        let mut outputs = outputs.into_iter();
+        if let Some(ego) = outputs.next() {
+            observation.depth = ego.depth;
+            observation.segmentation = ego.segmentation;
+            observation.ego_rgb = ego.rgb;
+        }
+        if current_top_down {
+            observation.current_top_down = outputs.next().map(|v| v.rgb);
+        }
+        observation
+    }
+}
+
+/// Whether two views draw the same pixels: the same scene upload, camera, object poses,
+/// outputs and resolution are everything the renderer reads, and rendering is deterministic.
+fn same_view(a: &View, b: &View) -> bool {
+    Arc::ptr_eq(&a.scene, &b.scene)
+        && a.camera == b.camera
+        && a.poses == b.poses
+        && a.outputs == b.outputs
+        && a.resolution == b.resolution
+}
+
+/// An episode's last rendered observation: its views and their images. A step that leaves
+/// what the views show unchanged (a rejected motion, a fetch with nothing in reach, a release
+/// with nothing held: about a third of a random agent's steps) answers these images again
+/// instead of rendering them anew; they are the pixels a new render would give, as the views
+/// are equal. Cheap to clone; shared between the episode and the steps rendering for it.
+#[derive(Clone, Default)]
+struct FrameCache(Arc<std::sync::Mutex<Option<Frames>>>);
+
+/// Views with their rendered images, in the same order.
+struct Frames {
+    views: Vec<View>,
+    outputs: Vec<ViewOutput>,
+}
+
+impl FrameCache {
+    /// The images of `views` if they are the last ones stored.
+    fn lookup(&self, views: &[View]) -> Option<Vec<ViewOutput>> {
+        let cached = self.0.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        match &*cached {
+            Some(frames)
+                if frames.views.len() == views.len()
+                    && frames.views.iter().zip(views).all(|(a, b)| same_view(a, b)) =>
+            {
+                Some(frames.outputs.clone())
+            }
+            _ => None,
+        }
+    }
+
+    /// Keeps `outputs` as the images of `views` (replacing what was kept).
+    fn store(&self, views: Vec<View>, outputs: &[ViewOutput]) {
+        *self.0.lock().unwrap_or_else(std::sync::PoisonError::into_inner) =
+            Some(Frames { views, outputs: outputs.to_vec() });
+    }
+}
