@@ -143,6 +143,7 @@ class _State:
 _active: _State | None = None
 """The state of the `stop_on_signals` block the process is in, if any."""
 
+
 def track(process: subprocess.Popen[Any]) -> None:
     """Makes `process` one of the children stopped when the command is stopped by a signal: inside a
     `stop_on_signals` block (from any thread); outside one it stays its starter's to stop.
