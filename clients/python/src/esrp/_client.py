@@ -21,6 +21,7 @@ from ._common import (
     StreamAnswer,
     StreamLedger,
     TlsSetting,
+    batch_size,
     bearer_metadata,
     channel_options,
     collect_run,
@@ -47,7 +48,6 @@ from ._values import (
     Split,
     StepColumns,
     StepResult,
-    observation_images,
 )
 from .v1 import esrp_pb2 as pb
 from .v1 import esrp_pb2_grpc as pb_grpc
@@ -59,10 +59,6 @@ __all__ = ["Client", "Episode", "EpisodeStream", "health_check"]
 # grpcio-health-checking for two bytes.
 _HEALTH_METHOD = "/grpc.health.v1.Health/Check"
 _SERVING = b"\x08\x01"
-
-
-# Reserve for a StepBatch answer's framing, per step (the info, reward and flags take ~60 bytes).
-_STEP_OVERHEAD_BYTES = 512
 
 
 def _health_request(service: str) -> bytes:
@@ -362,52 +358,32 @@ class Client:
         the client more. Each call is all or nothing; a failed one raises its error, and the other
         calls' episodes may have moved.
         """
-        if len(episode_ids) != len(actions):
-            raise ValueError(f"{len(episode_ids)} episodes and {len(actions)} actions")
         layout = _convert.image_layout(sensors)
         columns = StepColumns([key for key, _, _, _ in layout])
-        if not episode_ids:
+        if not episode_ids and not actions:
             return columns
-        codes = [_convert.action_code(action, f"steps[{k}]") for k, action in enumerate(actions)]
-        size = self._batch_size(sensors)
-        chunks = [range(start, min(start + size, len(codes))) for start in range(0, len(codes), size)]
-        waits = [
-            self._step_batch_started([episode_ids[i] for i in chunk], [codes[i] for i in chunk])
-            for chunk in chunks[:-1]
-        ]
-        last = chunks[-1]
-        request = _convert.step_batch_request([episode_ids[i] for i in last], [codes[i] for i in last])
+        requests = _convert.step_batch_requests(episode_ids, actions, self._batch_size(sensors))
+        waits = [self._step_batch_started(request) for request in requests[:-1]]
         try:
-            answer = self._hot.StepBatch(request, metadata=self._metadata, timeout=self.timeout)
+            answer = self._hot.StepBatch(requests[-1], metadata=self._metadata, timeout=self.timeout)
         except grpc.RpcError as error:
             raise from_rpc_error(error) from error
-        messages = _convert.batch_responses(answer, len(last))
-        resolution = sensors.resolution
+        messages = _convert.batch_responses(answer, len(requests[-1].steps))
         for wait in waits:
-            _convert.step_columns(wait(), layout, resolution, into=columns)
-        return _convert.step_columns(messages, layout, resolution, into=columns)
+            _convert.step_columns(wait(), layout, sensors.resolution, into=columns)
+        return _convert.step_columns(messages, layout, sensors.resolution, into=columns)
 
     def _batch_size(self, sensors: Sensors) -> int:
-        """The most steps of `sensors`' episodes per StepBatch: the server's `max_batch`, and as many
-        answers as fit in half its message limit (asked once per client and sensors).
-        """
+        """`batch_size` for this server, asked once per client and sensors."""
         size = self._batch_sizes.get(sensors)
         if size is None:
-            limits = self.server_info().limits
-            per_step = _STEP_OVERHEAD_BYTES + sum(
-                sensors.resolution**2 * pixel for _, pixel, _ in observation_images(sensors)
-            )
-            size = max(1, min(limits.max_batch, limits.max_message_bytes // 2 // per_step))
-            self._batch_sizes[sensors] = size
+            size = self._batch_sizes[sensors] = batch_size(self.server_info().limits, sensors)
         return size
 
-    def _step_batch_started(
-        self, episode_ids: Sequence[str], codes: Sequence[int]
-    ) -> Callable[[], Sequence[pb.StepResponse]]:
+    def _step_batch_started(self, request: pb.StepBatchRequest) -> Callable[[], Sequence[pb.StepResponse]]:
         """Starts a StepBatch over grpcio without waiting; returns the function that waits for its
         answer's StepResponses (raising its error).
         """
-        request = _convert.step_batch_request(episode_ids, codes)
         future = self._stub.StepBatch.future(request, metadata=self._metadata, timeout=self.timeout)
 
         def wait() -> Sequence[pb.StepResponse]:
@@ -415,7 +391,7 @@ class Client:
                 answer = future.result()
             except grpc.RpcError as error:
                 raise from_rpc_error(error) from error
-            return _convert.batch_responses(answer, len(episode_ids))
+            return _convert.batch_responses(answer, len(request.steps))
 
         return wait
 

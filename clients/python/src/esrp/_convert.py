@@ -206,6 +206,21 @@ def step_batch_request(episode_ids: Sequence[str], actions: Sequence[int]) -> pb
     )
 
 
+def step_batch_requests(
+    episode_ids: Sequence[str], actions: Sequence[object], size: int
+) -> list[pb.StepBatchRequest]:
+    """One step of each episode as StepBatch requests of at most `size` steps, in order; each action
+    checked by `action_code` (an error names it `steps[k]` by its place in `actions`).
+    """
+    if len(episode_ids) != len(actions):
+        raise ValueError(f"{len(episode_ids)} episodes and {len(actions)} actions")
+    codes = [action_code(action, f"steps[{k}]") for k, action in enumerate(actions)]
+    return [
+        step_batch_request(episode_ids[start : start + size], codes[start : start + size])
+        for start in range(0, len(codes), size)
+    ]
+
+
 # Answers.
 
 
