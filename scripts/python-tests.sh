@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Runs the Python tests against the real esrp-server binary: the Python client package
-# (clients/python: `pip install ./clients/python[test]`, then ruff, mypy and its pytest suite) and
+# (clients/python: `pip install ./clients/python[test]`, then ruff, mypy, the import contracts
+# (lint-imports) and its pytest suite) and
 # the end-to-end tests of tests/python (dm_env_rpc's compliance suites and whole DmEnvAdaptor
 # episodes). Creates .venv (gitignored) with the pinned packages of both, builds the binaries,
 # installs the client package as built from this tree, then lints and tests each. Works on a fresh
@@ -99,6 +100,9 @@ step "python client: ruff ($client)"
 
 step "python client: mypy (strict)"
 (cd "$client" && "../../$venv/bin/mypy")
+
+step "python client: import contracts (lint-imports; $client/pyproject.toml's [tool.importlinter])"
+(cd "$client" && "../../$venv/bin/lint-imports")
 
 step "python client: pytest (the installed package against the real server)"
 # The package has a src/ layout, so `import esrp` in the tests is the installed wheel.

@@ -13,6 +13,10 @@ from types import ModuleType
 import pytest
 
 import esrp
+from esrp import _grpc_setup
+
+# The suite runs with the gRPC settings of the `esrp` command (opt-in, before grpc is imported).
+_grpc_setup.apply()
 
 
 @pytest.fixture(scope="session")

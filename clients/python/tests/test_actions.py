@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import esrp
-from esrp.gym import RearrangeEnv
+from esrp.envs import RearrangeEnv
 
 TAKEN = [2, esrp.Action.LEFT, np.int64(2), np.int32(2), np.uint8(2), 2.0, np.float64(2.0), np.array(2)]
 TAKEN += [np.array([2]), np.array([2.0])]

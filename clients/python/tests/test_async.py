@@ -53,6 +53,37 @@ def test_async_calls(server: esrp.LocalServer, client: esrp.Client, easy_scenes:
     assert settled_live_episodes(client, before) == before
 
 
+def test_async_step_columns_match_sync(
+    server: esrp.LocalServer, client: esrp.Client, easy_scenes: list[str]
+) -> None:
+    sensors = esrp.Sensors(segmentation=True, resolution=32)
+    scenes = easy_scenes[:3]
+    actions = [[2, 0, 3], [4, 1, 1]]
+    synced = [client.create_episode(scene, sensors=sensors) for scene in scenes]
+    try:
+        expected = [client.step_columns([e.id for e in synced], wave, sensors) for wave in actions]
+    finally:
+        for episode in synced:
+            episode.close()
+
+    async def main() -> None:
+        async with esrp.AsyncClient(server.address, timeout=60) as aclient:
+            episodes = [await aclient.create_episode(scene, sensors=sensors) for scene in scenes]
+            ids = [episode.id for episode in episodes]
+            # The second wave in two concurrent calls (the batch size forced down).
+            for wave, want in zip(actions, expected, strict=True):
+                got = await aclient.step_columns(ids, wave, sensors)
+                assert (got.rewards, got.step_index) == (want.rewards, want.step_index)
+                assert got.grasping == want.grasping
+                for key in ("ego_rgb", "segmentation"):
+                    assert [bytes(x) for x in got.images[key]] == [bytes(x) for x in want.images[key]]
+                aclient._batch_sizes[sensors] = 2  # noqa: SLF001 - as the server's limits would
+            for episode in episodes:
+                await episode.close()
+
+    asyncio.run(main())
+
+
 def test_async_stream_matches_sync_stream(server: esrp.LocalServer, client: esrp.Client) -> None:
     actions = [2, 0, 0, 4, 3, 1]
     with client.episode_stream() as stream:

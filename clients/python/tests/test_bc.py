@@ -13,14 +13,14 @@ import pytest
 
 import esrp
 from esrp.cli import main
-from esrp.results import read_records
+from esrp.eval.results import read_records
 
 torch = pytest.importorskip("torch", reason="esrp[train] is not installed")
 pytest.importorskip("diffusers", reason="esrp[train] is not installed")
 pytest.importorskip("zarr", reason="esrp[train] is not installed")
 
 from esrp.agents.bc import BcAgent, BcConfig, DiffusionPolicy, bc_loss, load_policy, schedulers  # noqa: E402
-from esrp.train_bc import DemoWindows, train  # noqa: E402
+from esrp.train.bc import DemoWindows, train  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -213,6 +213,38 @@ def test_step_batch(client: esrp.Client, easy_scenes: list[str]) -> None:
         assert client.step_batch([]) == []
 
 
+def test_step_columns(client: esrp.Client, easy_scenes: list[str]) -> None:
+    sensors = esrp.Sensors(depth=True, resolution=64)
+    scenes = easy_scenes[:3]
+    batched = [client.create_episode(scene, sensors=sensors) for scene in scenes]
+    alone = [client.create_episode(scene, sensors=sensors) for scene in scenes]
+    try:
+        ids = [episode.id for episode in batched]
+        # One call, then (the batch size forced down) two calls at once: the same columns as the
+        # same episodes stepped one by one, in request order.
+        for actions in ([esrp.Action.LEFT, 3, np.int64(0)], [2, 2, 1]):
+            columns = client.step_columns(ids, actions, sensors)
+            assert list(columns.images) == ["ego_rgb", "depth"]
+            for k, (episode, action) in enumerate(zip(alone, actions, strict=True)):
+                result = episode.step(action)
+                assert columns.rewards[k] == result.reward
+                assert (columns.terminated[k], columns.truncated[k]) == (result.terminated, result.truncated)
+                assert columns.step_index[k] == result.info.step_index
+                assert bytes(columns.images["ego_rgb"][k]) == result.observation.ego_rgb.tobytes()
+                depth = result.observation.depth
+                assert depth is not None
+                assert bytes(columns.images["depth"][k]) == depth.tobytes()
+            client._batch_sizes[sensors] = 2  # noqa: SLF001 - as the server's limits would
+        assert client.step_columns([], [], sensors).rewards == []
+        bad: list[Any] = [0, 2.5]
+        with pytest.raises(esrp.InvalidRequest, match=r"steps\[1\]\.action"):
+            client.step_columns(ids[:2], bad, sensors)
+    finally:
+        client._batch_sizes.clear()  # noqa: SLF001
+        for episode in batched + alone:
+            episode.close()
+
+
 def test_attach_by_id(client: esrp.Client, easy_scenes: list[str]) -> None:
     episode = client.create_episode(easy_scenes[0])
     episode_id = episode.detach()

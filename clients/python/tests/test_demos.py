@@ -12,7 +12,7 @@ import pytest
 import esrp
 from esrp.agents import RandomAgent
 from esrp.cli import main
-from esrp.results import scene_seed
+from esrp.eval.results import scene_seed
 
 zarr = pytest.importorskip("zarr", reason="esrp[train] is not installed")
 
@@ -138,7 +138,7 @@ def test_dagger_and_expert_stores_are_kept_apart_and_train_together(
     assert export(server, dagger, *scenes, "--dagger", "expert") == 2
     assert export(server, dagger, *scenes, "--dagger", "random", "--beta", "0.5") == 0
     pytest.importorskip("torch", reason="esrp[train] is not installed")
-    from esrp.train_bc import DemoWindows
+    from esrp.train.bc import DemoWindows
 
     windows = DemoWindows([str(expert), str(dagger)], n_obs=2, horizon=3)
     stores = [zarr.open_group(str(p), mode="r") for p in (expert, dagger)]

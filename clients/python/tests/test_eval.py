@@ -17,7 +17,7 @@ from conftest import child_pids
 
 import esrp
 from esrp.cli import main
-from esrp.results import EpisodeRecord, read_records, scene_seed
+from esrp.eval.results import EpisodeRecord, read_records, scene_seed
 
 AGENTS_MODULE = '''
 import asyncio
@@ -557,7 +557,7 @@ def test_scene_and_agent_names_are_helped(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
     """`--scenes 00003` suggests the full id; an unknown agent's message lists every agent."""
-    from esrp.evaluation import BUILTIN_AGENTS
+    from esrp.eval.evaluation import BUILTIN_AGENTS
 
     out = str(tmp_path / "x.jsonl")
     short = easy_scenes[0].split("/")[-1]

@@ -1,5 +1,5 @@
-"""`import esrp` turns grpcio's `event_engine_client` experiment off unless the user decided
-(esrp._grpc_setup); checked in fresh interpreters, since grpcio reads the setting once."""
+"""`esrp._grpc_setup.apply()` turns grpcio's `event_engine_client` experiment off unless the user
+decided; checked in fresh interpreters, since grpcio reads the setting once."""
 
 from __future__ import annotations
 
@@ -11,7 +11,9 @@ import pytest
 
 import esrp
 
-PROBE = "import os, esrp, esrp._grpc_setup as s; print(repr(os.environ.get('GRPC_EXPERIMENTS')), s.APPLIED)"
+PROBE = (
+    "import os, esrp._grpc_setup as s; s.apply(); print(repr(os.environ.get('GRPC_EXPERIMENTS')), s.APPLIED)"
+)
 
 
 def _run(code: str, **env: str) -> str:
@@ -43,11 +45,12 @@ def test_too_late_after_grpc() -> None:
 
 
 def test_calls_work_with_the_setting(server: esrp.LocalServer) -> None:
-    # The whole suite runs with it (conftest imports esrp first); here one call in a fresh
+    # The whole suite runs with it (conftest applies it first); here one call in a fresh
     # interpreter, sync and asyncio, to be explicit.
     address = server.address
     code = (
-        "import asyncio, esrp\n"
+        "import asyncio, esrp, esrp._grpc_setup\n"
+        "esrp._grpc_setup.apply()\n"
         f"print(esrp.Client({address!r}).server_info().dataset)\n"
         "async def main():\n"
         f"    async with esrp.AsyncClient({address!r}) as c:\n"

@@ -11,13 +11,13 @@ from conftest import settled_live_episodes
 from gymnasium.utils.env_checker import check_env
 
 import esrp
-from esrp.gym import RearrangeEnv
+from esrp.envs import RearrangeEnv
 
 
 def test_registered_on_import() -> None:
     spec = gymnasium.spec(esrp.ENV_ID)
-    assert spec.entry_point == "esrp.gym:RearrangeEnv"
-    assert spec.vector_entry_point == "esrp.gym:RearrangeVectorEnv"
+    assert spec.entry_point == "esrp.envs:RearrangeEnv"
+    assert spec.vector_entry_point == "esrp.envs:RearrangeVectorEnv"
 
 
 def test_check_env(server: esrp.LocalServer, client: esrp.Client) -> None:
@@ -238,7 +238,7 @@ def test_is_success_on_the_last_step(
     server: esrp.LocalServer, client: esrp.Client, easy_scenes: list[str]
 ) -> None:
     """The SB3 convention: info["is_success"] on the step that ends the episode, true on success."""
-    from esrp.evaluation import expert_trajectory
+    from esrp.eval.evaluation import expert_trajectory
 
     with client.create_episode(easy_scenes[0], privileged=True) as episode:
         expert = expert_trajectory(episode.privileged_state().scene_json)

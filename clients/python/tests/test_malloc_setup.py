@@ -1,4 +1,4 @@
-"""`import esrp` raises glibc malloc's thresholds unless the user set them (esrp._malloc_setup);
+"""`esrp._malloc_setup.apply()` raises glibc malloc's thresholds unless the user set them;
 checked in fresh interpreters, by where a 20 MiB buffer lands: the heap, not a mapping of its own."""
 
 from __future__ import annotations
@@ -14,9 +14,10 @@ pytestmark = pytest.mark.skipif(
     not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc", reason="glibc only"
 )
 
-# Where the buffer of a fresh 20 MiB bytearray lies: the name of its /proc/self/maps line.
-PROBE = """
-import ctypes, esrp, esrp._malloc_setup as s
+# Where the buffer of a fresh 20 MiB bytearray lies: the name of its /proc/self/maps line (after
+# `s`, the module, was imported).
+WHERE = """
+import ctypes
 buffer = bytearray(20 << 20)
 address = ctypes.addressof((ctypes.c_char * len(buffer)).from_buffer(buffer))
 for line in open("/proc/self/maps"):
@@ -25,6 +26,8 @@ for line in open("/proc/self/maps"):
     if start <= address < end:
         print(s.APPLIED, fields[5] if len(fields) > 5 else "anonymous")
 """
+
+PROBE = "import esrp._malloc_setup as s\ns.apply()\n" + WHERE
 
 _VARIABLES = (
     "MALLOC_MMAP_THRESHOLD_",

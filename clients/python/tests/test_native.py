@@ -11,7 +11,7 @@ import pytest
 
 import esrp
 from esrp import _native
-from esrp.gym import RearrangeEnv, RearrangeVectorEnv
+from esrp.envs import RearrangeEnv, RearrangeVectorEnv
 
 pytest.importorskip("esrp_native", reason="the esrp-native package is not installed")
 

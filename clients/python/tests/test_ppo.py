@@ -15,13 +15,13 @@ from conftest import settled_live_episodes
 
 import esrp
 from esrp.cli import main
-from esrp.results import read_records
+from esrp.eval.results import read_records
 
 torch = pytest.importorskip("torch", reason="esrp[train] is not installed")
 
-from esrp._training import save_checkpoint  # noqa: E402
 from esrp.agents.ppo import PpoAgent, PpoConfig, PpoNet, PpoPolicy, load_network  # noqa: E402
-from esrp.train_ppo import gae, load_config, ppo_loss, train  # noqa: E402
+from esrp.train._training import save_checkpoint  # noqa: E402
+from esrp.train.ppo import gae, load_config, ppo_loss, train  # noqa: E402
 
 
 def tiny(scene: str, **more: object) -> PpoConfig:

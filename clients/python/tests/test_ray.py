@@ -22,8 +22,8 @@ import pytest
 
 import esrp
 from esrp.cli import main
-from esrp.evaluation import EvalSettings, run_eval
-from esrp.results import EpisodeRecord, read_records
+from esrp.eval.evaluation import EvalSettings, run_eval
+from esrp.eval.results import EpisodeRecord, read_records
 
 ray = pytest.importorskip("ray", reason="esrp[ray] is not installed")
 

@@ -10,8 +10,8 @@ import pytest
 
 import esrp
 from esrp.cli import main
-from esrp.replay import AGENT_PATH, OBJECT_PATH, ReplayError, replay_record
-from esrp.results import EpisodeRecord, read_records
+from esrp.eval.replay import AGENT_PATH, OBJECT_PATH, ReplayError, replay_record
+from esrp.eval.results import EpisodeRecord, read_records
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +33,7 @@ def test_replay_frames_are_identical_across_runs(client: esrp.Client, random_rec
     assert first.metrics.object_success_rate == record.osr
     assert first.metrics.remaining_distance_ratio == record.rdr
     # Three panels side by side under a header, the paths drawn on the top-down view.
-    from esrp.replay import header_height
+    from esrp.eval.replay import header_height
 
     header = header_height(2)
     last = first.frames[-1]
@@ -66,7 +66,7 @@ def test_replay_files(server: esrp.LocalServer, random_records: Path, tmp_path: 
             "1",
         ]
         assert main([*args, "--server", server.address]) == 0
-        from esrp.replay import header_height
+        from esrp.eval.replay import header_height
 
         with Image.open(out) as image:
             assert image.size == (3 * 128 + 8, 128 + header_height(1))
@@ -96,7 +96,7 @@ def test_a_record_that_does_not_replay_is_an_error(
 def test_frames_say_what_each_step_did(client: esrp.Client, random_records: Path) -> None:
     """Frames carried a one-line caption alone: each now names its action, whether it was accepted,
     collided or had no effect, the grasp flag and the reward, and labels its three panels."""
-    from esrp.replay import PANEL_TITLES, header_height
+    from esrp.eval.replay import PANEL_TITLES, header_height
 
     record = read_records(random_records).records[0]
     replay = replay_record(client, record, scale=2)
@@ -137,7 +137,7 @@ def test_frames_say_what_each_step_did(client: esrp.Client, random_records: Path
 def test_a_carried_path_is_outlined_so_it_shows_over_a_blue_object(client: esrp.Client) -> None:
     """The blue path of a carried object vanished where it crossed a blue object: it is drawn
     with a white outline now."""
-    from esrp.replay import _Paths, compose_frame, header_height, step_note
+    from esrp.eval.replay import _Paths, compose_frame, header_height, step_note
 
     with client.create_episode(split="test", sensors=esrp.Sensors(current_top_down=True)) as episode:
         observation = episode.observation

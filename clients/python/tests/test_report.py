@@ -11,10 +11,10 @@ from typing import Any
 import pytest
 
 import esrp
-from esrp import report
 from esrp.cli import main
-from esrp.report import load_runs, write_report
-from esrp.results import SCHEMA, EpisodeRecord, Tally, append_record, fixed, read_records
+from esrp.eval import report
+from esrp.eval.report import load_runs, write_report
+from esrp.eval.results import SCHEMA, EpisodeRecord, Tally, append_record, fixed, read_records
 
 CHROMIUM = Path(os.environ.get("ESRP_CHROMIUM", "/usr/bin/chromium"))
 
@@ -174,7 +174,7 @@ def test_markdown_tables_hold_the_hand_computed_numbers(tmp_path: Path) -> None:
 
 
 def test_wilson_interval() -> None:
-    from esrp.results import wilson
+    from esrp.eval.results import wilson
 
     # Hand-computed: 1 of 4 at 95 %: centre (0.25 + 0.9604) / 1.9604, half-width 0.8123...
     low, high = wilson(1, 4)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from esrp.results import (
+from esrp.eval.results import (
     SCHEMA,
     EpisodeRecord,
     ResultsError,

@@ -16,8 +16,8 @@ import pytest
 
 import esrp
 from esrp.cli import main
-from esrp.replay import replay_record
-from esrp.results import Summary, read_records
+from esrp.eval.replay import replay_record
+from esrp.eval.results import Summary, read_records
 
 REPOSITORY = Path(__file__).resolve().parents[3]
 

@@ -13,7 +13,7 @@ from conftest import settled_live_episodes
 from gymnasium.vector import AutoresetMode
 
 import esrp
-from esrp.gym import RearrangeVectorEnv
+from esrp.envs import RearrangeVectorEnv
 
 NUM_ENVS = 3
 SMALL = esrp.Sensors(resolution=32)

@@ -30,8 +30,8 @@ from esrp.agents.vlm import (
     trace_file_name,
 )
 from esrp.cli import main
-from esrp.evaluation import expert_trajectory
-from esrp.results import read_records
+from esrp.eval.evaluation import expert_trajectory
+from esrp.eval.results import read_records
 
 # ---------------------------------------------------------------------------------------------
 # Parsing and settings

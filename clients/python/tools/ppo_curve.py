@@ -5,7 +5,7 @@
 
 Plays `--episodes` episodes with uniform random actions and as many with the run's final policy
 (actions drawn from it, as in training; `--greedy` takes its most likely action) on the run's own
-vector env (`esrp.train_ppo.make_env`: its scenes, horizon, reward, resolution), on a server started
+vector env (`esrp.train.ppo.make_env`: its scenes, horizon, reward, resolution), on a server started
 here (or `--server`); then plots the return of every training episode (and its moving average) and
 the success rate against environment steps, with the random agent's and the final policy's means
 as lines. Prints (and with `--json` writes) the numbers.
@@ -25,7 +25,7 @@ import torch
 
 import esrp
 from esrp.agents.ppo import PpoConfig, PpoNet, load_network
-from esrp.train_ppo import make_env
+from esrp.train.ppo import make_env
 
 
 def play(

@@ -20,6 +20,7 @@ from ._common import (
     StreamAnswer,
     StreamLedger,
     TlsSetting,
+    batch_size,
     bearer_metadata,
     channel_options,
     collect_run,
@@ -44,6 +45,7 @@ from ._values import (
     Sensors,
     ServerInfo,
     Split,
+    StepColumns,
     StepResult,
 )
 from .v1 import esrp_pb2 as pb
@@ -91,6 +93,8 @@ class AsyncClient:
         # Creates whose callers gave up, and the closes of their episodes: kept referenced until
         # they finish, and awaited by close() so that closing the channel cancels none of them.
         self._background: set[asyncio.Task[Any]] = set()
+        # Steps per StepBatch of `step_columns`, by sensors (from the server's limits).
+        self._batch_sizes: dict[Sensors, int] = {}
 
     @property
     def raw(self) -> pb_grpc.EsrpAsyncStub:
@@ -269,6 +273,26 @@ class AsyncClient:
         )
         answer = await self._call(self._stub.StepBatch, request)
         return _convert.step_results(answer.responses, len(steps))
+
+    async def step_columns(
+        self, episode_ids: Sequence[str], actions: Sequence[ActionLike], sensors: Sensors
+    ) -> StepColumns:
+        """The twin of `Client.step_columns`: one step in each of several episodes, the answers as
+        columns in request order, in one StepBatch or, beyond the server's limits, several at once.
+        """
+        layout = _convert.image_layout(sensors)
+        columns = StepColumns([key for key, _, _, _ in layout])
+        if not episode_ids and not actions:
+            return columns
+        size = self._batch_sizes.get(sensors)
+        if size is None:
+            size = self._batch_sizes[sensors] = batch_size((await self.server_info()).limits, sensors)
+        requests = _convert.step_batch_requests(episode_ids, actions, size)
+        answers = await asyncio.gather(*(self._call(self._stub.StepBatch, request) for request in requests))
+        for request, answer in zip(requests, answers, strict=True):
+            messages = _convert.batch_responses(answer, len(request.steps))
+            _convert.step_columns(messages, layout, sensors.resolution, into=columns)
+        return columns
 
     async def episode_stream(self, window: int = 8) -> AsyncEpisodeStream:
         """Opens a StepStream driven by an `AsyncEpisodeStream` (up to `window` steps of each

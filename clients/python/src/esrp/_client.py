@@ -21,6 +21,7 @@ from ._common import (
     StreamAnswer,
     StreamLedger,
     TlsSetting,
+    batch_size,
     bearer_metadata,
     channel_options,
     collect_run,
@@ -45,6 +46,7 @@ from ._values import (
     Sensors,
     ServerInfo,
     Split,
+    StepColumns,
     StepResult,
 )
 from .v1 import esrp_pb2 as pb
@@ -129,6 +131,8 @@ class Client:
         # close() waits for them so that closing the channel cancels none of them.
         self._background: set[grpc.Future[Any]] = set()
         self._background_done = threading.Condition()
+        # Steps per StepBatch of `step_columns`, by sensors (from the server's limits).
+        self._batch_sizes: dict[Sensors, int] = {}
 
     @property
     def raw(self) -> pb_grpc.EsrpStub:
@@ -340,32 +344,54 @@ class Client:
             raise from_rpc_error(error) from error
         return _convert.step_results(answer.responses, len(steps))
 
-    def _step_batch_messages(self, episode_ids: Sequence[str], actions: Sequence[int]) -> Sequence[Any]:
-        """`step_batch` for the vector env's hot path: the answer's StepResponse messages, in
-        request order, for `_convert.step_columns` (no per-step values are built).
+    def step_columns(
+        self, episode_ids: Sequence[str], actions: Sequence[ActionLike], sensors: Sensors
+    ) -> StepColumns:
+        """One step in each of several episodes (at most one per episode), the answers as columns in
+        request order (`StepColumns`: what a vector env reads, without per-step values; its images
+        the answers' bytes, each checked to be `sensors`' size). The episodes must have been made
+        with `sensors`.
+
+        The steps go in one StepBatch call, or where the server's `max_batch` or half its message
+        limit wants it in several, sent at once (the server renders one while another's answer
+        travels); below the limits one call is best: splitting a wave measured no faster and costs
+        the client more. Each call is all or nothing; a failed one raises its error, and the other
+        calls' episodes may have moved.
         """
-        request = _convert.step_batch_request(episode_ids, actions)
+        layout = _convert.image_layout(sensors)
+        columns = StepColumns([key for key, _, _, _ in layout])
+        if not episode_ids and not actions:
+            return columns
+        requests = _convert.step_batch_requests(episode_ids, actions, self._batch_size(sensors))
+        waits = [self._step_batch_started(request) for request in requests[:-1]]
         try:
-            answer = self._hot.StepBatch(request, metadata=self._metadata, timeout=self.timeout)
+            answer = self._hot.StepBatch(requests[-1], metadata=self._metadata, timeout=self.timeout)
         except grpc.RpcError as error:
             raise from_rpc_error(error) from error
-        return _convert.batch_responses(answer, len(episode_ids))
+        messages = _convert.batch_responses(answer, len(requests[-1].steps))
+        for wait in waits:
+            _convert.step_columns(wait(), layout, sensors.resolution, into=columns)
+        return _convert.step_columns(messages, layout, sensors.resolution, into=columns)
 
-    def _step_batch_started(
-        self, episode_ids: Sequence[str], actions: Sequence[int]
-    ) -> Callable[[], Sequence[Any]]:
-        """Starts `_step_batch_messages` without waiting; returns the function that waits for its
-        answer (raising its error).
+    def _batch_size(self, sensors: Sensors) -> int:
+        """`batch_size` for this server, asked once per client and sensors."""
+        size = self._batch_sizes.get(sensors)
+        if size is None:
+            size = self._batch_sizes[sensors] = batch_size(self.server_info().limits, sensors)
+        return size
+
+    def _step_batch_started(self, request: pb.StepBatchRequest) -> Callable[[], Sequence[pb.StepResponse]]:
+        """Starts a StepBatch over grpcio without waiting; returns the function that waits for its
+        answer's StepResponses (raising its error).
         """
-        request = _convert.step_batch_request(episode_ids, actions)
         future = self._stub.StepBatch.future(request, metadata=self._metadata, timeout=self.timeout)
 
-        def wait() -> Sequence[Any]:
+        def wait() -> Sequence[pb.StepResponse]:
             try:
                 answer = future.result()
             except grpc.RpcError as error:
                 raise from_rpc_error(error) from error
-            return _convert.batch_responses(answer, len(episode_ids))
+            return _convert.batch_responses(answer, len(request.steps))
 
         return wait
 
@@ -420,11 +446,13 @@ class Episode:
         answer = self._call(self.client._hot.Step, _convert.step_request(self.id, action, include_goal))
         return _convert.step_result(answer)
 
-    def _step_message(self, action: ActionLike) -> Any:  # noqa: ANN401
-        """`step` for the Gymnasium env's hot path: the StepResponse message, for
-        `_convert.step_columns` (no values are built).
+    def step_columns(self, action: ActionLike, sensors: Sensors) -> StepColumns:
+        """`step`, its answer as one row of `StepColumns` (what the Gymnasium env reads, without
+        building values; the images the answer's bytes, checked to be `sensors`' size, the sensors
+        the episode was made with).
         """
-        return self._call(self.client._hot.Step, _convert.step_request(self.id, action, False))
+        answer = self._call(self.client._hot.Step, _convert.step_request(self.id, action, False))
+        return _convert.step_columns((answer,), _convert.image_layout(sensors), sensors.resolution)
 
     def reset(self, scene: str | None = None, *, scene_json: str | None = None) -> Observation:
         """Restarts the episode on the same scene (or another one); returns the first observation

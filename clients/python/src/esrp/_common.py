@@ -16,7 +16,16 @@ import grpc
 
 from . import _convert
 from ._errors import EsrpError, InvalidRequest, ProtocolError, from_status
-from ._values import Created, EpisodeMetrics, Observation, SceneSummary, StepResult
+from ._values import (
+    Created,
+    EpisodeMetrics,
+    Observation,
+    SceneSummary,
+    Sensors,
+    ServerLimits,
+    StepResult,
+    observation_images,
+)
 from .v1 import esrp_pb2 as pb
 
 MAX_MESSAGE_BYTES = 256 << 20
@@ -126,6 +135,19 @@ def bearer_metadata(token: str | None) -> tuple[tuple[str, str], ...] | None:
     if not token or not all(" " <= c <= "~" for c in token):
         raise InvalidRequest("the token must be non-empty printable ASCII (the server's --token)")
     return (("authorization", f"Bearer {token}"),)
+
+
+# Reserve for a StepBatch answer's framing, per step (the info, reward and flags take ~60 bytes).
+_STEP_OVERHEAD_BYTES = 512
+
+
+def batch_size(limits: ServerLimits, sensors: Sensors) -> int:
+    """The most steps of `sensors`' episodes per StepBatch of `step_columns`: the server's
+    `max_batch`, and as many answers as fit in half its message limit.
+    """
+    pixels = sensors.resolution**2
+    per_step = _STEP_OVERHEAD_BYTES + sum(pixels * size for _, size, _ in observation_images(sensors))
+    return max(1, min(limits.max_batch, limits.max_message_bytes // 2 // per_step))
 
 
 class RequestKind(enum.Enum):

@@ -7,6 +7,7 @@ Images become read-only numpy views of the message's bytes: `np.frombuffer(...).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from typing import Any
 
@@ -41,9 +42,13 @@ from ._values import (
     ServerLimits,
     Split,
     StaticObstacle,
+    StepColumns,
     StepInfo,
     StepResult,
     TopDownFrame,
+    action_value,
+    observation_images,
+    plain_action,
 )
 from .v1 import esrp_pb2 as pb
 
@@ -147,23 +152,14 @@ ACTION_CODES_HELP = "use 0 move_forward, 1 move_backward, 2 turn_left, 3 turn_ri
 
 
 def action_code(action: object, at: str = "step") -> int:
-    """The integer of an action as a step sends it: an `Action` or int, a numpy integer, an
-    integer-valued float (`2.0`), or a numpy array holding one of these (shape `()` or `(1,)`).
-    Anything else (`2.7`, a string, an array of several) raises `InvalidRequest` with the words
-    the server uses for a code outside 0..5 (`at` places it: `step`, `steps[3]`); the range itself
-    is the server's to check.
+    """The integer of an action as a step sends it (`action_value`). Anything else (`2.7`, a string,
+    an array of several) raises `InvalidRequest` with the words the server uses for a code outside
+    0..5 (`at` places it: `step`, `steps[3]`); the range itself is the server's to check.
     """
-    if type(action) is int or isinstance(action, Action):  # the common case, first
-        return int(action)
-    value = action
-    if isinstance(value, np.ndarray) and value.shape in ((), (1,)):
-        value = value.reshape(()).item()
-    elif isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, int):
-        return int(value)
-    if isinstance(value, float) and value.is_integer():
-        return int(value)
+    code = action_value(action)
+    if code is not None:
+        return code
+    value = plain_action(action)
     shown = f"array of shape {value.shape}" if isinstance(value, np.ndarray) else repr(value)
     raise InvalidRequest(
         f"{at}.action: unknown action code {shown}: {ACTION_CODES_HELP}",
@@ -208,6 +204,21 @@ def step_batch_request(episode_ids: Sequence[str], actions: Sequence[int]) -> pb
             for episode, action in zip(episode_ids, actions, strict=True)
         ]
     )
+
+
+def step_batch_requests(
+    episode_ids: Sequence[str], actions: Sequence[object], size: int
+) -> list[pb.StepBatchRequest]:
+    """One step of each episode as StepBatch requests of at most `size` steps, in order; each action
+    checked by `action_code` (an error names it `steps[k]` by its place in `actions`).
+    """
+    if len(episode_ids) != len(actions):
+        raise ValueError(f"{len(episode_ids)} episodes and {len(actions)} actions")
+    codes = [action_code(action, f"steps[{k}]") for k, action in enumerate(actions)]
+    return [
+        step_batch_request(episode_ids[start : start + size], codes[start : start + size])
+        for start in range(0, len(codes), size)
+    ]
 
 
 # Answers.
@@ -314,59 +325,22 @@ def step_result(message: pb.StepResponse) -> StepResult:
     )
 
 
-# The sensors' images as the Gymnasium envs name them: (observation key, Observation field, bytes per
-# pixel, dtype).
-_SENSOR_IMAGES = (
-    ("ego_rgb", "ego_rgb", 3, np.dtype(np.uint8)),
-    ("depth", "ego_depth", 4, _LITTLE_FLOAT32),
-    ("segmentation", "ego_segmentation", 4, _LITTLE_UINT32),
-    ("current_top_down", "current_top_down", 3, np.dtype(np.uint8)),
-)
+# The message field of each image key of `observation_images`.
+_IMAGE_FIELDS = {
+    "ego_rgb": "ego_rgb",
+    "depth": "ego_depth",
+    "segmentation": "ego_segmentation",
+    "current_top_down": "current_top_down",
+}
 
 
+@functools.cache
 def image_layout(sensors: Sensors) -> tuple[tuple[str, str, int, np.dtype[Any]], ...]:
     """The images an observation of `sensors` holds besides the goal: (key, message field, bytes per
-    pixel, dtype) each, `ego_rgb` first.
+    pixel, dtype) each, `ego_rgb` first (`observation_images`, with the fields; kept per sensors,
+    for the steps' hot path).
     """
-    wanted = {
-        "ego_rgb": True,
-        "depth": sensors.depth,
-        "segmentation": sensors.segmentation,
-        "current_top_down": sensors.current_top_down,
-    }
-    return tuple(entry for entry in _SENSOR_IMAGES if wanted[entry[0]])
-
-
-class StepColumns:
-    """The answers to a wave of steps as columns, for the vector env's hot path: one list per
-    field in request order, the images as the answers' bytes (not yet arrays), and the metrics of
-    the steps that ended an episode by position. Every image was checked against the expected size.
-    """
-
-    __slots__ = (
-        "accepted",
-        "collided",
-        "grasping",
-        "images",
-        "metrics",
-        "placed_count",
-        "rewards",
-        "step_index",
-        "terminated",
-        "truncated",
-    )
-
-    def __init__(self, keys: Sequence[str]) -> None:
-        self.rewards: list[float] = []
-        self.terminated: list[bool] = []
-        self.truncated: list[bool] = []
-        self.grasping: list[bool] = []
-        self.accepted: list[bool] = []
-        self.collided: list[bool] = []
-        self.placed_count: list[int] = []
-        self.step_index: list[int] = []
-        self.images: dict[str, list[bytes]] = {key: [] for key in keys}
-        self.metrics: dict[int, EpisodeMetrics] = {}
+    return tuple((key, _IMAGE_FIELDS[key], size, dtype) for key, size, dtype in observation_images(sensors))
 
 
 def step_columns(

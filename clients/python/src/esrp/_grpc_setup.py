@@ -1,21 +1,24 @@
-"""Process-wide gRPC core settings, applied when `esrp` is imported, before anything imports grpc.
+"""Opt-in gRPC core settings: `apply()` sets `GRPC_EXPERIMENTS=-event_engine_client`.
 
-grpcio reads `GRPC_EXPERIMENTS` once, when its core starts (at `import grpc`). On its
-EventEngine client path every unary call's answer is read on an EventEngine thread and handed to
-the calling thread; with the experiment `event_engine_client` off, the calling thread polls the
-socket itself. Measured 2026-11-24 on the 2-core development VM with grpcio 1.85.1, a unary
-`Step` (the single env's whole call) cost the client 155-165 µs of CPU instead of 235-255 µs, and
-480-520 µs of wall time instead of 570-615 µs. So `import esrp` sets
-`GRPC_EXPERIMENTS=-event_engine_client` unless:
+grpcio reads `GRPC_EXPERIMENTS` once, when its core starts (at `import grpc`). With the experiment
+`event_engine_client` off, the thread that makes a unary call polls the socket itself instead of
+being handed the answer by an EventEngine thread, which costs a synchronous unary call (the single
+env's `Step` over grpcio) about a third less client CPU (docs/performance.md).
+
+`apply()` sets the variable unless:
 
 - `GRPC_EXPERIMENTS` is already set (even to an empty string): the user's choice stands;
-- `grpc` was imported before `esrp`: its core has read the variable already (set it yourself, or
-  import esrp first);
+- `grpc` is imported already: its core has read the variable (nothing would change);
 - the installed grpcio is not a version this was measured with (`MEASURED`): an experiment that a
   newer grpcio no longer has would only be logged as unknown.
 
-`APPLIED` records whether it was set. Child processes (an esrp-server started by `LocalServer`,
-Ray workers) inherit the variable; the Rust server ignores it.
+Who calls it: `import esrp` does not (nor does it import grpc: its names are imported on first use).
+The `esrp` command (`esrp.cli.main`) and `python -m esrp.bench` call it first, before anything
+imports grpc, so there it applies. It cannot apply in a process that made a client before: the vector
+env and the training loops run after a `Client` exists, so they get it only through the command that
+started them (`esrp train ppo`) or through a user who calls `esrp._grpc_setup.apply()` (or sets the
+variable) before the first client. Child processes (an esrp-server started by `LocalServer`, Ray
+workers) inherit the variable; the Rust server ignores it.
 """
 
 from __future__ import annotations
@@ -30,6 +33,9 @@ MEASURED = ((1, 85),)
 #: The value set.
 EXPERIMENTS = "-event_engine_client"
 
+#: Whether `apply()` set the variable (in this process).
+APPLIED = False
+
 
 def _grpcio_version() -> tuple[int, int] | None:
     try:
@@ -40,13 +46,16 @@ def _grpcio_version() -> tuple[int, int] | None:
 
 
 def apply() -> bool:
-    """Sets `GRPC_EXPERIMENTS` as the module docs say; True when it did."""
+    """Sets `GRPC_EXPERIMENTS` as the module docs say; True when it is set by this module (now or
+    by an earlier call: calling again changes nothing).
+    """
+    global APPLIED
+    if APPLIED:
+        return True
     if "GRPC_EXPERIMENTS" in os.environ or "grpc" in sys.modules:
         return False
     if _grpcio_version() not in MEASURED:
         return False
     os.environ["GRPC_EXPERIMENTS"] = EXPERIMENTS
+    APPLIED = True
     return True
-
-
-APPLIED = apply()

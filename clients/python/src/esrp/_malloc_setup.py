@@ -1,20 +1,14 @@
-"""Process-wide glibc malloc settings, applied when `esrp` is imported.
+"""Opt-in glibc malloc settings: `apply()` raises malloc's mmap and trim thresholds with `mallopt`.
 
-A vector env's step allocates a few buffers of megabytes each (the StepBatch answer as it
-arrives, the batch of observations handed to the caller, the goals' copy) and frees them a step
-later. glibc's defaults adjust its thresholds as it goes: depending on the order in which the
-buffers of the calling thread and of the transport's threads came and went, it either kept that
-memory or gave it back to the system after every step, and then faulted it in again page by
-page on the next (400 to 2,000 page faults per step of 64 envs, 1.5 to 3 ms of system CPU per
-step). Which of the two a process got changed from run to run. Measured 2026-11-25 on the 2-core
-development VM, `RearrangeVectorEnv` of 64 envs (native transport, 300 steps after 300): 6,000 to
-7,700 steps/s with 35 to 1,900 faults per step, against 7,400 to 8,300 with 30 to 40 faults
-per step with these settings in every run.
-
-So `import esrp` calls `mallopt` to serve allocations below `MMAP_THRESHOLD` (32 MiB, glibc's
-largest) from the heap, and to give free memory at the top of a heap back to the system only
-beyond `TRIM_THRESHOLD` (64 MiB): a process keeps up to that much freed memory for its next
-allocations. Not when:
+A vector env's step allocates a few buffers of megabytes each (the StepBatch answer as it arrives,
+the batch of observations handed to the caller, the goals' copy) and frees them a step later.
+glibc's defaults adjust their thresholds as the process goes, and depending on the order in which
+buffers came and went, a process either kept that memory or gave it back to the system after every
+step and faulted it in again page by page on the next. `apply()` makes the first behaviour certain
+(docs/performance.md has the measurements): allocations below `MMAP_THRESHOLD` (32 MiB, glibc's
+largest) come from the heap, and free memory at the top of a heap goes back to the system only
+beyond `TRIM_THRESHOLD` (64 MiB), so a process keeps up to that much freed memory for its next
+allocations. Nothing is set when:
 
 - the C library is not glibc (musl, macOS, Windows): nothing to set;
 - the user set malloc's thresholds already: any of `MALLOC_MMAP_THRESHOLD_`,
@@ -22,8 +16,9 @@ allocations. Not when:
   their choice stands;
 - `ESRP_KEEP_MALLOC_DEFAULTS` is set (to anything): glibc's own behaviour, adjusted as it goes.
 
-`APPLIED` records whether both settings were made. Unlike `GRPC_EXPERIMENTS`, nothing is put in
-the environment: child processes keep glibc's defaults.
+Who calls it: `import esrp` does not. `RearrangeVectorEnv` (at construction), `python -m esrp.bench`
+and the training loops do; a call at any time takes effect for the allocations that follow. Nothing
+is put in the environment: child processes keep glibc's defaults.
 """
 
 from __future__ import annotations
@@ -38,6 +33,9 @@ MMAP_THRESHOLD = 32 << 20
 
 #: Free memory at the top of a heap beyond this many bytes goes back to the system.
 TRIM_THRESHOLD = 64 << 20
+
+#: Whether `apply()` made both settings (in this process).
+APPLIED = False
 
 # mallopt parameters (glibc's malloc.h).
 _M_TRIM_THRESHOLD = -1
@@ -59,7 +57,12 @@ def users_choice() -> bool:
 
 
 def apply() -> bool:
-    """Makes the settings as the module docs say; True when both were made."""
+    """Makes the settings as the module docs say; True when both are made (now or by an earlier
+    call: calling again changes nothing).
+    """
+    global APPLIED
+    if APPLIED:
+        return True
     if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc" or users_choice():
         return False
     try:
@@ -68,9 +71,7 @@ def apply() -> bool:
         return False
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
     mallopt.restype = ctypes.c_int
-    return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(
+    APPLIED = bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(
         mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD)
     )
-
-
-APPLIED = apply()
+    return APPLIED

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import enum
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple, TypeAlias
 
@@ -44,6 +44,7 @@ __all__ = [
     "ServerLimits",
     "Split",
     "StaticObstacle",
+    "StepColumns",
     "StepInfo",
     "StepResult",
     "TopDownFrame",
@@ -89,6 +90,32 @@ _API_NAMES = {
     Action.FETCH: "fetch",
     Action.RELEASE: "release",
 }
+
+
+def plain_action(action: object) -> object:
+    """The Python value of an action given as a numpy scalar or a numpy array of one (shape `()` or
+    `(1,)`); anything else as it is.
+    """
+    if isinstance(action, np.ndarray) and action.shape in ((), (1,)):
+        return action.reshape(()).item()
+    if isinstance(action, np.generic):
+        return action.item()
+    return action
+
+
+def action_value(action: object) -> int | None:
+    """The integer code of an `ActionLike` (an `Action` or int, a numpy integer, an integer-valued
+    float, or a numpy array of one of these, shape `()` or `(1,)`), or None for anything else. The
+    range is not checked (that is the server's).
+    """
+    if type(action) is int or isinstance(action, Action):  # the common case, first
+        return int(action)
+    value = plain_action(action)
+    if isinstance(value, int):
+        return int(value)
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    return None
 
 
 class Split(str, enum.Enum):
@@ -514,3 +541,70 @@ class PlanAnswer:
     failure: PlanFailure | None
     failure_message: str
     failure_object: str
+
+
+_LITTLE_FLOAT32 = np.dtype("<f4")
+_LITTLE_UINT32 = np.dtype("<u4")
+
+# Every image an observation can hold besides the goal, as the Gymnasium envs name them, in their
+# order: (observation key, bytes per pixel, dtype).
+_SENSOR_IMAGES: tuple[tuple[str, int, np.dtype[Any]], ...] = (
+    ("ego_rgb", 3, np.dtype(np.uint8)),
+    ("depth", 4, _LITTLE_FLOAT32),
+    ("segmentation", 4, _LITTLE_UINT32),
+    ("current_top_down", 3, np.dtype(np.uint8)),
+)
+
+
+def observation_images(sensors: Sensors) -> tuple[tuple[str, int, np.dtype[Any]], ...]:
+    """The images an observation of `sensors` holds besides the goal: (key, bytes per pixel, dtype)
+    each, `ego_rgb` first; each is `sensors.resolution` square (RGB images (R, R, 3), the others
+    (R, R)).
+    """
+    wanted = {
+        "ego_rgb": True,
+        "depth": sensors.depth,
+        "segmentation": sensors.segmentation,
+        "current_top_down": sensors.current_top_down,
+    }
+    return tuple(entry for entry in _SENSOR_IMAGES if wanted[entry[0]])
+
+
+class StepColumns:
+    """The answers to a wave of steps as columns (`Client.step_columns`, `Episode.step_columns`):
+    one list per field in request order, the images as the answers' bytes (not yet arrays; each
+    checked to hold the expected size), and the metrics of the steps that ended an episode, by
+    position. What the Gymnasium envs read, without per-step values.
+
+    Attributes:
+        rewards, terminated, truncated, grasping: A step's reward and flags.
+        accepted, collided, placed_count, step_index: Its `StepInfo` fields (`collided`: whether it
+            names an obstacle hit).
+        images: Each image key of `observation_images` (the sensors' images) to its bytes per step.
+        metrics: The final metrics of the steps that ended their episode, by position.
+    """
+
+    __slots__ = (
+        "accepted",
+        "collided",
+        "grasping",
+        "images",
+        "metrics",
+        "placed_count",
+        "rewards",
+        "step_index",
+        "terminated",
+        "truncated",
+    )
+
+    def __init__(self, keys: Sequence[str]) -> None:
+        self.rewards: list[float] = []
+        self.terminated: list[bool] = []
+        self.truncated: list[bool] = []
+        self.grasping: list[bool] = []
+        self.accepted: list[bool] = []
+        self.collided: list[bool] = []
+        self.placed_count: list[int] = []
+        self.step_index: list[int] = []
+        self.images: dict[str, list[bytes]] = {key: [] for key in keys}
+        self.metrics: dict[int, EpisodeMetrics] = {}

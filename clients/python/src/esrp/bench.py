@@ -50,16 +50,16 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from . import __version__, _native
-from ._client import Client
-from ._errors import EsrpError
-from ._local import LocalServer, _checkout_targets
-from ._native import Transport
+from . import __version__, _grpc_setup, _malloc_setup
 from ._signals import run_command
+
+if TYPE_CHECKING:
+    from ._client import Client
+    from ._native import Transport
 
 __all__ = ["SCENARIOS", "Measurement", "main", "run"]
 
@@ -170,6 +170,8 @@ class _Target:
     transport: Transport = "auto"
 
     def client(self) -> Client:
+        from ._client import Client
+
         return Client(self.address, token=self.token, transport=self.transport)
 
 
@@ -192,7 +194,7 @@ def bench_client_1(
 
 def bench_env_1(target: _Target, window_of: Callable[[], _Window], label: str | None = None) -> Measurement:
     """`env-1`: one Gymnasium env, closed loop, on the scene unary-1 plays."""
-    from .gym import RearrangeEnv
+    from .envs import RearrangeEnv
 
     client = target.client()
     env = RearrangeEnv(client=client, scene=_test_scenes(client, 1)[0])
@@ -217,7 +219,7 @@ def bench_env_1(target: _Target, window_of: Callable[[], _Window], label: str | 
 
 def bench_vec_64(target: _Target, window_of: Callable[[], _Window], label: str | None = None) -> Measurement:
     """`vec-64`: the native vector env of 64 envs, closed loop, on the 64 scenes batch-64 plays."""
-    from .gym import RearrangeVectorEnv
+    from .envs import RearrangeVectorEnv
 
     client = target.client()
     envs = RearrangeVectorEnv(
@@ -299,6 +301,8 @@ def find_rust_bench() -> Path | None:
     on_path = shutil.which(_RUST_BINARY)
     if on_path:
         return Path(on_path)
+    from ._local import _checkout_targets
+
     for target in _checkout_targets():
         candidate = target / "release" / _RUST_BINARY
         if candidate.is_file():
@@ -585,6 +589,8 @@ def _server(address: str | None) -> Iterator[str]:
     if address is not None:
         yield address
         return
+    from ._local import LocalServer
+
     with LocalServer() as local:
         yield local.address
 
@@ -625,6 +631,8 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--json", type=Path, help="also write the results to this JSON file")
     args = parser.parse_args(argv)
     args.transports = [name.strip() for name in args.transport.split(",") if name.strip()]
+    from . import _native
+
     for transport in args.transports:
         try:
             _native.resolve(transport, secure=False)
@@ -644,12 +652,20 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """The command line: runs the rounds, prints the machine and the table, writes the JSON."""
+    """The command line: runs the rounds, prints the machine and the table, writes the JSON.
+
+    First it applies the process tunings the measurements assume (`esrp._grpc_setup`, before
+    anything here imports grpc, and `esrp._malloc_setup`); this module imports grpc only then.
+    """
+    _grpc_setup.apply()
+    _malloc_setup.apply()
     handle_signals = argv is None and threading.current_thread() is threading.main_thread()
     return run_command("esrp.bench", lambda: _checked(argv), handle_signals=handle_signals)
 
 
 def _checked(argv: Sequence[str] | None) -> int:
+    from ._errors import EsrpError
+
     args = _parse_args(argv)
     try:
         return _main(args)
@@ -659,6 +675,8 @@ def _checked(argv: Sequence[str] | None) -> int:
 
 
 def _main(args: argparse.Namespace) -> int:
+    from ._client import Client
+
     before = machine()
     print(
         f"machine: {before['cpu']}, {before['cores']} cores ({before['usable_cores']} usable), "

@@ -30,8 +30,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F  # noqa: N812 - the usual name
 
-from .._training import policy_checkpoint
 from .._values import Action, Observation
+from ..train._training import policy_checkpoint
 from .encoders import check_device, float_images, make_encoder
 
 __all__ = ["BcAgent", "BcConfig", "BcPolicy", "DiffusionPolicy", "load_policy"]

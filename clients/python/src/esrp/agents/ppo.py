@@ -6,7 +6,7 @@ LSTM layer, and two MLP heads (six action logits, one value). As CleanRL's `ppo_
 LSTM state is zeroed before the first observation of each episode, and training back-propagates
 through sequences of `num_steps` steps (the paper's context length l = 64).
 
-`esrp train ppo --config ...` trains one (`esrp.train_ppo`); `esrp eval --agent ppo --checkpoint
+`esrp train ppo --config ...` trains one (`esrp.train.ppo`); `esrp eval --agent ppo --checkpoint
 RUN/ckpt.pt` plays it.
 """
 
@@ -22,8 +22,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F  # noqa: N812 - the usual name
 
-from .._training import policy_checkpoint
 from .._values import Action, Observation, RewardWeights
+from ..train._training import policy_checkpoint
 from .encoders import ENCODERS, check_device, make_encoder
 
 __all__ = ["PpoAgent", "PpoConfig", "PpoNet", "PpoPolicy", "load_network"]

@@ -30,13 +30,14 @@ import torch
 from gymnasium.vector import AutoresetMode
 from torch import nn
 
-from ._client import Client
+from .. import _malloc_setup
+from .._client import Client
+from .._values import Sensors
+from ..agents.encoders import resolve_device
+from ..agents.ppo import LstmState, PpoConfig, PpoNet
+from ..envs import RearrangeVectorEnv
 from ._config import read_table
 from ._training import load_resumable, save_checkpoint
-from ._values import Sensors
-from .agents.encoders import resolve_device
-from .agents.ppo import LstmState, PpoConfig, PpoNet
-from .gym import RearrangeVectorEnv
 
 __all__ = ["UpdateStats", "gae", "load_config", "make_env", "ppo_loss", "train"]
 
@@ -124,6 +125,7 @@ def train(
     """Trains until `config.total_steps` environment steps (from the checkpoint in `out` with
     `resume`) on the server behind `client`; returns the checkpoint's path.
     """
+    _malloc_setup.apply()  # the step and batch buffers stay mapped (esrp._malloc_setup)
     device = resolve_device(config.device)
     if config.threads > 0:
         torch.set_num_threads(config.threads)

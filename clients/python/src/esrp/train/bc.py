@@ -24,10 +24,11 @@ from typing import Any, cast
 import numpy as np
 import torch
 
+from .. import _malloc_setup
+from ..agents.bc import BcConfig, DiffusionPolicy, bc_loss, schedulers
+from ..agents.encoders import resolve_device
 from ._config import read_table
 from ._training import load_resumable, save_checkpoint
-from .agents.bc import BcConfig, DiffusionPolicy, bc_loss, schedulers
-from .agents.encoders import resolve_device
 
 __all__ = ["DemoWindows", "load_config", "train"]
 
@@ -119,6 +120,7 @@ def train(config: BcConfig, out: Path, *, resume: bool = False, progress: bool =
     """Trains for `config.epochs` epochs (from the checkpoint in `out` with `resume`); returns the
     checkpoint's path.
     """
+    _malloc_setup.apply()  # large buffers freed and made at every step stay mapped (esrp._malloc_setup)
     if config.threads > 0:
         torch.set_num_threads(config.threads)
     out.mkdir(parents=True, exist_ok=True)

@@ -5,7 +5,7 @@ For every run (a file, or each agent of a file that holds several) it lays out t
 with the paper's rows (SPEC §8) beside them: Table I (SR / OSR / RDR overall), Table II (the same
 per difficulty, the SR with its 95 % Wilson interval) and Table III (failure stages); then plots
 (SR and OSR by difficulty, stage shares, the RDR distribution, the share of episodes solved within
-k steps) and, for chosen episodes, a replay still (the final frame of `esrp.replay`). Privileged
+k steps) and, for chosen episodes, a replay still (the final frame of `esrp.eval.replay`). Privileged
 agents (plan, expert) are marked as such, and runs over different scenes, or over less than the full
 test split the paper's rows were measured on, are warned about. Needs the `report` extra
 (matplotlib, Pillow); stills need a server.
@@ -27,11 +27,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from . import __version__
-from ._client import Client
-from ._common import unreachable
-from ._errors import ServerUnavailable
-from ._local import LocalServer
+from .. import __version__
+from .._client import Client
+from .._common import unreachable
+from .._errors import ServerUnavailable
+from .._local import LocalServer
 from .results import (
     DIFFICULTIES,
     PAPER,

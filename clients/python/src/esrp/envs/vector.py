@@ -1,25 +1,11 @@
-"""The Gymnasium environment `esrp/Rearrange-v1` and its native vector env (needs the `gym` extra).
-
-`RearrangeEnv` owns one server episode and steps it with unary calls. `RearrangeVectorEnv` owns N
-episodes on one StepStream and advances them all with one pipelined round trip per step (steps and
-autoresets together): no subprocesses, no per-env threads. Both follow Gymnasium 1.x exactly:
-`reset(seed=s)` seeds the env's `np_random`, which picks the scene from the filtered scene list, so
-the same seed plays the same scene; the vector env seeds sub-env i with `s + i`, exactly as
-`SyncVectorEnv` over N `RearrangeEnv`s would, and gives bit-identical observations.
-
-Observations are dicts: `ego_rgb` and `goal_rgb` (R, R, 3) uint8, `grasping` 0/1 (Discrete(2)), and
-`depth` (R, R) float32, `segmentation` (R, R) uint32 and `current_top_down` (R, R, 3) uint8 for the
-sensors that are on. Actions are `Discrete(6)` with the codes of `esrp.Action`. Infos: the scene's
-id, difficulty, room type, object count and horizon on resets; `is_success` on the step that ends an
-episode.
+"""`RearrangeVectorEnv`: N ESRP episodes on one StepStream, advanced together with one StepBatch
+round trip per step (steps and autoresets together): no subprocesses, no per-env threads.
 """
 
 from __future__ import annotations
 
-import contextlib
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
-from typing import Any, SupportsFloat, cast
+from typing import Any, cast
 
 import gymnasium
 import numpy as np
@@ -29,342 +15,22 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from . import _convert
-from ._client import Client, Episode, EpisodeStream
-from ._common import TlsSetting
-from ._errors import (
-    EpisodeEnded,
-    EpisodeNotFound,
-    EsrpError,
-    InvalidRequest,
-    ProtocolError,
-    ServerUnavailable,
+from .. import _malloc_setup
+from .._client import Client, EpisodeStream
+from .._common import TlsSetting
+from .._errors import EpisodeEnded, EsrpError, InvalidRequest, ProtocolError
+from .._values import Difficulty, EpisodeMetrics, RewardWeights, Sensors, Split, StepColumns
+from ._shared import (
+    METADATA,
+    Images,
+    ObsDict,
+    Setup,
+    frame,
+    metrics_info,
+    observation_space,
+    reset_info,
+    step_info,
 )
-from ._local import LocalServer
-from ._values import ActionLike, Difficulty, EpisodeMetrics, RewardWeights, SceneSummary, Sensors, Split
-
-__all__ = ["RearrangeEnv", "RearrangeVectorEnv", "observation_space"]
-
-ObsDict = dict[str, npt.NDArray[Any]]
-
-_METADATA: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 10}
-
-
-def observation_space(sensors: Sensors) -> spaces.Dict:
-    """The observation space of one env with these sensors."""
-    side = sensors.resolution
-    image = spaces.Box(0, 255, (side, side, 3), np.uint8)
-    members: dict[str, spaces.Space[Any]] = {
-        "ego_rgb": image,
-        "goal_rgb": image,
-        "grasping": spaces.Discrete(2),
-    }
-    if sensors.depth:
-        members["depth"] = spaces.Box(0.0, np.inf, (side, side), np.float32)
-    if sensors.segmentation:
-        members["segmentation"] = spaces.Box(0, np.iinfo(np.uint32).max, (side, side), np.uint32)
-    if sensors.current_top_down:
-        members["current_top_down"] = image
-    return spaces.Dict(members)
-
-
-def _step_info(columns: _convert.StepColumns, position: int) -> dict[str, Any]:
-    """The info of the step at `position` of `columns`: plain scalars (so vector infos batch them
-    into arrays), and the episode's final metrics under `metrics` on the step that ends it.
-    """
-    info: dict[str, Any] = {
-        "accepted": columns.accepted[position],
-        "collided": columns.collided[position],
-        "placed_count": columns.placed_count[position],
-        "step_index": columns.step_index[position],
-    }
-    metrics = columns.metrics.get(position)
-    if metrics is not None:
-        info["metrics"] = _metrics_info(metrics)
-        info["is_success"] = metrics.success
-    return info
-
-
-def _reset_info(scene: SceneSummary, horizon: int) -> dict[str, Any]:
-    """The info of a reset onto `scene`: its id, difficulty, room type, movable-object count, and the
-    episode's step limit (`horizon`, the env's, else the scene's).
-    """
-    return {
-        "scene_id": scene.id,
-        "difficulty": None if scene.difficulty is None else scene.difficulty.value,
-        "room_type": scene.room_type,
-        "objects": scene.movable_objects,
-        "horizon": horizon or scene.horizon,
-    }
-
-
-def _metrics_info(metrics: EpisodeMetrics) -> dict[str, Any]:
-    """The `metrics` entry of a step info."""
-    return {
-        "success": metrics.success,
-        "object_success_rate": metrics.object_success_rate,
-        "remaining_distance_ratio": metrics.remaining_distance_ratio,
-        "stage": metrics.stage,
-        "placed": metrics.placed,
-        "steps": metrics.steps,
-        "total_reward": metrics.total_reward,
-    }
-
-
-def _frame(observation: ObsDict, goal: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
-    """The ego view, the goal and (when the sensor is on) the current top-down, side by side."""
-    views = [observation["ego_rgb"], goal]
-    if "current_top_down" in observation:
-        views.append(observation["current_top_down"])
-    return np.concatenate(views, axis=1)
-
-
-class _Images:
-    """Where a step answer's images go in an observation: the sensors' layout (key, message field,
-    bytes per pixel, dtype), and each key's array shape.
-    """
-
-    def __init__(self, sensors: Sensors) -> None:
-        side = sensors.resolution
-        self.resolution = side
-        self.layout = _convert.image_layout(sensors)
-        self.keys = tuple(key for key, _, _, _ in self.layout)
-        self.shapes = {key: (side, side, 3) if size == 3 else (side, side) for key, _, size, _ in self.layout}
-        self.dtypes = {key: dtype for key, _, _, dtype in self.layout}
-
-    def view(self, key: str, image: Any) -> npt.NDArray[Any]:  # noqa: ANN401
-        """A read-only array of an answer's `key` image (its bytes, or already an array)."""
-        if isinstance(image, np.ndarray):
-            return image
-        return np.frombuffer(image, dtype=self.dtypes[key]).reshape(self.shapes[key])
-
-    def observation(
-        self, images: Mapping[str, Any], grasping: bool | np.integer[Any], goal: npt.NDArray[np.uint8]
-    ) -> ObsDict:
-        """An observation as the envs return it: read-only views of the answer's images, and a
-        read-only copy of the goal image that the server sent at the reset (Gymnasium wants no two
-        observations to share memory, and the goal is the one image a step answer does not carry).
-        """
-        goal = goal.copy()
-        goal.flags.writeable = False
-        result: ObsDict = {
-            "ego_rgb": self.view("ego_rgb", images["ego_rgb"]),
-            "goal_rgb": goal,
-            "grasping": np.int64(grasping),
-        }
-        for key in self.keys[1:]:
-            result[key] = self.view(key, images[key])
-        return result
-
-
-@dataclass
-class _Setup:
-    """What the single and the vector env share: the connection (owned or not), the episode
-    settings, and the scene list the seeds pick from.
-    """
-
-    client: Client
-    owned_client: bool
-    server: LocalServer | None
-    scenes: tuple[str, ...]
-    sensors: Sensors
-    horizon: int
-    reward: RewardWeights | None
-
-    @classmethod
-    def connect(
-        cls,
-        address: str | None,
-        client: Client | None,
-        token: str | None,
-        tls: TlsSetting,
-        split: Split | str | None,
-        difficulty: Difficulty | str | None,
-        scene: str | Sequence[str] | None,
-        sensors: Sensors | None,
-        horizon: int,
-        reward: RewardWeights | None,
-    ) -> _Setup:
-        server = None
-        owned = client is None
-        if client is None:
-            if address is None:
-                server = LocalServer().start()
-                address = server.address
-            client = Client(address, token=token, tls=tls)
-        try:
-            if isinstance(scene, str):
-                scenes: tuple[str, ...] = (scene,)
-            elif scene is not None:
-                scenes = tuple(scene)
-                if not scenes or not all(isinstance(s, str) and s for s in scenes):
-                    raise ValueError(f"scene: a scene id or a non-empty list of scene ids, got {scene!r}")
-            else:
-                scenes = tuple(s.id for s in client.scenes(split, difficulty, page_size=1000))
-                if not scenes:
-                    raise InvalidRequest(
-                        f"the served dataset has no scenes of split {split!r}, difficulty {difficulty!r}"
-                    )
-        except BaseException:
-            if owned:
-                client.close()
-            if server is not None:
-                server.stop()
-            raise
-        return cls(client, owned, server, scenes, sensors or Sensors(), horizon, reward)
-
-    def pick_scene(
-        self, rng: np.random.Generator, options: Mapping[str, Any] | None, own: str | None = None
-    ) -> str:
-        """The scene of a reset: drawn from the list with the env's generator (always, so the
-        generator advances the same way), or `own` where given, unless `options["scene"]` names one.
-        """
-        drawn = self.scenes[int(rng.integers(len(self.scenes)))]
-        if options and options.get("scene") is not None:
-            return str(options["scene"])
-        return drawn if own is None else own
-
-    def close(self) -> None:
-        if self.owned_client:
-            self.client.close()
-        if self.server is not None:
-            self.server.stop()
-            self.server = None
-
-
-class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
-    """The ESRP task as a Gymnasium env (`gymnasium.make("esrp/Rearrange-v1", ...)`).
-
-    Args:
-        address: The server (`host:port`); None starts a `LocalServer` that the env owns.
-        client: A `Client` to share instead (the env then does not close it).
-        token: The server's bearer token.
-        tls: TLS setting, as `Client`'s.
-        split: Scenes to draw from: `train` (default), `test`, or None for all.
-        difficulty: Only `easy`, `medium` or `hard` scenes (None: all).
-        scene: Always play this scene id, or draw from these ids (ignores split and difficulty).
-        sensors: Optional sensors and image size (default: none, 128 px).
-        horizon: Step limit; 0: each scene's own (the server truncates).
-        reward: Reward weights (the server's defaults for fields left None).
-        render_mode: None or `rgb_array` (ego view, goal and, with the sensor, current top-down).
-
-    `reset(seed=s)` seeds `np_random`, which draws the scene; `reset(options={"scene": id})` plays
-    `id` instead. The reset info has `scene_id`, `difficulty`, `room_type`, `objects` (movable
-    objects) and `horizon` (the episode's step limit); a step's info has `accepted`, `collided`,
-    `placed_count`, `step_index` and, on the step that ends the episode, `metrics` and
-    `is_success` (Stable-Baselines3's convention). The horizon is each scene's and the server
-    truncates at it: the registered spec has no `max_episode_steps` (no `TimeLimit`).
-
-    Actions: an `esrp.ActionLike` (an int 0..5, a numpy integer, an integer-valued float, or a numpy
-    array of one); any other value raises `InvalidRequest` before anything is sent.
-    """
-
-    metadata = _METADATA
-
-    def __init__(
-        self,
-        address: str | None = None,
-        *,
-        client: Client | None = None,
-        token: str | None = None,
-        tls: TlsSetting = None,
-        split: Split | str | None = "train",
-        difficulty: Difficulty | str | None = None,
-        scene: str | Sequence[str] | None = None,
-        sensors: Sensors | None = None,
-        horizon: int = 0,
-        reward: RewardWeights | None = None,
-        render_mode: str | None = None,
-    ) -> None:
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode {render_mode!r}: use None or 'rgb_array'")
-        self.render_mode = render_mode
-        self._setup = _Setup.connect(
-            address, client, token, tls, split, difficulty, scene, sensors, horizon, reward
-        )
-        self.observation_space = cast(spaces.Space[ObsDict], observation_space(self._setup.sensors))
-        self.action_space = spaces.Discrete(6)
-        self._image_spec = _Images(self._setup.sensors)
-        self._episode: Episode | None = None
-        self._scene: str | None = None  # the episode's scene id
-        self._goal: npt.NDArray[np.uint8] | None = None
-        self._last: ObsDict | None = None
-
-    @property
-    def client(self) -> Client:
-        """The client the env uses."""
-        return self._setup.client
-
-    @property
-    def scenes(self) -> tuple[str, ...]:
-        """The scene ids `reset` draws from."""
-        return self._setup.scenes
-
-    @property
-    def episode(self) -> Episode | None:
-        """The server episode (None before the first reset)."""
-        return self._episode
-
-    def reset(
-        self, *, seed: int | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[ObsDict, dict[str, Any]]:
-        """Starts an episode on a scene drawn with `np_random` (or `options["scene"]`)."""
-        super().reset(seed=seed)
-        scene = self._setup.pick_scene(self.np_random, options)
-        if self._episode is None:
-            setup = self._setup
-            self._episode = setup.client.create_episode(
-                scene, sensors=setup.sensors, horizon=setup.horizon, reward=setup.reward
-            )
-            first = self._episode.observation
-        else:
-            # The same scene again restarts the episode where it is (the same first observation
-            # and goal as a fresh one, without building the episode anew).
-            first = self._episode.reset(None if scene == self._scene else scene)
-        self._scene = scene
-        assert first is not None
-        assert first.goal_rgb is not None
-        self._goal = first.goal_rgb
-        images = {key: getattr(first, key) for key in self._image_spec.keys}
-        self._last = self._image_spec.observation(images, first.grasping, self._goal)
-        return self._last, _reset_info(self._episode.scene, self._setup.horizon)
-
-    def step(self, action: ActionLike) -> tuple[ObsDict, SupportsFloat, bool, bool, dict[str, Any]]:
-        """Takes one action (0..5, see `esrp.Action`)."""
-        if self._episode is None or self._goal is None:
-            raise gymnasium.error.ResetNeeded("call reset() before step()")
-        message = self._episode._step_message(action)  # noqa: SLF001 - the package's own hot path
-        spec = self._image_spec
-        columns = _convert.step_columns((message,), spec.layout, spec.resolution)
-        observation = spec.observation(
-            {key: column[0] for key, column in columns.images.items()}, columns.grasping[0], self._goal
-        )
-        self._last = observation
-        return (
-            observation,
-            columns.rewards[0],
-            columns.terminated[0],
-            columns.truncated[0],
-            _step_info(columns, 0),
-        )
-
-    def render(self) -> npt.NDArray[np.uint8] | None:
-        """With `render_mode="rgb_array"`: the ego view, the goal and the current top-down (when
-        the sensor is on) side by side, (R, 2R or 3R, 3) uint8.
-        """
-        if self.render_mode != "rgb_array" or self._last is None or self._goal is None:
-            return None
-        return _frame(self._last, self._goal)
-
-    def close(self) -> None:
-        """Closes the server episode (and the client and server the env started)."""
-        episode, self._episode = self._episode, None
-        if episode is not None:
-            with contextlib.suppress(EpisodeNotFound, ServerUnavailable):
-                episode.close()
-        self._setup.close()
-        super().close()
-
 
 _STEP_KEYS = ("accepted", "collided", "placed_count", "step_index")
 _ENDED_KEYS = (*_STEP_KEYS, "metrics", "is_success")
@@ -372,9 +38,6 @@ _ENDED_KEYS = (*_STEP_KEYS, "metrics", "is_success")
 _STEP_DTYPES = (("accepted", bool), ("collided", bool), ("placed_count", int), ("step_index", int))
 _RESET_KEYS = ("scene_id", "difficulty", "room_type", "objects", "horizon")
 _FINAL_KEYS = ("final_obs", "final_info", *_RESET_KEYS)
-
-# Reserve for a StepBatch answer's framing, per step (the info, reward and flags take ~60 bytes).
-_STEP_OVERHEAD_BYTES = 512
 
 
 class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[Any]]):
@@ -406,7 +69,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
     costs far less to receive in Python than one stream answer per episode.
     """
 
-    metadata = {**_METADATA, "autoreset_mode": AutoresetMode.NEXT_STEP}
+    metadata = {**METADATA, "autoreset_mode": AutoresetMode.NEXT_STEP}
 
     def __init__(
         self,
@@ -428,19 +91,21 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
     ) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be at least 1, got {num_envs}")
-        if render_mode is not None and render_mode not in _METADATA["render_modes"]:
+        # Its multi-megabyte step buffers kept mapped from step to step (see esrp._malloc_setup).
+        _malloc_setup.apply()
+        if render_mode is not None and render_mode not in METADATA["render_modes"]:
             raise ValueError(f"render_mode {render_mode!r}: use None or 'rgb_array'")
         self.autoreset_mode = (
             autoreset_mode if isinstance(autoreset_mode, AutoresetMode) else AutoresetMode(autoreset_mode)
         )
-        self.metadata = {**_METADATA, "autoreset_mode": self.autoreset_mode}
+        self.metadata = {**METADATA, "autoreset_mode": self.autoreset_mode}
         self.num_envs = num_envs
         self.render_mode = render_mode
         if scene_per_env and (scene is None or (1 if isinstance(scene, str) else len(scene)) != num_envs):
             raise ValueError(
                 f"scene_per_env: scene must list one scene id per sub-env ({num_envs}), got {scene!r}"
             )
-        self._setup = _Setup.connect(
+        self._setup = Setup.connect(
             address, client, token, tls, split, difficulty, scene, sensors, horizon, reward
         )
         self._scene_per_env = scene_per_env
@@ -449,7 +114,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         self.single_action_space = spaces.Discrete(6)
         self.action_space = batch_space(self.single_action_space, num_envs)
         side = self._setup.sensors.resolution
-        self._image_spec = _Images(self._setup.sensors)
+        self._image_spec = Images(self._setup.sensors)
         # The observation keys in the space's order (that of Gymnasium's batches).
         self._keys = tuple(self.single_observation_space.spaces)
         self._stream: EpisodeStream | None = None
@@ -463,7 +128,6 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         self._goals = np.zeros((num_envs, side, side, 3), dtype=np.uint8)
         self._started = np.zeros(num_envs, dtype=np.bool_)
         self._autoreset_envs = np.zeros(num_envs, dtype=np.bool_)
-        self._chunk: int | None = None  # steps per StepBatch, from the server's limits
 
     @property
     def client(self) -> Client:
@@ -526,7 +190,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         self._grasping[index] = first.grasping
         self._goals[index] = first.goal_rgb
         self._started[index] = True
-        return _reset_info(answer.scene, self._setup.horizon)
+        return reset_info(answer.scene, self._setup.horizon)
 
     def reset(
         self,
@@ -643,51 +307,30 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             ended = np.flatnonzero(terminations | truncations).tolist()
             # The final observations are handed out one by one: each gets a goal of its own.
             # (Every sub-env was stepped, so sub-env i's answer is at position i.)
-            finals = {i: (self._single_observation(i), _step_info(columns, i)) for i in ended}
+            finals = {i: (self._single_observation(i), step_info(columns, i)) for i in ended}
             sent = {i: self._send_reset(stream, i, None) for i in ended}
             resets = {i: self._take_reset(stream, i, sent[i]) for i in ended}
         infos = self._step_infos(columns, stepped, resets, finals)
         self._autoreset_envs = np.logical_or(terminations, truncations)
         return self._batch(), rewards, terminations, truncations, infos
 
-    def _step_batch(self, stepped: list[int], actions: npt.NDArray[Any]) -> _convert.StepColumns:
-        """Steps sub-envs `stepped` (in order) with one StepBatch, or several when the server's
-        limits want it; their answers as columns in the same order.
+    def _step_batch(self, stepped: list[int], actions: npt.NDArray[Any]) -> StepColumns:
+        """Steps sub-envs `stepped` (in order) with one StepBatch (several beyond the server's
+        limits: `Client.step_columns`); their answers as columns in the same order.
         """
-        spec = self._image_spec
-        columns = _convert.StepColumns(spec.keys)
         if not stepped:
-            return columns
-        client = self._setup.client
-        if self._chunk is None:
-            limits = client.server_info().limits
-            per_step = _STEP_OVERHEAD_BYTES + sum(spec.resolution**2 * size for _, _, size, _ in spec.layout)
-            self._chunk = max(1, min(limits.max_batch, limits.max_message_bytes // 2 // per_step))
+            return StepColumns(self._image_spec.keys)
         episode_ids = self._episode_ids
         codes = actions.tolist()
-        size = self._chunk
-        # Beyond the limits, the chunks go at once (the server renders one while another's answer
-        # travels); below them one call is best: splitting a wave measured no faster and costs
-        # the client more.
-        chunks = [stepped[start : start + size] for start in range(0, len(stepped), size)]
-        waits = [
-            client._step_batch_started(  # noqa: SLF001 - the package's own hot path
-                [cast(str, episode_ids[i]) for i in chunk], [codes[i] for i in chunk]
-            )
-            for chunk in chunks[:-1]
-        ]
-        last = chunks[-1]
-        messages = client._step_batch_messages(  # noqa: SLF001
-            [cast(str, episode_ids[i]) for i in last], [codes[i] for i in last]
+        return self._setup.client.step_columns(
+            [cast(str, episode_ids[i]) for i in stepped],
+            [codes[i] for i in stepped],
+            self._image_spec.sensors,
         )
-        for wait in waits:
-            _convert.step_columns(wait(), spec.layout, spec.resolution, into=columns)
-        _convert.step_columns(messages, spec.layout, spec.resolution, into=columns)
-        return columns
 
     def _step_infos(
         self,
-        columns: _convert.StepColumns,
+        columns: StepColumns,
         stepped: list[int],
         resets: Mapping[int, dict[str, Any]],
         finals: Mapping[int, tuple[ObsDict, dict[str, Any]]],
@@ -723,7 +366,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         metrics_infos: dict[str, Any] = {}
         for i, metrics in metrics_envs.items():
             if i not in finals:
-                metrics_infos = self._add_info(metrics_infos, _metrics_info(metrics), i)
+                metrics_infos = self._add_info(metrics_infos, metrics_info(metrics), i)
         if metrics_infos:
             ended_here = [i for i in metrics_envs if i not in finals]
             values["metrics"] = metrics_infos
@@ -779,7 +422,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         """With `render_mode="rgb_array"`: one frame per sub-env, as `RearrangeEnv.render`."""
         if self.render_mode != "rgb_array" or not np.all(self._started):
             return None
-        return tuple(_frame(self._single_observation(i), self._goals[i]) for i in range(self.num_envs))
+        return tuple(frame(self._single_observation(i), self._goals[i]) for i in range(self.num_envs))
 
     def close_extras(self, **kwargs: Any) -> None:  # noqa: ANN401
         """Closes every server episode (on the stream, waiting for the answers), the stream, and

@@ -26,11 +26,11 @@ from typing import Any
 
 import numpy as np
 
-from ._client import Client
-from ._values import Action, SceneSummary, Sensors
-from .agents import is_async_agent
-from .evaluation import EvalError, agent_info, expert_trajectory, make_factory, missing_scene
-from .results import scene_seed
+from .._client import Client
+from .._values import Action, SceneSummary, Sensors
+from ..agents import is_async_agent
+from ..eval.evaluation import EvalError, agent_info, expert_trajectory, make_factory, missing_scene
+from ..eval.results import scene_seed
 
 __all__ = ["FORMAT", "DemoExportError", "DemoSettings", "ExportOutcome", "export_demos"]
 

@@ -33,11 +33,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from . import _signals
-from ._async_client import AsyncClient
-from ._errors import EsrpError, ServerUnavailable
-from ._local import LocalServer
-from ._values import SceneSummary, ServerInfo
+from .. import _signals
+from .._async_client import AsyncClient
+from .._errors import EsrpError, ServerUnavailable
+from .._local import LocalServer
+from .._values import SceneSummary, ServerInfo
 from .evaluation import (
     EvalError,
     EvalOutcome,

@@ -26,11 +26,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
-from ._client import Client
-from ._common import unreachable
-from ._errors import EsrpError, ServerUnavailable
-from ._local import LocalServer
-from ._values import Action, EpisodeMetrics, Observation, PrivilegedState, Sensors, StepResult, TopDownFrame
+from .._client import Client
+from .._common import unreachable
+from .._errors import EsrpError, ServerUnavailable
+from .._local import LocalServer
+from .._values import Action, EpisodeMetrics, Observation, PrivilegedState, Sensors, StepResult, TopDownFrame
 from .results import EpisodeRecord, ResultsError, read_records
 
 if TYPE_CHECKING:

@@ -28,13 +28,13 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import IO, Any
 
-from . import __version__, _convert
-from ._async_client import AsyncClient, AsyncEpisode
-from ._common import unreachable
-from ._errors import DeadlineExceeded, EsrpError, ProtocolError, ServerUnavailable
-from ._local import LocalServer
-from ._values import Action, EpisodeMetrics, SceneSummary, Sensors, ServerInfo
-from .agents import Agent, AgentFactory, AsyncAgent, RandomAgent, is_async_agent, load_factory
+from .. import __version__
+from .._async_client import AsyncClient, AsyncEpisode
+from .._common import unreachable
+from .._errors import DeadlineExceeded, EsrpError, ProtocolError, ServerUnavailable
+from .._local import LocalServer
+from .._values import Action, EpisodeMetrics, SceneSummary, Sensors, ServerInfo, action_value
+from ..agents import Agent, AgentFactory, AsyncAgent, RandomAgent, is_async_agent, load_factory
 from .results import (
     SCHEMA,
     EpisodeRecord,
@@ -295,7 +295,9 @@ async def _play_agent(
         if action is None:
             break
         result = await episode.step(action)
-        actions.append(_convert.action_code(action))
+        code = action_value(action)
+        assert code is not None, "an action the step took"
+        actions.append(code)
         if result.ended:
             metrics = result.metrics
             if metrics is None:
@@ -352,7 +354,7 @@ def make_factory(agent: str, config: dict[str, Any], results_path: Path) -> Agen
     if agent == "random":
         return RandomAgent
     if agent == "vlm":
-        from .agents.vlm import VlmAgentFactory
+        from ..agents.vlm import VlmAgentFactory
 
         try:
             return VlmAgentFactory(config, results_path=results_path)
@@ -360,8 +362,8 @@ def make_factory(agent: str, config: dict[str, Any], results_path: Path) -> Agen
             raise EvalError(str(error)) from None
     if agent in ("bc", "ppo"):
         try:
-            from .agents.bc import BcPolicy
-            from .agents.ppo import PpoPolicy
+            from ..agents.bc import BcPolicy
+            from ..agents.ppo import PpoPolicy
         except ImportError as error:
             raise EvalError(
                 f"--agent {agent} needs the train extra (pip install 'esrp[train]'): {error}"

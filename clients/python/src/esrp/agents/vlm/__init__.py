@@ -1,0 +1,384 @@
+"""ESRP-VLM, the paper's vision-language baseline: a ReAct agent (a short thought, then one action)
+that prompts a pretrained VLM in context, over any OpenAI-compatible chat-completions endpoint
+(vLLM serving Qwen3-VL-2B-Instruct as in the paper, Gemini through Google's OpenAI-compatible
+endpoint, OpenAI, llama.cpp...). `esrp eval --agent vlm --base-url URL --model NAME` runs it.
+
+Each step sends one request: the system prompt (the task, the six actions, the answer format) and
+a user message with the step count, the grasp flag, the last `history` actions with what they
+visibly did, and two PNG images as data URLs — the egocentric view `I_ego` and the goal image
+`I_goal`. The answer is parsed strictly (`parse_answer`): exactly one action, by name or code. An
+unusable answer is counted and answered with a correction message (`reprompts` times); after that
+the step plays `fallback_action` (a turn by default), also counted.
+
+The agent sees only observations, never the step's info: whether a move was blocked is inferred
+from the ego view being pixel-identical to the one before it (a rejected motion changes nothing,
+and rendering is deterministic), whether a fetch or release worked from the grasp flag.
+
+`VlmAgentFactory` (what `esrp eval` builds once per run) owns the one `openai.AsyncOpenAI` client
+and a semaphore that caps the model calls in flight over all its episodes; HTTP 429, 5xx, timeouts
+and connection errors are retried by the `openai` client (`max_retries`, exponential backoff,
+honouring `Retry-After`). Each episode writes a trace (JSON Lines, `trace_dir/<scene>.jsonl`):
+the prompt text, image sizes and hashes, each answer with its thought, usage and latency.
+The package's modules: `_settings` (`VlmSettings`, the API key, trace paths), `_prompt` (the
+prompt and the images), `_parse` (reading an answer); the agent and its factory are here.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from ..._values import Action, Observation
+from ._parse import ParsedAnswer, parse_action_value, parse_answer
+from ._prompt import (
+    _ACTION_REGEX,
+    _JSON_SCHEMA,
+    ACTION_NAMES,
+    CONSTRAINED_MODES,
+    HistoryEntry,
+    _data_url,
+    _image_note,
+    correction_message,
+    encode_png,
+    outcome_of,
+    system_prompt,
+    user_text,
+)
+from ._settings import API_KEY_VARIABLES, VlmSettings, api_key, default_trace_dir, trace_file_name
+
+__all__ = [
+    "ACTION_NAMES",
+    "API_KEY_VARIABLES",
+    "CONSTRAINED_MODES",
+    "HistoryEntry",
+    "ParsedAnswer",
+    "VlmAgent",
+    "VlmAgentFactory",
+    "VlmSettings",
+    "api_key",
+    "correction_message",
+    "default_trace_dir",
+    "encode_png",
+    "outcome_of",
+    "parse_action_value",
+    "parse_answer",
+    "system_prompt",
+    "trace_file_name",
+    "user_text",
+]
+
+
+# ---------------------------------------------------------------------------------------------
+# The agent
+
+
+@dataclass
+class _Call:
+    """One model call: its answer and costs."""
+
+    content: str | None
+    finish_reason: str | None
+    model_reasoning: str | None
+    usage: dict[str, int] | None
+    latency_s: float
+    queued_s: float
+    http_retries: int
+
+
+class VlmAgentFactory:
+    """`esrp eval --agent vlm`'s factory: made once per run with the agent config, then called once
+    per episode. Holds what the episodes share: the `openai.AsyncOpenAI` client, the semaphore of
+    `max_concurrent_requests` (created here, so every agent of the run waits on the same one), and
+    the trace folder.
+
+    Args:
+        config: The agent config (`VlmSettings.from_config`; `ValueError` when it is wrong).
+        results_path: The results file; the traces go to `default_trace_dir(results_path)` unless
+            the config names `trace_dir`. Neither: no traces.
+        client: An `openai.AsyncOpenAI` to use instead of one made from the settings (tests).
+    """
+
+    def __init__(
+        self,
+        config: Mapping[str, Any],
+        *,
+        results_path: Path | None = None,
+        client: Any = None,  # noqa: ANN401 - openai.AsyncOpenAI, imported lazily
+    ) -> None:
+        self.settings = VlmSettings.from_config(config)
+        if client is None:
+            try:
+                import openai
+            except ImportError as error:
+                raise ValueError("the vlm agent needs the openai package: pip install 'esrp[vlm]'") from error
+            client = openai.AsyncOpenAI(
+                api_key=api_key(),
+                base_url=self.settings.base_url,
+                max_retries=self.settings.max_retries,
+                timeout=self.settings.timeout_s,
+            )
+        self.client = client
+        self.semaphore = asyncio.Semaphore(self.settings.max_concurrent_requests)
+        self.trace_dir: Path | None = None
+        if self.settings.traces:
+            if self.settings.trace_dir is not None:
+                self.trace_dir = Path(self.settings.trace_dir)
+            elif results_path is not None:
+                self.trace_dir = default_trace_dir(results_path)
+
+    def __call__(self, config: Mapping[str, Any] | None = None) -> VlmAgent:
+        """A new agent for one episode (the config was read when the factory was made)."""
+        return VlmAgent(self)
+
+    async def aclose(self) -> None:
+        """Closes the HTTP client (the runner calls it at the end of the run)."""
+        close = getattr(self.client, "close", None)
+        if close is not None:
+            await close()
+
+
+class VlmAgent:
+    """One episode of ESRP-VLM (an `AsyncAgent`); made by `VlmAgentFactory`."""
+
+    def __init__(self, factory: VlmAgentFactory) -> None:
+        self.factory = factory
+        self.settings = factory.settings
+        self._system = system_prompt(self.settings.constrained)
+        self._history: list[HistoryEntry] = []
+        self._previous: Observation | None = None
+        self._previous_action: Action | None = None
+        self._goal_png = b""
+        self._info: dict[str, Any] = {}
+        self._steps = 0
+        self._trace: Path | None = None
+        self._stats: dict[str, Any] = {}
+        self._latencies: list[float] = []
+
+    async def reset(self, observation: Observation, info: Mapping[str, Any]) -> None:
+        """Starts an episode: encodes the goal image once, starts the trace (a rerun overwrites it)."""
+        if observation.goal_rgb is None:
+            raise ValueError("the vlm agent needs the goal image in the first observation")
+        self._info = dict(info)
+        self._goal_png = encode_png(observation.goal_rgb, self.settings.image_scale)
+        self._history = []
+        self._previous = observation
+        self._previous_action = None
+        self._steps = 0
+        self._latencies = []
+        self._stats = {
+            "model": self.settings.model,
+            "steps": 0,
+            "requests": 0,
+            "invalid_answers": 0,
+            "invalid_kinds": {},
+            "reprompts": 0,
+            "fallbacks": 0,
+            "http_retries": 0,
+            "prompt_tokens": 0,
+            "completion_tokens": 0,
+            "total_tokens": 0,
+            "requests_without_usage": 0,
+            "model_seconds": 0.0,
+            "model_seconds_mean": 0.0,
+            "model_seconds_max": 0.0,
+            "queue_seconds": 0.0,
+            "trace": None,
+        }
+        directory = self.factory.trace_dir
+        if directory is not None:
+            directory.mkdir(parents=True, exist_ok=True)
+            self._trace = directory / trace_file_name(str(info.get("scene_id", "episode")))
+            self._stats["trace"] = str(self._trace)
+            self._trace.write_text("", encoding="utf-8")
+            self._write(
+                {
+                    "type": "episode",
+                    "scene_id": info.get("scene_id"),
+                    "episode_id": info.get("episode_id"),
+                    "seed": info.get("seed"),
+                    "horizon": info.get("horizon"),
+                    "model": self.settings.model,
+                    "base_url": self.settings.base_url,
+                    "constrained": self.settings.constrained,
+                    "system_prompt": self._system,
+                    "goal_image": _image_note(self._goal_png, observation.goal_rgb.shape),
+                }
+            )
+
+    async def act(self, observation: Observation) -> Action | None:
+        """Asks the model for the next action; None once `max_steps` actions were taken."""
+        if self.settings.max_steps is not None and self._steps >= self.settings.max_steps:
+            return None
+        if self._previous_action is not None and self._previous is not None:
+            entry = HistoryEntry(
+                self._steps,
+                self._previous_action,
+                outcome_of(self._previous_action, self._previous, observation),
+            )
+            self._history.append(entry)
+        horizon = int(self._info.get("horizon") or 0) or self._steps + 1
+        recent = self._history[-self.settings.history :] if self.settings.history else []
+        text = user_text(self._steps, horizon, observation.grasping, recent)
+        ego_png = encode_png(observation.ego_rgb, self.settings.image_scale)
+        messages: list[dict[str, Any]] = [
+            {"role": "system", "content": self._system},
+            {
+                "role": "user",
+                "content": [
+                    {"type": "text", "text": text},
+                    {"type": "image_url", "image_url": {"url": _data_url(ego_png)}},
+                    {"type": "image_url", "image_url": {"url": _data_url(self._goal_png)}},
+                ],
+            },
+        ]
+        attempts: list[dict[str, Any]] = []
+        action: Action | None = None
+        for attempt in range(self.settings.reprompts + 1):
+            call = await self._complete(messages)
+            parsed = parse_answer(call.content, self.settings.constrained)
+            attempts.append(
+                {
+                    "answer": call.content,
+                    "thought": parsed.thought,
+                    "model_reasoning": call.model_reasoning,
+                    "action": None if parsed.action is None else parsed.action.api_name,
+                    "error": parsed.error,
+                    "finish_reason": call.finish_reason,
+                    "usage": call.usage,
+                    "latency_s": round(call.latency_s, 4),
+                    "queued_s": round(call.queued_s, 4),
+                    "http_retries": call.http_retries,
+                }
+            )
+            if parsed.action is not None:
+                action = parsed.action
+                break
+            self._stats["invalid_answers"] += 1
+            kinds = self._stats["invalid_kinds"]
+            kinds[parsed.kind or "other"] = kinds.get(parsed.kind or "other", 0) + 1
+            if attempt < self.settings.reprompts:
+                self._stats["reprompts"] += 1
+                messages = [
+                    *messages,
+                    {"role": "assistant", "content": call.content or ""},
+                    {
+                        "role": "user",
+                        "content": correction_message(parsed.error or "", self.settings.constrained),
+                    },
+                ]
+        source = "model"
+        if action is None:
+            action = self.settings.fallback
+            source = "fallback"
+            self._stats["fallbacks"] += 1
+        self._steps += 1
+        self._stats["steps"] = self._steps
+        self._previous = observation
+        self._previous_action = action
+        self._write(
+            {
+                "type": "step",
+                "step": self._steps,
+                "prompt": text,
+                "grasping": observation.grasping,
+                "ego_image": _image_note(ego_png, observation.ego_rgb.shape),
+                "attempts": attempts,
+                "action": action.api_name,
+                "source": source,
+            }
+        )
+        return action
+
+    async def _complete(self, messages: list[dict[str, Any]]) -> _Call:
+        settings = self.settings
+        request: dict[str, Any] = {
+            "model": settings.model,
+            "messages": messages,
+            "temperature": settings.temperature,
+            "max_tokens": settings.max_tokens,
+        }
+        extra_body = dict(settings.extra_body)
+        if settings.constrained == "json_schema":
+            request["response_format"] = {
+                "type": "json_schema",
+                "json_schema": {"name": "esrp_action", "strict": True, "schema": _JSON_SCHEMA},
+            }
+        elif settings.constrained == "vllm":
+            extra_body["structured_outputs"] = {"regex": _ACTION_REGEX}
+        elif settings.constrained == "vllm-guided":
+            extra_body["guided_regex"] = _ACTION_REGEX
+        if extra_body:
+            request["extra_body"] = extra_body
+        if settings.send_seed and self._info.get("seed") is not None:
+            request["seed"] = int(self._info["seed"]) & 0x7FFF_FFFF_FFFF_FFFF
+        queued = time.monotonic()
+        async with self.factory.semaphore:
+            started = time.monotonic()
+            raw = await self.factory.client.chat.completions.with_raw_response.create(**request)
+            latency = time.monotonic() - started
+        completion = raw.parse()
+        retries = int(getattr(raw, "retries_taken", 0) or 0)
+        choice = completion.choices[0] if completion.choices else None
+        message = None if choice is None else choice.message
+        extra = (getattr(message, "model_extra", None) or {}) if message is not None else {}
+        reasoning = extra.get("reasoning_content") or extra.get("reasoning")
+        usage = None
+        if completion.usage is not None:
+            usage = {
+                "prompt_tokens": int(completion.usage.prompt_tokens or 0),
+                "completion_tokens": int(completion.usage.completion_tokens or 0),
+                "total_tokens": int(completion.usage.total_tokens or 0),
+            }
+        self._count(latency, started - queued, retries, usage)
+        return _Call(
+            content=None if message is None else message.content,
+            finish_reason=None if choice is None else choice.finish_reason,
+            model_reasoning=reasoning if isinstance(reasoning, str) else None,
+            usage=usage,
+            latency_s=latency,
+            queued_s=started - queued,
+            http_retries=retries,
+        )
+
+    def _count(self, latency: float, queued: float, retries: int, usage: dict[str, int] | None) -> None:
+        stats = self._stats
+        stats["requests"] += 1
+        stats["http_retries"] += retries
+        stats["queue_seconds"] += queued
+        self._latencies.append(latency)
+        stats["model_seconds"] = sum(self._latencies)
+        stats["model_seconds_mean"] = stats["model_seconds"] / len(self._latencies)
+        stats["model_seconds_max"] = max(self._latencies)
+        if usage is None:
+            stats["requests_without_usage"] += 1
+        else:
+            for key, value in usage.items():
+                stats[key] += value
+
+    def _write(self, line: Mapping[str, Any]) -> None:
+        if self._trace is not None:
+            with self._trace.open("a", encoding="utf-8") as file:
+                file.write(json.dumps(line, separators=(",", ":")) + "\n")
+
+    def stats(self) -> dict[str, Any]:
+        """The episode's counts (the record's `agent_stats`); also closes the trace with them.
+
+        `steps` actions taken; `requests` model calls (a correction is one more); `invalid_answers`
+        unusable answers by `invalid_kinds`; `reprompts` corrections asked; `fallbacks` steps that
+        played `fallback_action`; `http_retries` retries the `openai` client made (429, 5xx,
+        timeouts); token counts summed from the answers' `usage` (`requests_without_usage` had
+        none); `model_seconds` (sum, mean, max) the calls' latency; `queue_seconds` the time spent
+        waiting for the concurrency limit; `trace` the trace file.
+        """
+        stats = dict(self._stats)
+        stats["invalid_kinds"] = dict(stats.get("invalid_kinds", {}))
+        for key in ("model_seconds", "model_seconds_mean", "model_seconds_max", "queue_seconds"):
+            if key in stats:
+                stats[key] = round(float(stats[key]), 6)
+        self._write({"type": "end", "stats": stats})
+        return stats

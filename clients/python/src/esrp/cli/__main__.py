@@ -1,0 +1,7 @@
+"""`python -m esrp.cli`: the `esrp` command."""
+
+import sys
+
+from . import main
+
+sys.exit(main())

@@ -1,0 +1,116 @@
+"""What the `esrp` commands' parsers share: one-line errors, argument types, the server options."""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import os
+import sys
+from collections.abc import Callable
+from typing import NoReturn
+
+from .._values import Sensors
+from ..eval.results import ResultsError
+
+
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line: `esrp eval: error: ... (esrp eval --help)`."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def one_line_errors(handler: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """`handler`, with files that cannot be read or written, and results files that are not
+    esrp.results/v1, said in one line (exit status 2) instead of a traceback.
+    """
+
+    @functools.wraps(handler)
+    def run(args: argparse.Namespace) -> int:
+        try:
+            return handler(args)
+        except OSError as error:
+            what = f"{error.strerror}: {error.filename}" if error.strerror and error.filename else error
+            print(f"esrp {args.command}: {what}", file=sys.stderr)
+            return 2
+        except ResultsError as error:
+            print(f"esrp {args.command}: {error}", file=sys.stderr)
+            return 2
+
+    return run
+
+
+def comma_list(text: str) -> list[str]:
+    """`a,b, c` as `["a", "b", "c"]` (empty parts dropped)."""
+    return [part.strip() for part in text.split(",") if part.strip()]
+
+
+def positive(text: str) -> int:
+    """An integer of at least 1."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, not {value}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """A number above 0."""
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be positive, not {text}")
+    return value
+
+
+def json_object(text: str) -> dict[str, object]:
+    """A JSON object (`--agent-config`)."""
+    try:
+        value = json.loads(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"not JSON: {error}") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError("must be a JSON object, e.g. '{\"temperature\": 0.2}'")
+    return value
+
+
+def sensor_list(text: str) -> Sensors:
+    """`--sensors depth,segmentation,current_top_down` as `Sensors`."""
+    names = set(comma_list(text))
+    known = {"depth", "segmentation", "current_top_down"}
+    if names - known:
+        raise argparse.ArgumentTypeError(f"unknown sensors {sorted(names - known)}: use {sorted(known)}")
+    return Sensors(
+        depth="depth" in names,
+        segmentation="segmentation" in names,
+        current_top_down="current_top_down" in names,
+    )
+
+
+def server_options(parser: argparse.ArgumentParser) -> None:
+    """Adds `--server`, `--server-arg` and `--token` to a command that talks to a server."""
+    parser.add_argument(
+        "--server", metavar="ADDR", help="a running esrp-server (host:port); without it, one is started"
+    )
+    parser.add_argument(
+        "--server-arg",
+        dest="server_args",
+        action="append",
+        default=[],
+        metavar="ARG",
+        help="an argument for the server started here (repeat for several)",
+    )
+    parser.add_argument(
+        "--token",
+        default=os.environ.get("ESRP_TOKEN"),
+        help="bearer token of a server started with --token (default: $ESRP_TOKEN)",
+    )
+
+
+def on_server(args: argparse.Namespace, run: Callable[[str], int]) -> int:
+    """`run(address)` on the server `--server` names, or on one started here (`--server-arg`)."""
+    if args.server is not None:
+        return run(args.server)
+    from .._local import LocalServer
+
+    with LocalServer(*args.server_args) as local:
+        return run(local.address)

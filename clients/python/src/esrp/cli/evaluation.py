@@ -1,0 +1,284 @@
+"""The evaluation commands: `esrp eval`, `esrp report` and `esrp replay` (their parsers and handlers)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from ._args import (
+    Parser,
+    comma_list,
+    json_object,
+    one_line_errors,
+    positive,
+    positive_float,
+    sensor_list,
+    server_options,
+)
+
+
+def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
+    """Adds `eval`, `report` and `replay` to `commands`."""
+    ev = commands.add_parser(
+        "eval",
+        help="run an agent over the scenes of a split; write one esrp.results/v1 record per episode",
+        description="Run an agent over the scenes of a split and write one esrp.results/v1 record per "
+        "episode (docs/evaluation.md), resuming what --out already holds; a Markdown summary is written "
+        "beside it. The exit status is 1 when episodes failed with an error (they are not recorded).",
+    )
+    ev.add_argument(
+        "--agent",
+        required=True,
+        help="random, expert, plan, vlm (ESRP-VLM over an OpenAI-compatible endpoint: --base-url, "
+        "--model), bc (ESRP-BC: --checkpoint), ppo (ESRP-PPO: --checkpoint), or MODULE:CALLABLE "
+        "(a factory called with the agent config, once per episode, "
+        "returning an esrp.agents.Agent or AsyncAgent)",
+    )
+    ev.add_argument("--split", choices=("train", "test"), default="test")
+    ev.add_argument("--difficulty", choices=("easy", "medium", "hard"))
+    ev.add_argument(
+        "--scenes", type=comma_list, default=[], metavar="ID,...", help="only these scenes, in order"
+    )
+    ev.add_argument(
+        "--limit", type=positive, metavar="N", help="at most N scenes (the first after the filters)"
+    )
+    ev.add_argument("--episodes-in-flight", type=positive, default=8, metavar="N")
+    ev.add_argument("--seed", type=int, default=0, help="base seed; scene ID uses seed XOR fnv1a64(ID)")
+    ev.add_argument("--out", type=Path, required=True, help="the results file (JSON Lines)")
+    ev.add_argument("--fresh", action="store_true", help="start --out over instead of resuming it")
+    ev.add_argument("--summary", type=Path, help="the Markdown summary (default: --out with .md)")
+    ev.add_argument(
+        "--agent-config",
+        type=json_object,
+        default={},
+        metavar="JSON",
+        help="a vlm or MODULE:CALLABLE agent's config",
+    )
+    ev.add_argument(
+        "--base-url",
+        metavar="URL",
+        help="vlm: the OpenAI-compatible endpoint, e.g. http://localhost:8000/v1 (the config's base_url); "
+        "the API key is $ESRP_VLM_API_KEY or $OPENAI_API_KEY",
+    )
+    ev.add_argument("--model", metavar="NAME", help="vlm: the model it serves (the config's model)")
+    ev.add_argument(
+        "--checkpoint",
+        type=Path,
+        metavar="PATH",
+        help="bc, ppo: the trained policy (RUN/ckpt.pt of esrp train; the config's checkpoint)",
+    )
+    ev.add_argument(
+        "--trace-dir",
+        type=Path,
+        metavar="DIR",
+        help="vlm: the per-episode traces' folder (default: --out without .jsonl, plus .traces)",
+    )
+    ev.add_argument(
+        "--plan-budget-ms", type=positive, default=60_000, help="plan: budget per PlanActions call"
+    )
+    ev.add_argument("--replans", type=int, default=2, help="plan: PlanActions calls after the first")
+    ev.add_argument(
+        "--sensors",
+        type=sensor_list,
+        metavar="NAME,...",
+        help="MODULE:CALLABLE: depth,segmentation,current_top_down",
+    )
+    ev.add_argument("--privileged", action="store_true", help="MODULE:CALLABLE: privileged episodes")
+    ev.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar or lines")
+    ray = ev.add_argument_group(
+        "Ray",
+        "distribute the evaluation over a Ray cluster (pip install 'esrp[ray]'): one actor per server, "
+        "--episodes-in-flight episodes on each; the same results file as a local run",
+    )
+    ray.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        metavar="ADDRESS",
+        help="run on Ray: no ADDRESS starts a local Ray for the run, `auto` joins this machine's "
+        "cluster, or ray://HOST:PORT",
+    )
+    ray.add_argument(
+        "--servers",
+        type=comma_list,
+        metavar="HOST:PORT,...",
+        help="--ray: pin one actor to each of these servers (default: $ESRP_SERVERS; without it, actors "
+        "spawn their own)",
+    )
+    ray.add_argument(
+        "--spawn-servers",
+        type=positive,
+        metavar="N",
+        help="--ray: N actors, each starting an esrp-server next to itself (default: one per CPU of the "
+        "cluster; --server-arg flags apply to them)",
+    )
+    ray.add_argument(
+        "--cpus-per-actor", type=float, default=1.0, metavar="N", help="--ray: CPUs each actor reserves"
+    )
+    ray.add_argument(
+        "--max-restarts",
+        type=int,
+        default=3,
+        metavar="N",
+        help="--ray: restarts of an actor whose server died (its episodes are re-run from their start)",
+    )
+    server_options(ev)
+
+    rep = commands.add_parser(
+        "report",
+        help="tables and plots of results files: Markdown and one self-contained HTML page",
+        description="Read esrp.results/v1 files and write report.md and report.html (images inlined) "
+        "with the paper's Table I/II/III layouts for every run, the paper's rows beside them, plots, "
+        "and replay stills of chosen episodes (those need a server).",
+    )
+    rep.add_argument("results", nargs="+", type=Path, help="results files (JSON Lines)")
+    rep.add_argument("--out", type=Path, required=True, help="the report's folder")
+    rep.add_argument("--replays", type=int, default=0, metavar="N", help="stills of N episodes per run")
+    rep.add_argument(
+        "--replay-scenes", type=comma_list, default=[], metavar="ID,...", help="stills of these scenes"
+    )
+    rep.add_argument("--title", default="ESRP evaluation report")
+    server_options(rep)
+
+    rp = commands.add_parser(
+        "replay",
+        help="re-run a recorded episode on the server; write it as a GIF, MP4 or PNG",
+        description="Re-run the recorded actions of one episode on the server (privileged, with the "
+        "current top-down view) and write its frames: ego view | goal | current top-down with the "
+        "agent's path (red) and each carried object's path (blue). The format follows --out's "
+        "extension: .gif, .mp4 (needs imageio-ffmpeg) or .png (the final frame). Fails when the "
+        "replay does not reproduce the record's metrics.",
+    )
+    rp.add_argument("--results", type=Path, required=True, help="the results file")
+    rp.add_argument("--scene", required=True, help="the scene id of the episode to replay")
+    rp.add_argument("--out", type=Path, required=True, help="ep.gif, ep.mp4 or ep.png")
+    rp.add_argument("--fps", type=positive_float, default=10.0, help="frames per second (10)")
+    rp.add_argument("--scale", type=positive, default=2, help="pixels per image pixel")
+    server_options(rp)
+    ev.set_defaults(handler=_eval)
+    rep.set_defaults(handler=_report)
+    rp.set_defaults(handler=_replay)
+
+
+@one_line_errors
+def _eval(args: argparse.Namespace) -> int:
+    from ..eval.evaluation import EvalError, EvalSettings, ServerGone, format_failures, run_eval
+
+    # `--agent my_agents:make` imports from the working directory, as `python -m` would.
+    if "" not in sys.path and os.getcwd() not in sys.path:
+        sys.path.insert(0, os.getcwd())
+    agent_config = dict(args.agent_config)
+    vlm_flags = {"base_url": args.base_url, "model": args.model, "trace_dir": args.trace_dir}
+    given = {key: value for key, value in vlm_flags.items() if value is not None}
+    if given and args.agent != "vlm":
+        flags = ", ".join("--" + key.replace("_", "-") for key in given)
+        print(f"esrp eval: {flags} only apply to --agent vlm", file=sys.stderr)
+        return 2
+    agent_config.update({key: str(value) for key, value in given.items()})
+    if args.checkpoint is not None:
+        if args.agent not in ("bc", "ppo"):
+            print("esrp eval: --checkpoint only applies to --agent bc or ppo", file=sys.stderr)
+            return 2
+        agent_config["checkpoint"] = str(args.checkpoint)
+    settings = EvalSettings(
+        agent=args.agent,
+        out=args.out,
+        split=args.split,
+        difficulty=args.difficulty,
+        scenes=args.scenes,
+        limit=args.limit,
+        episodes_in_flight=args.episodes_in_flight,
+        seed=args.seed,
+        fresh=args.fresh,
+        summary=args.summary,
+        agent_config=agent_config,
+        plan_budget_ms=args.plan_budget_ms,
+        replans=args.replans,
+        sensors=args.sensors,
+        privileged=args.privileged,
+        progress=args.progress,
+    )
+    ray_only = (("--servers", args.servers is not None), ("--spawn-servers", args.spawn_servers))
+    ray_flags = [flag for flag, given in ray_only if given]
+    if args.ray is None and ray_flags:
+        print(f"esrp eval: {', '.join(ray_flags)} only apply with --ray", file=sys.stderr)
+        return 2
+    servers = args.servers if args.servers is not None else comma_list(os.environ.get("ESRP_SERVERS", ""))
+    if args.ray is not None and (args.server is not None or (servers and args.spawn_servers)):
+        message = "with --ray, name servers with --servers, or spawn them (--spawn-servers)"
+        print(f"esrp eval: {message}", file=sys.stderr)
+        return 2
+    try:
+        if args.ray is not None:
+            from ..eval.ray_eval import RaySettings, run_ray_eval
+
+            cluster = RaySettings(
+                address=None if args.ray == "local" else args.ray,
+                servers=servers,
+                spawn_servers=args.spawn_servers or 0,
+                cpus_per_actor=args.cpus_per_actor,
+                episodes_per_actor=args.episodes_in_flight,
+                max_restarts=args.max_restarts,
+                token=args.token,
+                server_args=args.server_args,
+            )
+            outcome = run_ray_eval(settings, cluster)
+        else:
+            outcome = run_eval(settings, server=args.server, token=args.token, server_args=args.server_args)
+    except ServerGone as error:
+        print(f"esrp eval: {error}", file=sys.stderr)
+        return 3
+    except EvalError as error:
+        print(f"esrp eval: {error}", file=sys.stderr)
+        return 2
+    if outcome.failed:
+        print(f"esrp eval: {format_failures(outcome.failed, outcome.errors_log)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+@one_line_errors
+def _report(args: argparse.Namespace) -> int:
+    from ..eval.report import ReportError, write_report
+
+    try:
+        paths = write_report(
+            args.results,
+            args.out,
+            title=args.title,
+            replays=args.replays,
+            replay_scenes=args.replay_scenes,
+            server=args.server,
+            token=args.token,
+            server_args=args.server_args,
+        )
+    except ReportError as error:
+        print(f"esrp report: {error}", file=sys.stderr)
+        return 2
+    for path in paths:
+        print(path)
+    return 0
+
+
+@one_line_errors
+def _replay(args: argparse.Namespace) -> int:
+    from ..eval.replay import ReplayError, replay_to_file
+
+    try:
+        replay_to_file(
+            args.results,
+            args.scene,
+            args.out,
+            fps=args.fps,
+            scale=args.scale,
+            server=args.server,
+            token=args.token,
+            server_args=args.server_args,
+        )
+    except ReplayError as error:
+        print(f"esrp replay: {error}", file=sys.stderr)
+        return 2
+    print(args.out)
+    return 0

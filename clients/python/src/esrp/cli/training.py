@@ -1,0 +1,184 @@
+"""The training commands: `esrp demos export` and `esrp train bc|ppo` (their parsers and handlers)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from ._args import Parser, comma_list, json_object, on_server, one_line_errors, positive, server_options
+
+
+def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
+    """Adds `demos` and `train` to `commands`."""
+    demos = commands.add_parser(
+        "demos",
+        help="expert demonstrations for imitation learning (zarr; docs/demonstrations.md)",
+        description="Expert demonstrations for imitation learning.",
+    )
+    demo_commands = demos.add_subparsers(dest="demos_command", required=True, metavar="COMMAND")
+    export = demo_commands.add_parser(
+        "export",
+        help="replay the scenes' expert trajectories on the server into a zarr store",
+        description="Replay each chosen scene's expert trajectory on the server and append its "
+        "observations (ego view, grasp flag), actions and goal image to a zarr store "
+        "(docs/demonstrations.md), resuming a store an interrupted run left.",
+    )
+    export.add_argument("--split", choices=("train", "test"), default="train")
+    export.add_argument("--difficulty", choices=("easy", "medium", "hard"))
+    export.add_argument(
+        "--scenes", type=comma_list, default=[], metavar="ID,...", help="only these scenes, in order"
+    )
+    export.add_argument("--limit", type=positive, metavar="N", help="at most N scenes")
+    export.add_argument("--resolution", type=int, default=0, help="the views' side in pixels (0: 128)")
+    export.add_argument("--out", type=Path, required=True, help="the zarr store (a folder)")
+    export.add_argument(
+        "--dagger",
+        metavar="AGENT",
+        help="DAgger: let AGENT (random, bc, ppo, vlm or MODULE:CALLABLE) drive and record the "
+        "server planner's action at each state it visits, instead of the expert's demonstrations",
+    )
+    export.add_argument("--checkpoint", type=Path, metavar="PATH", help="--dagger bc or ppo: the policy")
+    export.add_argument(
+        "--agent-config", type=json_object, default={}, metavar="JSON", help="--dagger: the agent's config"
+    )
+    export.add_argument(
+        "--beta",
+        type=float,
+        default=0.0,
+        help="--dagger: probability of stepping the planner's label instead of the agent's action (0)",
+    )
+    export.add_argument(
+        "--seed", type=int, default=0, help="--dagger: base seed (scene ID: seed XOR fnv1a64(ID))"
+    )
+    export.add_argument(
+        "--plan-budget-ms", type=positive, default=10_000, help="--dagger: planning budget per label"
+    )
+    export.add_argument("--no-progress", dest="progress", action="store_false")
+    server_options(export)
+    train = commands.add_parser(
+        "train",
+        help="train a learning baseline (ESRP-BC, ESRP-PPO) from a config file",
+        description="Train a learning baseline. Configs: clients/python/configs/ "
+        "(pip install 'esrp[train]').",
+    )
+    train_commands = train.add_subparsers(dest="train_command", required=True, metavar="AGENT")
+    bc = train_commands.add_parser(
+        "bc",
+        help="ESRP-BC (Diffusion Policy) on an esrp demos export store",
+        description="Train ESRP-BC on the demonstrations its config names; writes RUN/config.json, "
+        "RUN/log.csv and RUN/ckpt.pt (esrp eval --agent bc --checkpoint RUN/ckpt.pt plays it).",
+    )
+    bc.add_argument("--config", type=Path, required=True, help="a TOML file with a [bc] table, or JSON")
+    bc.add_argument("--out", type=Path, default=Path("runs/bc"), help="the run folder (default runs/bc)")
+    bc.add_argument("--resume", action="store_true", help="go on from RUN/ckpt.pt")
+    bc.add_argument("--no-progress", dest="progress", action="store_false")
+    ppo = train_commands.add_parser(
+        "ppo",
+        help="ESRP-PPO (CNN + LSTM) on the native vector env, with the dense reward",
+        description="Train ESRP-PPO on the scenes its config names, on a server (one is started "
+        "without --server); writes RUN/config.json, RUN/log.csv, RUN/episodes.csv and RUN/ckpt.pt "
+        "(esrp eval --agent ppo --checkpoint RUN/ckpt.pt plays it).",
+    )
+    ppo.add_argument("--config", type=Path, required=True, help="a TOML file with a [ppo] table, or JSON")
+    ppo.add_argument("--out", type=Path, default=Path("runs/ppo"), help="the run folder (default runs/ppo)")
+    ppo.add_argument("--resume", action="store_true", help="go on from RUN/ckpt.pt (with fresh episodes)")
+    ppo.add_argument("--no-progress", dest="progress", action="store_false")
+    server_options(ppo)
+    demos.set_defaults(handler=_demos)
+    train.set_defaults(handler=_train)
+
+
+@one_line_errors
+def _demos(args: argparse.Namespace) -> int:
+    try:
+        from ..train.demos import DemoExportError, DemoSettings, export_demos
+    except ImportError as error:
+        print(f"esrp demos: {error} (pip install 'esrp[train]')", file=sys.stderr)
+        return 2
+    settings = DemoSettings(
+        out=args.out,
+        split=args.split,
+        difficulty=args.difficulty,
+        scenes=args.scenes,
+        limit=args.limit,
+        resolution=args.resolution,
+        progress=args.progress,
+        dagger=args.dagger,
+        agent_config=dict(args.agent_config),
+        beta=args.beta,
+        seed=args.seed,
+        plan_budget_ms=args.plan_budget_ms,
+    )
+    dagger_flags = [
+        flag
+        for flag, given in (
+            ("--checkpoint", args.checkpoint is not None),
+            ("--agent-config", bool(args.agent_config)),
+            ("--beta", args.beta != 0.0),
+        )
+        if given
+    ]
+    if args.dagger is None and dagger_flags:
+        print(f"esrp demos export: {', '.join(dagger_flags)} only apply with --dagger", file=sys.stderr)
+        return 2
+    if args.checkpoint is not None:
+        settings.agent_config["checkpoint"] = str(args.checkpoint)
+
+    from .._client import Client
+
+    def run(address: str) -> int:
+        with Client(address, token=args.token, timeout=120) as client:
+            outcome = export_demos(client, settings)
+        print(f"{args.out}: {outcome.episodes} episodes, {outcome.steps} steps ({outcome.added} added now)")
+        return 0
+
+    try:
+        return on_server(args, run)
+    except DemoExportError as error:
+        print(f"esrp demos export: {error}", file=sys.stderr)
+        return 2
+
+
+@one_line_errors
+def _train(args: argparse.Namespace) -> int:
+    name = f"esrp train {args.train_command}"
+    try:
+        if args.train_command == "ppo":
+            return _train_ppo(args, name)
+        from ..train.bc import load_config, train
+    except ImportError as error:
+        print(f"{name}: {error} (pip install 'esrp[train]')", file=sys.stderr)
+        return 2
+    try:
+        config = load_config(args.config)
+        checkpoint = train(config, args.out, resume=args.resume, progress=args.progress)
+    except (OSError, ValueError) as error:
+        print(f"{name}: {error}", file=sys.stderr)
+        return 2
+    print(f"checkpoint: {checkpoint}")
+    return 0
+
+
+def _train_ppo(args: argparse.Namespace, name: str) -> int:
+    from .._client import Client
+    from .._errors import EsrpError
+    from ..train.ppo import load_config, train
+
+    try:
+        config = load_config(args.config)
+    except ValueError as error:
+        print(f"{name}: {error}", file=sys.stderr)
+        return 2
+
+    def run(address: str) -> int:
+        with Client(address, token=args.token, timeout=120) as client:
+            checkpoint = train(config, args.out, client, resume=args.resume, progress=args.progress)
+        print(f"checkpoint: {checkpoint}")
+        return 0
+
+    try:
+        return on_server(args, run)
+    except (OSError, ValueError, EsrpError) as error:
+        print(f"{name}: {error}", file=sys.stderr)
+        return 2
