@@ -190,7 +190,9 @@ def test_a_stopped_server_s_address_fails_the_health_check() -> None:
 
 
 def test_the_eval_image_has_the_python_package_and_esrp_eval() -> None:
-    script = "import esrp.envs, gymnasium; print(esrp.Action.LEFT.name, 'esrp/Rearrange-v1' in gymnasium.registry)"
+    script = (
+        "import esrp.envs, gymnasium; print(esrp.Action.LEFT.name, 'esrp/Rearrange-v1' in gymnasium.registry)"
+    )
     result = docker("run", "--rm", "--network", "none", EVAL_IMAGE, "python", "-c", script)
     assert result.stdout.split() == ["LEFT", "True"], result.stdout
     assert "--agent" in docker("run", "--rm", "--network", "none", EVAL_IMAGE, "esrp-eval", "--help").stdout
