@@ -14,7 +14,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-step() { printf '\n==> %s\n' "$*"; }
+step() { printf '\n==> %s (%s)\n' "$*" "$(date -u +%H:%M:%S)"; }
 seconds() { echo $(($(date +%s) - $1)); }
 # docker build, its log shown only when it fails (the classic builder's deprecation notice too).
 build() {

@@ -4,7 +4,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-step() { printf '\n==> %s (disk: %s free)\n' "$*" "$(df -h --output=avail . | tail -n 1 | tr -d ' ')"; }
+step() { printf '\n==> %s (disk: %s free, %s)\n' "$*" "$(df -h --output=avail . | tail -n 1 | tr -d ' ')" "$(date -u +%H:%M:%S)"; }
 
 step "system packages"
 # Rendering tests run on lavapipe (Mesa's CPU Vulkan driver) and on llvmpipe through OpenGL (EGL),
