@@ -43,13 +43,7 @@ pub(super) async fn plan(episodes: &Episodes, call: PlanCall) -> Result<Planned,
             return Err(ServiceError::NotPrivileged(call.episode.clone()));
         }
         entry.last_used = Instant::now();
-        if entry.episode.is_over() {
-            return Err(ServiceError::EpisodeOver {
-                at: "plan".into(),
-                episode: call.episode.clone(),
-                steps: entry.episode.steps(),
-            });
-        }
+        entry.ensure_running("plan", &call.episode)?;
         let fingerprint = entry.episode.state_fingerprint();
         if let Some(answer) = entry.plan.as_ref().and_then(|p| p.answer(fingerprint, call.max_actions)) {
             episodes.metrics.count_plan("cached");
