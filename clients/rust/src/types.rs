@@ -98,14 +98,20 @@ pub enum Split {
     Train,
     /// The test split (10 %).
     Test,
+    /// A server's hidden challenge split (`--challenge-seed`): one counted attempt per scene.
+    Challenge,
+    /// The challenge's minival phase: scenes of the same hidden draw, played any number of times.
+    Minival,
 }
 
 impl Split {
-    /// `train` or `test`.
+    /// `train`, `test`, `challenge` or `minival`.
     pub fn name(self) -> &'static str {
         match self {
             Split::Train => "train",
             Split::Test => "test",
+            Split::Challenge => "challenge",
+            Split::Minival => "minival",
         }
     }
 
@@ -114,6 +120,8 @@ impl Split {
             None => proto::Split::Unspecified,
             Some(Split::Train) => proto::Split::Train,
             Some(Split::Test) => proto::Split::Test,
+            Some(Split::Challenge) => proto::Split::Challenge,
+            Some(Split::Minival) => proto::Split::Minival,
         }) as i32
     }
 
@@ -121,6 +129,8 @@ impl Split {
         match proto::Split::try_from(value) {
             Ok(proto::Split::Train) => Some(Split::Train),
             Ok(proto::Split::Test) => Some(Split::Test),
+            Ok(proto::Split::Challenge) => Some(Split::Challenge),
+            Ok(proto::Split::Minival) => Some(Split::Minival),
             _ => None,
         }
     }
@@ -778,6 +788,8 @@ pub struct EpisodeOptions {
     pub sensors: Sensors,
     /// Allow [`Episode::privileged_state`].
     pub privileged: bool,
+    /// The agent's name, kept in the server's records of the episode (empty: "unnamed").
+    pub agent: String,
 }
 
 impl EpisodeOptions {
@@ -797,7 +809,14 @@ impl EpisodeOptions {
     }
 
     fn with_scene(scene: SceneChoice) -> Self {
-        EpisodeOptions { scene, horizon: 0, reward: None, sensors: Sensors::default(), privileged: false }
+        EpisodeOptions {
+            scene,
+            horizon: 0,
+            reward: None,
+            sensors: Sensors::default(),
+            privileged: false,
+            agent: String::new(),
+        }
     }
 
     /// Sets the step limit (0: the scene's own).
@@ -824,6 +843,13 @@ impl EpisodeOptions {
         self
     }
 
+    /// Names the agent in the server's records of the episode (`--records`), e.g.
+    /// `"my-planner v2"`: at most 200 bytes.
+    pub fn agent(mut self, agent: impl Into<String>) -> Self {
+        self.agent = agent.into();
+        self
+    }
+
     /// The `CreateEpisode` request these options make.
     pub fn to_proto(&self) -> proto::CreateEpisodeRequest {
         use proto::create_episode_request::Scene;
@@ -845,6 +871,7 @@ impl EpisodeOptions {
                 resolution: self.sensors.resolution,
             }),
             privileged: self.privileged,
+            agent: self.agent.clone(),
         }
     }
 }

@@ -128,15 +128,43 @@ pub enum Split {
     Train,
     /// Test scenes (10 %).
     Test,
+    /// A server's hidden challenge split: scenes drawn like the test split's from a secret seed,
+    /// scored by the server (one counted attempt per scene and token).
+    Challenge,
+    /// The challenge's minival phase: more scenes of the same secret draw, which may be played
+    /// any number of times.
+    Minival,
 }
 
 impl Split {
-    /// Lower-case name as in the JSON (`train`, `test`).
+    /// Every split, in the order above.
+    pub const ALL: [Split; 4] = [Split::Train, Split::Test, Split::Challenge, Split::Minival];
+
+    /// Lower-case name as in the JSON (`train`, `test`, `challenge`, `minival`).
     pub fn as_str(self) -> &'static str {
         match self {
             Self::Train => "train",
             Self::Test => "test",
+            Self::Challenge => "challenge",
+            Self::Minival => "minival",
         }
+    }
+
+    /// Whether the split is hidden (challenge or minival): its scenes are seen only through
+    /// observations.
+    pub fn is_hidden(self) -> bool {
+        matches!(self, Self::Challenge | Self::Minival)
+    }
+}
+
+impl std::str::FromStr for Split {
+    type Err = String;
+    /// A split by its name ([`Split::as_str`]).
+    fn from_str(name: &str) -> Result<Self, Self::Err> {
+        Self::ALL
+            .into_iter()
+            .find(|s| s.as_str() == name)
+            .ok_or_else(|| format!("{name:?} is not a split: use train, test, challenge or minival"))
     }
 }
 

@@ -131,16 +131,13 @@ pub fn create_options(settings: HashMap<String, dm::Tensor>) -> Result<CreateOpt
         match name.as_str() {
             "scene" => scene = Some(string_setting(&name, &value)?),
             "split" => {
-                split = match string_setting(&name, &value)?.as_str() {
-                    "train" => Some(Split::Train),
-                    "test" => Some(Split::Test),
-                    other => {
-                        return Err(DmEnvError::InvalidSetting(format!(
-                            "setting split: {} is not a split: use \"train\" or \"test\"",
-                            quoted(other)
-                        )));
-                    }
-                }
+                let name = string_setting(&name, &value)?;
+                split = Some(name.parse::<Split>().map_err(|_| {
+                    DmEnvError::InvalidSetting(format!(
+                        "setting split: {} is not a split: use \"train\", \"test\", \"challenge\" or \"minival\"",
+                        quoted(&name)
+                    ))
+                })?)
             }
             "seed" => seed = integer_setting(&name, &value)?,
             "horizon" => horizon = Some(u32_setting(&name, &value)?).filter(|&h| h != 0),

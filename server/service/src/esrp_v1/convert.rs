@@ -18,7 +18,11 @@ pub fn split_of(split: i32) -> Result<Option<Split>, ServiceError> {
         Ok(proto::Split::Unspecified) => Ok(None),
         Ok(proto::Split::Train) => Ok(Some(Split::Train)),
         Ok(proto::Split::Test) => Ok(Some(Split::Test)),
-        Err(_) => Err(ServiceError::InvalidArgument(format!("unknown split {split}: use 1 (train) or 2 (test)"))),
+        Ok(proto::Split::Challenge) => Ok(Some(Split::Challenge)),
+        Ok(proto::Split::Minival) => Ok(Some(Split::Minival)),
+        Err(_) => Err(ServiceError::InvalidArgument(format!(
+            "unknown split {split}: use 1 (train), 2 (test), 3 (challenge) or 4 (minival)"
+        ))),
     }
 }
 
@@ -37,6 +41,8 @@ fn split_to_proto(split: Split) -> proto::Split {
     match split {
         Split::Train => proto::Split::Train,
         Split::Test => proto::Split::Test,
+        Split::Challenge => proto::Split::Challenge,
+        Split::Minival => proto::Split::Minival,
     }
 }
 

@@ -94,6 +94,10 @@ impl proto::esrp_server::Esrp for EsrpService {
             }),
             live_episodes: s.live() as u32,
             dataset: s.store.name().to_owned(),
+            caller: if s.config.token.is_some() { "admin" } else { "anonymous" }.to_owned(),
+            role: "admin".to_owned(),
+            challenge: false,
+            recording: String::new(),
         }))
     }
 

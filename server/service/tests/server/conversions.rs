@@ -58,8 +58,8 @@ fn create_request() -> impl Strategy<Value = proto::CreateEpisodeRequest> {
             resolution,
         },
     ));
-    (scene, small_int(), any::<u64>(), any::<u32>(), reward, sensors, any::<bool>()).prop_map(
-        |(scene, split, seed, horizon, reward, sensors, privileged)| proto::CreateEpisodeRequest {
+    (scene, small_int(), any::<u64>(), any::<u32>(), reward, sensors, any::<bool>(), ".{0,260}").prop_map(
+        |(scene, split, seed, horizon, reward, sensors, privileged, agent)| proto::CreateEpisodeRequest {
             scene,
             split,
             seed,
@@ -67,6 +67,7 @@ fn create_request() -> impl Strategy<Value = proto::CreateEpisodeRequest> {
             reward,
             sensors,
             privileged,
+            agent,
         },
     )
 }

@@ -8,9 +8,11 @@ coordinates (x, z), action codes 0..5.
 
 Every RPC that names an episode fails with NOT_FOUND for an unknown or closed id,
 INVALID_ARGUMENT for a malformed request (the message says which field and why),
-FAILED_PRECONDITION for stepping an episode that has ended, RESOURCE_EXHAUSTED when a server
-limit (episodes, batch size, response size) is reached, UNAUTHENTICATED without the server's
-bearer token, and INTERNAL when rendering fails (a server-side fault, with the reason). gRPC
+FAILED_PRECONDITION for stepping an episode that has ended (or creating one on a challenge
+scene already played), RESOURCE_EXHAUSTED when a server limit (episodes, batch size, response
+size, the token's quotas) is reached, UNAUTHENTICATED without a bearer token the server knows,
+PERMISSION_DENIED when the token's role does not allow the call (the message names the role
+and what it lacks), and INTERNAL when rendering fails (a server-side fault, with the reason). gRPC
 itself also answers INTERNAL to request bytes that do not decode as the RPC's message (a
 client fault: check that both sides use this file).
 """
@@ -40,6 +42,16 @@ class _SplitEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_Split.ValueType
     SPLIT_UNSPECIFIED: _Split.ValueType  # 0
     SPLIT_TRAIN: _Split.ValueType  # 1
     SPLIT_TEST: _Split.ValueType  # 2
+    SPLIT_CHALLENGE: _Split.ValueType  # 3
+    """The hidden challenge split (a server started with --challenge-seed): scenes drawn like the
+    test split's from a secret seed. Only their id, room type, difficulty and object count are
+    listed; no token may read their JSON, expert trajectory, privileged state or plan. Agent and
+    trainer tokens get one counted attempt per scene; the server records each (--records).
+    """
+    SPLIT_MINIVAL: _Split.ValueType  # 4
+    """The challenge's minival phase: more scenes of the same secret draw, with the same secrecy,
+    which may be played any number of times, for checking a setup.
+    """
 
 class Split(_Split, metaclass=_SplitEnumTypeWrapper):
     """Dataset split."""
@@ -47,6 +59,16 @@ class Split(_Split, metaclass=_SplitEnumTypeWrapper):
 SPLIT_UNSPECIFIED: Split.ValueType  # 0
 SPLIT_TRAIN: Split.ValueType  # 1
 SPLIT_TEST: Split.ValueType  # 2
+SPLIT_CHALLENGE: Split.ValueType  # 3
+"""The hidden challenge split (a server started with --challenge-seed): scenes drawn like the
+test split's from a secret seed. Only their id, room type, difficulty and object count are
+listed; no token may read their JSON, expert trajectory, privileged state or plan. Agent and
+trainer tokens get one counted attempt per scene; the server records each (--records).
+"""
+SPLIT_MINIVAL: Split.ValueType  # 4
+"""The challenge's minival phase: more scenes of the same secret draw, with the same secrecy,
+which may be played any number of times, for checking a setup.
+"""
 Global___Split: _TypeAlias = Split  # noqa: Y015
 
 class _Difficulty:
@@ -456,6 +478,7 @@ class CreateEpisodeRequest(_message.Message):
     REWARD_FIELD_NUMBER: _builtins.int
     SENSORS_FIELD_NUMBER: _builtins.int
     PRIVILEGED_FIELD_NUMBER: _builtins.int
+    AGENT_FIELD_NUMBER: _builtins.int
     scene_id: _builtins.str
     scene_json: _builtins.str
     split: Global___Split.ValueType
@@ -464,6 +487,10 @@ class CreateEpisodeRequest(_message.Message):
     """0: the scene's own horizon"""
     privileged: _builtins.bool
     """allow GetPrivilegedState"""
+    agent: _builtins.str
+    """The agent's name, kept in the server's records of the episode (--records), e.g.
+    "my-vlm-agent v3". Free text, at most 200 bytes; empty: "unnamed".
+    """
     @_builtins.property
     def reward(self) -> Global___RewardWeights: ...
     @_builtins.property
@@ -479,10 +506,11 @@ class CreateEpisodeRequest(_message.Message):
         reward: Global___RewardWeights | None = ...,
         sensors: Global___Sensors | None = ...,
         privileged: _builtins.bool = ...,
+        agent: _builtins.str = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["reward", b"reward", "scene", b"scene", "scene_id", b"scene_id", "scene_json", b"scene_json", "sensors", b"sensors"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["horizon", b"horizon", "privileged", b"privileged", "reward", b"reward", "scene", b"scene", "scene_id", b"scene_id", "scene_json", b"scene_json", "seed", b"seed", "sensors", b"sensors", "split", b"split"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["agent", b"agent", "horizon", b"horizon", "privileged", b"privileged", "reward", b"reward", "scene", b"scene", "scene_id", b"scene_id", "scene_json", b"scene_json", "seed", b"seed", "sensors", b"sensors", "split", b"split"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType_scene: _TypeAlias = _typing.Literal["scene_id", "scene_json"]  # noqa: Y015
     _WhichOneofArgType_scene: _TypeAlias = _typing.Literal["scene", b"scene"]  # noqa: Y015
@@ -1390,6 +1418,10 @@ class ServerInfoResponse(_message.Message):
     LIMITS_FIELD_NUMBER: _builtins.int
     LIVE_EPISODES_FIELD_NUMBER: _builtins.int
     DATASET_FIELD_NUMBER: _builtins.int
+    CALLER_FIELD_NUMBER: _builtins.int
+    ROLE_FIELD_NUMBER: _builtins.int
+    CHALLENGE_FIELD_NUMBER: _builtins.int
+    RECORDING_FIELD_NUMBER: _builtins.int
     version: _builtins.str
     renderer_adapter: _builtins.str
     """e.g. "llvmpipe (LLVM 15.0.6, 256 bits)" """
@@ -1398,6 +1430,16 @@ class ServerInfoResponse(_message.Message):
     software_renderer: _builtins.bool
     live_episodes: _builtins.int
     dataset: _builtins.str
+    caller: _builtins.str
+    """Who the server takes the caller for: the name of the caller's token ("admin" with --token,
+    "anonymous" on a server without tokens) and its role: "agent", "trainer" or "admin".
+    """
+    role: _builtins.str
+    challenge: _builtins.bool
+    """Whether the server serves a challenge split, and records which episodes ("challenge",
+    "all", or "" when it keeps no records).
+    """
+    recording: _builtins.str
     @_builtins.property
     def limits(self) -> Global___ServerLimits: ...
     def __init__(
@@ -1410,10 +1452,14 @@ class ServerInfoResponse(_message.Message):
         limits: Global___ServerLimits | None = ...,
         live_episodes: _builtins.int = ...,
         dataset: _builtins.str = ...,
+        caller: _builtins.str = ...,
+        role: _builtins.str = ...,
+        challenge: _builtins.bool = ...,
+        recording: _builtins.str = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["limits", b"limits"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["dataset", b"dataset", "limits", b"limits", "live_episodes", b"live_episodes", "renderer_adapter", b"renderer_adapter", "renderer_backend", b"renderer_backend", "software_renderer", b"software_renderer", "version", b"version"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["caller", b"caller", "challenge", b"challenge", "dataset", b"dataset", "limits", b"limits", "live_episodes", b"live_episodes", "recording", b"recording", "renderer_adapter", b"renderer_adapter", "renderer_backend", b"renderer_backend", "role", b"role", "software_renderer", b"software_renderer", "version", b"version"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

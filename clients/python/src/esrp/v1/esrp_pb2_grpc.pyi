@@ -8,9 +8,11 @@ coordinates (x, z), action codes 0..5.
 
 Every RPC that names an episode fails with NOT_FOUND for an unknown or closed id,
 INVALID_ARGUMENT for a malformed request (the message says which field and why),
-FAILED_PRECONDITION for stepping an episode that has ended, RESOURCE_EXHAUSTED when a server
-limit (episodes, batch size, response size) is reached, UNAUTHENTICATED without the server's
-bearer token, and INTERNAL when rendering fails (a server-side fault, with the reason). gRPC
+FAILED_PRECONDITION for stepping an episode that has ended (or creating one on a challenge
+scene already played), RESOURCE_EXHAUSTED when a server limit (episodes, batch size, response
+size, the token's quotas) is reached, UNAUTHENTICATED without a bearer token the server knows,
+PERMISSION_DENIED when the token's role does not allow the call (the message names the role
+and what it lacks), and INTERNAL when rendering fails (a server-side fault, with the reason). gRPC
 itself also answers INTERNAL to request bytes that do not decode as the RPC's message (a
 client fault: check that both sides use this file).
 """
