@@ -1,178 +1,15 @@
 //! The results schema `esrp.results/v1` shared by every evaluation tool (Rust `esrp-eval`,
-//! Python `esrp eval`), as `docs/evaluation.md` describes it: one [`EpisodeRecord`] per line
-//! of a JSON Lines file; [`read_records`] reads a file back (dropping a last line that an
-//! interruption cut short), and [`Summary`] computes SR / OSR / RDR overall and per difficulty
-//! and writes the Markdown summary with the paper's rows beside it.
+//! Python `esrp eval`) and the server's records, as `docs/evaluation.md` describes it: the
+//! record type and its files come from esrp-results (re-exported here); [`Summary`] computes
+//! SR / OSR / RDR overall and per difficulty and writes the Markdown summary with the paper's
+//! rows beside it.
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
-use std::io::{BufRead, BufReader, Write};
-use std::path::Path;
 
-use serde::{Deserialize, Serialize};
+pub use esrp_results::{EpisodeRecord, ReadRecords, ResultsError, SCHEMA, append_record, read_records, truncate_to};
 
 use crate::types::Difficulty;
-
-/// The schema tag of every record.
-pub const SCHEMA: &str = "esrp.results/v1";
-
-/// One finished episode (a line of a results file).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct EpisodeRecord {
-    /// Always [`SCHEMA`].
-    pub schema: String,
-    /// The scene's id.
-    pub scene_id: String,
-    /// The served dataset's name.
-    pub dataset: String,
-    /// `train` or `test`.
-    pub split: String,
-    /// The room type.
-    pub room_type: String,
-    /// `easy`, `medium` or `hard`.
-    pub difficulty: String,
-    /// Number of movable objects.
-    pub objects: u32,
-    /// The agent's name.
-    pub agent: String,
-    /// The agent's settings.
-    pub agent_config: serde_json::Map<String, serde_json::Value>,
-    /// The per-scene seed the agent used, if it draws random numbers.
-    pub seed: Option<u64>,
-    /// Every object placed.
-    pub success: bool,
-    /// Objects placed over objects.
-    pub osr: f64,
-    /// Remaining over initial distance.
-    pub rdr: f64,
-    /// SPEC §5 stage, 1..=4.
-    pub stage: u32,
-    /// Objects placed at the end.
-    pub placed: u32,
-    /// Steps taken.
-    pub steps: u32,
-    /// The episode's step limit.
-    pub horizon: u32,
-    /// `success`, `horizon` or `agent`.
-    pub end: String,
-    /// The sum of the rewards.
-    pub total_reward: f64,
-    /// Every action taken, as codes 0..=5.
-    pub actions: Vec<u8>,
-    /// Wall time from creation to the end.
-    pub wall_seconds: f64,
-    /// Agent-specific statistics.
-    pub agent_stats: serde_json::Map<String, serde_json::Value>,
-    /// The server's version.
-    pub server_version: String,
-    /// The tool that wrote the record.
-    pub client: String,
-    /// RFC 3339 UTC time of the episode's end.
-    pub finished_at: String,
-}
-
-/// Why a results file could not be read.
-#[derive(Debug, thiserror::Error)]
-pub enum ResultsError {
-    /// The file could not be read.
-    #[error("cannot read {path}: {source}")]
-    Io {
-        /// The file.
-        path: String,
-        /// The cause.
-        source: std::io::Error,
-    },
-    /// A line (not the last) is not a record.
-    #[error("{path}:{line}: not an {SCHEMA} record: {reason}")]
-    BadLine {
-        /// The file.
-        path: String,
-        /// The 1-based line number.
-        line: usize,
-        /// What is wrong.
-        reason: String,
-    },
-}
-
-/// A results file read back.
-#[derive(Debug, Default)]
-pub struct ReadRecords {
-    /// The records, in file order.
-    pub records: Vec<EpisodeRecord>,
-    /// Byte length of the complete lines read: a last line cut short by an interruption ends
-    /// after this, and [`truncate_to`] removes it.
-    pub complete_bytes: u64,
-    /// Whether a last line was cut short (incomplete or unreadable).
-    pub torn_tail: bool,
-}
-
-/// Reads a results file. A last line that does not parse (an interrupted write) is reported in
-/// [`ReadRecords::torn_tail`], not an error; any other bad line is. Blank lines are skipped.
-pub fn read_records(path: &Path) -> Result<ReadRecords, ResultsError> {
-    let name = path.display().to_string();
-    let io = |source| ResultsError::Io { path: name.clone(), source };
-    let file = std::fs::File::open(path).map_err(io)?;
-    let mut reader = BufReader::new(file);
-    let mut out = ReadRecords::default();
-    let mut line = String::new();
-    let mut number = 0;
-    loop {
-        line.clear();
-        let n = reader.read_line(&mut line).map_err(io)?;
-        if n == 0 {
-            break;
-        }
-        number += 1;
-        let complete = line.ends_with('\n');
-        let text = line.trim();
-        if text.is_empty() {
-            if complete {
-                out.complete_bytes += n as u64;
-            }
-            continue;
-        }
-        match parse_record(text) {
-            Ok(record) if complete => {
-                out.records.push(record);
-                out.complete_bytes += n as u64;
-            }
-            // A record without its newline: the write was interrupted right before it.
-            Ok(_) => out.torn_tail = true,
-            Err(reason) => {
-                // Only the last line may be torn.
-                let mut rest = String::new();
-                reader.read_line(&mut rest).map_err(io)?;
-                if rest.is_empty() {
-                    out.torn_tail = true;
-                } else {
-                    return Err(ResultsError::BadLine { path: name, line: number, reason });
-                }
-            }
-        }
-    }
-    Ok(out)
-}
-
-fn parse_record(text: &str) -> Result<EpisodeRecord, String> {
-    let record: EpisodeRecord = serde_json::from_str(text).map_err(|e| e.to_string())?;
-    if record.schema != SCHEMA {
-        return Err(format!("schema is {:?}, not {SCHEMA:?}", record.schema));
-    }
-    Ok(record)
-}
-
-/// Cuts a results file to its first `bytes` bytes (dropping a torn last line).
-pub fn truncate_to(path: &Path, bytes: u64) -> std::io::Result<()> {
-    std::fs::OpenOptions::new().write(true).open(path)?.set_len(bytes)
-}
-
-/// Appends one record as a line and flushes it.
-pub fn append_record(out: &mut impl Write, record: &EpisodeRecord) -> std::io::Result<()> {
-    let mut line = serde_json::to_vec(record).map_err(std::io::Error::other)?;
-    line.push(b'\n');
-    out.write_all(&line)?;
-    out.flush()
-}
 
 /// SR / OSR / RDR and stage counts over a set of records.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -417,6 +254,10 @@ mod tests {
             server_version: "0.1.0".into(),
             client: "test".into(),
             finished_at: "2026-11-23T00:00:00Z".into(),
+            token: None,
+            started_at: None,
+            dataset_hash: None,
+            counted: None,
         }
     }
 
@@ -437,32 +278,5 @@ mod tests {
         let md = s.markdown("random");
         assert!(md.contains("| **random** (this run) | 33.33 / 50.00 / 0.5000 | 50.00 / 50.00 / 0.5000 | – | 0.00 / 50.00 / 0.5000 |"), "{md}");
         assert!(md.contains("| ESRP-PLAN (paper) | 30.20 / 36.59 / 0.6916 |"));
-    }
-
-    #[test]
-    fn a_torn_last_line_is_dropped_and_other_bad_lines_are_errors() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("r.jsonl");
-        let mut bytes = Vec::new();
-        append_record(&mut bytes, &record("a", "easy", true, 1.0, 0.0, 4)).unwrap();
-        append_record(&mut bytes, &record("b", "easy", true, 1.0, 0.0, 4)).unwrap();
-        let whole = bytes.len() as u64;
-        bytes.extend_from_slice(br#"{"schema":"esrp.results/v1","scene_id":"c""#);
-        std::fs::write(&path, &bytes).unwrap();
-        let read = read_records(&path).unwrap();
-        assert_eq!(read.records.len(), 2);
-        assert!(read.torn_tail);
-        assert_eq!(read.complete_bytes, whole);
-        truncate_to(&path, read.complete_bytes).unwrap();
-        let again = read_records(&path).unwrap();
-        assert_eq!((again.records.len(), again.torn_tail), (2, false));
-        assert_eq!(again.records[1], record("b", "easy", true, 1.0, 0.0, 4));
-
-        // A bad line followed by a good one is not a torn tail.
-        let mut bad = b"not json\n".to_vec();
-        append_record(&mut bad, &record("a", "easy", true, 1.0, 0.0, 4)).unwrap();
-        std::fs::write(&path, &bad).unwrap();
-        let err = read_records(&path).unwrap_err();
-        assert!(matches!(err, ResultsError::BadLine { line: 1, .. }), "{err}");
     }
 }

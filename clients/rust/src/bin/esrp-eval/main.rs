@@ -346,6 +346,10 @@ async fn main() -> anyhow::Result<()> {
             server_version: info.version.clone(),
             client: client_name.clone(),
             finished_at: now_rfc3339(),
+            token: None,
+            started_at: None,
+            dataset_hash: None,
+            counted: None,
         };
         results::append_record(&mut file, &record).with_context(|| format!("cannot write {}", args.out.display()))?;
         written += 1;

@@ -1,0 +1,264 @@
+//! **esrp-results**: the results schema `esrp.results/v1` that every evaluation tool writes
+//! (Rust `esrp-eval`, Python `esrp eval`) and the server's own records (`esrp-server
+//! --records`), as `docs/evaluation.md` describes it: one [`EpisodeRecord`] per line of a JSON
+//! Lines file; [`read_records`] reads a file back (dropping a last line that an interruption
+//! cut short), [`append_record`] writes one. Plain data and file I/O: the client's summaries
+//! (`esrp_client::results`) and the server's recorder build on it.
+
+#![warn(missing_docs)]
+
+use std::io::{BufRead, BufReader, Write};
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+/// The schema tag of every record.
+pub const SCHEMA: &str = "esrp.results/v1";
+
+/// One finished episode (a line of a results file).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeRecord {
+    /// Always [`SCHEMA`].
+    pub schema: String,
+    /// The scene's id.
+    pub scene_id: String,
+    /// The served dataset's name.
+    pub dataset: String,
+    /// `train`, `test`, `challenge` or `minival`.
+    pub split: String,
+    /// The room type.
+    pub room_type: String,
+    /// `easy`, `medium` or `hard`.
+    pub difficulty: String,
+    /// Number of movable objects.
+    pub objects: u32,
+    /// The agent's name.
+    pub agent: String,
+    /// The agent's settings.
+    pub agent_config: serde_json::Map<String, serde_json::Value>,
+    /// The per-scene seed the agent used, if it draws random numbers.
+    pub seed: Option<u64>,
+    /// Every object placed.
+    pub success: bool,
+    /// Objects placed over objects.
+    pub osr: f64,
+    /// Remaining over initial distance.
+    pub rdr: f64,
+    /// SPEC §5 stage, 1..=4.
+    pub stage: u32,
+    /// Objects placed at the end.
+    pub placed: u32,
+    /// Steps taken.
+    pub steps: u32,
+    /// The episode's step limit.
+    pub horizon: u32,
+    /// `success`, `horizon` or `agent`.
+    pub end: String,
+    /// The sum of the rewards.
+    pub total_reward: f64,
+    /// Every action taken, as codes 0..=5.
+    pub actions: Vec<u8>,
+    /// Wall time from creation to the end.
+    pub wall_seconds: f64,
+    /// Agent-specific statistics.
+    pub agent_stats: serde_json::Map<String, serde_json::Value>,
+    /// The server's version.
+    pub server_version: String,
+    /// The tool that wrote the record.
+    pub client: String,
+    /// RFC 3339 UTC time of the episode's end.
+    pub finished_at: String,
+    /// Server records only: the name of the token that played the episode.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub token: Option<String>,
+    /// Server records only: RFC 3339 UTC time of the episode's creation (or reset).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub started_at: Option<String>,
+    /// Server records only: a hash of the served dataset's seeds (16 hex digits), the same for
+    /// every server serving the same scenes.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dataset_hash: Option<String>,
+    /// Server records only: whether this is the token's one counted attempt on a challenge
+    /// scene (the first).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub counted: Option<bool>,
+}
+
+/// Why a results file could not be read.
+#[derive(Debug, thiserror::Error)]
+pub enum ResultsError {
+    /// The file could not be read.
+    #[error("cannot read {path}: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// A line (not the last) is not a record.
+    #[error("{path}:{line}: not an {SCHEMA} record: {reason}")]
+    BadLine {
+        /// The file.
+        path: String,
+        /// The 1-based line number.
+        line: usize,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+/// A results file read back.
+#[derive(Debug, Default)]
+pub struct ReadRecords {
+    /// The records, in file order.
+    pub records: Vec<EpisodeRecord>,
+    /// Byte length of the complete lines read: a last line cut short by an interruption ends
+    /// after this, and [`truncate_to`] removes it.
+    pub complete_bytes: u64,
+    /// Whether a last line was cut short (incomplete or unreadable).
+    pub torn_tail: bool,
+}
+
+/// Reads a results file. A last line that does not parse (an interrupted write) is reported in
+/// [`ReadRecords::torn_tail`], not an error; any other bad line is. Blank lines are skipped.
+pub fn read_records(path: &Path) -> Result<ReadRecords, ResultsError> {
+    let name = path.display().to_string();
+    let io = |source| ResultsError::Io { path: name.clone(), source };
+    let file = std::fs::File::open(path).map_err(io)?;
+    let mut reader = BufReader::new(file);
+    let mut out = ReadRecords::default();
+    let mut line = String::new();
+    let mut number = 0;
+    loop {
+        line.clear();
+        let n = reader.read_line(&mut line).map_err(io)?;
+        if n == 0 {
+            break;
+        }
+        number += 1;
+        let complete = line.ends_with('\n');
+        let text = line.trim();
+        if text.is_empty() {
+            if complete {
+                out.complete_bytes += n as u64;
+            }
+            continue;
+        }
+        match parse_record(text) {
+            Ok(record) if complete => {
+                out.records.push(record);
+                out.complete_bytes += n as u64;
+            }
+            // A record without its newline: the write was interrupted right before it.
+            Ok(_) => out.torn_tail = true,
+            Err(reason) => {
+                // Only the last line may be torn.
+                let mut rest = String::new();
+                reader.read_line(&mut rest).map_err(io)?;
+                if rest.is_empty() {
+                    out.torn_tail = true;
+                } else {
+                    return Err(ResultsError::BadLine { path: name, line: number, reason });
+                }
+            }
+        }
+    }
+    Ok(out)
+}
+
+fn parse_record(text: &str) -> Result<EpisodeRecord, String> {
+    let record: EpisodeRecord = serde_json::from_str(text).map_err(|e| e.to_string())?;
+    if record.schema != SCHEMA {
+        return Err(format!("schema is {:?}, not {SCHEMA:?}", record.schema));
+    }
+    Ok(record)
+}
+
+/// Cuts a results file to its first `bytes` bytes (dropping a torn last line).
+pub fn truncate_to(path: &Path, bytes: u64) -> std::io::Result<()> {
+    std::fs::OpenOptions::new().write(true).open(path)?.set_len(bytes)
+}
+
+/// Appends one record as a line and flushes it.
+pub fn append_record(out: &mut impl Write, record: &EpisodeRecord) -> std::io::Result<()> {
+    let mut line = serde_json::to_vec(record).map_err(std::io::Error::other)?;
+    line.push(b'\n');
+    out.write_all(&line)?;
+    out.flush()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn record(scene: &str, difficulty: &str, success: bool, osr: f64, rdr: f64, stage: u32) -> EpisodeRecord {
+        EpisodeRecord {
+            schema: SCHEMA.into(),
+            scene_id: scene.into(),
+            dataset: "d".into(),
+            split: "test".into(),
+            room_type: "Bedroom".into(),
+            difficulty: difficulty.into(),
+            objects: 1,
+            agent: "random".into(),
+            agent_config: Default::default(),
+            seed: Some(3),
+            success,
+            osr,
+            rdr,
+            stage,
+            placed: u32::from(success),
+            steps: 10,
+            horizon: 200,
+            end: if success { "success" } else { "horizon" }.into(),
+            total_reward: 1.5,
+            actions: vec![0; 10],
+            wall_seconds: 0.1,
+            agent_stats: Default::default(),
+            server_version: "0.1.0".into(),
+            client: "test".into(),
+            finished_at: "2026-11-23T00:00:00Z".into(),
+            token: None,
+            started_at: None,
+            dataset_hash: None,
+            counted: None,
+        }
+    }
+
+    #[test]
+    fn a_torn_last_line_is_dropped_and_other_bad_lines_are_errors() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("r.jsonl");
+        let mut bytes = Vec::new();
+        append_record(&mut bytes, &record("a", "easy", true, 1.0, 0.0, 4)).unwrap();
+        append_record(&mut bytes, &record("b", "easy", true, 1.0, 0.0, 4)).unwrap();
+        let whole = bytes.len() as u64;
+        bytes.extend_from_slice(br#"{"schema":"esrp.results/v1","scene_id":"c""#);
+        std::fs::write(&path, &bytes).unwrap();
+        let read = read_records(&path).unwrap();
+        assert_eq!(read.records.len(), 2);
+        assert!(read.torn_tail);
+        assert_eq!(read.complete_bytes, whole);
+        truncate_to(&path, read.complete_bytes).unwrap();
+        let again = read_records(&path).unwrap();
+        assert_eq!((again.records.len(), again.torn_tail), (2, false));
+        assert_eq!(again.records[1], record("b", "easy", true, 1.0, 0.0, 4));
+
+        // A bad line followed by a good one is not a torn tail.
+        let mut bad = b"not json\n".to_vec();
+        append_record(&mut bad, &record("a", "easy", true, 1.0, 0.0, 4)).unwrap();
+        std::fs::write(&path, &bad).unwrap();
+        let err = read_records(&path).unwrap_err();
+        assert!(matches!(err, ResultsError::BadLine { line: 1, .. }), "{err}");
+    }
+
+    #[test]
+    fn server_fields_round_trip_and_are_left_out_when_absent() {
+        let plain = record("a", "easy", true, 1.0, 0.0, 4);
+        let line = serde_json::to_string(&plain).unwrap();
+        assert!(!line.contains("token") && !line.contains("counted"), "{line}");
+        let server = EpisodeRecord { token: Some("alice".into()), counted: Some(true), ..plain };
+        let back: EpisodeRecord = serde_json::from_str(&serde_json::to_string(&server).unwrap()).unwrap();
+        assert_eq!(back, server);
+    }
+}
