@@ -75,9 +75,34 @@ pub struct Config {
     )]
     pub render_backend: BackendPreference,
     /// Require `authorization: Bearer TOKEN` on every call (not empty: an empty `ESRP_TOKEN`
-    /// is refused rather than taken as "no token" or as a token anyone could send).
-    #[arg(long, env = "ESRP_TOKEN", hide_env_values = true, value_parser = non_empty_token)]
+    /// is refused rather than taken as "no token" or as a token anyone could send). The one
+    /// token is an admin named `admin`; --tokens gives several, with roles and quotas.
+    #[arg(long, env = "ESRP_TOKEN", hide_env_values = true, value_parser = non_empty_token, conflicts_with = "tokens")]
     pub token: Option<String>,
+    /// A token file (TOML): one `[[token]]` table per client with `name`, `secret` or
+    /// `secret_sha256`, `role` (`agent`: ordinary episodes only; `trainer`: also privileged
+    /// episodes and the planner, never on the challenge; `admin`: everything) and the quotas
+    /// `max_episodes` and `max_streams` (docs/challenge.md).
+    #[arg(long, env = "ESRP_TOKENS")]
+    pub tokens: Option<PathBuf>,
+    /// Serve a hidden challenge split generated from this secret (at least 16 characters: it
+    /// must not be guessable) by the current benchmark's rules: `--challenge-scenes` scenes of
+    /// the test split's distribution, and `--minival-scenes` more in the split `minival`.
+    #[arg(long, env = "ESRP_CHALLENGE_SEED", hide_env_values = true, value_parser = challenge_secret)]
+    pub challenge_seed: Option<String>,
+    /// Scenes of the challenge split.
+    #[arg(long, env = "ESRP_CHALLENGE_SCENES", default_value_t = 550, value_parser = clap::value_parser!(u32).range(1..=5000))]
+    pub challenge_scenes: u32,
+    /// Scenes of the minival split (0: none).
+    #[arg(long, env = "ESRP_MINIVAL_SCENES", default_value_t = 50, value_parser = clap::value_parser!(u32).range(0..=495))]
+    pub minival_scenes: u32,
+    /// Record episodes in this folder, as esrp.results/v1 lines appended to `DIR/<token>.jsonl`,
+    /// each written and synced when its episode ends (see --record).
+    #[arg(long, env = "ESRP_RECORDS")]
+    pub records: Option<PathBuf>,
+    /// Which episodes --records records: those on the challenge split, or all.
+    #[arg(long, env = "ESRP_RECORD", value_enum, default_value_t = crate::records::RecordMode::Challenge, requires = "records")]
+    pub record: crate::records::RecordMode,
     /// TLS certificate chain (PEM); needs --tls-key.
     #[arg(long, env = "ESRP_TLS_CERT", requires = "tls_key")]
     pub tls_cert: Option<PathBuf>,
@@ -167,6 +192,15 @@ impl Config {
     }
 }
 
+/// `--challenge-seed`'s value: at least 16 characters, so that no one can guess it from the
+/// hash the records carry.
+fn challenge_secret(value: &str) -> Result<String, String> {
+    if value.trim().chars().count() < 16 {
+        return Err("the challenge seed is a secret: give at least 16 characters (e.g. `openssl rand -hex 16`)".into());
+    }
+    Ok(value.to_owned())
+}
+
 /// `--token`'s value: anything but an empty or blank string.
 fn non_empty_token(value: &str) -> Result<String, String> {
     if value.trim().is_empty() {
@@ -201,5 +235,22 @@ mod tests {
             let error = parse(&["--token", empty]).unwrap_err().to_string();
             assert!(error.contains("the token is empty") && error.contains("unset ESRP_TOKEN"), "{error}");
         }
+    }
+
+    #[test]
+    fn challenge_and_records_flags_are_checked() {
+        let parse = |args: &[&str]| Config::try_parse_from([&["esrp-server"], args].concat());
+        let config = parse(&[]).unwrap();
+        assert_eq!((config.challenge_seed, config.challenge_scenes, config.minival_scenes), (None, 550, 50));
+        assert_eq!(config.record, crate::records::RecordMode::Challenge);
+        let short = parse(&["--challenge-seed", "1234"]).unwrap_err().to_string();
+        assert!(short.contains("at least 16 characters"), "{short}");
+        assert!(parse(&["--challenge-seed", "0123456789abcdef"]).is_ok());
+        let both = parse(&["--token", "a", "--tokens", "t.toml"]).unwrap_err().to_string();
+        assert!(both.contains("cannot be used with"), "{both}");
+        let alone = parse(&["--record", "all"]).unwrap_err().to_string();
+        assert!(alone.contains("--records"), "{alone}");
+        assert!(parse(&["--records", "r", "--record", "all"]).is_ok());
+        assert!(parse(&["--challenge-scenes", "0"]).is_err());
     }
 }

@@ -167,6 +167,45 @@ pub enum ServiceError {
         /// `--max-message-bytes`.
         max: usize,
     },
+    /// The caller's role does not allow the call; the message names the role and what it lacks.
+    #[error("{0}")]
+    Denied(String),
+    /// An episode of another token, named by a caller that is not an admin.
+    #[error(
+        "episode {} belongs to another token: {caller} may use only the episodes it created",
+        bounded(.episode.as_str())
+    )]
+    NotYours {
+        /// The episode.
+        episode: EpisodeId,
+        /// The caller, described (`token "bob" (role agent)`).
+        caller: String,
+    },
+    /// A token's quota is used up.
+    #[error("{caller} already has {limit} {what} open, its quota ({quota} in the token file): close one first")]
+    Quota {
+        /// The caller, described.
+        caller: String,
+        /// `live episodes` or `streams`.
+        what: &'static str,
+        /// The quota's name: `max_episodes` or `max_streams`.
+        quota: &'static str,
+        /// The quota.
+        limit: usize,
+    },
+    /// A second attempt at a challenge scene.
+    #[error(
+        "challenge scene {} was already played by {caller} ({when}): each token gets one counted attempt per challenge scene (the minival split may be played again)",
+        quoted(.scene)
+    )]
+    AlreadyPlayed {
+        /// The scene.
+        scene: String,
+        /// The caller, described.
+        caller: String,
+        /// When: `ended 2026-11-25T20:00:00Z` or `started …, still running`.
+        when: String,
+    },
     /// Rendering failed.
     #[error("rendering failed: {0}")]
     Render(String),
@@ -190,12 +229,16 @@ impl ServiceError {
                 esrp_core::EpisodeError::Finished { .. } => Code::FailedPrecondition,
                 esrp_core::EpisodeError::InvalidConfig { .. } => Code::InvalidArgument,
             },
-            ServiceError::NotPrivileged(_) => Code::PermissionDenied,
+            ServiceError::NotPrivileged(_) | ServiceError::Denied(_) | ServiceError::NotYours { .. } => {
+                Code::PermissionDenied
+            }
+            ServiceError::AlreadyPlayed { .. } => Code::FailedPrecondition,
             ServiceError::PlanDeadline { .. } => Code::DeadlineExceeded,
             ServiceError::TooManyEpisodes { .. }
             | ServiceError::BatchTooLarge { .. }
             | ServiceError::StepAnswerTooLarge { .. }
-            | ServiceError::BatchAnswerTooLarge { .. } => Code::ResourceExhausted,
+            | ServiceError::BatchAnswerTooLarge { .. }
+            | ServiceError::Quota { .. } => Code::ResourceExhausted,
             ServiceError::Render(_) | ServiceError::Internal(_) => Code::Internal,
         }
     }
@@ -249,6 +292,15 @@ pub enum ServeError {
     /// The gRPC transport failed (TLS configuration, serving).
     #[error("gRPC transport: {0}")]
     Transport(#[from] tonic::transport::Error),
+    /// The token file (`--tokens`) cannot be used.
+    #[error("{0}")]
+    Tokens(#[from] crate::auth::TokensError),
+    /// The records folder (`--records`) cannot be used.
+    #[error("{0}")]
+    Records(#[from] crate::records::RecordsError),
+    /// The flags contradict each other or the served dataset.
+    #[error("{0}")]
+    Config(String),
 }
 
 #[cfg(test)]
@@ -321,6 +373,30 @@ mod tests {
         );
         check(ServiceError::InvalidResolution { resolution: 9, max: 512 }, Code::InvalidArgument, "16 to 512");
         check(ServiceError::EmptySplit(Split::Train), Code::InvalidArgument, "no train scenes");
+        check(
+            ServiceError::Quota {
+                caller: "token \"a\" (role agent)".into(),
+                what: "live episodes",
+                quota: "max_episodes",
+                limit: 2,
+            },
+            Code::ResourceExhausted,
+            "token \"a\" (role agent) already has 2 live episodes open, its quota (max_episodes",
+        );
+        check(
+            ServiceError::AlreadyPlayed {
+                scene: "challenge/00001".into(),
+                caller: "token \"a\"".into(),
+                when: "ended x".into(),
+            },
+            Code::FailedPrecondition,
+            "challenge scene \"challenge/00001\" was already played by token \"a\" (ended x)",
+        );
+        check(
+            ServiceError::NotYours { episode: EpisodeId::from("e9"), caller: "token \"b\" (role agent)".into() },
+            Code::PermissionDenied,
+            "episode e9 belongs to another token: token \"b\" (role agent) may use only",
+        );
         let unknown = esrp_core::Action::from_code(6).unwrap_err();
         check(
             ServiceError::InvalidAction { at: "step".into(), error: unknown },

@@ -41,13 +41,17 @@
 //!   share nothing mutable, and a batch renders each view as it would alone.
 
 #![warn(missing_docs)]
+// Proving the episode layer Send + Sync walks deep into wgpu's types.
+#![recursion_limit = "256"]
 
+pub mod auth;
 pub mod config;
 pub mod dm_env;
 pub mod episodes;
 pub mod error;
 pub mod esrp_v1;
 pub mod metrics;
+pub mod records;
 pub mod registry;
 pub mod render;
 pub mod scenes;
@@ -65,32 +69,35 @@ pub use esrp_proto::esrp::v1 as proto;
 pub use config::Config;
 pub use error::ServeError;
 
-/// Checks `authorization: Bearer TOKEN` in constant time.
-#[derive(Clone)]
-pub struct TokenCheck {
-    expected: Option<Arc<Vec<u8>>>,
+/// The tokens of `config`: `--tokens FILE`, `--token` (one admin) or none.
+pub fn tokens_of(config: &Config) -> Result<auth::Tokens, ServeError> {
+    Ok(match (&config.tokens, &config.token) {
+        (Some(path), _) => auth::Tokens::from_file(path)?,
+        (None, Some(secret)) => auth::Tokens::single_admin(secret),
+        (None, None) => auth::Tokens::open(),
+    })
 }
 
-impl tonic::service::Interceptor for TokenCheck {
-    fn call(&mut self, request: tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> {
-        use subtle::ConstantTimeEq;
-        let Some(expected) = &self.expected else { return Ok(request) };
-        let given = request.metadata().get("authorization").map(|v| v.as_bytes()).unwrap_or_default();
-        if bool::from(given.ct_eq(expected.as_slice())) {
-            Ok(request)
-        } else {
-            Err(tonic::Status::unauthenticated(
-                "missing or wrong bearer token: send the metadata `authorization: Bearer <token>` with the server's --token",
-            ))
-        }
-    }
-}
-
-/// Builds the episode layer: the scene store, the renderer and its thread.
+/// Builds the episode layer: the scene store (with the hidden splits of `--challenge-seed`),
+/// the records (`--records`, read back), the renderer and its thread.
 pub fn build_episodes(config: &Config) -> Result<Arc<episodes::Episodes>, ServeError> {
-    let store = match &config.dataset {
+    let mut store = match &config.dataset {
         Some(dir) => scenes::SceneStore::folder(dir)?,
         None => scenes::SceneStore::built_in(config.benchmark, config.bench_seed),
+    };
+    if let Some(secret) = &config.challenge_seed {
+        let hidden = scenes::HiddenSplits {
+            secret: secret.clone(),
+            version: config.benchmark,
+            challenge: config.challenge_scenes as usize,
+            minival: config.minival_scenes as usize,
+        };
+        store = store.with_hidden(&hidden).map_err(ServeError::Config)?;
+    }
+    let attempts = records::Attempts::default();
+    let recorder = match &config.records {
+        Some(dir) => Some(records::Recorder::open(dir, config.record, &attempts)?),
+        None => None,
     };
     let backends = config.render_backend;
     let renderer = esrp_render::Renderer::new(esrp_render::RendererConfig { backends, ..Default::default() })?;
@@ -98,7 +105,7 @@ pub fn build_episodes(config: &Config) -> Result<Arc<episodes::Episodes>, ServeE
     tracing::info!(adapter = %info.name, backend = ?info.backend, software = renderer.is_software(), "renderer ready");
     let metrics = Arc::new(metrics::Metrics::new());
     let render = render::RenderScheduler::start(renderer, metrics.clone());
-    Ok(Arc::new(episodes::Episodes::new(store, render, config.clone(), metrics)))
+    Ok(Arc::new(episodes::Episodes::new(store, render, config.clone(), metrics, recorder, attempts)))
 }
 
 /// Serves gRPC on `listener` (and Prometheus metrics on `metrics_listener`, if given) until
@@ -109,12 +116,24 @@ pub async fn run(
     config: Config,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), ServeError> {
+    let tokens = Arc::new(tokens_of(&config)?);
     let episodes = build_episodes(&config)?;
     let render = episodes.render.clone();
     let address = listener
         .local_addr()
         .map_err(|source| ServeError::Io { what: "the listener has no address".into(), source })?;
     tracing::info!(%address, dataset = episodes.store.name(), scenes = episodes.store.infos().len(), "serving esrp.v1");
+    if tokens.required() {
+        tracing::info!(tokens = %tokens.summary().join(", "), "calls need a bearer token");
+    }
+    if episodes.store.has_hidden() {
+        let [by_split, ..] = episodes.store.counts();
+        tracing::info!(
+            challenge = by_split.get("challenge").copied().unwrap_or(0),
+            minival = by_split.get("minival").copied().unwrap_or(0),
+            "serving the hidden challenge splits"
+        );
+    }
 
     // Close idle episodes, and unclaimed ones (`Episodes::reap_unclaimed`).
     let reaper = {
@@ -129,13 +148,13 @@ pub async fn run(
             loop {
                 tick.tick().await;
                 if !idle.is_zero() {
-                    let reaped = episodes.reap_idle(idle);
+                    let reaped = episodes.reap_idle(idle).await;
                     if reaped > 0 {
                         tracing::info!(reaped, "closed idle episodes");
                     }
                 }
                 if !claim.is_zero() {
-                    let reaped = episodes.reap_unclaimed(claim);
+                    let reaped = episodes.reap_unclaimed(claim).await;
                     if reaped > 0 {
                         tracing::info!(reaped, "closed episodes whose id no call named (their create was abandoned)");
                     }
@@ -168,10 +187,10 @@ pub async fn run(
         .register_encoded_file_descriptor_set(esrp_proto::FILE_DESCRIPTOR_SET)
         .build_v1()?;
     let dm_env = dm_env::server(episodes.clone());
-    let esrp = proto::esrp_server::EsrpServer::new(esrp_v1::EsrpService::new(episodes))
+    let esrp = proto::esrp_server::EsrpServer::new(esrp_v1::EsrpService::new(episodes.clone()))
         .max_decoding_message_size(config.max_message_bytes)
         .max_encoding_message_size(config.max_message_bytes);
-    let check = TokenCheck { expected: config.token.as_ref().map(|t| Arc::new(format!("Bearer {t}").into_bytes())) };
+    let check = auth::TokenCheck::new(tokens);
 
     let mut builder = tonic::transport::Server::builder();
     if let (Some(cert), Some(key)) = (&config.tls_cert, &config.tls_key) {
@@ -223,6 +242,11 @@ pub async fn run(
     // exits (`main` then drops the runtime, and with it the episodes, before returning).
     reaper.abort();
     let _ = reaper.await;
+    // Every episode still open ends here: its run is recorded as cut by the shutdown.
+    let closed = episodes.close_all().await;
+    if closed > 0 {
+        tracing::info!(closed, "closed the episodes still open at shutdown");
+    }
     if let Some(task) = metrics_server {
         task.abort();
         let _ = task.await;

@@ -10,6 +10,9 @@
 //! | `esrp_render_batch_views` | histogram | views per render batch |
 //! | `esrp_render_batch_seconds` | histogram | time to render one batch |
 //! | `esrp_render_views_reused_total` | counter | views answered from an episode's last images instead of rendered (steps that changed nothing they show) |
+//! | `esrp_token_episodes_created_total` | counter | episodes created, by token name (`token`; `anonymous` without tokens) |
+//! | `esrp_token_steps_total` | counter | steps taken, by the token that created the episode |
+//! | `esrp_records_written_total` | counter | records written (`--records`), by token |
 //! | `esrp_plans_total` | counter | PlanActions calls, by outcome (`planned`, `cached`, `failed`: no plan found, `deadline`: none found in the budget, `cancelled`: the client went away and the planner stopped) |
 
 use std::net::SocketAddr;
@@ -29,6 +32,13 @@ use tokio::net::TcpListener;
 pub struct CloseReason {
     /// `client`, `stream_ended` or `idle`.
     pub reason: &'static str,
+}
+
+/// A token's name.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct TokenLabel {
+    /// The token's name.
+    pub token: String,
 }
 
 /// How a PlanActions call ended.
@@ -59,6 +69,12 @@ pub struct Metrics {
     pub plans: Family<PlanOutcome, Counter>,
     /// Views answered from an episode's last images instead of rendered.
     pub reused_views: Counter,
+    /// Episodes created, by token.
+    pub created_by_token: Family<TokenLabel, Counter>,
+    /// Steps taken, by token.
+    pub steps_by_token: Family<TokenLabel, Counter>,
+    /// Records written, by token.
+    pub records_by_token: Family<TokenLabel, Counter>,
 }
 
 impl Default for Metrics {
@@ -97,7 +113,42 @@ impl Metrics {
             "Views answered from an episode's last images (the step changed nothing they show) instead of rendered",
             reused_views.clone(),
         );
-        Self { registry, steps, step_latency, created, closed, live, batch_views, batch_seconds, plans, reused_views }
+        let created_by_token = Family::<TokenLabel, Counter>::default();
+        let steps_by_token = Family::<TokenLabel, Counter>::default();
+        let records_by_token = Family::<TokenLabel, Counter>::default();
+        registry.register("token_episodes_created", "Episodes created, by token", created_by_token.clone());
+        registry.register("token_steps", "Steps taken, by the token that created the episode", steps_by_token.clone());
+        registry.register("records_written", "Records written (--records), by token", records_by_token.clone());
+        Self {
+            registry,
+            steps,
+            step_latency,
+            created,
+            closed,
+            live,
+            batch_views,
+            batch_seconds,
+            plans,
+            reused_views,
+            created_by_token,
+            steps_by_token,
+            records_by_token,
+        }
+    }
+
+    /// Counts an episode created by `token`.
+    pub fn count_created_by(&self, token: &str) {
+        self.created_by_token.get_or_create(&TokenLabel { token: token.to_owned() }).inc();
+    }
+
+    /// Counts `n` steps of episodes of `token`.
+    pub fn count_steps_by(&self, token: &str, n: usize) {
+        self.steps_by_token.get_or_create(&TokenLabel { token: token.to_owned() }).inc_by(n as u64);
+    }
+
+    /// Counts a record written for `token`.
+    pub fn count_record(&self, token: &str) {
+        self.records_by_token.get_or_create(&TokenLabel { token: token.to_owned() }).inc();
     }
 
     /// Counts `n` closed episodes.

@@ -1,14 +1,15 @@
 //! The episode registry: a plain map from unguessable id to entry, each entry behind its own
-//! lock, with a limit on their number, the stream that owns an entry, and reapers for idle and
-//! for unclaimed entries. What an entry holds is the episode layer's business
-//! (`episodes::entry`): the registry knows it only as `E`.
+//! lock, with a limit on their number (the server's, and each token's `max_episodes`), the
+//! token that created each entry (only it, or an admin, may name it), the stream that owns an
+//! entry, and reapers for idle and for unclaimed entries. What an entry holds is the episode
+//! layer's business (`episodes::entry`): the registry knows it only as `E`.
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use crate::error::ServiceError;
-use crate::types::EpisodeId;
+use crate::types::{Caller, EpisodeId};
 
 /// A shared, individually locked entry.
 pub type Locked<E> = Arc<tokio::sync::Mutex<E>>;
@@ -17,6 +18,8 @@ pub type Locked<E> = Arc<tokio::sync::Mutex<E>>;
 struct Slot<E> {
     /// The stream that created it, if any (it closes with that stream).
     stream: Option<u64>,
+    /// The token that created it.
+    owner: Arc<Caller>,
     /// When it was inserted (its create answer leaves right after).
     created: Instant,
     /// Whether a call has named it since (or a stream owns it): its client has its id. An
@@ -25,20 +28,52 @@ struct Slot<E> {
     episode: Locked<E>,
 }
 
+/// The map and each token's count of live episodes, changed together.
+struct Map<E> {
+    slots: HashMap<EpisodeId, Slot<E>>,
+    by_owner: HashMap<Arc<str>, usize>,
+}
+
+impl<E> Map<E> {
+    fn len(&self) -> usize {
+        self.slots.len()
+    }
+
+    /// Removes the slots `keep` refuses; returns them.
+    fn remove_where(&mut self, mut keep: impl FnMut(&Slot<E>) -> bool) -> Vec<(EpisodeId, Slot<E>)> {
+        let gone: Vec<EpisodeId> = self.slots.iter().filter(|(_, s)| !keep(s)).map(|(id, _)| id.clone()).collect();
+        gone.into_iter().filter_map(|id| self.remove(&id).map(|slot| (id, slot))).collect()
+    }
+
+    fn remove(&mut self, id: &EpisodeId) -> Option<Slot<E>> {
+        let slot = self.slots.remove(id)?;
+        if let Some(count) = self.by_owner.get_mut(&slot.owner.name) {
+            *count -= 1;
+            if *count == 0 {
+                self.by_owner.remove(&slot.owner.name);
+            }
+        }
+        Some(slot)
+    }
+}
+
+/// An episode taken out of the registry: its id, its entry and the token that created it.
+pub type Removed<E> = (EpisodeId, Locked<E>, Arc<Caller>);
+
 /// Live episodes.
 pub struct Registry<E> {
     // A std mutex: held only for map operations, never across an await.
-    episodes: Mutex<HashMap<EpisodeId, Slot<E>>>,
+    episodes: Mutex<Map<E>>,
     max_episodes: usize,
 }
 
 impl<E> Registry<E> {
     /// An empty registry holding at most `max_episodes`.
     pub fn new(max_episodes: usize) -> Self {
-        Self { episodes: Mutex::new(HashMap::new()), max_episodes }
+        Self { episodes: Mutex::new(Map { slots: HashMap::new(), by_owner: HashMap::new() }), max_episodes }
     }
 
-    fn map(&self) -> std::sync::MutexGuard<'_, HashMap<EpisodeId, Slot<E>>> {
+    fn map(&self) -> std::sync::MutexGuard<'_, Map<E>> {
         // A panic while holding this lock cannot leave the map inconsistent (every operation is
         // a single insert or remove), so a poisoned lock is still safe to use.
         self.episodes.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
@@ -51,7 +86,34 @@ impl<E> Registry<E> {
 
     /// Whether no episode is live.
     pub fn is_empty(&self) -> bool {
-        self.map().is_empty()
+        self.map().len() == 0
+    }
+
+    /// The number of live episodes `caller`'s token created.
+    pub fn owned_by(&self, caller: &Caller) -> usize {
+        self.map().by_owner.get(&caller.name).copied().unwrap_or(0)
+    }
+
+    /// Refuses a create when the server or `caller` holds its maximum of live episodes.
+    pub fn check_room(&self, caller: &Caller) -> Result<(), ServiceError> {
+        Self::room_in(&self.map(), self.max_episodes, caller)
+    }
+
+    fn room_in(map: &Map<E>, max_episodes: usize, caller: &Caller) -> Result<(), ServiceError> {
+        if map.len() >= max_episodes {
+            return Err(ServiceError::TooManyEpisodes { max: max_episodes });
+        }
+        if let Some(limit) = caller.max_episodes
+            && map.by_owner.get(&caller.name).copied().unwrap_or(0) >= limit
+        {
+            return Err(ServiceError::Quota {
+                caller: caller.describe(),
+                what: "live episodes",
+                quota: "max_episodes",
+                limit,
+            });
+        }
+        Ok(())
     }
 
     /// The limit.
@@ -59,69 +121,92 @@ impl<E> Registry<E> {
         self.max_episodes
     }
 
-    /// Adds an episode under a fresh random 128-bit id, owned by `stream` if it was created on
-    /// one (then it is claimed: the stream holds it); unclaimed otherwise.
-    pub fn insert(&self, entry: E, stream: Option<u64>) -> Result<EpisodeId, ServiceError> {
+    /// Adds an episode of `owner` under a fresh random 128-bit id, owned by `stream` if it was
+    /// created on one (then it is claimed: the stream holds it); unclaimed otherwise. The
+    /// limits are checked under the same lock as the insertion: racing creates cannot pass them.
+    pub fn insert(&self, entry: E, stream: Option<u64>, owner: &Arc<Caller>) -> Result<EpisodeId, ServiceError> {
         let mut map = self.map();
-        if map.len() >= self.max_episodes {
-            return Err(ServiceError::TooManyEpisodes { max: self.max_episodes });
-        }
+        Self::room_in(&map, self.max_episodes, owner)?;
         let id = EpisodeId::random();
         let slot = Slot {
             stream,
+            owner: owner.clone(),
             created: Instant::now(),
             claimed: stream.is_some(),
             episode: Arc::new(tokio::sync::Mutex::new(entry)),
         };
-        map.insert(id.clone(), slot);
+        map.slots.insert(id.clone(), slot);
+        *map.by_owner.entry(owner.name.clone()).or_default() += 1;
         Ok(id)
     }
 
-    /// The episode `id`, which this claims: every call that names an episode gets it here.
-    pub fn get(&self, id: &EpisodeId) -> Result<Locked<E>, ServiceError> {
+    /// The episode `id` for `caller` (its creator, or an admin), which this claims: every call
+    /// that names an episode gets it here.
+    pub fn get(&self, id: &EpisodeId, caller: &Caller) -> Result<Locked<E>, ServiceError> {
         let mut map = self.map();
-        let slot = map.get_mut(id).ok_or_else(|| ServiceError::UnknownEpisode(id.clone()))?;
+        let slot = map.slots.get_mut(id).ok_or_else(|| ServiceError::UnknownEpisode(id.clone()))?;
+        if !caller.is_admin() && slot.owner.name != caller.name {
+            return Err(ServiceError::NotYours { episode: id.clone(), caller: caller.describe() });
+        }
         slot.claimed = true;
         Ok(slot.episode.clone())
     }
 
+    /// Whether the episode `id` is live.
+    pub fn contains(&self, id: &EpisodeId) -> bool {
+        self.map().slots.contains_key(id)
+    }
+
     /// Claims the episode `id` for its creator (a dm_env_rpc world holds it), if it is live.
     pub fn claim(&self, id: &EpisodeId) {
-        if let Some(slot) = self.map().get_mut(id) {
+        if let Some(slot) = self.map().slots.get_mut(id) {
             slot.claimed = true;
         }
     }
 
-    /// Removes the episode `id`.
-    pub fn remove(&self, id: &EpisodeId) -> Result<Locked<E>, ServiceError> {
-        self.map().remove(id).map(|slot| slot.episode).ok_or_else(|| ServiceError::UnknownEpisode(id.clone()))
+    /// Removes the episode `id` for `caller` (its creator, or an admin).
+    pub fn remove(&self, id: &EpisodeId, caller: &Caller) -> Result<Locked<E>, ServiceError> {
+        let mut map = self.map();
+        let slot = map.slots.get(id).ok_or_else(|| ServiceError::UnknownEpisode(id.clone()))?;
+        if !caller.is_admin() && slot.owner.name != caller.name {
+            return Err(ServiceError::NotYours { episode: id.clone(), caller: caller.describe() });
+        }
+        map.remove(id).map(|slot| slot.episode).ok_or_else(|| ServiceError::UnknownEpisode(id.clone()))
     }
 
-    /// Removes every episode created on stream `stream`; returns how many.
-    pub fn remove_stream(&self, stream: u64) -> usize {
-        let mut map = self.map();
-        let before = map.len();
-        map.retain(|_, slot| slot.stream != Some(stream));
-        before - map.len()
+    /// Removes the episode `id` whoever created it (the server's own closes); returns it.
+    pub fn take(&self, id: &EpisodeId) -> Option<Locked<E>> {
+        self.map().remove(id).map(|slot| slot.episode)
     }
 
-    /// Removes the episodes not owned by a stream whose entry `idle` says is idle; returns how
-    /// many. An episode that is locked right now is in use, hence not idle; episodes of an open
-    /// stream live as long as the stream.
-    pub fn reap(&self, idle: impl Fn(&E) -> bool) -> usize {
-        let mut map = self.map();
-        let before = map.len();
-        map.retain(|_, slot| slot.stream.is_some() || slot.episode.try_lock().map(|e| !idle(&e)).unwrap_or(true));
-        before - map.len()
+    /// Removes every episode created on stream `stream`; returns them.
+    pub fn remove_stream(&self, stream: u64) -> Vec<Removed<E>> {
+        Self::removed(self.map().remove_where(|slot| slot.stream != Some(stream)))
+    }
+
+    /// Removes every episode (at shutdown); returns them.
+    pub fn remove_all(&self) -> Vec<Removed<E>> {
+        Self::removed(self.map().remove_where(|_| false))
+    }
+
+    fn removed(slots: Vec<(EpisodeId, Slot<E>)>) -> Vec<Removed<E>> {
+        slots.into_iter().map(|(id, slot)| (id, slot.episode, slot.owner)).collect()
+    }
+
+    /// Removes the episodes not owned by a stream whose entry `idle` says is idle; returns
+    /// them. An episode that is locked right now is in use, hence not idle; episodes of an
+    /// open stream live as long as the stream.
+    pub fn reap(&self, idle: impl Fn(&E) -> bool) -> Vec<Removed<E>> {
+        Self::removed(
+            self.map().remove_where(|slot| {
+                slot.stream.is_some() || slot.episode.try_lock().map(|e| !idle(&e)).unwrap_or(true)
+            }),
+        )
     }
 
     /// Removes the episodes that no call has named within `timeout` of their creation (their
-    /// client never learnt their id: a create abandoned after its answer left); returns how
-    /// many.
-    pub fn reap_unclaimed(&self, timeout: Duration) -> usize {
-        let mut map = self.map();
-        let before = map.len();
-        map.retain(|_, slot| slot.claimed || slot.created.elapsed() <= timeout);
-        before - map.len()
+    /// client never learnt their id: a create abandoned after its answer left); returns them.
+    pub fn reap_unclaimed(&self, timeout: Duration) -> Vec<Removed<E>> {
+        Self::removed(self.map().remove_where(|slot| slot.claimed || slot.created.elapsed() <= timeout))
     }
 }

@@ -1,5 +1,7 @@
 //! The served scenes: the built-in benchmark (generated lazily by index) or a dataset folder
-//! (read lazily), each compiled once and kept in a bounded cache with its uploaded geometry.
+//! (read lazily), and with `--challenge-seed` the hidden challenge and minival splits (generated
+//! lazily from the secret seed by the built-in benchmark's rules); each scene compiled once and
+//! kept in a bounded cache.
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::path::Path;
@@ -8,6 +10,7 @@ use std::sync::{Arc, Mutex};
 use esrp_core::{CompiledScene, Difficulty, Scene, Split};
 use esrp_dataset::files::Dataset;
 use esrp_dataset::{BenchVersion, Benchmark};
+use sha2::{Digest, Sha256};
 
 use crate::error::ServiceError;
 use crate::types::SceneInfo;
@@ -15,6 +18,39 @@ use crate::types::SceneInfo;
 enum Source {
     BuiltIn(Benchmark),
     Folder(Dataset),
+    /// The hidden splits: scene `i` of the store's hidden part is scene `i` of `bench`, a
+    /// benchmark of the secret seed, renamed and put in the split its info names.
+    Hidden(Benchmark),
+}
+
+/// Where a served scene comes from: the dataset (built-in or folder) or the hidden splits, and
+/// its index there.
+#[derive(Clone, Copy)]
+enum Origin {
+    Dataset(usize),
+    Hidden(usize),
+}
+
+/// The hidden splits' scenes: `--challenge-scenes` then `--minival-scenes` scenes of a
+/// benchmark of the secret seed, of `version`'s rules. Its scenes are a shuffled draw of the
+/// whole benchmark's mix of room types and object counts, which is the test split's.
+pub struct HiddenSplits {
+    /// The secret.
+    pub secret: String,
+    /// The benchmark version whose rules generate them.
+    pub version: BenchVersion,
+    /// Challenge scenes.
+    pub challenge: usize,
+    /// Minival scenes.
+    pub minival: usize,
+}
+
+impl HiddenSplits {
+    /// The benchmark seed the secret stands for.
+    pub fn seed(&self) -> u64 {
+        let digest: [u8; 32] = Sha256::digest(format!("esrp-challenge-seed/v1\0{}", self.secret)).into();
+        u64::from_le_bytes(digest[..8].try_into().unwrap_or_default())
+    }
 }
 
 /// Compiled scenes by index, with their insertion order for eviction.
@@ -26,7 +62,10 @@ const CACHE_CAPACITY: usize = 2048;
 /// The served dataset.
 pub struct SceneStore {
     source: Source,
+    hidden: Option<Source>,
+    origins: Vec<Origin>,
     infos: Vec<SceneInfo>,
+    hash: String,
     index_by_id: HashMap<String, usize>,
     cache: Mutex<Cache>,
     name: String,
@@ -53,7 +92,8 @@ impl SceneStore {
             })
             .collect();
         let name = bench.name();
-        Self::new(Source::BuiltIn(bench), infos, name, format!("built-in {version} (seed {seed})"))
+        let hash = format!("{name}\0{seed}");
+        Self::new(Source::BuiltIn(bench), infos, name, format!("built-in {version} (seed {seed})"), hash)
     }
 
     /// A dataset folder.
@@ -74,12 +114,71 @@ impl SceneStore {
             })
             .collect();
         let name = dataset.manifest().name.clone();
-        Ok(Self::new(Source::Folder(dataset), infos, name, dir.display().to_string()))
+        // The manifest names every scene with the hash of its file: those are the scenes.
+        let manifest = serde_json::to_string(dataset.manifest()).unwrap_or_default();
+        let hash = format!("{name}\0{manifest}");
+        Ok(Self::new(Source::Folder(dataset), infos, name, dir.display().to_string(), hash))
     }
 
-    fn new(source: Source, infos: Vec<SceneInfo>, name: String, description: String) -> Self {
+    fn new(source: Source, infos: Vec<SceneInfo>, name: String, description: String, hash: String) -> Self {
         let index_by_id = infos.iter().enumerate().map(|(i, s)| (s.id.clone(), i)).collect();
-        Self { source, infos, index_by_id, cache: Mutex::new((HashMap::new(), VecDeque::new())), name, description }
+        let origins = (0..infos.len()).map(Origin::Dataset).collect();
+        Self {
+            source,
+            hidden: None,
+            origins,
+            infos,
+            hash,
+            index_by_id,
+            cache: Mutex::new((HashMap::new(), VecDeque::new())),
+            name,
+            description,
+        }
+    }
+
+    /// Adds the hidden splits: `challenge/00000`… then `minival/00000`…, listed by id, room
+    /// type, difficulty and object count only.
+    pub fn with_hidden(mut self, hidden: &HiddenSplits) -> Result<Self, String> {
+        let bench = Benchmark::new(hidden.version, hidden.seed());
+        let splits = std::iter::repeat_n(Split::Challenge, hidden.challenge)
+            .chain(std::iter::repeat_n(Split::Minival, hidden.minival));
+        for (i, split) in splits.enumerate().take(bench.len()) {
+            let number = if split == Split::Challenge { i } else { i - hidden.challenge };
+            let count = bench.object_count(i);
+            let info = SceneInfo {
+                id: format!("{}/{number:05}", split.as_str()),
+                room_type: bench.room_type(i).to_owned(),
+                difficulty: Difficulty::for_object_count(count).unwrap_or(Difficulty::Hard),
+                split,
+                movable_objects: count,
+                horizon: 0,
+                expert_length: 0,
+            };
+            if self.index_by_id.insert(info.id.clone(), self.infos.len()).is_some() {
+                return Err(format!(
+                    "the served dataset has a scene {:?}, an id of the hidden splits: rename it or drop --challenge-seed",
+                    info.id
+                ));
+            }
+            self.infos.push(info);
+            self.origins.push(Origin::Hidden(i));
+        }
+        self.hash = format!("{}\0{}\0{}\0{}", self.hash, hidden.secret, hidden.challenge, hidden.minival);
+        self.hidden = Some(Source::Hidden(bench));
+        Ok(self)
+    }
+
+    /// A hash of what is served (the dataset's name and seed or manifest, and the hidden
+    /// splits' secret and sizes): 16 hex digits, the same on every server serving the same
+    /// scenes. Records carry it.
+    pub fn dataset_hash(&self) -> String {
+        let digest: [u8; 32] = Sha256::digest(format!("esrp-dataset-hash/v1\0{}", self.hash)).into();
+        digest[..8].iter().map(|b| format!("{b:02x}")).collect()
+    }
+
+    /// Whether the hidden splits are served.
+    pub fn has_hidden(&self) -> bool {
+        self.hidden.is_some()
     }
 
     /// Dataset name.
@@ -137,9 +236,21 @@ impl SceneStore {
 
     fn build(&self, index: usize) -> Result<Scene, ServiceError> {
         let info = self.infos.get(index).ok_or_else(|| ServiceError::UnknownScene(format!("#{index}")))?;
-        match &self.source {
+        let (source, at) = match self.origins[index] {
+            Origin::Dataset(at) => (&self.source, at),
+            Origin::Hidden(at) => {
+                (self.hidden.as_ref().ok_or_else(|| ServiceError::Internal("no hidden splits".into()))?, at)
+            }
+        };
+        match source {
             Source::BuiltIn(bench) => {
-                bench.generate(index).map(|g| g.scene).map_err(|e| ServiceError::Internal(e.to_string()))
+                bench.generate(at).map(|g| g.scene).map_err(|e| ServiceError::Internal(e.to_string()))
+            }
+            Source::Hidden(bench) => {
+                let mut scene = bench.generate(at).map_err(|e| ServiceError::Internal(e.to_string()))?.scene;
+                scene.id = info.id.clone();
+                scene.split = info.split;
+                Ok(scene)
             }
             Source::Folder(dataset) => dataset
                 .scene_by_id(&info.id)

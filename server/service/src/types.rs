@@ -105,6 +105,67 @@ pub struct CreateOptions {
     pub reward: RewardWeights,
     /// Whether GetPrivilegedState is allowed.
     pub privileged: bool,
+    /// The agent's name for the server's records (`None`: "unnamed"); at most
+    /// [`MAX_AGENT_LABEL`] bytes.
+    pub agent: Option<String>,
+}
+
+/// The longest agent label a create may give, bytes.
+pub const MAX_AGENT_LABEL: usize = 200;
+
+/// What a token may do.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Role {
+    /// Ordinary episodes only: no privileged episodes, privileged state, plans or expert
+    /// trajectories, on any split.
+    Agent,
+    /// Also privileged episodes and the planner, but never on the challenge's scenes.
+    Trainer,
+    /// Everything, including other tokens' episodes.
+    Admin,
+}
+
+impl Role {
+    /// `agent`, `trainer` or `admin`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Role::Agent => "agent",
+            Role::Trainer => "trainer",
+            Role::Admin => "admin",
+        }
+    }
+}
+
+/// Who makes a call: its token's name, role and quotas. A server without tokens takes every
+/// call for [`Caller::anonymous`], an admin.
+#[derive(Debug, PartialEq, Eq)]
+pub struct Caller {
+    /// The token's name (logs, metrics, records; a file name of `--records`).
+    pub name: Arc<str>,
+    /// What it may do.
+    pub role: Role,
+    /// Most live episodes at once (`None`: only the server's limit).
+    pub max_episodes: Option<usize>,
+    /// Most open streams (StepStream, dm_env_rpc connections) at once.
+    pub max_streams: Option<usize>,
+}
+
+impl Caller {
+    /// The caller of a server without tokens: an admin named `anonymous`.
+    pub fn anonymous() -> Arc<Caller> {
+        Arc::new(Caller { name: "anonymous".into(), role: Role::Admin, max_episodes: None, max_streams: None })
+    }
+
+    /// Whether it is an admin.
+    pub fn is_admin(&self) -> bool {
+        self.role == Role::Admin
+    }
+
+    /// `token "alice" (role agent)`, for messages.
+    pub fn describe(&self) -> String {
+        format!("token {:?} (role {})", &*self.name, self.role.as_str())
+    }
 }
 
 /// The element type of an observation array.

@@ -120,16 +120,17 @@ fn sorted(settings: HashMap<String, dm::Tensor>) -> Vec<(String, dm::Tensor)> {
 }
 
 /// The CreateWorld setting names.
-pub const CREATE_WORLD_SETTINGS: [&str; 8] =
-    ["scene", "split", "seed", "horizon", "resolution", "ego_depth", "ego_segmentation", "current_top_down"];
+pub const CREATE_WORLD_SETTINGS: [&str; 9] =
+    ["scene", "split", "seed", "horizon", "resolution", "ego_depth", "ego_segmentation", "current_top_down", "agent"];
 
 /// The episode a CreateWorld's settings ask for.
 pub fn create_options(settings: HashMap<String, dm::Tensor>) -> Result<CreateOptions, DmEnvError> {
-    let (mut scene, mut split, mut seed, mut horizon) = (None, None, 0, None);
+    let (mut scene, mut split, mut seed, mut horizon, mut agent) = (None, None, 0, None, None);
     let mut sensors = SensorRequest::default();
     for (name, value) in sorted(settings) {
         match name.as_str() {
             "scene" => scene = Some(string_setting(&name, &value)?),
+            "agent" => agent = Some(string_setting(&name, &value)?).filter(|a| !a.is_empty()),
             "split" => {
                 let name = string_setting(&name, &value)?;
                 split = Some(name.parse::<Split>().map_err(|_| {
@@ -158,7 +159,7 @@ pub fn create_options(settings: HashMap<String, dm::Tensor>) -> Result<CreateOpt
         Some(id) if !id.is_empty() => SceneChoice::SceneId(id),
         _ => SceneChoice::FromSplit { split, seed },
     };
-    Ok(CreateOptions { scene, sensors, horizon, reward: Default::default(), privileged: false })
+    Ok(CreateOptions { scene, sensors, horizon, reward: Default::default(), privileged: false, agent })
 }
 
 /// The new scene a ResetWorld's settings ask for, if any.

@@ -15,11 +15,12 @@
 //! | name | tensor | meaning |
 //! |---|---|---|
 //! | `scene` | string | scene id of the served dataset (default: chosen by `split` and `seed`) |
-//! | `split` | string `"train"` or `"test"` | split to choose from when `scene` is absent (default test) |
+//! | `split` | string `"train"`, `"test"`, `"challenge"` or `"minival"` | split to choose from when `scene` is absent (default test) |
 //! | `seed` | integer ≥ 0 | which scene of the split: index `seed mod count` (default 0: the first) |
 //! | `horizon` | integer ≥ 0 | step limit; 0 or absent: the scene's own |
 //! | `resolution` | integer 16..=512 | square image side in pixels (default 128) |
 //! | `ego_depth`, `ego_segmentation`, `current_top_down` | bool | optional sensors (default off) |
+//! | `agent` | string | the agent's name in the server's records (at most 200 bytes) |
 //!
 //! ResetWorld accepts `scene` (switch the world to another scene). JoinWorld and Reset accept
 //! no settings.
@@ -56,7 +57,8 @@ use tokio::sync::mpsc;
 use tokio_stream::StreamExt;
 use tonic::{Request, Response, Status, Streaming};
 
-use crate::episodes::Episodes;
+use crate::auth::caller_of;
+use crate::episodes::{Episodes, StreamSlot};
 use crate::error::{ServiceError, quoted};
 use crate::types::{EpisodeId, Observation, StepCall};
 
@@ -86,6 +88,8 @@ struct World {
     observation_names: Arc<[String]>,
     /// The connection that created it (the world ends with it).
     creator: u64,
+    /// The token that created it: only it (or an admin) may join it.
+    owner: Arc<str>,
     /// The joined connection, if any.
     agent: Option<u64>,
     /// Bumped by ResetWorld, so that the agent learns its sequence was interrupted.
@@ -136,6 +140,8 @@ struct Joined {
 /// One stream: its joined world and the worlds it created.
 struct Connection {
     id: u64,
+    /// The connection's place in its token's `max_streams`; its caller acts in every call.
+    slot: StreamSlot,
     episodes: Arc<Episodes>,
     worlds: Arc<Worlds>,
     joined: Option<Joined>,
@@ -193,7 +199,7 @@ impl Connection {
 
     async fn create_world(&mut self, request: dm::CreateWorldRequest) -> Result<dm::CreateWorldResponse, DmEnvError> {
         let options = create_options(request.settings)?;
-        let created = self.episodes.create(options, None).await?;
+        let created = self.episodes.create(&self.slot.caller, options, None).await?;
         // The world holds the episode from here (and closes it with the connection).
         self.episodes.claim(&created.episode);
         let (specs, observation_names) = specs_of(&created.sensors);
@@ -203,6 +209,7 @@ impl Connection {
             specs,
             observation_names: observation_names.into(),
             creator: self.id,
+            owner: self.slot.caller.name.clone(),
             agent: None,
             generation: 0,
             fresh: Some(created.observation),
@@ -220,6 +227,15 @@ impl Connection {
         let mut map = self.worlds.map();
         let world =
             map.get_mut(&request.world_name).ok_or_else(|| DmEnvError::UnknownWorld(request.world_name.clone()))?;
+        let caller = &self.slot.caller;
+        if !caller.is_admin() && world.owner != caller.name {
+            return Err(ServiceError::Denied(format!(
+                "world {} belongs to another token: {} may join only the worlds it created",
+                quoted(&request.world_name),
+                caller.describe()
+            ))
+            .into());
+        }
         if world.agent.is_some() {
             return Err(DmEnvError::WorldTaken(request.world_name));
         }
@@ -279,7 +295,7 @@ impl Connection {
             let fresh = self.worlds.map().get_mut(&joined.world).and_then(|w| w.fresh.take());
             let observation = match fresh {
                 Some(observation) => observation,
-                None => self.episodes.reset(&joined.episode_id, None).await?.observation,
+                None => self.episodes.reset(&self.slot.caller, &joined.episode_id, None).await?.observation,
             };
             joined.running = true;
             return respond(dm::EnvironmentStateType::Running, observation, 0.0, 1.0);
@@ -290,7 +306,7 @@ impl Connection {
         let step = StepCall { episode: joined.episode_id.clone(), action, include_goal };
         let result = self
             .episodes
-            .step_many(vec![step])
+            .step_many(&self.slot.caller, vec![step])
             .await?
             .pop()
             .ok_or_else(|| ServiceError::Internal("a step without a response".into()))?;
@@ -323,7 +339,7 @@ impl Connection {
                 .map(|w| w.episode_id.clone())
                 .ok_or_else(|| DmEnvError::UnknownWorld(request.world_name.clone()))?
         };
-        let reset = self.episodes.reset(&episode_id, scene).await?;
+        let reset = self.episodes.reset(&self.slot.caller, &episode_id, scene).await?;
         let mut map = self.worlds.map();
         if let Some(world) = map.get_mut(&request.world_name) {
             world.generation += 1;
@@ -366,7 +382,7 @@ impl Connection {
     }
 
     async fn close_episode(&self, episode_id: EpisodeId) -> Result<(), DmEnvError> {
-        match self.episodes.close(&episode_id).await {
+        match self.episodes.close(&self.slot.caller, &episode_id).await {
             // Closed already, as idle.
             Ok(_) | Err(ServiceError::UnknownEpisode(_)) => Ok(()),
             Err(e) => Err(e.into()),
@@ -428,9 +444,12 @@ impl dm::environment_server::Environment for DmEnvService {
         &self,
         request: Request<Streaming<dm::EnvironmentRequest>>,
     ) -> Result<Response<Self::ProcessStream>, Status> {
+        // The quota first: a connection beyond the token's max_streams is refused as a whole.
+        let slot = self.episodes.open_stream(caller_of(&request))?;
         let (out, receiver) = mpsc::channel(16);
         let connection = Connection {
             id: self.worlds.next_connection.fetch_add(1, Ordering::Relaxed),
+            slot,
             episodes: self.episodes.clone(),
             worlds: self.worlds.clone(),
             joined: None,

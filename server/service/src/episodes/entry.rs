@@ -1,7 +1,8 @@
 //! One live episode and what the service keeps beside it ([`EpisodeEntry`]), and the checks a
 //! call makes on it before it moves.
 
-use std::time::Instant;
+use std::sync::Arc;
+use std::time::{Instant, SystemTime};
 
 use esrp_core::{Episode, Scene};
 
@@ -9,7 +10,24 @@ use super::observe::Observer;
 use super::plan_cache::CachedPlan;
 use crate::error::ServiceError;
 use crate::registry::Locked;
-use crate::types::{EpisodeId, SceneInfo};
+use crate::types::{Caller, EpisodeId, SceneInfo};
+
+/// A run of an episode (from its create or reset) that the server records or counts: what its
+/// record needs beyond the episode itself.
+pub struct RunLog {
+    /// Every action taken, as codes.
+    pub actions: Vec<u8>,
+    /// When the run started.
+    pub started: SystemTime,
+    /// The same, for its wall time.
+    pub clock: Instant,
+    /// Whether it is its token's counted attempt at a challenge scene.
+    pub counted: bool,
+    /// Whether the server keeps a record of it (`--records`).
+    pub recorded: bool,
+    /// Whether it has ended and been recorded (or counted): it is never recorded twice.
+    pub finished: bool,
+}
 
 /// One live episode: the simulator state and what the service keeps beside it.
 pub struct EpisodeEntry {
@@ -25,6 +43,12 @@ pub struct EpisodeEntry {
     pub last_used: Instant,
     /// The planner's last answer (PlanActions), reused while the episode follows it.
     pub plan: Option<CachedPlan>,
+    /// The token that created it.
+    pub owner: Arc<Caller>,
+    /// The agent's name its create gave ("unnamed" if none).
+    pub agent: Arc<str>,
+    /// The current run, when the server records or counts it.
+    pub run: Option<RunLog>,
 }
 
 /// A live episode as the registry holds it: shared, locked alone.
@@ -34,10 +58,10 @@ pub type SharedEpisode = Locked<EpisodeEntry>;
 pub type EpisodeGuard = tokio::sync::OwnedMutexGuard<EpisodeEntry>;
 
 impl EpisodeEntry {
-    /// A fresh entry for `episode`, observed by `observer`.
-    pub fn new(episode: Episode, observer: Observer, privileged: bool) -> Self {
+    /// A fresh entry for `episode` of `owner`, observed by `observer`.
+    pub fn new(episode: Episode, observer: Observer, privileged: bool, owner: Arc<Caller>, agent: Arc<str>) -> Self {
         let summary = summary_of(episode.compiled().scene());
-        Self { episode, observer, summary, privileged, last_used: Instant::now(), plan: None }
+        Self { episode, observer, summary, privileged, last_used: Instant::now(), plan: None, owner, agent, run: None }
     }
 
     /// The one check before any call moves the episode `id` (`at` names the call's step in
@@ -71,7 +95,7 @@ impl EpisodeEntry {
     }
 }
 
-/// The summary of a built scene.
+/// The summary of a built scene; a hidden scene's says nothing of its expert trajectory.
 fn summary_of(scene: &Scene) -> SceneInfo {
     SceneInfo {
         id: scene.id.clone(),
@@ -80,6 +104,6 @@ fn summary_of(scene: &Scene) -> SceneInfo {
         split: scene.split,
         movable_objects: scene.movable_objects.len(),
         horizon: scene.horizon,
-        expert_length: scene.expert_trajectory.len(),
+        expert_length: if scene.split.is_hidden() { 0 } else { scene.expert_trajectory.len() },
     }
 }

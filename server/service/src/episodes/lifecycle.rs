@@ -7,13 +7,14 @@ use std::time::Instant;
 
 use esrp_core::{CompiledScene, Episode, EpisodeConfig};
 
-use super::entry::EpisodeEntry;
+use super::entry::{EpisodeEntry, RunLog};
 use super::observe::Observer;
 use super::state::Episodes;
+use super::{access, recording};
 use crate::error::ServiceError;
 use crate::types::{
-    CreateOptions, Created, EpisodeId, Goal, MetricsSoFar, Observation, Privileged, ResetResult, SceneChoice,
-    SensorConfig,
+    Caller, CreateOptions, Created, EpisodeId, Goal, MAX_AGENT_LABEL, MetricsSoFar, Observation, Privileged,
+    ResetResult, SceneChoice, SensorConfig,
 };
 
 /// A created episode whose answer has not reached its client yet: dropping the last clone
@@ -22,12 +23,21 @@ use crate::types::{
 #[derive(Clone)]
 pub struct Unanswered(Arc<Pending>);
 
-/// The episode to close unless answered.
-struct Pending(std::sync::Mutex<Option<(Arc<Episodes>, EpisodeId)>>);
+/// The episode to close unless answered, with its creator and, if its run took a counted
+/// attempt, that attempt's scene (given back with the episode: its client never saw it).
+struct Pending(std::sync::Mutex<Option<PendingEpisode>>);
+
+struct PendingEpisode {
+    episodes: Arc<Episodes>,
+    episode: EpisodeId,
+    owner: Arc<Caller>,
+    counted_scene: Option<String>,
+}
 
 impl Unanswered {
-    fn new(episodes: Arc<Episodes>, episode: EpisodeId) -> Self {
-        Self(Arc::new(Pending(std::sync::Mutex::new(Some((episodes, episode))))))
+    fn new(episodes: Arc<Episodes>, episode: EpisodeId, owner: Arc<Caller>, counted_scene: Option<String>) -> Self {
+        let pending = PendingEpisode { episodes, episode, owner, counted_scene };
+        Self(Arc::new(Pending(std::sync::Mutex::new(Some(pending)))))
     }
 
     /// The answer was sent: the episode stays.
@@ -39,13 +49,23 @@ impl Unanswered {
 impl Drop for Pending {
     fn drop(&mut self) {
         let pending = self.0.get_mut().unwrap_or_else(|poisoned| poisoned.into_inner()).take();
-        if let Some((episodes, episode)) = pending
-            && episodes.registry.remove(&episode).is_ok()
+        if let Some(PendingEpisode { episodes, episode, owner, counted_scene }) = pending
+            && episodes.registry.take(&episode).is_some()
         {
+            if let Some(scene) = counted_scene {
+                episodes.attempts.give_back(&owner.name, &scene);
+            }
             episodes.metrics.count_closed("unanswered", 1);
             tracing::debug!(%episode, "closed an episode whose create was abandoned before its answer was sent");
         }
     }
+}
+
+/// Who an entry belongs to and what its run logs.
+struct Owner {
+    caller: Arc<Caller>,
+    agent: Arc<str>,
+    run: Option<RunLog>,
 }
 
 /// Builds a fresh entry on `scene`, rendering its goal and first observation in one job.
@@ -55,6 +75,7 @@ async fn new_entry(
     config: EpisodeConfig,
     sensors: SensorConfig,
     privileged: bool,
+    owner: Owner,
 ) -> Result<(EpisodeEntry, Observation), ServiceError> {
     let episode = Episode::new(scene.clone(), config)?;
     let handle = episodes.render.upload(scene).await?;
@@ -67,16 +88,42 @@ async fn new_entry(
     observer.goal = goal.rgb;
     let mut observation = first.finish(&mut outputs);
     observation.goal_rgb = Some(observer.goal.clone());
-    Ok((EpisodeEntry::new(episode, observer, privileged), observation))
+    let mut entry = EpisodeEntry::new(episode, observer, privileged, owner.caller, owner.agent);
+    entry.run = owner.run;
+    Ok((entry, observation))
+}
+
+/// Starts a run of `caller` on the resolved `scene` (the role's rules, the counted attempt),
+/// then builds its entry; a failure after the attempt was taken gives it back.
+async fn start_run(
+    episodes: &Episodes,
+    caller: &Arc<Caller>,
+    agent: Arc<str>,
+    scene: Arc<CompiledScene>,
+    config: EpisodeConfig,
+    sensors: SensorConfig,
+    privileged: bool,
+) -> Result<(EpisodeEntry, Observation), ServiceError> {
+    let (split, id) = (scene.scene().split, scene.scene().id.clone());
+    access::may_play(caller, split, privileged)?;
+    let run = recording::begin(episodes, caller, split, &id)?;
+    let counted = run.as_ref().is_some_and(|r| r.counted);
+    let owner = Owner { caller: caller.clone(), agent, run };
+    let built = new_entry(episodes, scene, config, sensors, privileged, owner).await;
+    if built.is_err() && counted {
+        episodes.attempts.give_back(&caller.name, &id);
+    }
+    built
 }
 
 /// Creates an episode, owned by `stream` if it was created on one (it closes with it).
 pub(super) async fn create(
     episodes: &Arc<Episodes>,
+    caller: &Arc<Caller>,
     options: CreateOptions,
     stream: Option<u64>,
 ) -> Result<Created, ServiceError> {
-    let (created, unanswered) = create_unanswered(episodes, options, stream).await?;
+    let (created, unanswered) = create_unanswered(episodes, caller, options, stream).await?;
     unanswered.answered();
     Ok(created)
 }
@@ -85,59 +132,97 @@ pub(super) async fn create(
 /// `Episodes::create_unanswered`).
 pub(super) async fn create_unanswered(
     episodes: &Arc<Episodes>,
+    caller: &Arc<Caller>,
     options: CreateOptions,
     stream: Option<u64>,
 ) -> Result<(Created, Unanswered), ServiceError> {
-    if episodes.registry.len() >= episodes.registry.max_episodes() {
-        return Err(ServiceError::TooManyEpisodes { max: episodes.registry.max_episodes() });
-    }
+    // The limits first (cheap), and again at the insertion (exact under races).
+    episodes.registry.check_room(caller)?;
     let sensors = episodes.sensors(options.sensors)?;
     let config = EpisodeConfig { horizon: options.horizon, reward: options.reward };
+    let agent = options.agent.as_deref().filter(|a| !a.is_empty()).unwrap_or("unnamed");
+    if agent.len() > MAX_AGENT_LABEL {
+        return Err(ServiceError::InvalidArgument(format!(
+            "agent is {} bytes long: name the agent in at most {MAX_AGENT_LABEL} bytes",
+            agent.len()
+        )));
+    }
+    let agent: Arc<str> = agent.into();
     let scene = episodes.resolve_scene(options.scene).await?;
-    let (entry, observation) = new_entry(episodes, scene, config, sensors, options.privileged).await?;
+    let (entry, observation) = start_run(episodes, caller, agent, scene, config, sensors, options.privileged).await?;
     let summary = entry.summary.clone();
-    let episode = episodes.registry.insert(entry, stream)?;
+    let counted_scene = entry.run.as_ref().filter(|r| r.counted).map(|_| summary.id.clone());
+    let episode = match episodes.registry.insert(entry, stream, caller) {
+        Ok(episode) => episode,
+        Err(e) => {
+            if let Some(scene) = &counted_scene {
+                episodes.attempts.give_back(&caller.name, scene);
+            }
+            return Err(e);
+        }
+    };
     episodes.metrics.created.inc();
-    tracing::debug!(%episode, scene = %summary.id, "episode created");
+    episodes.metrics.count_created_by(&caller.name);
+    tracing::debug!(%episode, scene = %summary.id, token = %caller.name, "episode created");
     // No await from the insertion to here: the guard exists as soon as the episode does.
-    let unanswered = Unanswered::new(episodes.clone(), episode.clone());
+    let unanswered = Unanswered::new(episodes.clone(), episode.clone(), caller.clone(), counted_scene);
     Ok((Created { episode, sensors, observation, scene: summary }, unanswered))
 }
 
 /// Restarts an episode, on another scene if `scene` is given (see `Episodes::reset`).
 pub(super) async fn reset(
     episodes: &Arc<Episodes>,
+    caller: &Arc<Caller>,
     episode: &EpisodeId,
     scene: Option<SceneChoice>,
 ) -> Result<ResetResult, ServiceError> {
-    let shared = episodes.registry.get(episode)?;
+    let shared = episodes.registry.get(episode, caller)?;
     let mut entry = shared.lock().await;
     let Some(scene) = scene else {
+        // A new run on the same scene: a counted scene is refused here (its attempt is taken).
+        let owner = entry.owner.clone();
+        let run = recording::begin(episodes, &owner, entry.summary.split, &entry.summary.id)?;
+        let record = recording::finish(episodes, &mut entry, Some("reset"));
+        entry.run = run;
         entry.episode.reset();
         entry.last_used = Instant::now();
         let prepared = entry.observer.prepare(&entry.episode, true);
         episodes.metrics.reused_views.inc_by(prepared.reused() as u64);
+        for written in recording::write(episodes, record.into_iter().collect()) {
+            written.wait().await;
+        }
         let rendered = episodes.render.render(prepared.views().to_vec()).await?;
         let observation = prepared.finish(&mut rendered.into_iter());
         return Ok(ResetResult { observation, scene: entry.summary.clone() });
     };
     let scene = episodes.resolve_scene(scene).await?;
     let config = *entry.episode.config();
-    let (fresh, observation) = new_entry(episodes, scene, config, entry.observer.sensors, entry.privileged).await?;
+    let (owner, agent) = (entry.owner.clone(), entry.agent.clone());
+    let (fresh, observation) =
+        start_run(episodes, &owner, agent, scene, config, entry.observer.sensors, entry.privileged).await?;
+    let record = recording::finish(episodes, &mut entry, Some("reset"));
     *entry = fresh;
+    for written in recording::write(episodes, record.into_iter().collect()) {
+        written.wait().await;
+    }
     Ok(ResetResult { observation, scene: entry.summary.clone() })
 }
 
 /// The goal image of an episode.
-pub(super) async fn goal(episodes: &Episodes, id: &EpisodeId) -> Result<Goal, ServiceError> {
-    let entry = episodes.locked(id).await?;
+pub(super) async fn goal(episodes: &Episodes, caller: &Caller, id: &EpisodeId) -> Result<Goal, ServiceError> {
+    let entry = episodes.locked(caller, id).await?;
     let observer = &entry.observer;
     Ok(Goal { rgb: observer.goal.clone(), resolution: observer.sensors.resolution, frame: observer.frame })
 }
 
 /// The privileged state of a privileged episode.
-pub(super) async fn privileged_state(episodes: &Episodes, id: &EpisodeId) -> Result<Privileged, ServiceError> {
-    let shared = episodes.registry.get(id)?;
+pub(super) async fn privileged_state(
+    episodes: &Episodes,
+    caller: &Caller,
+    id: &EpisodeId,
+) -> Result<Privileged, ServiceError> {
+    access::may_read_privileged(caller, "GetPrivilegedState")?;
+    let shared = episodes.registry.get(id, caller)?;
     let mut entry = shared.lock().await;
     if !entry.privileged {
         return Err(ServiceError::NotPrivileged(id.clone()));
@@ -147,24 +232,37 @@ pub(super) async fn privileged_state(episodes: &Episodes, id: &EpisodeId) -> Res
 }
 
 /// The metrics of an episode so far.
-pub(super) async fn metrics(episodes: &Episodes, id: &EpisodeId) -> Result<MetricsSoFar, ServiceError> {
-    let entry = episodes.locked(id).await?;
+pub(super) async fn metrics(
+    episodes: &Episodes,
+    caller: &Caller,
+    id: &EpisodeId,
+) -> Result<MetricsSoFar, ServiceError> {
+    let entry = episodes.locked(caller, id).await?;
     Ok(MetricsSoFar { metrics: entry.episode.metrics(), ended: entry.episode.is_over() })
 }
 
 /// Closes an episode; returns its metrics.
-pub(super) async fn close(episodes: &Episodes, id: &EpisodeId) -> Result<esrp_core::EpisodeMetrics, ServiceError> {
-    let shared = episodes.registry.remove(id)?;
+pub(super) async fn close(
+    episodes: &Episodes,
+    caller: &Caller,
+    id: &EpisodeId,
+) -> Result<esrp_core::EpisodeMetrics, ServiceError> {
+    let shared = episodes.registry.remove(id, caller)?;
     episodes.metrics.count_closed("client", 1);
-    let entry = shared.lock().await;
+    let mut entry = shared.lock().await;
+    let record = recording::finish(episodes, &mut entry, Some("client"));
+    for written in recording::write(episodes, record.into_iter().collect()) {
+        written.wait().await;
+    }
     Ok(entry.episode.metrics())
 }
 
 /// Closes the episodes of a finished stream.
-pub(super) fn end_stream(episodes: &Episodes, stream: u64) {
+pub(super) async fn end_stream(episodes: &Episodes, stream: u64) {
     let closed = episodes.registry.remove_stream(stream);
-    episodes.metrics.count_closed("stream_ended", closed);
-    if closed > 0 {
-        tracing::debug!(stream, closed, "closed the episodes of a finished stream");
+    episodes.metrics.count_closed("stream_ended", closed.len());
+    if !closed.is_empty() {
+        tracing::debug!(stream, closed = closed.len(), "closed the episodes of a finished stream");
     }
+    recording::close_removed(episodes, closed, "stream").await;
 }

@@ -17,12 +17,20 @@
 //! - [`waves`]: which stream requests may be answered together, and answering them.
 //! - `planning` and `plan_cache`: PlanActions, the server's planner on an episode's current
 //!   state, off the runtime, its answer kept with the episode.
+//! - `access`: what each token role may do, asked before a call moves anything (which token
+//!   may name which episode is the registry's check, and each token's quotas too).
+//! - `recording`: the runs the server records (`--records`) or counts (the challenge's one
+//!   attempt per scene and token), ended into `esrp.results/v1` records whatever ends them.
+//!
+//! Every method that acts for a client takes its [`Caller`]: the token's name, role and quotas.
 
+mod access;
 mod entry;
 mod lifecycle;
 mod observe;
 mod plan_cache;
 mod planning;
+mod recording;
 mod state;
 mod stepping;
 pub mod waves;
@@ -35,23 +43,35 @@ pub use entry::EpisodeEntry;
 pub use lifecycle::Unanswered;
 pub use state::{Episodes, MAX_RESOLUTION};
 pub use stepping::Stepped;
+pub use waves::StreamSlot;
 
 use crate::config::Config;
 use crate::error::ServiceError;
 use crate::metrics::Metrics;
+use crate::records::{Attempts, Recorder};
 use crate::registry::Registry;
 use crate::render::RenderScheduler;
 use crate::scenes::SceneStore;
 use crate::types::{
-    CreateOptions, Created, EpisodeId, Goal, MetricsSoFar, PlanCall, Planned, Privileged, ResetResult, SceneChoice,
-    StepCall, StepResult,
+    Caller, CreateOptions, Created, EpisodeId, Goal, MetricsSoFar, PlanCall, Planned, Privileged, ResetResult,
+    SceneChoice, StepCall, StepResult,
 };
 
 /// Everything the adapters may ask of the episode layer.
 impl Episodes {
-    /// The episode layer of a server with `config`, serving `store` and rendering with `render`.
-    pub fn new(store: SceneStore, render: RenderScheduler, config: Config, metrics: Arc<Metrics>) -> Self {
+    /// The episode layer of a server with `config`, serving `store` and rendering with `render`,
+    /// recording with `recorder` (if any) and counting challenge attempts in `attempts` (those
+    /// the recorder read back, at start).
+    pub fn new(
+        store: SceneStore,
+        render: RenderScheduler,
+        config: Config,
+        metrics: Arc<Metrics>,
+        recorder: Option<Recorder>,
+        attempts: Attempts,
+    ) -> Self {
         let planners = tokio::sync::Semaphore::new(config.planner_threads());
+        let dataset_hash = store.dataset_hash();
         Self {
             store,
             registry: Registry::new(config.max_episodes),
@@ -60,6 +80,10 @@ impl Episodes {
             next_stream: AtomicU64::new(1),
             planners,
             metrics,
+            recorder,
+            attempts,
+            dataset_hash,
+            streams: Default::default(),
         }
     }
 
@@ -73,13 +97,21 @@ impl Episodes {
         self.registry.len()
     }
 
-    /// Creates an episode, owned by `stream` if it was created on one (it closes with it).
+    /// The number of live episodes `caller`'s token created.
+    pub fn live_of(&self, caller: &Caller) -> usize {
+        self.registry.owned_by(caller)
+    }
+
+    /// Creates an episode for `caller`, owned by `stream` if it was created on one (it closes
+    /// with it). The caller's role decides whether it may be privileged; a challenge scene
+    /// takes the caller's one counted attempt at it.
     pub async fn create(
         self: &Arc<Self>,
+        caller: &Arc<Caller>,
         options: CreateOptions,
         stream: Option<u64>,
     ) -> Result<Created, ServiceError> {
-        lifecycle::create(self, options, stream).await
+        lifecycle::create(self, caller, options, stream).await
     }
 
     /// Creates an episode that lives only if its answer reaches the client: the episode is
@@ -90,10 +122,11 @@ impl Episodes {
     /// against `--max-episodes` meanwhile.
     pub async fn create_unanswered(
         self: &Arc<Self>,
+        caller: &Arc<Caller>,
         options: CreateOptions,
         stream: Option<u64>,
     ) -> Result<(Created, Unanswered), ServiceError> {
-        lifecycle::create_unanswered(self, options, stream).await
+        lifecycle::create_unanswered(self, caller, options, stream).await
     }
 
     /// Claims the episode `id` for its creator (a dm_env_rpc world holds it), if it is live:
@@ -109,12 +142,16 @@ impl Episodes {
     /// one step before the render is awaited (the abandoned call leaves it restarted, exactly
     /// as an answered one, and a Reset is idempotent), and with a new scene the fresh entry
     /// replaces the old one only after every await, so until then the episode is untouched.
+    ///
+    /// A reset starts a new run: the old run is recorded as ended there (if the server records
+    /// it), and a challenge scene is a new attempt (refused for a counted scene).
     pub async fn reset(
         self: &Arc<Self>,
+        caller: &Arc<Caller>,
         episode: &EpisodeId,
         scene: Option<SceneChoice>,
     ) -> Result<ResetResult, ServiceError> {
-        lifecycle::reset(self, episode, scene).await
+        lifecycle::reset(self, caller, episode, scene).await
     }
 
     /// Refuses a StepBatch longer than `--max-batch`. [`Episodes::step_many`] checks it too;
@@ -126,8 +163,12 @@ impl Episodes {
     /// Step and StepBatch, all or nothing: validates the whole batch (at most `--max-batch`
     /// steps, one per episode, no ended episode, an answer that fits in a message) before any
     /// episode moves, then steps every episode and renders every view in one job.
-    pub async fn step_many(self: &Arc<Self>, steps: Vec<StepCall>) -> Result<Vec<StepResult>, ServiceError> {
-        stepping::step_many(self, steps).await
+    pub async fn step_many(
+        self: &Arc<Self>,
+        caller: &Caller,
+        steps: Vec<StepCall>,
+    ) -> Result<Vec<StepResult>, ServiceError> {
+        stepping::step_many(self, caller, steps).await
     }
 
     /// Takes the steps of a stream wave, each answered on its own: an episode may be stepped
@@ -135,53 +176,80 @@ impl Episodes {
     /// answers its error without disturbing the others, and every view of the wave is
     /// rendered as one job. Returns once the steps are taken; the answers come from
     /// [`Stepped::finish`]. The caller bounds the number of steps (`--max-batch`).
-    pub async fn step_each(self: &Arc<Self>, steps: Vec<StepCall>) -> Stepped {
-        stepping::step_each(self, steps).await
+    pub async fn step_each(self: &Arc<Self>, caller: &Caller, steps: Vec<StepCall>) -> Stepped {
+        stepping::step_each(self, caller, steps).await
     }
 
     /// The goal image of an episode.
-    pub async fn goal(&self, id: &EpisodeId) -> Result<Goal, ServiceError> {
-        lifecycle::goal(self, id).await
+    pub async fn goal(&self, caller: &Caller, id: &EpisodeId) -> Result<Goal, ServiceError> {
+        lifecycle::goal(self, caller, id).await
     }
 
-    /// The privileged state of a privileged episode.
-    pub async fn privileged_state(&self, id: &EpisodeId) -> Result<Privileged, ServiceError> {
-        lifecycle::privileged_state(self, id).await
+    /// The privileged state of a privileged episode (trainer and admin tokens only).
+    pub async fn privileged_state(&self, caller: &Caller, id: &EpisodeId) -> Result<Privileged, ServiceError> {
+        lifecycle::privileged_state(self, caller, id).await
     }
 
-    /// Plans from the episode's current state with the server's planner (see `planning`).
-    pub async fn plan(&self, call: PlanCall) -> Result<Planned, ServiceError> {
-        planning::plan(self, call).await
+    /// Plans from the episode's current state with the server's planner (see `planning`;
+    /// trainer and admin tokens only).
+    pub async fn plan(&self, caller: &Caller, call: PlanCall) -> Result<Planned, ServiceError> {
+        planning::plan(self, caller, call).await
     }
 
     /// The metrics of an episode so far.
-    pub async fn metrics(&self, id: &EpisodeId) -> Result<MetricsSoFar, ServiceError> {
-        lifecycle::metrics(self, id).await
+    pub async fn metrics(&self, caller: &Caller, id: &EpisodeId) -> Result<MetricsSoFar, ServiceError> {
+        lifecycle::metrics(self, caller, id).await
     }
 
-    /// Closes an episode; returns its metrics.
-    pub async fn close(&self, id: &EpisodeId) -> Result<esrp_core::EpisodeMetrics, ServiceError> {
-        lifecycle::close(self, id).await
+    /// Closes an episode; returns its metrics. Its run is recorded as ended here.
+    pub async fn close(&self, caller: &Caller, id: &EpisodeId) -> Result<esrp_core::EpisodeMetrics, ServiceError> {
+        lifecycle::close(self, caller, id).await
+    }
+
+    /// Opens a stream (StepStream, a dm_env_rpc connection) for `caller`, within its
+    /// `max_streams`; the slot is given back when dropped.
+    pub fn open_stream(self: &Arc<Self>, caller: Arc<Caller>) -> Result<StreamSlot, ServiceError> {
+        StreamSlot::open(self, caller)
     }
 
     /// Closes the episodes not owned by a stream and idle for longer than `idle`; returns how
-    /// many (counted in the metrics as closed `idle`).
-    pub fn reap_idle(&self, idle: Duration) -> usize {
+    /// many (counted in the metrics as closed `idle`; their runs recorded as ended).
+    pub async fn reap_idle(&self, idle: Duration) -> usize {
         let reaped = self.registry.reap(|entry| entry.last_used.elapsed() > idle);
-        if reaped > 0 {
-            self.metrics.count_closed("idle", reaped);
+        let n = reaped.len();
+        if n > 0 {
+            self.metrics.count_closed("idle", n);
+            recording::close_removed(self, reaped, "idle").await;
         }
-        reaped
+        n
     }
 
     /// Closes the episodes that no call has named within `timeout` of their creation (their
     /// client never learnt their id: a create abandoned after its answer left); returns how
-    /// many (counted in the metrics as closed `unclaimed`).
-    pub fn reap_unclaimed(&self, timeout: Duration) -> usize {
+    /// many (counted in the metrics as closed `unclaimed`; their runs recorded as ended).
+    pub async fn reap_unclaimed(&self, timeout: Duration) -> usize {
         let reaped = self.registry.reap_unclaimed(timeout);
-        if reaped > 0 {
-            self.metrics.count_closed("unclaimed", reaped);
+        let n = reaped.len();
+        if n > 0 {
+            self.metrics.count_closed("unclaimed", n);
+            recording::close_removed(self, reaped, "unclaimed").await;
         }
-        reaped
+        n
+    }
+
+    /// Closes every episode (at shutdown, after the calls have drained), recording each run
+    /// as ended there, then stops the records writer once every record is on disk; returns
+    /// how many episodes were closed.
+    pub async fn close_all(&self) -> usize {
+        let closed = self.registry.remove_all();
+        let n = closed.len();
+        if n > 0 {
+            self.metrics.count_closed("shutdown", n);
+            recording::close_removed(self, closed, "shutdown").await;
+        }
+        if let Some(recorder) = &self.recorder {
+            recorder.stop();
+        }
+        n
     }
 }

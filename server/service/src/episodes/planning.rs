@@ -16,10 +16,11 @@ use std::time::Instant;
 
 use esrp_planner::{CancelToken, PlanFailure, PlanOptions};
 
+use super::access;
 use super::plan_cache::CachedPlan;
 use super::state::Episodes;
 use crate::error::ServiceError;
-use crate::types::{PlanCall, Planned};
+use crate::types::{Caller, PlanCall, Planned};
 
 /// Cancels the planner's token when dropped: a call abandoned by its client (its future
 /// dropped at an await) stops the planning it started at the planner's next check.
@@ -32,12 +33,13 @@ impl Drop for CancelOnDrop {
 }
 
 /// Plans from the episode's current state (see the module's notes).
-pub(super) async fn plan(episodes: &Episodes, call: PlanCall) -> Result<Planned, ServiceError> {
+pub(super) async fn plan(episodes: &Episodes, caller: &Caller, call: PlanCall) -> Result<Planned, ServiceError> {
+    access::may_read_privileged(caller, "PlanActions")?;
     let started = Instant::now();
     let budget = call.budget.unwrap_or(episodes.config.plan_budget()).min(episodes.config.max_plan());
     let deadline = started + budget;
     let (episode, fingerprint) = {
-        let shared = episodes.registry.get(&call.episode)?;
+        let shared = episodes.registry.get(&call.episode, caller)?;
         let mut entry = shared.lock().await;
         if !entry.privileged {
             return Err(ServiceError::NotPrivileged(call.episode.clone()));
@@ -91,7 +93,7 @@ pub(super) async fn plan(episodes: &Episodes, call: PlanCall) -> Result<Planned,
     let answer = Planned { cached: false, ..answer };
     // Keep the answer if the episode is still where the plan starts (it may have moved on
     // while the planner ran).
-    if let Ok(shared) = episodes.registry.get(&call.episode) {
+    if let Ok(shared) = episodes.registry.get(&call.episode, caller) {
         let mut entry = shared.lock().await;
         if entry.episode.state_fingerprint() == fingerprint {
             entry.plan = Some(cached);

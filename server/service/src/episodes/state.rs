@@ -12,10 +12,11 @@ use super::entry::{EpisodeEntry, EpisodeGuard};
 use crate::config::Config;
 use crate::error::ServiceError;
 use crate::metrics::Metrics;
+use crate::records::{Attempts, Recorder};
 use crate::registry::Registry;
 use crate::render::RenderScheduler;
 use crate::scenes::SceneStore;
-use crate::types::{EpisodeId, SceneChoice, SensorConfig, SensorRequest};
+use crate::types::{Caller, EpisodeId, SceneChoice, SensorConfig, SensorRequest};
 
 /// The largest image side a client may ask for.
 pub const MAX_RESOLUTION: u32 = 512;
@@ -37,6 +38,14 @@ pub struct Episodes {
     pub(super) planners: tokio::sync::Semaphore,
     /// Prometheus metrics.
     pub metrics: Arc<Metrics>,
+    /// The records writer (`--records`).
+    pub recorder: Option<Recorder>,
+    /// The counted attempts at challenge scenes.
+    pub(super) attempts: Attempts,
+    /// The served dataset's hash, for records.
+    pub dataset_hash: String,
+    /// Open streams (StepStream, dm_env_rpc connections) by token, for `max_streams`.
+    pub(super) streams: std::sync::Mutex<std::collections::HashMap<Arc<str>, usize>>,
 }
 
 impl Episodes {
@@ -66,6 +75,7 @@ impl Episodes {
             let index = match choice {
                 SceneChoice::SceneJson(json) => {
                     let scene = Scene::from_json(&json)?;
+                    super::access::inline_split(scene.split)?;
                     return Ok(Arc::new(CompiledScene::new(scene, esrp_core::Rules::default())?));
                 }
                 SceneChoice::SceneId(id) => this.store.index_of(&id)?,
@@ -83,9 +93,9 @@ impl Episodes {
         tokio::task::spawn_blocking(job).await.map_err(|e| ServiceError::Internal(e.to_string()))?
     }
 
-    /// The episode `id`, locked, marked used now.
-    pub(super) async fn locked(&self, id: &EpisodeId) -> Result<EpisodeGuard, ServiceError> {
-        let mut entry = self.registry.get(id)?.lock_owned().await;
+    /// The episode `id` of `caller`, locked, marked used now.
+    pub(super) async fn locked(&self, caller: &Caller, id: &EpisodeId) -> Result<EpisodeGuard, ServiceError> {
+        let mut entry = self.registry.get(id, caller)?.lock_owned().await;
         entry.last_used = Instant::now();
         Ok(entry)
     }

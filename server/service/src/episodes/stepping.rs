@@ -8,13 +8,17 @@ use std::time::Instant;
 
 use esrp_core::Action;
 
+use esrp_results::EpisodeRecord;
+
 use super::entry::{EpisodeGuard, SharedEpisode};
 use super::observe::Prepared;
+use super::recording;
 use super::state::Episodes;
 use crate::error::ServiceError;
 use crate::metrics::Metrics;
+use crate::records::Written;
 use crate::render::RenderTicket;
-use crate::types::{EpisodeId, StepCall, StepResult};
+use crate::types::{Caller, EpisodeId, StepCall, StepResult};
 
 /// Batches of at most this many steps are stepped on the async runtime itself.
 const INLINE_STEPS: usize = 4;
@@ -28,12 +32,15 @@ struct QueuedStep {
     include_goal: bool,
 }
 
-/// A step taken: its answer, its observation still without images, and an upper bound of the
-/// answer's encoded size.
+/// A step taken: its answer, its observation still without images, an upper bound of the
+/// answer's encoded size, and the record of the run it ended, if the server records it.
 struct TakenStep {
     result: StepResult,
     observation: Prepared,
     bytes: usize,
+    record: Option<EpisodeRecord>,
+    /// Its episode (an index into the call's locked episodes).
+    episode: usize,
 }
 
 /// The one limit on a StepBatch's length (`--max-batch`): the adapters check it before they
@@ -50,11 +57,12 @@ pub(super) fn check_batch_len(episodes: &Episodes, steps: usize) -> Result<(), S
 /// sees the state the previous one left, and one that cannot be taken answers its error
 /// without moving.
 fn take_queued(
+    episodes: &Episodes,
     guards: &mut [EpisodeGuard],
     ids: &[EpisodeId],
     queue: Vec<Result<QueuedStep, ServiceError>>,
-    max_message_bytes: usize,
 ) -> Vec<Result<TakenStep, ServiceError>> {
+    let max_message_bytes = episodes.config.max_message_bytes;
     queue
         .into_iter()
         .map(|step| {
@@ -62,23 +70,29 @@ fn take_queued(
             let g = &mut guards[step.episode];
             let bytes = g.ensure_steppable(&step.at, &ids[step.episode], step.include_goal, max_message_bytes)?;
             let outcome = g.episode.step(step.action)?;
+            if let Some(run) = g.run.as_mut() {
+                run.actions.push(step.action.code());
+            }
             let observation = g.observer.prepare(&g.episode, step.include_goal);
             let ended = outcome.terminated || outcome.truncated;
+            let record = if ended { recording::finish(episodes, g, None) } else { None };
             let result = StepResult {
                 observation: Default::default(),
                 outcome,
                 collided_with_name: outcome.collided_with.map(|o| g.episode.compiled().obstacle_name(o)),
                 metrics: ended.then(|| g.episode.metrics()),
             };
-            Ok(TakenStep { result, observation, bytes })
+            Ok(TakenStep { result, observation, bytes, record, episode: step.episode })
         })
         .collect()
 }
 
-/// Steps taken, their views being rendered.
+/// Steps taken, their views being rendered and the records of the runs they ended being
+/// written.
 pub struct Stepped {
     taken: Vec<Result<TakenStep, ServiceError>>,
     render: RenderTicket,
+    written: Vec<Written>,
     started: Instant,
 }
 
@@ -93,6 +107,7 @@ impl Stepped {
         Stepped {
             taken: (0..n).map(|_| Err(ServiceError::Internal(message.clone()))).collect(),
             render: RenderTicket::nothing(),
+            written: Vec::new(),
             started: Instant::now(),
         }
     }
@@ -102,10 +117,14 @@ impl Stepped {
         self.taken.iter().map(|t| t.as_ref().map_or(256, |t| t.bytes)).sum()
     }
 
-    /// Waits for the rendering and answers every step, in order.
+    /// Waits for the rendering (and for the records of the runs the steps ended to be on
+    /// disk) and answers every step, in order.
     pub async fn finish(self, metrics: &Metrics) -> Vec<Result<StepResult, ServiceError>> {
-        let Stepped { taken, render, started } = self;
+        let Stepped { taken, render, written, started } = self;
         let rendered = render.wait().await;
+        for w in written {
+            w.wait().await;
+        }
         metrics.observe_steps(taken.iter().filter(|t| t.is_ok()).count(), started.elapsed());
         match rendered {
             Ok(outputs) => {
@@ -132,7 +151,11 @@ impl Stepped {
 }
 
 /// Step and StepBatch, all or nothing (see `Episodes::step_many`).
-pub(super) async fn step_many(episodes: &Arc<Episodes>, steps: Vec<StepCall>) -> Result<Vec<StepResult>, ServiceError> {
+pub(super) async fn step_many(
+    episodes: &Arc<Episodes>,
+    caller: &Caller,
+    steps: Vec<StepCall>,
+) -> Result<Vec<StepResult>, ServiceError> {
     check_batch_len(episodes, steps.len())?;
     // "steps[3]" in a batch, "step" alone.
     let batch = steps.len() > 1;
@@ -144,7 +167,7 @@ pub(super) async fn step_many(episodes: &Arc<Episodes>, steps: Vec<StepCall>) ->
         if !seen.insert(&s.episode) {
             return Err(ServiceError::DuplicateStep { at: at(i), episode: s.episode.clone() });
         }
-        locked.push((s.episode.clone(), episodes.registry.get(&s.episode)?));
+        locked.push((s.episode.clone(), episodes.registry.get(&s.episode, caller)?));
         queue.push(Ok(QueuedStep { at: at(i), episode: i, action: s.action, include_goal: s.include_goal }));
     }
     let max_message_bytes = episodes.config.max_message_bytes;
@@ -168,7 +191,7 @@ pub(super) async fn step_many(episodes: &Arc<Episodes>, steps: Vec<StepCall>) ->
 }
 
 /// The steps of a stream wave, each answered on its own (see `Episodes::step_each`).
-pub(super) async fn step_each(episodes: &Arc<Episodes>, steps: Vec<StepCall>) -> Stepped {
+pub(super) async fn step_each(episodes: &Arc<Episodes>, caller: &Caller, steps: Vec<StepCall>) -> Stepped {
     let count = steps.len();
     let mut locked: Vec<(EpisodeId, SharedEpisode)> = Vec::new();
     let mut index: HashMap<EpisodeId, usize> = HashMap::new();
@@ -176,7 +199,7 @@ pub(super) async fn step_each(episodes: &Arc<Episodes>, steps: Vec<StepCall>) ->
     for s in steps {
         let episode = match index.get(&s.episode) {
             Some(&e) => Ok(e),
-            None => episodes.registry.get(&s.episode).map(|shared| {
+            None => episodes.registry.get(&s.episode, caller).map(|shared| {
                 locked.push((s.episode.clone(), shared));
                 index.insert(s.episode.clone(), locked.len() - 1);
                 locked.len() - 1
@@ -217,7 +240,7 @@ async fn take_steps(
     let mut guards: Vec<EpisodeGuard> = slots.into_iter().flatten().collect();
     // Closed (or reaped) while this call waited for its lock.
     for (e, (id, _)) in locked.iter().enumerate() {
-        if episodes.registry.get(id).is_err() {
+        if !episodes.registry.contains(id) {
             for step in queue.iter_mut().filter(|s| s.as_ref().is_ok_and(|s| s.episode == e)) {
                 *step = Err(ServiceError::UnknownEpisode(id.clone()));
             }
@@ -225,15 +248,15 @@ async fn take_steps(
     }
     check(&guards, &queue)?;
     let ids: Vec<EpisodeId> = locked.into_iter().map(|(id, _)| id).collect();
-    let max_message_bytes = episodes.config.max_message_bytes;
     // A step costs microseconds (a rejected turn, the worst case, well under 0.1 ms): a few
     // run inline, which spares a thread hand-off per step; more go to a blocking thread so
     // that the runtime never stalls.
     let taken = if queue.len() <= INLINE_STEPS {
-        take_queued(&mut guards, &ids, queue, max_message_bytes)
+        take_queued(episodes, &mut guards, &ids, queue)
     } else {
+        let this = episodes.clone();
         let (guards_back, taken) = tokio::task::spawn_blocking(move || {
-            let taken = take_queued(&mut guards, &ids, queue, max_message_bytes);
+            let taken = take_queued(&this, &mut guards, &ids, queue);
             (guards, taken)
         })
         .await
@@ -243,15 +266,31 @@ async fn take_steps(
     };
     let mut views = Vec::new();
     let mut reused = 0;
-    for t in taken.iter().filter_map(|t| t.as_ref().ok()) {
+    let mut records = Vec::new();
+    let mut taken = taken;
+    for t in taken.iter_mut().filter_map(|t| t.as_mut().ok()) {
         views.extend(t.observation.views().iter().cloned());
         reused += t.observation.reused();
+        records.extend(t.record.take());
     }
     episodes.metrics.reused_views.inc_by(reused as u64);
     let render = episodes.render.submit(views);
+    let written = recording::write(episodes, records);
     let now = Instant::now();
     for g in &mut guards {
         g.last_used = now;
     }
-    Ok(Stepped { taken, render, started })
+    // Steps by token: one label lookup per token of the call, not per step.
+    let mut by_token: Vec<(&Arc<str>, usize)> = Vec::new();
+    for t in taken.iter().flatten() {
+        let owner = &guards[t.episode].owner.name;
+        match by_token.iter_mut().find(|(name, _)| *name == owner) {
+            Some((_, n)) => *n += 1,
+            None => by_token.push((owner, 1)),
+        }
+    }
+    for (token, n) in by_token {
+        episodes.metrics.count_steps_by(token, n);
+    }
+    Ok(Stepped { taken, render, written, started })
 }

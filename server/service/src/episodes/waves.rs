@@ -22,7 +22,9 @@ use super::lifecycle;
 use super::state::Episodes;
 use super::stepping::{self, Stepped};
 use crate::error::ServiceError;
-use crate::types::{CreateOptions, Created, EpisodeId, Observation, ResetResult, SceneChoice, StepCall, StepResult};
+use crate::types::{
+    Caller, CreateOptions, Created, EpisodeId, Observation, ResetResult, SceneChoice, StepCall, StepResult,
+};
 
 /// Waves of a stream whose answers may wait at once: enough to keep the render thread busy
 /// while the next wave is read and stepped, few enough to bound what a stream holds.
@@ -146,6 +148,7 @@ type Answers<T> = Pin<Box<dyn std::future::Future<Output = Vec<(T, Result<WaveAn
 /// upper bound of their encoded size.
 pub async fn answer_wave<T: Send + 'static>(
     episodes: &Arc<Episodes>,
+    caller: &Arc<Caller>,
     wave: Wave<T>,
     stream: u64,
 ) -> (Answers<T>, usize) {
@@ -166,17 +169,17 @@ pub async fn answer_wave<T: Send + 'static>(
             WaveRequest::Invalid(error) => rest.push((i, Other::Invalid(error))),
         }
     }
-    let stepped = if steps.is_empty() { None } else { Some(stepping::step_each(episodes, steps).await) };
+    let stepped = if steps.is_empty() { None } else { Some(stepping::step_each(episodes, caller, steps).await) };
     let mut answers: Vec<Option<Result<WaveAnswer, ServiceError>>> = (0..tags.len()).map(|_| None).collect();
     for (i, request) in rest {
         answers[i] = Some(match request {
-            Other::Create(options) => {
-                lifecycle::create(episodes, options, Some(stream)).await.map(|c| WaveAnswer::Created(Box::new(c)))
-            }
+            Other::Create(options) => lifecycle::create(episodes, caller, options, Some(stream))
+                .await
+                .map(|c| WaveAnswer::Created(Box::new(c))),
             Other::Reset(episode, scene) => {
-                lifecycle::reset(episodes, &episode, scene).await.map(|r| WaveAnswer::Reset(Box::new(r)))
+                lifecycle::reset(episodes, caller, &episode, scene).await.map(|r| WaveAnswer::Reset(Box::new(r)))
             }
-            Other::Close(episode) => lifecycle::close(episodes, &episode).await.map(WaveAnswer::Closed),
+            Other::Close(episode) => lifecycle::close(episodes, caller, &episode).await.map(WaveAnswer::Closed),
             Other::Invalid(error) => Err(error),
         });
     }
@@ -231,9 +234,11 @@ type Outgoing<M, E> = (Messages<M, E>, Option<tokio::sync::OwnedSemaphorePermit>
 /// ([`answer_wave`]) and sends each answer, made a message by `write`, down `out` in
 /// request order. An unreadable message (too large, not protobuf) or a broken connection (an
 /// `E` of the inbound stream) ends the stream after passing the error on. When the stream
-/// ends, after every answer is sent (or the client is gone), its episodes close.
+/// ends, after every answer is sent (or the client is gone), its episodes close. `slot` is
+/// the stream's place in its caller's `max_streams`, held until then.
 pub async fn serve<S, I, M, T, E>(
     episodes: Arc<Episodes>,
+    slot: StreamSlot,
     mut inbound: S,
     out: mpsc::Sender<Result<M, E>>,
     read: fn(I) -> (T, WaveRequest),
@@ -304,7 +309,7 @@ pub async fn serve<S, I, M, T, E>(
                 None => break,
             }
         }
-        let (wave, bytes) = answer_wave(&episodes, wave, stream).await;
+        let (wave, bytes) = answer_wave(&episodes, &slot.caller, wave, stream).await;
         let wave: Messages<M, E> =
             Box::pin(async move { wave.await.into_iter().map(|(tag, answer)| Ok(write(tag, answer))).collect() });
         // Wait while the answers of earlier waves hold the stream's byte budget (a wave
@@ -328,7 +333,47 @@ pub async fn serve<S, I, M, T, E>(
     // Every answer is sent (or the client is gone) before the stream's episodes close.
     drop(answers);
     let _ = sender.await;
-    lifecycle::end_stream(&episodes, stream);
+    lifecycle::end_stream(&episodes, stream).await;
+    drop(slot);
+}
+
+/// An open stream's place in its caller's `max_streams` quota: given back when dropped.
+pub struct StreamSlot {
+    episodes: Arc<Episodes>,
+    /// The stream's caller.
+    pub caller: Arc<Caller>,
+}
+
+impl StreamSlot {
+    /// Opens a stream for `caller`, within its `max_streams` quota.
+    pub fn open(episodes: &Arc<Episodes>, caller: Arc<Caller>) -> Result<Self, ServiceError> {
+        let mut streams = episodes.streams.lock().unwrap_or_else(|p| p.into_inner());
+        let open = streams.entry(caller.name.clone()).or_default();
+        if let Some(limit) = caller.max_streams
+            && *open >= limit
+        {
+            return Err(ServiceError::Quota {
+                caller: caller.describe(),
+                what: "streams",
+                quota: "max_streams",
+                limit,
+            });
+        }
+        *open += 1;
+        Ok(Self { episodes: episodes.clone(), caller })
+    }
+}
+
+impl Drop for StreamSlot {
+    fn drop(&mut self) {
+        let mut streams = self.episodes.streams.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(open) = streams.get_mut(&self.caller.name) {
+            *open = open.saturating_sub(1);
+            if *open == 0 {
+                streams.remove(&self.caller.name);
+            }
+        }
+    }
 }
 
 #[cfg(test)]
@@ -374,6 +419,7 @@ mod tests {
             horizon: None,
             reward: Default::default(),
             privileged: false,
+            agent: None,
         });
         check(vec![
             (step("a"), true),

@@ -134,6 +134,7 @@ impl TryFrom<proto::CreateEpisodeRequest> for CreateOptions {
             horizon: (r.horizon != 0).then_some(r.horizon),
             reward: reward_weights(r.reward),
             privileged: r.privileged,
+            agent: (!r.agent.is_empty()).then_some(r.agent),
         })
     }
 }

@@ -14,6 +14,7 @@ use tokio::sync::mpsc;
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
 
+use crate::auth::caller_of;
 use crate::episodes::Episodes;
 use crate::episodes::waves::{self, WaveAnswer, WaveRequest};
 use crate::error::{ServiceError, quoted};
@@ -75,8 +76,9 @@ type StreamOut = Pin<Box<dyn Stream<Item = Result<proto::StreamResponse, Status>
 impl proto::esrp_server::Esrp for EsrpService {
     async fn server_info(
         &self,
-        _: Request<proto::ServerInfoRequest>,
+        request: Request<proto::ServerInfoRequest>,
     ) -> Result<Response<proto::ServerInfoResponse>, Status> {
+        let caller = caller_of(&request);
         let s = &self.episodes;
         let renderer = s.render.renderer();
         let info = renderer.adapter_info();
@@ -94,10 +96,10 @@ impl proto::esrp_server::Esrp for EsrpService {
             }),
             live_episodes: s.live() as u32,
             dataset: s.store.name().to_owned(),
-            caller: if s.config.token.is_some() { "admin" } else { "anonymous" }.to_owned(),
-            role: "admin".to_owned(),
-            challenge: false,
-            recording: String::new(),
+            caller: caller.name.to_string(),
+            role: caller.role.as_str().to_owned(),
+            challenge: s.store.has_hidden(),
+            recording: s.recorder.as_ref().map_or("", |r| r.mode().as_str()).to_owned(),
         }))
     }
 
@@ -160,23 +162,26 @@ impl proto::esrp_server::Esrp for EsrpService {
         &self,
         request: Request<proto::CreateEpisodeRequest>,
     ) -> Result<Response<proto::CreateEpisodeResponse>, Status> {
+        let caller = caller_of(&request);
         let options = CreateOptions::try_from(request.into_inner())?;
         // The episode lives only if this answer is sent ([`answered`]): a dropped call, or a
         // dropped answer, drops the guard and closes the episode.
-        let (created, unanswered) = self.episodes.create_unanswered(options, None).await?;
+        let (created, unanswered) = self.episodes.create_unanswered(&caller, options, None).await?;
         let mut response = Response::new(created.into());
         response.extensions_mut().insert(unanswered);
         Ok(response)
     }
 
     async fn reset(&self, request: Request<proto::ResetRequest>) -> Result<Response<proto::ResetResponse>, Status> {
+        let caller = caller_of(&request);
         let (episode, scene) = convert::reset_of(request.into_inner());
-        Ok(Response::new(self.episodes.reset(&episode, scene).await?.into()))
+        Ok(Response::new(self.episodes.reset(&caller, &episode, scene).await?.into()))
     }
 
     async fn step(&self, request: Request<proto::StepRequest>) -> Result<Response<proto::StepResponse>, Status> {
+        let caller = caller_of(&request);
         let step = StepCall::try_from(request.into_inner())?;
-        let result = self.episodes.step_many(vec![step]).await?.pop();
+        let result = self.episodes.step_many(&caller, vec![step]).await?.pop();
         let result = result.ok_or_else(|| ServiceError::Internal("a step without an answer".into()))?;
         Ok(Response::new(result.into()))
     }
@@ -185,10 +190,11 @@ impl proto::esrp_server::Esrp for EsrpService {
         &self,
         request: Request<proto::StepBatchRequest>,
     ) -> Result<Response<proto::StepBatchResponse>, Status> {
+        let caller = caller_of(&request);
         let steps = request.into_inner().steps;
         // The limit first: a batch too large is refused before any of it is read.
         self.episodes.check_batch_len(steps.len())?;
-        let results = self.episodes.step_many(convert::step_calls(steps)?).await?;
+        let results = self.episodes.step_many(&caller, convert::step_calls(steps)?).await?;
         Ok(Response::new(proto::StepBatchResponse { responses: results.into_iter().map(Into::into).collect() }))
     }
 
@@ -198,9 +204,18 @@ impl proto::esrp_server::Esrp for EsrpService {
         &self,
         request: Request<Streaming<proto::StreamRequest>>,
     ) -> Result<Response<Self::StepStreamStream>, Status> {
+        // The quota first: a stream beyond the token's max_streams is refused as a whole.
+        let slot = self.episodes.open_stream(caller_of(&request))?;
         let (out, receiver) = mpsc::channel(256);
         let episodes = self.episodes.clone();
-        tokio::spawn(waves::serve(episodes, request.into_inner(), out, read_stream_request, write_stream_response));
+        tokio::spawn(waves::serve(
+            episodes,
+            slot,
+            request.into_inner(),
+            out,
+            read_stream_request,
+            write_stream_response,
+        ));
         Ok(Response::new(Box::pin(tokio_stream::wrappers::ReceiverStream::new(receiver))))
     }
 
@@ -208,40 +223,45 @@ impl proto::esrp_server::Esrp for EsrpService {
         &self,
         request: Request<proto::GetGoalRequest>,
     ) -> Result<Response<proto::GetGoalResponse>, Status> {
+        let caller = caller_of(&request);
         let episode = EpisodeId::from(request.into_inner().episode_id);
-        Ok(Response::new(self.episodes.goal(&episode).await?.into()))
+        Ok(Response::new(self.episodes.goal(&caller, &episode).await?.into()))
     }
 
     async fn get_privileged_state(
         &self,
         request: Request<proto::GetPrivilegedStateRequest>,
     ) -> Result<Response<proto::GetPrivilegedStateResponse>, Status> {
+        let caller = caller_of(&request);
         let episode = EpisodeId::from(request.into_inner().episode_id);
-        Ok(Response::new(self.episodes.privileged_state(&episode).await?.into()))
+        Ok(Response::new(self.episodes.privileged_state(&caller, &episode).await?.into()))
     }
 
     async fn plan_actions(
         &self,
         request: Request<proto::PlanActionsRequest>,
     ) -> Result<Response<proto::PlanActionsResponse>, Status> {
+        let caller = caller_of(&request);
         let call = PlanCall::from(request.into_inner());
-        Ok(Response::new(self.episodes.plan(call).await?.into()))
+        Ok(Response::new(self.episodes.plan(&caller, call).await?.into()))
     }
 
     async fn get_metrics(
         &self,
         request: Request<proto::GetMetricsRequest>,
     ) -> Result<Response<proto::GetMetricsResponse>, Status> {
+        let caller = caller_of(&request);
         let episode = EpisodeId::from(request.into_inner().episode_id);
-        Ok(Response::new(self.episodes.metrics(&episode).await?.into()))
+        Ok(Response::new(self.episodes.metrics(&caller, &episode).await?.into()))
     }
 
     async fn close_episode(
         &self,
         request: Request<proto::CloseEpisodeRequest>,
     ) -> Result<Response<proto::CloseEpisodeResponse>, Status> {
+        let caller = caller_of(&request);
         let episode = EpisodeId::from(request.into_inner().episode_id);
-        let metrics = self.episodes.close(&episode).await?;
+        let metrics = self.episodes.close(&caller, &episode).await?;
         Ok(Response::new(proto::CloseEpisodeResponse { metrics: Some(convert::metrics_to_proto(&metrics)) }))
     }
 }

@@ -1,0 +1,128 @@
+//! The runs the server records or counts (`--records`, the challenge's one counted attempt per
+//! scene and token): starting a run, logging its actions (in `stepping`), and ending it into an
+//! `esrp.results/v1` record, whatever ends it: its last step, a close, a reset, a reaper, the end
+//! of its stream, or the server's shutdown. An episode whose create answer never left is not
+//! a run: its attempt is given back.
+
+use std::time::{Instant, SystemTime};
+
+use esrp_core::Split;
+use esrp_results::{EpisodeRecord, SCHEMA};
+
+use super::entry::{EpisodeEntry, RunLog};
+use super::state::Episodes;
+use crate::error::ServiceError;
+use crate::records::{RecordMode, Written, rfc3339};
+use crate::registry::Removed;
+use crate::types::Caller;
+
+/// Starts a run of `caller` on scene `scene` of `split`: takes the counted attempt (a
+/// challenge scene, a caller that is not an admin) or refuses a second one; the run is logged
+/// if it is counted or recorded.
+pub(super) fn begin(
+    episodes: &Episodes,
+    caller: &Caller,
+    split: Split,
+    scene: &str,
+) -> Result<Option<RunLog>, ServiceError> {
+    let counted = split == Split::Challenge && !caller.is_admin();
+    let recorded = episodes.recorder.as_ref().is_some_and(|r| r.mode() == RecordMode::All || split == Split::Challenge);
+    if counted {
+        episodes.attempts.take(caller, scene)?;
+    }
+    Ok((counted || recorded).then(|| RunLog {
+        actions: Vec::new(),
+        started: SystemTime::now(),
+        clock: Instant::now(),
+        counted,
+        recorded,
+        finished: false,
+    }))
+}
+
+/// Ends the entry's run, if it is logged and not ended yet: marks its counted attempt ended and
+/// returns its record if the server records it. `closed_by` says what closed an episode that
+/// had not ended (`client`, `idle`, `unclaimed`, `stream`, `reset`, `shutdown`).
+pub(super) fn finish(episodes: &Episodes, entry: &mut EpisodeEntry, closed_by: Option<&str>) -> Option<EpisodeRecord> {
+    let run = entry.run.as_mut().filter(|r| !r.finished)?;
+    run.finished = true;
+    let finished_at = rfc3339(SystemTime::now());
+    if run.counted {
+        episodes.attempts.ended(&entry.owner.name, &entry.summary.id, &finished_at);
+    }
+    if !run.recorded {
+        return None;
+    }
+    let m = entry.episode.metrics();
+    let over = entry.episode.is_over();
+    let end = if m.success {
+        "success"
+    } else if over {
+        "horizon"
+    } else {
+        "agent"
+    };
+    let mut agent_stats = serde_json::Map::new();
+    if let (false, Some(by)) = (over, closed_by) {
+        agent_stats.insert("closed_by".into(), by.into());
+    }
+    let summary = &entry.summary;
+    Some(EpisodeRecord {
+        schema: SCHEMA.to_owned(),
+        scene_id: summary.id.clone(),
+        dataset: episodes.store.name().to_owned(),
+        split: summary.split.as_str().to_owned(),
+        room_type: summary.room_type.clone(),
+        difficulty: summary.difficulty.as_str().to_owned(),
+        objects: summary.movable_objects as u32,
+        agent: entry.agent.to_string(),
+        agent_config: serde_json::Map::new(),
+        seed: None,
+        success: m.success,
+        osr: m.object_success_rate,
+        rdr: m.remaining_distance_ratio,
+        stage: m.stage as u32,
+        placed: m.placed as u32,
+        steps: m.steps,
+        horizon: entry.episode.horizon(),
+        end: end.to_owned(),
+        total_reward: m.total_reward,
+        actions: std::mem::take(&mut run.actions),
+        wall_seconds: run.clock.elapsed().as_secs_f64(),
+        agent_stats,
+        server_version: env!("CARGO_PKG_VERSION").to_owned(),
+        client: concat!("esrp-server ", env!("CARGO_PKG_VERSION")).to_owned(),
+        finished_at,
+        token: Some(entry.owner.name.to_string()),
+        started_at: Some(rfc3339(run.started)),
+        dataset_hash: Some(episodes.dataset_hash.clone()),
+        counted: Some(run.counted),
+    })
+}
+
+/// Queues `records` for their files; each [`Written`] completes once its record is on disk.
+pub(super) fn write(episodes: &Episodes, records: Vec<EpisodeRecord>) -> Vec<Written> {
+    match &episodes.recorder {
+        Some(recorder) => records
+            .iter()
+            .map(|r| {
+                episodes.metrics.count_record(r.token.as_deref().unwrap_or("anonymous"));
+                recorder.write(r)
+            })
+            .collect(),
+        None => Vec::new(),
+    }
+}
+
+/// Ends the runs of episodes the server closed (`closed_by` says why) and waits until their
+/// records are on disk.
+pub(super) async fn close_removed(episodes: &Episodes, removed: Vec<Removed<EpisodeEntry>>, closed_by: &str) {
+    let mut records = Vec::new();
+    for (_, entry, _) in removed {
+        let mut entry = entry.lock().await;
+        records.extend(finish(episodes, &mut entry, Some(closed_by)));
+    }
+    for written in write(episodes, records) {
+        written.wait().await;
+    }
+}

@@ -1,0 +1,290 @@
+//! The server keeps the score: its own `esrp.results/v1` record of every episode played on the
+//! challenge split (`--records DIR`; every episode with `--record all`), appended to
+//! `DIR/<token-name>.jsonl`, and the rule of one counted attempt per challenge scene and token.
+//!
+//! Durability: a record is written and `fsync`ed by the recorder's thread before the answer to
+//! the step that ended its episode (or the close that ended it) is sent, so a `kill -9` loses
+//! at most the records of episodes still running. Records that end at once are written
+//! together and share one `fsync` per file (a group commit). At start the files are read back:
+//! a last line torn by a crash is cut off, and the counted attempts are known again.
+
+use std::collections::HashMap;
+use std::fs::File;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::time::SystemTime;
+
+use esrp_results::EpisodeRecord;
+
+use crate::error::ServiceError;
+use crate::types::Caller;
+
+/// Which episodes the server records.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum RecordMode {
+    /// Episodes on the challenge split.
+    Challenge,
+    /// Every episode, on any split, by any token.
+    All,
+}
+
+impl RecordMode {
+    /// `challenge` or `all`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            RecordMode::Challenge => "challenge",
+            RecordMode::All => "all",
+        }
+    }
+}
+
+/// RFC 3339 UTC time, seconds.
+pub fn rfc3339(time: SystemTime) -> String {
+    humantime::format_rfc3339_seconds(time).to_string()
+}
+
+/// The state of one token's attempt at one challenge scene.
+#[derive(Clone, Debug)]
+enum Attempt {
+    /// Created at this time, not ended yet.
+    Running(String),
+    /// Ended (and recorded) at this time.
+    Ended(String),
+}
+
+/// The counted attempts: one per challenge scene and token (admins are not counted).
+#[derive(Default)]
+pub struct Attempts {
+    taken: Mutex<HashMap<(Arc<str>, String), Attempt>>,
+}
+
+impl Attempts {
+    fn map(&self) -> std::sync::MutexGuard<'_, HashMap<(Arc<str>, String), Attempt>> {
+        self.taken.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Takes `caller`'s attempt at challenge scene `scene`, or says when it was taken.
+    pub fn take(&self, caller: &Caller, scene: &str) -> Result<(), ServiceError> {
+        let mut map = self.map();
+        let key = (caller.name.clone(), scene.to_owned());
+        if let Some(attempt) = map.get(&key) {
+            let when = match attempt {
+                Attempt::Running(at) => format!("started {at}, still running"),
+                Attempt::Ended(at) => format!("ended {at}"),
+            };
+            return Err(ServiceError::AlreadyPlayed { scene: scene.to_owned(), caller: caller.describe(), when });
+        }
+        map.insert(key, Attempt::Running(rfc3339(SystemTime::now())));
+        Ok(())
+    }
+
+    /// Gives an attempt back: its episode never reached its client (an abandoned create).
+    pub fn give_back(&self, token: &Arc<str>, scene: &str) {
+        self.map().remove(&(token.clone(), scene.to_owned()));
+    }
+
+    /// Marks an attempt ended at `at`.
+    pub fn ended(&self, token: &str, scene: &str, at: &str) {
+        self.map().insert((token.into(), scene.to_owned()), Attempt::Ended(at.to_owned()));
+    }
+
+    /// The number of attempts known.
+    pub fn len(&self) -> usize {
+        self.map().len()
+    }
+
+    /// Whether no attempt is known.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// A record on its way to its file; `done` hears when it is on disk.
+struct Job {
+    token: String,
+    line: Vec<u8>,
+    done: tokio::sync::oneshot::Sender<()>,
+}
+
+/// Writes records: a thread appending lines to `DIR/<token>.jsonl`, one `fsync` per file per
+/// batch of records that arrived together.
+pub struct Recorder {
+    dir: PathBuf,
+    mode: RecordMode,
+    jobs: Mutex<Option<std::sync::mpsc::Sender<Job>>>,
+    thread: Mutex<Option<std::thread::JoinHandle<()>>>,
+}
+
+/// A record's write, awaited before the answer that ended its episode leaves.
+pub struct Written(Option<tokio::sync::oneshot::Receiver<()>>);
+
+impl Written {
+    /// Nothing to wait for.
+    pub fn nothing() -> Self {
+        Written(None)
+    }
+
+    /// Waits until the record is on disk (or its write failed, which the recorder logged).
+    pub async fn wait(self) {
+        if let Some(receiver) = self.0 {
+            let _ = receiver.await;
+        }
+    }
+}
+
+/// Why the records folder cannot be used.
+#[derive(Debug, thiserror::Error)]
+#[error("--records {dir}: {reason}")]
+pub struct RecordsError {
+    /// The folder.
+    pub dir: String,
+    /// What went wrong.
+    pub reason: String,
+}
+
+impl Recorder {
+    /// Opens (creating it if needed) the records folder `dir`: reads every `*.jsonl` back,
+    /// cutting a torn last line, and fills `attempts` with the counted attempts found; then
+    /// starts the writer thread.
+    pub fn open(dir: &Path, mode: RecordMode, attempts: &Attempts) -> Result<Self, RecordsError> {
+        let error = |reason: String| RecordsError { dir: dir.display().to_string(), reason };
+        std::fs::create_dir_all(dir).map_err(|e| error(format!("cannot create it: {e}")))?;
+        let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+            .map_err(|e| error(format!("cannot list it: {e}")))?
+            .filter_map(|entry| entry.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|e| e == "jsonl"))
+            .collect();
+        files.sort();
+        let mut counted = 0usize;
+        for path in &files {
+            let read = esrp_results::read_records(path).map_err(|e| error(e.to_string()))?;
+            if read.torn_tail {
+                tracing::warn!(file = %path.display(), "dropping a last record torn by an interruption");
+                esrp_results::truncate_to(path, read.complete_bytes)
+                    .map_err(|e| error(format!("cannot cut the torn line of {}: {e}", path.display())))?;
+            }
+            let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+            for r in read.records.iter().filter(|r| r.counted == Some(true)) {
+                attempts.ended(r.token.as_deref().unwrap_or(&stem), &r.scene_id, &r.finished_at);
+                counted += 1;
+            }
+        }
+        tracing::info!(dir = %dir.display(), files = files.len(), counted, mode = mode.as_str(), "records ready");
+        let (sender, receiver) = std::sync::mpsc::channel::<Job>();
+        let folder = dir.to_path_buf();
+        let thread = std::thread::Builder::new()
+            .name("esrp-records".into())
+            .spawn(move || write_records(&folder, &receiver))
+            .map_err(|e| error(format!("cannot start the writer thread: {e}")))?;
+        Ok(Self { dir: dir.to_path_buf(), mode, jobs: Mutex::new(Some(sender)), thread: Mutex::new(Some(thread)) })
+    }
+
+    /// Which episodes are recorded.
+    pub fn mode(&self) -> RecordMode {
+        self.mode
+    }
+
+    /// The folder.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Queues `record` for `DIR/<token>.jsonl`; the returned [`Written`] completes once it is
+    /// on disk.
+    pub fn write(&self, record: &EpisodeRecord) -> Written {
+        let token = record.token.clone().unwrap_or_else(|| "anonymous".into());
+        let mut line = match serde_json::to_vec(record) {
+            Ok(line) => line,
+            Err(e) => {
+                tracing::error!(scene = %record.scene_id, "cannot encode a record: {e}");
+                return Written::nothing();
+            }
+        };
+        line.push(b'\n');
+        let (done, receiver) = tokio::sync::oneshot::channel();
+        let jobs = self.jobs.lock().unwrap_or_else(|p| p.into_inner());
+        match jobs.as_ref().map(|s| s.send(Job { token, line, done })) {
+            Some(Ok(())) => Written(Some(receiver)),
+            _ => {
+                tracing::error!(scene = %record.scene_id, "a record arrived after the recorder stopped: it is lost");
+                Written::nothing()
+            }
+        }
+    }
+
+    /// Writes what is queued and stops the writer thread (at shutdown, after the last records).
+    pub fn stop(&self) {
+        self.jobs.lock().unwrap_or_else(|p| p.into_inner()).take();
+        if let Some(thread) = self.thread.lock().unwrap_or_else(|p| p.into_inner()).take() {
+            let _ = thread.join();
+        }
+    }
+}
+
+/// The writer thread: takes every job waiting, appends each line to its token's file, syncs
+/// each file written once, then acknowledges the jobs.
+fn write_records(dir: &Path, jobs: &std::sync::mpsc::Receiver<Job>) {
+    let mut files: HashMap<String, File> = HashMap::new();
+    while let Ok(first) = jobs.recv() {
+        let mut batch = vec![first];
+        batch.extend(jobs.try_iter());
+        let mut touched: Vec<String> = Vec::new();
+        for job in &batch {
+            let file = match files.entry(job.token.clone()) {
+                std::collections::hash_map::Entry::Occupied(f) => f.into_mut(),
+                std::collections::hash_map::Entry::Vacant(v) => {
+                    let path = dir.join(format!("{}.jsonl", job.token));
+                    match std::fs::OpenOptions::new().create(true).append(true).open(&path) {
+                        Ok(f) => v.insert(f),
+                        Err(e) => {
+                            tracing::error!(file = %path.display(), "cannot open a records file: {e}; the record is lost");
+                            continue;
+                        }
+                    }
+                }
+            };
+            // One write per line: a crash leaves whole lines and at most one torn last line.
+            if let Err(e) = file.write_all(&job.line) {
+                tracing::error!(token = %job.token, "cannot write a record: {e}; it is lost");
+            }
+            if !touched.contains(&job.token) {
+                touched.push(job.token.clone());
+            }
+        }
+        for token in &touched {
+            if let Some(Err(e)) = files.get(token).map(File::sync_data) {
+                tracing::error!(token = %token, "cannot sync a records file: {e}");
+            }
+        }
+        for job in batch {
+            let _ = job.done.send(());
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::types::Role;
+
+    fn caller(name: &str) -> Caller {
+        Caller { name: name.into(), role: Role::Agent, max_episodes: None, max_streams: None }
+    }
+
+    #[test]
+    fn one_counted_attempt_per_scene_and_token() {
+        let attempts = Attempts::default();
+        let (alice, bob) = (caller("alice"), caller("bob"));
+        attempts.take(&alice, "challenge/00001").unwrap();
+        attempts.take(&bob, "challenge/00001").unwrap();
+        let again = attempts.take(&alice, "challenge/00001").unwrap_err().to_string();
+        assert!(again.contains("already played by token \"alice\"") && again.contains("still running"), "{again}");
+        attempts.give_back(&alice.name, "challenge/00001");
+        attempts.take(&alice, "challenge/00001").unwrap();
+        attempts.ended("alice", "challenge/00001", "2026-11-25T20:00:00Z");
+        let ended = attempts.take(&alice, "challenge/00001").unwrap_err().to_string();
+        assert!(ended.contains("ended 2026-11-25T20:00:00Z"), "{ended}");
+        assert_eq!(attempts.len(), 2);
+    }
+}
