@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from ._args import (
+    SPLITS,
     Parser,
     comma_list,
     json_object,
@@ -36,7 +37,12 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
         "(a factory called with the agent config, once per episode, "
         "returning an esrp.agents.Agent or AsyncAgent)",
     )
-    ev.add_argument("--split", choices=("train", "test"), default="test")
+    ev.add_argument(
+        "--split",
+        choices=SPLITS,
+        default="test",
+        help="challenge and minival: the hidden splits of a server started with --challenge-seed",
+    )
     ev.add_argument("--difficulty", choices=("easy", "medium", "hard"))
     ev.add_argument(
         "--scenes", type=comma_list, default=[], metavar="ID,...", help="only these scenes, in order"

@@ -90,7 +90,7 @@ class EvalSettings:
         agent: `random`, `expert`, `plan`, `vlm` (`esrp.agents.vlm`, configured by `agent_config`),
             or `MODULE:CALLABLE` (a factory of agents).
         out: The results file (JSON Lines); scenes already in it are skipped.
-        split: The split whose scenes to run (`train` or `test`).
+        split: The split whose scenes to run (`train`, `test`, `challenge` or `minival`).
         difficulty: Only scenes of this difficulty (`easy`, `medium`, `hard`).
         scenes: Only these scene ids, in this order (they must be in the split).
         limit: At most this many scenes (after the filters), the first in order.
@@ -315,7 +315,8 @@ async def _play(
     kind = settings.agent
     privileged = kind in ("plan", "expert") or (factory is not None and settings.privileged)
     sensors = settings.sensors if factory is not None else None
-    episode = await client.create_episode(scene.id, privileged=privileged, sensors=sensors)
+    # The agent's name, as the record's `agent` says it, labels the episode in the server's records.
+    episode = await client.create_episode(scene.id, privileged=privileged, sensors=sensors, agent=kind)
     stats: dict[str, Any] = {}
     try:
         if kind == "expert":
