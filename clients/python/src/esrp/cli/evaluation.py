@@ -1,4 +1,6 @@
-"""The evaluation commands: `esrp eval`, `esrp report` and `esrp replay` (their parsers and handlers)."""
+"""The evaluation commands: `esrp eval`, `esrp verify`, `esrp report` and `esrp replay` (their parsers
+and handlers).
+"""
 
 from __future__ import annotations
 
@@ -21,7 +23,7 @@ from ._args import (
 
 
 def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
-    """Adds `eval`, `report` and `replay` to `commands`."""
+    """Adds `eval`, `verify`, `report` and `replay` to `commands`."""
     ev = commands.add_parser(
         "eval",
         help="run an agent over the scenes of a split; write one esrp.results/v1 record per episode",
@@ -163,7 +165,22 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
     rp.add_argument("--fps", type=positive_float, default=10.0, help="frames per second (10)")
     rp.add_argument("--scale", type=positive, default=2, help="pixels per image pixel")
     server_options(rp)
+
+    ver = commands.add_parser(
+        "verify",
+        help="replay results files' records on a server and check that each replay reproduces its record",
+        description="Replay every record of esrp.results/v1 files (esrp eval's, esrp-eval's, or a "
+        "server's own records) on a server: create an episode of its scene with its horizon, step its "
+        "actions, and check success, osr, rdr, stage, placed, steps, total_reward and end exactly. "
+        "Prints one line per record that does not match (FILE:LINE, scene, what differs) and a "
+        "summary. Exit status: 0 all match, 1 some do not, 2 bad input, 3 the server died.",
+    )
+    ver.add_argument("results", nargs="+", type=Path, help="results files (JSON Lines)")
+    ver.add_argument("--episodes-in-flight", type=positive, default=8, metavar="N")
+    ver.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar or lines")
+    server_options(ver)
     ev.set_defaults(handler=_eval)
+    ver.set_defaults(handler=_verify)
     rep.set_defaults(handler=_report)
     rp.set_defaults(handler=_replay)
 
@@ -243,6 +260,32 @@ def _eval(args: argparse.Namespace) -> int:
         print(f"esrp eval: {format_failures(outcome.failed, outcome.errors_log)}", file=sys.stderr)
         return 1
     return 0
+
+
+@one_line_errors
+def _verify(args: argparse.Namespace) -> int:
+    from ..eval.evaluation import ServerGone
+    from ..eval.verify import VerifyError, run_verify
+
+    try:
+        outcome = run_verify(
+            args.results,
+            server=args.server,
+            token=args.token,
+            server_args=args.server_args,
+            episodes_in_flight=args.episodes_in_flight,
+            progress=args.progress,
+        )
+    except ServerGone as error:
+        print(f"esrp verify: {error}", file=sys.stderr)
+        return 3
+    except VerifyError as error:
+        print(f"esrp verify: {error}", file=sys.stderr)
+        return 2
+    for mismatch in outcome.mismatches:
+        print(mismatch.text())
+    print(outcome.summary())
+    return 1 if outcome.mismatches else 0
 
 
 @one_line_errors

@@ -169,12 +169,14 @@ class ReadRecords:
 
     Attributes:
         records: The records, in file order.
+        line_numbers: The line (1-based) each record was read from.
         complete_bytes: Byte length of the complete lines read: a last line cut short by an
             interruption starts there, and `truncate_to` removes it.
         torn_tail: Whether a last line was cut short (incomplete or unreadable).
     """
 
     records: list[EpisodeRecord] = field(default_factory=list)
+    line_numbers: list[int] = field(default_factory=list)
     complete_bytes: int = 0
     torn_tail: bool = False
 
@@ -203,6 +205,7 @@ def read_records(path: str | os.PathLike[str]) -> ReadRecords:
             raise ResultsError(f"{path}:{number}: not an {SCHEMA} record: {error}") from None
         if complete:
             out.records.append(record)
+            out.line_numbers.append(number)
             out.complete_bytes += len(raw)
         else:
             # A record without its newline: the write was interrupted right before it.
