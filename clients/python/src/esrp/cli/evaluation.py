@@ -136,18 +136,33 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
 
     rep = commands.add_parser(
         "report",
-        help="tables and plots of results files: Markdown and one self-contained HTML page",
+        help="tables and plots of results files: Markdown and one self-contained HTML page; "
+        "--leaderboard: the challenge's ranking from a server's records",
         description="Read esrp.results/v1 files and write report.md and report.html (images inlined) "
         "with the paper's Table I/II/III layouts for every run, the paper's rows beside them, plots, "
-        "and replay stills of chosen episodes (those need a server).",
+        "and replay stills of chosen episodes (those need a server). With --leaderboard DIR instead: "
+        "rank the participants of the challenge from a server's records (DIR/*.jsonl: the counted "
+        "challenge records, one per participant and scene) and write one self-contained HTML page.",
     )
-    rep.add_argument("results", nargs="+", type=Path, help="results files (JSON Lines)")
-    rep.add_argument("--out", type=Path, required=True, help="the report's folder")
+    rep.add_argument("results", nargs="*", type=Path, help="results files (JSON Lines)")
+    rep.add_argument(
+        "--out",
+        type=Path,
+        help="the report's folder; with --leaderboard, the page (default: leaderboard.html)",
+    )
+    rep.add_argument(
+        "--leaderboard",
+        type=Path,
+        metavar="DIR",
+        help="rank the challenge's participants from the server's records in DIR (its --records folder)",
+    )
     rep.add_argument("--replays", type=int, default=0, metavar="N", help="stills of N episodes per run")
     rep.add_argument(
         "--replay-scenes", type=comma_list, default=[], metavar="ID,...", help="stills of these scenes"
     )
-    rep.add_argument("--title", default="ESRP evaluation report")
+    rep.add_argument(
+        "--title", help="the page's title (default: ESRP evaluation report, ESRP challenge leaderboard)"
+    )
     server_options(rep)
 
     rp = commands.add_parser(
@@ -290,13 +305,24 @@ def _verify(args: argparse.Namespace) -> int:
 
 @one_line_errors
 def _report(args: argparse.Namespace) -> int:
+    if args.leaderboard is not None:
+        return _leaderboard(args)
     from ..eval.report import ReportError, write_report
 
+    if not args.results or args.out is None:
+        missing = " and ".join(
+            name for name, given in (("results", args.results), ("--out", args.out)) if not given
+        )
+        print(
+            f"esrp report: error: {missing} needed (or --leaderboard DIR) (see esrp report --help)",
+            file=sys.stderr,
+        )
+        return 2
     try:
         paths = write_report(
             args.results,
             args.out,
-            title=args.title,
+            title=args.title or "ESRP evaluation report",
             replays=args.replays,
             replay_scenes=args.replay_scenes,
             server=args.server,
@@ -308,6 +334,37 @@ def _report(args: argparse.Namespace) -> int:
         return 2
     for path in paths:
         print(path)
+    return 0
+
+
+def _leaderboard(args: argparse.Namespace) -> int:
+    from ..eval.leaderboard import LeaderboardError, ranking_text, write_leaderboard
+
+    given = [
+        flag
+        for flag, value in (
+            ("results files", args.results),
+            ("--replays", args.replays),
+            ("--replay-scenes", args.replay_scenes),
+            ("--server", args.server),
+            ("--server-arg", args.server_args),
+        )
+        if value
+    ]
+    if given:
+        print(f"esrp report: {', '.join(given)} do not apply with --leaderboard", file=sys.stderr)
+        return 2
+    try:
+        participants, scenes, page = write_leaderboard(
+            args.leaderboard,
+            args.out or Path("leaderboard.html"),
+            title=args.title or "ESRP challenge leaderboard",
+        )
+    except LeaderboardError as error:
+        print(f"esrp report: {error}", file=sys.stderr)
+        return 2
+    print(ranking_text(participants, scenes), end="")
+    print(page)
     return 0
 
 
