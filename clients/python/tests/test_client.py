@@ -31,6 +31,48 @@ def test_server_info(client: esrp.Client) -> None:
     assert info.live_episodes >= 0
 
 
+def test_the_challenge_splits_the_agent_label_and_the_caller_convert_both_ways() -> None:
+    """The esrp.v1 fields of the challenge (splits 3 and 4, CreateEpisode's `agent`, ServerInfo's
+    caller, role, challenge and recording) as the client sends and reads them."""
+    from esrp import _convert
+    from esrp.v1 import esrp_pb2 as pb
+
+    assert _convert.split_code("challenge") == pb.SPLIT_CHALLENGE
+    assert _convert.split_code(esrp.Split.MINIVAL) == pb.SPLIT_MINIVAL
+    with pytest.raises(esrp.InvalidRequest, match="'train', 'test', 'challenge', 'minival'"):
+        _convert.split_code("validation")
+    listed = _convert.scene_summary(pb.SceneSummary(id="challenge/00012", split=pb.SPLIT_CHALLENGE))
+    assert listed.split is esrp.Split.CHALLENGE
+
+    def create(agent: str | None) -> pb.CreateEpisodeRequest:
+        return _convert.create_request(
+            "minival/00003",
+            scene_json=None,
+            split=None,
+            seed=0,
+            horizon=0,
+            reward=None,
+            sensors=None,
+            privileged=False,
+            agent=agent,
+        )
+
+    assert (create("my-vlm v3").scene_id, create("my-vlm v3").agent) == ("minival/00003", "my-vlm v3")
+    assert create(None).agent == ""  # the server's "unnamed"
+    answer = pb.ServerInfoResponse(
+        version="0.2.0", dataset="d", caller="team-a", role="agent", challenge=True, recording="challenge"
+    )
+    info = _convert.server_info(answer)
+    assert (info.caller, info.role, info.challenge, info.recording) == ("team-a", "agent", True, "challenge")
+
+
+def test_an_agent_label_is_sent_with_a_create(client: esrp.Client, easy_scenes: list[str]) -> None:
+    # A server without records keeps the label nowhere; the episode is the same.
+    with client.create_episode(easy_scenes[0], agent="my-vlm v3", horizon=3) as episode:
+        assert episode.scene.id == easy_scenes[0]
+        assert episode.step(esrp.Action.LEFT).info.accepted
+
+
 def test_describe_dataset(client: esrp.Client) -> None:
     dataset = client.describe_dataset()
     assert dataset.name == "esrp-bench-v2"

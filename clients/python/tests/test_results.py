@@ -145,3 +145,25 @@ def test_bad_lines_and_unknown_fields(tmp_path: Path) -> None:
     path.write_text(json.dumps(extra) + "\n")
     (only,) = read_records(path).records
     assert only.osr == 1.0
+
+
+def test_a_server_record_keeps_its_own_fields(tmp_path: Path) -> None:
+    """A server's record (docs/evaluation.md: `token`, `started_at`, `dataset_hash`, `counted`)
+    reads as any record; its extra fields are kept and written back after the schema's."""
+    server_fields = {
+        "token": "team-a",
+        "started_at": "2026-11-23T19:39:58Z",
+        "dataset_hash": "0123456789abcdef",
+        "counted": True,
+    }
+    line = json.loads(record("challenge/00012", "easy", True, 1.0, 0.0, 4).to_json())
+    line |= {"split": "challenge", "agent": "unnamed", "seed": None, "client": "esrp-server 0.2.0"}
+    path = tmp_path / "team-a.jsonl"
+    path.write_text(json.dumps(line | server_fields) + "\n")
+    (read,) = read_records(path).records
+    assert (read.scene_id, read.split, read.seed) == ("challenge/00012", "challenge", None)
+    assert read.extra == server_fields
+    written = json.loads(read.to_json())
+    assert written == line | server_fields
+    assert list(written)[-5:] == ["finished_at", "token", "started_at", "dataset_hash", "counted"]
+    assert record("a", "easy", True, 1.0, 0.0, 4).extra == {}

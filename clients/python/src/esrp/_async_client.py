@@ -157,7 +157,9 @@ class AsyncClient:
             await asyncio.sleep(min(0.05, max(deadline - loop.time(), 0)))
 
     async def server_info(self) -> ServerInfo:
-        """The server's version, renderer, limits and live episode count."""
+        """The server's version, renderer, limits, live episode count and dataset, and who it takes
+        the caller for (`caller`, `role`), whether it serves a challenge and what it records.
+        """
         return _convert.server_info(await self._call(self._stub.ServerInfo, pb.ServerInfoRequest()))
 
     async def describe_dataset(self) -> DatasetInfo:
@@ -201,6 +203,7 @@ class AsyncClient:
         reward: RewardWeights | None = None,
         sensors: Sensors | None = None,
         privileged: bool = False,
+        agent: str | None = None,
         timeout: float | None = None,
     ) -> AsyncEpisode:
         """Creates an episode (arguments as `Client.create_episode`).
@@ -218,6 +221,7 @@ class AsyncClient:
             reward=reward,
             sensors=sensors,
             privileged=privileged,
+            agent=agent,
         )
         # No gRPC deadline: one that expired while the answer travelled would drop the new id.
         task: asyncio.Task[pb.CreateEpisodeResponse] = asyncio.ensure_future(
@@ -445,6 +449,7 @@ class AsyncEpisodeStream:
         reward: RewardWeights | None = None,
         sensors: Sensors | None = None,
         privileged: bool = False,
+        agent: str | None = None,
     ) -> int:
         """Sends a create (arguments as `Client.create_episode`); returns the request id."""
         request = _convert.create_request(
@@ -456,6 +461,7 @@ class AsyncEpisodeStream:
             reward=reward,
             sensors=sensors,
             privileged=privileged,
+            agent=agent,
         )
         return await self._send(RequestKind.CREATE, "", create=request)
 

@@ -181,7 +181,9 @@ class Client:
             time.sleep(min(0.05, max(deadline - time.monotonic(), 0)))
 
     def server_info(self) -> ServerInfo:
-        """The server's version, renderer, limits and live episode count."""
+        """The server's version, renderer, limits, live episode count and dataset, and who it takes
+        the caller for (`caller`, `role`), whether it serves a challenge and what it records.
+        """
         try:
             answer = self._stub.ServerInfo(
                 pb.ServerInfoRequest(), metadata=self._metadata, timeout=self.timeout
@@ -240,6 +242,7 @@ class Client:
         reward: RewardWeights | None = None,
         sensors: Sensors | None = None,
         privileged: bool = False,
+        agent: str | None = None,
         timeout: float | None = None,
     ) -> Episode:
         """Creates an episode and returns its handle, whose `observation` is the first one (with goal).
@@ -253,6 +256,9 @@ class Client:
             reward: Reward weights (the server's defaults for fields left None).
             sensors: Optional sensors and the image size (default: none, 128 px).
             privileged: Allow `Episode.privileged_state()` (planners, debugging).
+            agent: The agent's name, kept in the server's records of the episode (a server started
+                with `--records`), e.g. `"my-vlm-agent v3"`: free text, at most 200 bytes (the
+                server refuses longer); None or empty: `"unnamed"`.
             timeout: Give up waiting after this many seconds (default: the client's `timeout`).
 
         Cancellation-safe, as the Rust client: the call runs to its end whatever happens to the
@@ -270,6 +276,7 @@ class Client:
             reward=reward,
             sensors=sensors,
             privileged=privileged,
+            agent=agent,
         )
         # No gRPC deadline: a deadline that expires while the answer travels would drop the answer,
         # and with it the only copy of the new episode's id.
@@ -607,6 +614,7 @@ class EpisodeStream:
         reward: RewardWeights | None = None,
         sensors: Sensors | None = None,
         privileged: bool = False,
+        agent: str | None = None,
     ) -> int:
         """Sends a create (arguments as `Client.create_episode`); the episode lives as long as the
         stream. Returns the request id; the answer's `created()` has the new episode's id.
@@ -620,6 +628,7 @@ class EpisodeStream:
             reward=reward,
             sensors=sensors,
             privileged=privileged,
+            agent=agent,
         )
         return self._send(RequestKind.CREATE, "", create=request)
 

@@ -52,7 +52,12 @@ from ._values import (
 )
 from .v1 import esrp_pb2 as pb
 
-_SPLITS = {pb.SPLIT_TRAIN: Split.TRAIN, pb.SPLIT_TEST: Split.TEST}
+_SPLITS = {
+    pb.SPLIT_TRAIN: Split.TRAIN,
+    pb.SPLIT_TEST: Split.TEST,
+    pb.SPLIT_CHALLENGE: Split.CHALLENGE,
+    pb.SPLIT_MINIVAL: Split.MINIVAL,
+}
 _SPLIT_CODES = {value: code for code, value in _SPLITS.items()}
 _DIFFICULTIES = {
     pb.DIFFICULTY_EASY: Difficulty.EASY,
@@ -85,7 +90,8 @@ def split_code(split: Split | str | None) -> pb.Split.ValueType:
     try:
         return _SPLIT_CODES[Split(split)]
     except ValueError:
-        raise InvalidRequest(f"unknown split {split!r}: use 'train' or 'test'") from None
+        names = ", ".join(repr(s.value) for s in Split)
+        raise InvalidRequest(f"unknown split {split!r}: use one of {names}") from None
 
 
 def difficulty_code(difficulty: Difficulty | str | None) -> pb.Difficulty.ValueType:
@@ -108,6 +114,7 @@ def create_request(
     reward: RewardWeights | None,
     sensors: Sensors | None,
     privileged: bool,
+    agent: str | None = None,
 ) -> pb.CreateEpisodeRequest:
     """The CreateEpisode request of `Client.create_episode`'s arguments."""
     if scene is not None and scene_json is not None:
@@ -124,6 +131,7 @@ def create_request(
             resolution=sensors.resolution,
         ),
         privileged=privileged,
+        agent=agent or "",
     )
     if scene is not None:
         request.scene_id = scene
@@ -514,6 +522,10 @@ def server_info(message: pb.ServerInfoResponse) -> ServerInfo:
         ),
         live_episodes=message.live_episodes,
         dataset=message.dataset,
+        caller=message.caller,
+        role=message.role,
+        challenge=message.challenge,
+        recording=message.recording,
     )
 
 

@@ -123,6 +123,12 @@ class Split(str, enum.Enum):
 
     TRAIN = "train"
     TEST = "test"
+    CHALLENGE = "challenge"
+    """The hidden challenge split (a server started with `--challenge-seed`): scenes listed by id,
+    room type, difficulty and object count only; one counted attempt per scene and token."""
+    MINIVAL = "minival"
+    """The challenge's minival phase: more scenes of the same secret draw, played any number of
+    times (for checking a setup)."""
 
 
 class Difficulty(str, enum.Enum):
@@ -462,7 +468,16 @@ class ServerLimits:
 
 @dataclass(frozen=True)
 class ServerInfo:
-    """The server's version, renderer, limits, live episode count and dataset name."""
+    """The server's version, renderer, limits, live episode count and dataset name, and who it
+    takes the caller for.
+
+    Attributes:
+        caller: The name of the caller's token (`"admin"` with the server's `--token`,
+            `"anonymous"` on a server without tokens; empty from a server older than token roles).
+        role: The token's role: `"agent"`, `"trainer"` or `"admin"` (empty from an older server).
+        challenge: Whether the server serves a challenge split (`Split.CHALLENGE`, `Split.MINIVAL`).
+        recording: Which episodes the server records: `"challenge"`, `"all"`, or `""` (none).
+    """
 
     version: str
     renderer_adapter: str
@@ -471,6 +486,10 @@ class ServerInfo:
     limits: ServerLimits
     live_episodes: int
     dataset: str
+    caller: str = ""
+    role: str = ""
+    challenge: bool = False
+    recording: str = ""
 
 
 @dataclass(frozen=True)

@@ -1,10 +1,13 @@
 """The `esrp` command: `esrp eval` (run an agent over a split, write `esrp.results/v1` records),
-`esrp report` (tables and plots of results files as Markdown and one self-contained HTML page) and
-`esrp replay` (re-run a recorded episode on the server and write it as a GIF, MP4 or PNG).
+`esrp verify` (replay results files' records on the server and check them), `esrp report` (tables
+and plots of results files as Markdown and one self-contained HTML page; `--leaderboard`: the
+challenge's ranking from a server's records) and `esrp replay` (re-run a recorded episode on the
+server and write it as a GIF, MP4 or PNG).
 `esrp COMMAND --help` says more; docs/evaluation.md describes the results files.
 
-Each command group has its module, parser and handlers together: `cli.evaluation` (eval, report,
-replay), `cli.training` (demos export, train bc|ppo); `cli._args` holds what their parsers share.
+Each command group has its module, parser and handlers together: `cli.evaluation` (eval, verify,
+report, replay), `cli.training` (demos export, train bc|ppo); `cli._args` holds what their parsers
+share.
 `esrp bench` hands its arguments to `esrp.bench`, which parses them itself.
 """
 
@@ -41,9 +44,9 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Runs `esrp ARGS` (`argv` without the program name; default `sys.argv[1:]`); returns the exit
-    status: 0 done, 1 episodes failed (eval), 2 bad arguments or input, 3 the server died or stayed
-    unreachable (eval: the run stopped there), 130 interrupted, 143 terminated (SIGTERM, when run
-    as the `esrp` command).
+    status: 0 done, 1 episodes failed (eval) or records do not match (verify), 2 bad arguments or
+    input, 3 the server died or stayed unreachable (eval, verify: the run stopped there), 130
+    interrupted, 143 terminated (SIGTERM, when run as the `esrp` command).
     """
     arguments = list(sys.argv[1:] if argv is None else argv)
     command = f"esrp {arguments[0]}" if arguments and not arguments[0].startswith("-") else "esrp"

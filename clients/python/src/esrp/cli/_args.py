@@ -10,8 +10,11 @@ import sys
 from collections.abc import Callable
 from typing import NoReturn
 
-from .._values import Sensors
+from .._values import Sensors, Split
 from ..eval.results import ResultsError
+
+SPLITS = tuple(split.value for split in Split)
+"""The split names a `--split` flag takes: train, test, challenge, minival."""
 
 
 class Parser(argparse.ArgumentParser):

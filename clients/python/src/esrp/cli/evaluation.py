@@ -1,4 +1,6 @@
-"""The evaluation commands: `esrp eval`, `esrp report` and `esrp replay` (their parsers and handlers)."""
+"""The evaluation commands: `esrp eval`, `esrp verify`, `esrp report` and `esrp replay` (their parsers
+and handlers).
+"""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ import sys
 from pathlib import Path
 
 from ._args import (
+    SPLITS,
     Parser,
     comma_list,
     json_object,
@@ -20,7 +23,7 @@ from ._args import (
 
 
 def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
-    """Adds `eval`, `report` and `replay` to `commands`."""
+    """Adds `eval`, `verify`, `report` and `replay` to `commands`."""
     ev = commands.add_parser(
         "eval",
         help="run an agent over the scenes of a split; write one esrp.results/v1 record per episode",
@@ -36,7 +39,12 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
         "(a factory called with the agent config, once per episode, "
         "returning an esrp.agents.Agent or AsyncAgent)",
     )
-    ev.add_argument("--split", choices=("train", "test"), default="test")
+    ev.add_argument(
+        "--split",
+        choices=SPLITS,
+        default="test",
+        help="challenge and minival: the hidden splits of a server started with --challenge-seed",
+    )
     ev.add_argument("--difficulty", choices=("easy", "medium", "hard"))
     ev.add_argument(
         "--scenes", type=comma_list, default=[], metavar="ID,...", help="only these scenes, in order"
@@ -128,18 +136,33 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
 
     rep = commands.add_parser(
         "report",
-        help="tables and plots of results files: Markdown and one self-contained HTML page",
+        help="tables and plots of results files: Markdown and one self-contained HTML page; "
+        "--leaderboard: the challenge's ranking from a server's records",
         description="Read esrp.results/v1 files and write report.md and report.html (images inlined) "
         "with the paper's Table I/II/III layouts for every run, the paper's rows beside them, plots, "
-        "and replay stills of chosen episodes (those need a server).",
+        "and replay stills of chosen episodes (those need a server). With --leaderboard DIR instead: "
+        "rank the participants of the challenge from a server's records (DIR/*.jsonl: the counted "
+        "challenge records, one per participant and scene) and write one self-contained HTML page.",
     )
-    rep.add_argument("results", nargs="+", type=Path, help="results files (JSON Lines)")
-    rep.add_argument("--out", type=Path, required=True, help="the report's folder")
+    rep.add_argument("results", nargs="*", type=Path, help="results files (JSON Lines)")
+    rep.add_argument(
+        "--out",
+        type=Path,
+        help="the report's folder; with --leaderboard, the page (default: leaderboard.html)",
+    )
+    rep.add_argument(
+        "--leaderboard",
+        type=Path,
+        metavar="DIR",
+        help="rank the challenge's participants from the server's records in DIR (its --records folder)",
+    )
     rep.add_argument("--replays", type=int, default=0, metavar="N", help="stills of N episodes per run")
     rep.add_argument(
         "--replay-scenes", type=comma_list, default=[], metavar="ID,...", help="stills of these scenes"
     )
-    rep.add_argument("--title", default="ESRP evaluation report")
+    rep.add_argument(
+        "--title", help="the page's title (default: ESRP evaluation report, ESRP challenge leaderboard)"
+    )
     server_options(rep)
 
     rp = commands.add_parser(
@@ -157,7 +180,22 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
     rp.add_argument("--fps", type=positive_float, default=10.0, help="frames per second (10)")
     rp.add_argument("--scale", type=positive, default=2, help="pixels per image pixel")
     server_options(rp)
+
+    ver = commands.add_parser(
+        "verify",
+        help="replay results files' records on a server and check that each replay reproduces its record",
+        description="Replay every record of esrp.results/v1 files (esrp eval's, esrp-eval's, or a "
+        "server's own records) on a server: create an episode of its scene with its horizon, step its "
+        "actions, and check success, osr, rdr, stage, placed, steps, total_reward and end exactly. "
+        "Prints one line per record that does not match (FILE:LINE, scene, what differs) and a "
+        "summary. Exit status: 0 all match, 1 some do not, 2 bad input, 3 the server died.",
+    )
+    ver.add_argument("results", nargs="+", type=Path, help="results files (JSON Lines)")
+    ver.add_argument("--episodes-in-flight", type=positive, default=8, metavar="N")
+    ver.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar or lines")
+    server_options(ver)
     ev.set_defaults(handler=_eval)
+    ver.set_defaults(handler=_verify)
     rep.set_defaults(handler=_report)
     rp.set_defaults(handler=_replay)
 
@@ -240,14 +278,51 @@ def _eval(args: argparse.Namespace) -> int:
 
 
 @one_line_errors
+def _verify(args: argparse.Namespace) -> int:
+    from ..eval.evaluation import ServerGone
+    from ..eval.verify import VerifyError, run_verify
+
+    try:
+        outcome = run_verify(
+            args.results,
+            server=args.server,
+            token=args.token,
+            server_args=args.server_args,
+            episodes_in_flight=args.episodes_in_flight,
+            progress=args.progress,
+        )
+    except ServerGone as error:
+        print(f"esrp verify: {error}", file=sys.stderr)
+        return 3
+    except VerifyError as error:
+        print(f"esrp verify: {error}", file=sys.stderr)
+        return 2
+    for mismatch in outcome.mismatches:
+        print(mismatch.text())
+    print(outcome.summary())
+    return 1 if outcome.mismatches else 0
+
+
+@one_line_errors
 def _report(args: argparse.Namespace) -> int:
+    if args.leaderboard is not None:
+        return _leaderboard(args)
     from ..eval.report import ReportError, write_report
 
+    if not args.results or args.out is None:
+        missing = " and ".join(
+            name for name, given in (("results", args.results), ("--out", args.out)) if not given
+        )
+        print(
+            f"esrp report: error: {missing} needed (or --leaderboard DIR) (see esrp report --help)",
+            file=sys.stderr,
+        )
+        return 2
     try:
         paths = write_report(
             args.results,
             args.out,
-            title=args.title,
+            title=args.title or "ESRP evaluation report",
             replays=args.replays,
             replay_scenes=args.replay_scenes,
             server=args.server,
@@ -259,6 +334,37 @@ def _report(args: argparse.Namespace) -> int:
         return 2
     for path in paths:
         print(path)
+    return 0
+
+
+def _leaderboard(args: argparse.Namespace) -> int:
+    from ..eval.leaderboard import LeaderboardError, ranking_text, write_leaderboard
+
+    given = [
+        flag
+        for flag, value in (
+            ("results files", args.results),
+            ("--replays", args.replays),
+            ("--replay-scenes", args.replay_scenes),
+            ("--server", args.server),
+            ("--server-arg", args.server_args),
+        )
+        if value
+    ]
+    if given:
+        print(f"esrp report: {', '.join(given)} do not apply with --leaderboard", file=sys.stderr)
+        return 2
+    try:
+        participants, scenes, page = write_leaderboard(
+            args.leaderboard,
+            args.out or Path("leaderboard.html"),
+            title=args.title or "ESRP challenge leaderboard",
+        )
+    except LeaderboardError as error:
+        print(f"esrp report: {error}", file=sys.stderr)
+        return 2
+    print(ranking_text(participants, scenes), end="")
+    print(page)
     return 0
 
 

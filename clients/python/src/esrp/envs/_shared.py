@@ -155,6 +155,7 @@ class Setup:
     sensors: Sensors
     horizon: int
     reward: RewardWeights | None
+    agent: str | None = None
 
     @classmethod
     def connect(
@@ -169,6 +170,7 @@ class Setup:
         sensors: Sensors | None,
         horizon: int,
         reward: RewardWeights | None,
+        agent: str | None = None,
     ) -> Setup:
         server = None
         owned = client is None
@@ -196,7 +198,7 @@ class Setup:
             if server is not None:
                 server.stop()
             raise
-        return cls(client, owned, server, scenes, sensors or Sensors(), horizon, reward)
+        return cls(client, owned, server, scenes, sensors or Sensors(), horizon, reward, agent)
 
     def pick_scene(
         self, rng: np.random.Generator, options: Mapping[str, Any] | None, own: str | None = None

@@ -26,12 +26,15 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
         client: A `Client` to share instead (the env then does not close it).
         token: The server's bearer token.
         tls: TLS setting, as `Client`'s.
-        split: Scenes to draw from: `train` (default), `test`, or None for all.
+        split: Scenes to draw from: `train` (default), `test`, `challenge`, `minival`, or None for
+            all.
         difficulty: Only `easy`, `medium` or `hard` scenes (None: all).
         scene: Always play this scene id, or draw from these ids (ignores split and difficulty).
         sensors: Optional sensors and image size (default: none, 128 px).
         horizon: Step limit; 0: each scene's own (the server truncates).
         reward: Reward weights (the server's defaults for fields left None).
+        agent: The agent's name for the server's records of its episodes (`Client.create_episode`'s
+            `agent`; None: `"unnamed"`).
         render_mode: None or `rgb_array` (ego view, goal and, with the sensor, current top-down).
 
     `reset(seed=s)` seeds `np_random`, which draws the scene; `reset(options={"scene": id})` plays
@@ -60,13 +63,14 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
         sensors: Sensors | None = None,
         horizon: int = 0,
         reward: RewardWeights | None = None,
+        agent: str | None = None,
         render_mode: str | None = None,
     ) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode {render_mode!r}: use None or 'rgb_array'")
         self.render_mode = render_mode
         self._setup = Setup.connect(
-            address, client, token, tls, split, difficulty, scene, sensors, horizon, reward
+            address, client, token, tls, split, difficulty, scene, sensors, horizon, reward, agent
         )
         self.observation_space = cast(spaces.Space[ObsDict], observation_space(self._setup.sensors))
         self.action_space = spaces.Discrete(6)
@@ -100,7 +104,7 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
         if self._episode is None:
             setup = self._setup
             self._episode = setup.client.create_episode(
-                scene, sensors=setup.sensors, horizon=setup.horizon, reward=setup.reward
+                scene, sensors=setup.sensors, horizon=setup.horizon, reward=setup.reward, agent=setup.agent
             )
             first = self._episode.observation
         else:

@@ -85,6 +85,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         sensors: Sensors | None = None,
         horizon: int = 0,
         reward: RewardWeights | None = None,
+        agent: str | None = None,
         render_mode: str | None = None,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
         scene_per_env: bool = False,
@@ -106,7 +107,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
                 f"scene_per_env: scene must list one scene id per sub-env ({num_envs}), got {scene!r}"
             )
         self._setup = Setup.connect(
-            address, client, token, tls, split, difficulty, scene, sensors, horizon, reward
+            address, client, token, tls, split, difficulty, scene, sensors, horizon, reward, agent
         )
         self._scene_per_env = scene_per_env
         self.single_observation_space = observation_space(self._setup.sensors)
@@ -163,7 +164,9 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         episode = self._episode_ids[index]
         if episode is None:
             setup = self._setup
-            stream.create(scene, sensors=setup.sensors, horizon=setup.horizon, reward=setup.reward)
+            stream.create(
+                scene, sensors=setup.sensors, horizon=setup.horizon, reward=setup.reward, agent=setup.agent
+            )
         else:
             # The same scene again restarts the episode where it is (see `RearrangeEnv.reset`).
             stream.reset(episode, None if scene == self._scene_ids[index] else scene)

@@ -90,7 +90,7 @@ class EvalSettings:
         agent: `random`, `expert`, `plan`, `vlm` (`esrp.agents.vlm`, configured by `agent_config`),
             or `MODULE:CALLABLE` (a factory of agents).
         out: The results file (JSON Lines); scenes already in it are skipped.
-        split: The split whose scenes to run (`train` or `test`).
+        split: The split whose scenes to run (`train`, `test`, `challenge` or `minival`).
         difficulty: Only scenes of this difficulty (`easy`, `medium`, `hard`).
         scenes: Only these scene ids, in this order (they must be in the split).
         limit: At most this many scenes (after the filters), the first in order.
@@ -315,7 +315,8 @@ async def _play(
     kind = settings.agent
     privileged = kind in ("plan", "expert") or (factory is not None and settings.privileged)
     sensors = settings.sensors if factory is not None else None
-    episode = await client.create_episode(scene.id, privileged=privileged, sensors=sensors)
+    # The agent's name, as the record's `agent` says it, labels the episode in the server's records.
+    episode = await client.create_episode(scene.id, privileged=privileged, sensors=sensors, agent=kind)
     stats: dict[str, Any] = {}
     try:
         if kind == "expert":
@@ -598,8 +599,9 @@ def _running(tally: Tally) -> str:
 class Progress:
     """tqdm on a terminal (episodes, ETA, running SR); a plain line every 5 % otherwise."""
 
-    def __init__(self, total: int, done: int, enabled: bool) -> None:
+    def __init__(self, total: int, done: int, enabled: bool, unit: str = "episode") -> None:
         self.total = total
+        self.unit = unit
         self.position = done
         self.enabled = enabled
         self.every = max(total // 20, 1)
@@ -607,7 +609,7 @@ class Progress:
         if enabled and sys.stderr.isatty():
             from tqdm import tqdm
 
-            self._bar = tqdm(total=total, initial=done, unit="episode", file=sys.stderr, dynamic_ncols=True)
+            self._bar = tqdm(total=total, initial=done, unit=unit, file=sys.stderr, dynamic_ncols=True)
 
     def note(self, message: str) -> None:
         if self._bar is not None:
@@ -615,39 +617,48 @@ class Progress:
         else:
             print(message, file=sys.stderr)
 
-    def advance(self, tally: Tally) -> None:
+    def advance(self, status: Tally | str) -> None:
+        """One more done; `status` (the running SR of a tally, or a text) beside the bar."""
         self.position += 1
+        text = _running(status) if isinstance(status, Tally) else status
         if self._bar is not None:
-            self._bar.set_postfix_str(_running(tally), refresh=False)
+            self._bar.set_postfix_str(text, refresh=False)
             self._bar.update(1)
         elif self.enabled and self.position % self.every == 0:
-            print(f"{self.position}/{self.total} episodes  {_running(tally)}", file=sys.stderr)
+            print(f"{self.position}/{self.total} {self.unit}s  {text}", file=sys.stderr)
 
     def close(self) -> None:
         if self._bar is not None:
             self._bar.close()
 
 
-async def _server_gone(client: AsyncClient, local: LocalServer | None, episodes: int) -> str | None:
-    """Why the run cannot go on after a call found the server unavailable: the local server
-    exited, or the server stayed unhealthy for `SERVER_RETRY_SECONDS`; None if it answers again.
+async def server_gone(
+    client: AsyncClient,
+    local: LocalServer | None,
+    done: int,
+    *,
+    what: str = "episodes",
+    resume: str = "re-run the same command to resume",
+) -> str | None:
+    """Why a run cannot go on after a call found the server unavailable: the local server exited,
+    or the server stayed unhealthy for `SERVER_RETRY_SECONDS`; None if it answers again. The
+    message says how far the run got (`done` `what` of this run) and what to do (`resume`).
     """
-    resume = "re-run the same command to resume"
     if local is not None and not local.is_running():
-        return _local_exit(local, episodes, resume)
+        return _local_exit(local, f"{done} {what}", resume)
     try:
         await client.wait_healthy(SERVER_RETRY_SECONDS)
     except EsrpError:
         if local is not None and not local.is_running():
-            return _local_exit(local, episodes, resume)
+            return _local_exit(local, f"{done} {what}", resume)
         return (
             f"the server at {client.address} has been unavailable for {SERVER_RETRY_SECONDS:.0f} s "
-            f"after {episodes} episodes of this run; {resume} once it is back"
+            f"after {done} {what} of this run; {resume} once it is back"
         )
     return None
 
 
-def _local_exit(local: LocalServer, episodes: int, resume: str) -> str:
+def _local_exit(local: LocalServer, done: str, resume: str) -> str:
     code = local.process.poll() if local.process is not None else None
     if code is None:
         how = "stopped answering"
@@ -655,7 +666,7 @@ def _local_exit(local: LocalServer, episodes: int, resume: str) -> str:
         how = f"exited with signal {-code}" if code < 0 else f"exited with status {code}"
     tail = "\n".join(part for part in (local.log_tail(10).strip(), local.stderr_tail(10).strip()) if part)
     lines = f"; its last log lines:\n{tail}\n" if tail else " (it logged nothing); "
-    return f"the local esrp-server {how} after {episodes} episodes of this run{lines}{resume}"
+    return f"the local esrp-server {how} after {done} of this run{lines}{resume}"
 
 
 def errors_log_path(out: Path) -> Path:
@@ -738,7 +749,7 @@ async def evaluate(
                 played = await _play(client, scene, settings, factory, seed)
             except Exception as error:  # noqa: BLE001 - reported, not recorded; a rerun retries it.
                 if isinstance(error, ServerUnavailable):
-                    gone = await _server_gone(client, local, written)
+                    gone = await server_gone(client, local, written)
                     if gone is not None:
                         raise ServerGone(gone) from error
                 failures.add(scene.id, error)

@@ -7,7 +7,6 @@ the paper's rows beside it — the same text as the Rust tool's (`clients/rust/s
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import os
@@ -66,7 +65,8 @@ class ResultsError(Exception):
 @dataclass
 class EpisodeRecord:
     """One finished episode: a line of a results file. Fields as docs/evaluation.md lists them,
-    in the same order (the order they are written in).
+    in the same order (the order they are written in), then `extra`: the fields of the line that
+    this version does not know, kept as they were read.
     """
 
     schema: str
@@ -94,17 +94,23 @@ class EpisodeRecord:
     server_version: str
     client: str
     finished_at: str
+    extra: dict[str, Any] = field(default_factory=dict)
+    """Fields the schema's table does not list, by name, as read: e.g. a server record's `token`,
+    `started_at`, `dataset_hash` and `counted` (docs/evaluation.md). Written back after the others."""
 
     def to_json(self) -> str:
-        """The record as one line of compact JSON (no newline), UTF-8 text as is."""
-        return json.dumps(
-            dataclasses.asdict(self), separators=(",", ":"), ensure_ascii=False, allow_nan=False
-        )
+        """The record as one line of compact JSON (no newline), UTF-8 text as is: the schema's
+        fields in order, then the `extra` ones.
+        """
+        data = {name: getattr(self, name) for name in _FIELD_TYPES}
+        data.update((name, value) for name, value in self.extra.items() if name not in _FIELD_TYPES)
+        return json.dumps(data, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> EpisodeRecord:
-        """A record of a parsed JSON object; unknown fields are ignored. Raises `ValueError` naming
-        the first missing or mistyped field, or a schema other than `esrp.results/v1`.
+        """A record of a parsed JSON object; fields the schema does not list go to `extra`, unread.
+        Raises `ValueError` naming the first missing or mistyped field, or a schema other than
+        `esrp.results/v1`.
         """
         if data.get("schema") != SCHEMA:
             raise ValueError(f"schema is {data.get('schema')!r}, not {SCHEMA!r}")
@@ -118,7 +124,8 @@ class EpisodeRecord:
             values[name] = float(value) if float in kinds and not isinstance(value, bool) else value
         if not all(isinstance(a, int) and not isinstance(a, bool) and 0 <= a <= 5 for a in values["actions"]):
             raise ValueError("field 'actions' holds something other than action codes 0..5")
-        return cls(**values)
+        extra = {name: value for name, value in data.items() if name not in _FIELD_TYPES}
+        return cls(**values, extra=extra)
 
 
 _FIELD_TYPES: dict[str, tuple[type, ...]] = {
@@ -162,12 +169,14 @@ class ReadRecords:
 
     Attributes:
         records: The records, in file order.
+        line_numbers: The line (1-based) each record was read from.
         complete_bytes: Byte length of the complete lines read: a last line cut short by an
             interruption starts there, and `truncate_to` removes it.
         torn_tail: Whether a last line was cut short (incomplete or unreadable).
     """
 
     records: list[EpisodeRecord] = field(default_factory=list)
+    line_numbers: list[int] = field(default_factory=list)
     complete_bytes: int = 0
     torn_tail: bool = False
 
@@ -196,6 +205,7 @@ def read_records(path: str | os.PathLike[str]) -> ReadRecords:
             raise ResultsError(f"{path}:{number}: not an {SCHEMA} record: {error}") from None
         if complete:
             out.records.append(record)
+            out.line_numbers.append(number)
             out.complete_bytes += len(raw)
         else:
             # A record without its newline: the write was interrupted right before it.
