@@ -13,8 +13,18 @@ use esrp_core::Split;
 use crate::error::ServiceError;
 use crate::types::{Caller, Role};
 
-/// May `caller` create (or reset into) an episode on a scene of `split` with `privileged`?
-pub(super) fn may_play(caller: &Caller, split: Split, privileged: bool) -> Result<(), ServiceError> {
+/// May `caller` create (or reset into) an episode on a scene of `split` with `privileged`, and
+/// a horizon of its own (`own_horizon`) rather than the scene's? Hidden scenes are played at
+/// their own horizon by every token but an admin (a longer one would be an advantage).
+pub(super) fn may_play(caller: &Caller, split: Split, privileged: bool, own_horizon: bool) -> Result<(), ServiceError> {
+    if own_horizon && split.is_hidden() && !caller.is_admin() {
+        return Err(ServiceError::Denied(format!(
+            "{} may not set the horizon of an episode on a {} scene: such episodes play the scene's own horizon \
+             (send horizon = 0)",
+            caller.describe(),
+            split.as_str()
+        )));
+    }
     if !privileged {
         return Ok(());
     }
@@ -71,12 +81,13 @@ mod tests {
         let (agent, trainer, admin) = (caller(Role::Agent), caller(Role::Trainer), caller(Role::Admin));
         for split in Split::ALL {
             for c in [&agent, &trainer, &admin] {
-                assert!(may_play(c, split, false).is_ok());
+                assert!(may_play(c, split, false, false).is_ok());
+                assert_eq!(may_play(c, split, false, true).is_ok(), c.is_admin() || !split.is_hidden());
             }
-            let denied = may_play(&agent, split, true).unwrap_err().to_string();
+            let denied = may_play(&agent, split, true, false).unwrap_err().to_string();
             assert!(denied.contains("token \"c\" (role agent) may not create privileged episodes"), "{denied}");
-            assert_eq!(may_play(&trainer, split, true).is_ok(), !split.is_hidden());
-            assert_eq!(may_play(&admin, split, true).is_ok(), !split.is_hidden());
+            assert_eq!(may_play(&trainer, split, true, false).is_ok(), !split.is_hidden());
+            assert_eq!(may_play(&admin, split, true, false).is_ok(), !split.is_hidden());
         }
         assert!(
             may_read_privileged(&agent, "PlanActions").unwrap_err().to_string().contains("may not call PlanActions")

@@ -105,7 +105,7 @@ async fn start_run(
     privileged: bool,
 ) -> Result<(EpisodeEntry, Observation), ServiceError> {
     let (split, id) = (scene.scene().split, scene.scene().id.clone());
-    access::may_play(caller, split, privileged)?;
+    access::may_play(caller, split, privileged, config.horizon.is_some())?;
     let run = recording::begin(episodes, caller, split, &id)?;
     let counted = run.as_ref().is_some_and(|r| r.counted);
     let owner = Owner { caller: caller.clone(), agent, run };
