@@ -9,6 +9,10 @@
 //! - [`types`]: the values the episode layer speaks (ids, options, observations, answers); the
 //!   leaf every other module may use.
 //! - [`config`]: flags and environment variables.
+//! - [`auth`]: who calls: the tokens (`--token`, `--tokens`) with their roles and quotas, and the
+//!   interceptor that identifies each call's [`types::Caller`].
+//! - [`records`]: the server's own `esrp.results/v1` records (`--records`) and the challenge's
+//!   counted attempts.
 //! - [`scenes`]: the served scenes, built lazily and cached.
 //! - [`registry`]: a plain map from unguessable id to entry, each locked alone; limits; idle
 //!   and unclaimed reaping.
@@ -31,9 +35,13 @@
 //!   thread behind a channel.
 //! - **Each episode is locked alone**; a batch locks its episodes in id order, so concurrent
 //!   batches cannot deadlock. The registry's own lock is held only for map operations.
-//! - **No proto type below the adapters**: [`episodes`], [`registry`], [`render`] and
-//!   [`scenes`] speak core types; only [`esrp_v1`] and [`dm_env`] know their protocols.
-//! - **No import circle**: `types` ← `error` ← {`scenes`, `registry`, `render`} ← `episodes` ←
+//! - **No proto type below the adapters**: [`episodes`], [`registry`], [`render`],
+//!   [`records`] and [`scenes`] speak core types; only [`esrp_v1`] and [`dm_env`] know their
+//!   protocols ([`auth`] knows tonic's interceptor, not the messages).
+//! - **Policy at the episode layer's edge**: what a token may do is decided before a call moves
+//!   anything (`episodes::access`, the registry's owner and quota checks); the simulator and
+//!   the renderer know nothing of tokens.
+//! - **No import circle**: `types` ← `error` ← {`auth`, `records`, `scenes`, `registry`, `render`} ← `episodes` ←
 //!   the adapters ← the crate root (`scripts/module_cycles.py`, run by the tests).
 //! - **No client input panics or stops the server**: every field is validated into a
 //!   [`error::ServiceError`] with a precise status code and a message that says what to change.
