@@ -58,6 +58,9 @@ if TYPE_CHECKING:
         StreamAnswer as StreamAnswer,
     )
     from ._errors import (
+        AlreadyPlayed as AlreadyPlayed,
+    )
+    from ._errors import (
         Cancelled as Cancelled,
     )
     from ._errors import (
@@ -224,6 +227,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "._errors": (
         "Cancelled",
         "DeadlineExceeded",
+        "AlreadyPlayed",
         "EpisodeEnded",
         "EpisodeNotFound",
         "EsrpError",

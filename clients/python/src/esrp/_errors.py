@@ -10,6 +10,7 @@ from __future__ import annotations
 import grpc
 
 __all__ = [
+    "AlreadyPlayed",
     "Cancelled",
     "DeadlineExceeded",
     "EpisodeEnded",
@@ -75,8 +76,16 @@ class EpisodeEnded(EsrpError):
     """FAILED_PRECONDITION: a step of an episode that has ended; reset it or create a new one."""
 
 
+class AlreadyPlayed(EsrpError):
+    """FAILED_PRECONDITION for a create (or reset) on a challenge scene this token has played: each
+    token gets one counted attempt per challenge scene; the message says when it was played.
+    """
+
+
 class ServerBusy(EsrpError):
-    """RESOURCE_EXHAUSTED: a server limit was reached (live episodes, batch size, message size)."""
+    """RESOURCE_EXHAUSTED: a server limit was reached (live episodes, batch size, message size), or
+    one of the token's quotas (`max_episodes`, `max_streams`): the message names it.
+    """
 
 
 class Unauthenticated(EsrpError):
@@ -84,7 +93,10 @@ class Unauthenticated(EsrpError):
 
 
 class PermissionDenied(EsrpError):
-    """PERMISSION_DENIED: privileged state of an episode not created with `privileged=True`."""
+    """PERMISSION_DENIED: privileged state of an episode not created with `privileged=True`, a call
+    the token's role does not allow (the message names the role and what it lacks), or another
+    token's episode.
+    """
 
 
 class ServerUnavailable(EsrpError):
@@ -131,6 +143,9 @@ def error_class(code: grpc.StatusCode, message: str) -> type[EsrpError]:
     if code == grpc.StatusCode.NOT_FOUND:
         # The server's messages: `no scene "…" in the served dataset` and `no episode "…": …`.
         return SceneNotFound if message.startswith("no scene") else EpisodeNotFound
+    if code == grpc.StatusCode.FAILED_PRECONDITION and message.startswith("challenge scene"):
+        # The server's message: `challenge scene "…" was already played by token …`.
+        return AlreadyPlayed
     return _BY_CODE.get(code, ServerError)
 
 
