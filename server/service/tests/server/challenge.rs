@@ -153,6 +153,24 @@ async fn each_role_gets_only_what_it_may_on_both_apis() {
     let plan = proto::PlanActionsRequest { episode_id: mine.clone(), ..Default::default() };
     refused(alice.plan_actions(plan).await, Code::PermissionDenied, "may not call PlanActions");
 
+    // The same create on a stream answers the same refusal, in-band.
+    let (requests, receiver) = tokio::sync::mpsc::channel(4);
+    let mut answers =
+        alice.step_stream(tokio_stream::wrappers::ReceiverStream::new(receiver)).await.unwrap().into_inner();
+    let privileged = proto::StreamRequest {
+        request_id: 7,
+        request: Some(proto::stream_request::Request::Create(create("esrp-bench-v2/00003", true))),
+    };
+    requests.send(privileged).await.unwrap();
+    match answers.message().await.unwrap().unwrap().response {
+        Some(proto::stream_response::Response::Error(e)) => {
+            assert_eq!(e.code, Code::PermissionDenied as i32, "{e:?}");
+            assert!(e.message.contains("role agent"), "{e:?}");
+        }
+        other => panic!("a privileged create on an agent's stream is refused: {other:?}"),
+    }
+    drop((requests, answers));
+
     // A trainer: privileged episodes and plans, never on a hidden scene.
     let theirs = create_id(&mut tina, create("esrp-bench-v2/00003", true)).await;
     let state = tina.get_privileged_state(proto::GetPrivilegedStateRequest { episode_id: theirs.clone() }).await;
@@ -340,6 +358,28 @@ async fn every_challenge_run_is_recorded_once_across_a_kill_and_a_restart() {
     assert_eq!(written.len(), 2);
     assert_eq!((written[1].end.as_str(), written[1].actions.as_slice()), ("agent", &[2u8, 2][..]));
     assert_eq!(written[1].agent_stats.get("closed_by").and_then(|v| v.as_str()), Some("client"));
+
+    // Created on a stream that then ends: recorded as closed by the stream's end.
+    let mut tina = client(&server, "tina-secret").await;
+    let (requests, receiver) = tokio::sync::mpsc::channel(4);
+    let mut answers =
+        tina.step_stream(tokio_stream::wrappers::ReceiverStream::new(receiver)).await.unwrap().into_inner();
+    let on_stream = proto::StreamRequest {
+        request_id: 1,
+        request: Some(proto::stream_request::Request::Create(create("challenge/00000", false))),
+    };
+    requests.send(on_stream).await.unwrap();
+    let created = answers.message().await.unwrap().unwrap();
+    assert!(matches!(created.response, Some(proto::stream_response::Response::Created(_))), "{created:?}");
+    drop(requests);
+    while answers.message().await.ok().flatten().is_some() {}
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while records(dir.path(), "tina").is_empty() {
+        assert!(Instant::now() < deadline, "the stream's episode is recorded when the stream ends");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let streamed = &records(dir.path(), "tina")[0];
+    assert_eq!(streamed.agent_stats.get("closed_by").and_then(|v| v.as_str()), Some("stream"));
 
     // Left idle: the reaper closes it, and it is recorded as closed there.
     let idle = create_id(&mut bob, create("challenge/00002", false)).await;
