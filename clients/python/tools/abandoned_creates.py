@@ -30,7 +30,9 @@ def one_run(run: int, creates: int, claim: int) -> tuple[int, int, int]:
     args = ("--claim-timeout-seconds", str(claim), "--idle-timeout-seconds", "0")
     with esrp.LocalServer(*args) as server, grpc.insecure_channel(server.address) as channel:
         stub = pb_grpc.EsrpStub(channel)
-        scenes = [s.id for s in stub.ListScenes(pb.ListScenesRequest(split=pb.SPLIT_TRAIN, page_size=1000)).scenes]
+        scenes = [
+            s.id for s in stub.ListScenes(pb.ListScenesRequest(split=pb.SPLIT_TRAIN, page_size=1000)).scenes
+        ]
         sensors = [
             pb.Sensors(resolution=128),
             pb.Sensors(resolution=512, ego_depth=True, ego_segmentation=True, current_top_down=True),
@@ -40,7 +42,9 @@ def one_run(run: int, creates: int, claim: int) -> tuple[int, int, int]:
         start = (run * creates) % max(1, len(scenes) - creates)
         for index, scene in enumerate(scenes[start : start + creates]):
             try:
-                stub.CreateEpisode(pb.CreateEpisodeRequest(scene_id=scene, sensors=sensors[index % 2]), timeout=0.02)
+                stub.CreateEpisode(
+                    pb.CreateEpisodeRequest(scene_id=scene, sensors=sensors[index % 2]), timeout=0.02
+                )
             except grpc.RpcError as error:
                 if error.code() in (grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.CANCELLED):
                     abandoned += 1
@@ -57,10 +61,14 @@ def one_run(run: int, creates: int, claim: int) -> tuple[int, int, int]:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--runs", type=int, default=10)
     parser.add_argument("--creates", type=int, default=20, help="creates per run (default 20)")
-    parser.add_argument("--claim", type=int, default=5, help="the servers' --claim-timeout-seconds (default 5)")
+    parser.add_argument(
+        "--claim", type=int, default=5, help="the servers' --claim-timeout-seconds (default 5)"
+    )
     args = parser.parse_args()
     print("| run | abandoned | live 1 s after | live after the claim timeout |")
     print("|---:|---:|---:|---:|")

@@ -6,7 +6,7 @@ folder, a second run of any token must be refused scene by scene, and `esrp veri
 records with an admin token must agree on every one. Prints one line per check and the times;
 exit status 0 when every check holds.
 
-    .venv/bin/python scripts/challenge_run.py --server-binary target/release/esrp-server \
+    .venv/bin/python clients/python/tools/challenge_run.py --server-binary target/release/esrp-server \
         --tokens 8 --scenes 200
 
 Needs the `esrp` package (`pip install ./clients/python`) in the Python that runs it.
@@ -26,9 +26,15 @@ import esrp
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--server-binary", default=None, help="esrp-server to start (default: as LocalServer finds it)")
-    parser.add_argument("--tokens", type=int, default=8, help="agent tokens, each running esrp eval (default 8)")
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--server-binary", default=None, help="esrp-server to start (default: as LocalServer finds it)"
+    )
+    parser.add_argument(
+        "--tokens", type=int, default=8, help="agent tokens, each running esrp eval (default 8)"
+    )
     parser.add_argument("--scenes", type=int, default=200, help="challenge scenes (default 200)")
     parser.add_argument("--episodes-in-flight", type=int, default=8, help="per esrp eval (default 8)")
     parser.add_argument("--keep", type=Path, default=None, help="keep the records in this folder")
@@ -44,12 +50,17 @@ def main() -> int:
     tokens += '[[token]]\nname = "organiser"\nsecret = "organiser-secret"\nrole = "admin"\n'
     (work / "tokens.toml").write_text(tokens)
     server_args = [
-        "--tokens", str(work / "tokens.toml"),
-        "--challenge-seed", "challenge-run-measurement-seed",
-        "--challenge-scenes", str(args.scenes),
-        "--minival-scenes", "0",
-        "--records", str(records),
-    ]  # fmt: skip
+        "--tokens",
+        str(work / "tokens.toml"),
+        "--challenge-seed",
+        "challenge-run-measurement-seed",
+        "--challenge-scenes",
+        str(args.scenes),
+        "--minival-scenes",
+        "0",
+        "--records",
+        str(records),
+    ]
     failures = 0
 
     def check(ok: bool, what: str) -> None:
@@ -61,11 +72,30 @@ def main() -> int:
         started = time.monotonic()
         evals = [
             subprocess.Popen(
-                [sys.executable, "-m", "esrp.cli", "eval", "--agent", "random", "--split", "challenge", "--no-progress",
-                 "--server", server.address, "--token", f"{t}-secret", "--episodes-in-flight",
-                 str(args.episodes_in_flight), "--out", str(work / f"{t}.own.jsonl"), "--fresh"],
-                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-            )  # fmt: skip
+                [
+                    sys.executable,
+                    "-m",
+                    "esrp.cli",
+                    "eval",
+                    "--agent",
+                    "random",
+                    "--split",
+                    "challenge",
+                    "--no-progress",
+                    "--server",
+                    server.address,
+                    "--token",
+                    f"{t}-secret",
+                    "--episodes-in-flight",
+                    str(args.episodes_in_flight),
+                    "--out",
+                    str(work / f"{t}.own.jsonl"),
+                    "--fresh",
+                ],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
             for t in teams
         ]
         codes = [p.wait() for p in evals]
@@ -82,17 +112,42 @@ def main() -> int:
                 f"{t}: {counted[t]} counted records of {len(scenes)} distinct scenes (want {args.scenes})",
             )
         steps = sum(
-            json.loads(line)["steps"] for t in teams for line in (records / f"{t}.jsonl").read_text().splitlines()
+            json.loads(line)["steps"]
+            for t in teams
+            for line in (records / f"{t}.jsonl").read_text().splitlines()
         )
-        print(f"     {args.tokens * args.scenes} episodes, {steps} steps in {run_seconds:.1f} s "
-              f"({steps / run_seconds:.0f} steps/s)", flush=True)  # fmt: skip
+        print(
+            f"     {args.tokens * args.scenes} episodes, {steps} steps in {run_seconds:.1f} s "
+            f"({steps / run_seconds:.0f} steps/s)",
+            flush=True,
+        )
 
         again = subprocess.run(
-            [sys.executable, "-m", "esrp.cli", "eval", "--agent", "random", "--split", "challenge", "--no-progress",
-             "--limit", "3", "--server", server.address, "--token", f"{teams[0]}-secret",
-             "--out", str(work / "again.jsonl"), "--fresh"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, check=False,
-        )  # fmt: skip
+            [
+                sys.executable,
+                "-m",
+                "esrp.cli",
+                "eval",
+                "--agent",
+                "random",
+                "--split",
+                "challenge",
+                "--no-progress",
+                "--limit",
+                "3",
+                "--server",
+                server.address,
+                "--token",
+                f"{teams[0]}-secret",
+                "--out",
+                str(work / "again.jsonl"),
+                "--fresh",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+            check=False,
+        )
         check(
             again.returncode == 1 and again.stderr.count("already played") >= 1,
             "a second run of a token is refused: already played",
@@ -101,10 +156,24 @@ def main() -> int:
         started = time.monotonic()
         files = [str(records / f"{t}.jsonl") for t in teams]
         verify = subprocess.run(
-            [sys.executable, "-m", "esrp.cli", "verify", *files, "--server", server.address,
-             "--token", "organiser-secret", "--no-progress", "--episodes-in-flight", "16"],
-            capture_output=True, text=True, check=False,
-        )  # fmt: skip
+            [
+                sys.executable,
+                "-m",
+                "esrp.cli",
+                "verify",
+                *files,
+                "--server",
+                server.address,
+                "--token",
+                "organiser-secret",
+                "--no-progress",
+                "--episodes-in-flight",
+                "16",
+            ],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
         verify_seconds = time.monotonic() - started
         last = verify.stdout.strip().splitlines()[-1] if verify.stdout.strip() else verify.stderr.strip()
         check(verify.returncode == 0, f"esrp verify: {last} ({verify_seconds:.1f} s)")
