@@ -114,7 +114,9 @@ fn end_of(metrics: &EpisodeMetrics) -> &'static str {
 /// Plays `scene` with `settings` (seeded with `seed` if the agent draws random numbers).
 pub async fn play(client: &Client, scene: &str, settings: &AgentSettings, seed: u64) -> anyhow::Result<Played> {
     let privileged = matches!(settings.kind, AgentKind::Plan | AgentKind::Expert);
-    let (episode, _) = client.create_episode(EpisodeOptions::scene(scene).privileged(privileged)).await?;
+    // The agent's name labels the episode in a recording server's records.
+    let options = EpisodeOptions::scene(scene).privileged(privileged).agent(settings.kind.name());
+    let (episode, _) = client.create_episode(options).await?;
     let summary = episode.scene().clone();
     let played = match settings.kind {
         AgentKind::Expert => expert(client, &episode).await,

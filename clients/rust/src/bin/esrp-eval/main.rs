@@ -82,6 +82,10 @@ struct Args {
 enum SplitArg {
     Train,
     Test,
+    /// A challenge server's hidden split (`--challenge-seed`): one counted attempt per scene.
+    Challenge,
+    /// The challenge's minival split.
+    Minival,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -96,6 +100,8 @@ impl From<SplitArg> for Split {
         match s {
             SplitArg::Train => Split::Train,
             SplitArg::Test => Split::Test,
+            SplitArg::Challenge => Split::Challenge,
+            SplitArg::Minival => Split::Minival,
         }
     }
 }
