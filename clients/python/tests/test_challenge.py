@@ -119,6 +119,11 @@ def test_participants_runs_are_recorded_verified_and_ranked(
     as_red = ["verify", files[0], "--server", server.address, "--token", "red-secret", "--no-progress"]
     assert main(as_red) == 1
 
+    # The server's records are ordinary results files: `esrp report` reads them.
+    assert main(["report", files[0], "--out", str(tmp_path / "report")]) == 0
+    report = (tmp_path / "report" / "report.md").read_text()
+    assert f"`team-red.jsonl` (random, {SCENES} episodes)" in report
+
     # The leaderboard ranks both teams from the records folder alone.
     page = tmp_path / "leaderboard.html"
     assert main(["report", "--leaderboard", str(records), "--out", str(page)]) == 0
