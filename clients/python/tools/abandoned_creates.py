@@ -3,8 +3,9 @@ scenes are not built yet) gets `--creates` CreateEpisode calls from the plain gr
 package ships (no cancellation-safe wrapper), each abandoned at a 20 ms deadline, half at 128 px
 and half at 512 px with every sensor (an answer that arrives in time but exceeds grpcio's default
 4 MB receive limit is dropped by the client too, and counted as abandoned). It prints, per run,
-how many calls were abandoned, how many episodes were live just after (unreachable: their ids
-reached no client) and how many are live once the claim timeout (plus the reaper's tick) has
+how many calls were abandoned, how many episodes were live a second after (the creates answered
+in time: this client holds their ids but never names them again, so the server cannot tell them
+from abandoned ones) and how many are live once the claim timeout (plus the reaper's tick) has
 passed; the last must be 0 in every run.
 
     ESRP_SERVER_BIN=target/release/esrp-server python clients/python/tools/abandoned_creates.py --runs 10
