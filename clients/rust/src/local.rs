@@ -61,6 +61,8 @@ pub struct LocalServer {
     pub address: String,
     /// `http://127.0.0.1:PORT/metrics`, when started with `--metrics-listen`.
     pub metrics: Option<String>,
+    /// `http://127.0.0.1:PORT/`, the web viewer, when started with `--http-listen`.
+    pub viewer: Option<String>,
 }
 
 impl Drop for LocalServer {
@@ -110,9 +112,11 @@ impl LocalServer {
     }
 
     /// Spawns a server `command` with its stdin and stdout piped and waits until it listens; with
-    /// `--metrics-listen` among its arguments, reads the metrics address too.
+    /// `--metrics-listen` or `--http-listen` among its arguments, reads the metrics or viewer
+    /// address too.
     pub fn spawn(mut command: Command) -> Result<Self> {
         let with_metrics = command.get_args().any(|a| a == "--metrics-listen");
+        let with_viewer = command.get_args().any(|a| a == "--http-listen");
         let program = Path::new(command.get_program()).display().to_string();
         let mut child = command.stdin(Stdio::piped()).stdout(Stdio::piped()).spawn().map_err(|e| {
             ClientError::LocalServer(format!(
@@ -132,7 +136,8 @@ impl LocalServer {
         };
         let address = format!("http://{}", read_line("esrp-server listening on ")?);
         let metrics = if with_metrics { Some(read_line("esrp-server metrics on ")?) } else { None };
-        Ok(Self { _stdin: child.stdin.take(), child, _stdout: stdout, address, metrics })
+        let viewer = if with_viewer { Some(read_line("esrp-server viewer on ")?) } else { None };
+        Ok(Self { _stdin: child.stdin.take(), child, _stdout: stdout, address, metrics, viewer })
     }
 
     /// Connection settings for this server (add a token or TLS, then `.await`).

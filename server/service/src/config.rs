@@ -113,6 +113,11 @@ pub struct Config {
     /// picks a free port, printed at start).
     #[arg(long, env = "ESRP_METRICS_LISTEN")]
     pub metrics_listen: Option<SocketAddr>,
+    /// Serve the web viewer at `http://ADDR/` (off unless set; port 0 picks a free port, printed
+    /// at start): watch live episodes, play one from the keyboard. Without --token or --tokens
+    /// only a loopback address (e.g. 127.0.0.1:8080) is accepted.
+    #[arg(long, env = "ESRP_HTTP_LISTEN")]
+    pub http_listen: Option<SocketAddr>,
     /// Threads of the async runtime (gRPC, episode bookkeeping); 0: one per core but one, which
     /// leaves a core to the render thread (on 2 cores, one runtime thread measured 5-15 % more
     /// steps/s with 64 episodes than two).

@@ -25,6 +25,8 @@
 //!   its edge.
 //! - [`dm_env`]: the `dm_env_rpc.v1.Environment` adapter, a sibling of `esrp_v1` over the same
 //!   core.
+//! - [`viewer`]: the web viewer (`--http-listen`), a third adapter: an axum server with an
+//!   embedded page and a JSON/event-stream API over the same episodes.
 //! - [`metrics`]: Prometheus metrics and their HTTP endpoint.
 //! - [`error`]: typed errors and their one mapping to gRPC status codes.
 //!
@@ -64,6 +66,7 @@ pub mod registry;
 pub mod render;
 pub mod scenes;
 pub mod types;
+pub mod viewer;
 
 use std::future::Future;
 use std::sync::Arc;
@@ -116,14 +119,24 @@ pub fn build_episodes(config: &Config) -> Result<Arc<episodes::Episodes>, ServeE
     Ok(Arc::new(episodes::Episodes::new(store, render, config.clone(), metrics, recorder, attempts)))
 }
 
-/// Serves gRPC on `listener` (and Prometheus metrics on `metrics_listener`, if given) until
+/// The sockets a server serves on, bound by its caller (so that it can print their addresses).
+pub struct Listeners {
+    /// gRPC (esrp.v1, dm_env_rpc, health, reflection).
+    pub grpc: TcpListener,
+    /// Prometheus metrics (`--metrics-listen`).
+    pub metrics: Option<TcpListener>,
+    /// The web viewer (`--http-listen`).
+    pub viewer: Option<TcpListener>,
+}
+
+/// Serves gRPC (and Prometheus metrics and the web viewer, where their listeners are given) until
 /// `shutdown` completes, then drains in-flight calls for at most `--shutdown-grace-ms`.
 pub async fn run(
-    listener: TcpListener,
-    metrics_listener: Option<TcpListener>,
+    listeners: Listeners,
     config: Config,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), ServeError> {
+    let Listeners { grpc: listener, metrics: metrics_listener, viewer: viewer_listener } = listeners;
     let tokens = Arc::new(tokens_of(&config)?);
     let episodes = build_episodes(&config)?;
     let render = episodes.render.clone();
@@ -182,6 +195,15 @@ pub async fn run(
         tokio::spawn(async move {
             if let Err(e) = metrics::serve(listener, episodes.metrics.clone(), refresh).await {
                 tracing::error!("the metrics endpoint stopped: {e}");
+            }
+        })
+    });
+
+    let viewer_server = viewer_listener.map(|listener| {
+        let (episodes, tokens) = (episodes.clone(), tokens.clone());
+        tokio::spawn(async move {
+            if let Err(e) = viewer::serve(listener, episodes, tokens).await {
+                tracing::error!("the viewer stopped: {e}");
             }
         })
     });
@@ -255,7 +277,7 @@ pub async fn run(
     if closed > 0 {
         tracing::info!(closed, "closed the episodes still open at shutdown");
     }
-    if let Some(task) = metrics_server {
+    for task in [metrics_server, viewer_server].into_iter().flatten() {
         task.abort();
         let _ = task.await;
     }

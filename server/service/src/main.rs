@@ -176,5 +176,23 @@ async fn serve(config: Config) -> anyhow::Result<()> {
         }
         None => None,
     };
-    Ok(esrp_server::run(listener, metrics_listener, config, signals.wait()).await?)
+    let viewer_listener = match config.http_listen {
+        Some(address) => {
+            if config.token.is_none() && config.tokens.is_none() && !address.ip().is_loopback() {
+                anyhow::bail!(
+                    "--http-listen {address}: without --token or --tokens the viewer serves only a loopback address \
+                     (e.g. 127.0.0.1:8080); give tokens to serve it on {}",
+                    address.ip()
+                );
+            }
+            let listener = tokio::net::TcpListener::bind(address)
+                .await
+                .map_err(|e| anyhow::anyhow!("cannot listen on {address} for --http-listen: {e}"))?;
+            println!("esrp-server viewer on http://{}/", listener.local_addr()?);
+            Some(listener)
+        }
+        None => None,
+    };
+    let listeners = esrp_server::Listeners { grpc: listener, metrics: metrics_listener, viewer: viewer_listener };
+    Ok(esrp_server::run(listeners, config, signals.wait()).await?)
 }

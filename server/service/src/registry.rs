@@ -152,6 +152,32 @@ impl<E> Registry<E> {
         Ok(slot.episode.clone())
     }
 
+    /// The episode `id` for `caller` (its creator, or an admin), without claiming it: a viewer
+    /// looking at an episode is not its client.
+    pub fn peek(&self, id: &EpisodeId, caller: &Caller) -> Result<Locked<E>, ServiceError> {
+        let map = self.map();
+        let slot = map.slots.get(id).ok_or_else(|| ServiceError::UnknownEpisode(id.clone()))?;
+        if !caller.is_admin() && slot.owner.name != caller.name {
+            return Err(ServiceError::NotYours { episode: id.clone(), caller: caller.describe() });
+        }
+        Ok(slot.episode.clone())
+    }
+
+    /// The episode `id`, whoever created it, without claiming it (the server's own use).
+    pub fn peek_any(&self, id: &EpisodeId) -> Option<Locked<E>> {
+        self.map().slots.get(id).map(|slot| slot.episode.clone())
+    }
+
+    /// The live episodes `caller` may name (its own; all for an admin).
+    pub fn visible_to(&self, caller: &Caller) -> Vec<(EpisodeId, Locked<E>)> {
+        self.map()
+            .slots
+            .iter()
+            .filter(|(_, slot)| caller.is_admin() || slot.owner.name == caller.name)
+            .map(|(id, slot)| (id.clone(), slot.episode.clone()))
+            .collect()
+    }
+
     /// Whether the episode `id` is live.
     pub fn contains(&self, id: &EpisodeId) -> bool {
         self.map().slots.contains_key(id)

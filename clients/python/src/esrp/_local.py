@@ -26,6 +26,7 @@ __all__ = ["LocalServer", "find_server_binary"]
 
 _LISTENING = "esrp-server listening on "
 _METRICS = "esrp-server metrics on "
+_VIEWER = "esrp-server viewer on "
 _BINARY = "esrp-server.exe" if os.name == "nt" else "esrp-server"
 
 
@@ -114,6 +115,8 @@ class LocalServer:
         self._address: str | None = None
         self.metrics_url: str | None = None
         """`http://127.0.0.1:PORT/metrics`, the Prometheus endpoint, when started with `--metrics-listen`."""
+        self.viewer_url: str | None = None
+        """`http://127.0.0.1:PORT/`, the web viewer, when started with `--http-listen`."""
 
     @property
     def address(self) -> str:
@@ -195,6 +198,7 @@ class LocalServer:
         assert self.process.stdout is not None
         deadline = time.monotonic() + self.startup_timeout
         wanted = [_LISTENING] + ([_METRICS] if "--metrics-listen" in self.args else [])
+        wanted += [_VIEWER] if "--http-listen" in self.args else []
         found: list[str] = []
         for prefix in wanted:
             line = self._read_line(self.process.stdout, deadline)
@@ -202,8 +206,11 @@ class LocalServer:
                 self._fail(f"printed {line!r} where {prefix!r} was expected")
             found.append(line.removeprefix(prefix).strip())
         self._address = found[0]
-        if len(found) > 1:
-            self.metrics_url = found[1]
+        for prefix, value in zip(wanted[1:], found[1:], strict=True):
+            if prefix == _METRICS:
+                self.metrics_url = value
+            else:
+                self.viewer_url = value
         # Keep reading stdout, the server's log, so that a chatty server never blocks on a full pipe;
         # its lines are kept (in a file) for `log_tail` and for errors.
         threading.Thread(target=self._log.drain, args=(self.process.stdout,), daemon=True).start()

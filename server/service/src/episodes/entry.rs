@@ -41,6 +41,8 @@ pub struct EpisodeEntry {
     pub privileged: bool,
     /// Last time a call used it.
     pub last_used: Instant,
+    /// When it was made (its create, or a reset onto another scene).
+    pub created: Instant,
     /// The planner's last answer (PlanActions), reused while the episode follows it.
     pub plan: Option<CachedPlan>,
     /// The token that created it.
@@ -49,6 +51,57 @@ pub struct EpisodeEntry {
     pub agent: Arc<str>,
     /// The current run, when the server records or counts it.
     pub run: Option<RunLog>,
+    /// Where the run went, for viewers (`viewing`).
+    pub trail: Trail,
+    /// Told of every step while someone watches the episode (`viewing`); `None` otherwise, so
+    /// that an unwatched episode costs one check per step.
+    pub watch: Option<tokio::sync::watch::Sender<u64>>,
+}
+
+/// The most recent actions a viewer is shown.
+pub const LAST_ACTIONS: usize = 12;
+
+/// Where a run went: the agent's position after each step, each carried object's positions,
+/// and the last actions. A few bytes a step, kept for every episode so that a viewer who
+/// arrives late sees the whole path.
+#[derive(Default)]
+pub struct Trail {
+    /// The agent's plan position at the start and after each step.
+    pub agent: Vec<[f32; 2]>,
+    /// Per object index, its positions while carried (one path per carry, in order).
+    pub carried: Vec<(usize, Vec<[f32; 2]>)>,
+    /// The last [`LAST_ACTIONS`] actions: code and whether the motion was accepted.
+    pub last: std::collections::VecDeque<(u8, bool)>,
+    /// The object held after the previous step (a new carry starts a new path).
+    held: Option<usize>,
+}
+
+impl Trail {
+    /// A trail starting where `episode` is.
+    pub fn start(episode: &Episode) -> Self {
+        let p = episode.agent_pose().position;
+        Self { agent: vec![[p.x as f32, p.z as f32]], ..Self::default() }
+    }
+
+    /// Adds a step of `episode` that took `action` (accepted or not).
+    pub fn step(&mut self, episode: &Episode, action: u8, accepted: bool) {
+        let p = episode.agent_pose().position;
+        self.agent.push([p.x as f32, p.z as f32]);
+        let held = episode.held();
+        if let Some(index) = held {
+            let o = episode.object_poses()[index];
+            let point = [o.x as f32, o.z as f32];
+            match self.carried.last_mut() {
+                Some((_, path)) if self.held == Some(index) => path.push(point),
+                _ => self.carried.push((index, vec![point])),
+            }
+        }
+        self.held = held;
+        if self.last.len() == LAST_ACTIONS {
+            self.last.pop_front();
+        }
+        self.last.push_back((action, accepted));
+    }
 }
 
 /// A live episode as the registry holds it: shared, locked alone.
@@ -61,7 +114,21 @@ impl EpisodeEntry {
     /// A fresh entry for `episode` of `owner`, observed by `observer`.
     pub fn new(episode: Episode, observer: Observer, privileged: bool, owner: Arc<Caller>, agent: Arc<str>) -> Self {
         let summary = summary_of(episode.compiled().scene());
-        Self { episode, observer, summary, privileged, last_used: Instant::now(), plan: None, owner, agent, run: None }
+        let trail = Trail::start(&episode);
+        Self {
+            episode,
+            observer,
+            summary,
+            privileged,
+            last_used: Instant::now(),
+            created: Instant::now(),
+            plan: None,
+            owner,
+            agent,
+            run: None,
+            trail,
+            watch: None,
+        }
     }
 
     /// The one check before any call moves the episode `id` (`at` names the call's step in

@@ -185,6 +185,10 @@ pub(super) async fn reset(
         let record = recording::finish(episodes, &mut entry, Some("reset"));
         entry.run = run;
         entry.episode.reset();
+        entry.trail = super::entry::Trail::start(&entry.episode);
+        if let Some(watch) = &entry.watch {
+            watch.send_replace(0);
+        }
         entry.last_used = Instant::now();
         let prepared = entry.observer.prepare(&entry.episode, true);
         episodes.metrics.reused_views.inc_by(prepared.reused() as u64);
@@ -201,7 +205,13 @@ pub(super) async fn reset(
     let (fresh, observation) =
         start_run(episodes, &owner, agent, scene, config, entry.observer.sensors, entry.privileged).await?;
     let record = recording::finish(episodes, &mut entry, Some("reset"));
+    let watch = entry.watch.take();
     *entry = fresh;
+    // Its watchers follow it onto the new scene.
+    if let Some(watch) = watch {
+        watch.send_replace(0);
+        entry.watch = Some(watch);
+    }
     for written in recording::write(episodes, record.into_iter().collect()) {
         written.wait().await;
     }

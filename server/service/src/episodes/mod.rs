@@ -19,6 +19,8 @@
 //!   state, off the runtime, its answer kept with the episode.
 //! - `access`: what each token role may do, asked before a call moves anything (which token
 //!   may name which episode is the registry's check, and each token's quotas too).
+//! - `viewing`: what the web viewer sees: the live episodes a caller may see, and frames of a
+//!   watched one, made only while someone watches.
 //! - `recording`: the runs the server records (`--records`) or counts (the challenge's one
 //!   attempt per scene and token), ended into `esrp.results/v1` records whatever ends them.
 //!
@@ -33,6 +35,7 @@ mod planning;
 mod recording;
 mod state;
 mod stepping;
+mod viewing;
 pub mod waves;
 
 use std::sync::Arc;
@@ -43,6 +46,7 @@ pub use entry::EpisodeEntry;
 pub use lifecycle::Unanswered;
 pub use state::{Episodes, MAX_RESOLUTION};
 pub use stepping::Stepped;
+pub use viewing::{EpisodeSummary, ObjectView, PrivilegedView, WATCH_TOP_DOWN, WatchFrame};
 pub use waves::StreamSlot;
 
 use crate::config::Config;
@@ -204,6 +208,38 @@ impl Episodes {
     /// Closes an episode; returns its metrics. Its run is recorded as ended here.
     pub async fn close(&self, caller: &Caller, id: &EpisodeId) -> Result<esrp_core::EpisodeMetrics, ServiceError> {
         lifecycle::close(self, caller, id).await
+    }
+
+    /// The live episodes `caller` may see (its own; all for an admin), oldest first.
+    pub async fn list(&self, caller: &Caller) -> Vec<EpisodeSummary> {
+        viewing::list(self, caller).await
+    }
+
+    /// Starts watching the episode `id` (`caller`'s, or any for an admin): the receiver
+    /// changes at every step and reset. Call [`Episodes::unwatch`] when the watcher leaves.
+    pub async fn watch(
+        &self,
+        caller: &Caller,
+        id: &EpisodeId,
+    ) -> Result<tokio::sync::watch::Receiver<u64>, ServiceError> {
+        viewing::subscribe(self, caller, id).await
+    }
+
+    /// Stops telling the episode `id` of its steps if no watcher is left.
+    pub async fn unwatch(&self, id: &EpisodeId) {
+        viewing::unsubscribe(self, id).await
+    }
+
+    /// What `caller` sees of the episode `id` now: its ego view, the goal image (with
+    /// `with_goal`), and where the caller may read its privileged state, the current top-down
+    /// view with the paths, each object's IoU and the RDR.
+    pub async fn watch_frame(
+        self: &Arc<Self>,
+        caller: &Caller,
+        id: &EpisodeId,
+        with_goal: bool,
+    ) -> Result<WatchFrame, ServiceError> {
+        viewing::frame(self, caller, id, with_goal).await
     }
 
     /// Opens a stream (StepStream, a dm_env_rpc connection) for `caller`, within its

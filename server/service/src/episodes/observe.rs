@@ -40,6 +40,19 @@ impl Observer {
         View::top_down(&self.scene, &targets, self.sensors.resolution)
     }
 
+    /// The views a watcher of `episode` sees (`viewing`): its ego view as its client got it
+    /// (RGB only), and with `top_down` the current top-down view at that side, with its frame.
+    pub fn watch_views(&self, episode: &Episode, top_down: Option<u32>) -> (Vec<View>, Option<TopDownFrame>) {
+        let poses = episode.object_poses();
+        let no_extras = Outputs { depth: false, segmentation: false };
+        let mut views = vec![View::ego(&self.scene, episode.ego_camera(), poses, no_extras, self.sensors.resolution)];
+        let frame = top_down.map(|side| {
+            views.push(View::top_down(&self.scene, poses, side));
+            self.scene.top_down_frame(side)
+        });
+        (views, frame)
+    }
+
     /// The views an observation of `episode` needs: the ego view, then the current top-down
     /// view if that sensor is on.
     fn views(&self, episode: &Episode) -> Vec<View> {

@@ -73,6 +73,11 @@ fn take_queued(
             if let Some(run) = g.run.as_mut() {
                 run.actions.push(step.action.code());
             }
+            let g = &mut **g;
+            g.trail.step(&g.episode, step.action.code(), outcome.accepted);
+            if let Some(watch) = &g.watch {
+                watch.send_replace(u64::from(outcome.step_index));
+            }
             let observation = g.observer.prepare(&g.episode, step.include_goal);
             let ended = outcome.terminated || outcome.truncated;
             let record = if ended { recording::finish(episodes, g, None) } else { None };

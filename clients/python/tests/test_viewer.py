@@ -1,0 +1,165 @@
+"""The server's web viewer (`--http-listen`) in headless Chromium, against the real binary: the
+page loads from the server; watching an episode shows the ego view the client received, pixel for
+pixel; typing an easy scene's expert trajectory as keys plays it to success; a wrong token gets 401
+and one token's viewer never lists another's episodes; without tokens only loopback is served."""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import os
+import urllib.error
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import esrp
+
+CHROMIUM = Path(os.environ.get("ESRP_CHROMIUM", "/usr/bin/chromium"))
+KEYS = "wsadfr"  # action codes 0..5
+
+TOKENS = """
+[[token]]
+name = "alice"
+secret = "alice-secret"
+role = "agent"
+
+[[token]]
+name = "tina"
+secret = "tina-secret"
+role = "trainer"
+
+[[token]]
+name = "root"
+secret = "root-secret"
+role = "admin"
+"""
+
+
+@pytest.fixture(scope="module")
+def viewer(tmp_path_factory: pytest.TempPathFactory) -> Iterator[esrp.LocalServer]:
+    tokens = tmp_path_factory.mktemp("viewer") / "tokens.toml"
+    tokens.write_text(TOKENS)
+    with esrp.LocalServer("--http-listen", "127.0.0.1:0", "--tokens", str(tokens)) as server:
+        yield server
+
+
+def get(server: esrp.LocalServer, path: str, token: str | None) -> tuple[int, Any]:
+    assert server.viewer_url is not None
+    request = urllib.request.Request(server.viewer_url.rstrip("/") + path)
+    if token is not None:
+        request.add_header("Authorization", f"Bearer {token}")
+    try:
+        with urllib.request.urlopen(request, timeout=30) as response:
+            return response.status, json.loads(response.read())
+    except urllib.error.HTTPError as error:
+        return error.code, json.loads(error.read() or b"{}")
+
+
+def pixels(data_url: str) -> np.ndarray:
+    from PIL import Image
+
+    png = base64.b64decode(data_url.split(",", 1)[1])
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))
+
+
+def test_tokens_see_only_what_they_may(viewer: esrp.LocalServer) -> None:
+    assert get(viewer, "/api/whoami", None)[0] == 401
+    assert get(viewer, "/api/whoami", "wrong")[0] == 401
+    assert get(viewer, "/api/whoami", "alice-secret") == (
+        200,
+        {"caller": "alice", "role": "agent", "open": False},
+    )
+    with (
+        esrp.Client(viewer.address, token="tina-secret") as tina,
+        esrp.Client(viewer.address, token="alice-secret") as alice,
+    ):
+        scene = next(iter(tina.scenes("test", "easy"))).id
+        with tina.create_episode(scene) as theirs, alice.create_episode(scene) as mine:
+
+            def listed(token: str) -> set[str]:
+                return {e["id"] for e in get(viewer, "/api/episodes", token)[1]}
+
+            assert listed("alice-secret") == {mine.id}
+            assert listed("tina-secret") == {theirs.id}
+            assert {mine.id, theirs.id} <= listed("root-secret")
+            # Another token's episode cannot be watched or stepped.
+            status, body = get(viewer, f"/api/episodes/{theirs.id}/watch", "alice-secret")
+            assert status == 403
+            assert "belongs to another token" in body["error"]
+
+
+def test_no_viewer_off_loopback_without_tokens() -> None:
+    quiet = {"RUST_BACKTRACE": "0", "RUST_LIB_BACKTRACE": "0"}
+    server = esrp.LocalServer("--http-listen", "0.0.0.0:0", env=quiet)
+    with pytest.raises(esrp.LocalServerError, match="only a loopback address"):
+        server.start()
+
+
+def test_watch_and_play_in_a_real_browser(viewer: esrp.LocalServer) -> None:
+    if not CHROMIUM.is_file():
+        pytest.skip(f"no Chromium at {CHROMIUM}: apt-get install chromium (scripts/python-tests.sh does)")
+    from playwright.sync_api import sync_playwright
+
+    assert viewer.viewer_url is not None
+    with esrp.Client(viewer.address, token="tina-secret") as tina:
+        easy = [s.id for s in tina.scenes("test", "easy")]
+        with tina.create_episode(easy[1], privileged=True) as expert_source:
+            expert = json.loads(expert_source.privileged_state().scene_json)["expert_trajectory"]
+        with sync_playwright() as playwright:
+            browser = playwright.chromium.launch(
+                executable_path=str(CHROMIUM),
+                args=["--headless", "--no-sandbox", "--disable-background-networking"],
+            )
+            try:
+                page = browser.new_page(viewport={"width": 1400, "height": 1000})
+                page.goto(viewer.viewer_url)
+                assert page.title() == "ESRP viewer"
+                page.fill("#token", "tina-secret")
+                page.click("#signin button")
+                page.wait_for_function("document.getElementById('who').textContent === 'tina (trainer)'")
+
+                # Watch: a client steps an episode; the page shows what the client saw.
+                with tina.create_episode(easy[0]) as episode:
+                    last = None
+                    for action in [2, 0, 0, 3]:
+                        last = episode.step(action).observation
+                    assert last is not None
+                    row = page.locator(f'#episodes tr[data-episode="{episode.id}"]')
+                    row.wait_for()
+                    row.click()
+                    page.wait_for_function(
+                        f"document.getElementById('watch-panel').dataset.episode === '{episode.id}'"
+                        " && document.getElementById('watch-panel').dataset.step === '4'"
+                    )
+                    shown = pixels(page.get_attribute("#ego", "src") or "")
+                    assert np.array_equal(shown, np.asarray(last.ego_rgb))
+                    # A trainer sees the current layout and the paths too.
+                    assert page.locator("#top-figure").is_visible()
+                    assert page.locator("#paths polyline").count() >= 1
+
+                # Play: the expert trajectory typed as keys reaches success, and the banner says so.
+                page.select_option("#play-difficulty", "easy")
+                page.wait_for_function(
+                    f"[...document.getElementById('play-scene').options].some(o => o.value === '{easy[1]}')"
+                )
+                page.select_option("#play-scene", easy[1])
+                page.click("#play button")
+                page.wait_for_function(
+                    "document.getElementById('watch-title').textContent.includes('you are playing')"
+                )
+                page.locator("body").click(position={"x": 5, "y": 5})
+                for action in expert:
+                    page.keyboard.press(KEYS[action])
+                page.wait_for_function(
+                    "document.getElementById('banner').className === 'success'", timeout=30_000
+                )
+                assert "Success" in page.inner_text("#banner")
+                assert page.inner_text('#stats dd[data-key="step"]').startswith(f"{len(expert)} / ")
+            finally:
+                browser.close()

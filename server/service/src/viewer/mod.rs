@@ -1,0 +1,351 @@
+//! The web viewer (`--http-listen`): a third adapter over the episode layer, beside `esrp_v1`
+//! and `dm_env`, that never goes through gRPC. An axum server serves one page (HTML, CSS and a
+//! JS module embedded in the binary: no CDN, no download) and a small JSON API under `/api/`:
+//!
+//! | route | what |
+//! |---|---|
+//! | `GET /api/whoami` | the caller's token name and role |
+//! | `GET /api/episodes` | the live episodes the caller may see (its own; all for an admin) |
+//! | `GET /api/episodes/events` | the same list as a stream of server-sent events, sent when it changes |
+//! | `GET /api/episodes/{id}/watch` | frames of one episode as server-sent events, at the agent's pace |
+//! | `GET /api/scenes?split=&difficulty=` | scenes to play (at most 1,000) |
+//! | `POST /api/play` | a new episode for the caller, driven from the page (agent `human`) |
+//! | `POST /api/episodes/{id}/step` | one action of such an episode |
+//! | `POST /api/episodes/{id}/close` | closes it |
+//!
+//! Every API call needs `authorization: Bearer TOKEN` when the server has tokens; with none, the
+//! viewer serves only a loopback address (checked at start). A watcher gets frames as fast as it
+//! reads them and no faster: each frame is made when the previous one has been taken, from the
+//! episode's state then, so older states are dropped, never queued.
+
+use std::convert::Infallible;
+use std::sync::Arc;
+use std::time::Duration;
+
+use axum::Json;
+use axum::extract::{Path, Query, State};
+use axum::http::{HeaderMap, StatusCode, header};
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use base64::Engine as _;
+use serde::Deserialize;
+use serde_json::{Value, json};
+use tokio::sync::mpsc;
+
+use crate::auth::Tokens;
+use crate::episodes::{EpisodeSummary, Episodes, WatchFrame};
+use crate::error::ServiceError;
+use crate::types::{Caller, CreateOptions, EpisodeId, SceneChoice, SensorRequest, StepCall};
+
+const INDEX: &str = include_str!("index.html");
+const SCRIPT: &str = include_str!("app.js");
+const STYLE: &str = include_str!("style.css");
+
+/// The viewer's shared state.
+#[derive(Clone)]
+struct Viewer {
+    episodes: Arc<Episodes>,
+    tokens: Arc<Tokens>,
+}
+
+/// The viewer's routes over `episodes`, authenticating with `tokens`.
+pub fn router(episodes: Arc<Episodes>, tokens: Arc<Tokens>) -> axum::Router {
+    axum::Router::new()
+        .route("/", get(|| async { ([(header::CONTENT_TYPE, "text/html; charset=utf-8")], INDEX) }))
+        .route("/app.js", get(|| async { ([(header::CONTENT_TYPE, "text/javascript; charset=utf-8")], SCRIPT) }))
+        .route("/style.css", get(|| async { ([(header::CONTENT_TYPE, "text/css; charset=utf-8")], STYLE) }))
+        .route("/api/whoami", get(whoami))
+        .route("/api/episodes", get(episodes_now))
+        .route("/api/episodes/events", get(episodes_events))
+        .route("/api/episodes/{id}/watch", get(watch))
+        .route("/api/episodes/{id}/step", post(step))
+        .route("/api/episodes/{id}/close", post(close))
+        .route("/api/scenes", get(scenes))
+        .route("/api/play", post(play))
+        .with_state(Viewer { episodes, tokens })
+}
+
+/// Serves the viewer on `listener` until the task is aborted.
+pub async fn serve(
+    listener: tokio::net::TcpListener,
+    episodes: Arc<Episodes>,
+    tokens: Arc<Tokens>,
+) -> std::io::Result<()> {
+    axum::serve(listener, router(episodes, tokens)).await
+}
+
+/// An error answer: a status and a one-line JSON message.
+struct Failure(StatusCode, String);
+
+impl IntoResponse for Failure {
+    fn into_response(self) -> Response {
+        (self.0, Json(json!({ "error": self.1 }))).into_response()
+    }
+}
+
+impl From<ServiceError> for Failure {
+    fn from(e: ServiceError) -> Self {
+        use tonic::Code;
+        let status = match e.code() {
+            Code::InvalidArgument => StatusCode::BAD_REQUEST,
+            Code::NotFound => StatusCode::NOT_FOUND,
+            Code::PermissionDenied => StatusCode::FORBIDDEN,
+            Code::FailedPrecondition => StatusCode::CONFLICT,
+            Code::ResourceExhausted => StatusCode::TOO_MANY_REQUESTS,
+            _ => StatusCode::INTERNAL_SERVER_ERROR,
+        };
+        Failure(status, e.to_string())
+    }
+}
+
+/// The caller of a request: its bearer token, known to the server.
+fn caller(viewer: &Viewer, headers: &HeaderMap) -> Result<Arc<Caller>, Failure> {
+    let given = headers.get(header::AUTHORIZATION).map(|v| v.as_bytes());
+    viewer.tokens.identify(given).ok_or_else(|| {
+        Failure(StatusCode::UNAUTHORIZED, "missing or unknown bearer token: enter a token the server knows".into())
+    })
+}
+
+fn summary_json(s: &EpisodeSummary) -> Value {
+    json!({
+        "id": s.id.as_str(),
+        "scene": s.scene.id,
+        "room_type": s.scene.room_type,
+        "difficulty": s.scene.difficulty.as_str(),
+        "split": s.scene.split.as_str(),
+        "objects": s.scene.movable_objects,
+        "steps": s.steps,
+        "horizon": s.horizon,
+        "placed": s.placed,
+        "holding": s.holding,
+        "ended": s.ended,
+        "success": s.success,
+        "owner": s.owner,
+        "agent": s.agent,
+        "age_seconds": (s.age_seconds * 10.0).round() / 10.0,
+    })
+}
+
+fn png_url(rgb: &[u8], side: u32) -> Value {
+    if rgb.len() != (side * side * 3) as usize {
+        return Value::Null;
+    }
+    match esrp_render::encode_png_rgb(rgb, side, side) {
+        Ok(png) => format!("data:image/png;base64,{}", base64::engine::general_purpose::STANDARD.encode(png)).into(),
+        Err(_) => Value::Null,
+    }
+}
+
+fn frame_json(f: &WatchFrame) -> Value {
+    let mut out = json!({
+        "episode": summary_json(&f.summary),
+        "ego": png_url(&f.ego, f.resolution),
+        "last_actions": f.last_actions.iter().map(|&(a, ok)| json!({ "action": a, "accepted": ok })).collect::<Vec<_>>(),
+    });
+    if !f.goal.is_empty() {
+        out["goal"] = png_url(&f.goal, f.resolution);
+    }
+    if let Some(p) = &f.privileged {
+        out["top_down"] = png_url(&p.top_down, crate::episodes::WATCH_TOP_DOWN);
+        out["top_down_side"] = crate::episodes::WATCH_TOP_DOWN.into();
+        out["agent_path"] = json!(p.agent_path);
+        out["carried_paths"] =
+            p.carried_paths.iter().map(|(i, path)| json!({ "object": i, "path": path })).collect::<Vec<_>>().into();
+        out["objects"] = p
+            .objects
+            .iter()
+            .map(|o| json!({ "id": o.id, "iou": (o.iou * 1000.0).round() / 1000.0, "placed": o.placed }))
+            .collect::<Vec<_>>()
+            .into();
+        out["rdr"] = ((p.rdr * 10_000.0).round() / 10_000.0).into();
+    }
+    out
+}
+
+async fn whoami(State(viewer): State<Viewer>, headers: HeaderMap) -> Result<Json<Value>, Failure> {
+    let caller = caller(&viewer, &headers)?;
+    let open = !viewer.tokens.required();
+    Ok(Json(json!({ "caller": &*caller.name, "role": caller.role.as_str(), "open": open })))
+}
+
+async fn episodes_now(State(viewer): State<Viewer>, headers: HeaderMap) -> Result<Json<Value>, Failure> {
+    let caller = caller(&viewer, &headers)?;
+    let list = viewer.episodes.list(&caller).await;
+    Ok(Json(list.iter().map(summary_json).collect::<Vec<_>>().into()))
+}
+
+type Events =
+    Sse<axum::response::sse::KeepAliveStream<tokio_stream::wrappers::ReceiverStream<Result<Event, Infallible>>>>;
+
+fn events(receiver: mpsc::Receiver<Result<Event, Infallible>>) -> Events {
+    Sse::new(tokio_stream::wrappers::ReceiverStream::new(receiver)).keep_alive(KeepAlive::default())
+}
+
+/// The list of episodes, sent again whenever it changes (checked twice a second while the
+/// page is connected).
+async fn episodes_events(State(viewer): State<Viewer>, headers: HeaderMap) -> Result<Events, Failure> {
+    let caller = caller(&viewer, &headers)?;
+    let (sender, receiver) = mpsc::channel(1);
+    tokio::spawn(async move {
+        let mut last = String::new();
+        loop {
+            let list = viewer.episodes.list(&caller).await;
+            // Ages change all the time: compare without them.
+            let key = list
+                .iter()
+                .map(|s| format!("{}:{}:{}:{}:{}", s.id, s.steps, s.placed, s.holding, s.ended))
+                .collect::<Vec<_>>()
+                .join(",");
+            if key != last || last.is_empty() {
+                let data = Value::from(list.iter().map(summary_json).collect::<Vec<_>>()).to_string();
+                if sender.send(Ok(Event::default().event("episodes").data(data))).await.is_err() {
+                    return;
+                }
+                last = if key.is_empty() { "-".into() } else { key };
+            }
+            tokio::select! {
+                () = tokio::time::sleep(Duration::from_millis(500)) => {}
+                () = sender.closed() => return,
+            }
+        }
+    });
+    Ok(events(receiver))
+}
+
+/// Frames of one episode: one at once (with the goal image), then one after each step the
+/// agent takes, made when the page has taken the previous one; `closed` when the episode goes.
+async fn watch(State(viewer): State<Viewer>, Path(id): Path<String>, headers: HeaderMap) -> Result<Events, Failure> {
+    let caller = caller(&viewer, &headers)?;
+    let id = EpisodeId::from(id);
+    let mut changes = viewer.episodes.watch(&caller, &id).await?;
+    let (sender, receiver) = mpsc::channel(1);
+    tokio::spawn(async move {
+        let mut with_goal = true;
+        loop {
+            changes.mark_unchanged();
+            let event = match viewer.episodes.watch_frame(&caller, &id, with_goal).await {
+                Ok(frame) => Event::default().event("frame").data(frame_json(&frame).to_string()),
+                Err(e) => {
+                    let _ = sender.send(Ok(Event::default().event("closed").data(e.to_string()))).await;
+                    break;
+                }
+            };
+            with_goal = false;
+            // Waits while the page reads the previous frame: the states in between are skipped.
+            if sender.send(Ok(event)).await.is_err() {
+                break;
+            }
+            tokio::select! {
+                changed = changes.changed() => {
+                    if changed.is_err() {
+                        // The episode is gone (closed, reaped).
+                        let _ = sender.send(Ok(Event::default().event("closed").data("the episode was closed"))).await;
+                        break;
+                    }
+                }
+                () = sender.closed() => break,
+            }
+        }
+        drop(changes);
+        viewer.episodes.unwatch(&id).await;
+    });
+    Ok(events(receiver))
+}
+
+#[derive(Deserialize)]
+struct SceneQuery {
+    split: Option<String>,
+    difficulty: Option<String>,
+}
+
+async fn scenes(
+    State(viewer): State<Viewer>,
+    Query(q): Query<SceneQuery>,
+    headers: HeaderMap,
+) -> Result<Json<Value>, Failure> {
+    caller(&viewer, &headers)?;
+    let split = q.split.filter(|s| !s.is_empty());
+    let difficulty = q.difficulty.filter(|s| !s.is_empty());
+    let list: Vec<Value> = viewer
+        .episodes
+        .store
+        .infos()
+        .iter()
+        .filter(|s| split.as_deref().is_none_or(|x| x == s.split.as_str()))
+        .filter(|s| difficulty.as_deref().is_none_or(|x| x == s.difficulty.as_str()))
+        .take(1000)
+        .map(|s| {
+            json!({ "id": s.id, "room_type": s.room_type, "difficulty": s.difficulty.as_str(),
+                    "split": s.split.as_str(), "objects": s.movable_objects })
+        })
+        .collect();
+    Ok(Json(list.into()))
+}
+
+#[derive(Deserialize)]
+struct PlayRequest {
+    scene: String,
+}
+
+/// A new episode of `scene` for the caller, labelled `human`.
+async fn play(
+    State(viewer): State<Viewer>,
+    headers: HeaderMap,
+    Json(request): Json<PlayRequest>,
+) -> Result<Json<Value>, Failure> {
+    let caller = caller(&viewer, &headers)?;
+    let options = CreateOptions {
+        scene: SceneChoice::SceneId(request.scene),
+        sensors: SensorRequest::default(),
+        horizon: None,
+        reward: Default::default(),
+        privileged: false,
+        agent: Some("human".into()),
+    };
+    let created = viewer.episodes.create(&caller, options, None).await?;
+    viewer.episodes.claim(&created.episode);
+    Ok(Json(json!({ "episode": created.episode.as_str(), "scene": created.scene.id })))
+}
+
+#[derive(Deserialize)]
+struct StepBody {
+    action: u8,
+}
+
+async fn step(
+    State(viewer): State<Viewer>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    Json(body): Json<StepBody>,
+) -> Result<Json<Value>, Failure> {
+    let caller = caller(&viewer, &headers)?;
+    let action = esrp_core::Action::from_code(i64::from(body.action))
+        .map_err(|e| Failure(StatusCode::BAD_REQUEST, format!("action: {e}")))?;
+    let call = StepCall { episode: EpisodeId::from(id), action, include_goal: false };
+    let result = viewer.episodes.step_many(&caller, vec![call]).await?.pop();
+    let result = result.ok_or_else(|| Failure(StatusCode::INTERNAL_SERVER_ERROR, "a step without an answer".into()))?;
+    let o = result.outcome;
+    let metrics = result.metrics.map(|m| {
+        json!({ "success": m.success, "osr": m.object_success_rate, "rdr": m.remaining_distance_ratio,
+                "stage": m.stage as u32, "steps": m.steps })
+    });
+    Ok(Json(json!({
+        "step": o.step_index,
+        "accepted": o.accepted,
+        "placed": o.placed_count,
+        "terminated": o.terminated,
+        "truncated": o.truncated,
+        "metrics": metrics,
+    })))
+}
+
+async fn close(
+    State(viewer): State<Viewer>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> Result<Json<Value>, Failure> {
+    let caller = caller(&viewer, &headers)?;
+    let m = viewer.episodes.close(&caller, &EpisodeId::from(id)).await?;
+    Ok(Json(json!({ "success": m.success, "osr": m.object_success_rate, "steps": m.steps })))
+}
