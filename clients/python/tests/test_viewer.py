@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 import esrp
+from esrp.cli import main
 
 CHROMIUM = Path(os.environ.get("ESRP_CHROMIUM", "/usr/bin/chromium"))
 KEYS = "wsadfr"  # action codes 0..5
@@ -101,7 +102,7 @@ def test_no_viewer_off_loopback_without_tokens() -> None:
         server.start()
 
 
-def test_watch_and_play_in_a_real_browser(viewer: esrp.LocalServer) -> None:
+def test_watch_and_play_in_a_real_browser(viewer: esrp.LocalServer, tmp_path: Path) -> None:
     if not CHROMIUM.is_file():
         pytest.skip(f"no Chromium at {CHROMIUM}: apt-get install chromium (scripts/python-tests.sh does)")
     from playwright.sync_api import sync_playwright
@@ -161,5 +162,30 @@ def test_watch_and_play_in_a_real_browser(viewer: esrp.LocalServer) -> None:
                 )
                 assert "Success" in page.inner_text("#banner")
                 assert page.inner_text('#stats dd[data-key="step"]').startswith(f"{len(expert)} / ")
+                # The person's record: offered for download, and replayed to the same metrics.
+                page.wait_for_function("document.getElementById('record-link').dataset.record !== undefined")
+                line = page.get_attribute("#record-link", "data-record") or ""
             finally:
                 browser.close()
+    record = json.loads(line)
+    assert (record["agent"], record["scene_id"], record["success"]) == ("human", easy[1], True)
+    assert record["actions"] == expert
+    results = tmp_path / "human.jsonl"
+    results.write_text(line)
+    common = ["--server", viewer.address, "--token", "tina-secret"]
+    assert (
+        main(
+            [
+                "replay",
+                "--results",
+                str(results),
+                "--scene",
+                easy[1],
+                "--out",
+                str(tmp_path / "h.png"),
+                *common,
+            ]
+        )
+        == 0
+    )
+    assert main(["verify", str(results), "--no-progress", *common]) == 0

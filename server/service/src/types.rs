@@ -108,6 +108,9 @@ pub struct CreateOptions {
     /// The agent's name for the server's records (`None`: "unnamed"); at most
     /// [`MAX_AGENT_LABEL`] bytes.
     pub agent: Option<String>,
+    /// Keep each run's record with the episode once it ends (and write it to the server's
+    /// records, if it keeps any, whatever `--record` says): the web viewer's human play.
+    pub keep_record: bool,
 }
 
 /// The longest agent label a create may give, bytes.

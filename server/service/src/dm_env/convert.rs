@@ -159,7 +159,15 @@ pub fn create_options(settings: HashMap<String, dm::Tensor>) -> Result<CreateOpt
         Some(id) if !id.is_empty() => SceneChoice::SceneId(id),
         _ => SceneChoice::FromSplit { split, seed },
     };
-    Ok(CreateOptions { scene, sensors, horizon, reward: Default::default(), privileged: false, agent })
+    Ok(CreateOptions {
+        scene,
+        sensors,
+        horizon,
+        reward: Default::default(),
+        privileged: false,
+        agent,
+        keep_record: false,
+    })
 }
 
 /// The new scene a ResetWorld's settings ask for, if any.

@@ -25,6 +25,8 @@ pub struct RunLog {
     pub counted: bool,
     /// Whether the server keeps a record of it (`--records`).
     pub recorded: bool,
+    /// Whether its record stays with the episode once it ends ([`EpisodeEntry::last_record`]).
+    pub keep: bool,
     /// Whether it has ended and been recorded (or counted): it is never recorded twice.
     pub finished: bool,
 }
@@ -51,6 +53,10 @@ pub struct EpisodeEntry {
     pub agent: Arc<str>,
     /// The current run, when the server records or counts it.
     pub run: Option<RunLog>,
+    /// Whether each run keeps its record (the create's `keep_record`).
+    pub keep_records: bool,
+    /// The record of the last run that ended, when runs keep theirs.
+    pub last_record: Option<esrp_results::EpisodeRecord>,
     /// Where the run went, for viewers (`viewing`).
     pub trail: Trail,
     /// Told of every step while someone watches the episode (`viewing`); `None` otherwise, so
@@ -126,6 +132,8 @@ impl EpisodeEntry {
             owner,
             agent,
             run: None,
+            keep_records: false,
+            last_record: None,
             trail,
             watch: None,
         }

@@ -95,25 +95,36 @@ async fn new_entry(
 
 /// Starts a run of `caller` on the resolved `scene` (the role's rules, the counted attempt),
 /// then builds its entry; a failure after the attempt was taken gives it back.
+/// An episode's settings that a reset onto another scene keeps.
+#[derive(Clone, Copy)]
+struct Settings {
+    config: EpisodeConfig,
+    sensors: SensorConfig,
+    privileged: bool,
+    keep: bool,
+}
+
 async fn start_run(
     episodes: &Episodes,
     caller: &Arc<Caller>,
     agent: Arc<str>,
     scene: Arc<CompiledScene>,
-    config: EpisodeConfig,
-    sensors: SensorConfig,
-    privileged: bool,
+    settings: Settings,
 ) -> Result<(EpisodeEntry, Observation), ServiceError> {
+    let Settings { config, sensors, privileged, keep } = settings;
     let (split, id) = (scene.scene().split, scene.scene().id.clone());
     access::may_play(caller, split, privileged, config.horizon.is_some())?;
-    let run = recording::begin(episodes, caller, split, &id)?;
+    let run = recording::begin(episodes, caller, split, &id, keep)?;
     let counted = run.as_ref().is_some_and(|r| r.counted);
     let owner = Owner { caller: caller.clone(), agent, run };
     let built = new_entry(episodes, scene, config, sensors, privileged, owner).await;
     if built.is_err() && counted {
         episodes.attempts.give_back(&caller.name, &id);
     }
-    built
+    built.map(|(mut entry, observation)| {
+        entry.keep_records = keep;
+        (entry, observation)
+    })
 }
 
 /// Creates an episode, owned by `stream` if it was created on one (it closes with it).
@@ -149,7 +160,14 @@ pub(super) async fn create_unanswered(
     }
     let agent: Arc<str> = agent.into();
     let scene = episodes.resolve_scene(options.scene).await?;
-    let (entry, observation) = start_run(episodes, caller, agent, scene, config, sensors, options.privileged).await?;
+    let (entry, observation) = start_run(
+        episodes,
+        caller,
+        agent,
+        scene,
+        Settings { config, sensors, privileged: options.privileged, keep: options.keep_record },
+    )
+    .await?;
     let summary = entry.summary.clone();
     let counted_scene = entry.run.as_ref().filter(|r| r.counted).map(|_| summary.id.clone());
     let episode = match episodes.registry.insert(entry, stream, caller) {
@@ -181,7 +199,7 @@ pub(super) async fn reset(
     let Some(scene) = scene else {
         // A new run on the same scene: a counted scene is refused here (its attempt is taken).
         let owner = entry.owner.clone();
-        let run = recording::begin(episodes, &owner, entry.summary.split, &entry.summary.id)?;
+        let run = recording::begin(episodes, &owner, entry.summary.split, &entry.summary.id, entry.keep_records)?;
         let record = recording::finish(episodes, &mut entry, Some("reset"));
         entry.run = run;
         entry.episode.reset();
@@ -202,8 +220,9 @@ pub(super) async fn reset(
     let scene = episodes.resolve_scene(scene).await?;
     let config = *entry.episode.config();
     let (owner, agent) = (entry.owner.clone(), entry.agent.clone());
-    let (fresh, observation) =
-        start_run(episodes, &owner, agent, scene, config, entry.observer.sensors, entry.privileged).await?;
+    let settings =
+        Settings { config, sensors: entry.observer.sensors, privileged: entry.privileged, keep: entry.keep_records };
+    let (fresh, observation) = start_run(episodes, &owner, agent, scene, settings).await?;
     let record = recording::finish(episodes, &mut entry, Some("reset"));
     let watch = entry.watch.take();
     *entry = fresh;

@@ -242,6 +242,16 @@ impl Episodes {
         viewing::frame(self, caller, id, with_goal).await
     }
 
+    /// The record of the last run of the episode `id` that ended, if its runs keep theirs
+    /// (created with `keep_record`, the viewer's human play).
+    pub async fn last_record(
+        &self,
+        caller: &Caller,
+        id: &EpisodeId,
+    ) -> Result<Option<esrp_results::EpisodeRecord>, ServiceError> {
+        viewing::last_record(self, caller, id).await
+    }
+
     /// Opens a stream (StepStream, a dm_env_rpc connection) for `caller`, within its
     /// `max_streams`; the slot is given back when dropped.
     pub fn open_stream(self: &Arc<Self>, caller: Arc<Caller>) -> Result<StreamSlot, ServiceError> {

@@ -18,24 +18,28 @@ use crate::types::Caller;
 
 /// Starts a run of `caller` on scene `scene` of `split`: takes the counted attempt (a
 /// challenge scene, a caller that is not an admin) or refuses a second one; the run is logged
-/// if it is counted or recorded.
+/// if it is counted or recorded, or if it `keep`s its record (then it is recorded whatever
+/// `--record` says, where the server keeps records).
 pub(super) fn begin(
     episodes: &Episodes,
     caller: &Caller,
     split: Split,
     scene: &str,
+    keep: bool,
 ) -> Result<Option<RunLog>, ServiceError> {
     let counted = split == Split::Challenge && !caller.is_admin();
-    let recorded = episodes.recorder.as_ref().is_some_and(|r| r.mode() == RecordMode::All || split == Split::Challenge);
+    let recorded =
+        episodes.recorder.as_ref().is_some_and(|r| keep || r.mode() == RecordMode::All || split == Split::Challenge);
     if counted {
         episodes.attempts.take(caller, scene)?;
     }
-    Ok((counted || recorded).then(|| RunLog {
+    Ok((counted || recorded || keep).then(|| RunLog {
         actions: Vec::new(),
         started: SystemTime::now(),
         clock: Instant::now(),
         counted,
         recorded,
+        keep,
         finished: false,
     }))
 }
@@ -50,7 +54,7 @@ pub(super) fn finish(episodes: &Episodes, entry: &mut EpisodeEntry, closed_by: O
     if run.counted {
         episodes.attempts.ended(&entry.owner.name, &entry.summary.id, &finished_at);
     }
-    if !run.recorded {
+    if !run.recorded && !run.keep {
         return None;
     }
     let m = entry.episode.metrics();
@@ -67,7 +71,8 @@ pub(super) fn finish(episodes: &Episodes, entry: &mut EpisodeEntry, closed_by: O
         agent_stats.insert("closed_by".into(), by.into());
     }
     let summary = &entry.summary;
-    Some(EpisodeRecord {
+    let keep = run.keep;
+    let record = EpisodeRecord {
         schema: SCHEMA.to_owned(),
         scene_id: summary.id.clone(),
         dataset: episodes.store.name().to_owned(),
@@ -97,7 +102,11 @@ pub(super) fn finish(episodes: &Episodes, entry: &mut EpisodeEntry, closed_by: O
         started_at: Some(rfc3339(run.started)),
         dataset_hash: Some(episodes.dataset_hash.clone()),
         counted: Some(run.counted),
-    })
+    };
+    if keep {
+        entry.last_record = Some(record.clone());
+    }
+    Some(record)
 }
 
 /// Queues `records` for their files; each [`Written`] completes once its record is on disk.

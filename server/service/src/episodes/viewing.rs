@@ -197,3 +197,15 @@ pub(super) async fn frame(
     }
     Ok(frame)
 }
+
+/// The record of the last run of the episode `id` that ended, for an episode whose runs keep
+/// theirs (the viewer's human play).
+pub(super) async fn last_record(
+    episodes: &Episodes,
+    caller: &Caller,
+    id: &EpisodeId,
+) -> Result<Option<esrp_results::EpisodeRecord>, ServiceError> {
+    let shared = episodes.registry.peek(id, caller)?;
+    let entry = shared.lock().await;
+    Ok(entry.last_record.clone())
+}

@@ -420,6 +420,7 @@ mod tests {
             reward: Default::default(),
             privileged: false,
             agent: None,
+            keep_record: false,
         });
         check(vec![
             (step("a"), true),

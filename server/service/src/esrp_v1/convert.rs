@@ -135,6 +135,7 @@ impl TryFrom<proto::CreateEpisodeRequest> for CreateOptions {
             reward: reward_weights(r.reward),
             privileged: r.privileged,
             agent: (!r.agent.is_empty()).then_some(r.agent),
+            keep_record: false,
         })
     }
 }

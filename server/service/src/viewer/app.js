@@ -111,6 +111,7 @@ function watch(id) {
   if (playing !== id) playing = null;
   $("watch-panel").hidden = false;
   $("banner").hidden = true;
+  $("record").hidden = true;
   $("goal").removeAttribute("src");
   drawEpisodes();
   stream(`/api/episodes/${id}/watch`, (name, data) => {
@@ -164,12 +165,29 @@ function drawFrame(f) {
     if (!a.accepted) li.className = "rejected";
     return li;
   }));
+  if (e.ended && playing === e.id && $("record").hidden) offerRecord(e);
   if (e.ended) {
     $("banner").hidden = false;
     $("banner").className = e.success ? "success" : "failure";
     $("banner").textContent = e.success
       ? `Success: every object placed in ${e.steps} steps.`
       : `Episode over: ${e.placed} of ${e.objects} placed after ${e.steps} steps.`;
+  }
+}
+
+async function offerRecord(e) {
+  $("record").hidden = false;
+  try {
+    const response = await fetch(`/api/episodes/${e.id}/record`, { headers: headers() });
+    if (!response.ok) throw new Error((await response.json()).error);
+    const line = await response.text();
+    const link = $("record-link");
+    link.href = URL.createObjectURL(new Blob([line], { type: "application/x-ndjson" }));
+    link.download = `human-${e.scene.replaceAll("/", "-")}.jsonl`;
+    link.dataset.record = line;
+  } catch (error) {
+    $("record").hidden = true;
+    notice(error.message);
   }
 }
 

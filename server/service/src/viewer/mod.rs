@@ -12,6 +12,7 @@
 //! | `POST /api/play` | a new episode for the caller, driven from the page (agent `human`) |
 //! | `POST /api/episodes/{id}/step` | one action of such an episode |
 //! | `POST /api/episodes/{id}/close` | closes it |
+//! | `GET /api/episodes/{id}/record` | the `esrp.results/v1` record of its last run that ended (played episodes) |
 //!
 //! Every API call needs `authorization: Bearer TOKEN` when the server has tokens; with none, the
 //! viewer serves only a loopback address (checked at start). A watcher gets frames as fast as it
@@ -61,6 +62,7 @@ pub fn router(episodes: Arc<Episodes>, tokens: Arc<Tokens>) -> axum::Router {
         .route("/api/episodes/{id}/watch", get(watch))
         .route("/api/episodes/{id}/step", post(step))
         .route("/api/episodes/{id}/close", post(close))
+        .route("/api/episodes/{id}/record", get(record))
         .route("/api/scenes", get(scenes))
         .route("/api/play", post(play))
         .with_state(Viewer { episodes, tokens })
@@ -302,6 +304,7 @@ async fn play(
         reward: Default::default(),
         privileged: false,
         agent: Some("human".into()),
+        keep_record: true,
     };
     let created = viewer.episodes.create(&caller, options, None).await?;
     viewer.episodes.claim(&created.episode);
@@ -348,4 +351,20 @@ async fn close(
     let caller = caller(&viewer, &headers)?;
     let m = viewer.episodes.close(&caller, &EpisodeId::from(id)).await?;
     Ok(Json(json!({ "success": m.success, "osr": m.object_success_rate, "steps": m.steps })))
+}
+
+/// The record of a played episode's last run that ended, as one `esrp.results/v1` line.
+async fn record(State(viewer): State<Viewer>, Path(id): Path<String>, headers: HeaderMap) -> Result<Response, Failure> {
+    let caller = caller(&viewer, &headers)?;
+    match viewer.episodes.last_record(&caller, &EpisodeId::from(id)).await? {
+        Some(record) => {
+            let mut line = serde_json::to_string(&record)
+                .map_err(|e| Failure(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
+            line.push('\n');
+            Ok(([(header::CONTENT_TYPE, "application/x-ndjson")], line).into_response())
+        }
+        None => {
+            Err(Failure(StatusCode::NOT_FOUND, "no record yet: a played episode has one once a run of it ends".into()))
+        }
+    }
 }
