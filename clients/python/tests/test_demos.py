@@ -1,9 +1,12 @@
 """`esrp demos export` against the real server: the zarr store holds each episode's observations
 and expert actions, which replay to success; an interrupted export resumes; a store of another
-resolution is refused."""
+resolution is refused. With `--records`, recorded episodes (people's, from the web viewer) are
+replayed and stored, filtered by agent and success, and a record the replay does not reproduce
+stops the export."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +15,8 @@ import pytest
 import esrp
 from esrp.agents import RandomAgent
 from esrp.cli import main
-from esrp.eval.results import scene_seed
+from esrp.eval.evaluation import expert_trajectory
+from esrp.eval.results import SCHEMA, EpisodeRecord, scene_seed
 
 zarr = pytest.importorskip("zarr", reason="esrp[train] is not installed")
 
@@ -152,3 +156,197 @@ def test_dagger_and_expert_stores_are_kept_apart_and_train_together(
     assert np.array_equal(batch["ego"][0, 1].numpy(), stores[0]["data/ego_rgb"][0])
     assert np.array_equal(batch["goal"][1].numpy(), stores[1]["meta/goal_rgb"][0])
     assert batch["actions"][1].tolist() == [int(a) for a in stores[1]["data/action"][:3]]
+
+
+# --- Recorded episodes: `esrp demos export --records`.
+
+
+def record_of(
+    client: esrp.Client, scene: str, actions: list[int], agent: str, horizon: int = 0
+) -> EpisodeRecord:
+    """The `esrp.results/v1` record of `actions` stepped on a new (non-privileged) episode of
+    `scene`, as a recording server writes it (the actions taken until the episode ended)."""
+    info = client.server_info()
+    with client.create_episode(scene, horizon=horizon) as episode:
+        taken: list[int] = []
+        metrics = None
+        for action in actions:
+            result = episode.step(action)
+            taken.append(action)
+            if result.ended:
+                metrics = result.metrics
+                break
+        end = "agent" if metrics is None else "success" if metrics.success else "horizon"
+        if metrics is None:
+            metrics = episode.close()
+        summary = episode.scene
+    return EpisodeRecord(
+        schema=SCHEMA,
+        scene_id=scene,
+        dataset=info.dataset,
+        split="test",
+        room_type=summary.room_type,
+        difficulty="easy",
+        objects=summary.movable_objects,
+        agent=agent,
+        agent_config={},
+        seed=None,
+        success=metrics.success,
+        osr=metrics.object_success_rate,
+        rdr=metrics.remaining_distance_ratio,
+        stage=metrics.stage,
+        placed=metrics.placed,
+        steps=metrics.steps,
+        horizon=horizon or summary.horizon,  # the listing says the scene's own
+        end=end,
+        total_reward=metrics.total_reward,
+        actions=taken,
+        wall_seconds=1.0,
+        agent_stats={},
+        server_version=info.version,
+        client="test_demos",
+        finished_at="2026-11-23T19:40:00Z",
+    )
+
+
+def write_records(path: Path, records: list[EpisodeRecord]) -> Path:
+    path.write_text("".join(record.to_json() + "\n" for record in records))
+    return path
+
+
+@pytest.fixture(scope="module")
+def played(client: esrp.Client, easy_scenes: list[str]) -> list[EpisodeRecord]:
+    """Three records: a person's success (the expert's actions, stepped without privilege), a
+    person's episode cut by a short horizon, and a random agent's episode it closed early."""
+    with client.create_episode(easy_scenes[0], privileged=True) as episode:
+        expert = [int(a) for a in expert_trajectory(episode.privileged_state().scene_json)]
+    rng = np.random.default_rng(3)
+    records = [
+        record_of(client, easy_scenes[0], expert, "human"),
+        record_of(client, easy_scenes[1], [int(a) for a in rng.integers(0, 6, 12)], "human", horizon=12),
+        record_of(client, easy_scenes[0], [int(a) for a in rng.integers(0, 6, 7)], "random", horizon=30),
+    ]
+    assert [r.end for r in records] == ["success", "horizon", "agent"]
+    return records
+
+
+def test_records_export_holds_each_records_steps_and_trains(
+    server: esrp.LocalServer,
+    client: esrp.Client,
+    played: list[EpisodeRecord],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    records = write_records(tmp_path / "records.jsonl", played)
+    out = tmp_path / "records.zarr"
+    assert export(server, out, "--records", str(records), "--limit", "1") == 0
+    assert export(server, out, "--records", str(records)) == 0  # resumed: the other two added
+    store = zarr.open_group(str(out), mode="r")
+    assert store.attrs["format"] == "esrp.demos/v1"
+    assert store.attrs["labels"] == "records"
+    assert "policy" not in store.attrs
+    assert store.attrs["scene_ids"] == [r.scene_id for r in played]
+    assert store.attrs["agents"] == ["human", "human", "random"]
+    ends = store["meta/episode_ends"][:]
+    assert ends.tolist() == np.cumsum([len(r.actions) for r in played]).tolist()
+    assert store["data/action"][:].tolist() == [a for r in played for a in r.actions]
+    assert store["data/ego_rgb"].shape == (ends[-1], 128, 128, 3)
+    assert store["data/grasping"].shape == (ends[-1],)
+    assert store["meta/goal_rgb"].shape == (3, 128, 128, 3)
+    # What the agent saw before each action: the second record's views, stepped afresh.
+    ego, grasping = store["data/ego_rgb"], store["data/grasping"][:]
+    with client.create_episode(played[1].scene_id, horizon=12) as episode:
+        observation = episode.observation
+        assert observation is not None
+        assert observation.goal_rgb is not None
+        assert np.array_equal(store["meta/goal_rgb"][1], observation.goal_rgb)
+        for t in range(int(ends[0]), int(ends[1])):
+            assert np.array_equal(ego[t], observation.ego_rgb)
+            assert bool(grasping[t]) == observation.grasping
+            observation = episode.step(int(store["data/action"][t])).observation
+    # Other records, or the expert's demonstrations, do not go on with this store.
+    others = write_records(tmp_path / "others.jsonl", played[1:])
+    assert export(server, out, "--records", str(others)) == 2
+    assert "holds other episodes than the first 3 of these records" in capsys.readouterr().err
+    assert export(server, out, "--split", "test", "--scenes", played[0].scene_id) == 2
+    assert "holds recorded episodes (--records), not expert demonstrations" in capsys.readouterr().err
+    assert zarr.open_group(str(out), mode="r")["meta/episode_ends"][:].tolist() == ends.tolist()
+    pytest.importorskip("torch", reason="esrp[train] is not installed")
+    from esrp.train.bc import DemoWindows
+
+    windows = DemoWindows([str(out)], n_obs=2, horizon=3)
+    assert len(windows) == ends[-1]
+    assert windows.batch(np.array([0, int(ends[0])]))["actions"][1].tolist() == played[1].actions[:3]
+
+
+def test_records_export_filters_by_agent_and_success(
+    server: esrp.LocalServer, played: list[EpisodeRecord], tmp_path: Path
+) -> None:
+    records = write_records(tmp_path / "records.jsonl", played)
+    humans = tmp_path / "humans.zarr"
+    assert export(server, humans, "--records", str(records), "--agent", "human") == 0
+    store = zarr.open_group(str(humans), mode="r")
+    assert store.attrs["agents"] == ["human", "human"]
+    assert store["data/action"][:].tolist() == played[0].actions + played[1].actions
+    wins = tmp_path / "wins.zarr"
+    assert export(server, wins, "--records", str(records), "--agent", "human", "--successful-only") == 0
+    store = zarr.open_group(str(wins), mode="r")
+    assert (store.attrs["scene_ids"], store.attrs["agents"]) == ([played[0].scene_id], ["human"])
+    assert store["meta/episode_ends"][:].tolist() == [len(played[0].actions)]
+    assert store["data/action"][:].tolist() == played[0].actions
+
+
+def test_a_record_the_replay_does_not_reproduce_stops_the_export(
+    server: esrp.LocalServer,
+    played: list[EpisodeRecord],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    tampered = dataclasses.replace(played[0], actions=list(played[0].actions))
+    k = len(tampered.actions) // 2
+    tampered.actions[k] = (tampered.actions[k] + 1) % 4  # another move or turn
+    records = write_records(tmp_path / "tampered.jsonl", [played[1], tampered])
+    out = tmp_path / "tampered.zarr"
+    assert export(server, out, "--records", str(records)) == 2
+    err = capsys.readouterr().err
+    assert f"{records}:2: {played[0].scene_id}: the replay does not reproduce the record" in err
+    store = zarr.open_group(str(out), mode="r")
+    assert store.attrs["scene_ids"] == [played[1].scene_id]  # the good record only
+    assert store["meta/episode_ends"][:].tolist() == [len(played[1].actions)]
+    # A record of another dataset is refused before anything is replayed.
+    other = write_records(tmp_path / "other.jsonl", [dataclasses.replace(played[1], dataset="other-bench")])
+    assert export(server, tmp_path / "other.zarr", "--records", str(other)) == 2
+    assert (
+        f"{other}:1: {played[1].scene_id}: the record is of dataset 'other-bench'" in capsys.readouterr().err
+    )
+
+
+def test_records_export_refuses_bad_input_in_one_line(
+    played: list[EpisodeRecord], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    records = write_records(tmp_path / "records.jsonl", played)
+    out = str(tmp_path / "never.zarr")
+
+    def refused(*arguments: str) -> str:
+        # No server: these fail before one is needed.
+        assert main(["demos", "export", "--out", out, "--no-progress", *arguments]) == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1, err
+        return err
+
+    for flags in (["--split", "test"], ["--scenes", "x"], ["--difficulty", "easy"], ["--dagger", "random"]):
+        assert f"--records does not go with {flags[0]}" in refused("--records", str(records), *flags)
+    assert "--agent only apply with --records" in refused("--agent", "human")
+    assert "--successful-only only apply with --records" in refused("--successful-only")
+    assert "hold 3 records, none (agent 'nobody', with actions)" in refused(
+        "--records", str(records), "--agent", "nobody"
+    )
+    assert "none (agent 'random', successful, with actions)" in refused(
+        "--records", str(records), "--agent", "random", "--successful-only"
+    )
+    bad = tmp_path / "bad.jsonl"
+    bad.write_text('{"schema": "esrp.results/v2"}\n' + played[0].to_json() + "\n")
+    assert f"{bad}:1: not an esrp.results/v1 record" in refused("--records", str(bad))
+    assert f"cannot read {tmp_path / 'missing.jsonl'}" in refused(
+        "--records", str(tmp_path / "missing.jsonl")
+    )

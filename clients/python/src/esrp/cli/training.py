@@ -13,23 +13,40 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
     """Adds `demos` and `train` to `commands`."""
     demos = commands.add_parser(
         "demos",
-        help="expert demonstrations for imitation learning (zarr; docs/demonstrations.md)",
-        description="Expert demonstrations for imitation learning.",
+        help="demonstrations for imitation learning (zarr; docs/demonstrations.md)",
+        description="Demonstrations for imitation learning: the expert's, or recorded episodes'.",
     )
     demo_commands = demos.add_subparsers(dest="demos_command", required=True, metavar="COMMAND")
     export = demo_commands.add_parser(
         "export",
-        help="replay the scenes' expert trajectories on the server into a zarr store",
+        help="replay the scenes' expert trajectories (or recorded episodes) on the server into a zarr store",
         description="Replay each chosen scene's expert trajectory on the server and append its "
         "observations (ego view, grasp flag), actions and goal image to a zarr store "
-        "(docs/demonstrations.md), resuming a store an interrupted run left.",
+        "(docs/demonstrations.md), resuming a store an interrupted run left. With --records, "
+        "replay the episodes of esrp.results/v1 files instead (e.g. people's play in the web "
+        "viewer: --agent human).",
     )
-    export.add_argument("--split", choices=("train", "test"), default="train")
+    export.add_argument("--split", choices=("train", "test"), help="the scenes' split (default train)")
     export.add_argument("--difficulty", choices=("easy", "medium", "hard"))
     export.add_argument(
         "--scenes", type=comma_list, default=[], metavar="ID,...", help="only these scenes, in order"
     )
-    export.add_argument("--limit", type=positive, metavar="N", help="at most N scenes")
+    export.add_argument("--limit", type=positive, metavar="N", help="at most N scenes (or records)")
+    export.add_argument(
+        "--records",
+        type=Path,
+        nargs="+",
+        default=[],
+        metavar="FILE.jsonl",
+        help="replay these esrp.results/v1 files' episodes (each record's actions from its scene's "
+        "start) instead of the scenes' expert trajectories",
+    )
+    export.add_argument(
+        "--agent", metavar="NAME", help="--records: only the records of agent NAME (human: the web viewer's)"
+    )
+    export.add_argument(
+        "--successful-only", action="store_true", help="--records: only the records of successful episodes"
+    )
     export.add_argument("--resolution", type=int, default=0, help="the views' side in pixels (0: 128)")
     export.add_argument("--out", type=Path, required=True, help="the zarr store (a folder)")
     export.add_argument(
@@ -49,10 +66,10 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
         help="--dagger: probability of stepping the planner's label instead of the agent's action (0)",
     )
     export.add_argument(
-        "--seed", type=int, default=0, help="--dagger: base seed (scene ID: seed XOR fnv1a64(ID))"
+        "--seed", type=int, help="--dagger: base seed (scene ID: seed XOR fnv1a64(ID); default 0)"
     )
     export.add_argument(
-        "--plan-budget-ms", type=positive, default=10_000, help="--dagger: planning budget per label"
+        "--plan-budget-ms", type=positive, help="--dagger: planning budget per label (default 10000)"
     )
     export.add_argument("--no-progress", dest="progress", action="store_false")
     server_options(export)
@@ -92,13 +109,13 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
 @one_line_errors
 def _demos(args: argparse.Namespace) -> int:
     try:
-        from ..train.demos import DemoExportError, DemoSettings, export_demos
+        from ..train.demos import DemoExportError, DemoSettings, export_demos, read_sources
     except ImportError as error:
         print(f"esrp demos: {error} (pip install 'esrp[train]')", file=sys.stderr)
         return 2
     settings = DemoSettings(
         out=args.out,
-        split=args.split,
+        split=args.split or "train",
         difficulty=args.difficulty,
         scenes=args.scenes,
         limit=args.limit,
@@ -107,8 +124,11 @@ def _demos(args: argparse.Namespace) -> int:
         dagger=args.dagger,
         agent_config=dict(args.agent_config),
         beta=args.beta,
-        seed=args.seed,
-        plan_budget_ms=args.plan_budget_ms,
+        seed=args.seed or 0,
+        plan_budget_ms=args.plan_budget_ms or 10_000,
+        records=args.records,
+        agent=args.agent,
+        successful_only=args.successful_only,
     )
     dagger_flags = [
         flag
@@ -119,17 +139,59 @@ def _demos(args: argparse.Namespace) -> int:
         )
         if given
     ]
+    # (--seed and --plan-budget-ms without --dagger have always been let be; not with --records.)
+    seed_flags = [
+        flag
+        for flag, given in (
+            ("--seed", args.seed is not None),
+            ("--plan-budget-ms", args.plan_budget_ms is not None),
+        )
+        if given
+    ]
+    records_flags = [
+        flag
+        for flag, given in (("--agent", args.agent is not None), ("--successful-only", args.successful_only))
+        if given
+    ]
+    if args.records:
+        scene_flags = [
+            flag
+            for flag, given in (
+                ("--split", args.split is not None),
+                ("--difficulty", args.difficulty is not None),
+                ("--scenes", bool(args.scenes)),
+                ("--dagger", args.dagger is not None),
+            )
+            if given
+        ]
+        if scene_flags + dagger_flags + seed_flags:
+            given = ", ".join(scene_flags + dagger_flags + seed_flags)
+            print(
+                f"esrp demos export: --records does not go with {given} "
+                "(the records say the scenes and the actions)",
+                file=sys.stderr,
+            )
+            return 2
+    elif records_flags:
+        print(f"esrp demos export: {', '.join(records_flags)} only apply with --records", file=sys.stderr)
+        return 2
     if args.dagger is None and dagger_flags:
         print(f"esrp demos export: {', '.join(dagger_flags)} only apply with --dagger", file=sys.stderr)
         return 2
     if args.checkpoint is not None:
         settings.agent_config["checkpoint"] = str(args.checkpoint)
+    try:
+        # The records are read (and chosen) before a server is started: bad input fails at once.
+        sources = read_sources(settings) if args.records else None
+    except DemoExportError as error:
+        print(f"esrp demos export: {error}", file=sys.stderr)
+        return 2
 
     from .._client import Client
 
     def run(address: str) -> int:
         with Client(address, token=args.token, timeout=120) as client:
-            outcome = export_demos(client, settings)
+            outcome = export_demos(client, settings, sources)
         print(f"{args.out}: {outcome.episodes} episodes, {outcome.steps} steps ({outcome.added} added now)")
         return 0
 

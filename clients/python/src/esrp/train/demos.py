@@ -12,6 +12,12 @@ the server's planner (`PlanActions`) gives the label, the action the store recor
 policy's own action is the one stepped (the label with probability `beta`). An episode ends when
 the episode does (success or the horizon), when the policy stops, or when the planner finds no
 way on from the state (its last state then has no label and is not recorded).
+
+With `records` (`esrp.results/v1` files: e.g. the server's records of people playing in its web
+viewer, agent `human`), each record's `actions` are stepped instead, on a new, non-privileged episode
+of its scene with its horizon: the store gets what that agent saw before each of its actions and the
+actions themselves. The replay must reproduce the record (the simulator is deterministic; the checks
+are `esrp verify`'s), else the export stops before the episode is written.
 """
 
 from __future__ import annotations
@@ -27,15 +33,29 @@ from typing import Any
 import numpy as np
 
 from .._client import Client
+from .._errors import EsrpError
 from .._values import Action, SceneSummary, Sensors
 from ..agents import is_async_agent
 from ..eval.evaluation import EvalError, agent_info, expert_trajectory, make_factory, missing_scene
-from ..eval.results import scene_seed
+from ..eval.results import EpisodeRecord, ResultsError, read_records, scene_seed
+from ..eval.verify import compare
 
-__all__ = ["FORMAT", "DemoExportError", "DemoSettings", "ExportOutcome", "export_demos"]
+__all__ = [
+    "FORMAT",
+    "REPLAY_LABEL",
+    "DemoExportError",
+    "DemoSettings",
+    "ExportOutcome",
+    "RecordSource",
+    "export_demos",
+    "read_sources",
+]
 
 FORMAT = "esrp.demos/v1"
 """The store's `format` attribute."""
+
+REPLAY_LABEL = "esrp demos export"
+"""The agent label of a records export's replays (`CreateEpisodeRequest.agent`, in a server's records)."""
 
 CHUNK_STEPS = 256
 """Steps per chunk of the per-step arrays (a chunk of ego views is 256 × 49,152 bytes, 12 MB raw)."""
@@ -64,6 +84,11 @@ class DemoSettings:
             stepped (DAgger's mixing; 0: the agent alone).
         seed: With `dagger`, the base seed: scene `id` plays with `seed XOR fnv1a64(id)`.
         plan_budget_ms: With `dagger`, the planning budget of each label.
+        records: `esrp.results/v1` files whose records' actions to replay and record, instead of
+            the chosen scenes' expert trajectories (`split`, `difficulty`, `scenes` and `dagger`
+            do not apply).
+        agent: With `records`, only the records of this agent (`human`: people in the web viewer).
+        successful_only: With `records`, only the records of successful episodes.
     """
 
     out: Path
@@ -78,10 +103,15 @@ class DemoSettings:
     beta: float = 0.0
     seed: int = 0
     plan_budget_ms: int = 10_000
+    records: Sequence[Path] = ()
+    agent: str | None = None
+    successful_only: bool = False
 
     @property
     def labels(self) -> str:
-        """Whose actions the store records: `expert` or `planner`."""
+        """Whose actions the store records: `expert`, `planner` or `records` (the records' agents)."""
+        if self.records:
+            return "records"
         return "expert" if self.dagger is None else "planner"
 
 
@@ -159,6 +189,11 @@ class _Store:
         self.ends = array("meta/episode_ends", (), "int64", 4096)
         listed = self.group.attrs.get("scene_ids", [])
         self.scene_ids: list[str] = [str(s) for s in listed] if isinstance(listed, list) else []
+        # A records export says each episode's agent too (parallel to `scene_ids`).
+        self.agents: list[str] | None = None
+        if labels == "records":
+            agents = self.group.attrs.get("agents", [])
+            self.agents = [str(a) for a in agents] if isinstance(agents, list) else []
         self._cut_torn()
 
     def _cut_torn(self) -> None:
@@ -173,13 +208,18 @@ class _Store:
         if len(self.scene_ids) != episodes:
             self.scene_ids = self.scene_ids[:episodes]
             self.group.attrs["scene_ids"] = self.scene_ids
+        if self.agents is not None and len(self.agents) != episodes:
+            self.agents = self.agents[:episodes]
+            self.group.attrs["agents"] = self.agents
 
     @property
     def steps(self) -> int:
         return int(self.ends[self.ends.shape[0] - 1]) if self.ends.shape[0] else 0
 
-    def append(self, scene_id: str, episode: _Episode) -> None:
-        """Appends a whole episode: (goal, ego views, grasp flags, actions)."""
+    def append(self, scene_id: str, episode: _Episode, agent: str | None = None) -> None:
+        """Appends a whole episode: (goal, ego views, grasp flags, actions), and in a records
+        store the `agent` whose episode it is.
+        """
         goal, ego, grasping, actions = episode
         end = self.steps + len(actions)
         self.ego.append(ego, axis=0)
@@ -188,10 +228,20 @@ class _Store:
         self.goal.append(goal[None], axis=0)
         self.scene_ids.append(scene_id)
         self.group.attrs["scene_ids"] = self.scene_ids
+        if self.agents is not None:
+            self.agents.append("" if agent is None else agent)
+            self.group.attrs["agents"] = self.agents
         self.ends.append(np.array([end], dtype=np.int64), axis=0)  # last: the episode is whole
+
+    def episode_actions(self, index: int) -> list[int]:
+        """The actions of whole episode `index`."""
+        start = int(self.ends[index - 1]) if index else 0
+        return [int(a) for a in self.action[start : int(self.ends[index])]]
 
 
 def _describe(labels: str, policy: str | None) -> str:
+    if labels == "records":
+        return "recorded episodes (--records)"
     return "expert demonstrations" if labels == "expert" else f"planner labels on states of {policy}"
 
 
@@ -281,8 +331,159 @@ def _dagger(client: Client, scene: SceneSummary, settings: DemoSettings, factory
     )
 
 
-def export_demos(client: Client, settings: DemoSettings) -> ExportOutcome:
-    """Exports the expert demonstrations of the chosen scenes into `settings.out` (resuming it)."""
+@dataclass(frozen=True)
+class RecordSource:
+    """A record to export and where it was read: its file and line (1-based)."""
+
+    path: Path
+    line: int
+    record: EpisodeRecord
+
+    @property
+    def where(self) -> str:
+        """`FILE:LINE`."""
+        return f"{self.path}:{self.line}"
+
+
+def read_sources(settings: DemoSettings) -> list[RecordSource]:
+    """The records of `settings.records` to export, in file order: those of `settings.agent` (all
+    without it), successful ones only with `successful_only`, at most `limit`; records without
+    actions hold no step and are left out. Raises `DemoExportError` for a file that cannot be read
+    or is not `esrp.results/v1`, and when no record is left. A last line cut short (a write in
+    progress) is said on stderr and left out.
+    """
+    sources: list[RecordSource] = []
+    for path in settings.records:
+        try:
+            read = read_records(path)
+        except OSError as error:
+            raise DemoExportError(f"cannot read {path}: {error.strerror or error}") from None
+        except ResultsError as error:
+            raise DemoExportError(str(error)) from None
+        if read.torn_tail:
+            print(f"esrp demos export: {path}: its last line is cut short (left out)", file=sys.stderr)
+        sources += [
+            RecordSource(Path(path), n, r) for n, r in zip(read.line_numbers, read.records, strict=True)
+        ]
+    kept = [
+        source
+        for source in sources
+        if (settings.agent is None or source.record.agent == settings.agent)
+        and (source.record.success or not settings.successful_only)
+        and source.record.actions
+    ]
+    if settings.limit is not None:
+        kept = kept[: settings.limit]
+    if not kept:
+        filters = [f"agent {settings.agent!r}"] if settings.agent is not None else []
+        filters += ["successful"] if settings.successful_only else []
+        which = f" ({', '.join(filters)}, with actions)" if filters else " with actions"
+        raise DemoExportError(
+            f"no record to export: the records files hold {len(sources)} records, none{which}"
+        )
+    return kept
+
+
+def _replay_record(client: Client, source: RecordSource, resolution: int) -> _Episode:
+    """Steps `source`'s actions on a new, non-privileged episode of its scene with its horizon:
+    (goal, ego views, grasp flags, actions). Raises `DemoExportError` naming the record when the
+    replay does not reproduce it.
+    """
+    record = source.record
+    what = f"{source.where}: {record.scene_id}"
+    sensors = Sensors(resolution=resolution) if resolution else None
+    actions = record.actions
+    try:
+        with client.create_episode(
+            record.scene_id, horizon=record.horizon, sensors=sensors, agent=REPLAY_LABEL
+        ) as episode:
+            first = episode.observation
+            if first is None or first.goal_rgb is None:
+                raise DemoExportError(f"{what}: the created episode came without its first observation")
+            egos = [first.ego_rgb]
+            grasps = [first.grasping]
+            metrics = None
+            ended_after: int | None = None
+            for k, action in enumerate(actions, start=1):
+                result = episode.step(action)
+                if result.ended:
+                    metrics, ended_after = result.metrics, k
+                    break
+                if k < len(actions):
+                    egos.append(result.observation.ego_rgb)
+                    grasps.append(result.observation.grasping)
+            if metrics is None and ended_after is None:
+                metrics = episode.close()  # still running after the last action: the agent ended it
+    except EsrpError as error:
+        raise DemoExportError(f"{what}: the replay failed: {type(error).__name__}: {error.message}") from None
+    different = (
+        ["the server answered no final metrics"] if metrics is None else compare(record, metrics, ended_after)
+    )
+    if different:
+        raise DemoExportError(
+            f"{what}: the replay does not reproduce the record ({'; '.join(different)}): nothing of it "
+            "was written"
+        )
+    return (
+        np.array(first.goal_rgb),
+        np.stack(egos),
+        np.array(grasps, dtype=bool),
+        np.array(actions, dtype=np.uint8),
+    )
+
+
+def _export_records(
+    client: Client, settings: DemoSettings, sources: Sequence[RecordSource] | None
+) -> ExportOutcome:
+    """`export_demos` with `settings.records`."""
+    if settings.dagger is not None:
+        raise DemoExportError("--records and --dagger do not go together")
+    if settings.scenes or settings.difficulty is not None:
+        raise DemoExportError("--records replaces the scene choice: no --scenes or --difficulty with it")
+    info = client.server_info()
+    chosen = list(sources) if sources is not None else read_sources(settings)
+    for source in chosen:
+        if source.record.dataset != info.dataset:
+            raise DemoExportError(
+                f"{source.where}: {source.record.scene_id}: the record is of dataset "
+                f"{source.record.dataset!r}, the server serves {info.dataset!r} "
+                "(start a server of that dataset)"
+            )
+    resolution = settings.resolution or 128
+    store = _Store(settings.out, info.dataset, resolution, settings.labels, None)
+    held = len(store.scene_ids)
+    if held:
+        agents = store.agents or []
+        same = held <= len(chosen) and all(
+            (store.scene_ids[i], agents[i] if i < len(agents) else None, store.episode_actions(i))
+            == (chosen[i].record.scene_id, chosen[i].record.agent, chosen[i].record.actions)
+            for i in range(held)
+        )
+        if not same:
+            raise DemoExportError(
+                f"{settings.out} holds other episodes than the first {held} of these records: "
+                "use another --out"
+            )
+        print(f"resuming {settings.out}: {held} of {len(chosen)} records already there", file=sys.stderr)
+    every = max(len(chosen) // 20, 1)
+    for position, source in enumerate(chosen[held:], start=held + 1):
+        store.append(
+            source.record.scene_id, _replay_record(client, source, settings.resolution), source.record.agent
+        )
+        if settings.progress and (position % every == 0 or position == len(chosen)):
+            print(f"{position}/{len(chosen)} episodes, {store.steps} steps", file=sys.stderr)
+    return ExportOutcome(len(store.scene_ids), store.steps, len(chosen) - held)
+
+
+def export_demos(
+    client: Client, settings: DemoSettings, sources: Sequence[RecordSource] | None = None
+) -> ExportOutcome:
+    """Exports the expert demonstrations of the chosen scenes into `settings.out` (resuming it); with
+    `settings.records`, those records' episodes (`sources`: the records `read_sources` chose, read
+    here when None).
+    """
+    if settings.records:
+        return _export_records(client, settings, sources)
     info = client.server_info()
     scenes = _pick(client, settings)
     resolution = settings.resolution or 128
