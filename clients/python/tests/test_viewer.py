@@ -165,13 +165,30 @@ def test_watch_and_play_in_a_real_browser(viewer: esrp.LocalServer, tmp_path: Pa
                 # The person's record: offered for download, and replayed to the same metrics.
                 page.wait_for_function("document.getElementById('record-link').dataset.record !== undefined")
                 line = page.get_attribute("#record-link", "data-record") or ""
+                results = tmp_path / "human.jsonl"
+                results.write_text(line)
+
+                # Replay: the record loaded from a file, scrubbed to its end and one step back.
+                page.set_input_files("#replay-file", str(results))
+                page.wait_for_function("document.getElementById('replay-record').options.length === 1")
+                page.click("#replay button")
+                page.wait_for_selector("#scrub", state="visible")
+                end = len(expert)
+                page.locator("#scrub-step").evaluate(
+                    "(e, v) => { e.value = v; e.dispatchEvent(new Event('change')); }", end
+                )
+                page.wait_for_function(
+                    f"document.getElementById('watch-panel').dataset.step === '{end}'"
+                    " && document.getElementById('banner').className === 'success'"
+                )
+                page.click("#scrub-back")
+                page.wait_for_function(f"document.getElementById('watch-panel').dataset.step === '{end - 1}'")
+                assert page.locator("#banner").is_hidden()
             finally:
                 browser.close()
     record = json.loads(line)
     assert (record["agent"], record["scene_id"], record["success"]) == ("human", easy[1], True)
     assert record["actions"] == expert
-    results = tmp_path / "human.jsonl"
-    results.write_text(line)
     common = ["--server", viewer.address, "--token", "tina-secret"]
     assert (
         main(

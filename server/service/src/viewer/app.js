@@ -166,6 +166,7 @@ function drawFrame(f) {
     return li;
   }));
   if (e.ended && playing === e.id && $("record").hidden) offerRecord(e);
+  if (!e.ended) $("banner").hidden = true;
   if (e.ended) {
     $("banner").hidden = false;
     $("banner").className = e.success ? "success" : "failure";
@@ -213,6 +214,47 @@ async function play(event) {
   }
 }
 
+// Replay: a results file's record re-run on the server, scrubbed step by step.
+let records = [];
+let replaying = null; // { episode, steps }
+let seeking = Promise.resolve();
+
+async function readRecords() {
+  const file = $("replay-file").files[0];
+  if (!file) return;
+  records = (await file.text()).split("\n").filter((l) => l.trim()).map((l) => JSON.parse(l));
+  $("replay-record").replaceChildren(...records.map((r, i) =>
+    new Option(`${r.scene_id} — ${r.agent}, ${r.steps} steps${r.success ? ", success" : ""}`, String(i))));
+}
+
+async function startReplay(event) {
+  event.preventDefault();
+  const r = records[Number($("replay-record").value)];
+  if (!r) return notice("choose a results file and a record");
+  try {
+    const started = await api("/api/replay", { scene_id: r.scene_id, horizon: r.horizon, actions: r.actions });
+    replaying = { episode: started.episode, steps: started.steps };
+    $("scrub").hidden = false;
+    $("scrub-step").max = String(started.steps);
+    $("scrub-step").value = "0";
+    $("scrub-at").textContent = `0 / ${started.steps}`;
+    watch(started.episode);
+  } catch (e) {
+    notice(e.message);
+  }
+}
+
+function seek(step) {
+  if (!replaying) return;
+  const { episode, steps } = replaying;
+  const target = Math.max(0, Math.min(steps, step));
+  $("scrub-step").value = String(target);
+  seeking = seeking.then(async () => {
+    const at = await api(`/api/replay/${episode}/seek`, { step: target });
+    $("scrub-at").textContent = `${at.step} / ${at.steps}`;
+  }).catch((e) => notice(e.message));
+}
+
 let stepping = Promise.resolve();
 function key(event) {
   if (!playing || event.target.tagName === "INPUT" || event.target.tagName === "SELECT") return;
@@ -235,4 +277,9 @@ $("play-split").addEventListener("change", loadScenes);
 $("play-difficulty").addEventListener("change", loadScenes);
 $("play").addEventListener("submit", play);
 document.addEventListener("keydown", key);
+$("replay-file").addEventListener("change", readRecords);
+$("replay").addEventListener("submit", startReplay);
+$("scrub-step").addEventListener("change", () => seek(Number($("scrub-step").value)));
+$("scrub-back").addEventListener("click", () => seek(Number($("scrub-step").value) - 1));
+$("scrub-forward").addEventListener("click", () => seek(Number($("scrub-step").value) + 1));
 signIn();

@@ -13,12 +13,15 @@
 //! | `POST /api/episodes/{id}/step` | one action of such an episode |
 //! | `POST /api/episodes/{id}/close` | closes it |
 //! | `GET /api/episodes/{id}/record` | the `esrp.results/v1` record of its last run that ended (played episodes) |
+//! | `POST /api/replay` | a new episode re-running a record's actions, for scrubbing |
+//! | `POST /api/replay/{id}/seek` | moves a replay to step k: forward by stepping, back by a reset and stepping again |
 //!
 //! Every API call needs `authorization: Bearer TOKEN` when the server has tokens; with none, the
 //! viewer serves only a loopback address (checked at start). A watcher gets frames as fast as it
 //! reads them and no faster: each frame is made when the previous one has been taken, from the
 //! episode's state then, so older states are dropped, never queued.
 
+use std::collections::HashMap;
 use std::convert::Infallible;
 use std::sync::Arc;
 use std::time::Duration;
@@ -48,6 +51,14 @@ const STYLE: &str = include_str!("style.css");
 struct Viewer {
     episodes: Arc<Episodes>,
     tokens: Arc<Tokens>,
+    /// The replays: each episode's record actions and how many of them it has taken.
+    replays: Arc<tokio::sync::Mutex<HashMap<EpisodeId, Replay>>>,
+}
+
+/// A record being replayed.
+struct Replay {
+    actions: Vec<u8>,
+    at: usize,
 }
 
 /// The viewer's routes over `episodes`, authenticating with `tokens`.
@@ -63,9 +74,11 @@ pub fn router(episodes: Arc<Episodes>, tokens: Arc<Tokens>) -> axum::Router {
         .route("/api/episodes/{id}/step", post(step))
         .route("/api/episodes/{id}/close", post(close))
         .route("/api/episodes/{id}/record", get(record))
+        .route("/api/replay", post(replay))
+        .route("/api/replay/{id}/seek", post(seek))
         .route("/api/scenes", get(scenes))
         .route("/api/play", post(play))
-        .with_state(Viewer { episodes, tokens })
+        .with_state(Viewer { episodes, tokens, replays: Default::default() })
 }
 
 /// Serves the viewer on `listener` until the task is aborted.
@@ -367,4 +380,72 @@ async fn record(State(viewer): State<Viewer>, Path(id): Path<String>, headers: H
             Err(Failure(StatusCode::NOT_FOUND, "no record yet: a played episode has one once a run of it ends".into()))
         }
     }
+}
+
+#[derive(Deserialize)]
+struct ReplayRequest {
+    scene_id: String,
+    horizon: Option<u32>,
+    actions: Vec<u8>,
+}
+
+/// A new episode of the record's scene (and horizon) that re-runs its actions on request.
+async fn replay(
+    State(viewer): State<Viewer>,
+    headers: HeaderMap,
+    Json(request): Json<ReplayRequest>,
+) -> Result<Json<Value>, Failure> {
+    let caller = caller(&viewer, &headers)?;
+    if let Some(bad) = request.actions.iter().find(|&&a| a > 5) {
+        return Err(Failure(StatusCode::BAD_REQUEST, format!("actions: {bad} is not an action code (0..5)")));
+    }
+    let options = CreateOptions {
+        scene: SceneChoice::SceneId(request.scene_id),
+        sensors: SensorRequest::default(),
+        horizon: request.horizon.filter(|&h| h > 0),
+        reward: Default::default(),
+        privileged: false,
+        agent: Some("replay".into()),
+        keep_record: false,
+    };
+    let created = viewer.episodes.create(&caller, options, None).await?;
+    viewer.episodes.claim(&created.episode);
+    let steps = request.actions.len();
+    viewer.replays.lock().await.insert(created.episode.clone(), Replay { actions: request.actions, at: 0 });
+    Ok(Json(json!({ "episode": created.episode.as_str(), "scene": created.scene.id, "steps": steps })))
+}
+
+#[derive(Deserialize)]
+struct SeekBody {
+    step: usize,
+}
+
+/// Moves a replay to step `step` (at most the record's length): forward by taking the record's
+/// next actions, back by restarting the episode and taking them again; the simulator is
+/// deterministic, so step k always shows the same state.
+async fn seek(
+    State(viewer): State<Viewer>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    Json(body): Json<SeekBody>,
+) -> Result<Json<Value>, Failure> {
+    let caller = caller(&viewer, &headers)?;
+    let id = EpisodeId::from(id);
+    let mut replays = viewer.replays.lock().await;
+    let replay = replays
+        .get_mut(&id)
+        .ok_or_else(|| Failure(StatusCode::NOT_FOUND, format!("no replay {id}: start one with /api/replay")))?;
+    let target = body.step.min(replay.actions.len());
+    if target < replay.at {
+        viewer.episodes.reset(&caller, &id, None).await?;
+        replay.at = 0;
+    }
+    while replay.at < target {
+        let action = esrp_core::Action::from_code(i64::from(replay.actions[replay.at]))
+            .map_err(|e| Failure(StatusCode::BAD_REQUEST, e.to_string()))?;
+        let call = StepCall { episode: id.clone(), action, include_goal: false };
+        viewer.episodes.step_many(&caller, vec![call]).await?;
+        replay.at += 1;
+    }
+    Ok(Json(json!({ "step": replay.at, "steps": replay.actions.len() })))
 }
