@@ -95,6 +95,45 @@ def test_tokens_see_only_what_they_may(viewer: esrp.LocalServer) -> None:
             assert "belongs to another token" in body["error"]
 
 
+def rss_bytes(pid: int) -> int:
+    status = Path(f"/proc/{pid}/status").read_text()
+    return int(next(line for line in status.splitlines() if line.startswith("VmRSS:")).split()[1]) * 1024
+
+
+def test_a_watcher_that_stops_reading_leaves_the_servers_memory_flat(viewer: esrp.LocalServer) -> None:
+    """Frames are made only when the previous one was taken: a page that stops reading holds the
+    server to one frame in flight, however fast the agent steps."""
+    import socket
+    from urllib.parse import urlsplit
+
+    assert viewer.viewer_url is not None
+    with esrp.Client(viewer.address, token="tina-secret") as tina:
+        scene = next(iter(tina.scenes("test", "easy"))).id
+        with tina.create_episode(scene, horizon=100_000) as episode:
+            url = urlsplit(viewer.viewer_url)
+            watcher = socket.socket()
+            watcher.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            watcher.connect((url.hostname, url.port))
+            request = (
+                f"GET /api/episodes/{episode.id}/watch HTTP/1.1\r\nHost: {url.netloc}\r\n"
+                "Authorization: Bearer tina-secret\r\n\r\n"
+            )
+            watcher.sendall(request.encode())
+            try:
+                assert watcher.recv(12) == b"HTTP/1.1 200", "the watch stream is open (then never read again)"
+                turns = [2, 3] * 200
+                for a in turns:
+                    episode.step(a)
+                before = rss_bytes(viewer.pid)
+                for a in turns * 4:
+                    episode.step(a)
+                after = rss_bytes(viewer.pid)
+            finally:
+                watcher.close()
+    # Each unread frame is ~20 KB of JSON: 1,600 steps queued would be ~30 MB.
+    assert after - before < 8 * 1024 * 1024, (before, after)
+
+
 def test_no_viewer_off_loopback_without_tokens() -> None:
     quiet = {"RUST_BACKTRACE": "0", "RUST_LIB_BACKTRACE": "0"}
     server = esrp.LocalServer("--http-listen", "0.0.0.0:0", env=quiet)
