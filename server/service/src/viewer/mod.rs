@@ -17,9 +17,9 @@
 //! | `POST /api/replay/{id}/seek` | moves a replay to step k: forward by stepping, back by a reset and stepping again |
 //!
 //! Every API call needs `authorization: Bearer TOKEN` when the server has tokens; with none, the
-//! viewer serves only a loopback address (checked at start). A watcher gets frames as fast as it
-//! reads them and no faster: each frame is made when the previous one has been taken, from the
-//! episode's state then, so older states are dropped, never queued.
+//! viewer serves only a loopback address (checked at start). A watched episode's frames are made
+//! once for all its watchers, after its agent's steps and at most ten a second; each watcher gets
+//! the latest when it has taken the previous one, so older frames are dropped, never queued.
 
 use std::collections::HashMap;
 use std::convert::Infallible;
@@ -40,7 +40,7 @@ use tokio::sync::mpsc;
 use crate::auth::Tokens;
 use crate::episodes::{EpisodeSummary, Episodes, WatchFrame};
 use crate::error::ServiceError;
-use crate::types::{Caller, CreateOptions, EpisodeId, SceneChoice, SensorRequest, StepCall};
+use crate::types::{Caller, CreateOptions, EpisodeId, Role, SceneChoice, SensorRequest, StepCall};
 
 const INDEX: &str = include_str!("index.html");
 const SCRIPT: &str = include_str!("app.js");
@@ -53,6 +53,8 @@ struct Viewer {
     tokens: Arc<Tokens>,
     /// The replays: each episode's record actions and how many of them it has taken.
     replays: Arc<tokio::sync::Mutex<HashMap<EpisodeId, Replay>>>,
+    /// The watched episodes' feeds.
+    feeds: Feeds,
 }
 
 /// A record being replayed.
@@ -78,7 +80,7 @@ pub fn router(episodes: Arc<Episodes>, tokens: Arc<Tokens>) -> axum::Router {
         .route("/api/replay/{id}/seek", post(seek))
         .route("/api/scenes", get(scenes))
         .route("/api/play", post(play))
-        .with_state(Viewer { episodes, tokens, replays: Default::default() })
+        .with_state(Viewer { episodes, tokens, replays: Default::default(), feeds: Default::default() })
 }
 
 /// Serves the viewer on `listener` until the task is aborted.
@@ -228,33 +230,136 @@ async fn episodes_events(State(viewer): State<Viewer>, headers: HeaderMap) -> Re
     Ok(events(receiver))
 }
 
-/// Frames of one episode: one at once (with the goal image), then one after each step the
-/// agent takes, made when the page has taken the previous one; `closed` when the episode goes.
+/// Frames a second a watched episode's feed makes at most: a page shows no more, and the
+/// rendering they need (an ego and a top-down view each) stays a small share of the render
+/// thread's work however fast the agent steps and however many watch.
+const FRAMES_PER_SECOND: u64 = 10;
+
+/// What a feed publishes.
+enum FeedItem {
+    /// Nothing yet.
+    Pending,
+    /// A frame, as every watcher sees it (`public`) and with the privileged part (`full`).
+    Frame { public: String, full: String },
+    /// The episode is gone; why.
+    Closed(String),
+}
+
+/// The feeds of the watched episodes: each episode's frames are made once for all its watchers.
+type Feeds = Arc<std::sync::Mutex<HashMap<EpisodeId, tokio::sync::watch::Receiver<Arc<FeedItem>>>>>;
+
+/// The feed of episode `id`, started if none runs.
+async fn feed_of(viewer: &Viewer, id: &EpisodeId) -> Result<tokio::sync::watch::Receiver<Arc<FeedItem>>, Failure> {
+    if let Some(feed) = viewer.feeds.lock().unwrap_or_else(|p| p.into_inner()).get(id)
+        && feed.has_changed().is_ok()
+    {
+        return Ok(feed.clone());
+    }
+    // The feed's own view of the episode: an admin's (each watcher's right to it was checked).
+    let internal = Arc::new(Caller { name: "viewer".into(), role: Role::Admin, max_episodes: None, max_streams: None });
+    let changes = viewer.episodes.watch(&internal, id).await?;
+    let (sender, receiver) = tokio::sync::watch::channel(Arc::new(FeedItem::Pending));
+    let mut feeds = viewer.feeds.lock().unwrap_or_else(|p| p.into_inner());
+    if let Some(feed) = feeds.get(id)
+        && feed.has_changed().is_ok()
+    {
+        return Ok(feed.clone()); // another watcher started it meanwhile
+    }
+    feeds.insert(id.clone(), receiver.clone());
+    drop(feeds);
+    tokio::spawn(produce(viewer.clone(), internal, id.clone(), changes, sender));
+    Ok(receiver)
+}
+
+/// Makes an episode's frames while anyone watches: one at once, then one after the agent's
+/// steps, at most [`FRAMES_PER_SECOND`] a second; the states in between are skipped.
+async fn produce(
+    viewer: Viewer,
+    internal: Arc<Caller>,
+    id: EpisodeId,
+    mut changes: tokio::sync::watch::Receiver<u64>,
+    out: tokio::sync::watch::Sender<Arc<FeedItem>>,
+) {
+    let mut goal = Value::Null;
+    let pause = Duration::from_millis(1000 / FRAMES_PER_SECOND);
+    loop {
+        changes.mark_unchanged();
+        match viewer.episodes.watch_frame(&internal, &id, goal.is_null()).await {
+            Ok(frame) => {
+                let mut full = frame_json(&frame);
+                if goal.is_null() {
+                    goal = full["goal"].clone();
+                } else {
+                    full["goal"] = goal.clone();
+                }
+                let mut public = full.clone();
+                if let Some(fields) = public.as_object_mut() {
+                    for key in PRIVILEGED_KEYS {
+                        fields.remove(key);
+                    }
+                }
+                out.send_replace(Arc::new(FeedItem::Frame { public: public.to_string(), full: full.to_string() }));
+            }
+            Err(e) => {
+                out.send_replace(Arc::new(FeedItem::Closed(e.to_string())));
+                break;
+            }
+        }
+        tokio::select! {
+            () = tokio::time::sleep(pause) => {}
+            () = out.closed() => break,
+        }
+        tokio::select! {
+            changed = changes.changed() => {
+                if changed.is_err() {
+                    out.send_replace(Arc::new(FeedItem::Closed("the episode was closed".into())));
+                    break;
+                }
+            }
+            () = out.closed() => break,
+        }
+    }
+    drop(changes);
+    viewer.feeds.lock().unwrap_or_else(|p| p.into_inner()).remove(&id);
+    viewer.episodes.unwatch(&id).await;
+}
+
+/// The frame fields only a caller allowed the privileged state sees.
+const PRIVILEGED_KEYS: [&str; 6] = ["top_down", "top_down_side", "agent_path", "carried_paths", "objects", "rdr"];
+
+/// Frames of one episode as the caller may see them: one at once, then one after the agent's
+/// steps, at most [`FRAMES_PER_SECOND`] a second, each sent when the page has taken the previous
+/// one; `closed` when the episode goes.
 async fn watch(State(viewer): State<Viewer>, Path(id): Path<String>, headers: HeaderMap) -> Result<Events, Failure> {
     let caller = caller(&viewer, &headers)?;
     let id = EpisodeId::from(id);
-    let mut changes = viewer.episodes.watch(&caller, &id).await?;
+    // The caller's right to watch it (its own episode, or an admin), checked here.
+    drop(viewer.episodes.watch(&caller, &id).await?);
+    let privileged = caller.role != Role::Agent;
+    let mut frames = feed_of(&viewer, &id).await?;
     let (sender, receiver) = mpsc::channel(1);
     tokio::spawn(async move {
-        let mut with_goal = true;
         loop {
-            changes.mark_unchanged();
-            let event = match viewer.episodes.watch_frame(&caller, &id, with_goal).await {
-                Ok(frame) => Event::default().event("frame").data(frame_json(&frame).to_string()),
-                Err(e) => {
-                    let _ = sender.send(Ok(Event::default().event("closed").data(e.to_string()))).await;
+            let item = frames.borrow_and_update().clone();
+            let event = match &*item {
+                FeedItem::Pending => None,
+                FeedItem::Frame { public, full } => {
+                    Some(Event::default().event("frame").data(if privileged { full } else { public }))
+                }
+                FeedItem::Closed(why) => {
+                    let _ = sender.send(Ok(Event::default().event("closed").data(why))).await;
                     break;
                 }
             };
-            with_goal = false;
-            // Waits while the page reads the previous frame: the states in between are skipped.
-            if sender.send(Ok(event)).await.is_err() {
+            // Waits while the page reads the previous frame: the frames in between are skipped.
+            if let Some(event) = event
+                && sender.send(Ok(event)).await.is_err()
+            {
                 break;
             }
             tokio::select! {
-                changed = changes.changed() => {
+                changed = frames.changed() => {
                     if changed.is_err() {
-                        // The episode is gone (closed, reaped).
                         let _ = sender.send(Ok(Event::default().event("closed").data("the episode was closed"))).await;
                         break;
                     }
@@ -262,8 +367,6 @@ async fn watch(State(viewer): State<Viewer>, Path(id): Path<String>, headers: He
                 () = sender.closed() => break,
             }
         }
-        drop(changes);
-        viewer.episodes.unwatch(&id).await;
     });
     Ok(events(receiver))
 }
