@@ -37,8 +37,8 @@ from .._errors import EsrpError
 from .._values import Action, SceneSummary, Sensors
 from ..agents import is_async_agent
 from ..eval.evaluation import EvalError, agent_info, expert_trajectory, make_factory, missing_scene
-from ..eval.results import EpisodeRecord, ResultsError, read_records, scene_seed
-from ..eval.verify import compare
+from ..eval.results import ResultsError, read_records, scene_seed
+from ..eval.verify import Numbered, compare
 
 __all__ = [
     "FORMAT",
@@ -331,18 +331,8 @@ def _dagger(client: Client, scene: SceneSummary, settings: DemoSettings, factory
     )
 
 
-@dataclass(frozen=True)
-class RecordSource:
-    """A record to export and where it was read: its file and line (1-based)."""
-
-    path: Path
-    line: int
-    record: EpisodeRecord
-
-    @property
-    def where(self) -> str:
-        """`FILE:LINE`."""
-        return f"{self.path}:{self.line}"
+# A record to export and where it was read (file and line): verify's `Numbered`, one type for both.
+RecordSource = Numbered
 
 
 def read_sources(settings: DemoSettings) -> list[RecordSource]:
