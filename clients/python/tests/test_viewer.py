@@ -44,15 +44,25 @@ role = "admin"
 
 @pytest.fixture(scope="module")
 def viewer(tmp_path_factory: pytest.TempPathFactory) -> Iterator[esrp.LocalServer]:
-    tokens = tmp_path_factory.mktemp("viewer") / "tokens.toml"
+    folder = tmp_path_factory.mktemp("viewer")
+    tokens = folder / "tokens.toml"
     tokens.write_text(TOKENS)
-    with esrp.LocalServer("--http-listen", "127.0.0.1:0", "--tokens", str(tokens)) as server:
+    records = folder / "records"
+    with esrp.LocalServer(
+        "--http-listen", "127.0.0.1:0", "--tokens", str(tokens), "--records", str(records)
+    ) as server:
         yield server
 
 
-def get(server: esrp.LocalServer, path: str, token: str | None) -> tuple[int, Any]:
+def get(
+    server: esrp.LocalServer, path: str, token: str | None, body: dict[str, Any] | None = None
+) -> tuple[int, Any]:
+    """GETs `path` (POSTs `body` as JSON if given) on the viewer's API."""
     assert server.viewer_url is not None
-    request = urllib.request.Request(server.viewer_url.rstrip("/") + path)
+    data = None if body is None else json.dumps(body).encode()
+    request = urllib.request.Request(server.viewer_url.rstrip("/") + path, data=data)
+    if data is not None:
+        request.add_header("Content-Type", "application/json")
     if token is not None:
         request.add_header("Authorization", f"Bearer {token}")
     try:
@@ -93,6 +103,38 @@ def test_tokens_see_only_what_they_may(viewer: esrp.LocalServer) -> None:
             status, body = get(viewer, f"/api/episodes/{theirs.id}/watch", "alice-secret")
             assert status == 403
             assert "belongs to another token" in body["error"]
+
+
+def test_the_servers_records_by_scene(viewer: esrp.LocalServer) -> None:
+    # Alice plays a scene in the page and closes it: the server keeps her record (--records).
+    status, scenes = get(viewer, "/api/scenes?split=test&difficulty=medium", "alice-secret")
+    assert status == 200
+    scene = scenes[2]["id"]
+    status, played = get(viewer, "/api/play", "alice-secret", {"scene": scene})
+    assert status == 200
+    episode = f"/api/episodes/{played['episode']}"
+    for action in (2, 0, 3):
+        assert get(viewer, f"{episode}/step", "alice-secret", {"action": action})[0] == 200
+    assert get(viewer, f"{episode}/close", "alice-secret", {})[0] == 200
+
+    status, found = get(viewer, f"/api/records?scene={scene}", "alice-secret")
+    assert status == 200
+    assert [(r["token"], r["scene_id"], r["agent"], r["steps"]) for r in found["records"]] == [
+        ("alice", scene, "human", 3)
+    ]
+    listed = found["records"][0]
+    status, record = get(viewer, f"/api/records/alice/{listed['index']}", "alice-secret")
+    assert status == 200
+    assert (record["schema"], record["actions"], record["token"]) == ("esrp.results/v1", [2, 0, 3], "alice")
+    # Another token lists none of hers and cannot read it; an admin can.
+    assert get(viewer, f"/api/records?scene={scene}", "tina-secret")[1]["records"] == []
+    status, body = get(viewer, f"/api/records/alice/{listed['index']}", "tina-secret")
+    assert status == 403
+    assert "only its own records" in body["error"]
+    assert get(viewer, f"/api/records/alice/{listed['index']}", "root-secret")[1]["actions"] == [2, 0, 3]
+    assert get(viewer, "/api/records/alice/9999", "alice-secret")[0] == 404
+    assert get(viewer, "/api/records?scene=esrp-bench-v2/99999", "root-secret")[1]["records"] == []
+    assert get(viewer, "/api/records", None)[0] == 401
 
 
 def rss_bytes(pid: int) -> int:
@@ -210,7 +252,7 @@ def test_watch_and_play_in_a_real_browser(viewer: esrp.LocalServer, tmp_path: Pa
                 # Replay: the record loaded from a file, scrubbed to its end and one step back.
                 page.set_input_files("#replay-file", str(results))
                 page.wait_for_function("document.getElementById('replay-record').options.length === 1")
-                page.click("#replay button")
+                page.click("#replay button[type=submit]")
                 page.wait_for_selector("#scrub", state="visible")
                 end = len(expert)
                 page.locator("#scrub-step").evaluate(
@@ -223,6 +265,24 @@ def test_watch_and_play_in_a_real_browser(viewer: esrp.LocalServer, tmp_path: Pa
                 page.click("#scrub-back")
                 page.wait_for_function(f"document.getElementById('watch-panel').dataset.step === '{end - 1}'")
                 assert page.locator("#banner").is_hidden()
+
+                # Replay by scene from the server's records: the same run, found without a file.
+                page.fill("#replay-scene", easy[1])
+                page.click("#replay-find")
+                page.wait_for_function(
+                    "[...document.getElementById('replay-record').options]"
+                    ".some(o => o.textContent.startsWith('" + easy[1] + " — human (tina)'))"
+                )
+                assert page.locator("#replay-record option").count() == 1
+                page.click("#replay button[type=submit]")
+                page.wait_for_function(f"document.getElementById('scrub-at').textContent === '0 / {end}'")
+                page.locator("#scrub-step").evaluate(
+                    "(e, v) => { e.value = v; e.dispatchEvent(new Event('change')); }", end
+                )
+                page.wait_for_function(
+                    f"document.getElementById('watch-panel').dataset.step === '{end}'"
+                    " && document.getElementById('banner').className === 'success'"
+                )
             finally:
                 browser.close()
     record = json.loads(line)

@@ -206,6 +206,17 @@ pub enum ServiceError {
         /// When: `ended 2026-11-25T20:00:00Z` or `started …, still running`.
         when: String,
     },
+    /// Records asked of a server that keeps none.
+    #[error("this server keeps no records: start it with --records DIR")]
+    NoRecords,
+    /// A record that a records file does not hold.
+    #[error("token {}'s records have no record {index}", quoted(.token))]
+    UnknownRecord {
+        /// The file's token.
+        token: String,
+        /// The record's place in it.
+        index: usize,
+    },
     /// Rendering failed.
     #[error("rendering failed: {0}")]
     Render(String),
@@ -223,7 +234,10 @@ impl ServiceError {
             | ServiceError::DuplicateStep { .. }
             | ServiceError::InvalidResolution { .. }
             | ServiceError::EmptySplit(_) => Code::InvalidArgument,
-            ServiceError::UnknownEpisode(_) | ServiceError::UnknownScene(_) => Code::NotFound,
+            ServiceError::UnknownEpisode(_) | ServiceError::UnknownScene(_) | ServiceError::UnknownRecord { .. } => {
+                Code::NotFound
+            }
+            ServiceError::NoRecords => Code::FailedPrecondition,
             ServiceError::EpisodeOver { .. } => Code::FailedPrecondition,
             ServiceError::Simulator(e) => match e {
                 esrp_core::EpisodeError::Finished { .. } => Code::FailedPrecondition,

@@ -222,6 +222,46 @@ impl Recorder {
     }
 }
 
+/// A record kept in a records folder: the token whose file holds it, its place among that
+/// file's records (0-based), and the record.
+#[derive(Debug)]
+pub struct StoredRecord {
+    /// The file's token (its name without `.jsonl`).
+    pub token: String,
+    /// Its place among the file's records.
+    pub index: usize,
+    /// The record.
+    pub record: EpisodeRecord,
+}
+
+/// The records in folder `dir`: those of `token`'s file (every file's with `None`) and of scene
+/// `scene` (any with `None`), file by file in name order, each file's in order. A last line
+/// still being written (or torn) is left out; a file that cannot be read is an error.
+pub fn stored_records(dir: &Path, token: Option<&str>, scene: Option<&str>) -> Result<Vec<StoredRecord>, RecordsError> {
+    let error = |reason: String| RecordsError { dir: dir.display().to_string(), reason };
+    let mut files: Vec<(String, PathBuf)> = std::fs::read_dir(dir)
+        .map_err(|e| error(format!("cannot list it: {e}")))?
+        .filter_map(|entry| entry.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "jsonl"))
+        .filter_map(|p| Some((p.file_stem()?.to_str()?.to_owned(), p)))
+        // The file is chosen by comparing names, never by joining a client's text to a path.
+        .filter(|(stem, _)| token.is_none_or(|t| t == stem))
+        .collect();
+    files.sort();
+    let mut found = Vec::new();
+    for (stem, path) in files {
+        let read = esrp_results::read_records(&path).map_err(|e| error(e.to_string()))?;
+        found.extend(
+            read.records
+                .into_iter()
+                .enumerate()
+                .filter(|(_, r)| scene.is_none_or(|s| r.scene_id == s))
+                .map(|(index, record)| StoredRecord { token: stem.clone(), index, record }),
+        );
+    }
+    Ok(found)
+}
+
 /// The writer thread: takes every job waiting, appends each line to its token's file, syncs
 /// each file written once, then acknowledges the jobs.
 fn write_records(dir: &Path, jobs: &std::sync::mpsc::Receiver<Job>) {

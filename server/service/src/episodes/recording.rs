@@ -135,3 +135,47 @@ pub(super) async fn close_removed(episodes: &Episodes, removed: Vec<Removed<Epis
         written.wait().await;
     }
 }
+
+/// Reading the records back (the web viewer's replay by scene).
+impl Episodes {
+    /// The server's records `caller` may read, of scene `scene` if given: its own token's file,
+    /// every file for an admin. Fails where the server keeps no records (`--records`).
+    pub async fn stored_records(
+        &self,
+        caller: &Caller,
+        scene: Option<String>,
+    ) -> Result<Vec<crate::records::StoredRecord>, ServiceError> {
+        let dir = self.records_dir()?;
+        let token = (!caller.is_admin()).then(|| caller.name.to_string());
+        tokio::task::spawn_blocking(move || crate::records::stored_records(&dir, token.as_deref(), scene.as_deref()))
+            .await
+            .map_err(|e| ServiceError::Internal(format!("reading the records stopped: {e}")))?
+            .map_err(|e| ServiceError::Internal(e.to_string()))
+    }
+
+    /// Record `index` of token `token`'s file, if `caller` may read it (its own; any for an admin).
+    pub async fn stored_record(
+        &self,
+        caller: &Caller,
+        token: &str,
+        index: usize,
+    ) -> Result<EpisodeRecord, ServiceError> {
+        if !caller.is_admin() && *caller.name != *token {
+            return Err(ServiceError::Denied(format!(
+                "{} may read only its own records, not token {}'s",
+                caller.describe(),
+                crate::error::quoted(token)
+            )));
+        }
+        let found = self.stored_records(caller, None).await?;
+        found
+            .into_iter()
+            .find(|r| r.token == token && r.index == index)
+            .map(|r| r.record)
+            .ok_or_else(|| ServiceError::UnknownRecord { token: token.to_owned(), index })
+    }
+
+    fn records_dir(&self) -> Result<std::path::PathBuf, ServiceError> {
+        self.recorder.as_ref().map(|r| r.dir().to_path_buf()).ok_or(ServiceError::NoRecords)
+    }
+}

@@ -214,7 +214,8 @@ async function play(event) {
   }
 }
 
-// Replay: a results file's record re-run on the server, scrubbed step by step.
+// Replay: a record (from a results file, or the server's records of a scene) re-run on the
+// server, scrubbed step by step. Records listed from the server are fetched whole when chosen.
 let records = [];
 let replaying = null; // { episode, steps }
 let seeking = Promise.resolve();
@@ -227,11 +228,26 @@ async function readRecords() {
     new Option(`${r.scene_id} — ${r.agent}, ${r.steps} steps${r.success ? ", success" : ""}`, String(i))));
 }
 
+async function findRecords() {
+  const scene = $("replay-scene").value.trim();
+  try {
+    const found = await api(`/api/records?scene=${encodeURIComponent(scene)}`);
+    records = found.records;
+    $("replay-record").replaceChildren(...records.map((r, i) =>
+      new Option(`${r.scene_id} — ${r.agent} (${r.token}), ${r.steps} steps${r.success ? ", success" : ""}, ${r.finished_at}`, String(i))));
+    if (!records.length) notice(scene ? `no record of ${scene} here` : "no records here");
+    else if (found.total > records.length) notice(`the latest ${records.length} of ${found.total} records`);
+  } catch (e) {
+    notice(e.message);
+  }
+}
+
 async function startReplay(event) {
   event.preventDefault();
-  const r = records[Number($("replay-record").value)];
-  if (!r) return notice("choose a results file and a record");
+  let r = records[Number($("replay-record").value)];
+  if (!r) return notice("choose a results file (or find the server's records) and a record");
   try {
+    if (!r.actions) r = await api(`/api/records/${encodeURIComponent(r.token)}/${r.index}`);
     const started = await api("/api/replay", { scene_id: r.scene_id, horizon: r.horizon, actions: r.actions });
     replaying = { episode: started.episode, steps: started.steps };
     $("scrub").hidden = false;
@@ -279,6 +295,7 @@ $("play").addEventListener("submit", play);
 document.addEventListener("keydown", key);
 $("replay-file").addEventListener("change", readRecords);
 $("replay").addEventListener("submit", startReplay);
+$("replay-find").addEventListener("click", findRecords);
 $("scrub-step").addEventListener("change", () => seek(Number($("scrub-step").value)));
 $("scrub-back").addEventListener("click", () => seek(Number($("scrub-step").value) - 1));
 $("scrub-forward").addEventListener("click", () => seek(Number($("scrub-step").value) + 1));

@@ -13,6 +13,8 @@
 //! | `POST /api/episodes/{id}/step` | one action of such an episode |
 //! | `POST /api/episodes/{id}/close` | closes it |
 //! | `GET /api/episodes/{id}/record` | the `esrp.results/v1` record of its last run that ended (played episodes) |
+//! | `GET /api/records?scene=` | the server's records (`--records`) the caller may read, of one scene: the latest 500 |
+//! | `GET /api/records/{token}/{index}` | one of them, whole |
 //! | `POST /api/replay` | a new episode re-running a record's actions, for scrubbing |
 //! | `POST /api/replay/{id}/seek` | moves a replay to step k: forward by stepping, back by a reset and stepping again |
 //!
@@ -76,6 +78,8 @@ pub fn router(episodes: Arc<Episodes>, tokens: Arc<Tokens>) -> axum::Router {
         .route("/api/episodes/{id}/step", post(step))
         .route("/api/episodes/{id}/close", post(close))
         .route("/api/episodes/{id}/record", get(record))
+        .route("/api/records", get(records))
+        .route("/api/records/{token}/{index}", get(stored_record))
         .route("/api/replay", post(replay))
         .route("/api/replay/{id}/seek", post(seek))
         .route("/api/scenes", get(scenes))
@@ -483,6 +487,57 @@ async fn record(State(viewer): State<Viewer>, Path(id): Path<String>, headers: H
             Err(Failure(StatusCode::NOT_FOUND, "no record yet: a played episode has one once a run of it ends".into()))
         }
     }
+}
+
+/// The most records `/api/records` lists (the latest ones).
+const LISTED_RECORDS: usize = 500;
+
+#[derive(Deserialize)]
+struct RecordsQuery {
+    scene: Option<String>,
+}
+
+/// The server's records the caller may read (its own; every token's for an admin), of one
+/// scene if given, as summaries: the latest [`LISTED_RECORDS`], newest first.
+async fn records(
+    State(viewer): State<Viewer>,
+    headers: HeaderMap,
+    Query(query): Query<RecordsQuery>,
+) -> Result<Json<Value>, Failure> {
+    let caller = caller(&viewer, &headers)?;
+    let scene = query.scene.map(|s| s.trim().to_owned()).filter(|s| !s.is_empty());
+    let mut found = viewer.episodes.stored_records(&caller, scene).await?;
+    found.sort_by(|a, b| b.record.finished_at.cmp(&a.record.finished_at));
+    let total = found.len();
+    let listed: Vec<Value> = found
+        .iter()
+        .take(LISTED_RECORDS)
+        .map(|s| {
+            let r = &s.record;
+            json!({
+                "token": s.token,
+                "index": s.index,
+                "scene_id": r.scene_id,
+                "agent": r.agent,
+                "success": r.success,
+                "steps": r.steps,
+                "horizon": r.horizon,
+                "finished_at": r.finished_at,
+                "counted": r.counted,
+            })
+        })
+        .collect();
+    Ok(Json(json!({ "records": listed, "total": total })))
+}
+
+/// One record of the server's records, whole (`esrp.results/v1`).
+async fn stored_record(
+    State(viewer): State<Viewer>,
+    Path((token, index)): Path<(String, usize)>,
+    headers: HeaderMap,
+) -> Result<Json<esrp_results::EpisodeRecord>, Failure> {
+    let caller = caller(&viewer, &headers)?;
+    Ok(Json(viewer.episodes.stored_record(&caller, &token, index).await?))
 }
 
 #[derive(Deserialize)]
