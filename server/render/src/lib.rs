@@ -111,8 +111,8 @@ pub mod renderer;
 pub use camera::{Camera, TopDownFrame, project_ego};
 pub use error::RenderError;
 pub use images::{
-    ScenePngs, SceneViews, contact_sheet, decode_png_rgb, encode_png_rgb, goal_contact_sheet_png, render_scene_pngs,
-    render_scene_views,
+    ScenePngs, SceneViews, contact_sheet, decode_png_rgb, encode_png_rgb, encode_png_rgb_fast, goal_contact_sheet_png,
+    render_scene_pngs, render_scene_views,
 };
 pub use mesh::{SceneMesh, SegmentLabel, build_scene_mesh};
 pub use renderer::{

@@ -2,7 +2,9 @@
 
 use esrp_core::MovableCategory;
 use esrp_render::mesh::{self, BACKGROUND_COLOUR, DOOR_COLOUR, FIXED_COLOUR, FLOOR_COLOUR, WALL_COLOUR};
-use esrp_render::{contact_sheet, decode_png_rgb, encode_png_rgb, goal_contact_sheet_png, render_scene_pngs};
+use esrp_render::{
+    contact_sheet, decode_png_rgb, encode_png_rgb, encode_png_rgb_fast, goal_contact_sheet_png, render_scene_pngs,
+};
 
 use crate::common::{bedroom, one_box_room, renderer, showcase};
 
@@ -12,6 +14,9 @@ fn png_round_trips() {
     let png = encode_png_rgb(&rgb, 5, 3).unwrap();
     assert_eq!(decode_png_rgb(&png).unwrap(), (rgb, 5, 3));
     assert!(encode_png_rgb(&[0; 5], 5, 3).is_err());
+    let fast = encode_png_rgb_fast(&rgb, 5, 3).unwrap();
+    assert_eq!(decode_png_rgb(&fast).unwrap(), (rgb, 5, 3));
+    assert!(encode_png_rgb_fast(&[0; 5], 5, 3).is_err());
 }
 
 #[test]

@@ -23,6 +23,16 @@ pub struct Observer {
     pub frame: TopDownFrame,
     /// The last observation's images, answered again by steps that change nothing they show.
     frames: FrameCache,
+    /// The last top-down view made for watchers (`viewing`), shown again while nothing moved.
+    watched_top_down: FrameCache,
+}
+
+/// An image a watcher's frame needs: one already made (the same pixels), or a view to render.
+pub enum Shot {
+    /// Made before: the episode's last observation, or the last watch frame's.
+    Ready(Bytes),
+    /// To render.
+    Render(View),
 }
 
 impl Observer {
@@ -30,7 +40,14 @@ impl Observer {
     /// [`Observer::goal_view`]).
     pub fn new(scene: Arc<SceneHandle>, sensors: SensorConfig) -> Self {
         let frame = scene.top_down_frame(sensors.resolution);
-        Self { scene, sensors, goal: Bytes::new(), frame, frames: FrameCache::default() }
+        Self {
+            scene,
+            sensors,
+            goal: Bytes::new(),
+            frame,
+            frames: FrameCache::default(),
+            watched_top_down: FrameCache::default(),
+        }
     }
 
     /// The view of the goal image: the top-down view of `episode`'s target layout.
@@ -40,17 +57,34 @@ impl Observer {
         View::top_down(&self.scene, &targets, self.sensors.resolution)
     }
 
-    /// The views a watcher of `episode` sees (`viewing`): its ego view as its client got it
+    /// The images a watcher of `episode` sees (`viewing`): its ego view as its client got it
     /// (RGB only), and with `top_down` the current top-down view at that side, with its frame.
-    pub fn watch_views(&self, episode: &Episode, top_down: Option<u32>) -> (Vec<View>, Option<TopDownFrame>) {
+    /// Each is taken from what was made before where that shows the same (the ego view of the
+    /// episode's last observation; the last watch frame's top-down view while no object moved),
+    /// else it is a view to render (then [`Observer::watched`] keeps the top-down view).
+    pub fn watch_shots(&self, episode: &Episode, top_down: Option<u32>) -> (Shot, Option<(Shot, TopDownFrame)>) {
         let poses = episode.object_poses();
         let no_extras = Outputs { depth: false, segmentation: false };
-        let mut views = vec![View::ego(&self.scene, episode.ego_camera(), poses, no_extras, self.sensors.resolution)];
-        let frame = top_down.map(|side| {
-            views.push(View::top_down(&self.scene, poses, side));
-            self.scene.top_down_frame(side)
+        let ego = View::ego(&self.scene, episode.ego_camera(), poses, no_extras, self.sensors.resolution);
+        // The observation's ego view may carry depth or segmentation too: its RGB is the same.
+        let ego = match self.frames.lookup_where(|views| views.first().is_some_and(|v| same_pixels(v, &ego))) {
+            Some(outputs) => outputs.into_iter().next().map_or(Shot::Render(ego), |o| Shot::Ready(o.rgb)),
+            None => Shot::Render(ego),
+        };
+        let top = top_down.map(|side| {
+            let view = View::top_down(&self.scene, poses, side);
+            let shot = match self.watched_top_down.lookup(std::slice::from_ref(&view)) {
+                Some(outputs) => outputs.into_iter().next().map_or(Shot::Render(view), |o| Shot::Ready(o.rgb)),
+                None => Shot::Render(view),
+            };
+            (shot, self.scene.top_down_frame(side))
         });
-        (views, frame)
+        (ego, top)
+    }
+
+    /// Keeps `output` as the image of the watchers' top-down `view`, rendered for a watch frame.
+    pub fn watched(&self, view: View, output: ViewOutput) {
+        self.watched_top_down.store(vec![view], &[output]);
     }
 
     /// The views an observation of `episode` needs: the ego view, then the current top-down
@@ -153,6 +187,11 @@ fn same_view(a: &View, b: &View) -> bool {
         && a.resolution == b.resolution
 }
 
+/// Whether two views draw the same RGB pixels (their depth and segmentation outputs aside).
+fn same_pixels(a: &View, b: &View) -> bool {
+    Arc::ptr_eq(&a.scene, &b.scene) && a.camera == b.camera && a.poses == b.poses && a.resolution == b.resolution
+}
+
 /// An episode's last rendered observation: its views and their images. A step that leaves
 /// what the views show unchanged (a rejected motion, a fetch with nothing in reach, a release
 /// with nothing held: about a third of a random agent's steps) answers these images again
@@ -180,6 +219,12 @@ impl FrameCache {
             }
             _ => None,
         }
+    }
+
+    /// The images kept if their views pass `test`.
+    fn lookup_where(&self, test: impl FnOnce(&[View]) -> bool) -> Option<Vec<ViewOutput>> {
+        let cached = self.0.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        cached.as_ref().filter(|frames| test(&frames.views)).map(|frames| frames.outputs.clone())
     }
 
     /// Keeps `outputs` as the images of `views` (replacing what was kept).

@@ -10,6 +10,7 @@ use std::sync::Arc;
 use bytes::Bytes;
 
 use super::entry::EpisodeEntry;
+use super::observe::Shot;
 use super::state::Episodes;
 use crate::error::ServiceError;
 use crate::types::{Caller, EpisodeId, Role, SceneInfo};
@@ -153,11 +154,15 @@ pub(super) async fn frame(
     with_goal: bool,
 ) -> Result<WatchFrame, ServiceError> {
     let shared = episodes.registry.peek(id, caller)?;
-    let (mut frame, views) = {
+    let (mut frame, ego, top_down) = {
         let entry = shared.lock().await;
         let privileged = sees_privileged(caller, &entry);
-        let (views, top_down) = entry.observer.watch_views(&entry.episode, privileged.then_some(WATCH_TOP_DOWN));
-        let privileged_view = top_down.map(|frame| {
+        let (ego, top_down) = entry.observer.watch_shots(&entry.episode, privileged.then_some(WATCH_TOP_DOWN));
+        let (top_down, frame) = match top_down {
+            Some((shot, frame)) => (Some(shot), Some(frame)),
+            None => (None, None),
+        };
+        let privileged_view = frame.map(|frame| {
             let scale = f64::from(frame.resolution) / frame.side;
             let to_pixels = |p: &[f32; 2]| {
                 [((f64::from(p[0]) - frame.min_x) * scale) as f32, ((f64::from(p[1]) - frame.min_z) * scale) as f32]
@@ -188,12 +193,32 @@ pub(super) async fn frame(
             last_actions: entry.trail.last.iter().copied().collect(),
             privileged: privileged_view,
         };
-        (frame, views)
+        (frame, ego, top_down)
     };
-    let mut rendered = episodes.render.render(views).await?.into_iter();
-    frame.ego = rendered.next().map(|o| o.rgb).unwrap_or_default();
-    if let Some(p) = frame.privileged.as_mut() {
-        p.top_down = rendered.next().map(|o| o.rgb).unwrap_or_default();
+    // Render only what was not made before: usually nothing but a top-down view while an object
+    // is carried (the ego view is the one the episode's client got).
+    let mut views = Vec::new();
+    for shot in [Some(&ego), top_down.as_ref()].into_iter().flatten() {
+        if let Shot::Render(view) = shot {
+            views.push(view.clone());
+        }
+    }
+    let mut rendered = if views.is_empty() { Vec::new() } else { episodes.render.render(views).await? }.into_iter();
+    let missing = || ServiceError::Internal("the renderer answered fewer views than asked".into());
+    frame.ego = match ego {
+        Shot::Ready(rgb) => rgb,
+        Shot::Render(_) => rendered.next().ok_or_else(missing)?.rgb,
+    };
+    if let (Some(p), Some(shot)) = (frame.privileged.as_mut(), top_down) {
+        p.top_down = match shot {
+            Shot::Ready(rgb) => rgb,
+            Shot::Render(view) => {
+                let output = rendered.next().ok_or_else(missing)?;
+                let rgb = output.rgb.clone();
+                shared.lock().await.observer.watched(view, output);
+                rgb
+            }
+        };
     }
     Ok(frame)
 }

@@ -152,23 +152,42 @@ fn png_url(rgb: &[u8], side: u32) -> Value {
     if rgb.len() != (side * side * 3) as usize {
         return Value::Null;
     }
-    match esrp_render::encode_png_rgb(rgb, side, side) {
+    match esrp_render::encode_png_rgb_fast(rgb, side, side) {
         Ok(png) => format!("data:image/png;base64,{}", base64::engine::general_purpose::STANDARD.encode(png)).into(),
         Err(_) => Value::Null,
     }
 }
 
-fn frame_json(f: &WatchFrame) -> Value {
+/// The last image a feed encoded, kept while the next frame shows the same pixels (an ego view
+/// after a rejected step; the top-down view while nothing moves), so that it is not encoded again.
+#[derive(Default)]
+struct Encoded {
+    rgb: bytes::Bytes,
+    url: Value,
+}
+
+impl Encoded {
+    /// `rgb` (a `side`-pixel square) as a PNG data URL: the one kept if it shows the same pixels.
+    fn url(&mut self, rgb: &bytes::Bytes, side: u32) -> Value {
+        if self.url.is_null() || self.rgb != *rgb {
+            *self = Encoded { rgb: rgb.clone(), url: png_url(rgb, side) };
+        }
+        self.url.clone()
+    }
+}
+
+/// A frame as JSON, its images encoded through `ego` and `top_down` (the feed's last images).
+fn frame_json(f: &WatchFrame, ego: &mut Encoded, top_down: &mut Encoded) -> Value {
     let mut out = json!({
         "episode": summary_json(&f.summary),
-        "ego": png_url(&f.ego, f.resolution),
+        "ego": ego.url(&f.ego, f.resolution),
         "last_actions": f.last_actions.iter().map(|&(a, ok)| json!({ "action": a, "accepted": ok })).collect::<Vec<_>>(),
     });
     if !f.goal.is_empty() {
         out["goal"] = png_url(&f.goal, f.resolution);
     }
     if let Some(p) = &f.privileged {
-        out["top_down"] = png_url(&p.top_down, crate::episodes::WATCH_TOP_DOWN);
+        out["top_down"] = top_down.url(&p.top_down, crate::episodes::WATCH_TOP_DOWN);
         out["top_down_side"] = crate::episodes::WATCH_TOP_DOWN.into();
         out["agent_path"] = json!(p.agent_path);
         out["carried_paths"] =
@@ -285,12 +304,13 @@ async fn produce(
     out: tokio::sync::watch::Sender<Arc<FeedItem>>,
 ) {
     let mut goal = Value::Null;
+    let (mut ego, mut top_down) = (Encoded::default(), Encoded::default());
     let pause = Duration::from_millis(1000 / FRAMES_PER_SECOND);
     loop {
         changes.mark_unchanged();
         match viewer.episodes.watch_frame(&internal, &id, goal.is_null()).await {
             Ok(frame) => {
-                let mut full = frame_json(&frame);
+                let mut full = frame_json(&frame, &mut ego, &mut top_down);
                 if goal.is_null() {
                     goal = full["goal"].clone();
                 } else {
