@@ -42,7 +42,7 @@ use std::sync::Arc;
 use std::sync::atomic::AtomicU64;
 use std::time::Duration;
 
-pub use entry::EpisodeEntry;
+pub use entry::{EpisodeEntry, Trail};
 pub use lifecycle::Unanswered;
 pub use state::{Episodes, MAX_RESOLUTION};
 pub use stepping::Stepped;
