@@ -153,3 +153,31 @@ def test_devices_are_checked(demos: Path, tmp_path: Path) -> None:
     train(tiny(demos, device="cpu"), tmp_path / "cpu", progress=False)
     train(tiny(demos, device="auto", epochs=2), tmp_path / "cpu", resume=True, progress=False)
     assert [row["epoch"] for row in log_rows(tmp_path / "cpu")] == ["1", "2"]
+
+
+def test_a_policy_of_smaller_views_plays_at_its_resolution(
+    server: esrp.LocalServer, tmp_path: Path, easy_scenes: list[str]
+) -> None:
+    # Demonstrations at 48 px, the Nature-CNN encoder: the checkpoint's agent asks esrp eval's
+    # episodes for 48 px views, and a config that disagrees with the store is refused.
+    out = tmp_path / "small.zarr"
+    arguments = ["demos", "export", "--server", server.address, "--split", "test", "--scenes", easy_scenes[0]]
+    assert main([*arguments, "--resolution", "48", "--out", str(out), "--no-progress"]) == 0
+    with pytest.raises(ValueError, match="hold 48 px views and the config says resolution = 128"):
+        train(tiny(out, encoder="nature"), tmp_path / "wrong", progress=False)
+    checkpoint = train(tiny(out, encoder="nature", resolution=48), tmp_path / "run", progress=False)
+    results = tmp_path / "bc.jsonl"
+    play = ["eval", "--agent", "bc", "--checkpoint", str(checkpoint), "--split", "test"]
+    play += ["--scenes", easy_scenes[0], "--out", str(results), "--server", server.address, "--no-progress"]
+    assert main(play) == 0
+    (record,) = read_records(results).records
+    assert record.actions
+    # Fed 128 px views, the agent says what it needs.
+    agent = BcAgent(load_policy(checkpoint), {})
+    with server.client() as client, client.create_episode(easy_scenes[0]) as episode:
+        assert episode.observation is not None
+        seen = episode.observation
+    with pytest.raises(ValueError, match="takes 48×48 views, got 128×128"):
+        agent.reset(seen, {"seed": 0})
+    with pytest.raises(ValueError, match="encoder 'big': one of cnn, nature, resnet18"):
+        tiny(out, encoder="big")

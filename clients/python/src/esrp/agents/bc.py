@@ -30,9 +30,9 @@ import torch
 from torch import nn
 from torch.nn import functional as F  # noqa: N812 - the usual name
 
-from .._values import Action, Observation
+from .._values import Action, Observation, Sensors
 from ..train._training import policy_checkpoint
-from .encoders import check_device, float_images, make_encoder
+from .encoders import ENCODERS, check_device, float_images, make_encoder
 
 __all__ = ["BcAgent", "BcConfig", "BcPolicy", "DiffusionPolicy", "load_policy"]
 
@@ -44,9 +44,12 @@ class BcConfig:
     """The model's and the training's settings (the `[bc]` table of a training config).
 
     Defaults are the paper's (SPEC §8) except the encoder (from scratch: no pretrained weights).
+    `resolution` is the side of the views the model takes: the demonstrations' (`esrp demos export
+    --resolution`), and the one its agent asks the server for.
     """
 
     demos: str | list[str] = "demos/train.zarr"
+    resolution: int = 128
     encoder: str = "cnn"
     feature_dim: int = 256
     grasp_dim: int = 16
@@ -78,8 +81,10 @@ class BcConfig:
             raise ValueError(f"unknown bc settings {unknown}: known are {sorted(known)}")
         given: dict[str, Any] = {k: tuple(v) if k == "unet_channels" else v for k, v in values.items()}
         config = cls(**given)
-        if config.encoder not in ("cnn", "resnet18"):
-            raise ValueError(f"encoder {config.encoder!r}: cnn or resnet18")
+        if config.encoder not in ENCODERS:
+            raise ValueError(f"encoder {config.encoder!r}: one of {', '.join(ENCODERS)}")
+        if not 16 <= config.resolution <= 512:
+            raise ValueError(f"resolution {config.resolution}: 16 to 512 pixels")
         check_device(config.device)
         if not 1 <= config.n_execute <= config.horizon:
             raise ValueError("n_execute must be between 1 and horizon")
@@ -189,8 +194,8 @@ class DiffusionPolicy(nn.Module):
     def __init__(self, config: BcConfig) -> None:
         super().__init__()
         self.config = config
-        self.ego = make_encoder(config.encoder, config.feature_dim)
-        self.goal = make_encoder(config.encoder, config.feature_dim)
+        self.ego = make_encoder(config.encoder, config.feature_dim, config.resolution)
+        self.goal = make_encoder(config.encoder, config.feature_dim, config.resolution)
         self.grasp = nn.Embedding(2, config.grasp_dim)
         width = (config.n_obs + 1) * config.feature_dim + config.n_obs * config.grasp_dim
         self.cond = nn.Sequential(
@@ -301,7 +306,16 @@ class BcAgent:
         self.generator = torch.Generator().manual_seed(0)
 
     def reset(self, observation: Observation, info: Mapping[str, Any]) -> None:
-        """Starts an episode: the history is the first observation, repeated."""
+        """Starts an episode: the history is the first observation, repeated. Raises `ValueError`
+        when the views are not the model's resolution.
+        """
+        side = self.model.config.resolution
+        if observation.ego_rgb.shape[:2] != (side, side):
+            height, width = observation.ego_rgb.shape[:2]
+            raise ValueError(
+                f"the policy takes {side}×{side} views, got {width}×{height}: create its episodes with "
+                f"sensors resolution {side} (esrp eval does)"
+            )
         seed = int(info["seed"])
         self.rng = np.random.default_rng(seed)
         self.generator = torch.Generator().manual_seed(seed)
@@ -339,6 +353,8 @@ class BcPolicy:
 
     def __init__(self, config: Mapping[str, Any]) -> None:
         self.model = load_policy(policy_checkpoint(config, "bc"))
+        self.sensors = Sensors(resolution=self.model.config.resolution)
+        """What its episodes must be created with: views at the model's resolution."""
 
     def __call__(self, config: dict[str, Any]) -> BcAgent:
         """An agent for one episode."""

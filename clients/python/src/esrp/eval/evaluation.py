@@ -314,7 +314,8 @@ async def _play(
 ) -> _Played:
     kind = settings.agent
     privileged = kind in ("plan", "expert") or (factory is not None and settings.privileged)
-    sensors = settings.sensors if factory is not None else None
+    # A learned policy asks for the views it was trained on (`sensors`) unless the settings say.
+    sensors = (settings.sensors or getattr(factory, "sensors", None)) if factory is not None else None
     # The agent's name, as the record's `agent` says it, labels the episode in the server's records.
     episode = await client.create_episode(scene.id, privileged=privileged, sensors=sensors, agent=kind)
     stats: dict[str, Any] = {}

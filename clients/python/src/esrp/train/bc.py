@@ -77,6 +77,8 @@ class DemoWindows:
             grasping.append(np.asarray(store["data/grasping"][: ends[-1]], dtype=bool))
             offset += int(ends[-1])
         ends = np.concatenate(ends_list)
+        self.resolution = int(resolution or 128)
+        """The views' side in pixels (every store's)."""
         self.n_obs, self.horizon = n_obs, horizon
         starts = np.concatenate([[0], ends[:-1]])
         self.episode = np.repeat(np.arange(len(ends)), ends - starts)
@@ -130,6 +132,11 @@ def train(config: BcConfig, out: Path, *, resume: bool = False, progress: bool =
     device = resolve_device(config.device)
     torch.manual_seed(config.seed)
     windows = DemoWindows(config.demos, config.n_obs, config.horizon)
+    if windows.resolution != config.resolution:
+        raise ValueError(
+            f"the demonstrations hold {windows.resolution} px views and the config says resolution = "
+            f"{config.resolution}: set resolution = {windows.resolution} in [bc]"
+        )
     model = DiffusionPolicy(config).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     epoch, steps = 0, 0
