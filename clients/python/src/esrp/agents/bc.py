@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, cast
 
@@ -44,6 +44,12 @@ class BcConfig:
     """The model's and the training's settings (the `[bc]` table of a training config).
 
     Defaults are the paper's (SPEC §8) except the encoder (from scratch: no pretrained weights).
+    `in_memory` reads the stores' views into memory once instead of from their chunks every batch
+    (the same batches). The `eval_*` settings are the held-out evaluation of `esrp train bc`: every
+    `eval_every` epochs (0: never) and after the last, the policy plays the `eval_scenes` (or the
+    `eval_limit` scenes from `eval_offset` in the listing of `eval_split` and `eval_difficulty`) as
+    `esrp eval --agent bc` plays them, with `eval_epsilon` (None: `epsilon`), base seed `eval_seed`,
+    `eval_episodes_in_flight` at a time. None of these change what is trained.
     """
 
     demos: str | list[str] = "demos/train.zarr"
@@ -68,6 +74,16 @@ class BcConfig:
     threads: int = 0
     checkpoint_every: int = 10
     device: str = "auto"
+    in_memory: bool = False
+    eval_every: int = 0
+    eval_split: str = "train"
+    eval_difficulty: str | None = None
+    eval_scenes: list[str] = field(default_factory=list)
+    eval_limit: int | None = None
+    eval_offset: int = 0
+    eval_epsilon: float | None = None
+    eval_seed: int = 0
+    eval_episodes_in_flight: int = 8
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> BcConfig:
@@ -85,7 +101,37 @@ class BcConfig:
             raise ValueError("n_execute must be between 1 and horizon")
         if config.horizon % 2 ** (len(config.unet_channels) - 1):
             raise ValueError("horizon must be divisible by 2 ** (len(unet_channels) - 1)")
+        config._check_evaluation()
         return config
+
+    def _check_evaluation(self) -> None:
+        """Raises `ValueError` for `in_memory` and `eval_*` settings of the wrong type or range."""
+        if not isinstance(self.in_memory, bool):
+            raise ValueError(f"in_memory must be true or false, not {self.in_memory!r}")
+        for name in ("eval_every", "eval_offset", "eval_seed", "eval_episodes_in_flight"):
+            if not isinstance(getattr(self, name), int) or isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be an integer, not {getattr(self, name)!r}")
+        if self.eval_every < 0 or self.eval_offset < 0:
+            raise ValueError("eval_every and eval_offset must be 0 or more")
+        if self.eval_episodes_in_flight < 1:
+            raise ValueError("eval_episodes_in_flight must be at least 1")
+        if self.eval_split not in ("train", "test", "challenge", "minival"):
+            raise ValueError(f"eval_split {self.eval_split!r}: train, test, challenge or minival")
+        if self.eval_difficulty not in (None, "easy", "medium", "hard"):
+            raise ValueError(f"eval_difficulty {self.eval_difficulty!r}: easy, medium or hard")
+        if not isinstance(self.eval_scenes, list | tuple) or not all(
+            isinstance(s, str) for s in self.eval_scenes
+        ):
+            raise ValueError(f"eval_scenes must be a list of scene ids, not {self.eval_scenes!r}")
+        self.eval_scenes = list(self.eval_scenes)
+        if self.eval_limit is not None and (not isinstance(self.eval_limit, int) or self.eval_limit < 1):
+            raise ValueError(f"eval_limit must be at least 1, not {self.eval_limit!r}")
+        if self.eval_scenes and (self.eval_limit is not None or self.eval_offset):
+            raise ValueError("eval_scenes names the scenes: no eval_limit or eval_offset with it")
+        if self.eval_epsilon is not None and not (
+            isinstance(self.eval_epsilon, int | float) and 0.0 <= self.eval_epsilon <= 1.0
+        ):
+            raise ValueError(f"eval_epsilon must be between 0 and 1, not {self.eval_epsilon!r}")
 
     def to_dict(self) -> dict[str, Any]:
         """The config as plain values (for checkpoints and logs)."""
