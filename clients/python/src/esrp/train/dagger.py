@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
+import torch
 
 from ..agents.bc import BcConfig
 from ._config import read_document
@@ -68,7 +69,9 @@ action was the planner's label (empty for iteration 0); the held-out SR, OSR (fr
 after its training and the episodes they are over; its wall seconds (of the phases that ran to
 their end: work an interruption threw away is not counted)."""
 
-BC_RESUME_FREE = frozenset({"threads", "device", "checkpoint_every", "in_memory", "eval_episodes_in_flight"})
+BC_RESUME_FREE = frozenset(
+    {"threads", "device", "checkpoint_every", "in_memory", "eval_episodes_in_flight", "eval_threads"}
+)
 """`[bc]` settings a resumed DAgger run may change (none changes what is trained or measured)."""
 
 DAGGER_RESUME_FREE = frozenset({"iterations"})
@@ -254,7 +257,7 @@ class _Run:
                 raise ValueError(
                     f"{self.out} is a DAgger run with other settings ({'; '.join(different)}): "
                     "resume it with its own config (only iterations, threads, device, checkpoint_every, "
-                    "in_memory and eval_episodes_in_flight may change), or use another --out"
+                    "in_memory, eval_episodes_in_flight and eval_threads may change), or use another --out"
                 )
             self.state = state
             done = int(state["completed"])
@@ -347,15 +350,19 @@ class _Run:
             agent_config={
                 "checkpoint": str(self.folder(iteration - 1) / "ckpt.pt"),
                 "epsilon": epsilon,
-                "threads": self.bc.threads,
+                "threads": self.bc.eval_threads,
             },
             beta=beta,
             seed=self.dagger.seed + iteration,
             plan_budget_ms=self.dagger.plan_budget_ms,
             max_steps=self.dagger.max_steps,
         )
-        with self.server.client() as client:
-            outcome = export_demos(client, settings)
+        threads = torch.get_num_threads()  # the policy plays on eval_threads; training goes on with these
+        try:
+            with self.server.client() as client:
+                outcome = export_demos(client, settings)
+        finally:
+            torch.set_num_threads(threads)
         current["export"] = {
             "episodes": outcome.episodes,
             "steps": outcome.steps,

@@ -2,10 +2,12 @@
 talks to.
 
 An evaluation is `esrp eval --agent bc` run from Python (`esrp.eval.evaluation.evaluate`: episodes
-played concurrently on one `AsyncClient`, `eval_episodes_in_flight` at a time) on a checkpoint the
-run just wrote, over scenes fixed once per run (`heldout_scenes`), at the resolution of the
-demonstrations the policy learns from. Each evaluation writes an `esrp.results/v1` file (and its
-Markdown summary beside it) that a rerun resumes; its SR / OSR / RDR go to the run's `eval.csv`.
+played concurrently on one `AsyncClient`, `eval_episodes_in_flight` at a time, their agents' calls
+of the policy batched: the agent config's `batch`) on a checkpoint the run just wrote, over scenes
+fixed once per run (`heldout_scenes`), at the resolution of the demonstrations the policy learns
+from, the policy on `eval_threads` torch threads. Each evaluation writes an `esrp.results/v1` file
+(and its Markdown summary beside it) that a rerun resumes; its SR / OSR / RDR go to the run's
+`eval.csv`.
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
+
+import torch
 
 from .._async_client import AsyncClient
 from .._client import Client
@@ -166,8 +170,13 @@ def evaluate_checkpoint(
         scenes=list(scenes),
         episodes_in_flight=config.eval_episodes_in_flight,
         seed=config.eval_seed,
-        # The training's thread count stays (0: torch's own choice).
-        agent_config={"checkpoint": str(checkpoint), "epsilon": epsilon, "threads": config.threads},
+        # The episodes in flight share the policy, their requests denoised as one batch.
+        agent_config={
+            "checkpoint": str(checkpoint),
+            "epsilon": epsilon,
+            "threads": config.eval_threads,
+            "batch": config.eval_episodes_in_flight,
+        },
         sensors=Sensors(resolution=resolution),
         progress=progress,
     )
@@ -186,11 +195,18 @@ def evaluate_checkpoint(
     # `evaluate` prints its summary on stdout (it is in the Markdown file beside the results, and
     # the caller prints a line of it): stdout stays the command's. Its progress goes to stderr, or
     # nowhere without `progress`.
-    with contextlib.redirect_stdout(io.StringIO()):
-        if progress:
-            return asyncio.run(run())
-        with contextlib.redirect_stderr(io.StringIO()):
-            return asyncio.run(run())
+    # Loading the policy builds a model, whose initialisation draws from torch's random state, and
+    # sets torch's thread count (`eval_threads`): both are restored after, so that evaluating
+    # changes nothing the training draws or runs on.
+    threads = torch.get_num_threads()
+    try:
+        with torch.random.fork_rng(devices=[]), contextlib.redirect_stdout(io.StringIO()):
+            if progress:
+                return asyncio.run(run())
+            with contextlib.redirect_stderr(io.StringIO()):
+                return asyncio.run(run())
+    finally:
+        torch.set_num_threads(threads)
 
 
 def read_eval_log(path: Path) -> list[dict[str, str]]:
