@@ -27,8 +27,8 @@ from esrp.agents.bc import BcConfig  # noqa: E402
 from esrp.train import bc as bc_module  # noqa: E402
 from esrp.train import demos as demos_module  # noqa: E402
 from esrp.train._training import save_checkpoint  # noqa: E402
-from esrp.train.bc import DemoWindows, train  # noqa: E402
-from esrp.train.dagger import DaggerConfig, run_dagger  # noqa: E402
+from esrp.train.bc import DemoWindows, load_config, train  # noqa: E402
+from esrp.train.dagger import DaggerConfig, load_dagger_config, run_dagger  # noqa: E402
 from esrp.train.heldout import TrainServer  # noqa: E402
 
 RESOLUTION = 32
@@ -355,3 +355,15 @@ def test_bad_dagger_configs_are_refused(
     assert train_cli(server, write_toml(tmp_path / "held.toml", held_out), run, "--dagger") == 2
     assert "no scene is left for DAgger's rollouts" in capsys.readouterr().err
     assert not (run / "iter-00").exists()
+
+
+def test_the_shipped_bc_configs_load() -> None:
+    configs = Path(__file__).parent.parent / "configs"
+    loaded = {path.stem: load_config(path) for path in sorted(configs.glob("bc-*.toml"))}
+    assert {"bc-cpu-small", "bc-paper", "bc-dagger-cpu"} <= set(loaded)
+    template = loaded["bc-dagger-cpu"]
+    assert (template.demos, template.in_memory, template.eval_limit) == ("demos/v2-easy-64.zarr", True, 50)
+    dagger = load_dagger_config(configs / "bc-dagger-cpu.toml")
+    assert dagger.iterations >= 1
+    with pytest.raises(ValueError, match="has no \\[dagger\\] table"):
+        load_dagger_config(configs / "bc-cpu-small.toml")

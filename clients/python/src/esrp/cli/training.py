@@ -232,6 +232,7 @@ def _train(args: argparse.Namespace) -> int:
     try:
         if args.train_command == "ppo":
             return _train_ppo(args, name)
+        from ..train._config import read_document
         from ..train.bc import load_config, train
         from ..train.dagger import load_dagger_config, run_dagger
         from ..train.demos import DemoExportError
@@ -244,6 +245,11 @@ def _train(args: argparse.Namespace) -> int:
     try:
         config = load_config(args.config)
         dagger = load_dagger_config(args.config) if args.dagger else None
+        if dagger is None and "dagger" in read_document(args.config) and args.progress:
+            print(
+                f"{name}: the config's [dagger] table applies with --dagger only: plain ESRP-BC",
+                file=sys.stderr,
+            )
         with TrainServer(args.server, args.token, args.server_args) as server:
             if dagger is not None:
                 checkpoint = run_dagger(
