@@ -240,7 +240,7 @@ class _Run:
         return {"bc": self.bc.to_dict(), "dagger": self.dagger.to_dict()}
 
     def open(self, resume: bool) -> None:
-        """Reads the state of the run `out` holds (with `resume`) or starts one."""
+        """Reads the state of the run `out` holds (with `resume`) or prepares one (`start` writes it)."""
         self.out.mkdir(parents=True, exist_ok=True)
         if self.state_path.exists():
             if not resume:
@@ -274,6 +274,9 @@ class _Run:
                 "current": None,
             }
         self.state["settings"] = self.settings()
+
+    def start(self) -> None:
+        """Writes the state and the settings: the run is there (once its settings proved usable)."""
         _write_json(self.state_path, self.state)
         _write_json(self.out / "config.json", self.settings())
 
@@ -487,6 +490,7 @@ def run_dagger(
     try:
         run.open(resume)
         run.choose_pool()
+        run.start()
         first = int(run.state["completed"])
         if first > dagger.iterations:
             run.say(f"nothing to do: iterations 0 to {first - 1} are done, 0 to {dagger.iterations} asked")

@@ -63,9 +63,7 @@ class TrainServer:
         """The server's `host:port` (starting the local server if none is running yet)."""
         if self._address is not None:
             return self._address
-        if self.local is None or not self.local.is_running():
-            if self.local is not None:
-                self.local.stop()
+        if self.local is None:
             self.local = LocalServer(*self.server_args)
             self.local.start()
         return self.local.address
