@@ -229,7 +229,8 @@ def train(
             settings, `FINE_TUNE_FREE` aside) instead of fresh weights; ignored when resuming.
         final_eval: Evaluate after the last epoch even with `eval_every` 0.
 
-    Raises `ValueError` for bad settings or files, `EvalError` when an evaluation cannot run.
+    Raises `ValueError` for bad settings or files, `EvalError` when an evaluation cannot run (and
+    `EsrpError` for the server's errors).
     """
     _malloc_setup.apply()  # large buffers freed and made at every step stay mapped (esrp._malloc_setup)
     if config.threads > 0:
