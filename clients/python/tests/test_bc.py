@@ -1,10 +1,13 @@
 """ESRP-BC smoke tests on tiny data (the demonstrations of one easy test scene, a tiny model): an
 epoch trains with finite losses, the loss falls over a few steps of a fixed batch, checkpoints
-reload to identical actions, training resumes, and `esrp eval --agent bc` plays a checkpoint."""
+reload to identical actions, batched agents act as agents alone do, training resumes, and `esrp
+eval --agent bc` plays a checkpoint."""
 
 from __future__ import annotations
 
+import asyncio
 import csv
+import dataclasses
 import math
 from pathlib import Path
 
@@ -19,7 +22,16 @@ torch = pytest.importorskip("torch", reason="esrp[train] is not installed")
 pytest.importorskip("diffusers", reason="esrp[train] is not installed")
 pytest.importorskip("zarr", reason="esrp[train] is not installed")
 
-from esrp.agents.bc import BcAgent, BcConfig, DiffusionPolicy, bc_loss, load_policy, schedulers  # noqa: E402
+from esrp.agents.bc import (  # noqa: E402
+    BatchedBcAgent,
+    BcAgent,
+    BcConfig,
+    BcPolicy,
+    DiffusionPolicy,
+    bc_loss,
+    load_policy,
+    schedulers,
+)
 from esrp.train.bc import DemoWindows, train  # noqa: E402
 
 
@@ -111,6 +123,50 @@ def test_a_checkpoint_reloads_to_identical_actions(
     actions = agent_actions(checkpoint, first, 14)
     assert all(0 <= a < 6 for a in actions)
     assert agent_actions(checkpoint, first, 14) == actions
+
+
+def test_batched_agents_act_as_agents_alone_do(
+    demos: Path, tmp_path: Path, client: esrp.Client, easy_scenes: list[str]
+) -> None:
+    checkpoint = train(tiny(demos), tmp_path / "run", progress=False)
+    views = []
+    with client.create_episode(easy_scenes[0]) as episode:
+        observation = episode.observation
+        assert observation is not None
+        for action in [0, 2, 0, 3, 0, 1, 2, 0, 0, 3, 4, 0, 1, 2] * 2:
+            views.append(observation)
+            observation = dataclasses.replace(episode.step(action).observation, goal_rgb=views[0].goal_rgb)
+    alone = []
+    for seed in range(3):
+        agent = BcAgent(load_policy(checkpoint), {"epsilon": 0.2})
+        agent.reset(views[0], {"seed": seed})
+        alone.append([int(agent.act(view)) for view in views])
+    policy = BcPolicy({"checkpoint": str(checkpoint), "batch": 3})
+    batcher = policy.batcher
+    assert batcher is not None
+    sizes: list[int] = []
+    flush = batcher._flush
+
+    def counted() -> None:
+        sizes.append(len(batcher.pending))
+        flush()
+
+    batcher._flush = counted  # type: ignore[method-assign]
+
+    async def play(seed: int) -> list[int]:
+        agent = policy({"epsilon": 0.2})
+        assert isinstance(agent, BatchedBcAgent)
+        await agent.reset(views[0], {"seed": seed})
+        return [int(await agent.act(view)) for view in views]
+
+    async def main() -> list[list[int]]:
+        return list(await asyncio.gather(*(play(seed) for seed in range(3))))
+
+    assert asyncio.run(main()) == alone
+    assert sizes, "the policy was asked"
+    assert set(sizes) == {3}, "the three agents' requests went as one batch"
+    with pytest.raises(ValueError, match="batch must be an integer of at least 1"):
+        BcPolicy({"checkpoint": str(checkpoint), "batch": 0})
 
 
 def test_training_resumes_from_its_checkpoint(demos: Path, tmp_path: Path) -> None:

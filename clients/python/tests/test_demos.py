@@ -115,6 +115,40 @@ def test_dagger_records_the_planners_label_at_each_state_the_agent_visits(
     assert not (labels == labels[0]).all(), "labels follow the states, not one constant"
 
 
+def test_dagger_records_the_policys_own_actions_and_stops_at_max_steps(
+    server: esrp.LocalServer,
+    easy_scenes: list[str],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    out = tmp_path / "capped.zarr"
+    scenes = ["--split", "test", "--scenes", ",".join(easy_scenes[:2])]
+    assert export(server, out, *scenes, "--max-steps", "4") == 2
+    assert "--max-steps only apply with --dagger" in capsys.readouterr().err
+    assert export(server, out, *scenes, "--dagger", "random", "--seed", "3", "--max-steps", "4") == 0
+    printed = capsys.readouterr().out
+    store = zarr.open_group(str(out), mode="r")
+    assert list(store["meta/episode_ends"][:]) == [4, 8]
+    labels, policy = store["data/action"][:], store["data/policy_action"][:]
+    # The random agent, seeded as the export seeds it, chose the recorded actions.
+    for episode, scene in enumerate(easy_scenes[:2]):
+        agent = RandomAgent()
+        agent.reset(None, {"seed": scene_seed(3, scene)})  # type: ignore[arg-type]
+        assert [int(agent.act(None)) for _ in range(4)] == list(policy[4 * episode : 4 * episode + 4])  # type: ignore[arg-type]
+    agreed = int((labels == policy).sum())
+    assert f"the policy's action was the planner's label at {agreed} of 8 states" in printed
+
+    # A DAgger store made before the policy's actions were recorded goes on without them.
+    group = zarr.open_group(str(out), mode="a")
+    del group["data/policy_action"]
+    more = ["--split", "test", "--scenes", ",".join(easy_scenes[:3]), "--dagger", "random", "--seed", "3"]
+    assert export(server, out, *more, "--max-steps", "4") == 0
+    assert "planner's label" not in capsys.readouterr().out
+    store = zarr.open_group(str(out), mode="r")
+    assert list(store["meta/episode_ends"][:]) == [4, 8, 12]
+    assert "data/policy_action" not in store
+
+
 def test_dagger_with_beta_one_follows_the_plan(
     server: esrp.LocalServer, client: esrp.Client, easy_scenes: list[str], tmp_path: Path
 ) -> None:

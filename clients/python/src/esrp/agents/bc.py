@@ -14,14 +14,20 @@ so the encoder is trained from scratch: a small CNN by default (`encoder = "cnn"
 ResNet-18-style network (`encoder = "resnet18"`, written here, no torchvision).
 
 `esrp eval --agent bc --checkpoint RUN/ckpt.pt` plays a trained policy (`esrp train bc` makes one).
+With the agent config's `batch` (e.g. `--agent-config '{"batch": 8}'` and as many episodes in
+flight), the episodes' agents are asynchronous and share the policy: the requests of the agents
+that ask within a few milliseconds of each other are denoised as one batch, several times faster
+on a CPU than one at a time (each agent's noise is its own, so its actions are those it would take
+alone, up to the floating-point differences of a batched computation).
 """
 
 from __future__ import annotations
 
+import asyncio
 import math
 from collections import deque
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, cast
 
@@ -34,7 +40,7 @@ from .._values import Action, Observation, Sensors
 from ..train._training import policy_checkpoint
 from .encoders import ENCODERS, check_device, float_images, make_encoder
 
-__all__ = ["BcAgent", "BcConfig", "BcPolicy", "DiffusionPolicy", "load_policy"]
+__all__ = ["BatchedBcAgent", "BcAgent", "BcConfig", "BcPolicy", "DiffusionPolicy", "load_policy"]
 
 ACTIONS = len(Action)
 
@@ -46,6 +52,15 @@ class BcConfig:
     Defaults are the paper's (SPEC §8) except the encoder (from scratch: no pretrained weights).
     `resolution` is the side of the views the model takes: the demonstrations' (`esrp demos export
     --resolution`), and the one its agent asks the server for.
+    `in_memory` reads the stores' views into memory once instead of from their chunks every batch
+    (the same batches). The `eval_*` settings are the held-out evaluation of `esrp train bc`: every
+    `eval_every` epochs (0: never) and after the last, the policy plays the `eval_scenes` (or the
+    `eval_limit` scenes from `eval_offset` in the listing of `eval_split` and `eval_difficulty`) as
+    `esrp eval --agent bc` plays them, with `eval_epsilon` (None: `epsilon`), base seed `eval_seed`,
+    `eval_episodes_in_flight` at a time (their requests to the policy batched), the policy on
+    `eval_threads` torch threads (0: the training's): on a small machine more than one thread
+    contends with the server's renderer and is several times slower. `esrp train bc --dagger`'s
+    rollouts play the policy on `eval_threads` too. None of these change what is trained.
     """
 
     demos: str | list[str] = "demos/train.zarr"
@@ -71,6 +86,17 @@ class BcConfig:
     threads: int = 0
     checkpoint_every: int = 10
     device: str = "auto"
+    in_memory: bool = False
+    eval_every: int = 0
+    eval_split: str = "train"
+    eval_difficulty: str | None = None
+    eval_scenes: list[str] = field(default_factory=list)
+    eval_limit: int | None = None
+    eval_offset: int = 0
+    eval_epsilon: float | None = None
+    eval_seed: int = 0
+    eval_episodes_in_flight: int = 8
+    eval_threads: int = 1
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> BcConfig:
@@ -90,7 +116,37 @@ class BcConfig:
             raise ValueError("n_execute must be between 1 and horizon")
         if config.horizon % 2 ** (len(config.unet_channels) - 1):
             raise ValueError("horizon must be divisible by 2 ** (len(unet_channels) - 1)")
+        config._check_evaluation()
         return config
+
+    def _check_evaluation(self) -> None:
+        """Raises `ValueError` for `in_memory` and `eval_*` settings of the wrong type or range."""
+        if not isinstance(self.in_memory, bool):
+            raise ValueError(f"in_memory must be true or false, not {self.in_memory!r}")
+        for name in ("eval_every", "eval_offset", "eval_seed", "eval_episodes_in_flight", "eval_threads"):
+            if not isinstance(getattr(self, name), int) or isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be an integer, not {getattr(self, name)!r}")
+        if self.eval_every < 0 or self.eval_offset < 0 or self.eval_threads < 0:
+            raise ValueError("eval_every, eval_offset and eval_threads must be 0 or more")
+        if self.eval_episodes_in_flight < 1:
+            raise ValueError("eval_episodes_in_flight must be at least 1")
+        if self.eval_split not in ("train", "test", "challenge", "minival"):
+            raise ValueError(f"eval_split {self.eval_split!r}: train, test, challenge or minival")
+        if self.eval_difficulty not in (None, "easy", "medium", "hard"):
+            raise ValueError(f"eval_difficulty {self.eval_difficulty!r}: easy, medium or hard")
+        if not isinstance(self.eval_scenes, list | tuple) or not all(
+            isinstance(s, str) for s in self.eval_scenes
+        ):
+            raise ValueError(f"eval_scenes must be a list of scene ids, not {self.eval_scenes!r}")
+        self.eval_scenes = list(self.eval_scenes)
+        if self.eval_limit is not None and (not isinstance(self.eval_limit, int) or self.eval_limit < 1):
+            raise ValueError(f"eval_limit must be at least 1, not {self.eval_limit!r}")
+        if self.eval_scenes and (self.eval_limit is not None or self.eval_offset):
+            raise ValueError("eval_scenes names the scenes: no eval_limit or eval_offset with it")
+        if self.eval_epsilon is not None and not (
+            isinstance(self.eval_epsilon, int | float) and 0.0 <= self.eval_epsilon <= 1.0
+        ):
+            raise ValueError(f"eval_epsilon must be between 0 and 1, not {self.eval_epsilon!r}")
 
     def to_dict(self) -> dict[str, Any]:
         """The config as plain values (for checkpoints and logs)."""
@@ -274,30 +330,36 @@ def sample_actions(
     ego: torch.Tensor,
     goal: torch.Tensor,
     grasping: torch.Tensor,
-    generator: torch.Generator,
+    generator: torch.Generator | None,
+    noise: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """The h actions DDIM denoises for a batch of observation histories: (B, h) int64."""
+    """The h actions DDIM denoises for a batch of observation histories: (B, h) int64. The chain
+    starts from `noise` (B, 6, h), or without it from noise drawn from `generator` (DDIM's steps
+    draw nothing more).
+    """
     config = model.config
     scheduler.set_timesteps(config.ddim_steps)
     cond = model.condition(ego, goal, grasping)
-    x = torch.randn((ego.shape[0], ACTIONS, config.horizon), generator=generator)
+    x = (
+        noise
+        if noise is not None
+        else torch.randn((ego.shape[0], ACTIONS, config.horizon), generator=generator)
+    )
     for step in scheduler.timesteps:
         predicted = model.unet(x, torch.full((ego.shape[0],), int(step)), cond)
         x = scheduler.step(predicted, step, x, generator=generator).prev_sample
     return x.argmax(dim=1)
 
 
-class BcAgent:
-    """Plays a `DiffusionPolicy`: keeps the last n ego views and grasp flags, asks the policy for h
-    actions when its queue is empty, executes the first `n_execute`, each replaced by a random
-    action with probability ε. Seeded per episode by `info["seed"]` (same seed, same actions).
+class _History:
+    """What both agents keep: the last n ego views and grasp flags, the goal, the queue of actions
+    to execute, and the episode's random generators (seeded by `info["seed"]`).
     """
 
     def __init__(self, model: DiffusionPolicy, config: Mapping[str, Any]) -> None:
         self.model = model
         self.epsilon = float(config.get("epsilon", model.config.epsilon))
         self.deterministic = bool(config.get("deterministic", False))
-        _, self.scheduler = schedulers(model.config)
         self.queue: deque[int] = deque()
         self.egos: deque[np.ndarray] = deque(maxlen=model.config.n_obs)
         self.grasps: deque[bool] = deque(maxlen=model.config.n_obs)
@@ -305,10 +367,7 @@ class BcAgent:
         self.rng = np.random.default_rng(0)
         self.generator = torch.Generator().manual_seed(0)
 
-    def reset(self, observation: Observation, info: Mapping[str, Any]) -> None:
-        """Starts an episode: the history is the first observation, repeated. Raises `ValueError`
-        when the views are not the model's resolution.
-        """
+    def _reset(self, observation: Observation, info: Mapping[str, Any]) -> None:
         side = self.model.config.resolution
         if observation.ego_rgb.shape[:2] != (side, side):
             height, width = observation.ego_rgb.shape[:2]
@@ -327,17 +386,28 @@ class BcAgent:
             self.egos.append(observation.ego_rgb)
             self.grasps.append(observation.grasping)
 
-    def act(self, observation: Observation) -> Action:
-        """The next action."""
+    def _observe(self, observation: Observation) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        """Adds `observation` to the history; when the queue is empty, the policy's input (ego, goal,
+        grasping, each a batch of one).
+        """
         if self.goal is None:
             raise RuntimeError("act() before reset()")
         self.egos.append(observation.ego_rgb)
         self.grasps.append(observation.grasping)
-        if not self.queue:
-            ego = torch.from_numpy(np.stack(self.egos))[None]  # np.stack copies
-            goal = torch.from_numpy(self.goal)[None]
-            grasping = torch.tensor([list(self.grasps)])
-            chunk = sample_actions(self.model, self.scheduler, ego, goal, grasping, self.generator)[0]
+        if self.queue:
+            return None
+        ego = torch.from_numpy(np.stack(self.egos))[None]  # np.stack copies
+        return ego, torch.from_numpy(self.goal)[None], torch.tensor([list(self.grasps)])
+
+    def _noise(self) -> torch.Tensor:
+        """The starting noise of the next chunk (1, 6, h), from the episode's generator."""
+        return torch.randn((1, ACTIONS, self.model.config.horizon), generator=self.generator)
+
+    def _next(self, chunk: torch.Tensor | None) -> Action:
+        """Queues the first `n_execute` of `chunk` (if any), and the next action, replaced by a
+        random one with probability ε.
+        """
+        if chunk is not None:
             self.queue.extend(int(a) for a in chunk[: self.model.config.n_execute])
         action = self.queue.popleft()
         if not self.deterministic and self.rng.random() < self.epsilon:
@@ -345,17 +415,119 @@ class BcAgent:
         return Action(action)
 
 
+class BcAgent(_History):
+    """Plays a `DiffusionPolicy`: keeps the last n ego views and grasp flags, asks the policy for h
+    actions when its queue is empty, executes the first `n_execute`, each replaced by a random
+    action with probability ε. Seeded per episode by `info["seed"]` (same seed, same actions).
+    """
+
+    def __init__(self, model: DiffusionPolicy, config: Mapping[str, Any]) -> None:
+        super().__init__(model, config)
+        _, self.scheduler = schedulers(model.config)
+
+    def reset(self, observation: Observation, info: Mapping[str, Any]) -> None:
+        """Starts an episode: the history is the first observation, repeated. Raises `ValueError`
+        when the views are not the model's resolution.
+        """
+        self._reset(observation, info)
+
+    def act(self, observation: Observation) -> Action:
+        """The next action."""
+        inputs = self._observe(observation)
+        chunk = None
+        if inputs is not None:
+            chunk = sample_actions(self.model, self.scheduler, *inputs, None, self._noise())[0]
+        return self._next(chunk)
+
+
+class _Batcher:
+    """Denoises the requests of several agents as one batch: a request waits at most `window`
+    seconds for others (at most `size` in a batch), then the policy runs once for all of them.
+    """
+
+    def __init__(self, model: DiffusionPolicy, size: int, window: float = 0.02) -> None:
+        self.model = model
+        self.size = size
+        self.window = window
+        _, self.scheduler = schedulers(model.config)
+        self.pending: list[tuple[tuple[torch.Tensor, ...], asyncio.Future[torch.Tensor]]] = []
+        self.timer: asyncio.TimerHandle | None = None
+
+    async def sample(
+        self, ego: torch.Tensor, goal: torch.Tensor, grasping: torch.Tensor, noise: torch.Tensor
+    ) -> torch.Tensor:
+        """The chunk (h,) of one agent's request, denoised with the others pending."""
+        loop = asyncio.get_running_loop()
+        future: asyncio.Future[torch.Tensor] = loop.create_future()
+        self.pending.append(((ego, goal, grasping, noise), future))
+        if len(self.pending) >= self.size:
+            self._flush()
+        elif self.timer is None:
+            self.timer = loop.call_later(self.window, self._flush)
+        return await future
+
+    def _flush(self) -> None:
+        if self.timer is not None:
+            self.timer.cancel()
+            self.timer = None
+        batch, self.pending = self.pending, []
+        waiting = [(inputs, future) for inputs, future in batch if not future.done()]  # not cancelled
+        if not waiting:
+            return
+        ego, goal, grasping, noise = (torch.cat([inputs[i] for inputs, _ in waiting]) for i in range(4))
+        try:
+            chunks = sample_actions(self.model, self.scheduler, ego, goal, grasping, None, noise)
+        except Exception as error:  # noqa: BLE001 - handed to every agent that asked
+            for _, future in waiting:
+                future.set_exception(error)
+            return
+        for (_, future), chunk in zip(waiting, chunks, strict=True):
+            future.set_result(chunk)
+
+
+class BatchedBcAgent(_History):
+    """`BcAgent` as an `AsyncAgent` whose requests to the policy go through a `_Batcher` shared with
+    the other episodes' agents (`BcPolicy` with `batch`).
+    """
+
+    def __init__(self, model: DiffusionPolicy, config: Mapping[str, Any], batcher: _Batcher) -> None:
+        super().__init__(model, config)
+        self.batcher = batcher
+
+    async def reset(self, observation: Observation, info: Mapping[str, Any]) -> None:
+        """Starts an episode: the history is the first observation, repeated. Raises `ValueError`
+        when the views are not the model's resolution.
+        """
+        self._reset(observation, info)
+
+    async def act(self, observation: Observation) -> Action:
+        """The next action."""
+        inputs = self._observe(observation)
+        chunk = None
+        if inputs is not None:
+            chunk = await self.batcher.sample(*inputs, self._noise())
+        return self._next(chunk)
+
+
 class BcPolicy:
     """The agent factory of `esrp eval --agent bc`: loads the checkpoint (`config["checkpoint"]`)
     once; each call makes an agent for one episode. Config keys: `checkpoint`, `epsilon` (default
-    the training config's, 0.1), `deterministic` (no random replacements), `threads` (torch's).
+    the training config's, 0.1), `deterministic` (no random replacements), `threads` (torch's),
+    `batch` (at most this many episodes' requests denoised together: `BatchedBcAgent`s; default 1,
+    `BcAgent`s).
     """
 
     def __init__(self, config: Mapping[str, Any]) -> None:
         self.model = load_policy(policy_checkpoint(config, "bc"))
         self.sensors = Sensors(resolution=self.model.config.resolution)
         """What its episodes must be created with: views at the model's resolution."""
+        batch = config.get("batch", 1)
+        if not isinstance(batch, int) or isinstance(batch, bool) or batch < 1:
+            raise ValueError(f"the bc agent's batch must be an integer of at least 1, not {batch!r}")
+        self.batcher = _Batcher(self.model, batch) if batch > 1 else None
 
-    def __call__(self, config: dict[str, Any]) -> BcAgent:
+    def __call__(self, config: dict[str, Any]) -> BcAgent | BatchedBcAgent:
         """An agent for one episode."""
+        if self.batcher is not None:
+            return BatchedBcAgent(self.model, config, self.batcher)
         return BcAgent(self.model, config)

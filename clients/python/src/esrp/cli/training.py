@@ -71,6 +71,12 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
     export.add_argument(
         "--plan-budget-ms", type=positive, help="--dagger: planning budget per label (default 10000)"
     )
+    export.add_argument(
+        "--max-steps",
+        type=positive,
+        metavar="N",
+        help="--dagger: record at most N states per episode, then close it (default: until it ends)",
+    )
     export.add_argument("--no-progress", dest="progress", action="store_false")
     server_options(export)
     train = commands.add_parser(
@@ -82,14 +88,25 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
     train_commands = train.add_subparsers(dest="train_command", required=True, metavar="AGENT")
     bc = train_commands.add_parser(
         "bc",
-        help="ESRP-BC (Diffusion Policy) on an esrp demos export store",
+        help="ESRP-BC (Diffusion Policy) on esrp demos export stores; --dagger: the DAgger loop",
         description="Train ESRP-BC on the demonstrations its config names; writes RUN/config.json, "
-        "RUN/log.csv and RUN/ckpt.pt (esrp eval --agent bc --checkpoint RUN/ckpt.pt plays it).",
+        "RUN/log.csv and RUN/ckpt.pt (esrp eval --agent bc --checkpoint RUN/ckpt.pt plays it), and "
+        "with eval_every RUN/eval.csv (held-out SR/OSR/RDR, on a server: one is started without "
+        "--server). With --dagger, run DAgger as the config's [dagger] table says: iteration 0 is "
+        "this training (RUN/iter-00), each further one exports the policy's rollouts labelled by the "
+        "server's planner (RUN/dagger-NN.zarr), fine-tunes on every store so far (RUN/iter-NN) and "
+        "evaluates it; RUN/dagger.csv logs the iterations (docs/demonstrations.md).",
     )
     bc.add_argument("--config", type=Path, required=True, help="a TOML file with a [bc] table, or JSON")
     bc.add_argument("--out", type=Path, default=Path("runs/bc"), help="the run folder (default runs/bc)")
-    bc.add_argument("--resume", action="store_true", help="go on from RUN/ckpt.pt")
+    bc.add_argument(
+        "--resume", action="store_true", help="go on from RUN/ckpt.pt (with --dagger: from RUN/state.json)"
+    )
+    bc.add_argument(
+        "--dagger", action="store_true", help="run the DAgger loop of the config's [dagger] table"
+    )
     bc.add_argument("--no-progress", dest="progress", action="store_false")
+    server_options(bc)
     ppo = train_commands.add_parser(
         "ppo",
         help="ESRP-PPO (CNN + LSTM) on the native vector env, with the dense reward",
@@ -126,6 +143,7 @@ def _demos(args: argparse.Namespace) -> int:
         beta=args.beta,
         seed=args.seed or 0,
         plan_budget_ms=args.plan_budget_ms or 10_000,
+        max_steps=args.max_steps or 0,
         records=args.records,
         agent=args.agent,
         successful_only=args.successful_only,
@@ -136,6 +154,7 @@ def _demos(args: argparse.Namespace) -> int:
             ("--checkpoint", args.checkpoint is not None),
             ("--agent-config", bool(args.agent_config)),
             ("--beta", args.beta != 0.0),
+            ("--max-steps", args.max_steps is not None),
         )
         if given
     ]
@@ -193,6 +212,11 @@ def _demos(args: argparse.Namespace) -> int:
         with Client(address, token=args.token, timeout=120) as client:
             outcome = export_demos(client, settings, sources)
         print(f"{args.out}: {outcome.episodes} episodes, {outcome.steps} steps ({outcome.added} added now)")
+        if outcome.agreement is not None:
+            print(
+                f"the policy's action was the planner's label at {outcome.agreed} of {outcome.compared} "
+                f"states ({100 * outcome.agreement:.1f} %)"
+            )
         return 0
 
     try:
@@ -208,14 +232,34 @@ def _train(args: argparse.Namespace) -> int:
     try:
         if args.train_command == "ppo":
             return _train_ppo(args, name)
+        from ..train._config import read_document
         from ..train.bc import load_config, train
+        from ..train.dagger import load_dagger_config, run_dagger
+        from ..train.demos import DemoExportError
+        from ..train.heldout import EvalError, TrainServer
     except ImportError as error:
         print(f"{name}: {error} (pip install 'esrp[train]')", file=sys.stderr)
         return 2
+    from .._errors import EsrpError
+
     try:
         config = load_config(args.config)
-        checkpoint = train(config, args.out, resume=args.resume, progress=args.progress)
-    except (OSError, ValueError) as error:
+        dagger = load_dagger_config(args.config) if args.dagger else None
+        if dagger is None and "dagger" in read_document(args.config) and args.progress:
+            print(
+                f"{name}: the config's [dagger] table applies with --dagger only: plain ESRP-BC",
+                file=sys.stderr,
+            )
+        with TrainServer(args.server, args.token, args.server_args) as server:
+            if dagger is not None:
+                checkpoint = run_dagger(
+                    config, dagger, args.out, resume=args.resume, progress=args.progress, server=server
+                )
+            else:
+                checkpoint = train(
+                    config, args.out, resume=args.resume, progress=args.progress, server=server
+                )
+    except (OSError, ValueError, EvalError, DemoExportError, EsrpError) as error:
         print(f"{name}: {error}", file=sys.stderr)
         return 2
     print(f"checkpoint: {checkpoint}")

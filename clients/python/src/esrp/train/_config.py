@@ -8,12 +8,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
-__all__ = ["read_table"]
+__all__ = ["read_document", "read_table"]
 
 
-def read_table(path: Path, name: str) -> dict[str, Any]:
-    """The `[name]` table of a TOML file (or the top level of a JSON file, or of a TOML file without
-    that table). Raises `ValueError` naming the file for unreadable or malformed ones.
+def read_document(path: Path) -> dict[str, Any]:
+    """The whole of a TOML file (or of a JSON file holding an object). Raises `ValueError` naming
+    the file for unreadable or malformed ones.
     """
     try:
         text = path.read_text(encoding="utf-8")
@@ -21,13 +21,23 @@ def read_table(path: Path, name: str) -> dict[str, Any]:
         raise ValueError(f"cannot read {path}: {error.strerror}") from None
     try:
         if path.suffix == ".json":
-            values: dict[str, Any] = json.loads(text)
+            values: Any = json.loads(text)
         else:
             # tomllib is Python 3.11's; on 3.10, tomli (the same parser) if installed.
             module = importlib.import_module("tomllib" if sys.version_info >= (3, 11) else "tomli")
             values = module.loads(text)
     except ValueError as error:  # JSONDecodeError and TOMLDecodeError are ValueErrors
         raise ValueError(f"{path}: {error}") from None
+    if not isinstance(values, dict):
+        raise ValueError(f"{path}: the file does not hold a table (a JSON object)")
+    return values
+
+
+def read_table(path: Path, name: str) -> dict[str, Any]:
+    """The `[name]` table of a TOML file (or the top level of a JSON file, or of a TOML file without
+    that table). Raises `ValueError` naming the file for unreadable or malformed ones.
+    """
+    values = read_document(path)
     table = values.get(name, values)
     if not isinstance(table, dict):
         raise ValueError(f"{path}: [{name}] is not a table")

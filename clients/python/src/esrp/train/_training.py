@@ -4,6 +4,7 @@ resumption that refuses other settings, and the agents' checkpoint option.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Collection, Mapping
 from pathlib import Path
 from typing import Any
@@ -18,8 +19,9 @@ def save_checkpoint(
     path: Path, kind: str, model: nn.Module, optimizer: torch.optim.Optimizer, **progress: int
 ) -> None:
     """Writes `model` (with its `config`), `optimizer`, `progress` (epoch, update, steps...) and
-    torch's random state to `path` as checkpoint kind `kind`, atomically: a crash never leaves half
-    a checkpoint.
+    torch's random state to `path` as checkpoint kind `kind`, atomically: the checkpoint is written
+    to a file beside it, flushed to disk, and renamed over `path`, so a crash never leaves half a
+    checkpoint (the earlier one stays whole until the new one is).
     """
     config: Any = model.config
     state = {
@@ -31,16 +33,25 @@ def save_checkpoint(
         "torch_rng": torch.get_rng_state(),
     }
     partial = path.with_suffix(".partial")
-    torch.save(state, partial)
+    with open(partial, "wb") as file:
+        torch.save(state, file)
+        file.flush()
+        os.fsync(file.fileno())
     partial.replace(path)
 
 
 def load_resumable(
-    path: Path, kind: str, settings: Mapping[str, Any], free: Collection[str], device: torch.device
+    path: Path,
+    kind: str,
+    settings: Mapping[str, Any],
+    free: Collection[str],
+    device: torch.device,
+    *,
+    restore_rng: bool = True,
 ) -> dict[str, Any]:
     """The checkpoint at `path` to resume a run with `settings` (a config's `to_dict()`); raises
     `ValueError` for another kind of checkpoint or other settings than `free` ones. Restores
-    torch's random state.
+    torch's random state (unless not `restore_rng`: a run that starts from another's weights).
     """
     state: dict[str, Any] = torch.load(path, map_location=device, weights_only=False)
     if not isinstance(state, dict) or state.get("kind") != kind:
@@ -48,7 +59,8 @@ def load_resumable(
     trained = {k: v for k, v in state["config"].items() if k not in free}
     if trained != {k: v for k, v in settings.items() if k not in free}:
         raise ValueError(f"{path} was trained with other settings: {state['config']}")
-    torch.set_rng_state(state["torch_rng"].cpu())
+    if restore_rng:
+        torch.set_rng_state(state["torch_rng"].cpu())
     return state
 
 

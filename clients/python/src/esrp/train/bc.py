@@ -3,12 +3,16 @@
 Samples are windows of the store: for step t of an episode, the ego views and grasp flags of steps
 t-n+1..t (the episode's first repeated before its start) and the goal image, and the expert's
 actions t..t+h-1 (its last repeated past its end), as Diffusion Policy pads. Each epoch visits every
-step once in a seeded random order; a batch reads only the chunks its windows touch.
+step once in a seeded random order; a batch reads only the chunks its windows touch, or, with
+`in_memory`, the views read into memory once at the start (the same batches).
 
 A run folder holds `config.json` (the settings), `log.csv` (one line per epoch: epoch, optimizer
 steps, mean loss, noise MSE and cross-entropy, learning rate, seconds) and `ckpt.pt` (model,
 optimizer, epoch, random states: `--resume` goes on from it; `esrp eval --agent bc --checkpoint`
-plays it).
+plays it). With `eval_every` (or `final_eval`), the held-out evaluations (`esrp.train.heldout`)
+write `eval.csv` (one line each: epoch, optimizer steps, SR, OSR, RDR, episodes recorded and
+failed, seconds) and their results files `eval/epoch-NNNN.jsonl`; the checkpoint is written before
+each, so an evaluation an interruption cut short is finished first when the run resumes.
 """
 
 from __future__ import annotations
@@ -29,8 +33,26 @@ from ..agents.bc import BcConfig, DiffusionPolicy, bc_loss, schedulers
 from ..agents.encoders import resolve_device
 from ._config import read_table
 from ._training import load_resumable, save_checkpoint
+from .heldout import EVAL_FIELDS, TrainServer, evaluate_checkpoint, heldout_scenes, read_eval_log
 
-__all__ = ["DemoWindows", "load_config", "train"]
+__all__ = ["FINE_TUNE_FREE", "LOG_FIELDS", "RESUME_FREE", "DemoWindows", "load_config", "train"]
+
+LOG_FIELDS = ("epoch", "steps", "loss", "mse", "ce", "lr", "seconds")
+"""The columns of a run's `log.csv`: one line per epoch."""
+
+RESUME_FREE = frozenset(
+    {"epochs", "checkpoint_every", "threads", "device", "in_memory"}
+    | {name for name in BcConfig.__dataclass_fields__ if name.startswith("eval_")}
+)
+"""Settings a resumed run may change: more epochs, the checkpoint interval, threads, device, where
+the batches are read from, and the held-out evaluation (none changes what is trained)."""
+
+FINE_TUNE_FREE = RESUME_FREE | {"demos", "seed"}
+"""Settings in which a run that starts from another run's weights (`train(init=...)`) may differ
+from it: the model and the optimizer must be the same."""
+
+_LOAD_BLOCK = 4096
+"""Steps read at a time when a store's views are read into memory."""
 
 
 def load_config(path: Path) -> BcConfig:
@@ -44,10 +66,19 @@ def load_config(path: Path) -> BcConfig:
 
 class DemoWindows:
     """The training windows of one or more `esrp.demos/v1` stores (expert demonstrations and DAgger
-    exports aggregated), read a batch at a time.
+    exports aggregated), read a batch at a time: from the stores' chunks, or with `in_memory` from
+    copies of their views read into memory here (printing a line per store with `progress`).
     """
 
-    def __init__(self, paths: str | Path | Sequence[str | Path], n_obs: int, horizon: int) -> None:
+    def __init__(
+        self,
+        paths: str | Path | Sequence[str | Path],
+        n_obs: int,
+        horizon: int,
+        *,
+        in_memory: bool = False,
+        progress: bool = False,
+    ) -> None:
         import zarr
 
         listed = [paths] if isinstance(paths, str | Path) else list(paths)
@@ -77,8 +108,6 @@ class DemoWindows:
             grasping.append(np.asarray(store["data/grasping"][: ends[-1]], dtype=bool))
             offset += int(ends[-1])
         ends = np.concatenate(ends_list)
-        self.resolution = int(resolution or 128)
-        """The views' side in pixels (every store's)."""
         self.n_obs, self.horizon = n_obs, horizon
         starts = np.concatenate([[0], ends[:-1]])
         self.episode = np.repeat(np.arange(len(ends)), ends - starts)
@@ -88,12 +117,55 @@ class DemoWindows:
         # Where each store's steps and episodes begin in the joined numbering.
         self.step_offsets = np.cumsum([0, *(len(a) for a in actions)])
         self.episode_offsets = np.cumsum([0, *(len(e) for e in ends_list)])
+        self.paths = [str(path) for path in listed]
+        self.resolution = int(self.stores[0]["data/ego_rgb"].shape[1])
+        """The views' side in pixels."""
+        self.memory: dict[str, np.ndarray] = {}
+        if in_memory:
+            self._read_into_memory(progress)
 
     def __len__(self) -> int:
         return len(self.episode)
 
+    def _read_into_memory(self, progress: bool) -> None:
+        """Reads every store's ego views and goal images (its whole episodes) into `memory`, in the
+        joined numbering.
+        """
+        side = self.resolution
+        steps, episodes = int(self.step_offsets[-1]), int(self.episode_offsets[-1])
+        mib = (steps + episodes) * side * side * 3 / 2**20
+        if progress:
+            print(
+                f"reading {len(self.stores)} demonstration stores into memory: {steps} steps, "
+                f"{episodes} episodes, {mib:.0f} MiB",
+                file=sys.stderr,
+            )
+        ego = np.empty((steps, side, side, 3), dtype=np.uint8)
+        goal = np.empty((episodes, side, side, 3), dtype=np.uint8)
+        for i, store in enumerate(self.stores):
+            started = time.monotonic()
+            first, last = int(self.step_offsets[i]), int(self.step_offsets[i + 1])
+            views = store["data/ego_rgb"]
+            for start in range(first, last, _LOAD_BLOCK):
+                end = min(start + _LOAD_BLOCK, last)
+                ego[start:end] = views[start - first : end - first]
+            begin, count = (
+                int(self.episode_offsets[i]),
+                int(self.episode_offsets[i + 1] - self.episode_offsets[i]),
+            )
+            goal[begin : begin + count] = store["meta/goal_rgb"][:count]
+            if progress:
+                print(
+                    f"  {self.paths[i]}: {last - first} steps in {time.monotonic() - started:.1f} s",
+                    file=sys.stderr,
+                )
+        self.memory = {"data/ego_rgb": ego, "meta/goal_rgb": goal}
+
     def _read(self, name: str, indices: np.ndarray, offsets: np.ndarray) -> np.ndarray:
         """Rows `indices` (sorted, in the joined numbering) of array `name` of every store."""
+        held = self.memory.get(name)
+        if held is not None:
+            return np.asarray(held[indices])
         parts = []
         for i, store in enumerate(self.stores):
             mine = indices[(indices >= offsets[i]) & (indices < offsets[i + 1])] - offsets[i]
@@ -118,9 +190,47 @@ class DemoWindows:
         }
 
 
-def train(config: BcConfig, out: Path, *, resume: bool = False, progress: bool = True) -> Path:
+def _trim_log(path: Path, fields: Sequence[str], epoch: int) -> None:
+    """Makes `path` a CSV log of the epochs up to `epoch`: started over (its header only) when the
+    run starts, else its lines after `epoch` (written before an interruption, past the checkpoint
+    the run resumes from) dropped.
+    """
+    rows: list[list[str]] = []
+    if epoch > 0 and path.exists():
+        with open(path, newline="") as file:
+            rows = [row for row in list(csv.reader(file))[1:] if row and int(row[0]) <= epoch]
+    with open(path, "w", newline="") as file:
+        writer = csv.writer(file)
+        writer.writerow(fields)
+        writer.writerows(rows)
+
+
+def train(
+    config: BcConfig,
+    out: Path,
+    *,
+    resume: bool = False,
+    progress: bool = True,
+    server: TrainServer | None = None,
+    init: Path | None = None,
+    final_eval: bool = False,
+) -> Path:
     """Trains for `config.epochs` epochs (from the checkpoint in `out` with `resume`); returns the
     checkpoint's path.
+
+    Args:
+        config: The settings.
+        out: The run folder.
+        resume: Go on from `out/ckpt.pt` if it exists (else start).
+        progress: Print a line per epoch (and the evaluations' progress) on stderr.
+        server: The server of the held-out evaluations; None: one is started here when the run
+            evaluates, and stopped at its end.
+        init: Start from the model and optimizer of this checkpoint (of a model with the same
+            settings, `FINE_TUNE_FREE` aside) instead of fresh weights; ignored when resuming.
+        final_eval: Evaluate after the last epoch even with `eval_every` 0.
+
+    Raises `ValueError` for bad settings or files, `EvalError` when an evaluation cannot run (and
+    `EsrpError` for the server's errors).
     """
     _malloc_setup.apply()  # large buffers freed and made at every step stay mapped (esrp._malloc_setup)
     if config.threads > 0:
@@ -131,7 +241,9 @@ def train(config: BcConfig, out: Path, *, resume: bool = False, progress: bool =
         raise ValueError(f"{out} already holds a run: pass --resume to go on with it, or another --out")
     device = resolve_device(config.device)
     torch.manual_seed(config.seed)
-    windows = DemoWindows(config.demos, config.n_obs, config.horizon)
+    windows = DemoWindows(
+        config.demos, config.n_obs, config.horizon, in_memory=config.in_memory, progress=progress
+    )
     if windows.resolution != config.resolution:
         raise ValueError(
             f"the demonstrations hold {windows.resolution} px views and the config says resolution = "
@@ -141,53 +253,100 @@ def train(config: BcConfig, out: Path, *, resume: bool = False, progress: bool =
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     epoch, steps = 0, 0
     if resume and checkpoint.exists():
-        # More epochs (or another checkpoint interval, thread count or device) may be asked of a
-        # resumed run.
-        free = {"epochs", "checkpoint_every", "threads", "device"}
-        state = load_resumable(checkpoint, "esrp-bc", config.to_dict(), free, device)
+        # More epochs (or another checkpoint interval, thread count, device or evaluation) may be
+        # asked of a resumed run.
+        state = load_resumable(checkpoint, "esrp-bc", config.to_dict(), RESUME_FREE, device)
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         epoch, steps = int(state["epoch"]), int(state["steps"])
         print(f"resuming {checkpoint} after epoch {epoch}", file=sys.stderr)
+    elif init is not None:
+        state = load_resumable(init, "esrp-bc", config.to_dict(), FINE_TUNE_FREE, device, restore_rng=False)
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        if progress:
+            print(f"starting from the model and optimizer of {init}", file=sys.stderr)
     (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")
     noise_scheduler, _ = schedulers(config)
     log_path = out / "log.csv"
-    new_log = not log_path.exists() or epoch == 0
-    if new_log:
-        with open(log_path, "w", newline="") as file:
-            csv.writer(file).writerow(["epoch", "steps", "loss", "mse", "ce", "lr", "seconds"])
-    started = time.monotonic()
-    model.train()
-    while epoch < config.epochs:
-        order = np.random.default_rng(config.seed + epoch).permutation(len(windows))
-        sums = np.zeros(3)
-        batches = 0
-        for first in range(0, len(order), config.batch_size):
-            batch = {
-                key: value.to(device)
-                for key, value in windows.batch(np.sort(order[first : first + config.batch_size])).items()
-            }
-            loss, mse, ce = bc_loss(model, noise_scheduler, batch)
-            if not torch.isfinite(loss):
-                raise FloatingPointError(f"epoch {epoch + 1}: the loss is {loss.item()}")
-            optimizer.zero_grad()
-            loss.backward()  # type: ignore[no-untyped-call]
-            optimizer.step()
-            sums += (loss.item(), mse.item(), ce.item())
-            batches += 1
-            steps += 1
-        epoch += 1
-        mean = sums / max(batches, 1)
-        with open(log_path, "a", newline="") as file:
-            row = [epoch, steps, *(f"{v:.6f}" for v in mean), config.lr, f"{time.monotonic() - started:.1f}"]
-            csv.writer(file).writerow(row)
-        if progress:
-            print(
-                f"epoch {epoch}/{config.epochs}  loss {mean[0]:.4f} (mse {mean[1]:.4f}, ce {mean[2]:.4f})",
-                file=sys.stderr,
+    _trim_log(log_path, LOG_FIELDS, epoch)
+    evaluating = config.eval_every > 0 or final_eval
+    eval_path = out / "eval.csv"
+    if evaluating:
+        _trim_log(eval_path, EVAL_FIELDS, epoch)
+
+    def evaluation_due(at: int) -> bool:
+        return evaluating and ((config.eval_every > 0 and at % config.eval_every == 0) or at == config.epochs)
+
+    own_server = server is None
+    used = server if server is not None else TrainServer()
+    try:
+        scenes = heldout_scenes(used, config) if evaluating else []
+
+        def held_out(at: int) -> None:
+            result = evaluate_checkpoint(
+                used,
+                checkpoint,
+                config,
+                scenes,
+                windows.resolution,
+                out / "eval" / f"epoch-{at:04d}.jsonl",
+                progress=progress,
             )
-        if epoch % config.checkpoint_every == 0 or epoch == config.epochs:
+            with open(eval_path, "a", newline="") as file:
+                csv.writer(file).writerow(result.row(at, steps))
+            if progress:
+                print(f"held-out after epoch {at}: {result.text()}", file=sys.stderr)
+
+        # An evaluation the interrupted run owed (the checkpoint is written before each).
+        if (
+            epoch > 0
+            and evaluation_due(epoch)
+            and not any(int(row["epoch"]) == epoch for row in read_eval_log(eval_path))
+        ):
+            held_out(epoch)
+        started = time.monotonic()
+        model.train()
+        while epoch < config.epochs:
+            order = np.random.default_rng(config.seed + epoch).permutation(len(windows))
+            sums = np.zeros(3)
+            batches = 0
+            for first in range(0, len(order), config.batch_size):
+                batch = {
+                    key: value.to(device)
+                    for key, value in windows.batch(np.sort(order[first : first + config.batch_size])).items()
+                }
+                loss, mse, ce = bc_loss(model, noise_scheduler, batch)
+                if not torch.isfinite(loss):
+                    raise FloatingPointError(f"epoch {epoch + 1}: the loss is {loss.item()}")
+                optimizer.zero_grad()
+                loss.backward()  # type: ignore[no-untyped-call]
+                optimizer.step()
+                sums += (loss.item(), mse.item(), ce.item())
+                batches += 1
+                steps += 1
+            epoch += 1
+            mean = sums / max(batches, 1)
+            with open(log_path, "a", newline="") as file:
+                row = [
+                    epoch,
+                    steps,
+                    *(f"{v:.6f}" for v in mean),
+                    config.lr,
+                    f"{time.monotonic() - started:.1f}",
+                ]
+                csv.writer(file).writerow(row)
+            if progress:
+                losses = f"loss {mean[0]:.4f} (mse {mean[1]:.4f}, ce {mean[2]:.4f})"
+                print(f"epoch {epoch}/{config.epochs}  {losses}", file=sys.stderr)
+            due = evaluation_due(epoch)
+            if epoch % config.checkpoint_every == 0 or epoch == config.epochs or due:
+                save_checkpoint(checkpoint, "esrp-bc", model, optimizer, epoch=epoch, steps=steps)
+            if due:
+                held_out(epoch)
+        if not checkpoint.exists():
             save_checkpoint(checkpoint, "esrp-bc", model, optimizer, epoch=epoch, steps=steps)
-    if not checkpoint.exists():
-        save_checkpoint(checkpoint, "esrp-bc", model, optimizer, epoch=epoch, steps=steps)
+    finally:
+        if own_server:
+            used.close()
     return checkpoint

@@ -9,9 +9,11 @@ cut off first), and the store records the dataset and resolution it was made wit
 
 With `dagger` (DAgger's data collection), another policy drives instead: at every state it visits,
 the server's planner (`PlanActions`) gives the label, the action the store records, and the
-policy's own action is the one stepped (the label with probability `beta`). An episode ends when
-the episode does (success or the horizon), when the policy stops, or when the planner finds no
-way on from the state (its last state then has no label and is not recorded).
+policy's own action is the one stepped (the label with probability `beta`), and the store records
+it too (`data/policy_action`), so that how often the policy agreed with the planner can be read
+back. An episode ends when the episode does (success or the horizon), when the policy stops, after
+`max_steps` recorded states, or when the planner finds no way on from the state within its budget
+(that state then has no label and is not recorded).
 
 With `records` (`esrp.results/v1` files: e.g. the server's records of people playing in its web
 viewer, agent `human`), each record's `actions` are stepped instead, on a new, non-privileged episode
@@ -33,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from .._client import Client
-from .._errors import EsrpError
+from .._errors import DeadlineExceeded, EsrpError
 from .._values import Action, SceneSummary, Sensors
 from ..agents import is_async_agent
 from ..eval.evaluation import EvalError, agent_info, expert_trajectory, make_factory, missing_scene
@@ -60,6 +62,9 @@ REPLAY_LABEL = "esrp demos export"
 CHUNK_STEPS = 256
 """Steps per chunk of the per-step arrays (a chunk of ego views is 256 × 49,152 bytes, 12 MB raw)."""
 
+NO_ACTION = 255
+"""`data/policy_action` of a state where the DAgger policy gave no action (it stopped there)."""
+
 
 class DemoExportError(Exception):
     """The export cannot run as asked (a store of another dataset or resolution, no scenes)."""
@@ -84,6 +89,8 @@ class DemoSettings:
             stepped (DAgger's mixing; 0: the agent alone).
         seed: With `dagger`, the base seed: scene `id` plays with `seed XOR fnv1a64(id)`.
         plan_budget_ms: With `dagger`, the planning budget of each label.
+        max_steps: With `dagger`, at most this many states recorded per episode (the episode is
+            closed there); 0: until it ends.
         records: `esrp.results/v1` files whose records' actions to replay and record, instead of
             the chosen scenes' expert trajectories (`split`, `difficulty`, `scenes` and `dagger`
             do not apply).
@@ -103,6 +110,7 @@ class DemoSettings:
     beta: float = 0.0
     seed: int = 0
     plan_budget_ms: int = 10_000
+    max_steps: int = 0
     records: Sequence[Path] = ()
     agent: str | None = None
     successful_only: bool = False
@@ -117,11 +125,29 @@ class DemoSettings:
 
 @dataclass
 class ExportOutcome:
-    """What an export did: episodes and steps in the store, and how many this run added."""
+    """What an export did: episodes and steps in the store, and how many episodes this run added.
+
+    Attributes:
+        episodes: Episodes in the store.
+        steps: Steps in the store.
+        added: Episodes this run added.
+        compared: A DAgger store's states where the policy gave an action (None for other stores,
+            and for DAgger stores made before `data/policy_action` existed).
+        agreed: Of those, the states where the policy's action was the planner's label.
+    """
 
     episodes: int
     steps: int
     added: int
+    compared: int | None = None
+    agreed: int | None = None
+
+    @property
+    def agreement(self) -> float | None:
+        """The fraction of a DAgger store's states where the policy's action was the label."""
+        if self.compared is None or self.agreed is None or self.compared == 0:
+            return None
+        return self.agreed / self.compared
 
 
 def _pick(client: Client, settings: DemoSettings) -> list[SceneSummary]:
@@ -144,6 +170,16 @@ def _pick(client: Client, settings: DemoSettings) -> list[SceneSummary]:
 
 _Episode = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 """One episode's goal image, ego views, grasp flags and actions."""
+
+
+@dataclass
+class _DaggerEpisode:
+    """A DAgger episode: what the store records of any episode, and the policy's own actions
+    (`NO_ACTION` where it gave none).
+    """
+
+    episode: _Episode
+    policy_actions: np.ndarray
 
 
 class _Store:
@@ -187,6 +223,11 @@ class _Store:
         self.action = array("data/action", (), "uint8", 4096)
         self.goal = array("meta/goal_rgb", (side, side, 3), "uint8", 16)
         self.ends = array("meta/episode_ends", (), "int64", 4096)
+        # A DAgger store records the policy's own actions too; one made before they were recorded
+        # goes on without them (its first episodes have none).
+        self.policy_action: Any = None
+        if labels == "planner" and ("data/policy_action" in self.group or self.ends.shape[0] == 0):
+            self.policy_action = array("data/policy_action", (), "uint8", 4096)
         listed = self.group.attrs.get("scene_ids", [])
         self.scene_ids: list[str] = [str(s) for s in listed] if isinstance(listed, list) else []
         # A records export says each episode's agent too (parallel to `scene_ids`).
@@ -200,7 +241,10 @@ class _Store:
         """Drops what an interrupted run wrote past the last whole episode."""
         episodes = self.ends.shape[0]
         steps = int(self.ends[episodes - 1]) if episodes else 0
-        for array in (self.ego, self.grasping, self.action):
+        per_step = [self.ego, self.grasping, self.action]
+        if self.policy_action is not None:
+            per_step.append(self.policy_action)
+        for array in per_step:
             if array.shape[0] != steps:
                 array.resize((steps, *array.shape[1:]))
         if self.goal.shape[0] != episodes:
@@ -216,12 +260,22 @@ class _Store:
     def steps(self) -> int:
         return int(self.ends[self.ends.shape[0] - 1]) if self.ends.shape[0] else 0
 
-    def append(self, scene_id: str, episode: _Episode, agent: str | None = None) -> None:
-        """Appends a whole episode: (goal, ego views, grasp flags, actions), and in a records
-        store the `agent` whose episode it is.
+    def append(
+        self,
+        scene_id: str,
+        episode: _Episode,
+        agent: str | None = None,
+        policy_actions: np.ndarray | None = None,
+    ) -> None:
+        """Appends a whole episode: (goal, ego views, grasp flags, actions), in a records store the
+        `agent` whose episode it is, and in a DAgger store the policy's own actions.
         """
         goal, ego, grasping, actions = episode
         end = self.steps + len(actions)
+        if self.policy_action is not None:
+            if policy_actions is None or len(policy_actions) != len(actions):
+                raise ValueError("a DAgger episode comes with one policy action per label")
+            self.policy_action.append(policy_actions, axis=0)
         self.ego.append(ego, axis=0)
         self.grasping.append(grasping, axis=0)
         self.action.append(actions, axis=0)
@@ -232,6 +286,18 @@ class _Store:
             self.agents.append("" if agent is None else agent)
             self.group.attrs["agents"] = self.agents
         self.ends.append(np.array([end], dtype=np.int64), axis=0)  # last: the episode is whole
+
+    def agreement(self) -> tuple[int, int] | None:
+        """(states where the policy gave an action, those where it was the label) over the whole
+        store; None when it does not record the policy's actions.
+        """
+        if self.policy_action is None:
+            return None
+        steps = self.steps
+        policy = np.asarray(self.policy_action[:steps])
+        labels = np.asarray(self.action[:steps])
+        acted = policy != NO_ACTION
+        return int(acted.sum()), int((policy[acted] == labels[acted]).sum())
 
     def episode_actions(self, index: int) -> list[int]:
         """The actions of whole episode `index`."""
@@ -279,9 +345,9 @@ def _replay(
         )
 
 
-def _dagger(client: Client, scene: SceneSummary, settings: DemoSettings, factory: Any) -> _Episode:  # noqa: ANN401
+def _dagger(client: Client, scene: SceneSummary, settings: DemoSettings, factory: Any) -> _DaggerEpisode:  # noqa: ANN401
     """Runs `settings.dagger`'s agent on `scene` and labels each state it visits with the planner's
-    next action: (goal, ego views, grasp flags, labels).
+    next action: (goal, ego views, grasp flags, labels), and the agent's own actions.
     """
     sensors = Sensors(resolution=settings.resolution) if settings.resolution else None
     seed = scene_seed(settings.seed, scene.id)
@@ -303,8 +369,12 @@ def _dagger(client: Client, scene: SceneSummary, settings: DemoSettings, factory
             egos: list[np.ndarray] = []
             grasps: list[bool] = []
             labels: list[int] = []
-            while True:
-                answer = episode.plan_actions(max_actions=1, budget_ms=settings.plan_budget_ms)
+            policy: list[int] = []
+            while not settings.max_steps or len(labels) < settings.max_steps:
+                try:
+                    answer = episode.plan_actions(max_actions=1, budget_ms=settings.plan_budget_ms)
+                except DeadlineExceeded:
+                    break  # no plan within the budget: this state has no label
                 if not answer.actions:
                     break  # no way on from here: this state has no label
                 label = int(answer.actions[0])
@@ -313,8 +383,11 @@ def _dagger(client: Client, scene: SceneSummary, settings: DemoSettings, factory
                 labels.append(label)
                 action = call(agent.act(observation))
                 if action is None:
+                    policy.append(NO_ACTION)
                     break
-                stepped = label if rng.random() < settings.beta else int(Action(int(action)))
+                own = int(Action(int(action)))
+                policy.append(own)
+                stepped = label if rng.random() < settings.beta else own
                 result = episode.step(stepped)
                 if result.terminated or result.truncated:
                     break
@@ -323,12 +396,13 @@ def _dagger(client: Client, scene: SceneSummary, settings: DemoSettings, factory
         loop.close()
     if not labels:
         raise DemoExportError(f"{scene.id}: the planner found no plan from the scene's start")
-    return (
+    recorded = (
         np.array(first.goal_rgb),
         np.stack(egos),
         np.array(grasps, dtype=bool),
         np.array(labels, dtype=np.uint8),
     )
+    return _DaggerEpisode(recorded, np.array(policy, dtype=np.uint8))
 
 
 # A record to export and where it was read (file and line): verify's `Numbered`, one type for both.
@@ -485,6 +559,8 @@ def export_demos(
             raise DemoExportError(
                 f"--dagger {settings.dagger}: the policy must be an agent, not the labeller"
             )
+        if settings.max_steps < 0:
+            raise DemoExportError(f"max_steps must be 0 (no limit) or more, got {settings.max_steps}")
         try:
             factory = make_factory(settings.dagger, dict(settings.agent_config), settings.out)
         except EvalError as error:
@@ -503,9 +579,12 @@ def export_demos(
         if factory is None:
             store.append(scene.id, _replay(client, scene, settings.resolution))
         else:
-            store.append(scene.id, _dagger(client, scene, settings, factory))
+            played = _dagger(client, scene, settings, factory)
+            store.append(scene.id, played.episode, policy_actions=played.policy_actions)
         added += 1
         position = len(scenes) - len(todo) + added
         if settings.progress and (position % every == 0 or position == len(scenes)):
             print(f"{position}/{len(scenes)} episodes, {store.steps} steps", file=sys.stderr)
-    return ExportOutcome(len(store.scene_ids), store.steps, added)
+    agreement = store.agreement()
+    compared, agreed = agreement if agreement is not None else (None, None)
+    return ExportOutcome(len(store.scene_ids), store.steps, added, compared, agreed)

@@ -1,0 +1,370 @@
+"""`esrp train bc`'s held-out evaluation, its in-memory windows and `esrp train bc --dagger` against
+the real server, on tiny data (32-pixel views of a few easy train scenes, a tiny model, an epoch or
+two): evaluations write their rows and change nothing trained, in-memory batches are the zarr
+batches, a DAgger run writes its stores, logs and checkpoints, and resumes after more iterations
+are asked and after interruptions in an export and in a training; bad configs are refused."""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import esrp
+from esrp.cli import main
+from esrp.eval.results import read_records
+
+torch = pytest.importorskip("torch", reason="esrp[train] is not installed")
+pytest.importorskip("diffusers", reason="esrp[train] is not installed")
+zarr = pytest.importorskip("zarr", reason="esrp[train] is not installed")
+
+from esrp.agents.bc import BcConfig  # noqa: E402
+from esrp.train import bc as bc_module  # noqa: E402
+from esrp.train import demos as demos_module  # noqa: E402
+from esrp.train._training import save_checkpoint  # noqa: E402
+from esrp.train.bc import DemoWindows, load_config, train  # noqa: E402
+from esrp.train.dagger import DaggerConfig, load_dagger_config, run_dagger  # noqa: E402
+from esrp.train.heldout import TrainServer  # noqa: E402
+
+RESOLUTION = 32
+
+
+@pytest.fixture(scope="module")
+def train_easy(client: esrp.Client) -> list[str]:
+    """The first easy train scenes: [0] is held out, [1] and [2] hold the expert demonstrations,
+    [1:4] are the DAgger candidates (quick to plan)."""
+    return [scene.id for scene in client.scenes("train", "easy", page_size=4)][:4]
+
+
+@pytest.fixture(scope="module")
+def expert(server: esrp.LocalServer, train_easy: list[str], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The expert demonstrations of two easy train scenes, at 32 pixels."""
+    out = tmp_path_factory.mktemp("expert") / "expert.zarr"
+    arguments = ["demos", "export", "--server", server.address, "--split", "train"]
+    arguments += ["--scenes", ",".join(train_easy[1:3]), "--resolution", str(RESOLUTION)]
+    assert main([*arguments, "--out", str(out), "--no-progress"]) == 0
+    return out
+
+
+@pytest.fixture
+def train_server(server: esrp.LocalServer) -> Iterator[TrainServer]:
+    with TrainServer(server.address) as running:
+        yield running
+
+
+def bc_table(expert: Path, **more: object) -> dict[str, object]:
+    """A tiny `[bc]` table (4 denoising steps: quick episodes); the held-out scene is the first easy
+    train scene."""
+    values: dict[str, object] = {
+        "demos": str(expert),
+        "resolution": RESOLUTION,
+        "feature_dim": 32,
+        "grasp_dim": 8,
+        "cond_dim": 32,
+        "unet_channels": [16, 32],
+        "ddim_steps": 4,
+        "batch_size": 64,
+        "epochs": 1,
+        "lr": 1e-3,
+        "threads": 1,
+        "checkpoint_every": 1,
+        "eval_split": "train",
+        "eval_difficulty": "easy",
+        "eval_limit": 1,
+    }
+    values.update(more)
+    return values
+
+
+def dagger_table(train_easy: list[str], **more: object) -> dict[str, object]:
+    """A tiny `[dagger]` table: 2 of the candidate scenes per iteration, 8 states each."""
+    values: dict[str, object] = {
+        "iterations": 1,
+        "epochs_per_iteration": 1,
+        "scenes_per_iteration": 2,
+        "difficulty": "easy",
+        "scenes": train_easy,  # the held-out one among them is left out
+        "beta": 0.5,
+        "max_steps": 8,
+    }
+    values.update(more)
+    return values
+
+
+def write_toml(path: Path, tables: dict[str, dict[str, object]]) -> Path:
+    """`tables` as a TOML file (JSON's strings, numbers, booleans and lists are TOML's)."""
+    lines = []
+    for name, table in tables.items():
+        lines.append(f"[{name}]")
+        lines += [f"{key} = {json.dumps(value)}" for key, value in table.items()]
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+def rows(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as file:
+        return list(csv.DictReader(file))
+
+
+def train_cli(server: esrp.LocalServer, config: Path, out: Path, *more: str) -> int:
+    arguments = ["train", "bc", "--config", str(config), "--out", str(out), "--server", server.address]
+    return main([*arguments, "--no-progress", *more])
+
+
+# --- Held-out evaluation and in-memory windows.
+
+
+def test_held_out_evaluations_write_rows_and_change_nothing_trained(
+    expert: Path, train_easy: list[str], tmp_path: Path, train_server: TrainServer
+) -> None:
+    config = BcConfig.from_mapping(bc_table(expert, epochs=2, eval_every=1))
+    run = tmp_path / "run"
+    checkpoint = train(config, run, progress=False, server=train_server)
+    evaluations = rows(run / "eval.csv")
+    assert [(r["epoch"], r["steps"], r["episodes"], r["failed"]) for r in evaluations] == [
+        ("1", "2", "1", "0"),
+        ("2", "4", "1", "0"),
+    ]
+    for row in evaluations:
+        assert 0.0 <= float(row["sr"]) <= float(row["osr"]) <= 1.0
+        assert float(row["rdr"]) >= 0.0
+    (record,) = read_records(run / "eval" / "epoch-0002.jsonl").records
+    assert (record.agent, record.scene_id, record.split) == ("bc", train_easy[0], "train")
+    assert record.agent_config == {"checkpoint": str(checkpoint), "epsilon": 0.1, "threads": 1, "batch": 8}
+    assert float(evaluations[1]["rdr"]) == pytest.approx(record.rdr, abs=1e-6)
+    # The same run without evaluations trains the same weights.
+    plain = train(BcConfig.from_mapping(bc_table(expert, epochs=2)), tmp_path / "plain", progress=False)
+    trained, untouched = (torch.load(path, weights_only=False)["model"] for path in (checkpoint, plain))
+    assert trained.keys() == untouched.keys()
+    assert all(torch.equal(value, untouched[key]) for key, value in trained.items())
+    assert not (tmp_path / "plain" / "eval.csv").exists()
+    # An evaluation an interruption cut short (its row never written) is made when the run resumes.
+    with open(run / "eval.csv", "w", newline="") as file:
+        csv.writer(file).writerows([list(evaluations[0]), list(evaluations[0].values())])
+    train(config, run, resume=True, progress=False, server=train_server)
+    assert [r["epoch"] for r in rows(run / "eval.csv")] == ["1", "2"]
+
+
+def test_in_memory_batches_are_the_zarr_batches(
+    server: esrp.LocalServer, expert: Path, train_easy: list[str], tmp_path: Path
+) -> None:
+    other = tmp_path / "other.zarr"
+    arguments = ["demos", "export", "--server", server.address, "--split", "train", "--scenes", train_easy[3]]
+    assert main([*arguments, "--resolution", str(RESOLUTION), "--out", str(other), "--no-progress"]) == 0
+    stores = [str(expert), str(other)]
+    chunked = DemoWindows(stores, n_obs=4, horizon=8)
+    held = DemoWindows(stores, n_obs=4, horizon=8, in_memory=True)
+    assert not chunked.memory
+    assert held.memory["data/ego_rgb"].shape == (len(held), RESOLUTION, RESOLUTION, 3)
+    for seed in range(3):
+        steps = np.sort(np.random.default_rng(seed).choice(len(chunked), size=40, replace=False))
+        a, b = chunked.batch(steps), held.batch(steps)
+        assert a.keys() == b.keys()
+        for key in a:
+            assert a[key].dtype == b[key].dtype
+            assert torch.equal(a[key], b[key]), key
+    # Every step of both stores, the last episode's goal included.
+    everything = np.arange(len(chunked))
+    assert all(torch.equal(v, held.batch(everything)[k]) for k, v in chunked.batch(everything).items())
+
+
+def test_bad_evaluation_settings_are_refused(expert: Path) -> None:
+    for values, message in (
+        ({"eval_split": "validation"}, "eval_split 'validation'"),
+        ({"eval_scenes": ["x"], "eval_limit": 2}, "no eval_limit or eval_offset"),
+        ({"eval_every": -1}, "eval_every, eval_offset and eval_threads must be 0 or more"),
+        ({"eval_epsilon": 2.0}, "eval_epsilon must be between 0 and 1"),
+        ({"in_memory": "yes"}, "in_memory must be true or false"),
+        ({"eval_limit": 0}, "eval_limit must be at least 1"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            BcConfig.from_mapping(bc_table(expert, **values))
+
+
+def test_a_held_out_scene_not_in_the_split_is_named(
+    expert: Path, tmp_path: Path, train_server: TrainServer, easy_scenes: list[str]
+) -> None:
+    config = BcConfig.from_mapping(
+        bc_table(expert, eval_limit=None, eval_scenes=[easy_scenes[0]], eval_every=1)
+    )
+    with pytest.raises(ValueError, match="eval_scenes: scene .* is a test easy scene"):
+        train(config, tmp_path / "run", progress=False, server=train_server)
+
+
+# --- The DAgger loop.
+
+
+def test_dagger_runs_its_iterations_and_resumes_with_more(
+    server: esrp.LocalServer,
+    expert: Path,
+    train_easy: list[str],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    run = tmp_path / "run"
+    config = write_toml(
+        tmp_path / "dagger.toml", {"bc": bc_table(expert), "dagger": dagger_table(train_easy)}
+    )
+    assert train_cli(server, config, run, "--dagger") == 0
+    assert capsys.readouterr().out.strip() == f"checkpoint: {run / 'iter-01' / 'ckpt.pt'}"
+    assert train_cli(server, config, run, "--dagger") == 2
+    assert "already holds a DAgger run: pass --resume" in capsys.readouterr().err
+    first = (run / "iter-01" / "ckpt.pt").stat().st_mtime_ns
+
+    # Two iterations now: the first is kept, the second runs.
+    more = {"bc": bc_table(expert), "dagger": dagger_table(train_easy, iterations=2)}
+    assert train_cli(server, write_toml(config, more), run, "--dagger", "--resume") == 0
+    assert (run / "iter-01" / "ckpt.pt").stat().st_mtime_ns == first
+    log = rows(run / "dagger.csv")
+    assert [r["iteration"] for r in log] == ["0", "1", "2"]
+    expert_steps = int(zarr.open_group(str(expert), mode="r")["meta/episode_ends"][-1])
+    assert (log[0]["episodes"], log[0]["steps"], log[0]["agreement"]) == ("2", str(expert_steps), "")
+    total = expert_steps
+    for k in (1, 2):
+        store = zarr.open_group(str(run / f"dagger-{k:02d}.zarr"), mode="r")
+        assert (store.attrs["labels"], store.attrs["policy"], store.attrs["resolution"]) == (
+            "planner",
+            "bc",
+            32,
+        )
+        scene_ids = list(store.attrs["scene_ids"])
+        assert len(scene_ids) == 2
+        assert set(scene_ids) <= set(train_easy[1:]), "never the held-out scene"
+        ends = store["meta/episode_ends"][:]
+        assert all(0 < int(b) - int(a) <= 8 for a, b in zip([0, *ends[:-1]], ends, strict=True))
+        labels, policy = store["data/action"][:], store["data/policy_action"][:]
+        acted = policy != demos_module.NO_ACTION
+        assert log[k]["episodes"] == "2"
+        assert log[k]["steps"] == str(len(labels))
+        assert float(log[k]["agreement"]) == pytest.approx((policy[acted] == labels[acted]).mean(), abs=1e-6)
+        total += len(labels)
+        assert log[k]["total_steps"] == str(total)
+        folder = run / f"iter-{k:02d}"
+        trained = json.loads((folder / "config.json").read_text())
+        assert trained["demos"] == [
+            str(expert),
+            *(str(run / f"dagger-{i:02d}.zarr") for i in range(1, k + 1)),
+        ]
+        assert trained["seed"] == k
+        # Fine-tuned: the optimizer goes on from the previous iteration's (Adam's step count).
+        steps = [int(rows(run / f"iter-{i:02d}" / "log.csv")[-1]["steps"]) for i in range(k + 1)]
+        state = torch.load(folder / "ckpt.pt", weights_only=False)["optimizer"]["state"]
+        assert int(state[0]["step"]) == sum(steps)
+    for row in log:
+        assert row["eval_episodes"] == "1"
+        assert 0.0 <= float(row["sr"]) <= float(row["osr"]) <= 1.0
+        assert float(row["seconds"]) > 0
+    state = json.loads((run / "state.json").read_text())
+    assert (state["completed"], state["current"]) == (3, None)
+
+    # Settings that change what is trained are refused on resume.
+    other = {"bc": bc_table(expert), "dagger": dagger_table(train_easy, iterations=2, beta=0.25)}
+    assert train_cli(server, write_toml(config, other), run, "--dagger", "--resume") == 2
+    assert "other settings (beta: 0.5 → 0.25)" in capsys.readouterr().err
+
+
+class Interrupted(Exception):
+    """Stands for the signal that stops a run."""
+
+
+def test_an_interrupted_dagger_run_resumes_where_it_stopped(
+    expert: Path,
+    train_easy: list[str],
+    tmp_path: Path,
+    train_server: TrainServer,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    run = tmp_path / "run"
+    bc = BcConfig.from_mapping(bc_table(expert, checkpoint_every=1))
+    dagger = DaggerConfig.from_mapping(dagger_table(train_easy, epochs_per_iteration=2))
+
+    # Interrupted after the first episode of iteration 1's export.
+    append = demos_module._Store.append
+
+    def append_once(store: Any, *args: Any, **kwargs: Any) -> None:  # noqa: ANN401
+        append(store, *args, **kwargs)
+        if store.policy_action is not None:
+            raise Interrupted
+
+    monkeypatch.setattr(demos_module._Store, "append", append_once)
+    with pytest.raises(Interrupted):
+        run_dagger(bc, dagger, run, progress=False, server=train_server)
+    monkeypatch.undo()
+    state = json.loads((run / "state.json").read_text())
+    assert (state["completed"], state["current"]["iteration"], state["current"]["phase"]) == (1, 1, "export")
+    store = zarr.open_group(str(run / "dagger-01.zarr"), mode="r")
+    (exported,) = store.attrs["scene_ids"]
+    first_labels = store["data/action"][:]
+
+    # Interrupted again in iteration 1's training, after its first epoch's checkpoint.
+    def save_then_stop(path: Path, kind: str, model: Any, optimizer: Any, **progress: int) -> None:  # noqa: ANN401
+        save_checkpoint(path, kind, model, optimizer, **progress)
+        if path.parent.name == "iter-01" and progress["epoch"] == 1:
+            raise Interrupted
+
+    monkeypatch.setattr(bc_module, "save_checkpoint", save_then_stop)
+    with pytest.raises(Interrupted):
+        run_dagger(bc, dagger, run, resume=True, progress=False, server=train_server)
+    monkeypatch.undo()
+    state = json.loads((run / "state.json").read_text())
+    assert (state["current"]["iteration"], state["current"]["phase"]) == (1, "train")
+    store = zarr.open_group(str(run / "dagger-01.zarr"), mode="r")
+    assert store.attrs["scene_ids"][0] == exported, "the export went on after its first episode"
+    assert len(store.attrs["scene_ids"]) == 2
+    assert np.array_equal(store["data/action"][: len(first_labels)], first_labels)
+    assert torch.load(run / "iter-01" / "ckpt.pt", weights_only=False)["epoch"] == 1
+
+    checkpoint = run_dagger(bc, dagger, run, resume=True, progress=False, server=train_server)
+    assert checkpoint == run / "iter-01" / "ckpt.pt"
+    assert torch.load(checkpoint, weights_only=False)["epoch"] == 2
+    assert [r["epoch"] for r in rows(run / "iter-01" / "log.csv")] == ["1", "2"]
+    assert [r["iteration"] for r in rows(run / "dagger.csv")] == ["0", "1"]
+    assert rows(run / "dagger.csv")[1]["episodes"] == "2"
+    assert json.loads((run / "state.json").read_text())["completed"] == 2
+
+
+def test_bad_dagger_configs_are_refused(
+    server: esrp.LocalServer,
+    expert: Path,
+    train_easy: list[str],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    run = tmp_path / "run"
+    plain = write_toml(tmp_path / "plain.toml", {"bc": bc_table(expert)})
+    assert train_cli(server, plain, run, "--dagger") == 2
+    assert "has no [dagger] table: esrp train bc --dagger needs one" in capsys.readouterr().err
+    for values, message in (
+        ({"rounds": 2}, "unknown dagger settings ['rounds']"),
+        ({"beta": 1.5}, "dagger beta must be between 0 and 1"),
+        ({"scenes_per_iteration": 0}, "dagger scenes_per_iteration must be at least 1"),
+        ({"iterations": "2"}, "dagger iterations must be an integer"),
+        ({"split": "challenge"}, "dagger split 'challenge': train or test"),
+    ):
+        config = write_toml(
+            tmp_path / "bad.toml", {"bc": bc_table(expert), "dagger": dagger_table(train_easy, **values)}
+        )
+        assert train_cli(server, config, run, "--dagger") == 2
+        assert message in capsys.readouterr().err
+    # The candidates are all held out.
+    held_out = {"bc": bc_table(expert), "dagger": dagger_table(train_easy, scenes=train_easy[:1])}
+    assert train_cli(server, write_toml(tmp_path / "held.toml", held_out), run, "--dagger") == 2
+    assert "no scene is left for DAgger's rollouts" in capsys.readouterr().err
+    assert not run.exists() or not any(run.iterdir()), "nothing written: the fixed config starts afresh"
+
+
+def test_the_shipped_bc_configs_load() -> None:
+    configs = Path(__file__).parent.parent / "configs"
+    loaded = {path.stem: load_config(path) for path in sorted(configs.glob("bc-*.toml"))}
+    assert {"bc-cpu-small", "bc-paper", "bc-dagger-cpu"} <= set(loaded)
+    template = loaded["bc-dagger-cpu"]
+    assert (template.demos, template.in_memory, template.eval_limit) == ("demos/v2-easy-64.zarr", True, 50)
+    dagger = load_dagger_config(configs / "bc-dagger-cpu.toml")
+    assert dagger.iterations >= 1
+    with pytest.raises(ValueError, match="has no \\[dagger\\] table"):
+        load_dagger_config(configs / "bc-cpu-small.toml")
