@@ -34,7 +34,15 @@ from .._common import unreachable
 from .._errors import DeadlineExceeded, EsrpError, ProtocolError, ServerUnavailable
 from .._local import LocalServer
 from .._values import Action, EpisodeMetrics, SceneSummary, Sensors, ServerInfo, action_value
-from ..agents import Agent, AgentFactory, AsyncAgent, RandomAgent, is_async_agent, load_factory
+from ..agents import (
+    Agent,
+    AgentFactory,
+    AsyncAgent,
+    RandomAgent,
+    is_async_agent,
+    load_factory,
+    raised_at,
+)
 from .results import (
     SCHEMA,
     EpisodeRecord,
@@ -384,15 +392,6 @@ def make_factory(agent: str, config: dict[str, Any], results_path: Path) -> Agen
     return None
 
 
-def _where(error: BaseException) -> str:
-    """` (file.py:line)` of the innermost frame of `error`'s traceback, or nothing."""
-    frames = traceback.extract_tb(error.__traceback__)
-    if not frames:
-        return ""
-    last = frames[-1]
-    return f" ({Path(last.filename).name}:{last.lineno})"
-
-
 def check_agent(agent: object, spec: str) -> None:
     """Raises `EvalError` unless `agent` (what `spec`'s factory returned) follows the `Agent` or
     `AsyncAgent` protocol: callable `reset` and `act`, both `async def` or neither.
@@ -419,7 +418,7 @@ def checked_factory(factory: AgentFactory, spec: str, config: dict[str, Any]) ->
         agent = factory(dict(config))
     except Exception as error:  # noqa: BLE001 - the user's factory: said in one line.
         raise EvalError(
-            f"--agent {spec}: the factory raised {type(error).__name__}: {error}{_where(error)} "
+            f"--agent {spec}: the factory raised {type(error).__name__}: {error}{raised_at(error)} "
             f"(called with the agent config {config})"
         ) from error
     check_agent(agent, spec)
@@ -569,11 +568,20 @@ def open_results(settings: EvalSettings, scenes: Sequence[SceneSummary]) -> Resu
 
 def resume_records(path: Path, agent: str, config: dict[str, Any]) -> list[EpisodeRecord]:
     """What an earlier run wrote (a torn last line is cut off first). Refuses a file of another
-    agent, or of the same agent with other settings (another model, budget, ...): one file, one run.
+    agent, or of the same agent with other settings (another model, budget, ...): one file, one run;
+    and a file whose last line is whole (it ends with its newline) but not a record, which no
+    interrupted write leaves (it is not cut off).
     """
     if not path.exists():
         return []
     read = read_records(path)
+    if read.torn_whole:
+        # Not what an interrupted append leaves (it never writes the newline without the rest):
+        # a line of something else, which is not cut off.
+        raise EvalError(
+            f"{read.torn_note(path)}: is it a results file? Write to another --out, or pass --fresh "
+            "to start it over"
+        )
     if read.torn_tail:
         print(f"{path}: dropping a last line an interruption cut short", file=sys.stderr)
         truncate_to(path, read.complete_bytes)

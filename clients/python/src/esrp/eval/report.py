@@ -39,10 +39,12 @@ from .results import (
     PAPER_TEST_SCENES,
     PRIVILEGED_AGENTS,
     EpisodeRecord,
+    ReadRecords,
     ResultsError,
     Tally,
     fixed,
-    read_records,
+    load_records,
+    no_records,
     wilson,
 )
 
@@ -90,18 +92,19 @@ def load_runs(paths: Sequence[str | os.PathLike[str]]) -> list[Run]:
     file's name added where two runs share an agent.
     """
     runs: list[Run] = []
+    reads: list[ReadRecords] = []
     for raw in paths:
         path = Path(raw)
         try:
-            records = read_records(path).records
-        except (OSError, ResultsError) as error:
+            reads.append(load_records(path, "esrp report"))
+        except ResultsError as error:
             raise ReportError(str(error)) from None
         agents: dict[str, list[EpisodeRecord]] = {}
-        for record in records:
+        for record in reads[-1].records:
             agents.setdefault(record.agent, []).append(record)
         runs.extend(Run(agent, path, agent, group) for agent, group in agents.items())
     if not runs:
-        raise ReportError("the results files hold no records")
+        raise ReportError(no_records(paths, reads))
     counts: dict[str, int] = {}
     for run in runs:
         counts[run.agent] = counts.get(run.agent, 0) + 1
