@@ -149,6 +149,39 @@ def test_agents_from_a_module(
             assert r.agent_stats == {"seed": r.seed, "horizon": r.horizon}
 
 
+def test_a_privileged_run_of_an_agent_is_marked_and_reported_as_such(
+    server: esrp.LocalServer,
+    tmp_path: Path,
+    easy_scenes: list[str],
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """`--privileged` episodes of a MODULE:CALLABLE agent were recorded like any other, so esrp report
+    showed the agent as an ESRP agent proper; its records now say `"privileged": true`, the report
+    marks it, and a run without the flag does not resume its file."""
+    from esrp.eval.report import load_runs
+
+    (tmp_path / "my_agents.py").write_text(AGENTS_MODULE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    out = tmp_path / "privileged.jsonl"
+    common = ["eval", "--agent", "my_agents:make", "--agent-config", '{"steps": 2}']
+    common += ["--scenes", easy_scenes[0], "--server", server.address]
+    args = [*common, "--out", str(out)]
+    assert main([*args, "--privileged"]) == 0
+    (record,) = read_records(out).records
+    assert record.extra == {"privileged": True}
+    (run,) = load_runs([out])
+    assert run.shown == "my_agents:make (privileged)"
+    capsys.readouterr()
+    assert main(args) == 2  # the same file, without --privileged
+    assert "played privileged, unlike this run" in capsys.readouterr().err
+    plain = tmp_path / "plain.jsonl"
+    assert main([*common, "--out", str(plain)]) == 0
+    (record,) = read_records(plain).records
+    assert record.extra == {}
+    assert load_runs([plain])[0].shown == "my_agents:make"
+
+
 def test_failed_episodes_are_not_recorded_and_a_rerun_retries_them(
     server: esrp.LocalServer,
     tmp_path: Path,

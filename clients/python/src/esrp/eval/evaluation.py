@@ -142,6 +142,14 @@ class EvalSettings:
             return {}
         return dict(self.agent_config)
 
+    def plays_privileged(self) -> bool:
+        """Whether the episodes are created privileged: `plan` and `expert` always, another agent
+        with `privileged`. A run of another agent with `privileged` marks its records
+        (`"privileged": true`, a field the schema's table does not list), so that `esrp report`
+        shows them as references.
+        """
+        return self.agent in ("plan", "expert") or self.privileged
+
     def seeded(self) -> bool:
         """Whether the agent gets (and the record stores) a per-scene seed: random and factories."""
         return self.agent not in ("plan", "expert")
@@ -321,7 +329,7 @@ async def _play(
     client: AsyncClient, scene: SceneSummary, settings: EvalSettings, factory: AgentFactory | None, seed: int
 ) -> _Played:
     kind = settings.agent
-    privileged = kind in ("plan", "expert") or (factory is not None and settings.privileged)
+    privileged = settings.plays_privileged()
     # A learned policy asks for the views it was trained on (`sensors`) unless the settings say.
     sensors = (settings.sensors or getattr(factory, "sensors", None)) if factory is not None else None
     # The agent's name, as the record's `agent` says it, labels the episode in the server's records.
@@ -461,7 +469,16 @@ def episode_record(
         server_version=info.version,
         client=CLIENT_NAME,
         finished_at=_now_rfc3339(),
+        extra=privileged_mark(settings),
     )
+
+
+def privileged_mark(settings: EvalSettings) -> dict[str, Any]:
+    """The extra field of a run's records that says its agent read the privileged state, where its
+    name does not say it (`{"privileged": true}` for an agent other than plan and expert run with
+    `privileged`); `{}` otherwise.
+    """
+    return {"privileged": True} if settings.privileged and settings.agent not in ("plan", "expert") else {}
 
 
 async def play_episode(
@@ -555,7 +572,7 @@ def open_results(settings: EvalSettings, scenes: Sequence[SceneSummary]) -> Resu
     if settings.fresh and out.exists():
         out.unlink()
     out.parent.mkdir(parents=True, exist_ok=True)
-    records = resume_records(out, settings.agent, settings.recorded_config())
+    records = resume_records(out, settings.agent, settings.recorded_config(), privileged_mark(settings))
     done = {r.scene_id for r in records}
     wanted = {s.id for s in scenes}
     earlier = sum(1 for r in records if r.scene_id in wanted)
@@ -566,11 +583,14 @@ def open_results(settings: EvalSettings, scenes: Sequence[SceneSummary]) -> Resu
     return Resumed(mine, done, todo, earlier, Tally.of(mine))
 
 
-def resume_records(path: Path, agent: str, config: dict[str, Any]) -> list[EpisodeRecord]:
+def resume_records(
+    path: Path, agent: str, config: dict[str, Any], mark: Mapping[str, Any] | None = None
+) -> list[EpisodeRecord]:
     """What an earlier run wrote (a torn last line is cut off first). Refuses a file of another
     agent, or of the same agent with other settings (another model, budget, ...): one file, one run;
     and a file whose last line is whole (it ends with its newline) but not a record, which no
-    interrupted write leaves (it is not cut off).
+    interrupted write leaves (it is not cut off). `mark`: the run's `privileged_mark`, which the
+    file's records must carry too (a privileged run and another are not mixed).
     """
     if not path.exists():
         return []
@@ -595,6 +615,12 @@ def resume_records(path: Path, agent: str, config: dict[str, Any]) -> list[Episo
             raise EvalError(
                 f"{path} holds results of agent {agent!r} with other settings ({record.agent_config}, not "
                 f"{config}): write to another --out, or pass --fresh to start it over"
+            )
+        if bool(record.extra.get("privileged")) != bool((mark or {}).get("privileged")):
+            had = "privileged" if record.extra.get("privileged") else "not privileged"
+            raise EvalError(
+                f"{path} holds results of agent {agent!r} played {had}, unlike this run (--privileged): "
+                "write to another --out, or pass --fresh to start it over"
             )
     return read.records
 

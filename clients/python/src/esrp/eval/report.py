@@ -69,8 +69,10 @@ class Run:
 
     @property
     def privileged(self) -> bool:
-        """Whether the agent reads the privileged state (plan, expert): a reference."""
-        return self.agent in PRIVILEGED_AGENTS
+        """Whether the agent reads the privileged state (plan, expert, or an agent whose records say
+        `"privileged": true`, as `esrp eval --privileged` marks them): a reference.
+        """
+        return self.agent in PRIVILEGED_AGENTS or any(r.extra.get("privileged") is True for r in self.records)
 
     @property
     def shown(self) -> str:
