@@ -91,7 +91,8 @@ class Run:
 
 def load_runs(paths: Sequence[str | os.PathLike[str]]) -> list[Run]:
     """The runs of results files: one per (file, agent), labelled by the agent's name, with the
-    file's name added where two runs share an agent.
+    file's name added where two runs share an agent. A file without records (a run whose episodes
+    all failed) is said on stderr and left out; no file with records raises `ReportError`.
     """
     runs: list[Run] = []
     reads: list[ReadRecords] = []
@@ -107,6 +108,10 @@ def load_runs(paths: Sequence[str | os.PathLike[str]]) -> list[Run]:
         runs.extend(Run(agent, path, agent, group) for agent, group in agents.items())
     if not runs:
         raise ReportError(no_records(paths, reads))
+    for raw, read in zip(paths, reads, strict=True):
+        if not read.records:
+            # Nothing of it in the tables: said, rather than left out unnoticed.
+            print(f"esrp report: warning: {raw} holds no records (left out)", file=sys.stderr)
     counts: dict[str, int] = {}
     for run in runs:
         counts[run.agent] = counts.get(run.agent, 0) + 1
