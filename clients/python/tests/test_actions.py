@@ -90,11 +90,28 @@ def test_vector_env(server: esrp.LocalServer) -> None:
     )
     try:
         envs.reset(seed=0)
-        for actions in (np.array([2, 3]), [2, 3], np.array([2.0, 3.0]), np.array([2, 3], dtype=np.uint8)):
+        taken: list[Any] = [np.array([2, 3]), [2, 3], np.array([2.0, 3.0]), np.array([2, 3], dtype=np.uint8)]
+        # Each sub-env's action as the single env takes it: shape-(1,) arrays, numpy scalars,
+        # integer-valued floats, in a list or as an array of shape (2, 1).
+        taken += [[np.array([2]), np.array([3])], [np.int64(2), 3.0], np.array([[2], [3]])]
+        taken += [(esrp.Action.LEFT, 3)]
+        for actions in taken:
             _, _, _, _, infos = envs.step(actions)
-            assert infos["accepted"].all()
+            assert infos["accepted"].all(), actions
+        # A code out of range and a non-integer float are refused alike, in the words the single
+        # env's step gets from the server, naming the sub-env; nothing moves.
         out_of_range = refused(lambda: envs.step(np.array([2, 7])))
-        assert out_of_range.startswith("actions must be codes 0..5 (esrp.Action), got")
-        assert refused(lambda: envs.step(np.array([2, 2.7]))) == out_of_range.replace("[2 7]", "[2.  2.7]")
+        assert out_of_range == (
+            "INVALID_ARGUMENT: actions[1].action: unknown action code 7: "
+            "use 0 move_forward, 1 move_backward, 2 turn_left, 3 turn_right, 4 fetch, 5 release"
+        )
+        for bad, shown in (([2, 2.7], "2.7"), (np.array([2, 2.7]), "2.7"), ([2, np.float32(2.5)], "2.5")):
+            message = refused(lambda bad=bad: envs.step(bad))
+            assert message == out_of_range.replace("code 7", f"code {shown}"), message
+        assert "actions[0].action: unknown action code '2'" in refused(lambda: envs.step(["2", 3]))
+        _, _, _, _, infos = envs.step([2, 3])
+        assert infos["step_index"].tolist() == [len(taken) + 1] * 2
+        with pytest.raises(ValueError, match="shape"):
+            envs.step(np.array([[2, 3]]))
     finally:
         envs.close()

@@ -149,6 +149,39 @@ def test_agents_from_a_module(
             assert r.agent_stats == {"seed": r.seed, "horizon": r.horizon}
 
 
+def test_a_privileged_run_of_an_agent_is_marked_and_reported_as_such(
+    server: esrp.LocalServer,
+    tmp_path: Path,
+    easy_scenes: list[str],
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """`--privileged` episodes of a MODULE:CALLABLE agent were recorded like any other, so esrp report
+    showed the agent as an ESRP agent proper; its records now say `"privileged": true`, the report
+    marks it, and a run without the flag does not resume its file."""
+    from esrp.eval.report import load_runs
+
+    (tmp_path / "my_agents.py").write_text(AGENTS_MODULE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    out = tmp_path / "privileged.jsonl"
+    common = ["eval", "--agent", "my_agents:make", "--agent-config", '{"steps": 2}']
+    common += ["--scenes", easy_scenes[0], "--server", server.address]
+    args = [*common, "--out", str(out)]
+    assert main([*args, "--privileged"]) == 0
+    (record,) = read_records(out).records
+    assert record.extra == {"privileged": True}
+    (run,) = load_runs([out])
+    assert run.shown == "my_agents:make (privileged)"
+    capsys.readouterr()
+    assert main(args) == 2  # the same file, without --privileged
+    assert "played privileged, unlike this run" in capsys.readouterr().err
+    plain = tmp_path / "plain.jsonl"
+    assert main([*common, "--out", str(plain)]) == 0
+    (record,) = read_records(plain).records
+    assert record.extra == {}
+    assert load_runs([plain])[0].shown == "my_agents:make"
+
+
 def test_failed_episodes_are_not_recorded_and_a_rerun_retries_them(
     server: esrp.LocalServer,
     tmp_path: Path,
@@ -547,6 +580,130 @@ def test_cli_errors_are_one_line(
         err = capsys.readouterr().err
         assert err.count("\n") == 1, err
         assert f"(see esrp {args[0]} --help)" in err
+
+
+def test_bad_input_files_and_modules_are_one_line(
+    server: esrp.LocalServer,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A results line that is JSON but not an object (`[1]`) was an AttributeError traceback in
+    esrp report and the leaderboard; a file whose only line is not a record was "no records" without
+    a reason; esrp eval cut a whole line of someone else's file off as if an interruption had torn
+    it; an agent module with a SyntaxError was a traceback; `esrp bench` printed its usage."""
+    array = tmp_path / "array.jsonl"
+    array.write_text("[1]\n")
+    two = tmp_path / "two.jsonl"
+    two.write_text("[1]\n[2]\n")
+    folder = tmp_path / "records"
+    folder.mkdir()
+    (folder / "a.jsonl").write_text("[1]\n[2]\n")
+    missing = tmp_path / "nosuch.jsonl"
+    notes = tmp_path / "notes.txt"
+    notes.write_text("my notes\n")
+    (tmp_path / "broken_agent.py").write_text("def make(config):\n    return (\n")
+    (tmp_path / "raising_agent.py").write_text("import os\nraise ValueError('no API key')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    report = tmp_path / "report"
+    not_a_record = "its last line is not an esrp.results/v1 record (a JSON list, not an object)"
+    cases = [
+        (
+            ["report", str(array), "--out", str(report)],
+            f"esrp report: the results files hold no records ({array}:1: {not_a_record})",
+        ),
+        (
+            ["report", str(two), "--out", str(report)],
+            f"esrp report: {two}:1: not an esrp.results/v1 record: a JSON list, not an object",
+        ),
+        (
+            ["report", "--leaderboard", str(folder)],
+            f"esrp report: {folder / 'a.jsonl'}:1: not an esrp.results/v1 record",
+        ),
+        (
+            ["report", str(missing), "--out", str(report)],
+            f"esrp report: cannot read {missing}: No such file or directory",
+        ),
+        (
+            ["verify", str(array)],
+            f"esrp verify: the results files hold no records ({array}:1: {not_a_record})",
+        ),
+        (
+            ["replay", "--results", str(array), "--scene", "s", "--out", str(tmp_path / "x.gif")],
+            f"esrp replay: the results files hold no records ({array}:1: {not_a_record})",
+        ),
+        (
+            ["eval", "--agent", "random", "--out", str(notes), "--server", server.address],
+            f"esrp eval: {notes}:1: its last line is not an esrp.results/v1 record (",
+        ),
+        (
+            [
+                "eval",
+                "--agent",
+                "broken_agent:make",
+                "--out",
+                str(tmp_path / "b.jsonl"),
+                "--server",
+                server.address,
+            ],
+            "esrp eval: importing 'broken_agent' for agent 'broken_agent:make' raised SyntaxError: ",
+        ),
+        (
+            [
+                "eval",
+                "--agent",
+                "raising_agent:make",
+                "--out",
+                str(tmp_path / "r.jsonl"),
+                "--server",
+                server.address,
+            ],
+            "esrp eval: importing 'raising_agent' for agent 'raising_agent:make' raised ValueError: "
+            "no API key (raising_agent.py:2)",
+        ),
+    ]
+    for args, start in cases:
+        assert main(args) == 2, args
+        err = capsys.readouterr().err
+        assert "Traceback" not in err, err
+        # The error is the last line; a line before it may say which server the run uses, or which
+        # last line was skipped.
+        assert err.splitlines()[-1].startswith(start), (args, err)
+        assert len(err.splitlines()) <= 2, err
+    assert notes.read_text() == "my notes\n"  # not cut off
+    broken = ["eval", "--agent", "broken_agent:make", "--out", str(tmp_path / "b.jsonl")]
+    assert "(broken_agent.py:2)" in main_err([*broken, "--server", server.address], capsys)
+    for args in (
+        ["bench", "--no-such-flag"],
+        ["eval", "--agent", "random", "--out", "x.jsonl", "--server", " "],
+    ):
+        with pytest.raises(SystemExit) as exited:
+            main(args)
+        assert exited.value.code == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1, err
+        assert err.startswith(f"esrp {args[0]}: error: "), err
+        assert err.endswith(f"(see esrp {args[0]} --help)\n"), err
+
+
+def main_err(args: list[str], capsys: pytest.CaptureFixture[str]) -> str:
+    """What `esrp ARGS` says on stderr (it must fail with status 2)."""
+    assert main(args) == 2, args
+    return capsys.readouterr().err
+
+
+def test_a_bad_server_address_of_the_training_commands_is_said_at_once(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`esrp demos export --server 127.0.0.1:1` said `ServerUnavailable: UNAVAILABLE: ...` without the
+    address; the commands that share `--server` say it as `esrp eval` does, before any work."""
+    pytest.importorskip("zarr")
+    started = time.monotonic()
+    err = main_err(["demos", "export", "--out", str(tmp_path / "d.zarr"), "--server", "50051"], capsys)
+    assert time.monotonic() - started < 10
+    assert err.startswith("esrp demos export: no esrp-server answers at 50051:443 ('50051' has no port"), err
+    assert err.count("\n") == 1, err
+    assert not (tmp_path / "d.zarr").exists()
 
 
 def test_scene_and_agent_names_are_helped(

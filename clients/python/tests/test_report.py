@@ -13,7 +13,7 @@ import pytest
 import esrp
 from esrp.cli import main
 from esrp.eval import report
-from esrp.eval.report import load_runs, write_report
+from esrp.eval.report import ReportError, load_runs, write_report
 from esrp.eval.results import SCHEMA, EpisodeRecord, Tally, append_record, fixed, read_records
 
 CHROMIUM = Path(os.environ.get("ESRP_CHROMIUM", "/usr/bin/chromium"))
@@ -299,6 +299,20 @@ def test_runs_of_one_agent_are_told_apart_by_their_file(tmp_path: Path) -> None:
         "beta",
         "alpha (alpha-again)",
     ]
+
+
+def test_a_file_without_records_is_said_not_dropped_silently(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A run whose every episode failed leaves an empty results file; the report left it out without
+    a word, and a report of it alone had nothing to say but that."""
+    paths = write_fixture(tmp_path)
+    empty = tmp_path / "all-failed.jsonl"
+    empty.write_text("")
+    assert [run.label for run in load_runs([*paths, empty])] == ["alpha", "beta"]
+    assert capsys.readouterr().err == f"esrp report: warning: {empty} holds no records (left out)\n"
+    with pytest.raises(ReportError, match="^the results files hold no records$"):
+        load_runs([empty])
 
 
 def test_the_html_report_in_a_real_browser(server: esrp.LocalServer, tmp_path: Path) -> None:

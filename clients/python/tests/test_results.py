@@ -147,6 +147,29 @@ def test_bad_lines_and_unknown_fields(tmp_path: Path) -> None:
     assert only.osr == 1.0
 
 
+def test_lines_that_are_not_objects_and_what_a_dropped_last_line_was(tmp_path: Path) -> None:
+    """A line of JSON that is not an object (`[1]`, `3`) is a bad line like any other (it raised
+    AttributeError); a dropped last line says why it was dropped and whether it was whole."""
+    path = tmp_path / "r.jsonl"
+    good = record("a", "easy", True, 1.0, 0.0, 4).to_json()
+    for other in ("[1]", "3", "null"):
+        path.write_text(other + "\n" + good + "\n")
+        with pytest.raises(ResultsError, match=":1: not an esrp.results/v1 record: a JSON"):
+            read_records(path)
+    path.write_text(good + "\n[1]\n")
+    read = read_records(path)
+    assert (len(read.records), read.torn_tail, read.torn_line, read.torn_whole) == (1, True, 2, True)
+    assert read.torn_note("r.jsonl") == (
+        "r.jsonl:2: its last line is not an esrp.results/v1 record (a JSON list, not an object)"
+    )
+    path.write_text(good + "\n" + good)
+    read = read_records(path)
+    assert (read.torn_line, read.torn_whole) == (2, False)
+    assert read.torn_note("r.jsonl") == "r.jsonl:2: its last line is cut short (no newline)"
+    path.write_text(good + "\n")
+    assert read_records(path).torn_note("r.jsonl") == ""
+
+
 def test_a_server_record_keeps_its_own_fields(tmp_path: Path) -> None:
     """A server's record (docs/evaluation.md: `token`, `started_at`, `dataset_hash`, `counted`)
     reads as any record; its extra fields are kept and written back after the schema's."""

@@ -48,7 +48,7 @@ from ._values import (
     TopDownFrame,
     action_value,
     observation_images,
-    plain_action,
+    unknown_action,
 )
 from .v1 import esrp_pb2 as pb
 
@@ -155,24 +155,16 @@ def reset_request(episode_id: str, scene: str | None, scene_json: str | None) ->
     return request
 
 
-ACTION_CODES_HELP = "use 0 move_forward, 1 move_backward, 2 turn_left, 3 turn_right, 4 fetch, 5 release"
-"""The end of the server's message for an unknown action code."""
-
-
 def action_code(action: object, at: str = "step") -> int:
     """The integer of an action as a step sends it (`action_value`). Anything else (`2.7`, a string,
     an array of several) raises `InvalidRequest` with the words the server uses for a code outside
-    0..5 (`at` places it: `step`, `steps[3]`); the range itself is the server's to check.
+    0..5 (`unknown_action`; `at` places it: `step`, `steps[3]`); the range itself is the server's
+    to check.
     """
     code = action_value(action)
     if code is not None:
         return code
-    value = plain_action(action)
-    shown = f"array of shape {value.shape}" if isinstance(value, np.ndarray) else repr(value)
-    raise InvalidRequest(
-        f"{at}.action: unknown action code {shown}: {ACTION_CODES_HELP}",
-        code=grpc.StatusCode.INVALID_ARGUMENT,
-    )
+    raise InvalidRequest(unknown_action(action, at), code=grpc.StatusCode.INVALID_ARGUMENT)
 
 
 def step_request(episode_id: str, action: object, include_goal: bool, at: str = "step") -> pb.StepRequest:

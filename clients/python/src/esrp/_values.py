@@ -103,6 +103,20 @@ def plain_action(action: object) -> object:
     return action
 
 
+ACTION_CODES_HELP = "use 0 move_forward, 1 move_backward, 2 turn_left, 3 turn_right, 4 fetch, 5 release"
+"""The end of the server's message for an unknown action code."""
+
+
+def unknown_action(action: object, at: str = "step") -> str:
+    """The message for an action that is not a code 0..5 (`at` places it: `step`, `steps[3]`,
+    `actions[1]`): the server's words for a code out of range, e.g. `step.action: unknown action
+    code 7: use 0 move_forward, ...`, with the value as given (an array by its shape).
+    """
+    value = plain_action(action)
+    shown = f"array of shape {value.shape}" if isinstance(value, np.ndarray) else repr(value)
+    return f"{at}.action: unknown action code {shown}: {ACTION_CODES_HELP}"
+
+
 def action_value(action: object) -> int | None:
     """The integer code of an `ActionLike` (an `Action` or int, a numpy integer, an integer-valued
     float, or a numpy array of one of these, shape `()` or `(1,)`), or None for anything else. The

@@ -595,9 +595,12 @@ def _server(address: str | None) -> Iterator[str]:
         yield local.address
 
 
-def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
-        prog="python -m esrp.bench",
+def _parse_args(argv: Sequence[str] | None, prog: str) -> argparse.Namespace:
+    # The `esrp` command's parser: an error is one line, `PROG: error: ... (see PROG --help)`.
+    from .cli._args import Parser
+
+    parser = Parser(
+        prog=prog,
         description="Throughput and latency of the esrp Python client, beside the Rust client and MiniWorld.",
     )
     parser.add_argument(
@@ -651,8 +654,9 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     return args
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None, prog: str = "python -m esrp.bench") -> int:
     """The command line: runs the rounds, prints the machine and the table, writes the JSON.
+    `prog` names the command in its usage and errors (`esrp bench` when the `esrp` command runs it).
 
     First it applies the process tunings the measurements assume (`esrp._grpc_setup`, before
     anything here imports grpc, and `esrp._malloc_setup`); this module imports grpc only then.
@@ -660,17 +664,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     _grpc_setup.apply()
     _malloc_setup.apply()
     handle_signals = argv is None and threading.current_thread() is threading.main_thread()
-    return run_command("esrp.bench", lambda: _checked(argv), handle_signals=handle_signals)
+    return run_command(prog, lambda: _checked(argv, prog), handle_signals=handle_signals)
 
 
-def _checked(argv: Sequence[str] | None) -> int:
+def _checked(argv: Sequence[str] | None, prog: str) -> int:
     from ._errors import EsrpError
 
-    args = _parse_args(argv)
+    args = _parse_args(argv, prog)
     try:
         return _main(args)
     except EsrpError as error:
-        print(f"esrp.bench: {type(error).__name__}: {error}", file=sys.stderr)
+        print(f"{prog}: {type(error).__name__}: {error}", file=sys.stderr)
         return 1
 
 

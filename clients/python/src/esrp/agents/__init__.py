@@ -17,14 +17,16 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import traceback
 from collections.abc import Callable, Mapping
+from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
 from .._values import Action, Observation
 
-__all__ = ["Agent", "AgentFactory", "AsyncAgent", "RandomAgent", "load_factory"]
+__all__ = ["Agent", "AgentFactory", "AsyncAgent", "RandomAgent", "load_factory", "raised_at"]
 
 
 @runtime_checkable
@@ -90,10 +92,21 @@ def is_async_agent(agent: object) -> bool:
     return inspect.iscoroutinefunction(getattr(agent, "act", None))
 
 
+def raised_at(error: BaseException) -> str:
+    """` (file.py:line)`: where `error` was raised (for a SyntaxError, the line it is about), or
+    nothing when that is unknown.
+    """
+    if isinstance(error, SyntaxError) and error.filename:
+        return f" ({Path(error.filename).name}:{error.lineno})"
+    frames = traceback.extract_tb(error.__traceback__)
+    return f" ({Path(frames[-1].filename).name}:{frames[-1].lineno})" if frames else ""
+
+
 def load_factory(spec: str) -> AgentFactory:
     """The callable named by `MODULE:CALLABLE` (e.g. `my_agents:make_agent`, `pkg.mod:Agent`): the
     module is imported (the working directory is on the path when `esrp` runs), and CALLABLE may be
-    dotted (`module:Class.create`). Raises `ValueError` saying what is missing.
+    dotted (`module:Class.create`). Raises `ValueError` saying what is missing, or what importing
+    the module raised (and where).
     """
     module_name, sep, attribute = spec.partition(":")
     if not sep or not module_name or not attribute:
@@ -105,6 +118,11 @@ def load_factory(spec: str) -> AgentFactory:
         target: Any = importlib.import_module(module_name)
     except ImportError as error:
         raise ValueError(f"cannot import {module_name!r} for agent {spec!r}: {error}") from error
+    except Exception as error:  # noqa: BLE001 - the user's module: said in one line, with its place.
+        raise ValueError(
+            f"importing {module_name!r} for agent {spec!r} raised {type(error).__name__}: {error}"
+            f"{raised_at(error)}"
+        ) from error
     for part in attribute.split("."):
         if not hasattr(target, part):
             raise ValueError(f"{module_name!r} has no {attribute!r} (agent {spec!r})")

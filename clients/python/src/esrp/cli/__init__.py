@@ -21,7 +21,7 @@ from collections.abc import Callable, Sequence
 from .. import __version__, _grpc_setup
 from .._signals import run_command
 from . import evaluation, training
-from ._args import Parser
+from ._args import Parser, command_name
 
 __all__ = ["main"]
 
@@ -66,7 +66,7 @@ def _run(arguments: list[str]) -> int:
         # Its own parser and options (also `python -m esrp.bench`).
         from .. import bench
 
-        return bench.main(arguments[1:])
+        return bench.main(arguments[1:], prog="esrp bench")
     args = _parser().parse_args(arguments)
     from .._errors import EsrpError
 
@@ -74,5 +74,5 @@ def _run(arguments: list[str]) -> int:
     try:
         return handler(args)
     except EsrpError as error:
-        print(f"esrp {args.command}: {type(error).__name__}: {error}", file=sys.stderr)
+        print(f"{command_name(args)}: {type(error).__name__}: {error}", file=sys.stderr)
         return 2

@@ -92,7 +92,10 @@ def sensor_list(text: str) -> Sensors:
 def server_options(parser: argparse.ArgumentParser) -> None:
     """Adds `--server`, `--server-arg` and `--token` to a command that talks to a server."""
     parser.add_argument(
-        "--server", metavar="ADDR", help="a running esrp-server (host:port); without it, one is started"
+        "--server",
+        type=server_address,
+        metavar="ADDR",
+        help="a running esrp-server (host:port); without it, one is started",
     )
     parser.add_argument(
         "--server-arg",
@@ -100,7 +103,7 @@ def server_options(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="ARG",
-        help="an argument for the server started here (repeat for several)",
+        help="an argument for the server started here (repeat for several; a flag as --server-arg=--flag)",
     )
     parser.add_argument(
         "--token",
@@ -109,9 +112,37 @@ def server_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def server_address(text: str) -> str:
+    """A `--server` address: `host:port` (or `http://`, `https://`, or another gRPC target), not
+    blank.
+    """
+    if not text.strip():
+        raise argparse.ArgumentTypeError("give an address, host:port (e.g. 127.0.0.1:50051)")
+    return text.strip()
+
+
+def command_name(args: argparse.Namespace) -> str:
+    """The command `args` were parsed for, as its messages name it: `esrp eval`, `esrp demos export`."""
+    sub = getattr(args, f"{args.command}_command", None)
+    return f"esrp {args.command}" + (f" {sub}" if isinstance(sub, str) else "")
+
+
 def on_server(args: argparse.Namespace, run: Callable[[str], int]) -> int:
-    """`run(address)` on the server `--server` names, or on one started here (`--server-arg`)."""
+    """`run(address)` on the server `--server` names, or on one started here (`--server-arg`). A
+    `--server` where no server answers is said at once, in one line naming the address as gRPC
+    read it (exit status 2), before `run` starts.
+    """
     if args.server is not None:
+        from .._client import Client
+        from .._common import unreachable
+        from .._errors import ServerUnavailable
+
+        try:
+            with Client(args.server, token=args.token, timeout=30) as client:
+                client.server_info()
+        except ServerUnavailable as error:
+            print(f"{command_name(args)}: {unreachable(args.server, error)}", file=sys.stderr)
+            return 2
         return run(args.server)
     from .._local import LocalServer
 

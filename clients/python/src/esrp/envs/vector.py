@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any, cast
 
+import grpc
 import gymnasium
 import numpy as np
 import numpy.typing as npt
@@ -19,7 +20,17 @@ from .. import _malloc_setup
 from .._client import Client, EpisodeStream
 from .._common import TlsSetting
 from .._errors import EpisodeEnded, EsrpError, InvalidRequest, ProtocolError
-from .._values import Difficulty, EpisodeMetrics, RewardWeights, Sensors, Split, StepColumns
+from .._values import (
+    ActionLike,
+    Difficulty,
+    EpisodeMetrics,
+    RewardWeights,
+    Sensors,
+    Split,
+    StepColumns,
+    action_value,
+    unknown_action,
+)
 from ._shared import (
     METADATA,
     Images,
@@ -38,6 +49,39 @@ _ENDED_KEYS = (*_STEP_KEYS, "metrics", "is_success")
 _STEP_DTYPES = (("accepted", bool), ("collided", bool), ("placed_count", int), ("step_index", int))
 _RESET_KEYS = ("scene_id", "difficulty", "room_type", "objects", "horizon")
 _FINAL_KEYS = ("final_obs", "final_info", *_RESET_KEYS)
+
+
+def action_codes(actions: npt.NDArray[Any] | Sequence[ActionLike], num_envs: int) -> list[int]:
+    """The action codes of a vector step: `num_envs` actions, each taken as a single env's step
+    takes it (`esrp.ActionLike`: an int, a numpy integer, an integer-valued float, or a numpy
+    array of one), as an array of shape `(num_envs,)` or `(num_envs, 1)` or a sequence. Raises
+    `ValueError` for another shape, and `InvalidRequest` for an action that is not a code 0..5, in
+    the server's words (`actions[i].action: unknown action code ...`), before anything is sent: a
+    batch that the server splits must not move some sub-envs and then fail.
+    """
+    listed = isinstance(actions, Sequence) and not isinstance(actions, str)
+    if not isinstance(actions, np.ndarray) and not listed:
+        actions = np.asarray(actions)  # a scalar, or another array-like: its shape says
+    if isinstance(actions, np.ndarray):
+        if actions.shape == (num_envs, 1):
+            actions = actions.reshape(num_envs)
+        if actions.shape != (num_envs,):
+            raise ValueError(f"actions must have shape ({num_envs},), got {actions.shape}")
+        if actions.dtype.kind in "iu" and np.all((actions >= 0) & (actions <= 5)):
+            return cast(list[int], actions.tolist())  # the common case, at once
+        items: list[object] = list(actions)
+    else:
+        items = list(cast(Sequence[object], actions))
+        if len(items) != num_envs:
+            raise ValueError(f"actions must be {num_envs} actions (shape ({num_envs},)), got {len(items)}")
+    codes: list[int] = []
+    for i, action in enumerate(items):
+        code = action_value(action)
+        if code is None or not 0 <= code <= 5:
+            message = unknown_action(action, f"actions[{i}]")
+            raise InvalidRequest(message, code=grpc.StatusCode.INVALID_ARGUMENT)
+        codes.append(code)
+    return codes
 
 
 class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[Any]]):
@@ -251,21 +295,16 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         return mask
 
     def step(
-        self, actions: npt.NDArray[np.int64] | Sequence[int]
+        self, actions: npt.NDArray[Any] | Sequence[ActionLike]
     ) -> tuple[
         ObsDict, npt.NDArray[np.float64], npt.NDArray[np.bool_], npt.NDArray[np.bool_], dict[str, Any]
     ]:
         """Steps every sub-env (or autoresets it, in NEXT_STEP mode) in one StepBatch round trip;
-        the autoresets go on the stream at the same time.
+        the autoresets go on the stream at the same time. `actions`: one action per sub-env, each
+        as the single env takes it (`action_codes`).
         """
-        actions = np.asarray(actions)
+        codes = action_codes(actions, self.num_envs)
         n = self.num_envs
-        if actions.shape != (n,):
-            raise ValueError(f"actions must have shape ({n},), got {actions.shape}")
-        if actions.dtype.kind == "f" and np.all(np.isfinite(actions) & (actions == np.round(actions))):
-            actions = actions.astype(np.int64)  # integer-valued floats, as RearrangeEnv takes them
-        if actions.dtype.kind not in "iu" or np.any((actions < 0) | (actions > 5)):
-            raise InvalidRequest(f"actions must be codes 0..5 (esrp.Action), got {actions}")
         if self._stream is None or not np.all(self._started):
             raise gymnasium.error.ResetNeeded("call reset() before step()")
         if self.autoreset_mode == AutoresetMode.DISABLED and np.any(self._autoreset_envs):
@@ -285,7 +324,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         else:
             stepped = list(range(n))
         try:
-            columns = self._step_batch(stepped, actions)
+            columns = self._step_batch(stepped, codes)
         finally:
             # The resets were answered on the stream meanwhile (whatever became of the batch).
             for i, scene in sent.items():
@@ -317,14 +356,13 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         self._autoreset_envs = np.logical_or(terminations, truncations)
         return self._batch(), rewards, terminations, truncations, infos
 
-    def _step_batch(self, stepped: list[int], actions: npt.NDArray[Any]) -> StepColumns:
+    def _step_batch(self, stepped: list[int], codes: list[int]) -> StepColumns:
         """Steps sub-envs `stepped` (in order) with one StepBatch (several beyond the server's
         limits: `Client.step_columns`); their answers as columns in the same order.
         """
         if not stepped:
             return StepColumns(self._image_spec.keys)
         episode_ids = self._episode_ids
-        codes = actions.tolist()
         return self._setup.client.step_columns(
             [cast(str, episode_ids[i]) for i in stepped],
             [codes[i] for i in stepped],

@@ -34,7 +34,15 @@ from .._common import unreachable
 from .._errors import DeadlineExceeded, EsrpError, ProtocolError, ServerUnavailable
 from .._local import LocalServer
 from .._values import Action, EpisodeMetrics, SceneSummary, Sensors, ServerInfo, action_value
-from ..agents import Agent, AgentFactory, AsyncAgent, RandomAgent, is_async_agent, load_factory
+from ..agents import (
+    Agent,
+    AgentFactory,
+    AsyncAgent,
+    RandomAgent,
+    is_async_agent,
+    load_factory,
+    raised_at,
+)
 from .results import (
     SCHEMA,
     EpisodeRecord,
@@ -133,6 +141,14 @@ class EvalSettings:
         if self.agent in ("expert", "random"):
             return {}
         return dict(self.agent_config)
+
+    def plays_privileged(self) -> bool:
+        """Whether the episodes are created privileged: `plan` and `expert` always, another agent
+        with `privileged`. A run of another agent with `privileged` marks its records
+        (`"privileged": true`, a field the schema's table does not list), so that `esrp report`
+        shows them as references.
+        """
+        return self.agent in ("plan", "expert") or self.privileged
 
     def seeded(self) -> bool:
         """Whether the agent gets (and the record stores) a per-scene seed: random and factories."""
@@ -313,7 +329,7 @@ async def _play(
     client: AsyncClient, scene: SceneSummary, settings: EvalSettings, factory: AgentFactory | None, seed: int
 ) -> _Played:
     kind = settings.agent
-    privileged = kind in ("plan", "expert") or (factory is not None and settings.privileged)
+    privileged = settings.plays_privileged()
     # A learned policy asks for the views it was trained on (`sensors`) unless the settings say.
     sensors = (settings.sensors or getattr(factory, "sensors", None)) if factory is not None else None
     # The agent's name, as the record's `agent` says it, labels the episode in the server's records.
@@ -384,15 +400,6 @@ def make_factory(agent: str, config: dict[str, Any], results_path: Path) -> Agen
     return None
 
 
-def _where(error: BaseException) -> str:
-    """` (file.py:line)` of the innermost frame of `error`'s traceback, or nothing."""
-    frames = traceback.extract_tb(error.__traceback__)
-    if not frames:
-        return ""
-    last = frames[-1]
-    return f" ({Path(last.filename).name}:{last.lineno})"
-
-
 def check_agent(agent: object, spec: str) -> None:
     """Raises `EvalError` unless `agent` (what `spec`'s factory returned) follows the `Agent` or
     `AsyncAgent` protocol: callable `reset` and `act`, both `async def` or neither.
@@ -419,7 +426,7 @@ def checked_factory(factory: AgentFactory, spec: str, config: dict[str, Any]) ->
         agent = factory(dict(config))
     except Exception as error:  # noqa: BLE001 - the user's factory: said in one line.
         raise EvalError(
-            f"--agent {spec}: the factory raised {type(error).__name__}: {error}{_where(error)} "
+            f"--agent {spec}: the factory raised {type(error).__name__}: {error}{raised_at(error)} "
             f"(called with the agent config {config})"
         ) from error
     check_agent(agent, spec)
@@ -462,7 +469,16 @@ def episode_record(
         server_version=info.version,
         client=CLIENT_NAME,
         finished_at=_now_rfc3339(),
+        extra=privileged_mark(settings),
     )
+
+
+def privileged_mark(settings: EvalSettings) -> dict[str, Any]:
+    """The extra field of a run's records that says its agent read the privileged state, where its
+    name does not say it (`{"privileged": true}` for an agent other than plan and expert run with
+    `privileged`); `{}` otherwise.
+    """
+    return {"privileged": True} if settings.privileged and settings.agent not in ("plan", "expert") else {}
 
 
 async def play_episode(
@@ -556,7 +572,7 @@ def open_results(settings: EvalSettings, scenes: Sequence[SceneSummary]) -> Resu
     if settings.fresh and out.exists():
         out.unlink()
     out.parent.mkdir(parents=True, exist_ok=True)
-    records = resume_records(out, settings.agent, settings.recorded_config())
+    records = resume_records(out, settings.agent, settings.recorded_config(), privileged_mark(settings))
     done = {r.scene_id for r in records}
     wanted = {s.id for s in scenes}
     earlier = sum(1 for r in records if r.scene_id in wanted)
@@ -567,13 +583,25 @@ def open_results(settings: EvalSettings, scenes: Sequence[SceneSummary]) -> Resu
     return Resumed(mine, done, todo, earlier, Tally.of(mine))
 
 
-def resume_records(path: Path, agent: str, config: dict[str, Any]) -> list[EpisodeRecord]:
+def resume_records(
+    path: Path, agent: str, config: dict[str, Any], mark: Mapping[str, Any] | None = None
+) -> list[EpisodeRecord]:
     """What an earlier run wrote (a torn last line is cut off first). Refuses a file of another
-    agent, or of the same agent with other settings (another model, budget, ...): one file, one run.
+    agent, or of the same agent with other settings (another model, budget, ...): one file, one run;
+    and a file whose last line is whole (it ends with its newline) but not a record, which no
+    interrupted write leaves (it is not cut off). `mark`: the run's `privileged_mark`, which the
+    file's records must carry too (a privileged run and another are not mixed).
     """
     if not path.exists():
         return []
     read = read_records(path)
+    if read.torn_whole:
+        # Not what an interrupted append leaves (it never writes the newline without the rest):
+        # a line of something else, which is not cut off.
+        raise EvalError(
+            f"{read.torn_note(path)}: is it a results file? Write to another --out, or pass --fresh "
+            "to start it over"
+        )
     if read.torn_tail:
         print(f"{path}: dropping a last line an interruption cut short", file=sys.stderr)
         truncate_to(path, read.complete_bytes)
@@ -587,6 +615,12 @@ def resume_records(path: Path, agent: str, config: dict[str, Any]) -> list[Episo
             raise EvalError(
                 f"{path} holds results of agent {agent!r} with other settings ({record.agent_config}, not "
                 f"{config}): write to another --out, or pass --fresh to start it over"
+            )
+        if bool(record.extra.get("privileged")) != bool((mark or {}).get("privileged")):
+            had = "privileged" if record.extra.get("privileged") else "not privileged"
+            raise EvalError(
+                f"{path} holds results of agent {agent!r} played {had}, unlike this run (--privileged): "
+                "write to another --out, or pass --fresh to start it over"
             )
     return read.records
 

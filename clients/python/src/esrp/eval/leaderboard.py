@@ -36,9 +36,9 @@ from .results import (
     ResultsError,
     Tally,
     fixed,
-    read_records,
     wilson,
 )
+from .results import load_records as read_results_file
 
 __all__ = [
     "CHALLENGE_SPLIT",
@@ -163,9 +163,7 @@ def load_records(folder: str | os.PathLike[str]) -> list[Sourced]:
     sourced: list[Sourced] = []
     for path in files:
         try:
-            read = read_records(path)
-        except OSError as error:
-            raise LeaderboardError(f"cannot read {path}: {error.strerror or error}") from None
+            read = read_results_file(path, "esrp report")
         except ResultsError as error:
             raise LeaderboardError(str(error)) from None
         sourced += [Sourced(path, n, r) for n, r in zip(read.line_numbers, read.records, strict=True)]

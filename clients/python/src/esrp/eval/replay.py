@@ -31,7 +31,7 @@ from .._common import unreachable
 from .._errors import EsrpError, ServerUnavailable
 from .._local import LocalServer
 from .._values import Action, EpisodeMetrics, Observation, PrivilegedState, Sensors, StepResult, TopDownFrame
-from .results import EpisodeRecord, ResultsError, read_records
+from .results import EpisodeRecord, ResultsError, load_records, no_records
 
 if TYPE_CHECKING:
     from PIL import Image
@@ -416,13 +416,14 @@ def write_frames(frames: Sequence[Frame], path: str | os.PathLike[str], *, fps: 
 def find_record(results: str | os.PathLike[str], scene_id: str) -> EpisodeRecord:
     """The record of `scene_id` in a results file (the last one, if the file holds several)."""
     try:
-        records = read_records(results).records
-    except OSError as error:
-        raise ReplayError(f"cannot read {results}: {error.strerror or error}") from None
+        read = load_records(results, "esrp replay")
     except ResultsError as error:
         raise ReplayError(str(error)) from None
+    records = read.records
     found = [r for r in records if r.scene_id == scene_id]
     if not found:
+        if not records:
+            raise ReplayError(no_records([results], [read]))
         ends = sorted({r.scene_id for r in records if r.scene_id.endswith("/" + scene_id)})
         hint = f" (did you mean {ends[0]!r}?)" if len(ends) == 1 else ""
         raise ReplayError(f"{results} has no record of scene {scene_id!r}{hint}")

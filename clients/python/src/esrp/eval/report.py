@@ -39,10 +39,12 @@ from .results import (
     PAPER_TEST_SCENES,
     PRIVILEGED_AGENTS,
     EpisodeRecord,
+    ReadRecords,
     ResultsError,
     Tally,
     fixed,
-    read_records,
+    load_records,
+    no_records,
     wilson,
 )
 
@@ -67,8 +69,10 @@ class Run:
 
     @property
     def privileged(self) -> bool:
-        """Whether the agent reads the privileged state (plan, expert): a reference."""
-        return self.agent in PRIVILEGED_AGENTS
+        """Whether the agent reads the privileged state (plan, expert, or an agent whose records say
+        `"privileged": true`, as `esrp eval --privileged` marks them): a reference.
+        """
+        return self.agent in PRIVILEGED_AGENTS or any(r.extra.get("privileged") is True for r in self.records)
 
     @property
     def shown(self) -> str:
@@ -87,21 +91,27 @@ class Run:
 
 def load_runs(paths: Sequence[str | os.PathLike[str]]) -> list[Run]:
     """The runs of results files: one per (file, agent), labelled by the agent's name, with the
-    file's name added where two runs share an agent.
+    file's name added where two runs share an agent. A file without records (a run whose episodes
+    all failed) is said on stderr and left out; no file with records raises `ReportError`.
     """
     runs: list[Run] = []
+    reads: list[ReadRecords] = []
     for raw in paths:
         path = Path(raw)
         try:
-            records = read_records(path).records
-        except (OSError, ResultsError) as error:
+            reads.append(load_records(path, "esrp report"))
+        except ResultsError as error:
             raise ReportError(str(error)) from None
         agents: dict[str, list[EpisodeRecord]] = {}
-        for record in records:
+        for record in reads[-1].records:
             agents.setdefault(record.agent, []).append(record)
         runs.extend(Run(agent, path, agent, group) for agent, group in agents.items())
     if not runs:
-        raise ReportError("the results files hold no records")
+        raise ReportError(no_records(paths, reads))
+    for raw, read in zip(paths, reads, strict=True):
+        if not read.records:
+            # Nothing of it in the tables: said, rather than left out unnoticed.
+            print(f"esrp report: warning: {raw} holds no records (left out)", file=sys.stderr)
     counts: dict[str, int] = {}
     for run in runs:
         counts[run.agent] = counts.get(run.agent, 0) + 1

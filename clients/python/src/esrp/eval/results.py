@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,6 +31,8 @@ __all__ = [
     "Tally",
     "append_record",
     "fnv1a64",
+    "load_records",
+    "no_records",
     "read_records",
     "scene_seed",
     "truncate_to",
@@ -112,6 +115,8 @@ class EpisodeRecord:
         Raises `ValueError` naming the first missing or mistyped field, or a schema other than
         `esrp.results/v1`.
         """
+        if not isinstance(data, Mapping):
+            raise ValueError(f"a JSON {type(data).__name__}, not an object")
         if data.get("schema") != SCHEMA:
             raise ValueError(f"schema is {data.get('schema')!r}, not {SCHEMA!r}")
         values: dict[str, Any] = {}
@@ -173,12 +178,32 @@ class ReadRecords:
         complete_bytes: Byte length of the complete lines read: a last line cut short by an
             interruption starts there, and `truncate_to` removes it.
         torn_tail: Whether a last line was cut short (incomplete or unreadable).
+        torn_line: The number (1-based) of that last line; 0 when there is none.
+        torn_reason: Why it was dropped: `no newline` (a record whose write stopped right before
+            its newline), or why it is not a record (JSON or schema error); empty when none.
+        torn_whole: Whether that line ends with its newline. An interrupted append never leaves
+            one (the newline is the last byte written), so such a line is not a torn write but a
+            line of something else: `esrp eval` refuses to cut it off.
     """
 
     records: list[EpisodeRecord] = field(default_factory=list)
     line_numbers: list[int] = field(default_factory=list)
     complete_bytes: int = 0
     torn_tail: bool = False
+    torn_line: int = 0
+    torn_reason: str = ""
+    torn_whole: bool = False
+
+    def torn_note(self, path: str | os.PathLike[str]) -> str:
+        """The dropped last line of file `path`, in words (empty when none was dropped):
+        `r.jsonl:7: its last line is cut short (no newline)`, or `... is not an esrp.results/v1
+        record (...)`.
+        """
+        if not self.torn_tail:
+            return ""
+        if self.torn_reason == "no newline":
+            return f"{path}:{self.torn_line}: its last line is cut short (no newline)"
+        return f"{path}:{self.torn_line}: its last line is not an {SCHEMA} record ({self.torn_reason})"
 
 
 def read_records(path: str | os.PathLike[str]) -> ReadRecords:
@@ -200,7 +225,8 @@ def read_records(path: str | os.PathLike[str]) -> ReadRecords:
             record = EpisodeRecord.from_dict(json.loads(text.decode()))
         except (ValueError, TypeError) as error:
             if number == len(lines):  # only the last line may be torn
-                out.torn_tail = True
+                out.torn_tail, out.torn_line, out.torn_whole = True, number, complete
+                out.torn_reason = str(error) or type(error).__name__
                 break
             raise ResultsError(f"{path}:{number}: not an {SCHEMA} record: {error}") from None
         if complete:
@@ -209,8 +235,31 @@ def read_records(path: str | os.PathLike[str]) -> ReadRecords:
             out.complete_bytes += len(raw)
         else:
             # A record without its newline: the write was interrupted right before it.
-            out.torn_tail = True
+            out.torn_tail, out.torn_line, out.torn_reason = True, number, "no newline"
     return out
+
+
+def load_records(path: str | os.PathLike[str], command: str) -> ReadRecords:
+    """`read_records(path)` for a command's input: a file that cannot be read raises `ResultsError`
+    in one line (`cannot read r.jsonl: No such file or directory`), and a last line that was
+    dropped is said on stderr (`esrp report: r.jsonl:7: its last line is cut short (no newline),
+    skipped`; `command` names the command).
+    """
+    try:
+        read = read_records(path)
+    except OSError as error:
+        raise ResultsError(f"cannot read {path}: {error.strerror or error}") from None
+    if read.torn_tail:
+        print(f"{command}: {read.torn_note(path)}, skipped", file=sys.stderr)
+    return read
+
+
+def no_records(paths: Sequence[str | os.PathLike[str]], reads: Sequence[ReadRecords]) -> str:
+    """The message for input files that hold no record: `the results files hold no records`, with
+    each dropped last line (`torn_note`), which is often the reason (a file of something else).
+    """
+    notes = [read.torn_note(path) for path, read in zip(paths, reads, strict=True) if read.torn_tail]
+    return "the results files hold no records" + (f" ({'; '.join(notes)})" if notes else "")
 
 
 def read_many(paths: Iterable[str | os.PathLike[str]]) -> list[tuple[Path, list[EpisodeRecord]]]:

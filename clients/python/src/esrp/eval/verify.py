@@ -31,7 +31,7 @@ from .._errors import EsrpError, SceneNotFound, ServerUnavailable
 from .._local import LocalServer
 from .._values import EpisodeMetrics, Sensors, ServerInfo
 from .evaluation import Progress, ServerGone, server_gone
-from .results import EpisodeRecord, ResultsError, read_records
+from .results import EpisodeRecord, ReadRecords, ResultsError, load_records, no_records
 
 __all__ = [
     "CHALLENGE_PREFIXES",
@@ -124,18 +124,16 @@ def read_inputs(paths: Sequence[Path]) -> list[Numbered]:
     said on stderr and left out.
     """
     numbered: list[Numbered] = []
+    reads: list[ReadRecords] = []
     for path in paths:
         try:
-            read = read_records(path)
-        except OSError as error:
-            raise VerifyError(f"cannot read {path}: {error.strerror or error}") from None
+            read = load_records(path, "esrp verify")
         except ResultsError as error:
             raise VerifyError(str(error)) from None
-        if read.torn_tail:
-            print(f"esrp verify: {path}: its last line is cut short (not verified)", file=sys.stderr)
+        reads.append(read)
         numbered += [Numbered(path, n, r) for n, r in zip(read.line_numbers, read.records, strict=True)]
     if not numbered:
-        raise VerifyError("the results files hold no records")
+        raise VerifyError(no_records(paths, reads))
     return numbered
 
 
