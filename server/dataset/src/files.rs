@@ -80,7 +80,11 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FilesError> {
     let dir = path.parent().unwrap_or(Path::new("."));
     std::fs::create_dir_all(dir).map_err(io_error(dir))?;
     let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
+    // Unique per write: two threads (or processes) writing the same file never share a
+    // temporary; the last rename wins, and each rename puts a whole file in place.
+    static WRITES: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = WRITES.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let tmp = dir.join(format!(".{name}.tmp-{}-{n}", std::process::id()));
     let mut file = std::fs::File::create(&tmp).map_err(io_error(&tmp))?;
     file.write_all(bytes).and_then(|()| file.sync_all()).map_err(io_error(&tmp))?;
     std::fs::rename(&tmp, path).map_err(io_error(path))

@@ -14,6 +14,7 @@
 //! - [`start`]: esrp-bench-v2's start pose away from the objects, drawn among the poses the
 //!   generator can reach after its last release, and the check of that rule.
 //! - [`front`]: the 3D-FRONT importer: houses and 3D-FUTURE models to scene pairs.
+//! - [`cache`]: a built-in benchmark's generated scenes kept on disk, once per machine.
 //! - [`files`]: the on-disk format (`manifest.json` and `scenes/*.json`), written atomically.
 //! - [`stats`]: dataset statistics as JSON and PNG plots.
 //! - [`dice`]: the portable seeded random source.
@@ -32,6 +33,7 @@
 
 pub mod backward;
 pub mod benchmark;
+pub mod cache;
 pub mod catalogue;
 pub mod dice;
 pub mod files;

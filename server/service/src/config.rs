@@ -42,6 +42,18 @@ pub struct Config {
     /// Seed of the built-in benchmark (0 is the published one).
     #[arg(long, env = "ESRP_BENCH_SEED", default_value_t = 0)]
     pub bench_seed: u64,
+    /// Where the built-in benchmark's scenes are kept once generated, shared by every server on
+    /// the machine (default: $XDG_CACHE_HOME/esrp/scenes, else ~/.cache/esrp/scenes). Not used
+    /// with --dataset or for the hidden splits.
+    #[arg(long, env = "ESRP_SCENE_CACHE")]
+    pub scene_cache: Option<PathBuf>,
+    /// Generate every scene on first use, keeping none on disk.
+    #[arg(long, env = "ESRP_NO_SCENE_CACHE")]
+    pub no_scene_cache: bool,
+    /// Do not generate the built-in benchmark's missing scenes ahead (a background thread at the
+    /// lowest CPU priority, test split first, into the scene cache).
+    #[arg(long, env = "ESRP_NO_GENERATE_AHEAD")]
+    pub no_generate_ahead: bool,
     /// Most live episodes; CreateEpisode beyond it fails with RESOURCE_EXHAUSTED.
     #[arg(long, env = "ESRP_MAX_EPISODES", default_value_t = 4096)]
     pub max_episodes: usize,

@@ -94,7 +94,25 @@ pub fn tokens_of(config: &Config) -> Result<auth::Tokens, ServeError> {
 pub fn build_episodes(config: &Config) -> Result<Arc<episodes::Episodes>, ServeError> {
     let mut store = match &config.dataset {
         Some(dir) => scenes::SceneStore::folder(dir)?,
-        None => scenes::SceneStore::built_in(config.benchmark, config.bench_seed),
+        None => {
+            let store = scenes::SceneStore::built_in(config.benchmark, config.bench_seed);
+            let root = if config.no_scene_cache {
+                None
+            } else {
+                config.scene_cache.clone().or_else(esrp_dataset::cache::default_root)
+            };
+            match root {
+                // A cache that cannot be made costs speed, never service.
+                Some(root) => match store.with_disk_cache(&root) {
+                    Ok(store) => store,
+                    Err(e) => {
+                        tracing::warn!("no scene cache ({e}): every scene is generated on first use");
+                        scenes::SceneStore::built_in(config.benchmark, config.bench_seed)
+                    }
+                },
+                None => store,
+            }
+        }
     };
     if let Some(secret) = &config.challenge_seed {
         let hidden = scenes::HiddenSplits {
@@ -104,6 +122,10 @@ pub fn build_episodes(config: &Config) -> Result<Arc<episodes::Episodes>, ServeE
             minival: config.minival_scenes as usize,
         };
         store = store.with_hidden(&hidden).map_err(ServeError::Config)?;
+    }
+    if !config.no_generate_ahead {
+        // Detached: it ends when every scene is on disk, or with the process.
+        drop(store.generate_ahead());
     }
     let attempts = records::Attempts::default();
     let recorder = match &config.records {

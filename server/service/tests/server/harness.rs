@@ -23,11 +23,18 @@ impl std::ops::DerefMut for Server {
 }
 
 impl Server {
-    /// Starts `esrp-server --listen 127.0.0.1:0` with extra `args`.
+    /// Starts `esrp-server --listen 127.0.0.1:0` with extra `args`, generating no scene ahead
+    /// (a test of its own does; elsewhere it would only take the cores other tests use).
     pub fn start(args: &[&str]) -> Server {
+        Self::start_with_env(args, &[("ESRP_NO_GENERATE_AHEAD", "true")])
+    }
+
+    /// Starts `esrp-server --listen 127.0.0.1:0` with extra `args` and environment `env`.
+    pub fn start_with_env(args: &[&str], env: &[(&str, &str)]) -> Server {
         let mut command =
             LocalServer::command(Some(env!("CARGO_BIN_EXE_esrp-server").into()), args).expect("the server command");
         command.env("NODEVICE_SELECT", "1").env("ESRP_LOG", "warn").stderr(std::process::Stdio::inherit());
+        command.envs(env.iter().copied());
         Server(LocalServer::spawn(command).expect("the server binary starts and listens"))
     }
 

@@ -9,4 +9,5 @@ mod errors;
 mod harness;
 mod health_check;
 mod lifecycle;
+mod scene_cache;
 mod smoke;
