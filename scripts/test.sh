@@ -18,6 +18,10 @@ if ! ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1 || ! ldconfig -p |
 fi
 ls /usr/share/vulkan/icd.d/
 export NODEVICE_SELECT=1
+# Servers started by the tests fill no scene cache in the background: that thread would only take
+# the cores the tests use, and its allocations would blur the tests that watch a server's memory.
+# (The scene cache itself stays on; server/service/tests/server/scene_cache.rs tests both.)
+export ESRP_NO_GENERATE_AHEAD=true
 
 step "toolchain"
 cargo --version
