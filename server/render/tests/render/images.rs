@@ -12,7 +12,7 @@ use crate::common::{bedroom, one_box_room, renderer, showcase};
 fn png_round_trips() {
     let rgb: Vec<u8> = (0..5 * 3 * 3).map(|i| (i * 7) as u8).collect();
     let png = encode_png_rgb(&rgb, 5, 3).unwrap();
-    assert_eq!(decode_png_rgb(&png).unwrap(), (rgb, 5, 3));
+    assert_eq!(decode_png_rgb(&png).unwrap(), (rgb.clone(), 5, 3));
     assert!(encode_png_rgb(&[0; 5], 5, 3).is_err());
     let fast = encode_png_rgb_fast(&rgb, 5, 3).unwrap();
     assert_eq!(decode_png_rgb(&fast).unwrap(), (rgb, 5, 3));
