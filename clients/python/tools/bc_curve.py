@@ -1,0 +1,89 @@
+"""Learning curve of an `esrp train bc` run: the training loss (and its two terms) against epochs
+beside the held-out success rate (with its 95 % Wilson interval) of the checkpoints evaluated.
+
+    python clients/python/tools/bc_curve.py runs/bc-v2-easy --out docs/images/bc-v2-easy.png
+
+Reads `RUN/log.csv` (one line per epoch) and `RUN/eval.csv` (one line per held-out evaluation, as
+`esrp train bc` writes with `eval_every`); `--log` and `--eval` name other files. A run without
+held-out evaluations gets the loss panel alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from pathlib import Path
+
+from esrp.eval.results import wilson
+
+
+def rows(path: Path) -> list[dict[str, str]]:
+    """The lines of CSV file `path` as dicts."""
+    with open(path, newline="") as file:
+        return list(csv.DictReader(file))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("run", type=Path, help="the run folder of esrp train bc")
+    parser.add_argument("--log", type=Path, help="the per-epoch losses (default RUN/log.csv)")
+    parser.add_argument("--eval", type=Path, help="the held-out evaluations (default RUN/eval.csv)")
+    parser.add_argument("--title", default=None, help="the figure's title (default: the run's name)")
+    parser.add_argument("--out", type=Path, required=True, help="the PNG to write")
+    args = parser.parse_args()
+    log_path = args.log or args.run / "log.csv"
+    eval_path = args.eval or args.run / "eval.csv"
+    if not log_path.is_file():
+        print(f"bc_curve: no {log_path}: not an esrp train bc run", file=sys.stderr)
+        return 2
+    losses = rows(log_path)
+    evaluations = rows(eval_path) if eval_path.is_file() else []
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
+
+    panels = 2 if evaluations else 1
+    figure, axes = plt.subplots(1, panels, figsize=(5.5 * panels, 4), squeeze=False)
+    epochs = [int(r["epoch"]) for r in losses]
+    loss_axis = axes[0][0]
+    for key, label in (("loss", "loss (MSE + λ·CE)"), ("mse", "noise MSE"), ("ce", "cross-entropy")):
+        loss_axis.plot(epochs, [float(r[key]) for r in losses], marker="o", label=label)
+    loss_axis.set_xlabel("epoch")
+    loss_axis.set_ylabel("training loss (epoch mean)")
+    loss_axis.legend(loc="upper right")
+    loss_axis.grid(alpha=0.3)
+    if evaluations:
+        sr_axis = axes[0][1]
+        at = [int(r["epoch"]) for r in evaluations]
+        sr = [100 * float(r["sr"]) for r in evaluations]
+        intervals = [
+            wilson(round(float(r["sr"]) * int(r["episodes"])), int(r["episodes"])) for r in evaluations
+        ]
+        low = [s - 100 * lo for s, (lo, _) in zip(sr, intervals, strict=True)]
+        high = [100 * hi - s for s, (_, hi) in zip(sr, intervals, strict=True)]
+        episodes = evaluations[-1]["episodes"]
+        label = f"held-out SR ({episodes} scenes)"
+        sr_axis.errorbar(at, sr, yerr=[low, high], marker="o", capsize=4, label=label)
+        sr_axis.set_xlabel("epoch")
+        sr_axis.set_ylabel("success rate, % (95 % Wilson interval)")
+        sr_axis.set_ylim(bottom=0)
+        sr_axis.legend(loc="upper left")
+        sr_axis.grid(alpha=0.3)
+    for axis in axes[0]:
+        axis.xaxis.set_major_locator(MaxNLocator(integer=True))
+    figure.suptitle(args.title or args.run.name)
+    figure.tight_layout()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(args.out, dpi=110)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
