@@ -28,7 +28,10 @@ RUN apt-get update \
 # driver's Vulkan and EGL libraries (graphics) and nvidia-smi (utility); its default,
 # compute,utility, would leave the GPU invisible to the renderer. It is inert without a GPU.
 # NO_COLOR: plain log lines (no terminal escapes) in `docker logs`; ESRP_LOG_FORMAT=json for JSON.
+# ESRP_SCENE_CACHE: the user has no home; the built-in scenes are kept in /tmp (an emptyDir in the
+# Kubernetes manifests; mount a volume there to keep them across restarts).
 ENV ESRP_LISTEN=0.0.0.0:50051 \
+    ESRP_SCENE_CACHE=/tmp/esrp-scenes \
     NODEVICE_SELECT=1 \
     NVIDIA_DRIVER_CAPABILITIES=graphics,utility \
     NO_COLOR=1
