@@ -95,23 +95,19 @@ pub fn build_episodes(config: &Config) -> Result<Arc<episodes::Episodes>, ServeE
     let mut store = match &config.dataset {
         Some(dir) => scenes::SceneStore::folder(dir)?,
         None => {
-            let store = scenes::SceneStore::built_in(config.benchmark, config.bench_seed);
+            let mut store = scenes::SceneStore::built_in(config.benchmark, config.bench_seed);
             let root = if config.no_scene_cache {
                 None
             } else {
                 config.scene_cache.clone().or_else(esrp_dataset::cache::default_root)
             };
-            match root {
-                // A cache that cannot be made costs speed, never service.
-                Some(root) => match store.with_disk_cache(&root) {
-                    Ok(store) => store,
-                    Err(e) => {
-                        tracing::warn!("no scene cache ({e}): every scene is generated on first use");
-                        scenes::SceneStore::built_in(config.benchmark, config.bench_seed)
-                    }
-                },
-                None => store,
+            // A cache that cannot be made costs speed, never service.
+            if let Some(root) = root
+                && let Err(e) = store.keep_on_disk(&root)
+            {
+                tracing::warn!("no scene cache ({e}): every scene is generated on first use");
             }
+            store
         }
     };
     if let Some(secret) = &config.challenge_seed {

@@ -143,11 +143,12 @@ impl SceneStore {
 
     /// Keeps the built-in benchmark's scenes in the scene cache under `root` (nothing for a
     /// dataset folder, which is on disk already).
-    pub fn with_disk_cache(mut self, root: &Path) -> Result<Self, esrp_dataset::files::FilesError> {
+    /// On an error the store keeps no scene on disk.
+    pub fn keep_on_disk(&mut self, root: &Path) -> Result<(), esrp_dataset::files::FilesError> {
         if let Source::BuiltIn(bench) = &self.source {
             self.disk = Some(SceneCache::open(root, bench)?);
         }
-        Ok(self)
+        Ok(())
     }
 
     /// The scene cache's folder, if scenes are kept on disk.

@@ -145,12 +145,8 @@ impl Episodes {
         caller: &Caller,
         scene: Option<String>,
     ) -> Result<Vec<crate::records::StoredRecord>, ServiceError> {
-        let dir = self.records_dir()?;
         let token = (!caller.is_admin()).then(|| caller.name.to_string());
-        tokio::task::spawn_blocking(move || crate::records::stored_records(&dir, token.as_deref(), scene.as_deref()))
-            .await
-            .map_err(|e| ServiceError::Internal(format!("reading the records stopped: {e}")))?
-            .map_err(|e| ServiceError::Internal(e.to_string()))
+        self.read_stored(token, scene).await
     }
 
     /// Record `index` of token `token`'s file, if `caller` may read it (its own; any for an admin).
@@ -167,12 +163,27 @@ impl Episodes {
                 crate::error::quoted(token)
             )));
         }
-        let found = self.stored_records(caller, None).await?;
+        // Only the named token's file is read.
+        let found = self.read_stored(Some(token.to_owned()), None).await?;
         found
             .into_iter()
             .find(|r| r.token == token && r.index == index)
             .map(|r| r.record)
             .ok_or_else(|| ServiceError::UnknownRecord { token: token.to_owned(), index })
+    }
+
+    /// The records of `token`'s file (every file's with `None`), of scene `scene` if given, read
+    /// on a blocking thread.
+    async fn read_stored(
+        &self,
+        token: Option<String>,
+        scene: Option<String>,
+    ) -> Result<Vec<crate::records::StoredRecord>, ServiceError> {
+        let dir = self.records_dir()?;
+        tokio::task::spawn_blocking(move || crate::records::stored_records(&dir, token.as_deref(), scene.as_deref()))
+            .await
+            .map_err(|e| ServiceError::Internal(format!("reading the records stopped: {e}")))?
+            .map_err(|e| ServiceError::Internal(e.to_string()))
     }
 
     fn records_dir(&self) -> Result<std::path::PathBuf, ServiceError> {

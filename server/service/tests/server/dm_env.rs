@@ -12,7 +12,7 @@ use esrp_server::proto;
 use tokio::sync::mpsc;
 use tonic::Code;
 
-use super::harness::Server;
+use super::harness::{Server, create_request};
 
 /// One dm_env_rpc connection: requests go out one at a time, each answered in order.
 struct Connection {
@@ -120,15 +120,7 @@ fn check_code(result: Result<impl std::fmt::Debug, Status>, code: Code, needle: 
 /// The expert actions of `scene_id`, from a privileged esrp.v1 episode's scene JSON.
 async fn expert_actions(server: &Server, scene_id: &str) -> Vec<i32> {
     let mut client = server.client().await;
-    let created = client
-        .create_episode(proto::CreateEpisodeRequest {
-            scene: Some(proto::create_episode_request::Scene::SceneId(scene_id.into())),
-            privileged: true,
-            ..Default::default()
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let created = client.create_episode(create_request(scene_id, true)).await.unwrap().into_inner();
     let state = client
         .get_privileged_state(proto::GetPrivilegedStateRequest { episode_id: created.episode_id.clone() })
         .await

@@ -9,22 +9,14 @@ use esrp_dataset::cache::{GENERATOR_VERSION, Lookup, SceneCache};
 use esrp_dataset::{BenchVersion, Benchmark, DEFAULT_SEED};
 use esrp_server::proto;
 
-use super::harness::Server;
+use super::harness::{Server, create_request};
 
 const SCENE: &str = "esrp-bench-v2/00003";
 
 /// The scene JSON a privileged episode of `SCENE` shows.
 async fn served_scene(server: &Server) -> String {
     let mut client = server.client().await;
-    let created = client
-        .create_episode(proto::CreateEpisodeRequest {
-            scene: Some(proto::create_episode_request::Scene::SceneId(SCENE.into())),
-            privileged: true,
-            ..Default::default()
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let created = client.create_episode(create_request(SCENE, true)).await.unwrap().into_inner();
     let state = client
         .get_privileged_state(proto::GetPrivilegedStateRequest { episode_id: created.episode_id })
         .await
