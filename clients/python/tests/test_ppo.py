@@ -112,6 +112,28 @@ def test_the_loss_falls_on_a_fixed_batch() -> None:
     assert losses[-1] < losses[0], losses
 
 
+def test_distinct_goals_with_an_index_give_the_per_step_outputs() -> None:
+    config = PpoConfig.from_mapping({"feature_dim": 16, "grasp_dim": 4, "hidden": 8, "pool": 2})
+    torch.manual_seed(0)
+    network = PpoNet(config)
+    generator = torch.Generator().manual_seed(2)
+    steps, envs = 5, 3
+    images = torch.randint(0, 256, (4, 128, 128, 3), dtype=torch.uint8, generator=generator)
+    index = torch.tensor([[0, 1, 2], [0, 1, 2], [3, 1, 2], [3, 1, 2], [3, 1, 2]]).reshape(-1)
+    ego = network.preprocess(torch.randint(0, 256, (steps * envs, 128, 128, 3), dtype=torch.uint8))
+    grasping = torch.randint(0, 2, (steps * envs,), generator=generator)
+    starts = torch.zeros(steps * envs)
+    starts[6] = 1.0  # sub-env 0 begins its second episode (goal 3) at step 2
+    goals = network.preprocess(images)
+    with torch.no_grad():
+        per_step = network(ego, goals[index], grasping, network.initial_state(envs), starts)
+        indexed = network(ego, goals, grasping, network.initial_state(envs), starts, index)
+        wrong = network(ego, goals, grasping, network.initial_state(envs), starts, torch.zeros_like(index))
+    assert torch.allclose(per_step[0], indexed[0], atol=1e-6)
+    assert torch.allclose(per_step[1], indexed[1], atol=1e-6)
+    assert not torch.allclose(per_step[0], wrong[0], atol=1e-6), "the index chooses the goal"
+
+
 def test_the_lstm_state_restarts_at_episode_starts() -> None:
     config = PpoConfig.from_mapping({"feature_dim": 16, "grasp_dim": 4, "hidden": 8})
     torch.manual_seed(0)
@@ -192,7 +214,7 @@ def test_esrp_train_and_eval_end_to_end(
     config = tmp_path / "ppo.toml"
     config.write_text(
         "[ppo]\n"
-        f'split = "test"\nscene = "{easy_scenes[0]}"\nhorizon = 5\npool = 2\nfeature_dim = 16\n'
+        f'split = "test"\nscene = "{easy_scenes[0]}"\nhorizon = 5\nresolution = 64\nfeature_dim = 16\n'
         "grasp_dim = 4\nhidden = 16\nnum_envs = 2\nnum_steps = 8\nminibatch_size = 8\n"
         'total_steps = 16\nthreads = 1\ndevice = "cpu"\n',
         encoding="utf-8",
@@ -202,6 +224,8 @@ def test_esrp_train_and_eval_end_to_end(
     assert main([*arguments, "--no-progress"]) == 0
     assert load_config(config).scene == easy_scenes[0]
     checkpoint = run / "ckpt.pt"
+    # A 64 px policy: esrp eval creates its episodes at the network's resolution.
+    assert PpoPolicy({"checkpoint": str(checkpoint)}).sensors.resolution == 64
     evaluation = ["eval", "--agent", "ppo", "--checkpoint", str(checkpoint), "--split", "test"]
     evaluation += ["--scenes", easy_scenes[0], "--server", server.address, "--no-progress"]
     assert main([*evaluation, "--out", str(tmp_path / "ppo.jsonl")]) == 0

@@ -22,7 +22,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F  # noqa: N812 - the usual name
 
-from .._values import Action, Observation, RewardWeights
+from .._values import Action, Observation, RewardWeights, Sensors
 from ..train._training import policy_checkpoint
 from .encoders import ENCODERS, check_device, make_encoder
 
@@ -199,12 +199,6 @@ class PpoNet(nn.Module):
             images = F.avg_pool2d(images, self.config.pool)
         return images.mul_(1 / 127.5).sub_(1.0)
 
-    def features(self, ego: torch.Tensor, goal: torch.Tensor, grasping: torch.Tensor) -> torch.Tensor:
-        """The LSTM's inputs from preprocessed ego and goal images and grasp flags (B,) → (B, hidden)."""
-        joined = torch.cat([self.ego(ego), self.goal(goal), self.grasp(grasping.long())], dim=-1)
-        out: torch.Tensor = self.fuse(joined)
-        return out
-
     def recurrent(
         self, features: torch.Tensor, state: LstmState, starts: torch.Tensor
     ) -> tuple[torch.Tensor, LstmState]:
@@ -215,10 +209,15 @@ class PpoNet(nn.Module):
         n = state[0].shape[1]
         features = features.reshape(-1, n, self.lstm.input_size)
         starts = starts.reshape(-1, n)
+        # One LSTM call per run of steps in which no episode starts (episodes are long, so a
+        # minibatch has a few runs, not a call per step): the same outputs, far cheaper to run and
+        # to differentiate.
+        cuts = (torch.nonzero((starts[1:] > 0).any(dim=1)).flatten() + 1).tolist()
+        bounds = [0, *cuts, features.shape[0]]
         outputs = []
-        for x, start in zip(features, starts, strict=True):
-            keep = (1.0 - start).view(1, -1, 1)
-            out, state = self.lstm(x.unsqueeze(0), (keep * state[0], keep * state[1]))
+        for first, end in zip(bounds[:-1], bounds[1:], strict=True):
+            keep = (1.0 - starts[first]).view(1, -1, 1)
+            out, state = self.lstm(features[first:end], (keep * state[0], keep * state[1]))
             outputs.append(out)
         return torch.flatten(torch.cat(outputs), 0, 1), state
 
@@ -229,11 +228,31 @@ class PpoNet(nn.Module):
         grasping: torch.Tensor,
         state: LstmState,
         starts: torch.Tensor,
+        goal_index: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, LstmState]:
         """Action logits (T × N, 6), values (T × N,) and the LSTM state after the last step, from
         preprocessed images (`preprocess`), grasp flags and episode starts, in time-major order.
+
+        `goal` holds one goal image per step or, with `goal_index` (T × N longs), the distinct goal
+        images, step k's being `goal[goal_index[k]]`: an episode keeps one goal, so encoding each
+        once gives the same outputs for a fraction of the encoder's cost.
         """
-        hidden, state = self.recurrent(self.features(ego, goal, grasping), state, starts)
+        goal_features = self.goal(goal)
+        if goal_index is not None:
+            goal_features = goal_features[goal_index]
+        return self.forward_features(ego, goal_features, grasping, state, starts)
+
+    def forward_features(
+        self,
+        ego: torch.Tensor,
+        goal_features: torch.Tensor,
+        grasping: torch.Tensor,
+        state: LstmState,
+        starts: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor, LstmState]:
+        """`forward` with the goal images already encoded (`self.goal(goal)`, one row per step)."""
+        joined = torch.cat([self.ego(ego), goal_features, self.grasp(grasping.long())], dim=-1)
+        hidden, state = self.recurrent(self.fuse(joined), state, starts)
         return self.actor(hidden), self.critic(hidden).squeeze(-1), state
 
 
@@ -261,11 +280,13 @@ class PpoAgent:
         self.goal: torch.Tensor | None = None
         self.generator = torch.Generator().manual_seed(0)
 
+    @torch.no_grad()
     def reset(self, observation: Observation, info: Mapping[str, Any]) -> None:
-        """Starts an episode: zero LSTM state, the goal image kept."""
+        """Starts an episode: zero LSTM state, the goal image encoded once for the whole episode."""
         self.generator = torch.Generator().manual_seed(int(info["seed"]))
         self.state = self.network.initial_state(1)
-        self.goal = self.network.preprocess(torch.from_numpy(np.array(observation.goal_rgb))[None])
+        goal = self.network.preprocess(torch.from_numpy(np.array(observation.goal_rgb))[None])
+        self.goal = self.network.goal(goal)
 
     @torch.no_grad()
     def act(self, observation: Observation) -> Action:
@@ -274,7 +295,9 @@ class PpoAgent:
             raise RuntimeError("act() before reset()")
         ego = self.network.preprocess(torch.from_numpy(np.array(observation.ego_rgb))[None])
         grasping = torch.tensor([int(observation.grasping)])
-        logits, _, self.state = self.network(ego, self.goal, grasping, self.state, torch.zeros(1))
+        logits, _, self.state = self.network.forward_features(
+            ego, self.goal, grasping, self.state, torch.zeros(1)
+        )
         if self.deterministic:
             return Action(int(logits.argmax(dim=-1)[0]))
         probs = torch.softmax(logits[0], dim=-1)
@@ -289,6 +312,8 @@ class PpoPolicy:
 
     def __init__(self, config: Mapping[str, Any]) -> None:
         self.network = load_network(policy_checkpoint(config, "ppo"))
+        self.sensors = Sensors(resolution=self.network.config.resolution)
+        """What its episodes must be created with: views at the network's resolution."""
 
     def __call__(self, config: dict[str, Any]) -> PpoAgent:
         """An agent for one episode."""

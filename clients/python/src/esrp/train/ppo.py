@@ -177,8 +177,10 @@ def _loop(
     observations, _ = env.reset(seed=config.seed + update)
     side = config.resolution // config.pool
     # Images are kept preprocessed (float, pooled): the epochs read them without converting again.
+    # An episode keeps one goal image: a rollout stores each distinct goal once (`goals`) and the
+    # index of each step's (`goal_index`), and encodes a goal once per episode and minibatch.
     ego = torch.zeros((steps_, n, 3, side, side), device=device)
-    goal = torch.zeros_like(ego)
+    goal_index = torch.zeros((steps_, n), dtype=torch.long, device=device)
     grasping = torch.zeros((steps_, n), dtype=torch.long, device=device)
     actions = torch.zeros((steps_, n), dtype=torch.long, device=device)
     logprobs = torch.zeros((steps_, n), device=device)
@@ -197,13 +199,19 @@ def _loop(
         for param_group in optimizer.param_groups:
             param_group["lr"] = lr
         finished: list[tuple[int, float, int, bool]] = []
+        goals = [network.preprocess(_tensor(observations["goal_rgb"], device))]
+        current = torch.arange(n, device=device)  # each sub-env's goal in `goals`
+        with torch.no_grad():
+            goal_features = network.goal(goals[0])
         for t in range(steps_):
             ego[t] = network.preprocess(_tensor(observations["ego_rgb"], device))
-            goal[t] = network.preprocess(_tensor(observations["goal_rgb"], device))
+            goal_index[t] = current
             grasping[t] = _tensor(observations["grasping"], device)
             starts[t] = next_start
             with torch.no_grad():
-                logits, value, state = network(ego[t], goal[t], grasping[t], state, next_start)
+                logits, value, state = network.forward_features(
+                    ego[t], goal_features, grasping[t], state, next_start
+                )
                 action = torch.multinomial(torch.softmax(logits, dim=-1), 1).squeeze(-1)
                 logprob, _ = _log_prob_entropy(logits, action)
             actions[t], logprobs[t], values[t] = action, logprob, value
@@ -219,9 +227,9 @@ def _loop(
                 finals = [infos["final_obs"][i] for i in cut]
                 keep = (state[0][:, cut], state[1][:, cut])
                 with torch.no_grad():
-                    _, final_value, _ = network(
+                    _, final_value, _ = network.forward_features(
                         network.preprocess(_tensor(np.stack([f["ego_rgb"] for f in finals]), device)),
-                        network.preprocess(_tensor(np.stack([f["goal_rgb"] for f in finals]), device)),
+                        goal_features[torch.from_numpy(cut).to(device)],
                         _tensor(np.array([f["grasping"] for f in finals]), device),
                         keep,
                         torch.zeros(cut.size, device=device),
@@ -234,12 +242,20 @@ def _loop(
                 finished.append((global_step, float(episode_return[i]), int(episode_length[i]), success))
                 episode_return[i], episode_length[i] = 0.0, 0
             next_start = _tensor(done.astype(np.float32), device)
+            if done.any():
+                # Autoreset began new episodes: their goals join the rollout's.
+                fresh = torch.from_numpy(np.flatnonzero(done)).to(device)
+                images = network.preprocess(_tensor(observations["goal_rgb"][done], device))
+                current[fresh] = sum(len(g) for g in goals) + torch.arange(len(fresh), device=device)
+                goals.append(images)
+                with torch.no_grad():
+                    goal_features[fresh] = network.goal(images)
 
         # Generalised advantage estimation.
         with torch.no_grad():
-            _, next_value, _ = network(
+            _, next_value, _ = network.forward_features(
                 network.preprocess(_tensor(observations["ego_rgb"], device)),
-                network.preprocess(_tensor(observations["goal_rgb"], device)),
+                goal_features,
                 _tensor(observations["grasping"], device),
                 state,
                 next_start,
@@ -254,7 +270,7 @@ def _loop(
 
         columns = {
             "ego": flat(ego),
-            "goal": flat(goal),
+            "goal_index": flat(goal_index),
             "grasping": flat(grasping),
             "starts": flat(starts),
             "actions": flat(actions),
@@ -263,6 +279,7 @@ def _loop(
             "returns": flat(returns),
             "values": flat(values),
         }
+        all_goals = torch.cat(goals)
         b_returns, b_values = columns["returns"], columns["values"]
         indices = np.arange(steps_ * n).reshape(steps_, n)
         envs_per_batch = config.minibatch_size // steps_
@@ -278,6 +295,9 @@ def _loop(
                 mb = torch.from_numpy(indices[:, group_envs].ravel()).to(device)
                 envs = torch.from_numpy(group_envs).to(device)
                 minibatch = {key: column[mb] for key, column in columns.items()}
+                # Only the goals this minibatch's steps look at, each encoded once.
+                used, minibatch["goal_index"] = torch.unique(minibatch["goal_index"], return_inverse=True)
+                minibatch["goal"] = all_goals[used]
                 loss, losses = ppo_loss(
                     network, config, minibatch, (initial[0][:, envs], initial[1][:, envs])
                 )
@@ -360,10 +380,13 @@ def ppo_loss(
 ) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
     """The clipped PPO loss of a minibatch of whole sequences (time-major, flattened: `ego`, `goal`
     preprocessed images, `grasping`, `starts`, `actions`, and the rollout's `logprobs`,
-    `advantages`, `returns`, `values`), the LSTM starting from `state`; and (policy loss, value
-    loss, entropy, approximate KL, clip fraction), the last two without gradients.
+    `advantages`, `returns`, `values`; with `goal_index`, `goal` holds the distinct goal images as
+    in `PpoNet.forward`), the LSTM starting from `state`; and (policy loss, value loss, entropy,
+    approximate KL, clip fraction), the last two without gradients.
     """
-    logits, new_value, _ = network(batch["ego"], batch["goal"], batch["grasping"], state, batch["starts"])
+    logits, new_value, _ = network(
+        batch["ego"], batch["goal"], batch["grasping"], state, batch["starts"], batch.get("goal_index")
+    )
     new_logprob, entropy = _log_prob_entropy(logits, batch["actions"])
     log_ratio = new_logprob - batch["logprobs"]
     ratio = log_ratio.exp()
