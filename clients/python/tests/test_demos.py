@@ -384,3 +384,26 @@ def test_records_export_refuses_bad_input_in_one_line(
     assert f"cannot read {tmp_path / 'missing.jsonl'}" in refused(
         "--records", str(tmp_path / "missing.jsonl")
     )
+
+
+def test_dagger_skips_a_scene_without_a_plan_from_its_start_and_a_later_run_takes_it(
+    server: esrp.LocalServer,
+    easy_scenes: list[str],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    out = tmp_path / "skipped.zarr"
+    scenes = ["--split", "test", "--scenes", ",".join(easy_scenes[:2]), "--dagger", "random"]
+    # 1 ms is too little to plan from a start away from the objects: no state gets a label.
+    assert export(server, out, *scenes, "--max-steps", "4", "--plan-budget-ms", "1") == 0
+    captured = capsys.readouterr()
+    for scene in easy_scenes[:2]:
+        assert f"{scene}: the planner found no plan from its start: skipped" in captured.err
+    assert "0 episodes, 0 steps (0 added now)" in captured.out
+    assert "2 scenes skipped" in captured.out
+    # The skipped scenes are not marked done: a run with time to plan takes them.
+    assert export(server, out, *scenes, "--max-steps", "4") == 0
+    assert "scenes skipped" not in capsys.readouterr().out
+    store = zarr.open_group(str(out), mode="r")
+    assert store.attrs["scene_ids"] == easy_scenes[:2]
+    assert list(store["meta/episode_ends"][:]) == [4, 8]

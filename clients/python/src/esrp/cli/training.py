@@ -212,6 +212,8 @@ def _demos(args: argparse.Namespace) -> int:
         with Client(address, token=args.token, timeout=120) as client:
             outcome = export_demos(client, settings, sources)
         print(f"{args.out}: {outcome.episodes} episodes, {outcome.steps} steps ({outcome.added} added now)")
+        if outcome.skipped:
+            print(f"{len(outcome.skipped)} scenes skipped (the planner found no plan from their start)")
         if outcome.agreement is not None:
             print(
                 f"the policy's action was the planner's label at {outcome.agreed} of {outcome.compared} "

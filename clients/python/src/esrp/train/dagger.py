@@ -370,13 +370,17 @@ class _Run:
             "episodes": outcome.episodes,
             "steps": outcome.steps,
             "agreement": outcome.agreement,
+            "skipped": list(outcome.skipped),
         }
         agreement = (
             ""
             if outcome.agreement is None
             else f", the policy's action was the planner's label at {100 * outcome.agreement:.1f} % of them"
         )
-        self.say(f"iteration {iteration}: {outcome.episodes} episodes, {outcome.steps} states{agreement}")
+        skipped = f" ({len(outcome.skipped)} skipped: no plan from their start)" if outcome.skipped else ""
+        self.say(
+            f"iteration {iteration}: {outcome.episodes} episodes, {outcome.steps} states{agreement}{skipped}"
+        )
 
     def fit(self, iteration: int) -> None:
         """Trains (iteration 0) or fine-tunes this iteration's model, then evaluates it."""

@@ -134,6 +134,8 @@ class ExportOutcome:
         compared: A DAgger store's states where the policy gave an action (None for other stores,
             and for DAgger stores made before `data/policy_action` existed).
         agreed: Of those, the states where the policy's action was the planner's label.
+        skipped: Scenes of a DAgger export left out because the planner found no plan from their
+            start (no state of theirs has a label).
     """
 
     episodes: int
@@ -141,6 +143,7 @@ class ExportOutcome:
     added: int
     compared: int | None = None
     agreed: int | None = None
+    skipped: tuple[str, ...] = ()
 
     @property
     def agreement(self) -> float | None:
@@ -345,9 +348,15 @@ def _replay(
         )
 
 
-def _dagger(client: Client, scene: SceneSummary, settings: DemoSettings, factory: Any) -> _DaggerEpisode:  # noqa: ANN401
+def _dagger(
+    client: Client,
+    scene: SceneSummary,
+    settings: DemoSettings,
+    factory: Any,  # noqa: ANN401
+) -> _DaggerEpisode | None:
     """Runs `settings.dagger`'s agent on `scene` and labels each state it visits with the planner's
-    next action: (goal, ego views, grasp flags, labels), and the agent's own actions.
+    next action: (goal, ego views, grasp flags, labels), and the agent's own actions; None when the
+    planner finds no plan from the scene's start (no state has a label).
     """
     sensors = Sensors(resolution=settings.resolution) if settings.resolution else None
     seed = scene_seed(settings.seed, scene.id)
@@ -395,7 +404,7 @@ def _dagger(client: Client, scene: SceneSummary, settings: DemoSettings, factory
     finally:
         loop.close()
     if not labels:
-        raise DemoExportError(f"{scene.id}: the planner found no plan from the scene's start")
+        return None  # the planner found no plan from the scene's start: nothing to label
     recorded = (
         np.array(first.goal_rgb),
         np.stack(egos),
@@ -575,16 +584,21 @@ def export_demos(
         )
     every = max(len(scenes) // 20, 1)
     added = 0
+    skipped: list[str] = []
     for scene in todo:
         if factory is None:
             store.append(scene.id, _replay(client, scene, settings.resolution))
         else:
             played = _dagger(client, scene, settings, factory)
-            store.append(scene.id, played.episode, policy_actions=played.policy_actions)
-        added += 1
-        position = len(scenes) - len(todo) + added
+            if played is None:
+                skipped.append(scene.id)
+                print(f"{scene.id}: the planner found no plan from its start: skipped", file=sys.stderr)
+            else:
+                store.append(scene.id, played.episode, policy_actions=played.policy_actions)
+                added += 1
+        position = len(scenes) - len(todo) + added + len(skipped)
         if settings.progress and (position % every == 0 or position == len(scenes)):
             print(f"{position}/{len(scenes)} episodes, {store.steps} steps", file=sys.stderr)
     agreement = store.agreement()
     compared, agreed = agreement if agreement is not None else (None, None)
-    return ExportOutcome(len(store.scene_ids), store.steps, added, compared, agreed)
+    return ExportOutcome(len(store.scene_ids), store.steps, added, compared, agreed, tuple(skipped))
