@@ -208,6 +208,27 @@ def test_training_resumes_from_its_checkpoint(
     assert (state["update"], state["steps"]) == (2, 32)
 
 
+def test_stop_at_ends_early_with_a_checkpoint_and_keeps_the_schedule(
+    tmp_path: Path, client: esrp.Client, easy_scenes: list[str]
+) -> None:
+    config = tiny(easy_scenes[0], total_steps=48, checkpoint_every=10)
+    run = tmp_path / "run"
+    with pytest.raises(ValueError, match="stop_at must be at least 1"):
+        train(config, run, client, progress=False, stop_at=0)
+    train(config, run, client, progress=False, stop_at=20)
+    steps = [row["steps"] for row in rows(run / "log.csv")]
+    assert steps == ["16", "32"], "stops after the update that reaches 20"
+    state = torch.load(run / "ckpt.pt", weights_only=False)
+    assert (state["update"], state["steps"]) == (2, 32), "a checkpoint though checkpoint_every is 10"
+    train(config, run, client, resume=True, progress=False, stop_at=32)  # reached already: nothing runs
+    assert len(rows(run / "log.csv")) == 2
+    train(config, run, client, resume=True, progress=False)
+    log = rows(run / "log.csv")
+    assert [row["update"] for row in log] == ["1", "2", "3"]
+    # The learning rate anneals over total_steps, stopped or not.
+    assert [float(row["lr"]) for row in log] == pytest.approx([config.lr * (1 - u / 3) for u in range(3)])
+
+
 def test_esrp_train_and_eval_end_to_end(
     tmp_path: Path, server: esrp.LocalServer, easy_scenes: list[str]
 ) -> None:

@@ -117,6 +117,13 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
     ppo.add_argument("--config", type=Path, required=True, help="a TOML file with a [ppo] table, or JSON")
     ppo.add_argument("--out", type=Path, default=Path("runs/ppo"), help="the run folder (default runs/ppo)")
     ppo.add_argument("--resume", action="store_true", help="go on from RUN/ckpt.pt (with fresh episodes)")
+    ppo.add_argument(
+        "--stop-at",
+        type=positive,
+        metavar="STEPS",
+        help="stop, with a checkpoint, after the first update that reaches STEPS environment steps, "
+        "the schedule unchanged: --resume goes on (e.g. on other scenes, a curriculum)",
+    )
     ppo.add_argument("--no-progress", dest="progress", action="store_false")
     server_options(ppo)
     demos.set_defaults(handler=_demos)
@@ -281,7 +288,9 @@ def _train_ppo(args: argparse.Namespace, name: str) -> int:
 
     def run(address: str) -> int:
         with Client(address, token=args.token, timeout=120) as client:
-            checkpoint = train(config, args.out, client, resume=args.resume, progress=args.progress)
+            checkpoint = train(
+                config, args.out, client, resume=args.resume, progress=args.progress, stop_at=args.stop_at
+            )
         print(f"checkpoint: {checkpoint}")
         return 0
 

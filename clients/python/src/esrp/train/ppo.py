@@ -121,10 +121,17 @@ def train(
     resume: bool = False,
     progress: bool = True,
     on_update: Callable[[UpdateStats], None] | None = None,
+    stop_at: int | None = None,
 ) -> Path:
     """Trains until `config.total_steps` environment steps (from the checkpoint in `out` with
     `resume`) on the server behind `client`; returns the checkpoint's path.
+
+    `stop_at` ends the run early, with a checkpoint, after the first update that reaches that many
+    steps, leaving the schedule (the learning rate's annealing) as `total_steps` sets it: a later
+    `resume` goes on, for instance on other scenes (a curriculum).
     """
+    if stop_at is not None and stop_at < 1:
+        raise ValueError(f"stop_at must be at least 1 step, got {stop_at}")
     _malloc_setup.apply()  # the step and batch buffers stay mapped (esrp._malloc_setup)
     device = resolve_device(config.device)
     if config.threads > 0:
@@ -152,9 +159,12 @@ def train(
         with open(episodes_path, "w", newline="") as file:
             csv.writer(file).writerow(["steps", "return", "length", "success"])
 
+    if stop_at is not None and global_step >= stop_at:
+        print(f"{checkpoint} has {global_step} steps (stop at {stop_at}): nothing to do", file=sys.stderr)
+        return checkpoint
     env = make_env(config, client)
     try:
-        _loop(config, network, optimizer, env, device, out, update, global_step, progress, on_update)
+        _loop(config, network, optimizer, env, device, out, update, global_step, progress, on_update, stop_at)
     finally:
         env.close()
     return checkpoint
@@ -171,6 +181,7 @@ def _loop(
     global_step: int,
     progress: bool,
     on_update: Callable[[UpdateStats], None] | None,
+    stop_at: int | None = None,
 ) -> None:
     steps_, n = config.num_steps, config.num_envs
     # A resumed run starts fresh episodes, seeded apart from the ones before.
@@ -344,8 +355,12 @@ def _loop(
             )
         if on_update is not None:
             on_update(stats)
-        if update % config.checkpoint_every == 0 or update == config.num_updates:
+        stopping = stop_at is not None and global_step >= stop_at
+        if update % config.checkpoint_every == 0 or update == config.num_updates or stopping:
             save_checkpoint(out / "ckpt.pt", "esrp-ppo", network, optimizer, update=update, steps=global_step)
+        if stopping:
+            print(f"stopped at {global_step} steps (--stop-at {stop_at}): --resume goes on", file=sys.stderr)
+            break
 
 
 def gae(
