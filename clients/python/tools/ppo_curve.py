@@ -9,6 +9,14 @@ vector env (`esrp.train.ppo.make_env`: its scenes, horizon, reward, resolution),
 here (or `--server`); then plots the return of every training episode (and its moving average) and
 the success rate against environment steps, with the random agent's and the final policy's means
 as lines. Prints (and with `--json` writes) the numbers.
+
+A run trained in phases (a curriculum: `--stop-at`, then `--resume` on other scenes) is drawn with
+`--phases 0:"v1 easy",400000:"v2 easy"` (a line where each phase begins); `--no-play` draws the
+training curve alone (for a run whose figures come from `esrp eval` on the test split), and
+`--reference "v2 easy test=0.05"` adds a success rate measured elsewhere as a line.
+
+    python clients/python/tools/ppo_curve.py runs/ppo-v2-easy --out docs/images/ppo-v2-easy.png \
+        --no-play --phases '0:v1 easy,409600:v2 easy' --reference 'v2 Easy test split=0.05'
 """
 
 from __future__ import annotations
@@ -97,7 +105,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--window", type=int, default=50, help="episodes in the moving average")
     parser.add_argument("--server", help="a running esrp-server (default: one is started)")
     parser.add_argument("--seed", type=int, default=12345)
+    parser.add_argument("--no-play", dest="play", action="store_false", help="the training curve alone")
+    parser.add_argument("--phases", default="", help="STEPS:LABEL,... where each phase of the run begins")
+    parser.add_argument(
+        "--reference", action="append", default=[], help="LABEL=SR: a success rate measured elsewhere"
+    )
     args = parser.parse_args(argv)
+    try:
+        phases = [
+            (int(steps), label) for steps, label in (p.split(":", 1) for p in args.phases.split(",") if p)
+        ]
+        references = [(label, float(sr)) for label, sr in (r.rsplit("=", 1) for r in args.reference)]
+    except ValueError:
+        parser.error("--phases takes STEPS:LABEL,... and --reference LABEL=SR")
 
     import matplotlib
 
@@ -122,7 +142,11 @@ def main(argv: list[str] | None = None) -> int:
             final = play(config, client, args.episodes, network, args.greedy, args.seed)
         return random, final
 
-    if args.server:
+    random: dict[str, Any] | None = None
+    final: dict[str, Any] | None = None
+    if not args.play:
+        pass
+    elif args.server:
         random, final = evaluate(args.server)
     else:
         with esrp.LocalServer() as server:
@@ -135,15 +159,32 @@ def main(argv: list[str] | None = None) -> int:
     figure, (top, bottom) = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True)
     top.scatter(steps, returns, s=3, alpha=0.25, color="tab:blue", label="training episode")
     top.plot(steps[window - 1 :], average, color="tab:blue", label=f"moving average ({window} episodes)")
-    top.axhline(random["return_mean"], color="tab:red", linestyle="--", label="random agent")
-    top.axhline(final["return_mean"], color="tab:green", linestyle=":", label="final policy")
+    if random is not None and final is not None:
+        top.axhline(random["return_mean"], color="tab:red", linestyle="--", label="random agent")
+        top.axhline(final["return_mean"], color="tab:green", linestyle=":", label="final policy")
     top.set_ylabel("episode return (dense reward)")
-    top.legend(loc="lower right", fontsize=8)
     scene = config.scene or f"{config.split} {config.difficulty or ''}".strip()
     top.set_title(f"ESRP-PPO on {scene}: {config.num_envs} envs, {steps[-1]:,} steps")
     bottom.plot(steps[window - 1 :], success_average, color="tab:blue", label="training (moving average)")
-    bottom.axhline(random["success_rate"], color="tab:red", linestyle="--", label="random agent")
-    bottom.axhline(final["success_rate"], color="tab:green", linestyle=":", label="final policy")
+    if random is not None and final is not None:
+        bottom.axhline(random["success_rate"], color="tab:red", linestyle="--", label="random agent")
+        bottom.axhline(final["success_rate"], color="tab:green", linestyle=":", label="final policy")
+    for (label, sr), color in zip(references, ("tab:purple", "tab:orange", "tab:brown"), strict=False):
+        bottom.axhline(sr, color=color, linestyle="-.", label=label)
+    for axes in (top, bottom):
+        for at, label in phases:
+            axes.axvline(at, color="grey", linewidth=0.8)
+            if axes is top:
+                axes.annotate(
+                    label,
+                    (at, 1.0),
+                    xycoords=("data", "axes fraction"),
+                    xytext=(3, -12),
+                    textcoords="offset points",
+                    fontsize=8,
+                    color="dimgrey",
+                )
+    top.legend(loc="upper right", fontsize=8)
     bottom.set_ylim(-0.03, 1.03)
     bottom.set_xlabel("environment steps")
     bottom.set_ylabel("success rate")
@@ -157,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         "training_steps": int(steps[-1]),
         "training_episodes": len(rows),
         "random": random,
-        "final_policy": {**final, "greedy": args.greedy},
+        "final_policy": None if final is None else {**final, "greedy": args.greedy},
     }
     text = json.dumps(summary, indent=2)
     print(text)
