@@ -2,7 +2,7 @@
 `esrp verify` (replay results files' records on the server and check them), `esrp report` (tables
 and plots of results files as Markdown and one self-contained HTML page; `--leaderboard`: the
 challenge's ranking from a server's records) and `esrp replay` (re-run a recorded episode on the
-server and write it as a GIF, MP4 or PNG).
+server and write it as a GIF, MP4 or PNG); `esrp doctor` checks that this machine can run ESRP.
 `esrp COMMAND --help` says more; docs/evaluation.md describes the results files.
 
 Each command group has its module, parser and handlers together: `cli.evaluation` (eval, verify,
@@ -20,7 +20,7 @@ from collections.abc import Callable, Sequence
 
 from .. import __version__, _grpc_setup
 from .._signals import run_command
-from . import evaluation, training
+from . import doctor, evaluation, training
 from ._args import Parser, command_name
 
 __all__ = ["main"]
@@ -33,6 +33,7 @@ def _parser() -> argparse.ArgumentParser:
 
     evaluation.add_commands(commands)
     training.add_commands(commands)
+    doctor.add_commands(commands)
     commands.add_parser(
         "bench",
         add_help=False,

@@ -1,0 +1,334 @@
+"""`esrp doctor`: checks that this machine can run ESRP, one line per check, and says what to install
+or set for each one that fails.
+
+The checks, in order: Python and the package's dependencies; the native transport; the server
+binary `LocalServer` would start and its version (skipped with `--server`); a server started (or
+reached) and its version against this package's; the renderer it chose; a test render (a test
+scene's first views must not be blank); and the throughput of a few seconds of random steps, one
+episode and (with Gymnasium) a vector env of 16. Exit status 0 when nothing failed, 1 otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import platform
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from importlib import metadata
+from typing import TYPE_CHECKING
+
+from .. import __version__
+from ._args import Parser, server_options
+
+if TYPE_CHECKING:
+    from .._client import Client
+
+__all__ = ["Check", "add_commands", "same_release"]
+
+MINIMUM_PYTHON = (3, 10)
+
+
+@dataclass
+class Check:
+    """One line of the report: `status` is "ok", "warn" (works, could be better) or "FAIL"."""
+
+    name: str
+    status: str
+    detail: str
+    fix: str = ""
+
+
+def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
+    """Adds `esrp doctor`."""
+    doctor = commands.add_parser(
+        "doctor",
+        help="check that this machine can run ESRP, and say what to install or set",
+        description=__doc__.split("\n\n")[0],
+    )
+    doctor.add_argument(
+        "--seconds", type=float, default=5.0, help="seconds of random steps per throughput check (default 5)"
+    )
+    server_options(doctor)
+    doctor.set_defaults(handler=_doctor)
+
+
+def same_release(client: str, server: str) -> bool:
+    """Whether a client and a server version speak to each other: the same major and minor version
+    (`0.1.0` and `0.1.3` do; `0.1.0` and `0.2.0` do not).
+    """
+    return client.split(".")[:2] == server.split(".")[:2]
+
+
+def _minor(version: str) -> str:
+    return ".".join(version.split(".")[:2])
+
+
+def _doctor(args: argparse.Namespace) -> int:
+    if args.seconds <= 0:
+        print("esrp doctor: --seconds must be more than 0", file=sys.stderr)
+        return 2
+    checks: list[Check] = []
+
+    def report(check: Check) -> None:
+        checks.append(check)
+        print(f"{check.status:<5} {check.name:<18} {check.detail}", flush=True)
+        if check.fix:
+            print(f"{'':<24}→ {check.fix}", flush=True)
+
+    print(f"esrp doctor (esrp {__version__})")
+    report(_python())
+    for check in _packages():
+        report(check)
+    report(_native())
+    if args.server is None:
+        binary = _binary()
+        report(binary)
+        if binary.status == "FAIL":
+            return _summary(checks)
+    _on_server(args, report)
+    return _summary(checks)
+
+
+def _summary(checks: list[Check]) -> int:
+    failed = [c.name for c in checks if c.status == "FAIL"]
+    warned = [c.name for c in checks if c.status == "warn"]
+    if failed:
+        print(f"\n{len(failed)} check(s) failed: {', '.join(failed)}")
+        return 1
+    print(f"\nall {len(checks)} checks passed" + (f" ({len(warned)} with a warning)" if warned else ""))
+    return 0
+
+
+def _python() -> Check:
+    version = ".".join(map(str, sys.version_info[:3]))
+    detail = f"Python {version} on {platform.system()} {platform.machine()} ({sys.executable})"
+    if sys.version_info[:2] < MINIMUM_PYTHON:
+        return Check("python", "FAIL", detail, "esrp needs Python 3.10 or newer")
+    return Check("python", "ok", detail)
+
+
+def _version(package: str) -> str | None:
+    try:
+        return metadata.version(package)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def _packages() -> list[Check]:
+    required = {name: _version(name) for name in ("numpy", "grpcio", "protobuf")}
+    missing = [name for name, version in required.items() if version is None]
+    found = ", ".join(f"{name} {version}" for name, version in required.items() if version)
+    checks = [
+        Check("dependencies", "FAIL", f"missing: {', '.join(missing)}", "pip install esrp (it installs them)")
+        if missing
+        else Check("dependencies", "ok", found)
+    ]
+    extras = {
+        "gymnasium": ("gym", "the Gymnasium envs"),
+        "torch": ("train", "esrp train bc|ppo and the learned agents"),
+        "matplotlib": ("report", "esrp report's plots and esrp replay"),
+    }
+    have = [f"{name} {_version(name)}" for name in extras if _version(name)]
+    lacking = [
+        f"{name} (pip install 'esrp[{extra}]' for {what})"
+        for name, (extra, what) in extras.items()
+        if not _version(name)
+    ]
+    detail = ", ".join(have) if have else "none installed"
+    checks.append(
+        Check(
+            "optional packages", "ok", detail + (f"; not installed: {'; '.join(lacking)}" if lacking else "")
+        )
+    )
+    return checks
+
+
+def _native() -> Check:
+    from .. import _native
+
+    version = _version("esrp-native")
+    if _native.available():
+        return Check(
+            "native transport", "ok", f"esrp-native {version or '(version unknown)'}: used by default"
+        )
+    return Check(
+        "native transport",
+        "warn",
+        "esrp-native is not installed: calls go over grpcio (about 40 % more client CPU per step)",
+        "pip install esrp-native (a wheel from scripts/build-wheels.sh, or clients/python/native's README)",
+    )
+
+
+def _binary() -> Check:
+    from .._errors import LocalServerError
+    from .._local import find_server_binary
+
+    try:
+        path = find_server_binary()
+    except LocalServerError as error:
+        return Check(
+            "server binary",
+            "FAIL",
+            str(error),
+            "install the esrp-server wheel or build it, set ESRP_SERVER_BIN, or check a running server "
+            "with --server ADDR",
+        )
+    try:
+        answer = subprocess.run(
+            [str(path), "--version"], capture_output=True, text=True, timeout=30, check=False
+        )
+    except OSError as error:
+        return Check(
+            "server binary", "FAIL", f"{path} does not run: {error}", "rebuild it, or set ESRP_SERVER_BIN"
+        )
+    words = answer.stdout.split()
+    if answer.returncode != 0 or len(words) < 2:
+        tail = (answer.stderr or answer.stdout).strip().splitlines()[-1:] or ["no output"]
+        return Check(
+            "server binary",
+            "FAIL",
+            f"{path} --version failed: {tail[0]}",
+            "rebuild it, or set ESRP_SERVER_BIN",
+        )
+    version = words[-1]
+    if not same_release(__version__, version):
+        return Check(
+            "server binary",
+            "FAIL",
+            f"{path} is esrp-server {version}; this package is esrp {__version__}",
+            f"install esrp-server {_minor(__version__)}.x, or esrp {_minor(version)}.x",
+        )
+    return Check("server binary", "ok", f"{path} (esrp-server {version})")
+
+
+def _on_server(args: argparse.Namespace, report: Callable[[Check], None]) -> None:
+    from .._client import Client
+    from .._common import unreachable
+    from .._errors import EsrpError, LocalServerError, ServerUnavailable
+
+    if args.server is not None:
+        try:
+            with Client(args.server, token=args.token, timeout=30) as client:
+                _server_checks(client, f"the server at {args.server}", args.seconds, report)
+        except EsrpError as error:
+            detail = unreachable(args.server, error) if isinstance(error, ServerUnavailable) else str(error)
+            report(Check("server", "FAIL", detail, "is a server running there?"))
+        return
+    from .._local import LocalServer
+
+    try:
+        with LocalServer(*args.server_args) as local, local.client() as client:
+            _server_checks(client, f"a server started here on {local.address}", args.seconds, report)
+    except LocalServerError as error:
+        # The server's own message names what to install when no renderer could be made.
+        report(
+            Check(
+                "server",
+                "FAIL",
+                str(error).strip().replace("\n", "\n" + " " * 24),
+                "install what the message names, or try --server-arg=--render-backend --server-arg=gl|vulkan",
+            )
+        )
+
+
+def _server_checks(client: Client, where: str, seconds: float, report: Callable[[Check], None]) -> None:
+    info = client.server_info()
+    if same_release(__version__, info.version):
+        report(Check("server", "ok", f"{where}: esrp-server {info.version}, dataset {info.dataset}"))
+    else:
+        report(
+            Check(
+                "server",
+                "FAIL",
+                f"{where} is esrp-server {info.version}; this package is esrp {__version__}",
+                "use a client and a server of the same major.minor version",
+            )
+        )
+    kind = "software (CPU)" if info.software_renderer else "hardware"
+    renderer = f"{info.renderer_adapter} through {info.renderer_backend}, {kind}"
+    if info.software_renderer:
+        report(Check("renderer", "ok", renderer + ": a GPU with Vulkan drivers renders faster"))
+    else:
+        report(Check("renderer", "ok", renderer))
+    render, scene = _test_render(client)
+    report(render)
+    if scene is None:
+        return
+    report(_throughput(client, scene, seconds))
+    report(_vector_throughput(client, scene, seconds))
+
+
+def _test_render(client: Client) -> tuple[Check, str | None]:
+    """The test render's check, and its scene when the views came back right."""
+    import numpy as np
+
+    scenes = list(itertools.islice(client.scenes(split="test"), 1))
+    if not scenes:
+        return Check("test render", "FAIL", "the server has no test scene", "serve a test split"), None
+    with client.create_episode(scenes[0].id) as episode:
+        first = episode.observation
+        if first is None or first.goal_rgb is None:
+            return Check("test render", "FAIL", f"{scenes[0].id}: no first observation came back"), None
+        views = {"ego": np.asarray(first.ego_rgb), "goal": np.asarray(first.goal_rgb)}
+    blank = [name for name, image in views.items() if image.size == 0 or (image == image.flat[0]).all()]
+    shapes = ", ".join(f"{name} {'×'.join(map(str, image.shape))}" for name, image in views.items())
+    if blank:
+        return (
+            Check(
+                "test render",
+                "FAIL",
+                f"{scenes[0].id}: the {' and '.join(blank)} view is one colour ({shapes})",
+                "try the other backend: --server-arg=--render-backend --server-arg=gl|vulkan",
+            ),
+            None,
+        )
+    colours = len(np.unique(views["ego"].reshape(-1, 3), axis=0))
+    return Check(
+        "test render", "ok", f"{scenes[0].id}: {shapes}, the ego view has {colours} colours"
+    ), scenes[0].id
+
+
+def _throughput(client: Client, scene: str, seconds: float) -> Check:
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    steps = 0
+    started = time.perf_counter()
+    while time.perf_counter() - started < seconds:
+        with client.create_episode(scene) as episode:
+            while time.perf_counter() - started < seconds:
+                result = episode.step(int(rng.integers(0, 6)))
+                steps += 1
+                if result.terminated or result.truncated:
+                    break
+    rate = steps / (time.perf_counter() - started)
+    return Check(
+        "one episode", "ok", f"{rate:,.0f} steps/s ({steps:,} random steps on {scene}, 128 px views)"
+    )
+
+
+def _vector_throughput(client: Client, scene: str, seconds: float) -> Check:
+    if _version("gymnasium") is None:
+        return Check("vector env", "warn", "skipped: Gymnasium is not installed", "pip install 'esrp[gym]'")
+    import numpy as np
+
+    from ..envs import RearrangeVectorEnv
+
+    envs = 16
+    env = RearrangeVectorEnv(envs, client=client, split="test", scene=scene)
+    try:
+        env.reset(seed=0)
+        rng = np.random.default_rng(0)
+        steps = 0
+        started = time.perf_counter()
+        while time.perf_counter() - started < seconds:
+            env.step(rng.integers(0, 6, envs))
+            steps += envs
+        rate = steps / (time.perf_counter() - started)
+    finally:
+        env.close()
+    return Check("vector env", "ok", f"{rate:,.0f} steps/s ({envs} envs of {scene}, 128 px views)")

@@ -1,0 +1,72 @@
+"""`esrp doctor` against the real server: every check passes on this machine (a server started
+from the binary `LocalServer` finds, or one already running); a missing binary, an address where
+no server answers and a client/server version pair that cannot talk are failures with what to do."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+import esrp
+from esrp.cli import main
+from esrp.cli.doctor import same_release
+
+CHECKS = ("python", "dependencies", "native transport", "server", "renderer", "test render", "one episode")
+
+
+def test_every_check_passes_with_a_server_started_from_the_binary(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["doctor", "--seconds", "0.5"]) == 0
+    out = capsys.readouterr().out
+    lines = {
+        line[6:24].strip(): line[:5].strip()
+        for line in out.splitlines()
+        if line[:5].strip() in ("ok", "warn", "FAIL")
+    }
+    for name in (*CHECKS, "server binary"):
+        assert lines.get(name) in ("ok", "warn"), (name, out)
+    assert "FAIL" not in lines.values(), out
+    assert "steps/s" in out
+    assert "the ego view has" in out
+    assert "checks passed" in out
+
+
+def test_a_running_server_is_checked_without_the_binary(
+    server: esrp.LocalServer,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    tmp_path: Path,
+) -> None:
+    monkeypatch.setenv("ESRP_SERVER_BIN", str(tmp_path / "nowhere"))  # not looked for with --server
+    assert main(["doctor", "--seconds", "0.2", "--server", server.address]) == 0
+    out = capsys.readouterr().out
+    assert "server binary" not in out
+    assert f"the server at {server.address}: esrp-server {esrp.__version__}" in out
+
+
+def test_a_missing_binary_fails_and_says_what_to_do(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    monkeypatch.setenv("ESRP_SERVER_BIN", str(tmp_path / "nowhere"))
+    assert main(["doctor"]) == 1
+    out = capsys.readouterr().out
+    assert f"FAIL  server binary      ESRP_SERVER_BIN={tmp_path / 'nowhere'} is not a file" in out
+    assert "→ install the esrp-server wheel or build it" in out
+    assert "1 check(s) failed: server binary" in out
+
+
+def test_an_address_without_a_server_fails_at_once(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["doctor", "--server", "127.0.0.1:1"]) == 1
+    out = capsys.readouterr().out
+    assert "FAIL  server             no esrp-server answers at 127.0.0.1:1" in out
+
+
+def test_bad_seconds_are_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["doctor", "--seconds", "0"]) == 2
+    assert "--seconds must be more than 0" in capsys.readouterr().err
+
+
+def test_versions_talk_within_one_minor_release() -> None:
+    assert same_release("0.1.0", "0.1.7")
+    assert not same_release("0.1.0", "0.2.0")
+    assert not same_release("1.1.0", "0.1.0")
