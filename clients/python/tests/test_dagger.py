@@ -268,6 +268,50 @@ def test_dagger_runs_its_iterations_and_resumes_with_more(
     assert "other settings (beta: 0.5 → 0.25)" in capsys.readouterr().err
 
 
+def test_dagger_takes_iteration_0_from_a_finished_bc_run(
+    server: esrp.LocalServer,
+    expert: Path,
+    train_easy: list[str],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    plain = write_toml(tmp_path / "bc.toml", {"bc": bc_table(expert, epochs=2)})
+    assert train_cli(server, plain, tmp_path / "bc") == 0
+    initial = tmp_path / "bc" / "ckpt.pt"
+    run = tmp_path / "run"
+    # [bc]'s epochs are iteration 0's only when it is trained: the checkpoint says how many it had.
+    tables = {"bc": bc_table(expert, epochs=40), "dagger": dagger_table(train_easy, initial=str(initial))}
+    config = write_toml(tmp_path / "dagger.toml", tables)
+    assert train_cli(server, config, run, "--dagger") == 0
+    capsys.readouterr()
+    given = torch.load(initial, weights_only=False)
+    copied = torch.load(run / "iter-00" / "ckpt.pt", weights_only=False)
+    assert copied["epoch"] == 2
+    for name, tensor in given["model"].items():
+        assert torch.equal(tensor, copied["model"][name]), name
+    assert not (run / "iter-00" / "log.csv").exists() or not rows(run / "iter-00" / "log.csv"), "not trained"
+    assert [r["epoch"] for r in rows(run / "iter-00" / "eval.csv")] == ["2"], "evaluated after its epoch 2"
+    assert [r["iteration"] for r in rows(run / "dagger.csv")] == ["0", "1"]
+    # Iteration 1 fine-tunes the given model and optimizer (Adam's step count goes on).
+    steps = int(rows(tmp_path / "bc" / "log.csv")[-1]["steps"]) + int(
+        rows(run / "iter-01" / "log.csv")[-1]["steps"]
+    )
+    state = torch.load(run / "iter-01" / "ckpt.pt", weights_only=False)["optimizer"]["state"]
+    assert int(state[0]["step"]) == steps
+
+    # A model-only checkpoint (as docs/results ships) cannot be fine-tuned; a model of other settings
+    # is refused by the settings check.
+    slim = tmp_path / "slim.pt"
+    torch.save({k: v for k, v in given.items() if k not in ("optimizer", "torch_rng")}, slim)
+    tables["dagger"] = dagger_table(train_easy, initial=str(slim))
+    assert train_cli(server, write_toml(config, tables), tmp_path / "slim-run", "--dagger") == 2
+    assert "holds the model only" in capsys.readouterr().err
+    tables = {"bc": bc_table(expert, lr=5e-4), "dagger": dagger_table(train_easy, initial=str(initial))}
+    assert train_cli(server, write_toml(config, tables), tmp_path / "other-run", "--dagger") == 2
+    assert "was trained with other settings than [bc]'s (lr: 0.001 → 0.0005)" in capsys.readouterr().err
+    assert not (tmp_path / "other-run").exists(), "refused before anything is written"
+
+
 class Interrupted(Exception):
     """Stands for the signal that stops a run."""
 

@@ -1,7 +1,9 @@
 """`esrp train bc --dagger`: DAgger (Ross, Gordon and Bagnell, 2011) around ESRP-BC.
 
-Iteration 0 is `esrp train bc` on the config's expert stores (`[bc]`'s `demos`, `epochs`). Each
-further iteration k = 1..`iterations`:
+Iteration 0 is `esrp train bc` on the config's expert stores (`[bc]`'s `demos`, `epochs`), or with
+`initial` a checkpoint such a training already wrote (with `[bc]`'s settings; copied into
+`DIR/iter-00` and evaluated on the held-out scenes, not trained again). Each further iteration
+k = 1..`iterations`:
 
 1. exports `DIR/dagger-kk.zarr` (`esrp demos export --dagger bc`): the checkpoint of iteration k-1
    drives `scenes_per_iteration` scenes of `split` / `difficulty` (drawn with seed (`seed`, k) from
@@ -24,6 +26,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 import sys
 import time
 from collections.abc import Mapping
@@ -36,7 +39,7 @@ import torch
 
 from ..agents.bc import BcConfig
 from ._config import read_document
-from .bc import train
+from .bc import RESUME_FREE, train
 from .demos import DemoSettings, export_demos
 from .heldout import TrainServer, heldout_scenes, read_eval_log
 
@@ -98,6 +101,9 @@ class DaggerConfig:
         epsilon: The policy's random-action probability in the exports (None: `[bc]`'s `epsilon`).
         seed: The seed of the scene draws and the base seed of the exports' episodes (iteration k
             plays scene `id` with seed `(seed + k) XOR fnv1a64(id)`).
+        initial: Iteration 0's checkpoint: a full `ckpt.pt` (model and optimizer) of `esrp train
+            bc` with `[bc]`'s settings (its `epochs` and the settings `esrp train bc --resume` may
+            change aside), instead of training iteration 0; None: train it.
     """
 
     iterations: int = 3
@@ -112,6 +118,7 @@ class DaggerConfig:
     max_steps: int = 0
     epsilon: float | None = None
     seed: int = 0
+    initial: str | None = None
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> DaggerConfig:
@@ -137,6 +144,8 @@ class DaggerConfig:
                 raise ValueError(f"dagger {name} must be at least 1, not {getattr(self, name)}")
         if self.split not in ("train", "test"):
             raise ValueError(f"dagger split {self.split!r}: train or test")
+        if self.initial is not None and (not isinstance(self.initial, str) or not self.initial):
+            raise ValueError(f"dagger initial must be the path of a checkpoint, not {self.initial!r}")
         if self.difficulty not in (None, "easy", "medium", "hard"):
             raise ValueError(f"dagger difficulty {self.difficulty!r}: easy, medium or hard")
         if not isinstance(self.scenes, list | tuple) or not all(isinstance(s, str) for s in self.scenes):
@@ -199,6 +208,28 @@ def _store_size(path: str | Path) -> tuple[int, int, int]:
     return len(ends), int(ends[-1]) if len(ends) else 0, int(store["data/ego_rgb"].shape[1])
 
 
+def _initial_epochs(path: Path, bc: BcConfig) -> int:
+    """The epochs an `initial` checkpoint was trained for; raises `ValueError` when it is not a full
+    `esrp train bc` checkpoint of `bc`'s settings (those a resumed run may change aside).
+    """
+    if not path.is_file():
+        raise ValueError(f"dagger initial: no checkpoint at {path}")
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    if not isinstance(state, dict) or state.get("kind") != "esrp-bc":
+        raise ValueError(f"dagger initial: {path} is not an ESRP-BC checkpoint")
+    if "optimizer" not in state or "torch_rng" not in state:
+        raise ValueError(
+            f"dagger initial: {path} holds the model only (an evaluation checkpoint): DAgger fine-tunes "
+            "the model and its optimizer, so give the run's own ckpt.pt (or ckpt-epoch-N.pt)"
+        )
+    different = _differences(state["config"], bc.to_dict(), RESUME_FREE)
+    if different:
+        raise ValueError(
+            f"dagger initial: {path} was trained with other settings than [bc]'s ({'; '.join(different)})"
+        )
+    return int(state["epoch"])
+
+
 def _differences(held: Mapping[str, Any], wanted: Mapping[str, Any], free: frozenset[str]) -> list[str]:
     return [
         f"{key}: {held.get(key)!r} → {wanted.get(key)!r}"
@@ -231,6 +262,7 @@ class _Run:
         self.state: dict[str, Any] = {}
         self.heldout: list[str] = []
         self.pool: list[str] = []
+        self.initial_epochs = 0 if dagger.initial is None else _initial_epochs(Path(dagger.initial), bc)
 
     def say(self, message: str) -> None:
         if self.progress:
@@ -322,7 +354,7 @@ class _Run:
     def config_of(self, iteration: int) -> BcConfig:
         """The `esrp train bc` settings of iteration `iteration`."""
         if iteration == 0:
-            return self.bc
+            return self.bc if self.dagger.initial is None else replace(self.bc, epochs=self.initial_epochs)
         demos = [*self.experts, *(str(self.store(k)) for k in range(1, iteration + 1))]
         return replace(
             self.bc, demos=demos, epochs=self.dagger.epochs_per_iteration, seed=self.bc.seed + iteration
@@ -386,8 +418,19 @@ class _Run:
         """Trains (iteration 0) or fine-tunes this iteration's model, then evaluates it."""
         config = self.config_of(iteration)
         folder, steps = self.folder(iteration), self.total_steps(iteration)
-        self.say(f"iteration {iteration}: training {config.epochs} epochs on {steps} steps in {folder}")
         init = None if iteration == 0 else self.folder(iteration - 1) / "ckpt.pt"
+        if iteration > 0 or self.dagger.initial is None:
+            self.say(f"iteration {iteration}: training {config.epochs} epochs on {steps} steps in {folder}")
+        elif not (folder / "ckpt.pt").exists():
+            # The given checkpoint is iteration 0: training resumes it with nothing left to train
+            # (checking its settings) and evaluates it.
+            self.say(
+                f"iteration 0: {self.dagger.initial} (epoch {config.epochs}), evaluated, not trained again"
+            )
+            folder.mkdir(parents=True, exist_ok=True)
+            partial = folder / "ckpt.pt.partial"
+            shutil.copyfile(self.dagger.initial, partial)
+            partial.replace(folder / "ckpt.pt")
         train(
             config,
             self.folder(iteration),
