@@ -201,9 +201,22 @@ def test_training_resumes_from_its_checkpoint(
         train(tiny(easy_scenes[0], total_steps=32), run, client, progress=False)
     with pytest.raises(ValueError, match="other settings"):
         train(tiny(easy_scenes[0], total_steps=32, lr=1e-3), run, client, resume=True, progress=False)
+    # A log written before the timing columns existed is carried over under today's columns.
+    old = [{k: v for k, v in row.items() if not k.endswith("_seconds")} for row in rows(run / "log.csv")]
+    with open(run / "log.csv", "w", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=list(old[0]))
+        writer.writeheader()
+        writer.writerows(old)
     train(tiny(easy_scenes[0], total_steps=32), run, client, resume=True, progress=False)
-    assert [row["update"] for row in rows(run / "log.csv")] == ["1", "2"]
-    assert [row["steps"] for row in rows(run / "log.csv")] == ["16", "32"]
+    log = rows(run / "log.csv")
+    assert [row["update"] for row in log] == ["1", "2"]
+    assert [row["steps"] for row in log] == ["16", "32"]
+    assert log[0]["env_seconds"] == ""
+    assert log[0]["entropy"] == old[0]["entropy"]
+    # Where an update's time went: the environment, the actions, the learning.
+    parts = [float(log[1][k]) for k in ("env_seconds", "act_seconds", "learn_seconds")]
+    assert all(part > 0 for part in parts)
+    assert sum(parts) == pytest.approx(16 / float(log[1]["steps_per_second"]), rel=1e-3)
     state = torch.load(run / "ckpt.pt", weights_only=False)
     assert (state["update"], state["steps"]) == (2, 32)
 
@@ -311,7 +324,7 @@ def test_training_is_deterministic(tmp_path: Path, client: esrp.Client, easy_sce
     runs = [tmp_path / "a", tmp_path / "b"]
     for run in runs:
         train(config, run, client, progress=False)
-    timing = {"steps_per_second", "seconds"}
+    timing = {"steps_per_second", "seconds", "env_seconds", "act_seconds", "learn_seconds"}
     logs = [[{k: v for k, v in r.items() if k not in timing} for r in rows(run / "log.csv")] for run in runs]
     assert logs[0] == logs[1]
     assert (runs[0] / "episodes.csv").read_text() == (runs[1] / "episodes.csv").read_text()

@@ -9,7 +9,8 @@ bootstrapped with the value of their final observation; terminated ones (success
 
 A run folder holds `config.json`, `log.csv` (one line per update: steps, episodes finished,
 their mean return, length and success rate, the losses, approximate KL, clip fraction, explained
-variance, learning rate, steps per second, seconds), `episodes.csv` (every finished episode:
+variance, learning rate, steps per second, seconds, and where the update's time went: in the
+environment's steps, in choosing actions, in learning), `episodes.csv` (every finished episode:
 step, return, length, success) and `ckpt.pt` (network, optimizer, update, step, random states:
 `--resume` goes on from it with fresh episodes; `esrp eval --agent ppo --checkpoint` plays it).
 """
@@ -57,6 +58,9 @@ LOG_FIELDS = (
     "lr",
     "steps_per_second",
     "seconds",
+    "env_seconds",
+    "act_seconds",
+    "learn_seconds",
 )
 # Settings a resumed run may change: its length, its checkpoint interval, where and how it runs.
 RESUMABLE = {"total_steps", "checkpoint_every", "threads", "device"}
@@ -90,6 +94,12 @@ class UpdateStats:
     lr: float
     steps_per_second: float
     seconds: float
+    env_seconds: float = 0.0
+    """Of this update: waiting for the vector env's steps (the server's work and the transport)."""
+    act_seconds: float = 0.0
+    """Choosing the rollout's actions: preprocessing, the network's forward pass, sampling."""
+    learn_seconds: float = 0.0
+    """The advantages and the PPO epochs (forward, backward, optimizer)."""
 
 
 def _tensor(array: np.ndarray, device: torch.device) -> torch.Tensor:
@@ -210,6 +220,7 @@ def _loop(
         for param_group in optimizer.param_groups:
             param_group["lr"] = lr
         finished: list[tuple[int, float, int, bool]] = []
+        env_seconds = 0.0
         goals = [network.preprocess(_tensor(observations["goal_rgb"], device))]
         current = torch.arange(n, device=device)  # each sub-env's goal in `goals`
         with torch.no_grad():
@@ -226,7 +237,9 @@ def _loop(
                 action = torch.multinomial(torch.softmax(logits, dim=-1), 1).squeeze(-1)
                 logprob, _ = _log_prob_entropy(logits, action)
             actions[t], logprobs[t], values[t] = action, logprob, value
+            stepping = time.monotonic()
             observations, reward, terminated, truncated, infos = env.step(action.cpu().numpy())
+            env_seconds += time.monotonic() - stepping
             global_step += n
             episode_return += reward
             episode_length += 1
@@ -263,6 +276,7 @@ def _loop(
                     goal_features[fresh] = network.goal(images)
 
         # Generalised advantage estimation.
+        learning = time.monotonic()
         with torch.no_grad():
             _, next_value, _ = network.forward_features(
                 network.preprocess(_tensor(observations["ego_rgb"], device)),
@@ -327,7 +341,9 @@ def _loop(
         variance = b_returns.var()
         explained = float("nan") if variance == 0 else float(1 - (b_returns - b_values).var() / variance)
         mean = sums / max(batches, 1)
-        seconds = time.monotonic() - update_started
+        now = time.monotonic()
+        seconds = now - update_started
+        learn_seconds = now - learning
         stats = UpdateStats(
             update=update,
             steps=global_step,
@@ -344,6 +360,9 @@ def _loop(
             lr=lr,
             steps_per_second=config.batch_size / seconds,
             seconds=time.monotonic() - started,
+            env_seconds=env_seconds,
+            act_seconds=seconds - env_seconds - learn_seconds,
+            learn_seconds=learn_seconds,
         )
         _log(out, stats, finished)
         if progress:
@@ -454,5 +473,9 @@ def _trim_logs(out: Path, update: int, steps: int) -> None:
             continue
         at = rows[0].index(column)
         kept = [rows[0], *(row for row in rows[1:] if int(row[at]) <= last)]
+        if name == "log.csv" and rows[0] != list(LOG_FIELDS):
+            # A log of an older version: its lines under today's columns, the new ones left empty.
+            named = [dict(zip(rows[0], row, strict=False)) for row in kept[1:]]
+            kept = [list(LOG_FIELDS), *([line.get(field, "") for field in LOG_FIELDS] for line in named)]
         with open(path, "w", newline="") as file:
             csv.writer(file).writerows(kept)
