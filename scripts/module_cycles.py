@@ -35,12 +35,18 @@ def module_of(src: Path, file: Path) -> tuple[str, ...]:
     return tuple(parts)
 
 
+RENAME = re.compile(r"\s+as\s+([A-Za-z_][A-Za-z0-9_]*)")
+
+
 def expand(tree: str) -> list[str]:
-    """`a::{b, c::{d, e}}` as `a::b`, `a::c::d`, `a::c::e` (`as` renames dropped)."""
-    tree = re.sub(r"\s+", "", tree)
+    """`a::{b, c::{d, e as f}}` as `a::b`, `a::c::d`, `a::c::e` (`as` renames dropped).
+
+    A rename is the word `as` between spaces, so a name that holds the letters (`atlas`,
+    `basis`) is kept whole."""
+    tree = re.sub(r"\s+", "", RENAME.sub("", tree))
     brace = tree.find("{")
     if brace < 0:
-        return [tree.split("as")[0] if "as" in tree and not tree.endswith("as") else tree]
+        return [tree]
     prefix, inner = tree[:brace], tree[brace + 1 : tree.rindex("}")]
     parts, depth, start = [], 0, 0
     for i, ch in enumerate(inner):
@@ -54,7 +60,7 @@ def expand(tree: str) -> list[str]:
     for part in parts:
         if part:
             out.extend(prefix + sub for sub in expand(part))
-    return [re.sub(r"as[A-Za-z_][A-Za-z0-9_]*$", "", p) if re.search(r"[a-z0-9_]as[A-Za-z_]", p) else p for p in out]
+    return out
 
 
 def strip_inline_code(text: str) -> str:
@@ -119,9 +125,8 @@ def analyse(src: Path) -> list[list[tuple[str, ...]]]:
             for path in expand(match.group(1)):
                 resolved = absolute(module, path)
                 name = path.split("::")[-1]
-                raw = re.sub(r"\s+", "", match.group(1))
-                alias = re.search(r"as([A-Za-z_][A-Za-z0-9_]*)$", raw)
-                if alias and "{" not in raw:
+                alias = RENAME.search(match.group(1))
+                if alias and "{" not in match.group(1):
                     name = alias.group(1)
                 if name not in ("*", "self"):
                     # None: an item of another crate.
@@ -202,6 +207,19 @@ SELF_TESTS = {
     "through a re-export": (
         {"lib.rs": "mod a;\nmod b;\npub use a::A;\n", "a.rs": "use crate::b::B;\npub struct A;\n", "b.rs": "use crate::A;\npub struct B;\n"},
         [["a", "b"]],
+    ),
+    "a rename is a use of what it renames": (
+        {"lib.rs": "mod a;\nmod b;\n", "a.rs": "use crate::b::B as Bee;\npub struct A;\n", "b.rs": "use crate::a::A;\npub struct B;\n"},
+        [["a", "b"]],
+    ),
+    "no circle: a sibling whose name holds `as` is not the parent": (
+        {
+            "lib.rs": "pub mod p;\n",
+            "p/mod.rs": "mod atlas;\nmod draw;\npub use draw::D;\n",
+            "p/atlas.rs": "pub struct Tile;\n",
+            "p/draw.rs": "use super::atlas::Tile;\npub struct D(Tile);\n",
+        },
+        [],
     ),
     "no circle: siblings over a leaf, inline test modules, another crate's items": (
         {

@@ -17,14 +17,15 @@ use crate::dice::Dice;
 use crate::layout::{CATEGORY_SHARES, TRIANGLE_BUDGET};
 
 use super::categories::movable_category;
+use super::constants::{
+    CLEARANCE, DEFAULT_WALL_HEIGHT, FLAT_HEIGHT, MAX_CARRY_HEIGHT, MAX_CARRY_SIZE, MAX_HULL_POINTS, MIN_FLOOR_AREA,
+    MIN_FREE_FLOOR, NUDGES, STANDING_TOLERANCE, WALL_THICKNESS,
+};
 use super::json::{ArchMesh, Child, FrontRoom, Furniture, House};
 use super::library::{Library, ModelGeometry, box_corners};
 use super::outline::{bounds, floor_outline, plan};
+use super::report::ImportReport;
 use super::rotation::{normalized, rotate, yaw_from_quaternion};
-use super::{
-    CLEARANCE, DEFAULT_WALL_HEIGHT, FLAT_HEIGHT, ImportReport, MAX_CARRY_HEIGHT, MAX_CARRY_SIZE, MAX_HULL_POINTS,
-    MIN_FLOOR_AREA, MIN_FREE_FLOOR, NUDGES, STANDING_TOLERANCE, WALL_THICKNESS,
-};
 
 /// One furniture object of a room, in its own frame.
 #[derive(Clone, Debug)]

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use esrp_core::parry3d;
 use parry3d::math::Vector;
 
-use super::FrontError;
+use super::error::FrontError;
 use super::json::ModelInfo;
 use super::obj::parse_obj;
 use super::outline::bounds;

@@ -66,113 +66,36 @@
 //! Nothing is written here: [`import`] returns the scenes, and the caller writes them (the
 //! `files` module writes atomically), so a malformed input never leaves half a dataset.
 
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-
-use esrp_core::Scene;
 
 use crate::backward::{ConstructionParams, Rejection, construct};
 use crate::dice::Dice;
 
 mod categories;
+mod constants;
 mod draft;
+mod error;
 mod json;
 mod library;
 mod obj;
 mod outline;
+mod report;
 mod rotation;
 
 pub use categories::movable_category;
+pub use constants::{
+    CLEARANCE, DEFAULT_WALL_HEIGHT, MAX_CARRY_HEIGHT, MAX_CARRY_SIZE, MAX_HULL_POINTS, MIN_FLOOR_AREA, MIN_FREE_FLOOR,
+    WALL_THICKNESS,
+};
 use draft::{Clearances, choose_movables, draft_room, stream_of, target_scene};
+pub use error::FrontError;
 use json::House;
 use library::Library;
 
 pub use obj::{ObjMesh, parse_obj};
+pub use report::ImportReport;
 
 pub use rotation::yaw_from_quaternion;
-
-/// Wall thickness of imported rooms, metres.
-pub const WALL_THICKNESS: f64 = 0.12;
-/// Wall height when the room's wall meshes give none in 2.2–4 m, metres.
-pub const DEFAULT_WALL_HEIGHT: f64 = 2.8;
-/// The most points of one object's convex hull.
-pub const MAX_HULL_POINTS: usize = 64;
-/// The largest footprint side of a carryable piece, metres.
-pub const MAX_CARRY_SIZE: f64 = 1.2;
-/// The greatest height of a carryable piece, metres.
-pub const MAX_CARRY_HEIGHT: f64 = 1.3;
-/// The clearance a movable piece keeps to walls and other objects in the target layout,
-/// metres: twice esrp-core's collision margin.
-pub const CLEARANCE: f64 = 0.02;
-/// Rooms with less floor than this are skipped, m².
-pub const MIN_FLOOR_AREA: f64 = 4.0;
-/// Rooms with less floor than this outside the footprints of standing furniture are skipped,
-/// m².
-pub const MIN_FREE_FLOOR: f64 = 2.0;
-/// An object whose lowest point is at most this above the floor stands on it, metres.
-const STANDING_TOLERANCE: f64 = 0.05;
-/// Objects lower than this are flat (rugs) and dropped, metres.
-const FLAT_HEIGHT: f64 = 0.03;
-/// Nudge distances tried for an overlapping movable piece, metres.
-const NUDGES: [f64; 7] = [0.03, 0.06, 0.1, 0.15, 0.2, 0.25, 0.3];
-
-/// Something wrong with the input; each variant names the file and says how to fix it.
-#[derive(Debug, thiserror::Error)]
-pub enum FrontError {
-    /// A file or directory could not be read.
-    #[error("cannot read {path}: {source}; check that it exists and is readable")]
-    Io {
-        /// The path.
-        path: PathBuf,
-        /// The I/O error.
-        #[source]
-        source: std::io::Error,
-    },
-    /// A house file is not 3D-FRONT JSON.
-    #[error(
-        "{path} is not a 3D-FRONT house file: {message}; re-extract it from the 3D-FRONT archive or remove it from the directory"
-    )]
-    HouseJson {
-        /// The house file.
-        path: PathBuf,
-        /// What is wrong, with line and column.
-        message: String,
-    },
-    /// `model_info.json` is not 3D-FUTURE's model list.
-    #[error(
-        "{path} is not 3D-FUTURE's model_info.json (a list of {{model_id, super-category, category}}): {message}; re-extract it from the 3D-FUTURE archive"
-    )]
-    ModelInfo {
-        /// The file.
-        path: PathBuf,
-        /// What is wrong.
-        message: String,
-    },
-    /// No `model_info.json` was found.
-    #[error(
-        "no model_info.json in {dir} or {dir}/3D-FUTURE-model: pass the 3D-FUTURE directory (the one holding model_info.json and the <jid>/raw_model.obj folders) as --future"
-    )]
-    MissingModelInfo {
-        /// The directory given.
-        dir: PathBuf,
-    },
-    /// The 3D-FRONT directory holds no house file.
-    #[error("no house files (*.json) in {dir}: pass the 3D-FRONT directory holding the <uuid>.json files as --front")]
-    NoHouses {
-        /// The directory given.
-        dir: PathBuf,
-    },
-    /// An OBJ file could not be parsed.
-    #[error("{path}, line {line}: {message}")]
-    Obj {
-        /// The OBJ file.
-        path: PathBuf,
-        /// 1-based line number.
-        line: usize,
-        /// What is wrong.
-        message: String,
-    },
-}
 
 /// Options of an import.
 #[derive(Clone, Debug)]
@@ -188,39 +111,6 @@ pub struct ImportOptions {
 impl Default for ImportOptions {
     fn default() -> Self {
         Self { seed: 0, max_attempts: 8, max_houses: None }
-    }
-}
-
-/// What an import produced and what it left out.
-#[derive(Clone, Debug, Default)]
-pub struct ImportReport {
-    /// The scene pairs, each validated and replayed to success, in house and room order.
-    pub scenes: Vec<Scene>,
-    /// House files read.
-    pub houses: usize,
-    /// Rooms seen.
-    pub rooms_seen: usize,
-    /// Rooms that became a scene.
-    pub rooms_imported: usize,
-    /// Rooms skipped, by reason (see the module documentation).
-    pub rooms_skipped: BTreeMap<String, usize>,
-    /// Furniture objects dropped, by reason (see the module documentation).
-    pub objects_dropped: BTreeMap<String, usize>,
-    /// Movable pieces moved apart from what they overlapped (in scenes that were imported).
-    pub objects_nudged: usize,
-    /// Carryable pieces kept fixed because no nudge freed them (in scenes that were imported).
-    pub movable_overlapping: usize,
-    /// Warnings: missing or unreadable models, floor fallbacks, ...
-    pub warnings: Vec<String>,
-}
-
-impl ImportReport {
-    fn skip(&mut self, reason: &str) {
-        *self.rooms_skipped.entry(reason.to_owned()).or_insert(0) += 1;
-    }
-
-    fn drop_object(&mut self, reason: &str) {
-        *self.objects_dropped.entry(reason.to_owned()).or_insert(0) += 1;
     }
 }
 
@@ -318,6 +208,8 @@ fn construction_reason(rejection: &Rejection) -> String {
 
 #[cfg(test)]
 mod tests {
+    use std::collections::BTreeMap;
+
     use esrp_core::geometry::{PlanPoint, polygon_is_simple, signed_area};
     use esrp_core::{MovableCategory, ObjectPose, OpeningKind, Part, Shape};
 

@@ -2,7 +2,7 @@
 
 use std::path::Path;
 
-use super::FrontError;
+use super::error::FrontError;
 
 /// A Wavefront OBJ mesh: vertex positions and triangles (polygons fanned).
 #[derive(Clone, Debug, Default, PartialEq)]

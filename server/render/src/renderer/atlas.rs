@@ -3,12 +3,11 @@
 
 use std::num::NonZeroU64;
 
-use crate::camera::Camera;
-use crate::error::RenderError;
 use crate::gpu::{GpuView, VIEW_STRIDE};
 
+use super::formats::{COLOUR_FORMAT, DEPTH_FORMAT, DEPTH_OUT_FORMAT, SEGMENT_FORMAT};
+use super::limits::CHUNK_PIXELS;
 use super::requests::ViewRequest;
-use super::{CHUNK_PIXELS, COLOUR_FORMAT, DEPTH_FORMAT, DEPTH_OUT_FORMAT, Renderer, SEGMENT_FORMAT};
 
 /// Where one view lies in the atlas.
 #[derive(Clone, Copy, Debug)]
@@ -47,102 +46,18 @@ pub(super) struct Atlas {
 }
 
 impl Atlas {
-    pub(super) fn page_bytes(&self) -> u64 {
-        u64::from(self.side) * u64::from(self.side) * 4
-    }
-
-    pub(super) fn plane_bytes(&self) -> u64 {
-        self.page_bytes() * u64::from(self.pages)
-    }
-}
-
-/// The atlases not in use right now. A batch takes one out (or makes one), renders with it
-/// without holding the lock, and puts it back: batches on different threads overlap (one
-/// encodes and submits while another waits for the device or extracts its pixels).
-pub(super) struct BatchState {
-    pub(super) atlases: Vec<Atlas>,
-    pub(super) batches: u64,
-}
-
-impl Renderer {
-    pub(super) fn validate(&self, requests: &[ViewRequest<'_>]) -> Result<(), RenderError> {
-        for (view, request) in requests.iter().enumerate() {
-            if request.scene.renderer_id != self.id {
-                return Err(RenderError::ForeignScene { view });
-            }
-            if request.resolution == 0 || request.resolution > self.max_atlas {
-                return Err(RenderError::InvalidResolution { resolution: request.resolution, max: self.max_atlas });
-            }
-            if request.object_poses.len() != request.scene.movable_count {
-                return Err(RenderError::InvalidPoses {
-                    view,
-                    reason: format!(
-                        "{} poses given for a scene with {} movable objects",
-                        request.object_poses.len(),
-                        request.scene.movable_count
-                    ),
-                });
-            }
-            if request.object_poses.iter().any(|p| !(p.x.is_finite() && p.z.is_finite() && p.yaw.is_finite())) {
-                return Err(RenderError::InvalidPoses { view, reason: "a pose is not finite".into() });
-            }
-            if let Camera::Ego(camera) = request.camera {
-                let finite = camera.eye.iter().all(|c| c.is_finite())
-                    && camera.yaw.is_finite()
-                    && camera.pitch.is_finite()
-                    && camera.horizontal_fov > 0.0
-                    && camera.horizontal_fov < std::f64::consts::PI;
-                if !finite {
-                    return Err(RenderError::InvalidPoses {
-                        view,
-                        reason: "the egocentric camera is not finite or its field of view is not in (0, π)".into(),
-                    });
-                }
-            }
-        }
-        Ok(())
-    }
-
-    /// One page per view, every view at the page's origin: the viewport transform, and so
-    /// every rounding of rasterisation and interpolation, is the same whatever else is in the
-    /// batch. Returns the tiles (in request order), the page side (the largest resolution
-    /// rounded up to 64, so that rows are 256-byte aligned) and the number of pages (a power of
-    /// two, so that atlas shapes repeat across batches). `requests` fits one chunk.
-    pub(super) fn layout(&self, requests: &[ViewRequest<'_>]) -> (Vec<Tile>, u32, u32) {
-        let largest = requests.iter().map(|r| r.resolution).max().unwrap_or(1);
-        let side = largest.next_multiple_of(64);
-        let tiles =
-            requests.iter().enumerate().map(|(i, r)| Tile { page: i as u32, x: 0, y: 0, size: r.resolution }).collect();
-        let pages = (requests.len() as u32).next_power_of_two().min(self.max_pages);
-        (tiles, side, pages)
-    }
-
-    /// Splits a batch into consecutive chunks that each fit one atlas: at most `max_pages`
-    /// (itself at most [`CHUNK_VIEWS`]) views and at most [`CHUNK_PIXELS`] page pixels (a
-    /// larger view alone).
-    pub(super) fn chunks(&self, requests: &[ViewRequest<'_>]) -> Vec<std::ops::Range<usize>> {
-        let mut chunks = Vec::new();
-        let (mut start, mut side) = (0usize, 0u64);
-        for (i, request) in requests.iter().enumerate() {
-            let wider = side.max(u64::from(request.resolution.next_multiple_of(64)));
-            let views = (i + 1 - start) as u64;
-            if i > start && (views > u64::from(self.max_pages) || views * wider * wider > CHUNK_PIXELS) {
-                chunks.push(start..i);
-                start = i;
-                side = u64::from(request.resolution.next_multiple_of(64));
-            } else {
-                side = wider;
-            }
-        }
-        if start < requests.len() {
-            chunks.push(start..requests.len());
-        }
-        chunks
-    }
-
-    pub(super) fn create_atlas(&self, side: u32, pages: u32, full: bool) -> Atlas {
+    /// Creates the textures, readback buffer and uniforms of `pages` pages of `side` pixels,
+    /// with the view depth and segmentation targets when `full`, and binds the uniforms with
+    /// `bind_group_layout`.
+    pub(super) fn new(
+        device: &wgpu::Device,
+        bind_group_layout: &wgpu::BindGroupLayout,
+        side: u32,
+        pages: u32,
+        full: bool,
+    ) -> Self {
         let texture = |label: &str, format, usage, layers: u32| {
-            let texture = self.device.create_texture(&wgpu::TextureDescriptor {
+            let texture = device.create_texture(&wgpu::TextureDescriptor {
                 label: Some(label),
                 size: wgpu::Extent3d { width: side, height: side, depth_or_array_layers: layers },
                 mip_level_count: 1,
@@ -174,22 +89,22 @@ impl Renderer {
             ]
         });
         let planes = if full { 3 } else { 1 };
-        let readback = self.device.create_buffer(&wgpu::BufferDescriptor {
+        let readback = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("esrp-render readback"),
             size: u64::from(side) * u64::from(side) * 4 * u64::from(pages) * planes,
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
         let depth = depth.layers.into_iter().next().unwrap_or_else(|| depth.texture.create_view(&Default::default()));
-        let uniforms = self.device.create_buffer(&wgpu::BufferDescriptor {
+        let uniforms = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("esrp-render views"),
             size: u64::from(pages) * VIEW_STRIDE,
             usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        let bind_group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("esrp-render views"),
-            layout: &self.bind_group_layout,
+            layout: bind_group_layout,
             entries: &[wgpu::BindGroupEntry {
                 binding: 0,
                 resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
@@ -199,6 +114,59 @@ impl Renderer {
                 }),
             }],
         });
-        Atlas { side, pages, full, colour, depth, extras, readback, uniforms, bind_group, last_used: 0 }
+        Self { side, pages, full, colour, depth, extras, readback, uniforms, bind_group, last_used: 0 }
     }
+
+    pub(super) fn page_bytes(&self) -> u64 {
+        u64::from(self.side) * u64::from(self.side) * 4
+    }
+
+    pub(super) fn plane_bytes(&self) -> u64 {
+        self.page_bytes() * u64::from(self.pages)
+    }
+}
+
+/// The atlases not in use right now. A batch takes one out (or makes one), renders with it
+/// without holding the lock, and puts it back: batches on different threads overlap (one
+/// encodes and submits while another waits for the device or extracts its pixels).
+pub(super) struct BatchState {
+    pub(super) atlases: Vec<Atlas>,
+    pub(super) batches: u64,
+}
+
+/// One page per view, every view at the page's origin: the viewport transform, and so
+/// every rounding of rasterisation and interpolation, is the same whatever else is in the
+/// batch. Returns the tiles (in request order), the page side (the largest resolution
+/// rounded up to 64, so that rows are 256-byte aligned) and the number of pages (a power of
+/// two, so that atlas shapes repeat across batches). `requests` fits one chunk.
+pub(super) fn layout(requests: &[ViewRequest<'_>], max_pages: u32) -> (Vec<Tile>, u32, u32) {
+    let largest = requests.iter().map(|r| r.resolution).max().unwrap_or(1);
+    let side = largest.next_multiple_of(64);
+    let tiles =
+        requests.iter().enumerate().map(|(i, r)| Tile { page: i as u32, x: 0, y: 0, size: r.resolution }).collect();
+    let pages = (requests.len() as u32).next_power_of_two().min(max_pages);
+    (tiles, side, pages)
+}
+
+/// Splits a batch into consecutive chunks that each fit one atlas: at most `max_pages` (itself
+/// at most [`CHUNK_VIEWS`](crate::CHUNK_VIEWS)) views and at most [`CHUNK_PIXELS`] page pixels
+/// (a larger view alone).
+pub(super) fn chunks(requests: &[ViewRequest<'_>], max_pages: u32) -> Vec<std::ops::Range<usize>> {
+    let mut chunks = Vec::new();
+    let (mut start, mut side) = (0usize, 0u64);
+    for (i, request) in requests.iter().enumerate() {
+        let wider = side.max(u64::from(request.resolution.next_multiple_of(64)));
+        let views = (i + 1 - start) as u64;
+        if i > start && (views > u64::from(max_pages) || views * wider * wider > CHUNK_PIXELS) {
+            chunks.push(start..i);
+            start = i;
+            side = u64::from(request.resolution.next_multiple_of(64));
+        } else {
+            side = wider;
+        }
+    }
+    if start < requests.len() {
+        chunks.push(start..requests.len());
+    }
+    chunks
 }

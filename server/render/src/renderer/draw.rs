@@ -8,10 +8,11 @@ use crate::error::RenderError;
 use crate::gpu::{GpuView, VIEW_STRIDE};
 use crate::mesh::BACKGROUND_COLOUR;
 
-use super::atlas::{Atlas, Tile};
+use super::atlas::{Atlas, Tile, layout};
+use super::device::Renderer;
+use super::limits::CACHED_ATLASES;
 use super::readback::{Planes, extract_all};
 use super::requests::{ViewOutput, ViewRequest};
-use super::{CACHED_ATLASES, Renderer};
 
 impl Renderer {
     /// The runs of `request.scene`'s indices to draw for `request`: all of them, or with
@@ -54,7 +55,7 @@ impl Renderer {
         requests: &[ViewRequest<'_>],
         full: bool,
     ) -> Result<Vec<ViewOutput>, RenderError> {
-        let (tiles, side, pages) = self.layout(requests);
+        let (tiles, side, pages) = layout(requests, self.max_pages);
 
         let t0 = Instant::now();
         let (taken, now) = {
@@ -67,7 +68,7 @@ impl Renderer {
                 .map(|i| state.atlases.swap_remove(i));
             (taken, state.batches)
         };
-        let mut atlas = taken.unwrap_or_else(|| self.create_atlas(side, pages, full));
+        let mut atlas = taken.unwrap_or_else(|| Atlas::new(&self.device, &self.bind_group_layout, side, pages, full));
         let result = self.draw_and_read(&atlas, requests, &tiles, t0);
         atlas.last_used = now;
         let mut state = self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner());

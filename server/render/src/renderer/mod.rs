@@ -1,8 +1,11 @@
 //! The long-lived [`Renderer`]: device, queue, pipelines, scene uploads and batched rendering
-//! into an atlas. `backend` chooses the graphics backend and adapter, `requests` holds what the
-//! renderer is asked and answers, `atlas` the textures a batch draws into and how a batch is
-//! chunked, `draw` one chunk's encoder, submit and readback, and `readback` the images cut
-//! out of the read-back planes.
+//! into an atlas. This module creates the renderer and takes its uploads and batches; the struct
+//! and its fields are in `device`, which this module and `draw` build on. `backend` chooses the
+//! graphics backend and adapter, `formats` and `limits` hold the texture formats and the sizes
+//! (default resolution, chunk limits, pose slots), `requests` what the renderer is asked and
+//! answers and the check of a batch, `atlas` the textures a batch draws into, their pool and how
+//! a batch is laid out and chunked, `draw` the pieces a view draws and one chunk's encoder,
+//! submit and readback, and `readback` the images cut out of the read-back planes.
 //!
 //! # Concurrency
 //!
@@ -24,69 +27,30 @@ use wgpu::util::DeviceExt;
 
 use crate::camera::TopDownFrame;
 use crate::error::RenderError;
-use crate::gpu::{GpuVertex, GpuView, MAX_POSE_SLOTS, SHADER_SOURCE};
+use crate::gpu::{GpuVertex, GpuView, SHADER_SOURCE};
 use crate::mesh::build_scene_mesh;
 
 mod atlas;
 mod backend;
+mod device;
 mod draw;
+mod formats;
+mod limits;
 mod readback;
 mod requests;
 
-use atlas::BatchState;
+use atlas::{BatchState, chunks};
 use backend::request_adapter;
 pub use backend::{BackendPreference, RendererConfig, UnknownBackend};
+pub use device::Renderer;
+use formats::{COLOUR_FORMAT, DEPTH_FORMAT, DEPTH_OUT_FORMAT, SEGMENT_FORMAT};
+pub use limits::{CHUNK_PIXELS, CHUNK_VIEWS, DEFAULT_RESOLUTION, MAX_MOVABLE_OBJECTS};
 #[cfg(test)]
 use readback::rgba_to_rgb;
-
+use requests::validate;
 pub use requests::{Outputs, SceneHandle, ViewOutput, ViewRequest};
 
-/// Resolution of every view unless a request asks for another (SPEC §2, §4).
-pub const DEFAULT_RESOLUTION: u32 = 128;
-/// Most views drawn with one submit (1024 views of 128×128, fewer of larger views): a
-/// [`Renderer::render_batch`] of more is drawn in consecutive chunks. Callers that gather work
-/// for the renderer may use it as the size worth gathering; it is not a limit.
-pub const CHUNK_VIEWS: usize = 1024;
-/// Most page pixels drawn with one submit (1024 views of 128×128); a single view larger than
-/// this is drawn alone.
-pub const CHUNK_PIXELS: u64 = 1 << 24;
-/// Most movable objects a scene may have for this renderer (pose slots on the GPU).
-pub const MAX_MOVABLE_OBJECTS: usize = MAX_POSE_SLOTS - 1;
-
-const COLOUR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
-const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
-/// View depth as the bits of an `f32` (R32Float is not renderable on OpenGL ES).
-const DEPTH_OUT_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::R32Uint;
-const SEGMENT_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::R32Uint;
-/// Atlas textures kept for reuse (one per distinct size and output set).
-const CACHED_ATLASES: usize = 4;
-
 static NEXT_RENDERER_ID: AtomicU64 = AtomicU64::new(1);
-
-/// The renderer: one per process, long-lived. See the module docs for its concurrency.
-pub struct Renderer {
-    id: u64,
-    adapter_info: wgpu::AdapterInfo,
-    device: wgpu::Device,
-    queue: wgpu::Queue,
-    pipeline_rgb: wgpu::RenderPipeline,
-    pipeline_full: wgpu::RenderPipeline,
-    bind_group_layout: wgpu::BindGroupLayout,
-    max_atlas: u32,
-    max_pages: u32,
-    cull: bool,
-    lost: Arc<Mutex<Option<String>>>,
-    state: Mutex<BatchState>,
-}
-
-impl std::fmt::Debug for Renderer {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Renderer")
-            .field("adapter", &self.adapter_info.name)
-            .field("backend", &self.adapter_info.backend)
-            .finish()
-    }
-}
 
 impl Renderer {
     /// Creates the device, the pipelines and the uniform buffer, and logs the adapter.
@@ -317,10 +281,10 @@ impl Renderer {
         if requests.is_empty() {
             return Ok(Vec::new());
         }
-        self.validate(requests)?;
+        validate(requests, self.id, self.max_atlas)?;
         let full = requests.iter().any(|r| r.outputs.any_extra());
         let mut outputs = Vec::with_capacity(requests.len());
-        for chunk in self.chunks(requests) {
+        for chunk in chunks(requests, self.max_pages) {
             outputs.extend(self.render_chunk(&requests[chunk], full)?);
         }
         Ok(outputs)

@@ -1,13 +1,15 @@
 //! What the renderer is asked and answers: uploaded scenes ([`SceneHandle`]), views
-//! ([`ViewRequest`] with its [`Outputs`]) and their images ([`ViewOutput`]).
+//! ([`ViewRequest`] with its [`Outputs`]) and their images ([`ViewOutput`]), and the check of a
+//! batch of requests ([`validate`]).
 
 use bytes::Bytes;
 use esrp_core::ObjectPose;
 
 use crate::camera::{Camera, TopDownFrame};
+use crate::error::RenderError;
 use crate::mesh::MeshPart;
 
-use super::DEFAULT_RESOLUTION;
+use super::limits::DEFAULT_RESOLUTION;
 
 /// A scene's geometry on the device, uploaded once by [`Renderer::upload_scene`] and shared by
 /// every view of every episode of that scene (wrap it in an `Arc`; caching by scene id is the
@@ -118,4 +120,45 @@ pub struct ViewOutput {
     pub depth: Option<Vec<f32>>,
     /// Segmentation ids ([`crate::SegmentLabel::id`]), if asked for.
     pub segmentation: Option<Vec<u32>>,
+}
+
+/// Checks a batch before anything is drawn: every view's scene was uploaded by the renderer
+/// `renderer_id`, its resolution is in `1..=max_resolution`, it has one finite pose per movable
+/// object and an egocentric camera is finite with a field of view in (0, π).
+pub(super) fn validate(requests: &[ViewRequest<'_>], renderer_id: u64, max_resolution: u32) -> Result<(), RenderError> {
+    for (view, request) in requests.iter().enumerate() {
+        if request.scene.renderer_id != renderer_id {
+            return Err(RenderError::ForeignScene { view });
+        }
+        if request.resolution == 0 || request.resolution > max_resolution {
+            return Err(RenderError::InvalidResolution { resolution: request.resolution, max: max_resolution });
+        }
+        if request.object_poses.len() != request.scene.movable_count {
+            return Err(RenderError::InvalidPoses {
+                view,
+                reason: format!(
+                    "{} poses given for a scene with {} movable objects",
+                    request.object_poses.len(),
+                    request.scene.movable_count
+                ),
+            });
+        }
+        if request.object_poses.iter().any(|p| !(p.x.is_finite() && p.z.is_finite() && p.yaw.is_finite())) {
+            return Err(RenderError::InvalidPoses { view, reason: "a pose is not finite".into() });
+        }
+        if let Camera::Ego(camera) = request.camera {
+            let finite = camera.eye.iter().all(|c| c.is_finite())
+                && camera.yaw.is_finite()
+                && camera.pitch.is_finite()
+                && camera.horizontal_fov > 0.0
+                && camera.horizontal_fov < std::f64::consts::PI;
+            if !finite {
+                return Err(RenderError::InvalidPoses {
+                    view,
+                    reason: "the egocentric camera is not finite or its field of view is not in (0, π)".into(),
+                });
+            }
+        }
+    }
+    Ok(())
 }

@@ -1,0 +1,33 @@
+//! The [`Renderer`] struct: what it holds on the device and between batches (the pool of
+//! atlases). Its methods are implemented where the work is: creation, uploads and batches in the
+//! parent module, drawing a chunk in `draw`.
+
+use std::sync::{Arc, Mutex};
+
+use super::atlas::BatchState;
+
+/// The renderer: one per process, long-lived. See [the `renderer` module](crate::renderer#concurrency)
+/// for its concurrency.
+pub struct Renderer {
+    pub(super) id: u64,
+    pub(super) adapter_info: wgpu::AdapterInfo,
+    pub(super) device: wgpu::Device,
+    pub(super) queue: wgpu::Queue,
+    pub(super) pipeline_rgb: wgpu::RenderPipeline,
+    pub(super) pipeline_full: wgpu::RenderPipeline,
+    pub(super) bind_group_layout: wgpu::BindGroupLayout,
+    pub(super) max_atlas: u32,
+    pub(super) max_pages: u32,
+    pub(super) cull: bool,
+    pub(super) lost: Arc<Mutex<Option<String>>>,
+    pub(super) state: Mutex<BatchState>,
+}
+
+impl std::fmt::Debug for Renderer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Renderer")
+            .field("adapter", &self.adapter_info.name)
+            .field("backend", &self.adapter_info.backend)
+            .finish()
+    }
+}
