@@ -126,7 +126,6 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(2)
     config = PpoConfig.from_mapping(json.loads((args.run / "config.json").read_text()))
-    network = load_network(args.run / "ckpt.pt")
     with open(args.run / "episodes.csv", newline="") as file:
         rows = list(csv.DictReader(file))
     if not rows:
@@ -136,6 +135,9 @@ def main(argv: list[str] | None = None) -> int:
     returns = np.array([float(r["return"]) for r in rows])
     success = np.array([int(r["success"]) for r in rows], dtype=float)
 
+    # The final policy, read before a server starts (a bad checkpoint fails at once); not with --no-play.
+    network = load_network(args.run / "ckpt.pt") if args.play else None
+
     def evaluate(address: str) -> tuple[dict[str, Any], dict[str, Any]]:
         with esrp.Client(address, timeout=120) as client:
             random = play(config, client, args.episodes, None, False, args.seed)
@@ -144,11 +146,9 @@ def main(argv: list[str] | None = None) -> int:
 
     random: dict[str, Any] | None = None
     final: dict[str, Any] | None = None
-    if not args.play:
-        pass
-    elif args.server:
+    if args.play and args.server:
         random, final = evaluate(args.server)
-    else:
+    elif args.play:
         with esrp.LocalServer() as server:
             random, final = evaluate(server.address)
 
