@@ -1,17 +1,19 @@
 #!/usr/bin/env bash
-# Builds a Debian bookworm base image from Debian's packages alone (debootstrap, then
-# `docker import`), for machines that reach a Debian mirror but no container registry. It stands in
-# for debian:bookworm-slim: the same release, slimmed the same way (no manuals, docs or locales,
-# also for packages installed later), apt lists and package cache removed.
+# Builds a Debian base image from Debian's packages alone (debootstrap, then `docker import`), for
+# machines that reach a Debian mirror but no container registry. It stands in for
+# debian:SUITE-slim: the same release, slimmed the same way (no manuals, docs or locales, also for
+# packages installed later), apt lists and package cache removed.
 #
-# Usage: bash docker/debootstrap-base.sh [IMAGE]      (default IMAGE: esrp-base:bookworm)
+# Usage: bash docker/debootstrap-base.sh [IMAGE [SUITE]]
+#   SUITE: the Debian release (default bookworm; trixie for the newest Python Debian ships, 3.13);
+#   IMAGE: default esrp-base:SUITE.
 # Environment: ESRP_DEBIAN_MIRROR (default: the host's apt mirror for Debian, else
 # http://deb.debian.org/debian), ESRP_DEBIAN_SECURITY_MIRROR (likewise for debian-security).
 # Needs root (debootstrap), debootstrap and a running Docker daemon. Takes about a minute.
 set -euo pipefail
 
-image="${1:-esrp-base:bookworm}"
-suite=bookworm
+suite="${2:-bookworm}"
+image="${1:-esrp-base:$suite}"
 
 # The first URI of the host's apt sources (deb822 or one-line format) whose path ends in $1.
 host_mirror() {

@@ -6,6 +6,9 @@
 #   - esrp-server:test (server.Dockerfile, target runtime-prebuilt, from the esrp-server that the
 #     tests built) and esrp-eval:test (eval.Dockerfile, target eval-prebuilt, from esrp-eval and
 #     wheels of the Python package and its pinned dependencies made on the host),
+#   - the wheels of scripts/build-wheels.sh (--profile dev) and esrp-wheels:bookworm and
+#     esrp-wheels:trixie (wheels.Dockerfile: Debian's Python 3.11 and 3.13, no Rust toolchain, the
+#     wheels installed with pip; esrp-base:trixie is built like the bookworm base),
 # then runs docker/tests with pytest in .venv-docker (pinned by docker/tests/constraints.txt).
 # Installs docker.io, docker-compose and debootstrap when missing and starts dockerd when none
 # runs (as root). ESRP_SERVER_BIN and ESRP_EVAL_BIN, when both are set, name the binaries to put
@@ -100,14 +103,19 @@ if [ -z "$unavailable" ]; then
     mkdir -p "$work"
     version="$(cargo metadata --format-version 1 --no-deps | "$venv/bin/python" -c 'import json, sys; print(next(p["version"] for p in json.load(sys.stdin)["packages"] if p["name"] == "esrp-server"))')"
 
+    # esrp-base:SUITE from Debian's packages, built once and then reused.
+    base_image() {
+        local t
+        t=$(date +%s)
+        if docker image inspect "esrp-base:$1" >/dev/null 2>&1; then
+            echo "reusing esrp-base:$1, built $(docker image inspect --format '{{.Created}}' "esrp-base:$1")"
+        else
+            bash docker/debootstrap-base.sh "esrp-base:$1" "$1"
+        fi
+        echo "base image esrp-base:$1: $(seconds "$t") s"
+    }
     step "base image esrp-base:bookworm (debootstrap)"
-    t=$(date +%s)
-    if docker image inspect esrp-base:bookworm >/dev/null 2>&1; then
-        echo "reusing esrp-base:bookworm, built $(docker image inspect --format '{{.Created}}' esrp-base:bookworm)"
-    else
-        bash docker/debootstrap-base.sh esrp-base:bookworm
-    fi
-    echo "base image: $(seconds "$t") s"
+    base_image bookworm
 
     step "server image esrp-server:test (target runtime-prebuilt)"
     t=$(date +%s)
@@ -136,10 +144,39 @@ if [ -z "$unavailable" ]; then
         --build-arg BASE=esrp-base:bookworm --build-arg WHEELS=wheels --build-arg EVAL_BINARY=esrp-eval \
         --build-arg VERSION="$version" -t esrp-eval:test "$work/eval-context"
     echo "eval image: $(seconds "$t") s, $(docker image inspect --format '{{.Size}}' esrp-eval:test | awk '{printf "%.0f MB", $1 / 1e6}')"
+    step "wheels (scripts/build-wheels.sh --profile dev) and the images that install them"
+    t=$(date +%s)
+    # Unoptimised binaries (dependencies at opt-level 2, as in the tests): what is tested is the
+    # packaging, and a release build would add many minutes.
+    bash scripts/build-wheels.sh --profile dev --out "$work/wheels"
+    echo "wheels: $(seconds "$t") s"
+    wheel_images=()
+    # Debian 12 (Python 3.11) and Debian 13 (Python 3.13, the newest Python Debian ships).
+    for suite_python in bookworm:3.11 trixie:3.13; do
+        suite="${suite_python%%:*}" python_version="${suite_python##*:}"
+        step "wheels image esrp-wheels:$suite (Python $python_version)"
+        base_image "$suite"
+        t=$(date +%s)
+        context="$work/wheels-$suite"
+        rm -rf "$context" && mkdir -p "$context/wheels"
+        cp "$work"/wheels/*.whl "$context/wheels/"
+        # Our dependencies' wheels for the image's Python, as pinned (esrp-server and esrp-native
+        # come from the folder: they are not on the package index).
+        "$venv/bin/python" -m pip download --quiet --disable-pip-version-check --dest "$context/wheels" \
+            --find-links "$context/wheels" --only-binary=:all: --python-version "$python_version" \
+            --implementation cp --abi "cp${python_version/./}" --abi abi3 --abi none \
+            --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
+            -c clients/python/constraints.txt 'esrp[gym]'
+        build --network host -f docker/wheels.Dockerfile --build-arg BASE="esrp-base:$suite" \
+            -t "esrp-wheels:$suite" "$context"
+        echo "wheels image esrp-wheels:$suite: $(seconds "$t") s"
+        wheel_images+=("esrp-wheels:$suite")
+    done
+    export ESRP_DOCKER_WHEELS_IMAGES="${wheel_images[*]}"
     # The images these builds replaced, and the classic builder's untagged stage images, would pile
     # up run after run: remove the untagged ones of ours (at the price of rebuilding the eval
     # image's venv stage next time, ~20 s).
-    for title in esrp-server esrp-eval; do
+    for title in esrp-server esrp-eval esrp-wheels; do
         docker image prune --force --filter "label=org.opencontainers.image.title=$title" >/dev/null
     done
     export ESRP_DOCKER_SERVER_IMAGE=esrp-server:test ESRP_DOCKER_EVAL_IMAGE=esrp-eval:test

@@ -43,6 +43,50 @@ def test_find_server_binary(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> 
     assert esrp.find_server_binary() == found
 
 
+def test_the_installed_server_wheel_s_binary_comes_after_esrp_server_bin_only(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """`pip install 'esrp[server]'` puts esrp-server in the environment's scripts folder and names it
+    in the wheel's RECORD: `find_server_binary` takes that file before PATH and any checkout."""
+    real = esrp.find_server_binary()
+    monkeypatch.delenv("ESRP_SERVER_BIN", raising=False)
+    site, scripts = tmp_path / "site-packages", tmp_path / "bin"
+    info = site / "esrp_server-0.1.0.dist-info"
+    info.mkdir(parents=True)
+    scripts.mkdir()
+    (scripts / "esrp-server").symlink_to(real)
+    (info / "METADATA").write_text("Metadata-Version: 2.4\nName: esrp-server\nVersion: 0.1.0\n")
+    (info / "RECORD").write_text(
+        "../bin/esrp-server,,\nesrp_server-0.1.0.dist-info/METADATA,,\nesrp_server-0.1.0.dist-info/RECORD,,\n"
+    )
+    elsewhere = tmp_path / "path"
+    elsewhere.mkdir()
+    (elsewhere / "esrp-server").symlink_to(real)
+    monkeypatch.setenv("PATH", f"{elsewhere}{os.pathsep}{os.environ['PATH']}")
+    assert esrp.find_server_binary() == elsewhere / "esrp-server"  # not installed yet: PATH
+    monkeypatch.syspath_prepend(str(site))
+    assert esrp.find_server_binary() == (scripts / "esrp-server").resolve()
+    monkeypatch.setenv("ESRP_SERVER_BIN", str(real))
+    assert esrp.find_server_binary() == real
+
+
+def test_a_server_of_another_release_is_refused_before_it_starts(monkeypatch: pytest.MonkeyPatch) -> None:
+    binary = esrp.find_server_binary()
+    assert esrp.server_version(binary) == esrp.__version__
+    monkeypatch.setattr(esrp, "__version__", "9.9.0")
+    server = esrp.LocalServer()
+    message = f"{binary} is esrp-server 0.1.0, but this esrp package is 9.9.0"
+    with pytest.raises(esrp.LocalServerError, match=message) as caught:
+        server.start()
+    assert "pip install 'esrp[server]==9.9.0'" in str(caught.value)
+    assert not server.is_running()
+    with pytest.raises(esrp.LocalServerError, match="did not name an esrp-server version"):
+        esrp.server_version("/bin/true")
+    # Asked not to check, it starts.
+    with esrp.LocalServer(check_version=False) as unchecked, unchecked.client() as client:
+        assert client.server_info().version == "0.1.0"
+
+
 def _alive(pid: int) -> bool:
     """Whether process `pid` runs (a zombie not yet reaped by its new parent does not)."""
     try:

@@ -111,6 +111,9 @@ if TYPE_CHECKING:
     from ._local import (
         find_server_binary as find_server_binary,
     )
+    from ._local import (
+        server_version as server_version,
+    )
     from ._values import (
         Action as Action,
     )
@@ -245,6 +248,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "._local": (
         "LocalServer",
         "find_server_binary",
+        "server_version",
     ),
     "._values": (
         "Action",

@@ -4,6 +4,7 @@ that want a server without a second terminal.
 
 from __future__ import annotations
 
+import importlib.metadata
 import os
 import shutil
 import signal
@@ -21,8 +22,9 @@ import grpc
 from . import _signals
 from ._client import Client, health_check
 from ._errors import LocalServerError
+from ._release import same_release
 
-__all__ = ["LocalServer", "find_server_binary"]
+__all__ = ["LocalServer", "find_server_binary", "same_release", "server_version"]
 
 _LISTENING = "esrp-server listening on "
 _METRICS = "esrp-server metrics on "
@@ -46,8 +48,25 @@ def _checkout_targets() -> list[Path]:
     return targets
 
 
+def _bundled_binary() -> Path | None:
+    """esrp-server as the `esrp-server` wheel installed it (the file its RECORD names, in the
+    environment's scripts folder), or None when that wheel is not installed.
+    """
+    try:
+        distribution = importlib.metadata.distribution("esrp-server")
+    except importlib.metadata.PackageNotFoundError:
+        return None
+    for file in distribution.files or ():
+        if file.name == _BINARY:
+            path = Path(str(distribution.locate_file(file))).resolve()
+            if path.is_file():
+                return path
+    return None
+
+
 def find_server_binary() -> Path:
-    """Where `LocalServer` finds esrp-server, in order: `ESRP_SERVER_BIN`; `PATH`; the repository's
+    """Where `LocalServer` finds esrp-server, in order: `ESRP_SERVER_BIN`; the binary of the
+    installed `esrp-server` wheel (`pip install 'esrp[server]'`); `PATH`; the repository's
     `target/release` then `target/debug` (or `CARGO_TARGET_DIR`'s) when run from a checkout.
     """
     variable = os.environ.get("ESRP_SERVER_BIN")
@@ -56,6 +75,9 @@ def find_server_binary() -> Path:
         if not path.is_file():
             raise LocalServerError(f"ESRP_SERVER_BIN={variable} is not a file")
         return path
+    bundled = _bundled_binary()
+    if bundled is not None:
+        return bundled
     on_path = shutil.which(_BINARY)
     if on_path:
         return Path(on_path)
@@ -65,9 +87,56 @@ def find_server_binary() -> Path:
             if candidate.is_file():
                 return candidate
     raise LocalServerError(
-        f"cannot find {_BINARY}: build it with `cargo build --release -p esrp-server`, put it on PATH, "
-        "or set ESRP_SERVER_BIN"
+        f"cannot find {_BINARY}: install it with `pip install 'esrp[server]'` (or the esrp-server "
+        "wheel from scripts/build-wheels.sh), build it with `cargo build --release -p esrp-server`, "
+        "put it on PATH, or set ESRP_SERVER_BIN"
     )
+
+
+_VERSIONS: dict[tuple[str, int, int], str] = {}
+
+
+def server_version(binary: str | os.PathLike[str]) -> str:
+    """The version an esrp-server binary reports (`esrp-server --version`), asked once per file
+    (path, size and modification time); raises `LocalServerError` when it does not answer.
+    """
+    path = Path(binary)
+    try:
+        stat = path.stat()
+    except OSError as error:
+        raise LocalServerError(f"cannot run {path}: {error}") from error
+    key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+    if key not in _VERSIONS:
+        try:
+            answer = subprocess.run(
+                [str(path), "--version"], capture_output=True, text=True, timeout=30, check=False
+            )
+        except (OSError, subprocess.TimeoutExpired) as error:
+            raise LocalServerError(f"cannot run {path}: {error}") from error
+        words = answer.stdout.split()
+        if answer.returncode != 0 or len(words) < 2 or words[0] != "esrp-server":
+            tail = (answer.stderr or answer.stdout).strip().splitlines()[-1:] or ["no output"]
+            raise LocalServerError(f"{path} --version did not name an esrp-server version: {tail[0]}")
+        _VERSIONS[key] = words[-1]
+    return _VERSIONS[key]
+
+
+def _package_version() -> str:
+    from . import __version__
+
+    return __version__
+
+
+def _check_version(binary: Path) -> None:
+    """Raises `LocalServerError` when `binary` is not of this package's major.minor release."""
+    version, package = server_version(binary), _package_version()
+    if not same_release(package, version):
+        minor = ".".join(package.split(".")[:2])
+        raise LocalServerError(
+            f"{binary} is esrp-server {version}, but this esrp package is {package}: a client and a server "
+            f"must share their major.minor version. Install esrp-server {minor}.x "
+            f"(`pip install 'esrp[server]=={package}'`), or set ESRP_SERVER_BIN to a matching build"
+        )
 
 
 class LocalServer:
@@ -90,6 +159,8 @@ class LocalServer:
             is set, so that its log, kept for `log_tail`, holds no ANSI colour codes).
         startup_timeout: Seconds to wait for the address and for health.
         stop_timeout: Seconds to wait after SIGTERM before killing.
+        check_version: Refuse (`LocalServerError`) a binary whose `--version` is not of this
+            package's major.minor release (`same_release`), before starting it.
 
     Example:
         >>> with esrp.LocalServer() as server, server.client() as client:    # doctest: +SKIP
@@ -103,12 +174,14 @@ class LocalServer:
         env: Mapping[str, str] | None = None,
         startup_timeout: float = 60.0,
         stop_timeout: float = 10.0,
+        check_version: bool = True,
     ) -> None:
         self.args: Sequence[str] = args
         self.binary = Path(binary) if binary is not None else None
         self.env = dict(env or {})
         self.startup_timeout = startup_timeout
         self.stop_timeout = stop_timeout
+        self.check_version = check_version
         self.process: subprocess.Popen[str] | None = None
         self._stderr: IO[bytes] | None = None
         self._log = _Log()
@@ -160,6 +233,8 @@ class LocalServer:
         if self.process is not None:
             raise LocalServerError("the server was already started")
         binary = self.binary or find_server_binary()
+        if self.check_version:
+            _check_version(binary)
         environment = dict(os.environ)
         environment.setdefault("ESRP_LOG", "warn")
         # Its output goes to files and pipes (read back into `log_tail` and errors), never to a

@@ -31,10 +31,10 @@
 //! - **Furniture**: every child that refers to a `furniture[]` entry is one object. Its pose is
 //!   `pos` on the plan and the yaw of `rot` ([`yaw_from_quaternion`]); its shape is built in a
 //!   frame turned by that yaw, so any tilt and the scale stay in the geometry. The shape is the
-//!   convex hull of the model's vertices as one [`Part::ConvexHull`] of at most
+//!   convex hull of the model's vertices as one [`Part::ConvexHull`](esrp_core::Part::ConvexHull) of at most
 //!   [`MAX_HULL_POINTS`] points (fewer when the room has many objects, so that the room stays
 //!   under [`crate::layout::TRIANGLE_BUDGET`] triangles); a model whose OBJ is missing or
-//!   unreadable falls back to a [`Part::Box`] of the furniture's `bbox` with a warning. The
+//!   unreadable falls back to a [`Part::Box`](esrp_core::Part::Box) of the furniture's `bbox` with a warning. The
 //!   frame is centred on the footprint, and an object standing on the floor (lowest point
 //!   within 5 cm of it) is shifted to stand exactly at `y = 0`; higher objects (wall cabinets,
 //!   pendant lamps, things on tables) keep their height and can only be fixed.
@@ -60,7 +60,7 @@
 //!   (`construction_<reason>`).
 //! - **Scenes**: the target layout goes through the same backward construction as the
 //!   procedural benchmark ([`crate::backward::construct`]), retried with new attempt numbers;
-//!   the id is `3dfront/<house-uuid>/<room-instanceid>`, the split by [`split_for_id`], the
+//!   the id is `3dfront/<house-uuid>/<room-instanceid>`, the split by [`split_for_id`](crate::benchmark::split_for_id), the
 //!   room type 3D-FRONT's.
 //!
 //! Nothing is written here: [`import`] returns the scenes, and the caller writes them (the

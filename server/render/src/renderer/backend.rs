@@ -61,7 +61,7 @@ impl std::str::FromStr for BackendPreference {
     }
 }
 
-/// How to create a [`Renderer`].
+/// How to create a [`Renderer`](crate::Renderer).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct RendererConfig {
     /// Which backends to try.

@@ -11,7 +11,7 @@ use crate::mesh::MeshPart;
 
 use super::limits::DEFAULT_RESOLUTION;
 
-/// A scene's geometry on the device, uploaded once by [`Renderer::upload_scene`] and shared by
+/// A scene's geometry on the device, uploaded once by [`Renderer::upload_scene`](crate::Renderer::upload_scene) and shared by
 /// every view of every episode of that scene (wrap it in an `Arc`; caching by scene id is the
 /// caller's job).
 #[derive(Debug)]

@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import platform
-import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -22,6 +21,7 @@ from importlib import metadata
 from typing import TYPE_CHECKING
 
 from .. import __version__
+from .._release import same_release
 from ._args import Parser, server_options
 
 if TYPE_CHECKING:
@@ -54,13 +54,6 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
     )
     server_options(doctor)
     doctor.set_defaults(handler=_doctor)
-
-
-def same_release(client: str, server: str) -> bool:
-    """Whether a client and a server version speak to each other: the same major and minor version
-    (`0.1.0` and `0.1.3` do; `0.1.0` and `0.2.0` do not).
-    """
-    return client.split(".")[:2] == server.split(".")[:2]
 
 
 def _minor(version: str) -> str:
@@ -165,7 +158,7 @@ def _native() -> Check:
 
 def _binary() -> Check:
     from .._errors import LocalServerError
-    from .._local import find_server_binary
+    from .._local import find_server_binary, server_version
 
     try:
         path = find_server_binary()
@@ -178,23 +171,11 @@ def _binary() -> Check:
             "with --server ADDR",
         )
     try:
-        answer = subprocess.run(
-            [str(path), "--version"], capture_output=True, text=True, timeout=30, check=False
-        )
-    except OSError as error:
+        version = server_version(path)
+    except LocalServerError as error:
         return Check(
-            "server binary", "FAIL", f"{path} does not run: {error}", "rebuild it, or set ESRP_SERVER_BIN"
+            "server binary", "FAIL", str(error), "rebuild it, reinstall esrp-server, or set ESRP_SERVER_BIN"
         )
-    words = answer.stdout.split()
-    if answer.returncode != 0 or len(words) < 2:
-        tail = (answer.stderr or answer.stdout).strip().splitlines()[-1:] or ["no output"]
-        return Check(
-            "server binary",
-            "FAIL",
-            f"{path} --version failed: {tail[0]}",
-            "rebuild it, or set ESRP_SERVER_BIN",
-        )
-    version = words[-1]
     if not same_release(__version__, version):
         return Check(
             "server binary",
