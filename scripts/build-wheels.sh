@@ -10,24 +10,25 @@
 #   pip install dist/*.whl            # or: pip install --find-links dist 'esrp[gym,server]' esrp-native
 # Needs cargo (Rust >= 1.88) and Python >= 3.10 with venv; the build tools go into .venv-wheels,
 # pinned by clients/python/constraints-wheels.txt.
-# Usage: bash scripts/build-wheels.sh [--out DIR] [--profile release|dev]
-#   --profile dev builds the binaries without optimisation (fast to build, slow to run: for tests).
+# Usage: bash scripts/build-wheels.sh [--out DIR] [--server-profile release|dev]
+#   --server-profile dev builds the server with cargo's dev profile (its dependencies optimised,
+#   its own code not; for tests: it reuses more of a debug build). esrp-native is always release.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 out=dist
-profile=release
+server_profile=release
 while [ $# -gt 0 ]; do
     case "$1" in
     --out) out="${2:?--out needs a folder}"; shift 2 ;;
-    --profile) profile="${2:?--profile needs release or dev}"; shift 2 ;;
-    -h | --help) sed -n '2,16p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    --server-profile) server_profile="${2:?--server-profile needs release or dev}"; shift 2 ;;
+    -h | --help) sed -n '2,17p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "build-wheels.sh: unknown argument $1 (see --help)" >&2; exit 2 ;;
     esac
 done
-case "$profile" in
+case "$server_profile" in
 release | dev) ;;
-*) echo "build-wheels.sh: --profile must be release or dev, not $profile" >&2; exit 2 ;;
+*) echo "build-wheels.sh: --server-profile must be release or dev, not $server_profile" >&2; exit 2 ;;
 esac
 command -v cargo >/dev/null 2>&1 || { echo "build-wheels.sh: cargo not found (install Rust >= 1.88)" >&2; exit 1; }
 step() { printf '\n==> %s (%s)\n' "$*" "$(date -u +%H:%M:%S)"; }
@@ -52,11 +53,11 @@ step "esrp (clients/python)"
 "$venv/bin/python" -m pip wheel --quiet --disable-pip-version-check --no-deps --no-build-isolation \
     --wheel-dir "$out" ./clients/python
 
-step "esrp-native (clients/python/native, $profile)"
-maturin build --quiet --profile "$profile" -m clients/python/native/Cargo.toml --out "$out"
+step "esrp-native (clients/python/native, release)"
+maturin build --quiet --release -m clients/python/native/Cargo.toml --out "$out"
 
-step "esrp-server (server/service, $profile)"
-maturin build --quiet --profile "$profile" -m server/service/Cargo.toml --out "$out"
+step "esrp-server (server/service, $server_profile)"
+maturin build --quiet --profile "$server_profile" -m server/service/Cargo.toml --out "$out"
 
 step "manylinux compliance (auditwheel show)"
 for wheel in "$out"/esrp_native-*.whl "$out"/esrp_server-*.whl; do

@@ -6,7 +6,7 @@
 #   - esrp-server:test (server.Dockerfile, target runtime-prebuilt, from the esrp-server that the
 #     tests built) and esrp-eval:test (eval.Dockerfile, target eval-prebuilt, from esrp-eval and
 #     wheels of the Python package and its pinned dependencies made on the host),
-#   - the wheels of scripts/build-wheels.sh (--profile dev) and esrp-wheels:bookworm and
+#   - the wheels of scripts/build-wheels.sh (--server-profile dev) and esrp-wheels:bookworm and
 #     esrp-wheels:trixie (wheels.Dockerfile: Debian's Python 3.11 and 3.13, no Rust toolchain, the
 #     wheels installed with pip; esrp-base:trixie is built like the bookworm base),
 # then runs docker/tests with pytest in .venv-docker (pinned by docker/tests/constraints.txt).
@@ -144,11 +144,12 @@ if [ -z "$unavailable" ]; then
         --build-arg BASE=esrp-base:bookworm --build-arg WHEELS=wheels --build-arg EVAL_BINARY=esrp-eval \
         --build-arg VERSION="$version" -t esrp-eval:test "$work/eval-context"
     echo "eval image: $(seconds "$t") s, $(docker image inspect --format '{{.Size}}' esrp-eval:test | awk '{printf "%.0f MB", $1 / 1e6}')"
-    step "wheels (scripts/build-wheels.sh --profile dev) and the images that install them"
+    step "wheels (scripts/build-wheels.sh --server-profile dev) and the images that install them"
     t=$(date +%s)
-    # Unoptimised binaries (dependencies at opt-level 2, as in the tests): what is tested is the
-    # packaging, and a release build would add many minutes.
-    bash scripts/build-wheels.sh --profile dev --out "$work/wheels"
+    # The server as in the tests (dependencies at opt-level 2, its own code not optimised): what is
+    # tested is the packaging, and a release build of the server would add many minutes. esrp-native
+    # is the release build scripts/python-tests.sh installed.
+    bash scripts/build-wheels.sh --server-profile dev --out "$work/wheels"
     echo "wheels: $(seconds "$t") s"
     wheel_images=()
     # Debian 12 (Python 3.11) and Debian 13 (Python 3.13, the newest Python Debian ships).
