@@ -6,9 +6,10 @@
 #   - esrp-server:test (server.Dockerfile, target runtime-prebuilt, from the esrp-server that the
 #     tests built) and esrp-eval:test (eval.Dockerfile, target eval-prebuilt, from esrp-eval and
 #     wheels of the Python package and its pinned dependencies made on the host),
-#   - the wheels of scripts/build-wheels.sh (--server-profile dev) and esrp-wheels:bookworm and
-#     esrp-wheels:trixie (wheels.Dockerfile: Debian's Python 3.11 and 3.13, no Rust toolchain, the
-#     wheels installed with pip; esrp-base:trixie is built like the bookworm base),
+#   - the wheels of scripts/build-wheels.sh (--server-profile dev) and esrp-wheels:trixie and
+#     esrp-wheels:python3.10 (wheels.Dockerfile: Debian 13's Python 3.13, and the host's Python
+#     3.10 on Debian 12 when it has one; no Rust toolchain; the wheels installed with pip;
+#     esrp-base:trixie is built like the bookworm base),
 # then runs docker/tests with pytest in .venv-docker (pinned by docker/tests/constraints.txt).
 # Installs docker.io, docker-compose and debootstrap when missing and starts dockerd when none
 # runs (as root). ESRP_SERVER_BIN and ESRP_EVAL_BIN, when both are set, name the binaries to put
@@ -152,26 +153,46 @@ if [ -z "$unavailable" ]; then
     bash scripts/build-wheels.sh --server-profile dev --out "$work/wheels"
     echo "wheels: $(seconds "$t") s"
     wheel_images=()
-    # Debian 12 (Python 3.11) and Debian 13 (Python 3.13, the newest Python Debian ships).
-    for suite_python in bookworm:3.11 trixie:3.13; do
-        suite="${suite_python%%:*}" python_version="${suite_python##*:}"
-        step "wheels image esrp-wheels:$suite (Python $python_version)"
+    # Each: TAG SUITE PYTHON CONSTRAINTS [PREFIX]. Debian 13's own Python 3.13 (the newest Python
+    # Debian ships), and the oldest the package supports, 3.10, which no Debian release ships: the
+    # host's build (as for the Python 3.10 run of scripts/python-tests.sh), copied onto Debian 12.
+    variants=("trixie trixie 3.13 clients/python/constraints.txt")
+    python310=""
+    for candidate in ${PYTHON310:-} python3.10 "$HOME"/.pyenv/versions/3.10.*/bin/python; do
+        if command -v "$candidate" >/dev/null 2>&1 && "$candidate" -c 'import sys; assert sys.version_info[:2] == (3, 10)' 2>/dev/null; then
+            python310="$candidate"
+            break
+        fi
+    done
+    if [ -n "$python310" ]; then
+        prefix="$("$python310" -c 'import sys; print(sys.base_prefix)')"
+        variants+=("python3.10 bookworm 3.10 clients/python/constraints-py310.txt $prefix")
+    else
+        echo "no python3.10 here: the wheels are tried on Debian's Python 3.13 only (set PYTHON310)"
+    fi
+    for variant in "${variants[@]}"; do
+        read -r tag suite python_version pins prefix <<<"$variant"
+        step "wheels image esrp-wheels:$tag (Debian $suite, Python $python_version${prefix:+ from $prefix})"
         base_image "$suite"
         t=$(date +%s)
-        context="$work/wheels-$suite"
-        rm -rf "$context" && mkdir -p "$context/wheels"
+        context="$work/wheels-$tag"
+        rm -rf "$context" && mkdir -p "$context/wheels" "$context/python"
         cp "$work"/wheels/*.whl "$context/wheels/"
+        if [ -n "$prefix" ]; then
+            cp -a "$prefix/." "$context/python/"
+        fi
         # Our dependencies' wheels for the image's Python, as pinned (esrp-server and esrp-native
         # come from the folder: they are not on the package index).
         "$venv/bin/python" -m pip download --quiet --disable-pip-version-check --dest "$context/wheels" \
             --find-links "$context/wheels" --only-binary=:all: --python-version "$python_version" \
             --implementation cp --abi "cp${python_version/./}" --abi abi3 --abi none \
             --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
-            -c clients/python/constraints.txt 'esrp[gym]'
+            -c "$pins" 'esrp[gym]'
         build --network host -f docker/wheels.Dockerfile --build-arg BASE="esrp-base:$suite" \
-            -t "esrp-wheels:$suite" "$context"
-        echo "wheels image esrp-wheels:$suite: $(seconds "$t") s"
-        wheel_images+=("esrp-wheels:$suite")
+            --build-arg PYTHON_PREFIX="$prefix" -t "esrp-wheels:$tag" "$context"
+        rm -rf "$context"
+        echo "wheels image esrp-wheels:$tag: $(seconds "$t") s"
+        wheel_images+=("esrp-wheels:$tag")
     done
     export ESRP_DOCKER_WHEELS_IMAGES="${wheel_images[*]}"
     # The images these builds replaced, and the classic builder's untagged stage images, would pile

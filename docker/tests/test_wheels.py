@@ -1,8 +1,9 @@
 """The wheels of scripts/build-wheels.sh as a Python user meets them: installed with pip on Debian
-(its own Python, and no Rust toolchain) in the images scripts/docker-tests.sh builds from
-docker/wheels.Dockerfile, one per Debian release it names in ESRP_DOCKER_WHEELS_IMAGES (bookworm:
-Python 3.11; trixie: 3.13, the newest Debian ships). Each test runs in a fresh container without
-a network: the server is the one the esrp-server wheel installed, started by `esrp.LocalServer`.
+(and no Rust toolchain) in the images scripts/docker-tests.sh builds from docker/wheels.Dockerfile
+and names in ESRP_DOCKER_WHEELS_IMAGES: Debian 13 with its Python 3.13 (the newest Python Debian
+ships), and Debian 12 with Python 3.10 (the oldest the package supports, which Debian does not
+ship: the host's build, copied in). Each test runs in a fresh container without a network: the
+server is the one the esrp-server wheel installed, started by `esrp.LocalServer`.
 """
 
 from __future__ import annotations

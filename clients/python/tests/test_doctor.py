@@ -4,6 +4,8 @@ no server answers and a client/server version pair that cannot talk are failures
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -70,3 +72,20 @@ def test_versions_talk_within_one_minor_release() -> None:
     assert same_release("0.1.0", "0.1.7")
     assert not same_release("0.1.0", "0.2.0")
     assert not same_release("1.1.0", "0.1.0")
+
+
+def test_a_reader_that_goes_away_ends_the_command_quietly() -> None:
+    """`esrp doctor | head -3` printed a BrokenPipeError traceback (twice) once head had its lines:
+    the command now stops quietly with 141 (128 + SIGPIPE), as Unix tools do."""
+    child = subprocess.Popen(
+        [sys.executable, "-m", "esrp.cli", "doctor", "--seconds", "0.5"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    assert child.stdout is not None
+    assert child.stderr is not None
+    child.stdout.close()  # before the command writes anything
+    stderr = child.stderr.read().decode()
+    assert child.wait(timeout=60) == 141, stderr
+    assert "Traceback" not in stderr
+    assert "BrokenPipeError" not in stderr

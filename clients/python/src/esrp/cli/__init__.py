@@ -14,6 +14,7 @@ share.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import threading
 from collections.abc import Callable, Sequence
@@ -59,7 +60,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         # The command's own process: grpcio's settings, before anything here imports grpc (this
         # module imports it only in the commands' handlers).
         _grpc_setup.apply()
-    return run_command(command, lambda: _run(arguments), handle_signals=handle_signals)
+    try:
+        return run_command(command, lambda: _run(arguments), handle_signals=handle_signals)
+    except BrokenPipeError:
+        if argv is not None:
+            raise
+        # The reader of stdout went away (`esrp doctor | head`): stop quietly, as Unix tools do,
+        # with stdout on /dev/null so that the interpreter's flush at exit does not fail again.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 141  # 128 + SIGPIPE: the status of a tool that the signal stopped
 
 
 def _run(arguments: list[str]) -> int:
