@@ -31,6 +31,8 @@
 //! - **Deterministic.** The same inputs give bit-identical answers: the queries run in a fixed
 //!   order and the earliest hit wins, the first found on a tie.
 
+use std::sync::Arc;
+
 use parry3d::bounding_volume::{Aabb, BoundingVolume};
 use parry3d::math::{Pose, Vector};
 use parry3d::query::{self, NonlinearRigidMotion, ShapeCastOptions};
@@ -76,10 +78,13 @@ impl Body {
 /// The movable objects as obstacles: each one's pose and its exact shape's world box at that
 /// pose (kept so that a query meets only the objects near its sweep). The entry of the object a
 /// [`Body`] holds is ignored by queries about that body.
+///
+/// Cloning shares the poses and boxes (copy on write): searches clone an episode per node, and
+/// most of their motions move no object.
 #[derive(Clone, Debug, PartialEq)]
 pub struct MovableObstacles {
-    poses: Vec<ObjectPose>,
-    aabbs: Vec<Aabb>,
+    poses: Arc<Vec<ObjectPose>>,
+    aabbs: Arc<Vec<Aabb>>,
 }
 
 impl MovableObstacles {
@@ -90,7 +95,7 @@ impl MovableObstacles {
     /// If `poses` has more entries than the scene has movable objects.
     pub fn new(scene: &CompiledScene, poses: Vec<ObjectPose>) -> Self {
         let aabbs = poses.iter().enumerate().map(|(i, p)| object_aabb(scene, i, p)).collect();
-        Self { poses, aabbs }
+        Self { poses: Arc::new(poses), aabbs: Arc::new(aabbs) }
     }
 
     /// The poses, in scene order.
@@ -104,14 +109,14 @@ impl MovableObstacles {
     ///
     /// If `i` is not a movable object of the scene.
     pub fn set(&mut self, scene: &CompiledScene, i: usize, pose: ObjectPose) {
-        self.poses[i] = pose;
-        self.aabbs[i] = object_aabb(scene, i, &pose);
+        Arc::make_mut(&mut self.poses)[i] = pose;
+        Arc::make_mut(&mut self.aabbs)[i] = object_aabb(scene, i, &pose);
     }
 
     /// Moves object `i` to `pose` without updating its box: only for the object being carried,
     /// which queries ignore until [`MovableObstacles::set`] puts it down.
     pub(crate) fn carry(&mut self, i: usize, pose: ObjectPose) {
-        self.poses[i] = pose;
+        Arc::make_mut(&mut self.poses)[i] = pose;
     }
 }
 

@@ -347,7 +347,8 @@ struct State {
     grip: Option<Grip>,
     /// Every movable object's pose; the held one's box is refreshed when it is released.
     objects: MovableObstacles,
-    placed: Vec<bool>,
+    /// Shared between clones until one changes (copy on write), like the obstacles.
+    placed: Arc<Vec<bool>>,
     steps: u32,
     status: EpisodeStatus,
     ever_in_reach: bool,
@@ -392,7 +393,7 @@ impl Episode {
         let s = scene.scene();
         let start = PlanPoint::new(s.agent.x, s.agent.z);
         let poses: Vec<ObjectPose> = s.movable_objects.iter().map(|o| o.pose).collect();
-        let placed = (0..poses.len())
+        let placed: Vec<bool> = (0..poses.len())
             .map(|i| {
                 footprint_iou(
                     &scene.movable_footprint(i, &poses[i]),
@@ -406,7 +407,7 @@ impl Episode {
             heading: s.agent.heading,
             grip: None,
             objects: MovableObstacles::new(scene, poses),
-            placed,
+            placed: Arc::new(placed),
             steps: 0,
             status: EpisodeStatus::Running,
             ever_in_reach: false,
@@ -571,7 +572,7 @@ impl Episode {
         };
         if self.state.placed[object] {
             outcome.reward.placement = self.config.reward.unplace;
-            self.state.placed[object] = false;
+            Arc::make_mut(&mut self.state.placed)[object] = false;
         }
         self.state.grip = Some(Grip {
             object,
@@ -623,7 +624,7 @@ impl Episode {
         let iou =
             footprint_iou(&self.scene.movable_footprint(object, &pose), &self.scene.movable_footprint(object, target));
         if iou > self.scene.rules().placement_iou {
-            self.state.placed[object] = true;
+            Arc::make_mut(&mut self.state.placed)[object] = true;
             outcome.reward.placement = self.config.reward.place;
         }
         outcome.released = Some(object);

@@ -8,13 +8,14 @@
 //! final pose is the episode's start. The run reversed and inverted is the expert trajectory,
 //! and every scene is replayed to success before it is kept.
 
-use std::collections::{BinaryHeap, HashSet};
+use std::collections::BinaryHeap;
 use std::sync::Arc;
 
 use esrp_core::{
     Action, AgentStart, CompiledScene, Episode, EpisodeConfig, Heading, PlanPoint, Rules, Scene, footprint_iou,
     reverse_trajectory,
 };
+use rustc_hash::FxHashSet;
 
 use crate::dice::Dice;
 
@@ -228,7 +229,7 @@ pub fn plan_to_fetch(start: &Episode, target: usize, max_nodes: usize) -> Option
     };
     // Nodes: (episode, parent, action, cost so far).
     let mut nodes: Vec<(Episode, usize, Action, f64)> = vec![(start.clone(), usize::MAX, Action::Fetch, 0.0)];
-    let mut seen = HashSet::from([key(start.agent_pose())]);
+    let mut seen = FxHashSet::from_iter([key(start.agent_pose())]);
     let mut frontier = BinaryHeap::from([Frontier { priority: heuristic(start), node: 0 }]);
     while let Some(Frontier { node, .. }) = frontier.pop() {
         if nodes.len() > max_nodes {

@@ -29,12 +29,13 @@
 //! the collision check is esrp-core's, and the positions are the episode's own, so the drive that
 //! the search returns replays exactly.
 
-use std::collections::{HashSet, VecDeque};
+use std::collections::VecDeque;
 
 use esrp_core::{
     Action, AgentStart, CompiledScene, Episode, EpisodeConfig, Heading, ObjectPose, PlanPoint, Scene,
     reverse_trajectory,
 };
+use rustc_hash::FxHashSet;
 
 use crate::backward::{Construction, Rejection, horizon_for, validate_by_replay};
 use crate::dice::Dice;
@@ -151,7 +152,7 @@ pub fn reachable(start: &Episode, cell: f64, max_poses: usize) -> Reach {
         edge: Vec::new(),
         clearance: root_clearance,
     }];
-    let mut seen = HashSet::from([cell_of(&[0; 8], cell)]);
+    let mut seen = FxHashSet::from_iter([cell_of(&[0; 8], cell)]);
     let mut queue = VecDeque::from([0usize]);
     let mut capped = false;
     'search: while let Some(at) = queue.pop_front() {
