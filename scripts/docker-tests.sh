@@ -166,7 +166,13 @@ if [ -z "$unavailable" ]; then
     done
     if [ -n "$python310" ]; then
         prefix="$("$python310" -c 'import sys; print(sys.base_prefix)')"
-        variants+=("python3.10 bookworm 3.10 clients/python/constraints-py310.txt $prefix")
+        case "$prefix" in
+        / | /usr | /usr/local)
+            # A system Python: its prefix is the whole system, not a folder to copy.
+            echo "the Python 3.10 at $prefix is a system one: the wheels are tried on Debian's Python 3.13 only"
+            ;;
+        *) variants+=("python3.10 bookworm 3.10 clients/python/constraints-py310.txt $prefix") ;;
+        esac
     else
         echo "no python3.10 here: the wheels are tried on Debian's Python 3.13 only (set PYTHON310)"
     fi
