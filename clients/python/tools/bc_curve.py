@@ -15,7 +15,7 @@ import csv
 import sys
 from pathlib import Path
 
-from esrp.eval.results import wilson
+from _curves import save, success_errorbar
 
 
 def rows(path: Path) -> list[dict[str, str]]:
@@ -60,16 +60,11 @@ def main() -> int:
     loss_axis.grid(alpha=0.3)
     if evaluations:
         sr_axis = axes[0][1]
-        at = [int(r["epoch"]) for r in evaluations]
-        sr = [100 * float(r["sr"]) for r in evaluations]
-        intervals = [
-            wilson(round(float(r["sr"]) * int(r["episodes"])), int(r["episodes"])) for r in evaluations
+        points = [
+            (int(r["epoch"]), round(float(r["sr"]) * int(r["episodes"])), int(r["episodes"]))
+            for r in evaluations
         ]
-        low = [s - 100 * lo for s, (lo, _) in zip(sr, intervals, strict=True)]
-        high = [100 * hi - s for s, (_, hi) in zip(sr, intervals, strict=True)]
-        episodes = evaluations[-1]["episodes"]
-        label = f"held-out SR ({episodes} scenes)"
-        sr_axis.errorbar(at, sr, yerr=[low, high], marker="o", capsize=4, label=label)
+        success_errorbar(sr_axis, points, f"held-out SR ({evaluations[-1]['episodes']} scenes)")
         sr_axis.set_xlabel("epoch")
         sr_axis.set_ylabel("success rate, % (95 % Wilson interval)")
         sr_axis.set_ylim(bottom=0)
@@ -78,9 +73,7 @@ def main() -> int:
     for axis in axes[0]:
         axis.xaxis.set_major_locator(MaxNLocator(integer=True))
     figure.suptitle(args.title or args.run.name)
-    figure.tight_layout()
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(args.out, dpi=110)
+    save(figure, args.out)
     print(f"wrote {args.out}")
     return 0
 

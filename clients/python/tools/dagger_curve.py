@@ -20,12 +20,10 @@ import gzip
 import json
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
 
-from esrp.eval.results import EpisodeRecord, wilson
+from _curves import save, success_errorbar
 
-if TYPE_CHECKING:
-    from matplotlib.axes import Axes
+from esrp.eval.results import EpisodeRecord
 
 
 def successes(path: Path) -> tuple[int, int]:
@@ -86,20 +84,13 @@ def main() -> int:
     figure, (sr_axis, agreement_axis) = plt.subplots(1, 2, figsize=(11, 4))
     at = [int(r["iteration"]) for r in lines]
 
-    def plot(axis: Axes, points: list[tuple[int, int, int]], label: str, marker: str) -> None:
-        sr = [100 * s / n for _, s, n in points]
-        intervals = [wilson(s, n) for _, s, n in points]
-        low = [v - 100 * lo for v, (lo, _) in zip(sr, intervals, strict=True)]
-        high = [100 * hi - v for v, (_, hi) in zip(sr, intervals, strict=True)]
-        axis.errorbar([i for i, _, _ in points], sr, yerr=[low, high], marker=marker, capsize=4, label=label)
-
     held_out = [
         (int(r["iteration"]), round(float(r["sr"]) * int(r["eval_episodes"])), int(r["eval_episodes"]))
         for r in lines
     ]
-    plot(sr_axis, held_out, f"held-out train scenes ({lines[-1]['eval_episodes']})", "o")
+    success_errorbar(sr_axis, held_out, f"held-out train scenes ({lines[-1]['eval_episodes']})", "o")
     if tests:
-        plot(sr_axis, sorted(tests), f"test split ({tests[0][2]} scenes)", "s")
+        success_errorbar(sr_axis, sorted(tests), f"test split ({tests[0][2]} scenes)", "s")
     sr_axis.set_xlabel("DAgger iteration (0: the BC policy)")
     sr_axis.set_ylabel("success rate, % (95 % Wilson interval)")
     sr_axis.set_ylim(bottom=0)
@@ -137,9 +128,7 @@ def main() -> int:
     for axis in (sr_axis, agreement_axis):
         axis.xaxis.set_major_locator(MaxNLocator(integer=True))
     figure.suptitle(args.title or args.run.name)
-    figure.tight_layout()
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(args.out, dpi=110)
+    save(figure, args.out)
     print(f"wrote {args.out}")
     return 0
 

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from _curves import save
 
 import esrp
 from esrp.agents.ppo import PpoConfig, PpoNet, load_network
@@ -189,9 +190,7 @@ def main(argv: list[str] | None = None) -> int:
     bottom.set_xlabel("environment steps")
     bottom.set_ylabel("success rate")
     bottom.legend(loc="lower right", fontsize=8)
-    figure.tight_layout()
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(args.out, dpi=110)
+    save(figure, args.out)
     summary = {
         "run": str(args.run),
         "scene": config.scene,
