@@ -157,13 +157,7 @@ if [ -z "$unavailable" ]; then
     # Debian ships), and the oldest the package supports, 3.10, which no Debian release ships: the
     # host's build (as for the Python 3.10 run of scripts/python-tests.sh), copied onto Debian 12.
     variants=("trixie trixie 3.13 clients/python/constraints.txt")
-    python310=""
-    for candidate in ${PYTHON310:-} python3.10 "$HOME"/.pyenv/versions/3.10.*/bin/python; do
-        if command -v "$candidate" >/dev/null 2>&1 && "$candidate" -c 'import sys; assert sys.version_info[:2] == (3, 10)' 2>/dev/null; then
-            python310="$candidate"
-            break
-        fi
-    done
+    python310="$(bash scripts/python310.sh || true)"
     if [ -n "$python310" ]; then
         prefix="$("$python310" -c 'import sys; print(sys.base_prefix)')"
         case "$prefix" in

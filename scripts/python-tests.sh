@@ -110,13 +110,7 @@ step "python client: pytest (the installed package against the real server)"
 
 # The oldest Python the package supports (requires-python >= 3.10) gets the client's suite too,
 # with its own pins (numpy 2.2 is the last for 3.10), when this machine has one.
-python310=""
-for candidate in ${PYTHON310:-} python3.10 "$HOME"/.pyenv/versions/3.10.*/bin/python; do
-    if "$candidate" -c 'import sys; assert sys.version_info[:2] == (3, 10)' >/dev/null 2>&1; then
-        python310="$candidate"
-        break
-    fi
-done
+python310="$(bash scripts/python310.sh || true)"
 if [ -n "$python310" ]; then
     step "python client on $("$python310" --version) (.venv-py310)"
     if [ ! -x .venv-py310/bin/python ] || ! .venv-py310/bin/python -c '' >/dev/null 2>&1; then
