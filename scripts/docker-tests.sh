@@ -115,6 +115,15 @@ if [ -z "$unavailable" ]; then
         fi
         echo "base image esrp-base:$1: $(seconds "$t") s"
     }
+    # dependency_wheels DIR PYTHON_VERSION CONSTRAINTS REQUIREMENT: into DIR, the wheels of
+    # REQUIREMENT's dependencies for CPython PYTHON_VERSION on x86_64 manylinux, pinned by
+    # CONSTRAINTS, whatever the host's Python; our own wheels are found in DIR itself.
+    dependency_wheels() {
+        "$venv/bin/python" -m pip download --quiet --disable-pip-version-check --dest "$1" --find-links "$1" \
+            --only-binary=:all: --python-version "$2" --implementation cp --abi "cp${2/./}" --abi abi3 \
+            --abi none --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 \
+            --platform manylinux2014_x86_64 -c "$3" "$4"
+    }
     step "base image esrp-base:bookworm (debootstrap)"
     base_image bookworm
 
@@ -136,11 +145,7 @@ if [ -z "$unavailable" ]; then
     # host's Python: the package as built from this tree, and its dependencies as pinned.
     "$venv/bin/python" -m pip wheel --quiet --disable-pip-version-check --no-deps \
         --wheel-dir "$work/eval-context/wheels" ./clients/python
-    "$venv/bin/python" -m pip download --quiet --disable-pip-version-check --dest "$work/eval-context/wheels" \
-        --find-links "$work/eval-context/wheels" --only-binary=:all: --python-version 3.11 \
-        --implementation cp --abi cp311 --abi abi3 --abi none --platform manylinux_2_28_x86_64 \
-        --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
-        -c clients/python/constraints.txt 'esrp[gym,ray]'
+    dependency_wheels "$work/eval-context/wheels" 3.11 clients/python/constraints.txt 'esrp[gym,ray]'
     build --network host -f docker/eval.Dockerfile --target eval-prebuilt \
         --build-arg BASE=esrp-base:bookworm --build-arg WHEELS=wheels --build-arg EVAL_BINARY=esrp-eval \
         --build-arg VERSION="$version" -t esrp-eval:test "$work/eval-context"
@@ -183,11 +188,7 @@ if [ -z "$unavailable" ]; then
         fi
         # Our dependencies' wheels for the image's Python, as pinned (esrp-server and esrp-native
         # come from the folder: they are not on the package index).
-        "$venv/bin/python" -m pip download --quiet --disable-pip-version-check --dest "$context/wheels" \
-            --find-links "$context/wheels" --only-binary=:all: --python-version "$python_version" \
-            --implementation cp --abi "cp${python_version/./}" --abi abi3 --abi none \
-            --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
-            -c "$pins" 'esrp[gym]'
+        dependency_wheels "$context/wheels" "$python_version" "$pins" 'esrp[gym]'
         build --network host -f docker/wheels.Dockerfile --build-arg BASE="esrp-base:$suite" \
             --build-arg PYTHON_PREFIX="$prefix" -t "esrp-wheels:$tag" "$context"
         rm -rf "$context"
