@@ -207,8 +207,9 @@ def test_local_server_that_does_not_start(tmp_path: Path) -> None:
         esrp.LocalServer("--no-such-flag").start()
     assert "did not start" in caught.value.message
     assert "--no-such-flag" in caught.value.message  # the tail of its stderr says why
-    with pytest.raises(esrp.LocalServerError, match="cannot start"):
+    with pytest.raises(esrp.LocalServerError, match="cannot start") as caught:
         esrp.LocalServer(binary=tmp_path / "missing").start()
+    assert "pip install 'esrp[server]'" in caught.value.message  # it says what to do
 
 
 def test_error_mapping_covers_every_code() -> None:

@@ -94,6 +94,7 @@ def find_server_binary() -> Path:
 
 
 _VERSIONS: dict[tuple[str, int, int], str] = {}
+_INSTALL_HINT = "install it with `pip install 'esrp[server]'` or build it with `cargo build --release -p esrp-server`"
 
 
 def server_version(binary: str | os.PathLike[str]) -> str:
@@ -233,6 +234,8 @@ class LocalServer:
         if self.process is not None:
             raise LocalServerError("the server was already started")
         binary = self.binary or find_server_binary()
+        if not Path(binary).is_file():
+            raise LocalServerError(f"cannot start {binary}: no such file ({_INSTALL_HINT})")
         if self.check_version:
             _check_version(binary)
         environment = dict(os.environ)
@@ -257,9 +260,7 @@ class LocalServer:
                     text=True,
                 )
             except OSError as error:
-                raise LocalServerError(
-                    f"cannot start {binary}: {error} (build it with `cargo build --release -p esrp-server`)"
-                ) from error
+                raise LocalServerError(f"cannot start {binary}: {error} ({_INSTALL_HINT})") from error
             _signals.track(self.process)
         try:
             self._await_start()
