@@ -5,6 +5,7 @@ from __future__ import annotations
 import socket
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Literal
 
 import grpc
 import pytest
@@ -164,19 +165,25 @@ def test_cancelled(client: esrp.Client) -> None:
     assert settled_live_episodes(client, before) == before
 
 
-def test_abandoned_create_leaves_no_episode(client: esrp.Client) -> None:
+@pytest.mark.parametrize("transport", ["native", "grpcio"])
+def test_abandoned_create_leaves_no_episode(
+    server: esrp.LocalServer, transport: Literal["native", "grpcio"]
+) -> None:
     """A create whose caller gives up is closed when its answer arrives (cancellation-safe)."""
-    before = client.server_info().live_episodes
-    abandoned: list[esrp.DeadlineExceeded] = []
-    for seed, timeout in enumerate([0, 0.0002, 0.0005, 0.001, 0.002, 0.005, 0]):
-        try:
-            client.create_episode(split="test", seed=seed, timeout=timeout).close()
-        except esrp.DeadlineExceeded as error:
-            abandoned.append(error)
-    assert abandoned
-    # Given up on the client side (no status): the call itself ran on.
-    assert all(error.code is None for error in abandoned)
-    assert settled_live_episodes(client, before) == before
+    if transport == "native":
+        pytest.importorskip("esrp_native", reason="the esrp-native package is not installed")
+    with server.client(transport=transport) as client:
+        before = client.server_info().live_episodes
+        abandoned: list[esrp.DeadlineExceeded] = []
+        for seed, timeout in enumerate([0, 0.0002, 0.0005, 0.001, 0.002, 0.005, 0]):
+            try:
+                client.create_episode(split="test", seed=seed, timeout=timeout).close()
+            except esrp.DeadlineExceeded as error:
+                abandoned.append(error)
+        assert abandoned
+        # Given up on the client side (no status): the call itself ran on.
+        assert all(error.code is None for error in abandoned)
+        assert settled_live_episodes(client, before) == before
 
 
 def test_stream_errors_are_in_band(client: esrp.Client) -> None:

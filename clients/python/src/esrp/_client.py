@@ -8,7 +8,7 @@ import contextlib
 import queue
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from types import TracebackType
 from typing import Any
 
@@ -29,6 +29,7 @@ from ._common import (
     target,
 )
 from ._errors import DeadlineExceeded, EpisodeNotFound, EsrpError, ServerUnavailable, from_rpc_error
+from ._transport import Calls, Pending
 from ._values import (
     ActionLike,
     Created,
@@ -90,11 +91,11 @@ class Client:
         tls_server_name: Check the server's certificate against this name instead of the host.
         timeout: Default deadline of unary calls, seconds (None: none).
         options: Extra gRPC channel arguments; they override the tuned defaults.
-        transport: What carries the hot-path calls (Step, Reset, StepBatch): `auto` (default) the
-            native transport where the `esrp-native` package is installed and the channel is
-            plain, else grpcio; `native` insists on it (ValueError where it cannot be had);
-            `grpcio` never uses it. Every other call goes through grpcio. `client.transport`
-            says which one is used.
+        transport: What carries the unary calls (every method but the StepStream): `auto`
+            (default) the native transport where the `esrp-native` package is installed and the
+            channel is plain, else grpcio; `native` insists on it (ValueError where it cannot be
+            had); `grpcio` never uses it. Streams and the health check go through grpcio.
+            `client.transport` says which one is used.
 
     Example:
         >>> with esrp.Client("127.0.0.1:50051") as client:            # doctest: +SKIP
@@ -115,7 +116,6 @@ class Client:
     ) -> None:
         host, https = target(address)
         self.address = host
-        self.timeout = timeout
         self._metadata = bearer_metadata(token)
         creds = credentials(tls, https)
         self.transport = _native.resolve(transport, creds is not None)
@@ -125,14 +125,24 @@ class Client:
         else:
             self._channel = grpc.secure_channel(host, creds, options=arguments)
         self._stub = pb_grpc.EsrpStub(self._channel)
-        # Step, Reset and StepBatch: the stub's or the native transport's (called alike).
-        self._hot: Any = _native.HotPath(host, token) if self.transport == "native" else self._stub
+        native = _native.channel(host, token) if self.transport == "native" else None
+        # Every unary call goes through it; streams and the health check use the channel.
+        self._calls = Calls(self._stub, native, self._metadata, timeout)
         # Creates whose callers gave up, and the closes of their episodes, until they finish:
         # close() waits for them so that closing the channel cancels none of them.
-        self._background: set[grpc.Future[Any]] = set()
+        self._background: set[Pending] = set()
         self._background_done = threading.Condition()
         # Steps per StepBatch of `step_columns`, by sensors (from the server's limits).
         self._batch_sizes: dict[Sensors, int] = {}
+
+    @property
+    def timeout(self) -> float | None:
+        """The deadline of each call, seconds (None: none); settable."""
+        return self._calls.timeout
+
+    @timeout.setter
+    def timeout(self, value: float | None) -> None:
+        self._calls.timeout = value
 
     @property
     def raw(self) -> pb_grpc.EsrpStub:
@@ -155,8 +165,7 @@ class Client:
         """
         with self._background_done:
             self._background_done.wait_for(lambda: not self._background, timeout=grace)
-        if isinstance(self._hot, _native.HotPath):
-            self._hot.close()
+        self._calls.close()
         self._channel.close()
 
     def __enter__(self) -> Client:
@@ -184,23 +193,11 @@ class Client:
         """The server's version, renderer, limits, live episode count and dataset, and who it takes
         the caller for (`caller`, `role`), whether it serves a challenge and what it records.
         """
-        try:
-            answer = self._stub.ServerInfo(
-                pb.ServerInfoRequest(), metadata=self._metadata, timeout=self.timeout
-            )
-        except grpc.RpcError as error:
-            raise from_rpc_error(error) from error
-        return _convert.server_info(answer)
+        return _convert.server_info(self._calls("ServerInfo", pb.ServerInfoRequest()))
 
     def describe_dataset(self) -> DatasetInfo:
         """The served dataset: name, size, counts by split, difficulty and room type."""
-        try:
-            answer = self._stub.DescribeDataset(
-                pb.DescribeDatasetRequest(), metadata=self._metadata, timeout=self.timeout
-            )
-        except grpc.RpcError as error:
-            raise from_rpc_error(error) from error
-        return _convert.dataset_info(answer)
+        return _convert.dataset_info(self._calls("DescribeDataset", pb.DescribeDatasetRequest()))
 
     def scenes(
         self,
@@ -221,10 +218,7 @@ class Client:
 
     def _scene_pages(self, request: pb.ListScenesRequest) -> Iterator[SceneSummary]:
         while True:
-            try:
-                page = self._stub.ListScenes(request, metadata=self._metadata, timeout=self.timeout)
-            except grpc.RpcError as error:
-                raise from_rpc_error(error) from error
+            page = self._calls("ListScenes", request)
             for scene in page.scenes:
                 yield _convert.scene_summary(scene)
             if not page.next_page_token:
@@ -280,49 +274,47 @@ class Client:
         )
         # No gRPC deadline: a deadline that expires while the answer travels would drop the answer,
         # and with it the only copy of the new episode's id.
-        future = self._stub.CreateEpisode.future(request, metadata=self._metadata)
+        pending = self._calls.start("CreateEpisode", request, timeout=None)
         wait = timeout if timeout is not None else self.timeout
         try:
-            answer = future.result(timeout=wait)
-        except grpc.FutureTimeoutError:
-            self._abandon(future)
+            answer = pending.result(timeout=wait)
+        except TimeoutError:
+            self._abandon(pending)
             raise DeadlineExceeded(f"no answer to CreateEpisode within {wait} s") from None
-        except grpc.RpcError as error:
-            raise from_rpc_error(error) from error
+        except EsrpError:
+            raise
         except BaseException:
-            self._abandon(future)
+            self._abandon(pending)
             raise
         return Episode(self, _convert.created(answer))
 
-    def _track(self, future: grpc.Future[Any]) -> None:
+    def _track(self, pending: Pending) -> None:
         with self._background_done:
-            self._background.add(future)
-        future.add_done_callback(self._untrack)
+            self._background.add(pending)
+        pending.add_done_callback(self._untrack)
 
-    def _untrack(self, future: grpc.Future[Any]) -> None:
+    def _untrack(self, pending: Pending) -> None:
         with self._background_done:
-            self._background.discard(future)
+            self._background.discard(pending)
             self._background_done.notify_all()
 
-    def _abandon(self, future: grpc.Future[pb.CreateEpisodeResponse]) -> None:
+    def _abandon(self, pending: Pending) -> None:
         """Lets a create nobody waits for run on; its episode is closed when the answer comes."""
         # Tracked first: the close is tracked by _close_abandoned before the create is untracked
         # (callbacks run in the order added), so close() never sees a gap.
         with self._background_done:
-            self._background.add(future)
-        future.add_done_callback(self._close_abandoned)
-        future.add_done_callback(self._untrack)
+            self._background.add(pending)
+        pending.add_done_callback(self._close_abandoned)
+        pending.add_done_callback(self._untrack)
 
-    def _close_abandoned(self, future: grpc.Future[pb.CreateEpisodeResponse]) -> None:
+    def _close_abandoned(self, pending: Pending) -> None:
         """Closes the episode of a CreateEpisode answer nobody waits for any more (best effort)."""
         try:
-            if future.cancelled() or future.exception() is not None:
+            if not pending.succeeded():
                 return
-            episode_id = future.result().episode_id
-            close = self._stub.CloseEpisode.future(
-                pb.CloseEpisodeRequest(episode_id=episode_id), metadata=self._metadata
-            )
-            self._track(close)
+            episode_id = pending.result().episode_id
+            request = pb.CloseEpisodeRequest(episode_id=episode_id)
+            self._track(self._calls.start("CloseEpisode", request, timeout=None))
         except Exception:  # noqa: BLE001 - the channel may be closing; the server's reaper remains.
             return
 
@@ -345,11 +337,7 @@ class Client:
                 for k, (episode, action) in enumerate(steps)
             ]
         )
-        try:
-            answer = self._hot.StepBatch(request, metadata=self._metadata, timeout=self.timeout)
-        except grpc.RpcError as error:
-            raise from_rpc_error(error) from error
-        return _convert.step_results(answer.responses, len(steps))
+        return _convert.step_results(self._calls("StepBatch", request).responses, len(steps))
 
     def step_columns(
         self, episode_ids: Sequence[str], actions: Sequence[ActionLike], sensors: Sensors
@@ -370,14 +358,11 @@ class Client:
         if not episode_ids and not actions:
             return columns
         requests = _convert.step_batch_requests(episode_ids, actions, self._batch_size(sensors))
-        waits = [self._step_batch_started(request) for request in requests[:-1]]
-        try:
-            answer = self._hot.StepBatch(requests[-1], metadata=self._metadata, timeout=self.timeout)
-        except grpc.RpcError as error:
-            raise from_rpc_error(error) from error
-        messages = _convert.batch_responses(answer, len(requests[-1].steps))
-        for wait in waits:
-            _convert.step_columns(wait(), layout, sensors.resolution, into=columns)
+        started = [self._calls.start("StepBatch", request) for request in requests[:-1]]
+        messages = _convert.batch_responses(self._calls("StepBatch", requests[-1]), len(requests[-1].steps))
+        for pending, request in zip(started, requests, strict=False):
+            answer = _convert.batch_responses(pending.result(), len(request.steps))
+            _convert.step_columns(answer, layout, sensors.resolution, into=columns)
         return _convert.step_columns(messages, layout, sensors.resolution, into=columns)
 
     def _batch_size(self, sensors: Sensors) -> int:
@@ -386,21 +371,6 @@ class Client:
         if size is None:
             size = self._batch_sizes[sensors] = batch_size(self.server_info().limits, sensors)
         return size
-
-    def _step_batch_started(self, request: pb.StepBatchRequest) -> Callable[[], Sequence[pb.StepResponse]]:
-        """Starts a StepBatch over grpcio without waiting; returns the function that waits for its
-        answer's StepResponses (raising its error).
-        """
-        future = self._stub.StepBatch.future(request, metadata=self._metadata, timeout=self.timeout)
-
-        def wait() -> Sequence[pb.StepResponse]:
-            try:
-                answer = future.result()
-            except grpc.RpcError as error:
-                raise from_rpc_error(error) from error
-            return _convert.batch_responses(answer, len(request.steps))
-
-        return wait
 
     def episode_stream(self, window: int = 8) -> EpisodeStream:
         """Opens a StepStream driven by an `EpisodeStream` with up to `window` steps of each
@@ -442,15 +412,9 @@ class Episode:
     def __repr__(self) -> str:
         return f"Episode(id={self.id!r}, scene={self.scene.id!r}, closed={self.closed})"
 
-    def _call(self, method: Any, request: Any) -> Any:  # noqa: ANN401
-        try:
-            return method(request, metadata=self.client.metadata, timeout=self.client.timeout)
-        except grpc.RpcError as error:
-            raise from_rpc_error(error) from error
-
     def step(self, action: ActionLike, *, include_goal: bool = False) -> StepResult:
         """Takes `action`; with `include_goal` the observation carries the goal image too."""
-        answer = self._call(self.client._hot.Step, _convert.step_request(self.id, action, include_goal))
+        answer = self.client._calls("Step", _convert.step_request(self.id, action, include_goal))
         return _convert.step_result(answer)
 
     def step_columns(self, action: ActionLike, sensors: Sensors) -> StepColumns:
@@ -458,14 +422,14 @@ class Episode:
         building values; the images the answer's bytes, checked to be `sensors`' size, the sensors
         the episode was made with).
         """
-        answer = self._call(self.client._hot.Step, _convert.step_request(self.id, action, False))
+        answer = self.client._calls("Step", _convert.step_request(self.id, action, False))
         return _convert.step_columns((answer,), _convert.image_layout(sensors), sensors.resolution)
 
     def reset(self, scene: str | None = None, *, scene_json: str | None = None) -> Observation:
         """Restarts the episode on the same scene (or another one); returns the first observation
         (with the goal image). Works on an ended episode.
         """
-        answer = self._call(self.client._hot.Reset, _convert.reset_request(self.id, scene, scene_json))
+        answer = self.client._calls("Reset", _convert.reset_request(self.id, scene, scene_json))
         observation, summary = _convert.reset_observation(answer)
         if summary is not None:
             self.scene = summary
@@ -474,17 +438,17 @@ class Episode:
 
     def goal(self) -> Goal:
         """The goal image and its pixel ↔ floor frame."""
-        return _convert.goal(self._call(self.client.raw.GetGoal, pb.GetGoalRequest(episode_id=self.id)))
+        return _convert.goal(self.client._calls("GetGoal", pb.GetGoalRequest(episode_id=self.id)))
 
     def metrics(self) -> Progress:
         """The metrics so far (final once ended), and whether the episode has ended."""
-        answer = self._call(self.client.raw.GetMetrics, pb.GetMetricsRequest(episode_id=self.id))
+        answer = self.client._calls("GetMetrics", pb.GetMetricsRequest(episode_id=self.id))
         return Progress(_convert.metrics(answer.metrics), answer.ended)
 
     def privileged_state(self) -> PrivilegedState:
         """The full state; only for episodes created with `privileged=True` (else `PermissionDenied`)."""
         request = pb.GetPrivilegedStateRequest(episode_id=self.id)
-        return _convert.privileged_state(self._call(self.client.raw.GetPrivilegedState, request))
+        return _convert.privileged_state(self.client._calls("GetPrivilegedState", request))
 
     def plan_actions(self, max_actions: int = 0, budget_ms: int | None = None) -> PlanAnswer:
         """The next actions of the server's planner (ESRP-PLAN) from the episode's current state;
@@ -507,20 +471,13 @@ class Episode:
             PermissionDenied: The episode is not privileged.
         """
         request = _convert.plan_request(self.id, max_actions, budget_ms)
-        try:
-            answer = self.client.raw.PlanActions(
-                request,
-                metadata=self.client.metadata,
-                timeout=_convert.plan_timeout(self.client.timeout, budget_ms),
-            )
-        except grpc.RpcError as error:
-            raise from_rpc_error(error) from error
-        return _convert.plan_answer(answer)
+        timeout = _convert.plan_timeout(self.client.timeout, budget_ms)
+        return _convert.plan_answer(self.client._calls("PlanActions", request, timeout=timeout))
 
     def close(self) -> EpisodeMetrics:
         """Closes the episode on the server; returns its metrics at that moment."""
         self.closed = True
-        answer = self._call(self.client.raw.CloseEpisode, pb.CloseEpisodeRequest(episode_id=self.id))
+        answer = self.client._calls("CloseEpisode", pb.CloseEpisodeRequest(episode_id=self.id))
         return _convert.closed_metrics(answer)
 
     def detach(self) -> str:

@@ -94,7 +94,9 @@ def find_server_binary() -> Path:
 
 
 _VERSIONS: dict[tuple[str, int, int], str] = {}
-_INSTALL_HINT = "install it with `pip install 'esrp[server]'` or build it with `cargo build --release -p esrp-server`"
+_INSTALL_HINT = (
+    "install it with `pip install 'esrp[server]'` or build it with `cargo build --release -p esrp-server`"
+)
 
 
 def server_version(binary: str | os.PathLike[str]) -> str:

@@ -1,23 +1,23 @@
-"""The optional native transport: the hot-path calls of `Client` (Step, Reset, StepBatch) over the
-Rust client's channel, through the `esrp_native` extension module (package `esrp-native`, built
-from `clients/python/native` with maturin).
+"""The optional native transport: the unary calls of `Client` over the Rust client's channel,
+through the `esrp_native` extension module (package `esrp-native`, built from
+`clients/python/native` with maturin).
 
 grpcio spends about twice the Rust client's CPU on a unary call, and for one agent stepping one
 episode that is most of a step's cost. With `esrp-native` installed, `Client(transport="auto")`
-(the default) sends those three calls through it; everything else (and `AsyncClient`, streams,
-TLS channels) stays on grpcio. Messages are built and parsed in Python exactly as for grpcio, and
-errors come as the same `EsrpError` classes, so the two transports answer alike.
+(the default) sends every unary call through it (`esrp._transport.Calls`); streams, the health
+check, `AsyncClient` and TLS channels stay on grpcio. Messages are built and parsed in Python
+exactly as for grpcio, and errors come as the same `EsrpError` classes, so the two transports
+answer alike.
 """
 
 from __future__ import annotations
 
 import importlib
 from types import ModuleType
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar, cast
 
 import grpc
-
-from .v1 import esrp_pb2 as pb
+from google.protobuf.message import Message
 
 _extension: ModuleType | None
 try:
@@ -25,11 +25,13 @@ try:
 except ImportError:  # the package is optional
     _extension = None
 
-__all__ = ["Transport", "available", "resolve"]
+__all__ = ["NativeRpcError", "Transport", "available", "call", "channel", "methods", "resolve"]
 
 Transport = Literal["auto", "native", "grpcio"]
 
 _CODES = {code.value[0]: code for code in grpc.StatusCode}
+
+M = TypeVar("M", bound=Message)
 
 
 def available() -> bool:
@@ -38,7 +40,7 @@ def available() -> bool:
 
 
 def resolve(transport: str, secure: bool) -> Literal["native", "grpcio"]:
-    """The transport a `Client` uses for its hot path: `auto` takes the native one where it is
+    """The transport a `Client` uses for its unary calls: `auto` takes the native one where it is
     installed and the channel is plain; `native` insists (ValueError where it cannot be had).
     """
     if transport not in ("auto", "native", "grpcio"):
@@ -76,36 +78,28 @@ class NativeRpcError(grpc.RpcError):
         return self._details
 
 
-class _Method:
-    """One unary method, called as grpcio's stub methods are (`method(request, metadata=,
-    timeout=)`; the metadata is the channel's token, given when it was made).
+def channel(address: str, token: str | None) -> Any:  # noqa: ANN401
+    """A native channel to `address` (`host:port`) that sends `token` with every call; it
+    connects at the first call.
     """
-
-    def __init__(self, channel: Any, path: str, response: Any) -> None:  # noqa: ANN401
-        self._unary = channel.unary
-        self._path = path
-        self._response = response
-
-    def __call__(self, request: Any, metadata: object = None, timeout: float | None = None) -> Any:  # noqa: ANN401
-        assert _extension is not None
-        try:
-            # Parsed in place, from the bytes as they were received (no copy into `bytes`).
-            return self._unary(self._path, request.SerializeToString(), timeout, self._response)
-        except _extension.CallError as error:
-            code, details = error.args
-            raise NativeRpcError(_CODES.get(code, grpc.StatusCode.UNKNOWN), details) from None
+    assert _extension is not None
+    return _extension.Channel(f"http://{address}", token)
 
 
-class HotPath:
-    """Step, Reset and StepBatch of esrp.v1 over one native channel to `address` (`host:port`)."""
+def methods() -> list[str]:
+    """The paths of the unary methods the installed extension carries: every esrp.v1 unary method
+    (builds before 2026-11-26 carried Step, Reset and StepBatch only; the rest then go on grpcio).
+    """
+    return list(_extension.METHODS) if _extension is not None else []
 
-    def __init__(self, address: str, token: str | None) -> None:
-        assert _extension is not None
-        self._channel = _extension.Channel(f"http://{address}", token)
-        self.Step = _Method(self._channel, "/esrp.v1.Esrp/Step", pb.StepResponse)
-        self.Reset = _Method(self._channel, "/esrp.v1.Esrp/Reset", pb.ResetResponse)
-        self.StepBatch = _Method(self._channel, "/esrp.v1.Esrp/StepBatch", pb.StepBatchResponse)
 
-    def close(self) -> None:
-        """Refuses further calls (the connection closes when the channel is collected)."""
-        self._channel.close()
+def call(channel: Any, path: str, request: Message, answer: type[M], timeout: float | None) -> M:  # noqa: ANN401
+    """Calls the unary method `path` over `channel` and waits: its answer, parsed in place from
+    the bytes as they were received (no copy into `bytes`); a failed call raises `NativeRpcError`.
+    """
+    assert _extension is not None
+    try:
+        return cast(M, channel.unary(path, request.SerializeToString(), timeout, answer))
+    except _extension.CallError as error:
+        code, details = error.args
+        raise NativeRpcError(_CODES.get(code, grpc.StatusCode.UNKNOWN), details) from None

@@ -1,0 +1,148 @@
+"""`Calls`: every unary esrp.v1 call of one `Client`, over one transport, with its token, its
+deadline and its errors mapped to `EsrpError` in one place.
+
+The transport is the native channel (the `esrp-native` package) for every method it carries
+where the client uses it, and grpcio otherwise (and for the methods an older `esrp-native` does
+not carry). Both take the same request messages and give the same answer messages.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import threading
+from collections.abc import Callable
+from typing import Any, Final
+
+import grpc
+from google.protobuf.message import Message
+
+from . import _native
+from ._errors import from_rpc_error
+from .v1 import esrp_pb2 as pb
+from .v1 import esrp_pb2_grpc as pb_grpc
+
+__all__ = ["Calls", "Pending"]
+
+_SERVICE: Final = pb.DESCRIPTOR.services_by_name["Esrp"]
+# The answer's message class of each unary method, by name.
+_ANSWERS: Final[dict[str, type[Message]]] = {
+    method.name: getattr(pb, method.output_type.name)
+    for method in _SERVICE.methods
+    if not method.client_streaming and not method.server_streaming
+}
+
+
+class _Default:
+    """The client's own deadline (`Calls.timeout`), as opposed to None (no deadline)."""
+
+
+CLIENT_TIMEOUT: Final = _Default()
+
+
+class Pending:
+    """A unary call started without waiting (`Calls.start`): it runs to its end whatever the
+    caller does; `result()` waits for its answer.
+    """
+
+    def __init__(self, future: grpc.Future[Any] | concurrent.futures.Future[Any]) -> None:
+        self._future = future
+
+    def result(self, timeout: float | None = None) -> Any:  # noqa: ANN401
+        """The answer; raises `EsrpError` for a call that failed, and `TimeoutError` when no answer
+        came within `timeout` seconds (None: wait for it); the call goes on then.
+        """
+        try:
+            return self._future.result(timeout=timeout)
+        except (grpc.FutureTimeoutError, concurrent.futures.TimeoutError):
+            raise TimeoutError(f"no answer within {timeout} s") from None
+        except grpc.RpcError as error:
+            raise from_rpc_error(error) from error
+
+    def succeeded(self) -> bool:
+        """Whether it has ended with an answer."""
+        return self._future.done() and not self._future.cancelled() and self._future.exception() is None
+
+    def add_done_callback(self, function: Callable[[Pending], None]) -> None:
+        """Calls `function(self)` when the call ends (at once if it has), on the thread that ends it."""
+        self._future.add_done_callback(lambda _: function(self))
+
+
+class Calls:
+    """The unary calls of one client: `calls("GetGoal", request)` answers the method's answer
+    message, or raises `EsrpError`.
+
+    Args:
+        stub: The grpcio stub of the client's channel.
+        native: The client's native channel (`esrp_native.Channel`), or None for grpcio only.
+        metadata: What goes with every grpcio call (the bearer token); the native channel was made
+            with the token.
+        timeout: The deadline of calls that name none, seconds (None: no deadline).
+    """
+
+    def __init__(
+        self,
+        stub: pb_grpc.EsrpStub,
+        native: Any | None,  # noqa: ANN401 - esrp_native.Channel, an optional module
+        metadata: tuple[tuple[str, str], ...] | None,
+        timeout: float | None,
+    ) -> None:
+        self.timeout = timeout
+        self._stub = stub
+        self._native = native
+        self._metadata = metadata
+        carried = set(_native.methods()) if native is not None else set()
+        self._paths = {name: f"/esrp.v1.Esrp/{name}" for name in _ANSWERS}
+        self._on_native = {name for name, path in self._paths.items() if path in carried}
+
+    def transport(self, method: str) -> str:
+        """The transport that carries `method`: "native" or "grpcio"."""
+        return "native" if method in self._on_native else "grpcio"
+
+    def __call__(
+        self, method: str, request: Message, *, timeout: float | None | _Default = CLIENT_TIMEOUT
+    ) -> Any:  # noqa: ANN401
+        """Calls `method` (a unary method's name, e.g. "StepBatch") and waits for its answer."""
+        try:
+            return self._send(method, request, timeout)
+        except grpc.RpcError as error:
+            raise from_rpc_error(error) from error
+
+    def start(
+        self, method: str, request: Message, *, timeout: float | None | _Default = CLIENT_TIMEOUT
+    ) -> Pending:
+        """Starts `method` without waiting: grpcio's own future, or the native call on a thread
+        of its own (the call releases the GIL while it waits).
+        """
+        if method not in self._on_native:
+            return Pending(getattr(self._stub, method).future(request, **self._options(timeout)))
+        future: concurrent.futures.Future[Any] = concurrent.futures.Future()
+        future.set_running_or_notify_cancel()
+
+        def run() -> None:
+            try:
+                answer = self._send(method, request, timeout)
+            except BaseException as error:  # noqa: BLE001 - handed to whoever waits
+                future.set_exception(error)
+            else:
+                future.set_result(answer)
+
+        # A daemon: a call that never ends (no deadline, a server that hangs) must not hold up the
+        # interpreter's exit, as a thread pool's workers would.
+        threading.Thread(target=run, name=f"esrp-{method}", daemon=True).start()
+        return Pending(future)
+
+    def close(self) -> None:
+        """Refuses further native calls (grpcio's end with the channel's close)."""
+        if self._native is not None:
+            self._native.close()
+
+    def _options(self, timeout: float | None | _Default) -> dict[str, Any]:
+        deadline = self.timeout if isinstance(timeout, _Default) else timeout
+        return {"metadata": self._metadata, "timeout": deadline}
+
+    def _send(self, method: str, request: Message, timeout: float | None | _Default) -> Any:  # noqa: ANN401
+        options = self._options(timeout)
+        if method in self._on_native:
+            path, answer = self._paths[method], _ANSWERS[method]
+            return _native.call(self._native, path, request, answer, options["timeout"])
+        return getattr(self._stub, method)(request, **options)
