@@ -298,6 +298,7 @@ impl Client {
                     include_goal: false,
                 })
                 .collect(),
+            resets: Vec::new(),
         };
         let responses = self.raw().step_batch(request).await?.into_inner().responses;
         if responses.len() != steps.len() {

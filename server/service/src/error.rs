@@ -75,10 +75,13 @@ pub enum ServiceError {
         /// What was wrong.
         error: esrp_core::UnknownAction,
     },
-    /// A batch steps one episode twice.
-    #[error("{at}: episode {} appears twice in one batch: send one step per episode", bounded(.episode.as_str()))]
+    /// A batch steps (or resets) one episode twice.
+    #[error(
+        "{at}: episode {} appears twice in one batch: send one step or reset per episode",
+        bounded(.episode.as_str())
+    )]
     DuplicateStep {
-        /// Where: `steps[3]`.
+        /// Where: `steps[3]`, `resets[0]`.
         at: String,
         /// The episode.
         episode: EpisodeId,
@@ -133,10 +136,10 @@ pub enum ServiceError {
         /// `--max-episodes`.
         max: usize,
     },
-    /// A batch of more steps than `--max-batch`.
-    #[error("a batch of {steps} steps exceeds the limit of {max} (--max-batch)")]
+    /// A batch of more steps (and resets) than `--max-batch`.
+    #[error("a batch of {steps} steps and resets exceeds the limit of {max} (--max-batch)")]
     BatchTooLarge {
-        /// Steps in the batch.
+        /// Steps and resets in the batch.
         steps: usize,
         /// `--max-batch`.
         max: usize,

@@ -278,6 +278,15 @@ pub struct StepCall {
     pub include_goal: bool,
 }
 
+/// A reset to take (in a StepBatch).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ResetCall {
+    /// The episode.
+    pub episode: EpisodeId,
+    /// Its new scene, if any.
+    pub scene: Option<SceneChoice>,
+}
+
 /// The answer to a step.
 #[derive(Clone, Debug, PartialEq)]
 pub struct StepResult {

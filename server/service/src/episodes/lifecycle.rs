@@ -194,6 +194,22 @@ pub(super) async fn reset(
     episode: &EpisodeId,
     scene: Option<SceneChoice>,
 ) -> Result<ResetResult, ServiceError> {
+    // An unknown episode is refused before its new scene is read.
+    episodes.registry.get(episode, caller)?;
+    let scene = match scene {
+        Some(choice) => Some(episodes.resolve_scene(choice).await?),
+        None => None,
+    };
+    reset_to(episodes, caller, episode, scene).await
+}
+
+/// Restarts an episode on its scene, or on `scene` (resolved).
+pub(super) async fn reset_to(
+    episodes: &Arc<Episodes>,
+    caller: &Arc<Caller>,
+    episode: &EpisodeId,
+    scene: Option<Arc<CompiledScene>>,
+) -> Result<ResetResult, ServiceError> {
     let shared = episodes.registry.get(episode, caller)?;
     let mut entry = shared.lock().await;
     let Some(scene) = scene else {
@@ -217,7 +233,6 @@ pub(super) async fn reset(
         let observation = prepared.finish(&mut rendered.into_iter());
         return Ok(ResetResult { observation, scene: entry.summary.clone() });
     };
-    let scene = episodes.resolve_scene(scene).await?;
     let config = *entry.episode.config();
     let (owner, agent) = (entry.owner.clone(), entry.agent.clone());
     let settings =

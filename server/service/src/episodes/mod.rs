@@ -12,8 +12,8 @@
 //! - `observe`: which views an observation needs, the episode's last frames, and the images
 //!   put into the observation: one path for creates, resets and steps.
 //! - `lifecycle`: create, reset, goal, privileged state, metrics, close.
-//! - `stepping`: Step and StepBatch (all or nothing) and the steps of a stream wave (each on
-//!   its own), rendered as one job.
+//! - `stepping`: Step and StepBatch (all or nothing, a batch's resets too) and the steps of a
+//!   stream wave (each on its own), rendered as one job.
 //! - [`waves`]: which stream requests may be answered together, and answering them.
 //! - `planning` and `plan_cache`: PlanActions, the server's planner on an episode's current
 //!   state, off the runtime, its answer kept with the episode.
@@ -57,8 +57,8 @@ use crate::registry::Registry;
 use crate::render::RenderScheduler;
 use crate::scenes::SceneStore;
 use crate::types::{
-    Caller, CreateOptions, Created, EpisodeId, Goal, MetricsSoFar, PlanCall, Planned, Privileged, ResetResult,
-    SceneChoice, StepCall, StepResult,
+    Caller, CreateOptions, Created, EpisodeId, Goal, MetricsSoFar, PlanCall, Planned, Privileged, ResetCall,
+    ResetResult, SceneChoice, StepCall, StepResult,
 };
 
 /// Everything the adapters may ask of the episode layer.
@@ -173,6 +173,21 @@ impl Episodes {
         steps: Vec<StepCall>,
     ) -> Result<Vec<StepResult>, ServiceError> {
         stepping::step_many(self, caller, steps).await
+    }
+
+    /// StepBatch with resets: `steps` and `resets` (each episode once in all, at most
+    /// `--max-batch` together) are validated whole before anything moves (as
+    /// [`Episodes::step_many`] does, the answer's size counting the resets' answers too; the
+    /// reset episodes known, their new scenes read), then the steps are taken and the resets
+    /// after them, in order, while the steps' views render. A reset that still fails (a
+    /// challenge scene whose attempt is taken) fails the call, the steps taken.
+    pub async fn step_batch(
+        self: &Arc<Self>,
+        caller: &Arc<Caller>,
+        steps: Vec<StepCall>,
+        resets: Vec<ResetCall>,
+    ) -> Result<(Vec<StepResult>, Vec<ResetResult>), ServiceError> {
+        stepping::step_batch(self, caller, steps, resets).await
     }
 
     /// Takes the steps of a stream wave, each answered on its own: an episode may be stepped

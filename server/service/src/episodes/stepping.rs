@@ -12,13 +12,13 @@ use esrp_results::EpisodeRecord;
 
 use super::entry::{EpisodeGuard, SharedEpisode};
 use super::observe::Prepared;
-use super::recording;
 use super::state::Episodes;
+use super::{lifecycle, recording};
 use crate::error::ServiceError;
 use crate::metrics::Metrics;
 use crate::records::Written;
 use crate::render::RenderTicket;
-use crate::types::{Caller, EpisodeId, StepCall, StepResult};
+use crate::types::{Caller, EpisodeId, ResetCall, ResetResult, StepCall, StepResult};
 
 /// Batches of at most this many steps are stepped on the async runtime itself.
 const INLINE_STEPS: usize = 4;
@@ -161,6 +161,83 @@ pub(super) async fn step_many(
     caller: &Caller,
     steps: Vec<StepCall>,
 ) -> Result<Vec<StepResult>, ServiceError> {
+    let stepped = start_many(episodes, caller, steps, 0).await?;
+    stepped.finish(&episodes.metrics).await.into_iter().collect()
+}
+
+/// An upper bound of the encoded size of a reset's answer beside its observation (the scene's
+/// summary), bytes.
+const RESET_SUMMARY_BYTES: usize = 256;
+
+/// A StepBatch with resets (see `Episodes::step_batch`).
+pub(super) async fn step_batch(
+    episodes: &Arc<Episodes>,
+    caller: &Arc<Caller>,
+    steps: Vec<StepCall>,
+    resets: Vec<ResetCall>,
+) -> Result<(Vec<StepResult>, Vec<ResetResult>), ServiceError> {
+    if resets.is_empty() {
+        return Ok((step_many(episodes, caller, steps).await?, Vec::new()));
+    }
+    check_batch_len(episodes, steps.len() + resets.len())?;
+    // Each episode once in the whole batch; the reset ones known and the caller's.
+    let stepped: HashSet<&EpisodeId> = steps.iter().map(|s| &s.episode).collect();
+    let mut seen = HashSet::new();
+    let mut reset_bytes = 0;
+    for (i, r) in resets.iter().enumerate() {
+        if stepped.contains(&r.episode) || !seen.insert(&r.episode) {
+            return Err(ServiceError::DuplicateStep { at: format!("resets[{i}]"), episode: r.episode.clone() });
+        }
+        let entry = episodes.locked(caller, &r.episode).await?;
+        reset_bytes += entry.observer.sensors.answer_bytes(true) + RESET_SUMMARY_BYTES;
+    }
+    let max_message_bytes = episodes.config.max_message_bytes;
+    if steps.is_empty() && reset_bytes > max_message_bytes {
+        let steps = resets.len();
+        return Err(ServiceError::BatchAnswerTooLarge { steps, bytes: reset_bytes, max: max_message_bytes });
+    }
+    // The new scenes are read before anything moves: a bad one fails the call.
+    let mut targets = Vec::with_capacity(resets.len());
+    for r in resets {
+        let scene = match r.scene {
+            Some(choice) => Some(episodes.resolve_scene(choice).await?),
+            None => None,
+        };
+        targets.push((r.episode, scene));
+    }
+    // The steps, validated whole with the resets' answers counted in the message's size; their
+    // views render while the resets are taken.
+    let taken = if steps.is_empty() { None } else { Some(start_many(episodes, caller, steps, reset_bytes).await?) };
+    let mut reset = Vec::with_capacity(targets.len());
+    let mut failed = None;
+    for (episode, scene) in targets {
+        match lifecycle::reset_to(episodes, caller, &episode, scene).await {
+            Ok(r) => reset.push(r),
+            Err(e) => {
+                failed = Some(e);
+                break;
+            }
+        }
+    }
+    // The steps were taken: their rendering and records finish whatever became of the resets.
+    let results = match taken {
+        Some(taken) => taken.finish(&episodes.metrics).await.into_iter().collect::<Result<Vec<_>, _>>()?,
+        None => Vec::new(),
+    };
+    match failed {
+        Some(e) => Err(e),
+        None => Ok((results, reset)),
+    }
+}
+
+/// Validates `steps` whole (with `more_bytes` of other answers in the same message), takes
+/// them and hands their views to the render thread (see `Episodes::step_many`).
+async fn start_many(
+    episodes: &Arc<Episodes>,
+    caller: &Caller,
+    steps: Vec<StepCall>,
+    more_bytes: usize,
+) -> Result<Stepped, ServiceError> {
     check_batch_len(episodes, steps.len())?;
     // "steps[3]" in a batch, "step" alone.
     let batch = steps.len() > 1;
@@ -180,7 +257,7 @@ pub(super) async fn step_many(
         if let Some(i) = queue.iter().position(Result::is_err) {
             return Err(ServiceError::UnknownEpisode(steps[i].episode.clone()));
         }
-        let mut bytes = 0usize;
+        let mut bytes = more_bytes;
         for (i, g) in guards.iter().enumerate() {
             g.ensure_running(&at(i), &steps[i].episode)?;
             bytes += g.observer.sensors.answer_bytes(steps[i].include_goal);
@@ -191,8 +268,7 @@ pub(super) async fn step_many(
         }
         Ok(())
     };
-    let stepped = take_steps(episodes, locked, queue, check).await?;
-    stepped.finish(&episodes.metrics).await.into_iter().collect()
+    take_steps(episodes, locked, queue, check).await
 }
 
 /// The steps of a stream wave, each answered on its own (see `Episodes::step_each`).

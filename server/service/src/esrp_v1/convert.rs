@@ -9,7 +9,7 @@ use crate::error::ServiceError;
 use crate::proto;
 use crate::types::{
     ACTIONS, CreateOptions, Created, EpisodeId, Goal, MetricsSoFar, Observation, PlanCall, Planned, Privileged,
-    ResetResult, SceneChoice, SceneInfo, SensorConfig, SensorRequest, StepCall, StepResult,
+    ResetCall, ResetResult, SceneChoice, SceneInfo, SensorConfig, SensorRequest, StepCall, StepResult,
 };
 
 /// The split of a request: `None` for unspecified.
@@ -163,6 +163,12 @@ pub fn step_calls(requests: Vec<proto::StepRequest>) -> Result<Vec<StepCall>, Se
         .enumerate()
         .map(|(i, r)| step_call(r, || if batch { format!("steps[{i}]") } else { "step".to_owned() }))
         .collect()
+}
+
+/// A reset of a StepBatch.
+pub fn reset_call(r: proto::ResetRequest) -> ResetCall {
+    let (episode, scene) = reset_of(r);
+    ResetCall { episode, scene }
 }
 
 /// The episode and new scene, if any, of a reset.

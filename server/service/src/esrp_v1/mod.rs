@@ -191,11 +191,15 @@ impl proto::esrp_server::Esrp for EsrpService {
         request: Request<proto::StepBatchRequest>,
     ) -> Result<Response<proto::StepBatchResponse>, Status> {
         let caller = caller_of(&request);
-        let steps = request.into_inner().steps;
+        let proto::StepBatchRequest { steps, resets } = request.into_inner();
         // The limit first: a batch too large is refused before any of it is read.
-        self.episodes.check_batch_len(steps.len())?;
-        let results = self.episodes.step_many(&caller, convert::step_calls(steps)?).await?;
-        Ok(Response::new(proto::StepBatchResponse { responses: results.into_iter().map(Into::into).collect() }))
+        self.episodes.check_batch_len(steps.len() + resets.len())?;
+        let resets = resets.into_iter().map(convert::reset_call).collect();
+        let (stepped, reset) = self.episodes.step_batch(&caller, convert::step_calls(steps)?, resets).await?;
+        Ok(Response::new(proto::StepBatchResponse {
+            responses: stepped.into_iter().map(Into::into).collect(),
+            resets: reset.into_iter().map(Into::into).collect(),
+        }))
     }
 
     type StepStreamStream = StreamOut;

@@ -31,8 +31,12 @@ async fn experts_of_test_scenes_succeed_through_step_batch() {
         let batch: Vec<proto::StepRequest> =
             episodes.iter().filter(|e| t < e.1.len()).map(|(id, actions)| step_request(id, actions[t])).collect();
         let ids: Vec<String> = batch.iter().map(|s| s.episode_id.clone()).collect();
-        let responses =
-            client.step_batch(proto::StepBatchRequest { steps: batch }).await.unwrap().into_inner().responses;
+        let responses = client
+            .step_batch(proto::StepBatchRequest { steps: batch, resets: Vec::new() })
+            .await
+            .unwrap()
+            .into_inner()
+            .responses;
         assert_eq!(responses.len(), ids.len(), "one response per step, in order");
         for (id, response) in ids.into_iter().zip(responses) {
             assert_eq!(response.info.as_ref().unwrap().step_index as usize, t + 1);
@@ -330,7 +334,8 @@ async fn a_batch_beyond_one_render_call_is_rendered_in_parts() {
         let created = client.create_episode(request).await.unwrap().into_inner();
         steps.push(step_request(&created.episode_id, 2));
     }
-    let responses = client.step_batch(proto::StepBatchRequest { steps }).await.unwrap().into_inner().responses;
+    let responses =
+        client.step_batch(proto::StepBatchRequest { steps, resets: Vec::new() }).await.unwrap().into_inner().responses;
     assert_eq!(responses.len(), 65);
     let first = responses[0].observation.as_ref().unwrap().ego_rgb.as_ref().unwrap();
     assert_eq!((first.height, first.width, first.data.len()), (512, 512, 512 * 512 * 3));

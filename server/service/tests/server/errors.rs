@@ -93,13 +93,17 @@ async fn oversize_batch_is_resource_exhausted() {
     for _ in 0..5 {
         steps.push(step_request(&first_episode(&mut client, false).await, 0));
     }
-    let r = client.step_batch(proto::StepBatchRequest { steps: steps.clone() }).await;
+    let r = client.step_batch(proto::StepBatchRequest { steps: steps.clone(), resets: Vec::new() }).await;
     assert_fails(&mut server, &mut client, r, Code::ResourceExhausted, "--max-batch").await;
     // A batch naming one episode twice is refused before anything moves.
     let twice = vec![steps[0].clone(), steps[1].clone(), steps[0].clone()];
-    let r = client.step_batch(proto::StepBatchRequest { steps: twice }).await;
+    let r = client.step_batch(proto::StepBatchRequest { steps: twice, resets: Vec::new() }).await;
     assert_fails(&mut server, &mut client, r, Code::InvalidArgument, "twice").await;
-    let ok = client.step_batch(proto::StepBatchRequest { steps: steps[..4].to_vec() }).await.unwrap().into_inner();
+    let ok = client
+        .step_batch(proto::StepBatchRequest { steps: steps[..4].to_vec(), resets: Vec::new() })
+        .await
+        .unwrap()
+        .into_inner();
     assert!(ok.responses.iter().all(|r| r.info.as_ref().unwrap().step_index == 1), "nothing moved before");
 }
 
@@ -172,12 +176,12 @@ async fn a_batch_whose_answer_exceeds_the_message_limit_is_refused_before_anythi
         step.include_goal = true; // 2 images of 49 KB each per step: ~295 KB in all
         steps.push(step);
     }
-    let r = client.step_batch(proto::StepBatchRequest { steps: steps.clone() }).await;
+    let r = client.step_batch(proto::StepBatchRequest { steps: steps.clone(), resets: Vec::new() }).await;
     assert_fails(&mut server, &mut client, r, Code::ResourceExhausted, "--max-message-bytes").await;
     for step in &mut steps {
         step.include_goal = false;
     }
-    let ok = client.step_batch(proto::StepBatchRequest { steps }).await.unwrap().into_inner();
+    let ok = client.step_batch(proto::StepBatchRequest { steps, resets: Vec::new() }).await.unwrap().into_inner();
     assert!(ok.responses.iter().all(|r| r.info.as_ref().unwrap().step_index == 1), "nothing moved before");
 }
 
@@ -225,7 +229,10 @@ async fn long_client_values_are_echoed_bounded() {
         client.reset(proto::ResetRequest { episode_id: id(), ..Default::default() }).await.map(drop),
         client.get_goal(proto::GetGoalRequest { episode_id: id() }).await.map(drop),
         client.get_privileged_state(proto::GetPrivilegedStateRequest { episode_id: id() }).await.map(drop),
-        client.step_batch(proto::StepBatchRequest { steps: vec![step_request(&long, 0)] }).await.map(drop),
+        client
+            .step_batch(proto::StepBatchRequest { steps: vec![step_request(&long, 0)], resets: Vec::new() })
+            .await
+            .map(drop),
     ];
     for answer in answers {
         let message = short(&answer.expect_err("an unknown episode"), Code::NotFound);
@@ -249,4 +256,66 @@ async fn long_client_values_are_echoed_bounded() {
     }
     assert!(server.is_running(), "the server survives");
     assert_eq!(live_episodes(&mut client).await, 0);
+}
+
+/// A StepBatch's resets: taken with its steps in one call (the same scene or another, as Reset
+/// takes them), counted against `--max-batch` with them, and checked with them before anything
+/// moves.
+#[tokio::test]
+async fn step_batch_resets_with_its_steps() {
+    let mut server = Server::start(&["--max-batch", "4"]);
+    let mut client = server.client().await;
+    let scenes = scene_ids(&mut client, proto::Split::Test, 4).await;
+    let mut ids = Vec::new();
+    let mut firsts = Vec::new();
+    for scene in &scenes[..3] {
+        let created = client.create_episode(create_request(scene, false)).await.unwrap().into_inner();
+        ids.push(created.episode_id);
+        firsts.push(created.observation.unwrap());
+    }
+    let fresh = client.create_episode(create_request(&scenes[3], false)).await.unwrap().into_inner();
+    let reset = |id: &str, scene: Option<&str>| proto::ResetRequest {
+        episode_id: id.to_owned(),
+        scene: scene.map(|s| proto::reset_request::Scene::SceneId(s.to_owned())),
+    };
+    let steps: Vec<proto::StepRequest> = ids.iter().map(|id| step_request(id, 2)).collect();
+    let batch = proto::StepBatchRequest { steps: steps.clone(), resets: Vec::new() };
+    client.step_batch(batch).await.unwrap();
+
+    // Refused before anything moves: each episode once in all, a scene that does not exist, an
+    // episode that does not exist, more than --max-batch steps and resets together.
+    let batch = |steps: &[proto::StepRequest], resets: Vec<proto::ResetRequest>| proto::StepBatchRequest {
+        steps: steps.to_vec(),
+        resets,
+    };
+    let r = client.step_batch(batch(&steps[..2], vec![reset(&ids[1], None)])).await;
+    assert_fails(&mut server, &mut client, r, Code::InvalidArgument, "resets[0]: episode").await;
+    let r = client.step_batch(batch(&steps[..1], vec![reset(&ids[1], None), reset(&ids[1], None)])).await;
+    assert_fails(&mut server, &mut client, r, Code::InvalidArgument, "resets[1]").await;
+    let r = client.step_batch(batch(&steps[..1], vec![reset(&ids[1], Some("esrp-bench-v2/none"))])).await;
+    assert_fails(&mut server, &mut client, r, Code::NotFound, "esrp-bench-v2/none").await;
+    let r = client.step_batch(batch(&steps[..1], vec![reset("00000000000000000000000000000000", None)])).await;
+    assert_fails(&mut server, &mut client, r, Code::NotFound, "no episode").await;
+    let r = client.step_batch(batch(&steps, vec![reset(&fresh.episode_id, None), reset(&ids[0], None)])).await;
+    assert_fails(&mut server, &mut client, r, Code::ResourceExhausted, "5 steps and resets").await;
+
+    // Episode 0 steps, 1 restarts on its scene and 2 on the fourth scene, in one call.
+    let answer = client
+        .step_batch(batch(&steps[..1], vec![reset(&ids[1], None), reset(&ids[2], Some(&scenes[3]))]))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(answer.responses.len(), 1);
+    assert_eq!(answer.responses[0].info.as_ref().unwrap().step_index, 2, "its second step: nothing moved before");
+    assert_eq!(answer.resets.len(), 2, "one answer per reset, in order");
+    assert_eq!(answer.resets[0].observation.as_ref(), Some(&firsts[1]), "the scene's first observation again");
+    assert_eq!(answer.resets[0].scene.as_ref().unwrap().id, scenes[1]);
+    assert_eq!(answer.resets[1].observation, fresh.observation, "as a new episode on the fourth scene");
+    assert_eq!(answer.resets[1].scene.as_ref().unwrap().id, scenes[3]);
+    // Only resets; then each episode goes on from where the batch left it.
+    let only = client.step_batch(batch(&[], vec![reset(&ids[0], None)])).await.unwrap().into_inner();
+    assert_eq!((only.responses.len(), only.resets[0].observation.as_ref()), (0, Some(&firsts[0])));
+    let next = client.step_batch(batch(&steps, Vec::new())).await.unwrap().into_inner().responses;
+    let indices: Vec<u32> = next.iter().map(|r| r.info.as_ref().unwrap().step_index).collect();
+    assert_eq!(indices, [1, 1, 1]);
 }

@@ -98,7 +98,12 @@ async fn a_thousand_live_episodes() {
     assert_eq!(live_episodes(&mut client).await, N as u32);
     for chunk in ids.chunks(250) {
         let steps = chunk.iter().map(|id| step_request(id, 2)).collect();
-        let responses = client.step_batch(proto::StepBatchRequest { steps }).await.unwrap().into_inner().responses;
+        let responses = client
+            .step_batch(proto::StepBatchRequest { steps, resets: Vec::new() })
+            .await
+            .unwrap()
+            .into_inner()
+            .responses;
         assert_eq!(responses.len(), chunk.len());
         assert!(
             responses

@@ -853,21 +853,34 @@ Global___StepResponse: _TypeAlias = StepResponse  # noqa: Y015
 
 @_typing.final
 class StepBatchRequest(_message.Message):
+    """Steps and resets together count against the server's max_batch, and each episode appears
+    once in the whole batch. Everything is checked before anything moves (the count, the
+    episodes, the new scenes, the steps, the size of the answer); the steps are then taken, and
+    the resets after them, in request order. A reset that still fails (a challenge scene whose
+    attempt is taken) fails the call with the steps taken.
+    """
+
     DESCRIPTOR: _descriptor.Descriptor
 
     STEPS_FIELD_NUMBER: _builtins.int
+    RESETS_FIELD_NUMBER: _builtins.int
     @_builtins.property
     def steps(self) -> _containers.RepeatedCompositeFieldContainer[Global___StepRequest]:
         """at most one per episode"""
+
+    @_builtins.property
+    def resets(self) -> _containers.RepeatedCompositeFieldContainer[Global___ResetRequest]:
+        """episodes restarted in the same call, none also stepped"""
 
     def __init__(
         self,
         *,
         steps: _abc.Iterable[Global___StepRequest] | None = ...,
+        resets: _abc.Iterable[Global___ResetRequest] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["steps", b"steps"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["resets", b"resets", "steps", b"steps"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -878,18 +891,24 @@ class StepBatchResponse(_message.Message):
     DESCRIPTOR: _descriptor.Descriptor
 
     RESPONSES_FIELD_NUMBER: _builtins.int
+    RESETS_FIELD_NUMBER: _builtins.int
     @_builtins.property
     def responses(self) -> _containers.RepeatedCompositeFieldContainer[Global___StepResponse]:
-        """in request order"""
+        """the steps', in request order"""
+
+    @_builtins.property
+    def resets(self) -> _containers.RepeatedCompositeFieldContainer[Global___ResetResponse]:
+        """the resets', in request order"""
 
     def __init__(
         self,
         *,
         responses: _abc.Iterable[Global___StepResponse] | None = ...,
+        resets: _abc.Iterable[Global___ResetResponse] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["responses", b"responses"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["resets", b"resets", "responses", b"responses"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

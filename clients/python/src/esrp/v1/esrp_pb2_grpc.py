@@ -150,8 +150,9 @@ class EsrpServicer:
         raise NotImplementedError('Method not implemented!')
 
     def StepBatch(self, request, context):
-        """Takes one action in each of many episodes; the batch is validated whole before any step
-        is taken, and its views are rendered together.
+        """Takes one action in each of many episodes, and restarts others in the same call (a vector
+        env's step with its autoresets: one message); the batch is validated whole before anything
+        moves, and its steps' views are rendered together.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

@@ -62,8 +62,9 @@ class EsrpStub:
     Step: _grpc.UnaryUnaryMultiCallable[_esrp_pb2.StepRequest, _esrp_pb2.StepResponse]
     """Takes one action in one episode."""
     StepBatch: _grpc.UnaryUnaryMultiCallable[_esrp_pb2.StepBatchRequest, _esrp_pb2.StepBatchResponse]
-    """Takes one action in each of many episodes; the batch is validated whole before any step
-    is taken, and its views are rendered together.
+    """Takes one action in each of many episodes, and restarts others in the same call (a vector
+    env's step with its autoresets: one message); the batch is validated whole before anything
+    moves, and its steps' views are rendered together.
     """
     StepStream: _grpc.StreamStreamMultiCallable[_esrp_pb2.StreamRequest, _esrp_pb2.StreamResponse]
     """One stream drives one or many episodes with pipelining: send requests without waiting;
@@ -109,8 +110,9 @@ class EsrpAsyncStub(EsrpStub):
     Step: _aio.UnaryUnaryMultiCallable[_esrp_pb2.StepRequest, _esrp_pb2.StepResponse]  # type: ignore[assignment]
     """Takes one action in one episode."""
     StepBatch: _aio.UnaryUnaryMultiCallable[_esrp_pb2.StepBatchRequest, _esrp_pb2.StepBatchResponse]  # type: ignore[assignment]
-    """Takes one action in each of many episodes; the batch is validated whole before any step
-    is taken, and its views are rendered together.
+    """Takes one action in each of many episodes, and restarts others in the same call (a vector
+    env's step with its autoresets: one message); the batch is validated whole before anything
+    moves, and its steps' views are rendered together.
     """
     StepStream: _aio.StreamStreamMultiCallable[_esrp_pb2.StreamRequest, _esrp_pb2.StreamResponse]  # type: ignore[assignment]
     """One stream drives one or many episodes with pipelining: send requests without waiting;
@@ -195,8 +197,9 @@ class EsrpServicer(metaclass=_abc_1.ABCMeta):
         request: _esrp_pb2.StepBatchRequest,
         context: _ServicerContext,
     ) -> _typing.Union[_esrp_pb2.StepBatchResponse, _abc.Awaitable[_esrp_pb2.StepBatchResponse]]:
-        """Takes one action in each of many episodes; the batch is validated whole before any step
-        is taken, and its views are rendered together.
+        """Takes one action in each of many episodes, and restarts others in the same call (a vector
+        env's step with its autoresets: one message); the batch is validated whole before anything
+        moves, and its steps' views are rendered together.
         """
 
     @_abc_1.abstractmethod
