@@ -112,9 +112,8 @@ def test_server_busy(strict_server: esrp.LocalServer) -> None:
             check(caught.value, grpc.StatusCode.RESOURCE_EXHAUSTED, "maximum of 2 live episodes")
             with pytest.raises(esrp.ServerBusy) as caught:
                 client.step_batch([(a, 0), (b, 0), ("0" * 32, 0)])
-            check(
-                caught.value, grpc.StatusCode.RESOURCE_EXHAUSTED, "a batch of 3 steps and resets exceeds the limit of 2"
-            )
+            limit = "a batch of 3 steps and resets exceeds the limit of 2"
+            check(caught.value, grpc.StatusCode.RESOURCE_EXHAUSTED, limit)
         assert client.server_info().live_episodes == 0
 
 

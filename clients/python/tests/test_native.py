@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import threading
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -96,75 +95,42 @@ UNARY = (
 )
 
 
-def _every_unary_call(client: esrp.Client, scene: str) -> list[object]:
-    """One call of each unary method, through the typed API; their answers (the live-episode
-    count, which other tests change meanwhile, left out)."""
+def _every_unary_call(client: esrp.Client, scene: str, *, hot: bool = True) -> list[object]:
+    """One call of each unary method (with `hot=False`, of each but Step, Reset and StepBatch),
+    through the typed API; their answers (the live-episode count, which other tests change
+    meanwhile, left out)."""
     info = client.server_info()
     seen: list[object] = [dataclasses.replace(info, live_episodes=0), client.describe_dataset()]
     seen.append(list(itertools.islice(client.scenes("test", "easy", page_size=2), 5)))
     episode = client.create_episode(scene, privileged=True, horizon=40)
-    seen += [episode.observation, episode.step(esrp.Action.LEFT)]
-    seen += [client.step_batch([(episode, esrp.Action.RIGHT)]), episode.reset()]
+    seen.append(episode.observation)
+    if hot:
+        seen += [episode.step(esrp.Action.LEFT), client.step_batch([(episode, esrp.Action.RIGHT)])]
+        seen.append(episode.reset())
     seen += [episode.goal(), episode.privileged_state(), episode.metrics()]
     plan = episode.plan_actions(max_actions=5)  # its stats hold times: left out
     seen += [(plan.actions, plan.reaches_success, plan.plan_length, plan.failure), episode.close()]
     return seen
 
 
-def test_every_unary_call_goes_native(server: esrp.LocalServer, easy_scenes: list[str]) -> None:
+def test_each_call_goes_on_its_transport(server: esrp.LocalServer, easy_scenes: list[str]) -> None:
+    hot = ["Reset", "Step", "StepBatch"]
     with server.client(transport="native") as client, server.client(transport="grpcio") as plain:
-        assert [client._calls.transport(method) for method in UNARY] == ["native"] * len(UNARY)  # noqa: SLF001
+        carried = [method for method in UNARY if client._calls.transport(method) == "native"]  # noqa: SLF001
+        assert carried == hot
         assert [plain._calls.transport(method) for method in UNARY] == ["grpcio"] * len(UNARY)  # noqa: SLF001
         native, grpcio = (_every_unary_call(c, easy_scenes[3]) for c in (client, plain))
         assert _plain(native) == _plain(grpcio)
-        # With its native channel closed, every typed call fails, the stream and health check
-        # (grpcio's) do not: each of them went over the native channel.
-        episode = plain.create_episode(easy_scenes[3], privileged=True)
-        attached = client.episode(episode.id)
+        # With its native channel closed, the hot path fails and the rest (grpcio's) goes on:
+        # each call went where it was said to.
         client._calls.close()  # noqa: SLF001
-        calls: list[Callable[[], object]] = [
-            client.server_info,
-            client.describe_dataset,
-            lambda: next(client.scenes()),
-            lambda: client.create_episode(easy_scenes[3]),
-            attached.reset,
-            lambda: attached.step(0),
-            lambda: client.step_batch([(attached, 0)]),
-            attached.goal,
-            attached.privileged_state,
-            attached.metrics,
-            attached.plan_actions,
-            attached.close,
-        ]
-        assert len(calls) == len(UNARY)
-        for call in calls:
+        episode = client.create_episode(easy_scenes[3], privileged=True)
+        for call in (episode.reset, lambda: episode.step(0), lambda: client.step_batch([(episode, 0)])):
             with pytest.raises(esrp.EsrpError, match="the channel is closed"):
                 call()
-        client.wait_healthy(timeout=5)
-        with client.episode_stream() as stream:
-            stream.step(episode.id, 0)
-            answer = stream.next()
-            assert answer is not None
-            assert answer.step_result().info.step_index == 1
-        episode.close()
-
-
-def test_an_older_extension_carries_what_it_can(
-    server: esrp.LocalServer, easy_scenes: list[str], monkeypatch: pytest.MonkeyPatch
-) -> None:
-    # A build of esrp-native from before every unary method: Step, Reset and StepBatch only.
-    hot = ["/esrp.v1.Esrp/Step", "/esrp.v1.Esrp/Reset", "/esrp.v1.Esrp/StepBatch"]
-    monkeypatch.setattr(_native, "methods", lambda: hot)
-    with server.client(transport="native") as client, server.client(transport="grpcio") as plain:
-        carried = [method for method in UNARY if client._calls.transport(method) == "native"]  # noqa: SLF001
-        assert carried == ["Reset", "Step", "StepBatch"]
-        native, grpcio = (_every_unary_call(c, easy_scenes[4]) for c in (client, plain))
-        assert _plain(native) == _plain(grpcio)
-        client._calls.close()  # noqa: SLF001
-        with client.create_episode(easy_scenes[4]) as episode:  # over grpcio
-            with pytest.raises(esrp.EsrpError, match="the channel is closed"):
-                episode.step(0)
-            assert episode.metrics().metrics.steps == 0
+        assert len(_every_unary_call(client, easy_scenes[3], hot=False)) == 9
+        assert episode.metrics().metrics.steps == 0
+        assert episode.close().steps == 0
 
 
 def test_errors_are_the_same_classes(server: esrp.LocalServer, easy_scenes: list[str]) -> None:

@@ -2,8 +2,8 @@
 //!
 //! grpcio spends about twice the Rust client's CPU on each unary call, and for one agent
 //! stepping one episode that per-call cost is most of a step. This module lets the Python
-//! client send its unary calls (every esrp.v1 method but the StepStream) over the Rust
-//! client's channel instead: the same tuned connection (`esrp_client::Client`: no Nagle, large HTTP/2
+//! client send the calls of its hot path (Step, Reset, StepBatch) over the Rust client's
+//! channel instead: the same tuned connection (`esrp_client::Client`: no Nagle, large HTTP/2
 //! windows), driven by a current-thread Tokio runtime on the calling thread while the GIL is
 //! released. It moves serialized messages only: Python builds and parses the protobufs as it
 //! does for grpcio, so both transports share every conversion and check.
@@ -73,22 +73,8 @@ impl Decoder for RawCodec {
     }
 }
 
-/// The methods the channel carries: every unary method of esrp.v1 (StepStream, the one stream,
-/// stays on grpcio).
-const METHODS: [&str; 12] = [
-    "/esrp.v1.Esrp/ServerInfo",
-    "/esrp.v1.Esrp/DescribeDataset",
-    "/esrp.v1.Esrp/ListScenes",
-    "/esrp.v1.Esrp/CreateEpisode",
-    "/esrp.v1.Esrp/Reset",
-    "/esrp.v1.Esrp/Step",
-    "/esrp.v1.Esrp/StepBatch",
-    "/esrp.v1.Esrp/GetGoal",
-    "/esrp.v1.Esrp/GetPrivilegedState",
-    "/esrp.v1.Esrp/GetMetrics",
-    "/esrp.v1.Esrp/CloseEpisode",
-    "/esrp.v1.Esrp/PlanActions",
-];
+/// The methods the channel carries: the Python client's hot path.
+const METHODS: [&str; 3] = ["/esrp.v1.Esrp/Step", "/esrp.v1.Esrp/Reset", "/esrp.v1.Esrp/StepBatch"];
 
 /// A connection to an ESRP server for unary calls of serialized messages.
 #[pyclass(frozen, module = "esrp_native")]
@@ -132,8 +118,8 @@ impl Channel {
         Ok(Channel { runtime, grpc, authorization, closed: Mutex::new(false) })
     }
 
-    /// Calls `method` (one of `METHODS`, e.g. `/esrp.v1.Esrp/StepBatch`) with the serialized
-    /// `request`; the serialized answer, or `CallError(code, message)`.
+    /// Calls `method` (`/esrp.v1.Esrp/Step`, `/esrp.v1.Esrp/Reset` or `/esrp.v1.Esrp/StepBatch`)
+    /// with the serialized `request`; the serialized answer, or `CallError(code, message)`.
     /// `timeout` in seconds (None: none), sent to the server as the call's deadline too.
     ///
     /// With `response` (the answer's protobuf message class), the answer comes parsed: its

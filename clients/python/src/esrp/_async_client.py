@@ -279,23 +279,28 @@ class AsyncClient:
         return _convert.step_results(answer.responses, len(steps))
 
     async def step_columns(
-        self, episode_ids: Sequence[str], actions: Sequence[ActionLike], sensors: Sensors
+        self,
+        episode_ids: Sequence[str],
+        actions: Sequence[ActionLike],
+        sensors: Sensors,
+        *,
+        resets: Sequence[tuple[str, str | None]] = (),
     ) -> StepColumns:
-        """The twin of `Client.step_columns`: one step in each of several episodes, the answers as
-        columns in request order, in one StepBatch or, beyond the server's limits, several at once.
+        """The twin of `Client.step_columns`: one step in each of several episodes (and `resets` of
+        others), the answers as columns in request order, in one StepBatch or, beyond the server's
+        limits, several at once.
         """
         layout = _convert.image_layout(sensors)
         columns = StepColumns([key for key, _, _, _ in layout])
-        if not episode_ids and not actions:
+        if not episode_ids and not actions and not resets:
             return columns
         size = self._batch_sizes.get(sensors)
         if size is None:
             size = self._batch_sizes[sensors] = batch_size((await self.server_info()).limits, sensors)
-        requests = _convert.step_batch_requests(episode_ids, actions, size)
+        requests = _convert.step_batch_requests(episode_ids, actions, size, resets)
         answers = await asyncio.gather(*(self._call(self._stub.StepBatch, request) for request in requests))
         for request, answer in zip(requests, answers, strict=True):
-            messages = _convert.batch_responses(answer, len(request.steps))
-            _convert.step_columns(messages, layout, sensors.resolution, into=columns)
+            _convert.batch_columns(answer, request, layout, sensors.resolution, into=columns)
         return columns
 
     async def episode_stream(self, window: int = 8) -> AsyncEpisodeStream:

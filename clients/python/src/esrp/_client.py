@@ -91,11 +91,11 @@ class Client:
         tls_server_name: Check the server's certificate against this name instead of the host.
         timeout: Default deadline of unary calls, seconds (None: none).
         options: Extra gRPC channel arguments; they override the tuned defaults.
-        transport: What carries the unary calls (every method but the StepStream): `auto`
-            (default) the native transport where the `esrp-native` package is installed and the
-            channel is plain, else grpcio; `native` insists on it (ValueError where it cannot be
-            had); `grpcio` never uses it. Streams and the health check go through grpcio.
-            `client.transport` says which one is used.
+        transport: What carries the hot-path calls (Step, Reset, StepBatch): `auto` (default) the
+            native transport where the `esrp-native` package is installed and the channel is
+            plain, else grpcio; `native` insists on it (ValueError where it cannot be had);
+            `grpcio` never uses it. Every other call goes through grpcio. `client.transport`
+            says which one is used.
 
     Example:
         >>> with esrp.Client("127.0.0.1:50051") as client:            # doctest: +SKIP
@@ -340,12 +340,19 @@ class Client:
         return _convert.step_results(self._calls("StepBatch", request).responses, len(steps))
 
     def step_columns(
-        self, episode_ids: Sequence[str], actions: Sequence[ActionLike], sensors: Sensors
+        self,
+        episode_ids: Sequence[str],
+        actions: Sequence[ActionLike],
+        sensors: Sensors,
+        *,
+        resets: Sequence[tuple[str, str | None]] = (),
     ) -> StepColumns:
         """One step in each of several episodes (at most one per episode), the answers as columns in
         request order (`StepColumns`: what a vector env reads, without per-step values; its images
         the answers' bytes, each checked to be `sensors`' size). The episodes must have been made
-        with `sensors`.
+        with `sensors`. `resets` restarts other episodes in the same call (a vector env's
+        autoresets): each an episode id and its new scene, or None for the same one; their first
+        observations and scenes come in `StepColumns.resets`, in order.
 
         The steps go in one StepBatch call, or where the server's `max_batch` or half its message
         limit wants it in several, sent at once (the server renders one while another's answer
@@ -355,15 +362,14 @@ class Client:
         """
         layout = _convert.image_layout(sensors)
         columns = StepColumns([key for key, _, _, _ in layout])
-        if not episode_ids and not actions:
+        if not episode_ids and not actions and not resets:
             return columns
-        requests = _convert.step_batch_requests(episode_ids, actions, self._batch_size(sensors))
+        requests = _convert.step_batch_requests(episode_ids, actions, self._batch_size(sensors), resets)
         started = [self._calls.start("StepBatch", request) for request in requests[:-1]]
-        messages = _convert.batch_responses(self._calls("StepBatch", requests[-1]), len(requests[-1].steps))
+        last = self._calls("StepBatch", requests[-1])
         for pending, request in zip(started, requests, strict=False):
-            answer = _convert.batch_responses(pending.result(), len(request.steps))
-            _convert.step_columns(answer, layout, sensors.resolution, into=columns)
-        return _convert.step_columns(messages, layout, sensors.resolution, into=columns)
+            _convert.batch_columns(pending.result(), request, layout, sensors.resolution, into=columns)
+        return _convert.batch_columns(last, requests[-1], layout, sensors.resolution, into=columns)
 
     def _batch_size(self, sensors: Sensors) -> int:
         """`batch_size` for this server, asked once per client and sensors."""

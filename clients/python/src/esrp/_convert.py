@@ -207,18 +207,34 @@ def step_batch_request(episode_ids: Sequence[str], actions: Sequence[int]) -> pb
 
 
 def step_batch_requests(
-    episode_ids: Sequence[str], actions: Sequence[object], size: int
+    episode_ids: Sequence[str],
+    actions: Sequence[object],
+    size: int,
+    resets: Sequence[tuple[str, str | None]] = (),
 ) -> list[pb.StepBatchRequest]:
-    """One step of each episode as StepBatch requests of at most `size` steps, in order; each action
-    checked by `action_code` (an error names it `steps[k]` by its place in `actions`).
+    """One step of each episode as StepBatch requests of at most `size` steps, in order, each action
+    checked by `action_code` (an error names it `steps[k]` by its place in `actions`); then the
+    `resets` (an episode, and its new scene or None for the same one) in the last request and
+    more after it, a reset counting as two steps (its answer carries the goal image too).
     """
     if len(episode_ids) != len(actions):
         raise ValueError(f"{len(episode_ids)} episodes and {len(actions)} actions")
     codes = [action_code(action, f"steps[{k}]") for k, action in enumerate(actions)]
-    return [
+    requests = [
         step_batch_request(episode_ids[start : start + size], codes[start : start + size])
         for start in range(0, len(codes), size)
     ]
+    if not resets:
+        return requests
+    last = requests[-1] if requests else None
+    used = len(last.steps) if last is not None else size
+    for episode, scene in resets:
+        if last is None or used + 2 > size and used > 0:
+            last, used = pb.StepBatchRequest(), 0
+            requests.append(last)
+        last.resets.append(reset_request(episode, scene, None))
+        used += 2
+    return requests
 
 
 # Answers.
@@ -389,6 +405,27 @@ def batch_responses(message: pb.StepBatchResponse, sent: int) -> Sequence[pb.Ste
     if len(responses) != sent:
         raise ProtocolError(f"{len(responses)} answers to a batch of {sent} steps")
     return responses
+
+
+def batch_columns(
+    message: pb.StepBatchResponse,
+    request: pb.StepBatchRequest,
+    layout: Sequence[tuple[str, str, int, np.dtype[Any]]],
+    resolution: int,
+    into: StepColumns,
+) -> StepColumns:
+    """A StepBatch answer to `request` appended to `into`: its steps as `step_columns`, its resets
+    as `(observation, scene)` to `into.resets` (each checked to be as many as were sent).
+    """
+    step_columns(batch_responses(message, len(request.steps)), layout, resolution, into=into)
+    if len(message.resets) != len(request.resets):
+        raise ProtocolError(f"{len(message.resets)} answers to a batch of {len(request.resets)} resets")
+    for answer in message.resets:
+        first, scene = reset_observation(answer)
+        if scene is None:
+            raise ProtocolError("a reset answer of a StepBatch names no scene")
+        into.resets.append((first, scene))
+    return into
 
 
 def step_results(messages: Sequence[pb.StepResponse], sent: int) -> list[StepResult]:

@@ -1,13 +1,14 @@
-"""The optional native transport: the unary calls of `Client` over the Rust client's channel,
-through the `esrp_native` extension module (package `esrp-native`, built from
-`clients/python/native` with maturin).
+"""The optional native transport: the hot-path calls of `Client` (Step, Reset, StepBatch) over the
+Rust client's channel, through the `esrp_native` extension module (package `esrp-native`, built
+from `clients/python/native` with maturin).
 
 grpcio spends about twice the Rust client's CPU on a unary call, and for one agent stepping one
 episode that is most of a step's cost. With `esrp-native` installed, `Client(transport="auto")`
-(the default) sends every unary call through it (`esrp._transport.Calls`); streams, the health
-check, `AsyncClient` and TLS channels stay on grpcio. Messages are built and parsed in Python
-exactly as for grpcio, and errors come as the same `EsrpError` classes, so the two transports
-answer alike.
+(the default) sends those three calls through it (`esrp._transport.Calls` routes each call);
+everything else (and `AsyncClient`, streams, TLS channels) stays on grpcio, whose answers to a
+server that is not there, or not an esrp-server, are the ones the package's messages are made
+of. Messages are built and parsed in Python exactly as for grpcio, and errors come as the same
+`EsrpError` classes, so the two transports answer alike.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ def available() -> bool:
 
 
 def resolve(transport: str, secure: bool) -> Literal["native", "grpcio"]:
-    """The transport a `Client` uses for its unary calls: `auto` takes the native one where it is
+    """The transport a `Client` uses for its hot path: `auto` takes the native one where it is
     installed and the channel is plain; `native` insists (ValueError where it cannot be had).
     """
     if transport not in ("auto", "native", "grpcio"):
@@ -87,9 +88,7 @@ def channel(address: str, token: str | None) -> Any:  # noqa: ANN401
 
 
 def methods() -> list[str]:
-    """The paths of the unary methods the installed extension carries: every esrp.v1 unary method
-    (builds before 2026-11-26 carried Step, Reset and StepBatch only; the rest then go on grpcio).
-    """
+    """The paths of the unary methods the installed extension carries (Step, Reset, StepBatch)."""
     return list(_extension.METHODS) if _extension is not None else []
 
 

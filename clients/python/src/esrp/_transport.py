@@ -1,9 +1,9 @@
 """`Calls`: every unary esrp.v1 call of one `Client`, over one transport, with its token, its
 deadline and its errors mapped to `EsrpError` in one place.
 
-The transport is the native channel (the `esrp-native` package) for every method it carries
-where the client uses it, and grpcio otherwise (and for the methods an older `esrp-native` does
-not carry). Both take the same request messages and give the same answer messages.
+The transport is the native channel (the `esrp-native` package) for the methods it carries (the
+hot path: Step, Reset, StepBatch) where the client uses it, and grpcio for the others and
+otherwise. Both take the same request messages and give the same answer messages.
 """
 
 from __future__ import annotations

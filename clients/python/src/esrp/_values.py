@@ -615,6 +615,8 @@ class StepColumns:
             names an obstacle hit).
         images: Each image key of `observation_images` (the sensors' images) to its bytes per step.
         metrics: The final metrics of the steps that ended their episode, by position.
+        resets: The first observation (with the goal image) and the scene of each reset of the
+            call (`Client.step_columns(..., resets=...)`), in request order.
     """
 
     __slots__ = (
@@ -624,6 +626,7 @@ class StepColumns:
         "images",
         "metrics",
         "placed_count",
+        "resets",
         "rewards",
         "step_index",
         "terminated",
@@ -641,3 +644,4 @@ class StepColumns:
         self.step_index: list[int] = []
         self.images: dict[str, list[bytes]] = {key: [] for key in keys}
         self.metrics: dict[int, EpisodeMetrics] = {}
+        self.resets: list[tuple[Observation, SceneSummary]] = []

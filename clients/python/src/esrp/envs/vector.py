@@ -1,5 +1,6 @@
-"""`RearrangeVectorEnv`: N ESRP episodes on one StepStream, advanced together with one StepBatch
-round trip per step (steps and autoresets together): no subprocesses, no per-env threads.
+"""`RearrangeVectorEnv`: N ESRP episodes owned by one StepStream, advanced together with one
+StepBatch round trip per step (its steps and autoresets in one message): no subprocesses, no
+per-env threads.
 """
 
 from __future__ import annotations
@@ -24,7 +25,9 @@ from .._values import (
     ActionLike,
     Difficulty,
     EpisodeMetrics,
+    Observation,
     RewardWeights,
+    SceneSummary,
     Sensors,
     Split,
     StepColumns,
@@ -107,8 +110,8 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
 
     Infos are dicts of arrays with `_key` masks, exactly as Gymnasium's `VectorEnv._add_info`
     builds them (here a column at a time). Observations are fresh arrays at every call (keeping
-    them is safe). The episodes are created, reset and closed on the env's StepStream, so the
-    server closes them should the env's process die; the steps of a wave go in one StepBatch
+    them is safe). The episodes are created and closed on the env's StepStream, so the server
+    closes them should the env's process die; a step's steps and autoresets go in one StepBatch
     (split only beyond the server's `max_batch` or half its message limit), whose single answer
     costs far less to receive in Python than one stream answer per episode.
     """
@@ -201,35 +204,41 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             self._stream = self._setup.client.episode_stream(window=1)
         return self._stream
 
-    def _send_reset(self, stream: EpisodeStream, index: int, options: Mapping[str, Any] | None) -> str:
-        """Sends sub-env `index`'s reset (its creation, the first time); returns the scene."""
-        own = self._setup.scenes[index] if self._scene_per_env else None
-        scene = self._setup.pick_scene(self._rng(index), options, own)
-        episode = self._episode_ids[index]
-        if episode is None:
-            setup = self._setup
-            stream.create(
-                scene, sensors=setup.sensors, horizon=setup.horizon, reward=setup.reward, agent=setup.agent
-            )
-        else:
-            # The same scene again restarts the episode where it is (see `RearrangeEnv.reset`).
-            stream.reset(episode, None if scene == self._scene_ids[index] else scene)
-        return scene
+    def _pick_scenes(self, indices: list[int], options: Mapping[str, Any] | None) -> dict[int, str]:
+        """The scenes of sub-envs `indices`' next resets, each drawn from its own generator."""
+        scenes = {}
+        for index in indices:
+            own = self._setup.scenes[index] if self._scene_per_env else None
+            scenes[index] = self._setup.pick_scene(self._rng(index), options, own)
+        return scenes
 
-    def _take_reset(self, stream: EpisodeStream, index: int, scene: str) -> dict[str, Any]:
-        """Reads sub-env `index`'s reset answer (sent by `_send_reset` for `scene`) into its last
-        observation; returns the reset's info (as `RearrangeEnv.reset`'s).
+    def _resets(self, scenes: Mapping[int, str]) -> list[tuple[str, str | None]]:
+        """The batch resets of live sub-envs onto `scenes`: the same scene again restarts the
+        episode where it is (see `RearrangeEnv.reset`), so no new scene is sent for it.
+        """
+        return [
+            (cast(str, self._episode_ids[i]), None if scene == self._scene_ids[i] else scene)
+            for i, scene in scenes.items()
+        ]
+
+    def _take_create(self, stream: EpisodeStream, index: int, scene: str) -> dict[str, Any]:
+        """Reads sub-env `index`'s creation answer (sent on `stream` for `scene`) into its last
+        observation; returns the reset's info.
         """
         answer = stream.next()
         assert answer is not None
-        if self._episode_ids[index] is None:
-            created = answer.created()
-            self._episode_ids[index] = created.episode_id
-            first = created.observation
-        else:
-            first = answer.observation()
+        created = answer.created()
+        self._episode_ids[index] = created.episode_id
         if answer.scene is None:
-            raise ProtocolError(f"the answer to the reset of sub-env {index} names no scene")
+            raise ProtocolError(f"the answer to the creation of sub-env {index} names no scene")
+        return self._take_first(index, created.observation, answer.scene, scene)
+
+    def _take_first(
+        self, index: int, first: Observation, summary: SceneSummary, scene: str
+    ) -> dict[str, Any]:
+        """Stores sub-env `index`'s first observation on `scene` (described by `summary`) as its
+        last one; returns the reset's info (as `RearrangeEnv.reset`'s).
+        """
         self._scene_ids[index] = scene
         assert first.goal_rgb is not None
         for key in self._image_spec.keys:
@@ -237,7 +246,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         self._grasping[index] = first.grasping
         self._goals[index] = first.goal_rgb
         self._started[index] = True
-        return reset_info(answer.scene, self._setup.horizon)
+        return reset_info(summary, self._setup.horizon)
 
     def reset(
         self,
@@ -264,15 +273,32 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         self._autoreset_envs[mask] = False
         if not np.all(self._started[~mask]):
             raise ValueError("the first reset must reset every sub-environment (no reset_mask)")
-        stream = self._open_stream()
-        scenes: dict[int, str] = {}
-        for index in np.flatnonzero(mask).tolist():
+        indices: list[int] = np.flatnonzero(mask).tolist()
+        for index in indices:
             if seeds[index] is not None:
                 self._rngs[index], _ = seeding.np_random(seeds[index])
-            scenes[index] = self._send_reset(stream, index, options)
+        scenes = self._pick_scenes(indices, options)
+        # New episodes are created on the stream (which owns them); live ones restart in one
+        # StepBatch.
+        creates = {i: scene for i, scene in scenes.items() if self._episode_ids[i] is None}
+        restarts = {i: scene for i, scene in scenes.items() if i not in creates}
+        stream = self._open_stream() if creates else None
+        setup = self._setup
+        for scene in creates.values():
+            assert stream is not None
+            stream.create(
+                scene, sensors=setup.sensors, horizon=setup.horizon, reward=setup.reward, agent=setup.agent
+            )
+        restarted = self._step_batch([], [], self._resets(restarts)).resets
+        firsts = dict(zip(restarts, restarted, strict=True))
         infos: dict[str, Any] = {}
         for index, scene in scenes.items():
-            infos = self._add_info(infos, self._take_reset(stream, index, scene), index)
+            if index in creates:
+                assert stream is not None
+                info = self._take_create(stream, index, scene)
+            else:
+                info = self._take_first(index, *firsts[index], scene)
+            infos = self._add_info(infos, info, index)
         return self._batch(), infos
 
     def _reset_mask(self, options: dict[str, Any] | None) -> npt.NDArray[np.bool_]:
@@ -299,9 +325,10 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
     ) -> tuple[
         ObsDict, npt.NDArray[np.float64], npt.NDArray[np.bool_], npt.NDArray[np.bool_], dict[str, Any]
     ]:
-        """Steps every sub-env (or autoresets it, in NEXT_STEP mode) in one StepBatch round trip;
-        the autoresets go on the stream at the same time. `actions`: one action per sub-env, each
-        as the single env takes it (`action_codes`).
+        """Steps every sub-env (or autoresets it, in NEXT_STEP mode) in one StepBatch round trip,
+        its autoresets in the same message (in SAME_STEP mode, a second StepBatch resets the
+        sub-envs the step ended). `actions`: one action per sub-env, each as the single env takes
+        it (`action_codes`).
         """
         codes = action_codes(actions, self.num_envs)
         n = self.num_envs
@@ -313,22 +340,17 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
                 f"sub-environments {ended} have ended and autoreset_mode is DISABLED: reset them with "
                 "reset(options={'reset_mask': mask}) first (no episode moved)"
             )
-        stream = self._stream
-        sent: dict[int, str] = {}
-        resets: dict[int, dict[str, Any]] = {}
+        scenes: dict[int, str] = {}
         if self.autoreset_mode == AutoresetMode.NEXT_STEP and np.any(self._autoreset_envs):
-            sent = {
-                i: self._send_reset(stream, i, None) for i in np.flatnonzero(self._autoreset_envs).tolist()
-            }
+            scenes = self._pick_scenes(np.flatnonzero(self._autoreset_envs).tolist(), None)
             stepped: list[int] = np.flatnonzero(~self._autoreset_envs).tolist()
         else:
             stepped = list(range(n))
-        try:
-            columns = self._step_batch(stepped, codes)
-        finally:
-            # The resets were answered on the stream meanwhile (whatever became of the batch).
-            for i, scene in sent.items():
-                resets[i] = self._take_reset(stream, i, scene)
+        columns = self._step_batch(stepped, codes, self._resets(scenes))
+        resets = {
+            i: self._take_first(i, first, summary, scene)
+            for (i, scene), (first, summary) in zip(scenes.items(), columns.resets, strict=True)
+        }
         rewards = np.zeros(n, dtype=np.float64)
         terminations = np.zeros(n, dtype=np.bool_)
         truncations = np.zeros(n, dtype=np.bool_)
@@ -350,23 +372,31 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             # The final observations are handed out one by one: each gets a goal of its own.
             # (Every sub-env was stepped, so sub-env i's answer is at position i.)
             finals = {i: (self._single_observation(i), step_info(columns, i)) for i in ended}
-            sent = {i: self._send_reset(stream, i, None) for i in ended}
-            resets = {i: self._take_reset(stream, i, sent[i]) for i in ended}
+            scenes = self._pick_scenes(ended, None)
+            restarted = self._step_batch([], [], self._resets(scenes)).resets
+            resets = {
+                i: self._take_first(i, first, summary, scene)
+                for (i, scene), (first, summary) in zip(scenes.items(), restarted, strict=True)
+            }
         infos = self._step_infos(columns, stepped, resets, finals)
         self._autoreset_envs = np.logical_or(terminations, truncations)
         return self._batch(), rewards, terminations, truncations, infos
 
-    def _step_batch(self, stepped: list[int], codes: list[int]) -> StepColumns:
-        """Steps sub-envs `stepped` (in order) with one StepBatch (several beyond the server's
-        limits: `Client.step_columns`); their answers as columns in the same order.
+    def _step_batch(
+        self, stepped: list[int], codes: list[int], resets: Sequence[tuple[str, str | None]] = ()
+    ) -> StepColumns:
+        """Steps sub-envs `stepped` (in order) and takes `resets` with one StepBatch (several
+        beyond the server's limits: `Client.step_columns`); their answers as columns in the same
+        order.
         """
-        if not stepped:
+        if not stepped and not resets:
             return StepColumns(self._image_spec.keys)
         episode_ids = self._episode_ids
         return self._setup.client.step_columns(
             [cast(str, episode_ids[i]) for i in stepped],
             [codes[i] for i in stepped],
             self._image_spec.sensors,
+            resets=resets,
         )
 
     def _step_infos(
