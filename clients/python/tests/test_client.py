@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -284,6 +284,37 @@ def test_step_columns(client: esrp.Client, easy_scenes: list[str]) -> None:
     finally:
         client._batch_sizes.clear()  # noqa: SLF001
         for episode in batched + alone:
+            episode.close()
+
+
+def test_step_columns_with_resets(client: esrp.Client, easy_scenes: list[str]) -> None:
+    sensors = esrp.Sensors(resolution=32)
+    episodes = [client.create_episode(scene, sensors=sensors) for scene in easy_scenes[:4]]
+    ids = [episode.id for episode in episodes]
+    firsts = [cast(esrp.Observation, episode.observation).ego_rgb.tobytes() for episode in episodes]
+    try:
+        # One call, then with the batch size forced down to 2 (a reset counts as two steps) three
+        # calls: [step, step], [reset], [reset]; the answers in request order either way.
+        for size in (None, 2):
+            if size is not None:
+                client._batch_sizes[sensors] = size  # noqa: SLF001 - as the server's limits would
+            client.step_columns(ids[:2], [3, 3], sensors)
+            resets: list[tuple[str, str | None]] = [(ids[2], None), (ids[3], easy_scenes[0])]
+            columns = client.step_columns(ids[:2], [2, 2], sensors, resets=resets)
+            assert columns.step_index == [2, 2]
+            assert [scene.id for _, scene in columns.resets] == [easy_scenes[2], easy_scenes[0]]
+            assert columns.resets[0][0].ego_rgb.tobytes() == firsts[2]
+            assert columns.resets[1][0].ego_rgb.tobytes() == firsts[0]
+            assert columns.resets[1][0].goal_rgb is not None
+            for episode in episodes[:2]:
+                episode.reset()
+            client.step_columns([], [], sensors, resets=[(ids[3], easy_scenes[3])])
+        client._batch_sizes.clear()  # noqa: SLF001
+        with pytest.raises(esrp.InvalidRequest, match=r"resets\[0\]: episode .* appears twice"):
+            client.step_columns(ids[:1], [0], sensors, resets=[(ids[0], None)])
+    finally:
+        client._batch_sizes.clear()  # noqa: SLF001
+        for episode in episodes:
             episode.close()
 
 

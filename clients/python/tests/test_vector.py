@@ -314,3 +314,56 @@ def test_reset_infos_and_is_success(server: esrp.LocalServer, client: esrp.Clien
                 assert "is_success" not in infos
         finally:
             native.close()
+
+
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_a_step_and_its_autoresets_are_one_message(
+    server: esrp.LocalServer, easy_scenes: list[str], monkeypatch: pytest.MonkeyPatch, mode: AutoresetMode
+) -> None:
+    """Each vector step sends one StepBatch holding its steps and its autoresets (SAME_STEP: a
+    second one for the resets of the episodes the step ended), and nothing on the stream."""
+    from esrp._client import EpisodeStream
+    from esrp._transport import Calls
+
+    sent: list[tuple[str, int, int]] = []
+    call = Calls.__call__
+
+    def counted(self: Calls, method: str, request: Any, **options: Any) -> Any:  # noqa: ANN401
+        sent.append((method, len(getattr(request, "steps", ())), len(getattr(request, "resets", ()))))
+        return call(self, method, request, **options)
+
+    monkeypatch.setattr(Calls, "__call__", counted)
+    on_stream: list[str] = []
+    send = EpisodeStream._send  # noqa: SLF001
+
+    def streamed(self: EpisodeStream, kind: Any, episode_id: str, **body: Any) -> int:  # noqa: ANN401
+        on_stream.append(kind.value)
+        return send(self, kind, episode_id, **body)
+
+    monkeypatch.setattr(EpisodeStream, "_send", streamed)
+    envs = RearrangeVectorEnv(
+        NUM_ENVS, address=server.address, scene=easy_scenes[:3], sensors=SMALL, horizon=2, autoreset_mode=mode
+    )
+    try:
+        envs.reset(seed=5)
+        envs.step(np.array([1, 1, 1]))
+        # Sub-env 0 restarts alone (a StepBatch with one reset): it now ends a step after the others.
+        sent.clear()
+        envs.reset(options={"reset_mask": np.array([True, False, False])})
+        assert sent == [("StepBatch", 0, 1)]
+        sent.clear()
+        _, _, _, truncated, _ = envs.step(np.array([1, 1, 1]))
+        assert truncated.tolist() == [False, True, True]
+        if mode == AutoresetMode.SAME_STEP:
+            assert sent == [("StepBatch", 3, 0), ("StepBatch", 0, 2)]
+        else:
+            assert sent == [("StepBatch", 3, 0)]
+            sent.clear()
+            _, _, _, truncated, infos = envs.step(np.array([1, 1, 1]))
+            assert sent == [("StepBatch", 1, 2)], "sub-env 0's step and the others' autoresets"
+            assert truncated.tolist() == [True, False, False]
+            assert infos["_scene_id"].tolist() == [False, True, True]
+    finally:
+        envs.close()
+    # The stream created the three episodes and closed them, and carried nothing else.
+    assert on_stream == ["create"] * 3 + ["close"] * 3
