@@ -7,7 +7,7 @@ import functools
 import json
 import os
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import NoReturn
 
 from .._values import Sensors, Split
@@ -87,6 +87,25 @@ def sensor_list(text: str) -> Sensors:
         segmentation="segmentation" in names,
         current_top_down="current_top_down" in names,
     )
+
+
+def scene_options(
+    parser: argparse.ArgumentParser,
+    splits: Sequence[str],
+    *,
+    default: str | None,
+    split_help: str,
+    limit_help: str,
+) -> None:
+    """Adds `--split` (one of `splits`), `--difficulty`, `--scenes` and `--limit`: which scenes a
+    command runs on, in dataset order.
+    """
+    parser.add_argument("--split", choices=splits, default=default, help=split_help)
+    parser.add_argument("--difficulty", choices=("easy", "medium", "hard"))
+    parser.add_argument(
+        "--scenes", type=comma_list, default=[], metavar="ID,...", help="only these scenes, in order"
+    )
+    parser.add_argument("--limit", type=positive, metavar="N", help=limit_help)
 
 
 def server_options(parser: argparse.ArgumentParser) -> None:

@@ -17,6 +17,7 @@ from ._args import (
     one_line_errors,
     positive,
     positive_float,
+    scene_options,
     sensor_list,
     server_options,
 )
@@ -39,18 +40,12 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
         "(a factory called with the agent config, once per episode, "
         "returning an esrp.agents.Agent or AsyncAgent)",
     )
-    ev.add_argument(
-        "--split",
-        choices=SPLITS,
+    scene_options(
+        ev,
+        SPLITS,
         default="test",
-        help="challenge and minival: the hidden splits of a server started with --challenge-seed",
-    )
-    ev.add_argument("--difficulty", choices=("easy", "medium", "hard"))
-    ev.add_argument(
-        "--scenes", type=comma_list, default=[], metavar="ID,...", help="only these scenes, in order"
-    )
-    ev.add_argument(
-        "--limit", type=positive, metavar="N", help="at most N scenes (the first after the filters)"
+        split_help="challenge and minival: the hidden splits of a server started with --challenge-seed",
+        limit_help="at most N scenes (the first after the filters)",
     )
     ev.add_argument("--episodes-in-flight", type=positive, default=8, metavar="N")
     ev.add_argument("--seed", type=int, default=0, help="base seed; scene ID uses seed XOR fnv1a64(ID)")

@@ -6,7 +6,15 @@ import argparse
 import sys
 from pathlib import Path
 
-from ._args import Parser, comma_list, json_object, on_server, one_line_errors, positive, server_options
+from ._args import (
+    Parser,
+    json_object,
+    on_server,
+    one_line_errors,
+    positive,
+    scene_options,
+    server_options,
+)
 
 
 def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
@@ -26,12 +34,13 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
         "replay the episodes of esrp.results/v1 files instead (e.g. people's play in the web "
         "viewer: --agent human).",
     )
-    export.add_argument("--split", choices=("train", "test"), help="the scenes' split (default train)")
-    export.add_argument("--difficulty", choices=("easy", "medium", "hard"))
-    export.add_argument(
-        "--scenes", type=comma_list, default=[], metavar="ID,...", help="only these scenes, in order"
+    scene_options(
+        export,
+        ("train", "test"),
+        default=None,
+        split_help="the scenes' split (default train)",
+        limit_help="at most N scenes (or records)",
     )
-    export.add_argument("--limit", type=positive, metavar="N", help="at most N scenes (or records)")
     export.add_argument(
         "--records",
         type=Path,
