@@ -363,7 +363,7 @@ mod tests {
         check(
             ServiceError::BatchTooLarge { steps: 9, max: 8 },
             Code::ResourceExhausted,
-            "9 steps exceeds the limit of 8",
+            "9 steps and resets exceeds the limit of 8",
         );
         check(
             ServiceError::StepAnswerTooLarge { bytes: 2_500_000, max: 1_000_000 },
