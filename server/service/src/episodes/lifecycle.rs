@@ -196,10 +196,7 @@ pub(super) async fn reset(
 ) -> Result<ResetResult, ServiceError> {
     // An unknown episode is refused before its new scene is read.
     episodes.registry.get(episode, caller)?;
-    let scene = match scene {
-        Some(choice) => Some(episodes.resolve_scene(choice).await?),
-        None => None,
-    };
+    let scene = episodes.resolve_new_scene(scene).await?;
     reset_to(episodes, caller, episode, scene).await
 }
 

@@ -93,6 +93,17 @@ impl Episodes {
         tokio::task::spawn_blocking(job).await.map_err(|e| ServiceError::Internal(e.to_string()))?
     }
 
+    /// Resolves a reset's new scene, if it names one (see [`Episodes::resolve_scene`]).
+    pub(super) async fn resolve_new_scene(
+        self: &Arc<Self>,
+        choice: Option<SceneChoice>,
+    ) -> Result<Option<Arc<CompiledScene>>, ServiceError> {
+        match choice {
+            Some(choice) => self.resolve_scene(choice).await.map(Some),
+            None => Ok(None),
+        }
+    }
+
     /// The episode `id` of `caller`, locked, marked used now.
     pub(super) async fn locked(&self, caller: &Caller, id: &EpisodeId) -> Result<EpisodeGuard, ServiceError> {
         let mut entry = self.registry.get(id, caller)?.lock_owned().await;

@@ -199,11 +199,7 @@ pub(super) async fn step_batch(
     // The new scenes are read before anything moves: a bad one fails the call.
     let mut targets = Vec::with_capacity(resets.len());
     for r in resets {
-        let scene = match r.scene {
-            Some(choice) => Some(episodes.resolve_scene(choice).await?),
-            None => None,
-        };
-        targets.push((r.episode, scene));
+        targets.push((r.episode, episodes.resolve_new_scene(r.scene).await?));
     }
     // The steps, validated whole with the resets' answers counted in the message's size; their
     // views render while the resets are taken.
