@@ -212,15 +212,6 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             scenes[index] = self._setup.pick_scene(self._rng(index), options, own)
         return scenes
 
-    def _resets(self, scenes: Mapping[int, str]) -> list[tuple[str, str | None]]:
-        """The batch resets of live sub-envs onto `scenes`: the same scene again restarts the
-        episode where it is (see `RearrangeEnv.reset`), so no new scene is sent for it.
-        """
-        return [
-            (cast(str, self._episode_ids[i]), None if scene == self._scene_ids[i] else scene)
-            for i, scene in scenes.items()
-        ]
-
     def _take_create(self, stream: EpisodeStream, index: int, scene: str) -> dict[str, Any]:
         """Reads sub-env `index`'s creation answer (sent on `stream` for `scene`) into its last
         observation; returns the reset's info.
@@ -289,15 +280,14 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             stream.create(
                 scene, sensors=setup.sensors, horizon=setup.horizon, reward=setup.reward, agent=setup.agent
             )
-        restarted = self._step_batch([], [], self._resets(restarts)).resets
-        firsts = dict(zip(restarts, restarted, strict=True))
+        _, restarted = self._step_batch([], [], restarts)
         infos: dict[str, Any] = {}
         for index, scene in scenes.items():
             if index in creates:
                 assert stream is not None
                 info = self._take_create(stream, index, scene)
             else:
-                info = self._take_first(index, *firsts[index], scene)
+                info = restarted[index]
             infos = self._add_info(infos, info, index)
         return self._batch(), infos
 
@@ -346,11 +336,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             stepped: list[int] = np.flatnonzero(~self._autoreset_envs).tolist()
         else:
             stepped = list(range(n))
-        columns = self._step_batch(stepped, codes, self._resets(scenes))
-        resets = {
-            i: self._take_first(i, first, summary, scene)
-            for (i, scene), (first, summary) in zip(scenes.items(), columns.resets, strict=True)
-        }
+        columns, resets = self._step_batch(stepped, codes, scenes)
         rewards = np.zeros(n, dtype=np.float64)
         terminations = np.zeros(n, dtype=np.bool_)
         truncations = np.zeros(n, dtype=np.bool_)
@@ -372,32 +358,39 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             # The final observations are handed out one by one: each gets a goal of its own.
             # (Every sub-env was stepped, so sub-env i's answer is at position i.)
             finals = {i: (self._single_observation(i), step_info(columns, i)) for i in ended}
-            scenes = self._pick_scenes(ended, None)
-            restarted = self._step_batch([], [], self._resets(scenes)).resets
-            resets = {
-                i: self._take_first(i, first, summary, scene)
-                for (i, scene), (first, summary) in zip(scenes.items(), restarted, strict=True)
-            }
+            _, resets = self._step_batch([], [], self._pick_scenes(ended, None))
         infos = self._step_infos(columns, stepped, resets, finals)
         self._autoreset_envs = np.logical_or(terminations, truncations)
         return self._batch(), rewards, terminations, truncations, infos
 
     def _step_batch(
-        self, stepped: list[int], codes: list[int], resets: Sequence[tuple[str, str | None]] = ()
-    ) -> StepColumns:
-        """Steps sub-envs `stepped` (in order) and takes `resets` with one StepBatch (several
-        beyond the server's limits: `Client.step_columns`); their answers as columns in the same
-        order.
+        self, stepped: list[int], codes: list[int], restarts: Mapping[int, str]
+    ) -> tuple[StepColumns, dict[int, dict[str, Any]]]:
+        """Steps sub-envs `stepped` (in order) and restarts the live sub-envs of `restarts` onto
+        their scenes with one StepBatch (several beyond the server's limits:
+        `Client.step_columns`): the steps' answers as columns in the same order, and each
+        restarted sub-env's reset info (its first observation stored as its last one).
         """
-        if not stepped and not resets:
-            return StepColumns(self._image_spec.keys)
+        if not stepped and not restarts:
+            return StepColumns(self._image_spec.keys), {}
         episode_ids = self._episode_ids
-        return self._setup.client.step_columns(
+        # The same scene again restarts the episode where it is (see `RearrangeEnv.reset`), so no
+        # new scene is sent for it.
+        resets = [
+            (cast(str, episode_ids[i]), None if scene == self._scene_ids[i] else scene)
+            for i, scene in restarts.items()
+        ]
+        columns = self._setup.client.step_columns(
             [cast(str, episode_ids[i]) for i in stepped],
             [codes[i] for i in stepped],
             self._image_spec.sensors,
             resets=resets,
         )
+        infos = {
+            i: self._take_first(i, first, summary, scene)
+            for (i, scene), (first, summary) in zip(restarts.items(), columns.resets, strict=True)
+        }
+        return columns, infos
 
     def _step_infos(
         self,
