@@ -227,9 +227,11 @@ def step_batch_requests(
     if not resets:
         return requests
     last = requests[-1] if requests else None
-    used = len(last.steps) if last is not None else size
+    used = len(last.steps) if last is not None else 0
     for episode, scene in resets:
-        if last is None or used + 2 > size and used > 0:
+        # A new request when there is none, or when this reset does not fit beside what the
+        # last one holds (a reset alone always goes, whatever `size`).
+        if last is None or (used > 0 and used + 2 > size):
             last, used = pb.StepBatchRequest(), 0
             requests.append(last)
         last.resets.append(reset_request(episode, scene, None))
