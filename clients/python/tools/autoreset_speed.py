@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -20,15 +21,16 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 
 import esrp
+from esrp.cli._args import positive, positive_float
 from esrp.envs import RearrangeVectorEnv
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--binary", type=Path, help="the esrp-server (default: as LocalServer finds it)")
-    parser.add_argument("--envs", type=int, default=64)
-    parser.add_argument("--horizon", type=int, default=8)
-    parser.add_argument("--seconds", type=float, default=5.0)
+    parser.add_argument("--envs", type=positive, default=64)
+    parser.add_argument("--horizon", type=positive, default=8)
+    parser.add_argument("--seconds", type=positive_float, default=5.0)
     parser.add_argument("--mode", choices=("next_step", "same_step"), default="next_step")
     args = parser.parse_args()
     mode = AutoresetMode[args.mode.upper()]
@@ -63,4 +65,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except esrp.EsrpError as error:  # no server, or one that failed: one line, exit status 1
+        sys.exit(f"autoreset_speed.py: {error}")
