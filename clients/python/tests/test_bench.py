@@ -10,7 +10,7 @@ import pytest
 from conftest import settled_live_episodes
 
 import esrp
-from esrp import bench
+from esrp.cli import bench
 
 
 def test_bench_prints_every_scenario(

@@ -8,7 +8,8 @@ server and write it as a GIF, MP4 or PNG); `esrp doctor` checks that this machin
 Each command group has its module, parser and handlers together: `cli.evaluation` (eval, verify,
 report, replay), `cli.training` (demos export, train bc|ppo); `cli._args` holds what their parsers
 share.
-`esrp bench` hands its arguments to `esrp.bench`, which parses them itself.
+`esrp bench` hands its arguments to `cli.bench` (the benchmark, also `python -m esrp.bench`), which
+parses them itself.
 """
 
 from __future__ import annotations
@@ -75,7 +76,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _run(arguments: list[str]) -> int:
     if arguments[:1] == ["bench"]:
         # Its own parser and options (also `python -m esrp.bench`).
-        from .. import bench
+        from . import bench
 
         return bench.main(arguments[1:], prog="esrp bench")
     args = _parser().parse_args(arguments)
