@@ -37,7 +37,7 @@ from torch import nn
 from torch.nn import functional as F  # noqa: N812 - the usual name
 
 from .._values import Action, Observation, Sensors
-from ..train._training import policy_checkpoint
+from ._checkpoint import policy_checkpoint
 from .encoders import ENCODERS, check_device, float_images, make_encoder
 
 __all__ = ["BatchedBcAgent", "BcAgent", "BcConfig", "BcPolicy", "DiffusionPolicy", "load_policy"]

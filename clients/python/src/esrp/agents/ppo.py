@@ -23,7 +23,7 @@ from torch import nn
 from torch.nn import functional as F  # noqa: N812 - the usual name
 
 from .._values import Action, Observation, RewardWeights, Sensors
-from ..train._training import policy_checkpoint
+from ._checkpoint import policy_checkpoint
 from .encoders import ENCODERS, check_device, make_encoder
 
 __all__ = ["PpoAgent", "PpoConfig", "PpoNet", "PpoPolicy", "load_network"]

@@ -3,8 +3,8 @@ zarr): `demos` (`esrp demos export`: expert or DAgger trajectories into an `esrp
 store), `bc` (`esrp train bc`: ESRP-BC on those stores), `heldout` (its held-out evaluations and
 the server a training run uses), `dagger` (`esrp train bc --dagger`: the DAgger loop), `ppo` (`esrp
 train ppo`: ESRP-PPO, a CleanRL-style loop on the native vector env), `_config` (reading the
-TOML/JSON configs of `configs/`) and `_training` (checkpoints written atomically, resumption, the
-agents' `--checkpoint`).
+TOML/JSON configs of `configs/`) and `_training` (checkpoints written atomically, resumption; the
+agents read theirs without it: `esrp.agents._checkpoint`).
 
 Importing this package imports none of them (nor torch).
 """

@@ -1,5 +1,6 @@
-"""What `esrp train bc` and `esrp train ppo` and their agents share: checkpoints written atomically,
-resumption that refuses other settings, and the agents' checkpoint option.
+"""What `esrp train bc` and `esrp train ppo` share: checkpoints written atomically, and resumption
+that refuses other settings. The agents' `checkpoint` option is `esrp.agents._checkpoint`: an agent
+loads a checkpoint without this module.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from typing import Any
 import torch
 from torch import nn
 
-__all__ = ["load_resumable", "policy_checkpoint", "save_checkpoint"]
+__all__ = ["load_resumable", "save_checkpoint"]
 
 
 def save_checkpoint(
@@ -62,18 +63,3 @@ def load_resumable(
     if restore_rng:
         torch.set_rng_state(state["torch_rng"].cpu())
     return state
-
-
-def policy_checkpoint(config: Mapping[str, Any], agent: str) -> str:
-    """The `checkpoint` of an agent's config (`esrp eval --agent bc|ppo --checkpoint`), checked to
-    exist; sets torch's thread count to the config's `threads` (default 1: one per evaluation).
-    """
-    checkpoint = config.get("checkpoint")
-    if not checkpoint:
-        raise ValueError(f"--agent {agent} needs --checkpoint RUN/ckpt.pt (made by esrp train {agent})")
-    if not Path(str(checkpoint)).is_file():
-        raise ValueError(f"no checkpoint at {checkpoint}")
-    threads = int(config.get("threads", 1))
-    if threads > 0:
-        torch.set_num_threads(threads)
-    return str(checkpoint)
