@@ -43,6 +43,7 @@ from ..agents import (
     load_factory,
     raised_at,
 )
+from ._pool import run_workers
 from .results import (
     SCHEMA,
     EpisodeRecord,
@@ -799,17 +800,10 @@ async def evaluate(
 
     try:
         with open(out, "ab") as file:
+            # One worker that stops the run (ServerGone, a signal) stops the others with it before
+            # the file closes.
             workers = min(settings.episodes_in_flight, max(len(todo), 1))
-            tasks = [asyncio.ensure_future(worker(file)) for _ in range(workers)]
-            try:
-                await asyncio.gather(*tasks)
-            except BaseException:
-                # One worker stopped the run (ServerGone, a signal): the others stop with it
-                # before the file closes.
-                for task in tasks:
-                    task.cancel()
-                await asyncio.gather(*tasks, return_exceptions=True)
-                raise
+            await run_workers(workers, lambda: worker(file))
     finally:
         progress.close()
         close = getattr(factory, "aclose", None)  # a factory holding a connection (vlm)

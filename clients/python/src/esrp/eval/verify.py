@@ -30,6 +30,7 @@ from .._common import unreachable
 from .._errors import EsrpError, SceneNotFound, ServerUnavailable
 from .._local import LocalServer
 from .._values import EpisodeMetrics, Sensors, ServerInfo
+from ._pool import run_workers
 from .evaluation import Progress, ServerGone, server_gone
 from .results import EpisodeRecord, ReadRecords, ResultsError, load_records, no_records
 
@@ -252,14 +253,8 @@ async def verify(
             done += 1
             bar.advance(f"{len(found)} do not match" if found else "all match")
 
-    tasks = [asyncio.ensure_future(worker()) for _ in range(min(episodes_in_flight, len(inputs)))]
     try:
-        await asyncio.gather(*tasks)
-    except BaseException:
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
-        raise
+        await run_workers(min(episodes_in_flight, len(inputs)), worker)
     finally:
         bar.close()
     mismatches = [Mismatch(inputs[index], tuple(found[index])) for index in sorted(found)]
