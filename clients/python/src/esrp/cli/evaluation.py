@@ -24,15 +24,25 @@ from ._args import (
 
 
 def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
-    """Adds `eval`, `verify`, `report` and `replay` to `commands`."""
-    ev = commands.add_parser(
+    """Adds `eval`, `report`, `replay` and `verify` to `commands` (in that order: `esrp --help`'s)."""
+    _add_eval(commands)
+    _add_report(commands)
+    _add_replay(commands)
+    _add_verify(commands)
+
+
+def _add_eval(commands: argparse._SubParsersAction[Parser]) -> None:
+    """Adds `esrp eval`: the agent, the scenes, the results file, the agents' settings, Ray, the
+    server.
+    """
+    parser = commands.add_parser(
         "eval",
         help="run an agent over the scenes of a split; write one esrp.results/v1 record per episode",
         description="Run an agent over the scenes of a split and write one esrp.results/v1 record per "
         "episode (docs/evaluation.md), resuming what --out already holds; a Markdown summary is written "
         "beside it. The exit status is 1 when episodes failed with an error (they are not recorded).",
     )
-    ev.add_argument(
+    parser.add_argument(
         "--agent",
         required=True,
         help="random, expert, plan, vlm (ESRP-VLM over an OpenAI-compatible endpoint: --base-url, "
@@ -41,56 +51,74 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
         "returning an esrp.agents.Agent or AsyncAgent)",
     )
     scene_options(
-        ev,
+        parser,
         SPLITS,
         default="test",
         split_help="challenge and minival: the hidden splits of a server started with --challenge-seed",
         limit_help="at most N scenes (the first after the filters)",
     )
-    ev.add_argument("--episodes-in-flight", type=positive, default=8, metavar="N")
-    ev.add_argument("--seed", type=int, default=0, help="base seed; scene ID uses seed XOR fnv1a64(ID)")
-    ev.add_argument("--out", type=Path, required=True, help="the results file (JSON Lines)")
-    ev.add_argument("--fresh", action="store_true", help="start --out over instead of resuming it")
-    ev.add_argument("--summary", type=Path, help="the Markdown summary (default: --out with .md)")
-    ev.add_argument(
+    parser.add_argument("--episodes-in-flight", type=positive, default=8, metavar="N")
+    parser.add_argument("--seed", type=int, default=0, help="base seed; scene ID uses seed XOR fnv1a64(ID)")
+    parser.add_argument("--out", type=Path, required=True, help="the results file (JSON Lines)")
+    parser.add_argument("--fresh", action="store_true", help="start --out over instead of resuming it")
+    parser.add_argument("--summary", type=Path, help="the Markdown summary (default: --out with .md)")
+    _agent_settings(parser)
+    parser.add_argument(
+        "--no-progress", dest="progress", action="store_false", help="no progress bar or lines"
+    )
+    _ray_options(parser)
+    server_options(parser)
+    parser.set_defaults(handler=_eval)
+
+
+def _agent_settings(parser: argparse.ArgumentParser) -> None:
+    """Adds `esrp eval`'s settings of the agents: `--agent-config`, those of vlm, bc and ppo, and
+    plan, and the sensors and privilege of a MODULE:CALLABLE agent's episodes.
+    """
+    parser.add_argument(
         "--agent-config",
         type=json_object,
         default={},
         metavar="JSON",
         help="a vlm or MODULE:CALLABLE agent's config",
     )
-    ev.add_argument(
+    parser.add_argument(
         "--base-url",
         metavar="URL",
         help="vlm: the OpenAI-compatible endpoint, e.g. http://localhost:8000/v1 (the config's base_url); "
         "the API key is $ESRP_VLM_API_KEY or $OPENAI_API_KEY",
     )
-    ev.add_argument("--model", metavar="NAME", help="vlm: the model it serves (the config's model)")
-    ev.add_argument(
+    parser.add_argument("--model", metavar="NAME", help="vlm: the model it serves (the config's model)")
+    parser.add_argument(
         "--checkpoint",
         type=Path,
         metavar="PATH",
         help="bc, ppo: the trained policy (RUN/ckpt.pt of esrp train; the config's checkpoint)",
     )
-    ev.add_argument(
+    parser.add_argument(
         "--trace-dir",
         type=Path,
         metavar="DIR",
         help="vlm: the per-episode traces' folder (default: --out without .jsonl, plus .traces)",
     )
-    ev.add_argument(
+    parser.add_argument(
         "--plan-budget-ms", type=positive, default=60_000, help="plan: budget per PlanActions call"
     )
-    ev.add_argument("--replans", type=int, default=2, help="plan: PlanActions calls after the first")
-    ev.add_argument(
+    parser.add_argument("--replans", type=int, default=2, help="plan: PlanActions calls after the first")
+    parser.add_argument(
         "--sensors",
         type=sensor_list,
         metavar="NAME,...",
         help="MODULE:CALLABLE: depth,segmentation,current_top_down",
     )
-    ev.add_argument("--privileged", action="store_true", help="MODULE:CALLABLE: privileged episodes")
-    ev.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar or lines")
-    ray = ev.add_argument_group(
+    parser.add_argument("--privileged", action="store_true", help="MODULE:CALLABLE: privileged episodes")
+
+
+def _ray_options(parser: argparse.ArgumentParser) -> None:
+    """Adds `esrp eval`'s Ray group: `--ray`, `--servers`, `--spawn-servers`, `--cpus-per-actor`,
+    `--max-restarts`.
+    """
+    ray = parser.add_argument_group(
         "Ray",
         "distribute the evaluation over a Ray cluster (pip install 'esrp[ray]'): one actor per server, "
         "--episodes-in-flight episodes on each; the same results file as a local run",
@@ -127,9 +155,11 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
         metavar="N",
         help="--ray: restarts of an actor whose server died (its episodes are re-run from their start)",
     )
-    server_options(ev)
 
-    rep = commands.add_parser(
+
+def _add_report(commands: argparse._SubParsersAction[Parser]) -> None:
+    """Adds `esrp report`: results files into a report, or `--leaderboard` from a server's records."""
+    parser = commands.add_parser(
         "report",
         help="tables and plots of results files: Markdown and one self-contained HTML page; "
         "--leaderboard: the challenge's ranking from a server's records",
@@ -139,28 +169,32 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
         "rank the participants of the challenge from a server's records (DIR/*.jsonl: the counted "
         "challenge records, one per participant and scene) and write one self-contained HTML page.",
     )
-    rep.add_argument("results", nargs="*", type=Path, help="results files (JSON Lines)")
-    rep.add_argument(
+    parser.add_argument("results", nargs="*", type=Path, help="results files (JSON Lines)")
+    parser.add_argument(
         "--out",
         type=Path,
         help="the report's folder; with --leaderboard, the page (default: leaderboard.html)",
     )
-    rep.add_argument(
+    parser.add_argument(
         "--leaderboard",
         type=Path,
         metavar="DIR",
         help="rank the challenge's participants from the server's records in DIR (its --records folder)",
     )
-    rep.add_argument("--replays", type=int, default=0, metavar="N", help="stills of N episodes per run")
-    rep.add_argument(
+    parser.add_argument("--replays", type=int, default=0, metavar="N", help="stills of N episodes per run")
+    parser.add_argument(
         "--replay-scenes", type=comma_list, default=[], metavar="ID,...", help="stills of these scenes"
     )
-    rep.add_argument(
+    parser.add_argument(
         "--title", help="the page's title (default: ESRP evaluation report, ESRP challenge leaderboard)"
     )
-    server_options(rep)
+    server_options(parser)
+    parser.set_defaults(handler=_report)
 
-    rp = commands.add_parser(
+
+def _add_replay(commands: argparse._SubParsersAction[Parser]) -> None:
+    """Adds `esrp replay`: one recorded episode re-run and written as frames."""
+    parser = commands.add_parser(
         "replay",
         help="re-run a recorded episode on the server; write it as a GIF, MP4 or PNG",
         description="Re-run the recorded actions of one episode on the server (privileged, with the "
@@ -169,14 +203,18 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
         "extension: .gif, .mp4 (needs imageio-ffmpeg) or .png (the final frame). Fails when the "
         "replay does not reproduce the record's metrics.",
     )
-    rp.add_argument("--results", type=Path, required=True, help="the results file")
-    rp.add_argument("--scene", required=True, help="the scene id of the episode to replay")
-    rp.add_argument("--out", type=Path, required=True, help="ep.gif, ep.mp4 or ep.png")
-    rp.add_argument("--fps", type=positive_float, default=10.0, help="frames per second (10)")
-    rp.add_argument("--scale", type=positive, default=2, help="pixels per image pixel")
-    server_options(rp)
+    parser.add_argument("--results", type=Path, required=True, help="the results file")
+    parser.add_argument("--scene", required=True, help="the scene id of the episode to replay")
+    parser.add_argument("--out", type=Path, required=True, help="ep.gif, ep.mp4 or ep.png")
+    parser.add_argument("--fps", type=positive_float, default=10.0, help="frames per second (10)")
+    parser.add_argument("--scale", type=positive, default=2, help="pixels per image pixel")
+    server_options(parser)
+    parser.set_defaults(handler=_replay)
 
-    ver = commands.add_parser(
+
+def _add_verify(commands: argparse._SubParsersAction[Parser]) -> None:
+    """Adds `esrp verify`: results files' records replayed and checked."""
+    parser = commands.add_parser(
         "verify",
         help="replay results files' records on a server and check that each replay reproduces its record",
         description="Replay every record of esrp.results/v1 files (esrp eval's, esrp-eval's, or a "
@@ -185,14 +223,13 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
         "Prints one line per record that does not match (FILE:LINE, scene, what differs) and a "
         "summary. Exit status: 0 all match, 1 some do not, 2 bad input, 3 the server died.",
     )
-    ver.add_argument("results", nargs="+", type=Path, help="results files (JSON Lines)")
-    ver.add_argument("--episodes-in-flight", type=positive, default=8, metavar="N")
-    ver.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar or lines")
-    server_options(ver)
-    ev.set_defaults(handler=_eval)
-    ver.set_defaults(handler=_verify)
-    rep.set_defaults(handler=_report)
-    rp.set_defaults(handler=_replay)
+    parser.add_argument("results", nargs="+", type=Path, help="results files (JSON Lines)")
+    parser.add_argument("--episodes-in-flight", type=positive, default=8, metavar="N")
+    parser.add_argument(
+        "--no-progress", dest="progress", action="store_false", help="no progress bar or lines"
+    )
+    server_options(parser)
+    parser.set_defaults(handler=_verify)
 
 
 @one_line_errors
