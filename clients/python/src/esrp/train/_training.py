@@ -1,6 +1,6 @@
-"""What `esrp train bc` and `esrp train ppo` share: checkpoints written atomically, and resumption
-that refuses other settings. The agents' `checkpoint` option is `esrp.agents._checkpoint`: an agent
-loads a checkpoint without this module.
+"""What `esrp train bc` and `esrp train ppo` share: the run folder, checkpoints written atomically,
+and resumption that refuses other settings. The agents' `checkpoint` option is
+`esrp.agents._checkpoint`: an agent loads a checkpoint without this module.
 """
 
 from __future__ import annotations
@@ -13,7 +13,18 @@ from typing import Any
 import torch
 from torch import nn
 
-__all__ = ["load_resumable", "save_checkpoint"]
+__all__ = ["load_resumable", "resume_from", "run_folder", "save_checkpoint"]
+
+
+def run_folder(out: Path, resume: bool) -> Path:
+    """Makes the run folder `out` (and its parents) if missing; returns the path of its checkpoint,
+    `out/ckpt.pt`. Raises `ValueError` when `out` already holds a run's checkpoint and not `resume`.
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    checkpoint = out / "ckpt.pt"
+    if not resume and checkpoint.exists():
+        raise ValueError(f"{out} already holds a run: pass --resume to go on with it, or another --out")
+    return checkpoint
 
 
 def save_checkpoint(
@@ -62,4 +73,25 @@ def load_resumable(
         raise ValueError(f"{path} was trained with other settings: {state['config']}")
     if restore_rng:
         torch.set_rng_state(state["torch_rng"].cpu())
+    return state
+
+
+def resume_from(
+    path: Path,
+    kind: str,
+    model: nn.Module,
+    optimizer: torch.optim.Optimizer,
+    free: Collection[str],
+    device: torch.device,
+    *,
+    restore_rng: bool = True,
+) -> dict[str, Any]:
+    """Loads the model and optimizer of the checkpoint at `path` (`load_resumable`, against the
+    settings of `model.config`: kind `kind`, the same settings but `free` ones) into `model` and
+    `optimizer`; returns the checkpoint, for its progress (epoch, update, steps...).
+    """
+    config: Any = model.config
+    state = load_resumable(path, kind, config.to_dict(), free, device, restore_rng=restore_rng)
+    model.load_state_dict(state["model"])
+    optimizer.load_state_dict(state["optimizer"])
     return state

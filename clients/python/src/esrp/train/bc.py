@@ -32,7 +32,7 @@ from .. import _malloc_setup
 from ..agents.bc import BcConfig, DiffusionPolicy, bc_loss, schedulers
 from ..agents.encoders import resolve_device
 from ._config import read_table
-from ._training import load_resumable, save_checkpoint
+from ._training import resume_from, run_folder, save_checkpoint
 from .heldout import EVAL_FIELDS, TrainServer, evaluate_checkpoint, heldout_scenes, read_eval_log
 
 __all__ = ["FINE_TUNE_FREE", "LOG_FIELDS", "RESUME_FREE", "DemoWindows", "load_config", "train"]
@@ -235,10 +235,7 @@ def train(
     _malloc_setup.apply()  # large buffers freed and made at every step stay mapped (esrp._malloc_setup)
     if config.threads > 0:
         torch.set_num_threads(config.threads)
-    out.mkdir(parents=True, exist_ok=True)
-    checkpoint = out / "ckpt.pt"
-    if not resume and checkpoint.exists():
-        raise ValueError(f"{out} already holds a run: pass --resume to go on with it, or another --out")
+    checkpoint = run_folder(out, resume)
     device = resolve_device(config.device)
     torch.manual_seed(config.seed)
     windows = DemoWindows(
@@ -255,15 +252,11 @@ def train(
     if resume and checkpoint.exists():
         # More epochs (or another checkpoint interval, thread count, device or evaluation) may be
         # asked of a resumed run.
-        state = load_resumable(checkpoint, "esrp-bc", config.to_dict(), RESUME_FREE, device)
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
+        state = resume_from(checkpoint, "esrp-bc", model, optimizer, RESUME_FREE, device)
         epoch, steps = int(state["epoch"]), int(state["steps"])
         print(f"resuming {checkpoint} after epoch {epoch}", file=sys.stderr)
     elif init is not None:
-        state = load_resumable(init, "esrp-bc", config.to_dict(), FINE_TUNE_FREE, device, restore_rng=False)
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
+        resume_from(init, "esrp-bc", model, optimizer, FINE_TUNE_FREE, device, restore_rng=False)
         if progress:
             print(f"starting from the model and optimizer of {init}", file=sys.stderr)
     (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")

@@ -38,7 +38,7 @@ from ..agents.encoders import resolve_device
 from ..agents.ppo import LstmState, PpoConfig, PpoNet
 from ..envs import RearrangeVectorEnv
 from ._config import read_table
-from ._training import load_resumable, save_checkpoint
+from ._training import resume_from, run_folder, save_checkpoint
 
 __all__ = ["UpdateStats", "gae", "load_config", "make_env", "ppo_loss", "train"]
 
@@ -146,18 +146,13 @@ def train(
     device = resolve_device(config.device)
     if config.threads > 0:
         torch.set_num_threads(config.threads)
-    out.mkdir(parents=True, exist_ok=True)
-    checkpoint = out / "ckpt.pt"
-    if not resume and checkpoint.exists():
-        raise ValueError(f"{out} already holds a run: pass --resume to go on with it, or another --out")
+    checkpoint = run_folder(out, resume)
     torch.manual_seed(config.seed)
     network = PpoNet(config).to(device)
     optimizer = torch.optim.Adam(network.parameters(), lr=config.lr, eps=1e-5)
     update, global_step = 0, 0
     if resume and checkpoint.exists():
-        state = load_resumable(checkpoint, "esrp-ppo", config.to_dict(), RESUMABLE, device)
-        network.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
+        state = resume_from(checkpoint, "esrp-ppo", network, optimizer, RESUMABLE, device)
         update, global_step = int(state["update"]), int(state["steps"])
         print(f"resuming {checkpoint} after update {update} ({global_step} steps)", file=sys.stderr)
         _trim_logs(out, update, global_step)
