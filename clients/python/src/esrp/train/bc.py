@@ -231,6 +231,10 @@ def train(
 
     Raises `ValueError` for bad settings or files, `EvalError` when an evaluation cannot run (and
     `EsrpError` for the server's errors).
+
+    The epochs' loop stays here whole, top to bottom, as CleanRL keeps its training loop; what is
+    set up before it and kept after each epoch (the demonstrations, resumption, the log, the
+    held-out evaluations) are the helpers below.
     """
     _malloc_setup.apply()  # large buffers freed and made at every step stay mapped (esrp._malloc_setup)
     if config.threads > 0:
@@ -238,66 +242,25 @@ def train(
     checkpoint = run_folder(out, resume)
     device = resolve_device(config.device)
     torch.manual_seed(config.seed)
-    windows = DemoWindows(
-        config.demos, config.n_obs, config.horizon, in_memory=config.in_memory, progress=progress
-    )
-    if windows.resolution != config.resolution:
-        raise ValueError(
-            f"the demonstrations hold {windows.resolution} px views and the config says resolution = "
-            f"{config.resolution}: set resolution = {windows.resolution} in [bc]"
-        )
+    windows = _demo_windows(config, progress)
     model = DiffusionPolicy(config).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
-    epoch, steps = 0, 0
-    if resume and checkpoint.exists():
-        # More epochs (or another checkpoint interval, thread count, device or evaluation) may be
-        # asked of a resumed run.
-        state = resume_from(checkpoint, "esrp-bc", model, optimizer, RESUME_FREE, device)
-        epoch, steps = int(state["epoch"]), int(state["steps"])
-        print(f"resuming {checkpoint} after epoch {epoch}", file=sys.stderr)
-    elif init is not None:
-        resume_from(init, "esrp-bc", model, optimizer, FINE_TUNE_FREE, device, restore_rng=False)
-        if progress:
-            print(f"starting from the model and optimizer of {init}", file=sys.stderr)
+    epoch, steps = _resume_or_init(
+        config, checkpoint, model, optimizer, device, resume=resume, init=init, progress=progress
+    )
     (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")
     noise_scheduler, _ = schedulers(config)
     log_path = out / "log.csv"
     _trim_log(log_path, LOG_FIELDS, epoch)
-    evaluating = config.eval_every > 0 or final_eval
-    eval_path = out / "eval.csv"
-    if evaluating:
-        _trim_log(eval_path, EVAL_FIELDS, epoch)
-
-    def evaluation_due(at: int) -> bool:
-        return evaluating and ((config.eval_every > 0 and at % config.eval_every == 0) or at == config.epochs)
-
+    held_out = _HeldOut(config, out, checkpoint, windows.resolution, final_eval=final_eval, progress=progress)
+    held_out.start_log(epoch)
     own_server = server is None
     used = server if server is not None else TrainServer()
     try:
-        scenes = heldout_scenes(used, config) if evaluating else []
-
-        def held_out(at: int) -> None:
-            result = evaluate_checkpoint(
-                used,
-                checkpoint,
-                config,
-                scenes,
-                windows.resolution,
-                out / "eval" / f"epoch-{at:04d}.jsonl",
-                progress=progress,
-            )
-            with open(eval_path, "a", newline="") as file:
-                csv.writer(file).writerow(result.row(at, steps))
-            if progress:
-                print(f"held-out after epoch {at}: {result.text()}", file=sys.stderr)
-
+        held_out.choose_scenes(used)
         # An evaluation the interrupted run owed (the checkpoint is written before each).
-        if (
-            epoch > 0
-            and evaluation_due(epoch)
-            and not any(int(row["epoch"]) == epoch for row in read_eval_log(eval_path))
-        ):
-            held_out(epoch)
+        if held_out.owed(epoch):
+            held_out.run(used, epoch, steps)
         started = time.monotonic()
         model.train()
         while epoch < config.epochs:
@@ -319,27 +282,160 @@ def train(
                 batches += 1
                 steps += 1
             epoch += 1
-            mean = sums / max(batches, 1)
-            with open(log_path, "a", newline="") as file:
-                row = [
-                    epoch,
-                    steps,
-                    *(f"{v:.6f}" for v in mean),
-                    config.lr,
-                    f"{time.monotonic() - started:.1f}",
-                ]
-                csv.writer(file).writerow(row)
-            if progress:
-                losses = f"loss {mean[0]:.4f} (mse {mean[1]:.4f}, ce {mean[2]:.4f})"
-                print(f"epoch {epoch}/{config.epochs}  {losses}", file=sys.stderr)
-            due = evaluation_due(epoch)
+            _log_epoch(log_path, config, epoch, steps, sums / max(batches, 1), started, progress)
+            due = held_out.due(epoch)
             if epoch % config.checkpoint_every == 0 or epoch == config.epochs or due:
                 save_checkpoint(checkpoint, "esrp-bc", model, optimizer, epoch=epoch, steps=steps)
             if due:
-                held_out(epoch)
+                held_out.run(used, epoch, steps)
         if not checkpoint.exists():
             save_checkpoint(checkpoint, "esrp-bc", model, optimizer, epoch=epoch, steps=steps)
     finally:
         if own_server:
             used.close()
     return checkpoint
+
+
+def _demo_windows(config: BcConfig, progress: bool) -> DemoWindows:
+    """The training windows of `config`'s demonstration stores (read into memory with `in_memory`),
+    checked to hold views of `config.resolution` pixels.
+    """
+    windows = DemoWindows(
+        config.demos, config.n_obs, config.horizon, in_memory=config.in_memory, progress=progress
+    )
+    if windows.resolution != config.resolution:
+        raise ValueError(
+            f"the demonstrations hold {windows.resolution} px views and the config says resolution = "
+            f"{config.resolution}: set resolution = {windows.resolution} in [bc]"
+        )
+    return windows
+
+
+def _resume_or_init(
+    config: BcConfig,
+    checkpoint: Path,
+    model: DiffusionPolicy,
+    optimizer: torch.optim.Optimizer,
+    device: torch.device,
+    *,
+    resume: bool,
+    init: Path | None,
+    progress: bool,
+) -> tuple[int, int]:
+    """The epoch and optimizer step the run goes on after. With `resume` and a `checkpoint`, those
+    of the checkpoint, whose model and optimizer (and torch's random state) are loaded: more epochs
+    (or another checkpoint interval, thread count, device or evaluation) may be asked of a resumed
+    run. Else 0 and 0, from the model and optimizer of `init` when given (a model with the same
+    settings, `FINE_TUNE_FREE` aside), or from fresh weights.
+    """
+    if resume and checkpoint.exists():
+        state = resume_from(checkpoint, "esrp-bc", model, optimizer, RESUME_FREE, device)
+        epoch, steps = int(state["epoch"]), int(state["steps"])
+        print(f"resuming {checkpoint} after epoch {epoch}", file=sys.stderr)
+        return epoch, steps
+    if init is not None:
+        resume_from(init, "esrp-bc", model, optimizer, FINE_TUNE_FREE, device, restore_rng=False)
+        if progress:
+            print(f"starting from the model and optimizer of {init}", file=sys.stderr)
+    return 0, 0
+
+
+def _log_epoch(
+    path: Path,
+    config: BcConfig,
+    epoch: int,
+    steps: int,
+    mean: np.ndarray,
+    started: float,
+    progress: bool,
+) -> None:
+    """Appends epoch `epoch`'s line to the run's `log.csv` at `path` (`mean`: the epoch's mean loss,
+    noise MSE and cross-entropy; `started`: the training's `time.monotonic()` at its start), and
+    prints its losses with `progress`.
+    """
+    with open(path, "a", newline="") as file:
+        row = [
+            epoch,
+            steps,
+            *(f"{v:.6f}" for v in mean),
+            config.lr,
+            f"{time.monotonic() - started:.1f}",
+        ]
+        csv.writer(file).writerow(row)
+    if progress:
+        losses = f"loss {mean[0]:.4f} (mse {mean[1]:.4f}, ce {mean[2]:.4f})"
+        print(f"epoch {epoch}/{config.epochs}  {losses}", file=sys.stderr)
+
+
+class _HeldOut:
+    """The held-out evaluations of a run (`eval_every`, or after the last epoch with `final_eval`):
+    when one is due, and each run on the run's checkpoint, its results in `eval/epoch-NNNN.jsonl`
+    and its line in `eval.csv`. A run that does not evaluate chooses no scenes and writes no log.
+    """
+
+    def __init__(
+        self,
+        config: BcConfig,
+        out: Path,
+        checkpoint: Path,
+        resolution: int,
+        *,
+        final_eval: bool,
+        progress: bool,
+    ) -> None:
+        self.config = config
+        self.out = out
+        self.checkpoint = checkpoint
+        self.resolution = resolution
+        self.progress = progress
+        self.evaluating = config.eval_every > 0 or final_eval
+        """Whether the run evaluates at all."""
+        self.log_path = out / "eval.csv"
+        self.scenes: list[str] = []
+        """The scenes every evaluation plays (`choose_scenes`)."""
+
+    def start_log(self, epoch: int) -> None:
+        """Makes `eval.csv` the log of the evaluations up to `epoch` (when the run evaluates)."""
+        if self.evaluating:
+            _trim_log(self.log_path, EVAL_FIELDS, epoch)
+
+    def choose_scenes(self, server: TrainServer) -> None:
+        """Fixes the scenes of the run's evaluations (`heldout_scenes`; none when it does not
+        evaluate, and then `server` is not asked).
+        """
+        self.scenes = heldout_scenes(server, self.config) if self.evaluating else []
+
+    def due(self, epoch: int) -> bool:
+        """Whether an evaluation follows epoch `epoch`: every `eval_every` epochs, and after the last."""
+        config = self.config
+        return self.evaluating and (
+            (config.eval_every > 0 and epoch % config.eval_every == 0) or epoch == config.epochs
+        )
+
+    def owed(self, epoch: int) -> bool:
+        """Whether the evaluation after epoch `epoch`, the one a resumed run starts after, is due and
+        missing from `eval.csv` (an interruption cut it short).
+        """
+        return (
+            epoch > 0
+            and self.due(epoch)
+            and not any(int(row["epoch"]) == epoch for row in read_eval_log(self.log_path))
+        )
+
+    def run(self, server: TrainServer, epoch: int, steps: int) -> None:
+        """Evaluates the checkpoint written after epoch `epoch` (`steps` optimizer steps) on `server`,
+        appends its line to `eval.csv` and, with `progress`, prints it.
+        """
+        result = evaluate_checkpoint(
+            server,
+            self.checkpoint,
+            self.config,
+            self.scenes,
+            self.resolution,
+            self.out / "eval" / f"epoch-{epoch:04d}.jsonl",
+            progress=self.progress,
+        )
+        with open(self.log_path, "a", newline="") as file:
+            csv.writer(file).writerow(result.row(epoch, steps))
+        if self.progress:
+            print(f"held-out after epoch {epoch}: {result.text()}", file=sys.stderr)

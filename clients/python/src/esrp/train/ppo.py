@@ -188,6 +188,15 @@ def _loop(
     on_update: Callable[[UpdateStats], None] | None,
     stop_at: int | None = None,
 ) -> None:
+    """Runs the updates after `update` (`global_step` environment steps) until `config.num_updates`
+    (or `stop_at`): each collects a rollout of `num_steps` steps of every episode of `env`, computes
+    GAE advantages, runs the PPO epochs, then logs the update in `out` (and hands it to `on_update`)
+    and writes the checkpoint: every `checkpoint_every` updates, after the last, and where it stops.
+
+    One function on purpose, as CleanRL's `ppo_atari_lstm.py`: the rollout's buffers, the LSTM
+    state carried from step to step and across updates, and the order of the steps are read top
+    to bottom in one place.
+    """
     steps_, n = config.num_steps, config.num_envs
     # A resumed run starts fresh episodes, seeded apart from the ones before.
     observations, _ = env.reset(seed=config.seed + update)
