@@ -14,8 +14,9 @@
 
 The rest of the package is laid out by audience: `esrp.envs` (the Gymnasium envs), `esrp.eval`
 (`esrp eval`, `report`, `replay` and the results schema), `esrp.train` (demonstrations and the
-training loops), `esrp.agents` (the agents `esrp eval` plays), `esrp.cli` (the `esrp` command) and
-`esrp.bench` (`python -m esrp.bench`). The client core at the top imports none of them.
+training loops), `esrp.agents` (the agents `esrp eval` plays) and `esrp.cli` (the `esrp` command;
+its `esrp.cli.bench` is `esrp bench`, also `python -m esrp.bench`). The client core at the top
+imports none of them.
 
 The generated protobuf messages and gRPC stubs are in `esrp.v1`.
 
@@ -32,186 +33,11 @@ from typing import TYPE_CHECKING
 
 from ._registration import ENV_ID, register_if_gymnasium_is_loaded
 
-if TYPE_CHECKING:
-    from ._async_client import (
-        AsyncClient as AsyncClient,
-    )
-    from ._async_client import (
-        AsyncEpisode as AsyncEpisode,
-    )
-    from ._async_client import (
-        AsyncEpisodeStream as AsyncEpisodeStream,
-    )
-    from ._client import (
-        Client as Client,
-    )
-    from ._client import (
-        Episode as Episode,
-    )
-    from ._client import (
-        EpisodeStream as EpisodeStream,
-    )
-    from ._common import (
-        RequestKind as RequestKind,
-    )
-    from ._common import (
-        StreamAnswer as StreamAnswer,
-    )
-    from ._errors import (
-        AlreadyPlayed as AlreadyPlayed,
-    )
-    from ._errors import (
-        Cancelled as Cancelled,
-    )
-    from ._errors import (
-        DeadlineExceeded as DeadlineExceeded,
-    )
-    from ._errors import (
-        EpisodeEnded as EpisodeEnded,
-    )
-    from ._errors import (
-        EpisodeNotFound as EpisodeNotFound,
-    )
-    from ._errors import (
-        EsrpError as EsrpError,
-    )
-    from ._errors import (
-        InvalidRequest as InvalidRequest,
-    )
-    from ._errors import (
-        LocalServerError as LocalServerError,
-    )
-    from ._errors import (
-        NotFound as NotFound,
-    )
-    from ._errors import (
-        PermissionDenied as PermissionDenied,
-    )
-    from ._errors import (
-        ProtocolError as ProtocolError,
-    )
-    from ._errors import (
-        SceneNotFound as SceneNotFound,
-    )
-    from ._errors import (
-        ServerBusy as ServerBusy,
-    )
-    from ._errors import (
-        ServerError as ServerError,
-    )
-    from ._errors import (
-        ServerUnavailable as ServerUnavailable,
-    )
-    from ._errors import (
-        Unauthenticated as Unauthenticated,
-    )
-    from ._local import (
-        LocalServer as LocalServer,
-    )
-    from ._local import (
-        find_server_binary as find_server_binary,
-    )
-    from ._local import (
-        server_version as server_version,
-    )
-    from ._values import (
-        Action as Action,
-    )
-    from ._values import (
-        ActionLike as ActionLike,
-    )
-    from ._values import (
-        ArraySpec as ArraySpec,
-    )
-    from ._values import (
-        Created as Created,
-    )
-    from ._values import (
-        DatasetInfo as DatasetInfo,
-    )
-    from ._values import (
-        Difficulty as Difficulty,
-    )
-    from ._values import (
-        EpisodeMetrics as EpisodeMetrics,
-    )
-    from ._values import (
-        Footprint as Footprint,
-    )
-    from ._values import (
-        Goal as Goal,
-    )
-    from ._values import (
-        ObjectState as ObjectState,
-    )
-    from ._values import (
-        Observation as Observation,
-    )
-    from ._values import (
-        ObservationSpec as ObservationSpec,
-    )
-    from ._values import (
-        Obstacle as Obstacle,
-    )
-    from ._values import (
-        PlanAnswer as PlanAnswer,
-    )
-    from ._values import (
-        PlanFailure as PlanFailure,
-    )
-    from ._values import (
-        PlanStats as PlanStats,
-    )
-    from ._values import (
-        Pose2 as Pose2,
-    )
-    from ._values import (
-        PrivilegedState as PrivilegedState,
-    )
-    from ._values import (
-        Progress as Progress,
-    )
-    from ._values import (
-        RewardTerms as RewardTerms,
-    )
-    from ._values import (
-        RewardWeights as RewardWeights,
-    )
-    from ._values import (
-        SceneSummary as SceneSummary,
-    )
-    from ._values import (
-        Sensors as Sensors,
-    )
-    from ._values import (
-        ServerInfo as ServerInfo,
-    )
-    from ._values import (
-        ServerLimits as ServerLimits,
-    )
-    from ._values import (
-        Split as Split,
-    )
-    from ._values import (
-        StaticObstacle as StaticObstacle,
-    )
-    from ._values import (
-        StepColumns as StepColumns,
-    )
-    from ._values import (
-        StepInfo as StepInfo,
-    )
-    from ._values import (
-        StepResult as StepResult,
-    )
-    from ._values import (
-        TopDownFrame as TopDownFrame,
-    )
-
 __version__ = "0.1.0"
 
-# Where each public name lives; imported by `__getattr__` on first use, so that `import esrp`
-# imports no grpc (whose core reads its settings once, when it is imported: see esrp._grpc_setup).
+# The public names, by the module each lives in: the one list of them that runs. `__getattr__`
+# imports a name's module on first use, so that `import esrp` imports no grpc (whose core reads its
+# settings once, when it is imported: see esrp._grpc_setup); `__all__` and `dir(esrp)` come from it.
 _EXPORTS: dict[str, tuple[str, ...]] = {
     "._async_client": (
         "AsyncClient",
@@ -228,9 +54,9 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
         "StreamAnswer",
     ),
     "._errors": (
+        "AlreadyPlayed",
         "Cancelled",
         "DeadlineExceeded",
-        "AlreadyPlayed",
         "EpisodeEnded",
         "EpisodeNotFound",
         "EsrpError",
@@ -284,6 +110,84 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
         "TopDownFrame",
     ),
 }
+
+if TYPE_CHECKING:
+    # The same names for type checkers and IDEs, which do not run `__getattr__`: imported with
+    # redundant aliases (`X as X`), which they read as re-exports. tests/test_import.py checks that
+    # this block and `_EXPORTS` name the same names from the same modules. One statement per module:
+    # ruff's isort would give each alias a statement of its own.
+    # isort: off
+    from ._async_client import (
+        AsyncClient as AsyncClient,
+        AsyncEpisode as AsyncEpisode,
+        AsyncEpisodeStream as AsyncEpisodeStream,
+    )
+    from ._client import (
+        Client as Client,
+        Episode as Episode,
+        EpisodeStream as EpisodeStream,
+    )
+    from ._common import (
+        RequestKind as RequestKind,
+        StreamAnswer as StreamAnswer,
+    )
+    from ._errors import (
+        AlreadyPlayed as AlreadyPlayed,
+        Cancelled as Cancelled,
+        DeadlineExceeded as DeadlineExceeded,
+        EpisodeEnded as EpisodeEnded,
+        EpisodeNotFound as EpisodeNotFound,
+        EsrpError as EsrpError,
+        InvalidRequest as InvalidRequest,
+        LocalServerError as LocalServerError,
+        NotFound as NotFound,
+        PermissionDenied as PermissionDenied,
+        ProtocolError as ProtocolError,
+        SceneNotFound as SceneNotFound,
+        ServerBusy as ServerBusy,
+        ServerError as ServerError,
+        ServerUnavailable as ServerUnavailable,
+        Unauthenticated as Unauthenticated,
+    )
+    from ._local import (
+        LocalServer as LocalServer,
+        find_server_binary as find_server_binary,
+        server_version as server_version,
+    )
+    from ._values import (
+        Action as Action,
+        ActionLike as ActionLike,
+        ArraySpec as ArraySpec,
+        Created as Created,
+        DatasetInfo as DatasetInfo,
+        Difficulty as Difficulty,
+        EpisodeMetrics as EpisodeMetrics,
+        Footprint as Footprint,
+        Goal as Goal,
+        ObjectState as ObjectState,
+        Observation as Observation,
+        ObservationSpec as ObservationSpec,
+        Obstacle as Obstacle,
+        PlanAnswer as PlanAnswer,
+        PlanFailure as PlanFailure,
+        PlanStats as PlanStats,
+        Pose2 as Pose2,
+        PrivilegedState as PrivilegedState,
+        Progress as Progress,
+        RewardTerms as RewardTerms,
+        RewardWeights as RewardWeights,
+        SceneSummary as SceneSummary,
+        Sensors as Sensors,
+        ServerInfo as ServerInfo,
+        ServerLimits as ServerLimits,
+        Split as Split,
+        StaticObstacle as StaticObstacle,
+        StepColumns as StepColumns,
+        StepInfo as StepInfo,
+        StepResult as StepResult,
+        TopDownFrame as TopDownFrame,
+    )
+    # isort: on
 
 _MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
 
