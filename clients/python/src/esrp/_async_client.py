@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 from collections.abc import AsyncIterator, Mapping, Sequence
 from types import TracebackType
 from typing import Any
@@ -14,20 +15,32 @@ import grpc
 import grpc.aio
 
 from . import _convert
+from ._base import (
+    ClientBase,
+    EpisodeBase,
+    EpisodeStreamBase,
+    HealthPolls,
+    ScenePages,
+    StepWave,
+    abandoning,
+    dataset_call,
+    server_info_call,
+    step_batch_call,
+)
 from ._common import (
+    HEALTH_METHOD,
+    HEALTH_REQUEST,
+    SERVING,
     ChannelOptions,
     RequestKind,
     StreamAnswer,
-    StreamLedger,
     TlsSetting,
-    batch_size,
-    bearer_metadata,
     channel_options,
     collect_run,
-    credentials,
-    target,
+    run_rounds,
 )
-from ._errors import DeadlineExceeded, EpisodeNotFound, EsrpError, ServerUnavailable, from_rpc_error
+from ._errors import EpisodeNotFound, EsrpError, ServerUnavailable
+from ._transport import AsyncCalls
 from ._values import (
     ActionLike,
     Created,
@@ -36,7 +49,6 @@ from ._values import (
     EpisodeMetrics,
     Goal,
     Observation,
-    ObservationSpec,
     PlanAnswer,
     PrivilegedState,
     Progress,
@@ -53,12 +65,16 @@ from .v1 import esrp_pb2_grpc as pb_grpc
 
 __all__ = ["AsyncClient", "AsyncEpisode", "AsyncEpisodeStream"]
 
-_HEALTH_METHOD = "/grpc.health.v1.Health/Check"
-_HEALTH_REQUEST = b"\x0a\x0cesrp.v1.Esrp"  # HealthCheckRequest{service: "esrp.v1.Esrp"}
-_SERVING = b"\x08\x01"  # HealthCheckResponse{status: SERVING}
+
+async def _serving(check: grpc.aio.UnaryUnaryMultiCallable[bytes, bytes], timeout: float) -> bool:
+    """Whether the server's health service says `esrp.v1.Esrp` is serving (one call of `check`)."""
+    try:
+        return await check(HEALTH_REQUEST, timeout=timeout) == SERVING
+    except grpc.aio.AioRpcError:
+        return False
 
 
-class AsyncClient:
+class AsyncClient(ClientBase):
     """An asyncio connection to an ESRP server; the twin of `Client` (same arguments).
 
     Use it as an async context manager, or `await client.close()`.
@@ -68,6 +84,8 @@ class AsyncClient:
         ...     async with await client.create_episode("esrp-bench-v2/00017") as episode:
         ...         result = await episode.step(esrp.Action.LEFT)
     """
+
+    _calls: AsyncCalls
 
     def __init__(
         self,
@@ -79,22 +97,19 @@ class AsyncClient:
         timeout: float | None = None,
         options: ChannelOptions = (),
     ) -> None:
-        host, https = target(address)
-        self.address = host
-        self.timeout = timeout
-        self._metadata = bearer_metadata(token)
-        creds = credentials(tls, https)
+        super().__init__(address, token, tls)
+        creds = self._credentials
         arguments = channel_options(tls_server_name, options)
         if creds is None:
-            self._channel = grpc.aio.insecure_channel(host, options=arguments)
+            self._channel = grpc.aio.insecure_channel(self.address, options=arguments)
         else:
-            self._channel = grpc.aio.secure_channel(host, creds, options=arguments)
+            self._channel = grpc.aio.secure_channel(self.address, creds, options=arguments)
         self._stub: Any = pb_grpc.EsrpStub(self._channel)
+        # Every unary call goes through it; streams and the health check use the channel.
+        self._calls = AsyncCalls(self._stub, self._metadata, timeout)
         # Creates whose callers gave up, and the closes of their episodes: kept referenced until
         # they finish, and awaited by close() so that closing the channel cancels none of them.
         self._background: set[asyncio.Task[Any]] = set()
-        # Steps per StepBatch of `step_columns`, by sensors (from the server's limits).
-        self._batch_sizes: dict[Sensors, int] = {}
 
     @property
     def raw(self) -> pb_grpc.EsrpAsyncStub:
@@ -106,11 +121,6 @@ class AsyncClient:
     def channel(self) -> grpc.aio.Channel:
         """The gRPC channel."""
         return self._channel
-
-    @property
-    def metadata(self) -> tuple[tuple[str, str], ...] | None:
-        """The call metadata (the bearer token), for calls through `raw`."""
-        return self._metadata
 
     async def close(self, grace: float = 5.0) -> None:
         """Closes the channel, after waiting up to `grace` seconds for abandoned creates to be
@@ -130,43 +140,24 @@ class AsyncClient:
     ) -> None:
         await self.close()
 
-    async def _call(self, method: Any, request: Any, timeout: float | None = None) -> Any:  # noqa: ANN401
-        try:
-            return await method(
-                request, metadata=self._metadata, timeout=timeout if timeout is not None else self.timeout
-            )
-        except grpc.aio.AioRpcError as error:
-            raise from_rpc_error(error) from error
-
     async def wait_healthy(self, timeout: float = 10.0) -> None:
         """Waits until the server's health service says `esrp.v1.Esrp` is serving, polling every
         50 ms; raises `DeadlineExceeded` after `timeout` seconds.
         """
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
-        check: grpc.aio.UnaryUnaryMultiCallable[bytes, bytes] = self._channel.unary_unary(_HEALTH_METHOD)
-        while True:
-            left = deadline - loop.time()
-            if left <= 0:
-                raise DeadlineExceeded(f"the server at {self.address} was not healthy within {timeout} s")
-            try:
-                if await check(_HEALTH_REQUEST, timeout=min(left, 1.0)) == _SERVING:
-                    return
-            except grpc.aio.AioRpcError:
-                pass
-            await asyncio.sleep(min(0.05, max(deadline - loop.time(), 0)))
+        polls = HealthPolls(self.address, timeout, asyncio.get_running_loop().time)
+        check: grpc.aio.UnaryUnaryMultiCallable[bytes, bytes] = self._channel.unary_unary(HEALTH_METHOD)
+        while not await _serving(check, polls.next_check()):
+            await asyncio.sleep(polls.pause())
 
     async def server_info(self) -> ServerInfo:
         """The server's version, renderer, limits, live episode count and dataset, and who it takes
         the caller for (`caller`, `role`), whether it serves a challenge and what it records.
         """
-        return _convert.server_info(await self._call(self._stub.ServerInfo, pb.ServerInfoRequest()))
+        return await self._calls.run(server_info_call())
 
     async def describe_dataset(self) -> DatasetInfo:
         """The served dataset: name, size, counts by split, difficulty and room type."""
-        return _convert.dataset_info(
-            await self._call(self._stub.DescribeDataset, pb.DescribeDatasetRequest())
-        )
+        return await self._calls.run(dataset_call())
 
     def scenes(
         self,
@@ -176,21 +167,12 @@ class AsyncClient:
         page_size: int = 0,
     ) -> AsyncIterator[SceneSummary]:
         """Every scene of `split` and `difficulty`, fetched page by page as it is read (`async for`)."""
-        request = pb.ListScenesRequest(
-            split=_convert.split_code(split),
-            difficulty=_convert.difficulty_code(difficulty),
-            page_size=page_size,
-        )
-        return self._scene_pages(request)
+        return self._scene_pages(ScenePages(split, difficulty, page_size))
 
-    async def _scene_pages(self, request: pb.ListScenesRequest) -> AsyncIterator[SceneSummary]:
-        while True:
-            page = await self._call(self._stub.ListScenes, request)
-            for scene in page.scenes:
-                yield _convert.scene_summary(scene)
-            if not page.next_page_token:
-                return
-            request.page_token = page.next_page_token
+    async def _scene_pages(self, pages: ScenePages) -> AsyncIterator[SceneSummary]:
+        while (call := pages.next_call()) is not None:
+            for scene in await self._calls.run(call):
+                yield scene
 
     async def create_episode(
         self,
@@ -225,19 +207,11 @@ class AsyncClient:
         )
         # No gRPC deadline: one that expired while the answer travelled would drop the new id.
         task: asyncio.Task[pb.CreateEpisodeResponse] = asyncio.ensure_future(
-            self._stub.CreateEpisode(request, metadata=self._metadata)
+            self._calls("CreateEpisode", request, timeout=None)
         )
-        wait = timeout if timeout is not None else self.timeout
-        try:
+        wait = self._create_wait(timeout)
+        with abandoning(functools.partial(self._abandon, task), wait):
             answer = await asyncio.wait_for(asyncio.shield(task), wait)
-        except grpc.aio.AioRpcError as error:
-            raise from_rpc_error(error) from error
-        except asyncio.TimeoutError:
-            self._abandon(task)
-            raise DeadlineExceeded(f"no answer to CreateEpisode within {wait} s") from None
-        except BaseException:
-            self._abandon(task)
-            raise
         return AsyncEpisode(self, _convert.created(answer))
 
     def _abandon(self, task: asyncio.Task[pb.CreateEpisodeResponse]) -> None:
@@ -256,8 +230,8 @@ class AsyncClient:
 
     async def _close_quietly(self, request: pb.CloseEpisodeRequest) -> None:
         # Already gone, or the server is: its reaper remains.
-        with contextlib.suppress(grpc.aio.AioRpcError):
-            await self._stub.CloseEpisode(request, metadata=self._metadata)
+        with contextlib.suppress(EsrpError):
+            await self._calls("CloseEpisode", request, timeout=None)
 
     def episode(self, episode_id: str) -> AsyncEpisode:
         """A handle to the live episode `episode_id` (made elsewhere)."""
@@ -267,16 +241,7 @@ class AsyncClient:
         self, steps: Sequence[tuple[AsyncEpisode | str, ActionLike]], *, include_goal: bool = False
     ) -> list[StepResult]:
         """One step in each of several episodes in one call; all or nothing; results in order."""
-        request = pb.StepBatchRequest(
-            steps=[
-                _convert.step_request(
-                    episode if isinstance(episode, str) else episode.id, action, include_goal, f"steps[{k}]"
-                )
-                for k, (episode, action) in enumerate(steps)
-            ]
-        )
-        answer = await self._call(self._stub.StepBatch, request)
-        return _convert.step_results(answer.responses, len(steps))
+        return await self._calls.run(step_batch_call(steps, include_goal))
 
     async def step_columns(
         self,
@@ -290,18 +255,19 @@ class AsyncClient:
         others), the answers as columns in request order, in one StepBatch or, beyond the server's
         limits, several at once.
         """
-        layout = _convert.image_layout(sensors)
-        columns = StepColumns([key for key, _, _, _ in layout])
-        if not episode_ids and not actions and not resets:
-            return columns
-        size = self._batch_sizes.get(sensors)
-        if size is None:
-            size = self._batch_sizes[sensors] = batch_size((await self.server_info()).limits, sensors)
-        requests = _convert.step_batch_requests(episode_ids, actions, size, resets)
-        answers = await asyncio.gather(*(self._call(self._stub.StepBatch, request) for request in requests))
+        wave = StepWave(episode_ids, actions, sensors, resets)
+        if wave.empty:
+            return wave.columns
+        requests = wave.requests(await self._batch_size(sensors))
+        answers = await asyncio.gather(*(self._calls("StepBatch", request) for request in requests))
         for request, answer in zip(requests, answers, strict=True):
-            _convert.batch_columns(answer, request, layout, sensors.resolution, into=columns)
-        return columns
+            wave.add(answer, request)
+        return wave.columns
+
+    async def _batch_size(self, sensors: Sensors) -> int:
+        """`batch_size` for this server, asked once per client and sensors."""
+        size = self._batch_sizes.get(sensors)
+        return size if size is not None else self._learn_batch_size(sensors, await self.server_info())
 
     async def episode_stream(self, window: int = 8) -> AsyncEpisodeStream:
         """Opens a StepStream driven by an `AsyncEpisodeStream` (up to `window` steps of each
@@ -310,59 +276,34 @@ class AsyncClient:
         return AsyncEpisodeStream(self, window)
 
 
-class AsyncEpisode:
+class AsyncEpisode(EpisodeBase["AsyncClient"]):
     """A live episode; the twin of `Episode` (`async with`, or `await episode.close()`)."""
 
     def __init__(self, client: AsyncClient, created: Created | None, *, episode_id: str = "") -> None:
-        self.client = client
-        self.closed = False
-        self.observation: Observation | None
-        if created is None:
-            self.id = episode_id
-            self.scene = SceneSummary("", "", None, None, 0, 0, 0)
-            self.spec = ObservationSpec((), ())
-            self.observation = None
-        else:
-            self.id = created.episode_id
-            self.scene = created.scene
-            self.spec = created.spec
-            self.observation = created.observation
+        super().__init__(client, created, episode_id=episode_id)
 
     def __repr__(self) -> str:
         return f"AsyncEpisode(id={self.id!r}, scene={self.scene.id!r}, closed={self.closed})"
 
     async def step(self, action: ActionLike, *, include_goal: bool = False) -> StepResult:
         """Takes `action`; with `include_goal` the observation carries the goal image too."""
-        raw = self.client._stub  # noqa: SLF001 - the episode is part of the client.
-        answer = await self.client._call(raw.Step, _convert.step_request(self.id, action, include_goal))  # noqa: SLF001
-        return _convert.step_result(answer)
+        return await self.client._calls.run(self._step_call(action, include_goal))
 
     async def reset(self, scene: str | None = None, *, scene_json: str | None = None) -> Observation:
         """Restarts the episode (on `scene` if given); returns the first observation (with goal)."""
-        request = _convert.reset_request(self.id, scene, scene_json)
-        answer = await self.client._call(self.client._stub.Reset, request)  # noqa: SLF001
-        observation, summary = _convert.reset_observation(answer)
-        if summary is not None:
-            self.scene = summary
-        self.observation = observation
-        return observation
+        return await self.client._calls.run(self._reset_call(scene, scene_json))
 
     async def goal(self) -> Goal:
         """The goal image and its pixel ↔ floor frame."""
-        request = pb.GetGoalRequest(episode_id=self.id)
-        return _convert.goal(await self.client._call(self.client._stub.GetGoal, request))  # noqa: SLF001
+        return await self.client._calls.run(self._goal_call())
 
     async def metrics(self) -> Progress:
         """The metrics so far (final once ended), and whether the episode has ended."""
-        request = pb.GetMetricsRequest(episode_id=self.id)
-        answer = await self.client._call(self.client._stub.GetMetrics, request)  # noqa: SLF001
-        return Progress(_convert.metrics(answer.metrics), answer.ended)
+        return await self.client._calls.run(self._metrics_call())
 
     async def privileged_state(self) -> PrivilegedState:
         """The full state; only for episodes created with `privileged=True`."""
-        request = pb.GetPrivilegedStateRequest(episode_id=self.id)
-        answer = await self.client._call(self.client._stub.GetPrivilegedState, request)  # noqa: SLF001
-        return _convert.privileged_state(answer)
+        return await self.client._calls.run(self._privileged_state_call())
 
     async def plan_actions(self, max_actions: int = 0, budget_ms: int | None = None) -> PlanAnswer:
         """The next actions of the server's planner (ESRP-PLAN) from the episode's current state;
@@ -384,21 +325,15 @@ class AsyncEpisode:
             EpisodeEnded: The episode has ended.
             PermissionDenied: The episode is not privileged.
         """
-        request = _convert.plan_request(self.id, max_actions, budget_ms)
-        timeout = _convert.plan_timeout(self.client.timeout, budget_ms)
-        answer = await self.client._call(self.client._stub.PlanActions, request, timeout)  # noqa: SLF001
-        return _convert.plan_answer(answer)
+        return await self.client._calls.run(self._plan_call(max_actions, budget_ms))
 
     async def close(self) -> EpisodeMetrics:
         """Closes the episode on the server; returns its metrics at that moment."""
-        self.closed = True
-        request = pb.CloseEpisodeRequest(episode_id=self.id)
-        return _convert.closed_metrics(await self.client._call(self.client._stub.CloseEpisode, request))  # noqa: SLF001
+        return await self.client._calls.run(self._close_call())
 
     def detach(self) -> str:
         """Gives up the handle without closing the episode; returns its id."""
-        self.closed = True
-        return self.id
+        return self._detach()
 
     async def __aenter__(self) -> AsyncEpisode:
         return self
@@ -412,35 +347,21 @@ class AsyncEpisode:
             await self.close()
 
 
-class AsyncEpisodeStream:
+class AsyncEpisodeStream(EpisodeStreamBase):
     """The twin of `EpisodeStream` over grpc.aio: a pipelined StepStream with up to `window` steps
     of each episode in flight, answers in request order, errors in-band.
     """
 
     def __init__(self, client: AsyncClient, window: int) -> None:
-        self._ledger = StreamLedger(window)
+        super().__init__(window)
         self._call: Any = client._stub.StepStream(metadata=client.metadata)  # noqa: SLF001
-        self._ended = False
-
-    @property
-    def window(self) -> int:
-        """The most steps of one episode in flight."""
-        return self._ledger.window
-
-    @property
-    def outstanding(self) -> int:
-        """Requests sent and not yet returned by `next()`."""
-        return self._ledger.outstanding
 
     async def _send(self, kind: RequestKind, episode_id: str, **body: Any) -> int:  # noqa: ANN401
-        if self._ended:
-            raise ServerUnavailable("the stream has ended")
-        request = self._ledger.request(kind, episode_id, **body)
+        request = self._request(kind, episode_id, **body)
         try:
             await self._call.write(request)
         except grpc.aio.AioRpcError as error:
-            self._ended = True
-            raise from_rpc_error(error) from error
+            raise self._broken(error) from error
         return request.request_id
 
     async def create(
@@ -489,11 +410,7 @@ class AsyncEpisodeStream:
 
     async def next(self) -> StreamAnswer | None:
         """The next answer in request order; None when every request sent has been answered."""
-        if self._ledger.ready:
-            return self._ledger.ready.popleft()
-        if not self._ledger.pending:
-            return None
-        return await self._read()
+        return await self._read() if self._ledger.unread else self._ledger.take_ready()
 
     def __aiter__(self) -> AsyncIterator[StreamAnswer]:
         return self._answers()
@@ -506,27 +423,20 @@ class AsyncEpisodeStream:
         try:
             response = await self._call.read()
         except grpc.aio.AioRpcError as error:
-            self._ended = True
-            raise from_rpc_error(error) from error
+            raise self._broken(error) from error
         if response is grpc.aio.EOF:
-            self._ended = True
-            raise ServerUnavailable("the server ended the stream with requests unanswered")
+            raise self._cut_short()
         return self._ledger.answer(response)
 
     async def run(self, plans: Mapping[str, Sequence[ActionLike]]) -> dict[str, list[StepResult | EsrpError]]:
         """Takes every episode's actions, up to `window` of each in flight, episodes interleaved;
         returns each episode's results in order (errors for refused steps).
         """
-        if self.outstanding:
-            raise EsrpError("read the stream's earlier answers with next() before a run")
-        results: dict[str, list[StepResult | EsrpError]] = {episode: [] for episode in plans}
-        longest = max((len(actions) for actions in plans.values()), default=0)
-        for k in range(longest):
-            for episode, actions in plans.items():
-                if k < len(actions):
-                    await self.step(episode, actions[k])
-            while self._ledger.ready:
-                collect_run(self._ledger.ready.popleft(), results)
+        results = self._ledger.run_results(plans)
+        for steps in run_rounds(plans):
+            for episode, action in steps:
+                await self.step(episode, action)
+            self._ledger.collect_ready(results)
         async for answer in self:
             collect_run(answer, results)
         return results
@@ -535,9 +445,8 @@ class AsyncEpisodeStream:
         """Half-closes the stream and waits for the server to end it (unread answers are dropped;
         the server closes the episodes created on the stream).
         """
-        if self._ended:
+        if not self._end():
             return
-        self._ended = True
         try:
             await self._call.done_writing()
             while await self._call.read() is not grpc.aio.EOF:

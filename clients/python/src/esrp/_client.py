@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import queue
 import threading
 import time
@@ -15,20 +16,31 @@ from typing import Any
 import grpc
 
 from . import _convert, _native
+from ._base import (
+    ClientBase,
+    EpisodeBase,
+    EpisodeStreamBase,
+    HealthPolls,
+    ScenePages,
+    StepWave,
+    abandoning,
+    dataset_call,
+    server_info_call,
+    step_batch_call,
+)
 from ._common import (
+    HEALTH_METHOD,
+    HEALTH_REQUEST,
+    SERVING,
     ChannelOptions,
     RequestKind,
     StreamAnswer,
-    StreamLedger,
     TlsSetting,
-    batch_size,
-    bearer_metadata,
     channel_options,
     collect_run,
-    credentials,
-    target,
+    run_rounds,
 )
-from ._errors import DeadlineExceeded, EpisodeNotFound, EsrpError, ServerUnavailable, from_rpc_error
+from ._errors import EpisodeNotFound, EsrpError, ServerUnavailable
 from ._transport import Calls, Pending
 from ._values import (
     ActionLike,
@@ -38,7 +50,6 @@ from ._values import (
     EpisodeMetrics,
     Goal,
     Observation,
-    ObservationSpec,
     PlanAnswer,
     PrivilegedState,
     Progress,
@@ -55,29 +66,18 @@ from .v1 import esrp_pb2_grpc as pb_grpc
 
 __all__ = ["Client", "Episode", "EpisodeStream", "health_check"]
 
-# grpc.health.v1.Health/Check, hand-encoded: the request holds only its `service` string (field 1),
-# the answer only its `status` enum (field 1; SERVING is 1). Spares a dependency on
-# grpcio-health-checking for two bytes.
-_HEALTH_METHOD = "/grpc.health.v1.Health/Check"
-_SERVING = b"\x08\x01"
-
-
-def _health_request(service: str) -> bytes:
-    name = service.encode()
-    return b"\x0a" + bytes([len(name)]) + name
-
 
 def health_check(channel: grpc.Channel, timeout: float) -> bool:
     """Whether the server's health service says `esrp.v1.Esrp` is serving (one call)."""
-    check: grpc.UnaryUnaryMultiCallable[bytes, bytes] = channel.unary_unary(_HEALTH_METHOD)
+    check: grpc.UnaryUnaryMultiCallable[bytes, bytes] = channel.unary_unary(HEALTH_METHOD)
     try:
-        answer = check(_health_request("esrp.v1.Esrp"), timeout=timeout)
+        answer = check(HEALTH_REQUEST, timeout=timeout)
     except grpc.RpcError:
         return False
-    return bool(answer == _SERVING)
+    return bool(answer == SERVING)
 
 
-class Client:
+class Client(ClientBase):
     """A synchronous connection to an ESRP server (esrp.v1 over gRPC).
 
     One channel, shared by every call (HTTP/2 multiplexes them; it is safe to use from several
@@ -103,6 +103,8 @@ class Client:
         ...         result = episode.step(esrp.Action.LEFT)
     """
 
+    _calls: Calls
+
     def __init__(
         self,
         address: str = "127.0.0.1:50051",
@@ -114,35 +116,22 @@ class Client:
         options: ChannelOptions = (),
         transport: _native.Transport = "auto",
     ) -> None:
-        host, https = target(address)
-        self.address = host
-        self._metadata = bearer_metadata(token)
-        creds = credentials(tls, https)
+        super().__init__(address, token, tls)
+        creds = self._credentials
         self.transport = _native.resolve(transport, creds is not None)
         arguments = channel_options(tls_server_name, options)
         if creds is None:
-            self._channel = grpc.insecure_channel(host, options=arguments)
+            self._channel = grpc.insecure_channel(self.address, options=arguments)
         else:
-            self._channel = grpc.secure_channel(host, creds, options=arguments)
+            self._channel = grpc.secure_channel(self.address, creds, options=arguments)
         self._stub = pb_grpc.EsrpStub(self._channel)
-        native = _native.channel(host, token) if self.transport == "native" else None
+        native = _native.channel(self.address, token) if self.transport == "native" else None
         # Every unary call goes through it; streams and the health check use the channel.
         self._calls = Calls(self._stub, native, self._metadata, timeout)
         # Creates whose callers gave up, and the closes of their episodes, until they finish:
         # close() waits for them so that closing the channel cancels none of them.
         self._background: set[Pending] = set()
         self._background_done = threading.Condition()
-        # Steps per StepBatch of `step_columns`, by sensors (from the server's limits).
-        self._batch_sizes: dict[Sensors, int] = {}
-
-    @property
-    def timeout(self) -> float | None:
-        """The deadline of each call, seconds (None: none); settable."""
-        return self._calls.timeout
-
-    @timeout.setter
-    def timeout(self, value: float | None) -> None:
-        self._calls.timeout = value
 
     @property
     def raw(self) -> pb_grpc.EsrpStub:
@@ -153,11 +142,6 @@ class Client:
     def channel(self) -> grpc.Channel:
         """The gRPC channel."""
         return self._channel
-
-    @property
-    def metadata(self) -> tuple[tuple[str, str], ...] | None:
-        """The call metadata (the bearer token), for calls through `raw`."""
-        return self._metadata
 
     def close(self, grace: float = 5.0) -> None:
         """Closes the channel (calls in flight are cancelled), after waiting up to `grace` seconds
@@ -180,24 +164,19 @@ class Client:
         """Waits until the server's health service says `esrp.v1.Esrp` is serving, polling every
         50 ms; raises `DeadlineExceeded` after `timeout` seconds.
         """
-        deadline = time.monotonic() + timeout
-        while True:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                raise DeadlineExceeded(f"the server at {self.address} was not healthy within {timeout} s")
-            if health_check(self._channel, timeout=min(left, 1.0)):
-                return
-            time.sleep(min(0.05, max(deadline - time.monotonic(), 0)))
+        polls = HealthPolls(self.address, timeout, time.monotonic)
+        while not health_check(self._channel, timeout=polls.next_check()):
+            time.sleep(polls.pause())
 
     def server_info(self) -> ServerInfo:
         """The server's version, renderer, limits, live episode count and dataset, and who it takes
         the caller for (`caller`, `role`), whether it serves a challenge and what it records.
         """
-        return _convert.server_info(self._calls("ServerInfo", pb.ServerInfoRequest()))
+        return self._calls.run(server_info_call())
 
     def describe_dataset(self) -> DatasetInfo:
         """The served dataset: name, size, counts by split, difficulty and room type."""
-        return _convert.dataset_info(self._calls("DescribeDataset", pb.DescribeDatasetRequest()))
+        return self._calls.run(dataset_call())
 
     def scenes(
         self,
@@ -209,21 +188,11 @@ class Client:
         """Every scene of `split` and `difficulty` (all when None), in dataset order, fetched page by
         page (`page_size` per request; 0: the server's 100, at most 1,000) as the iterator is read.
         """
-        request = pb.ListScenesRequest(
-            split=_convert.split_code(split),
-            difficulty=_convert.difficulty_code(difficulty),
-            page_size=page_size,
-        )
-        return self._scene_pages(request)
+        return self._scene_pages(ScenePages(split, difficulty, page_size))
 
-    def _scene_pages(self, request: pb.ListScenesRequest) -> Iterator[SceneSummary]:
-        while True:
-            page = self._calls("ListScenes", request)
-            for scene in page.scenes:
-                yield _convert.scene_summary(scene)
-            if not page.next_page_token:
-                return
-            request.page_token = page.next_page_token
+    def _scene_pages(self, pages: ScenePages) -> Iterator[SceneSummary]:
+        while (call := pages.next_call()) is not None:
+            yield from self._calls.run(call)
 
     def create_episode(
         self,
@@ -275,17 +244,9 @@ class Client:
         # No gRPC deadline: a deadline that expires while the answer travels would drop the answer,
         # and with it the only copy of the new episode's id.
         pending = self._calls.start("CreateEpisode", request, timeout=None)
-        wait = timeout if timeout is not None else self.timeout
-        try:
+        wait = self._create_wait(timeout)
+        with abandoning(functools.partial(self._abandon, pending), wait):
             answer = pending.result(timeout=wait)
-        except TimeoutError:
-            self._abandon(pending)
-            raise DeadlineExceeded(f"no answer to CreateEpisode within {wait} s") from None
-        except EsrpError:
-            raise
-        except BaseException:
-            self._abandon(pending)
-            raise
         return Episode(self, _convert.created(answer))
 
     def _track(self, pending: Pending) -> None:
@@ -331,13 +292,7 @@ class Client:
         `max_batch` caps the count). All or nothing: a bad entry fails the call and no episode
         moves. Results are in request order.
         """
-        request = pb.StepBatchRequest(
-            steps=[
-                _convert.step_request(_episode_id(episode), action, include_goal, f"steps[{k}]")
-                for k, (episode, action) in enumerate(steps)
-            ]
-        )
-        return _convert.step_results(self._calls("StepBatch", request).responses, len(steps))
+        return self._calls.run(step_batch_call(steps, include_goal))
 
     def step_columns(
         self,
@@ -360,23 +315,20 @@ class Client:
         the client more. Each call is all or nothing; a failed one raises its error, and the other
         calls' episodes may have moved.
         """
-        layout = _convert.image_layout(sensors)
-        columns = StepColumns([key for key, _, _, _ in layout])
-        if not episode_ids and not actions and not resets:
-            return columns
-        requests = _convert.step_batch_requests(episode_ids, actions, self._batch_size(sensors), resets)
+        wave = StepWave(episode_ids, actions, sensors, resets)
+        if wave.empty:
+            return wave.columns
+        requests = wave.requests(self._batch_size(sensors))
         started = [self._calls.start("StepBatch", request) for request in requests[:-1]]
         last = self._calls("StepBatch", requests[-1])
         for pending, request in zip(started, requests, strict=False):
-            _convert.batch_columns(pending.result(), request, layout, sensors.resolution, into=columns)
-        return _convert.batch_columns(last, requests[-1], layout, sensors.resolution, into=columns)
+            wave.add(pending.result(), request)
+        return wave.add(last, requests[-1])
 
     def _batch_size(self, sensors: Sensors) -> int:
         """`batch_size` for this server, asked once per client and sensors."""
         size = self._batch_sizes.get(sensors)
-        if size is None:
-            size = self._batch_sizes[sensors] = batch_size(self.server_info().limits, sensors)
-        return size
+        return size if size is not None else self._learn_batch_size(sensors, self.server_info())
 
     def episode_stream(self, window: int = 8) -> EpisodeStream:
         """Opens a StepStream driven by an `EpisodeStream` with up to `window` steps of each
@@ -385,11 +337,7 @@ class Client:
         return EpisodeStream(self, window)
 
 
-def _episode_id(episode: Episode | str) -> str:
-    return episode if isinstance(episode, str) else episode.id
-
-
-class Episode:
+class Episode(EpisodeBase["Client"]):
     """A live episode on the server. Use it as a context manager (closed on exit) or call `close()`.
 
     Attributes:
@@ -401,27 +349,14 @@ class Episode:
     """
 
     def __init__(self, client: Client, created: Created | None, *, episode_id: str = "") -> None:
-        self.client = client
-        self.closed = False
-        self.observation: Observation | None
-        if created is None:
-            self.id = episode_id
-            self.scene = SceneSummary("", "", None, None, 0, 0, 0)
-            self.spec = ObservationSpec((), ())
-            self.observation = None
-        else:
-            self.id = created.episode_id
-            self.scene = created.scene
-            self.spec = created.spec
-            self.observation = created.observation
+        super().__init__(client, created, episode_id=episode_id)
 
     def __repr__(self) -> str:
         return f"Episode(id={self.id!r}, scene={self.scene.id!r}, closed={self.closed})"
 
     def step(self, action: ActionLike, *, include_goal: bool = False) -> StepResult:
         """Takes `action`; with `include_goal` the observation carries the goal image too."""
-        answer = self.client._calls("Step", _convert.step_request(self.id, action, include_goal))
-        return _convert.step_result(answer)
+        return self.client._calls.run(self._step_call(action, include_goal))
 
     def step_columns(self, action: ActionLike, sensors: Sensors) -> StepColumns:
         """`step`, its answer as one row of `StepColumns` (what the Gymnasium env reads, without
@@ -435,26 +370,19 @@ class Episode:
         """Restarts the episode on the same scene (or another one); returns the first observation
         (with the goal image). Works on an ended episode.
         """
-        answer = self.client._calls("Reset", _convert.reset_request(self.id, scene, scene_json))
-        observation, summary = _convert.reset_observation(answer)
-        if summary is not None:
-            self.scene = summary
-        self.observation = observation
-        return observation
+        return self.client._calls.run(self._reset_call(scene, scene_json))
 
     def goal(self) -> Goal:
         """The goal image and its pixel ↔ floor frame."""
-        return _convert.goal(self.client._calls("GetGoal", pb.GetGoalRequest(episode_id=self.id)))
+        return self.client._calls.run(self._goal_call())
 
     def metrics(self) -> Progress:
         """The metrics so far (final once ended), and whether the episode has ended."""
-        answer = self.client._calls("GetMetrics", pb.GetMetricsRequest(episode_id=self.id))
-        return Progress(_convert.metrics(answer.metrics), answer.ended)
+        return self.client._calls.run(self._metrics_call())
 
     def privileged_state(self) -> PrivilegedState:
         """The full state; only for episodes created with `privileged=True` (else `PermissionDenied`)."""
-        request = pb.GetPrivilegedStateRequest(episode_id=self.id)
-        return _convert.privileged_state(self.client._calls("GetPrivilegedState", request))
+        return self.client._calls.run(self._privileged_state_call())
 
     def plan_actions(self, max_actions: int = 0, budget_ms: int | None = None) -> PlanAnswer:
         """The next actions of the server's planner (ESRP-PLAN) from the episode's current state;
@@ -476,22 +404,17 @@ class Episode:
             EpisodeEnded: The episode has ended.
             PermissionDenied: The episode is not privileged.
         """
-        request = _convert.plan_request(self.id, max_actions, budget_ms)
-        timeout = _convert.plan_timeout(self.client.timeout, budget_ms)
-        return _convert.plan_answer(self.client._calls("PlanActions", request, timeout=timeout))
+        return self.client._calls.run(self._plan_call(max_actions, budget_ms))
 
     def close(self) -> EpisodeMetrics:
         """Closes the episode on the server; returns its metrics at that moment."""
-        self.closed = True
-        answer = self.client._calls("CloseEpisode", pb.CloseEpisodeRequest(episode_id=self.id))
-        return _convert.closed_metrics(answer)
+        return self.client._calls.run(self._close_call())
 
     def detach(self) -> str:
         """Gives up the handle without closing the episode (exiting a `with` block then does
         nothing); returns the id, for `Client.episode`.
         """
-        self.closed = True
-        return self.id
+        return self._detach()
 
     def __enter__(self) -> Episode:
         return self
@@ -532,7 +455,7 @@ class _RequestQueue:
         return item
 
 
-class EpisodeStream:
+class EpisodeStream(EpisodeStreamBase):
     """A pipelined driver of one StepStream, as the Rust client's `EpisodeStream`.
 
     It keeps up to `window` steps of each episode in flight: `step()` returns at once unless that
@@ -544,25 +467,12 @@ class EpisodeStream:
     """
 
     def __init__(self, client: Client, window: int) -> None:
-        self._ledger = StreamLedger(window)
+        super().__init__(window)
         self._requests = _RequestQueue()
         self._responses: Any = client.raw.StepStream(self._requests, metadata=client.metadata)
-        self._ended = False
-
-    @property
-    def window(self) -> int:
-        """The most steps of one episode in flight."""
-        return self._ledger.window
-
-    @property
-    def outstanding(self) -> int:
-        """Requests sent and not yet returned by `next()`."""
-        return self._ledger.outstanding
 
     def _send(self, kind: RequestKind, episode_id: str, **body: Any) -> int:  # noqa: ANN401
-        if self._ended:
-            raise ServerUnavailable("the stream has ended")
-        request = self._ledger.request(kind, episode_id, **body)
+        request = self._request(kind, episode_id, **body)
         self._requests.put(request)
         return request.request_id
 
@@ -617,11 +527,7 @@ class EpisodeStream:
         """The next answer in request order; None when every request sent has been answered.
         Raises only when the stream itself failed (it cannot go on).
         """
-        if self._ledger.ready:
-            return self._ledger.ready.popleft()
-        if not self._ledger.pending:
-            return None
-        return self._read()
+        return self._read() if self._ledger.unread else self._ledger.take_ready()
 
     def __iter__(self) -> Iterator[StreamAnswer]:
         """Every answer not yet read, in request order."""
@@ -632,11 +538,9 @@ class EpisodeStream:
         try:
             response = next(self._responses)
         except StopIteration:
-            self._ended = True
-            raise ServerUnavailable("the server ended the stream with requests unanswered") from None
+            raise self._cut_short() from None
         except grpc.RpcError as error:
-            self._ended = True
-            raise from_rpc_error(error) from error
+            raise self._broken(error) from error
         return self._ledger.answer(response)
 
     def run(self, plans: Mapping[str, Sequence[ActionLike]]) -> dict[str, list[StepResult | EsrpError]]:
@@ -644,16 +548,11 @@ class EpisodeStream:
         episodes interleaved; returns each episode's results in order (an error for a step the
         server refused, e.g. one sent after its episode ended).
         """
-        if self.outstanding:
-            raise EsrpError("read the stream's earlier answers with next() before a run")
-        results: dict[str, list[StepResult | EsrpError]] = {episode: [] for episode in plans}
-        longest = max((len(actions) for actions in plans.values()), default=0)
-        for k in range(longest):
-            for episode, actions in plans.items():
-                if k < len(actions):
-                    self.step(episode, actions[k])
-            while self._ledger.ready:
-                collect_run(self._ledger.ready.popleft(), results)
+        results = self._ledger.run_results(plans)
+        for steps in run_rounds(plans):
+            for episode, action in steps:
+                self.step(episode, action)
+            self._ledger.collect_ready(results)
         for answer in self:
             collect_run(answer, results)
         return results
@@ -662,9 +561,8 @@ class EpisodeStream:
         """Half-closes the stream and waits for the server to end it: the answers not yet read are
         dropped, and the server closes the episodes created on the stream.
         """
-        if self._ended:
+        if not self._end():
             return
-        self._ended = True
         self._requests.end()
         try:
             for _ in self._responses:

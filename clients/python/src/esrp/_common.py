@@ -1,5 +1,6 @@
-"""What the sync and async clients share: channel settings, credentials, the bearer token, and the
-bookkeeping of a pipelined StepStream (request ids, pending requests, per-episode windows).
+"""What the sync and async clients share: channel settings, credentials, the bearer token, the
+health check's bytes, and the bookkeeping of a pipelined StepStream (request ids, pending requests,
+per-episode windows, the order of `EpisodeStream.run`).
 """
 
 from __future__ import annotations
@@ -7,7 +8,7 @@ from __future__ import annotations
 import enum
 import os
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar, Union
@@ -17,6 +18,7 @@ import grpc
 from . import _convert
 from ._errors import EsrpError, InvalidRequest, ProtocolError, from_status
 from ._values import (
+    ActionLike,
     Created,
     EpisodeMetrics,
     Observation,
@@ -126,6 +128,14 @@ def credentials(tls: TlsSetting, https: bool) -> grpc.ChannelCredentials | None:
         return grpc.ssl_channel_credentials(root_certificates=path.read_bytes())
     except OSError as error:
         raise InvalidRequest(f"cannot read the TLS root certificate {path}: {error}") from error
+
+
+# grpc.health.v1.Health/Check, hand-encoded: the request holds only its `service` string (field 1),
+# the answer only its `status` enum (field 1; SERVING is 1). Spares a dependency on
+# grpcio-health-checking for two bytes.
+HEALTH_METHOD = "/grpc.health.v1.Health/Check"
+HEALTH_REQUEST = b"\x0a\x0cesrp.v1.Esrp"  # HealthCheckRequest{service: "esrp.v1.Esrp"}
+SERVING = b"\x08\x01"  # HealthCheckResponse{status: SERVING}
 
 
 def bearer_metadata(token: str | None) -> tuple[tuple[str, str], ...] | None:
@@ -253,6 +263,30 @@ class StreamLedger:
         """Requests sent and not yet handed out."""
         return len(self.pending) + len(self.ready)
 
+    @property
+    def unread(self) -> bool:
+        """Whether the next answer is still on the stream: none was read early and one is pending."""
+        return not self.ready and bool(self.pending)
+
+    def take_ready(self) -> StreamAnswer | None:
+        """The oldest answer read early (while a window was full), or None."""
+        return self.ready.popleft() if self.ready else None
+
+    def run_results(
+        self, plans: Mapping[str, Sequence[ActionLike]]
+    ) -> dict[str, list[StepResult | EsrpError]]:
+        """The empty results of `EpisodeStream.run(plans)`, by episode; raises `EsrpError` while
+        answers to earlier requests are unread (they would land among the run's).
+        """
+        if self.outstanding:
+            raise EsrpError("read the stream's earlier answers with next() before a run")
+        return {episode: [] for episode in plans}
+
+    def collect_ready(self, results: dict[str, list[StepResult | EsrpError]]) -> None:
+        """Files the answers read early under their episodes of a run (`collect_run`)."""
+        while self.ready:
+            collect_run(self.ready.popleft(), results)
+
     def answer(self, response: pb.StreamResponse) -> StreamAnswer:
         """The answer of the oldest pending request, from the server's response to it."""
         if not self.pending:
@@ -291,6 +325,15 @@ class StreamLedger:
         except ProtocolError as protocol_error:
             error = protocol_error
         return StreamAnswer(pending.request_id, pending.kind, episode_id, value, error, scene)
+
+
+def run_rounds(plans: Mapping[str, Sequence[ActionLike]]) -> Iterator[list[tuple[str, ActionLike]]]:
+    """The steps of `EpisodeStream.run(plans)`, round by round: round k holds the k-th action of
+    each episode that has one, in the plans' order (so the episodes interleave).
+    """
+    longest = max((len(actions) for actions in plans.values()), default=0)
+    for k in range(longest):
+        yield [(episode, actions[k]) for episode, actions in plans.items() if k < len(actions)]
 
 
 def collect_run(answer: StreamAnswer, results: dict[str, list[StepResult | EsrpError]]) -> None:

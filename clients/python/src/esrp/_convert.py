@@ -34,6 +34,7 @@ from ._values import (
     PlanStats,
     Pose2,
     PrivilegedState,
+    Progress,
     RewardTerms,
     RewardWeights,
     SceneSummary,
@@ -483,6 +484,11 @@ def closed_metrics(message: pb.CloseEpisodeResponse) -> EpisodeMetrics:
     if not message.HasField("metrics"):
         raise ProtocolError("a close answer without metrics")
     return metrics(message.metrics)
+
+
+def progress(message: pb.GetMetricsResponse) -> Progress:
+    """The Progress of a GetMetrics answer: the metrics so far, and whether the episode ended."""
+    return Progress(metrics(message.metrics), message.ended)
 
 
 def goal(message: pb.GetGoalResponse) -> Goal:

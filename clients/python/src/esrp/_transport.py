@@ -1,9 +1,10 @@
 """`Calls`: every unary esrp.v1 call of one `Client`, over one transport, with its token, its
-deadline and its errors mapped to `EsrpError` in one place.
+deadline and its errors mapped to `EsrpError` in one place; `AsyncCalls`, the same for an
+`AsyncClient` over grpc.aio; `UnaryCall`, one such call as data, which either of them makes.
 
-The transport is the native channel (the `esrp-native` package) for the methods it carries (the
-hot path: Step, Reset, StepBatch) where the client uses it, and grpcio for the others and
-otherwise. Both take the same request messages and give the same answer messages.
+The transport of `Calls` is the native channel (the `esrp-native` package) for the methods it
+carries (the hot path: Step, Reset, StepBatch) where the client uses it, and grpcio for the others
+and otherwise. Both take the same request messages and give the same answer messages.
 """
 
 from __future__ import annotations
@@ -11,9 +12,11 @@ from __future__ import annotations
 import concurrent.futures
 import threading
 from collections.abc import Callable
-from typing import Any, Final
+from dataclasses import dataclass
+from typing import Any, Final, Generic, TypeVar
 
 import grpc
+import grpc.aio
 from google.protobuf.message import Message
 
 from . import _native
@@ -21,7 +24,7 @@ from ._errors import from_rpc_error
 from .v1 import esrp_pb2 as pb
 from .v1 import esrp_pb2_grpc as pb_grpc
 
-__all__ = ["Calls", "Pending"]
+__all__ = ["CLIENT_TIMEOUT", "AsyncCalls", "Calls", "Pending", "UnaryCall"]
 
 _SERVICE: Final = pb.DESCRIPTOR.services_by_name["Esrp"]
 # The answer's message class of each unary method, by name.
@@ -37,6 +40,31 @@ class _Default:
 
 
 CLIENT_TIMEOUT: Final = _Default()
+
+_T = TypeVar("_T")
+
+
+def _deadline(client_timeout: float | None, timeout: float | None | _Default) -> float | None:
+    """The deadline of a call: `timeout`, or the client's where it is `CLIENT_TIMEOUT`."""
+    return client_timeout if isinstance(timeout, _Default) else timeout
+
+
+@dataclass(frozen=True)
+class UnaryCall(Generic[_T]):
+    """One unary call, described and not made: `Calls.run` (sync) or `AsyncCalls.run` (awaited)
+    makes it and returns `value(answer)`.
+
+    Attributes:
+        method: The unary method's name, e.g. "GetGoal".
+        request: Its request message.
+        value: What the call returns, of the method's answer message (`esrp._convert`'s readers).
+        timeout: The call's deadline, seconds; None: none; `CLIENT_TIMEOUT`: the client's.
+    """
+
+    method: str
+    request: Message
+    value: Callable[[Any], _T]
+    timeout: float | None | _Default = CLIENT_TIMEOUT
 
 
 class Pending:
@@ -107,6 +135,10 @@ class Calls:
         except grpc.RpcError as error:
             raise from_rpc_error(error) from error
 
+    def run(self, call: UnaryCall[_T]) -> _T:
+        """Makes `call` and returns its value."""
+        return call.value(self(call.method, call.request, timeout=call.timeout))
+
     def start(
         self, method: str, request: Message, *, timeout: float | None | _Default = CLIENT_TIMEOUT
     ) -> Pending:
@@ -137,8 +169,7 @@ class Calls:
             self._native.close()
 
     def _options(self, timeout: float | None | _Default) -> dict[str, Any]:
-        deadline = self.timeout if isinstance(timeout, _Default) else timeout
-        return {"metadata": self._metadata, "timeout": deadline}
+        return {"metadata": self._metadata, "timeout": _deadline(self.timeout, timeout)}
 
     def _send(self, method: str, request: Message, timeout: float | None | _Default) -> Any:  # noqa: ANN401
         options = self._options(timeout)
@@ -146,3 +177,38 @@ class Calls:
             path, answer = self._paths[method], _ANSWERS[method]
             return _native.call(self._native, path, request, answer, options["timeout"])
         return getattr(self._stub, method)(request, **options)
+
+
+class AsyncCalls:
+    """The unary calls of one `AsyncClient`, over grpc.aio: `await calls("GetGoal", request)`
+    answers the method's answer message, or raises `EsrpError`.
+
+    Args:
+        stub: The grpc.aio stub of the client's channel.
+        metadata: What goes with every call (the bearer token).
+        timeout: The deadline of calls that name none, seconds (None: no deadline).
+    """
+
+    def __init__(
+        self,
+        stub: pb_grpc.EsrpAsyncStub,
+        metadata: tuple[tuple[str, str], ...] | None,
+        timeout: float | None,
+    ) -> None:
+        self.timeout = timeout
+        self._stub = stub
+        self._metadata = metadata
+
+    async def __call__(
+        self, method: str, request: Message, *, timeout: float | None | _Default = CLIENT_TIMEOUT
+    ) -> Any:  # noqa: ANN401
+        """Calls `method` (a unary method's name, e.g. "StepBatch") and waits for its answer."""
+        send = getattr(self._stub, method)
+        try:
+            return await send(request, metadata=self._metadata, timeout=_deadline(self.timeout, timeout))
+        except grpc.aio.AioRpcError as error:
+            raise from_rpc_error(error) from error
+
+    async def run(self, call: UnaryCall[_T]) -> _T:
+        """Makes `call` and returns its value."""
+        return call.value(await self(call.method, call.request, timeout=call.timeout))
