@@ -23,8 +23,6 @@ from pathlib import Path
 USE = re.compile(r"(?:^|\n)\s*(?:pub(?:\([^)]*\))?\s+)?use\s+([^;]+);")
 PATH = re.compile(r"\b((?:crate|super|self)(?:::[A-Za-z_][A-Za-z0-9_]*)+)")
 MOD_DECL = re.compile(r"^\s*(?:pub(?:\([^)]*\))?\s+)?mod\s+([A-Za-z_][A-Za-z0-9_]*)\s*;", re.M)
-LINE_COMMENT = re.compile(r"//[^\n]*")
-STRING = re.compile(r'"(?:\\.|[^"\\])*"')
 
 
 def module_of(src: Path, file: Path) -> tuple[str, ...]:
@@ -63,8 +61,60 @@ def expand(tree: str) -> list[str]:
     return out
 
 
-def strip_inline_code(text: str) -> str:
-    return LINE_COMMENT.sub("", STRING.sub('""', text))
+IDENT_CHAR = re.compile(r"[A-Za-z0-9_]")
+RAW_STRING_START = re.compile(r'(?:b|c)?r(#*)"')
+
+
+def code_only(text: str) -> str:
+    """`text` with its comments, string and character literals emptied, line breaks kept.
+
+    A small lexer, not a pattern: a string may hold `//`, `/*`, quotes behind backslashes and
+    line breaks (a string continued with `\\` and a new line), a raw string `r#"..."#` may hold
+    `"`, block comments nest, and `'a` is a lifetime where `'a'` and `'\\''` are characters.
+    Each literal becomes `""` (or `' '`) and each comment a space, so what is left is code."""
+    out: list[str] = []
+    i, n = 0, len(text)
+    while i < n:
+        ch, start = text[i], i
+        if text.startswith("//", i):
+            end = text.find("\n", i)
+            i = n if end < 0 else end
+            out.append(" ")
+            continue
+        elif text.startswith("/*", i):
+            depth, i = 1, i + 2
+            while i < n and depth:
+                if text.startswith("/*", i):
+                    depth, i = depth + 1, i + 2
+                elif text.startswith("*/", i):
+                    depth, i = depth - 1, i + 2
+                else:
+                    i += 1
+            out.append(" ")
+        elif (raw := RAW_STRING_START.match(text, i)) and (i == 0 or not IDENT_CHAR.match(text[i - 1])):
+            close = '"' + raw.group(1)
+            end = text.find(close, raw.end())
+            i = n if end < 0 else end + len(close)
+            out.append('""')
+        elif ch == '"':
+            i += 1
+            while i < n and text[i] != '"':
+                i += 2 if text[i] == "\\" else 1
+            i += 1
+            out.append('""')
+        elif ch == "'" and i + 2 < n and (text[i + 1] == "\\" or text[i + 2] == "'"):
+            # A character: `'x'` or an escape (`'\\''`, `'\\u{41}'`); `'a` alone is a lifetime.
+            i = text.find("'", i + 3 if text[i + 1] == "\\" else i + 2) + 1 or n
+            out.append("' '")
+        else:
+            while i < n and text[i] not in "/\"'rbc":
+                i += 1
+            if i == start:
+                i += 1
+            out.append(text[start:i])
+            continue
+        out.append("\n" * text.count("\n", start, i))
+    return "".join(out)
 
 
 INLINE_MOD = re.compile(r"(?:^|\n)\s*(?:pub(?:\([^)]*\))?\s+)?mod\s+([A-Za-z_][A-Za-z0-9_]*)\s*\{")
@@ -91,7 +141,7 @@ def analyse(src: Path) -> list[list[tuple[str, ...]]]:
     # they stand (their `super` is the file's module) and their uses count as the file's.
     inline: dict[tuple[str, ...], list[tuple[tuple[str, ...], str]]] = defaultdict(list)
     for m, f in files.items():
-        text, bodies = inline_modules(strip_inline_code(f.read_text()))
+        text, bodies = inline_modules(code_only(f.read_text()))
         texts[m] = text
         while bodies:
             name, body = bodies.pop()
@@ -211,6 +261,34 @@ SELF_TESTS = {
     "a rename is a use of what it renames": (
         {"lib.rs": "mod a;\nmod b;\n", "a.rs": "use crate::b::B as Bee;\npub struct A;\n", "b.rs": "use crate::a::A;\npub struct B;\n"},
         [["a", "b"]],
+    ),
+    "behind a string continued with a backslash and a new line": (
+        {
+            "lib.rs": "mod a;\nmod b;\n",
+            "a.rs": 'pub fn f() -> &\'static str {\n    "one \\\n     two"\n}\nuse crate::b::B;\nconst X: &str = "x";\n',
+            "b.rs": "use crate::a::f;\npub struct B;\n",
+        },
+        [["a", "b"]],
+    ),
+    "behind raw strings, quote characters and nested comments": (
+        {
+            "lib.rs": "mod a;\nmod b;\n",
+            "a.rs": (
+                'const R: &str = r#"a "quoted" // word"#;\nconst Q: char = \'"\';\nconst E: char = \'\\\'\';\n'
+                "/* outer /* inner */ still a comment */\nfn g<'a>(x: &'a str) -> &'a str { x }\n"
+                "use crate::b::B;\nconst S: &str = \"//\";\n"
+            ),
+            "b.rs": "use crate::a::g;\npub struct B;\n",
+        },
+        [["a", "b"]],
+    ),
+    "no circle: a use inside a string, a raw string or a comment is no use": (
+        {
+            "lib.rs": "mod a;\nmod b;\n",
+            "a.rs": 'const T: &str = "continued \\\n use crate::b::B;";\nconst U: &str = r#"use crate::b::B;"#;\n/* use crate::b::B; */\n',
+            "b.rs": "use crate::a::T;\npub struct B;\n",
+        },
+        [],
     ),
     "no circle: a sibling whose name holds `as` is not the parent": (
         {

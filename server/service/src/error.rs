@@ -1,65 +1,12 @@
 //! The service's errors: [`ServiceError`] for calls on episodes, with its one exhaustive
-//! mapping to gRPC status codes, and [`ServeError`] for starting and running the server.
+//! mapping to gRPC status codes. (Why the server could not start is `serve::ServeError`.)
 
 use esrp_core::Split;
 use tonic::{Code, Status};
 
+use crate::quote::{MAX_QUOTED_MESSAGE, bound_message, bounded, quoted};
+use crate::records::AlreadyPlayed;
 use crate::types::EpisodeId;
-
-/// The most characters of a client-given value that an error message quotes.
-pub const MAX_QUOTED_CHARS: usize = 64;
-
-/// The most characters of a client-derived message (a scene's parse error) that an error
-/// message carries.
-pub const MAX_QUOTED_MESSAGE: usize = 1024;
-
-/// A client-given value as an error message shows it: whole if it has at most
-/// [`MAX_QUOTED_CHARS`] characters, else its first ones, an ellipsis and its length. Error
-/// messages travel in response metadata, which clients cap (16 KiB in grpcio), so no message
-/// may echo an unbounded value.
-#[derive(Clone, Copy, Debug)]
-pub struct Bounded<'a> {
-    text: &'a str,
-    quote: bool,
-}
-
-/// `text` quoted and escaped like `{:?}`: `"abc"`, or `"aaaa…" (20000 characters)`.
-pub fn quoted(text: &str) -> Bounded<'_> {
-    Bounded { text, quote: true }
-}
-
-/// `text` as it is: `abc`, or `aaaa… (20000 characters)`.
-pub fn bounded(text: &str) -> Bounded<'_> {
-    Bounded { text, quote: false }
-}
-
-/// The first `max` characters of `text` (char-boundary safe) and whether it was longer.
-fn head(text: &str, max: usize) -> (&str, bool) {
-    match text.char_indices().nth(max) {
-        Some((end, _)) => (&text[..end], true),
-        None => (text, false),
-    }
-}
-
-impl std::fmt::Display for Bounded<'_> {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let (head, cut) = head(self.text, MAX_QUOTED_CHARS);
-        match (cut, self.quote) {
-            (false, true) => write!(f, "{head:?}"),
-            (false, false) => f.write_str(head),
-            (true, true) => write!(f, "{:?} ({} characters)", format!("{head}…"), self.text.chars().count()),
-            (true, false) => write!(f, "{head}… ({} characters)", self.text.chars().count()),
-        }
-    }
-}
-
-/// `message` cut to its first `max` characters and an ellipsis if longer.
-pub fn bound_message(message: &str, max: usize) -> String {
-    match head(message, max) {
-        (head, true) => format!("{head}…"),
-        (head, false) => head.to_owned(),
-    }
-}
 
 /// Why a call failed.
 #[derive(Debug, thiserror::Error)]
@@ -197,18 +144,8 @@ pub enum ServiceError {
         limit: usize,
     },
     /// A second attempt at a challenge scene.
-    #[error(
-        "challenge scene {} was already played by {caller} ({when}): each token gets one counted attempt per challenge scene (the minival split may be played again)",
-        quoted(.scene)
-    )]
-    AlreadyPlayed {
-        /// The scene.
-        scene: String,
-        /// The caller, described.
-        caller: String,
-        /// When: `ended 2026-11-25T20:00:00Z` or `started …, still running`.
-        when: String,
-    },
+    #[error(transparent)]
+    AlreadyPlayed(#[from] AlreadyPlayed),
     /// Records asked of a server that keeps none.
     #[error("this server keeps no records: start it with --records DIR")]
     NoRecords,
@@ -249,7 +186,7 @@ impl ServiceError {
             ServiceError::NotPrivileged(_) | ServiceError::Denied(_) | ServiceError::NotYours { .. } => {
                 Code::PermissionDenied
             }
-            ServiceError::AlreadyPlayed { .. } => Code::FailedPrecondition,
+            ServiceError::AlreadyPlayed(_) => Code::FailedPrecondition,
             ServiceError::PlanDeadline { .. } => Code::DeadlineExceeded,
             ServiceError::TooManyEpisodes { .. }
             | ServiceError::BatchTooLarge { .. }
@@ -286,40 +223,6 @@ impl From<esrp_render::RenderError> for ServiceError {
     }
 }
 
-/// Why the server could not start, or stopped serving.
-#[derive(Debug, thiserror::Error)]
-pub enum ServeError {
-    /// The dataset folder (`--dataset`) cannot be served.
-    #[error("cannot serve the dataset folder: {0}")]
-    Dataset(#[from] esrp_dataset::files::FilesError),
-    /// No renderer could be created.
-    #[error("cannot create the renderer: {0}")]
-    Renderer(#[from] esrp_render::RenderError),
-    /// A file or socket operation failed.
-    #[error("{what}: {source}")]
-    Io {
-        /// What was being done.
-        what: String,
-        /// The error.
-        source: std::io::Error,
-    },
-    /// gRPC reflection could not be set up (a bug in the embedded descriptors).
-    #[error("cannot set up gRPC reflection: {0}")]
-    Reflection(#[from] tonic_reflection::server::Error),
-    /// The gRPC transport failed (TLS configuration, serving).
-    #[error("gRPC transport: {0}")]
-    Transport(#[from] tonic::transport::Error),
-    /// The token file (`--tokens`) cannot be used.
-    #[error("{0}")]
-    Tokens(#[from] crate::auth::TokensError),
-    /// The records folder (`--records`) cannot be used.
-    #[error("{0}")]
-    Records(#[from] crate::records::RecordsError),
-    /// The flags contradict each other or the served dataset.
-    #[error("{0}")]
-    Config(String),
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -333,15 +236,7 @@ mod tests {
 
     #[test]
     fn client_values_in_messages_are_bounded() {
-        assert_eq!(quoted("e1").to_string(), "\"e1\"");
-        assert_eq!(bounded("e1").to_string(), "e1");
         let long = "é".repeat(20_000);
-        let shown = quoted(&long).to_string();
-        assert!(shown.starts_with(&format!("\"{}…\"", "é".repeat(MAX_QUOTED_CHARS))), "{shown}");
-        assert!(shown.ends_with(" (20000 characters)"), "{shown}");
-        assert_eq!(bounded(&long).to_string(), format!("{}… (20000 characters)", "é".repeat(MAX_QUOTED_CHARS)));
-        let exact = "a".repeat(MAX_QUOTED_CHARS);
-        assert_eq!(bounded(&exact).to_string(), exact);
         for error in [
             ServiceError::UnknownEpisode(EpisodeId::from(long.as_str())),
             ServiceError::NotPrivileged(EpisodeId::from(long.as_str())),
@@ -353,8 +248,6 @@ mod tests {
             assert!(message.len() < 512, "{message}");
             assert!(message.contains("(20000 characters)"), "{message}");
         }
-        assert_eq!(bound_message(&long, 3), "ééé…");
-        assert_eq!(bound_message("abc", 3), "abc");
     }
 
     #[test]
@@ -401,11 +294,11 @@ mod tests {
             "token \"a\" (role agent) already has 2 live episodes open, its quota (max_episodes",
         );
         check(
-            ServiceError::AlreadyPlayed {
+            ServiceError::from(AlreadyPlayed {
                 scene: "challenge/00001".into(),
                 caller: "token \"a\"".into(),
                 when: "ended x".into(),
-            },
+            }),
             Code::FailedPrecondition,
             "challenge scene \"challenge/00001\" was already played by token \"a\" (ended x)",
         );

@@ -1,6 +1,9 @@
 //! `esrp-server`: parses the configuration, sets up logging and serves until SIGINT/SIGTERM;
 //! `esrp-server health-check` asks a running server whether it is serving.
 
+// Proving `esrp_server::run`'s future Send walks deep into wgpu's types (as in the library).
+#![recursion_limit = "256"]
+
 mod health_check;
 
 use clap::{Parser, Subcommand};

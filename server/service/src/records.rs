@@ -17,7 +17,7 @@ use std::time::SystemTime;
 
 use esrp_results::EpisodeRecord;
 
-use crate::error::ServiceError;
+use crate::quote::quoted;
 use crate::types::Caller;
 
 /// Which episodes the server records.
@@ -53,6 +53,21 @@ enum Attempt {
     Ended(String),
 }
 
+/// A second attempt at a challenge scene: the token's one counted attempt there is taken.
+#[derive(Clone, Debug, thiserror::Error)]
+#[error(
+    "challenge scene {} was already played by {caller} ({when}): each token gets one counted attempt per challenge scene (the minival split may be played again)",
+    quoted(.scene)
+)]
+pub struct AlreadyPlayed {
+    /// The scene.
+    pub scene: String,
+    /// The caller, described.
+    pub caller: String,
+    /// When: `ended 2026-11-25T20:00:00Z` or `started …, still running`.
+    pub when: String,
+}
+
 /// The counted attempts: one per challenge scene and token (admins are not counted).
 #[derive(Default)]
 pub struct Attempts {
@@ -65,7 +80,7 @@ impl Attempts {
     }
 
     /// Takes `caller`'s attempt at challenge scene `scene`, or says when it was taken.
-    pub fn take(&self, caller: &Caller, scene: &str) -> Result<(), ServiceError> {
+    pub fn take(&self, caller: &Caller, scene: &str) -> Result<(), AlreadyPlayed> {
         let mut map = self.map();
         let key = (caller.name.clone(), scene.to_owned());
         if let Some(attempt) = map.get(&key) {
@@ -73,7 +88,7 @@ impl Attempts {
                 Attempt::Running(at) => format!("started {at}, still running"),
                 Attempt::Ended(at) => format!("ended {at}"),
             };
-            return Err(ServiceError::AlreadyPlayed { scene: scene.to_owned(), caller: caller.describe(), when });
+            return Err(AlreadyPlayed { scene: scene.to_owned(), caller: caller.describe(), when });
         }
         map.insert(key, Attempt::Running(rfc3339(SystemTime::now())));
         Ok(())

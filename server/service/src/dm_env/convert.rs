@@ -11,7 +11,8 @@ use esrp_proto::dm_env_rpc::v1 as dm;
 use esrp_proto::dm_env_rpc::v1::tensor::Payload as Elements;
 
 use super::error::DmEnvError;
-use crate::error::{ServiceError, quoted};
+use crate::error::ServiceError;
+use crate::quote::quoted;
 use crate::types::{CreateOptions, ElementType, Observation, SceneChoice, SensorConfig, SensorRequest};
 
 /// The uid of the only action.

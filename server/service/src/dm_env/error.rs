@@ -3,7 +3,8 @@
 
 use tonic::Code;
 
-use crate::error::{ServiceError, quoted};
+use crate::error::ServiceError;
+use crate::quote::quoted;
 
 /// Why a dm_env_rpc request failed. Sent in-band as a `google.rpc.Status`.
 #[derive(Debug, thiserror::Error)]

@@ -59,7 +59,8 @@ use tonic::{Request, Response, Status, Streaming};
 
 use crate::auth::caller_of;
 use crate::episodes::{Episodes, StreamSlot};
-use crate::error::{ServiceError, quoted};
+use crate::error::ServiceError;
+use crate::quote::quoted;
 use crate::types::{EpisodeId, Observation, StepCall};
 
 pub mod convert;

@@ -160,7 +160,7 @@ impl Episodes {
             return Err(ServiceError::Denied(format!(
                 "{} may read only its own records, not token {}'s",
                 caller.describe(),
-                crate::error::quoted(token)
+                crate::quote::quoted(token)
             )));
         }
         // Only the named token's file is read.

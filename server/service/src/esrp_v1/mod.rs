@@ -17,8 +17,9 @@ use tonic::{Request, Response, Status, Streaming};
 use crate::auth::caller_of;
 use crate::episodes::Episodes;
 use crate::episodes::waves::{self, WaveAnswer, WaveRequest};
-use crate::error::{ServiceError, quoted};
+use crate::error::ServiceError;
 use crate::proto;
+use crate::quote::quoted;
 use crate::types::{CreateOptions, EpisodeId, PlanCall, StepCall};
 
 /// The tonic service.

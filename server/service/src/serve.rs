@@ -1,0 +1,333 @@
+//! Starting and running the server: [`run`] (the library's entry point, which `main` calls with
+//! its bound listeners and a shutdown signal), the steps it takes in order, and [`ServeError`],
+//! why the server could not start or stopped serving.
+//!
+//! [`run`] reads top to bottom: the tokens and the episode layer are built, the background tasks
+//! start (the reaper, the metrics endpoint, the viewer), the gRPC services are assembled behind
+//! the token check (with TLS where configured), then it serves until the shutdown signal, drains
+//! for at most `--shutdown-grace-ms`, and stops everything in order.
+
+use std::future::Future;
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio::net::TcpListener;
+use tokio::task::JoinHandle;
+use tonic::service::interceptor::InterceptedService;
+
+use crate::config::Config;
+use crate::episodes::Episodes;
+use crate::{auth, dm_env, esrp_v1, metrics, proto, records, render, scenes, viewer};
+
+/// The target of the server's own log lines (start, serving, stop): the crate's, as when they
+/// were written at its root, since operators filter (`ESRP_LOG`) and search logs by it.
+const LOG_TARGET: &str = "esrp_server";
+
+/// Why the server could not start, or stopped serving.
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    /// The dataset folder (`--dataset`) cannot be served.
+    #[error("cannot serve the dataset folder: {0}")]
+    Dataset(#[from] esrp_dataset::files::FilesError),
+    /// No renderer could be created.
+    #[error("cannot create the renderer: {0}")]
+    Renderer(#[from] esrp_render::RenderError),
+    /// A file or socket operation failed.
+    #[error("{what}: {source}")]
+    Io {
+        /// What was being done.
+        what: String,
+        /// The error.
+        source: std::io::Error,
+    },
+    /// gRPC reflection could not be set up (a bug in the embedded descriptors).
+    #[error("cannot set up gRPC reflection: {0}")]
+    Reflection(#[from] tonic_reflection::server::Error),
+    /// The gRPC transport failed (TLS configuration, serving).
+    #[error("gRPC transport: {0}")]
+    Transport(#[from] tonic::transport::Error),
+    /// The token file (`--tokens`) cannot be used.
+    #[error("{0}")]
+    Tokens(#[from] auth::TokensError),
+    /// The records folder (`--records`) cannot be used.
+    #[error("{0}")]
+    Records(#[from] records::RecordsError),
+    /// The flags contradict each other or the served dataset.
+    #[error("{0}")]
+    Config(String),
+}
+
+/// The tokens of `config`: `--tokens FILE`, `--token` (one admin) or none.
+pub fn tokens_of(config: &Config) -> Result<auth::Tokens, ServeError> {
+    Ok(match (&config.tokens, &config.token) {
+        (Some(path), _) => auth::Tokens::from_file(path)?,
+        (None, Some(secret)) => auth::Tokens::single_admin(secret),
+        (None, None) => auth::Tokens::open(),
+    })
+}
+
+/// Builds the episode layer: the scene store (with the hidden splits of `--challenge-seed`),
+/// the records (`--records`, read back), the renderer and its thread.
+pub fn build_episodes(config: &Config) -> Result<Arc<Episodes>, ServeError> {
+    let store = scene_store(config)?;
+    let attempts = records::Attempts::default();
+    let recorder = match &config.records {
+        Some(dir) => Some(records::Recorder::open(dir, config.record, &attempts)?),
+        None => None,
+    };
+    let backends = config.render_backend;
+    let renderer = esrp_render::Renderer::new(esrp_render::RendererConfig { backends, ..Default::default() })?;
+    let info = renderer.adapter_info();
+    tracing::info!(target: LOG_TARGET, adapter = %info.name, backend = ?info.backend, software = renderer.is_software(), "renderer ready");
+    let metrics = Arc::new(metrics::Metrics::new());
+    let render = render::RenderScheduler::start(renderer, metrics.clone());
+    Ok(Arc::new(Episodes::new(store, render, config.clone(), metrics, recorder, attempts)))
+}
+
+/// The served scenes: the dataset folder, or the built-in benchmark with its scene cache (and
+/// its generation ahead of use unless `--no-generate-ahead`), with the hidden splits of
+/// `--challenge-seed`.
+fn scene_store(config: &Config) -> Result<scenes::SceneStore, ServeError> {
+    let mut store = match &config.dataset {
+        Some(dir) => scenes::SceneStore::folder(dir)?,
+        None => {
+            let mut store = scenes::SceneStore::built_in(config.benchmark, config.bench_seed);
+            let root = if config.no_scene_cache {
+                None
+            } else {
+                config.scene_cache.clone().or_else(esrp_dataset::cache::default_root)
+            };
+            // A cache that cannot be made costs speed, never service.
+            if let Some(root) = root
+                && let Err(e) = store.keep_on_disk(&root)
+            {
+                tracing::warn!(target: LOG_TARGET, "no scene cache ({e}): every scene is generated on first use");
+            }
+            store
+        }
+    };
+    if let Some(secret) = &config.challenge_seed {
+        let hidden = scenes::HiddenSplits {
+            secret: secret.clone(),
+            version: config.benchmark,
+            challenge: config.challenge_scenes as usize,
+            minival: config.minival_scenes as usize,
+        };
+        store = store.with_hidden(&hidden).map_err(ServeError::Config)?;
+    }
+    if !config.no_generate_ahead {
+        // Detached: it ends when every scene is on disk, or with the process.
+        drop(store.generate_ahead());
+    }
+    Ok(store)
+}
+
+/// The sockets a server serves on, bound by its caller (so that it can print their addresses).
+pub struct Listeners {
+    /// gRPC (esrp.v1, dm_env_rpc, health, reflection).
+    pub grpc: TcpListener,
+    /// Prometheus metrics (`--metrics-listen`).
+    pub metrics: Option<TcpListener>,
+    /// The web viewer (`--http-listen`).
+    pub viewer: Option<TcpListener>,
+}
+
+/// Serves gRPC (and Prometheus metrics and the web viewer, where their listeners are given) until
+/// `shutdown` completes, then drains in-flight calls for at most `--shutdown-grace-ms`.
+pub async fn run(
+    listeners: Listeners,
+    config: Config,
+    shutdown: impl Future<Output = ()> + Send,
+) -> Result<(), ServeError> {
+    let Listeners { grpc: listener, metrics: metrics_listener, viewer: viewer_listener } = listeners;
+    let tokens = Arc::new(tokens_of(&config)?);
+    let episodes = build_episodes(&config)?;
+    let render = episodes.render.clone();
+    let address = listener
+        .local_addr()
+        .map_err(|source| ServeError::Io { what: "the listener has no address".into(), source })?;
+    log_serving(address, &tokens, &episodes);
+
+    let reaper = spawn_reaper(episodes.clone(), config.idle_timeout(), config.claim_timeout());
+    let metrics_server = metrics_listener.map(|listener| spawn_metrics(listener, episodes.clone()));
+    let viewer_server = viewer_listener.map(|listener| spawn_viewer(listener, episodes.clone(), tokens.clone()));
+
+    let result = serve_grpc(listener, &config, &episodes, tokens, shutdown).await;
+
+    // Shut down in order: the calls have drained (or the grace is over); end the background
+    // tasks, then render what was submitted and join the render threads, so that no rendering
+    // runs while the process exits (`main` then drops the runtime, and with it the episodes,
+    // before returning).
+    stop_task(reaper).await;
+    // Every episode still open ends here: its run is recorded as cut by the shutdown.
+    let closed = episodes.close_all().await;
+    if closed > 0 {
+        tracing::info!(target: LOG_TARGET, closed, "closed the episodes still open at shutdown");
+    }
+    for task in [metrics_server, viewer_server].into_iter().flatten() {
+        stop_task(task).await;
+    }
+    if let Err(e) = tokio::task::spawn_blocking(move || render.stop()).await {
+        tracing::error!(target: LOG_TARGET, "stopping the render thread failed: {e}");
+    }
+    tracing::info!(target: LOG_TARGET, "server stopped");
+    result
+}
+
+/// Logs what is served, where, and to whom.
+fn log_serving(address: std::net::SocketAddr, tokens: &auth::Tokens, episodes: &Episodes) {
+    tracing::info!(target: LOG_TARGET, %address, dataset = episodes.store.name(), scenes = episodes.store.infos().len(), "serving esrp.v1");
+    if tokens.required() {
+        tracing::info!(target: LOG_TARGET, tokens = %tokens.summary().join(", "), "calls need a bearer token");
+    }
+    if episodes.store.has_hidden() {
+        let [by_split, ..] = episodes.store.counts();
+        tracing::info!(
+            target: LOG_TARGET,
+            challenge = by_split.get("challenge").copied().unwrap_or(0),
+            minival = by_split.get("minival").copied().unwrap_or(0),
+            "serving the hidden challenge splits"
+        );
+    }
+}
+
+/// Closes idle episodes (`--idle-timeout-s`) and unclaimed ones (`Episodes::reap_unclaimed`,
+/// `--claim-timeout-ms`), checking ten times per shortest timeout (between 1 s and 60 s). A zero
+/// timeout never reaps; with both zero the task ends at once.
+fn spawn_reaper(episodes: Arc<Episodes>, idle: Duration, claim: Duration) -> JoinHandle<()> {
+    let shortest = [idle, claim].into_iter().filter(|t| !t.is_zero()).min();
+    tokio::spawn(async move {
+        let Some(shortest) = shortest else { return }; // both 0: never reap
+        let mut tick = tokio::time::interval((shortest / 10).clamp(Duration::from_secs(1), Duration::from_secs(60)));
+        loop {
+            tick.tick().await;
+            if !idle.is_zero() {
+                let reaped = episodes.reap_idle(idle).await;
+                if reaped > 0 {
+                    tracing::info!(target: LOG_TARGET, reaped, "closed idle episodes");
+                }
+            }
+            if !claim.is_zero() {
+                let reaped = episodes.reap_unclaimed(claim).await;
+                if reaped > 0 {
+                    tracing::info!(target: LOG_TARGET, reaped, "closed episodes whose id no call named (their create was abandoned)");
+                }
+            }
+        }
+    })
+}
+
+/// Serves the Prometheus metrics on `listener`, the live-episode gauge refreshed at each scrape.
+fn spawn_metrics(listener: TcpListener, episodes: Arc<Episodes>) -> JoinHandle<()> {
+    let refresh = {
+        let episodes = episodes.clone();
+        move || {
+            episodes.metrics.live.set(episodes.live() as i64);
+        }
+    };
+    tokio::spawn(async move {
+        if let Err(e) = metrics::serve(listener, episodes.metrics.clone(), refresh).await {
+            tracing::error!(target: LOG_TARGET, "the metrics endpoint stopped: {e}");
+        }
+    })
+}
+
+/// Serves the web viewer on `listener`.
+fn spawn_viewer(listener: TcpListener, episodes: Arc<Episodes>, tokens: Arc<auth::Tokens>) -> JoinHandle<()> {
+    tokio::spawn(async move {
+        if let Err(e) = viewer::serve(listener, episodes, tokens).await {
+            tracing::error!(target: LOG_TARGET, "the viewer stopped: {e}");
+        }
+    })
+}
+
+/// Ends a background task and waits until it has.
+async fn stop_task(task: JoinHandle<()>) {
+    task.abort();
+    let _ = task.await;
+}
+
+/// Serves the gRPC services (health, reflection, and esrp.v1 and dm_env_rpc behind the token
+/// check) on `listener` until `shutdown` completes, then drains in-flight calls for at most
+/// `--shutdown-grace-ms`.
+async fn serve_grpc(
+    listener: TcpListener,
+    config: &Config,
+    episodes: &Arc<Episodes>,
+    tokens: Arc<auth::Tokens>,
+    shutdown: impl Future<Output = ()> + Send,
+) -> Result<(), ServeError> {
+    let (health, health_service) = tonic_health::server::health_reporter();
+    health.set_serving::<proto::esrp_server::EsrpServer<esrp_v1::EsrpService>>().await;
+    health
+        .set_serving::<dm_env::wire::dm_env_rpc::v1::environment_server::EnvironmentServer<dm_env::DmEnvService>>()
+        .await;
+    let reflection = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(esrp_proto::FILE_DESCRIPTOR_SET)
+        .build_v1()?;
+    let dm_env = dm_env::server(episodes.clone());
+    let esrp = proto::esrp_server::EsrpServer::new(esrp_v1::EsrpService::new(episodes.clone()))
+        .max_decoding_message_size(config.max_message_bytes)
+        .max_encoding_message_size(config.max_message_bytes);
+    let check = auth::TokenCheck::new(tokens);
+
+    let (shutdown, drain_timeout) = bounded_drain(shutdown, config.shutdown_grace());
+    let serve = server_builder(config)?
+        .add_service(health_service)
+        .add_service(reflection)
+        .add_service(InterceptedService::new(esrp_v1::answered::Answered::new(esrp), check.clone()))
+        .add_service(InterceptedService::new(dm_env, check))
+        // TCP_NODELAY: an agent waits for each answer, so Nagle + delayed ACK would add ~40 ms a step.
+        .serve_with_incoming_shutdown(
+            tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true)),
+            shutdown,
+        );
+    tokio::select! {
+        result = serve => Ok(result?),
+        () = drain_timeout => {
+            // The connections still open are dropped with the runtime, after the render
+            // thread has stopped (in `run`): their clients see UNAVAILABLE.
+            let grace_ms = config.shutdown_grace().as_millis() as u64;
+            tracing::warn!(target: LOG_TARGET, grace_ms, "calls or streams still open after the shutdown grace: stopping anyway");
+            Ok(())
+        }
+    }
+}
+
+/// The transport's builder, with TLS where `--tls-cert` and `--tls-key` are given.
+fn server_builder(config: &Config) -> Result<tonic::transport::Server, ServeError> {
+    let mut builder = tonic::transport::Server::builder();
+    if let (Some(cert), Some(key)) = (&config.tls_cert, &config.tls_key) {
+        let read = |flag: &str, path: &std::path::Path| {
+            std::fs::read(path)
+                .map_err(|source| ServeError::Io { what: format!("cannot read {flag} {}", path.display()), source })
+        };
+        let (cert, key) = (read("--tls-cert", cert)?, read("--tls-key", key)?);
+        builder = builder.tls_config(
+            tonic::transport::ServerTlsConfig::new().identity(tonic::transport::Identity::from_pem(cert, key)),
+        )?;
+    }
+    Ok(builder)
+}
+
+/// `shutdown`, passed on to the server, and a timer that completes `grace` after it did. The
+/// drain after the signal is bounded: a client that keeps a stream open (or a call that does not
+/// end) would otherwise hold the server up for as long as it likes. If the server ends without a
+/// signal, the timer never completes: there is nothing to bound.
+fn bounded_drain(
+    shutdown: impl Future<Output = ()> + Send,
+    grace: Duration,
+) -> (impl Future<Output = ()> + Send, impl Future<Output = ()> + Send) {
+    let (signalled, on_signal) = tokio::sync::oneshot::channel::<()>();
+    let shutdown = async move {
+        shutdown.await;
+        let _ = signalled.send(());
+    };
+    let drain_timeout = async move {
+        if on_signal.await.is_err() {
+            std::future::pending::<()>().await;
+        }
+        tokio::time::sleep(grace).await;
+    };
+    (shutdown, drain_timeout)
+}
