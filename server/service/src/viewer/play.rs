@@ -1,0 +1,130 @@
+//! Playing from the page: the scenes to choose from, a new episode for the caller (agent
+//! `human`), its steps, its close and the record of its last run.
+
+use axum::Json;
+use axum::extract::{Path, Query, State};
+use axum::http::{HeaderMap, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use serde::Deserialize;
+use serde_json::{Value, json};
+
+use super::state::{Failure, Viewer, caller};
+use crate::types::{CreateOptions, EpisodeId, SceneChoice, SensorRequest, StepCall};
+
+#[derive(Deserialize)]
+pub(super) struct SceneQuery {
+    split: Option<String>,
+    difficulty: Option<String>,
+}
+
+pub(super) async fn scenes(
+    State(viewer): State<Viewer>,
+    Query(q): Query<SceneQuery>,
+    headers: HeaderMap,
+) -> Result<Json<Value>, Failure> {
+    caller(&viewer, &headers)?;
+    let split = q.split.filter(|s| !s.is_empty());
+    let difficulty = q.difficulty.filter(|s| !s.is_empty());
+    let list: Vec<Value> = viewer
+        .episodes
+        .store
+        .infos()
+        .iter()
+        .filter(|s| split.as_deref().is_none_or(|x| x == s.split.as_str()))
+        .filter(|s| difficulty.as_deref().is_none_or(|x| x == s.difficulty.as_str()))
+        .take(1000)
+        .map(|s| {
+            json!({ "id": s.id, "room_type": s.room_type, "difficulty": s.difficulty.as_str(),
+                    "split": s.split.as_str(), "objects": s.movable_objects })
+        })
+        .collect();
+    Ok(Json(list.into()))
+}
+
+#[derive(Deserialize)]
+pub(super) struct PlayRequest {
+    scene: String,
+}
+
+/// A new episode of `scene` for the caller, labelled `human`.
+pub(super) async fn play(
+    State(viewer): State<Viewer>,
+    headers: HeaderMap,
+    Json(request): Json<PlayRequest>,
+) -> Result<Json<Value>, Failure> {
+    let caller = caller(&viewer, &headers)?;
+    let options = CreateOptions {
+        scene: SceneChoice::SceneId(request.scene),
+        sensors: SensorRequest::default(),
+        horizon: None,
+        reward: Default::default(),
+        privileged: false,
+        agent: Some("human".into()),
+        keep_record: true,
+    };
+    let created = viewer.episodes.create(&caller, options, None).await?;
+    viewer.episodes.claim(&created.episode);
+    Ok(Json(json!({ "episode": created.episode.as_str(), "scene": created.scene.id })))
+}
+
+#[derive(Deserialize)]
+pub(super) struct StepBody {
+    action: u8,
+}
+
+pub(super) async fn step(
+    State(viewer): State<Viewer>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    Json(body): Json<StepBody>,
+) -> Result<Json<Value>, Failure> {
+    let caller = caller(&viewer, &headers)?;
+    let action = esrp_core::Action::from_code(i64::from(body.action))
+        .map_err(|e| Failure(StatusCode::BAD_REQUEST, format!("action: {e}")))?;
+    let call = StepCall { episode: EpisodeId::from(id), action, include_goal: false };
+    let result = viewer.episodes.step_many(&caller, vec![call]).await?.pop();
+    let result = result.ok_or_else(|| Failure(StatusCode::INTERNAL_SERVER_ERROR, "a step without an answer".into()))?;
+    let o = result.outcome;
+    let metrics = result.metrics.map(|m| {
+        json!({ "success": m.success, "osr": m.object_success_rate, "rdr": m.remaining_distance_ratio,
+                "stage": m.stage as u32, "steps": m.steps })
+    });
+    Ok(Json(json!({
+        "step": o.step_index,
+        "accepted": o.accepted,
+        "placed": o.placed_count,
+        "terminated": o.terminated,
+        "truncated": o.truncated,
+        "metrics": metrics,
+    })))
+}
+
+pub(super) async fn close(
+    State(viewer): State<Viewer>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> Result<Json<Value>, Failure> {
+    let caller = caller(&viewer, &headers)?;
+    let m = viewer.episodes.close(&caller, &EpisodeId::from(id)).await?;
+    Ok(Json(json!({ "success": m.success, "osr": m.object_success_rate, "steps": m.steps })))
+}
+
+/// The record of a played episode's last run that ended, as one `esrp.results/v1` line.
+pub(super) async fn record(
+    State(viewer): State<Viewer>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> Result<Response, Failure> {
+    let caller = caller(&viewer, &headers)?;
+    match viewer.episodes.last_record(&caller, &EpisodeId::from(id)).await? {
+        Some(record) => {
+            let mut line = serde_json::to_string(&record)
+                .map_err(|e| Failure(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
+            line.push('\n');
+            Ok(([(header::CONTENT_TYPE, "application/x-ndjson")], line).into_response())
+        }
+        None => {
+            Err(Failure(StatusCode::NOT_FOUND, "no record yet: a played episode has one once a run of it ends".into()))
+        }
+    }
+}
