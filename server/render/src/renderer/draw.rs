@@ -82,7 +82,8 @@ impl Renderer {
     }
 
     /// Draws `requests` into `atlas` (one page each), submits, waits for that submission and
-    /// extracts every view.
+    /// extracts every view: the uniforms written, the pages drawn and copied to the readback
+    /// buffer in one encoder, one submit, then the readback awaited and the views cut out of it.
     pub(super) fn draw_and_read(
         &self,
         atlas: &Atlas,
@@ -90,27 +91,41 @@ impl Renderer {
         tiles: &[Tile],
         t0: Instant,
     ) -> Result<Vec<ViewOutput>, RenderError> {
-        // Per-view uniforms: camera and the movable objects' poses.
-        let mut uniforms = vec![0u8; requests.len() * VIEW_STRIDE as usize];
-        for (i, request) in requests.iter().enumerate() {
-            let mut view = match request.camera {
-                Camera::Ego(camera) => ego_view(&camera),
-                Camera::TopDown => top_down_view(&request.scene.frame, request.scene.max_height),
-            };
-            for (slot, pose) in view.poses[1..].iter_mut().zip(request.object_poses) {
-                let (s, c) = pose.yaw.sin_cos();
-                // Poses are relative to nothing: f32 keeps millimetres over kilometres.
-                *slot = [c as f32, s as f32, pose.x as f32, pose.z as f32];
-            }
-            let start = i * VIEW_STRIDE as usize;
-            uniforms[start..start + std::mem::size_of::<GpuView>()].copy_from_slice(bytemuck::bytes_of(&view));
-        }
-
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        self.queue.write_buffer(&atlas.uniforms, 0, &uniforms);
+        self.queue.write_buffer(&atlas.uniforms, 0, &view_uniforms(requests));
         let mut encoder =
             self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("esrp-render batch") });
         let used_pages = tiles.iter().map(|t| t.page + 1).max().unwrap_or(1);
+        self.draw_pages(&mut encoder, atlas, requests, tiles, used_pages);
+        copy_to_readback(&mut encoder, atlas, used_pages);
+        let t1 = Instant::now();
+        let submission = self.queue.submit([encoder.finish()]);
+        self.map_readback(atlas, submission, scope)?;
+        let t2 = Instant::now();
+        let outputs = extract_mapped(atlas, requests, tiles)?;
+        log::trace!(
+            "esrp-render: {} views, {} pages of {}x{}: encode {:?}, device {:?}, extract {:?}",
+            requests.len(),
+            atlas.pages,
+            atlas.side,
+            atlas.side,
+            t1 - t0,
+            t2 - t1,
+            t2.elapsed()
+        );
+        Ok(outputs)
+    }
+
+    /// Encodes one render pass per used page of `atlas`: each page cleared (the colour to the
+    /// background, the extra planes to zero), then every view of that page drawn in its tile.
+    fn draw_pages(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        atlas: &Atlas,
+        requests: &[ViewRequest<'_>],
+        tiles: &[Tile],
+        used_pages: u32,
+    ) {
         let [r, g, b] = BACKGROUND_COLOUR.map(f64::from);
         let clear_colour = wgpu::Color { r, g, b, a: 1.0 };
         for page in 0..used_pages {
@@ -155,33 +170,17 @@ impl Renderer {
                 }
             }
         }
-        let copy = |encoder: &mut wgpu::CommandEncoder, texture: &wgpu::Texture, plane: u64| {
-            encoder.copy_texture_to_buffer(
-                wgpu::TexelCopyTextureInfo {
-                    texture,
-                    mip_level: 0,
-                    origin: wgpu::Origin3d::ZERO,
-                    aspect: wgpu::TextureAspect::All,
-                },
-                wgpu::TexelCopyBufferInfo {
-                    buffer: &atlas.readback,
-                    layout: wgpu::TexelCopyBufferLayout {
-                        offset: plane * atlas.plane_bytes(),
-                        bytes_per_row: Some(atlas.side * 4),
-                        rows_per_image: Some(atlas.side),
-                    },
-                },
-                wgpu::Extent3d { width: atlas.side, height: atlas.side, depth_or_array_layers: used_pages },
-            );
-        };
-        copy(&mut encoder, &atlas.colour.texture, 0);
-        if let Some(extras) = &atlas.extras {
-            copy(&mut encoder, &extras[0].texture, 1);
-            copy(&mut encoder, &extras[1].texture, 2);
-        }
-        let t1 = Instant::now();
-        let submission = self.queue.submit([encoder.finish()]);
+    }
 
+    /// Maps `atlas`'s readback buffer once `submission` is done, and says what went wrong if the
+    /// batch failed: a validation error caught by `scope`, a lost device, a failed poll or a
+    /// buffer that could not be mapped. On success the buffer is left mapped.
+    fn map_readback(
+        &self,
+        atlas: &Atlas,
+        submission: wgpu::SubmissionIndex,
+        scope: wgpu::ErrorScopeGuard,
+    ) -> Result<(), RenderError> {
         let (sender, receiver) = std::sync::mpsc::channel();
         let planes = if atlas.full { 3 } else { 1 };
         atlas.readback.map_async(wgpu::MapMode::Read, 0..atlas.plane_bytes() * planes, move |result| {
@@ -219,37 +218,81 @@ impl Renderer {
         } else {
             None
         };
-        if let Some(error) = failure {
-            if mapped {
-                atlas.readback.unmap();
+        match failure {
+            Some(error) => {
+                if mapped {
+                    atlas.readback.unmap();
+                }
+                Err(error)
             }
-            return Err(error);
+            None => Ok(()),
         }
-        let t2 = Instant::now();
-        let outputs = {
-            let mapped =
-                atlas.readback.get_mapped_range(..).map_err(|e| RenderError::Readback { reason: format!("{e:?}") })?;
-            let planes = Planes {
-                bytes: &mapped,
-                plane_bytes: atlas.plane_bytes() as usize,
-                page_bytes: atlas.page_bytes() as usize,
-                row_bytes: atlas.side as usize * 4,
-                full: atlas.full,
-            };
-            extract_all(&planes, requests, tiles)
-        };
-        atlas.readback.unmap();
-        let outputs = outputs?;
-        log::trace!(
-            "esrp-render: {} views, {} pages of {}x{}: encode {:?}, device {:?}, extract {:?}",
-            requests.len(),
-            atlas.pages,
-            atlas.side,
-            atlas.side,
-            t1 - t0,
-            t2 - t1,
-            t2.elapsed()
-        );
-        Ok(outputs)
     }
+}
+
+/// The per-view uniforms of `requests`, one [`VIEW_STRIDE`] apart: each view's camera and its
+/// movable objects' poses.
+fn view_uniforms(requests: &[ViewRequest<'_>]) -> Vec<u8> {
+    let mut uniforms = vec![0u8; requests.len() * VIEW_STRIDE as usize];
+    for (i, request) in requests.iter().enumerate() {
+        let mut view = match request.camera {
+            Camera::Ego(camera) => ego_view(&camera),
+            Camera::TopDown => top_down_view(&request.scene.frame, request.scene.max_height),
+        };
+        for (slot, pose) in view.poses[1..].iter_mut().zip(request.object_poses) {
+            let (s, c) = pose.yaw.sin_cos();
+            // Poses are relative to nothing: f32 keeps millimetres over kilometres.
+            *slot = [c as f32, s as f32, pose.x as f32, pose.z as f32];
+        }
+        let start = i * VIEW_STRIDE as usize;
+        uniforms[start..start + std::mem::size_of::<GpuView>()].copy_from_slice(bytemuck::bytes_of(&view));
+    }
+    uniforms
+}
+
+/// Encodes the copies of `atlas`'s used pages into its readback buffer: the colour plane, then
+/// the extra planes (depth and segmentation) where the atlas has them.
+fn copy_to_readback(encoder: &mut wgpu::CommandEncoder, atlas: &Atlas, used_pages: u32) {
+    let copy = |encoder: &mut wgpu::CommandEncoder, texture: &wgpu::Texture, plane: u64| {
+        encoder.copy_texture_to_buffer(
+            wgpu::TexelCopyTextureInfo {
+                texture,
+                mip_level: 0,
+                origin: wgpu::Origin3d::ZERO,
+                aspect: wgpu::TextureAspect::All,
+            },
+            wgpu::TexelCopyBufferInfo {
+                buffer: &atlas.readback,
+                layout: wgpu::TexelCopyBufferLayout {
+                    offset: plane * atlas.plane_bytes(),
+                    bytes_per_row: Some(atlas.side * 4),
+                    rows_per_image: Some(atlas.side),
+                },
+            },
+            wgpu::Extent3d { width: atlas.side, height: atlas.side, depth_or_array_layers: used_pages },
+        );
+    };
+    copy(encoder, &atlas.colour.texture, 0);
+    if let Some(extras) = &atlas.extras {
+        copy(encoder, &extras[0].texture, 1);
+        copy(encoder, &extras[1].texture, 2);
+    }
+}
+
+/// Every view of `requests` cut out of `atlas`'s mapped readback buffer, which is unmapped after.
+fn extract_mapped(atlas: &Atlas, requests: &[ViewRequest<'_>], tiles: &[Tile]) -> Result<Vec<ViewOutput>, RenderError> {
+    let outputs = {
+        let mapped =
+            atlas.readback.get_mapped_range(..).map_err(|e| RenderError::Readback { reason: format!("{e:?}") })?;
+        let planes = Planes {
+            bytes: &mapped,
+            plane_bytes: atlas.plane_bytes() as usize,
+            page_bytes: atlas.page_bytes() as usize,
+            row_bytes: atlas.side as usize * 4,
+            full: atlas.full,
+        };
+        extract_all(&planes, requests, tiles)
+    };
+    atlas.readback.unmap();
+    outputs
 }

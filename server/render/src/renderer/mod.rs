@@ -50,64 +50,36 @@ use readback::rgba_to_rgb;
 use requests::validate;
 pub use requests::{Outputs, SceneHandle, ViewOutput, ViewRequest};
 
-static NEXT_RENDERER_ID: AtomicU64 = AtomicU64::new(1);
+/// The adapter `backends` asks for: with [`BackendPreference::Auto`], a GPU through Vulkan
+/// first; without one, both APIs reach Mesa's CPU rasteriser, and OpenGL (llvmpipe) draws in the
+/// calling thread where Vulkan (lavapipe) hands every submission to a queue thread, and measured
+/// faster end to end (docs/performance.md), so it comes before lavapipe.
+fn choose_adapter(backends: BackendPreference, power: wgpu::PowerPreference) -> Result<wgpu::Adapter, RenderError> {
+    let (adapter, tried) = match backends {
+        BackendPreference::Auto => {
+            let adapter = match request_adapter(wgpu::Backends::VULKAN, power) {
+                Some(vulkan) if vulkan.get_info().device_type != wgpu::DeviceType::Cpu => Some(vulkan),
+                vulkan => request_adapter(wgpu::Backends::GL, power).or(vulkan),
+            };
+            (adapter, "vulkan, gl")
+        }
+        BackendPreference::Vulkan => (request_adapter(wgpu::Backends::VULKAN, power), "vulkan"),
+        BackendPreference::Gl => (request_adapter(wgpu::Backends::GL, power), "gl"),
+    };
+    adapter.ok_or_else(|| RenderError::NoAdapter { tried: tried.to_owned() })
+}
 
-impl Renderer {
-    /// Creates the device, the pipelines and the uniform buffer, and logs the adapter.
-    ///
-    /// Fails with [`RenderError::NoAdapter`] (never panics) when no adapter exists.
-    pub fn new(config: RendererConfig) -> Result<Self, RenderError> {
-        let power = config.power_preference;
-        let (adapter, tried) = match config.backends {
-            BackendPreference::Auto => {
-                // A GPU through Vulkan first. Without one, both APIs reach Mesa's CPU
-                // rasteriser: OpenGL (llvmpipe) draws in the calling thread where Vulkan
-                // (lavapipe) hands every submission to a queue thread, and measured faster
-                // end to end (README), so it comes before lavapipe.
-                let adapter = match request_adapter(wgpu::Backends::VULKAN, power) {
-                    Some(vulkan) if vulkan.get_info().device_type != wgpu::DeviceType::Cpu => Some(vulkan),
-                    vulkan => request_adapter(wgpu::Backends::GL, power).or(vulkan),
-                };
-                (adapter, "vulkan, gl")
-            }
-            BackendPreference::Vulkan => (request_adapter(wgpu::Backends::VULKAN, power), "vulkan"),
-            BackendPreference::Gl => (request_adapter(wgpu::Backends::GL, power), "gl"),
-        };
-        let adapter = adapter.ok_or_else(|| RenderError::NoAdapter { tried: tried.to_owned() })?;
-        let adapter_info = adapter.get_info();
-        log::info!(
-            "esrp-render: adapter {} ({:?}, {:?}, driver {} {})",
-            adapter_info.name,
-            adapter_info.backend,
-            adapter_info.device_type,
-            adapter_info.driver,
-            adapter_info.driver_info
-        );
-        let limits = adapter.limits();
-        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
-            label: Some("esrp-render"),
-            required_features: wgpu::Features::empty(),
-            required_limits: limits.clone(),
-            ..Default::default()
-        }))
-        .map_err(|e| RenderError::RequestDevice { adapter: adapter_info.name.clone(), reason: e.to_string() })?;
+/// The shader's two pipelines and the per-view uniform layout they share: `rgb` draws the colour
+/// plane alone, `full` the colour, depth and segmentation planes.
+struct Pipelines {
+    bind_group_layout: wgpu::BindGroupLayout,
+    rgb: wgpu::RenderPipeline,
+    full: wgpu::RenderPipeline,
+}
 
-        let lost = Arc::new(Mutex::new(None));
-        let lost_flag = Arc::clone(&lost);
-        device.set_device_lost_callback(move |reason, message| {
-            if let Ok(mut slot) = lost_flag.lock() {
-                *slot = Some(format!("{reason:?}: {message}"));
-            }
-        });
-
-        // Errors are returned from the operations that cause them (error scopes); anything else
-        // is logged rather than aborting the process, as wgpu does by default.
-        device.on_uncaptured_error(Arc::new(|error| log::error!("esrp-render: uncaptured wgpu error: {error}")));
-        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
-
-        let max_side = config.max_atlas_size.min(limits.max_texture_dimension_2d).max(64);
-        let max_atlas = 1u32 << (31 - max_side.leading_zeros());
-
+impl Pipelines {
+    /// Builds them on `device` (its validation errors are the caller's error scope's).
+    fn new(device: &wgpu::Device) -> Self {
         let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("esrp-render shader"),
             source: wgpu::ShaderSource::Wgsl(SHADER_SOURCE.into()),
@@ -165,10 +137,52 @@ impl Renderer {
             })
         };
         let target = |format| Some(wgpu::ColorTargetState { format, blend: None, write_mask: wgpu::ColorWrites::ALL });
-        let pipeline_rgb = pipeline("vs_rgb", "fs_rgb", &[target(COLOUR_FORMAT)]);
-        let pipeline_full =
+        let rgb = pipeline("vs_rgb", "fs_rgb", &[target(COLOUR_FORMAT)]);
+        let full =
             pipeline("vs_full", "fs_full", &[target(COLOUR_FORMAT), target(DEPTH_OUT_FORMAT), target(SEGMENT_FORMAT)]);
+        Self { bind_group_layout, rgb, full }
+    }
+}
 
+static NEXT_RENDERER_ID: AtomicU64 = AtomicU64::new(1);
+
+impl Renderer {
+    /// Creates the device, the pipelines and the uniform buffer, and logs the adapter.
+    ///
+    /// Fails with [`RenderError::NoAdapter`] (never panics) when no adapter exists.
+    pub fn new(config: RendererConfig) -> Result<Self, RenderError> {
+        let adapter = choose_adapter(config.backends, config.power_preference)?;
+        let adapter_info = adapter.get_info();
+        log::info!(
+            "esrp-render: adapter {} ({:?}, {:?}, driver {} {})",
+            adapter_info.name,
+            adapter_info.backend,
+            adapter_info.device_type,
+            adapter_info.driver,
+            adapter_info.driver_info
+        );
+        let limits = adapter.limits();
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("esrp-render"),
+            required_features: wgpu::Features::empty(),
+            required_limits: limits.clone(),
+            ..Default::default()
+        }))
+        .map_err(|e| RenderError::RequestDevice { adapter: adapter_info.name.clone(), reason: e.to_string() })?;
+
+        let lost = Arc::new(Mutex::new(None));
+        let lost_flag = Arc::clone(&lost);
+        device.set_device_lost_callback(move |reason, message| {
+            if let Ok(mut slot) = lost_flag.lock() {
+                *slot = Some(format!("{reason:?}: {message}"));
+            }
+        });
+
+        // Errors are returned from the operations that cause them (error scopes); anything else
+        // is logged rather than aborting the process, as wgpu does by default.
+        device.on_uncaptured_error(Arc::new(|error| log::error!("esrp-render: uncaptured wgpu error: {error}")));
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let Pipelines { bind_group_layout, rgb: pipeline_rgb, full: pipeline_full } = Pipelines::new(&device);
         if let Some(error) = pollster::block_on(scope.pop()) {
             return Err(RenderError::RequestDevice {
                 adapter: adapter_info.name.clone(),
@@ -176,6 +190,8 @@ impl Renderer {
             });
         }
 
+        let max_side = config.max_atlas_size.min(limits.max_texture_dimension_2d).max(64);
+        let max_atlas = 1u32 << (31 - max_side.leading_zeros());
         Ok(Self {
             id: NEXT_RENDERER_ID.fetch_add(1, Ordering::Relaxed),
             adapter_info,
