@@ -11,11 +11,12 @@ use parry3d::shape::{Compound, ConvexPolyhedron, Cuboid, Cylinder, Shape as _, S
 
 use crate::collision;
 use crate::error::{Layout, SceneError};
-use crate::geometry::{PlanPoint, footprint_iou, point_in_polygon, polygon_is_simple, signed_area};
-use crate::scene::{Difficulty, ObjectPose, Part, SCENE_SCHEMA, Scene, Shape};
+use crate::geometry::{OrientedRect, PlanPoint, footprint_iou, point_in_polygon, polygon_is_simple, signed_area};
+use crate::scene::{Difficulty, Mesh, ObjectPose, Part, SCENE_SCHEMA, Scene, Shape};
 use crate::shapes;
 use crate::world::{
     CompiledScene, LocalFootprint, MAX_MOVABLE_OBJECTS, MovableGeometry, Obstacle, ROBOT_HEIGHT, ROBOT_RADIUS, Rules,
+    WallPiece,
 };
 
 fn part_pose(offset: [f64; 3], yaw: f64) -> Pose {
@@ -24,6 +25,108 @@ fn part_pose(offset: [f64; 3], yaw: f64) -> Pose {
 
 fn check_finite(path: impl FnOnce() -> String, values: &[f64]) -> Result<(), SceneError> {
     if values.iter().all(|v| v.is_finite()) { Ok(()) } else { Err(SceneError::NonFinite { path: path() }) }
+}
+
+/// The checks of a scene's header and object list, before any geometry: its schema, a non-empty
+/// id, 1 to [`MAX_MOVABLE_OBJECTS`] movable objects, the difficulty of that count, a positive
+/// horizon, and object ids that are non-empty and unique.
+fn validate_header(scene: &Scene) -> Result<(), SceneError> {
+    if scene.schema != SCENE_SCHEMA {
+        return Err(SceneError::UnknownSchema { found: scene.schema.clone() });
+    }
+    if scene.id.trim().is_empty() {
+        return Err(SceneError::EmptyField { field: "id".into() });
+    }
+    let count = scene.movable_objects.len();
+    if count == 0 {
+        return Err(SceneError::NoMovableObjects);
+    }
+    if count > MAX_MOVABLE_OBJECTS {
+        return Err(SceneError::TooManyMovableObjects { count });
+    }
+    if Difficulty::for_object_count(count) != Some(scene.difficulty) {
+        return Err(SceneError::DifficultyMismatch { difficulty: scene.difficulty.as_str(), count });
+    }
+    if scene.horizon == 0 {
+        return Err(SceneError::ZeroHorizon);
+    }
+    let mut ids = std::collections::HashSet::new();
+    for id in scene.fixed_objects.iter().map(|o| &o.id).chain(scene.movable_objects.iter().map(|o| &o.id)) {
+        if id.is_empty() {
+            return Err(SceneError::EmptyField { field: "object id".into() });
+        }
+        if !ids.insert(id.as_str()) {
+            return Err(SceneError::DuplicateId { id: id.clone() });
+        }
+    }
+    Ok(())
+}
+
+/// The walls and the fixed objects as one collision compound, each part's owner, and the fixed
+/// objects' footprints.
+struct StaticWorld {
+    static_world: Compound,
+    static_part_owner: Vec<Obstacle>,
+    fixed_footprints: Vec<OrientedRect>,
+}
+
+/// Builds the [`StaticWorld`] of `scene`: its wall pieces' colliders, then each fixed object's exact
+/// parts, checking that its pose is finite and its footprint's centre inside the floor.
+fn static_world(
+    scene: &Scene,
+    floor: &[PlanPoint],
+    wall_pieces: &[WallPiece],
+    margin: f64,
+) -> Result<StaticWorld, SceneError> {
+    let mut static_parts: Vec<(Pose, SharedShape)> = Vec::new();
+    let mut static_part_owner = Vec::new();
+    for piece in wall_pieces {
+        static_parts.push(shapes::wall_collider(piece));
+        static_part_owner.push(Obstacle::Wall(piece.wall));
+    }
+    let mut fixed_footprints = Vec::new();
+    for (i, object) in scene.fixed_objects.iter().enumerate() {
+        let path = format!("fixed_objects[{i}]");
+        check_finite(|| format!("{path}.pose"), &[object.pose.x, object.pose.z, object.pose.yaw])?;
+        let parts = build_parts(&object.id, &path, &object.shape, margin, true)?;
+        let footprint = local_footprint(&parts.local_aabb).at(&object.pose);
+        if !point_in_polygon(footprint.center, floor) {
+            return Err(SceneError::OutsideRoom { object: object.id.clone(), layout: Layout::Initial });
+        }
+        fixed_footprints.push(footprint);
+        let placement = shapes::object_pose(&object.pose);
+        for (pose, shape) in parts.exact {
+            static_parts.push((placement * pose, shape));
+            static_part_owner.push(Obstacle::Fixed(i));
+        }
+    }
+    Ok(StaticWorld { static_world: Compound::new(static_parts), static_part_owner, fixed_footprints })
+}
+
+/// The geometry of each movable object of `scene` (its exact obstacle, its dilated carried parts
+/// and its footprint), checking that its poses are finite and its footprint's centre inside the
+/// floor in both layouts.
+fn movable_geometry(scene: &Scene, floor: &[PlanPoint], margin: f64) -> Result<Vec<MovableGeometry>, SceneError> {
+    let mut movables = Vec::with_capacity(scene.movable_objects.len());
+    for (i, object) in scene.movable_objects.iter().enumerate() {
+        let path = format!("movable_objects[{i}]");
+        check_finite(|| format!("{path}.pose"), &[object.pose.x, object.pose.z, object.pose.yaw])?;
+        check_finite(|| format!("{path}.target"), &[object.target.x, object.target.z, object.target.yaw])?;
+        let parts = build_parts(&object.id, &path, &object.shape, margin, false)?;
+        let footprint = local_footprint(&parts.local_aabb);
+        for (layout, pose) in [(Layout::Initial, &object.pose), (Layout::Target, &object.target)] {
+            if !point_in_polygon(footprint.at(pose).center, floor) {
+                return Err(SceneError::OutsideRoom { object: object.id.clone(), layout });
+            }
+        }
+        movables.push(MovableGeometry {
+            obstacle: Compound::new(parts.exact),
+            carried_parts: parts.dilated,
+            footprint,
+        });
+    }
+
+    Ok(movables)
 }
 
 /// Exact and dilated convex parts of a shape, in the object's frame.
@@ -43,98 +146,120 @@ fn build_parts(
     as_triangles: bool,
 ) -> Result<PartShapes, SceneError> {
     let invalid = |reason: String| SceneError::InvalidShape { object: object.to_owned(), reason };
-    let mut exact = Vec::new();
-    let mut dilated = Vec::new();
-    match shape {
-        Shape::Parts(parts) => {
-            if parts.is_empty() {
-                return Err(invalid("`shape.parts` is empty: give at least one box, cylinder or convex hull".into()));
-            }
-            for (i, part) in parts.iter().enumerate() {
-                let (offset, yaw) = part.placement();
-                check_finite(|| format!("{path}.shape.parts[{i}].offset"), &offset)?;
-                check_finite(|| format!("{path}.shape.parts[{i}].yaw"), &[yaw])?;
-                let pose = part_pose(offset, yaw);
-                let (e, d) = match part {
-                    Part::Box { half_extents, .. } => {
-                        check_finite(|| format!("{path}.shape.parts[{i}].half_extents"), half_extents)?;
-                        if half_extents.iter().any(|&h| h <= 0.0) {
-                            return Err(invalid(format!(
-                                "part {i}: box half extents {half_extents:?} must all be positive"
-                            )));
-                        }
-                        let [x, y, z] = *half_extents;
-                        (
-                            SharedShape::new(Cuboid::new(Vector::new(x, y, z))),
-                            SharedShape::round_cuboid(x, y, z, margin),
-                        )
-                    }
-                    Part::Cylinder { radius, half_height, .. } => {
-                        check_finite(|| format!("{path}.shape.parts[{i}]"), &[*radius, *half_height])?;
-                        if *radius <= 0.0 || *half_height <= 0.0 {
-                            return Err(invalid(format!("part {i}: cylinder radius and half height must be positive")));
-                        }
-                        (
-                            SharedShape::new(Cylinder::new(*half_height, *radius)),
-                            SharedShape::round_cylinder(*half_height, *radius, margin),
-                        )
-                    }
-                    Part::ConvexHull { points, .. } => {
-                        for (j, p) in points.iter().enumerate() {
-                            check_finite(|| format!("{path}.shape.parts[{i}].points[{j}]"), p)?;
-                        }
-                        let points: Vec<Vector> = points.iter().map(|p| Vector::new(p[0], p[1], p[2])).collect();
-                        hull_pair(&points, margin).ok_or_else(|| {
-                            invalid(format!("part {i}: the convex hull of its points is degenerate (give at least 4 points not in one plane)"))
-                        })?
-                    }
-                };
-                exact.push((pose, e));
-                dilated.push((pose, d));
-            }
-        }
-        Shape::Mesh(mesh) => {
-            for (j, p) in mesh.vertices.iter().enumerate() {
-                check_finite(|| format!("{path}.shape.mesh.vertices[{j}]"), p)?;
-            }
-            if mesh.triangles.is_empty() {
-                return Err(invalid("`shape.mesh.triangles` is empty".into()));
-            }
-            let vertices: Vec<Vector> = mesh.vertices.iter().map(|p| Vector::new(p[0], p[1], p[2])).collect();
-            for (t, tri) in mesh.triangles.iter().enumerate() {
-                if let Some(&bad) = tri.iter().find(|&&v| v as usize >= vertices.len()) {
-                    return Err(invalid(format!(
-                        "mesh triangle {t} uses vertex {bad}, but the mesh has only {} vertices",
-                        vertices.len()
-                    )));
-                }
-            }
-            if as_triangles {
-                for tri in &mesh.triangles {
-                    let [a, b, c] = tri.map(|v| vertices[v as usize]);
-                    if (b - a).cross(c - a).length() <= 1e-12 {
-                        continue; // A degenerate triangle has no surface to hit.
-                    }
-                    exact.push((Pose::IDENTITY, SharedShape::new(Triangle::new(a, b, c))));
-                    dilated.push((Pose::IDENTITY, SharedShape::round_triangle(a, b, c, margin)));
-                }
-                if exact.is_empty() {
-                    return Err(invalid("every mesh triangle is degenerate (zero area)".into()));
-                }
-            } else {
-                let (e, d) = hull_pair(&vertices, margin).ok_or_else(|| {
-                    invalid("the convex hull of the mesh is degenerate (flat or fewer than 4 vertices)".into())
-                })?;
-                exact.push((Pose::IDENTITY, e));
-                dilated.push((Pose::IDENTITY, d));
-            }
-        }
-    }
+    let (exact, dilated) = match shape {
+        Shape::Parts(parts) => primitive_parts(parts, path, margin, &invalid)?,
+        Shape::Mesh(mesh) => mesh_parts(mesh, path, margin, as_triangles, &invalid)?,
+    };
     let mut local_aabb = Aabb::new_invalid();
     for (pose, shape) in &exact {
         local_aabb.merge(&shape.compute_aabb(pose));
     }
     Ok(PartShapes { exact, dilated, local_aabb })
+}
+
+/// A shape's exact parts and the same dilated by the collision margin, each with its pose.
+type PartPairs = (Vec<(Pose, SharedShape)>, Vec<(Pose, SharedShape)>);
+
+/// The parts of a shape made of boxes, cylinders and convex hulls, each checked (finite, positive
+/// sizes, a hull with volume); `invalid` makes the error of a bad part.
+fn primitive_parts(
+    parts: &[Part],
+    path: &str,
+    margin: f64,
+    invalid: &dyn Fn(String) -> SceneError,
+) -> Result<PartPairs, SceneError> {
+    let mut exact = Vec::new();
+    let mut dilated = Vec::new();
+    if parts.is_empty() {
+        return Err(invalid("`shape.parts` is empty: give at least one box, cylinder or convex hull".into()));
+    }
+    for (i, part) in parts.iter().enumerate() {
+        let (offset, yaw) = part.placement();
+        check_finite(|| format!("{path}.shape.parts[{i}].offset"), &offset)?;
+        check_finite(|| format!("{path}.shape.parts[{i}].yaw"), &[yaw])?;
+        let pose = part_pose(offset, yaw);
+        let (e, d) = match part {
+            Part::Box { half_extents, .. } => {
+                check_finite(|| format!("{path}.shape.parts[{i}].half_extents"), half_extents)?;
+                if half_extents.iter().any(|&h| h <= 0.0) {
+                    return Err(invalid(format!("part {i}: box half extents {half_extents:?} must all be positive")));
+                }
+                let [x, y, z] = *half_extents;
+                (SharedShape::new(Cuboid::new(Vector::new(x, y, z))), SharedShape::round_cuboid(x, y, z, margin))
+            }
+            Part::Cylinder { radius, half_height, .. } => {
+                check_finite(|| format!("{path}.shape.parts[{i}]"), &[*radius, *half_height])?;
+                if *radius <= 0.0 || *half_height <= 0.0 {
+                    return Err(invalid(format!("part {i}: cylinder radius and half height must be positive")));
+                }
+                (
+                    SharedShape::new(Cylinder::new(*half_height, *radius)),
+                    SharedShape::round_cylinder(*half_height, *radius, margin),
+                )
+            }
+            Part::ConvexHull { points, .. } => {
+                for (j, p) in points.iter().enumerate() {
+                    check_finite(|| format!("{path}.shape.parts[{i}].points[{j}]"), p)?;
+                }
+                let points: Vec<Vector> = points.iter().map(|p| Vector::new(p[0], p[1], p[2])).collect();
+                hull_pair(&points, margin).ok_or_else(|| {
+                        invalid(format!("part {i}: the convex hull of its points is degenerate (give at least 4 points not in one plane)"))
+                    })?
+            }
+        };
+        exact.push((pose, e));
+        dilated.push((pose, d));
+    }
+    Ok((exact, dilated))
+}
+
+/// The parts of a mesh: its triangles (`as_triangles`, a fixed object's exact surface) or its
+/// convex hull (a movable object's), the vertices checked finite and the triangles' indices in
+/// range; `invalid` makes the error of a bad mesh.
+fn mesh_parts(
+    mesh: &Mesh,
+    path: &str,
+    margin: f64,
+    as_triangles: bool,
+    invalid: &dyn Fn(String) -> SceneError,
+) -> Result<PartPairs, SceneError> {
+    let mut exact = Vec::new();
+    let mut dilated = Vec::new();
+    for (j, p) in mesh.vertices.iter().enumerate() {
+        check_finite(|| format!("{path}.shape.mesh.vertices[{j}]"), p)?;
+    }
+    if mesh.triangles.is_empty() {
+        return Err(invalid("`shape.mesh.triangles` is empty".into()));
+    }
+    let vertices: Vec<Vector> = mesh.vertices.iter().map(|p| Vector::new(p[0], p[1], p[2])).collect();
+    for (t, tri) in mesh.triangles.iter().enumerate() {
+        if let Some(&bad) = tri.iter().find(|&&v| v as usize >= vertices.len()) {
+            return Err(invalid(format!(
+                "mesh triangle {t} uses vertex {bad}, but the mesh has only {} vertices",
+                vertices.len()
+            )));
+        }
+    }
+    if as_triangles {
+        for tri in &mesh.triangles {
+            let [a, b, c] = tri.map(|v| vertices[v as usize]);
+            if (b - a).cross(c - a).length() <= 1e-12 {
+                continue; // A degenerate triangle has no surface to hit.
+            }
+            exact.push((Pose::IDENTITY, SharedShape::new(Triangle::new(a, b, c))));
+            dilated.push((Pose::IDENTITY, SharedShape::round_triangle(a, b, c, margin)));
+        }
+        if exact.is_empty() {
+            return Err(invalid("every mesh triangle is degenerate (zero area)".into()));
+        }
+    } else {
+        let (e, d) = hull_pair(&vertices, margin).ok_or_else(|| {
+            invalid("the convex hull of the mesh is degenerate (flat or fewer than 4 vertices)".into())
+        })?;
+        exact.push((Pose::IDENTITY, e));
+        dilated.push((Pose::IDENTITY, d));
+    }
+    Ok((exact, dilated))
 }
 
 /// The exact and dilated convex hulls of `points`, or `None` if the hull has no volume (fewer
@@ -254,83 +379,15 @@ impl CompiledScene {
     /// generator begins at the target layout and moves objects away. Every other check applies.
     pub fn for_backward_construction(scene: Scene, rules: Rules) -> Result<Self, SceneError> {
         rules.validate()?;
-        if scene.schema != SCENE_SCHEMA {
-            return Err(SceneError::UnknownSchema { found: scene.schema });
-        }
-        if scene.id.trim().is_empty() {
-            return Err(SceneError::EmptyField { field: "id".into() });
-        }
-        let count = scene.movable_objects.len();
-        if count == 0 {
-            return Err(SceneError::NoMovableObjects);
-        }
-        if count > MAX_MOVABLE_OBJECTS {
-            return Err(SceneError::TooManyMovableObjects { count });
-        }
-        if Difficulty::for_object_count(count) != Some(scene.difficulty) {
-            return Err(SceneError::DifficultyMismatch { difficulty: scene.difficulty.as_str(), count });
-        }
-        if scene.horizon == 0 {
-            return Err(SceneError::ZeroHorizon);
-        }
-        let mut ids = std::collections::HashSet::new();
-        for id in scene.fixed_objects.iter().map(|o| &o.id).chain(scene.movable_objects.iter().map(|o| &o.id)) {
-            if id.is_empty() {
-                return Err(SceneError::EmptyField { field: "object id".into() });
-            }
-            if !ids.insert(id.as_str()) {
-                return Err(SceneError::DuplicateId { id: id.clone() });
-            }
-        }
+        validate_header(&scene)?;
         let floor = validate_room(&scene)?;
         validate_openings(&scene, &floor)?;
         let room = &scene.room;
         let wall_pieces = shapes::wall_pieces(&floor, room.wall_thickness, room.wall_height, &room.openings);
         let margin = rules.collision_margin;
-
-        let mut static_parts: Vec<(Pose, SharedShape)> = Vec::new();
-        let mut static_part_owner = Vec::new();
-        for piece in &wall_pieces {
-            static_parts.push(shapes::wall_collider(piece));
-            static_part_owner.push(Obstacle::Wall(piece.wall));
-        }
-        let mut fixed_footprints = Vec::new();
-        for (i, object) in scene.fixed_objects.iter().enumerate() {
-            let path = format!("fixed_objects[{i}]");
-            check_finite(|| format!("{path}.pose"), &[object.pose.x, object.pose.z, object.pose.yaw])?;
-            let parts = build_parts(&object.id, &path, &object.shape, margin, true)?;
-            let footprint = local_footprint(&parts.local_aabb).at(&object.pose);
-            if !point_in_polygon(footprint.center, &floor) {
-                return Err(SceneError::OutsideRoom { object: object.id.clone(), layout: Layout::Initial });
-            }
-            fixed_footprints.push(footprint);
-            let placement = shapes::object_pose(&object.pose);
-            for (pose, shape) in parts.exact {
-                static_parts.push((placement * pose, shape));
-                static_part_owner.push(Obstacle::Fixed(i));
-            }
-        }
-        let static_world = Compound::new(static_parts);
-
-        let mut movables = Vec::with_capacity(count);
-        for (i, object) in scene.movable_objects.iter().enumerate() {
-            let path = format!("movable_objects[{i}]");
-            check_finite(|| format!("{path}.pose"), &[object.pose.x, object.pose.z, object.pose.yaw])?;
-            check_finite(|| format!("{path}.target"), &[object.target.x, object.target.z, object.target.yaw])?;
-            let parts = build_parts(&object.id, &path, &object.shape, margin, false)?;
-            let footprint = local_footprint(&parts.local_aabb);
-            for (layout, pose) in [(Layout::Initial, &object.pose), (Layout::Target, &object.target)] {
-                if !point_in_polygon(footprint.at(pose).center, &floor) {
-                    return Err(SceneError::OutsideRoom { object: object.id.clone(), layout });
-                }
-            }
-            movables.push(MovableGeometry {
-                obstacle: Compound::new(parts.exact),
-                carried_parts: parts.dilated,
-                footprint,
-            });
-        }
-
+        let StaticWorld { static_world, static_part_owner, fixed_footprints } =
+            static_world(&scene, &floor, &wall_pieces, margin)?;
+        let movables = movable_geometry(&scene, &floor, margin)?;
         let agent = PlanPoint::new(scene.agent.x, scene.agent.z);
         check_finite(|| "agent".into(), &[agent.x, agent.z])?;
         if !point_in_polygon(agent, &floor) {

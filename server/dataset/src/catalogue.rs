@@ -292,6 +292,8 @@ fn lamp(name: &'static str, height: f64, shade: f64) -> Model {
     )
 }
 
+/// The catalogue, one model per line. It stays one long list on purpose: it is data, read as a
+/// table (fixed furniture, then the movable categories), and its order is the models' ids.
 fn build() -> Vec<Model> {
     use Kind::*;
     use MovableCategory as M;

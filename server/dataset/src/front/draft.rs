@@ -393,12 +393,42 @@ pub(super) fn draft_room(
     library: &mut Library,
     report: &mut ImportReport,
 ) -> Result<RoomDraft, &'static str> {
-    let furniture: HashMap<&str, &Furniture> = house.furniture.iter().map(|f| (f.uid.as_str(), f)).collect();
     let meshes: HashMap<&str, &ArchMesh> = house.mesh.iter().map(|m| (m.uid.as_str(), m)).collect();
     let room_meshes: Vec<(&ArchMesh, &Child)> =
         room.children.iter().filter_map(|c| meshes.get(c.reference.as_str()).map(|m| (*m, c))).collect();
+    let (floor, floor_y) = draft_floor(&room_meshes, room_name, report)?;
+    let floor_area = signed_area(&floor);
+    if floor_area < MIN_FLOOR_AREA {
+        return Err("too_small");
+    }
+    let wall_height = wall_height(&room_meshes, floor_y);
+    let openings = openings_of(&room_meshes, &floor, floor_y, wall_height);
+    let furniture: HashMap<&str, &Furniture> = house.furniture.iter().map(|f| (f.uid.as_str(), f)).collect();
+    let children: Vec<(&Furniture, &Child)> =
+        room.children.iter().filter_map(|c| furniture.get(c.reference.as_str()).map(|f| (*f, c))).collect();
+    // Each piece's hull is cut to its share of the triangles the walls leave.
+    let walls_triangles = 12 * 3 * floor.len() + 12 * 2 * openings.len();
+    let per_object = TRIANGLE_BUDGET.saturating_sub(walls_triangles) / children.len().max(1);
+    let cap = ((per_object + 4) / 2).clamp(8, MAX_HULL_POINTS);
+    let pieces = draft_pieces(&children, room_name, &floor, floor_y, cap, library, report);
+    let covered: f64 = pieces.iter().filter(|p| p.standing).map(Piece::footprint_area).sum();
+    if floor_area - covered < MIN_FREE_FLOOR {
+        return Err("no_free_floor");
+    }
+    if !pieces.iter().any(Piece::carryable) {
+        return Err("no_carryable");
+    }
+    Ok(RoomDraft { floor, wall_height, openings, pieces })
+}
 
-    // Floor.
+/// The room's floor outline, counter-clockwise, and the floor's height: the outline of its floor
+/// meshes' triangles (the largest where there are several, their bounding rectangle where they
+/// make no simple polygon), or `no_floor_mesh`.
+fn draft_floor(
+    room_meshes: &[(&ArchMesh, &Child)],
+    room_name: &str,
+    report: &mut ImportReport,
+) -> Result<(Vec<PlanPoint>, f64), &'static str> {
     let mut triangles = Vec::new();
     let mut floor_points = Vec::new();
     for (mesh, child) in room_meshes.iter().filter(|(m, _)| m.kind == "Floor") {
@@ -417,7 +447,6 @@ pub(super) fn draft_room(
     if triangles.is_empty() {
         return Err("no_floor_mesh");
     }
-    let floor_y = lo[1];
     let floor = match floor_outline(&triangles) {
         Some((outline, count)) => {
             if count > 1 {
@@ -433,58 +462,43 @@ pub(super) fn draft_room(
         }
     };
     let floor = if signed_area(&floor) < 0.0 { floor.into_iter().rev().collect() } else { floor };
-    let floor_area = signed_area(&floor);
-    if floor_area < MIN_FLOOR_AREA {
-        return Err("too_small");
-    }
+    Ok((floor, lo[1]))
+}
 
-    // Walls and openings.
+/// The height of the room's walls above the floor: their meshes' top where it is between 2.2 m
+/// and 4 m, else [`DEFAULT_WALL_HEIGHT`].
+fn wall_height(room_meshes: &[(&ArchMesh, &Child)], floor_y: f64) -> f64 {
     let wall_top = room_meshes
         .iter()
         .filter(|(m, _)| m.kind.starts_with("Wall"))
         .flat_map(|(m, c)| mesh_points(m, c))
         .map(|p| p[1] - floor_y)
         .fold(f64::NEG_INFINITY, f64::max);
-    let wall_height = if (2.2..=4.0).contains(&wall_top) { wall_top } else { DEFAULT_WALL_HEIGHT };
-    let openings = openings_of(&room_meshes, &floor, floor_y, wall_height);
+    if (2.2..=4.0).contains(&wall_top) { wall_top } else { DEFAULT_WALL_HEIGHT }
+}
 
-    // Furniture.
-    let children: Vec<(&Furniture, &Child)> =
-        room.children.iter().filter_map(|c| furniture.get(c.reference.as_str()).map(|f| (*f, c))).collect();
-    let walls_triangles = 12 * 3 * floor.len() + 12 * 2 * openings.len();
-    let per_object = TRIANGLE_BUDGET.saturating_sub(walls_triangles) / children.len().max(1);
-    let cap = ((per_object + 4) / 2).clamp(8, MAX_HULL_POINTS);
+/// The room's furniture (`children`) as pieces placed on the floor, each hull cut to at most
+/// `cap` points. A piece without geometry, flat, a duplicate of one already kept (same model and
+/// pose to the centimetre), or standing outside the floor is dropped and counted in `report`.
+fn draft_pieces(
+    children: &[(&Furniture, &Child)],
+    room_name: &str,
+    floor: &[PlanPoint],
+    floor_y: f64,
+    cap: usize,
+    library: &mut Library,
+    report: &mut ImportReport,
+) -> Vec<Piece> {
     let mut pieces: Vec<Piece> = Vec::new();
     let mut seen: HashSet<(String, i64, i64, i64)> = HashSet::new();
-    for (item, child) in children {
+    for &(item, child) in children {
         let jid = item.jid.clone().unwrap_or_default();
         let (category, super_category) = library.info.get(&jid).cloned().unwrap_or_else(|| {
             (item.category.clone().or_else(|| item.title.clone()).unwrap_or_default(), String::new())
         });
-        let geometry =
-            if jid.is_empty() { ModelGeometry::Missing } else { library.geometry(&jid, &mut report.warnings) };
-        let (points, is_box) = match geometry {
-            ModelGeometry::Hull(points) => (points, false),
-            ModelGeometry::Missing => match item.bbox.as_deref() {
-                Some(&[x, y, z]) if x > 0.0 && y > 0.0 && z > 0.0 => {
-                    if jid.is_empty() {
-                        // (A model that is missing was warned about once, by the library.)
-                        report.warnings.push(format!(
-                            "{room_name}: furniture {} has no model id; using a box of its bbox",
-                            item.uid
-                        ));
-                    }
-                    (box_corners(&[[-x / 2.0, 0.0, -z / 2.0], [x / 2.0, y, z / 2.0]]), true)
-                }
-                _ => {
-                    report.warnings.push(format!(
-                        "{room_name}: furniture {} ({jid}) has neither a model nor a bbox; dropped",
-                        item.uid
-                    ));
-                    report.drop_object("no_geometry");
-                    continue;
-                }
-            },
+        let Some((points, is_box)) = furniture_points(item, &jid, room_name, library, report) else {
+            report.drop_object("no_geometry");
+            continue;
         };
         let Some(Placement { pose, local, size, standing }) = place(&points, child, floor_y) else {
             report.drop_object("no_geometry");
@@ -504,7 +518,7 @@ pub(super) fn draft_room(
             report.drop_object("duplicate");
             continue;
         }
-        if !point_in_polygon(pose.position(), &floor) {
+        if !point_in_polygon(pose.position(), floor) {
             report.drop_object("outside_floor");
             continue;
         }
@@ -517,12 +531,39 @@ pub(super) fn draft_room(
         }
         pieces.push(piece);
     }
-    let covered: f64 = pieces.iter().filter(|p| p.standing).map(Piece::footprint_area).sum();
-    if floor_area - covered < MIN_FREE_FLOOR {
-        return Err("no_free_floor");
+    pieces
+}
+
+/// A furniture item's points in its model's frame and whether they are a box: its model's hull,
+/// or where the model is missing, the box of its bbox (warned about), or `None` (warned about)
+/// where it has neither.
+fn furniture_points(
+    item: &Furniture,
+    jid: &str,
+    room_name: &str,
+    library: &mut Library,
+    report: &mut ImportReport,
+) -> Option<(Vec<[f64; 3]>, bool)> {
+    let geometry = if jid.is_empty() { ModelGeometry::Missing } else { library.geometry(jid, &mut report.warnings) };
+    match geometry {
+        ModelGeometry::Hull(points) => Some((points, false)),
+        ModelGeometry::Missing => match item.bbox.as_deref() {
+            Some(&[x, y, z]) if x > 0.0 && y > 0.0 && z > 0.0 => {
+                if jid.is_empty() {
+                    // (A model that is missing was warned about once, by the library.)
+                    report
+                        .warnings
+                        .push(format!("{room_name}: furniture {} has no model id; using a box of its bbox", item.uid));
+                }
+                Some((box_corners(&[[-x / 2.0, 0.0, -z / 2.0], [x / 2.0, y, z / 2.0]]), true))
+            }
+            _ => {
+                report.warnings.push(format!(
+                    "{room_name}: furniture {} ({jid}) has neither a model nor a bbox; dropped",
+                    item.uid
+                ));
+                None
+            }
+        },
     }
-    if !pieces.iter().any(Piece::carryable) {
-        return Err("no_carryable");
-    }
-    Ok(RoomDraft { floor, wall_height, openings, pieces })
 }
