@@ -122,6 +122,8 @@ fn records(dir: &Path, token: &str) -> Vec<esrp_client::results::EpisodeRecord> 
     read.records
 }
 
+/// Each role (agent, admin) against the guarded calls, on esrp.v1 and dm_env_rpc, on one server: a
+/// list read top to bottom, kept whole so that a call left out shows.
 #[tokio::test]
 async fn each_role_gets_only_what_it_may_on_both_apis() {
     let dir = tempfile::tempdir().unwrap();
@@ -323,6 +325,8 @@ async fn quotas_hold_under_racing_clients() {
     }
 }
 
+/// One story told in order, across a kill and a restart of the server: each step depends on the
+/// records and attempts the steps before it left, so it stays one test.
 #[tokio::test]
 async fn every_challenge_run_is_recorded_once_across_a_kill_and_a_restart() {
     let dir = tempfile::tempdir().unwrap();

@@ -121,6 +121,35 @@ impl Outcome {
         sorted.sort_by(f64::total_cmp);
         sorted[((sorted.len() - 1) as f64 * p).round() as usize]
     }
+
+    /// The scenario's row of the printed table (its note alone where it measured no latencies).
+    fn print_row(&self) {
+        if self.latencies.is_empty() {
+            println!("{:<20} {:>8} {}", self.name, self.episodes, self.note);
+        } else {
+            println!(
+                "{:<20} {:>8} {:>9} {:>11.0} {:>9.2} {:>9.2}",
+                self.name,
+                self.episodes,
+                self.steps,
+                self.rate(),
+                self.percentile(0.5) * 1e3,
+                self.percentile(0.99) * 1e3
+            );
+        }
+    }
+
+    /// The scenario's entry of `--json`'s results (rates and latencies null where not measured).
+    fn to_json(&self) -> serde_json::Value {
+        let measured = !self.latencies.is_empty();
+        serde_json::json!({
+            "scenario": self.name, "episodes": self.episodes, "steps": self.steps, "seconds": self.seconds,
+            "steps_per_second": if !measured && self.name != "soak" { None } else { Some(self.rate()) },
+            "p50_ms": if measured { Some(self.percentile(0.5) * 1e3) } else { None },
+            "p99_ms": if measured { Some(self.percentile(0.99) * 1e3) } else { None },
+            "note": self.note,
+        })
+    }
 }
 
 /// Episode scenes: test scenes of the served dataset, round robin.
@@ -354,12 +383,12 @@ fn runtime_for(scenario: &str) -> std::io::Result<tokio::runtime::Runtime> {
     }
 }
 
-fn main() -> anyhow::Result<()> {
-    let args = Args::parse();
-    esrp_client::signals::exit_on_signals("esrp-bench")?;
-    let mut server_args = args.server_args.clone();
+/// The claim timeout the soak's cleanup waits for: `--server-claim-timeout` for a server named by
+/// `--server`; for a server started here, the one `--server-args` sets, or else
+/// [`LOCAL_CLAIM_TIMEOUT`], added to `server_args`.
+fn claim_timeout(args: &Args, server_args: &mut Vec<String>) -> anyhow::Result<u64> {
     let claim_flag = |a: &String| a.starts_with("--claim-timeout-seconds");
-    let claim_timeout = match server_args.iter().position(claim_flag) {
+    Ok(match server_args.iter().position(claim_flag) {
         _ if args.server.is_some() => args.server_claim_timeout,
         Some(i) => {
             let value =
@@ -370,17 +399,29 @@ fn main() -> anyhow::Result<()> {
             server_args.extend(["--claim-timeout-seconds".to_owned(), LOCAL_CLAIM_TIMEOUT.to_string()]);
             LOCAL_CLAIM_TIMEOUT
         }
-    };
-    let (address, local) = reach_or_start(args.server.as_deref(), args.server_binary.clone(), &server_args)?;
-    let connect = async || Client::connect(&address).token_opt(args.token.as_deref()).await;
-    let info = runtime_for("")?.block_on(async { anyhow::Ok(connect().await?.server_info().await?) })?;
-    let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
-    let cpu_model = std::fs::read_to_string("/proc/cpuinfo")
+    })
+}
+
+/// This machine's CPU model (`/proc/cpuinfo`), or nothing where it cannot be read.
+fn cpu_model() -> String {
+    std::fs::read_to_string("/proc/cpuinfo")
         .ok()
         .and_then(|c| {
             c.lines().find(|l| l.starts_with("model name")).map(|l| l.split(':').nth(1).unwrap_or("").trim().to_owned())
         })
-        .unwrap_or_default();
+        .unwrap_or_default()
+}
+
+fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    esrp_client::signals::exit_on_signals("esrp-bench")?;
+    let mut server_args = args.server_args.clone();
+    let claim_timeout = claim_timeout(&args, &mut server_args)?;
+    let (address, local) = reach_or_start(args.server.as_deref(), args.server_binary.clone(), &server_args)?;
+    let connect = async || Client::connect(&address).token_opt(args.token.as_deref()).await;
+    let info = runtime_for("")?.block_on(async { anyhow::Ok(connect().await?.server_info().await?) })?;
+    let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
+    let cpu_model = cpu_model();
     println!(
         "esrp-bench against {address}: esrp-server {}, renderer {} ({}), dataset {}",
         info.version, info.renderer_adapter, info.renderer_backend, info.dataset
@@ -421,37 +462,13 @@ fn main() -> anyhow::Result<()> {
         let outcome = runtime_for(name)?
             .block_on(async { scenario(name, &args, &connect().await?, local.as_ref()).await })
             .with_context(|| format!("scenario {name}"))?;
-        if outcome.latencies.is_empty() {
-            println!("{:<20} {:>8} {}", outcome.name, outcome.episodes, outcome.note);
-        } else {
-            println!(
-                "{:<20} {:>8} {:>9} {:>11.0} {:>9.2} {:>9.2}",
-                outcome.name,
-                outcome.episodes,
-                outcome.steps,
-                outcome.rate(),
-                outcome.percentile(0.5) * 1e3,
-                outcome.percentile(0.99) * 1e3
-            );
-        }
+        outcome.print_row();
         results.push(outcome);
     }
     if let Some(path) = &args.json {
-        let rows: Vec<serde_json::Value> = results
-            .iter()
-            .map(|o| {
-                serde_json::json!({
-                    "scenario": o.name, "episodes": o.episodes, "steps": o.steps, "seconds": o.seconds,
-                    "steps_per_second": if o.latencies.is_empty() && o.name != "soak" { None } else { Some(o.rate()) },
-                    "p50_ms": if o.latencies.is_empty() { None } else { Some(o.percentile(0.5) * 1e3) },
-                    "p99_ms": if o.latencies.is_empty() { None } else { Some(o.percentile(0.99) * 1e3) },
-                    "note": o.note,
-                })
-            })
-            .collect();
         let report = serde_json::json!({
             "server": address, "renderer": info.renderer_adapter, "backend": info.renderer_backend,
-            "cpus": cpus, "cpu": cpu_model, "results": rows,
+            "cpus": cpus, "cpu": cpu_model, "results": results.iter().map(Outcome::to_json).collect::<Vec<_>>(),
             "soak": soaks.iter().map(soak::Report::to_json).collect::<Vec<_>>(),
         });
         std::fs::write(path, serde_json::to_string_pretty(&report)?)?;

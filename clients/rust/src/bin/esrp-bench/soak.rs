@@ -514,6 +514,10 @@ impl Worker {
         Ok(())
     }
 
+    /// Drives one stream through `plan`: its creates, its steps and resets, its closes, each
+    /// answer counted by what its request was, with the plan's abuses (dropped mid-flight,
+    /// left unread) where it has them. One function on purpose: the order of what is sent and
+    /// read on the stream is the scenario, and reads top to bottom.
     async fn drive_stream(&mut self, stream: &mut EpisodeStream, plan: StreamPlan) -> Result<(), ClientError> {
         // What each request was, by request id, to count its answer.
         let mut kinds: HashMap<u64, &'static str> = HashMap::new();
@@ -865,7 +869,9 @@ async fn sample(client: &Client, tally: &Tally, server: Option<&LocalServer>, st
 
 /// Runs the soak: `settings.clients` clients for `settings.minutes`, sampling the server every
 /// few seconds and printing a line per minute (per fifth of the run when shorter than 5
-/// minutes); then the cleanup and the checks.
+/// minutes); then the cleanup and the checks. It stays one function: its phases (load and
+/// sampling, cleanup, the checks against the samples) share the tallies and samples, and read in
+/// the order they run.
 pub async fn run(settings: Settings, server: Option<&LocalServer>) -> anyhow::Result<Report> {
     if !(settings.minutes > 0.0 && settings.minutes.is_finite()) || settings.clients == 0 {
         bail!("soak needs --minutes above 0 and --clients of at least 1");

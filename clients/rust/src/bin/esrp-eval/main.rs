@@ -261,20 +261,19 @@ async fn main() -> anyhow::Result<()> {
     );
 
     let scenes = pick_scenes(&client, &args).await?;
-    let agent = args.agent.name();
-    if args.fresh && args.out.exists() {
-        std::fs::remove_file(&args.out).with_context(|| format!("cannot remove {}", args.out.display()))?;
-    }
-    if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    }
     let settings = AgentSettings {
         kind: args.agent,
         plan_budget: Some(Duration::from_millis(args.plan_budget_ms)),
         replans: args.replans,
     };
-    let config = settings.config();
-    let mut records = resume(&args.out, agent, &config)?;
+    let recording = Recording {
+        agent: args.agent.name(),
+        config: settings.config(),
+        seeded: settings.kind.seeded(),
+        client: format!("esrp-eval {}", env!("CARGO_PKG_VERSION")),
+        info: &info,
+    };
+    let (mut records, mut file) = open_results(&args, recording.agent, &recording.config)?;
     let done: HashSet<String> = records.iter().map(|r| r.scene_id.clone()).collect();
     let todo: Vec<SceneSummary> = scenes.iter().filter(|s| !done.contains(&s.id)).cloned().collect();
     let wanted: HashSet<&str> = scenes.iter().map(|s| s.id.as_str()).collect();
@@ -282,13 +281,7 @@ async fn main() -> anyhow::Result<()> {
     if earlier > 0 {
         eprintln!("resuming {}: {earlier} of {} scenes already done", args.out.display(), scenes.len());
     }
-    let mut file = OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(&args.out)
-        .with_context(|| format!("cannot open {}", args.out.display()))?;
 
-    let client_name = format!("esrp-eval {}", env!("CARGO_PKG_VERSION"));
     let mut tally = Tally::default();
     records.iter().filter(|r| wanted.contains(r.scene_id.as_str())).for_each(|r| tally.add(r));
     let bar = progress_bar(scenes.len() as u64, earlier as u64);
@@ -325,38 +318,7 @@ async fn main() -> anyhow::Result<()> {
                 continue;
             }
         };
-        let m = &played.metrics;
-        let record = EpisodeRecord {
-            schema: SCHEMA.to_owned(),
-            scene_id: scene.id.clone(),
-            dataset: info.dataset.clone(),
-            split: scene.split.map_or("unknown", Split::name).to_owned(),
-            room_type: scene.room_type.clone(),
-            difficulty: scene.difficulty.map_or("unknown", Difficulty::name).to_owned(),
-            objects: scene.movable_objects,
-            agent: agent.to_owned(),
-            agent_config: config.clone(),
-            seed: settings.kind.seeded().then_some(seed),
-            success: m.success,
-            osr: m.object_success_rate,
-            rdr: m.remaining_distance_ratio,
-            stage: m.stage,
-            placed: m.placed,
-            steps: m.steps,
-            horizon: played.scene.horizon,
-            end: played.end.to_owned(),
-            total_reward: m.total_reward,
-            actions: played.actions.iter().map(|a| a.code()).collect(),
-            wall_seconds,
-            agent_stats: played.stats,
-            server_version: info.version.clone(),
-            client: client_name.clone(),
-            finished_at: now_rfc3339(),
-            token: None,
-            started_at: None,
-            dataset_hash: None,
-            counted: None,
-        };
+        let record = recording.record(&scene, seed, wall_seconds, played);
         results::append_record(&mut file, &record).with_context(|| format!("cannot write {}", args.out.display()))?;
         written += 1;
         tally.add(&record);
@@ -370,8 +332,97 @@ async fn main() -> anyhow::Result<()> {
     bar.finish_and_clear();
 
     let mine: Vec<EpisodeRecord> = records.into_iter().filter(|r| wanted.contains(r.scene_id.as_str())).collect();
-    let summary = Summary::of(&mine);
-    println!("{agent} on {} scenes of {} ({:.0} s):", mine.len(), info.dataset, started.elapsed().as_secs_f64());
+    write_summary(&args, &info, recording.agent, &mine, started)?;
+    if !failed.is_empty() {
+        bail!(
+            "{} episodes failed with an error and were not recorded (rerun to retry them): {}",
+            failed.len(),
+            failed.iter().map(|(id, _)| id.as_str()).collect::<Vec<_>>().join(", ")
+        );
+    }
+    Ok(())
+}
+
+/// The results file's records so far (the earlier run's, checked to be the same agent's; none
+/// with `--fresh`, which removes the file), and the file open for appending, its folder made.
+fn open_results(
+    args: &Args,
+    agent: &str,
+    config: &serde_json::Map<String, serde_json::Value>,
+) -> anyhow::Result<(Vec<EpisodeRecord>, std::fs::File)> {
+    if args.fresh && args.out.exists() {
+        std::fs::remove_file(&args.out).with_context(|| format!("cannot remove {}", args.out.display()))?;
+    }
+    if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    }
+    let records = resume(&args.out, agent, config)?;
+    let file = OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&args.out)
+        .with_context(|| format!("cannot open {}", args.out.display()))?;
+    Ok((records, file))
+}
+
+/// What every record of this run shares: the agent, its settings, the client and the server.
+struct Recording<'a> {
+    agent: &'static str,
+    config: serde_json::Map<String, serde_json::Value>,
+    /// Whether the agent draws from its seed (the record keeps the seed only then).
+    seeded: bool,
+    client: String,
+    info: &'a esrp_client::ServerInfo,
+}
+
+impl Recording<'_> {
+    /// The `esrp.results/v1` record of one played episode of `scene`.
+    fn record(&self, scene: &SceneSummary, seed: u64, wall_seconds: f64, played: agents::Played) -> EpisodeRecord {
+        let m = &played.metrics;
+        EpisodeRecord {
+            schema: SCHEMA.to_owned(),
+            scene_id: scene.id.clone(),
+            dataset: self.info.dataset.clone(),
+            split: scene.split.map_or("unknown", Split::name).to_owned(),
+            room_type: scene.room_type.clone(),
+            difficulty: scene.difficulty.map_or("unknown", Difficulty::name).to_owned(),
+            objects: scene.movable_objects,
+            agent: self.agent.to_owned(),
+            agent_config: self.config.clone(),
+            seed: self.seeded.then_some(seed),
+            success: m.success,
+            osr: m.object_success_rate,
+            rdr: m.remaining_distance_ratio,
+            stage: m.stage,
+            placed: m.placed,
+            steps: m.steps,
+            horizon: played.scene.horizon,
+            end: played.end.to_owned(),
+            total_reward: m.total_reward,
+            actions: played.actions.iter().map(|a| a.code()).collect(),
+            wall_seconds,
+            agent_stats: played.stats,
+            server_version: self.info.version.clone(),
+            client: self.client.clone(),
+            finished_at: now_rfc3339(),
+            token: None,
+            started_at: None,
+            dataset_hash: None,
+            counted: None,
+        }
+    }
+}
+
+/// Prints the run's summary and writes it as markdown (`--summary`, else beside `--out`).
+fn write_summary(
+    args: &Args,
+    info: &esrp_client::ServerInfo,
+    agent: &str,
+    records: &[EpisodeRecord],
+    started: Instant,
+) -> anyhow::Result<()> {
+    let summary = Summary::of(records);
+    println!("{agent} on {} scenes of {} ({:.0} s):", records.len(), info.dataset, started.elapsed().as_secs_f64());
     print!("{}", summary.text());
     let summary_path = args.summary.clone().unwrap_or_else(|| args.out.with_extension("md"));
     let title = format!("{agent} on {} ({} split)", info.dataset, Split::from(args.split).name());
@@ -386,12 +437,5 @@ async fn main() -> anyhow::Result<()> {
     ));
     std::fs::write(&summary_path, markdown).with_context(|| format!("cannot write {}", summary_path.display()))?;
     println!("summary: {}", summary_path.display());
-    if !failed.is_empty() {
-        bail!(
-            "{} episodes failed with an error and were not recorded (rerun to retry them): {}",
-            failed.len(),
-            failed.iter().map(|(id, _)| id.as_str()).collect::<Vec<_>>().join(", ")
-        );
-    }
     Ok(())
 }
