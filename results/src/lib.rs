@@ -187,11 +187,16 @@ pub fn append_record(out: &mut impl Write, record: &EpisodeRecord) -> std::io::R
     out.flush()
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
+/// Records for tests: the one fixture the results crate's tests and the client's summaries'
+/// tests build their records from (compiled always, as it is small, so that no feature splits
+/// the workspace's builds).
+#[doc(hidden)]
+pub mod testing {
+    use super::{EpisodeRecord, SCHEMA};
 
-    fn record(scene: &str, difficulty: &str, success: bool, osr: f64, rdr: f64, stage: u32) -> EpisodeRecord {
+    /// A record of scene `scene` with the given outcome and plausible values elsewhere: 10 steps of
+    /// a 200-step horizon by the `random` agent, ended by success or by the horizon.
+    pub fn record(scene: &str, difficulty: &str, success: bool, osr: f64, rdr: f64, stage: u32) -> EpisodeRecord {
         EpisodeRecord {
             schema: SCHEMA.into(),
             scene_id: scene.into(),
@@ -224,6 +229,12 @@ mod tests {
             counted: None,
         }
     }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::testing::record;
+    use super::*;
 
     #[test]
     fn a_torn_last_line_is_dropped_and_other_bad_lines_are_errors() {

@@ -225,41 +225,9 @@ impl Summary {
 
 #[cfg(test)]
 mod tests {
-    use super::*;
+    use esrp_results::testing::record;
 
-    fn record(scene: &str, difficulty: &str, success: bool, osr: f64, rdr: f64, stage: u32) -> EpisodeRecord {
-        EpisodeRecord {
-            schema: SCHEMA.into(),
-            scene_id: scene.into(),
-            dataset: "d".into(),
-            split: "test".into(),
-            room_type: "Bedroom".into(),
-            difficulty: difficulty.into(),
-            objects: 1,
-            agent: "random".into(),
-            agent_config: Default::default(),
-            seed: Some(3),
-            success,
-            osr,
-            rdr,
-            stage,
-            placed: u32::from(success),
-            steps: 10,
-            horizon: 200,
-            end: if success { "success" } else { "horizon" }.into(),
-            total_reward: 1.5,
-            actions: vec![0; 10],
-            wall_seconds: 0.1,
-            agent_stats: Default::default(),
-            server_version: "0.1.0".into(),
-            client: "test".into(),
-            finished_at: "2026-11-23T00:00:00Z".into(),
-            token: None,
-            started_at: None,
-            dataset_hash: None,
-            counted: None,
-        }
-    }
+    use super::*;
 
     #[test]
     fn summary_means_by_difficulty() {
