@@ -56,6 +56,12 @@ pub struct Stats {
     /// Scenes whose agent starts within fetch reach of a movable object.
     #[serde(default)]
     pub starts_within_reach: usize,
+    /// The esrp-bench-v2 scenes whose start is closer to an object than the start rule's
+    /// clearance ([`crate::StartRule::min_clearance`], 1.5 m): where no reachable pose is that
+    /// far, the generator takes the farthest one (SPEC §7). Each scene's id and its start's
+    /// distance to the nearest movable footprint, metres.
+    #[serde(default)]
+    pub fallback_starts: BTreeMap<String, f64>,
     /// Scenes per bin of [`FIRST_FETCH_BIN`] steps of the index of the expert's first `fetch`
     /// (key: bin's lower edge).
     #[serde(default)]
@@ -110,6 +116,11 @@ impl Stats {
             self.mean_start_distance += (distance - self.mean_start_distance) / measured;
             if distance <= Rules::default().fetch_reach {
                 self.starts_within_reach += 1;
+            }
+            if crate::BenchVersion::of_scene_id(&scene.id) == Some(crate::BenchVersion::V2)
+                && distance < crate::StartRule::default().min_clearance
+            {
+                self.fallback_starts.insert(scene.id.clone(), distance);
             }
         }
         let fetch = first_fetch(scene);

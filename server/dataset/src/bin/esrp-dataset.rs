@@ -234,28 +234,34 @@ fn generate(
     println!("rejected attempts: {rejected} {rejections:?}");
     let starts = starts.into_inner().unwrap_or_default();
     if !starts.is_empty() {
-        let n = starts.len() as f64;
-        let fallbacks = starts.iter().filter(|s| s.fallback).count();
-        let min_rule = bench.start_rule().min_clearance;
-        let coarse = bench.start_rule().cells[0];
-        println!(
-            "start poses: {} of {} at least {min_rule} m from every object, {fallbacks} the farthest reachable \
-             ({} within fetch reach); {:.2} m from the nearest object on average; drive {:.1} actions; search \
-             {:.0} positions on average (at most {}), {} on a grid finer than {coarse} m",
-            starts.len() - fallbacks,
-            starts.len(),
-            starts.iter().filter(|s| s.clearance <= esrp_core::Rules::default().fetch_reach).count(),
-            starts.iter().map(|s| s.clearance).sum::<f64>() / n,
-            starts.iter().map(|s| s.drive as f64).sum::<f64>() / n,
-            starts.iter().map(|s| s.searched as f64).sum::<f64>() / n,
-            starts.iter().map(|s| s.searched).max().unwrap_or(0),
-            starts.iter().filter(|s| s.cell < coarse).count(),
-        );
+        print_generated_starts(&starts, bench.start_rule());
     }
     if failures > 0 {
         eprintln!("{failures} scene(s) could not be generated");
     }
     Ok(failures == 0)
+}
+
+/// Reports how the generated esrp-bench-v2 scenes' start poses were drawn: how many keep the rule's
+/// clearance and how many are the farthest reachable, their mean distance, drive and search.
+fn print_generated_starts(starts: &[esrp_dataset::StartReport], rule: &StartRule) {
+    let n = starts.len() as f64;
+    let fallbacks = starts.iter().filter(|s| s.fallback).count();
+    let min_rule = rule.min_clearance;
+    let coarse = rule.cells[0];
+    println!(
+        "start poses: {} of {} at least {min_rule} m from every object, {fallbacks} the farthest reachable \
+         ({} within fetch reach); {:.2} m from the nearest object on average; drive {:.1} actions; search \
+         {:.0} positions on average (at most {}), {} on a grid finer than {coarse} m",
+        starts.len() - fallbacks,
+        starts.len(),
+        starts.iter().filter(|s| s.clearance <= esrp_core::Rules::default().fetch_reach).count(),
+        starts.iter().map(|s| s.clearance).sum::<f64>() / n,
+        starts.iter().map(|s| s.drive as f64).sum::<f64>() / n,
+        starts.iter().map(|s| s.searched as f64).sum::<f64>() / n,
+        starts.iter().map(|s| s.searched).max().unwrap_or(0),
+        starts.iter().filter(|s| s.cell < coarse).count(),
+    );
 }
 
 fn import_3dfront(front: &Path, future: &Path, out: &Path, options: &ImportOptions, force: bool) -> Result<bool> {
@@ -310,35 +316,62 @@ fn import_3dfront(front: &Path, future: &Path, out: &Path, options: &ImportOptio
 fn validate(dir: &Path) -> Result<bool> {
     let dataset = Dataset::open(dir)?;
     let entries = &dataset.manifest().scenes;
+    let rule = StartRule::default();
     let bar = progress(entries.len(), "validate");
-    let failures: Vec<(String, String)> = entries
+    // Each scene's failure, or for an esrp-bench-v2 scene, its start's distance to the objects.
+    let outcomes: Vec<(String, Result<Option<f64>, String>)> = entries
         .par_iter()
-        .filter_map(|entry| {
-            let outcome = match dataset.read_scene(entry) {
-                Err(e) => Some(e.to_string()),
-                Ok(scene) if scene.id != entry.id => {
-                    Some(format!("the file holds scene {:?}, the manifest says {:?}", scene.id, entry.id))
-                }
-                Ok(scene) => validate_by_replay(&scene)
-                    .map_err(|e| e.to_string())
-                    .and_then(|()| match BenchVersion::of_scene_id(&scene.id) {
-                        Some(BenchVersion::V2) => check_start(&scene, &StartRule::default())
-                            .map(|_| ())
-                            .map_err(|e| format!("start pose: {e}")),
-                        _ => Ok(()),
-                    })
-                    .err(),
-            };
+        .map(|entry| {
+            let outcome =
+                match dataset.read_scene(entry) {
+                    Err(e) => Err(e.to_string()),
+                    Ok(scene) if scene.id != entry.id => {
+                        Err(format!("the file holds scene {:?}, the manifest says {:?}", scene.id, entry.id))
+                    }
+                    Ok(scene) => validate_by_replay(&scene).map_err(|e| e.to_string()).and_then(|()| {
+                        match BenchVersion::of_scene_id(&scene.id) {
+                            Some(BenchVersion::V2) => {
+                                check_start(&scene, &rule).map(Some).map_err(|e| format!("start pose: {e}"))
+                            }
+                            _ => Ok(None),
+                        }
+                    }),
+                };
             bar.inc(1);
-            outcome.map(|reason| (entry.id.clone(), reason))
+            (entry.id.clone(), outcome)
         })
         .collect();
     bar.finish_and_clear();
+    let failures: Vec<(&str, &str)> =
+        outcomes.iter().filter_map(|(id, o)| o.as_ref().err().map(|e| (id.as_str(), e.as_str()))).collect();
     for (id, reason) in &failures {
         eprintln!("{id}: {reason}");
     }
     println!("{} of {} scenes valid", entries.len() - failures.len(), entries.len());
+    let starts: Vec<(&str, f64)> =
+        outcomes.iter().filter_map(|(id, o)| o.as_ref().ok().copied().flatten().map(|d| (id.as_str(), d))).collect();
+    if !starts.is_empty() {
+        print_fallback_starts(&starts, &rule);
+    }
     Ok(failures.is_empty())
+}
+
+/// Reports the esrp-bench-v2 starts that keep the rule only because no reachable pose is
+/// [`StartRule::min_clearance`] away (the farthest was taken): how many, and each one's distance.
+fn print_fallback_starts(starts: &[(&str, f64)], rule: &StartRule) {
+    let reach = esrp_core::Rules::default().fetch_reach;
+    let fallbacks: Vec<&(&str, f64)> = starts.iter().filter(|(_, d)| *d < rule.min_clearance).collect();
+    println!(
+        "start poses: {} of {} at least {} m from every object; {} the farthest reachable ({} within fetch reach, {reach} m)",
+        starts.len() - fallbacks.len(),
+        starts.len(),
+        rule.min_clearance,
+        fallbacks.len(),
+        fallbacks.iter().filter(|(_, d)| *d <= reach).count(),
+    );
+    for (id, distance) in fallbacks {
+        println!("  {id}: {distance:.3} m from the nearest object");
+    }
 }
 
 fn stats(dir: &Path, out: &Path) -> Result<()> {
