@@ -258,7 +258,7 @@ fn cycles() -> usize {
     std::env::var("ESRP_SIGTERM_CYCLES").ok().and_then(|v| v.parse().ok()).unwrap_or(15)
 }
 
-/// The README's graceful shutdown: SIGTERM ends the server with status 0 every time, on both
+/// The graceful shutdown of docs/server.md: SIGTERM ends the server with status 0 every time, on both
 /// backends, with no client, after ListScenes alone, with live episodes and with steps in
 /// flight. Before the fix, OpenGL (llvmpipe) died with SIGSEGV/SIGABRT in about one run in ten:
 /// the render thread dropped the GL device while the main thread ran the process's exit.
