@@ -9,6 +9,7 @@ any. Meant for refactors and speed work that must not change what an agent sees
 
 Usage:
     python tools/compare_servers.py OLD_BINARY NEW_BINARY [--episodes 24] [--steps 120] [--seed 7]
+        [--server-arg=--render-backend=vulkan ...]
 
 Exit status 0 when every answer is identical, 1 at the first difference, 2 on bad input.
 """
@@ -60,9 +61,11 @@ def episode_answers(client: esrp.Client, scene: str, actions: list[int]) -> Iter
                 break
 
 
-def play(binary: Path, scenes: list[str], plans: list[list[int]]) -> Iterator[tuple[str, bytes]]:
-    """Every answer of every episode on a server started from `binary`."""
-    with esrp.LocalServer(binary=binary) as server, server.client() as client:
+def play(
+    binary: Path, server_args: list[str], scenes: list[str], plans: list[list[int]]
+) -> Iterator[tuple[str, bytes]]:
+    """Every answer of every episode on a server started from `binary` with `server_args`."""
+    with esrp.LocalServer(*server_args, binary=binary) as server, server.client() as client:
         for scene, actions in zip(scenes, plans, strict=True):
             for name, data in episode_answers(client, scene, actions):
                 yield f"{scene} {name}", data
@@ -75,6 +78,12 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--episodes", type=int, default=24, help="episodes to play (default 24)")
     parser.add_argument("--steps", type=int, default=120, help="random actions per episode (default 120)")
     parser.add_argument("--seed", type=int, default=7, help="seed of the scenes and actions (default 7)")
+    parser.add_argument(
+        "--server-arg",
+        action="append",
+        default=[],
+        help="a flag for both servers, e.g. --server-arg=--render-backend=vulkan (repeatable)",
+    )
     args = parser.parse_args(argv)
     for binary in (args.old, args.new):
         if not binary.is_file():
@@ -82,7 +91,7 @@ def main(argv: list[str]) -> int:
     if args.episodes < 1 or args.steps < 1:
         parser.error("--episodes and --steps must be at least 1")
 
-    with esrp.LocalServer(binary=args.old) as server, server.client() as client:
+    with esrp.LocalServer(*args.server_arg, binary=args.old) as server, server.client() as client:
         test_scenes = [s.id for s in client.scenes(split="test")]
     rng = np.random.default_rng(args.seed)
     scenes = [test_scenes[i] for i in rng.choice(len(test_scenes), size=args.episodes, replace=False)]
@@ -90,7 +99,10 @@ def main(argv: list[str]) -> int:
 
     digests = [hashlib.sha256(), hashlib.sha256()]
     answers = 0
-    old_answers, new_answers = play(args.old, scenes, plans), play(args.new, scenes, plans)
+    old_answers, new_answers = (
+        play(args.old, args.server_arg, scenes, plans),
+        play(args.new, args.server_arg, scenes, plans),
+    )
     for (name_a, data_a), (name_b, data_b) in zip(old_answers, new_answers, strict=False):
         if name_a != name_b or data_a != data_b:
             print(f"first difference: {name_a} ({len(data_a)} bytes) against {name_b} ({len(data_b)} bytes)")
