@@ -591,7 +591,8 @@ def test_bad_input_files_and_modules_are_one_line(
     """A results line that is JSON but not an object (`[1]`) was an AttributeError traceback in
     esrp report and the leaderboard; a file whose only line is not a record was "no records" without
     a reason; esrp eval cut a whole line of someone else's file off as if an interruption had torn
-    it; an agent module with a SyntaxError was a traceback; `esrp bench` printed its usage."""
+    it; an agent module with a SyntaxError was a traceback; `esrp bench` printed its usage. One
+    test on purpose: a list of bad inputs, each with the one line it must give, read top to bottom."""
     array = tmp_path / "array.jsonl"
     array.write_text("[1]\n")
     two = tmp_path / "two.jsonl"

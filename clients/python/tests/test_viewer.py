@@ -184,6 +184,9 @@ def test_no_viewer_off_loopback_without_tokens() -> None:
 
 
 def test_watch_and_play_in_a_real_browser(viewer: esrp.LocalServer, tmp_path: Path) -> None:
+    """The page in a real headless Chromium: watching an agent's episode, then playing one. One
+    browser session walked through in order, as a user would: each step starts from the page the
+    one before left, so it stays one test."""
     if not CHROMIUM.is_file():
         pytest.skip(f"no Chromium at {CHROMIUM}: apt-get install chromium (scripts/python-tests.sh does)")
     from playwright.sync_api import sync_playwright

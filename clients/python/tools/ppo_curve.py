@@ -26,7 +26,7 @@ import csv
 import json
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -35,6 +35,9 @@ from _curves import save
 import esrp
 from esrp.agents.ppo import PpoConfig, PpoNet, load_network
 from esrp.train.ppo import make_env
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 
 def play(
@@ -96,67 +99,28 @@ def play(
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("run", type=Path, help="the run folder of esrp train ppo")
-    parser.add_argument("--out", type=Path, required=True, help="the PNG to write")
-    parser.add_argument("--json", type=Path, help="also write the numbers here")
-    parser.add_argument("--episodes", type=int, default=64, help="episodes per agent (default 64)")
-    parser.add_argument("--greedy", action="store_true", help="the policy's most likely actions")
-    parser.add_argument("--window", type=int, default=50, help="episodes in the moving average")
-    parser.add_argument("--server", help="a running esrp-server (default: one is started)")
-    parser.add_argument("--seed", type=int, default=12345)
-    parser.add_argument("--no-play", dest="play", action="store_false", help="the training curve alone")
-    parser.add_argument("--phases", default="", help="STEPS:LABEL,... where each phase of the run begins")
-    parser.add_argument(
-        "--reference", action="append", default=[], help="LABEL=SR: a success rate measured elsewhere"
-    )
-    args = parser.parse_args(argv)
-    try:
-        phases = [
-            (int(steps), label) for steps, label in (p.split(":", 1) for p in args.phases.split(",") if p)
-        ]
-        references = [(label, float(sr)) for label, sr in (r.rsplit("=", 1) for r in args.reference)]
-    except ValueError:
-        parser.error("--phases takes STEPS:LABEL,... and --reference LABEL=SR")
-
+def draw_curves(
+    config: PpoConfig,
+    steps: np.ndarray[Any, Any],
+    returns: np.ndarray[Any, Any],
+    success: np.ndarray[Any, Any],
+    window: int,
+    random: dict[str, Any] | None,
+    final: dict[str, Any] | None,
+    references: list[tuple[str, float]],
+    phases: list[tuple[int, str]],
+) -> Figure:
+    """The figure: the training episodes' returns (top) and success rate (bottom) against
+    environment steps, each with its moving average over `window` episodes, the random agent's and
+    the final policy's levels where they were played, the `references` and the `phases`."""
+    kernel = np.ones(window) / window
+    average = np.convolve(returns, kernel, mode="valid")
+    success_average = np.convolve(success, kernel, mode="valid")
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    torch.set_num_threads(2)
-    config = PpoConfig.from_mapping(json.loads((args.run / "config.json").read_text()))
-    with open(args.run / "episodes.csv", newline="") as file:
-        rows = list(csv.DictReader(file))
-    if not rows:
-        print(f"{args.run}/episodes.csv holds no episode", file=sys.stderr)
-        return 2
-    steps = np.array([int(r["steps"]) for r in rows])
-    returns = np.array([float(r["return"]) for r in rows])
-    success = np.array([int(r["success"]) for r in rows], dtype=float)
-
-    # The final policy, read before a server starts (a bad checkpoint fails at once); not with --no-play.
-    network = load_network(args.run / "ckpt.pt") if args.play else None
-
-    def evaluate(address: str) -> tuple[dict[str, Any], dict[str, Any]]:
-        with esrp.Client(address, timeout=120) as client:
-            random = play(config, client, args.episodes, None, False, args.seed)
-            final = play(config, client, args.episodes, network, args.greedy, args.seed)
-        return random, final
-
-    random: dict[str, Any] | None = None
-    final: dict[str, Any] | None = None
-    if args.play and args.server:
-        random, final = evaluate(args.server)
-    elif args.play:
-        with esrp.LocalServer() as server:
-            random, final = evaluate(server.address)
-
-    window = max(1, min(args.window, len(rows)))
-    kernel = np.ones(window) / window
-    average = np.convolve(returns, kernel, mode="valid")
-    success_average = np.convolve(success, kernel, mode="valid")
     figure, (top, bottom) = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True)
     top.scatter(steps, returns, s=3, alpha=0.25, color="tab:blue", label="training episode")
     top.plot(steps[window - 1 :], average, color="tab:blue", label=f"moving average ({window} episodes)")
@@ -190,6 +154,72 @@ def main(argv: list[str] | None = None) -> int:
     bottom.set_xlabel("environment steps")
     bottom.set_ylabel("success rate")
     bottom.legend(loc="lower right", fontsize=8)
+    return figure
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run", type=Path, help="the run folder of esrp train ppo")
+    parser.add_argument("--out", type=Path, required=True, help="the PNG to write")
+    parser.add_argument("--json", type=Path, help="also write the numbers here")
+    parser.add_argument("--episodes", type=int, default=64, help="episodes per agent (default 64)")
+    parser.add_argument("--greedy", action="store_true", help="the policy's most likely actions")
+    parser.add_argument("--window", type=int, default=50, help="episodes in the moving average")
+    parser.add_argument("--server", help="a running esrp-server (default: one is started)")
+    parser.add_argument("--seed", type=int, default=12345)
+    parser.add_argument("--no-play", dest="play", action="store_false", help="the training curve alone")
+    parser.add_argument("--phases", default="", help="STEPS:LABEL,... where each phase of the run begins")
+    parser.add_argument(
+        "--reference", action="append", default=[], help="LABEL=SR: a success rate measured elsewhere"
+    )
+    args = parser.parse_args(argv)
+    try:
+        phases = [
+            (int(steps), label) for steps, label in (p.split(":", 1) for p in args.phases.split(",") if p)
+        ]
+        references = [(label, float(sr)) for label, sr in (r.rsplit("=", 1) for r in args.reference)]
+    except ValueError:
+        parser.error("--phases takes STEPS:LABEL,... and --reference LABEL=SR")
+
+    torch.set_num_threads(2)
+    config = PpoConfig.from_mapping(json.loads((args.run / "config.json").read_text()))
+    with open(args.run / "episodes.csv", newline="") as file:
+        rows = list(csv.DictReader(file))
+    if not rows:
+        print(f"{args.run}/episodes.csv holds no episode", file=sys.stderr)
+        return 2
+    steps = np.array([int(r["steps"]) for r in rows])
+    returns = np.array([float(r["return"]) for r in rows])
+    success = np.array([int(r["success"]) for r in rows], dtype=float)
+
+    # The final policy, read before a server starts (a bad checkpoint fails at once); not with --no-play.
+    network = load_network(args.run / "ckpt.pt") if args.play else None
+
+    def evaluate(address: str) -> tuple[dict[str, Any], dict[str, Any]]:
+        with esrp.Client(address, timeout=120) as client:
+            random = play(config, client, args.episodes, None, False, args.seed)
+            final = play(config, client, args.episodes, network, args.greedy, args.seed)
+        return random, final
+
+    random: dict[str, Any] | None = None
+    final: dict[str, Any] | None = None
+    if args.play and args.server:
+        random, final = evaluate(args.server)
+    elif args.play:
+        with esrp.LocalServer() as server:
+            random, final = evaluate(server.address)
+
+    figure = draw_curves(
+        config,
+        steps,
+        returns,
+        success,
+        max(1, min(args.window, len(rows))),
+        random,
+        final,
+        references,
+        phases,
+    )
     save(figure, args.out)
     summary = {
         "run": str(args.run),

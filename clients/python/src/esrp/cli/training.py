@@ -19,12 +19,24 @@ from ._args import (
 
 def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
     """Adds `demos` and `train` to `commands`."""
+    _add_demos(commands)
+    _add_train(commands)
+
+
+def _add_demos(commands: argparse._SubParsersAction[Parser]) -> None:
+    """`esrp demos` and its one command, `export`."""
     demos = commands.add_parser(
         "demos",
         help="demonstrations for imitation learning (zarr; docs/demonstrations.md)",
         description="Demonstrations for imitation learning: the expert's, or recorded episodes'.",
     )
     demo_commands = demos.add_subparsers(dest="demos_command", required=True, metavar="COMMAND")
+    _add_demos_export(demo_commands)
+    demos.set_defaults(handler=_demos)
+
+
+def _add_demos_export(demo_commands: argparse._SubParsersAction[Parser]) -> None:
+    """`esrp demos export`: the expert's (or recorded, or DAgger) trajectories into a zarr store."""
     export = demo_commands.add_parser(
         "export",
         help="replay the scenes' expert trajectories (or recorded episodes) on the server into a zarr store",
@@ -88,6 +100,10 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
     )
     export.add_argument("--no-progress", dest="progress", action="store_false")
     server_options(export)
+
+
+def _add_train(commands: argparse._SubParsersAction[Parser]) -> None:
+    """`esrp train` and its commands, `bc` and `ppo`."""
     train = commands.add_parser(
         "train",
         help="train a learning baseline (ESRP-BC, ESRP-PPO) from a config file",
@@ -95,6 +111,13 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
         "(pip install 'esrp[train]').",
     )
     train_commands = train.add_subparsers(dest="train_command", required=True, metavar="AGENT")
+    _add_train_bc(train_commands)
+    _add_train_ppo(train_commands)
+    train.set_defaults(handler=_train)
+
+
+def _add_train_bc(train_commands: argparse._SubParsersAction[Parser]) -> None:
+    """`esrp train bc`: ESRP-BC, and with --dagger the DAgger loop."""
     bc = train_commands.add_parser(
         "bc",
         help="ESRP-BC (Diffusion Policy) on esrp demos export stores; --dagger: the DAgger loop",
@@ -116,6 +139,10 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
     )
     bc.add_argument("--no-progress", dest="progress", action="store_false")
     server_options(bc)
+
+
+def _add_train_ppo(train_commands: argparse._SubParsersAction[Parser]) -> None:
+    """`esrp train ppo`: ESRP-PPO on the native vector env."""
     ppo = train_commands.add_parser(
         "ppo",
         help="ESRP-PPO (CNN + LSTM) on the native vector env, with the dense reward",
@@ -135,8 +162,6 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
     )
     ppo.add_argument("--no-progress", dest="progress", action="store_false")
     server_options(ppo)
-    demos.set_defaults(handler=_demos)
-    train.set_defaults(handler=_train)
 
 
 @one_line_errors
@@ -164,6 +189,47 @@ def _demos(args: argparse.Namespace) -> int:
         agent=args.agent,
         successful_only=args.successful_only,
     )
+    conflict = _export_flag_conflict(args)
+    if conflict is not None:
+        print(f"esrp demos export: {conflict}", file=sys.stderr)
+        return 2
+    if args.checkpoint is not None:
+        settings.agent_config["checkpoint"] = str(args.checkpoint)
+    try:
+        # The records are read (and chosen) before a server is started: bad input fails at once.
+        sources = read_sources(settings) if args.records else None
+    except DemoExportError as error:
+        print(f"esrp demos export: {error}", file=sys.stderr)
+        return 2
+
+    from .._client import Client
+
+    def run(address: str) -> int:
+        with Client(address, token=args.token, timeout=120) as client:
+            outcome = export_demos(client, settings, sources)
+        print(f"{args.out}: {outcome.episodes} episodes, {outcome.steps} steps ({outcome.added} added now)")
+        if outcome.skipped:
+            print(f"{len(outcome.skipped)} scenes skipped (the planner found no plan from their start)")
+        if outcome.agreement is not None:
+            print(
+                f"the policy's action was the planner's label at {outcome.agreed} of {outcome.compared} "
+                f"states ({100 * outcome.agreement:.1f} %)"
+            )
+        return 0
+
+    try:
+        return on_server(args, run)
+    except DemoExportError as error:
+        print(f"esrp demos export: {error}", file=sys.stderr)
+        return 2
+
+
+def _export_flag_conflict(args: argparse.Namespace) -> str | None:
+    """What is wrong with `esrp demos export`'s flags together, or None.
+
+    Scene, DAgger and seed flags do not go with --records, the records' filters need --records,
+    and DAgger's flags need --dagger.
+    """
     dagger_flags = [
         flag
         for flag, given in (
@@ -201,47 +267,12 @@ def _demos(args: argparse.Namespace) -> int:
         ]
         if scene_flags + dagger_flags + seed_flags:
             given = ", ".join(scene_flags + dagger_flags + seed_flags)
-            print(
-                f"esrp demos export: --records does not go with {given} "
-                "(the records say the scenes and the actions)",
-                file=sys.stderr,
-            )
-            return 2
+            return f"--records does not go with {given} (the records say the scenes and the actions)"
     elif records_flags:
-        print(f"esrp demos export: {', '.join(records_flags)} only apply with --records", file=sys.stderr)
-        return 2
+        return f"{', '.join(records_flags)} only apply with --records"
     if args.dagger is None and dagger_flags:
-        print(f"esrp demos export: {', '.join(dagger_flags)} only apply with --dagger", file=sys.stderr)
-        return 2
-    if args.checkpoint is not None:
-        settings.agent_config["checkpoint"] = str(args.checkpoint)
-    try:
-        # The records are read (and chosen) before a server is started: bad input fails at once.
-        sources = read_sources(settings) if args.records else None
-    except DemoExportError as error:
-        print(f"esrp demos export: {error}", file=sys.stderr)
-        return 2
-
-    from .._client import Client
-
-    def run(address: str) -> int:
-        with Client(address, token=args.token, timeout=120) as client:
-            outcome = export_demos(client, settings, sources)
-        print(f"{args.out}: {outcome.episodes} episodes, {outcome.steps} steps ({outcome.added} added now)")
-        if outcome.skipped:
-            print(f"{len(outcome.skipped)} scenes skipped (the planner found no plan from their start)")
-        if outcome.agreement is not None:
-            print(
-                f"the policy's action was the planner's label at {outcome.agreed} of {outcome.compared} "
-                f"states ({100 * outcome.agreement:.1f} %)"
-            )
-        return 0
-
-    try:
-        return on_server(args, run)
-    except DemoExportError as error:
-        print(f"esrp demos export: {error}", file=sys.stderr)
-        return 2
+        return f"{', '.join(dagger_flags)} only apply with --dagger"
+    return None
 
 
 @one_line_errors

@@ -197,6 +197,12 @@ def _pct(value: float) -> str:
 
 
 def _tables(runs: Sequence[Run]) -> list[_Table]:
+    """Tables I–III: each run's rows, then the paper's."""
+    return [_overall_table(runs), _difficulty_table(runs), _stages_table(runs)]
+
+
+def _overall_table(runs: Sequence[Run]) -> _Table:
+    """Table I: SR (with its interval), OSR and RDR of each run and of the paper's agents."""
     overall = _Table(
         "table-overall",
         "Table I — overall",
@@ -238,7 +244,11 @@ def _tables(runs: Sequence[Run]) -> list[_Table]:
                 _paper_shown(paper.name),
             )
         )
+    return overall
 
+
+def _difficulty_table(runs: Sequence[Run]) -> _Table:
+    """Table II: episodes, SR, OSR and RDR by difficulty, of each run and of the paper's agents."""
     header = ["run"]
     for d in DIFFICULTIES:
         header += [f"{_DIFFICULTY_TITLES[d]} {name}" for name in ("n", "SR", "OSR", "RDR")]
@@ -273,7 +283,11 @@ def _tables(runs: Sequence[Run]) -> list[_Table]:
                 (f"{d}-rdr", f"{rdr:.4f}"),
             ]
         by_difficulty.rows.append(_Row(paper.name, cells, True, _paper_shown(paper.name)))
+    return by_difficulty
 
+
+def _stages_table(runs: Sequence[Run]) -> _Table:
+    """Table III: the share of episodes in each failure stage, of each run and of the paper's agents."""
     stages = _Table(
         "table-stages",
         "Table III — failure stages",
@@ -296,7 +310,7 @@ def _tables(runs: Sequence[Run]) -> list[_Table]:
                     _paper_shown(paper.name),
                 )
             )
-    return [overall, by_difficulty, stages]
+    return stages
 
 
 def _markdown_table(table: _Table) -> str:
@@ -565,6 +579,21 @@ def write_report(
     for warning in warnings:
         print(f"esrp report: warning: {warning}", file=sys.stderr)
     sources = ", ".join(f"`{run.path.name}` ({run.label}, {len(run.records)} episodes)" for run in runs)
+    markdown_path = _write_markdown(folder, title, sources, warnings, tables, plots, stills)
+    html_path = _write_html(folder, title, sources, warnings, tables, plots, stills)
+    return [markdown_path, html_path]
+
+
+def _write_markdown(
+    folder: Path,
+    title: str,
+    sources: str,
+    warnings: list[str],
+    tables: list[_Table],
+    plots: list[tuple[str, str, bytes]],
+    stills: list[tuple[Run, EpisodeRecord, bytes | str]],
+) -> Path:
+    """Writes `report.md` into `folder`, and its plots and stills as PNG files in `images/`."""
     md = [f"# {title}\n", f"Runs: {sources}. The paper's rows are its Tables I–III (SPEC §8).\n"]
     if warnings:
         md.append("**Read with care:**\n\n" + "".join(f"- {w}\n" for w in warnings))
@@ -576,9 +605,7 @@ def write_report(
     if stills:
         md.append("## Replays (final frames: ego | goal | now, agent path red, carried objects blue)\n")
     for k, (run, record, still) in enumerate(stills):
-        caption = (
-            f"{run.label}: {record.scene_id} ({record.end}, {record.steps} steps, OSR {_pct(record.osr)} %)"
-        )
+        caption = _still_caption(run, record)
         if isinstance(still, bytes):
             name = f"replay_{k}.png"
             (folder / "images" / name).write_bytes(still)
@@ -589,6 +616,19 @@ def write_report(
     markdown_path = folder / "report.md"
     markdown_path.write_text("\n".join(md), encoding="utf-8")
 
+    return markdown_path
+
+
+def _write_html(
+    folder: Path,
+    title: str,
+    sources: str,
+    warnings: list[str],
+    tables: list[_Table],
+    plots: list[tuple[str, str, bytes]],
+    stills: list[tuple[Run, EpisodeRecord, bytes | str]],
+) -> Path:
+    """Writes `report.html` into `folder`: one page, its plots and stills inlined as data URLs."""
     e = html.escape
     page = [
         "<!DOCTYPE html>",
@@ -618,9 +658,7 @@ def write_report(
             "path in red and carried objects&#8217; paths in blue.</p>"
         )
     for run, record, still in stills:
-        caption = (
-            f"{run.label}: {record.scene_id} ({record.end}, {record.steps} steps, OSR {_pct(record.osr)} %)"
-        )
+        caption = _still_caption(run, record)
         if isinstance(still, bytes):
             page.append(
                 f'<figure class="replay" data-scene="{e(record.scene_id)}">'
@@ -632,4 +670,9 @@ def write_report(
     page.append(f'<p class="note">Written by esrp report {e(__version__)}.</p></body></html>')
     html_path = folder / "report.html"
     html_path.write_text("\n".join(page) + "\n", encoding="utf-8")
-    return [markdown_path, html_path]
+    return html_path
+
+
+def _still_caption(run: Run, record: EpisodeRecord) -> str:
+    """A replay still's caption: the run, the scene, how the episode ended, its steps and OSR."""
+    return f"{run.label}: {record.scene_id} ({record.end}, {record.steps} steps, OSR {_pct(record.osr)} %)"
