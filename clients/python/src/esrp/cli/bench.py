@@ -58,6 +58,8 @@ from .. import __version__, _grpc_setup, _malloc_setup
 from .._signals import run_command
 
 if TYPE_CHECKING:
+    import gymnasium
+
     from .._client import Client
     from .._native import Transport
 
@@ -192,6 +194,25 @@ def bench_client_1(
             return _closed_loop(label or "client-1", 1, window_of(), step)
 
 
+def _env_stepper(env: gymnasium.Env[Any, Any], actions: list[int]) -> Callable[[], int]:
+    """A closed loop's step for a Gymnasium env.
+
+    Each call takes one step: the next of `actions` (2**16 of them, repeated), resetting when an
+    episode ends.
+    """
+    taken = 0
+
+    def step() -> int:
+        nonlocal taken
+        _, _, terminated, truncated, _ = env.step(actions[taken & 0xFFFF])
+        taken += 1
+        if terminated or truncated:
+            env.reset()
+        return 1
+
+    return step
+
+
 def bench_env_1(target: _Target, window_of: Callable[[], _Window], label: str | None = None) -> Measurement:
     """`env-1`: one Gymnasium env, closed loop, on the scene unary-1 plays."""
     from ..envs import RearrangeEnv
@@ -200,17 +221,7 @@ def bench_env_1(target: _Target, window_of: Callable[[], _Window], label: str | 
     env = RearrangeEnv(client=client, scene=_test_scenes(client, 1)[0])
     try:
         env.reset(seed=0)
-        actions = np.random.default_rng(2).integers(0, 6, size=1 << 16).tolist()
-        taken = 0
-
-        def step() -> int:
-            nonlocal taken
-            _, _, terminated, truncated, _ = env.step(actions[taken & 0xFFFF])
-            taken += 1
-            if terminated or truncated:
-                env.reset()
-            return 1
-
+        step = _env_stepper(env, np.random.default_rng(2).integers(0, 6, size=1 << 16).tolist())
         return _closed_loop(label or "env-1", 1, window_of(), step)
     finally:
         env.close()
@@ -387,17 +398,7 @@ def bench_miniworld(window_of: Callable[[], _Window]) -> Measurement:
         return Measurement("miniworld", skipped=f"MiniWorld could not start: {type(error).__name__}: {error}")
     try:
         choices = int(getattr(env.action_space, "n", 3))
-        actions = np.random.default_rng(5).integers(0, choices, size=1 << 16).tolist()
-        taken = 0
-
-        def step() -> int:
-            nonlocal taken
-            _, _, terminated, truncated, _ = env.step(actions[taken & 0xFFFF])
-            taken += 1
-            if terminated or truncated:
-                env.reset()
-            return 1
-
+        step = _env_stepper(env, np.random.default_rng(5).integers(0, choices, size=1 << 16).tolist())
         result = _closed_loop("miniworld", 1, window_of(), step)
         result.note = f"{_MINIWORLD_ENV}, 128x128, in process"
         return result

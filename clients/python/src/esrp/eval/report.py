@@ -579,21 +579,32 @@ def write_report(
     for warning in warnings:
         print(f"esrp report: warning: {warning}", file=sys.stderr)
     sources = ", ".join(f"`{run.path.name}` ({run.label}, {len(run.records)} episodes)" for run in runs)
-    markdown_path = _write_markdown(folder, title, sources, warnings, tables, plots, stills)
-    html_path = _write_html(folder, title, sources, warnings, tables, plots, stills)
+    report = _Report(title, sources, warnings, tables, plots, stills)
+    markdown_path = _write_markdown(folder, report)
+    html_path = _write_html(folder, report)
     return [markdown_path, html_path]
 
 
-def _write_markdown(
-    folder: Path,
-    title: str,
-    sources: str,
-    warnings: list[str],
-    tables: list[_Table],
-    plots: list[tuple[str, str, bytes]],
-    stills: list[tuple[Run, EpisodeRecord, bytes | str]],
-) -> Path:
+@dataclass(frozen=True)
+class _Report:
+    """What both pages of a report show.
+
+    Its title, the runs it reads (`sources`), the warnings about their coverage, Tables I–III, the
+    plots (name, caption, PNG) and the replay stills (PNG, or why there is none).
+    """
+
+    title: str
+    sources: str
+    warnings: list[str]
+    tables: list[_Table]
+    plots: list[tuple[str, str, bytes]]
+    stills: list[tuple[Run, EpisodeRecord, bytes | str]]
+
+
+def _write_markdown(folder: Path, report: _Report) -> Path:
     """Writes `report.md` into `folder`, and its plots and stills as PNG files in `images/`."""
+    title, sources, warnings = report.title, report.sources, report.warnings
+    tables, plots, stills = report.tables, report.plots, report.stills
     md = [f"# {title}\n", f"Runs: {sources}. The paper's rows are its Tables I–III (SPEC §8).\n"]
     if warnings:
         md.append("**Read with care:**\n\n" + "".join(f"- {w}\n" for w in warnings))
@@ -619,16 +630,10 @@ def _write_markdown(
     return markdown_path
 
 
-def _write_html(
-    folder: Path,
-    title: str,
-    sources: str,
-    warnings: list[str],
-    tables: list[_Table],
-    plots: list[tuple[str, str, bytes]],
-    stills: list[tuple[Run, EpisodeRecord, bytes | str]],
-) -> Path:
+def _write_html(folder: Path, report: _Report) -> Path:
     """Writes `report.html` into `folder`: one page, its plots and stills inlined as data URLs."""
+    title, sources, warnings = report.title, report.sources, report.warnings
+    tables, plots, stills = report.tables, report.plots, report.stills
     e = html.escape
     page = [
         "<!DOCTYPE html>",
