@@ -181,6 +181,11 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError:
         parser.error("--phases takes STEPS:LABEL,... and --reference LABEL=SR")
 
+    # matplotlib here, before anything is read or played: without it the tool fails at once.
+    import matplotlib
+
+    matplotlib.use("Agg")
+
     torch.set_num_threads(2)
     config = PpoConfig.from_mapping(json.loads((args.run / "config.json").read_text()))
     with open(args.run / "episodes.csv", newline="") as file:
