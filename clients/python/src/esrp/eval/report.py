@@ -626,7 +626,6 @@ def _write_markdown(folder: Path, report: _Report) -> Path:
     md.append(f"Written by esrp report {__version__}.\n")
     markdown_path = folder / "report.md"
     markdown_path.write_text("\n".join(md), encoding="utf-8")
-
     return markdown_path
 
 
