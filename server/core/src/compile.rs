@@ -23,8 +23,21 @@ fn part_pose(offset: [f64; 3], yaw: f64) -> Pose {
     Pose::from_parts(Vector::new(offset[0], offset[1], offset[2]), Rotation::from_rotation_y(yaw))
 }
 
+/// The largest magnitude of any number in a scene (a coordinate or a size in metres, an angle in
+/// radians): a kilometre is far beyond any room, and past such magnitudes the collision queries
+/// lose every digit of precision (a box of half extent 1e308 made parry's EPA index out of bounds).
+pub const MAX_SCENE_NUMBER: f64 = 1_000.0;
+
+/// Checks that every one of `values` is finite and at most [`MAX_SCENE_NUMBER`] in magnitude;
+/// `path` names the field in the error.
 fn check_finite(path: impl FnOnce() -> String, values: &[f64]) -> Result<(), SceneError> {
-    if values.iter().all(|v| v.is_finite()) { Ok(()) } else { Err(SceneError::NonFinite { path: path() }) }
+    if !values.iter().all(|v| v.is_finite()) {
+        return Err(SceneError::NonFinite { path: path() });
+    }
+    match values.iter().find(|v| v.abs() > MAX_SCENE_NUMBER) {
+        Some(&value) => Err(SceneError::OutOfRange { path: path(), value, max: MAX_SCENE_NUMBER }),
+        None => Ok(()),
+    }
 }
 
 /// The checks of a scene's header and object list, before any geometry: its schema, a non-empty

@@ -41,6 +41,16 @@ pub enum SceneError {
         /// Where, e.g. `movable_objects[2].pose.x`.
         path: String,
     },
+    /// A number is larger in magnitude than any scene needs.
+    #[error("`{path}` holds {value:e}: every coordinate and size (metres) and angle (radians) must be within ±{max}")]
+    OutOfRange {
+        /// Where, e.g. `fixed_objects[0].shape.parts[0].half_extents`.
+        path: String,
+        /// The number.
+        value: f64,
+        /// The bound, `MAX_SCENE_NUMBER`.
+        max: f64,
+    },
     /// A required text field is empty.
     #[error("`{field}` must not be empty")]
     EmptyField {

@@ -76,6 +76,7 @@ mod shapes;
 pub mod world;
 
 pub use action::{Action, UnknownAction, reverse_trajectory};
+pub use compile::MAX_SCENE_NUMBER;
 pub use episode::{
     AgentPose, EgoCamera, Episode, EpisodeConfig, EpisodeMetrics, EpisodeStatus, NoOpReason, ObjectState,
     PrivilegedState, RewardTerms, RewardWeights, Stage, StaticObstacle, StepOutcome,

@@ -1,6 +1,6 @@
 //! Scene validation: every kind of bad input gives its own typed error, never a panic.
 
-use esrp_core::{CompiledScene, Layout, Opening, OpeningKind, Part, Rules, Scene, SceneError, Shape};
+use esrp_core::{CompiledScene, Layout, MAX_SCENE_NUMBER, Opening, OpeningKind, Part, Rules, Scene, SceneError, Shape};
 use proptest::prelude::*;
 
 use super::fixtures::{SceneBuilder, box_part, pose, random_scene, small_box};
@@ -73,6 +73,33 @@ fn non_finite_numbers_name_their_field() {
         },
         |e| matches!(e, SceneError::NonFinite { path } if path == "fixed_objects[0].shape.parts[0].half_extents"),
     );
+}
+
+#[test]
+fn numbers_beyond_any_room_name_their_field() {
+    // A fixed box of half extent 1e308 was accepted, and a few steps later parry's EPA panicked.
+    check(
+        |s| {
+            s.fixed_objects[0].shape =
+                Shape::Parts(vec![Part::Box { half_extents: [0.4, 1e308, 0.4], offset: [0.0; 3], yaw: 0.0 }])
+        },
+        |e| {
+            matches!(e, SceneError::OutOfRange { path, value, max }
+                if path == "fixed_objects[0].shape.parts[0].half_extents" && *value == 1e308 && *max == MAX_SCENE_NUMBER)
+        },
+    );
+    check(
+        |s| s.movable_objects[0].pose.yaw = 1e9,
+        |e| matches!(e, SceneError::OutOfRange { path, .. } if path == "movable_objects[0].pose"),
+    );
+    check(
+        |s| s.room.floor[1][0] = -2e3,
+        |e| matches!(e, SceneError::OutOfRange { path, .. } if path == "room.floor[1]"),
+    );
+    // The bound itself is accepted where the geometry allows it: a yaw of exactly 1,000 rad.
+    let mut scene = base();
+    scene.fixed_objects[0].pose.yaw = MAX_SCENE_NUMBER;
+    CompiledScene::new(scene, Rules::default()).unwrap();
 }
 
 #[test]

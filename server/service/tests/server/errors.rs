@@ -123,6 +123,13 @@ async fn malformed_inline_scene_is_invalid_argument() {
     let bad = scene.replacen("esrp.scene/v1", "esrp.scene/v9", 1);
     let r = client.create_episode(inline(bad)).await;
     assert_fails(&mut server, &mut client, r, Code::InvalidArgument, "esrp.scene/v9").await;
+    // A number past any room (a fixed box of half extent 1e308 once passed, and parry's EPA
+    // panicked a few steps later): refused at the create, the field named.
+    let mut huge: serde_json::Value = serde_json::from_str(&scene).unwrap();
+    huge["fixed_objects"][0]["shape"]["parts"][0]["half_extents"][1] = serde_json::json!(1e308);
+    let r = client.create_episode(inline(huge.to_string())).await;
+    assert_fails(&mut server, &mut client, r, Code::InvalidArgument, "fixed_objects[0].shape.parts[0].half_extents")
+        .await;
     // The example scene itself is accepted inline.
     client.create_episode(inline(scene)).await.expect("a valid inline scene is served");
 }
