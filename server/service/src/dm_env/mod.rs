@@ -61,7 +61,7 @@ use crate::auth::caller_of;
 use crate::episodes::{Episodes, StreamSlot};
 use crate::error::ServiceError;
 use crate::quote::quoted;
-use crate::types::{EpisodeId, Observation, StepCall};
+use crate::types::{Caller, EpisodeId, Observation, StepCall};
 
 pub mod convert;
 mod error;
@@ -228,15 +228,7 @@ impl Connection {
         let mut map = self.worlds.map();
         let world =
             map.get_mut(&request.world_name).ok_or_else(|| DmEnvError::UnknownWorld(request.world_name.clone()))?;
-        let caller = &self.slot.caller;
-        if !caller.is_admin() && world.owner != caller.name {
-            return Err(ServiceError::Denied(format!(
-                "world {} belongs to another token: {} may join only the worlds it created",
-                quoted(&request.world_name),
-                caller.describe()
-            ))
-            .into());
-        }
+        may_use(&self.slot.caller, &request.world_name, world)?;
         if world.agent.is_some() {
             return Err(DmEnvError::WorldTaken(request.world_name));
         }
@@ -371,6 +363,8 @@ impl Connection {
             let mut map = self.worlds.map();
             let world =
                 map.get(&request.world_name).ok_or_else(|| DmEnvError::UnknownWorld(request.world_name.clone()))?;
+            // Whose it is, before anything is removed: another token's world stays as it was.
+            may_use(&self.slot.caller, &request.world_name, world)?;
             if world.agent.is_some() {
                 return Err(DmEnvError::WorldInUse(request.world_name));
             }
@@ -420,6 +414,20 @@ impl Connection {
 pub struct DmEnvService {
     episodes: Arc<Episodes>,
     worlds: Arc<Worlds>,
+}
+
+/// Refuses `caller` a world another token created (an admin may use any): joining it or destroying
+/// it is its owner's alone.
+fn may_use(caller: &Caller, world_name: &str, world: &World) -> Result<(), DmEnvError> {
+    if caller.is_admin() || world.owner == caller.name {
+        return Ok(());
+    }
+    Err(ServiceError::Denied(format!(
+        "world {} belongs to another token: {} may join or destroy only the worlds it created",
+        quoted(world_name),
+        caller.describe()
+    ))
+    .into())
 }
 
 impl DmEnvService {

@@ -221,11 +221,20 @@ async fn each_role_gets_only_what_it_may_on_both_apis() {
         Ok(dm::environment_response::Payload::CreateWorld(r)) => r.world_name,
         other => panic!("bob creates a world: {other:?}"),
     };
-    let join = dm::JoinWorldRequest { world_name: bob_world, settings: Default::default() };
-    let (joined, _) = dm_call(&server, "alice-secret", dm::environment_request::Payload::JoinWorld(join)).await;
+    let join = dm::JoinWorldRequest { world_name: bob_world.clone(), settings: Default::default() };
+    let (joined, _) = dm_call(&server, "alice-secret", dm::environment_request::Payload::JoinWorld(join.clone())).await;
     let status = joined.expect_err("alice may not join bob's world");
     assert_eq!(status.code, Code::PermissionDenied as i32, "{status:?}");
     assert!(status.message.contains("belongs to another token"), "{status:?}");
+    // Nor destroy it: refused before anything is removed, so bob's world is still there.
+    let destroy = dm::DestroyWorldRequest { world_name: bob_world };
+    let (destroyed, _) =
+        dm_call(&server, "alice-secret", dm::environment_request::Payload::DestroyWorld(destroy)).await;
+    let status = destroyed.expect_err("alice may not destroy bob's world");
+    assert_eq!(status.code, Code::PermissionDenied as i32, "{status:?}");
+    assert!(status.message.contains("belongs to another token"), "{status:?}");
+    let (joined, _) = dm_call(&server, "root-secret", dm::environment_request::Payload::JoinWorld(join)).await;
+    assert!(matches!(joined, Ok(dm::environment_response::Payload::JoinWorld(_))), "bob's world is intact: {joined:?}");
 }
 
 fn text(value: &str) -> esrp_server::dm_env::wire::dm_env_rpc::v1::Tensor {
