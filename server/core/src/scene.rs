@@ -141,7 +141,7 @@ impl Split {
     pub const ALL: [Split; 4] = [Split::Train, Split::Test, Split::Challenge, Split::Minival];
 
     /// Lower-case name as in the JSON (`train`, `test`, `challenge`, `minival`).
-    pub fn as_str(self) -> &'static str {
+    pub const fn as_str(self) -> &'static str {
         match self {
             Self::Train => "train",
             Self::Test => "test",

@@ -11,6 +11,7 @@
 use esrp_core::Split;
 
 use crate::error::ServiceError;
+use crate::quote::quoted;
 use crate::types::{Caller, Role};
 
 /// May `caller` create (or reset into) an episode on a scene of `split` with `privileged`, and
@@ -68,6 +69,27 @@ pub(super) fn inline_split(split: Split) -> Result<(), ServiceError> {
     Ok(())
 }
 
+/// The id namespaces (what comes before the `/`) of the server's own scenes, which no inline scene
+/// may take: the built-in benchmarks' and the hidden splits'.
+const RESERVED_NAMESPACES: [&str; 4] =
+    [esrp_dataset::BENCH_V1, esrp_dataset::BENCH_V2, Split::Challenge.as_str(), Split::Minival.as_str()];
+
+/// Refuses an inline scene whose id is one of the served scenes' (`served`) or lies in the
+/// namespace of the server's own scenes: records, leaderboards and verification name a scene by
+/// its id, so an inline scene must never pass for one of the server's.
+pub(super) fn inline_id(id: &str, served: bool) -> Result<(), ServiceError> {
+    let namespace = id.split_once('/').map(|(namespace, _)| namespace);
+    let reserved = namespace.filter(|n| RESERVED_NAMESPACES.contains(n));
+    if served || reserved.is_some() {
+        let whose = reserved.map_or_else(String::new, |n| format!(" (`{n}/…` names the server's own scenes)"));
+        return Err(ServiceError::InvalidArgument(format!(
+            "an inline scene cannot take the id {}{whose}: records name the server's scenes by id; give it an id of its own",
+            quoted(id)
+        )));
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -94,5 +116,11 @@ mod tests {
         );
         assert!(may_read_privileged(&trainer, "PlanActions").is_ok());
         assert!(inline_split(Split::Challenge).is_err() && inline_split(Split::Test).is_ok());
+        for taken in ["esrp-bench-v2/00007", "esrp-bench-v1/00000", "challenge/00001", "minival/00000"] {
+            let message = inline_id(taken, false).unwrap_err().to_string();
+            assert!(message.contains("give it an id of its own"), "{message}");
+        }
+        assert!(inline_id("my-room", true).is_err(), "a served scene's id");
+        assert!(inline_id("my-room", false).is_ok() && inline_id("example/bedroom-0", false).is_ok());
     }
 }

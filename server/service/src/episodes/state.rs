@@ -76,6 +76,7 @@ impl Episodes {
                 SceneChoice::SceneJson(json) => {
                     let scene = Scene::from_json(&json)?;
                     super::access::inline_split(scene.split)?;
+                    super::access::inline_id(&scene.id, this.store.index_of(&scene.id).is_ok())?;
                     return Ok(Arc::new(CompiledScene::new(scene, esrp_core::Rules::default())?));
                 }
                 SceneChoice::SceneId(id) => this.store.index_of(&id)?,

@@ -197,6 +197,25 @@ async fn each_role_gets_only_what_it_may_on_both_apis() {
         ..Default::default()
     };
     refused(tina.create_episode(inline).await, Code::InvalidArgument, "cannot claim the split challenge");
+    // Nor take a served scene's id, nor one in the server's namespaces: records name scenes by id.
+    let served: serde_json::Value = serde_json::from_str(&scene_json).unwrap();
+    let served_id = served["id"].as_str().unwrap().to_owned();
+    for id in [served_id.as_str(), "challenge/00001", "minival/00000", "esrp-bench-v2/00007"] {
+        let mut renamed = served.clone();
+        renamed["id"] = id.into();
+        let inline = proto::CreateEpisodeRequest {
+            scene: Some(proto::create_episode_request::Scene::SceneJson(renamed.to_string())),
+            ..Default::default()
+        };
+        refused(tina.create_episode(inline).await, Code::InvalidArgument, "give it an id of its own");
+    }
+    let mut own = served.clone();
+    own["id"] = "tina/my-room".into();
+    let inline = proto::CreateEpisodeRequest {
+        scene: Some(proto::create_episode_request::Scene::SceneJson(own.to_string())),
+        ..Default::default()
+    };
+    assert!(tina.create_episode(inline).await.is_ok(), "an inline scene with an id of its own is served");
     // Hidden scenes play their own horizon.
     let longer = proto::CreateEpisodeRequest { horizon: 5000, ..create("minival/00000", false) };
     refused(alice.create_episode(longer).await, Code::PermissionDenied, "may not set the horizon");
