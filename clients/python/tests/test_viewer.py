@@ -6,6 +6,7 @@ and one token's viewer never lists another's episodes; without tokens only loopb
 from __future__ import annotations
 
 import base64
+import concurrent.futures
 import io
 import json
 import os
@@ -135,6 +136,38 @@ def test_the_servers_records_by_scene(viewer: esrp.LocalServer) -> None:
     assert get(viewer, "/api/records/alice/9999", "alice-secret")[0] == 404
     assert get(viewer, "/api/records?scene=esrp-bench-v2/99999", "root-secret")[1]["records"] == []
     assert get(viewer, "/api/records", None)[0] == 401
+
+
+def test_a_replay_seeks_and_ends_with_its_episode(viewer: esrp.LocalServer) -> None:
+    """A replay moves to any step (forward by stepping, back by a reset); two replays seek at once,
+    each holding only its own lock; closing the replay's episode frees the replay."""
+    status, scenes = get(viewer, "/api/scenes?split=test&difficulty=easy", "alice-secret")
+    assert status == 200
+    actions = [2, 0, 0, 3, 0, 1, 2, 0] * 4
+    started = [
+        get(viewer, "/api/replay", "alice-secret", {"scene_id": scenes[k]["id"], "actions": actions})
+        for k in (3, 4)
+    ]
+    assert [s for s, _ in started] == [200, 200], started
+    ids = [body["episode"] for _, body in started]
+
+    def seek_to_end(replay: str) -> tuple[int, Any]:
+        return get(viewer, f"/api/replay/{replay}/seek", "alice-secret", {"step": 32})
+
+    with concurrent.futures.ThreadPoolExecutor(2) as pool:
+        seeks = list(
+            pool.map(lambda i: get(viewer, f"/api/replay/{i}/seek", "alice-secret", {"step": 32}), ids)
+        )
+    assert seeks == [(200, {"step": 32, "steps": 32})] * 2
+    assert get(viewer, f"/api/replay/{ids[0]}/seek", "alice-secret", {"step": 5}) == (
+        200,
+        {"step": 5, "steps": 32},
+    )
+    for replay in ids:
+        assert get(viewer, f"/api/episodes/{replay}/close", "alice-secret", {})[0] == 200
+        status, body = get(viewer, f"/api/replay/{replay}/seek", "alice-secret", {"step": 1})
+        assert status == 404
+        assert "no replay" in body["error"], body
 
 
 def rss_bytes(pid: int) -> int:

@@ -105,7 +105,10 @@ pub(super) async fn close(
     headers: HeaderMap,
 ) -> Result<Json<Value>, Failure> {
     let caller = caller(&viewer, &headers)?;
-    let m = viewer.episodes.close(&caller, &EpisodeId::from(id)).await?;
+    let id = EpisodeId::from(id);
+    let m = viewer.episodes.close(&caller, &id).await?;
+    // A replay of it ends with it.
+    viewer.replays().remove(&id);
     Ok(Json(json!({ "success": m.success, "osr": m.object_success_rate, "steps": m.steps })))
 }
 

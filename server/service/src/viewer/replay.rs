@@ -1,6 +1,8 @@
 //! Replaying: the server's records a caller may read, one whole, and an episode that re-runs a
 //! record's actions, moved to any step on request (the simulator is deterministic).
 
+use std::sync::Arc;
+
 use axum::Json;
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, StatusCode};
@@ -8,7 +10,8 @@ use serde::Deserialize;
 use serde_json::{Value, json};
 
 use super::state::{Failure, Replay, Viewer, caller};
-use crate::types::{CreateOptions, EpisodeId, SceneChoice, SensorRequest, StepCall};
+use crate::error::ServiceError;
+use crate::types::{Caller, CreateOptions, EpisodeId, SceneChoice, SensorRequest, StepCall};
 
 /// The most records `/api/records` lists (the latest ones).
 const LISTED_RECORDS: usize = 500;
@@ -90,7 +93,8 @@ pub(super) async fn replay(
     let created = viewer.episodes.create(&caller, options, None).await?;
     viewer.episodes.claim(&created.episode);
     let steps = request.actions.len();
-    viewer.replays.lock().await.insert(created.episode.clone(), Replay { actions: request.actions, at: 0 });
+    let replay = Arc::new(tokio::sync::Mutex::new(Replay { actions: request.actions, at: 0 }));
+    viewer.replays().insert(created.episode.clone(), replay);
     Ok(Json(json!({ "episode": created.episode.as_str(), "scene": created.scene.id, "steps": steps })))
 }
 
@@ -110,21 +114,40 @@ pub(super) async fn seek(
 ) -> Result<Json<Value>, Failure> {
     let caller = caller(&viewer, &headers)?;
     let id = EpisodeId::from(id);
-    let mut replays = viewer.replays.lock().await;
-    let replay = replays
-        .get_mut(&id)
-        .ok_or_else(|| Failure(StatusCode::NOT_FOUND, format!("no replay {id}: start one with /api/replay")))?;
+    let replay = viewer.replays().get(&id).cloned();
+    let replay =
+        replay.ok_or_else(|| Failure(StatusCode::NOT_FOUND, format!("no replay {id}: start one with /api/replay")))?;
+    // This replay's lock alone while it steps: other replays and seeks go on meanwhile.
+    let mut replay = replay.lock().await;
     let target = body.step.min(replay.actions.len());
+    if let Err(error) = move_replay(&viewer, &caller, &id, &mut replay, target).await {
+        if matches!(error, ServiceError::UnknownEpisode(_)) {
+            // Its episode is gone (closed, or reaped): so is the replay.
+            viewer.replays().remove(&id);
+        }
+        return Err(error.into());
+    }
+    Ok(Json(json!({ "step": replay.at, "steps": replay.actions.len() })))
+}
+
+/// Moves `replay` to step `target`: back by a reset, forward by taking the record's actions.
+async fn move_replay(
+    viewer: &Viewer,
+    caller: &Arc<Caller>,
+    id: &EpisodeId,
+    replay: &mut Replay,
+    target: usize,
+) -> Result<(), ServiceError> {
     if target < replay.at {
-        viewer.episodes.reset(&caller, &id, None).await?;
+        viewer.episodes.reset(caller, id, None).await?;
         replay.at = 0;
     }
     while replay.at < target {
         let action = esrp_core::Action::from_code(i64::from(replay.actions[replay.at]))
-            .map_err(|e| Failure(StatusCode::BAD_REQUEST, e.to_string()))?;
+            .map_err(|e| ServiceError::InvalidArgument(e.to_string()))?;
         let call = StepCall { episode: id.clone(), action, include_goal: false };
-        viewer.episodes.step_many(&caller, vec![call]).await?;
+        viewer.episodes.step_many(caller, vec![call]).await?;
         replay.at += 1;
     }
-    Ok(Json(json!({ "step": replay.at, "steps": replay.actions.len() })))
+    Ok(())
 }

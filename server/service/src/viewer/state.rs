@@ -24,10 +24,19 @@ use crate::types::{Caller, EpisodeId};
 pub(super) struct Viewer {
     pub(super) episodes: Arc<Episodes>,
     pub(super) tokens: Arc<Tokens>,
-    /// The replays: each episode's record actions and how many of them it has taken.
-    pub(super) replays: Arc<tokio::sync::Mutex<HashMap<EpisodeId, Replay>>>,
+    /// The replays: each episode's record actions and how many of them it has taken. The map's
+    /// lock is held only to find, add or remove a replay (a std lock: never across an await); a
+    /// seek steps holding its own replay's lock alone, so that it blocks no other replay.
+    pub(super) replays: Arc<std::sync::Mutex<HashMap<EpisodeId, Arc<tokio::sync::Mutex<Replay>>>>>,
     /// The watched episodes' feeds.
     pub(super) feeds: Feeds,
+}
+
+impl Viewer {
+    /// The replays' map, whatever a panicking holder left.
+    pub(super) fn replays(&self) -> std::sync::MutexGuard<'_, HashMap<EpisodeId, Arc<tokio::sync::Mutex<Replay>>>> {
+        self.replays.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+    }
 }
 
 /// A record being replayed.
