@@ -30,7 +30,7 @@ pub const MAX_SCENE_NUMBER: f64 = 1_000.0;
 
 /// Checks that every one of `values` is finite and at most [`MAX_SCENE_NUMBER`] in magnitude;
 /// `path` names the field in the error.
-fn check_finite(path: impl FnOnce() -> String, values: &[f64]) -> Result<(), SceneError> {
+fn check_number(path: impl FnOnce() -> String, values: &[f64]) -> Result<(), SceneError> {
     if !values.iter().all(|v| v.is_finite()) {
         return Err(SceneError::NonFinite { path: path() });
     }
@@ -100,7 +100,7 @@ fn static_world(
     let mut fixed_footprints = Vec::new();
     for (i, object) in scene.fixed_objects.iter().enumerate() {
         let path = format!("fixed_objects[{i}]");
-        check_finite(|| format!("{path}.pose"), &[object.pose.x, object.pose.z, object.pose.yaw])?;
+        check_number(|| format!("{path}.pose"), &[object.pose.x, object.pose.z, object.pose.yaw])?;
         let parts = build_parts(&object.id, &path, &object.shape, margin, true)?;
         let footprint = local_footprint(&parts.local_aabb).at(&object.pose);
         if !point_in_polygon(footprint.center, floor) {
@@ -123,8 +123,8 @@ fn movable_geometry(scene: &Scene, floor: &[PlanPoint], margin: f64) -> Result<V
     let mut movables = Vec::with_capacity(scene.movable_objects.len());
     for (i, object) in scene.movable_objects.iter().enumerate() {
         let path = format!("movable_objects[{i}]");
-        check_finite(|| format!("{path}.pose"), &[object.pose.x, object.pose.z, object.pose.yaw])?;
-        check_finite(|| format!("{path}.target"), &[object.target.x, object.target.z, object.target.yaw])?;
+        check_number(|| format!("{path}.pose"), &[object.pose.x, object.pose.z, object.pose.yaw])?;
+        check_number(|| format!("{path}.target"), &[object.target.x, object.target.z, object.target.yaw])?;
         let parts = build_parts(&object.id, &path, &object.shape, margin, false)?;
         let footprint = local_footprint(&parts.local_aabb);
         for (layout, pose) in [(Layout::Initial, &object.pose), (Layout::Target, &object.target)] {
@@ -188,12 +188,12 @@ fn primitive_parts(
     }
     for (i, part) in parts.iter().enumerate() {
         let (offset, yaw) = part.placement();
-        check_finite(|| format!("{path}.shape.parts[{i}].offset"), &offset)?;
-        check_finite(|| format!("{path}.shape.parts[{i}].yaw"), &[yaw])?;
+        check_number(|| format!("{path}.shape.parts[{i}].offset"), &offset)?;
+        check_number(|| format!("{path}.shape.parts[{i}].yaw"), &[yaw])?;
         let pose = part_pose(offset, yaw);
         let (e, d) = match part {
             Part::Box { half_extents, .. } => {
-                check_finite(|| format!("{path}.shape.parts[{i}].half_extents"), half_extents)?;
+                check_number(|| format!("{path}.shape.parts[{i}].half_extents"), half_extents)?;
                 if half_extents.iter().any(|&h| h <= 0.0) {
                     return Err(invalid(format!("part {i}: box half extents {half_extents:?} must all be positive")));
                 }
@@ -201,7 +201,7 @@ fn primitive_parts(
                 (SharedShape::new(Cuboid::new(Vector::new(x, y, z))), SharedShape::round_cuboid(x, y, z, margin))
             }
             Part::Cylinder { radius, half_height, .. } => {
-                check_finite(|| format!("{path}.shape.parts[{i}]"), &[*radius, *half_height])?;
+                check_number(|| format!("{path}.shape.parts[{i}]"), &[*radius, *half_height])?;
                 if *radius <= 0.0 || *half_height <= 0.0 {
                     return Err(invalid(format!("part {i}: cylinder radius and half height must be positive")));
                 }
@@ -212,7 +212,7 @@ fn primitive_parts(
             }
             Part::ConvexHull { points, .. } => {
                 for (j, p) in points.iter().enumerate() {
-                    check_finite(|| format!("{path}.shape.parts[{i}].points[{j}]"), p)?;
+                    check_number(|| format!("{path}.shape.parts[{i}].points[{j}]"), p)?;
                 }
                 let points: Vec<Vector> = points.iter().map(|p| Vector::new(p[0], p[1], p[2])).collect();
                 hull_pair(&points, margin).ok_or_else(|| {
@@ -239,7 +239,7 @@ fn mesh_parts(
     let mut exact = Vec::new();
     let mut dilated = Vec::new();
     for (j, p) in mesh.vertices.iter().enumerate() {
-        check_finite(|| format!("{path}.shape.mesh.vertices[{j}]"), p)?;
+        check_number(|| format!("{path}.shape.mesh.vertices[{j}]"), p)?;
     }
     if mesh.triangles.is_empty() {
         return Err(invalid("`shape.mesh.triangles` is empty".into()));
@@ -301,7 +301,7 @@ fn validate_openings(scene: &Scene, floor: &[PlanPoint]) -> Result<(), SceneErro
     let height = scene.room.wall_height;
     for (index, opening) in scene.room.openings.iter().enumerate() {
         let invalid = |reason: String| SceneError::InvalidOpening { index, reason };
-        check_finite(
+        check_number(
             || format!("room.openings[{index}]"),
             &[opening.offset, opening.width, opening.bottom, opening.top],
         )?;
@@ -343,10 +343,10 @@ fn validate_openings(scene: &Scene, floor: &[PlanPoint]) -> Result<(), SceneErro
 fn validate_room(scene: &Scene) -> Result<Vec<PlanPoint>, SceneError> {
     let room = &scene.room;
     for (i, p) in room.floor.iter().enumerate() {
-        check_finite(|| format!("room.floor[{i}]"), p)?;
+        check_number(|| format!("room.floor[{i}]"), p)?;
     }
-    check_finite(|| "room.wall_height".into(), &[room.wall_height])?;
-    check_finite(|| "room.wall_thickness".into(), &[room.wall_thickness])?;
+    check_number(|| "room.wall_height".into(), &[room.wall_height])?;
+    check_number(|| "room.wall_thickness".into(), &[room.wall_thickness])?;
     let invalid = |reason: String| Err(SceneError::InvalidRoom { reason });
     let floor = room.floor_points();
     if floor.len() < 3 {
@@ -402,7 +402,7 @@ impl CompiledScene {
             static_world(&scene, &floor, &wall_pieces, margin)?;
         let movables = movable_geometry(&scene, &floor, margin)?;
         let agent = PlanPoint::new(scene.agent.x, scene.agent.z);
-        check_finite(|| "agent".into(), &[agent.x, agent.z])?;
+        check_number(|| "agent".into(), &[agent.x, agent.z])?;
         if !point_in_polygon(agent, &floor) {
             return Err(SceneError::AgentOutsideRoom);
         }
