@@ -234,25 +234,27 @@ async fn each_role_gets_only_what_it_may_on_both_apis() {
     let world = |split: &str| dm::CreateWorldRequest {
         settings: [("split".to_owned(), text(split)), ("resolution".to_owned(), int(16))].into(),
     };
-    let (bob_world, _bob_connection) =
-        dm_call(&server, "bob-secret", dm::environment_request::Payload::CreateWorld(world("minival"))).await;
+    // Each token keeps one connection: alice's quota is one stream at a time.
+    let mut bob_connection = DmConnection::open(&server, "bob-secret").await;
+    let mut alice_connection = DmConnection::open(&server, "alice-secret").await;
+    let bob_world = bob_connection.call(dm::environment_request::Payload::CreateWorld(world("minival"))).await;
     let bob_world = match bob_world {
         Ok(dm::environment_response::Payload::CreateWorld(r)) => r.world_name,
         other => panic!("bob creates a world: {other:?}"),
     };
     let join = dm::JoinWorldRequest { world_name: bob_world.clone(), settings: Default::default() };
-    let (joined, _) = dm_call(&server, "alice-secret", dm::environment_request::Payload::JoinWorld(join.clone())).await;
+    let joined = alice_connection.call(dm::environment_request::Payload::JoinWorld(join.clone())).await;
     let status = joined.expect_err("alice may not join bob's world");
     assert_eq!(status.code, Code::PermissionDenied as i32, "{status:?}");
     assert!(status.message.contains("belongs to another token"), "{status:?}");
     // Nor destroy it: refused before anything is removed, so bob's world is still there.
     let destroy = dm::DestroyWorldRequest { world_name: bob_world };
-    let (destroyed, _) =
-        dm_call(&server, "alice-secret", dm::environment_request::Payload::DestroyWorld(destroy)).await;
+    let destroyed = alice_connection.call(dm::environment_request::Payload::DestroyWorld(destroy)).await;
     let status = destroyed.expect_err("alice may not destroy bob's world");
     assert_eq!(status.code, Code::PermissionDenied as i32, "{status:?}");
     assert!(status.message.contains("belongs to another token"), "{status:?}");
-    let (joined, _) = dm_call(&server, "root-secret", dm::environment_request::Payload::JoinWorld(join)).await;
+    let mut root_connection = DmConnection::open(&server, "root-secret").await;
+    let joined = root_connection.call(dm::environment_request::Payload::JoinWorld(join)).await;
     assert!(matches!(joined, Ok(dm::environment_response::Payload::JoinWorld(_))), "bob's world is intact: {joined:?}");
 }
 
@@ -277,28 +279,46 @@ type DmAnswer = Result<
     esrp_server::dm_env::wire::google::rpc::Status,
 >;
 
-/// Sends one request on a fresh dm_env_rpc connection of `secret`; returns its answer and the
-/// connection's sender (the connection, and its worlds, live as long as it does).
-async fn dm_call(
-    server: &Server,
-    secret: &str,
-    request: esrp_server::dm_env::wire::dm_env_rpc::v1::environment_request::Payload,
-) -> (DmAnswer, tokio::sync::mpsc::Sender<esrp_server::dm_env::wire::dm_env_rpc::v1::EnvironmentRequest>) {
-    use esrp_server::dm_env::wire::dm_env_rpc::v1 as dm;
-    let mut client = dm::environment_client::EnvironmentClient::connect(server.address.clone()).await.unwrap();
-    let (requests, receiver) = tokio::sync::mpsc::channel(4);
-    let mut call = tonic::Request::new(tokio_stream::wrappers::ReceiverStream::new(receiver));
-    call.metadata_mut().insert("authorization", format!("Bearer {secret}").parse().unwrap());
-    requests.send(dm::EnvironmentRequest { payload: Some(request) }).await.unwrap();
-    let mut responses = client.process(call).await.unwrap().into_inner();
-    let response = responses.message().await.unwrap().unwrap().payload.unwrap();
-    // Keep the connection (and its worlds) open in the background.
-    tokio::spawn(async move { while let Ok(Some(_)) = responses.message().await {} });
-    let answer = match response {
-        dm::environment_response::Payload::Error(status) => Err(status),
-        other => Ok(other),
-    };
-    (answer, requests)
+/// One dm_env_rpc connection of a token: requests are answered in order on one stream, and its
+/// worlds live as long as it does.
+struct DmConnection {
+    requests: tokio::sync::mpsc::Sender<esrp_server::dm_env::wire::dm_env_rpc::v1::EnvironmentRequest>,
+    responses: tonic::Streaming<esrp_server::dm_env::wire::dm_env_rpc::v1::EnvironmentResponse>,
+}
+
+impl DmConnection {
+    /// Opens the connection. A stream the token closed just before gives its place back only once
+    /// the server has seen it close, so a refusal for the stream quota is retried for a while.
+    async fn open(server: &Server, secret: &str) -> Self {
+        use esrp_server::dm_env::wire::dm_env_rpc::v1 as dm;
+        let mut client = dm::environment_client::EnvironmentClient::connect(server.address.clone()).await.unwrap();
+        let deadline = Instant::now() + Duration::from_secs(10);
+        loop {
+            let (requests, receiver) = tokio::sync::mpsc::channel(4);
+            let mut call = tonic::Request::new(tokio_stream::wrappers::ReceiverStream::new(receiver));
+            call.metadata_mut().insert("authorization", format!("Bearer {secret}").parse().unwrap());
+            match client.process(call).await {
+                Ok(responses) => return Self { requests, responses: responses.into_inner() },
+                Err(status) if status.code() == Code::ResourceExhausted && Instant::now() < deadline => {
+                    tokio::time::sleep(Duration::from_millis(50)).await;
+                }
+                Err(status) => panic!("a dm_env_rpc connection opens: {status:?}"),
+            }
+        }
+    }
+
+    /// Sends one request and returns its answer (an error payload as `Err`).
+    async fn call(
+        &mut self,
+        request: esrp_server::dm_env::wire::dm_env_rpc::v1::environment_request::Payload,
+    ) -> DmAnswer {
+        use esrp_server::dm_env::wire::dm_env_rpc::v1 as dm;
+        self.requests.send(dm::EnvironmentRequest { payload: Some(request) }).await.unwrap();
+        match self.responses.message().await.unwrap().unwrap().payload.unwrap() {
+            dm::environment_response::Payload::Error(status) => Err(status),
+            other => Ok(other),
+        }
+    }
 }
 
 #[tokio::test]
