@@ -200,9 +200,15 @@ impl<E> Registry<E> {
         map.remove(id).map(|slot| slot.episode).ok_or_else(|| ServiceError::UnknownEpisode(id.clone()))
     }
 
-    /// Removes the episode `id` whoever created it (the server's own closes); returns it.
-    pub fn take(&self, id: &EpisodeId) -> Option<Locked<E>> {
-        self.map().remove(id).map(|slot| slot.episode)
+    /// Removes the episode `id` if no call has named it yet (its client cannot have used it);
+    /// returns it. Checked and removed under the lock every call that names an episode takes
+    /// ([`Registry::get`] claims it there), so an episode is either used or removed, never both.
+    pub fn take_unclaimed(&self, id: &EpisodeId) -> Option<Locked<E>> {
+        let mut map = self.map();
+        if map.slots.get(id)?.claimed {
+            return None;
+        }
+        map.remove(id).map(|slot| slot.episode)
     }
 
     /// Removes every episode created on stream `stream`; returns them.

@@ -18,7 +18,9 @@ use crate::types::{
 };
 
 /// A created episode whose answer has not reached its client yet: dropping the last clone
-/// before [`Unanswered::answered`] closes the episode. Clone (one shared state), so that it can
+/// before [`Unanswered::answered`] closes the episode, unless a call has named it since (its
+/// client read the id from the answer's first bytes and used it: the episode is a run like any
+/// other, and its counted attempt stays spent). Clone (one shared state), so that it can
 /// travel in a response's extensions to where the answer is known to be sent.
 #[derive(Clone)]
 pub struct Unanswered(Arc<Pending>);
@@ -50,7 +52,7 @@ impl Drop for Pending {
     fn drop(&mut self) {
         let pending = self.0.get_mut().unwrap_or_else(|poisoned| poisoned.into_inner()).take();
         if let Some(PendingEpisode { episodes, episode, owner, counted_scene }) = pending
-            && episodes.registry.take(&episode).is_some()
+            && episodes.registry.take_unclaimed(&episode).is_some()
         {
             if let Some(scene) = counted_scene {
                 episodes.attempts.give_back(&owner.name, &scene);

@@ -1,8 +1,8 @@
 //! The runs the server records or counts (`--records`, the challenge's one counted attempt per
 //! scene and token): starting a run, logging its actions (in `stepping`), and ending it into an
 //! `esrp.results/v1` record, whatever ends it: its last step, a close, a reset, a reaper, the end
-//! of its stream, or the server's shutdown. An episode whose create answer never left is not
-//! a run: its attempt is given back.
+//! of its stream, or the server's shutdown. An episode whose create answer never left, and that
+//! no call has named, is not a run: its attempt is given back. Once a call has named it, it is.
 
 use std::time::{Instant, SystemTime};
 

@@ -3,7 +3,9 @@
 //! it into the response body, which marks it answered once the whole answer has been written
 //! (the trailers with `grpc-status: 0`). A call given up before that — the client's deadline
 //! expires or it cancels while the episode renders (the handler future is dropped) or while
-//! the answer travels (the body is dropped) — drops the guard, which closes the episode.
+//! the answer travels (the body is dropped) — drops the guard, which closes the episode if no
+//! call has named it yet. A client can read the id from an answer's first bytes and hold the
+//! rest back; once it uses the episode, the episode is its run and stays (see `Unanswered`).
 
 use std::convert::Infallible;
 use std::pin::Pin;

@@ -39,11 +39,11 @@ role = "admin"
 
 const SEED: &str = "a-secret-seed-of-the-challenge";
 
-type Authed = EsrpClient<tonic::service::interceptor::InterceptedService<Channel, Bearer>>;
+pub(crate) type Authed = EsrpClient<tonic::service::interceptor::InterceptedService<Channel, Bearer>>;
 
 /// Adds `authorization: Bearer SECRET` to every call.
 #[derive(Clone)]
-struct Bearer(&'static str);
+pub(crate) struct Bearer(&'static str);
 
 impl tonic::service::Interceptor for Bearer {
     fn call(&mut self, mut request: tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> {
@@ -52,12 +52,12 @@ impl tonic::service::Interceptor for Bearer {
     }
 }
 
-async fn client(server: &Server, secret: &'static str) -> Authed {
+pub(crate) async fn client(server: &Server, secret: &'static str) -> Authed {
     let channel = Channel::from_shared(server.address.clone()).unwrap().connect().await.unwrap();
     EsrpClient::with_interceptor(channel, Bearer(secret)).max_decoding_message_size(256 << 20)
 }
 
-fn start(dir: &Path, extra: &[&str]) -> Server {
+pub(crate) fn start(dir: &Path, extra: &[&str]) -> Server {
     let tokens = dir.join("tokens.toml");
     std::fs::write(&tokens, TOKENS).unwrap();
     let records = dir.join("records");
@@ -78,7 +78,7 @@ fn start(dir: &Path, extra: &[&str]) -> Server {
 }
 
 /// A create of `scene` with small images.
-fn create(scene: &str, privileged: bool) -> proto::CreateEpisodeRequest {
+pub(crate) fn create(scene: &str, privileged: bool) -> proto::CreateEpisodeRequest {
     proto::CreateEpisodeRequest {
         scene: Some(proto::create_episode_request::Scene::SceneId(scene.to_owned())),
         privileged,
@@ -88,7 +88,7 @@ fn create(scene: &str, privileged: bool) -> proto::CreateEpisodeRequest {
     }
 }
 
-fn refused<T: std::fmt::Debug>(result: Result<T, tonic::Status>, code: Code, needle: &str) {
+pub(crate) fn refused<T: std::fmt::Debug>(result: Result<T, tonic::Status>, code: Code, needle: &str) {
     let status = result.expect_err("refused");
     assert_eq!(status.code(), code, "{status:?}");
     assert!(status.message().contains(needle), "{:?} does not contain {needle:?}", status.message());
@@ -99,7 +99,7 @@ async fn create_id(client: &mut Authed, request: proto::CreateEpisodeRequest) ->
 }
 
 /// Steps `episode` with turns until it ends; returns the steps taken.
-async fn play_out(client: &mut Authed, episode: &str) -> u32 {
+pub(crate) async fn play_out(client: &mut Authed, episode: &str) -> u32 {
     let mut steps = 0;
     loop {
         let request =
@@ -112,7 +112,7 @@ async fn play_out(client: &mut Authed, episode: &str) -> u32 {
     }
 }
 
-fn records(dir: &Path, token: &str) -> Vec<esrp_client::results::EpisodeRecord> {
+pub(crate) fn records(dir: &Path, token: &str) -> Vec<esrp_client::results::EpisodeRecord> {
     let path = dir.join("records").join(format!("{token}.jsonl"));
     if !path.exists() {
         return Vec::new();

@@ -1,6 +1,7 @@
 //! esrp-server's integration tests: start the real binary on an ephemeral port and talk gRPC;
 //! property tests of the request conversions at the edge (`conversions`).
 
+mod attempts;
 mod challenge;
 mod conversions;
 mod dm_env;

@@ -1,0 +1,126 @@
+//! A counted attempt at a challenge scene is spent once its episode is used, whatever its
+//! client does with the create's answer afterwards: a raw HTTP/2 client holds the answer with
+//! flow control, reads the episode id from its first bytes, plays the episode on another
+//! connection, then resets the create. Only a create whose episode was never used gives its
+//! attempt back.
+
+use std::time::Duration;
+
+use bytes::Bytes;
+use esrp_server::proto;
+use prost::Message;
+use tonic::Code;
+
+use super::challenge::{client, create, play_out, records, refused, start};
+use super::harness::Server;
+
+/// A CreateEpisode sent on a raw HTTP/2 connection whose stream window is 64 bytes: the
+/// server can send the answer's first 64 bytes and no more, and the client never opens the
+/// window further.
+struct HeldCreate {
+    /// The create's request stream, to reset.
+    send: h2::SendStream<Bytes>,
+    /// The answer's body, never read further.
+    _body: h2::RecvStream,
+    /// The connection: the create lives while it does.
+    _connection: tokio::task::JoinHandle<()>,
+    /// The episode id read from the answer's first bytes.
+    episode_id: String,
+}
+
+/// The answer carries the paper's 128 px images (about 100 kB): the server hands an answer to
+/// the transport in pieces and takes it as delivered only once all but the last pieces left.
+async fn held_create(server: &Server, secret: &str, scene: &str) -> HeldCreate {
+    let request = proto::CreateEpisodeRequest { sensors: None, ..create(scene, false) };
+    let authority = server.address.trim_start_matches("http://").to_owned();
+    let tcp = tokio::net::TcpStream::connect(&authority).await.expect("the server listens");
+    let (send_request, connection) =
+        h2::client::Builder::new().initial_window_size(64).handshake::<_, Bytes>(tcp).await.expect("HTTP/2");
+    let connection = tokio::spawn(async move {
+        let _ = connection.await;
+    });
+    let mut send_request = send_request.ready().await.expect("the connection is ready");
+    let call = http::Request::builder()
+        .method("POST")
+        .uri(format!("http://{authority}/esrp.v1.Esrp/CreateEpisode"))
+        .header("content-type", "application/grpc")
+        .header("te", "trailers")
+        .header("authorization", format!("Bearer {secret}"))
+        .body(())
+        .unwrap();
+    let (response, mut send) = send_request.send_request(call, false).expect("the create is sent");
+    let message = request.encode_to_vec();
+    let mut framed = vec![0u8];
+    framed.extend_from_slice(&(message.len() as u32).to_be_bytes());
+    framed.extend_from_slice(&message);
+    send.send_data(Bytes::from(framed), true).expect("the request's body is sent");
+    let response = tokio::time::timeout(Duration::from_secs(60), response).await.expect("headers come").unwrap();
+    assert_eq!(response.status(), 200);
+    let mut body = response.into_body();
+    // gRPC frame (5 bytes), then field 1 (tag 0x0a, length 32) and the id's 32 hex digits.
+    let mut head = Vec::new();
+    while head.len() < 39 {
+        let chunk = tokio::time::timeout(Duration::from_secs(60), body.data()).await.expect("data comes");
+        head.extend_from_slice(&chunk.expect("the answer has begun").expect("a data frame"));
+    }
+    assert!(head.len() <= 64, "the window holds the answer back: {} bytes arrived", head.len());
+    assert_eq!(head[5..7], [0x0a, 32], "the answer begins with the episode id");
+    let episode_id = String::from_utf8(head[7..39].to_vec()).unwrap();
+    // The body is kept, not read: its window stays shut.
+    HeldCreate { send, _body: body, _connection: connection, episode_id }
+}
+
+/// Each moment a create's answer may be reset at: before its episode was used, after a step,
+/// after the horizon. Once used, the attempt stays spent and exactly one record is written.
+#[tokio::test]
+async fn a_create_reset_after_its_episode_was_used_keeps_the_attempt_spent() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start(dir.path(), &[]);
+    let mut bob = client(&server, "bob-secret").await;
+
+    // Never used: the reset gives the attempt back, and nothing is recorded.
+    let held = held_create(&server, "bob-secret", "challenge/00000").await;
+    let HeldCreate { mut send, .. } = held;
+    send.send_reset(h2::Reason::CANCEL);
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    let again = loop {
+        match bob.create_episode(create("challenge/00000", false)).await {
+            Ok(created) => break created.into_inner().episode_id,
+            Err(status) if status.code() == Code::FailedPrecondition && std::time::Instant::now() < deadline => {
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+            Err(status) => panic!("an unused create's attempt comes back: {status:?}"),
+        }
+    };
+    assert!(records(dir.path(), "bob").is_empty(), "an unused create is not a run");
+    bob.close_episode(proto::CloseEpisodeRequest { episode_id: again }).await.unwrap();
+    assert_eq!(records(dir.path(), "bob").len(), 1, "the answered create, closed, is recorded");
+
+    // Used (one step), then reset: the attempt stays spent; the run is recorded once.
+    let held = held_create(&server, "bob-secret", "challenge/00001").await;
+    let step = proto::StepRequest { episode_id: held.episode_id.clone(), action: 2, include_goal: false };
+    bob.step(step).await.expect("the held create's episode steps");
+    let HeldCreate { mut send, episode_id, .. } = held;
+    send.send_reset(h2::Reason::CANCEL);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    refused(bob.create_episode(create("challenge/00001", false)).await, Code::FailedPrecondition, "already played");
+    let goal = bob.get_goal(proto::GetGoalRequest { episode_id: episode_id.clone() }).await;
+    assert!(goal.is_ok(), "the used episode lives on after its create was reset: {goal:?}");
+    bob.close_episode(proto::CloseEpisodeRequest { episode_id }).await.unwrap();
+    let written: Vec<_> = records(dir.path(), "bob").into_iter().filter(|r| r.scene_id == "challenge/00001").collect();
+    assert_eq!(written.len(), 1, "one record of the used attempt");
+    assert_eq!((written[0].actions.as_slice(), written[0].counted), (&[2u8][..], Some(true)));
+
+    // Played to its horizon, then reset: still one record, the attempt still spent.
+    let held = held_create(&server, "bob-secret", "challenge/00002").await;
+    let steps = play_out(&mut bob, &held.episode_id).await;
+    let HeldCreate { mut send, episode_id, .. } = held;
+    send.send_reset(h2::Reason::CANCEL);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    refused(bob.create_episode(create("challenge/00002", false)).await, Code::FailedPrecondition, "already played");
+    // Closing the ended episode records nothing more: its last step wrote its record.
+    bob.close_episode(proto::CloseEpisodeRequest { episode_id }).await.expect("the ended episode lives on");
+    let written: Vec<_> = records(dir.path(), "bob").into_iter().filter(|r| r.scene_id == "challenge/00002").collect();
+    assert_eq!(written.len(), 1, "one record of the attempt played to its horizon");
+    assert_eq!((written[0].steps, written[0].end.as_str()), (steps, "horizon"));
+}
