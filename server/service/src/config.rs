@@ -108,6 +108,15 @@ pub struct Config {
     /// Scenes of the minival split (0: none).
     #[arg(long, env = "ESRP_MINIVAL_SCENES", default_value_t = 50, value_parser = clap::value_parser!(u32).range(0..=495))]
     pub minival_scenes: u32,
+    /// What episodes on challenge scenes serve tokens other than admins: `paper`, the paper's
+    /// observation only (ego and goal images at 128 px and the grasp flag: no reward, reward
+    /// terms, placed count, collision, optional sensor, other resolution, reward weights or
+    /// metrics before the end), or `full`, what any other scene serves (docs/challenge.md).
+    #[arg(long, env = "ESRP_CHALLENGE_OBSERVATIONS", value_enum, default_value_t = Observations::Paper)]
+    pub challenge_observations: Observations,
+    /// The same for minival scenes.
+    #[arg(long, env = "ESRP_MINIVAL_OBSERVATIONS", value_enum, default_value_t = Observations::Paper)]
+    pub minival_observations: Observations,
     /// Record episodes in this folder, as esrp.results/v1 lines appended to `DIR/<token>.jsonl`,
     /// each written and synced when its episode ends (see --record).
     #[arg(long, env = "ESRP_RECORDS")]
@@ -206,6 +215,25 @@ impl Config {
         let mut config = Config::parse_from(["esrp-server"]);
         config.listen = listen;
         config
+    }
+}
+
+/// What episodes on a hidden split serve (`--challenge-observations`, `--minival-observations`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Observations {
+    /// The paper's observation only: the ego and goal images at 128 px and the grasp flag.
+    Paper,
+    /// Everything an episode on any other split serves.
+    Full,
+}
+
+impl Observations {
+    /// `paper` or `full`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Observations::Paper => "paper",
+            Observations::Full => "full",
+        }
     }
 }
 

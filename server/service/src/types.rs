@@ -300,6 +300,23 @@ pub struct StepResult {
     pub metrics: Option<EpisodeMetrics>,
 }
 
+impl StepResult {
+    /// Empties what the paper's agent does not observe: the reward and its terms, the placed
+    /// count, whether the action took effect, the collision and its obstacle, a fetch's or a
+    /// release's outcome. The step index, the end flags and the final metrics stay.
+    pub fn keep_paper_observation(&mut self) {
+        let outcome = &mut self.outcome;
+        outcome.reward = Default::default();
+        outcome.placed_count = 0;
+        outcome.accepted = false;
+        outcome.collided_with = None;
+        outcome.no_op = None;
+        outcome.fetched = None;
+        outcome.released = None;
+        self.collided_with_name = None;
+    }
+}
+
 /// The answer to a create.
 #[derive(Clone, Debug)]
 pub struct Created {

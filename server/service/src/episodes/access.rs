@@ -10,9 +10,10 @@
 
 use esrp_core::Split;
 
+use crate::config::{Config, Observations};
 use crate::error::ServiceError;
 use crate::quote::quoted;
-use crate::types::{Caller, Role};
+use crate::types::{Caller, Role, SensorConfig};
 
 /// May `caller` create (or reset into) an episode on a scene of `split` with `privileged`, and
 /// a horizon of its own (`own_horizon`) rather than the scene's? Hidden scenes are played at
@@ -40,6 +41,76 @@ pub(super) fn may_play(caller: &Caller, split: Split, privileged: bool, own_hori
         return Err(ServiceError::Denied(format!(
             "episodes on {} scenes cannot be privileged, for any token: no one reads their state, JSON, expert \
              trajectory or plan; create it with privileged = false",
+            split.as_str()
+        )));
+    }
+    Ok(())
+}
+
+/// Whether an episode on a scene of `split` serves `caller` the paper's observation only: the
+/// ego and goal images at 128 px and the grasp flag. So do the hidden splits, to every token but
+/// an admin, unless the organiser widened them (`--challenge-observations`,
+/// `--minival-observations`): reward, reward terms, placed counts, collisions and metrics
+/// before the end would tell the agent how far the layout is from its target.
+pub(super) fn paper_only(caller: &Caller, split: Split, config: &Config) -> bool {
+    let policy = match split {
+        Split::Challenge => config.challenge_observations,
+        Split::Minival => config.minival_observations,
+        Split::Train | Split::Test => Observations::Full,
+    };
+    policy == Observations::Paper && !caller.is_admin()
+}
+
+/// Refuses what a paper-only episode (see [`paper_only`]) does not serve: an optional sensor,
+/// another resolution, reward weights of the caller's own.
+pub(super) fn may_observe(
+    caller: &Caller,
+    split: Split,
+    sensors: &SensorConfig,
+    own_reward: bool,
+) -> Result<(), ServiceError> {
+    let mut asked = Vec::new();
+    if sensors.depth {
+        asked.push("ego_depth".to_owned());
+    }
+    if sensors.segmentation {
+        asked.push("ego_segmentation".to_owned());
+    }
+    if sensors.current_top_down {
+        asked.push("current_top_down".to_owned());
+    }
+    if sensors.resolution != esrp_render::DEFAULT_RESOLUTION {
+        asked.push(format!("resolution {}", sensors.resolution));
+    }
+    if own_reward {
+        asked.push("reward weights".to_owned());
+    }
+    if asked.is_empty() {
+        return Ok(());
+    }
+    Err(ServiceError::Denied(format!(
+        "{} plays {} scenes with the paper's observation only: the ego and goal images at {} px and the grasp \
+         flag, no reward, placed count, collision or metrics before the end; it may not ask for {} (create it \
+         with the default sensors and no reward weights)",
+        caller.describe(),
+        split.as_str(),
+        esrp_render::DEFAULT_RESOLUTION,
+        asked.join(", ")
+    )))
+}
+
+/// Refuses the metrics of a paper-only episode that has not ended.
+pub(super) fn may_read_metrics(
+    caller: &Caller,
+    split: Split,
+    paper_only: bool,
+    ended: bool,
+) -> Result<(), ServiceError> {
+    if paper_only && !ended {
+        return Err(ServiceError::Denied(format!(
+            "{} reads the metrics of an episode on a {} scene only once it has ended: such episodes serve the \
+             paper's observation only",
+            caller.describe(),
             split.as_str()
         )));
     }

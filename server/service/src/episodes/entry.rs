@@ -55,6 +55,10 @@ pub struct EpisodeEntry {
     pub run: Option<RunLog>,
     /// Whether each run keeps its record (the create's `keep_record`).
     pub keep_records: bool,
+    /// Whether it serves the paper's observation only (a hidden scene; see `access::paper_only`):
+    /// its step answers carry no reward, reward terms, placed count or collision, and its metrics
+    /// are read only once it has ended.
+    pub paper_only: bool,
     /// The record of the last run that ended, when runs keep theirs.
     pub last_record: Option<esrp_results::EpisodeRecord>,
     /// Where the run went, for viewers (`viewing`).
@@ -133,6 +137,7 @@ impl EpisodeEntry {
             agent,
             run: None,
             keep_records: false,
+            paper_only: false,
             last_record: None,
             trail,
             watch: None,

@@ -116,6 +116,10 @@ async fn start_run(
     let Settings { config, sensors, privileged, keep } = settings;
     let (split, id) = (scene.scene().split, scene.scene().id.clone());
     access::may_play(caller, split, privileged, config.horizon.is_some())?;
+    let paper_only = access::paper_only(caller, split, &episodes.config);
+    if paper_only {
+        access::may_observe(caller, split, &sensors, config.reward != Default::default())?;
+    }
     let run = recording::begin(episodes, caller, split, &id, keep)?;
     let counted = run.as_ref().is_some_and(|r| r.counted);
     let owner = Owner { caller: caller.clone(), agent, run };
@@ -125,6 +129,7 @@ async fn start_run(
     }
     built.map(|(mut entry, observation)| {
         entry.keep_records = keep;
+        entry.paper_only = paper_only;
         (entry, observation)
     })
 }
@@ -281,7 +286,9 @@ pub(super) async fn metrics(
     id: &EpisodeId,
 ) -> Result<MetricsSoFar, ServiceError> {
     let entry = episodes.locked(caller, id).await?;
-    Ok(MetricsSoFar { metrics: entry.episode.metrics(), ended: entry.episode.is_over() })
+    let ended = entry.episode.is_over();
+    access::may_read_metrics(caller, entry.summary.split, entry.paper_only, ended)?;
+    Ok(MetricsSoFar { metrics: entry.episode.metrics(), ended })
 }
 
 /// Closes an episode; returns its metrics.

@@ -81,12 +81,15 @@ fn take_queued(
             let observation = g.observer.prepare(&g.episode, step.include_goal);
             let ended = outcome.terminated || outcome.truncated;
             let record = if ended { recording::finish(episodes, g, None) } else { None };
-            let result = StepResult {
+            let mut result = StepResult {
                 observation: Default::default(),
                 outcome,
                 collided_with_name: outcome.collided_with.map(|o| g.episode.compiled().obstacle_name(o)),
                 metrics: ended.then(|| g.episode.metrics()),
             };
+            if g.paper_only {
+                result.keep_paper_observation();
+            }
             Ok(TakenStep { result, observation, bytes, record, episode: step.episode })
         })
         .collect()

@@ -88,8 +88,13 @@ pub struct PrivilegedView {
     pub rdr: f64,
 }
 
-fn summary_of(id: &EpisodeId, entry: &EpisodeEntry) -> EpisodeSummary {
-    let m = entry.episode.metrics();
+/// The summary of `entry` as `caller` sees it: a paper-only episode (a hidden scene) shows no
+/// placed count or success to anyone but an admin until it has ended.
+fn summary_of(id: &EpisodeId, entry: &EpisodeEntry, caller: &Caller) -> EpisodeSummary {
+    let mut m = entry.episode.metrics();
+    if entry.paper_only && !caller.is_admin() && !entry.episode.is_over() {
+        (m.placed, m.success) = (0, false);
+    }
     EpisodeSummary {
         id: id.clone(),
         scene: entry.summary.clone(),
@@ -116,7 +121,7 @@ pub(super) async fn list(episodes: &Episodes, caller: &Caller) -> Vec<EpisodeSum
     let mut out = Vec::new();
     for (id, shared) in episodes.registry.visible_to(caller) {
         let entry = shared.lock().await;
-        out.push(summary_of(&id, &entry));
+        out.push(summary_of(&id, &entry, caller));
     }
     out.sort_by(|a, b| b.age_seconds.total_cmp(&a.age_seconds).then_with(|| a.id.cmp(&b.id)));
     out
@@ -186,7 +191,7 @@ pub(super) async fn frame(
             }
         });
         let frame = WatchFrame {
-            summary: summary_of(id, &entry),
+            summary: summary_of(id, &entry, caller),
             ego: Bytes::new(),
             goal: if with_goal { entry.observer.goal.clone() } else { Bytes::new() },
             resolution: entry.observer.sensors.resolution,

@@ -9,6 +9,7 @@ mod episodes;
 mod errors;
 mod harness;
 mod health_check;
+mod hidden;
 mod lifecycle;
 mod scene_cache;
 mod smoke;
