@@ -82,6 +82,18 @@ pub struct EpisodeRecord {
     /// scene (the first).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub counted: Option<bool>,
+    /// Server records only: the reward weights the episode played with (`success`, `place`,
+    /// `unplace`, `potential`, `holding`, `living`), so that a replay pays the same rewards.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reward_weights: Option<serde_json::Map<String, serde_json::Value>>,
+    /// Server records only: what the episode served its client: `paper` (the paper's
+    /// observation only, a hidden scene's) or `full`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub observations: Option<String>,
+    /// Server records only: HMAC-SHA256 (hex) of the record's line without this member, with
+    /// the server's records key; always the line's last member (docs/evaluation.md).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub signature: Option<String>,
 }
 
 /// Why a results file could not be read.
@@ -227,6 +239,9 @@ pub mod testing {
             started_at: None,
             dataset_hash: None,
             counted: None,
+            reward_weights: None,
+            observations: None,
+            signature: None,
         }
     }
 }

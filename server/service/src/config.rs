@@ -121,6 +121,12 @@ pub struct Config {
     /// each written and synced when its episode ends (see --record).
     #[arg(long, env = "ESRP_RECORDS")]
     pub records: Option<PathBuf>,
+    /// The key the server signs its records with (HMAC-SHA256; the file's bytes, at least 16,
+    /// e.g. `openssl rand -hex 32`). Default: `DIR/records.key` in the records folder, generated
+    /// if missing. Keep it from the participants: with it, `esrp verify --key` tells the
+    /// server's records from any other.
+    #[arg(long, env = "ESRP_RECORDS_KEY", requires = "records")]
+    pub records_key: Option<PathBuf>,
     /// Which episodes --records records: those on the challenge split, or all.
     #[arg(long, env = "ESRP_RECORD", value_enum, default_value_t = crate::records::RecordMode::Challenge, requires = "records")]
     pub record: crate::records::RecordMode,

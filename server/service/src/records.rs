@@ -115,6 +115,126 @@ impl Attempts {
     }
 }
 
+/// The key the server signs its records with: HMAC-SHA256 over each record's line without its
+/// `signature` member, so that a record the server wrote can be told from any other
+/// (`esrp verify --key`). The key is the file's bytes, surrounding whitespace left out.
+#[derive(Clone)]
+pub struct RecordsKey(Vec<u8>);
+
+/// The key file the server generates in its records folder when `--records-key` is not given.
+pub const GENERATED_KEY: &str = "records.key";
+
+impl std::fmt::Debug for RecordsKey {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("RecordsKey(..)")
+    }
+}
+
+impl RecordsKey {
+    /// Reads the key of `given` (`--records-key FILE`), or of `DIR/records.key`, generating that
+    /// one (32 random bytes as 64 hex digits, readable by its owner only) if it does not exist.
+    pub fn load_or_create(dir: &Path, given: Option<&Path>) -> Result<Self, RecordsError> {
+        let error = |reason: String| RecordsError { dir: dir.display().to_string(), reason };
+        let path = given.map(Path::to_path_buf).unwrap_or_else(|| dir.join(GENERATED_KEY));
+        if given.is_none() && !path.exists() {
+            let mut random = uuid::Uuid::new_v4().as_bytes().to_vec();
+            random.extend_from_slice(uuid::Uuid::new_v4().as_bytes());
+            let temporary = dir.join(format!("{GENERATED_KEY}.tmp"));
+            let write = || -> std::io::Result<()> {
+                use std::os::unix::fs::OpenOptionsExt;
+                let mut file =
+                    std::fs::OpenOptions::new().write(true).create(true).truncate(true).mode(0o600).open(&temporary)?;
+                file.write_all(hex::encode(&random).as_bytes())?;
+                file.sync_all()?;
+                std::fs::rename(&temporary, &path)
+            };
+            write().map_err(|e| error(format!("cannot write the records key {}: {e}", path.display())))?;
+            tracing::info!(file = %path.display(), "generated the key the records are signed with");
+        }
+        let bytes =
+            std::fs::read(&path).map_err(|e| error(format!("cannot read the records key {}: {e}", path.display())))?;
+        let key = bytes.trim_ascii();
+        if key.len() < 16 {
+            return Err(error(format!(
+                "the records key {} holds {} bytes: give at least 16 (e.g. `openssl rand -hex 32`)",
+                path.display(),
+                key.len()
+            )));
+        }
+        Ok(Self(key.to_vec()))
+    }
+
+    /// The key `bytes` (tests, tools).
+    pub fn from_bytes(bytes: &[u8]) -> Self {
+        Self(bytes.to_vec())
+    }
+
+    /// `json` (a record's compact JSON, without a signature) with `,"signature":"<hex>"` added
+    /// as its last member: the HMAC-SHA256 of `json` as given.
+    pub fn sign(&self, json: &[u8]) -> Vec<u8> {
+        use hmac::{KeyInit, Mac};
+        let mut mac = hmac::Hmac::<sha2::Sha256>::new_from_slice(&self.0).expect("HMAC takes a key of any length");
+        mac.update(json);
+        let signature = hex::encode(mac.finalize().into_bytes());
+        let mut line = json.strip_suffix(b"}").unwrap_or(json).to_vec();
+        line.extend_from_slice(format!(",\"signature\":\"{signature}\"}}").as_bytes());
+        line
+    }
+
+    /// Whether `line` (without its newline) ends with a signature of the rest by this key.
+    pub fn verify(&self, line: &[u8]) -> bool {
+        const TAIL: usize = r#","signature":""}"#.len() + 64;
+        if line.len() < TAIL || !line[line.len() - TAIL..].starts_with(br#","signature":""#) {
+            return false;
+        }
+        let mut signed = line[..line.len() - TAIL].to_vec();
+        signed.push(b'}');
+        subtle::ConstantTimeEq::ct_eq(self.sign(&signed).as_slice(), line).into()
+    }
+}
+
+/// The file, in the records folder, that lists the challenge's scenes (`esrp report
+/// --leaderboard` scores every participant over all of them).
+pub const CHALLENGE_SCENES: &str = "challenge-scenes.json";
+
+/// Writes `DIR/challenge-scenes.json` (atomically: a temporary file renamed): the schema, the
+/// served dataset's hash, what the hidden splits serve (`observations`: split → `paper` or
+/// `full`) and each challenge scene's id, difficulty and object count.
+pub fn write_challenge_scenes(
+    dir: &Path,
+    dataset_hash: &str,
+    observations: serde_json::Value,
+    scenes: &[crate::types::SceneInfo],
+) -> Result<(), RecordsError> {
+    let error = |reason: String| RecordsError { dir: dir.display().to_string(), reason };
+    let listed: Vec<serde_json::Value> = scenes
+        .iter()
+        .filter(|s| s.split == esrp_core::Split::Challenge)
+        .map(|s| {
+            serde_json::json!({
+                "id": s.id,
+                "difficulty": s.difficulty.as_str(),
+                "objects": s.movable_objects,
+            })
+        })
+        .collect();
+    let manifest = serde_json::json!({
+        "schema": "esrp.challenge-scenes/v1",
+        "dataset_hash": dataset_hash,
+        "observations": observations,
+        "scenes": listed,
+    });
+    let text = serde_json::to_string_pretty(&manifest).map_err(|e| error(e.to_string()))? + "\n";
+    let (path, temporary) = (dir.join(CHALLENGE_SCENES), dir.join(format!("{CHALLENGE_SCENES}.tmp")));
+    let write = || -> std::io::Result<()> {
+        let mut file = File::create(&temporary)?;
+        file.write_all(text.as_bytes())?;
+        file.sync_all()?;
+        std::fs::rename(&temporary, &path)
+    };
+    write().map_err(|e| error(format!("cannot write {}: {e}", path.display())))
+}
+
 /// A record on its way to its file; `done` hears when it is on disk.
 struct Job {
     token: String,
@@ -127,6 +247,7 @@ struct Job {
 pub struct Recorder {
     dir: PathBuf,
     mode: RecordMode,
+    key: RecordsKey,
     jobs: Mutex<Option<std::sync::mpsc::Sender<Job>>>,
     thread: Mutex<Option<std::thread::JoinHandle<()>>>,
 }
@@ -162,9 +283,10 @@ impl Recorder {
     /// Opens (creating it if needed) the records folder `dir`: reads every `*.jsonl` back,
     /// cutting a torn last line, and fills `attempts` with the counted attempts found; then
     /// starts the writer thread.
-    pub fn open(dir: &Path, mode: RecordMode, attempts: &Attempts) -> Result<Self, RecordsError> {
+    pub fn open(dir: &Path, mode: RecordMode, attempts: &Attempts, key: Option<&Path>) -> Result<Self, RecordsError> {
         let error = |reason: String| RecordsError { dir: dir.display().to_string(), reason };
         std::fs::create_dir_all(dir).map_err(|e| error(format!("cannot create it: {e}")))?;
+        let key = RecordsKey::load_or_create(dir, key)?;
         let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
             .map_err(|e| error(format!("cannot list it: {e}")))?
             .filter_map(|entry| entry.ok().map(|e| e.path()))
@@ -192,7 +314,7 @@ impl Recorder {
             .name("esrp-records".into())
             .spawn(move || write_records(&folder, &receiver))
             .map_err(|e| error(format!("cannot start the writer thread: {e}")))?;
-        Ok(Self { dir: dir.to_path_buf(), mode, jobs: Mutex::new(Some(sender)), thread: Mutex::new(Some(thread)) })
+        Ok(Self { dir: dir.to_path_buf(), mode, key, jobs: Mutex::new(Some(sender)), thread: Mutex::new(Some(thread)) })
     }
 
     /// Which episodes are recorded.
@@ -205,12 +327,13 @@ impl Recorder {
         &self.dir
     }
 
-    /// Queues `record` for `DIR/<token>.jsonl`; the returned [`Written`] completes once it is
-    /// on disk.
+    /// Signs `record` and queues it for `DIR/<token>.jsonl`; the returned [`Written`] completes
+    /// once it is on disk.
     pub fn write(&self, record: &EpisodeRecord) -> Written {
         let token = record.token.clone().unwrap_or_else(|| "anonymous".into());
-        let mut line = match serde_json::to_vec(record) {
-            Ok(line) => line,
+        let unsigned = EpisodeRecord { signature: None, ..record.clone() };
+        let mut line = match serde_json::to_vec(&unsigned) {
+            Ok(json) => self.key.sign(&json),
             Err(e) => {
                 tracing::error!(scene = %record.scene_id, "cannot encode a record: {e}");
                 return Written::nothing();
@@ -325,6 +448,40 @@ mod tests {
 
     fn caller(name: &str) -> Caller {
         Caller { name: name.into(), role: Role::Agent, max_episodes: None, max_streams: None }
+    }
+
+    #[test]
+    fn a_signed_line_verifies_and_any_change_breaks_it() {
+        let key = RecordsKey::from_bytes(b"0123456789abcdef0123456789abcdef");
+        let json = br#"{"scene_id":"challenge/00001","success":true,"steps":12}"#;
+        let line = key.sign(json);
+        let text = String::from_utf8(line.clone()).unwrap();
+        assert!(text.starts_with(r#"{"scene_id":"challenge/00001","success":true,"steps":12,"signature":""#), "{text}");
+        assert!(key.verify(&line));
+        let altered = text.replace("true", "false");
+        assert!(!key.verify(altered.as_bytes()), "a changed field");
+        assert!(!key.verify(json), "an unsigned line");
+        let other = RecordsKey::from_bytes(b"another key, just as long as that");
+        assert!(!other.verify(&line), "another key");
+        let mut cut = line.clone();
+        cut.truncate(line.len() - 2);
+        assert!(!key.verify(&cut), "a torn line");
+    }
+
+    #[test]
+    fn the_key_is_generated_once_and_kept_private() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let first = RecordsKey::load_or_create(dir.path(), None).unwrap();
+        let path = dir.path().join(GENERATED_KEY);
+        assert_eq!(std::fs::metadata(&path).unwrap().permissions().mode() & 0o777, 0o600);
+        assert_eq!(std::fs::read_to_string(&path).unwrap().len(), 64);
+        let again = RecordsKey::load_or_create(dir.path(), None).unwrap();
+        assert_eq!(first.0, again.0, "the key is read back, not made again");
+        let short = dir.path().join("short.key");
+        std::fs::write(&short, "tiny\n").unwrap();
+        let refused = RecordsKey::load_or_create(dir.path(), Some(&short)).unwrap_err().to_string();
+        assert!(refused.contains("at least 16"), "{refused}");
     }
 
     #[test]

@@ -72,7 +72,7 @@ pub fn build_episodes(config: &Config) -> Result<Arc<Episodes>, ServeError> {
     let store = scene_store(config)?;
     let attempts = records::Attempts::default();
     let recorder = match &config.records {
-        Some(dir) => Some(records::Recorder::open(dir, config.record, &attempts)?),
+        Some(dir) => Some(records::Recorder::open(dir, config.record, &attempts, config.records_key.as_deref())?),
         None => None,
     };
     let backends = config.render_backend;
@@ -81,7 +81,15 @@ pub fn build_episodes(config: &Config) -> Result<Arc<Episodes>, ServeError> {
     tracing::info!(target: LOG_TARGET, adapter = %info.name, backend = ?info.backend, software = renderer.is_software(), "renderer ready");
     let metrics = Arc::new(metrics::Metrics::new());
     let render = render::RenderScheduler::start(renderer, metrics.clone());
-    Ok(Arc::new(Episodes::new(store, render, config.clone(), metrics, recorder, attempts)))
+    let episodes = Arc::new(Episodes::new(store, render, config.clone(), metrics, recorder, attempts));
+    if let (Some(dir), Some(_)) = (&config.records, &config.challenge_seed) {
+        let observations = serde_json::json!({
+            "challenge": config.challenge_observations.as_str(),
+            "minival": config.minival_observations.as_str(),
+        });
+        records::write_challenge_scenes(dir, &episodes.dataset_hash, observations, episodes.store.infos())?;
+    }
+    Ok(episodes)
 }
 
 /// The served scenes: the dataset folder, or the built-in benchmark with its scene cache (and

@@ -102,6 +102,9 @@ pub(super) fn finish(episodes: &Episodes, entry: &mut EpisodeEntry, closed_by: O
         started_at: Some(rfc3339(run.started)),
         dataset_hash: Some(episodes.dataset_hash.clone()),
         counted: Some(run.counted),
+        reward_weights: serde_json::to_value(entry.episode.config().reward).ok().and_then(|v| v.as_object().cloned()),
+        observations: Some(if entry.paper_only { "paper" } else { "full" }.to_owned()),
+        signature: None,
     };
     if keep {
         entry.last_record = Some(record.clone());

@@ -124,3 +124,38 @@ async fn a_create_reset_after_its_episode_was_used_keeps_the_attempt_spent() {
     assert_eq!(written.len(), 1, "one record of the attempt played to its horizon");
     assert_eq!((written[0].steps, written[0].end.as_str()), (steps, "horizon"));
 }
+
+/// Every record the server writes is signed with its key (generated in the records folder), and
+/// says what the episode served and the reward weights it played with; the folder lists the
+/// challenge's scenes for the leaderboard.
+#[tokio::test]
+async fn records_are_signed_and_the_challenge_scenes_listed() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start(dir.path(), &[]);
+    let mut bob = client(&server, "bob-secret").await;
+    let episode = bob.create_episode(create("challenge/00001", false)).await.expect("created").into_inner();
+    bob.close_episode(proto::CloseEpisodeRequest { episode_id: episode.episode_id }).await.unwrap();
+    let folder = dir.path().join("records");
+    let key = esrp_server::records::RecordsKey::load_or_create(&folder, None).expect("the server's key");
+    let text = std::fs::read_to_string(folder.join("bob.jsonl")).unwrap();
+    let line = text.lines().next().expect("one record");
+    assert!(key.verify(line.as_bytes()), "the server's record verifies: {line}");
+    let forged = line.replace("\"counted\":true", "\"counted\":false");
+    assert_ne!(forged, line);
+    assert!(!key.verify(forged.as_bytes()), "a changed record does not");
+    let record = &records(dir.path(), "bob")[0];
+    assert_eq!(record.observations.as_deref(), Some("paper"));
+    let weights = record.reward_weights.as_ref().expect("the reward weights are recorded");
+    assert_eq!(weights.get("success").and_then(|v| v.as_f64()), Some(10.0));
+    assert!(record.signature.as_ref().is_some_and(|s| s.len() == 64));
+
+    let manifest: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(folder.join("challenge-scenes.json")).unwrap()).unwrap();
+    assert_eq!(manifest["schema"], "esrp.challenge-scenes/v1");
+    assert_eq!(manifest["observations"]["challenge"], "paper");
+    assert_eq!(manifest["dataset_hash"].as_str(), record.dataset_hash.as_deref());
+    let scenes = manifest["scenes"].as_array().expect("scenes");
+    assert_eq!(scenes.len(), 3, "every challenge scene (--challenge-scenes 3)");
+    assert!(scenes.iter().all(|s| s["id"].as_str().is_some_and(|id| id.starts_with("challenge/"))));
+    assert!(scenes.iter().all(|s| s["objects"].as_u64().is_some_and(|n| n > 0)));
+}

@@ -409,6 +409,9 @@ impl Recording<'_> {
             started_at: None,
             dataset_hash: None,
             counted: None,
+            reward_weights: None,
+            observations: None,
+            signature: None,
         }
     }
 }
