@@ -104,6 +104,11 @@ impl Attempts {
         self.map().insert((token.into(), scene.to_owned()), Attempt::Ended(at.to_owned()));
     }
 
+    /// Whether `token`'s attempt at `scene` has ended (and been recorded).
+    pub fn is_ended(&self, token: &str, scene: &str) -> bool {
+        matches!(self.map().get(&(token.into(), scene.to_owned())), Some(Attempt::Ended(_)))
+    }
+
     /// The number of attempts known.
     pub fn len(&self) -> usize {
         self.map().len()
@@ -193,6 +198,94 @@ impl RecordsKey {
     }
 }
 
+/// The attempts journal, in the records folder: a line per counted attempt claimed (synced
+/// before its episode exists) and per action it took (synced within milliseconds), so that an
+/// attempt a crash cut still counts and is recorded at its last journaled step.
+pub const JOURNAL: &str = "attempts.journal";
+
+/// A counted attempt, as journaled when it is claimed.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Claim {
+    /// The token.
+    pub token: String,
+    /// The challenge scene.
+    pub scene: String,
+    /// The agent label its create gave.
+    pub agent: String,
+    /// RFC 3339 UTC time of the claim.
+    pub started_at: String,
+}
+
+/// A line of the attempts journal.
+#[derive(Debug, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+enum JournalLine {
+    Claim(Claim),
+    Step {
+        token: String,
+        scene: String,
+        action: u8,
+    },
+    /// The attempt was given back (its create was abandoned before any use).
+    Release {
+        token: String,
+        scene: String,
+    },
+}
+
+/// A claimed attempt read back from the journal, with its journaled actions in order.
+#[derive(Debug, PartialEq)]
+pub struct Journaled {
+    /// The claim.
+    pub claim: Claim,
+    /// Its actions.
+    pub actions: Vec<u8>,
+    /// Whether it was given back (never used): not an attempt.
+    pub released: bool,
+}
+
+/// The attempts journaled in folder `dir` (none if it has no journal), in claim order. A last
+/// line torn by a crash is cut off the file; an unreadable line elsewhere is an error.
+pub fn read_journal(dir: &Path) -> Result<Vec<Journaled>, RecordsError> {
+    let error = |reason: String| RecordsError { dir: dir.display().to_string(), reason };
+    let path = dir.join(JOURNAL);
+    let bytes = match std::fs::read(&path) {
+        Ok(bytes) => bytes,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) => return Err(error(format!("cannot read {}: {e}", path.display()))),
+    };
+    let complete = bytes.iter().rposition(|&b| b == b'\n').map_or(0, |i| i + 1);
+    if complete < bytes.len() {
+        tracing::warn!(file = %path.display(), "dropping a last journal line torn by an interruption");
+        esrp_results::truncate_to(&path, complete as u64)
+            .map_err(|e| error(format!("cannot cut the torn line of {}: {e}", path.display())))?;
+    }
+    let mut attempts: Vec<Journaled> = Vec::new();
+    let mut index: HashMap<(String, String), usize> = HashMap::new();
+    for (n, line) in bytes[..complete].split(|&b| b == b'\n').enumerate().filter(|(_, l)| !l.is_empty()) {
+        let parsed: JournalLine = serde_json::from_slice(line)
+            .map_err(|e| error(format!("{}:{}: not a journal line: {e}", path.display(), n + 1)))?;
+        match parsed {
+            JournalLine::Claim(claim) => {
+                index.insert((claim.token.clone(), claim.scene.clone()), attempts.len());
+                attempts.push(Journaled { claim, actions: Vec::new(), released: false });
+            }
+            JournalLine::Step { token, scene, action } => {
+                if let Some(&i) = index.get(&(token, scene)) {
+                    attempts[i].actions.push(action);
+                }
+            }
+            JournalLine::Release { token, scene } => {
+                if let Some(i) = index.remove(&(token, scene)) {
+                    attempts[i].released = true;
+                }
+            }
+        }
+    }
+    attempts.retain(|a| !a.released);
+    Ok(attempts)
+}
+
 /// The file, in the records folder, that lists the challenge's scenes (`esrp report
 /// --leaderboard` scores every participant over all of them).
 pub const CHALLENGE_SCENES: &str = "challenge-scenes.json";
@@ -237,7 +330,8 @@ pub fn write_challenge_scenes(
 
 /// A record on its way to its file; `done` hears when it is on disk.
 struct Job {
-    token: String,
+    /// The file's name in the records folder: `<token>.jsonl`, or the attempts journal.
+    file: String,
     line: Vec<u8>,
     done: tokio::sync::oneshot::Sender<()>,
 }
@@ -340,15 +434,64 @@ impl Recorder {
             }
         };
         line.push(b'\n');
+        self.queue(format!("{token}.jsonl"), line).unwrap_or_else(|| {
+            tracing::error!(scene = %record.scene_id, "a record arrived after the recorder stopped: it is lost");
+            Written::nothing()
+        })
+    }
+
+    /// Queues `line` for the file `file` of the folder; `None` once the recorder has stopped.
+    fn queue(&self, file: String, line: Vec<u8>) -> Option<Written> {
         let (done, receiver) = tokio::sync::oneshot::channel();
         let jobs = self.jobs.lock().unwrap_or_else(|p| p.into_inner());
-        match jobs.as_ref().map(|s| s.send(Job { token, line, done })) {
-            Some(Ok(())) => Written(Some(receiver)),
-            _ => {
-                tracing::error!(scene = %record.scene_id, "a record arrived after the recorder stopped: it is lost");
-                Written::nothing()
-            }
-        }
+        jobs.as_ref()?.send(Job { file, line, done }).ok()?;
+        Some(Written(Some(receiver)))
+    }
+
+    /// Journals the claim of `token`'s counted attempt at `scene`; the returned [`Written`]
+    /// completes once the claim is on disk (the create waits for it before the episode exists:
+    /// a crash after that cannot give the attempt back).
+    pub fn claim(&self, claim: &Claim) -> Written {
+        let mut line = serde_json::to_vec(&JournalLine::Claim(claim.clone())).unwrap_or_default();
+        line.push(b'\n');
+        self.queue(JOURNAL.to_owned(), line).unwrap_or_else(Written::nothing)
+    }
+
+    /// Journals one action of `token`'s counted attempt at `scene`, without waiting: it is on
+    /// disk with the writer's next sync, a few milliseconds later.
+    pub fn journal_step(&self, token: &str, scene: &str, action: u8) {
+        let step = JournalLine::Step { token: token.to_owned(), scene: scene.to_owned(), action };
+        let mut line = serde_json::to_vec(&step).unwrap_or_default();
+        line.push(b'\n');
+        let _ = self.queue(JOURNAL.to_owned(), line);
+    }
+
+    /// Journals that `token`'s attempt at `scene` was given back, without waiting (a crash
+    /// before it is on disk leaves the attempt counted, the safe side).
+    pub fn journal_release(&self, token: &str, scene: &str) {
+        let release = JournalLine::Release { token: token.to_owned(), scene: scene.to_owned() };
+        let mut line = serde_json::to_vec(&release).unwrap_or_default();
+        line.push(b'\n');
+        let _ = self.queue(JOURNAL.to_owned(), line);
+    }
+
+    /// Appends `record`, signed, to its token's file and syncs it, on the calling thread (the
+    /// records of attempts a crash cut, written at start before anything is served).
+    pub fn write_now(&self, record: &EpisodeRecord) -> Result<(), RecordsError> {
+        let error = |reason: String| RecordsError { dir: self.dir.display().to_string(), reason };
+        let token = record.token.clone().unwrap_or_else(|| "anonymous".into());
+        let unsigned = EpisodeRecord { signature: None, ..record.clone() };
+        let mut line = self.key.sign(&serde_json::to_vec(&unsigned).map_err(|e| error(e.to_string()))?);
+        line.push(b'\n');
+        let path = self.dir.join(format!("{token}.jsonl"));
+        let mut file = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&path)
+            .map_err(|e| error(format!("cannot open {}: {e}", path.display())))?;
+        file.write_all(&line)
+            .and_then(|()| file.sync_data())
+            .map_err(|e| error(format!("cannot write {}: {e}", path.display())))
     }
 
     /// Writes what is queued and stops the writer thread (at shutdown, after the last records).
@@ -409,10 +552,10 @@ fn write_records(dir: &Path, jobs: &std::sync::mpsc::Receiver<Job>) {
         batch.extend(jobs.try_iter());
         let mut touched: Vec<String> = Vec::new();
         for job in &batch {
-            let file = match files.entry(job.token.clone()) {
+            let file = match files.entry(job.file.clone()) {
                 std::collections::hash_map::Entry::Occupied(f) => f.into_mut(),
                 std::collections::hash_map::Entry::Vacant(v) => {
-                    let path = dir.join(format!("{}.jsonl", job.token));
+                    let path = dir.join(&job.file);
                     match std::fs::OpenOptions::new().create(true).append(true).open(&path) {
                         Ok(f) => v.insert(f),
                         Err(e) => {
@@ -424,15 +567,15 @@ fn write_records(dir: &Path, jobs: &std::sync::mpsc::Receiver<Job>) {
             };
             // One write per line: a crash leaves whole lines and at most one torn last line.
             if let Err(e) = file.write_all(&job.line) {
-                tracing::error!(token = %job.token, "cannot write a record: {e}; it is lost");
+                tracing::error!(file = %job.file, "cannot write a record: {e}; it is lost");
             }
-            if !touched.contains(&job.token) {
-                touched.push(job.token.clone());
+            if !touched.contains(&job.file) {
+                touched.push(job.file.clone());
             }
         }
-        for token in &touched {
-            if let Some(Err(e)) = files.get(token).map(File::sync_data) {
-                tracing::error!(token = %token, "cannot sync a records file: {e}");
+        for name in &touched {
+            if let Some(Err(e)) = files.get(name).map(File::sync_data) {
+                tracing::error!(file = %name, "cannot sync a records file: {e}");
             }
         }
         for job in batch {
@@ -466,6 +609,37 @@ mod tests {
         let mut cut = line.clone();
         cut.truncate(line.len() - 2);
         assert!(!key.verify(&cut), "a torn line");
+    }
+
+    #[test]
+    fn the_journal_reads_back_claims_and_actions_and_cuts_a_torn_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let claim = |token: &str, scene: &str| {
+            serde_json::json!({"claim": {"token": token, "scene": scene, "agent": "a", "started_at": "2026-11-26T20:00:00Z"}})
+                .to_string()
+        };
+        let step = |token: &str, scene: &str, action: u8| {
+            serde_json::json!({"step": {"token": token, "scene": scene, "action": action}}).to_string()
+        };
+        let release = serde_json::json!({"release": {"token": "bob", "scene": "challenge/00002"}}).to_string();
+        let lines = [
+            claim("alice", "challenge/00001"),
+            step("alice", "challenge/00001", 2),
+            claim("bob", "challenge/00002"),
+            release,
+            step("alice", "challenge/00001", 0),
+        ];
+        let mut text = lines.join("\n") + "\n";
+        text.push_str(r#"{"step": {"token": "alice", "sce"#);
+        std::fs::write(dir.path().join(JOURNAL), &text).unwrap();
+        let read = read_journal(dir.path()).unwrap();
+        assert_eq!(read.len(), 1, "bob's claim was given back: {read:?}");
+        assert_eq!((read[0].claim.token.as_str(), read[0].actions.as_slice()), ("alice", &[2u8, 0][..]));
+        let kept = std::fs::read_to_string(dir.path().join(JOURNAL)).unwrap();
+        assert!(kept.ends_with("\n") && kept.len() < text.len(), "the torn line is cut");
+        assert!(read_journal(tempfile::tempdir().unwrap().path()).unwrap().is_empty(), "no journal, no attempts");
+        std::fs::write(dir.path().join(JOURNAL), "not json\n").unwrap();
+        assert!(read_journal(dir.path()).unwrap_err().to_string().contains("not a journal line"));
     }
 
     #[test]

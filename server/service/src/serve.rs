@@ -82,6 +82,13 @@ pub fn build_episodes(config: &Config) -> Result<Arc<Episodes>, ServeError> {
     let metrics = Arc::new(metrics::Metrics::new());
     let render = render::RenderScheduler::start(renderer, metrics.clone());
     let episodes = Arc::new(Episodes::new(store, render, config.clone(), metrics, recorder, attempts));
+    let recovered = episodes.recover_attempts().map_err(|e| ServeError::Io {
+        what: "recording the attempts a crash cut".into(),
+        source: std::io::Error::other(e.to_string()),
+    })?;
+    if recovered > 0 {
+        tracing::warn!(target: LOG_TARGET, recovered, "recorded the counted attempts an interruption cut, as ended at their last journaled step");
+    }
     if let (Some(dir), Some(_)) = (&config.records, &config.challenge_seed) {
         let observations = serde_json::json!({
             "challenge": config.challenge_observations.as_str(),

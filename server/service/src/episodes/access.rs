@@ -53,12 +53,17 @@ pub(super) fn may_play(caller: &Caller, split: Split, privileged: bool, own_hori
 /// `--minival-observations`): reward, reward terms, placed counts, collisions and metrics
 /// before the end would tell the agent how far the layout is from its target.
 pub(super) fn paper_only(caller: &Caller, split: Split, config: &Config) -> bool {
+    split_is_paper_only(split, config) && !caller.is_admin()
+}
+
+/// Whether episodes on `split` serve tokens other than admins the paper's observation only.
+pub(super) fn split_is_paper_only(split: Split, config: &Config) -> bool {
     let policy = match split {
         Split::Challenge => config.challenge_observations,
         Split::Minival => config.minival_observations,
         Split::Train | Split::Test => Observations::Full,
     };
-    policy == Observations::Paper && !caller.is_admin()
+    policy == Observations::Paper
 }
 
 /// Refuses what a paper-only episode (see [`paper_only`]) does not serve: an optional sensor,

@@ -176,7 +176,7 @@ impl EpisodeEntry {
 }
 
 /// The summary of a built scene; a hidden scene's says nothing of its expert trajectory.
-fn summary_of(scene: &Scene) -> SceneInfo {
+pub(super) fn summary_of(scene: &Scene) -> SceneInfo {
     SceneInfo {
         id: scene.id.clone(),
         room_type: scene.room_type.clone(),

@@ -55,7 +55,7 @@ impl Drop for Pending {
             && episodes.registry.take_unclaimed(&episode).is_some()
         {
             if let Some(scene) = counted_scene {
-                episodes.attempts.give_back(&owner.name, &scene);
+                recording::give_back(&episodes, &owner.name, &scene);
             }
             episodes.metrics.count_closed("unanswered", 1);
             tracing::debug!(%episode, "closed an episode whose create was abandoned before its answer was sent");
@@ -122,10 +122,14 @@ async fn start_run(
     }
     let run = recording::begin(episodes, caller, split, &id, keep)?;
     let counted = run.as_ref().is_some_and(|r| r.counted);
+    if let Some(run) = run.as_ref().filter(|r| r.counted) {
+        // Durable before the episode exists: no crash gives the attempt back.
+        recording::claim(episodes, caller, &id, &agent, run).await;
+    }
     let owner = Owner { caller: caller.clone(), agent, run };
     let built = new_entry(episodes, scene, config, sensors, privileged, owner).await;
     if built.is_err() && counted {
-        episodes.attempts.give_back(&caller.name, &id);
+        recording::give_back(episodes, &caller.name, &id);
     }
     built.map(|(mut entry, observation)| {
         entry.keep_records = keep;
@@ -181,7 +185,7 @@ pub(super) async fn create_unanswered(
         Ok(episode) => episode,
         Err(e) => {
             if let Some(scene) = &counted_scene {
-                episodes.attempts.give_back(&caller.name, scene);
+                recording::give_back(episodes, &caller.name, scene);
             }
             return Err(e);
         }

@@ -118,6 +118,12 @@ impl Episodes {
         lifecycle::create(self, caller, options, stream).await
     }
 
+    /// Records the counted attempts a crash cut (journaled, never recorded) and counts them:
+    /// called once at start, before anything is served. Returns how many there were.
+    pub fn recover_attempts(&self) -> Result<usize, ServiceError> {
+        recording::recover(self)
+    }
+
     /// Creates an episode that lives only if its answer reaches the client: the episode is
     /// closed when the returned [`Unanswered`] (and every clone of it) is dropped before
     /// [`Unanswered::answered`] is called. A client that gives up on a create (its deadline

@@ -57,8 +57,41 @@ pub(super) fn finish(episodes: &Episodes, entry: &mut EpisodeEntry, closed_by: O
     if !run.recorded && !run.keep {
         return None;
     }
-    let m = entry.episode.metrics();
-    let over = entry.episode.is_over();
+    let keep = run.keep;
+    let played = Played {
+        episode: &entry.episode,
+        summary: &entry.summary,
+        agent: &entry.agent,
+        token: &entry.owner.name,
+        paper_only: entry.paper_only,
+    };
+    let record = record_of(episodes, &played, run, closed_by, finished_at);
+    if keep {
+        entry.last_record = Some(record.clone());
+    }
+    Some(record)
+}
+
+/// What a record tells of a run besides its log.
+struct Played<'a> {
+    episode: &'a esrp_core::Episode,
+    summary: &'a crate::types::SceneInfo,
+    agent: &'a str,
+    token: &'a str,
+    paper_only: bool,
+}
+
+/// The record of a run ended at `finished_at` (its actions taken out of `run`).
+fn record_of(
+    episodes: &Episodes,
+    played: &Played<'_>,
+    run: &mut RunLog,
+    closed_by: Option<&str>,
+    finished_at: String,
+) -> EpisodeRecord {
+    let Played { episode, summary, agent, token, paper_only } = *played;
+    let m = episode.metrics();
+    let over = episode.is_over();
     let end = if m.success {
         "success"
     } else if over {
@@ -70,9 +103,7 @@ pub(super) fn finish(episodes: &Episodes, entry: &mut EpisodeEntry, closed_by: O
     if let (false, Some(by)) = (over, closed_by) {
         agent_stats.insert("closed_by".into(), by.into());
     }
-    let summary = &entry.summary;
-    let keep = run.keep;
-    let record = EpisodeRecord {
+    EpisodeRecord {
         schema: SCHEMA.to_owned(),
         scene_id: summary.id.clone(),
         dataset: episodes.store.name().to_owned(),
@@ -80,7 +111,7 @@ pub(super) fn finish(episodes: &Episodes, entry: &mut EpisodeEntry, closed_by: O
         room_type: summary.room_type.clone(),
         difficulty: summary.difficulty.as_str().to_owned(),
         objects: summary.movable_objects as u32,
-        agent: entry.agent.to_string(),
+        agent: agent.to_owned(),
         agent_config: serde_json::Map::new(),
         seed: None,
         success: m.success,
@@ -89,7 +120,7 @@ pub(super) fn finish(episodes: &Episodes, entry: &mut EpisodeEntry, closed_by: O
         stage: m.stage as u32,
         placed: m.placed as u32,
         steps: m.steps,
-        horizon: entry.episode.horizon(),
+        horizon: episode.horizon(),
         end: end.to_owned(),
         total_reward: m.total_reward,
         actions: std::mem::take(&mut run.actions),
@@ -98,18 +129,81 @@ pub(super) fn finish(episodes: &Episodes, entry: &mut EpisodeEntry, closed_by: O
         server_version: env!("CARGO_PKG_VERSION").to_owned(),
         client: concat!("esrp-server ", env!("CARGO_PKG_VERSION")).to_owned(),
         finished_at,
-        token: Some(entry.owner.name.to_string()),
+        token: Some(token.to_owned()),
         started_at: Some(rfc3339(run.started)),
         dataset_hash: Some(episodes.dataset_hash.clone()),
         counted: Some(run.counted),
-        reward_weights: serde_json::to_value(entry.episode.config().reward).ok().and_then(|v| v.as_object().cloned()),
-        observations: Some(if entry.paper_only { "paper" } else { "full" }.to_owned()),
+        reward_weights: serde_json::to_value(episode.config().reward).ok().and_then(|v| v.as_object().cloned()),
+        observations: Some(if paper_only { "paper" } else { "full" }.to_owned()),
         signature: None,
-    };
-    if keep {
-        entry.last_record = Some(record.clone());
     }
-    Some(record)
+}
+
+/// Journals the claim of a counted run and waits until it is on disk (where the server keeps
+/// records): from then on, no crash gives the attempt back.
+pub(super) async fn claim(episodes: &Episodes, caller: &Caller, scene: &str, agent: &str, run: &RunLog) {
+    if let Some(recorder) = &episodes.recorder {
+        let claim = crate::records::Claim {
+            token: caller.name.to_string(),
+            scene: scene.to_owned(),
+            agent: agent.to_owned(),
+            started_at: rfc3339(run.started),
+        };
+        recorder.claim(&claim).wait().await;
+    }
+}
+
+/// Gives `token`'s attempt at `scene` back (its episode was never used), in memory and in the
+/// journal.
+pub(super) fn give_back(episodes: &Episodes, token: &std::sync::Arc<str>, scene: &str) {
+    episodes.attempts.give_back(token, scene);
+    if let Some(recorder) = &episodes.recorder {
+        recorder.journal_release(token, scene);
+    }
+}
+
+/// Records the counted attempts a crash cut (claimed in the journal, with no record), before
+/// the server serves anything: each is replayed from its scene's start through its journaled
+/// actions, recorded as ended there (`closed_by: "restart"`), and counted. Returns how many.
+pub(super) fn recover(episodes: &Episodes) -> Result<usize, ServiceError> {
+    let Some(recorder) = &episodes.recorder else { return Ok(0) };
+    let internal = |e: crate::records::RecordsError| ServiceError::Internal(e.to_string());
+    let mut recovered = 0;
+    for journaled in crate::records::read_journal(recorder.dir()).map_err(internal)? {
+        let crate::records::Claim { token, scene, agent, started_at } = &journaled.claim;
+        if episodes.attempts.is_ended(token, scene) {
+            continue;
+        }
+        let compiled = episodes.store.compiled(episodes.store.index_of(scene)?)?;
+        let mut episode = esrp_core::Episode::new(compiled, esrp_core::EpisodeConfig::default())?;
+        for &code in &journaled.actions {
+            if episode.is_over() {
+                break;
+            }
+            let action = esrp_core::Action::from_code(i64::from(code))
+                .map_err(|e| ServiceError::Internal(format!("the attempts journal of {scene}: {e}")))?;
+            episode.step(action)?;
+        }
+        let summary = super::entry::summary_of(episode.compiled().scene());
+        let started = humantime::parse_rfc3339(started_at).unwrap_or_else(|_| SystemTime::now());
+        let mut run = RunLog {
+            actions: journaled.actions.iter().copied().take(episode.steps() as usize).collect(),
+            started,
+            clock: Instant::now(),
+            counted: true,
+            recorded: true,
+            keep: false,
+            finished: true,
+        };
+        let paper_only = super::access::split_is_paper_only(summary.split, &episodes.config);
+        let played = Played { episode: &episode, summary: &summary, agent, token, paper_only };
+        let finished_at = rfc3339(SystemTime::now());
+        let record = record_of(episodes, &played, &mut run, Some("restart"), finished_at.clone());
+        recorder.write_now(&record).map_err(internal)?;
+        episodes.attempts.ended(token, scene, &finished_at);
+        recovered += 1;
+    }
+    Ok(recovered)
 }
 
 /// Queues `records` for their files; each [`Written`] completes once its record is on disk.

@@ -72,6 +72,11 @@ fn take_queued(
             let outcome = g.episode.step(step.action)?;
             if let Some(run) = g.run.as_mut() {
                 run.actions.push(step.action.code());
+                if run.counted
+                    && let Some(recorder) = &episodes.recorder
+                {
+                    recorder.journal_step(&g.owner.name, &g.summary.id, step.action.code());
+                }
             }
             let g = &mut **g;
             g.trail.step(&g.episode, step.action.code(), outcome.accepted);

@@ -451,11 +451,12 @@ async fn every_challenge_run_is_recorded_once_across_a_kill_and_a_restart() {
     create_id(&mut bob, create("minival/00000", false)).await;
     create_id(&mut bob, create("minival/00000", false)).await;
 
-    // kill -9 while alice's run is going: the earlier records stay whole; hers is lost, and her
-    // scene can be played again after the restart.
+    // kill -9 while alice's run is going: the earlier records stay whole; hers was claimed in
+    // the journal before her episode existed, and its step journaled within milliseconds.
     let mut alice = client(&server, "alice-secret").await;
     let running = create_id(&mut alice, create("challenge/00001", false)).await;
     alice.step(proto::StepRequest { episode_id: running, action: 2, include_goal: false }).await.unwrap();
+    tokio::time::sleep(Duration::from_millis(300)).await;
     let killed = std::process::Command::new("kill").args(["-9", &server.pid().to_string()]).status().unwrap();
     assert!(killed.success());
     server.wait().unwrap();
@@ -476,7 +477,17 @@ async fn every_challenge_run_is_recorded_once_across_a_kill_and_a_restart() {
     for scene in ["challenge/00000", "challenge/00001", "challenge/00002"] {
         refused(bob.create_episode(create(scene, false)).await, Code::FailedPrecondition, "already played");
     }
-    let again = create_id(&mut alice, create("challenge/00001", false)).await;
+    // Alice's cut attempt counts, recorded as ended at its last journaled step.
+    refused(alice.create_episode(create("challenge/00001", false)).await, Code::FailedPrecondition, "already played");
+    let cut = records(dir.path(), "alice");
+    assert_eq!(cut.len(), 1, "{cut:?}");
+    assert_eq!(
+        (cut[0].scene_id.as_str(), cut[0].actions.as_slice(), cut[0].counted),
+        ("challenge/00001", &[2u8][..], Some(true))
+    );
+    assert_eq!((cut[0].steps, cut[0].end.as_str()), (1, "agent"));
+    assert_eq!(cut[0].agent_stats.get("closed_by").and_then(|v| v.as_str()), Some("restart"));
+    let again = create_id(&mut alice, create("challenge/00002", false)).await;
 
     // Cut by the shutdown: recorded as closed there.
     let mut server = server;
@@ -484,8 +495,8 @@ async fn every_challenge_run_is_recorded_once_across_a_kill_and_a_restart() {
     assert!(stopped.success());
     assert!(server.wait().unwrap().success());
     let cut = records(dir.path(), "alice");
-    assert_eq!(cut.len(), 1, "{cut:?}");
-    assert_eq!((cut[0].scene_id.as_str(), cut[0].steps), ("challenge/00001", 0));
-    assert_eq!(cut[0].agent_stats.get("closed_by").and_then(|v| v.as_str()), Some("shutdown"));
+    assert_eq!(cut.len(), 2, "{cut:?}");
+    assert_eq!((cut[1].scene_id.as_str(), cut[1].steps), ("challenge/00002", 0));
+    assert_eq!(cut[1].agent_stats.get("closed_by").and_then(|v| v.as_str()), Some("shutdown"));
     drop(again);
 }
