@@ -365,6 +365,9 @@ pub struct Episode {
     config: EpisodeConfig,
     horizon: u32,
     state: State,
+    /// Set when the collision library failed during a step or a reset: the state may be half
+    /// changed, so the episode takes no more steps (its owner closes it).
+    failure: Option<String>,
 }
 
 impl Episode {
@@ -385,8 +388,9 @@ impl Episode {
         if weights.iter().any(|w| !w.is_finite()) {
             return Err(EpisodeError::InvalidConfig { reason: "reward weights must be finite numbers".into() });
         }
-        let state = Self::initial_state(&scene);
-        Ok(Self { scene, config, horizon, state })
+        let state = crate::error::guarded(|| Self::initial_state(&scene))
+            .map_err(|message| EpisodeError::Failed { message, steps: 0 })?;
+        Ok(Self { scene, config, horizon, state, failure: None })
     }
 
     fn initial_state(scene: &CompiledScene) -> State {
@@ -419,17 +423,35 @@ impl Episode {
         state
     }
 
-    /// Puts the episode back at its start.
+    /// Puts the episode back at its start (the start [`Episode::new`] built once already: a
+    /// failure of the collision library is forgotten with the state it left).
     pub fn reset(&mut self) {
         let revision = self.state.revision + 1;
         self.state = Self::initial_state(&self.scene);
         self.state.revision = revision;
+        self.failure = None;
     }
 
     /// Takes one action (SPEC §3). Every action, accepted or not, counts as a step.
     ///
-    /// Errors only when the episode is already over.
+    /// Errors when the episode is already over, or when the collision library fails on this
+    /// scene ([`EpisodeError::Failed`]): the episode then takes no more steps.
     pub fn step(&mut self, action: Action) -> Result<StepOutcome, EpisodeError> {
+        if let Some(message) = &self.failure {
+            return Err(EpisodeError::Failed { message: message.clone(), steps: self.state.steps });
+        }
+        crate::error::guarded(|| self.step_unguarded(action)).unwrap_or_else(|message| {
+            self.failure = Some(message.clone());
+            Err(EpisodeError::Failed { message, steps: self.state.steps })
+        })
+    }
+
+    /// Why the collision library failed on this episode, if it did (it takes no more steps).
+    pub fn failure(&self) -> Option<&str> {
+        self.failure.as_deref()
+    }
+
+    fn step_unguarded(&mut self, action: Action) -> Result<StepOutcome, EpisodeError> {
         match self.state.status {
             EpisodeStatus::Running => {}
             EpisodeStatus::Succeeded => {

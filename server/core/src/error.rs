@@ -165,4 +165,27 @@ pub enum EpisodeError {
         /// What is wrong.
         reason: String,
     },
+    /// The collision library failed (panicked) on this scene; the episode takes no more steps.
+    #[error(
+        "the collision check failed on this scene ({message}) after {steps} steps: the episode takes no more \
+         steps (its scene's numbers are out of what the library handles)"
+    )]
+    Failed {
+        /// What the library said.
+        message: String,
+        /// Steps taken before the failure.
+        steps: u32,
+    },
+}
+
+/// Runs `work`, turning a panic in it (the collision library's, on extreme numbers) into its
+/// message: the one place the simulator catches panics.
+pub fn guarded<T>(work: impl FnOnce() -> T) -> Result<T, String> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(work)).map_err(|payload| {
+        payload
+            .downcast_ref::<&str>()
+            .map(|s| (*s).to_owned())
+            .or_else(|| payload.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "a panic without a message".to_owned())
+    })
 }

@@ -81,7 +81,7 @@ pub use episode::{
     AgentPose, EgoCamera, Episode, EpisodeConfig, EpisodeMetrics, EpisodeStatus, NoOpReason, ObjectState,
     PrivilegedState, RewardTerms, RewardWeights, Stage, StaticObstacle, StepOutcome,
 };
-pub use error::{EpisodeError, Layout, SceneError};
+pub use error::{EpisodeError, Layout, SceneError, guarded};
 pub use geometry::{OrientedRect, PlanPoint, footprint_iou};
 pub use heading::{HEADING_COUNT, Heading, TURN_ANGLE};
 pub use metrics::{AggregateMetrics, MetricsSummary};

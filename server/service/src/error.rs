@@ -182,6 +182,7 @@ impl ServiceError {
             ServiceError::Simulator(e) => match e {
                 esrp_core::EpisodeError::Finished { .. } => Code::FailedPrecondition,
                 esrp_core::EpisodeError::InvalidConfig { .. } => Code::InvalidArgument,
+                esrp_core::EpisodeError::Failed { .. } => Code::Internal,
             },
             ServiceError::NotPrivileged(_) | ServiceError::Denied(_) | ServiceError::NotYours { .. } => {
                 Code::PermissionDenied

@@ -326,6 +326,40 @@ proptest! {
         let _ = CompiledScene::new(scene, Rules::default());
     }
 
+    /// Extreme numbers the validation lets through (up to its bounds) never panic an episode:
+    /// the scene compiles or is refused, and its episode steps, resets and steps again, each
+    /// call answering a result (the collision library's failures are errors, never panics).
+    #[test]
+    fn extreme_scenes_never_panic_an_episode(
+        seed in any::<u64>(),
+        field in 0usize..7,
+        value in prop_oneof![Just(MAX_SCENE_NUMBER), Just(-MAX_SCENE_NUMBER), Just(1e-9), Just(250.0), Just(-0.0), -MAX_SCENE_NUMBER..MAX_SCENE_NUMBER],
+        actions in proptest::collection::vec(0i64..6, 1..40),
+    ) {
+        let mut scene = random_scene(seed);
+        match field {
+            0 => if let Some(fixed) = scene.fixed_objects.first_mut() {
+                fixed.shape = Shape::Parts(vec![Part::Box { half_extents: [value.abs(), 0.4, 0.4], offset: [0.0; 3], yaw: 0.0 }]);
+            },
+            1 => scene.movable_objects[0].shape = Shape::Parts(vec![Part::Box { half_extents: [0.2, value.abs(), 0.2], offset: [0.0; 3], yaw: 0.0 }]),
+            2 => scene.movable_objects[0].target.x = value,
+            3 => scene.movable_objects[0].pose.yaw = value,
+            4 => scene.agent.z = value,
+            5 => scene.room.wall_height = value,
+            _ => scene.movable_objects[0].shape = Shape::Parts(vec![Part::Cylinder { radius: value.abs(), half_height: 0.3, offset: [0.0, value, 0.0], yaw: value }]),
+        }
+        let Ok(compiled) = CompiledScene::new(scene, Rules::default()) else { return Ok(()) };
+        let Ok(mut episode) = esrp_core::Episode::new(std::sync::Arc::new(compiled), Default::default()) else { return Ok(()) };
+        for (i, &code) in actions.iter().enumerate() {
+            if i == actions.len() / 2 {
+                episode.reset();
+            }
+            if episode.step(esrp_core::Action::from_code(code).unwrap()).is_err() && !episode.is_over() {
+                prop_assert!(episode.failure().is_some(), "a step fails only on a finished or failed episode");
+            }
+        }
+    }
+
     /// Arbitrary text never panics the parser.
     #[test]
     fn arbitrary_json_never_panics(text in ".{0,200}") {

@@ -77,7 +77,15 @@ impl Episodes {
                     let scene = Scene::from_json(&json)?;
                     super::access::inline_split(scene.split)?;
                     super::access::inline_id(&scene.id, this.store.index_of(&scene.id).is_ok())?;
-                    return Ok(Arc::new(CompiledScene::new(scene, esrp_core::Rules::default())?));
+                    let id = scene.id.clone();
+                    let compiled = esrp_core::guarded(|| CompiledScene::new(scene, esrp_core::Rules::default()))
+                        .map_err(|message| {
+                            ServiceError::InvalidArgument(format!(
+                                "scene {}: the collision library cannot build it ({message}): check its sizes and positions",
+                                crate::quote::quoted(&id)
+                            ))
+                        })??;
+                    return Ok(Arc::new(compiled));
                 }
                 SceneChoice::SceneId(id) => this.store.index_of(&id)?,
                 SceneChoice::FromSplit { split, seed } => {
