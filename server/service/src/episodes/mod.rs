@@ -101,6 +101,11 @@ impl Episodes {
         self.registry.len()
     }
 
+    /// Whether the episode `id` is live.
+    pub fn is_live(&self, id: &EpisodeId) -> bool {
+        self.registry.contains(id)
+    }
+
     /// The number of live episodes `caller`'s token created.
     pub fn live_of(&self, caller: &Caller) -> usize {
         self.registry.owned_by(caller)

@@ -9,7 +9,7 @@ use axum::http::{HeaderMap, StatusCode};
 use serde::Deserialize;
 use serde_json::{Value, json};
 
-use super::state::{Failure, Replay, Viewer, caller};
+use super::state::{Failure, MAX_REPLAYS_PER_TOKEN, Replay, ReplaySlot, Viewer, caller};
 use crate::error::ServiceError;
 use crate::types::{Caller, CreateOptions, EpisodeId, SceneChoice, SensorRequest, StepCall};
 
@@ -81,6 +81,18 @@ pub(super) async fn replay(
     if let Some(bad) = request.actions.iter().find(|&&a| a > 5) {
         return Err(Failure(StatusCode::BAD_REQUEST, format!("actions: {bad} is not an action code (0..5)")));
     }
+    {
+        // Replays whose episode is gone (closed, reaped) are gone too; a token keeps a few.
+        let mut replays = viewer.replays();
+        replays.retain(|id, _| viewer.episodes.is_live(id));
+        let open = replays.values().filter(|slot| slot.owner == caller.name).count();
+        if open >= MAX_REPLAYS_PER_TOKEN {
+            return Err(Failure(
+                StatusCode::TOO_MANY_REQUESTS,
+                format!("{} has {open} replays open, the most a token may: close one first", caller.describe()),
+            ));
+        }
+    }
     let options = CreateOptions {
         scene: SceneChoice::SceneId(request.scene_id),
         sensors: SensorRequest::default(),
@@ -94,7 +106,7 @@ pub(super) async fn replay(
     viewer.episodes.claim(&created.episode);
     let steps = request.actions.len();
     let replay = Arc::new(tokio::sync::Mutex::new(Replay { actions: request.actions, at: 0 }));
-    viewer.replays().insert(created.episode.clone(), replay);
+    viewer.replays().insert(created.episode.clone(), ReplaySlot { owner: caller.name.clone(), replay });
     Ok(Json(json!({ "episode": created.episode.as_str(), "scene": created.scene.id, "steps": steps })))
 }
 
@@ -114,7 +126,7 @@ pub(super) async fn seek(
 ) -> Result<Json<Value>, Failure> {
     let caller = caller(&viewer, &headers)?;
     let id = EpisodeId::from(id);
-    let replay = viewer.replays().get(&id).cloned();
+    let replay = viewer.replays().get(&id).map(|slot| slot.replay.clone());
     let replay =
         replay.ok_or_else(|| Failure(StatusCode::NOT_FOUND, format!("no replay {id}: start one with /api/replay")))?;
     // This replay's lock alone while it steps: other replays and seeks go on meanwhile.

@@ -27,14 +27,14 @@ pub(super) struct Viewer {
     /// The replays: each episode's record actions and how many of them it has taken. The map's
     /// lock is held only to find, add or remove a replay (a std lock: never across an await); a
     /// seek steps holding its own replay's lock alone, so that it blocks no other replay.
-    pub(super) replays: Arc<std::sync::Mutex<HashMap<EpisodeId, Arc<tokio::sync::Mutex<Replay>>>>>,
+    pub(super) replays: Arc<std::sync::Mutex<HashMap<EpisodeId, ReplaySlot>>>,
     /// The watched episodes' feeds.
     pub(super) feeds: Feeds,
 }
 
 impl Viewer {
     /// The replays' map, whatever a panicking holder left.
-    pub(super) fn replays(&self) -> std::sync::MutexGuard<'_, HashMap<EpisodeId, Arc<tokio::sync::Mutex<Replay>>>> {
+    pub(super) fn replays(&self) -> std::sync::MutexGuard<'_, HashMap<EpisodeId, ReplaySlot>> {
         self.replays.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
     }
 }
@@ -44,6 +44,16 @@ pub(super) struct Replay {
     pub(super) actions: Vec<u8>,
     pub(super) at: usize,
 }
+
+/// A replay in the viewer's map: the token that started it, and the replay behind its own lock.
+#[derive(Clone)]
+pub(super) struct ReplaySlot {
+    pub(super) owner: Arc<str>,
+    pub(super) replay: Arc<tokio::sync::Mutex<Replay>>,
+}
+
+/// The most replays one token may have open at once.
+pub const MAX_REPLAYS_PER_TOKEN: usize = 4;
 
 /// What a feed publishes.
 pub(super) enum FeedItem {

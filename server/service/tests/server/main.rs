@@ -11,5 +11,6 @@ mod harness;
 mod health_check;
 mod hidden;
 mod lifecycle;
+mod replays;
 mod scene_cache;
 mod smoke;
