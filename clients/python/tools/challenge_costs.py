@@ -45,7 +45,9 @@ def summary(name: str, seconds: list[float]) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--server-binary", required=True, help="the esrp-server to measure")
     parser.add_argument("--scenes", type=int, default=100, help="challenge scenes, one create each per token")
     parser.add_argument("--steps", type=int, default=400, help="steps of each kind")
@@ -53,8 +55,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as folder:
         tokens = Path(folder) / "tokens.toml"
         tokens.write_text(TOKENS)
-        flags = ["--tokens", str(tokens), "--challenge-seed", "a-secret-seed-for-measuring", "--challenge-scenes"]
-        flags += [str(args.scenes), "--records", str(Path(folder) / "records")]
+        flags = ["--tokens", str(tokens), "--challenge-seed", "a-secret-seed-for-measuring"]
+        flags += ["--challenge-scenes", str(args.scenes), "--records", str(Path(folder) / "records")]
         with esrp.LocalServer(*flags, binary=args.server_binary) as server:
             agent = esrp.Client(server.address, token="agent-secret")
             root = esrp.Client(server.address, token="root-secret")
@@ -74,7 +76,10 @@ def main() -> None:
             paper: list[float] = []
             full: list[float] = []
             # minival: played again and again; the agent's episode serves the paper's observation.
-            episodes = ((agent.create_episode("minival/00000"), paper), (root.create_episode("minival/00000"), full))
+            episodes = (
+                (agent.create_episode("minival/00000"), paper),
+                (root.create_episode("minival/00000"), full),
+            )
             for i in range(args.steps):
                 for episode, into in episodes:
                     started = time.perf_counter()
