@@ -214,6 +214,9 @@ pub struct Claim {
     pub agent: String,
     /// RFC 3339 UTC time of the claim.
     pub started_at: String,
+    /// The episode's settings (horizon, reward weights), for a replay of its journaled actions.
+    #[serde(default)]
+    pub config: esrp_core::EpisodeConfig,
 }
 
 /// A line of the attempts journal.
@@ -615,7 +618,7 @@ mod tests {
     fn the_journal_reads_back_claims_and_actions_and_cuts_a_torn_line() {
         let dir = tempfile::tempdir().unwrap();
         let claim = |token: &str, scene: &str| {
-            serde_json::json!({"claim": {"token": token, "scene": scene, "agent": "a", "started_at": "2026-11-26T20:00:00Z"}})
+            serde_json::json!({"claim": {"token": token, "scene": scene, "agent": "a", "started_at": "2026-11-26T20:00:00Z", "config": {"horizon": 50}}})
                 .to_string()
         };
         let step = |token: &str, scene: &str, action: u8| {
@@ -635,6 +638,7 @@ mod tests {
         let read = read_journal(dir.path()).unwrap();
         assert_eq!(read.len(), 1, "bob's claim was given back: {read:?}");
         assert_eq!((read[0].claim.token.as_str(), read[0].actions.as_slice()), ("alice", &[2u8, 0][..]));
+        assert_eq!(read[0].claim.config.horizon, Some(50));
         let kept = std::fs::read_to_string(dir.path().join(JOURNAL)).unwrap();
         assert!(kept.ends_with("\n") && kept.len() < text.len(), "the torn line is cut");
         assert!(read_journal(tempfile::tempdir().unwrap().path()).unwrap().is_empty(), "no journal, no attempts");

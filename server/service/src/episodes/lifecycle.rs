@@ -124,7 +124,7 @@ async fn start_run(
     let counted = run.as_ref().is_some_and(|r| r.counted);
     if let Some(run) = run.as_ref().filter(|r| r.counted) {
         // Durable before the episode exists: no crash gives the attempt back.
-        recording::claim(episodes, caller, &id, &agent, run).await;
+        recording::claim(episodes, caller, &id, &agent, config, run).await;
     }
     let owner = Owner { caller: caller.clone(), agent, run };
     let built = new_entry(episodes, scene, config, sensors, privileged, owner).await;

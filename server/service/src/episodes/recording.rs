@@ -141,13 +141,21 @@ fn record_of(
 
 /// Journals the claim of a counted run and waits until it is on disk (where the server keeps
 /// records): from then on, no crash gives the attempt back.
-pub(super) async fn claim(episodes: &Episodes, caller: &Caller, scene: &str, agent: &str, run: &RunLog) {
+pub(super) async fn claim(
+    episodes: &Episodes,
+    caller: &Caller,
+    scene: &str,
+    agent: &str,
+    config: esrp_core::EpisodeConfig,
+    run: &RunLog,
+) {
     if let Some(recorder) = &episodes.recorder {
         let claim = crate::records::Claim {
             token: caller.name.to_string(),
             scene: scene.to_owned(),
             agent: agent.to_owned(),
             started_at: rfc3339(run.started),
+            config,
         };
         recorder.claim(&claim).wait().await;
     }
@@ -170,12 +178,12 @@ pub(super) fn recover(episodes: &Episodes) -> Result<usize, ServiceError> {
     let internal = |e: crate::records::RecordsError| ServiceError::Internal(e.to_string());
     let mut recovered = 0;
     for journaled in crate::records::read_journal(recorder.dir()).map_err(internal)? {
-        let crate::records::Claim { token, scene, agent, started_at } = &journaled.claim;
+        let crate::records::Claim { token, scene, agent, started_at, config } = &journaled.claim;
         if episodes.attempts.is_ended(token, scene) {
             continue;
         }
         let compiled = episodes.store.compiled(episodes.store.index_of(scene)?)?;
-        let mut episode = esrp_core::Episode::new(compiled, esrp_core::EpisodeConfig::default())?;
+        let mut episode = esrp_core::Episode::new(compiled, *config)?;
         for &code in &journaled.actions {
             if episode.is_over() {
                 break;
