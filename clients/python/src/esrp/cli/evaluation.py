@@ -221,9 +221,19 @@ def _add_verify(commands: argparse._SubParsersAction[Parser]) -> None:
         "server's own records) on a server: create an episode of its scene with its horizon, step its "
         "actions, and check success, osr, rdr, stage, placed, steps, total_reward and end exactly. "
         "Prints one line per record that does not match (FILE:LINE, scene, what differs) and a "
-        "summary. Exit status: 0 all match, 1 some do not, 2 bad input, 3 the server died.",
+        "summary. With --key, a server's records are first checked against their signatures: a "
+        "record unsigned, altered, duplicated, moved to another token's file, or whose split or "
+        "horizon is not its scene's is refused (listed with the reason) and not replayed. "
+        "Exit status: 0 all match, 1 some do not, 2 bad input, 3 the server died.",
     )
     parser.add_argument("results", nargs="+", type=Path, help="results files (JSON Lines)")
+    parser.add_argument(
+        "--key",
+        type=Path,
+        metavar="FILE",
+        help="the records key the server signs its records with (its --records-key, or "
+        "DIR/records.key): check every record's signature; without it signatures are not checked",
+    )
     parser.add_argument("--episodes-in-flight", type=positive, default=8, metavar="N")
     parser.add_argument(
         "--no-progress", dest="progress", action="store_false", help="no progress bar or lines"
@@ -322,6 +332,7 @@ def _verify(args: argparse.Namespace) -> int:
             server_args=args.server_args,
             episodes_in_flight=args.episodes_in_flight,
             progress=args.progress,
+            key=args.key,
         )
     except ServerGone as error:
         print(f"esrp verify: {error}", file=sys.stderr)
@@ -329,6 +340,11 @@ def _verify(args: argparse.Namespace) -> int:
     except VerifyError as error:
         print(f"esrp verify: {error}", file=sys.stderr)
         return 2
+    if args.key is None:
+        print(
+            "esrp verify: signatures not checked (no --key): records were replayed, not authenticated",
+            file=sys.stderr,
+        )
     for mismatch in outcome.mismatches:
         print(mismatch.text())
     print(outcome.summary())

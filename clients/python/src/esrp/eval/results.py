@@ -18,10 +18,12 @@ from typing import IO, Any
 
 __all__ = [
     "DIFFICULTIES",
+    "OBSERVATIONS",
     "PAPER",
     "PAPER_DATASET",
     "PAPER_TEST_SCENES",
     "PRIVILEGED_AGENTS",
+    "REWARD_TERMS",
     "SCHEMA",
     "EpisodeRecord",
     "PaperRow",
@@ -44,6 +46,12 @@ SCHEMA = "esrp.results/v1"
 
 DIFFICULTIES = ("easy", "medium", "hard")
 """The difficulty names, in the order tables list them."""
+
+REWARD_TERMS = ("success", "place", "unplace", "potential", "holding", "living")
+"""The members of a server record's `reward_weights`, in the order the server writes them."""
+
+OBSERVATIONS = ("paper", "full")
+"""The values of a server record's `observations`: the paper's observation only, or everything."""
 
 _U64 = (1 << 64) - 1
 
@@ -100,13 +108,33 @@ class EpisodeRecord:
     extra: dict[str, Any] = field(default_factory=dict)
     """Fields the schema's table does not list, by name, as read: e.g. a server record's `token`,
     `started_at`, `dataset_hash` and `counted` (docs/evaluation.md). Written back after the others."""
+    reward_weights: dict[str, float] | None = None
+    """A server record's: the six reward weights the episode played with (`REWARD_TERMS`); None
+    in other tools' records."""
+    observations: str | None = None
+    """A server record's: what the episode served its client, `"paper"` (the paper's observation
+    only) or `"full"`; None in other tools' records."""
+    signature: str | None = None
+    """A server record's: the HMAC-SHA256 of its line (`esrp.eval.signing`), 64 hex digits, the
+    last member of the line; None in other tools' records. A record written again by `to_json`
+    keeps it, but it signs the server's line, not the rewritten one."""
 
     def to_json(self) -> str:
         """The record as one line of compact JSON (no newline), UTF-8 text as is: the schema's
-        fields in order, then the `extra` ones.
+        fields in order, then the `extra` ones, with `reward_weights` and `observations` after
+        `counted` (after the `extra` ones when there is no `counted`), and `signature` last.
         """
         data = {name: getattr(self, name) for name in _FIELD_TYPES}
-        data.update((name, value) for name, value in self.extra.items() if name not in _FIELD_TYPES)
+        server = {name: getattr(self, name) for name in _SERVER_FIELDS if getattr(self, name) is not None}
+        for name, value in self.extra.items():
+            if name in _FIELD_TYPES or name in _SERVER_FIELDS or name == "signature":
+                continue
+            data[name] = value
+            if name == "counted":
+                data.update(server)
+        data.update(server)  # no-op when written after `counted`: the order of a dict is its first
+        if self.signature is not None:
+            data["signature"] = self.signature
         return json.dumps(data, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
 
     @classmethod
@@ -129,8 +157,29 @@ class EpisodeRecord:
             values[name] = float(value) if float in kinds and not isinstance(value, bool) else value
         if not all(isinstance(a, int) and not isinstance(a, bool) and 0 <= a <= 5 for a in values["actions"]):
             raise ValueError("field 'actions' holds something other than action codes 0..5")
-        extra = {name: value for name, value in data.items() if name not in _FIELD_TYPES}
-        return cls(**values, extra=extra)
+        weights = data.get("reward_weights")
+        if weights is not None:
+            if (
+                not isinstance(weights, Mapping)
+                or set(weights) != set(REWARD_TERMS)
+                or not all(_is(weights[term], (float, int)) for term in REWARD_TERMS)
+            ):
+                raise ValueError(
+                    f"field 'reward_weights' is {weights!r}, not an object of the numbers "
+                    + ", ".join(REWARD_TERMS)
+                )
+            weights = {term: float(weights[term]) for term in REWARD_TERMS}
+        observations = data.get("observations")
+        if observations is not None and observations not in OBSERVATIONS:
+            raise ValueError(f"field 'observations' is {observations!r}, not 'paper' or 'full'")
+        signature = data.get("signature")
+        if signature is not None and not isinstance(signature, str):
+            raise ValueError(f"field 'signature' is {signature!r}, not a string")
+        known = {*_FIELD_TYPES, *_SERVER_FIELDS, "signature"}
+        extra = {name: value for name, value in data.items() if name not in known}
+        return cls(
+            **values, extra=extra, reward_weights=weights, observations=observations, signature=signature
+        )
 
 
 _FIELD_TYPES: dict[str, tuple[type, ...]] = {
@@ -162,6 +211,10 @@ _FIELD_TYPES: dict[str, tuple[type, ...]] = {
 }
 
 
+_SERVER_FIELDS = ("reward_weights", "observations")
+"""The typed fields of a server record written after `counted` (then `signature`, last)."""
+
+
 def _is(value: object, kinds: tuple[type, ...]) -> bool:
     if isinstance(value, bool):
         return bool in kinds
@@ -175,6 +228,8 @@ class ReadRecords:
     Attributes:
         records: The records, in file order.
         line_numbers: The line (1-based) each record was read from.
+        lines: The bytes of each record's line as read, without its newline (what a server
+            record's signature covers: `esrp.eval.signing`).
         complete_bytes: Byte length of the complete lines read: a last line cut short by an
             interruption starts there, and `truncate_to` removes it.
         torn_tail: Whether a last line was cut short (incomplete or unreadable).
@@ -188,6 +243,7 @@ class ReadRecords:
 
     records: list[EpisodeRecord] = field(default_factory=list)
     line_numbers: list[int] = field(default_factory=list)
+    lines: list[bytes] = field(default_factory=list)
     complete_bytes: int = 0
     torn_tail: bool = False
     torn_line: int = 0
@@ -232,6 +288,7 @@ def read_records(path: str | os.PathLike[str]) -> ReadRecords:
         if complete:
             out.records.append(record)
             out.line_numbers.append(number)
+            out.lines.append(raw[:-1])
             out.complete_bytes += len(raw)
         else:
             # A record without its newline: the write was interrupted right before it.
