@@ -113,7 +113,7 @@ def test_participants_runs_are_recorded_verified_and_ranked(
     capsys.readouterr()
     files = [str(records / "team-red.jsonl"), str(records / "team-blue.jsonl")]
     verify = ["verify", *files, "--server", server.address, "--token", "organiser-secret", "--no-progress"]
-    assert main(verify) == 0
+    assert main([*verify, "--key", str(records / "records.key")]) == 0
     assert capsys.readouterr().out.endswith(f"{2 * SCENES} records verified, all match\n")
     # A participant's token cannot replay the challenge (its attempts are spent).
     as_red = ["verify", files[0], "--server", server.address, "--token", "red-secret", "--no-progress"]

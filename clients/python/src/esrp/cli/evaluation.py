@@ -167,7 +167,10 @@ def _add_report(commands: argparse._SubParsersAction[Parser]) -> None:
         "with the paper's Table I/II/III layouts for every run, the paper's rows beside them, plots, "
         "and replay stills of chosen episodes (those need a server). With --leaderboard DIR instead: "
         "rank the participants of the challenge from a server's records (DIR/*.jsonl: the counted "
-        "challenge records, one per participant and scene) and write one self-contained HTML page.",
+        "challenge records, one per participant and scene), each scored over every scene of "
+        "DIR/challenge-scenes.json (a scene not played is a failure), reading only records whose "
+        "signature checks under the records key (--key, else DIR/records.key), and write one "
+        "self-contained HTML page.",
     )
     parser.add_argument("results", nargs="*", type=Path, help="results files (JSON Lines)")
     parser.add_argument(
@@ -180,6 +183,19 @@ def _add_report(commands: argparse._SubParsersAction[Parser]) -> None:
         type=Path,
         metavar="DIR",
         help="rank the challenge's participants from the server's records in DIR (its --records folder)",
+    )
+    parser.add_argument(
+        "--key",
+        type=Path,
+        metavar="FILE",
+        help="--leaderboard: the records key (the server's --records-key; default: DIR/records.key); "
+        "records whose signature does not check are rejected, not ranked",
+    )
+    parser.add_argument(
+        "--unsigned",
+        action="store_true",
+        help="--leaderboard: rank the records unchecked when there is no records key (neither --key "
+        "nor DIR/records.key); without it such a folder is refused",
     )
     parser.add_argument("--replays", type=int, default=0, metavar="N", help="stills of N episodes per run")
     parser.add_argument(
@@ -355,6 +371,10 @@ def _verify(args: argparse.Namespace) -> int:
 def _report(args: argparse.Namespace) -> int:
     if args.leaderboard is not None:
         return _leaderboard(args)
+    leaderboard_only = [flag for flag, given in (("--key", args.key), ("--unsigned", args.unsigned)) if given]
+    if leaderboard_only:
+        print(f"esrp report: {', '.join(leaderboard_only)} only apply with --leaderboard", file=sys.stderr)
+        return 2
     from ..eval.report import ReportError, write_report
 
     if not args.results or args.out is None:
@@ -403,16 +423,24 @@ def _leaderboard(args: argparse.Namespace) -> int:
         print(f"esrp report: {', '.join(given)} do not apply with --leaderboard", file=sys.stderr)
         return 2
     try:
-        participants, scenes, page = write_leaderboard(
+        board = write_leaderboard(
             args.leaderboard,
             args.out or Path("leaderboard.html"),
             title=args.title or "ESRP challenge leaderboard",
+            key=args.key,
+            unsigned=args.unsigned,
         )
     except LeaderboardError as error:
         print(f"esrp report: {error}", file=sys.stderr)
         return 2
-    print(ranking_text(participants, scenes), end="")
-    print(page)
+    if board.key is None:
+        print("esrp report: signatures not checked (--unsigned, no records key)", file=sys.stderr)
+    for rejected in board.rejected:
+        print(
+            f"esrp report: rejected {rejected.source.where}: {'; '.join(rejected.reasons)}", file=sys.stderr
+        )
+    print(ranking_text(board.participants, board.scenes.count()), end="")
+    print(board.page)
     return 0
 
 

@@ -37,7 +37,9 @@ class ManifestError(ResultsError):
 
 @dataclass(frozen=True)
 class ManifestScene:
-    """One challenge scene: its id (`challenge/00000`), difficulty, object count and horizon."""
+    """One challenge scene: its id (`challenge/00000`), difficulty, object count and horizon (0
+    when the list does not give it: a reader then takes the scene's horizon from the server).
+    """
 
     id: str
     difficulty: str
@@ -78,7 +80,8 @@ def _int(value: object) -> bool:
 
 def load_manifest(path: str | os.PathLike[str]) -> ChallengeScenes:
     """Reads a scene list. Raises `ManifestError` naming the file and what is wrong: it cannot be
-    read, is not JSON, or is not `esrp.challenge-scenes/v1` (a missing or mistyped member, a
+    read, is not JSON, or is not `esrp.challenge-scenes/v1` (a missing or mistyped member (a
+    scene's `horizon` may be missing: 0, unknown), a
     difficulty other than easy, medium, hard, an observation policy other than paper or full, a
     scene listed twice).
     """
@@ -112,10 +115,11 @@ def load_manifest(path: str | os.PathLike[str]) -> ChallengeScenes:
             and isinstance(scene.get("id"), str)
             and scene.get("difficulty") in DIFFICULTIES
             and _int(scene.get("objects"))
-            and _int(scene.get("horizon"))
+            and _int(scene.get("horizon", 0))
         ):
             raise bad(f"scenes[{k}] is {scene!r}, not an id, difficulty, objects and horizon")
-        listed.append(ManifestScene(scene["id"], scene["difficulty"], scene["objects"], scene["horizon"]))
+        horizon = scene.get("horizon", 0)
+        listed.append(ManifestScene(scene["id"], scene["difficulty"], scene["objects"], horizon))
     if len({s.id for s in listed}) != len(listed):
         raise bad("a scene is listed twice")
     return ChallengeScenes(where, digest, dict(observations), tuple(listed))

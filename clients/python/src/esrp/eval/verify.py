@@ -205,7 +205,7 @@ def _scene_facts(record: EpisodeRecord, manifest: ChallengeScenes | None) -> lis
         wrong.append(f"split: recorded {record.split!r}, the scene's is 'challenge'")
     if record.difficulty != scene.difficulty:
         wrong.append(f"difficulty: recorded {record.difficulty!r}, the scene's is {scene.difficulty!r}")
-    if record.horizon != scene.horizon:
+    if scene.horizon and record.horizon != scene.horizon:
         wrong.append(f"horizon: recorded {record.horizon}, the scene's is {scene.horizon}")
     digest = record.extra.get("dataset_hash")
     if digest is not None and digest != manifest.dataset_hash:
