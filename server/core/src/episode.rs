@@ -423,13 +423,19 @@ impl Episode {
         state
     }
 
-    /// Puts the episode back at its start (the start [`Episode::new`] built once already: a
-    /// failure of the collision library is forgotten with the state it left).
+    /// Puts the episode back at its start, forgetting a failure of the collision library with the
+    /// state it left; should building the start fail (it did not in [`Episode::new`]), the
+    /// episode keeps its state and takes no more steps.
     pub fn reset(&mut self) {
         let revision = self.state.revision + 1;
-        self.state = Self::initial_state(&self.scene);
+        match crate::error::guarded(|| Self::initial_state(&self.scene)) {
+            Ok(state) => {
+                self.state = state;
+                self.failure = None;
+            }
+            Err(message) => self.failure = Some(message),
+        }
         self.state.revision = revision;
-        self.failure = None;
     }
 
     /// Takes one action (SPEC §3). Every action, accepted or not, counts as a step.
