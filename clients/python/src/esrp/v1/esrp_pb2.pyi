@@ -713,7 +713,10 @@ Global___RewardTerms: _TypeAlias = RewardTerms  # noqa: Y015
 
 @_typing.final
 class StepInfo(_message.Message):
-    """What a step did."""
+    """What a step did.
+    On a hidden scene served with the paper's observation only (every token but an admin, unless
+    the organiser widened it), every field but step_index is left empty, and so is the reward.
+    """
 
     DESCRIPTOR: _descriptor.Descriptor
 

@@ -183,7 +183,8 @@ class EsrpServicer:
         raise NotImplementedError('Method not implemented!')
 
     def GetMetrics(self, request, context):
-        """The episode's metrics so far (final once it has ended).
+        """The episode's metrics so far (final once it has ended). On a hidden scene (challenge,
+        minival) served with the paper's observation only: PERMISSION_DENIED until it has ended.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

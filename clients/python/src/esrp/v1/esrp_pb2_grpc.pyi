@@ -78,7 +78,9 @@ class EsrpStub:
     otherwise).
     """
     GetMetrics: _grpc.UnaryUnaryMultiCallable[_esrp_pb2.GetMetricsRequest, _esrp_pb2.GetMetricsResponse]
-    """The episode's metrics so far (final once it has ended)."""
+    """The episode's metrics so far (final once it has ended). On a hidden scene (challenge,
+    minival) served with the paper's observation only: PERMISSION_DENIED until it has ended.
+    """
     CloseEpisode: _grpc.UnaryUnaryMultiCallable[_esrp_pb2.CloseEpisodeRequest, _esrp_pb2.CloseEpisodeResponse]
     """Closes an episode and frees it."""
     PlanActions: _grpc.UnaryUnaryMultiCallable[_esrp_pb2.PlanActionsRequest, _esrp_pb2.PlanActionsResponse]
@@ -126,7 +128,9 @@ class EsrpAsyncStub(EsrpStub):
     otherwise).
     """
     GetMetrics: _aio.UnaryUnaryMultiCallable[_esrp_pb2.GetMetricsRequest, _esrp_pb2.GetMetricsResponse]  # type: ignore[assignment]
-    """The episode's metrics so far (final once it has ended)."""
+    """The episode's metrics so far (final once it has ended). On a hidden scene (challenge,
+    minival) served with the paper's observation only: PERMISSION_DENIED until it has ended.
+    """
     CloseEpisode: _aio.UnaryUnaryMultiCallable[_esrp_pb2.CloseEpisodeRequest, _esrp_pb2.CloseEpisodeResponse]  # type: ignore[assignment]
     """Closes an episode and frees it."""
     PlanActions: _aio.UnaryUnaryMultiCallable[_esrp_pb2.PlanActionsRequest, _esrp_pb2.PlanActionsResponse]  # type: ignore[assignment]
@@ -237,7 +241,9 @@ class EsrpServicer(metaclass=_abc_1.ABCMeta):
         request: _esrp_pb2.GetMetricsRequest,
         context: _ServicerContext,
     ) -> _typing.Union[_esrp_pb2.GetMetricsResponse, _abc.Awaitable[_esrp_pb2.GetMetricsResponse]]:
-        """The episode's metrics so far (final once it has ended)."""
+        """The episode's metrics so far (final once it has ended). On a hidden scene (challenge,
+        minival) served with the paper's observation only: PERMISSION_DENIED until it has ended.
+        """
 
     @_abc_1.abstractmethod
     def CloseEpisode(
