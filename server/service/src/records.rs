@@ -144,16 +144,8 @@ impl RecordsKey {
         if given.is_none() && !path.exists() {
             let mut random = uuid::Uuid::new_v4().as_bytes().to_vec();
             random.extend_from_slice(uuid::Uuid::new_v4().as_bytes());
-            let temporary = dir.join(format!("{GENERATED_KEY}.tmp"));
-            let write = || -> std::io::Result<()> {
-                use std::os::unix::fs::OpenOptionsExt;
-                let mut file =
-                    std::fs::OpenOptions::new().write(true).create(true).truncate(true).mode(0o600).open(&temporary)?;
-                file.write_all(hex::encode(&random).as_bytes())?;
-                file.sync_all()?;
-                std::fs::rename(&temporary, &path)
-            };
-            write().map_err(|e| error(format!("cannot write the records key {}: {e}", path.display())))?;
+            write_atomically(&path, hex::encode(&random).as_bytes(), 0o600)
+                .map_err(|e| error(format!("cannot write the records key {}: {e}", path.display())))?;
             tracing::info!(file = %path.display(), "generated the key the records are signed with");
         }
         let bytes =
@@ -243,8 +235,6 @@ pub struct Journaled {
     pub claim: Claim,
     /// Its actions.
     pub actions: Vec<u8>,
-    /// Whether it was given back (never used): not an attempt.
-    pub released: bool,
 }
 
 /// The attempts journaled in folder `dir` (none if it has no journal), in claim order. A last
@@ -265,13 +255,15 @@ pub fn read_journal(dir: &Path) -> Result<Vec<Journaled>, RecordsError> {
     }
     let mut attempts: Vec<Journaled> = Vec::new();
     let mut index: HashMap<(String, String), usize> = HashMap::new();
+    // Attempts given back (never used): not attempts.
+    let mut released = std::collections::HashSet::new();
     for (n, line) in bytes[..complete].split(|&b| b == b'\n').enumerate().filter(|(_, l)| !l.is_empty()) {
         let parsed: JournalLine = serde_json::from_slice(line)
             .map_err(|e| error(format!("{}:{}: not a journal line: {e}", path.display(), n + 1)))?;
         match parsed {
             JournalLine::Claim(claim) => {
                 index.insert((claim.token.clone(), claim.scene.clone()), attempts.len());
-                attempts.push(Journaled { claim, actions: Vec::new(), released: false });
+                attempts.push(Journaled { claim, actions: Vec::new() });
             }
             JournalLine::Step { token, scene, action } => {
                 if let Some(&i) = index.get(&(token, scene)) {
@@ -280,13 +272,12 @@ pub fn read_journal(dir: &Path) -> Result<Vec<Journaled>, RecordsError> {
             }
             JournalLine::Release { token, scene } => {
                 if let Some(i) = index.remove(&(token, scene)) {
-                    attempts[i].released = true;
+                    released.insert(i);
                 }
             }
         }
     }
-    attempts.retain(|a| !a.released);
-    Ok(attempts)
+    Ok(attempts.into_iter().enumerate().filter(|(i, _)| !released.contains(i)).map(|(_, a)| a).collect())
 }
 
 /// The file, in the records folder, that lists the challenge's scenes (`esrp report
@@ -321,14 +312,20 @@ pub fn write_challenge_scenes(
         "scenes": listed,
     });
     let text = serde_json::to_string_pretty(&manifest).map_err(|e| error(e.to_string()))? + "\n";
-    let (path, temporary) = (dir.join(CHALLENGE_SCENES), dir.join(format!("{CHALLENGE_SCENES}.tmp")));
-    let write = || -> std::io::Result<()> {
-        let mut file = File::create(&temporary)?;
-        file.write_all(text.as_bytes())?;
-        file.sync_all()?;
-        std::fs::rename(&temporary, &path)
-    };
-    write().map_err(|e| error(format!("cannot write {}: {e}", path.display())))
+    let path = dir.join(CHALLENGE_SCENES);
+    write_atomically(&path, text.as_bytes(), 0o644).map_err(|e| error(format!("cannot write {}: {e}", path.display())))
+}
+
+/// Writes `bytes` to `path` whole or not at all: into `PATH.tmp` (permissions `mode`), synced,
+/// then renamed over `path`.
+fn write_atomically(path: &Path, bytes: &[u8], mode: u32) -> std::io::Result<()> {
+    use std::os::unix::fs::OpenOptionsExt;
+    let mut temporary = path.as_os_str().to_owned();
+    temporary.push(".tmp");
+    let mut file = std::fs::OpenOptions::new().write(true).create(true).truncate(true).mode(mode).open(&temporary)?;
+    file.write_all(bytes)?;
+    file.sync_all()?;
+    std::fs::rename(&temporary, path)
 }
 
 /// A record on its way to its file; `done` hears when it is on disk.
@@ -428,9 +425,8 @@ impl Recorder {
     /// once it is on disk.
     pub fn write(&self, record: &EpisodeRecord) -> Written {
         let token = record.token.clone().unwrap_or_else(|| "anonymous".into());
-        let unsigned = EpisodeRecord { signature: None, ..record.clone() };
-        let mut line = match serde_json::to_vec(&unsigned) {
-            Ok(json) => self.key.sign(&json),
+        let mut line = match self.signed_line(record) {
+            Ok(line) => line,
             Err(e) => {
                 tracing::error!(scene = %record.scene_id, "cannot encode a record: {e}");
                 return Written::nothing();
@@ -441,6 +437,16 @@ impl Recorder {
             tracing::error!(scene = %record.scene_id, "a record arrived after the recorder stopped: it is lost");
             Written::nothing()
         })
+    }
+
+    /// `record`'s line (without its newline) as the server writes it: its compact JSON with any
+    /// signature it carried replaced by this server's.
+    fn signed_line(&self, record: &EpisodeRecord) -> serde_json::Result<Vec<u8>> {
+        let json = match record.signature {
+            None => serde_json::to_vec(record)?,
+            Some(_) => serde_json::to_vec(&EpisodeRecord { signature: None, ..record.clone() })?,
+        };
+        Ok(self.key.sign(&json))
     }
 
     /// Queues `line` for the file `file` of the folder; `None` once the recorder has stopped.
@@ -455,27 +461,27 @@ impl Recorder {
     /// completes once the claim is on disk (the create waits for it before the episode exists:
     /// a crash after that cannot give the attempt back).
     pub fn claim(&self, claim: &Claim) -> Written {
-        let mut line = serde_json::to_vec(&JournalLine::Claim(claim.clone())).unwrap_or_default();
-        line.push(b'\n');
-        self.queue(JOURNAL.to_owned(), line).unwrap_or_else(Written::nothing)
+        self.journal(&JournalLine::Claim(claim.clone())).unwrap_or_else(Written::nothing)
     }
 
     /// Journals one action of `token`'s counted attempt at `scene`, without waiting: it is on
     /// disk with the writer's next sync, a few milliseconds later.
     pub fn journal_step(&self, token: &str, scene: &str, action: u8) {
-        let step = JournalLine::Step { token: token.to_owned(), scene: scene.to_owned(), action };
-        let mut line = serde_json::to_vec(&step).unwrap_or_default();
-        line.push(b'\n');
-        let _ = self.queue(JOURNAL.to_owned(), line);
+        self.journal(&JournalLine::Step { token: token.to_owned(), scene: scene.to_owned(), action });
     }
 
     /// Journals that `token`'s attempt at `scene` was given back, without waiting (a crash
     /// before it is on disk leaves the attempt counted, the safe side).
     pub fn journal_release(&self, token: &str, scene: &str) {
-        let release = JournalLine::Release { token: token.to_owned(), scene: scene.to_owned() };
-        let mut line = serde_json::to_vec(&release).unwrap_or_default();
-        line.push(b'\n');
-        let _ = self.queue(JOURNAL.to_owned(), line);
+        self.journal(&JournalLine::Release { token: token.to_owned(), scene: scene.to_owned() });
+    }
+
+    /// Queues `line` for the attempts journal; `None` once the recorder has stopped (its
+    /// [`Written`] may be dropped: the line is written all the same).
+    fn journal(&self, line: &JournalLine) -> Option<Written> {
+        let mut bytes = serde_json::to_vec(line).ok()?;
+        bytes.push(b'\n');
+        self.queue(JOURNAL.to_owned(), bytes)
     }
 
     /// Appends `record`, signed, to its token's file and syncs it, on the calling thread (the
@@ -483,8 +489,7 @@ impl Recorder {
     pub fn write_now(&self, record: &EpisodeRecord) -> Result<(), RecordsError> {
         let error = |reason: String| RecordsError { dir: self.dir.display().to_string(), reason };
         let token = record.token.clone().unwrap_or_else(|| "anonymous".into());
-        let unsigned = EpisodeRecord { signature: None, ..record.clone() };
-        let mut line = self.key.sign(&serde_json::to_vec(&unsigned).map_err(|e| error(e.to_string()))?);
+        let mut line = self.signed_line(record).map_err(|e| error(e.to_string()))?;
         line.push(b'\n');
         let path = self.dir.join(format!("{token}.jsonl"));
         let mut file = std::fs::OpenOptions::new()
