@@ -266,6 +266,14 @@ pub(crate) fn text(value: &str) -> esrp_server::dm_env::wire::dm_env_rpc::v1::Te
     }
 }
 
+pub(crate) fn boolean(value: bool) -> esrp_server::dm_env::wire::dm_env_rpc::v1::Tensor {
+    use esrp_server::dm_env::wire::dm_env_rpc::v1::tensor::{BoolArray, Payload};
+    esrp_server::dm_env::wire::dm_env_rpc::v1::Tensor {
+        payload: Some(Payload::Bools(BoolArray { array: vec![value] })),
+        shape: vec![],
+    }
+}
+
 pub(crate) fn int(value: i64) -> esrp_server::dm_env::wire::dm_env_rpc::v1::Tensor {
     use esrp_server::dm_env::wire::dm_env_rpc::v1::tensor::{Int64Array, Payload};
     esrp_server::dm_env::wire::dm_env_rpc::v1::Tensor {

@@ -51,6 +51,26 @@ impl Server {
         response
     }
 
+    /// One HTTP/1.0 request to the web viewer (`--http-listen`), with `Authorization: Bearer
+    /// SECRET` if given; returns the status code and the body.
+    pub async fn viewer_request(&self, method: &str, path: &str, secret: Option<&str>, body: &str) -> (u16, String) {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let url = self.viewer.as_deref().expect("started with --http-listen");
+        let host = url.trim_start_matches("http://").trim_end_matches('/');
+        let mut socket = tokio::net::TcpStream::connect(host).await.expect("the viewer accepts");
+        let authorization = secret.map(|s| format!("Authorization: Bearer {s}\r\n")).unwrap_or_default();
+        let request = format!(
+            "{method} {path} HTTP/1.0\r\nHost: {host}\r\n{authorization}Content-Type: application/json\r\nContent-Length: {}\r\n\r\n{body}",
+            body.len()
+        );
+        socket.write_all(request.as_bytes()).await.unwrap();
+        let mut response = String::new();
+        socket.read_to_string(&mut response).await.unwrap();
+        let status = response.split(' ').nth(1).and_then(|s| s.parse().ok()).expect("a status line");
+        let body = response.split_once("\r\n\r\n").map(|(_, b)| b.to_owned()).unwrap_or_default();
+        (status, body)
+    }
+
     /// A connected client.
     pub async fn client(&self) -> EsrpClient<Channel> {
         EsrpClient::connect(self.address.clone())

@@ -7,7 +7,7 @@
 use esrp_server::proto;
 use tonic::Code;
 
-use super::challenge::{Authed, DmConnection, client, create, int, refused, start, text};
+use super::challenge::{Authed, DmConnection, boolean, client, create, int, refused, start, text};
 
 /// Whether a step answer carries nothing beyond the paper's observation (and the step index,
 /// the end flags and, once ended, the final metrics).
@@ -141,25 +141,9 @@ async fn hidden_scenes_serve_the_paper_observation_only() {
     }
 }
 
-/// The viewer's `/api/episodes` for `secret`, as JSON (plain HTTP/1.0 over a socket).
+/// The viewer's `/api/episodes` for `secret`, as JSON.
 async fn viewer_episodes(server: &super::harness::Server, secret: &str) -> Vec<serde_json::Value> {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let url = server.viewer.as_deref().expect("started with --http-listen");
-    let host = url.trim_start_matches("http://").trim_end_matches('/');
-    let mut socket = tokio::net::TcpStream::connect(host).await.expect("the viewer accepts");
-    let request = format!("GET /api/episodes HTTP/1.0\r\nHost: {host}\r\nAuthorization: Bearer {secret}\r\n\r\n");
-    socket.write_all(request.as_bytes()).await.unwrap();
-    let mut response = String::new();
-    socket.read_to_string(&mut response).await.unwrap();
-    assert!(response.starts_with("HTTP/1.0 200") || response.starts_with("HTTP/1.1 200"), "{response}");
-    let body = response.split_once("\r\n\r\n").expect("a body").1;
-    serde_json::from_str(body).expect("JSON")
-}
-
-fn boolean(value: bool) -> esrp_server::dm_env::wire::dm_env_rpc::v1::Tensor {
-    use esrp_server::dm_env::wire::dm_env_rpc::v1::tensor::{BoolArray, Payload};
-    esrp_server::dm_env::wire::dm_env_rpc::v1::Tensor {
-        payload: Some(Payload::Bools(BoolArray { array: vec![value] })),
-        shape: vec![],
-    }
+    let (status, body) = server.viewer_request("GET", "/api/episodes", Some(secret), "").await;
+    assert_eq!(status, 200, "{body}");
+    serde_json::from_str(&body).expect("JSON")
 }

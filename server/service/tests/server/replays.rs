@@ -3,28 +3,10 @@
 
 use super::harness::Server;
 
-/// One HTTP/1.0 request to the viewer; returns the status code and the body.
-async fn http(server: &Server, method: &str, path: &str, body: &str) -> (u16, String) {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let url = server.viewer.as_deref().expect("started with --http-listen");
-    let host = url.trim_start_matches("http://").trim_end_matches('/');
-    let mut socket = tokio::net::TcpStream::connect(host).await.expect("the viewer accepts");
-    let request = format!(
-        "{method} {path} HTTP/1.0\r\nHost: {host}\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n{body}",
-        body.len()
-    );
-    socket.write_all(request.as_bytes()).await.unwrap();
-    let mut response = String::new();
-    socket.read_to_string(&mut response).await.unwrap();
-    let status = response.split(' ').nth(1).and_then(|s| s.parse().ok()).expect("a status line");
-    let body = response.split_once("\r\n\r\n").map(|(_, b)| b.to_owned()).unwrap_or_default();
-    (status, body)
-}
-
 /// Starts a replay of `actions` on a test scene; returns its episode id.
 async fn start_replay(server: &Server) -> Result<String, (u16, String)> {
     let body = r#"{"scene_id": "esrp-bench-v2/00003", "horizon": null, "actions": [2, 0, 3, 1]}"#;
-    let (status, text) = http(server, "POST", "/api/replay", body).await;
+    let (status, text) = server.viewer_request("POST", "/api/replay", None, body).await;
     if status != 200 {
         return Err((status, text));
     }
@@ -49,20 +31,21 @@ async fn replays_are_capped_per_token_and_freed_with_their_episode() {
     let (status, message) = start_replay(&server).await.expect_err("a fifth is refused");
     assert_eq!(status, 429, "{message}");
     assert!(message.contains("replays open"), "{message}");
-    let (status, _) = http(&server, "POST", &format!("/api/episodes/{}/close", open[0]), "").await;
+    let (status, _) = server.viewer_request("POST", &format!("/api/episodes/{}/close", open[0]), None, "").await;
     assert_eq!(status, 200);
     open[0] = start_replay(&server).await.expect("a closed replay gives its place back");
     for id in open {
-        let (status, _) = http(&server, "POST", &format!("/api/episodes/{id}/close"), "").await;
+        let (status, _) = server.viewer_request("POST", &format!("/api/episodes/{id}/close"), None, "").await;
         assert_eq!(status, 200);
     }
 
     // A thousand replay-and-close cycles: the memory after the first hundred stays where it is.
     let cycle = || async {
         let id = start_replay(&server).await.expect("a replay starts");
-        let (status, _) = http(&server, "POST", &format!("/api/replay/{id}/seek"), r#"{"step": 4}"#).await;
+        let (status, _) =
+            server.viewer_request("POST", &format!("/api/replay/{id}/seek"), None, r#"{"step": 4}"#).await;
         assert_eq!(status, 200);
-        let (status, _) = http(&server, "POST", &format!("/api/episodes/{id}/close"), "").await;
+        let (status, _) = server.viewer_request("POST", &format!("/api/episodes/{id}/close"), None, "").await;
         assert_eq!(status, 200);
     };
     for _ in 0..100 {
