@@ -47,10 +47,10 @@ pub enum ServeError {
     #[error("gRPC transport: {0}")]
     Transport(#[from] tonic::transport::Error),
     /// The token file (`--tokens`) cannot be used.
-    #[error("{0}")]
+    #[error(transparent)]
     Tokens(#[from] auth::TokensError),
     /// The records folder (`--records`) cannot be used.
-    #[error("{0}")]
+    #[error(transparent)]
     Records(#[from] records::RecordsError),
     /// The flags contradict each other or the served dataset.
     #[error("{0}")]
