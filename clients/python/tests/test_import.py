@@ -70,7 +70,8 @@ def test_each_public_name_is_its_module_s() -> None:
     import esrp
 
     # `_EXPORTS` (esrp/__init__) names each module's `__all__` but the internal names above, and
-    # `esrp.X` is the module's `X` (`_common` has no `__all__`: only the second check holds there).
+    # `esrp.X` is the module's `X` (`_common`, `_values` and `_errors` have no `__all__`: only the second
+    # check holds there).
     for module_name, names in esrp._EXPORTS.items():  # noqa: SLF001
         module = importlib.import_module(module_name, "esrp")
         declared = set(getattr(module, "__all__", names))

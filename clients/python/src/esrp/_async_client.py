@@ -307,23 +307,8 @@ class AsyncEpisode(EpisodeBase["AsyncClient"]):
 
     async def plan_actions(self, max_actions: int = 0, budget_ms: int | None = None) -> PlanAnswer:
         """The next actions of the server's planner (ESRP-PLAN) from the episode's current state;
-        only for episodes created with `privileged=True` (else `PermissionDenied`).
-
-        Args:
-            max_actions: At most this many next actions; 0: the whole plan.
-            budget_ms: Planning time in milliseconds, counted from the call (waiting for a planner
-                thread included); None: the server's `--plan-budget-ms` (10 s by default). The
-                server caps it at its `--max-plan-ms` (60 s by default).
-
-        Returns the plan's next actions and how it was made; a plan that does not exist comes back
-        as a `PlanAnswer` with `failure` set (and the actions the planner took before failing).
-        The answer is cached with the episode: after stepping part of the plan, the next call
-        answers the rest at once (`cached`).
-
-        Raises:
-            DeadlineExceeded: No plan was found within the budget.
-            EpisodeEnded: The episode has ended.
-            PermissionDenied: The episode is not privileged.
+        only for episodes created with `privileged=True`. Arguments, answer, caching and errors as
+        `Episode.plan_actions`.
         """
         return await self.client._calls.run(self._plan_call(max_actions, budget_ms))
 

@@ -9,24 +9,7 @@ from __future__ import annotations
 
 import grpc
 
-__all__ = [
-    "AlreadyPlayed",
-    "Cancelled",
-    "DeadlineExceeded",
-    "EpisodeEnded",
-    "EpisodeNotFound",
-    "EsrpError",
-    "InvalidRequest",
-    "LocalServerError",
-    "NotFound",
-    "PermissionDenied",
-    "ProtocolError",
-    "SceneNotFound",
-    "ServerBusy",
-    "ServerError",
-    "ServerUnavailable",
-    "Unauthenticated",
-]
+# Its public names are listed once, in esrp._EXPORTS (esrp/__init__.py), which exports them all.
 
 
 class EsrpError(Exception):

@@ -16,39 +16,7 @@ from typing import Any, NamedTuple, TypeAlias
 import numpy as np
 import numpy.typing as npt
 
-__all__ = [
-    "Action",
-    "ActionLike",
-    "ArraySpec",
-    "Created",
-    "DatasetInfo",
-    "Difficulty",
-    "EpisodeMetrics",
-    "Footprint",
-    "Goal",
-    "ObjectState",
-    "Observation",
-    "ObservationSpec",
-    "Obstacle",
-    "PlanAnswer",
-    "PlanFailure",
-    "PlanStats",
-    "Pose2",
-    "PrivilegedState",
-    "Progress",
-    "RewardTerms",
-    "RewardWeights",
-    "SceneSummary",
-    "Sensors",
-    "ServerInfo",
-    "ServerLimits",
-    "Split",
-    "StaticObstacle",
-    "StepColumns",
-    "StepInfo",
-    "StepResult",
-    "TopDownFrame",
-]
+# Its public names are listed once, in esrp._EXPORTS (esrp/__init__.py), which exports them all.
 
 RgbImage = npt.NDArray[np.uint8]
 """An RGB image, shape (H, W, 3), uint8, read-only."""

@@ -79,19 +79,10 @@ class LeaderboardError(Exception):
 
 
 @dataclass(frozen=True)
-class Sourced:
-    """A record and the file it was read from."""
-
-    path: Path
-    line: int
-    record: EpisodeRecord
-    raw: bytes = b""
-    """The line's bytes as read (what its signature covers)."""
-
-    @property
-    def where(self) -> str:
-        """`FILE:LINE`."""
-        return f"{self.path}:{self.line}"
+class Sourced(Numbered):
+    """A record, the file and line it was read from and the line's bytes (as `esrp verify` reads
+    them), and who played it.
+    """
 
     @property
     def participant(self) -> str:
@@ -282,8 +273,7 @@ def check_records(
     """`records` split into those that pass `verify.refusals` (with `key`: their signatures
     check) and those rejected, with the reasons, in input order.
     """
-    numbered = [Numbered(s.path, s.line, s.record, s.raw) for s in records]
-    found = refusals(numbered, key, {s.path.parent: scenes for s in records})
+    found = refusals(records, key, {s.path.parent: scenes for s in records})
     kept = [s for k, s in enumerate(records) if k not in found]
     rejected = [Rejected(records[k], tuple(found[k])) for k in sorted(found)]
     return kept, rejected
