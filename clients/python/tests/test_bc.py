@@ -1,7 +1,8 @@
 """ESRP-BC smoke tests on tiny data (the demonstrations of one easy test scene, a tiny model): an
-epoch trains with finite losses, the loss falls over a few steps of a fixed batch, checkpoints
-reload to identical actions, batched agents act as agents alone do, training resumes, and `esrp
-eval --agent bc` plays a checkpoint."""
+epoch trains with finite losses, the loss falls over a few steps of a fixed batch, the span
+sampler's windows are the windows step by step, no label is made up past an episode's end,
+checkpoints play the weights' average and reload to identical actions, batched agents act as
+agents alone do, training resumes, and `esrp eval --agent bc` plays a checkpoint."""
 
 from __future__ import annotations
 
@@ -30,9 +31,10 @@ from esrp.agents.bc import (  # noqa: E402
     DiffusionPolicy,
     bc_loss,
     load_policy,
+    random_shift,
     schedulers,
 )
-from esrp.train.bc import DemoWindows, train  # noqa: E402
+from esrp.train.bc import NO_LABEL, DemoWindows, train  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -83,8 +85,8 @@ def test_the_loss_falls_on_a_fixed_batch(demos: Path) -> None:
     scheduler, _ = schedulers(config)
     windows = DemoWindows(demos, config.n_obs, config.horizon)
     batch = windows.batch(np.arange(len(windows)))
-    assert batch["ego"].shape[1:] == (4, 128, 128, 3)
-    assert batch["actions"].shape[1:] == (8,)
+    assert batch["frames"][batch["frame_index"]].shape[1:] == (4, 128, 128, 3)
+    assert batch["actions"].shape[1:] == batch["mask"].shape[1:] == (8,)
     optimizer = torch.optim.AdamW(model.parameters(), lr=1e-3)
     losses = []
     for _ in range(12):
@@ -98,13 +100,145 @@ def test_the_loss_falls_on_a_fixed_batch(demos: Path) -> None:
     assert losses[-1] < 0.8 * losses[0], losses
 
 
-def test_windows_pad_as_diffusion_policy(demos: Path) -> None:
+def windows_one_by_one(windows: DemoWindows, steps: np.ndarray) -> dict[str, np.ndarray]:
+    """Each window of `steps` read on its own from the store, as training read them before spans:
+    the ego views of steps t-n+1..t (the episode's first repeated before its start), the goal,
+    the grasp flags, and the actions t..t+h-1 that lie within the episode (-1 past its end).
+    """
+    store = windows.stores[0]
+    ego, goal, grasping = store["data/ego_rgb"][:], store["meta/goal_rgb"][:], store["data/grasping"][:]
+    ends = [int(e) for e in store["meta/episode_ends"][:]]
+    rows: dict[str, list[np.ndarray]] = {"ego": [], "goal": [], "grasping": [], "actions": []}
+    for t in steps:
+        episode = next(i for i, end in enumerate(ends) if t < end)
+        start, end = (ends[episode - 1] if episode else 0), ends[episode]
+        history = [max(t - k, start) for k in range(windows.n_obs - 1, -1, -1)]
+        rows["ego"].append(ego[history])
+        rows["goal"].append(goal[episode])
+        rows["grasping"].append(grasping[history])
+        ahead = [int(windows.actions[u]) if u < end else -1 for u in range(t, t + windows.horizon)]
+        rows["actions"].append(np.array(ahead))
+    return {key: np.stack(value) for key, value in rows.items()}
+
+
+def test_span_batches_hold_the_windows_step_by_step(demos: Path) -> None:
     windows = DemoWindows(demos, 4, 8)
-    batch = windows.batch(np.array([0, len(windows) - 1]))
-    ego = batch["ego"].numpy()
-    # The first step's history is its own view, repeated; the last step's future, its own action.
+    order = windows.epoch_order(seed=3, span=16)
+    batch_steps = np.sort(order[:40])
+    batch = windows.batch(batch_steps)
+    alone = windows_one_by_one(windows, batch_steps)
+    assert np.array_equal(batch["frames"][batch["frame_index"]].numpy(), alone["ego"])
+    assert np.array_equal(batch["goals"][batch["goal_index"]].numpy(), alone["goal"])
+    assert np.array_equal(batch["grasping"].numpy(), alone["grasping"])
+    labelled = alone["actions"] >= 0
+    assert np.array_equal(batch["mask"].numpy(), labelled)
+    assert np.array_equal(batch["actions"].numpy()[labelled], alone["actions"][labelled])
+    # Each view is encoded once: spans share theirs (40 windows of 4 views from a few runs).
+    assert len(batch["frames"]) < 40 * 4 / 2
+    assert len(batch["goals"]) == 1
+
+
+def test_an_epoch_visits_every_step_once_in_runs_of_one_episode(demos: Path) -> None:
+    windows = DemoWindows(demos, 4, 8)
+    for span in (1, 5, 16):
+        order = windows.epoch_order(seed=span, span=span)
+        assert sorted(order.tolist()) == list(range(len(windows)))
+        # Cut where the next step is not the one after: each piece is steps of one episode, and
+        # there are no more pieces than runs of `span` an episode can be cut into (two runs may
+        # follow each other by chance and make one piece).
+        breaks = np.flatnonzero(np.diff(order) != 1) + 1
+        pieces = np.split(order, breaks)
+        assert all(windows.episode[piece[0]] == windows.episode[piece[-1]] for piece in pieces)
+        lengths = np.bincount(windows.episode)
+        assert len(pieces) <= int((lengths // span + 2).sum())
+    assert not np.array_equal(windows.epoch_order(0, 16), windows.epoch_order(1, 16))
+    assert np.array_equal(windows.epoch_order(7, 16), windows.epoch_order(7, 16))
+
+
+def test_no_label_is_made_up_past_an_episodes_end(demos: Path) -> None:
+    windows = DemoWindows(demos, 4, 8)
+    last = len(windows) - 1
+    batch = windows.batch(np.array([0, last - 2, last]))
+    ego = batch["frames"][batch["frame_index"]].numpy()
+    # The first step's history is its own view, repeated.
     assert all(np.array_equal(ego[0, i], ego[0, 3]) for i in range(3))
-    assert np.all(batch["actions"][1].numpy() == windows.actions[-1])
+    # The last steps learn their own actions and nothing after: the expert releases once.
+    assert batch["mask"][1].tolist() == [True] * 3 + [False] * 5
+    assert batch["mask"][2].tolist() == [True] + [False] * 7
+    assert (windows.targets[last, 1:] == NO_LABEL).all()
+    assert batch["actions"][2].tolist() == [int(windows.actions[last])] * 8
+
+
+def test_unlabelled_positions_count_in_no_loss(demos: Path) -> None:
+    config = tiny(demos)
+    torch.manual_seed(0)
+    model = DiffusionPolicy(config)
+    scheduler, _ = schedulers(config)
+    windows = DemoWindows(demos, config.n_obs, config.horizon)
+    batch = windows.batch(np.array([len(windows) - 3, len(windows) - 1]))
+    unlabelled = ~batch["mask"][:, None, :].expand(-1, 6, -1)
+    # The denoiser's prediction, set by hand: what the loss reads of it is what counts.
+    predicted = torch.randn(2, 6, config.horizon, generator=torch.Generator().manual_seed(2))
+
+    from torch import Tensor, nn
+
+    class Fixed(nn.Module):
+        def __init__(self, prediction: Tensor) -> None:
+            super().__init__()
+            self.prediction = prediction
+
+        def forward(self, *_: Tensor) -> Tensor:
+            return self.prediction
+
+    def loss_with(prediction: Tensor) -> list[float]:
+        model.unet = Fixed(prediction)  # type: ignore[assignment]
+        with torch.no_grad():
+            return [t.item() for t in bc_loss(model, scheduler, batch, torch.Generator().manual_seed(1))]
+
+    base = loss_with(predicted)
+    assert loss_with(torch.where(unlabelled, predicted + 5.0, predicted)) == pytest.approx(base, rel=1e-6)
+    assert loss_with(torch.where(unlabelled, predicted, predicted + 0.5))[0] != pytest.approx(
+        base[0], rel=1e-3
+    )
+
+
+def test_the_learning_rate_warms_up_then_follows_a_cosine(demos: Path) -> None:
+    config = tiny(demos, lr=1e-3, lr_warmup_steps=10)
+    assert config.lr_at(0, 100) == pytest.approx(1e-4)
+    assert config.lr_at(9, 100) == pytest.approx(1e-3)
+    assert config.lr_at(10, 100) == pytest.approx(1e-3)
+    assert config.lr_at(55, 100) == pytest.approx(5e-4)
+    assert config.lr_at(100, 100) == pytest.approx(0.0, abs=1e-12)
+    constant = tiny(demos, lr=1e-3, lr_schedule="constant")
+    assert {constant.lr_at(s, 100) for s in (0, 50, 99)} == {1e-3}
+    with pytest.raises(ValueError, match="lr_schedule"):
+        tiny(demos, lr_schedule="linear")
+
+
+def test_random_shift_crops_each_view_from_its_padded_self() -> None:
+    images = torch.randint(0, 256, (6, 16, 16, 3), dtype=torch.uint8)
+    assert random_shift(images, 0) is images
+    shifted = random_shift(images, 2, torch.Generator().manual_seed(0))
+    assert shifted.shape == images.shape
+    assert shifted.dtype == torch.uint8
+    padded = torch.nn.functional.pad(images.permute(0, 3, 1, 2).float(), (2, 2, 2, 2), mode="replicate")
+    for n in range(6):
+        crops = [padded[n, :, y : y + 16, x : x + 16].permute(1, 2, 0) for y in range(5) for x in range(5)]
+        assert any(torch.equal(shifted[n].float(), crop) for crop in crops)
+    assert not torch.equal(shifted, images)
+
+
+def test_checkpoints_play_the_weights_average(demos: Path, tmp_path: Path) -> None:
+    checkpoint = train(tiny(demos, epochs=2), tmp_path / "run", progress=False)
+    state = torch.load(checkpoint, weights_only=False)
+    assert set(state["model"]) == set(state["train_model"])
+    differing = [k for k in state["model"] if not torch.equal(state["model"][k], state["train_model"][k])]
+    assert differing, "the played weights are the average, not the last trained ones"
+    played = load_policy(checkpoint).state_dict()
+    assert all(torch.equal(played[k], state["model"][k]) for k in played)
+    # Without the average, the checkpoint plays what was trained.
+    plain = train(tiny(demos, ema=False), tmp_path / "plain", progress=False)
+    assert "train_model" not in torch.load(plain, weights_only=False)
 
 
 def agent_actions(checkpoint: Path, observation: esrp.Observation, steps: int) -> list[int]:
@@ -180,6 +314,34 @@ def test_training_resumes_from_its_checkpoint(demos: Path, tmp_path: Path) -> No
     rows = log_rows(run)
     assert [row["epoch"] for row in rows] == ["1", "2"]
     assert torch.load(run / "ckpt.pt", weights_only=False)["epoch"] == 2
+
+
+def test_a_resumed_run_equals_an_unbroken_one(
+    demos: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import esrp.train.bc as bc_module
+
+    config = tiny(demos, epochs=2, span=4, augment_shift=4, lr_warmup_steps=1)
+    unbroken = torch.load(train(config, tmp_path / "unbroken", progress=False), weights_only=False)
+
+    class Interrupted(Exception):
+        pass
+
+    saving = bc_module.save_checkpoint  # type: ignore[attr-defined]
+
+    def save_then_stop(path: Path, *args: object, **kwargs: object) -> None:
+        saving(path, *args, **kwargs)  # type: ignore[arg-type]
+        raise Interrupted
+
+    monkeypatch.setattr(bc_module, "save_checkpoint", save_then_stop)
+    with pytest.raises(Interrupted):
+        train(config, tmp_path / "broken", progress=False)
+    monkeypatch.undo()
+    resumed = torch.load(train(config, tmp_path / "broken", resume=True, progress=False), weights_only=False)
+    assert resumed["epoch"] == unbroken["epoch"] == 2
+    for part in ("model", "train_model"):
+        assert all(torch.equal(resumed[part][k], unbroken[part][k]) for k in unbroken[part]), part
+    assert resumed["ema"]["optimization_step"] == unbroken["ema"]["optimization_step"]
 
 
 def test_esrp_eval_plays_a_checkpoint(

@@ -346,7 +346,7 @@ def test_an_interrupted_dagger_run_resumes_where_it_stopped(
     first_labels = store["data/action"][:]
 
     # Interrupted again in iteration 1's training, after its first epoch's checkpoint.
-    def save_then_stop(path: Path, kind: str, model: Any, optimizer: Any, **progress: int) -> None:  # noqa: ANN401
+    def save_then_stop(path: Path, kind: str, model: Any, optimizer: Any, **progress: Any) -> None:  # noqa: ANN401
         save_checkpoint(path, kind, model, optimizer, **progress)
         if path.parent.name == "iter-01" and progress["epoch"] == 1:
             raise Interrupted

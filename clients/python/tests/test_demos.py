@@ -58,7 +58,7 @@ def test_the_store_holds_episodes_that_replay_to_success(
 
 
 def test_an_interrupted_export_resumes(
-    server: esrp.LocalServer, easy_scenes: list[str], tmp_path: Path
+    server: esrp.LocalServer, easy_scenes: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = tmp_path / "demos.zarr"
     scenes = ",".join(easy_scenes[:3])
@@ -67,7 +67,11 @@ def test_an_interrupted_export_resumes(
     store = zarr.open_group(str(out), mode="a")
     store["data/ego_rgb"].append(np.zeros((5, 128, 128, 3), np.uint8), axis=0)
     store["data/action"].append(np.zeros(5, np.uint8), axis=0)
+    capsys.readouterr()
     assert export(server, out, "--split", "test", "--scenes", scenes) == 0
+    # The one whole episode kept, the two others added (an expert export counted none before).
+    assert f"{out}: 3 episodes" in (said := capsys.readouterr().out)
+    assert "(2 added now)" in said
     fresh = tmp_path / "fresh.zarr"
     assert export(server, fresh, "--split", "test", "--scenes", scenes) == 0
     a, b = zarr.open_group(str(out), mode="r"), zarr.open_group(str(fresh), mode="r")
@@ -156,11 +160,41 @@ def test_dagger_with_beta_one_follows_the_plan(
     scene = easy_scenes[1]
     arguments = ["--split", "test", "--scenes", scene, "--dagger", "random", "--beta", "1"]
     assert export(server, out, *arguments) == 0
-    labels = zarr.open_group(str(out), mode="r")["data/action"][:]
+    store = zarr.open_group(str(out), mode="r")
+    labels, chunks = store["data/action"][:], store["data/label_chunk"][:]
     with client.create_episode(scene, privileged=True) as episode:
         plan = episode.plan_actions()
     assert plan.reaches_success
-    assert [int(a) for a in labels] == [int(a) for a in plan.actions]
+    planned = [int(a) for a in plan.actions]
+    assert [int(a) for a in labels] == planned
+    # Each state's chunk is the rest of that plan: its next 8 actions, NO_ACTION past its end.
+    assert chunks.shape == (len(planned), 8)
+    for t, chunk in enumerate(chunks):
+        rest = planned[t : t + 8]
+        assert chunk.tolist() == rest + [255] * (8 - len(rest))
+
+
+def test_dagger_labels_each_state_with_the_plan_from_that_state(
+    server: esrp.LocalServer, client: esrp.Client, easy_scenes: list[str], tmp_path: Path
+) -> None:
+    out = tmp_path / "chunks.zarr"
+    scene = easy_scenes[1]
+    arguments = ["--split", "test", "--scenes", scene, "--dagger", "random", "--max-steps", "12"]
+    assert export(server, out, *arguments, "--label-horizon", "5") == 0
+    store = zarr.open_group(str(out), mode="r")
+    stepped, chunks = store["data/policy_action"][:], store["data/label_chunk"][:]
+    assert chunks.shape == (12, 5)
+    assert np.array_equal(chunks[:, 0], store["data/action"][:])
+    # Replayed to each state (beta 0: the random agent's actions were stepped), the planner's
+    # first five actions from there are that state's chunk.
+    for t in (0, 4, 11):
+        with client.create_episode(scene, privileged=True) as episode:
+            for action in stepped[:t]:
+                episode.step(int(action))
+            plan = [int(a) for a in episode.plan_actions(max_actions=5).actions]
+        assert chunks[t].tolist() == plan + [255] * (5 - len(plan)), t
+    # A store of other chunks does not take more episodes.
+    assert export(server, out, *arguments, "--label-horizon", "8") == 2
 
 
 def test_dagger_and_expert_stores_are_kept_apart_and_train_together(
@@ -185,11 +219,18 @@ def test_dagger_and_expert_stores_are_kept_apart_and_train_together(
     batch = windows.batch(np.array([0, first, first + 1]))
     # Step `first` is the DAgger store's first: its window repeats its own first view, its goal and
     # labels are that store's.
-    assert np.array_equal(batch["ego"][1, 0].numpy(), stores[1]["data/ego_rgb"][0])
-    assert np.array_equal(batch["ego"][2, 1].numpy(), stores[1]["data/ego_rgb"][1])
-    assert np.array_equal(batch["ego"][0, 1].numpy(), stores[0]["data/ego_rgb"][0])
-    assert np.array_equal(batch["goal"][1].numpy(), stores[1]["meta/goal_rgb"][0])
-    assert batch["actions"][1].tolist() == [int(a) for a in stores[1]["data/action"][:3]]
+    ego = batch["frames"][batch["frame_index"]].numpy()
+    assert np.array_equal(ego[1, 0], stores[1]["data/ego_rgb"][0])
+    assert np.array_equal(ego[2, 1], stores[1]["data/ego_rgb"][1])
+    assert np.array_equal(ego[0, 1], stores[0]["data/ego_rgb"][0])
+    assert np.array_equal(batch["goals"][batch["goal_index"]][1].numpy(), stores[1]["meta/goal_rgb"][0])
+    # A DAgger state learns the plan from it, not the labels of the states the agent went on to.
+    chunk = [int(a) for a in stores[1]["data/label_chunk"][0][:3]]
+    labelled = batch["mask"][1].tolist()
+    assert [a for a, known in zip(batch["actions"][1].tolist(), labelled, strict=True) if known] == [
+        a for a in chunk if a != 255
+    ]
+    assert labelled == [a != 255 for a in chunk]
 
 
 # --- Recorded episodes: `esrp demos export --records`.
@@ -311,6 +352,7 @@ def test_records_export_holds_each_records_steps_and_trains(
     windows = DemoWindows([str(out)], n_obs=2, horizon=3)
     assert len(windows) == ends[-1]
     assert windows.batch(np.array([0, int(ends[0])]))["actions"][1].tolist() == played[1].actions[:3]
+    assert windows.batch(np.array([0, int(ends[0])]))["mask"][1].all()
 
 
 def test_records_export_filters_by_agent_and_success(

@@ -40,16 +40,46 @@ from .._values import Action, Observation, Sensors
 from ._checkpoint import policy_checkpoint
 from .encoders import ENCODERS, check_device, float_images, make_encoder
 
-__all__ = ["BatchedBcAgent", "BcAgent", "BcConfig", "BcPolicy", "DiffusionPolicy", "load_policy"]
+__all__ = [
+    "LEGACY_SETTINGS",
+    "BatchedBcAgent",
+    "BcAgent",
+    "BcConfig",
+    "BcPolicy",
+    "DiffusionPolicy",
+    "checkpoint_settings",
+    "load_policy",
+    "random_shift",
+]
 
 ACTIONS = len(Action)
+
+LR_SCHEDULES = ("cosine", "constant")
+"""The learning-rate schedules of `BcConfig.lr_schedule`."""
+
+LEGACY_SETTINGS: dict[str, Any] = {
+    "lr_schedule": "constant",
+    "lr_warmup_steps": 0,
+    "span": 1,
+    "ema": False,
+    "augment_shift": 0,
+}
+"""What a checkpoint written before these settings existed was trained with (its config lacks them)."""
 
 
 @dataclass
 class BcConfig:
     """The model's and the training's settings (the `[bc]` table of a training config).
 
-    Defaults are the paper's (SPEC §8) except the encoder (from scratch: no pretrained weights).
+    Defaults are the paper's (SPEC §8) except the encoder (from scratch: no pretrained weights),
+    with Diffusion Policy's training recipe where the paper is silent: the learning rate warms up
+    linearly over `lr_warmup_steps` optimizer steps and then follows a cosine to 0 at the last
+    epoch's last step (`lr_schedule = "constant"`: `lr` throughout), and the weights' exponential
+    moving average (`ema`: decay 1 - (1 + step) ** -`ema_power`, at most `ema_max_decay`) is what
+    the checkpoints play and the evaluations measure. `span` windows of consecutive steps of one
+    episode are sampled together, so that a batch encodes each view once for the windows sharing
+    it (1: each window drawn alone). `augment_shift` pads both images by that many pixels (edges
+    repeated) and crops them back at a random offset, each view its own (0: no augmentation).
     `resolution` is the side of the views the model takes: the demonstrations' (`esrp demos export
     --resolution`), and the one its agent asks the server for.
     `in_memory` reads the stores' views into memory once instead of from their chunks every batch
@@ -79,9 +109,16 @@ class BcConfig:
     lambda_ce: float = 0.2
     epsilon: float = 0.1
     lr: float = 1e-4
+    lr_schedule: str = "cosine"
+    lr_warmup_steps: int = 500
     weight_decay: float = 1e-6
     batch_size: int = 1024
     epochs: int = 500
+    span: int = 16
+    ema: bool = True
+    ema_power: float = 0.75
+    ema_max_decay: float = 0.9999
+    augment_shift: int = 0
     seed: int = 0
     threads: int = 0
     checkpoint_every: int = 10
@@ -116,8 +153,38 @@ class BcConfig:
             raise ValueError("n_execute must be between 1 and horizon")
         if config.horizon % 2 ** (len(config.unet_channels) - 1):
             raise ValueError("horizon must be divisible by 2 ** (len(unet_channels) - 1)")
+        config._check_recipe()
         config._check_evaluation()
         return config
+
+    def _check_recipe(self) -> None:
+        """Raises `ValueError` for schedule, EMA, sampling and augmentation settings out of range."""
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"lr_schedule {self.lr_schedule!r}: one of {', '.join(LR_SCHEDULES)}")
+        for name in ("lr_warmup_steps", "span", "augment_shift"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool):
+                raise ValueError(f"{name} must be an integer, not {value!r}")
+        if self.lr_warmup_steps < 0 or self.augment_shift < 0:
+            raise ValueError("lr_warmup_steps and augment_shift must be 0 or more")
+        if self.span < 1:
+            raise ValueError(f"span must be at least 1, not {self.span}")
+        if self.augment_shift >= self.resolution // 2:
+            raise ValueError(f"augment_shift {self.augment_shift}: less than half the resolution")
+        if not isinstance(self.ema, bool):
+            raise ValueError(f"ema must be true or false, not {self.ema!r}")
+        if not 0.0 < self.ema_power <= 1.0 or not 0.0 <= self.ema_max_decay < 1.0:
+            raise ValueError("ema_power must be in (0, 1] and ema_max_decay in [0, 1)")
+
+    def lr_at(self, step: int, total_steps: int) -> float:
+        """The learning rate of optimizer step `step` (0-based) of a run of `total_steps` steps."""
+        if self.lr_schedule == "constant":
+            return self.lr
+        if step < self.lr_warmup_steps:
+            return self.lr * (step + 1) / self.lr_warmup_steps
+        decaying = max(total_steps - self.lr_warmup_steps, 1)
+        progress = min((step - self.lr_warmup_steps) / decaying, 1.0)
+        return self.lr * 0.5 * (1.0 + math.cos(math.pi * progress))
 
     def _check_evaluation(self) -> None:
         """Raises `ValueError` for `in_memory` and `eval_*` settings of the wrong type or range."""
@@ -262,8 +329,25 @@ class DiffusionPolicy(nn.Module):
     def condition(self, ego: torch.Tensor, goal: torch.Tensor, grasping: torch.Tensor) -> torch.Tensor:
         """c_t from uint8 images: ego (B, n, R, R, 3), goal (B, R, R, 3), grasping (B, n) bool."""
         batch, n = ego.shape[:2]
-        ego_features = self.ego(float_images(ego.reshape(batch * n, *ego.shape[2:]))).reshape(batch, -1)
-        goal_features = self.goal(float_images(goal))
+        frames = torch.arange(batch * n, device=ego.device).reshape(batch, n)
+        goals = torch.arange(batch, device=ego.device)
+        return self.condition_indexed(ego.reshape(batch * n, *ego.shape[2:]), frames, goal, goals, grasping)
+
+    def condition_indexed(
+        self,
+        frames: torch.Tensor,
+        frame_index: torch.Tensor,
+        goals: torch.Tensor,
+        goal_index: torch.Tensor,
+        grasping: torch.Tensor,
+    ) -> torch.Tensor:
+        """c_t of windows that share views: each of `frames` (U, R, R, 3) and `goals` (G, R, R, 3),
+        uint8, is encoded once; window b's ego history is `frames[frame_index[b]]` (B, n) and its goal
+        `goals[goal_index[b]]` (B,); grasping (B, n) bool.
+        """
+        batch = frame_index.shape[0]
+        ego_features = self.ego(float_images(frames))[frame_index].reshape(batch, -1)
+        goal_features = self.goal(float_images(goals))[goal_index]
         grasp = self.grasp(grasping.long()).reshape(batch, -1)
         out: torch.Tensor = self.cond(torch.cat([ego_features, goal_features, grasp], dim=-1))
         return out
@@ -288,36 +372,70 @@ def bc_loss(
     batch: Mapping[str, torch.Tensor],
     generator: torch.Generator | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(total, noise MSE, cross-entropy) of a batch: `ego` (B, n, R, R, 3) uint8, `goal` (B, R, R, 3)
-    uint8, `grasping` (B, n) bool, `actions` (B, h) int64.
+    """(total, noise MSE, cross-entropy) of a batch of windows (`esrp.train.bc.DemoWindows.batch`):
+    `frames` (U, R, R, 3) and `goals` (G, R, R, 3) uint8 with `frame_index` (B, n) and `goal_index`
+    (B,) into them, `grasping` (B, n) bool, `actions` (B, h) int64 and `mask` (B, h) bool, true
+    where `actions` holds a label. Positions without a label (past the episode's end, or past what
+    the planner's plan covered) count in neither term: their `actions` only make the noised chunk
+    whole.
     """
     actions = batch["actions"]
+    mask = batch["mask"].to(torch.float32)
     x0 = F.one_hot(actions, ACTIONS).float().transpose(1, 2) * 2 - 1  # (B, 6, h) in [-1, 1]
     # Drawn on the CPU (where a seeded generator lives), then moved: the same draws on any device.
     noise = torch.randn(x0.shape, generator=generator).to(x0.device)
     steps = torch.randint(0, scheduler.config.num_train_timesteps, (x0.shape[0],), generator=generator)
     steps = steps.to(x0.device)
     noisy = scheduler.add_noise(x0, noise, steps)
-    cond = model.condition(batch["ego"], batch["goal"], batch["grasping"])
+    cond = model.condition_indexed(
+        batch["frames"], batch["frame_index"], batch["goals"], batch["goal_index"], batch["grasping"]
+    )
     predicted = model.unet(noisy, steps, cond)
-    mse = F.mse_loss(predicted, noise)
+    labelled = mask.sum().clamp(min=1.0)
+    mse = ((predicted - noise) ** 2 * mask[:, None, :]).sum() / (labelled * ACTIONS)
     alpha = scheduler.alphas_cumprod.to(x0.device)[steps].float()[:, None, None]
     # The denoised chunk, clipped to the one-hot range as sampling clips it, read as logits: at
     # high noise levels the unclipped estimate divides by a tiny sqrt(alpha) and would swamp the MSE.
     denoised = ((noisy - (1 - alpha).sqrt() * predicted) / alpha.sqrt()).clamp(-1, 1)
-    ce = F.cross_entropy(denoised, actions)  # logits (B, 6, h) against (B, h)
+    ce = (F.cross_entropy(denoised, actions, reduction="none") * mask).sum() / labelled
     return mse + model.config.lambda_ce * ce, mse, ce
+
+
+def random_shift(images: torch.Tensor, pad: int, generator: torch.Generator | None = None) -> torch.Tensor:
+    """`images` (N, R, R, 3) uint8, each padded by `pad` pixels (edges repeated) and cropped back to
+    R × R at an offset of its own drawn from `generator` (DrQ's random shift); `pad` 0: `images`.
+    """
+    if pad == 0:
+        return images
+    count, side = images.shape[0], images.shape[1]
+    padded = F.pad(images.permute(0, 3, 1, 2).float(), (pad, pad, pad, pad), mode="replicate")
+    offsets = torch.randint(0, 2 * pad + 1, (count, 2), generator=generator).to(images.device)
+    span = torch.arange(side, device=images.device)
+    rows = (offsets[:, 0:1] + span)[:, :, None]  # (N, R, 1)
+    cols = (offsets[:, 1:2] + span)[:, None, :]  # (N, 1, R)
+    which = torch.arange(count, device=images.device)[:, None, None]
+    shifted = padded.permute(0, 2, 3, 1)[which, rows, cols]  # (N, R, R, 3)
+    return shifted.to(torch.uint8)
 
 
 # --- Checkpoints and the agent ---
 
 
+def checkpoint_settings(config: Mapping[str, Any]) -> dict[str, Any]:
+    """A checkpoint's `config` with the settings it predates filled in as it was trained
+    (`LEGACY_SETTINGS`).
+    """
+    return {**LEGACY_SETTINGS, **config}
+
+
 def load_policy(path: str | Path) -> DiffusionPolicy:
-    """The policy of a checkpoint `esrp train bc` wrote, in eval mode."""
+    """The policy of a checkpoint `esrp train bc` wrote, in eval mode: its `model` weights (the
+    moving average of the weights, for a run with `ema`).
+    """
     state = torch.load(Path(path), map_location="cpu", weights_only=False)
     if state.get("kind") != "esrp-bc":
         raise ValueError(f"{path} is not an ESRP-BC checkpoint")
-    model = DiffusionPolicy(BcConfig.from_mapping(state["config"]))
+    model = DiffusionPolicy(BcConfig.from_mapping(checkpoint_settings(state["config"])))
     model.load_state_dict(state["model"])
     model.eval()
     return model

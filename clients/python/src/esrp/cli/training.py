@@ -98,6 +98,13 @@ def _add_demos_export(demo_commands: argparse._SubParsersAction[Parser]) -> None
         metavar="N",
         help="--dagger: record at most N states per episode, then close it (default: until it ends)",
     )
+    export.add_argument(
+        "--label-horizon",
+        type=positive,
+        metavar="H",
+        help="--dagger: record the plan's first H actions at each state, the chunk a policy learns "
+        "there (default 8, ESRP-BC's horizon)",
+    )
     export.add_argument("--no-progress", dest="progress", action="store_false")
     server_options(export)
 
@@ -185,6 +192,7 @@ def _demos(args: argparse.Namespace) -> int:
         seed=args.seed or 0,
         plan_budget_ms=args.plan_budget_ms or 10_000,
         max_steps=args.max_steps or 0,
+        label_horizon=args.label_horizon or 8,
         records=args.records,
         agent=args.agent,
         successful_only=args.successful_only,
@@ -237,6 +245,7 @@ def _export_flag_conflict(args: argparse.Namespace) -> str | None:
             ("--agent-config", bool(args.agent_config)),
             ("--beta", args.beta != 0.0),
             ("--max-steps", args.max_steps is not None),
+            ("--label-horizon", args.label_horizon is not None),
         )
         if given
     ]

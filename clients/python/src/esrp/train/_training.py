@@ -28,12 +28,20 @@ def run_folder(out: Path, resume: bool) -> Path:
 
 
 def save_checkpoint(
-    path: Path, kind: str, model: nn.Module, optimizer: torch.optim.Optimizer, **progress: int
+    path: Path,
+    kind: str,
+    model: nn.Module,
+    optimizer: torch.optim.Optimizer,
+    *,
+    extra: Mapping[str, Any] | None = None,
+    **progress: int,
 ) -> None:
     """Writes `model` (with its `config`), `optimizer`, `progress` (epoch, update, steps...) and
     torch's random state to `path` as checkpoint kind `kind`, atomically: the checkpoint is written
     to a file beside it, flushed to disk, and renamed over `path`, so a crash never leaves half a
-    checkpoint (the earlier one stays whole until the new one is).
+    checkpoint (the earlier one stays whole until the new one is). `extra` entries are added last:
+    a run whose played weights are not its trained ones (a moving average) gives those as `model`
+    and the trained ones as `train_model`.
     """
     config: Any = model.config
     state = {
@@ -43,6 +51,7 @@ def save_checkpoint(
         "optimizer": optimizer.state_dict(),
         **progress,
         "torch_rng": torch.get_rng_state(),
+        **(extra or {}),
     }
     partial = path.with_suffix(".partial")
     with open(partial, "wb") as file:
@@ -60,14 +69,17 @@ def load_resumable(
     device: torch.device,
     *,
     restore_rng: bool = True,
+    legacy: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The checkpoint at `path` to resume a run with `settings` (a config's `to_dict()`); raises
-    `ValueError` for another kind of checkpoint or other settings than `free` ones. Restores
+    `ValueError` for another kind of checkpoint or other settings than `free` ones. Settings the
+    checkpoint's config lacks (it predates them) are taken as `legacy` gives them. Restores
     torch's random state (unless not `restore_rng`: a run that starts from another's weights).
     """
     state: dict[str, Any] = torch.load(path, map_location=device, weights_only=False)
     if not isinstance(state, dict) or state.get("kind") != kind:
         raise ValueError(f"{path} is not an {kind} checkpoint")
+    state["config"] = {**(legacy or {}), **state["config"]}
     trained = {k: v for k, v in state["config"].items() if k not in free}
     if trained != {k: v for k, v in settings.items() if k not in free}:
         raise ValueError(f"{path} was trained with other settings: {state['config']}")
@@ -85,13 +97,16 @@ def resume_from(
     device: torch.device,
     *,
     restore_rng: bool = True,
+    legacy: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Loads the model and optimizer of the checkpoint at `path` (`load_resumable`, against the
-    settings of `model.config`: kind `kind`, the same settings but `free` ones) into `model` and
-    `optimizer`; returns the checkpoint, for its progress (epoch, update, steps...).
+    settings of `model.config`: kind `kind`, the same settings but `free` ones, `legacy` those it
+    predates) into `model` and `optimizer`; returns the checkpoint, for its progress (epoch,
+    update, steps...). The model gets the trained weights: `train_model` where the checkpoint has
+    them apart from the played ones (`save_checkpoint`'s `extra`), else `model`.
     """
     config: Any = model.config
-    state = load_resumable(path, kind, config.to_dict(), free, device, restore_rng=restore_rng)
-    model.load_state_dict(state["model"])
+    state = load_resumable(path, kind, config.to_dict(), free, device, restore_rng=restore_rng, legacy=legacy)
+    model.load_state_dict(state.get("train_model", state["model"]))
     optimizer.load_state_dict(state["optimizer"])
     return state

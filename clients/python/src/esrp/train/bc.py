@@ -1,10 +1,19 @@
 """`esrp train bc`: trains ESRP-BC (`esrp.agents.bc`) on an `esrp.demos/v1` store.
 
 Samples are windows of the store: for step t of an episode, the ego views and grasp flags of steps
-t-n+1..t (the episode's first repeated before its start) and the goal image, and the expert's
-actions t..t+h-1 (its last repeated past its end), as Diffusion Policy pads. Each epoch visits every
-step once in a seeded random order; a batch reads only the chunks its windows touch, or, with
-`in_memory`, the views read into memory once at the start (the same batches).
+t-n+1..t (the episode's first repeated before its start) and the goal image, and the h actions the
+window learns (`DemoWindows` says which: a trajectory's own next actions, or the planner's plan from
+that state), with a mask where there is none (past the episode's end, or past what the plan
+covered): those positions count in no loss. Each epoch visits every step once: the episodes are cut
+into runs of `span` consecutive steps (at a random phase), the runs are shuffled, and a batch takes
+the next `batch_size` steps of them, so that the windows of a run share their views and goal, and
+each is encoded once. A batch reads only the chunks its windows touch, or, with `in_memory`, the
+views read into memory once at the start (the same batches).
+
+The learning rate follows `BcConfig.lr_at` step by step, and with `ema` the checkpoint's `model` is
+the weights' moving average (diffusers' `EMAModel`), the policy `esrp eval --agent bc` plays and the
+held-out evaluations measure; the trained weights and the average's state are kept beside it, for
+`--resume`.
 
 A run folder holds `config.json` (the settings), `log.csv` (one line per epoch: epoch, optimizer
 steps, mean loss, noise MSE and cross-entropy, learning rate, seconds) and `ckpt.pt` (model,
@@ -19,6 +28,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import sys
 import time
 from collections.abc import Sequence
@@ -29,13 +39,13 @@ import numpy as np
 import torch
 
 from .. import _malloc_setup
-from ..agents.bc import BcConfig, DiffusionPolicy, bc_loss, schedulers
+from ..agents.bc import LEGACY_SETTINGS, BcConfig, DiffusionPolicy, bc_loss, random_shift, schedulers
 from ..agents.encoders import resolve_device
 from ._config import read_table
 from ._training import resume_from, run_folder, save_checkpoint
 from .heldout import EVAL_FIELDS, TrainServer, evaluate_checkpoint, heldout_scenes, read_eval_log
 
-__all__ = ["FINE_TUNE_FREE", "LOG_FIELDS", "RESUME_FREE", "DemoWindows", "load_config", "train"]
+__all__ = ["FINE_TUNE_FREE", "LOG_FIELDS", "NO_LABEL", "RESUME_FREE", "DemoWindows", "load_config", "train"]
 
 LOG_FIELDS = ("epoch", "steps", "loss", "mse", "ce", "lr", "seconds")
 """The columns of a run's `log.csv`: one line per epoch."""
@@ -54,6 +64,9 @@ from it: the model and the optimizer must be the same."""
 _LOAD_BLOCK = 4096
 """Steps read at a time when a store's views are read into memory."""
 
+NO_LABEL = 255
+"""A target position without a label (`esrp.train.demos.NO_ACTION` in a store's `data/label_chunk`)."""
+
 
 def load_config(path: Path) -> BcConfig:
     """The `[bc]` table of a TOML file (or the top level of a JSON file) as a `BcConfig`."""
@@ -68,6 +81,13 @@ class DemoWindows:
     """The training windows of one or more `esrp.demos/v1` stores (expert demonstrations and DAgger
     exports aggregated), read a batch at a time: from the stores' chunks, or with `in_memory` from
     copies of their views read into memory here (printing a line per store with `progress`).
+
+    What a window at step t learns (`targets`, `NO_LABEL` where nothing), by the store's labels:
+    - a trajectory's (the expert's, or recorded episodes'): its actions t..t+h-1, those within the
+      episode;
+    - a DAgger store's with `data/label_chunk`: the first h actions of the planner's plan from that
+      state, those the plan has;
+    - a DAgger store's without it (written before it existed): the planner's next action alone.
     """
 
     def __init__(
@@ -86,6 +106,7 @@ class DemoWindows:
             raise ValueError("no demonstration store given")
         self.stores: list[Any] = []
         ends_list: list[np.ndarray] = []
+        local_ends: list[np.ndarray] = []
         actions, grasping = [], []
         resolution = None
         offset = 0
@@ -103,6 +124,7 @@ class DemoWindows:
                 raise ValueError(f"{path} holds no episode")
             self.stores.append(store)
             ends_list.append(ends + offset)
+            local_ends.append(ends)
             # Actions and flags are small: read once (only the whole episodes).
             actions.append(np.asarray(store["data/action"][: ends[-1]], dtype=np.int64))
             grasping.append(np.asarray(store["data/grasping"][: ends[-1]], dtype=bool))
@@ -114,6 +136,13 @@ class DemoWindows:
         self.start, self.end = starts[self.episode], ends[self.episode]
         self.actions = np.concatenate(actions)
         self.grasping = np.concatenate(grasping)
+        self.targets = np.concatenate(
+            [
+                _store_targets(store, store_actions, store_ends, horizon)
+                for store, store_actions, store_ends in zip(self.stores, actions, local_ends, strict=True)
+            ]
+        )
+        """The labels each step's window learns, (steps, h) uint8, `NO_LABEL` where none."""
         # Where each store's steps and episodes begin in the joined numbering.
         self.step_offsets = np.cumsum([0, *(len(a) for a in actions)])
         self.episode_offsets = np.cumsum([0, *(len(e) for e in ends_list)])
@@ -173,21 +202,69 @@ class DemoWindows:
                 parts.append(np.asarray(store[name].get_orthogonal_selection((mine,))))
         return np.concatenate(parts)
 
+    def epoch_order(self, seed: int, span: int) -> np.ndarray:
+        """Every step once, in runs of up to `span` consecutive steps of one episode (cut at a phase
+        drawn per episode), the runs in a random order; all drawn from `seed`.
+        """
+        rng = np.random.default_rng(seed)
+        steps = np.arange(len(self.episode))
+        phase = rng.integers(0, span, size=int(self.episode[-1]) + 1)
+        run = (steps - self.start + phase[self.episode]) // span
+        # One key per run: runs of one episode are numbered apart from any other episode's.
+        longest = int((self.end - self.start).max()) // span + 2
+        _, run_of = np.unique(self.episode * longest + run, return_inverse=True)
+        rank = rng.permutation(int(run_of.max()) + 1)
+        return steps[np.lexsort((steps, rank[run_of]))]
+
     def batch(self, steps: np.ndarray) -> dict[str, torch.Tensor]:
-        """The windows of `steps` (indices into the stores' joined steps) as tensors."""
+        """The windows of `steps` (indices into the stores' joined steps) as tensors: each view and
+        goal they use once (`frames`, `goals`) with each window's indices into them (`frame_index`
+        (B, n), `goal_index` (B,)), the grasp flags (B, n), and the targets: `actions` (B, h) with
+        `mask` true where a label is (a position without one repeats the label before it, so that
+        the chunk is whole; it counts in no loss).
+        """
         offsets = np.arange(-self.n_obs + 1, 1)
         frames = np.maximum(steps[:, None] + offsets[None], self.start[steps][:, None])
-        future = np.minimum(steps[:, None] + np.arange(self.horizon)[None], self.end[steps][:, None] - 1)
         unique, inverse = np.unique(frames, return_inverse=True)
-        ego = self._read("data/ego_rgb", unique, self.step_offsets)[inverse.reshape(frames.shape)]
-        episodes, inverse_goal = np.unique(self.episode[steps], return_inverse=True)
-        goal = self._read("meta/goal_rgb", episodes, self.episode_offsets)[inverse_goal]
+        ego = self._read("data/ego_rgb", unique, self.step_offsets)
+        episodes, goal_index = np.unique(self.episode[steps], return_inverse=True)
+        goal = self._read("meta/goal_rgb", episodes, self.episode_offsets)
+        targets = self.targets[steps]
+        mask = targets != NO_LABEL
+        actions = targets.astype(np.int64)
+        for k in range(1, actions.shape[1]):
+            actions[:, k] = np.where(mask[:, k], actions[:, k], actions[:, k - 1])
         return {
-            "ego": torch.from_numpy(ego),
-            "goal": torch.from_numpy(goal),
+            "frames": torch.from_numpy(ego),
+            "frame_index": torch.from_numpy(inverse.reshape(frames.shape).astype(np.int64)),
+            "goals": torch.from_numpy(goal),
+            "goal_index": torch.from_numpy(goal_index.reshape(-1).astype(np.int64)),
             "grasping": torch.from_numpy(self.grasping[frames]),
-            "actions": torch.from_numpy(self.actions[future]),
+            "actions": torch.from_numpy(actions),
+            "mask": torch.from_numpy(mask),
         }
+
+
+def _store_targets(store: Any, actions: np.ndarray, ends: np.ndarray, horizon: int) -> np.ndarray:  # noqa: ANN401
+    """The targets of one store's steps (`DemoWindows.targets`): `actions` its labels, `ends` its
+    episodes' ends.
+    """
+    steps = len(actions)
+    targets = np.full((steps, horizon), NO_LABEL, dtype=np.uint8)
+    if "data/label_chunk" in store:
+        chunk = np.asarray(store["data/label_chunk"][:steps], dtype=np.uint8)
+        width = min(horizon, chunk.shape[1])
+        targets[:, :width] = chunk[:, :width]
+        return targets
+    if store.attrs.get("labels") == "planner":
+        targets[:, 0] = actions
+        return targets
+    starts = np.concatenate([[0], ends[:-1]])
+    end = np.repeat(ends, ends - starts)
+    ahead = np.arange(steps)[:, None] + np.arange(horizon)[None]
+    within = ahead < end[:, None]
+    targets[within] = actions[ahead[within]]
+    return targets
 
 
 def _trim_log(path: Path, fields: Sequence[str], epoch: int) -> None:
@@ -245,9 +322,21 @@ def train(
     windows = _demo_windows(config, progress)
     model = DiffusionPolicy(config).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
-    epoch, steps = _resume_or_init(
+    epoch, steps, average = _resume_or_init(
         config, checkpoint, model, optimizer, device, resume=resume, init=init, progress=progress
     )
+    total_steps = config.epochs * math.ceil(len(windows) / config.batch_size)
+
+    def save() -> None:
+        extra = None
+        if average is not None:
+            extra = {
+                "model": average.weights(model),
+                "train_model": model.state_dict(),
+                "ema": average.state(),
+            }
+        save_checkpoint(checkpoint, "esrp-bc", model, optimizer, extra=extra, epoch=epoch, steps=steps)
+
     (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")
     noise_scheduler, _ = schedulers(config)
     log_path = out / "log.csv"
@@ -264,32 +353,37 @@ def train(
         started = time.monotonic()
         model.train()
         while epoch < config.epochs:
-            order = np.random.default_rng(config.seed + epoch).permutation(len(windows))
+            order = windows.epoch_order(config.seed + epoch, config.span)
             sums = np.zeros(3)
             batches = 0
             for first in range(0, len(order), config.batch_size):
-                batch = {
-                    key: value.to(device)
-                    for key, value in windows.batch(np.sort(order[first : first + config.batch_size])).items()
-                }
+                read = windows.batch(np.sort(order[first : first + config.batch_size]))
+                read["frames"] = random_shift(read["frames"], config.augment_shift)
+                read["goals"] = random_shift(read["goals"], config.augment_shift)
+                batch = {key: value.to(device) for key, value in read.items()}
                 loss, mse, ce = bc_loss(model, noise_scheduler, batch)
                 if not torch.isfinite(loss):
                     raise FloatingPointError(f"epoch {epoch + 1}: the loss is {loss.item()}")
+                for group in optimizer.param_groups:
+                    group["lr"] = config.lr_at(steps, total_steps)
                 optimizer.zero_grad()
                 loss.backward()  # type: ignore[no-untyped-call]
                 optimizer.step()
+                if average is not None:
+                    average.update(model)
                 sums += (loss.item(), mse.item(), ce.item())
                 batches += 1
                 steps += 1
             epoch += 1
-            _log_epoch(log_path, config, epoch, steps, sums / max(batches, 1), started, progress)
+            lr = optimizer.param_groups[0]["lr"]
+            _log_epoch(log_path, config, epoch, steps, sums / max(batches, 1), lr, started, progress)
             due = held_out.due(epoch)
             if epoch % config.checkpoint_every == 0 or epoch == config.epochs or due:
-                save_checkpoint(checkpoint, "esrp-bc", model, optimizer, epoch=epoch, steps=steps)
+                save()
             if due:
                 held_out.run(used, epoch, steps)
         if not checkpoint.exists():
-            save_checkpoint(checkpoint, "esrp-bc", model, optimizer, epoch=epoch, steps=steps)
+            save()
     finally:
         if own_server:
             used.close()
@@ -311,6 +405,42 @@ def _demo_windows(config: BcConfig, progress: bool) -> DemoWindows:
     return windows
 
 
+class _Average:
+    """The moving average of a model's weights (diffusers' `EMAModel` with Diffusion Policy's decay:
+    1 - (1 + step) ** -power, at most `ema_max_decay`), updated after each optimizer step.
+    """
+
+    def __init__(self, model: DiffusionPolicy, config: BcConfig) -> None:
+        from diffusers.training_utils import EMAModel
+
+        self.ema = EMAModel(
+            model.parameters(),
+            decay=config.ema_max_decay,
+            use_ema_warmup=True,
+            inv_gamma=1.0,
+            power=config.ema_power,
+        )
+
+    def update(self, model: DiffusionPolicy) -> None:
+        """Folds the model's weights after an optimizer step into the average."""
+        self.ema.step(model.parameters())
+
+    def weights(self, model: DiffusionPolicy) -> dict[str, torch.Tensor]:
+        """`model.state_dict()` with the averaged parameters in place of the trained ones."""
+        state = model.state_dict()
+        for (name, _), shadow in zip(model.named_parameters(), self.ema.shadow_params, strict=True):
+            state[name] = shadow.detach().clone()
+        return state
+
+    def state(self) -> dict[str, Any]:
+        """What `load` takes back: the average and its step count."""
+        return cast(dict[str, Any], self.ema.state_dict())
+
+    def load(self, state: dict[str, Any]) -> None:
+        """Restores `state()` of a checkpoint."""
+        self.ema.load_state_dict(state)
+
+
 def _resume_or_init(
     config: BcConfig,
     checkpoint: Path,
@@ -321,23 +451,38 @@ def _resume_or_init(
     resume: bool,
     init: Path | None,
     progress: bool,
-) -> tuple[int, int]:
-    """The epoch and optimizer step the run goes on after. With `resume` and a `checkpoint`, those
-    of the checkpoint, whose model and optimizer (and torch's random state) are loaded: more epochs
-    (or another checkpoint interval, thread count, device or evaluation) may be asked of a resumed
-    run. Else 0 and 0, from the model and optimizer of `init` when given (a model with the same
-    settings, `FINE_TUNE_FREE` aside), or from fresh weights.
+) -> tuple[int, int, _Average | None]:
+    """The epoch and optimizer step the run goes on after, and the weights' average (None without
+    `ema`). With `resume` and a `checkpoint`, those of the checkpoint, whose trained model,
+    optimizer, average (and torch's random state) are loaded: more epochs (or another checkpoint
+    interval, thread count, device or evaluation) may be asked of a resumed run. Else 0 and 0,
+    from the trained model and optimizer of `init` when given (a model with the same settings,
+    `FINE_TUNE_FREE` aside; its average starts anew from them), or from fresh weights.
     """
     if resume and checkpoint.exists():
-        state = resume_from(checkpoint, "esrp-bc", model, optimizer, RESUME_FREE, device)
+        state = resume_from(
+            checkpoint, "esrp-bc", model, optimizer, RESUME_FREE, device, legacy=LEGACY_SETTINGS
+        )
         epoch, steps = int(state["epoch"]), int(state["steps"])
+        average = _Average(model, config) if config.ema else None
+        if average is not None and "ema" in state:
+            average.load(state["ema"])
         print(f"resuming {checkpoint} after epoch {epoch}", file=sys.stderr)
-        return epoch, steps
+        return epoch, steps, average
     if init is not None:
-        resume_from(init, "esrp-bc", model, optimizer, FINE_TUNE_FREE, device, restore_rng=False)
+        resume_from(
+            init,
+            "esrp-bc",
+            model,
+            optimizer,
+            FINE_TUNE_FREE,
+            device,
+            restore_rng=False,
+            legacy=LEGACY_SETTINGS,
+        )
         if progress:
             print(f"starting from the model and optimizer of {init}", file=sys.stderr)
-    return 0, 0
+    return 0, 0, _Average(model, config) if config.ema else None
 
 
 def _log_epoch(
@@ -346,19 +491,20 @@ def _log_epoch(
     epoch: int,
     steps: int,
     mean: np.ndarray,
+    lr: float,
     started: float,
     progress: bool,
 ) -> None:
     """Appends epoch `epoch`'s line to the run's `log.csv` at `path` (`mean`: the epoch's mean loss,
-    noise MSE and cross-entropy; `started`: the training's `time.monotonic()` at its start), and
-    prints its losses with `progress`.
+    noise MSE and cross-entropy; `lr`: the learning rate of its last step; `started`: the
+    training's `time.monotonic()` at its start), and prints its losses with `progress`.
     """
     with open(path, "a", newline="") as file:
         row = [
             epoch,
             steps,
             *(f"{v:.6f}" for v in mean),
-            config.lr,
+            f"{lr:.6g}",
             f"{time.monotonic() - started:.1f}",
         ]
         csv.writer(file).writerow(row)

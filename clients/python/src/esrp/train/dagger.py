@@ -391,6 +391,7 @@ class _Run:
             seed=self.dagger.seed + iteration,
             plan_budget_ms=self.dagger.plan_budget_ms,
             max_steps=self.dagger.max_steps,
+            label_horizon=self.bc.horizon,
         )
         threads = torch.get_num_threads()  # the policy plays on eval_threads; training goes on with these
         try:

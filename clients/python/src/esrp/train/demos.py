@@ -13,7 +13,9 @@ policy's own action is the one stepped (the label with probability `beta`), and 
 it too (`data/policy_action`), so that how often the policy agreed with the planner can be read
 back. An episode ends when the episode does (success or the horizon), when the policy stops, after
 `max_steps` recorded states, or when the planner finds no way on from the state within its budget
-(that state then has no label and is not recorded).
+(that state then has no label and is not recorded). The store also records, per state, the first
+`label_horizon` actions of the planner's plan from it (`data/label_chunk`, `NO_ACTION` past the
+plan's end): the action chunk a policy trained on the store learns there, one plan from one state.
 
 With `records` (`esrp.results/v1` files: e.g. the server's records of people playing in its web
 viewer, agent `human`), each record's `actions` are stepped instead, on a new, non-privileged episode
@@ -89,6 +91,8 @@ class DemoSettings:
             stepped (DAgger's mixing; 0: the agent alone).
         seed: With `dagger`, the base seed: scene `id` plays with `seed XOR fnv1a64(id)`.
         plan_budget_ms: With `dagger`, the planning budget of each label.
+        label_horizon: With `dagger`, how many of the plan's first actions each state records
+            (`data/label_chunk`): the trained policy's action horizon.
         max_steps: With `dagger`, at most this many states recorded per episode (the episode is
             closed there); 0: until it ends.
         records: `esrp.results/v1` files whose records' actions to replay and record, instead of
@@ -110,6 +114,7 @@ class DemoSettings:
     beta: float = 0.0
     seed: int = 0
     plan_budget_ms: int = 10_000
+    label_horizon: int = 8
     max_steps: int = 0
     records: Sequence[Path] = ()
     agent: str | None = None
@@ -183,12 +188,22 @@ class _DaggerEpisode:
 
     episode: _Episode
     policy_actions: np.ndarray
+    label_chunks: np.ndarray
+    """(states, label_horizon): the plan's first actions from each state, `NO_ACTION` past its end."""
 
 
 class _Store:
     """The zarr group and its arrays; `episode_ends` is written last, so it says what is whole."""
 
-    def __init__(self, path: Path, dataset: str, resolution: int, labels: str, policy: str | None) -> None:
+    def __init__(
+        self,
+        path: Path,
+        dataset: str,
+        resolution: int,
+        labels: str,
+        policy: str | None,
+        label_horizon: int | None = None,
+    ) -> None:
         import zarr
 
         self.group: Any = zarr.open_group(str(path), mode="a")
@@ -231,6 +246,21 @@ class _Store:
         self.policy_action: Any = None
         if labels == "planner" and ("data/policy_action" in self.group or self.ends.shape[0] == 0):
             self.policy_action = array("data/policy_action", (), "uint8", 4096)
+        # And the plan's first actions at each state; a store made before they were recorded (its
+        # states have the next action alone) cannot take episodes that have them.
+        self.label_chunk: Any = None
+        if labels == "planner" and label_horizon is not None:
+            if "data/label_chunk" not in self.group and self.ends.shape[0] > 0:
+                raise DemoExportError(
+                    f"{path} holds planner labels of one action per state (made before label chunks "
+                    "were recorded): write to another --out"
+                )
+            self.label_chunk = array("data/label_chunk", (label_horizon,), "uint8", 4096)
+            if self.label_chunk.shape[1] != label_horizon:
+                raise DemoExportError(
+                    f"{path} holds the plan's first {self.label_chunk.shape[1]} actions per state, not "
+                    f"{label_horizon}: pass --label-horizon {self.label_chunk.shape[1]} or another --out"
+                )
         listed = self.group.attrs.get("scene_ids", [])
         self.scene_ids: list[str] = [str(s) for s in listed] if isinstance(listed, list) else []
         # A records export says each episode's agent too (parallel to `scene_ids`).
@@ -247,6 +277,8 @@ class _Store:
         per_step = [self.ego, self.grasping, self.action]
         if self.policy_action is not None:
             per_step.append(self.policy_action)
+        if self.label_chunk is not None:
+            per_step.append(self.label_chunk)
         for array in per_step:
             if array.shape[0] != steps:
                 array.resize((steps, *array.shape[1:]))
@@ -269,9 +301,11 @@ class _Store:
         episode: _Episode,
         agent: str | None = None,
         policy_actions: np.ndarray | None = None,
+        label_chunks: np.ndarray | None = None,
     ) -> None:
         """Appends a whole episode: (goal, ego views, grasp flags, actions), in a records store the
-        `agent` whose episode it is, and in a DAgger store the policy's own actions.
+        `agent` whose episode it is, and in a DAgger store the policy's own actions and the plan's
+        first actions at each state.
         """
         goal, ego, grasping, actions = episode
         end = self.steps + len(actions)
@@ -279,6 +313,10 @@ class _Store:
             if policy_actions is None or len(policy_actions) != len(actions):
                 raise ValueError("a DAgger episode comes with one policy action per label")
             self.policy_action.append(policy_actions, axis=0)
+        if self.label_chunk is not None:
+            if label_chunks is None or len(label_chunks) != len(actions):
+                raise ValueError("a DAgger episode comes with one plan chunk per label")
+            self.label_chunk.append(label_chunks, axis=0)
         self.ego.append(ego, axis=0)
         self.grasping.append(grasping, axis=0)
         self.action.append(actions, axis=0)
@@ -355,8 +393,9 @@ def _dagger(
     factory: Any,  # noqa: ANN401
 ) -> _DaggerEpisode | None:
     """Runs `settings.dagger`'s agent on `scene` and labels each state it visits with the planner's
-    next action: (goal, ego views, grasp flags, labels), and the agent's own actions; None when the
-    planner finds no plan from the scene's start (no state has a label).
+    plan from it: (goal, ego views, grasp flags, labels: each plan's first action), the agent's own
+    actions and each plan's first `label_horizon` actions; None when the planner finds no plan from
+    the scene's start (no state has a label).
     """
     sensors = Sensors(resolution=settings.resolution) if settings.resolution else None
     seed = scene_seed(settings.seed, scene.id)
@@ -378,15 +417,20 @@ def _dagger(
             egos: list[np.ndarray] = []
             grasps: list[bool] = []
             labels: list[int] = []
+            chunks: list[list[int]] = []
             policy: list[int] = []
             while not settings.max_steps or len(labels) < settings.max_steps:
                 try:
-                    answer = episode.plan_actions(max_actions=1, budget_ms=settings.plan_budget_ms)
+                    answer = episode.plan_actions(
+                        max_actions=settings.label_horizon, budget_ms=settings.plan_budget_ms
+                    )
                 except DeadlineExceeded:
                     break  # no plan within the budget: this state has no label
                 if not answer.actions:
                     break  # no way on from here: this state has no label
                 label = int(answer.actions[0])
+                plan = [int(a) for a in answer.actions[: settings.label_horizon]]
+                chunks.append(plan + [NO_ACTION] * (settings.label_horizon - len(plan)))
                 egos.append(observation.ego_rgb)
                 grasps.append(observation.grasping)
                 labels.append(label)
@@ -411,7 +455,8 @@ def _dagger(
         np.array(grasps, dtype=bool),
         np.array(labels, dtype=np.uint8),
     )
-    return _DaggerEpisode(recorded, np.array(policy, dtype=np.uint8))
+    chunked = np.array(chunks, dtype=np.uint8).reshape(-1, settings.label_horizon)
+    return _DaggerEpisode(recorded, np.array(policy, dtype=np.uint8), chunked)
 
 
 # A record to export and where it was read (file and line): verify's `Numbered`, one type for both.
@@ -570,11 +615,14 @@ def export_demos(
             )
         if settings.max_steps < 0:
             raise DemoExportError(f"max_steps must be 0 (no limit) or more, got {settings.max_steps}")
+        if settings.label_horizon < 1:
+            raise DemoExportError(f"label_horizon must be at least 1, got {settings.label_horizon}")
         try:
             factory = make_factory(settings.dagger, dict(settings.agent_config), settings.out)
         except EvalError as error:
             raise DemoExportError(str(error)) from None
-    store = _Store(settings.out, info.dataset, resolution, settings.labels, settings.dagger)
+    chunk = settings.label_horizon if settings.dagger is not None else None
+    store = _Store(settings.out, info.dataset, resolution, settings.labels, settings.dagger, chunk)
     done = set(store.scene_ids)
     todo = [s for s in scenes if s.id not in done]
     if done:
@@ -588,13 +636,19 @@ def export_demos(
     for scene in todo:
         if factory is None:
             store.append(scene.id, _replay(client, scene, settings.resolution))
+            added += 1
         else:
             played = _dagger(client, scene, settings, factory)
             if played is None:
                 skipped.append(scene.id)
                 print(f"{scene.id}: the planner found no plan from its start: skipped", file=sys.stderr)
             else:
-                store.append(scene.id, played.episode, policy_actions=played.policy_actions)
+                store.append(
+                    scene.id,
+                    played.episode,
+                    policy_actions=played.policy_actions,
+                    label_chunks=played.label_chunks,
+                )
                 added += 1
         position = len(scenes) - len(todo) + added + len(skipped)
         if settings.progress and (position % every == 0 or position == len(scenes)):
