@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import csv
 import dataclasses
+import json
 import math
 from pathlib import Path
 
@@ -314,6 +315,31 @@ def test_training_resumes_from_its_checkpoint(demos: Path, tmp_path: Path) -> No
     rows = log_rows(run)
     assert [row["epoch"] for row in rows] == ["1", "2"]
     assert torch.load(run / "ckpt.pt", weights_only=False)["epoch"] == 2
+
+
+def test_the_best_held_out_checkpoint_is_kept(demos: Path, tmp_path: Path) -> None:
+    from esrp.train.bc import _HeldOut
+
+    run = tmp_path / "run"
+    run.mkdir()
+    held_out = _HeldOut(
+        tiny(demos, eval_every=1), run, run / "ckpt.pt", 128, final_eval=False, progress=False
+    )
+    held_out.start_log(0)
+
+    def evaluated(epoch: int, sr: float) -> None:
+        (run / "ckpt.pt").write_text(f"epoch {epoch}")
+        with open(run / "eval.csv", "a") as file:
+            file.write(f"{epoch},{10 * epoch},{sr},{sr},1.0,50,0,1.0\n")
+        held_out.keep_best(epoch)
+
+    evaluated(1, 0.1)
+    assert (run / "best.pt").read_text() == "epoch 1"
+    evaluated(2, 0.3)
+    evaluated(3, 0.3)  # no better than epoch 2
+    evaluated(4, 0.2)
+    assert (run / "best.pt").read_text() == "epoch 2"
+    assert json.loads((run / "best.json").read_text()) == {"epoch": 2, "steps": 20, "sr": 0.3}
 
 
 def test_a_resumed_run_equals_an_unbroken_one(

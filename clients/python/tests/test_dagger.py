@@ -137,6 +137,11 @@ def test_held_out_evaluations_write_rows_and_change_nothing_trained(
     assert (record.agent, record.scene_id, record.split) == ("bc", train_easy[0], "train")
     assert record.agent_config == {"checkpoint": str(checkpoint), "epsilon": 0.1, "threads": 1, "batch": 8}
     assert float(evaluations[1]["rdr"]) == pytest.approx(record.rdr, abs=1e-6)
+    # The best held-out checkpoint is kept (the earliest of equals).
+    top = max(evaluations, key=lambda row: (float(row["sr"]), -int(row["epoch"])))
+    best = json.loads((run / "best.json").read_text())
+    assert best["epoch"] == int(top["epoch"])
+    assert torch.load(run / "best.pt", weights_only=False)["epoch"] == best["epoch"]
     # The same run without evaluations trains the same weights.
     plain = train(BcConfig.from_mapping(bc_table(expert, epochs=2)), tmp_path / "plain", progress=False)
     trained, untouched = (torch.load(path, weights_only=False)["model"] for path in (checkpoint, plain))

@@ -21,7 +21,9 @@ optimizer, epoch, random states: `--resume` goes on from it; `esrp eval --agent 
 plays it). With `eval_every` (or `final_eval`), the held-out evaluations (`esrp.train.heldout`)
 write `eval.csv` (one line each: epoch, optimizer steps, SR, OSR, RDR, episodes recorded and
 failed, seconds) and their results files `eval/epoch-NNNN.jsonl`; the checkpoint is written before
-each, so an evaluation an interruption cut short is finished first when the run resumes.
+each, so an evaluation an interruption cut short is finished first when the run resumes. The
+checkpoint with the best held-out SR so far is kept as `best.pt` (`best.json` says which epoch):
+the one to evaluate on the test split.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import shutil
 import sys
 import time
 from collections.abc import Sequence
@@ -585,3 +588,25 @@ class _HeldOut:
             csv.writer(file).writerow(result.row(epoch, steps))
         if self.progress:
             print(f"held-out after epoch {epoch}: {result.text()}", file=sys.stderr)
+        self.keep_best(epoch)
+
+    def keep_best(self, epoch: int) -> None:
+        """Copies the checkpoint of epoch `epoch` to `best.pt` (atomically) when its held-out SR is
+        the highest in `eval.csv` (the earliest of equals), and says so in `best.json`: the model
+        selected on held-out scenes alone, never on the test split.
+        """
+        rows = read_eval_log(self.log_path)
+        if not rows:
+            return
+        best = max(rows, key=lambda row: (float(row["sr"]), -int(row["epoch"])))
+        if int(best["epoch"]) != epoch:
+            return
+        partial = self.out / "best.partial"
+        shutil.copyfile(self.checkpoint, partial)
+        partial.replace(self.out / "best.pt")
+        chosen = {
+            "epoch": epoch,
+            "steps": int(best["steps"]),
+            "sr": float(best["sr"]),
+        }
+        (self.out / "best.json").write_text(json.dumps(chosen) + "\n", encoding="utf-8")
