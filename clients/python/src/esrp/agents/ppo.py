@@ -41,6 +41,13 @@ class PpoConfig:
     `num_envs` × `num_steps`, minibatch 64, 6 M environment steps, context length 64 = `num_steps`)
     and otherwise CleanRL's PPO defaults. A minibatch is whole sequences: `minibatch_size` must be a
     multiple of `num_steps` (64 = one environment's 64 steps).
+
+    `norm_adv_scope` says over what `norm_adv` normalises the advantages: each `"minibatch"`
+    (CleanRL's), or the whole rollout (`"batch"`: a minibatch of near-zero advantages is not
+    blown up to unit scale). `norm_reward` divides the rewards the learner sees (not the reward
+    the server gives, nor the returns logged) by the running standard deviation of the
+    discounted return (Gymnasium's `NormalizeReward`), so that the value targets are of unit
+    scale whatever the reward's.
     """
 
     # Environment: scenes and reward.
@@ -67,6 +74,8 @@ class PpoConfig:
     minibatch_size: int = 64
     update_epochs: int = 4
     norm_adv: bool = True
+    norm_adv_scope: str = "minibatch"
+    norm_reward: bool = False
     clip_coef: float = 0.2
     clip_vloss: bool = True
     ent_coef: float = 0.01
@@ -114,6 +123,11 @@ class PpoConfig:
                 f"the batch num_envs × num_steps = {self.num_envs * self.num_steps} must be a multiple "
                 f"of minibatch_size {self.minibatch_size}"
             )
+        if self.norm_adv_scope not in ("minibatch", "batch"):
+            raise ValueError(f"norm_adv_scope {self.norm_adv_scope!r}: minibatch or batch")
+        for name in ("norm_adv", "norm_reward", "clip_vloss", "anneal_lr"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be true or false, not {getattr(self, name)!r}")
         if not 0 < self.gamma <= 1 or not 0 <= self.gae_lambda <= 1:
             raise ValueError("gamma must be in (0, 1] and gae_lambda in [0, 1]")
         check_device(self.device)

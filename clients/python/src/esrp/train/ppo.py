@@ -6,6 +6,9 @@ sets weights); each update collects `num_steps` steps of every episode, computes
 and runs `update_epochs` epochs of clipped PPO over minibatches of whole sequences, the LSTM
 starting from the state it had at the rollout's start. Truncated episodes (the horizon) are
 bootstrapped with the value of their final observation; terminated ones (success) are not.
+With `norm_reward` the learner's rewards are scaled by the running standard deviation of the
+discounted return (its statistics kept in the checkpoint); with `norm_adv_scope = "batch"` the
+advantages are normalised once over the rollout instead of in each minibatch.
 
 A run folder holds `config.json`, `log.csv` (one line per update: steps, episodes finished,
 their mean return, length and success rate, the losses, approximate KL, clip fraction, explained
@@ -29,6 +32,7 @@ from typing import Any
 import numpy as np
 import torch
 from gymnasium.vector import AutoresetMode
+from gymnasium.wrappers.utils import RunningMeanStd
 from torch import nn
 
 from .. import _malloc_setup
@@ -40,7 +44,7 @@ from ..envs import RearrangeVectorEnv
 from ._config import read_table
 from ._training import resume_from, run_folder, save_checkpoint
 
-__all__ = ["UpdateStats", "gae", "load_config", "make_env", "ppo_loss", "train"]
+__all__ = ["RewardScale", "UpdateStats", "gae", "load_config", "make_env", "ppo_loss", "train"]
 
 LOG_FIELDS = (
     "update",
@@ -151,9 +155,12 @@ def train(
     network = PpoNet(config).to(device)
     optimizer = torch.optim.Adam(network.parameters(), lr=config.lr, eps=1e-5)
     update, global_step = 0, 0
+    scale = RewardScale(config.gamma, config.num_envs) if config.norm_reward else None
     if resume and checkpoint.exists():
         state = resume_from(checkpoint, "esrp-ppo", network, optimizer, RESUMABLE, device)
         update, global_step = int(state["update"]), int(state["steps"])
+        if scale is not None:
+            scale.load(state["reward_scale"])
         print(f"resuming {checkpoint} after update {update} ({global_step} steps)", file=sys.stderr)
         _trim_logs(out, update, global_step)
     (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")
@@ -169,7 +176,20 @@ def train(
         return checkpoint
     env = make_env(config, client)
     try:
-        _loop(config, network, optimizer, env, device, out, update, global_step, progress, on_update, stop_at)
+        _loop(
+            config,
+            network,
+            optimizer,
+            env,
+            device,
+            out,
+            update,
+            global_step,
+            progress,
+            on_update,
+            stop_at,
+            scale,
+        )
     finally:
         env.close()
     return checkpoint
@@ -187,6 +207,7 @@ def _loop(
     progress: bool,
     on_update: Callable[[UpdateStats], None] | None,
     stop_at: int | None = None,
+    scale: RewardScale | None = None,
 ) -> None:
     """Runs the updates after `update` (`global_step` environment steps) until `config.num_updates`
     (or `stop_at`): each collects a rollout of `num_steps` steps of every episode of `env`, computes
@@ -247,7 +268,7 @@ def _loop(
             global_step += n
             episode_return += reward
             episode_length += 1
-            reward = reward.copy()
+            reward = reward.copy() if scale is None else scale(reward, terminated | truncated)
             cut = np.flatnonzero(truncated & ~terminated)
             if cut.size:
                 # The horizon cut these episodes short: bootstrap with their final observation's
@@ -292,6 +313,8 @@ def _loop(
             advantages, returns = gae(
                 rewards, values, starts, next_value, next_start, config.gamma, config.gae_lambda
             )
+            if config.norm_adv and config.norm_adv_scope == "batch":
+                advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
 
         # PPO epochs over minibatches of whole sequences (sub-envs), time-major within each.
         def flat(x: torch.Tensor) -> torch.Tensor:
@@ -380,10 +403,45 @@ def _loop(
             on_update(stats)
         stopping = stop_at is not None and global_step >= stop_at
         if update % config.checkpoint_every == 0 or update == config.num_updates or stopping:
-            save_checkpoint(out / "ckpt.pt", "esrp-ppo", network, optimizer, update=update, steps=global_step)
+            extra = None if scale is None else {"reward_scale": scale.state()}
+            save_checkpoint(
+                out / "ckpt.pt", "esrp-ppo", network, optimizer, extra=extra, update=update, steps=global_step
+            )
         if stopping:
             print(f"stopped at {global_step} steps (--stop-at {stop_at}): --resume goes on", file=sys.stderr)
             break
+
+
+class RewardScale:
+    """The rewards the learner sees, divided by the running standard deviation of each sub-env's
+    discounted return (Gymnasium's `NormalizeReward`, over the vector env's steps).
+    """
+
+    def __init__(self, gamma: float, num_envs: int) -> None:
+        self.gamma = gamma
+        self.returns = np.zeros(num_envs)
+        self.statistics = RunningMeanStd(shape=())  # type: ignore[no-untyped-call]
+
+    def __call__(self, reward: np.ndarray, done: np.ndarray) -> np.ndarray:
+        """`reward` of one step, scaled; `done` ends the sub-envs' episodes with this step."""
+        self.returns = self.returns * self.gamma + reward
+        self.statistics.update(self.returns)  # type: ignore[no-untyped-call]
+        self.returns[done] = 0.0
+        return reward / np.sqrt(self.statistics.var + 1e-8)
+
+    def state(self) -> dict[str, Any]:
+        """What `load` takes back (kept in the checkpoint)."""
+        return {
+            "mean": float(self.statistics.mean),
+            "var": float(self.statistics.var),
+            "count": float(self.statistics.count),
+        }
+
+    def load(self, state: Mapping[str, Any]) -> None:
+        """Restores `state()`; a resumed run's episodes start fresh, so their returns start at 0."""
+        self.statistics.mean = np.float64(state["mean"])
+        self.statistics.var = np.float64(state["var"])
+        self.statistics.count = float(state["count"])
 
 
 def gae(
@@ -432,7 +490,7 @@ def ppo_loss(
         approx_kl = ((ratio - 1) - log_ratio).mean()
         clipfrac = ((ratio - 1.0).abs() > config.clip_coef).float().mean()
     advantage = batch["advantages"]
-    if config.norm_adv and advantage.numel() > 1:
+    if config.norm_adv and config.norm_adv_scope == "minibatch" and advantage.numel() > 1:
         advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
     policy_loss = torch.max(
         -advantage * ratio, -advantage * torch.clamp(ratio, 1 - config.clip_coef, 1 + config.clip_coef)
