@@ -86,6 +86,12 @@ pub struct Config {
         value_parser = PossibleValuesParser::new(BackendPreference::NAMES).try_map(|name| name.parse::<BackendPreference>()),
     )]
     pub render_backend: BackendPreference,
+    /// Threads rendering batches (0: auto, one on a software renderer such as llvmpipe, whose
+    /// rasteriser already uses every core, two on a GPU). Each gathers the views that arrived
+    /// while it was busy and renders them as one batch; with several, one encodes and extracts
+    /// while another waits for the device.
+    #[arg(long, env = "ESRP_RENDER_THREADS", default_value_t = 0, value_parser = clap::value_parser!(u16).range(0..=64))]
+    pub render_threads: u16,
     /// Require `authorization: Bearer TOKEN` on every call (not empty: an empty `ESRP_TOKEN`
     /// is refused rather than taken as "no token" or as a token anyone could send). The one
     /// token is an admin named `admin`; --tokens gives several, with roles and quotas.
@@ -275,6 +281,17 @@ mod tests {
         }
         let error = parse(&["--render-backend", "metal"]).unwrap_err().to_string();
         assert!(error.contains("auto, vulkan, gl"), "{error}");
+    }
+
+    #[test]
+    fn render_threads_default_to_auto_and_stay_within_reason() {
+        let parse = |args: &[&str]| Config::try_parse_from([&["esrp-server"], args].concat());
+        assert_eq!(parse(&[]).unwrap().render_threads, 0);
+        assert_eq!(parse(&["--render-threads", "4"]).unwrap().render_threads, 4);
+        assert!(parse(&["--render-threads", "65"]).is_err());
+        assert!(parse(&["--render-threads", "-1"]).is_err());
+        assert_eq!(crate::render::auto_render_threads(true), 1);
+        assert_eq!(crate::render::auto_render_threads(false), 2);
     }
 
     #[test]

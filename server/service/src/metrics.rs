@@ -13,10 +13,30 @@
 //! | `esrp_token_episodes_created_total` | counter | episodes created, by token name (`token`; `anonymous` without tokens) |
 //! | `esrp_token_steps_total` | counter | steps taken, by the token that created the episode |
 //! | `esrp_records_written_total` | counter | records written (`--records`), by token |
+//! | `esrp_stage_seconds_total` | counter | seconds spent in each stage of stepping, by `stage` (below), summed over the threads that ran it |
+//! | `esrp_render_threads` | gauge | the threads rendering batches (`--render-threads`) |
 //! | `esrp_plans_total` | counter | PlanActions calls, by outcome (`planned`, `cached`, `failed`: no plan found, `deadline`: none found in the budget, `cancelled`: the client went away and the planner stopped) |
+//!
+//! The stages of `esrp_stage_seconds_total`, in the order a step goes through them (divide by
+//! `esrp_steps_total` for the seconds per step, or by the wall time for how busy a stage keeps
+//! its threads: `esrp-bench --breakdown` prints both):
+//!
+//! | stage | what |
+//! |---|---|
+//! | `lock` | waiting for the episodes' locks (another call of the same episode still stepping) |
+//! | `take` | taking the steps: the simulation, the collision sweeps, the bookkeeping |
+//! | `render_queue` | a view request waiting for a render thread, per request |
+//! | `render_encode` | a render thread taking an atlas, writing the uniforms, encoding the passes |
+//! | `render_device` | a render thread waiting for the device to draw and copy, and for the readback to map |
+//! | `render_extract` | a render thread cutting the views' images out of the mapped buffer |
+//! | `answer` | putting the rendered images into the answers |
+//!
+//! Decoding requests, encoding answers and the transport are tonic's and hyper's, not counted:
+//! what is left of a step's latency is theirs.
 
 use std::net::SocketAddr;
 use std::sync::Arc;
+use std::sync::atomic::AtomicU64;
 use std::time::Duration;
 
 use prometheus_client::encoding::EncodeLabelSet;
@@ -26,6 +46,52 @@ use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
 use prometheus_client::registry::Registry;
 use tokio::net::TcpListener;
+
+/// A stage of stepping.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct StageLabel {
+    /// Its name (the table of the module's docs).
+    pub stage: &'static str,
+}
+
+/// Seconds spent in each stage of stepping (`esrp_stage_seconds_total{stage}`): one counter per
+/// stage, held, so that adding to one is an atomic add, with no label lookup.
+pub struct Stages {
+    /// Waiting for the episodes' locks.
+    pub lock: Counter<f64, AtomicU64>,
+    /// Taking the steps.
+    pub take: Counter<f64, AtomicU64>,
+    /// A view request waiting for a render thread.
+    pub render_queue: Counter<f64, AtomicU64>,
+    /// Encoding a batch.
+    pub render_encode: Counter<f64, AtomicU64>,
+    /// Waiting for the device and the readback.
+    pub render_device: Counter<f64, AtomicU64>,
+    /// Extracting the views' images.
+    pub render_extract: Counter<f64, AtomicU64>,
+    /// Putting the images into the answers.
+    pub answer: Counter<f64, AtomicU64>,
+}
+
+impl Stages {
+    /// The names and counters, in the order a step goes through them.
+    pub fn all(&self) -> [(&'static str, &Counter<f64, AtomicU64>); 7] {
+        [
+            ("lock", &self.lock),
+            ("take", &self.take),
+            ("render_queue", &self.render_queue),
+            ("render_encode", &self.render_encode),
+            ("render_device", &self.render_device),
+            ("render_extract", &self.render_extract),
+            ("answer", &self.answer),
+        ]
+    }
+
+    /// Adds `elapsed` to `stage`.
+    pub fn add(stage: &Counter<f64, AtomicU64>, elapsed: Duration) {
+        stage.inc_by(elapsed.as_secs_f64());
+    }
+}
 
 /// Why an episode was closed.
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
@@ -75,6 +141,10 @@ pub struct Metrics {
     pub steps_by_token: Family<TokenLabel, Counter>,
     /// Records written, by token.
     pub records_by_token: Family<TokenLabel, Counter>,
+    /// Seconds spent in each stage of stepping.
+    pub stages: Stages,
+    /// The threads rendering batches.
+    pub render_threads: Gauge,
 }
 
 impl Default for Metrics {
@@ -119,6 +189,25 @@ impl Metrics {
         registry.register("token_episodes_created", "Episodes created, by token", created_by_token.clone());
         registry.register("token_steps", "Steps taken, by the token that created the episode", steps_by_token.clone());
         registry.register("records_written", "Records written (--records), by token", records_by_token.clone());
+        let by_stage = Family::<StageLabel, Counter<f64, AtomicU64>>::default();
+        // Each stage's counter made once and held: the family's entries share their counters.
+        let stage = |name: &'static str| by_stage.get_or_create(&StageLabel { stage: name }).clone();
+        let stages = Stages {
+            lock: stage("lock"),
+            take: stage("take"),
+            render_queue: stage("render_queue"),
+            render_encode: stage("render_encode"),
+            render_device: stage("render_device"),
+            render_extract: stage("render_extract"),
+            answer: stage("answer"),
+        };
+        registry.register(
+            "stage_seconds",
+            "Seconds spent in each stage of stepping, summed over the threads that ran it",
+            by_stage,
+        );
+        let render_threads = Gauge::default();
+        registry.register("render_threads", "Threads rendering batches (--render-threads)", render_threads.clone());
         Self {
             registry,
             steps,
@@ -133,6 +222,8 @@ impl Metrics {
             created_by_token,
             steps_by_token,
             records_by_token,
+            stages,
+            render_threads,
         }
     }
 

@@ -1,5 +1,5 @@
-//! The render scheduler: one dedicated thread owns the renderer, gathers the view requests of
-//! all episodes that arrived while it was busy, and renders them in one batch.
+//! The render scheduler: dedicated threads share the renderer; each gathers the view requests
+//! of all episodes that arrived while it was busy, and renders them in one batch.
 //!
 //! The async side sends a [`RenderJob`] (the views of one request) down a channel and awaits
 //! the reply; the runtime never blocks on rendering. Batching is automatic: the more episodes
@@ -7,19 +7,22 @@
 
 use std::sync::Arc;
 use std::sync::mpsc;
+use std::time::Instant;
 
 use esrp_core::{CompiledScene, EgoCamera, ObjectPose};
 use esrp_render::{Camera, Outputs, Renderer, SceneHandle, ViewOutput, ViewRequest};
 use tokio::sync::oneshot;
 
 use crate::error::ServiceError;
-use crate::metrics::Metrics;
+use crate::metrics::{Metrics, Stages};
 
-/// Threads rendering batches. The renderer lets batches from several threads overlap (one
-/// gathers and submits while another waits for the device or extracts pixels), but on the
-/// 2-core development machine a second thread measured no faster (the cores are already busy),
-/// so one, until it is measured on a GPU machine.
-const RENDER_THREADS: usize = 1;
+/// The render threads `--render-threads 0` (auto) starts: one on a software renderer, whose
+/// rasteriser already spreads each batch over the cores (a second thread measured no faster on
+/// the 2-core VM, docs/performance.md); two on a GPU, so that one thread gathers, encodes and
+/// extracts while the other waits for the device (to be measured on a GPU machine).
+pub fn auto_render_threads(software: bool) -> usize {
+    if software { 1 } else { 2 }
+}
 
 /// One view to render, owning its inputs.
 #[derive(Clone, Debug)]
@@ -57,6 +60,8 @@ impl View {
 struct RenderJob {
     views: Vec<View>,
     reply: oneshot::Sender<Result<Vec<ViewOutput>, String>>,
+    /// When it was sent (the `render_queue` stage ends when a render thread takes it).
+    sent: Instant,
 }
 
 /// What the render threads receive.
@@ -78,13 +83,14 @@ pub struct RenderScheduler {
 }
 
 impl RenderScheduler {
-    /// Starts the render thread around `renderer`.
-    pub fn start(renderer: Renderer, metrics: Arc<Metrics>) -> Self {
+    /// Starts `threads` render threads (at least one) around `renderer`.
+    pub fn start(renderer: Renderer, metrics: Arc<Metrics>, threads: usize) -> Self {
+        let count = threads.max(1);
         let renderer = Arc::new(renderer);
         let (jobs, receiver) = mpsc::channel::<Message>();
         let receiver = Arc::new(std::sync::Mutex::new(receiver));
-        let mut threads = Vec::with_capacity(RENDER_THREADS);
-        for i in 0..RENDER_THREADS {
+        let mut threads = Vec::with_capacity(count);
+        for i in 0..count {
             let (renderer, receiver, metrics) = (renderer.clone(), receiver.clone(), metrics.clone());
             match std::thread::Builder::new()
                 .name(format!("esrp-render-{i}"))
@@ -94,6 +100,7 @@ impl RenderScheduler {
                 Err(e) => tracing::error!("cannot start a render thread: {e}"),
             }
         }
+        metrics.render_threads.set(threads.len() as i64);
         Self { renderer, jobs, threads: Arc::new(std::sync::Mutex::new(threads)) }
     }
 
@@ -146,7 +153,7 @@ impl RenderScheduler {
             return RenderTicket::nothing();
         }
         let (reply, answer) = oneshot::channel();
-        match self.jobs.send(Message::Job(RenderJob { views, reply })) {
+        match self.jobs.send(Message::Job(RenderJob { views, reply, sent: Instant::now() })) {
             Ok(()) => RenderTicket(Ticket::Waiting(answer)),
             Err(_) => RenderTicket(Ticket::Done(Err(ServiceError::Render("the render thread has stopped".into())))),
         }
@@ -207,6 +214,10 @@ fn render_loop(renderer: &Renderer, receiver: &std::sync::Mutex<mpsc::Receiver<M
             }
         }
         drop(receiver);
+        let taken = Instant::now();
+        for job in &jobs {
+            Stages::add(&metrics.stages.render_queue, taken.saturating_duration_since(job.sent));
+        }
         render_jobs(renderer, jobs, metrics);
         if stop {
             return;
@@ -222,12 +233,15 @@ fn render_jobs(renderer: &Renderer, jobs: Vec<RenderJob>, metrics: &Metrics) {
         .collect();
     let started = std::time::Instant::now();
     // Any number of views (a large StepBatch alone): the renderer chunks them itself.
-    let result = renderer.render_batch(&requests);
+    let result = renderer.render_batch_timed(&requests);
     metrics.batch_views.observe(requests.len() as f64);
     metrics.batch_seconds.observe(started.elapsed().as_secs_f64());
     drop(requests);
     match result {
-        Ok(outputs) => {
+        Ok((outputs, timings)) => {
+            Stages::add(&metrics.stages.render_encode, timings.encode);
+            Stages::add(&metrics.stages.render_device, timings.device);
+            Stages::add(&metrics.stages.render_extract, timings.extract);
             let mut outputs = outputs.into_iter();
             for job in jobs {
                 let mine: Vec<ViewOutput> = outputs.by_ref().take(job.views.len()).collect();

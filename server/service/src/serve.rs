@@ -78,9 +78,13 @@ pub fn build_episodes(config: &Config) -> Result<Arc<Episodes>, ServeError> {
     let backends = config.render_backend;
     let renderer = esrp_render::Renderer::new(esrp_render::RendererConfig { backends, ..Default::default() })?;
     let info = renderer.adapter_info();
-    tracing::info!(target: LOG_TARGET, adapter = %info.name, backend = ?info.backend, software = renderer.is_software(), "renderer ready");
+    let threads = match config.render_threads {
+        0 => render::auto_render_threads(renderer.is_software()),
+        n => usize::from(n),
+    };
+    tracing::info!(target: LOG_TARGET, adapter = %info.name, backend = ?info.backend, software = renderer.is_software(), render_threads = threads, "renderer ready");
     let metrics = Arc::new(metrics::Metrics::new());
-    let render = render::RenderScheduler::start(renderer, metrics.clone());
+    let render = render::RenderScheduler::start(renderer, metrics.clone(), threads);
     let episodes = Arc::new(Episodes::new(store, render, config.clone(), metrics, recorder, attempts));
     let recovered = episodes.recover_attempts().map_err(|e| ServeError::Io {
         what: "recording the attempts a crash cut".into(),

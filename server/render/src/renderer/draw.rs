@@ -1,7 +1,7 @@
 //! Drawing a chunk of views into an atlas and reading it back: one encoder, one submit, one
 //! readback per chunk.
 
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use crate::camera::{Camera, EgoFrustum, ego_view, top_down_view};
 use crate::error::RenderError;
@@ -49,11 +49,13 @@ impl Renderer {
         ranges
     }
 
-    /// Renders a validated chunk of a batch with one submit and one readback.
+    /// Renders a validated chunk of a batch with one submit and one readback; adds where its
+    /// time went to `timings`.
     pub(super) fn render_chunk(
         &self,
         requests: &[ViewRequest<'_>],
         full: bool,
+        timings: &mut RenderTimings,
     ) -> Result<Vec<ViewOutput>, RenderError> {
         let (tiles, side, pages) = layout(requests, self.max_pages);
 
@@ -69,7 +71,7 @@ impl Renderer {
             (taken, state.batches)
         };
         let mut atlas = taken.unwrap_or_else(|| Atlas::new(&self.device, &self.bind_group_layout, side, pages, full));
-        let result = self.draw_and_read(&atlas, requests, &tiles, t0);
+        let result = self.draw_and_read(&atlas, requests, &tiles, t0, timings);
         atlas.last_used = now;
         let mut state = self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
         state.atlases.push(atlas);
@@ -84,12 +86,14 @@ impl Renderer {
     /// Draws `requests` into `atlas` (one page each), submits, waits for that submission and
     /// extracts every view: the uniforms written, the pages drawn and copied to the readback
     /// buffer in one encoder, one submit, then the readback awaited and the views cut out of it.
+    /// Adds the three stages' times (from `t0`, when the chunk began) to `timings`.
     pub(super) fn draw_and_read(
         &self,
         atlas: &Atlas,
         requests: &[ViewRequest<'_>],
         tiles: &[Tile],
         t0: Instant,
+        timings: &mut RenderTimings,
     ) -> Result<Vec<ViewOutput>, RenderError> {
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         self.queue.write_buffer(&atlas.uniforms, 0, &view_uniforms(requests));
@@ -103,6 +107,10 @@ impl Renderer {
         self.map_readback(atlas, submission, scope)?;
         let t2 = Instant::now();
         let outputs = extract_mapped(atlas, requests, tiles)?;
+        let t3 = Instant::now();
+        timings.encode += t1 - t0;
+        timings.device += t2 - t1;
+        timings.extract += t3 - t2;
         log::trace!(
             "esrp-render: {} views, {} pages of {}x{}: encode {:?}, device {:?}, extract {:?}",
             requests.len(),
@@ -111,7 +119,7 @@ impl Renderer {
             atlas.side,
             t1 - t0,
             t2 - t1,
-            t2.elapsed()
+            t3 - t2
         );
         Ok(outputs)
     }
@@ -227,6 +235,25 @@ impl Renderer {
             }
             None => Ok(()),
         }
+    }
+}
+
+/// Where a batch's time went on the thread that rendered it, summed over its chunks.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct RenderTimings {
+    /// Taking an atlas, writing the views' uniforms and encoding the passes and copies.
+    pub encode: Duration,
+    /// From the submit until the readback buffer is mapped: the device drawing and copying
+    /// (and, on a busy device, other threads' work before it).
+    pub device: Duration,
+    /// Cutting each view's images out of the mapped buffer (RGBA to RGB, depth, segmentation).
+    pub extract: Duration,
+}
+
+impl RenderTimings {
+    /// The three stages together.
+    pub fn total(&self) -> Duration {
+        self.encode + self.device + self.extract
     }
 }
 

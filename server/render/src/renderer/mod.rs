@@ -43,6 +43,7 @@ use atlas::{BatchState, chunks};
 use backend::request_adapter;
 pub use backend::{BackendPreference, RendererConfig, UnknownBackend};
 pub use device::Renderer;
+pub use draw::RenderTimings;
 use formats::{COLOUR_FORMAT, DEPTH_FORMAT, DEPTH_OUT_FORMAT, SEGMENT_FORMAT};
 pub use limits::{CHUNK_PIXELS, CHUNK_VIEWS, DEFAULT_RESOLUTION, MAX_MOVABLE_OBJECTS};
 #[cfg(test)]
@@ -291,19 +292,29 @@ impl Renderer {
     /// If any view asks for depth or segmentation, the whole batch is drawn with the pipeline
     /// that writes them (a little slower); only the views that asked get them.
     pub fn render_batch(&self, requests: &[ViewRequest<'_>]) -> Result<Vec<ViewOutput>, RenderError> {
+        self.render_batch_timed(requests).map(|(outputs, _)| outputs)
+    }
+
+    /// [`Renderer::render_batch`], and where its time went on the calling thread
+    /// ([`RenderTimings`]: encoding, the device, extraction), summed over its chunks.
+    pub fn render_batch_timed(
+        &self,
+        requests: &[ViewRequest<'_>],
+    ) -> Result<(Vec<ViewOutput>, RenderTimings), RenderError> {
+        let mut timings = RenderTimings::default();
         if let Some(reason) = self.lost.lock().ok().and_then(|slot| slot.clone()) {
             return Err(RenderError::DeviceLost { reason });
         }
         if requests.is_empty() {
-            return Ok(Vec::new());
+            return Ok((Vec::new(), timings));
         }
         validate(requests, self.id, self.max_atlas)?;
         let full = requests.iter().any(|r| r.outputs.any_extra());
         let mut outputs = Vec::with_capacity(requests.len());
         for chunk in chunks(requests, self.max_pages) {
-            outputs.extend(self.render_chunk(&requests[chunk], full)?);
+            outputs.extend(self.render_chunk(&requests[chunk], full, &mut timings)?);
         }
-        Ok(outputs)
+        Ok((outputs, timings))
     }
 }
 

@@ -15,7 +15,7 @@ use super::observe::Prepared;
 use super::state::Episodes;
 use super::{lifecycle, recording};
 use crate::error::ServiceError;
-use crate::metrics::Metrics;
+use crate::metrics::{Metrics, Stages};
 use crate::records::Written;
 use crate::render::RenderTicket;
 use crate::types::{Caller, EpisodeId, ResetCall, ResetResult, StepCall, StepResult};
@@ -141,15 +141,18 @@ impl Stepped {
         metrics.observe_steps(taken.iter().filter(|t| t.is_ok()).count(), started.elapsed());
         match rendered {
             Ok(outputs) => {
+                let answering = Instant::now();
                 let mut outputs = outputs.into_iter();
-                taken
+                let answers = taken
                     .into_iter()
                     .map(|t| {
                         let TakenStep { mut result, observation, .. } = t?;
                         result.observation = observation.finish(&mut outputs);
                         Ok(result)
                     })
-                    .collect()
+                    .collect();
+                Stages::add(&metrics.stages.answer, answering.elapsed());
+                answers
             }
             // The steps were taken: they answer the failure (and must not be retaken).
             Err(e) => {
@@ -323,6 +326,8 @@ async fn take_steps(
         slots[e] = Some(locked[e].1.clone().lock_owned().await);
     }
     let mut guards: Vec<EpisodeGuard> = slots.into_iter().flatten().collect();
+    let stages = &episodes.metrics.stages;
+    Stages::add(&stages.lock, started.elapsed());
     // Closed (or reaped) while this call waited for its lock.
     for (e, (id, _)) in locked.iter().enumerate() {
         if !episodes.registry.contains(id) {
@@ -337,11 +342,16 @@ async fn take_steps(
     // run inline, which spares a thread hand-off per step; more go to a blocking thread so
     // that the runtime never stalls.
     let taken = if queue.len() <= INLINE_STEPS {
-        take_queued(episodes, &mut guards, &ids, queue)
+        let taking = Instant::now();
+        let taken = take_queued(episodes, &mut guards, &ids, queue);
+        Stages::add(&stages.take, taking.elapsed());
+        taken
     } else {
         let this = episodes.clone();
         let (guards_back, taken) = tokio::task::spawn_blocking(move || {
+            let taking = Instant::now();
             let taken = take_queued(&this, &mut guards, &ids, queue);
+            Stages::add(&this.metrics.stages.take, taking.elapsed());
             (guards, taken)
         })
         .await

@@ -269,7 +269,18 @@ async fn run_episode(
 /// observations, rewards, infos and metrics as the same episodes run one at a time.
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn concurrent_episodes_match_sequential_runs() {
-    let server = Server::start(&[]);
+    concurrent_matches_sequential(&[]).await;
+}
+
+/// The same with four render threads, whose batches overlap: what an episode sees does not
+/// depend on which thread drew it, nor on what it was drawn with.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn several_render_threads_keep_every_episode_as_it_runs_alone() {
+    concurrent_matches_sequential(&["--render-threads", "4"]).await;
+}
+
+async fn concurrent_matches_sequential(args: &[&str]) {
+    let server = Server::start(args);
     let mut client = server.client().await;
     let scenes = scene_ids(&mut client, proto::Split::Train, SCENES).await;
     assert_eq!(scenes.len(), SCENES);

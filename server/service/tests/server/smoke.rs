@@ -79,6 +79,12 @@ async fn metrics_count_steps_episodes_and_render_batches() {
     assert_eq!(value("esrp_step_latency_seconds_count"), 3.0);
     // Create renders goal + first view, each step one view.
     assert!(value("esrp_render_batch_views_sum") >= 5.0, "{text}");
+    // Where the steps' time went, by stage: each stage the steps went through took some.
+    for stage in ["lock", "take", "render_queue", "render_encode", "render_device", "render_extract", "answer"] {
+        let seconds = value(&format!("esrp_stage_seconds_total{{stage=\"{stage}\"}}"));
+        assert!(seconds > 0.0 && seconds < 60.0, "{stage}: {seconds}");
+    }
+    assert_eq!(value("esrp_render_threads"), 1.0, "auto: one thread on the software renderer");
     client.close_episode(proto::CloseEpisodeRequest { episode_id: created.episode_id }).await.unwrap();
     let text = server.scrape();
     assert!(text.contains("esrp_episodes_closed_total{reason=\"client\"} 1"), "{text}");

@@ -24,18 +24,25 @@
 //! Latency is per step: from sending it to receiving its answer (for a batch, the whole call).
 //! Everything goes through `esrp-client`, as a Rust agent would.
 //! Actions are random (seeded); episodes that end are reset.
+//!
+//! `--breakdown` prints, under each scenario, where the server's time went by stage (from its
+//! metrics: see `breakdown.rs`). `--processes N` runs each scenario in N processes at once
+//! against the same server (each with `--episodes` episodes), so that the client is never what
+//! is measured on a many-core machine: the row sums their steps.
 
 use std::collections::VecDeque;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
+use breakdown::Breakdown;
 use clap::Parser;
 use esrp_client::{
     Action, Answer, Client, ClientError, Episode, EpisodeOptions, LocalServer, RandomActions, SceneFilter, Split,
     StepResult, reach_or_start,
 };
 
+mod breakdown;
 mod soak;
 
 #[derive(Parser, Debug)]
@@ -92,6 +99,18 @@ struct Args {
     /// seconds under load: a shorter timeout closes episodes they still hold).
     #[arg(long, default_value_t = 300)]
     server_claim_timeout: u64,
+    /// Print where the server's time went in each scenario, by stage (its metrics: a server
+    /// started here is given `--metrics-listen`; with `--server`, name its endpoint with
+    /// `--metrics`).
+    #[arg(long)]
+    breakdown: bool,
+    /// The metrics endpoint of the server named by `--server` (`http://HOST:PORT/metrics`).
+    #[arg(long)]
+    metrics: Option<String>,
+    /// Run each scenario in this many processes at once against the same server, each with
+    /// `--episodes` episodes (not `memory-1000` or `soak`).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=256))]
+    processes: u32,
 }
 
 /// The claim timeout given to a server started here (soak's cleanup waits for it).
@@ -106,6 +125,10 @@ struct Outcome {
     seconds: f64,
     latencies: Vec<f64>,
     note: String,
+    /// Where the server's time went (`--breakdown`).
+    breakdown: Option<Breakdown>,
+    /// Per process with `--processes`: each one's p50 and p99 latencies, seconds.
+    process_percentiles: Vec<(f64, f64)>,
 }
 
 impl Outcome {
@@ -114,6 +137,13 @@ impl Outcome {
     }
 
     fn percentile(&self, p: f64) -> f64 {
+        if !self.process_percentiles.is_empty() {
+            // Several processes: the median of their medians, the worst of their p99s.
+            let mut of: Vec<f64> =
+                self.process_percentiles.iter().map(|&(p50, p99)| if p > 0.5 { p99 } else { p50 }).collect();
+            of.sort_by(f64::total_cmp);
+            return if p > 0.5 { of[of.len() - 1] } else { of[(of.len() - 1) / 2] };
+        }
         if self.latencies.is_empty() {
             return f64::NAN;
         }
@@ -122,32 +152,48 @@ impl Outcome {
         sorted[((sorted.len() - 1) as f64 * p).round() as usize]
     }
 
-    /// The scenario's row of the printed table (its note alone where it measured no latencies).
+    /// Whether it measured latencies (itself, or in its processes).
+    fn measured(&self) -> bool {
+        !self.latencies.is_empty() || !self.process_percentiles.is_empty()
+    }
+
+    /// The scenario's row of the printed table (its note alone where it measured no latencies),
+    /// and its breakdown under it.
     fn print_row(&self) {
-        if self.latencies.is_empty() {
+        self.print_measured();
+        for line in self.breakdown.iter().flat_map(Breakdown::lines) {
+            println!("{line}");
+        }
+    }
+
+    fn print_measured(&self) {
+        if !self.measured() {
             println!("{:<20} {:>8} {}", self.name, self.episodes, self.note);
         } else {
             println!(
-                "{:<20} {:>8} {:>9} {:>11.0} {:>9.2} {:>9.2}",
+                "{:<20} {:>8} {:>9} {:>11.0} {:>9.2} {:>9.2}  {}",
                 self.name,
                 self.episodes,
                 self.steps,
                 self.rate(),
                 self.percentile(0.5) * 1e3,
-                self.percentile(0.99) * 1e3
+                self.percentile(0.99) * 1e3,
+                self.note
             );
         }
     }
 
     /// The scenario's entry of `--json`'s results (rates and latencies null where not measured).
     fn to_json(&self) -> serde_json::Value {
-        let measured = !self.latencies.is_empty();
+        let measured = self.measured();
         serde_json::json!({
             "scenario": self.name, "episodes": self.episodes, "steps": self.steps, "seconds": self.seconds,
             "steps_per_second": if !measured && self.name != "soak" { None } else { Some(self.rate()) },
             "p50_ms": if measured { Some(self.percentile(0.5) * 1e3) } else { None },
             "p99_ms": if measured { Some(self.percentile(0.99) * 1e3) } else { None },
             "note": self.note,
+            "processes": self.process_percentiles.len().max(1),
+            "breakdown": self.breakdown.as_ref().map(Breakdown::to_json),
         })
     }
 }
@@ -314,7 +360,13 @@ async fn close_all(episodes: Vec<Episode>) -> anyhow::Result<()> {
     Ok(())
 }
 
-async fn scenario(name: &str, args: &Args, client: &Client, server: Option<&LocalServer>) -> anyhow::Result<Outcome> {
+async fn scenario(
+    name: &str,
+    args: &Args,
+    client: &Client,
+    server: Option<&LocalServer>,
+    metrics: Option<&str>,
+) -> anyhow::Result<Outcome> {
     let n = match name {
         "unary-1" | "stream-1" | "stream-1-pipelined" => 1,
         "memory-1000" => 1000,
@@ -349,6 +401,7 @@ async fn scenario(name: &str, args: &Args, client: &Client, server: Option<&Loca
     }
     let window = Window::new(args.seconds);
     let ids: Vec<String> = episodes.iter().map(|e| e.id().to_owned()).collect();
+    let before = metrics.map(breakdown::scrape).transpose()?;
     let (steps, latencies) = match name {
         "unary-1" | "unary-64" => unary(&mut episodes, window).await?,
         "stream-1" | "stream-mux-64" => stream(client, ids, 3, 1, window).await?,
@@ -365,10 +418,59 @@ async fn scenario(name: &str, args: &Args, client: &Client, server: Option<&Loca
         "batch-64" => batch(client, &mut episodes, window).await?,
         other => bail!("unknown scenario {other:?}"),
     };
+    if let (Some(before), Some(url)) = (before, metrics) {
+        outcome.breakdown = Some(Breakdown::between(&before, &breakdown::scrape(url)?));
+    }
     outcome.steps = steps;
     outcome.seconds = args.seconds;
     outcome.latencies = latencies;
     close_all(episodes).await?;
+    Ok(outcome)
+}
+
+/// Runs scenario `name` in `args.processes` copies of this program at once against the server
+/// at `address`, each with `--episodes` episodes, and sums them: their steps over the measured
+/// seconds; the median of their p50 latencies and the worst of their p99s; the breakdown from
+/// before they start to after they end (their creates and closes included).
+fn in_processes(name: &str, args: &Args, address: &str, metrics: Option<&str>) -> anyhow::Result<Outcome> {
+    let exe = std::env::current_exe().context("this program's path")?;
+    let dir = std::env::temp_dir().join(format!("esrp-bench-{}-{name}", std::process::id()));
+    std::fs::create_dir_all(&dir)?;
+    let before = metrics.map(breakdown::scrape).transpose()?;
+    let mut children = Vec::new();
+    for i in 0..args.processes {
+        let json = dir.join(format!("{i}.json"));
+        let mut command = std::process::Command::new(&exe);
+        command
+            .args(["--server", address, "--scenarios", name])
+            .args(["--seconds", &args.seconds.to_string(), "--episodes", &args.episodes.to_string()])
+            .args(["--window", &args.window.to_string()])
+            .arg("--json")
+            .arg(&json)
+            .stdout(std::process::Stdio::null());
+        if let Some(token) = &args.token {
+            command.env("ESRP_TOKEN", token);
+        }
+        children.push((command.spawn().context("starting a client process")?, json));
+    }
+    let mut outcome = Outcome { name: name.to_owned(), seconds: args.seconds, ..Default::default() };
+    for (mut child, json) in children {
+        let status = child.wait()?;
+        if !status.success() {
+            bail!("a client process of {name} failed ({status})");
+        }
+        let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json)?)?;
+        let result = &report["results"][0];
+        outcome.episodes += result["episodes"].as_u64().unwrap_or(0) as usize;
+        outcome.steps += result["steps"].as_u64().unwrap_or(0);
+        let ms = |key: &str| result[key].as_f64().map_or(f64::NAN, |v| v / 1e3);
+        outcome.process_percentiles.push((ms("p50_ms"), ms("p99_ms")));
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+    if let (Some(before), Some(url)) = (before, metrics) {
+        outcome.breakdown = Some(Breakdown::between(&before, &breakdown::scrape(url)?));
+    }
+    outcome.note = format!("{} processes", args.processes);
     Ok(outcome)
 }
 
@@ -417,7 +519,19 @@ fn main() -> anyhow::Result<()> {
     esrp_client::signals::exit_on_signals("esrp-bench")?;
     let mut server_args = args.server_args.clone();
     let claim_timeout = claim_timeout(&args, &mut server_args)?;
+    if args.breakdown && args.server.is_none() && !server_args.iter().any(|a| a.starts_with("--metrics-listen")) {
+        server_args.extend(["--metrics-listen".to_owned(), "127.0.0.1:0".to_owned()]);
+    }
     let (address, local) = reach_or_start(args.server.as_deref(), args.server_binary.clone(), &server_args)?;
+    let metrics = match (&args.metrics, &local) {
+        (Some(url), _) => Some(url.clone()),
+        (None, Some(local)) => local.metrics.clone(),
+        (None, None) => None,
+    };
+    if args.breakdown && metrics.is_none() {
+        bail!("--breakdown needs the server's metrics: give --metrics URL with --server");
+    }
+    let metrics = metrics.filter(|_| args.breakdown);
     let connect = async || Client::connect(&address).token_opt(args.token.as_deref()).await;
     let info = runtime_for("")?.block_on(async { anyhow::Ok(connect().await?.server_info().await?) })?;
     let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
@@ -453,15 +567,19 @@ fn main() -> anyhow::Result<()> {
                 episodes: report.episodes() as usize,
                 steps: report.steps(),
                 seconds: report.seconds(),
-                latencies: Vec::new(),
                 note: report.verdict(),
+                ..Default::default()
             });
             soaks.push(report);
             continue;
         }
-        let outcome = runtime_for(name)?
-            .block_on(async { scenario(name, &args, &connect().await?, local.as_ref()).await })
-            .with_context(|| format!("scenario {name}"))?;
+        let outcome = if args.processes > 1 && name != "memory-1000" {
+            in_processes(name, &args, &address, metrics.as_deref())
+        } else {
+            runtime_for(name)?
+                .block_on(async { scenario(name, &args, &connect().await?, local.as_ref(), metrics.as_deref()).await })
+        }
+        .with_context(|| format!("scenario {name}"))?;
         outcome.print_row();
         results.push(outcome);
     }

@@ -1,0 +1,49 @@
+//! `esrp-bench` end to end: a scenario run in several processes against one real server, with
+//! the server's time broken down by stage from its metrics.
+
+use std::process::Command;
+
+use crate::harness::start;
+
+#[test]
+fn scenarios_run_in_processes_with_the_servers_breakdown() {
+    let server = start(&["--metrics-listen", "127.0.0.1:0", "--no-generate-ahead"]);
+    let metrics = server.metrics.clone().expect("the metrics endpoint");
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("bench.json");
+    let output = Command::new(env!("CARGO_BIN_EXE_esrp-bench"))
+        .args(["--server", &server.address, "--metrics", &metrics, "--breakdown", "--processes", "2"])
+        .args(["--scenarios", "batch-64,unary-1", "--episodes", "3", "--seconds", "1", "--json"])
+        .arg(&json)
+        .output()
+        .expect("esrp-bench runs");
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(output.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&output.stderr));
+    assert!(stdout.contains("render_device") && stdout.contains("2 processes"), "{stdout}");
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let batch = &report["results"][0];
+    assert_eq!(batch["scenario"], "batch-64");
+    assert_eq!(batch["processes"], 2);
+    assert_eq!(batch["episodes"], 6, "--episodes in each process");
+    assert!(batch["steps"].as_u64().unwrap() > 0);
+    let breakdown = &batch["breakdown"];
+    assert!(breakdown["steps"].as_f64().unwrap() >= batch["steps"].as_f64().unwrap(), "{breakdown}");
+    for stage in ["lock", "take", "render_queue", "render_encode", "render_device", "render_extract", "answer"] {
+        let busy = breakdown["stages"][stage]["busy"].as_f64().unwrap();
+        assert!((0.0..64.0).contains(&busy), "{stage}: {breakdown}");
+    }
+    assert!(breakdown["stages"]["render_device"]["us_per_step"].as_f64().unwrap() > 0.0);
+    assert_eq!(report["results"][1]["episodes"], 2);
+}
+
+#[test]
+fn a_breakdown_of_a_named_server_needs_its_metrics() {
+    let server = start(&["--no-generate-ahead"]);
+    let output = Command::new(env!("CARGO_BIN_EXE_esrp-bench"))
+        .args(["--server", &server.address, "--breakdown", "--scenarios", "unary-1", "--seconds", "0.5"])
+        .output()
+        .expect("esrp-bench runs");
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("--metrics URL"), "{stderr}");
+}
