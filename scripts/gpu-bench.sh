@@ -1,0 +1,167 @@
+#!/usr/bin/env bash
+# The server's throughput on the machine it runs on, every figure issue 40 asks for, in one run
+# that builds nothing and keeps to a time budget (480 s by default): for a lent GPU machine,
+# where the binaries are carried, and tested on this machine's lavapipe.
+#
+#   scripts/gpu-bench.sh --prepare            # here: release build, stripped binaries in dist/gpu-bench
+#   scripts/gpu-bench.sh [--bin DIR] [--out DIR] [--budget SECONDS] [--seconds S] [--backend NAME]
+#
+# What it measures, in this order, each step only if the budget leaves room for it (a skipped
+# step is said in the summary):
+#   1. standard: esrp-bench's scenarios with the server's stage breakdown (--breakdown);
+#   2. threads: batch-64 and stream-mux-64 with 256 episodes, render threads 1, 2, 4, 8;
+#   3. episodes: batch-64 with 1 to 1,024 episodes (the curve of steps/s against episodes);
+#   4. clients: stream-mux-64 driven by 1, 2 and 4 client processes (is the client the limit?);
+#   5. scale-out: N servers with N client processes against one server with the same clients;
+#   6. python: python -m esrp.bench's env-1 and vec-64 against the server, where this
+#      machine's python3 imports esrp (PYTHONPATH=clients/python/src and its dependencies).
+# Every step writes its esrp-bench JSON under OUT (default $OUT, else gpu-bench-out), and
+# OUT/summary.md gathers the tables (python3 scripts/gpu_bench_summary.py OUT).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+BIN=dist/gpu-bench
+OUT_DIR=${OUT:-gpu-bench-out}
+BUDGET=480
+SECONDS_EACH=4
+BACKEND=auto
+
+usage() { sed -n '2,20p' "$0" | sed 's/^# \{0,1\}//'; }
+
+if [[ "${1:-}" == "--prepare" ]]; then
+    cargo build --release -p esrp-server -p esrp-client --features esrp-client/tools --bin esrp-server --bin esrp-bench
+    mkdir -p "$BIN"
+    for binary in esrp-server esrp-bench; do
+        cp "target/release/$binary" "$BIN/$binary"
+        strip "$BIN/$binary"
+    done
+    ls -la "$BIN"
+    exit 0
+fi
+
+while [[ $# -gt 0 ]]; do
+    case "$1" in
+        --bin) BIN=$2; shift 2 ;;
+        --out) OUT_DIR=$2; shift 2 ;;
+        --budget) BUDGET=$2; shift 2 ;;
+        --seconds) SECONDS_EACH=$2; shift 2 ;;
+        --backend) BACKEND=$2; shift 2 ;;
+        -h|--help) usage; exit 0 ;;
+        *) echo "gpu-bench.sh: unknown argument $1 (see --help)" >&2; exit 2 ;;
+    esac
+done
+for binary in esrp-server esrp-bench; do
+    if [[ ! -x "$BIN/$binary" ]]; then
+        echo "gpu-bench.sh: no $BIN/$binary: run scripts/gpu-bench.sh --prepare first (or give --bin DIR)" >&2
+        exit 2
+    fi
+done
+if ! [[ "$BUDGET" =~ ^[0-9]+$ && "$SECONDS_EACH" =~ ^[0-9]+([.][0-9]+)?$ ]]; then
+    echo "gpu-bench.sh: --budget takes whole seconds and --seconds a number" >&2
+    exit 2
+fi
+mkdir -p "$OUT_DIR"
+export NODEVICE_SELECT=1 ESRP_LOG=${ESRP_LOG:-warn}
+# One scene cache for every server started here: the built-in benchmark's scenes are built once.
+export ESRP_SCENE_CACHE=${ESRP_SCENE_CACHE:-$OUT_DIR/scene-cache}
+START=$(date +%s)
+SKIPPED=()
+
+left() { echo $((BUDGET - ($(date +%s) - START))); }
+
+# step NAME NEEDED_SECONDS: whether NAME may run (else it is recorded as skipped).
+step() {
+    if (( $(left) < $2 )); then
+        SKIPPED+=("$1 (needs about $2 s, $(left) s left)")
+        echo "== $1: skipped, $(left) s of the budget left" >&2
+        return 1
+    fi
+    echo "== $1 ($(left) s of the budget left)" >&2
+}
+
+bench() { # bench JSON ARGS...: esrp-bench against a server it starts with the backend
+    local json=$1; shift
+    "$BIN/esrp-bench" --server-binary "$BIN/esrp-server" --seconds "$SECONDS_EACH" --json "$OUT_DIR/$json" \
+        --server-args="--render-backend=$BACKEND --no-generate-ahead" "$@" >> "$OUT_DIR/bench.log" 2>&1
+}
+
+bench_args() { # bench JSON SERVER_ARGS ARGS...: the same with more server flags
+    local json=$1 extra=$2; shift 2
+    "$BIN/esrp-bench" --server-binary "$BIN/esrp-server" --seconds "$SECONDS_EACH" --json "$OUT_DIR/$json" \
+        --server-args="--render-backend=$BACKEND --no-generate-ahead $extra" "$@" >> "$OUT_DIR/bench.log" 2>&1
+}
+
+{
+    echo "date: $(date -u +%Y-%m-%dT%H:%M:%SZ)"
+    echo "cpus: $(nproc)"
+    grep -m1 'model name' /proc/cpuinfo | sed 's/.*: /cpu: /' || true
+    command -v nvidia-smi > /dev/null && nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | sed 's/^/gpu: /' || true
+    echo "server: $("$BIN/esrp-server" --version)"
+    echo "backend: $BACKEND; seconds per scenario: $SECONDS_EACH; budget: $BUDGET s"
+} > "$OUT_DIR/machine.txt"
+cat "$OUT_DIR/machine.txt" >&2
+
+# The per-step costs below are what each step took on the 2-core VM's lavapipe, rounded up.
+if step standard 60; then
+    bench standard.json --breakdown \
+        --scenarios unary-1,stream-1,stream-1-pipelined,unary-64,streams-64,stream-mux-64,batch-64
+fi
+for threads in 1 2 4 8; do
+    if step "threads-$threads" 30; then
+        bench_args "threads-$threads.json" "--render-threads=$threads" --breakdown \
+            --scenarios batch-64,stream-mux-64 --episodes 256
+    fi
+done
+for episodes in 1 4 16 64 256 1024; do
+    if step "episodes-$episodes" 25; then
+        bench "episodes-$episodes.json" --scenarios batch-64 --episodes "$episodes"
+    fi
+done
+for processes in 1 2 4; do
+    if step "clients-$processes" 25; then
+        bench "clients-$processes.json" --scenarios stream-mux-64 --processes "$processes"
+    fi
+done
+
+# Scale-out: N servers, one client process each, against one server driven by N processes.
+scale_out() {
+    local n=$1 pids=() i
+    for ((i = 0; i < n; i++)); do
+        bench "servers-$n-$i.json" --scenarios stream-mux-64 &
+        pids+=($!)
+    done
+    for pid in "${pids[@]}"; do wait "$pid"; done
+}
+for n in 2 4; do
+    if step "servers-$n" 30; then
+        scale_out "$n"
+        bench "one-server-$n.json" --scenarios stream-mux-64 --processes "$n"
+    fi
+done
+
+if step python 40; then
+    if PYTHONPATH=clients/python/src python3 -c 'import esrp, grpc, numpy, gymnasium' 2> /dev/null; then
+        "$BIN/esrp-server" --listen 127.0.0.1:0 --render-backend "$BACKEND" --no-generate-ahead \
+            --stop-on-stdin-close < <(sleep 120) > "$OUT_DIR/python-server.txt" 2>&1 &
+        server=$!
+        for _ in $(seq 100); do
+            grep -q 'listening on' "$OUT_DIR/python-server.txt" && break
+            sleep 0.1
+        done
+        address=$(grep -o 'listening on [^ ]*' "$OUT_DIR/python-server.txt" | head -1 | awk '{print $3}')
+        PYTHONPATH=clients/python/src timeout 100 python3 -m esrp.bench --server "$address" \
+            --scenarios env-1,vec-64 --seconds "$SECONDS_EACH" --json "$OUT_DIR/python.json" \
+            >> "$OUT_DIR/bench.log" 2>&1 || SKIPPED+=("python (python -m esrp.bench failed: see bench.log)")
+        kill "$server" 2> /dev/null || true
+        wait "$server" 2> /dev/null || true
+    else
+        SKIPPED+=("python (python3 here does not import esrp and its dependencies)")
+    fi
+fi
+
+printf '%s\n' "${SKIPPED[@]}" > "$OUT_DIR/skipped.txt"
+echo "took $(($(date +%s) - START)) s of $BUDGET" >> "$OUT_DIR/machine.txt"
+if command -v python3 > /dev/null; then
+    python3 scripts/gpu_bench_summary.py "$OUT_DIR" > "$OUT_DIR/summary.md"
+    cat "$OUT_DIR/summary.md"
+fi

@@ -1,0 +1,183 @@
+#!/usr/bin/env python3
+"""The Markdown tables of a `scripts/gpu-bench.sh` run, from the JSON files it left in its folder.
+
+Usage: python3 scripts/gpu_bench_summary.py OUT_DIR   (prints to stdout)
+
+Standard library only, so that it runs wherever the benchmark ran. Missing files (a step the
+budget skipped) leave their table out; `skipped.txt` says which.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+STAGES = ("lock", "take", "render_queue", "render_encode", "render_device", "render_extract", "answer")
+
+
+def load(folder: Path, name: str) -> dict[str, Any] | None:
+    path = folder / name
+    if not path.exists():
+        return None
+    return json.loads(path.read_text(encoding="utf-8"))
+
+
+def rate(result: dict[str, Any]) -> str:
+    value = result.get("steps_per_second")
+    return "–" if value is None else f"{value:,.0f}"
+
+
+def ms(result: dict[str, Any], key: str) -> str:
+    value = result.get(key)
+    return "–" if value is None else f"{value:.2f}"
+
+
+def busiest(result: dict[str, Any]) -> str:
+    breakdown = result.get("breakdown") or {}
+    stages = breakdown.get("stages") or {}
+    if not stages:
+        return "–"
+    name = max(stages, key=lambda s: stages[s]["busy"] or 0.0)
+    return f"{name} {stages[name]['busy']:.2f}"
+
+
+def standard(folder: Path) -> list[str]:
+    report = load(folder, "standard.json")
+    if report is None:
+        return []
+    lines = [
+        "## Scenarios (render threads: auto)",
+        "",
+        f"Renderer: {report['renderer']} ({report['backend']}); client machine: {report['cpus']} CPUs, {report['cpu']}.",
+        "",
+        "| scenario | episodes | steps/s | p50 ms | p99 ms |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    lines += [
+        f"| {r['scenario']} | {r['episodes']} | {rate(r)} | {ms(r, 'p50_ms')} | {ms(r, 'p99_ms')} |"
+        for r in report["results"]
+    ]
+    lines += [
+        "",
+        "Where the server's time went (µs per step, and how busy each stage kept its threads):",
+        "",
+        "| scenario | " + " | ".join(STAGES) + " |",
+        "|---|" + "---:|" * len(STAGES),
+    ]
+    for r in report["results"]:
+        stages = (r.get("breakdown") or {}).get("stages") or {}
+        cells = []
+        for stage in STAGES:
+            entry = stages.get(stage)
+            if entry is None or entry["us_per_step"] is None:
+                cells.append("–")
+            else:
+                cells.append(f"{entry['us_per_step']:.1f} ({entry['busy']:.2f})")
+        lines.append(f"| {r['scenario']} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
+
+
+def series(folder: Path, title: str, header: str, files: list[tuple[str, str]]) -> list[str]:
+    rows = []
+    for label, name in files:
+        report = load(folder, name)
+        if report is None:
+            continue
+        for r in report["results"]:
+            rows.append(
+                f"| {label} | {r['scenario']} | {r['episodes']} | {rate(r)} | {ms(r, 'p50_ms')} | {busiest(r)} |"
+            )
+    if not rows:
+        return []
+    return [
+        f"## {title}",
+        "",
+        f"| {header} | scenario | episodes | steps/s | p50 ms | busiest stage (busy) |",
+        "|---|---|---:|---:|---:|---|",
+        *rows,
+        "",
+    ]
+
+
+def scale_out(folder: Path) -> list[str]:
+    rows = []
+    for n in (2, 4):
+        parts = [load(folder, f"servers-{n}-{i}.json") for i in range(n)]
+        one = load(folder, f"one-server-{n}.json")
+        if any(p is None for p in parts) or one is None:
+            continue
+        apart = sum(p["results"][0]["steps_per_second"] or 0.0 for p in parts if p is not None)
+        together = one["results"][0]["steps_per_second"] or 0.0
+        rows.append(
+            f"| {n} | {apart:,.0f} | {together:,.0f} | {'servers' if apart > together else 'one server'} |"
+        )
+    if not rows:
+        return []
+    return [
+        "## Scale-out: N servers against one (stream-mux-64, one client process per server / N on one)",
+        "",
+        "| N | N servers, steps/s (sum) | one server, N client processes | faster |",
+        "|---:|---:|---:|---|",
+        *rows,
+        "",
+    ]
+
+
+def python(folder: Path) -> list[str]:
+    report = load(folder, "python.json")
+    if report is None:
+        return []
+    results = report.get("results", report)
+    rows = []
+    for r in results if isinstance(results, list) else []:
+        name = r.get("name") or r.get("scenario")
+        steps = r.get("steps_per_second")
+        rows.append(f"| {name} | {'–' if steps is None else f'{steps:,.0f}'} |")
+    return ["## python -m esrp.bench", "", "| scenario | steps/s |", "|---|---:|", *rows, ""]
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) != 2 or not Path(argv[1]).is_dir():
+        print("usage: gpu_bench_summary.py OUT_DIR", file=sys.stderr)
+        return 2
+    folder = Path(argv[1])
+    lines = ["# gpu-bench", ""]
+    machine = folder / "machine.txt"
+    if machine.exists():
+        lines += ["```text", machine.read_text(encoding="utf-8").strip(), "```", ""]
+    lines += standard(folder)
+    lines += series(
+        folder,
+        "Render threads (256 episodes)",
+        "render threads",
+        [(str(t), f"threads-{t}.json") for t in (1, 2, 4, 8)],
+    )
+    lines += series(
+        folder,
+        "Episodes (batch-64 scenario, one StepBatch of all episodes)",
+        "episodes",
+        [(str(e), f"episodes-{e}.json") for e in (1, 4, 16, 64, 256, 1024)],
+    )
+    lines += series(
+        folder,
+        "Client processes (stream-mux-64, 64 episodes each)",
+        "processes",
+        [(str(p), f"clients-{p}.json") for p in (1, 2, 4)],
+    )
+    lines += scale_out(folder)
+    lines += python(folder)
+    skipped = folder / "skipped.txt"
+    left_out = (
+        [line for line in skipped.read_text(encoding="utf-8").splitlines() if line]
+        if skipped.exists()
+        else []
+    )
+    lines += ["## Skipped", "", *([f"- {s}" for s in left_out] or ["- nothing"]), ""]
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv))
