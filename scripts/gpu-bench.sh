@@ -9,10 +9,12 @@
 # What it measures, in this order, each step only if the budget leaves room for it (a skipped
 # step is said in the summary):
 #   1. standard: esrp-bench's scenarios with the server's stage breakdown (--breakdown);
-#   2. threads: batch-64 and stream-mux-64 with 256 episodes, render threads 1, 2, 4, 8;
+#   2. threads: batch-64 and stream-mux-64 with 256 episodes, render threads 1, 2, 4, 8, and
+#      render devices 2 and 4 (threads auto);
 #   3. episodes: batch-64 with 1 to 1,024 episodes (the curve of steps/s against episodes);
 #   4. clients: stream-mux-64 driven by 1, 2 and 4 client processes (is the client the limit?);
-#   5. scale-out: N servers with N client processes against one server with the same clients;
+#   5. scale-out: N servers started first, driven by N client processes (one each), against one
+#      server driven by the same N processes;
 #   6. python: python -m esrp.bench's env-1 and vec-64 against the server, where this
 #      machine's python3 imports esrp (PYTHONPATH=clients/python/src and its dependencies).
 # Every step writes its esrp-bench JSON under OUT (default $OUT, else gpu-bench-out), and
@@ -112,6 +114,12 @@ for threads in 1 2 4 8; do
             --scenarios batch-64,stream-mux-64 --episodes 256
     fi
 done
+for devices in 2 4; do
+    if step "devices-$devices" 30; then
+        bench_args "devices-$devices.json" "--render-devices=$devices" --breakdown \
+            --scenarios batch-64,stream-mux-64 --episodes 256
+    fi
+done
 for episodes in 1 4 16 64 256 1024; do
     if step "episodes-$episodes" 25; then
         bench "episodes-$episodes.json" --scenarios batch-64 --episodes "$episodes"
@@ -123,37 +131,48 @@ for processes in 1 2 4; do
     fi
 done
 
-# Scale-out: N servers, one client process each, against one server driven by N processes.
-scale_out() {
-    local n=$1 pids=() i
-    for ((i = 0; i < n; i++)); do
-        bench "servers-$n-$i.json" --scenarios stream-mux-64 &
-        pids+=($!)
+# Scale-out: N servers started first (their start is not measured), the same N client processes
+# against them (process i drives server i) and against the first alone, alternated.
+SERVERS=()
+start_server() { # start_server LOG: a server on a free port, its address once it listens
+    "$BIN/esrp-server" --listen 127.0.0.1:0 --render-backend "$BACKEND" --no-generate-ahead \
+        --stop-on-stdin-close < <(sleep "$BUDGET") > "$1" 2>&1 &
+    SERVERS+=($!)
+    for _ in $(seq 200); do
+        grep -q 'listening on' "$1" 2> /dev/null && break
+        sleep 0.1
     done
-    for pid in "${pids[@]}"; do wait "$pid"; done
+    echo "http://$(grep -o 'listening on [^ ]*' "$1" | head -1 | awk '{print $3}')"
+}
+stop_servers() {
+    for pid in "${SERVERS[@]}"; do kill "$pid" 2> /dev/null || true; done
+    for pid in "${SERVERS[@]}"; do wait "$pid" 2> /dev/null || true; done
+    SERVERS=()
 }
 for n in 2 4; do
-    if step "servers-$n" 30; then
-        scale_out "$n"
-        bench "one-server-$n.json" --scenarios stream-mux-64 --processes "$n"
+    if step "servers-$n" 45; then
+        addresses=()
+        for ((i = 0; i < n; i++)); do addresses+=("$(start_server "$OUT_DIR/server-$n-$i.txt")"); done
+        list=$(IFS=,; echo "${addresses[*]}")
+        # A first unmeasured pass builds the scenes on every server.
+        "$BIN/esrp-bench" --server "$list" --processes "$n" --scenarios stream-mux-64 --seconds 1 > /dev/null 2>&1 || true
+        for part in servers one; do
+            target=$list
+            [[ $part == one ]] && target=${addresses[0]}
+            "$BIN/esrp-bench" --server "$target" --processes "$n" --scenarios stream-mux-64,batch-64 \
+                --seconds "$SECONDS_EACH" --json "$OUT_DIR/$part-$n.json" >> "$OUT_DIR/bench.log" 2>&1
+        done
+        stop_servers
     fi
 done
 
 if step python 40; then
     if PYTHONPATH=clients/python/src python3 -c 'import esrp, grpc, numpy, gymnasium' 2> /dev/null; then
-        "$BIN/esrp-server" --listen 127.0.0.1:0 --render-backend "$BACKEND" --no-generate-ahead \
-            --stop-on-stdin-close < <(sleep 120) > "$OUT_DIR/python-server.txt" 2>&1 &
-        server=$!
-        for _ in $(seq 100); do
-            grep -q 'listening on' "$OUT_DIR/python-server.txt" && break
-            sleep 0.1
-        done
-        address=$(grep -o 'listening on [^ ]*' "$OUT_DIR/python-server.txt" | head -1 | awk '{print $3}')
-        PYTHONPATH=clients/python/src timeout 100 python3 -m esrp.bench --server "$address" \
+        address=$(start_server "$OUT_DIR/python-server.txt")
+        PYTHONPATH=clients/python/src timeout 100 python3 -m esrp.bench --server "${address#http://}" \
             --scenarios env-1,vec-64 --seconds "$SECONDS_EACH" --json "$OUT_DIR/python.json" \
             >> "$OUT_DIR/bench.log" 2>&1 || SKIPPED+=("python (python -m esrp.bench failed: see bench.log)")
-        kill "$server" 2> /dev/null || true
-        wait "$server" 2> /dev/null || true
+        stop_servers
     else
         SKIPPED+=("python (python3 here does not import esrp and its dependencies)")
     fi

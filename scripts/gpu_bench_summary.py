@@ -104,22 +104,21 @@ def series(folder: Path, title: str, header: str, files: list[tuple[str, str]]) 
 def scale_out(folder: Path) -> list[str]:
     rows = []
     for n in (2, 4):
-        parts = [load(folder, f"servers-{n}-{i}.json") for i in range(n)]
-        one = load(folder, f"one-server-{n}.json")
-        if any(p is None for p in parts) or one is None:
+        apart, one = load(folder, f"servers-{n}.json"), load(folder, f"one-{n}.json")
+        if apart is None or one is None:
             continue
-        apart = sum(p["results"][0]["steps_per_second"] or 0.0 for p in parts if p is not None)
-        together = one["results"][0]["steps_per_second"] or 0.0
-        rows.append(
-            f"| {n} | {apart:,.0f} | {together:,.0f} | {'servers' if apart > together else 'one server'} |"
-        )
+        for mine, theirs in zip(apart["results"], one["results"], strict=False):
+            a, b = mine["steps_per_second"] or 0.0, theirs["steps_per_second"] or 0.0
+            faster = "servers" if a > b else "one server"
+            ratio = max(a, b) / max(min(a, b), 1.0)
+            rows.append(f"| {n} | {mine['scenario']} | {a:,.0f} | {b:,.0f} | {faster} ({ratio:.2f}×) |")
     if not rows:
         return []
     return [
-        "## Scale-out: N servers against one (stream-mux-64, one client process per server / N on one)",
+        "## Scale-out: N servers against one, the same N client processes (64 episodes each)",
         "",
-        "| N | N servers, steps/s (sum) | one server, N client processes | faster |",
-        "|---:|---:|---:|---|",
+        "| N | scenario | N servers, steps/s | one server, steps/s | faster |",
+        "|---:|---|---:|---:|---|",
         *rows,
         "",
     ]
@@ -153,6 +152,12 @@ def main(argv: list[str]) -> int:
         "Render threads (256 episodes)",
         "render threads",
         [(str(t), f"threads-{t}.json") for t in (1, 2, 4, 8)],
+    )
+    lines += series(
+        folder,
+        "Render devices (256 episodes, threads auto)",
+        "render devices",
+        [(str(d), f"devices-{d}.json") for d in (2, 4)],
     )
     lines += series(
         folder,

@@ -89,3 +89,15 @@ def test_a_reader_that_goes_away_ends_the_command_quietly() -> None:
     assert child.wait(timeout=60) == 141, stderr
     assert "Traceback" not in stderr
     assert "BrokenPipeError" not in stderr
+
+
+def test_opengl_on_an_nvidia_gpu_is_a_warning_that_names_vulkan() -> None:
+    from esrp.cli.doctor import renderer_check
+
+    nvidia = renderer_check("NVIDIA H100 through gl, hardware", False, "NVIDIA H100 80GB HBM3", "gl")
+    assert nvidia.status == "warn"
+    assert "--render-backend vulkan" in nvidia.fix
+    assert renderer_check("NVIDIA H100 through vulkan", False, "NVIDIA H100", "vulkan").status == "ok"
+    software = renderer_check("llvmpipe through gl, software (CPU)", True, "llvmpipe", "gl")
+    assert software.status == "ok"
+    assert "GPU" in software.detail

@@ -92,6 +92,11 @@ pub struct Config {
     /// while another waits for the device.
     #[arg(long, env = "ESRP_RENDER_THREADS", default_value_t = 0, value_parser = clap::value_parser!(u16).range(0..=64))]
     pub render_threads: u16,
+    /// Render devices to open on the adapter (0: auto, one), each with its own queue and a copy
+    /// of every scene's geometry; the render threads are spread over them (at least one each).
+    /// Several devices render batches at once where one device's queue runs them in turn.
+    #[arg(long, env = "ESRP_RENDER_DEVICES", default_value_t = 0, value_parser = clap::value_parser!(u16).range(0..=16))]
+    pub render_devices: u16,
     /// Require `authorization: Bearer TOKEN` on every call (not empty: an empty `ESRP_TOKEN`
     /// is refused rather than taken as "no token" or as a token anyone could send). The one
     /// token is an admin named `admin`; --tokens gives several, with roles and quotas.
@@ -290,6 +295,9 @@ mod tests {
         assert_eq!(parse(&["--render-threads", "4"]).unwrap().render_threads, 4);
         assert!(parse(&["--render-threads", "65"]).is_err());
         assert!(parse(&["--render-threads", "-1"]).is_err());
+        assert_eq!(parse(&[]).unwrap().render_devices, 0);
+        assert_eq!(parse(&["--render-devices", "2"]).unwrap().render_devices, 2);
+        assert!(parse(&["--render-devices", "17"]).is_err());
         assert_eq!(crate::render::auto_render_threads(true), 1);
         assert_eq!(crate::render::auto_render_threads(false), 2);
     }

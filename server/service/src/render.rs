@@ -1,5 +1,7 @@
-//! The render scheduler: dedicated threads share the renderer; each gathers the view requests
-//! of all episodes that arrived while it was busy, and renders them in one batch.
+//! The render scheduler: dedicated threads share the renderers (`--render-devices`, each with
+//! its own device and queue, every scene uploaded to each); each thread renders on one of them,
+//! gathers the view requests of all episodes that arrived while it was busy, and renders them in
+//! one batch.
 //!
 //! The async side sends a [`RenderJob`] (the views of one request) down a channel and awaits
 //! the reply; the runtime never blocks on rendering. Batching is automatic: the more episodes
@@ -10,7 +12,7 @@ use std::sync::mpsc;
 use std::time::Instant;
 
 use esrp_core::{CompiledScene, EgoCamera, ObjectPose};
-use esrp_render::{Camera, Outputs, Renderer, SceneHandle, ViewOutput, ViewRequest};
+use esrp_render::{Camera, Outputs, Renderer, SceneHandle, TopDownFrame, ViewOutput, ViewRequest};
 use tokio::sync::oneshot;
 
 use crate::error::ServiceError;
@@ -24,11 +26,31 @@ pub fn auto_render_threads(software: bool) -> usize {
     if software { 1 } else { 2 }
 }
 
+/// The render devices `--render-devices 0` (auto) opens: one.
+pub const AUTO_RENDER_DEVICES: usize = 1;
+
+/// A scene uploaded to every renderer of the scheduler: its handle on each device, in the
+/// renderers' order.
+#[derive(Debug)]
+pub struct DeviceScenes(Vec<Arc<SceneHandle>>);
+
+impl DeviceScenes {
+    /// The handle on renderer `device`.
+    fn on(&self, device: usize) -> &SceneHandle {
+        &self.0[device % self.0.len()]
+    }
+
+    /// The top-down view's frame at `resolution` (the same on every device).
+    pub fn top_down_frame(&self, resolution: u32) -> TopDownFrame {
+        self.0[0].top_down_frame(resolution)
+    }
+}
+
 /// One view to render, owning its inputs.
 #[derive(Clone, Debug)]
 pub struct View {
     /// The scene.
-    pub scene: Arc<SceneHandle>,
+    pub scene: Arc<DeviceScenes>,
     /// Egocentric or top-down.
     pub camera: Camera,
     /// Poses of the movable objects.
@@ -42,7 +64,7 @@ pub struct View {
 impl View {
     /// The egocentric view at `camera`.
     pub fn ego(
-        scene: &Arc<SceneHandle>,
+        scene: &Arc<DeviceScenes>,
         camera: EgoCamera,
         poses: &[ObjectPose],
         outputs: Outputs,
@@ -52,7 +74,7 @@ impl View {
     }
 
     /// The top-down view with the objects at `poses`.
-    pub fn top_down(scene: &Arc<SceneHandle>, poses: &[ObjectPose], resolution: u32) -> Self {
+    pub fn top_down(scene: &Arc<DeviceScenes>, poses: &[ObjectPose], resolution: u32) -> Self {
         Self { scene: scene.clone(), camera: Camera::TopDown, poses: poses.to_vec(), outputs: Outputs::RGB, resolution }
     }
 }
@@ -73,35 +95,39 @@ enum Message {
     Stop,
 }
 
-/// Handle to the render thread. Cheap to clone.
+/// Handle to the render threads. Cheap to clone.
 #[derive(Clone)]
 pub struct RenderScheduler {
-    renderer: Arc<Renderer>,
+    /// At least one.
+    renderers: Arc<[Arc<Renderer>]>,
     jobs: mpsc::Sender<Message>,
     /// The render threads, until [`RenderScheduler::stop`] joins them.
     threads: Arc<std::sync::Mutex<Vec<std::thread::JoinHandle<()>>>>,
 }
 
 impl RenderScheduler {
-    /// Starts `threads` render threads (at least one) around `renderer`.
-    pub fn start(renderer: Renderer, metrics: Arc<Metrics>, threads: usize) -> Self {
-        let count = threads.max(1);
-        let renderer = Arc::new(renderer);
+    /// Starts `threads` render threads around `renderers` (at least one each: thread i renders
+    /// on renderer i modulo their number, and there are at least as many threads as renderers).
+    pub fn start(renderers: Vec<Renderer>, metrics: Arc<Metrics>, threads: usize) -> Self {
+        assert!(!renderers.is_empty(), "a render scheduler needs a renderer");
+        let count = threads.max(renderers.len());
+        let renderers: Arc<[Arc<Renderer>]> = renderers.into_iter().map(Arc::new).collect();
         let (jobs, receiver) = mpsc::channel::<Message>();
         let receiver = Arc::new(std::sync::Mutex::new(receiver));
         let mut threads = Vec::with_capacity(count);
         for i in 0..count {
-            let (renderer, receiver, metrics) = (renderer.clone(), receiver.clone(), metrics.clone());
+            let device = i % renderers.len();
+            let (renderer, receiver, metrics) = (renderers[device].clone(), receiver.clone(), metrics.clone());
             match std::thread::Builder::new()
                 .name(format!("esrp-render-{i}"))
-                .spawn(move || render_loop(&renderer, &receiver, &metrics))
+                .spawn(move || render_loop(&renderer, device, &receiver, &metrics))
             {
                 Ok(thread) => threads.push(thread),
                 Err(e) => tracing::error!("cannot start a render thread: {e}"),
             }
         }
         metrics.render_threads.set(threads.len() as i64);
-        Self { renderer, jobs, threads: Arc::new(std::sync::Mutex::new(threads)) }
+        Self { renderers, jobs, threads: Arc::new(std::sync::Mutex::new(threads)) }
     }
 
     /// Renders what was submitted before this call, then ends the render threads and waits for
@@ -127,18 +153,21 @@ impl RenderScheduler {
         }
     }
 
-    /// The renderer (adapter information, scene uploads).
+    /// The first renderer (adapter information, limits: the same on every device).
     pub fn renderer(&self) -> &Arc<Renderer> {
-        &self.renderer
+        &self.renderers[0]
     }
 
-    /// Uploads a scene's geometry (on a blocking thread).
-    pub async fn upload(&self, scene: Arc<CompiledScene>) -> Result<Arc<SceneHandle>, ServiceError> {
-        let renderer = self.renderer.clone();
-        tokio::task::spawn_blocking(move || renderer.upload_scene(&scene))
-            .await
-            .map_err(|e| ServiceError::Internal(e.to_string()))?
-            .map_err(ServiceError::from)
+    /// Uploads a scene's geometry to every renderer (on a blocking thread).
+    pub async fn upload(&self, scene: Arc<CompiledScene>) -> Result<Arc<DeviceScenes>, ServiceError> {
+        let renderers = self.renderers.clone();
+        let handles = tokio::task::spawn_blocking(move || {
+            renderers.iter().map(|renderer| renderer.upload_scene(&scene)).collect::<Result<Vec<_>, _>>()
+        })
+        .await
+        .map_err(|e| ServiceError::Internal(e.to_string()))?
+        .map_err(ServiceError::from)?;
+        Ok(Arc::new(DeviceScenes(handles)))
     }
 
     /// Renders `views`, batched with whatever other episodes asked for meanwhile.
@@ -186,7 +215,12 @@ impl RenderTicket {
     }
 }
 
-fn render_loop(renderer: &Renderer, receiver: &std::sync::Mutex<mpsc::Receiver<Message>>, metrics: &Metrics) {
+fn render_loop(
+    renderer: &Renderer,
+    device: usize,
+    receiver: &std::sync::Mutex<mpsc::Receiver<Message>>,
+    metrics: &Metrics,
+) {
     loop {
         // Gather under the lock, render without it: while one thread renders, the other
         // gathers the next batch and submits it as soon as it can.
@@ -218,18 +252,22 @@ fn render_loop(renderer: &Renderer, receiver: &std::sync::Mutex<mpsc::Receiver<M
         for job in &jobs {
             Stages::add(&metrics.stages.render_queue, taken.saturating_duration_since(job.sent));
         }
-        render_jobs(renderer, jobs, metrics);
+        render_jobs(renderer, device, jobs, metrics);
         if stop {
             return;
         }
     }
 }
 
-fn render_jobs(renderer: &Renderer, jobs: Vec<RenderJob>, metrics: &Metrics) {
+fn render_jobs(renderer: &Renderer, device: usize, jobs: Vec<RenderJob>, metrics: &Metrics) {
     let requests: Vec<ViewRequest<'_>> = jobs
         .iter()
         .flat_map(|job| job.views.iter())
-        .map(|v| ViewRequest::new(&v.scene, v.camera, &v.poses).with_outputs(v.outputs).with_resolution(v.resolution))
+        .map(|v| {
+            ViewRequest::new(v.scene.on(device), v.camera, &v.poses)
+                .with_outputs(v.outputs)
+                .with_resolution(v.resolution)
+        })
         .collect();
     let started = std::time::Instant::now();
     // Any number of views (a large StepBatch alone): the renderer chunks them itself.

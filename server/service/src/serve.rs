@@ -76,15 +76,21 @@ pub fn build_episodes(config: &Config) -> Result<Arc<Episodes>, ServeError> {
         None => None,
     };
     let backends = config.render_backend;
-    let renderer = esrp_render::Renderer::new(esrp_render::RendererConfig { backends, ..Default::default() })?;
-    let info = renderer.adapter_info();
-    let threads = match config.render_threads {
-        0 => render::auto_render_threads(renderer.is_software()),
+    let devices = match config.render_devices {
+        0 => render::AUTO_RENDER_DEVICES,
         n => usize::from(n),
     };
-    tracing::info!(target: LOG_TARGET, adapter = %info.name, backend = ?info.backend, software = renderer.is_software(), render_threads = threads, "renderer ready");
+    let renderers = (0..devices)
+        .map(|_| esrp_render::Renderer::new(esrp_render::RendererConfig { backends, ..Default::default() }))
+        .collect::<Result<Vec<_>, _>>()?;
+    let (info, software) = (renderers[0].adapter_info(), renderers[0].is_software());
+    let threads = match config.render_threads {
+        0 => render::auto_render_threads(software) * devices,
+        n => usize::from(n),
+    };
+    tracing::info!(target: LOG_TARGET, adapter = %info.name, backend = ?info.backend, software, render_devices = devices, render_threads = threads, "renderer ready");
     let metrics = Arc::new(metrics::Metrics::new());
-    let render = render::RenderScheduler::start(renderer, metrics.clone(), threads);
+    let render = render::RenderScheduler::start(renderers, metrics.clone(), threads);
     let episodes = Arc::new(Episodes::new(store, render, config.clone(), metrics, recorder, attempts));
     let recovered = episodes.recover_attempts().map_err(|e| ServeError::Io {
         what: "recording the attempts a crash cut".into(),

@@ -169,13 +169,17 @@ impl Renderer {
             required_limits: limits.clone(),
             ..Default::default()
         }))
-        .map_err(|e| RenderError::RequestDevice { adapter: adapter_info.name.clone(), reason: e.to_string() })?;
+        .map_err(|e| RenderError::RequestDevice {
+            adapter: adapter_info.name.clone(),
+            reason: format!("{e}{}", nvidia_gl_hint(&adapter_info)),
+        })?;
 
         let lost = Arc::new(Mutex::new(None));
         let lost_flag = Arc::clone(&lost);
+        let hint = nvidia_gl_hint(&adapter_info);
         device.set_device_lost_callback(move |reason, message| {
             if let Ok(mut slot) = lost_flag.lock() {
-                *slot = Some(format!("{reason:?}: {message}"));
+                *slot = Some(format!("{reason:?}: {message}{hint}"));
             }
         });
 
@@ -318,6 +322,24 @@ impl Renderer {
     }
 }
 
+/// What to say after a device error of OpenGL on an NVIDIA GPU: it failed there ("Parent device
+/// is lost" on a lent H100), and Vulkan, which `auto` picks on a GPU, is the path. Empty for any
+/// other adapter.
+fn nvidia_gl_hint(info: &wgpu::AdapterInfo) -> &'static str {
+    gl_hint(info.backend, info.vendor, &info.name)
+}
+
+/// [`nvidia_gl_hint`] of an adapter's backend, PCI vendor and name.
+fn gl_hint(backend: wgpu::Backend, vendor: u32, name: &str) -> &'static str {
+    const NVIDIA: u32 = 0x10de;
+    let nvidia = vendor == NVIDIA || name.to_ascii_lowercase().contains("nvidia");
+    if backend == wgpu::Backend::Gl && nvidia {
+        "; OpenGL on NVIDIA GPUs is known to fail this way: use --render-backend vulkan (what auto picks on a GPU)"
+    } else {
+        ""
+    }
+}
+
 /// The renderer and scene handles are shared across threads (see the module docs).
 const _: () = {
     const fn check<T: Send + Sync>() {}
@@ -336,6 +358,16 @@ mod tests {
             let expected: Vec<u8> = src.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect();
             assert_eq!(dst, expected);
         }
+    }
+
+    #[test]
+    fn opengl_on_nvidia_says_vulkan_is_the_path() {
+        use wgpu::Backend::{Gl, Vulkan};
+        let info = super::gl_hint;
+        assert!(info(Gl, 0x10de, "H100").contains("--render-backend vulkan"));
+        assert!(!info(Gl, 0, "NVIDIA H100 80GB HBM3/PCIe/SSE2").is_empty());
+        assert!(info(Vulkan, 0x10de, "NVIDIA H100").is_empty());
+        assert!(info(Gl, 0x1002, "llvmpipe").is_empty());
     }
 
     #[test]

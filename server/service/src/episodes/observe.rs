@@ -6,15 +6,15 @@ use std::sync::Arc;
 
 use bytes::Bytes;
 use esrp_core::Episode;
-use esrp_render::{Outputs, SceneHandle, TopDownFrame, ViewOutput};
+use esrp_render::{Outputs, TopDownFrame, ViewOutput};
 
-use crate::render::View;
+use crate::render::{DeviceScenes, View};
 use crate::types::{Observation, SensorConfig};
 
 /// What an episode's observations are made from, and the last ones made.
 pub struct Observer {
-    /// The scene's geometry on the renderer.
-    pub scene: Arc<SceneHandle>,
+    /// The scene's geometry on the renderers.
+    pub scene: Arc<DeviceScenes>,
     /// The episode's sensors.
     pub sensors: SensorConfig,
     /// The goal image (RGB at the sensors' resolution), rendered once.
@@ -38,7 +38,7 @@ pub enum Shot {
 impl Observer {
     /// An observer of `scene` with `sensors`, whose goal image is not rendered yet (see
     /// [`Observer::goal_view`]).
-    pub fn new(scene: Arc<SceneHandle>, sensors: SensorConfig) -> Self {
+    pub fn new(scene: Arc<DeviceScenes>, sensors: SensorConfig) -> Self {
         let frame = scene.top_down_frame(sensors.resolution);
         Self {
             scene,

@@ -279,6 +279,12 @@ async fn several_render_threads_keep_every_episode_as_it_runs_alone() {
     concurrent_matches_sequential(&["--render-threads", "4"]).await;
 }
 
+/// And with two render devices, each with its own copy of the scenes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn several_render_devices_keep_every_episode_as_it_runs_alone() {
+    concurrent_matches_sequential(&["--render-devices", "2", "--render-threads", "3"]).await;
+}
+
 async fn concurrent_matches_sequential(args: &[&str]) {
     let server = Server::start(args);
     let mut client = server.client().await;

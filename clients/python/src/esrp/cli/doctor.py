@@ -231,16 +231,29 @@ def _server_checks(client: Client, where: str, seconds: float, report: Callable[
         )
     kind = "software (CPU)" if info.software_renderer else "hardware"
     renderer = f"{info.renderer_adapter} through {info.renderer_backend}, {kind}"
-    if info.software_renderer:
-        report(Check("renderer", "ok", renderer + ": a GPU with Vulkan drivers renders faster"))
-    else:
-        report(Check("renderer", "ok", renderer))
+    report(renderer_check(renderer, info.software_renderer, info.renderer_adapter, info.renderer_backend))
     render, scene = _test_render(client)
     report(render)
     if scene is None:
         return
     report(_throughput(client, scene, seconds))
     report(_vector_throughput(client, scene, seconds))
+
+
+def renderer_check(described: str, software: bool, adapter: str, backend: str) -> Check:
+    """The renderer's line: fine, with a hint where a GPU would render faster, and a warning for
+    OpenGL on an NVIDIA GPU (it failed there with "Parent device is lost": Vulkan is the path).
+    """
+    if software:
+        return Check("renderer", "ok", described + ": a GPU with Vulkan drivers renders faster")
+    if "nvidia" in adapter.lower() and backend.lower() in ("gl", "opengl", "gles"):
+        return Check(
+            "renderer",
+            "warn",
+            described + ": OpenGL on NVIDIA GPUs failed with a lost device under load",
+            "start the server with --render-backend vulkan (what auto picks on a GPU)",
+        )
+    return Check("renderer", "ok", described)
 
 
 def _test_render(client: Client) -> tuple[Check, str | None]:

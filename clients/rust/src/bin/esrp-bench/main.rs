@@ -49,7 +49,9 @@ mod soak;
 #[command(name = "esrp-bench", version, about = "End-to-end throughput and latency of esrp-server")]
 struct Args {
     /// A running server (`http://host:port`); without it, esrp-bench starts the `esrp-server`
-    /// next to its own executable on a free local port.
+    /// next to its own executable on a free local port. With `--processes`, several servers
+    /// may be named, comma-separated: process i drives server i modulo their number (scale-out
+    /// measured with the same clients as one server).
     #[arg(long)]
     server: Option<String>,
     /// Path of the server binary to start (default: `esrp-server` beside esrp-bench).
@@ -432,7 +434,7 @@ async fn scenario(
 /// at `address`, each with `--episodes` episodes, and sums them: their steps over the measured
 /// seconds; the median of their p50 latencies and the worst of their p99s; the breakdown from
 /// before they start to after they end (their creates and closes included).
-fn in_processes(name: &str, args: &Args, address: &str, metrics: Option<&str>) -> anyhow::Result<Outcome> {
+fn in_processes(name: &str, args: &Args, addresses: &[String], metrics: Option<&str>) -> anyhow::Result<Outcome> {
     let exe = std::env::current_exe().context("this program's path")?;
     let dir = std::env::temp_dir().join(format!("esrp-bench-{}-{name}", std::process::id()));
     std::fs::create_dir_all(&dir)?;
@@ -442,7 +444,7 @@ fn in_processes(name: &str, args: &Args, address: &str, metrics: Option<&str>) -
         let json = dir.join(format!("{i}.json"));
         let mut command = std::process::Command::new(&exe);
         command
-            .args(["--server", address, "--scenarios", name])
+            .args(["--server", &addresses[i as usize % addresses.len()], "--scenarios", name])
             .args(["--seconds", &args.seconds.to_string(), "--episodes", &args.episodes.to_string()])
             .args(["--window", &args.window.to_string()])
             .arg("--json")
@@ -522,7 +524,13 @@ fn main() -> anyhow::Result<()> {
     if args.breakdown && args.server.is_none() && !server_args.iter().any(|a| a.starts_with("--metrics-listen")) {
         server_args.extend(["--metrics-listen".to_owned(), "127.0.0.1:0".to_owned()]);
     }
-    let (address, local) = reach_or_start(args.server.as_deref(), args.server_binary.clone(), &server_args)?;
+    let named: Vec<String> =
+        args.server.iter().flat_map(|s| s.split(',')).map(|s| s.trim().to_owned()).filter(|s| !s.is_empty()).collect();
+    if named.len() > 1 && args.processes < 2 {
+        bail!("several servers need --processes (process i drives server i modulo their number)");
+    }
+    let (address, local) = reach_or_start(named.first().map(String::as_str), args.server_binary.clone(), &server_args)?;
+    let addresses = if named.is_empty() { vec![address.clone()] } else { named };
     let metrics = match (&args.metrics, &local) {
         (Some(url), _) => Some(url.clone()),
         (None, Some(local)) => local.metrics.clone(),
@@ -574,7 +582,7 @@ fn main() -> anyhow::Result<()> {
             continue;
         }
         let outcome = if args.processes > 1 && name != "memory-1000" {
-            in_processes(name, &args, &address, metrics.as_deref())
+            in_processes(name, &args, &addresses, metrics.as_deref())
         } else {
             runtime_for(name)?
                 .block_on(async { scenario(name, &args, &connect().await?, local.as_ref(), metrics.as_deref()).await })
