@@ -12,6 +12,7 @@ import dataclasses
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -79,12 +80,16 @@ def test_an_epoch_trains_with_finite_losses(demos: Path, tmp_path: Path) -> None
     assert all(math.isfinite(float(rows[0][key])) for key in ("loss", "mse", "ce"))
 
 
-def test_the_loss_falls_on_a_fixed_batch(demos: Path) -> None:
+def fresh_model(demos: Path) -> tuple[BcConfig, DiffusionPolicy, Any, DemoWindows]:
+    """A tiny config, its model from seed 0, the training scheduler and the demonstrations' windows."""
     config = tiny(demos)
     torch.manual_seed(0)
-    model = DiffusionPolicy(config)
     scheduler, _ = schedulers(config)
-    windows = DemoWindows(demos, config.n_obs, config.horizon)
+    return config, DiffusionPolicy(config), scheduler, DemoWindows(demos, config.n_obs, config.horizon)
+
+
+def test_the_loss_falls_on_a_fixed_batch(demos: Path) -> None:
+    _, model, scheduler, windows = fresh_model(demos)
     batch = windows.batch(np.arange(len(windows)))
     assert batch["frames"][batch["frame_index"]].shape[1:] == (4, 128, 128, 3)
     assert batch["actions"].shape[1:] == batch["mask"].shape[1:] == (8,)
@@ -171,11 +176,7 @@ def test_no_label_is_made_up_past_an_episodes_end(demos: Path) -> None:
 
 
 def test_unlabelled_positions_count_in_no_loss(demos: Path) -> None:
-    config = tiny(demos)
-    torch.manual_seed(0)
-    model = DiffusionPolicy(config)
-    scheduler, _ = schedulers(config)
-    windows = DemoWindows(demos, config.n_obs, config.horizon)
+    config, model, scheduler, windows = fresh_model(demos)
     batch = windows.batch(np.array([len(windows) - 3, len(windows) - 1]))
     unlabelled = ~batch["mask"][:, None, :].expand(-1, 6, -1)
     # The denoiser's prediction, set by hand: what the loss reads of it is what counts.

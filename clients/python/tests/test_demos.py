@@ -153,6 +153,11 @@ def test_dagger_records_the_policys_own_actions_and_stops_at_max_steps(
     assert "data/policy_action" not in store
 
 
+def padded(plan: list[int], horizon: int) -> list[int]:
+    """A plan's first `horizon` actions as a store's label chunk holds them (255 past its end)."""
+    return plan[:horizon] + [255] * max(horizon - len(plan), 0)
+
+
 def test_dagger_with_beta_one_follows_the_plan(
     server: esrp.LocalServer, client: esrp.Client, easy_scenes: list[str], tmp_path: Path
 ) -> None:
@@ -170,8 +175,7 @@ def test_dagger_with_beta_one_follows_the_plan(
     # Each state's chunk is the rest of that plan: its next 8 actions, NO_ACTION past its end.
     assert chunks.shape == (len(planned), 8)
     for t, chunk in enumerate(chunks):
-        rest = planned[t : t + 8]
-        assert chunk.tolist() == rest + [255] * (8 - len(rest))
+        assert chunk.tolist() == padded(planned[t:], 8)
 
 
 def test_dagger_labels_each_state_with_the_plan_from_that_state(
@@ -192,7 +196,7 @@ def test_dagger_labels_each_state_with_the_plan_from_that_state(
             for action in stepped[:t]:
                 episode.step(int(action))
             plan = [int(a) for a in episode.plan_actions(max_actions=5).actions]
-        assert chunks[t].tolist() == plan + [255] * (5 - len(plan)), t
+        assert chunks[t].tolist() == padded(plan, 5), t
     # A store of other chunks does not take more episodes.
     assert export(server, out, *arguments, "--label-horizon", "8") == 2
 
