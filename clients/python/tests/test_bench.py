@@ -91,3 +91,35 @@ def test_bench_rejects_unknown_transports(capsys: pytest.CaptureFixture[str]) ->
         with pytest.raises(SystemExit):
             bench.main(["--transport", bad])
         assert "--transport" in capsys.readouterr().err
+
+
+def test_bench_runs_in_several_processes_and_sums_them(
+    server: esrp.LocalServer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    report = tmp_path / "bench.json"
+    arguments = ["--server", server.address, "--scenarios", "client-1,vec-64", "--processes", "2"]
+    arguments += ["--seconds", "0.3", "--warmup", "0.1", "--warmup-rounds", "0", "--json", str(report)]
+    assert bench.main(arguments) == 0
+    out = capsys.readouterr().out
+    assert "2 processes at once" in out
+    written = json.loads(report.read_text())
+    assert written["processes"] == 2
+    assert len(written["children"]) == 2
+    rows = {row["scenario"]: row for row in written["results"]}
+    assert rows["vec-64"]["episodes"] == 128
+    each = rows["vec-64"]["processes_steps_per_second"]
+    assert len(each) == 2
+    assert all(rate > 0 for rate in each)
+    assert rows["vec-64"]["steps_per_second"] == pytest.approx(sum(each))
+    assert rows["client-1"]["p50_ms"] > 0
+
+
+def test_bench_processes_leave_other_programs_out(capsys: pytest.CaptureFixture[str]) -> None:
+    for arguments, said in (
+        (["--processes", "2", "--scenarios", "vec-64,rust"], "leave rust and miniworld out"),
+        (["--processes", "0"], "between 1 and 256"),
+    ):
+        with pytest.raises(SystemExit) as exit_info:
+            bench.main(arguments)
+        assert exit_info.value.code == 2
+        assert said in capsys.readouterr().err

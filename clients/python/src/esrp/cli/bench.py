@@ -29,6 +29,12 @@ shows the medians (ratios to Rust: the median of each round's ratio). Before the
 (1) rounds run the same scenarios unmeasured: a server generates and compiles each scene of the
 built-in benchmark on its first use (a vec-64 round on a fresh server measured a third of a warm
 one's steps/s), and the measured rounds then visit the same scenes, from the same seeds.
+
+`--processes N` runs the chosen scenarios in N processes at once against one server (started
+here unless `--server` names one), so that one Python process is not what caps the figure on a
+many-core machine: each runs every round itself, and the table sums their steps/s per scenario
+(the latencies: the median of their medians, the worst of their p99s). Not with `rust` or
+`miniworld`, which measure other programs.
 """
 
 from __future__ import annotations
@@ -633,6 +639,13 @@ def _parse_args(argv: Sequence[str] | None, prog: str) -> argparse.Namespace:
         "is installed), native, grpcio; the first one's rows have the plain names (default auto)",
     )
     parser.add_argument("--json", type=Path, help="also write the results to this JSON file")
+    parser.add_argument(
+        "--processes",
+        type=int,
+        default=1,
+        help="run the scenarios in this many processes at once against one server; the table sums "
+        "them (default 1)",
+    )
     args = parser.parse_args(argv)
     args.transports = [name.strip() for name in args.transport.split(",") if name.strip()]
     from .. import _native
@@ -648,6 +661,10 @@ def _parse_args(argv: Sequence[str] | None, prog: str) -> argparse.Namespace:
     unknown = [name for name in args.scenarios if name not in SCENARIOS]
     if unknown:
         parser.error(f"unknown scenario(s) {', '.join(unknown)}: use {', '.join(SCENARIOS)}")
+    if not 1 <= args.processes <= 256:
+        parser.error("--processes must be between 1 and 256")
+    if args.processes > 1 and {"rust", "miniworld"} & set(args.scenarios):
+        parser.error("--processes runs the Python scenarios only: leave rust and miniworld out")
     if args.repeat < 1 or args.seconds <= 0 or args.warmup < 0 or args.warmup_rounds < 0:
         parser.error(
             "--repeat must be at least 1, --seconds positive, --warmup and --warmup-rounds not negative"
@@ -679,8 +696,80 @@ def _checked(argv: Sequence[str] | None, prog: str) -> int:
         return 1
 
 
+def _in_processes(args: argparse.Namespace, address: str) -> list[dict[str, Any]]:
+    """Runs this command with `args` in `args.processes` child processes at once against the
+    server at `address`; returns each child's JSON report.
+    """
+    flags = [
+        *("--server", address, "--scenarios", ",".join(args.scenarios)),
+        *("--seconds", str(args.seconds), "--warmup", str(args.warmup), "--repeat", str(args.repeat)),
+        *("--warmup-rounds", str(args.warmup_rounds), "--transport", ",".join(args.transports)),
+    ]
+    environment = dict(os.environ)
+    if args.token is not None:
+        environment["ESRP_TOKEN"] = args.token
+    with tempfile.TemporaryDirectory(prefix="esrp-bench-") as folder:
+        paths = [Path(folder) / f"{i}.json" for i in range(args.processes)]
+        children = [
+            subprocess.Popen(
+                [sys.executable, "-m", "esrp.bench", *flags, "--json", str(path)],
+                stdout=subprocess.DEVNULL,
+                env=environment,
+            )
+            for path in paths
+        ]
+        codes = [child.wait() for child in children]
+        if any(codes):
+            raise RuntimeError(f"a benchmark process failed (exit statuses {codes})")
+        return [json.loads(path.read_text(encoding="utf-8")) for path in paths]
+
+
+def _summed(reports: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per scenario of several processes' reports: their steps/s summed, the median of
+    their median latencies and the worst of their p99s.
+    """
+    rows = []
+    for first in reports[0]["results"]:
+        same = [r for report in reports for r in report["results"] if r["scenario"] == first["scenario"]]
+        rates = [r["steps_per_second"] for r in same if r["steps_per_second"] is not None]
+        p50 = [r["p50_ms"] for r in same if r["p50_ms"] is not None]
+        p99 = [r["p99_ms"] for r in same if r["p99_ms"] is not None]
+        rows.append(
+            {
+                "scenario": first["scenario"],
+                "episodes": sum(r["episodes"] for r in same),
+                "steps_per_second": sum(rates) if rates else None,
+                "p50_ms": statistics.median(p50) if p50 else None,
+                "p99_ms": max(p99) if p99 else None,
+                "processes_steps_per_second": rates,
+            }
+        )
+    return rows
+
+
+def _main_processes(args: argparse.Namespace) -> int:
+    """`--processes N`: the children's reports, summed, printed and written."""
+    with _server(args.server) as address:
+        print(f"server {address}: {args.processes} processes at once", flush=True)
+        reports = _in_processes(args, address)
+    rows = _summed(reports)
+    print(f"{'scenario':<22}{'episodes':>9}{'steps/s':>11}{'p50 ms':>9}{'p99 ms':>9}")
+    for row in rows:
+        rate = "" if row["steps_per_second"] is None else f"{row['steps_per_second']:.0f}"
+        p50 = "" if row["p50_ms"] is None else f"{row['p50_ms']:.2f}"
+        p99 = "" if row["p99_ms"] is None else f"{row['p99_ms']:.2f}"
+        print(f"{row['scenario']:<22}{row['episodes']:>9}{rate:>11}{p50:>9}{p99:>9}")
+    if args.json is not None:
+        report = {"date": time.strftime("%Y-%m-%d"), "processes": args.processes, "results": rows}
+        args.json.write_text(json.dumps({**report, "children": reports}, indent=2))
+    return 0
+
+
 def _main(args: argparse.Namespace) -> int:
     from .._client import Client
+
+    if args.processes > 1:
+        return _main_processes(args)
 
     before = machine()
     print(
