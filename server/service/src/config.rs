@@ -86,10 +86,10 @@ pub struct Config {
         value_parser = PossibleValuesParser::new(BackendPreference::NAMES).try_map(|name| name.parse::<BackendPreference>()),
     )]
     pub render_backend: BackendPreference,
-    /// Threads rendering batches (0: auto, one on a software renderer such as llvmpipe, whose
-    /// rasteriser already uses every core, two on a GPU). Each gathers the views that arrived
-    /// while it was busy and renders them as one batch; with several, one encodes and extracts
-    /// while another waits for the device.
+    /// Threads rendering batches (0: auto, one on a software renderer such as llvmpipe, which
+    /// rasterises one scene at a time per process, two on a GPU). Each gathers the views that
+    /// arrived while it was busy and renders them as one batch; with several, one encodes and
+    /// extracts while another waits for the device.
     #[arg(long, env = "ESRP_RENDER_THREADS", default_value_t = 0, value_parser = clap::value_parser!(u16).range(0..=64))]
     pub render_threads: u16,
     /// Render devices to open on the adapter (0: auto, one), each with its own queue and a copy

@@ -74,19 +74,6 @@ pub struct Stages {
 }
 
 impl Stages {
-    /// The names and counters, in the order a step goes through them.
-    pub fn all(&self) -> [(&'static str, &Counter<f64, AtomicU64>); 7] {
-        [
-            ("lock", &self.lock),
-            ("take", &self.take),
-            ("render_queue", &self.render_queue),
-            ("render_encode", &self.render_encode),
-            ("render_device", &self.render_device),
-            ("render_extract", &self.render_extract),
-            ("answer", &self.answer),
-        ]
-    }
-
     /// Adds `elapsed` to `stage`.
     pub fn add(stage: &Counter<f64, AtomicU64>, elapsed: Duration) {
         stage.inc_by(elapsed.as_secs_f64());

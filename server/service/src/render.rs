@@ -18,10 +18,11 @@ use tokio::sync::oneshot;
 use crate::error::ServiceError;
 use crate::metrics::{Metrics, Stages};
 
-/// The render threads `--render-threads 0` (auto) starts: one on a software renderer, whose
-/// rasteriser already spreads each batch over the cores (a second thread measured no faster on
-/// the 2-core VM, docs/performance.md); two on a GPU, so that one thread gathers, encodes and
-/// extracts while the other waits for the device (to be measured on a GPU machine).
+/// The render threads `--render-threads 0` (auto) starts: one on a software renderer (Mesa's
+/// CPU renderers rasterise one scene at a time per process, so a second thread only contends: it
+/// measured slower on the 2-core VM, docs/performance.md); two on a GPU, so that one thread
+/// gathers, encodes and extracts while the other waits for the device (to be measured on a GPU
+/// machine).
 pub fn auto_render_threads(software: bool) -> usize {
     if software { 1 } else { 2 }
 }

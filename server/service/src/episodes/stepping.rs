@@ -55,15 +55,16 @@ pub(super) fn check_batch_len(episodes: &Episodes, steps: usize) -> Result<(), S
 
 /// Takes the `queue` of steps in order on the locked `guards` (`ids` names them): each step
 /// sees the state the previous one left, and one that cannot be taken answers its error
-/// without moving.
+/// without moving. Its time counts in the `take` stage.
 fn take_queued(
     episodes: &Episodes,
     guards: &mut [EpisodeGuard],
     ids: &[EpisodeId],
     queue: Vec<Result<QueuedStep, ServiceError>>,
 ) -> Vec<Result<TakenStep, ServiceError>> {
+    let taking = Instant::now();
     let max_message_bytes = episodes.config.max_message_bytes;
-    queue
+    let taken = queue
         .into_iter()
         .map(|step| {
             let step = step?;
@@ -97,7 +98,9 @@ fn take_queued(
             }
             Ok(TakenStep { result, observation, bytes, record, episode: step.episode })
         })
-        .collect()
+        .collect();
+    Stages::add(&episodes.metrics.stages.take, taking.elapsed());
+    taken
 }
 
 /// Steps taken, their views being rendered and the records of the runs they ended being
@@ -326,8 +329,7 @@ async fn take_steps(
         slots[e] = Some(locked[e].1.clone().lock_owned().await);
     }
     let mut guards: Vec<EpisodeGuard> = slots.into_iter().flatten().collect();
-    let stages = &episodes.metrics.stages;
-    Stages::add(&stages.lock, started.elapsed());
+    Stages::add(&episodes.metrics.stages.lock, started.elapsed());
     // Closed (or reaped) while this call waited for its lock.
     for (e, (id, _)) in locked.iter().enumerate() {
         if !episodes.registry.contains(id) {
@@ -342,16 +344,11 @@ async fn take_steps(
     // run inline, which spares a thread hand-off per step; more go to a blocking thread so
     // that the runtime never stalls.
     let taken = if queue.len() <= INLINE_STEPS {
-        let taking = Instant::now();
-        let taken = take_queued(episodes, &mut guards, &ids, queue);
-        Stages::add(&stages.take, taking.elapsed());
-        taken
+        take_queued(episodes, &mut guards, &ids, queue)
     } else {
         let this = episodes.clone();
         let (guards_back, taken) = tokio::task::spawn_blocking(move || {
-            let taking = Instant::now();
             let taken = take_queued(&this, &mut guards, &ids, queue);
-            Stages::add(&this.metrics.stages.take, taking.elapsed());
             (guards, taken)
         })
         .await
