@@ -417,3 +417,20 @@ def test_the_shipped_bc_configs_load() -> None:
     assert dagger.iterations >= 1
     with pytest.raises(ValueError, match="has no \\[dagger\\] table"):
         load_dagger_config(configs / "bc-cpu-small.toml")
+
+
+def test_an_initial_checkpoint_older_than_the_recipe_settings_is_taken_as_trained(
+    expert: Path, tmp_path: Path
+) -> None:
+    from esrp.agents.bc import LEGACY_SETTINGS
+    from esrp.train.dagger import _initial_epochs
+
+    legacy = BcConfig.from_mapping(bc_table(expert, **LEGACY_SETTINGS))
+    checkpoint = train(legacy, tmp_path / "old", progress=False)
+    # As a checkpoint written before these settings existed: its config lacks them.
+    state = torch.load(checkpoint, weights_only=False)
+    state["config"] = {k: v for k, v in state["config"].items() if k not in LEGACY_SETTINGS}
+    torch.save(state, checkpoint)
+    assert _initial_epochs(checkpoint, legacy) == 1
+    with pytest.raises(ValueError, match="ema"):
+        _initial_epochs(checkpoint, BcConfig.from_mapping(bc_table(expert)))

@@ -37,7 +37,7 @@ from typing import Any, cast
 import numpy as np
 import torch
 
-from ..agents.bc import BcConfig
+from ..agents.bc import BcConfig, checkpoint_settings
 from ._config import read_document
 from .bc import RESUME_FREE, train
 from .demos import DemoSettings, export_demos
@@ -222,7 +222,7 @@ def _initial_epochs(path: Path, bc: BcConfig) -> int:
             f"dagger initial: {path} holds the model only (an evaluation checkpoint): DAgger fine-tunes "
             "the model and its optimizer, so give the run's own ckpt.pt (or ckpt-epoch-N.pt)"
         )
-    different = _differences(state["config"], bc.to_dict(), RESUME_FREE)
+    different = _differences(checkpoint_settings(state["config"]), bc.to_dict(), RESUME_FREE)
     if different:
         raise ValueError(
             f"dagger initial: {path} was trained with other settings than [bc]'s ({'; '.join(different)})"
