@@ -129,6 +129,8 @@ def test_dagger_records_the_policys_own_actions_and_stops_at_max_steps(
     scenes = ["--split", "test", "--scenes", ",".join(easy_scenes[:2])]
     assert export(server, out, *scenes, "--max-steps", "4") == 2
     assert "--max-steps only apply with --dagger" in capsys.readouterr().err
+    assert export(server, out, *scenes, "--label-horizon", "4") == 2
+    assert "--label-horizon only apply with --dagger" in capsys.readouterr().err
     assert export(server, out, *scenes, "--dagger", "random", "--seed", "3", "--max-steps", "4") == 0
     printed = capsys.readouterr().out
     store = zarr.open_group(str(out), mode="r")

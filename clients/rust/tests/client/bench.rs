@@ -47,3 +47,14 @@ fn a_breakdown_of_a_named_server_needs_its_metrics() {
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.contains("--metrics URL"), "{stderr}");
 }
+
+#[test]
+fn several_servers_need_several_processes() {
+    let output = Command::new(env!("CARGO_BIN_EXE_esrp-bench"))
+        .args(["--server", "http://127.0.0.1:1,http://127.0.0.1:2", "--scenarios", "unary-1"])
+        .output()
+        .expect("esrp-bench runs");
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("several servers need --processes"), "{stderr}");
+}
