@@ -15,6 +15,7 @@
 //!   generator can reach after its last release, and the check of that rule.
 //! - [`front`]: the 3D-FRONT importer: houses and 3D-FUTURE models to scene pairs.
 //! - [`cache`]: a built-in benchmark's generated scenes kept on disk, once per machine.
+//! - [`pack`]: a built-in benchmark's generated scenes in one file, each compressed on its own (the server ships them).
 //! - [`files`]: the on-disk format (`manifest.json` and `scenes/*.json`), written atomically.
 //! - [`stats`]: dataset statistics as JSON and PNG plots.
 //! - [`dice`]: the portable seeded random source.
@@ -39,6 +40,7 @@ pub mod dice;
 pub mod files;
 pub mod front;
 pub mod layout;
+pub mod pack;
 pub mod start;
 pub mod stats;
 

@@ -114,6 +114,26 @@ enum Command {
         out: PathBuf,
     },
     /// Print one scene as JSON: from a dataset folder, or generated from the built-in benchmark.
+    /// Generate every scene of a built-in benchmark into one scene pack (the file the server
+    /// ships: `server/service/packs/`), or with --check, regenerate them and compare them with a
+    /// pack, byte for byte.
+    Pack {
+        /// The pack to write (or, with --check, to compare).
+        #[arg(long)]
+        out: PathBuf,
+        /// The built-in benchmark.
+        #[arg(long, default_value_t = BenchVersion::default(), value_parser = parse_version)]
+        benchmark: BenchVersion,
+        /// Benchmark seed.
+        #[arg(long, default_value_t = DEFAULT_SEED)]
+        seed: u64,
+        /// Worker threads (default: all cores).
+        #[arg(long)]
+        threads: Option<usize>,
+        /// Compare the pack at --out with the generator's scenes instead of writing it.
+        #[arg(long)]
+        check: bool,
+    },
     Show {
         /// Scene id (e.g. esrp-bench-v2/00042) or index into the built-in benchmark.
         id: String,
@@ -127,6 +147,62 @@ enum Command {
         #[arg(long, default_value_t = DEFAULT_SEED)]
         seed: u64,
     },
+}
+
+/// `esrp-dataset pack`: every scene of the benchmark generated (in parallel), then written as one
+/// pack, or with `check` compared with the pack at `out`. Returns whether the check passed.
+fn pack(out: &Path, version: BenchVersion, seed: u64, check: bool) -> Result<bool> {
+    use esrp_dataset::pack::{ScenePack, scene_json, write_pack};
+    let bench = Benchmark::new(version, seed);
+    let started = Instant::now();
+    let bar = progress(bench.len(), "generate");
+    let scenes: Vec<String> = (0..bench.len())
+        .into_par_iter()
+        .map(|index| {
+            let generated = bench.generate(index).map(|g| scene_json(&g.scene));
+            bar.inc(1);
+            generated.map_err(|e| anyhow::anyhow!("scene {index}: {e}"))
+        })
+        .collect::<Result<_>>()?;
+    bar.finish_and_clear();
+    if !check {
+        let mut bytes = Vec::new();
+        write_pack(&bench, &scenes, &mut bytes)?;
+        esrp_dataset::files::write_atomic(out, &bytes)?;
+        println!(
+            "{}: {} scenes of {} in {} bytes ({:.0} s)",
+            out.display(),
+            scenes.len(),
+            bench.name(),
+            bytes.len(),
+            started.elapsed().as_secs_f64()
+        );
+        return Ok(true);
+    }
+    let bytes = std::fs::read(out).with_context(|| format!("reading {}", out.display()))?;
+    let pack = ScenePack::parse(&bytes)?;
+    if !pack.serves(&bench) {
+        println!(
+            "{}: holds {:?}, not every scene of {} from this generator",
+            out.display(),
+            pack.header(),
+            bench.name()
+        );
+        return Ok(false);
+    }
+    let differing: Vec<usize> =
+        (0..scenes.len()).filter(|&i| pack.json(i).map_or(true, |json| json != scenes[i])).collect();
+    if differing.is_empty() {
+        println!("{}: all {} scenes equal the generator's, byte for byte", out.display(), scenes.len());
+    } else {
+        println!(
+            "{}: {} scenes differ from the generator's, first {:?}",
+            out.display(),
+            differing.len(),
+            &differing[..differing.len().min(10)]
+        );
+    }
+    Ok(differing.is_empty())
 }
 
 fn parse_version(name: &str) -> Result<BenchVersion, String> {
@@ -484,6 +560,12 @@ fn main() -> ExitCode {
         #[cfg(feature = "render")]
         Command::Render { scene, sheet, dataset, benchmark, seed, resolution, out } => {
             render(scene.as_deref(), sheet, dataset.as_deref(), benchmark, seed, resolution, &out).map(|()| true)
+        }
+        Command::Pack { out, benchmark, seed, threads, check } => {
+            if let Some(threads) = threads {
+                let _ = rayon::ThreadPoolBuilder::new().num_threads(threads).build_global();
+            }
+            pack(&out, benchmark, seed, check)
         }
         Command::Show { id, dataset, benchmark, seed } => show(&id, dataset.as_deref(), benchmark, seed).map(|()| true),
     };
