@@ -36,17 +36,8 @@ enum Command {
         /// Index of the first scene.
         #[arg(long, default_value_t = 0)]
         first: usize,
-        /// The built-in benchmark: esrp-bench-v2 (the agent starts away from the objects) or
-        /// esrp-bench-v1 (it starts at the generator's last release; kept unchanged for
-        /// published results).
-        #[arg(long, default_value_t = BenchVersion::default(), value_parser = parse_version)]
-        benchmark: BenchVersion,
-        /// Benchmark seed (0 is the published benchmark itself).
-        #[arg(long, default_value_t = DEFAULT_SEED)]
-        seed: u64,
-        /// Worker threads (default: all cores).
-        #[arg(long)]
-        threads: Option<usize>,
+        #[command(flatten)]
+        built_in: BuiltIn,
         /// Overwrite a folder that already holds a dataset.
         #[arg(long)]
         force: bool,
@@ -121,15 +112,8 @@ enum Command {
         /// The pack to write (or, with --check, to compare).
         #[arg(long)]
         out: PathBuf,
-        /// The built-in benchmark.
-        #[arg(long, default_value_t = BenchVersion::default(), value_parser = parse_version)]
-        benchmark: BenchVersion,
-        /// Benchmark seed.
-        #[arg(long, default_value_t = DEFAULT_SEED)]
-        seed: u64,
-        /// Worker threads (default: all cores).
-        #[arg(long)]
-        threads: Option<usize>,
+        #[command(flatten)]
+        built_in: BuiltIn,
         /// Compare the pack at --out with the generator's scenes instead of writing it.
         #[arg(long)]
         check: bool,
@@ -203,6 +187,33 @@ fn pack(out: &Path, version: BenchVersion, seed: u64, check: bool) -> Result<boo
         );
     }
     Ok(differing.is_empty())
+}
+
+/// Which built-in benchmark a command generates, and on how many threads.
+#[derive(clap::Args)]
+struct BuiltIn {
+    /// The built-in benchmark: esrp-bench-v2 (the agent starts away from the objects) or
+    /// esrp-bench-v1 (it starts at the generator's last release; kept unchanged for published
+    /// results).
+    #[arg(long, default_value_t = BenchVersion::default(), value_parser = parse_version)]
+    benchmark: BenchVersion,
+    /// Benchmark seed (0 is the published benchmark itself).
+    #[arg(long, default_value_t = DEFAULT_SEED)]
+    seed: u64,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+}
+
+impl BuiltIn {
+    /// Sizes the worker pool (`--threads`) and returns the benchmark and its seed.
+    fn start(&self) -> (BenchVersion, u64) {
+        if let Some(threads) = self.threads {
+            // Only fails if a pool was already built, which cannot happen here.
+            let _ = rayon::ThreadPoolBuilder::new().num_threads(threads).build_global();
+        }
+        (self.benchmark, self.seed)
+    }
 }
 
 fn parse_version(name: &str) -> Result<BenchVersion, String> {
@@ -544,11 +555,8 @@ fn render(
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::Generate { out, scenes, first, benchmark, seed, threads, force } => {
-            if let Some(threads) = threads {
-                // Only fails if a pool was already built, which cannot happen here.
-                let _ = rayon::ThreadPoolBuilder::new().num_threads(threads).build_global();
-            }
+        Command::Generate { out, scenes, first, built_in, force } => {
+            let (benchmark, seed) = built_in.start();
             generate(&out, scenes, first, benchmark, seed, force)
         }
         Command::Import3dFront { front, future, out, seed, max_houses, force } => {
@@ -561,10 +569,8 @@ fn main() -> ExitCode {
         Command::Render { scene, sheet, dataset, benchmark, seed, resolution, out } => {
             render(scene.as_deref(), sheet, dataset.as_deref(), benchmark, seed, resolution, &out).map(|()| true)
         }
-        Command::Pack { out, benchmark, seed, threads, check } => {
-            if let Some(threads) = threads {
-                let _ = rayon::ThreadPoolBuilder::new().num_threads(threads).build_global();
-            }
+        Command::Pack { out, built_in, check } => {
+            let (benchmark, seed) = built_in.start();
             pack(&out, benchmark, seed, check)
         }
         Command::Show { id, dataset, benchmark, seed } => show(&id, dataset.as_deref(), benchmark, seed).map(|()| true),
