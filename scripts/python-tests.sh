@@ -58,7 +58,7 @@ wanted="$(cat "$requirements" "$constraints" "$client_constraints" "$client/pypr
 if [ "$(cat "$stamp" 2>/dev/null)" != "$wanted" ]; then
     pip install -r "$requirements" -c "$constraints"
     pip install hatchling maturin -c "$client_constraints"
-    pip install --no-build-isolation "./$client[test,train,ray]" -c "$client_constraints"
+    pip install --no-build-isolation "./$client[test,train,ray,sb3,torchrl,minari]" -c "$client_constraints"
     echo "$wanted" >"$stamp"
 fi
 # The package itself, as built from this tree, every time (a wheel: what `pip install` gives users).

@@ -65,10 +65,11 @@ def child_pids(pid: int) -> list[int]:
     return found
 
 
-def load_tool(name: str) -> ModuleType:
-    """The script `tools/NAME.py` of this package's source tree, imported as module `NAME`."""
+def load_tool(name: str, folder: str = "tools") -> ModuleType:
+    """The script `FOLDER/NAME.py` of this package's source tree (`tools`, `examples`), imported as
+    module `NAME`."""
     spec = importlib.util.spec_from_file_location(
-        name, Path(__file__).resolve().parents[1] / "tools" / f"{name}.py"
+        name, Path(__file__).resolve().parents[1] / folder / f"{name}.py"
     )
     assert spec is not None
     assert spec.loader is not None

@@ -1,0 +1,165 @@
+"""Stable-Baselines3 through `esrp.integrations.sb3`: SB3's own env checker on the single env, the
+adapter step for step against SB3's DummyVecEnv over single envs (observations bit for bit,
+rewards, dones, infos, terminal observations, reset infos), a short `learn()` of SB3's PPO, and
+clear errors for what the adapter cannot do."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+from typing import Any
+
+import gymnasium
+import numpy as np
+import pytest
+from conftest import load_tool, settled_live_episodes
+from stable_baselines3 import PPO
+from stable_baselines3.common.env_checker import check_env
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor
+
+import esrp
+from esrp.integrations.sb3 import EsrpVecEnv, make_vec_env, unbatch_infos
+
+NUM_ENVS = 3
+SETTINGS: dict[str, Any] = {"split": "test", "difficulty": "easy", "sensors": esrp.Sensors(resolution=32)}
+
+
+def assert_same(a: Any, b: Any, path: str = "") -> None:  # noqa: ANN401
+    """Deep equality: dicts (the same keys, in any order), arrays (dtype, shape, values), scalars."""
+    if isinstance(a, dict):
+        assert isinstance(b, dict), path
+        assert sorted(a) == sorted(b), f"{path}: {sorted(a)} != {sorted(b)}"
+        for key in a:
+            assert_same(a[key], b[key], f"{path}.{key}")
+    elif isinstance(a, np.ndarray):
+        assert isinstance(b, np.ndarray), path
+        assert (a.dtype, a.shape) == (b.dtype, b.shape), path
+        assert np.array_equal(a, b), path
+    else:
+        assert a == b, f"{path}: {a!r} != {b!r}"
+
+
+def drive(env: VecEnv, steps: int, seed: int) -> list[Any]:
+    """Seeds, resets and steps `env` with seeded actions; returns everything it gave, with the
+    reset infos after each call."""
+    actions = np.random.default_rng(seed).integers(0, 6, size=(steps, NUM_ENVS))
+    env.seed(seed)
+    record: list[Any] = [env.reset(), [dict(info) for info in env.reset_infos]]
+    for t in range(steps):
+        record.append(env.step(actions[t]))
+        record.append([dict(info) for info in env.reset_infos])
+    return record
+
+
+def test_sb3_check_env_passes_on_the_single_env(server: esrp.LocalServer) -> None:
+    """At the default 128 px (SB3's CNN policies need views of 36 px or more)."""
+    env = gymnasium.make(esrp.ENV_ID, address=server.address, split="test", difficulty="easy")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # SB3's checker warns about what its policies mishandle
+            check_env(env.unwrapped)
+    finally:
+        env.close()
+
+
+def test_identical_to_dummy_vec_env(server: esrp.LocalServer, client: esrp.Client) -> None:
+    before = client.server_info().live_episodes
+    settings = {**SETTINGS, "horizon": 3}
+    native = make_vec_env(NUM_ENVS, server.address, monitor=False, **settings)
+    reference = DummyVecEnv(
+        [lambda: gymnasium.make(esrp.ENV_ID, address=server.address, **settings) for _ in range(NUM_ENVS)]
+    )
+    try:
+        assert isinstance(native, EsrpVecEnv)
+        assert native.observation_space == reference.observation_space
+        assert native.action_space == reference.action_space
+        got, expected = drive(native, 8, seed=5), drive(reference, 8, seed=5)
+        assert client.server_info().live_episodes == before + 2 * NUM_ENVS
+        ended = 0
+        for g, e in zip(got, expected, strict=True):
+            if isinstance(g, tuple):  # a step: observations, rewards, dones, infos
+                obs_g, rewards_g, dones_g, infos_g = g
+                obs_e, rewards_e, dones_e, infos_e = e
+                assert_same(obs_g, obs_e)
+                assert rewards_g.dtype == rewards_e.dtype == np.float32
+                assert np.array_equal(rewards_g, rewards_e)
+                assert np.array_equal(dones_g, dones_e)
+                assert_same(dict(enumerate(infos_g)), dict(enumerate(infos_e)))
+                ended += int(dones_g.sum())
+                for i in np.flatnonzero(dones_g):
+                    assert "terminal_observation" in infos_g[i]
+                    assert "is_success" in infos_g[i]
+            elif isinstance(g, list):
+                assert_same(dict(enumerate(g)), dict(enumerate(e)))
+            else:
+                assert_same(g, e)
+        assert ended >= NUM_ENVS  # the horizon of 3 ended episodes, which were reset in the step
+    finally:
+        native.close()
+        reference.close()
+    assert settled_live_episodes(client, before) == before
+
+
+def test_ppo_learns_through_the_adapter(server: esrp.LocalServer) -> None:
+    """A short `learn()` with SB3's PPO and MultiInputPolicy (NatureCNN needs views of 36 px or
+    more): its rollouts end episodes, whose returns and successes reach SB3's buffers."""
+    env = make_vec_env(
+        2, server.address, split="train", difficulty="easy", horizon=8, sensors=esrp.Sensors(resolution=48)
+    )
+    try:
+        assert isinstance(env, VecMonitor)
+        assert isinstance(env.venv, EsrpVecEnv)
+        model = PPO("MultiInputPolicy", env, n_steps=16, batch_size=16, n_epochs=1, seed=0, device="cpu")
+        model.learn(total_timesteps=64)
+        assert model.num_timesteps == 64
+        assert model.ep_info_buffer is not None
+        assert model.ep_success_buffer is not None
+        assert len(model.ep_info_buffer) == 64 // 8  # 32 steps per sub-env, episodes of 8
+        assert all(info["l"] == 8 for info in model.ep_info_buffer)  # the horizon ended them
+        assert len(model.ep_success_buffer) == len(model.ep_info_buffer)
+        observations = env.reset()
+        assert isinstance(observations, dict)
+        action, _ = model.predict(observations, deterministic=True)
+        assert action.shape == (2,)
+    finally:
+        env.close()
+
+
+def test_the_example_trains_saves_and_plays(
+    server: esrp.LocalServer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    example = load_tool("sb3_ppo", folder="examples")
+    saved = tmp_path / "model.zip"
+    argv = ["--timesteps", "64", "--envs", "2", "--n-steps", "16", "--resolution", "48"]
+    argv += ["--test-episodes", "2", "--save", str(saved), "--server", server.address]
+    assert example.main(argv) == 0
+    assert PPO.load(saved, device="cpu").num_timesteps == 64
+    assert "easy test episodes:" in capsys.readouterr().out
+
+
+def test_clear_errors(server: esrp.LocalServer) -> None:
+    with pytest.raises(ValueError, match="autoreset_mode"):
+        make_vec_env(2, server.address, autoreset_mode="next-step", **SETTINGS)
+    env = make_vec_env(2, server.address, monitor=False, **SETTINGS)
+    try:
+        env.set_options([{"scene": "a"}, {"scene": "b"}])
+        with pytest.raises(ValueError, match="one options dict"):
+            env.reset()
+        with pytest.raises(AttributeError, match="cannot set"):
+            env.set_attr("horizon", 5)
+        assert env.get_attr("num_envs", [0, 1]) == [2, 2]
+        assert env.env_is_wrapped(gymnasium.Wrapper) == [False, False]
+    finally:
+        env.close()
+
+
+def test_unbatch_infos_follows_the_masks() -> None:
+    infos = {
+        "a": np.array([1, 0, 3]),
+        "_a": np.array([True, False, True]),
+        "m": {"x": np.array([0.5, 0.0, 0.0]), "_x": np.array([True, False, False])},
+        "_m": np.array([True, False, False]),
+    }
+    assert unbatch_infos(infos, 3) == [{"a": 1, "m": {"x": 0.5}}, {}, {"a": 3}]
+    with pytest.raises(ValueError, match="no mask"):
+        unbatch_infos({"a": np.array([1])}, 1)
