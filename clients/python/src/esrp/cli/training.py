@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ._args import (
     Parser,
@@ -15,6 +16,9 @@ from ._args import (
     scene_options,
     server_options,
 )
+
+if TYPE_CHECKING:
+    from ..train.demos import DemoSettings, RecordSource
 
 
 def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
@@ -69,7 +73,26 @@ def _add_demos_export(demo_commands: argparse._SubParsersAction[Parser]) -> None
         "--successful-only", action="store_true", help="--records: only the records of successful episodes"
     )
     export.add_argument("--resolution", type=int, default=0, help="the views' side in pixels (0: 128)")
-    export.add_argument("--out", type=Path, required=True, help="the zarr store (a folder)")
+    export.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="the zarr store (a folder); with --format minari, the Minari datasets root the dataset goes in",
+    )
+    export.add_argument(
+        "--format",
+        choices=("zarr", "minari"),
+        default="zarr",
+        help="zarr (default): ESRP-BC's store, resumable; minari: a Minari dataset "
+        "(pip install 'esrp[minari]'), loaded with MINARI_DATASETS_PATH=OUT minari.load_dataset(ID)",
+    )
+    export.add_argument(
+        "--dataset-id",
+        metavar="ID",
+        help="--format minari: the dataset's id (default esrp/DATASET-DIFFICULTY/expert-v0 for the "
+        "train split, esrp/DATASET-SPLIT-DIFFICULTY/expert-v0 for another, esrp/DATASET/AGENT-v0 with "
+        "--records)",
+    )
     export.add_argument(
         "--dagger",
         metavar="AGENT",
@@ -212,6 +235,9 @@ def _demos(args: argparse.Namespace) -> int:
 
     from .._client import Client
 
+    if args.format == "minari":
+        return _demos_minari(args, settings, sources)
+
     def run(address: str) -> int:
         with Client(address, token=args.token, timeout=120) as client:
             outcome = export_demos(client, settings, sources)
@@ -223,6 +249,34 @@ def _demos(args: argparse.Namespace) -> int:
                 f"the policy's action was the planner's label at {outcome.agreed} of {outcome.compared} "
                 f"states ({100 * outcome.agreement:.1f} %)"
             )
+        return 0
+
+    try:
+        return on_server(args, run)
+    except DemoExportError as error:
+        print(f"esrp demos export: {error}", file=sys.stderr)
+        return 2
+
+
+def _demos_minari(
+    args: argparse.Namespace, settings: DemoSettings, sources: list[RecordSource] | None
+) -> int:
+    """`esrp demos export --format minari`."""
+    try:
+        from ..integrations.minari import export_minari
+    except ImportError as error:
+        print(f"esrp demos export: {error} (pip install 'esrp[minari]')", file=sys.stderr)
+        return 2
+    from .._client import Client
+    from ..train.demos import DemoExportError
+
+    def run(address: str) -> int:
+        with Client(address, token=args.token, timeout=120) as client:
+            dataset_id, outcome = export_minari(client, settings, args.dataset_id, sources)
+        print(
+            f"{args.out}: Minari dataset {dataset_id}, {outcome.episodes} episodes, {outcome.steps} steps "
+            f"(MINARI_DATASETS_PATH={args.out} minari.load_dataset({dataset_id!r}))"
+        )
         return 0
 
     try:
@@ -281,6 +335,10 @@ def _export_flag_conflict(args: argparse.Namespace) -> str | None:
         return f"{', '.join(records_flags)} only apply with --records"
     if args.dagger is None and dagger_flags:
         return f"{', '.join(dagger_flags)} only apply with --dagger"
+    if args.format == "minari" and args.dagger is not None:
+        return "--format minari writes demonstrations and records, not DAgger's labels (no --dagger)"
+    if args.format != "minari" and args.dataset_id is not None:
+        return "--dataset-id only applies with --format minari"
     return None
 
 

@@ -5,9 +5,10 @@ and resets.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -142,6 +143,18 @@ class Images:
         return result
 
 
+_T = TypeVar("_T")
+
+
+def _from_fields(kind: type[_T], fields: Mapping[str, Any], what: str) -> _T:
+    """`kind(**fields)`, or a `ValueError` naming `what` and the fields `kind` has."""
+    try:
+        return kind(**fields)
+    except TypeError:
+        known = ", ".join(f.name for f in dataclasses.fields(kind))  # type: ignore[arg-type]
+        raise ValueError(f"{what}: unknown fields in {dict(fields)!r} (it has {known})") from None
+
+
 @dataclass
 class Setup:
     """What the single and the vector env share: the connection (owned or not), the episode
@@ -167,11 +180,16 @@ class Setup:
         split: Split | str | None,
         difficulty: Difficulty | str | None,
         scene: str | Sequence[str] | None,
-        sensors: Sensors | None,
+        sensors: Sensors | Mapping[str, Any] | None,
         horizon: int,
-        reward: RewardWeights | None,
+        reward: RewardWeights | Mapping[str, Any] | None,
         agent: str | None = None,
     ) -> Setup:
+        # Mappings of the fields too, so that an env spec's kwargs can be JSON (Minari stores them).
+        if isinstance(sensors, Mapping):
+            sensors = _from_fields(Sensors, sensors, "sensors")
+        if isinstance(reward, Mapping):
+            reward = _from_fields(RewardWeights, reward, "reward")
         server = None
         owned = client is None
         if client is None:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, SupportsFloat, cast
 
 import gymnasium
@@ -30,9 +30,11 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
             all.
         difficulty: Only `easy`, `medium` or `hard` scenes (None: all).
         scene: Always play this scene id, or draw from these ids (ignores split and difficulty).
-        sensors: Optional sensors and image size (default: none, 128 px).
+        sensors: Optional sensors and image size (default: none, 128 px), as `Sensors` or a
+            mapping of its fields (`{"resolution": 64}`: JSON, for env specs).
         horizon: Step limit; 0: each scene's own (the server truncates).
-        reward: Reward weights (the server's defaults for fields left None).
+        reward: Reward weights (the server's defaults for fields left None), as `RewardWeights`
+            or a mapping of its fields.
         agent: The agent's name for the server's records of its episodes (`Client.create_episode`'s
             `agent`; None: `"unnamed"`).
         render_mode: None or `rgb_array` (ego view, goal and, with the sensor, current top-down).
@@ -60,9 +62,9 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
         split: Split | str | None = "train",
         difficulty: Difficulty | str | None = None,
         scene: str | Sequence[str] | None = None,
-        sensors: Sensors | None = None,
+        sensors: Sensors | Mapping[str, Any] | None = None,
         horizon: int = 0,
-        reward: RewardWeights | None = None,
+        reward: RewardWeights | Mapping[str, Any] | None = None,
         agent: str | None = None,
         render_mode: str | None = None,
     ) -> None:

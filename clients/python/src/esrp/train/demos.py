@@ -52,6 +52,7 @@ __all__ = [
     "ExportOutcome",
     "RecordSource",
     "export_demos",
+    "pick_scenes",
     "read_sources",
 ]
 
@@ -158,7 +159,10 @@ class ExportOutcome:
         return self.agreed / self.compared
 
 
-def _pick(client: Client, settings: DemoSettings) -> list[SceneSummary]:
+def pick_scenes(client: Client, settings: DemoSettings) -> list[SceneSummary]:
+    """The scenes `settings` chooses (split, difficulty, ids, limit), in order; `DemoExportError`
+    when none matches or a named one is missing.
+    """
     listed = list(client.scenes(settings.split, settings.difficulty, page_size=1000))
     if settings.scenes:
         by_id = {s.id: s for s in listed}
@@ -603,7 +607,7 @@ def export_demos(
     if settings.records:
         return _export_records(client, settings, sources)
     info = client.server_info()
-    scenes = _pick(client, settings)
+    scenes = pick_scenes(client, settings)
     resolution = settings.resolution or 128
     factory = None
     if settings.dagger is not None:

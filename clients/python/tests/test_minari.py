@@ -1,0 +1,129 @@
+"""`esrp demos export --format minari` against the real server: Minari's own loader reads the
+dataset from a datasets root; its episodes equal the zarr export of the same scenes (views, goal,
+grasp flags, actions), carry their scene ids, rewards and ends, and the env spec recovers the env.
+Records export too (horizon ends, and an agent's early stop marked truncated), and bad input is
+refused in one line, leaving nothing behind."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import gymnasium
+import numpy as np
+import pytest
+from test_demos import export, played, write_records
+
+import esrp
+from esrp.eval.results import EpisodeRecord
+
+minari = pytest.importorskip("minari", reason="esrp[minari] is not installed")
+zarr = pytest.importorskip("zarr", reason="esrp[train] is not installed")
+
+__all__ = ["played"]  # the records fixture of test_demos, used here too
+
+DATASET_ID = "esrp/esrp-bench-v2-easy/expert-v0"
+
+
+@pytest.fixture
+def datasets_root(tmp_path: Path) -> Iterator[Path]:
+    """A Minari datasets root, as `MINARI_DATASETS_PATH` for the test."""
+    root = tmp_path / "datasets"
+    before = os.environ.get("MINARI_DATASETS_PATH")
+    os.environ["MINARI_DATASETS_PATH"] = str(root)
+    try:
+        yield root
+    finally:
+        if before is None:
+            del os.environ["MINARI_DATASETS_PATH"]
+        else:
+            os.environ["MINARI_DATASETS_PATH"] = before
+
+
+def test_minari_loads_the_expert_demonstrations_as_the_zarr_export_holds_them(
+    server: esrp.LocalServer, datasets_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    scenes = ["--split", "train", "--difficulty", "easy", "--limit", "3", "--resolution", "32"]
+    assert export(server, datasets_root, "--format", "minari", *scenes) == 0
+    assert f"Minari dataset {DATASET_ID}, 3 episodes" in capsys.readouterr().out
+    assert export(server, tmp_path / "demos.zarr", *scenes) == 0
+    assert DATASET_ID in minari.list_local_datasets()
+    dataset = minari.load_dataset(DATASET_ID)
+    store = zarr.open_group(str(tmp_path / "demos.zarr"), mode="r")
+    ends = store["meta/episode_ends"][:]
+    assert dataset.total_episodes == 3
+    assert dataset.total_steps == int(ends[-1])
+    assert dataset.observation_space["ego_rgb"].shape == (32, 32, 3)
+    assert dataset.action_space == gymnasium.spaces.Discrete(6)
+    metadata = list(dataset.storage.get_episode_metadata(range(3)))
+    assert [m["options"]["scene"] for m in metadata] == store.attrs["scene_ids"]
+    start = 0
+    for i, episode in enumerate(dataset.iterate_episodes()):
+        end = int(ends[i])
+        steps = end - start
+        assert len(episode) == steps
+        observations = episode.observations
+        assert observations["ego_rgb"].shape == (steps + 1, 32, 32, 3)
+        assert np.array_equal(observations["ego_rgb"][:-1], store["data/ego_rgb"][start:end])
+        assert np.array_equal(observations["grasping"][:-1].astype(bool), store["data/grasping"][start:end])
+        assert np.array_equal(episode.actions, store["data/action"][start:end].astype(np.int64))
+        assert (observations["goal_rgb"] == store["meta/goal_rgb"][i]).all()
+        assert episode.terminations.tolist() == [False] * (steps - 1) + [True]  # solved at the end
+        assert not episode.truncations.any()
+        assert episode.rewards[-1] >= 10  # the success reward on the last step
+        start = end
+    # The env spec has JSON kwargs (no address) and recovers an env of the same spaces.
+    spec = dataset.spec.env_spec
+    assert spec.id == esrp.ENV_ID
+    assert spec.kwargs == {"sensors": {"resolution": 32}, "split": "train", "difficulty": "easy"}
+    env = dataset.recover_environment(address=server.address)
+    try:
+        assert env.observation_space == dataset.observation_space
+        observation, info = env.reset(options=metadata[1]["options"])
+        assert info["scene_id"] == store.attrs["scene_ids"][1]
+        assert np.array_equal(observation["ego_rgb"], store["data/ego_rgb"][int(ends[0])])
+    finally:
+        env.close()
+
+
+def test_records_export_marks_the_ends_as_they_were(
+    server: esrp.LocalServer, played: list[EpisodeRecord], datasets_root: Path
+) -> None:
+    records = write_records(datasets_root.parent / "records.jsonl", played)
+    assert export(server, datasets_root, "--format", "minari", "--records", str(records)) == 0
+    dataset = minari.load_dataset("esrp/esrp-bench-v2/records-v0")
+    episodes = list(dataset.iterate_episodes())
+    assert [len(e) for e in episodes] == [len(r.actions) for r in played]
+    assert [e.actions.tolist() for e in episodes] == [r.actions for r in played]
+    # success, the horizon of 12, and the random agent's stop after 7 (marked truncated).
+    assert [(bool(e.terminations[-1]), bool(e.truncations[-1])) for e in episodes] == [
+        (True, False),
+        (False, True),
+        (False, True),
+    ]
+    assert dataset.spec.env_spec.kwargs == {"sensors": {"resolution": 128}}  # horizons differ
+    assert (
+        export(server, datasets_root, "--format", "minari", "--records", str(records), "--agent", "human")
+        == 0
+    )
+    assert minari.load_dataset("esrp/esrp-bench-v2/human-v0").total_episodes == 2
+
+
+def test_bad_input_is_refused_and_leaves_nothing(
+    server: esrp.LocalServer, datasets_root: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    one = ["--split", "test", "--difficulty", "easy", "--limit", "1", "--resolution", "16"]
+    assert export(server, datasets_root, "--format", "minari", *one) == 0
+    capsys.readouterr()
+    assert export(server, datasets_root, "--format", "minari", *one) == 2
+    assert "exists: Minari datasets are never overwritten" in capsys.readouterr().err
+    assert export(server, datasets_root, "--format", "minari", "--dataset-id", "no spaces!", *one) == 2
+    assert "--dataset-id 'no spaces!'" in capsys.readouterr().err
+    assert export(server, datasets_root, "--format", "minari", "--dagger", "random", *one) == 2
+    assert "not DAgger's labels" in capsys.readouterr().err
+    assert export(server, datasets_root, "--dataset-id", "a/b-v0", *one) == 2
+    assert "--dataset-id only applies with --format minari" in capsys.readouterr().err
+    # Only the first dataset and its namespace are there: no staging folder is left behind.
+    assert sorted(p.name for p in datasets_root.iterdir()) == ["esrp"]
+    assert list(minari.list_local_datasets()) == ["esrp/esrp-bench-v2-test-easy/expert-v0"]
