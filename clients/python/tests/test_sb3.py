@@ -13,12 +13,16 @@ import gymnasium
 import numpy as np
 import pytest
 from conftest import load_tool, settled_live_episodes
-from stable_baselines3 import PPO
-from stable_baselines3.common.env_checker import check_env
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor
 
 import esrp
-from esrp.integrations.sb3 import EsrpVecEnv, make_vec_env, unbatch_infos
+
+pytest.importorskip("stable_baselines3", reason="esrp[sb3] is not installed")
+
+from stable_baselines3 import PPO  # noqa: E402
+from stable_baselines3.common.env_checker import check_env  # noqa: E402
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor  # noqa: E402
+
+from esrp.integrations.sb3 import EsrpVecEnv, make_vec_env, unbatch_infos  # noqa: E402
 
 NUM_ENVS = 3
 SETTINGS: dict[str, Any] = {"split": "test", "difficulty": "easy", "sensors": esrp.Sensors(resolution=32)}

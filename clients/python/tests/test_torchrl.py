@@ -10,15 +10,19 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
-import torch
 from conftest import settled_live_episodes
-from tensordict import TensorDict, TensorDictBase
-from torchrl.collectors import Collector
-from torchrl.envs import EnvBase
-from torchrl.envs.utils import check_env_specs
 
 import esrp
-from esrp.integrations.torchrl import make_env
+
+pytest.importorskip("torchrl", reason="esrp[torchrl] is not installed")
+
+import torch  # noqa: E402
+from tensordict import TensorDict, TensorDictBase  # noqa: E402
+from torchrl.collectors import Collector  # noqa: E402
+from torchrl.envs import EnvBase  # noqa: E402
+from torchrl.envs.utils import check_env_specs  # noqa: E402
+
+from esrp.integrations.torchrl import make_env  # noqa: E402
 
 SENSORS = esrp.Sensors(resolution=32)
 
