@@ -6,10 +6,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 import pytest
 
 import esrp
-from esrp.agents.esrp_map import FloorProjection, Pose2D
+from esrp.agents.esrp_map import FloorProjection, Pose2D, goal
 
 
 @pytest.mark.parametrize("turns", [0, 3])
@@ -51,3 +52,129 @@ def test_the_horizon_and_the_frame() -> None:
     assert z[100, 64] == pytest.approx(2.0 - projection.ahead[100, 64], abs=1e-9)
     with pytest.raises(ValueError, match="resolution"):
         FloorProjection(0)
+
+
+# The goal image: pixel kinds, objects, and the room, against synthetic images and the server.
+
+_PALETTE = {  # esrp-render's colours (mesh.rs), by the label `classify` must give them
+    goal.STATIC: [(0.72, 0.66, 0.56), (0.86, 0.85, 0.81), (0.52, 0.43, 0.36), (0.50, 0.51, 0.55)],
+    goal.BACKGROUND: [(0.10, 0.11, 0.13)],
+    2: [(0.16, 0.42, 0.88)],
+    3: [(0.88, 0.20, 0.16)],
+    4: [(0.18, 0.70, 0.26)],
+    5: [(0.98, 0.72, 0.08)],
+    6: [(0.78, 0.22, 0.86)],
+}
+_TINTS = (1.0, 0.88, 1.12, 0.94, 1.06, 0.84, 0.97, 1.16)
+
+
+def test_every_palette_colour_is_classified_under_every_shade_and_tint() -> None:
+    shades = np.linspace(0.55, 1.0, 10)
+    for label, colours in _PALETTE.items():
+        tints = _TINTS if label >= 2 else (1.0,)
+        for colour in colours:
+            for tint in tints:
+                for shade in shades:
+                    if label == goal.BACKGROUND and shade < 1.0:
+                        continue  # the background is not shaded
+                    rgb = np.clip(np.array(colour) * tint, 0, 1) * shade
+                    pixel = np.round(rgb * 255).astype(np.uint8)[None, None]
+                    assert goal.classify(pixel)[0, 0] == label, (colour, tint, shade)
+
+
+def _draw_rectangle(
+    image: npt.NDArray[np.uint8],
+    col: float,
+    row: float,
+    half_long: float,
+    half_short: float,
+    angle: float,
+    rgb: tuple[int, int, int],
+) -> None:
+    rows, cols = np.mgrid[0 : image.shape[0], 0 : image.shape[1]] + 0.5
+    dc, dr = cols - col, rows - row
+    along = dc * math.cos(angle) + dr * math.sin(angle)
+    across = -dc * math.sin(angle) + dr * math.cos(angle)
+    image[(np.abs(along) <= half_long) & (np.abs(across) <= half_short)] = rgb
+
+
+def test_parse_goal_recovers_synthetic_rectangles() -> None:
+    image = np.zeros((128, 128, 3), dtype=np.uint8)
+    image[:] = (26, 28, 33)  # background
+    image[6:122, 10:118] = (169, 154, 132)  # the room's floor
+    drawn = [  # (category index, col, row, half long, half short, angle)
+        (0, 40.0, 40.0, 12.0, 5.0, 0.3),
+        (1, 90.0, 35.0, 4.0, 3.0, 1.2),
+        (2, 60.0, 95.0, 15.0, 7.0, 2.8),
+    ]
+    for index, col, row, half_long, half_short, angle in drawn:
+        rgb = tuple(int(round(c * goal.TOP_SHADE * 255)) for c in _PALETTE[2 + index][0])
+        _draw_rectangle(image, col, row, half_long, half_short, angle, rgb)  # type: ignore[arg-type]
+    parsed = goal.parse_goal(image)
+    assert parsed.bounds == (10, 6, 117, 121)
+    assert len(parsed.objects) == 3
+    by_category = {o.category: o for o in parsed.objects}
+    for index, col, row, half_long, half_short, angle in drawn:
+        found = by_category[goal.CATEGORIES[index]]
+        assert abs(found.col - col) < 0.3
+        assert abs(found.row - row) < 0.3
+        assert abs(found.half_long - half_long) < 0.6
+        assert abs(found.half_short - half_short) < 0.6
+        if half_long > 1.5 * half_short:  # a near-square region's axes are not well defined
+            difference = abs(found.angle - angle % math.pi)
+            assert min(difference, math.pi - difference) < 0.05
+    with pytest.raises(ValueError, match="no room"):
+        goal.parse_goal(np.full((8, 8, 3), (26, 28, 33), dtype=np.uint8))
+    with pytest.raises(ValueError, match=r"\(R, R, 3\)"):
+        goal.parse_goal(np.zeros((8, 9, 3), dtype=np.uint8))
+
+
+def _goal_frame(state: esrp.PrivilegedState, resolution: int) -> tuple[float, float, float]:
+    """esrp-render's TopDownFrame from the privileged geometry: (min_x, min_z, metres per pixel)."""
+    xs = [x for x, _ in state.floor]
+    zs = [z for _, z in state.floor]
+    for static in state.static_obstacles:
+        if static.obstacle.kind == "wall":
+            f = static.footprint
+            c, s = math.cos(f.yaw), math.sin(f.yaw)
+            for sx, sz in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+                # esrp-core's footprint corners: local (x, z) rotated by yaw about +y.
+                lx, lz = sx * f.half_x, sz * f.half_z
+                xs.append(f.center_x + lx * c + lz * s)
+                zs.append(f.center_z - lx * s + lz * c)
+    side = max(max(xs) - min(xs), max(zs) - min(zs)) + 2 * goal.TOP_DOWN_MARGIN
+    centre = ((min(xs) + max(xs)) / 2, (min(zs) + max(zs)) / 2)
+    return centre[0] - side / 2, centre[1] - side / 2, side / resolution
+
+
+def test_the_goal_images_objects_are_where_the_targets_are(client: esrp.Client) -> None:
+    """Over easy, medium and hard test scenes: each target footprint's centre, projected with the
+    goal image's frame, is the centre of a region of its category's colour (objects whose regions
+    are whole: not touching another of the same category, not under fixed furniture), and the
+    margin's scale prior is within a quarter of the frame's."""
+    scenes = [
+        s.id for d in ("easy", "medium", "hard") for s in list(client.scenes("test", d, page_size=1000))[:6]
+    ]
+    checked = close = 0
+    for scene in scenes:
+        with client.create_episode(scene, privileged=True) as episode:
+            assert episode.observation is not None
+            image = episode.observation.goal_rgb
+            state = episode.privileged_state()
+        assert image is not None
+        parsed = goal.parse_goal(image)
+        min_x, min_z, metres = _goal_frame(state, image.shape[0])
+        assert parsed.metres_per_pixel() == pytest.approx(metres, rel=0.25), scene
+        assert {o.category for o in parsed.objects} <= {o.category for o in state.objects}
+        for target in state.objects:
+            f = target.target_footprint
+            col, row = (f.center_x - min_x) / metres, (f.center_z - min_z) / metres
+            mine = [o for o in parsed.objects if o.category == target.category]
+            assert mine, f"{scene}: no region of {target.category}"
+            nearest = min(mine, key=lambda o: math.hypot(o.col - col, o.row - row))
+            expected_area = 4 * f.half_x * f.half_z / metres**2
+            if abs(nearest.area - expected_area) < 0.25 * expected_area:  # a whole region
+                checked += 1
+                close += math.hypot(nearest.col - col, nearest.row - row) < 1.0
+    assert checked >= 20
+    assert close >= 0.95 * checked, (close, checked)

@@ -1,8 +1,14 @@
-"""ESRP-MAP (issue 42, in progress): a non-privileged modular agent that maps the room from its
-egocentric views and plans. What exists so far is its geometry (`geometry`): where each pixel of
-the egocentric view meets the floor, from the camera the server renders with (SPEC §2).
+"""ESRP-MAP (issue 42, in progress): a non-privileged modular agent that maps the room and plans.
+
+It maps the room from its egocentric views. What exists so far:
+
+- `geometry`: where each pixel of the egocentric view meets the floor, from the camera the server
+  renders with (SPEC §2);
+- `goal`: each pixel's kind by its colour (background, static, or a movable category), and the
+  goal image's objects (centre, equivalent rectangle, colour) and room.
 """
 
+from . import goal
 from .geometry import CAMERA_HEIGHT, CAMERA_HORIZONTAL_FOV, CAMERA_PITCH, FloorProjection, Pose2D
 
-__all__ = ["CAMERA_HEIGHT", "CAMERA_HORIZONTAL_FOV", "CAMERA_PITCH", "FloorProjection", "Pose2D"]
+__all__ = ["CAMERA_HEIGHT", "CAMERA_HORIZONTAL_FOV", "CAMERA_PITCH", "FloorProjection", "Pose2D", "goal"]
