@@ -3,14 +3,16 @@ the depth the server renders there."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 import pytest
 
 import esrp
-from esrp.agents.esrp_map import FloorProjection, Pose2D, goal
+from esrp.agents.esrp_map import FloorProjection, Pose2D, goal, mapping
 
 
 @pytest.mark.parametrize("turns", [0, 3])
@@ -178,3 +180,110 @@ def test_the_goal_images_objects_are_where_the_targets_are(client: esrp.Client) 
                 close += math.hypot(nearest.col - col, nearest.row - row) < 1.0
     assert checked >= 20
     assert close >= 0.95 * checked, (close, checked)
+
+
+# The map: what views at known poses put where, against the privileged geometry.
+
+
+def _distance_to_rectangle(
+    x: npt.NDArray[np.float64],
+    z: npt.NDArray[np.float64],
+    f: Any,  # noqa: ANN401
+) -> npt.NDArray[np.float64]:
+    """Plan distance from points (x, z) to footprint `f` (0 inside)."""
+    c, s = math.cos(f.yaw), math.sin(f.yaw)
+    dx, dz = x - f.center_x, z - f.center_z
+    # The inverse of esrp-core's placement (local (x, z) rotated by yaw about +y).
+    lx = dx * c - dz * s
+    lz = dx * s + dz * c
+    ox = np.maximum(np.abs(lx) - f.half_x, 0.0)
+    oz = np.maximum(np.abs(lz) - f.half_z, 0.0)
+    return np.asarray(np.hypot(ox, oz))
+
+
+def _ray_reaches(
+    x0: float,
+    z0: float,
+    x: npt.NDArray[np.float64],
+    z: npt.NDArray[np.float64],
+    footprints: list[Any],
+    tolerance: float = 0.14,
+) -> npt.NDArray[np.bool_]:
+    """Whether the segment from (x0, z0) to each point (x, z) comes within `tolerance` of one of
+    `footprints` at or before the point (within a pixel row at 3 m and half a cell's diagonal)."""
+    reached = np.zeros(len(x), dtype=bool)
+    for t in np.linspace(0.0, 1.0, 41):
+        px, pz = x0 + t * (x - x0), z0 + t * (z - z0)
+        reached |= np.min([_distance_to_rectangle(px, pz, f) for f in footprints], axis=0) <= tolerance
+    return reached
+
+
+def test_the_map_puts_floor_and_obstacle_bases_where_they_are(
+    client: esrp.Client, easy_scenes: list[str]
+) -> None:
+    """A look around (16 turns) at the start pose of a few scenes, integrated at the true poses:
+    static bases lie on walls or (behind) fixed furniture, movable bases on or behind a movable
+    object of their category, and no free cell lies inside a wall."""
+    for scene in easy_scenes[:3]:
+        with client.create_episode(scene, privileged=True) as episode:
+            state = episode.privileged_state()
+            assert episode.observation is not None
+            views = [(episode.observation.ego_rgb, state.agent_heading)]
+            for _ in range(15):
+                result = episode.step(esrp.Action.LEFT)
+                views.append((result.observation.ego_rgb, (views[-1][1] + 1) % 16))
+        world = mapping.TopDownMap(centre_x=state.agent_x, centre_z=state.agent_z)
+        for view, heading in views:
+            world.integrate(view, Pose2D(state.agent_x, state.agent_z, heading * math.pi / 8))
+        free_rows, free_cols = np.nonzero(world.free)
+        static_rows, static_cols = np.nonzero(world.static)
+        assert len(free_rows) > 1000, f"{scene}: the look around sees the floor"
+        assert len(static_rows) > 50, f"{scene}: and walls"
+        fx, fz = world.centre_of(free_rows, free_cols)
+        sx, sz = world.centre_of(static_rows, static_cols)
+        # A cell is 5 cm: one whose centre is inside may still hold floor near its edge. Walls
+        # are solid; fixed furniture may stand on legs, with floor seen between them.
+        walls = [s.footprint for s in state.static_obstacles if s.obstacle.kind == "wall"]
+        assert walls
+        deep = np.zeros(len(fx), dtype=bool)
+        for f in walls:
+            shrunk = dataclasses.replace(f, half_x=f.half_x - 0.05, half_z=f.half_z - 0.05)
+            deep |= _distance_to_rectangle(fx, fz, shrunk) == 0
+        assert not deep.any(), f"{scene}: free cells deep inside walls"
+        statics = [s.footprint for s in state.static_obstacles]
+        to_wall = np.min([_distance_to_rectangle(sx, sz, f) for f in walls], axis=0)
+        assert (to_wall <= 0.14).sum() >= 40, f"{scene}: the look around sees walls standing"
+        # A base lies on an obstacle, or behind one on its ray (an edge above the floor, such as
+        # a desk's top over the floor beneath it, projects beyond the object).
+        reached = _ray_reaches(state.agent_x, state.agent_z, sx, sz, statics)
+        assert np.mean(reached) >= 0.98, (scene, float(np.mean(reached)))
+        for index, category in enumerate(goal.CATEGORIES):
+            rows, cols = np.nonzero(world.movable[index])
+            if len(rows) == 0:
+                continue
+            mx, mz = world.centre_of(rows, cols)
+            objects = [o.footprint for o in state.objects if o.category == category]
+            assert objects, f"{scene}: {category} bases where no {category} is"
+            reached = _ray_reaches(state.agent_x, state.agent_z, mx, mz, objects)
+            assert np.mean(reached) >= 0.98, (scene, category, float(np.mean(reached)))
+
+
+def test_the_map_grid_and_its_errors() -> None:
+    world = mapping.TopDownMap(32, cell=0.1, size=4.0, centre_x=1.0, centre_z=-2.0)
+    assert world.cells == 40
+    assert world.cell_of(1.0, -2.0) == (20, 20)
+    row, col = world.cell_of([-1.05, 3.05], [0.0, 0.0])
+    assert row.tolist() == [-1, -1]  # outside the grid
+    x, z = world.centre_of(20, 20)
+    assert (float(x), float(z)) == pytest.approx((1.05, -1.95))
+    world.visit(Pose2D(1.0, -2.0, 0.0), radius=0.3)
+    # The pose is at a cell corner: per quadrant, 8 of the 9 nearest centres lie within 0.3 m.
+    assert world.free.sum() == 32
+    world.visit(Pose2D(1.0, -2.0, 0.0), radius=0.3)
+    assert world.free.max() == 2  # counted once per look
+    with pytest.raises(ValueError, match="32-pixel view"):
+        world.integrate(np.zeros((16, 16, 3), dtype=np.uint8), Pose2D(0, 0, 0))
+    with pytest.raises(ValueError, match="need 0 < cell < size"):
+        mapping.TopDownMap(cell=0.0)
+    floor = np.array([[mapping.FLOOR_RGB, mapping.FLOOR_RGB + 3, mapping.FLOOR_RGB - 4]], dtype=np.uint8)
+    assert mapping.floor_pixels(floor).tolist() == [[True, True, False]]

@@ -5,10 +5,20 @@ It maps the room from its egocentric views. What exists so far:
 - `geometry`: where each pixel of the egocentric view meets the floor, from the camera the server
   renders with (SPEC §2);
 - `goal`: each pixel's kind by its colour (background, static, or a movable category), and the
-  goal image's objects (centre, equivalent rectangle, colour) and room.
+  goal image's objects (centre, equivalent rectangle, colour) and room;
+- `mapping`: a top-down map of free floor and obstacle bases (static, or movable by category)
+  from egocentric views at known poses.
 """
 
-from . import goal
+from . import goal, mapping
 from .geometry import CAMERA_HEIGHT, CAMERA_HORIZONTAL_FOV, CAMERA_PITCH, FloorProjection, Pose2D
 
-__all__ = ["CAMERA_HEIGHT", "CAMERA_HORIZONTAL_FOV", "CAMERA_PITCH", "FloorProjection", "Pose2D", "goal"]
+__all__ = [
+    "CAMERA_HEIGHT",
+    "CAMERA_HORIZONTAL_FOV",
+    "CAMERA_PITCH",
+    "FloorProjection",
+    "Pose2D",
+    "goal",
+    "mapping",
+]
