@@ -7,10 +7,12 @@ It maps the room from its egocentric views. What exists so far:
 - `goal`: each pixel's kind by its colour (background, static, or a movable category), and the
   goal image's objects (centre, equivalent rectangle, colour) and room;
 - `mapping`: a top-down map of free floor and obstacle bases (static, or movable by category)
-  from egocentric views at known poses.
+  from egocentric views at known poses;
+- `register`: the transform from the agent's start frame to the goal image (start heading among
+  the 16, scale, start position), by correlating the map with the goal's static structure.
 """
 
-from . import goal, mapping
+from . import goal, mapping, register
 from .geometry import CAMERA_HEIGHT, CAMERA_HORIZONTAL_FOV, CAMERA_PITCH, FloorProjection, Pose2D
 
 __all__ = [
@@ -21,4 +23,5 @@ __all__ = [
     "Pose2D",
     "goal",
     "mapping",
+    "register",
 ]
