@@ -1,0 +1,343 @@
+"""ESRP-MAP, the agent: it looks around, maps, registers its map to the goal image, then for each
+object of the goal image drives to it, fetches it, carries it to its target and releases it.
+
+It sees what the paper's agents see and nothing more: the egocentric view, the goal image and the
+grasp flag (no info field, no reward, no metrics). Its pose is dead reckoning over the actions it
+took, in its start frame; a move or turn whose view is unchanged was rejected (a collision) and
+leaves the pose, and the cell it would have entered is marked blocked before it plans again.
+
+The phases:
+
+1. **Look around**: 15 left turns, each view added to the map (`mapping.TopDownMap`).
+2. **Register** the map to the goal image (`register.register`): the start heading, the scale and
+   the start position in the goal's pixels.
+3. For each goal object, largest first: **find** it (the map's bases of its category that are not
+   on an already placed target), **drive** to within fetch reach of its nearest base (A* on the
+   action lattice against the goal's static structure and the mapped objects,
+   `planner.plan`), **fetch** (the grasp flag says whether it worked; if not it drives closer),
+   then **carry** it so that its estimated centre lands on its target's and **release** it.
+
+Known limits of this first version: the held object's yaw is not aimed (an elongated object whose
+target is turned may be released with an IoU under 0.3), an object never seen from the start or
+from the way is not searched for, and the held object's centre is estimated from its nearest
+visible base and its size in the goal image.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from ..._values import Action, Observation
+from .geometry import Pose2D
+from .goal import CATEGORIES, STATIC, GoalImage, GoalObject, parse_goal
+from .mapping import TopDownMap, floor_pixels
+from .planner import STEP, Occupancy, State, held_centre, plan
+from .register import Registration, register
+
+__all__ = ["MapAgent"]
+
+ROBOT_RADIUS = 0.30
+"""The robot's collision radius (SPEC §2)."""
+_CLEARANCE = 0.04
+"""Metres kept from obstacles beyond the body's radius (the map's error)."""
+_FETCH_REACH = 0.85
+"""The robot fetches when a base of the wanted object is this close to its centre (SPEC: a
+footprint within 1.0 m; a base lies on or behind the object, so the object is at least as near)."""
+_PLACE_TOLERANCE = 0.10
+"""How close the held object's estimated centre must come to its target's, metres."""
+_LOOK_TURNS = 15
+
+
+@dataclass
+class _Task:
+    """A goal object to move: its target in the start frame and its size in metres."""
+
+    target: GoalObject
+    category: int
+    x: float
+    z: float
+    half_long: float
+    half_short: float
+
+
+class MapAgent:
+    """ESRP-MAP (see the module). `config`: `max_expansions` (A*'s budget per plan, default
+    20,000).
+    """
+
+    def __init__(self, config: Mapping[str, Any] | None = None) -> None:
+        self.config = dict(config or {})
+        self.max_expansions = int(self.config.get("max_expansions", 20000))
+        self._stats: dict[str, Any] = {}
+
+    def reset(self, observation: Observation, info: Mapping[str, Any]) -> None:
+        """Starts an episode from its first observation (`info` is not read: an ESRP agent sees
+        only its observations).
+        """
+        if observation.goal_rgb is None:
+            raise ValueError("ESRP-MAP needs the goal image in the first observation")
+        self.goal_rgb = np.asarray(observation.goal_rgb)
+        self.goal: GoalImage = parse_goal(self.goal_rgb)
+        side = observation.ego_rgb.shape[0]
+        self.map = TopDownMap(side)
+        self.state = State(0.0, 0.0, 0)
+        self.map.integrate(np.asarray(observation.ego_rgb), self._pose())
+        self.map.visit(self._pose())
+        self._last_view = np.asarray(observation.ego_rgb).copy()
+        self._last_action: Action | None = None
+        self._looks_left = _LOOK_TURNS
+        self.registration: Registration | None = None
+        self._tasks: list[_Task] = []
+        self._placed: list[_Task] = []
+        self._plan: list[Action] = []
+        self._phase = "look"
+        self._carry: tuple[float, float] | None = None
+        self._carry_radius = 0.0
+        self._blocked_extra: list[tuple[float, float]] = []
+        self._fetch_tries = 0
+        self._stats = {"plans": 0, "rejected": 0, "fetches": 0, "releases": 0}
+
+    def stats(self) -> dict[str, Any]:
+        """What the agent did: plans made, moves rejected, fetches and releases tried, and the
+        registration's fit.
+        """
+        out = dict(self._stats)
+        if self.registration is not None:
+            out.update(
+                heading=self.registration.heading,
+                scale=round(self.registration.scale, 3),
+                fit_cost=round(self.registration.cost, 3),
+            )
+        out["phase"] = self._phase
+        return out
+
+    def act(self, observation: Observation) -> Action | None:
+        """The next action, or None when it gives up (nothing left it knows how to do)."""
+        view = np.asarray(observation.ego_rgb)
+        self._update_pose(view)
+        carrying = bool(observation.grasping)
+        self._observe(view, carrying)
+        if self._phase == "look":
+            if self._looks_left > 0:
+                self._looks_left -= 1
+                return self._do(Action.LEFT)
+            self.registration = register(self.map, self.goal, self.goal_rgb)
+            self._tasks = self._make_tasks()
+            self._phase = "fetch"
+        return self._next(carrying)
+
+    # The phases after the look around.
+
+    def _next(self, carrying: bool) -> Action | None:
+        if self._phase == "released":
+            self._placed.append(self._tasks.pop(0))
+            self._phase = "fetch"
+            self._carry = None
+        if self._phase == "fetching":
+            self._stats["fetches"] += 1
+            if carrying:
+                self._start_carry()
+            else:
+                self._fetch_tries += 1
+                self._phase = "fetch"
+                if self._fetch_tries >= 3:
+                    return None
+        if not self._tasks:
+            return None
+        if self._phase == "fetch":
+            return self._drive_then(Action.FETCH, "fetching", self._fetch_goal())
+        if self._phase == "carry":
+            return self._drive_then(Action.RELEASE, "released", self._carry_goal())
+        return None
+
+    def _drive_then(self, final: Action, phase: str, goal: tuple[Any, Any] | None) -> Action | None:
+        """The next move of the plan towards `goal` (reached, heuristic), replanned when it is
+        empty; `final` once it is reached.
+        """
+        if goal is None:
+            return None
+        reached, heuristic = goal
+        if reached(self.state):
+            self._plan = []
+            self._phase = phase
+            if final == Action.RELEASE:
+                self._stats["releases"] += 1
+            return self._do(final)
+        if not self._plan:
+            found = self._replan(reached, heuristic)
+            if not found:
+                return None
+            self._plan = found
+        return self._do(self._plan.pop(0))
+
+    def _replan(self, reached: Any, heuristic: Any) -> list[Action] | None:  # noqa: ANN401
+        assert self.registration is not None
+        self._stats["plans"] += 1
+        for margin in (_CLEARANCE, 0.0, -0.05):
+            robot = Occupancy(self._blocked(), self.registration, ROBOT_RADIUS + margin)
+            carried = None
+            if self._carry is not None:
+                carried = Occupancy(self._blocked(), self.registration, self._carry_radius + margin)
+            found = plan(
+                self.state,
+                robot,
+                reached,
+                heuristic,
+                carry=self._carry,
+                carried=carried,
+                max_expansions=self.max_expansions,
+            )
+            if found:
+                return found
+        return None
+
+    def _fetch_goal(self) -> tuple[Any, Any] | None:
+        task = self._tasks[0]
+        points = self._object_points(task)
+        if len(points) == 0:
+            return None
+        reach = _FETCH_REACH if self._fetch_tries == 0 else _FETCH_REACH - 0.25 * self._fetch_tries
+
+        def distance(state: State) -> float:
+            return float(np.min(np.hypot(points[:, 0] - state.x, points[:, 1] - state.z)))
+
+        return (lambda s: distance(s) <= reach), (lambda s: max(distance(s) - reach, 0.0) / STEP)
+
+    def _carry_goal(self) -> tuple[Any, Any] | None:
+        task = self._tasks[0]
+        carry = self._carry
+        assert carry is not None
+
+        def distance(state: State) -> float:
+            x, z = held_centre(state, carry)
+            return math.hypot(x - task.x, z - task.z)
+
+        return (lambda s: distance(s) <= _PLACE_TOLERANCE), (
+            lambda s: max(distance(s) - _PLACE_TOLERANCE, 0.0) / STEP
+        )
+
+    def _start_carry(self) -> None:
+        """Estimates where the held object's centre is relative to the robot."""
+        task = self._tasks[0]
+        points = self._object_points(task)
+        self._phase = "carry"
+        self._plan = []
+        if len(points) == 0:
+            self._carry = (ROBOT_RADIUS + task.half_short, 0.0)
+        else:
+            d = np.hypot(points[:, 0] - self.state.x, points[:, 1] - self.state.z)
+            nearest = points[int(np.argmin(d))]
+            dx, dz = nearest[0] - self.state.x, nearest[1] - self.state.z
+            norm = max(math.hypot(dx, dz), 1e-6)
+            cx, cz = nearest[0] + dx / norm * task.half_short, nearest[1] + dz / norm * task.half_short
+            yaw = self.state.yaw
+            ahead = (cx - self.state.x) * math.cos(yaw) - (cz - self.state.z) * math.sin(yaw)
+            right = (cx - self.state.x) * math.sin(yaw) + (cz - self.state.z) * math.cos(yaw)
+            self._carry = (ahead, right)
+        self._carry_radius = math.hypot(task.half_long, task.half_short)
+        # Its bases move with it from now on: forget them.
+        self.map.movable[task.category][:] = 0
+
+    # Seeing and moving.
+
+    def _do(self, action: Action) -> Action:
+        self._last_action = action
+        return action
+
+    def _pose(self) -> Pose2D:
+        return Pose2D(self.state.x, self.state.z, self.state.yaw)
+
+    def _update_pose(self, view: npt.NDArray[np.uint8]) -> None:
+        action = self._last_action
+        if action in (Action.FORWARD, Action.BACKWARD, Action.LEFT, Action.RIGHT):
+            if np.array_equal(view, self._last_view):
+                self._stats["rejected"] += 1
+                self._plan = []
+                if action in (Action.FORWARD, Action.BACKWARD):
+                    ahead = self.state.after(action)
+                    self._blocked_extra.append((2 * ahead.x - self.state.x, 2 * ahead.z - self.state.z))
+            else:
+                self.state = self.state.after(action)
+        self._last_view = view.copy()
+
+    def _observe(self, view: npt.NDArray[np.uint8], carrying: bool) -> None:
+        pose = self._pose()
+        if carrying and self._tasks:
+            # The held object sits in front of the camera: keep its category out of the map.
+            category = self._tasks[0].category
+            kept = self.map.movable[category].copy()
+            self.map.integrate(view, pose)
+            self.map.movable[category] = kept
+        else:
+            self.map.integrate(view, pose)
+        self.map.visit(pose)
+
+    # What the map and the goal say.
+
+    def _make_tasks(self) -> list[_Task]:
+        assert self.registration is not None
+        tasks = []
+        for target in self.goal.objects:
+            x, z = self.registration.from_goal(target.col, target.row)
+            tasks.append(
+                _Task(
+                    target,
+                    CATEGORIES.index(target.category),
+                    float(x),
+                    float(z),
+                    target.half_long / self.registration.scale,
+                    target.half_short / self.registration.scale,
+                )
+            )
+        return tasks
+
+    def _object_points(self, task: _Task) -> npt.NDArray[np.float64]:
+        """Start-frame points of the map's bases of `task`'s category, less those on a target
+        already filled.
+        """
+        rows, cols = np.nonzero(self.map.movable[task.category])
+        x, z = self.map.centre_of(rows, cols)
+        keep = np.ones(len(x), dtype=bool)
+        for done in self._placed:
+            if done.category == task.category:
+                keep &= np.hypot(x - done.x, z - done.z) > max(done.half_long, 0.3) + 0.2
+        return np.stack([x[keep], z[keep]], axis=1)
+
+    def _blocked(self) -> npt.NDArray[np.bool_]:
+        """The goal pixels a body may not cover: outside the room, static structure, the mapped
+        movable objects (not the held one), and where moves were rejected.
+        """
+        assert self.registration is not None
+        blocked: npt.NDArray[np.bool_] = (self.goal.labels == STATIC) & ~floor_pixels(self.goal_rgb)
+        blocked |= ~self.goal.room
+        size = blocked.shape[0]
+        held = self._tasks[0].category if self._carry is not None and self._tasks else None
+        for index in range(len(CATEGORIES)):
+            if index == held:
+                continue
+            rows, cols = np.nonzero(self.map.movable[index])
+            x, z = self.map.centre_of(rows, cols)
+            self._mark(blocked, x, z, size)
+        if self._blocked_extra:
+            xs, zs = zip(*self._blocked_extra, strict=True)
+            self._mark(blocked, np.array(xs), np.array(zs), size)
+        return blocked
+
+    def _mark(
+        self,
+        blocked: npt.NDArray[np.bool_],
+        x: npt.NDArray[np.float64],
+        z: npt.NDArray[np.float64],
+        size: int,
+    ) -> None:
+        assert self.registration is not None
+        col, row = self.registration.to_goal(x, z)
+        c, r = np.floor(col).astype(np.intp), np.floor(row).astype(np.intp)
+        inside = (c >= 0) & (c < size) & (r >= 0) & (r < size)
+        blocked[r[inside], c[inside]] = True
