@@ -111,7 +111,7 @@ def load_factory(spec: str) -> AgentFactory:
     module_name, sep, attribute = spec.partition(":")
     if not sep or not module_name or not attribute:
         raise ValueError(
-            f"agent {spec!r} is none of random, expert, plan, vlm, bc, ppo, nor MODULE:CALLABLE "
+            f"agent {spec!r} is none of random, expert, plan, vlm, bc, ppo, map, nor MODULE:CALLABLE "
             "(a factory of agents, e.g. my_agents:make_agent)"
         )
     try:

@@ -46,7 +46,8 @@ def _add_eval(commands: argparse._SubParsersAction[Parser]) -> None:
         "--agent",
         required=True,
         help="random, expert, plan, vlm (ESRP-VLM over an OpenAI-compatible endpoint: --base-url, "
-        "--model), bc (ESRP-BC: --checkpoint), ppo (ESRP-PPO: --checkpoint), or MODULE:CALLABLE "
+        "--model), bc (ESRP-BC: --checkpoint), ppo (ESRP-PPO: --checkpoint), map (ESRP-MAP, the "
+        "mapping agent, in progress), or MODULE:CALLABLE "
         "(a factory called with the agent config, once per episode, "
         "returning an esrp.agents.Agent or AsyncAgent)",
     )

@@ -68,7 +68,7 @@ __all__ = [
     "run_eval",
 ]
 
-BUILTIN_AGENTS = ("random", "expert", "plan", "vlm", "bc", "ppo")
+BUILTIN_AGENTS = ("random", "expert", "plan", "vlm", "bc", "ppo", "map")
 """The agents `esrp eval` knows by name."""
 
 CLIENT_NAME = f"esrp eval (Python) {__version__}"
@@ -366,7 +366,7 @@ def agent_factory(settings: EvalSettings) -> AgentFactory | None:
 
 
 def make_factory(agent: str, config: dict[str, Any], results_path: Path) -> AgentFactory | None:
-    """The factory of agent `agent` (random, vlm, bc, ppo or MODULE:CALLABLE) with `config`; None
+    """The factory of agent `agent` (random, vlm, bc, ppo, map or MODULE:CALLABLE) with `config`; None
     for the server-driven `expert` and `plan`. `results_path` places a vlm agent's traces. Raises
     `EvalError` when a named module or callable cannot be loaded, or the config is bad.
     """
@@ -379,6 +379,10 @@ def make_factory(agent: str, config: dict[str, Any], results_path: Path) -> Agen
             return VlmAgentFactory(config, results_path=results_path)
         except ValueError as error:
             raise EvalError(str(error)) from None
+    if agent == "map":
+        from ..agents.esrp_map.agent import MapAgent
+
+        return MapAgent
     if agent in ("bc", "ppo"):
         try:
             from ..agents.bc import BcPolicy

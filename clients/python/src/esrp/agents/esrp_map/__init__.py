@@ -9,10 +9,13 @@ It maps the room from its egocentric views. What exists so far:
 - `mapping`: a top-down map of free floor and obstacle bases (static, or movable by category)
   from egocentric views at known poses;
 - `register`: the transform from the agent's start frame to the goal image (start heading among
-  the 16, scale, start position), by correlating the map with the goal's static structure.
+  the 16, scale, start position), by correlating the map with the goal's static structure;
+- `planner`: A* over the action lattice against the goal's static structure and the mapped
+  objects, a held object's centre checked too;
+- `agent`: `MapAgent`, `esrp eval --agent map`: look around, register, fetch, carry, release.
 """
 
-from . import goal, mapping, register
+from . import goal, mapping, planner, register
 from .geometry import CAMERA_HEIGHT, CAMERA_HORIZONTAL_FOV, CAMERA_PITCH, FloorProjection, Pose2D
 
 __all__ = [
@@ -23,5 +26,6 @@ __all__ = [
     "Pose2D",
     "goal",
     "mapping",
+    "planner",
     "register",
 ]

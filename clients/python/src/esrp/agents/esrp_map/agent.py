@@ -35,7 +35,7 @@ import numpy.typing as npt
 
 from ..._values import Action, Observation
 from .geometry import Pose2D
-from .goal import CATEGORIES, STATIC, GoalImage, GoalObject, parse_goal
+from .goal import CATEGORIES, STATIC, GoalImage, GoalObject, components, parse_goal
 from .mapping import TopDownMap, floor_pixels
 from .planner import STEP, Occupancy, State, held_centre, plan
 from .register import Registration, register
@@ -49,9 +49,13 @@ _CLEARANCE = 0.04
 _FETCH_REACH = 0.85
 """The robot fetches when a base of the wanted object is this close to its centre (SPEC: a
 footprint within 1.0 m; a base lies on or behind the object, so the object is at least as near)."""
-_PLACE_TOLERANCE = 0.10
+_PLACE_TOLERANCE = 0.15
 """How close the held object's estimated centre must come to its target's, metres."""
 _LOOK_TURNS = 15
+_EXPLORATIONS = 5
+"""Look-arounds from new places at most, when a wanted object has not been seen."""
+_MAX_REJECTED = 40
+"""Rejected moves after which the agent gives up (its map is wrong somewhere it cannot tell)."""
 
 
 @dataclass
@@ -101,7 +105,9 @@ class MapAgent:
         self._carry_radius = 0.0
         self._blocked_extra: list[tuple[float, float]] = []
         self._fetch_tries = 0
-        self._stats = {"plans": 0, "rejected": 0, "fetches": 0, "releases": 0}
+        self._explorations = 0
+        self._waypoint: tuple[float, float] | None = None
+        self._stats = {"plans": 0, "rejected": 0, "fetches": 0, "releases": 0, "explorations": 0}
 
     def stats(self) -> dict[str, Any]:
         """What the agent did: plans made, moves rejected, fetches and releases tried, and the
@@ -123,13 +129,17 @@ class MapAgent:
         self._update_pose(view)
         carrying = bool(observation.grasping)
         self._observe(view, carrying)
+        if self._stats["rejected"] > _MAX_REJECTED:
+            return None
         if self._phase == "look":
             if self._looks_left > 0:
                 self._looks_left -= 1
                 return self._do(Action.LEFT)
+            # Registered again after every look around: the map has grown.
             self.registration = register(self.map, self.goal, self.goal_rgb)
-            self._tasks = self._make_tasks()
-            self._phase = "fetch"
+            done = len(self._placed)
+            self._tasks = self._make_tasks()[done:]
+            self._phase = "carry" if carrying else "fetch"
         return self._next(carrying)
 
     # The phases after the look around.
@@ -150,8 +160,13 @@ class MapAgent:
                     return None
         if not self._tasks:
             return None
+        if self._phase == "explore":
+            return self._drive_then(Action.LEFT, "look", self._explore_goal())
         if self._phase == "fetch":
-            return self._drive_then(Action.FETCH, "fetching", self._fetch_goal())
+            goal = self._fetch_goal()
+            if goal is None:
+                return self._explore()
+            return self._drive_then(Action.FETCH, "fetching", goal)
         if self._phase == "carry":
             return self._drive_then(Action.RELEASE, "released", self._carry_goal())
         return None
@@ -168,11 +183,13 @@ class MapAgent:
             self._phase = phase
             if final == Action.RELEASE:
                 self._stats["releases"] += 1
+            if phase == "look":
+                self._looks_left = _LOOK_TURNS - 1
             return self._do(final)
         if not self._plan:
             found = self._replan(reached, heuristic)
             if not found:
-                return None
+                return self._explore() if self._phase in ("fetch", "explore") else None
             self._plan = found
         return self._do(self._plan.pop(0))
 
@@ -222,6 +239,56 @@ class MapAgent:
             lambda s: max(distance(s) - _PLACE_TOLERANCE, 0.0) / STEP
         )
 
+    def _explore(self) -> Action | None:
+        """Heads for floor of the goal's room that the map has not seen, to look around there."""
+        if self._explorations >= _EXPLORATIONS:
+            return None
+        self._explorations += 1
+        self._stats["explorations"] += 1
+        self._phase = "explore"
+        self._plan = []
+        self._waypoint = self._unseen_point()
+        if self._waypoint is None:
+            return None
+        return self._next(False)
+
+    def _unseen_point(self) -> tuple[float, float] | None:
+        """The nearest point, 1.5 m away or more, that the robot can reach (in the free space
+        connected to where it stands) and the map has not seen.
+        """
+        assert self.registration is not None
+        free = ~Occupancy(self._blocked(), self.registration, ROBOT_RADIUS).inflated
+        col, row = self.registration.to_goal(self.state.x, self.state.z)
+        here = (int(np.floor(row)), int(np.floor(col)))
+        size = free.shape[0]
+        if not (0 <= here[0] < size and 0 <= here[1] < size):
+            return None
+        free[here] = True  # the robot stands there, whatever the map says
+        region = next((c for c in components(free) if (c == here).all(axis=1).any()), None)
+        if region is None:
+            return None
+        x, z = self.registration.from_goal(region[:, 1] + 0.5, region[:, 0] + 0.5)
+        r, c = self.map.cell_of(x, z)
+        inside = r >= 0
+        seen = np.zeros(len(x), dtype=bool)
+        seen[inside] = (self.map.free[r[inside], c[inside]] > 0) | (self.map.static[r[inside], c[inside]] > 0)
+        d = np.hypot(x - self.state.x, z - self.state.z)
+        candidates = np.flatnonzero(~seen & (d >= 1.5))
+        if len(candidates) == 0:
+            return None
+        best = candidates[int(np.argmin(d[candidates]))]
+        return float(x[best]), float(z[best])
+
+    def _explore_goal(self) -> tuple[Any, Any] | None:
+        if self._waypoint is None:
+            return None
+        wx, wz = self._waypoint
+
+        def distance(state: State) -> float:
+            return math.hypot(state.x - wx, state.z - wz)
+
+        return (lambda s: distance(s) <= 1.0), (lambda s: max(distance(s) - 1.0, 0.0) / STEP)
+
     def _start_carry(self) -> None:
         """Estimates where the held object's centre is relative to the robot."""
         task = self._tasks[0]
@@ -240,7 +307,9 @@ class MapAgent:
             ahead = (cx - self.state.x) * math.cos(yaw) - (cz - self.state.z) * math.sin(yaw)
             right = (cx - self.state.x) * math.sin(yaw) + (cz - self.state.z) * math.cos(yaw)
             self._carry = (ahead, right)
-        self._carry_radius = math.hypot(task.half_long, task.half_short)
+        # A disc of the half short side: the whole object near walls would never fit its target,
+        # which often stands against one; contacts beyond it are learnt from rejected moves.
+        self._carry_radius = task.half_short
         # Its bases move with it from now on: forget them.
         self.map.movable[task.category][:] = 0
 
@@ -259,9 +328,18 @@ class MapAgent:
             if np.array_equal(view, self._last_view):
                 self._stats["rejected"] += 1
                 self._plan = []
-                if action in (Action.FORWARD, Action.BACKWARD):
-                    ahead = self.state.after(action)
-                    self._blocked_extra.append((2 * ahead.x - self.state.x, 2 * ahead.z - self.state.z))
+                moved = self.state.after(action)
+                if self._carry is not None:
+                    # The held object (or the robot) hit something: block where the object's
+                    # leading side would have gone.
+                    x0, z0 = held_centre(self.state, self._carry)
+                    x1, z1 = held_centre(moved, self._carry)
+                    dx, dz = x1 - x0, z1 - z0
+                    norm = max(math.hypot(dx, dz), 1e-6)
+                    reach = self._carry_radius
+                    self._blocked_extra.append((x1 + dx / norm * reach, z1 + dz / norm * reach))
+                elif action in (Action.FORWARD, Action.BACKWARD):
+                    self._blocked_extra.append((2 * moved.x - self.state.x, 2 * moved.z - self.state.z))
             else:
                 self.state = self.state.after(action)
         self._last_view = view.copy()

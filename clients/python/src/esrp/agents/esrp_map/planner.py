@@ -22,10 +22,12 @@ import numpy.typing as npt
 from ..._values import Action
 from .register import Registration
 
-__all__ = ["STEP", "Occupancy", "State", "inflate", "plan"]
+__all__ = ["KEY_CELL", "STEP", "Occupancy", "State", "inflate", "plan"]
 
 STEP = 0.25
 """Metres a move covers."""
+KEY_CELL = 0.10
+"""Metres of the grid on which the search merges poses of one heading."""
 
 
 @dataclass(frozen=True)
@@ -42,8 +44,10 @@ class State:
         return self.k * math.pi / 8
 
     def key(self) -> tuple[int, int, int]:
-        """The state's cell for the search's closed set (5 cm, heading)."""
-        return (round(self.x / 0.05), round(self.z / 0.05), self.k % 16)
+        """The state's cell for the search's closed set (10 cm, heading): lattice poses closer than
+        that are one for the search, which keeps it to a few thousand states a room.
+        """
+        return (round(self.x / KEY_CELL), round(self.z / KEY_CELL), self.k % 16)
 
     def after(self, action: Action) -> State:
         """The pose an accepted `action` leads to (fetch and release leave it)."""
