@@ -406,3 +406,24 @@ def test_esrp_map_solves_easy_scenes(server: esrp.LocalServer, tmp_path: Path) -
     records = read_records(out).records
     assert [r.success for r in records] == [True, True]
     assert all(r.agent_stats["fetches"] >= 1 and r.agent_stats["releases"] >= 1 for r in records)
+
+
+def test_the_agents_debug_image_shows_its_beliefs(client: esrp.Client, easy_scenes: list[str]) -> None:
+    from esrp.agents.esrp_map.agent import MapAgent
+
+    agent = MapAgent()
+    with client.create_episode(easy_scenes[0]) as episode:
+        observation = episode.observation
+        assert observation is not None
+        agent.reset(observation, {})
+        before = agent.debug_image(scale=2)
+        assert before.shape == (256, 256, 3)
+        for _ in range(17):  # the look around, then the first move after registering
+            action = agent.act(observation)
+            assert action is not None
+            observation = episode.step(action).observation
+    image = agent.debug_image(scale=2)
+    assert agent.registration is not None
+    colours = {tuple(int(v) for v in c) for c in image.reshape(-1, 3)}
+    assert {(190, 240, 190), (40, 80, 220), (0, 0, 0), (255, 255, 255)} <= colours
+    assert not np.array_equal(image, before)

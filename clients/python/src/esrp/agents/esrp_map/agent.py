@@ -26,6 +26,7 @@ visible base and its size in the goal image.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -108,12 +109,16 @@ class MapAgent:
         self._explorations = 0
         self._waypoint: tuple[float, float] | None = None
         self._stats = {"plans": 0, "rejected": 0, "fetches": 0, "releases": 0, "explorations": 0}
+        self._decisions: list[float] = []
 
     def stats(self) -> dict[str, Any]:
-        """What the agent did: plans made, moves rejected, fetches and releases tried, and the
-        registration's fit.
+        """What the agent did: plans made, moves rejected, fetches and releases tried, the
+        registration's fit, and its decision time per step (milliseconds, median and largest).
         """
         out = dict(self._stats)
+        if self._decisions:
+            out["decision_ms_median"] = round(1000 * float(np.median(self._decisions)), 2)
+            out["decision_ms_max"] = round(1000 * max(self._decisions), 1)
         if self.registration is not None:
             out.update(
                 heading=self.registration.heading,
@@ -125,6 +130,13 @@ class MapAgent:
 
     def act(self, observation: Observation) -> Action | None:
         """The next action, or None when it gives up (nothing left it knows how to do)."""
+        started = time.perf_counter()
+        try:
+            return self._act(observation)
+        finally:
+            self._decisions.append(time.perf_counter() - started)
+
+    def _act(self, observation: Observation) -> Action | None:
         view = np.asarray(observation.ego_rgb)
         self._update_pose(view)
         carrying = bool(observation.grasping)
@@ -312,6 +324,45 @@ class MapAgent:
         self._carry_radius = task.half_short
         # Its bases move with it from now on: forget them.
         self.map.movable[task.category][:] = 0
+
+    def debug_image(self, scale: int = 4) -> npt.NDArray[np.uint8]:
+        """What the agent believes, drawn over its goal image magnified `scale` times: the map's
+        free floor (light green), static bases (blue) and movable bases (magenta) where the
+        registration puts them, the plan ahead (yellow), each task's target (white) and the robot
+        (black, with a tick along its heading). Before registration: the goal image alone.
+        """
+        image: npt.NDArray[np.uint8] = np.repeat(np.repeat(self.goal_rgb, scale, axis=0), scale, axis=1)
+        fit = self.registration
+        if fit is None:
+            return image
+        side = image.shape[0]
+
+        def put(x: npt.ArrayLike, z: npt.ArrayLike, colour: tuple[int, int, int], size: int = 1) -> None:
+            col, row = fit.to_goal(x, z)
+            c = np.floor(np.atleast_1d(col) * scale).astype(np.intp)
+            r = np.floor(np.atleast_1d(row) * scale).astype(np.intp)
+            for dr in range(-size + 1, size):
+                for dc in range(-size + 1, size):
+                    rr, cc = r + dr, c + dc
+                    ok = (rr >= 0) & (rr < side) & (cc >= 0) & (cc < side)
+                    image[rr[ok], cc[ok]] = colour
+
+        for counts, colour in ((self.map.free, (190, 240, 190)), (self.map.static, (40, 80, 220))):
+            rows, cols = np.nonzero(counts)
+            put(*self.map.centre_of(rows, cols), colour)
+        for index in range(len(CATEGORIES)):
+            rows, cols = np.nonzero(self.map.movable[index])
+            put(*self.map.centre_of(rows, cols), (230, 40, 230))
+        state = self.state
+        for action in self._plan:
+            state = state.after(action)
+            put(state.x, state.z, (250, 220, 0), 2)
+        for task in self._tasks:
+            put(task.x, task.z, (255, 255, 255), 3)
+        put(self.state.x, self.state.z, (0, 0, 0), 3)
+        tick = self.state.after(Action.FORWARD)
+        put((self.state.x + tick.x) / 2, (self.state.z + tick.z) / 2, (0, 0, 0), 2)
+        return image
 
     # Seeing and moving.
 
