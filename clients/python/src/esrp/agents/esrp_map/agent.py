@@ -353,7 +353,8 @@ class MapAgent:
         for index in range(len(CATEGORIES)):
             rows, cols = np.nonzero(self.map.movable[index])
             put(*self.map.centre_of(rows, cols), (230, 40, 230))
-        state = self.state
+        # The last action is taken but not yet seen: the plan goes on from where it leads.
+        state = self.state if self._last_action is None else self.state.after(self._last_action)
         for action in self._plan:
             state = state.after(action)
             put(state.x, state.z, (250, 220, 0), 2)
