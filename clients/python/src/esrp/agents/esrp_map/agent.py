@@ -310,11 +310,14 @@ class MapAgent:
         if len(points) == 0:
             self._carry = (ROBOT_RADIUS + task.half_short, 0.0)
         else:
+            # The near face: the bases within 15 cm of the nearest (bases lie on or behind the
+            # object, the nearest on the face it shows); the centre lies half a size beyond it.
             d = np.hypot(points[:, 0] - self.state.x, points[:, 1] - self.state.z)
-            nearest = points[int(np.argmin(d))]
-            dx, dz = nearest[0] - self.state.x, nearest[1] - self.state.z
+            face = points[d <= d.min() + 0.15].mean(axis=0)
+            dx, dz = face[0] - self.state.x, face[1] - self.state.z
             norm = max(math.hypot(dx, dz), 1e-6)
-            cx, cz = nearest[0] + dx / norm * task.half_short, nearest[1] + dz / norm * task.half_short
+            depth = (task.half_short + task.half_long) / 2  # its yaw is unknown
+            cx, cz = face[0] + dx / norm * depth, face[1] + dz / norm * depth
             yaw = self.state.yaw
             ahead = (cx - self.state.x) * math.cos(yaw) - (cz - self.state.z) * math.sin(yaw)
             right = (cx - self.state.x) * math.sin(yaw) + (cz - self.state.z) * math.cos(yaw)
