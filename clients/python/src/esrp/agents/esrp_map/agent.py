@@ -38,7 +38,7 @@ from ..._values import Action, Observation
 from .geometry import Pose2D
 from .goal import CATEGORIES, STATIC, GoalImage, GoalObject, components, parse_goal
 from .mapping import TopDownMap, floor_pixels
-from .planner import STEP, Occupancy, State, held_centre, plan
+from .planner import STEP, Occupancy, State, held_centre, inflate, plan
 from .register import Registration, register
 
 __all__ = ["MapAgent"]
@@ -104,6 +104,7 @@ class MapAgent:
         self._phase = "look"
         self._carry: tuple[float, float] | None = None
         self._carry_radius = 0.0
+        self._carry_radius_max = 0.0
         self._blocked_extra: list[tuple[float, float]] = []
         self._fetch_tries = 0
         self._explorations = 0
@@ -208,11 +209,14 @@ class MapAgent:
     def _replan(self, reached: Any, heuristic: Any) -> list[Action] | None:  # noqa: ANN401
         assert self.registration is not None
         self._stats["plans"] += 1
+        blocked = self._blocked()
         for margin in (_CLEARANCE, 0.0, -0.05):
-            robot = Occupancy(self._blocked(), self.registration, ROBOT_RADIUS + margin)
+            robot = Occupancy(blocked, self.registration, ROBOT_RADIUS + margin)
             carried = None
             if self._carry is not None:
-                carried = Occupancy(self._blocked(), self.registration, self._carry_radius + margin)
+                carried = Occupancy(
+                    self._room_for_held(blocked), self.registration, self._carry_radius + margin
+                )
             found = plan(
                 self.state,
                 robot,
@@ -220,7 +224,8 @@ class MapAgent:
                 heuristic,
                 carry=self._carry,
                 carried=carried,
-                max_expansions=self.max_expansions,
+                # Carrying, the goal is a small region of a larger space: a larger budget.
+                max_expansions=self.max_expansions * (3 if self._carry is not None else 1),
             )
             if found:
                 return found
@@ -325,6 +330,7 @@ class MapAgent:
         # A disc of the half short side: the whole object near walls would never fit its target,
         # which often stands against one; contacts beyond it are learnt from rejected moves.
         self._carry_radius = task.half_short
+        self._carry_radius_max = math.hypot(task.half_long, task.half_short)
         # Its bases move with it from now on: forget them.
         self.map.movable[task.category][:] = 0
 
@@ -393,6 +399,8 @@ class MapAgent:
                     norm = max(math.hypot(dx, dz), 1e-6)
                     reach = self._carry_radius
                     self._blocked_extra.append((x1 + dx / norm * reach, z1 + dz / norm * reach))
+                    # It is bigger than the disc planned with: grow the disc, up to the whole object.
+                    self._carry_radius = min(self._carry_radius + 0.03, self._carry_radius_max)
                 elif action in (Action.FORWARD, Action.BACKWARD):
                     self._blocked_extra.append((2 * moved.x - self.state.x, 2 * moved.z - self.state.z))
             else:
@@ -461,6 +469,27 @@ class MapAgent:
             xs, zs = zip(*self._blocked_extra, strict=True)
             self._mark(blocked, np.array(xs), np.array(zs), size)
         return blocked
+
+    def _room_for_held(self, blocked: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
+        """`blocked` for the held object: the goal image shows it fits on its target, often against
+        furniture or a wall, so the static pixels within its disc's reach of the target's region,
+        and of where it is now, do not block it there (what it does hit is learnt from rejected
+        moves).
+        """
+        assert self.registration is not None
+        assert self._tasks
+        target = self._tasks[0].target
+        region = np.zeros_like(blocked)
+        region[target.pixels[:, 0], target.pixels[:, 1]] = True
+        # And where it is now: it stands there, whatever the map says (it may hug a wall).
+        if self._carry is not None:
+            hx, hz = held_centre(self.state, self._carry)
+            col, row = self.registration.to_goal(hx, hz)
+            c, r = int(np.floor(col)), int(np.floor(row))
+            if 0 <= r < region.shape[0] and 0 <= c < region.shape[1]:
+                region[r, c] = True
+        near = inflate(region, self._carry_radius * self.registration.scale + 1.0)
+        return blocked & ~(near & self.goal.room)
 
     def _mark(
         self,
