@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -18,6 +19,7 @@ from ._args import (
 )
 
 if TYPE_CHECKING:
+    from .._client import Client
     from ..train.demos import DemoSettings, RecordSource
 
 
@@ -233,29 +235,26 @@ def _demos(args: argparse.Namespace) -> int:
         print(f"esrp demos export: {error}", file=sys.stderr)
         return 2
 
-    from .._client import Client
-
     if args.format == "minari":
         return _demos_minari(args, settings, sources)
 
-    def run(address: str) -> int:
-        with Client(address, token=args.token, timeout=120) as client:
-            outcome = export_demos(client, settings, sources)
-        print(f"{args.out}: {outcome.episodes} episodes, {outcome.steps} steps ({outcome.added} added now)")
+    def export(client: Client) -> list[str]:
+        outcome = export_demos(client, settings, sources)
+        lines = [
+            f"{args.out}: {outcome.episodes} episodes, {outcome.steps} steps ({outcome.added} added now)"
+        ]
         if outcome.skipped:
-            print(f"{len(outcome.skipped)} scenes skipped (the planner found no plan from their start)")
+            lines.append(
+                f"{len(outcome.skipped)} scenes skipped (the planner found no plan from their start)"
+            )
         if outcome.agreement is not None:
-            print(
+            lines.append(
                 f"the policy's action was the planner's label at {outcome.agreed} of {outcome.compared} "
                 f"states ({100 * outcome.agreement:.1f} %)"
             )
-        return 0
+        return lines
 
-    try:
-        return on_server(args, run)
-    except DemoExportError as error:
-        print(f"esrp demos export: {error}", file=sys.stderr)
-        return 2
+    return _export_on_server(args, export)
 
 
 def _demos_minari(
@@ -267,16 +266,28 @@ def _demos_minari(
     except ImportError as error:
         print(f"esrp demos export: {error} (pip install 'esrp[minari]')", file=sys.stderr)
         return 2
+
+    def export(client: Client) -> list[str]:
+        dataset_id, outcome = export_minari(client, settings, args.dataset_id, sources)
+        return [
+            f"{args.out}: Minari dataset {dataset_id}, {outcome.episodes} episodes, {outcome.steps} steps "
+            f"(MINARI_DATASETS_PATH={args.out} minari.load_dataset({dataset_id!r}))"
+        ]
+
+    return _export_on_server(args, export)
+
+
+def _export_on_server(args: argparse.Namespace, export: Callable[[Client], list[str]]) -> int:
+    """Runs `export` with a client of the server `--server` names (or one started here) and prints
+    the lines it returns; a `DemoExportError` is printed as one line, exit status 2.
+    """
     from .._client import Client
     from ..train.demos import DemoExportError
 
     def run(address: str) -> int:
         with Client(address, token=args.token, timeout=120) as client:
-            dataset_id, outcome = export_minari(client, settings, args.dataset_id, sources)
-        print(
-            f"{args.out}: Minari dataset {dataset_id}, {outcome.episodes} episodes, {outcome.steps} steps "
-            f"(MINARI_DATASETS_PATH={args.out} minari.load_dataset({dataset_id!r}))"
-        )
+            lines = export(client)
+        print("\n".join(lines))
         return 0
 
     try:
