@@ -109,6 +109,7 @@ class MapAgent:
         self._fetch_tries = 0
         self._explorations = 0
         self._waypoint: tuple[float, float] | None = None
+        self._wander: list[Action] = []
         self._stats = {"plans": 0, "rejected": 0, "fetches": 0, "releases": 0, "explorations": 0}
         self._decisions: list[float] = []
 
@@ -173,6 +174,12 @@ class MapAgent:
                     return None
         if not self._tasks:
             return None
+        if self._phase == "wander":
+            if self._wander:
+                return self._do(self._wander.pop(0))
+            self._phase = "look"
+            self._looks_left = _LOOK_TURNS - 1
+            return self._do(Action.LEFT)
         if self._phase == "explore":
             return self._drive_then(Action.LEFT, "look", self._explore_goal())
         if self._phase == "fetch":
@@ -266,7 +273,10 @@ class MapAgent:
         self._plan = []
         self._waypoint = self._unseen_point()
         if self._waypoint is None:
-            return None
+            # Nowhere the map can plan to (a wrong registration may wall the robot in): wander a
+            # few moves along free floor it sees, then look around and register again.
+            self._phase = "wander"
+            self._wander = [Action.FORWARD] * 4
         return self._next(False)
 
     def _unseen_point(self) -> tuple[float, float] | None:
@@ -389,6 +399,8 @@ class MapAgent:
             if np.array_equal(view, self._last_view):
                 self._stats["rejected"] += 1
                 self._plan = []
+                if self._phase == "wander" and self._wander:
+                    self._wander[0] = Action.LEFT  # blocked ahead: turn, then go on
                 moved = self.state.after(action)
                 if self._carry is not None:
                     # The held object (or the robot) hit something: block where the object's
