@@ -260,3 +260,19 @@ def test_is_success_on_the_last_step(
         assert all("is_success" not in info for info in ends[:-1])
     finally:
         env.close()
+
+
+def test_sensors_and_reward_as_mappings(server: esrp.LocalServer) -> None:
+    """Env kwargs that are JSON (as an env spec stores them): mappings of the fields."""
+    env = gymnasium.make(
+        esrp.ENV_ID, address=server.address, split="test", sensors={"resolution": 32}, reward={"success": 5.0}
+    )
+    try:
+        observation, _ = env.reset(seed=0)
+        assert observation["ego_rgb"].shape == (32, 32, 3)
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match=r"sensors: unknown fields in \{'resolutio': 32\}"):
+        gymnasium.make(esrp.ENV_ID, address=server.address, sensors={"resolutio": 32})
+    with pytest.raises(ValueError, match="reward: unknown fields"):
+        gymnasium.make(esrp.ENV_ID, address=server.address, reward={"bonus": 1.0})
