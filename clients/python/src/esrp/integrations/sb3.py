@@ -31,6 +31,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecMonitor
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
 from ..envs import RearrangeVectorEnv
+from ..envs.vector import _FINAL_KEYS, _RESET_KEYS
 
 __all__ = ["EsrpVecEnv", "make_vec_env", "unbatch_infos"]
 
@@ -171,10 +172,9 @@ class EsrpVecEnv(VecEnv):
         return indices
 
 
-_RESET_KEYS = ("scene_id", "difficulty", "room_type", "objects", "horizon")
-"""The keys of a reset's info (`esrp.envs`): in a SAME_STEP step, those of the sub-envs reset."""
-
-_AUTORESET_KEYS = frozenset({"final_obs", "final_info", *_RESET_KEYS})
+_AUTORESET_KEYS = frozenset(_FINAL_KEYS)
+"""The keys a SAME_STEP step adds for the sub-envs it reset: their last observation and info, and
+the reset's info (`_RESET_KEYS`)."""
 
 
 def make_vec_env(
