@@ -38,7 +38,7 @@ from ..._values import Action, Observation
 from .geometry import Pose2D
 from .goal import CATEGORIES, STATIC, GoalImage, GoalObject, components, parse_goal
 from .mapping import TopDownMap, floor_pixels
-from .planner import STEP, Occupancy, State, held_centre, inflate, plan
+from .planner import STEP, CarriedSpace, HeldObject, Occupancy, State, plan, rectangle, rectangle_iou
 from .register import Registration, register
 
 __all__ = ["MapAgent"]
@@ -50,8 +50,9 @@ _CLEARANCE = 0.04
 _FETCH_REACH = 0.85
 """The robot fetches when a base of the wanted object is this close to its centre (SPEC: a
 footprint within 1.0 m; a base lies on or behind the object, so the object is at least as near)."""
-_PLACE_TOLERANCE = 0.15
-"""How close the held object's estimated centre must come to its target's, metres."""
+_PLACE_IOU = 0.6
+"""The IoU with its target that the held object's footprint, as the agent believes it, must reach
+before it is released (the server's threshold is 0.3: the rest absorbs the belief's errors)."""
 _LOOK_TURNS = 15
 _EXPLORATIONS = 5
 """Look-arounds from new places at most, when a wanted object has not been seen."""
@@ -102,9 +103,8 @@ class MapAgent:
         self._placed: list[_Task] = []
         self._plan: list[Action] = []
         self._phase = "look"
-        self._carry: tuple[float, float] | None = None
-        self._carry_radius = 0.0
-        self._carry_radius_max = 0.0
+        self._held: HeldObject | None = None
+        self._refused: set[tuple[tuple[int, int, int], Action]] = set()
         self._blocked_extra: list[tuple[float, float]] = []
         self._fetch_tries = 0
         self._explorations = 0
@@ -162,7 +162,8 @@ class MapAgent:
         if self._phase == "released":
             self._placed.append(self._tasks.pop(0))
             self._phase = "fetch"
-            self._carry = None
+            self._held = None
+            self._refused = set()
         if self._phase == "fetching":
             self._stats["fetches"] += 1
             if carrying:
@@ -217,22 +218,20 @@ class MapAgent:
         assert self.registration is not None
         self._stats["plans"] += 1
         blocked = self._blocked()
-        for margin in (_CLEARANCE, 0.0, -0.05):
+        for margin, held_margin in zip((_CLEARANCE, 0.0, -0.05), (0.02, 0.0, -0.03), strict=True):
             robot = Occupancy(blocked, self.registration, ROBOT_RADIUS + margin)
             carried = None
-            if self._carry is not None:
-                carried = Occupancy(
-                    self._room_for_held(blocked), self.registration, self._carry_radius + margin
-                )
+            if self._held is not None:
+                carried = CarriedSpace(self._room_for_held(blocked), self.registration, self._held, held_margin)
             found = plan(
                 self.state,
                 robot,
                 reached,
                 heuristic,
-                carry=self._carry,
                 carried=carried,
+                refused=self._refused,
                 # Carrying, the goal is a small region of a larger space: a larger budget.
-                max_expansions=self.max_expansions * (3 if self._carry is not None else 1),
+                max_expansions=self.max_expansions * (3 if self._held is not None else 1),
             )
             if found:
                 return found
@@ -251,17 +250,36 @@ class MapAgent:
         return (lambda s: distance(s) <= reach), (lambda s: max(distance(s) - reach, 0.0) / STEP)
 
     def _carry_goal(self) -> tuple[Any, Any] | None:
-        task = self._tasks[0]
-        carry = self._carry
-        assert carry is not None
+        """Reached where the held object's footprint, as the agent believes it, overlaps its
+        target's with an IoU of `_PLACE_IOU` or more.
+        """
+        held = self._held
+        assert held is not None
+        target = self._target_rectangle(self._tasks[0])
+        tx, tz = target.mean(axis=0)
+        near = 0.75 * max(held.half_x, held.half_z, 0.1)
 
         def distance(state: State) -> float:
-            x, z = held_centre(state, carry)
-            return math.hypot(x - task.x, z - task.z)
+            x, z = held.centre(state)
+            return math.hypot(x - tx, z - tz)
 
-        return (lambda s: distance(s) <= _PLACE_TOLERANCE), (
-            lambda s: max(distance(s) - _PLACE_TOLERANCE, 0.0) / STEP
+        def reached(state: State) -> bool:
+            if distance(state) > near:
+                return False
+            return rectangle_iou(held.corners(state), target) >= _PLACE_IOU
+
+        return reached, (lambda s: max(distance(s) - 0.1, 0.0) / STEP)
+
+    def _target_rectangle(self, task: _Task) -> npt.NDArray[np.float64]:
+        """(4, 2) the corners of `task`'s target footprint in the start frame."""
+        assert self.registration is not None
+        target = task.target
+        x0, z0 = self.registration.from_goal(target.col, target.row)
+        x1, z1 = self.registration.from_goal(
+            target.col + math.cos(target.angle), target.row + math.sin(target.angle)
         )
+        yaw = math.atan2(-(float(z1) - float(z0)), float(x1) - float(x0))
+        return rectangle(float(x0), float(z0), task.half_long, task.half_short, yaw)
 
     def _explore(self) -> Action | None:
         """Heads for floor of the goal's room that the map has not seen, to look around there."""
@@ -317,38 +335,75 @@ class MapAgent:
         return (lambda s: distance(s) <= 1.0), (lambda s: max(distance(s) - 1.0, 0.0) / STEP)
 
     def _start_carry(self) -> None:
-        """Estimates where the held object's centre is relative to the robot."""
+        """Estimates where the held object's footprint is relative to the robot."""
         task = self._tasks[0]
-        points = self._object_points(task)
         self._phase = "carry"
         self._plan = []
-        if len(points) == 0:
-            self._carry = (ROBOT_RADIUS + task.half_short, 0.0)
-        else:
-            # The near face: the bases within 15 cm of the nearest (bases lie on or behind the
-            # object, the nearest on the face it shows); the centre lies half a size beyond it.
-            d = np.hypot(points[:, 0] - self.state.x, points[:, 1] - self.state.z)
-            face = points[d <= d.min() + 0.15].mean(axis=0)
-            dx, dz = face[0] - self.state.x, face[1] - self.state.z
-            norm = max(math.hypot(dx, dz), 1e-6)
-            depth = (task.half_short + task.half_long) / 2  # its yaw is unknown
-            cx, cz = face[0] + dx / norm * depth, face[1] + dz / norm * depth
-            yaw = self.state.yaw
-            ahead = (cx - self.state.x) * math.cos(yaw) - (cz - self.state.z) * math.sin(yaw)
-            right = (cx - self.state.x) * math.sin(yaw) + (cz - self.state.z) * math.cos(yaw)
-            self._carry = (ahead, right)
-        # A disc of the half short side: the whole object near walls would never fit its target,
-        # which often stands against one; contacts beyond it are learnt from rejected moves.
-        self._carry_radius = task.half_short
-        self._carry_radius_max = math.hypot(task.half_long, task.half_short)
+        self._refused = set()
+        self._held = self._estimate_held(task)
         # Its bases move with it from now on: forget them.
         self.map.movable[task.category][:] = 0
+
+    def _estimate_held(self, task: _Task) -> HeldObject:
+        """The held object's footprint relative to the robot, fitted to the bases the map saw of it.
+
+        Its size is its target's in the goal image. Its yaw differs from its target's by a
+        multiple of 22.5° (the layouts are made by carrying objects on the lattice), so the fit
+        tries those 8 yaws (a rectangle is the same turned half a turn); for each, the centres on a
+        2 cm grid about the bases. A fit costs the bases' distances outside the rectangle, a third
+        of their depths inside it (a base lies on the visible boundary, or behind it for furniture
+        on legs), and is ruled out where the footprint comes nearer than the robot's radius or
+        farther than fetch reach (1 m): the fetch worked.
+        """
+        points = self._object_points(task)
+        target = self._target_rectangle(task)
+        target_yaw = math.atan2(-(target[1, 1] - target[2, 1]), target[1, 0] - target[2, 0])
+        hx, hz = task.half_long, task.half_short
+        if len(points):
+            d = np.hypot(points[:, 0] - self.state.x, points[:, 1] - self.state.z)
+            points = points[d <= 1.0 + 2 * max(hx, hz)]
+        if len(points) == 0:
+            ahead = ROBOT_RADIUS + hz + 0.05
+            return HeldObject(ahead, 0.0, target_yaw - self.state.yaw, hx, hz)
+        best: tuple[float, float, float, float] | None = None
+        lo = points.min(axis=0) - max(hx, hz)
+        hi = points.max(axis=0) + max(hx, hz)
+        gx, gz = np.meshgrid(np.arange(lo[0], hi[0], 0.02), np.arange(lo[1], hi[1], 0.02))
+        cx, cz = gx.ravel(), gz.ravel()
+        for turn in range(8):
+            yaw = target_yaw + turn * math.pi / 8
+            c, s = math.cos(yaw), math.sin(yaw)
+            # Each base in each candidate's local frame: (centres, bases).
+            dx = points[None, :, 0] - cx[:, None]
+            dz = points[None, :, 1] - cz[:, None]
+            lx, lz = np.abs(dx * c - dz * s), np.abs(dx * s + dz * c)
+            outside = np.hypot(np.maximum(lx - hx, 0), np.maximum(lz - hz, 0))
+            depth = np.minimum(hx - lx, hz - lz).clip(min=0)
+            cost = np.minimum(outside, 0.3).sum(axis=1) + np.minimum(depth, 0.3).sum(axis=1) / 3
+            # The robot's centre in each candidate's frame: its distance to the footprint.
+            rx, rz = self.state.x - cx, self.state.z - cz
+            rlx, rlz = np.abs(rx * c - rz * s), np.abs(rx * s + rz * c)
+            gap = np.hypot(np.maximum(rlx - hx, 0), np.maximum(rlz - hz, 0))
+            cost = np.where((gap < ROBOT_RADIUS - 0.02) | (gap > 1.0), np.inf, cost)
+            index = int(np.argmin(cost))
+            if best is None or cost[index] < best[0]:
+                best = (float(cost[index]), float(cx[index]), float(cz[index]), yaw)
+        assert best is not None
+        _, x, z, yaw = best
+        if not math.isfinite(best[0]):
+            ahead = ROBOT_RADIUS + hz + 0.05
+            return HeldObject(ahead, 0.0, target_yaw - self.state.yaw, hx, hz)
+        robot_yaw = self.state.yaw
+        ahead = (x - self.state.x) * math.cos(robot_yaw) - (z - self.state.z) * math.sin(robot_yaw)
+        right = (x - self.state.x) * math.sin(robot_yaw) + (z - self.state.z) * math.cos(robot_yaw)
+        return HeldObject(ahead, right, yaw - robot_yaw, hx, hz)
 
     def debug_image(self, scale: int = 4) -> npt.NDArray[np.uint8]:
         """What the agent believes, drawn over its goal image magnified `scale` times: the map's
         free floor (light green), static bases (blue) and movable bases (magenta) where the
-        registration puts them, the plan ahead (yellow), each task's target (white) and the robot
-        (black, with a tick along its heading). Before registration: the goal image alone.
+        registration puts them, the plan ahead (yellow), each task's target (white), the held
+        object's footprint as the agent believes it (red outline) and the robot (black, with a
+        tick along its heading). Before registration: the goal image alone.
         """
         image: npt.NDArray[np.uint8] = np.repeat(np.repeat(self.goal_rgb, scale, axis=0), scale, axis=1)
         fit = self.registration
@@ -379,6 +434,13 @@ class MapAgent:
             put(state.x, state.z, (250, 220, 0), 2)
         for task in self._tasks:
             put(task.x, task.z, (255, 255, 255), 3)
+        if self._held is not None:
+            corners = self._held.corners(self.state)
+            t = np.linspace(0.0, 1.0, 40)[:, None]
+            for i in range(4):
+                a, b = corners[i], corners[(i + 1) % 4]
+                edge = a + t * (b - a)
+                put(edge[:, 0], edge[:, 1], (220, 30, 30))
         put(self.state.x, self.state.z, (0, 0, 0), 3)
         tick = self.state.after(Action.FORWARD)
         put((self.state.x + tick.x) / 2, (self.state.z + tick.z) / 2, (0, 0, 0), 2)
@@ -402,17 +464,10 @@ class MapAgent:
                 if self._phase == "wander" and self._wander:
                     self._wander[0] = Action.LEFT  # blocked ahead: turn, then go on
                 moved = self.state.after(action)
-                if self._carry is not None:
-                    # The held object (or the robot) hit something: block where the object's
-                    # leading side would have gone.
-                    x0, z0 = held_centre(self.state, self._carry)
-                    x1, z1 = held_centre(moved, self._carry)
-                    dx, dz = x1 - x0, z1 - z0
-                    norm = max(math.hypot(dx, dz), 1e-6)
-                    reach = self._carry_radius
-                    self._blocked_extra.append((x1 + dx / norm * reach, z1 + dz / norm * reach))
-                    # It is bigger than the disc planned with: grow the disc, up to the whole object.
-                    self._carry_radius = min(self._carry_radius + 0.03, self._carry_radius_max)
+                if self._held is not None:
+                    # The held object (or the robot) hit something the map does not show: that
+                    # motion from this pose is refused from now on.
+                    self._refused.add((self.state.key(), action))
                 elif action in (Action.FORWARD, Action.BACKWARD):
                     self._blocked_extra.append((2 * moved.x - self.state.x, 2 * moved.z - self.state.z))
             else:
@@ -470,7 +525,7 @@ class MapAgent:
         blocked: npt.NDArray[np.bool_] = (self.goal.labels == STATIC) & ~floor_pixels(self.goal_rgb)
         blocked |= ~self.goal.room
         size = blocked.shape[0]
-        held = self._tasks[0].category if self._carry is not None and self._tasks else None
+        held = self._tasks[0].category if self._held is not None and self._tasks else None
         for index in range(len(CATEGORIES)):
             if index == held:
                 continue
@@ -483,25 +538,34 @@ class MapAgent:
         return blocked
 
     def _room_for_held(self, blocked: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
-        """`blocked` for the held object: the goal image shows it fits on its target, often against
-        furniture or a wall, so the static pixels within its disc's reach of the target's region,
-        and of where it is now, do not block it there (what it does hit is learnt from rejected
-        moves).
+        """`blocked` for the held object: not where it stands now (its footprint, as believed, may
+        overlap what the map shows by its errors; it is there), nor on its target (the goal image
+        shows it fits there, often against a wall or furniture).
+        """
+        assert self._held is not None
+        assert self.registration is not None
+        here = self._rectangle_pixels(self._held.corners(self.state), blocked.shape[0], grow=0.05)
+        there = self._rectangle_pixels(self._target_rectangle(self._tasks[0]), blocked.shape[0], grow=0.05)
+        return blocked & ~here & ~there
+
+    def _rectangle_pixels(
+        self, corners: npt.NDArray[np.float64], size: int, grow: float = 0.0
+    ) -> npt.NDArray[np.bool_]:
+        """(size, size) the goal pixels whose centres lie in the start-frame rectangle `corners`
+        ((4, 2), in order) grown by `grow` metres each side.
         """
         assert self.registration is not None
-        assert self._tasks
-        target = self._tasks[0].target
-        region = np.zeros_like(blocked)
-        region[target.pixels[:, 0], target.pixels[:, 1]] = True
-        # And where it is now: it stands there, whatever the map says (it may hug a wall).
-        if self._carry is not None:
-            hx, hz = held_centre(self.state, self._carry)
-            col, row = self.registration.to_goal(hx, hz)
-            c, r = int(np.floor(col)), int(np.floor(row))
-            if 0 <= r < region.shape[0] and 0 <= c < region.shape[1]:
-                region[r, c] = True
-        near = inflate(region, self._carry_radius * self.registration.scale + 1.0)
-        return blocked & ~(near & self.goal.room)
+        centre = corners.mean(axis=0)
+        axis_x = (corners[0] - corners[3]) / 2  # half the local x side, as a vector
+        axis_z = (corners[0] - corners[1]) / 2
+        half_x, half_z = float(np.hypot(*axis_x)), float(np.hypot(*axis_z))
+        rows, cols = np.mgrid[0:size, 0:size]
+        x, z = self.registration.from_goal(cols + 0.5, rows + 0.5)
+        dx, dz = x - centre[0], z - centre[1]
+        lx = np.abs(dx * axis_x[0] + dz * axis_x[1]) / max(half_x, 1e-9)
+        lz = np.abs(dx * axis_z[0] + dz * axis_z[1]) / max(half_z, 1e-9)
+        inside: npt.NDArray[np.bool_] = (lx <= half_x + grow) & (lz <= half_z + grow)
+        return inside
 
     def _mark(
         self,

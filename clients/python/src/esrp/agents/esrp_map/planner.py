@@ -2,11 +2,13 @@
 turns) in the agent's start frame, against an occupancy grid of the goal image's pixels.
 
 The grid is the goal image's static structure (walls, doors, fixed furniture, seen from above)
-plus what the agent marks (movable objects, surprises), inflated by the moving body's radius: the
-robot's 0.30 m, or with a held object the radius of the disc about the robot's centre that holds
-both. A motion is free when every point of its sweep, sampled every few centimetres, is in free
-cells; a turn in place sweeps nothing for the robot alone, and for a held object the arc its
-centre travels is checked too (a disc that holds the object covers its rotation).
+plus what the agent marks (movable objects, surprises). The robot is a disc: the grid inflated by
+its radius (`Occupancy`). A held object is its oriented rectangle, rigidly attached to the robot
+(`HeldObject`): for each of its 32 orientations of the search (its yaw changes by 22.5° a turn,
+and turns are checked at four intermediate angles) the grid is dilated by the rectangle
+(`CarriedSpace`, a configuration space), so that its centre alone is checked. A motion is free
+when every point of its sweep, sampled every half pixel or so, is free: the robot's centre along
+a move, and the held object's centre (and angle) along a move or a turn's arc.
 """
 
 from __future__ import annotations
@@ -22,7 +24,17 @@ import numpy.typing as npt
 from ..._values import Action
 from .register import Registration
 
-__all__ = ["KEY_CELL", "STEP", "Occupancy", "State", "inflate", "plan"]
+__all__ = [
+    "KEY_CELL",
+    "STEP",
+    "CarriedSpace",
+    "HeldObject",
+    "Occupancy",
+    "State",
+    "inflate",
+    "plan",
+    "rectangle_iou",
+]
 
 STEP = 0.25
 """Metres a move covers."""
@@ -112,21 +124,213 @@ class Occupancy:
         return bool(self.free(x0 + t * (x1 - x0), z0 + t * (z1 - z0)).all())
 
 
+@dataclass(frozen=True)
+class HeldObject:
+    """A held object's footprint relative to the robot: its centre `ahead` and `right` metres from
+    the robot's centre, its yaw `rel_yaw` radians more than the robot's (esrp-core's footprint
+    convention: its local x axis along (cos yaw, −sin yaw)), and its half sizes along its local x
+    and z axes, metres.
+    """
+
+    ahead: float
+    right: float
+    rel_yaw: float
+    half_x: float
+    half_z: float
+
+    def centre(self, state: State, extra: float = 0.0) -> tuple[float, float]:
+        """Its centre in the start frame, held by a robot at `state` turned `extra` turns more."""
+        return held_centre(state, (self.ahead, self.right), extra)
+
+    def yaw(self, state: State, extra: float = 0.0) -> float:
+        """Its yaw in the start frame, held by a robot at `state` turned `extra` turns more."""
+        return state.yaw + extra * math.pi / 8 + self.rel_yaw
+
+    def corners(self, state: State, extra: float = 0.0) -> npt.NDArray[np.float64]:
+        """(4, 2) its footprint's corners in the start frame, in order around it."""
+        cx, cz = self.centre(state, extra)
+        return rectangle(cx, cz, self.half_x, self.half_z, self.yaw(state, extra))
+
+
+def rectangle(cx: float, cz: float, half_x: float, half_z: float, yaw: float) -> npt.NDArray[np.float64]:
+    """(4, 2) the corners, in order around it, of the footprint centred at (cx, cz) with half sizes
+    `half_x`, `half_z` along its local axes and `yaw` (esrp-core's convention).
+    """
+    c, s = math.cos(yaw), math.sin(yaw)
+    local = np.array([(1, 1), (1, -1), (-1, -1), (-1, 1)], dtype=np.float64) * (half_x, half_z)
+    x = cx + local[:, 0] * c + local[:, 1] * s
+    z = cz - local[:, 0] * s + local[:, 1] * c
+    return np.stack([x, z], axis=1)
+
+
+def _clip(
+    polygon: list[tuple[float, float]], a: tuple[float, float], b: tuple[float, float]
+) -> list[tuple[float, float]]:
+    """The part of convex `polygon` on the left of the line a → b (Sutherland–Hodgman)."""
+
+    def side(p: tuple[float, float]) -> float:
+        return (b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0])
+
+    out: list[tuple[float, float]] = []
+    for i, p in enumerate(polygon):
+        q = polygon[(i + 1) % len(polygon)]
+        sp, sq = side(p), side(q)
+        if sp >= 0:
+            out.append(p)
+        if (sp >= 0) != (sq >= 0):
+            t = sp / (sp - sq)
+            out.append((p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1])))
+    return out
+
+
+def _area(polygon: list[tuple[float, float]] | npt.NDArray[np.float64]) -> float:
+    """The signed area of a polygon (positive when its corners go counter-clockwise in (x, z))."""
+    total = 0.0
+    for i in range(len(polygon)):
+        x0, z0 = polygon[i]
+        x1, z1 = polygon[(i + 1) % len(polygon)]
+        total += x0 * z1 - x1 * z0
+    return total / 2
+
+
+def rectangle_iou(a: npt.NDArray[np.float64], b: npt.NDArray[np.float64]) -> float:
+    """The intersection over union of two rectangles given by their (4, 2) corners in order."""
+    first = [(float(x), float(z)) for x, z in a]
+    second = [(float(x), float(z)) for x, z in b]
+    if _area(first) < 0:
+        first.reverse()
+    if _area(second) < 0:
+        second.reverse()
+    inside = first
+    for i in range(4):
+        inside = _clip(inside, second[i], second[(i + 1) % 4])
+        if not inside:
+            return 0.0
+    meet = abs(_area(inside))
+    union = abs(_area(first)) + abs(_area(second)) - meet
+    return meet / union if union > 0 else 0.0
+
+
+class CarriedSpace:
+    """Where a held object's centre may be, on the goal image's pixel grid: `blocked` dilated by the
+    object's rectangle at each of the 32 yaws `rel_yaw + m · π/32` (m mod 32: a rectangle is the
+    same turned half a turn) that the search meets, computed when first asked for.
+
+    `margin`: metres added to each half size (negative to shrink it: the goal image's pixels are
+    coarse, and an object's target often touches a wall).
+    """
+
+    BINS = 32
+
+    def __init__(
+        self,
+        blocked: npt.NDArray[np.bool_],
+        registration: Registration,
+        held: HeldObject,
+        margin: float = 0.0,
+    ) -> None:
+        self.blocked = blocked
+        self.registration = registration
+        self.held = held
+        self.margin = margin
+        self._spaces: dict[int, npt.NDArray[np.bool_]] = {}
+        size = blocked.shape[0]
+        reach = (
+            int(
+                math.ceil(
+                    math.hypot(held.half_x + max(margin, 0), held.half_z + max(margin, 0))
+                    * registration.scale
+                )
+            )
+            + 2
+        )
+        self._reach = reach
+        self._fft_shape = (size + 2 * reach, size + 2 * reach)
+        self._blocked_fft = np.fft.rfft2(blocked.astype(np.float64), self._fft_shape)
+
+    def _bin(self, state: State, extra: float) -> int:
+        """The yaw bin of the object held at `state` turned `extra` turns more (extra in quarters)."""
+        return round((state.k + extra) * 4) % self.BINS
+
+    def space(self, index: int) -> npt.NDArray[np.bool_]:
+        """(R, R) the pixels the object's centre may not be in at yaw bin `index`."""
+        found = self._spaces.get(index)
+        if found is None:
+            found = self._dilate(index)
+            self._spaces[index] = found
+        return found
+
+    def _dilate(self, index: int) -> npt.NDArray[np.bool_]:
+        fit = self.registration
+        reach = self._reach
+        yaw = self.held.rel_yaw + index * math.pi / self.BINS
+        # Each kernel pixel's offset from the centre pixel, in start-frame metres.
+        dr, dc = np.mgrid[-reach : reach + 1, -reach : reach + 1].astype(np.float64)
+        x0, z0 = fit.from_goal(0.0, 0.0)
+        x, z = fit.from_goal(dc, dr)
+        dx, dz = x - x0, z - z0
+        c, s = math.cos(yaw), math.sin(yaw)
+        local_x = dx * c - dz * s
+        local_z = dx * s + dz * c
+        kernel = (np.abs(local_x) <= self.held.half_x + self.margin) & (
+            np.abs(local_z) <= self.held.half_z + self.margin
+        )
+        full = np.fft.irfft2(
+            self._blocked_fft * np.fft.rfft2(kernel.astype(np.float64), self._fft_shape), self._fft_shape
+        )
+        size = self.blocked.shape[0]
+        return full[reach : reach + size, reach : reach + size] > 0.5
+
+    def free(
+        self, x: npt.ArrayLike, z: npt.ArrayLike, index: int | npt.NDArray[np.intp]
+    ) -> npt.NDArray[np.bool_]:
+        """Whether the object's centre may be at start-frame points (x, z) at yaw bins `index`."""
+        col, row = self.registration.to_goal(x, z)
+        c, r = np.floor(col).astype(np.intp), np.floor(row).astype(np.intp)
+        size = self.blocked.shape[0]
+        inside = (c >= 0) & (c < size) & (r >= 0) & (r < size)
+        out = np.zeros(np.shape(c), dtype=np.bool_)
+        bins = np.broadcast_to(np.asarray(index), np.shape(c))
+        for b in np.unique(bins[inside]):
+            here = inside & (bins == b)
+            out[here] = ~self.space(int(b))[r[here], c[here]]
+        return out
+
+    def move_free(self, state: State, child: State) -> bool:
+        """Whether a move from `state` to `child` (same heading) keeps the object clear."""
+        x0, z0 = self.held.centre(state)
+        x1, z1 = self.held.centre(child)
+        pixels = math.hypot(x1 - x0, z1 - z0) * self.registration.scale
+        t = np.linspace(0.0, 1.0, max(int(pixels * 2), 1) + 1)
+        return bool(self.free(x0 + t * (x1 - x0), z0 + t * (z1 - z0), self._bin(state, 0)).all())
+
+    def turn_free(self, state: State, sign: int) -> bool:
+        """Whether a turn (sign +1 left, −1 right) from `state` keeps the object clear along its
+        arc: its centre sampled about every half pixel, its yaw in the nearest quarter turn bin.
+        """
+        arc = math.hypot(self.held.ahead, self.held.right) * math.pi / 8 * self.registration.scale
+        count = max(int(arc * 2), 4)
+        extras = sign * np.linspace(0.0, 1.0, count + 1)
+        points = [self.held.centre(state, float(e)) for e in extras]
+        xs, zs = zip(*points, strict=True)
+        bins = np.array([self._bin(state, float(e)) for e in extras], dtype=np.intp)
+        return bool(self.free(np.array(xs), np.array(zs), bins).all())
+
+
 def plan(
     start: State,
     occupancy: Occupancy,
     reached: Callable[[State], bool],
     heuristic: Callable[[State], float],
     *,
-    carry: tuple[float, float] | None = None,
-    carried: Occupancy | None = None,
+    carried: CarriedSpace | None = None,
+    refused: set[tuple[tuple[int, int, int], Action]] | None = None,
     max_expansions: int = 20000,
 ) -> list[Action] | None:
     """The shortest action sequence from `start` to a state where `reached` holds, or None when
     none is found within `max_expansions` states. `heuristic` estimates the actions left (admissible
-    for the shortest). With `carry`, a held object's centre at (ahead, right) metres from the robot:
-    its centre must stay free in `carried` (an occupancy for the object's own radius) along every
-    move and turn.
+    for the shortest). With `carried`, the robot holds an object that must stay clear in it along
+    every move and turn. `refused`: (state key, action) pairs known to be rejected (tried before).
     """
     opened = pushed = 0
     # (estimate, cost, push order, state): the order breaks ties, states are never compared.
@@ -145,8 +349,10 @@ def plan(
         if opened > max_expansions:
             return None
         for action in (Action.FORWARD, Action.BACKWARD, Action.LEFT, Action.RIGHT):
+            if refused and (key, action) in refused:
+                continue
             child = state.after(action)
-            if not _allowed(state, child, action, occupancy, carry, carried):
+            if not _allowed(state, child, action, occupancy, carried):
                 continue
             child_key = child.key()
             if cost + 1 < costs.get(child_key, math.inf):
@@ -163,25 +369,16 @@ def _allowed(
     child: State,
     action: Action,
     occupancy: Occupancy,
-    carry: tuple[float, float] | None,
-    carried: Occupancy | None,
+    carried: CarriedSpace | None,
 ) -> bool:
     moves = action in (Action.FORWARD, Action.BACKWARD)
     if moves and not occupancy.segment_free(state.x, state.z, child.x, child.z):
         return False
-    if carry is None or carried is None:
+    if carried is None:
         return True
-    if action in (Action.FORWARD, Action.BACKWARD):
-        x0, z0 = held_centre(state, carry)
-        x1, z1 = held_centre(child, carry)
-        return carried.segment_free(x0, z0, x1, z1)
-    # A turn: the held object's centre travels an arc about the robot's centre.
-    sign = 1 if action == Action.LEFT else -1
-    points = [
-        held_centre(State(state.x, state.z, state.k), carry, extra=sign * step / 8) for step in range(9)
-    ]
-    xs, zs = zip(*points, strict=True)
-    return bool(carried.free(np.array(xs), np.array(zs)).all())
+    if moves:
+        return carried.move_free(state, child)
+    return carried.turn_free(state, 1 if action == Action.LEFT else -1)
 
 
 def held_centre(state: State, carry: tuple[float, float], extra: float = 0.0) -> tuple[float, float]:
