@@ -13,9 +13,9 @@ and placement, the agent's statistics, and a reason for a failure, the first tha
   more than 2 goal pixels;
 - `not-found`: it gave up, or ran out of steps, while looking for an object (never fetched one it
   wanted);
-- `fetch`: it drove to an object and its fetches failed;
 - `carry`: it gave up, or ran out of steps, holding an object (no way found, or stuck on contacts);
-- `placement`: it released every object it wanted, some with an IoU under the threshold;
+- `placement`: it released an object with an IoU under the threshold;
+- `fetch`: it drove to an object and its fetches failed;
 - `other`: none of these.
 
 `--images DIR` writes the agent's debug image (`MapAgent.debug_image`) at the end of each failed
@@ -95,7 +95,8 @@ def play(client: esrp.Client, scene: str, images: Path | None, oracle: bool = Fa
     started = time.perf_counter()
     with client.create_episode(scene, privileged=True) as episode:
         observation = episode.observation
-        assert observation is not None and observation.goal_rgb is not None
+        assert observation is not None
+        assert observation.goal_rgb is not None
         start = episode.privileged_state()
         frame = goal_frame(start, observation.goal_rgb.shape[0])
         agent.reset(observation, {})
@@ -164,10 +165,10 @@ def reason(record: dict[str, Any], stats: dict[str, Any]) -> str:
         return "carry"
     if phase in ("explore", "wander", "look") or (phase == "fetch" and stats.get("fetches", 0) == 0):
         return "not-found"
-    if phase in ("fetch", "fetching"):
-        return "fetch"
     if stats.get("releases", 0) > 0 and not all(o["placed"] for o in record["objects"]):
         return "placement"
+    if phase in ("fetch", "fetching"):
+        return "fetch"
     return "other"
 
 

@@ -38,7 +38,17 @@ from ..._values import Action, Observation
 from .geometry import Pose2D
 from .goal import CATEGORIES, STATIC, GoalImage, GoalObject, components, parse_goal
 from .mapping import TopDownMap, floor_pixels
-from .planner import STEP, CarriedSpace, HeldObject, Occupancy, State, plan, rectangle, rectangle_iou
+from .planner import (
+    STEP,
+    CarriedSpace,
+    HeldObject,
+    Occupancy,
+    State,
+    plan,
+    reachable,
+    rectangle,
+    rectangle_iou,
+)
 from .register import Registration, register
 
 __all__ = ["MapAgent"]
@@ -53,6 +63,13 @@ footprint within 1.0 m; a base lies on or behind the object, so the object is at
 _PLACE_IOU = 0.6
 """The IoU with its target that the held object's footprint, as the agent believes it, must reach
 before it is released (the server's threshold is 0.3: the rest absorbs the belief's errors)."""
+_OWN_BASES = 0.4
+"""Metres from an object's believed footprint within which the map's bases of its category are
+taken for its own (a base lies on or behind the face it belongs to)."""
+_FETCH_CANDIDATES = 12
+_REGRASPS = 2
+"""Times an object is put down and fetched again from another pose when no carry plan is found."""
+"""Fetch poses whose carry is planned before one is chosen, at most."""
 _LOOK_TURNS = 15
 _EXPLORATIONS = 5
 """Look-arounds from new places at most, when a wanted object has not been seen."""
@@ -105,6 +122,10 @@ class MapAgent:
         self._phase = "look"
         self._held: HeldObject | None = None
         self._refused: set[tuple[tuple[int, int, int], Action]] = set()
+        self._approach: State | None = None
+        self._approach_tried = False
+        self._put_down: tuple[float, float, float] | None = None
+        self._regrasps = 0
         self._blocked_extra: list[tuple[float, float]] = []
         self._fetch_tries = 0
         self._explorations = 0
@@ -159,11 +180,26 @@ class MapAgent:
     # The phases after the look around.
 
     def _next(self, carrying: bool) -> Action | None:
+        if self._phase == "regrasp":
+            # Put down where no carry plan went on: fetch it again from a better pose, its
+            # footprint known from the belief it was carried with.
+            assert self._held is not None
+            corners = self._held.corners(self.state)
+            axis = corners[1] - corners[2]
+            centre = corners.mean(axis=0)
+            self._put_down = (float(centre[0]), float(centre[1]), math.atan2(-axis[1], axis[0]))
+            self._phase = "fetch"
+            self._held = None
+            self._refused = set()
+            self._approach, self._approach_tried = None, False
+            self._fetch_tries = 0
         if self._phase == "released":
             self._placed.append(self._tasks.pop(0))
             self._phase = "fetch"
             self._held = None
             self._refused = set()
+            self._approach, self._approach_tried = None, False
+            self._put_down, self._regrasps = None, 0
         if self._phase == "fetching":
             self._stats["fetches"] += 1
             if carrying:
@@ -171,6 +207,7 @@ class MapAgent:
             else:
                 self._fetch_tries += 1
                 self._phase = "fetch"
+                self._approach = None
                 if self._fetch_tries >= 3:
                     return None
         if not self._tasks:
@@ -184,7 +221,11 @@ class MapAgent:
         if self._phase == "explore":
             return self._drive_then(Action.LEFT, "look", self._explore_goal())
         if self._phase == "fetch":
-            goal = self._fetch_goal()
+            if not self._approach_tried and self._fetch_tries == 0:
+                chosen = self._choose_fetch(self._tasks[0])
+                if chosen is not None:
+                    self._approach, self._plan = chosen
+            goal = self._approach_goal() if self._approach is not None else self._fetch_goal()
             if goal is None:
                 return self._explore()
             return self._drive_then(Action.FETCH, "fetching", goal)
@@ -209,6 +250,14 @@ class MapAgent:
             return self._do(final)
         if not self._plan:
             found = self._replan(reached, heuristic)
+            if not found and self._phase == "carry" and self._regrasps < _REGRASPS:
+                self._regrasps += 1
+                self._stats["regrasps"] = self._stats.get("regrasps", 0) + 1
+                self._phase = "regrasp"
+                return self._do(Action.RELEASE)
+            if not found and self._approach is not None and self._phase == "fetch":
+                self._approach = None  # the chosen pose is out of reach now: any within reach
+                return self._next(False)
             if not found:
                 return self._explore() if self._phase in ("fetch", "explore") else None
             self._plan = found
@@ -222,7 +271,8 @@ class MapAgent:
             robot = Occupancy(blocked, self.registration, ROBOT_RADIUS + margin)
             carried = None
             if self._held is not None:
-                carried = CarriedSpace(self._room_for_held(blocked), self.registration, self._held, held_margin)
+                room = self._room_for_held(blocked, self._held.corners(self.state))
+                carried = CarriedSpace(room, self.registration, self._held, held_margin)
             found = plan(
                 self.state,
                 robot,
@@ -240,6 +290,9 @@ class MapAgent:
     def _fetch_goal(self) -> tuple[Any, Any] | None:
         task = self._tasks[0]
         points = self._object_points(task)
+        if self._put_down is not None:
+            corners = rectangle(*self._put_down, task.half_long, task.half_short)
+            points = np.concatenate([points.reshape(-1, 2), corners])
         if len(points) == 0:
             return None
         reach = _FETCH_REACH if self._fetch_tries == 0 else _FETCH_REACH - 0.25 * self._fetch_tries
@@ -249,12 +302,26 @@ class MapAgent:
 
         return (lambda s: distance(s) <= reach), (lambda s: max(distance(s) - reach, 0.0) / STEP)
 
+    def _approach_goal(self) -> tuple[Any, Any]:
+        """Reached at the fetch pose chosen (`_choose_fetch`)."""
+        assert self._approach is not None
+        want = self._approach
+        key = want.key()
+
+        def estimate(state: State) -> float:
+            turns = abs(state.k - want.k) % 16
+            return math.hypot(state.x - want.x, state.z - want.z) / STEP + min(turns, 16 - turns)
+
+        return (lambda s: s.key() == key), estimate
+
     def _carry_goal(self) -> tuple[Any, Any] | None:
         """Reached where the held object's footprint, as the agent believes it, overlaps its
         target's with an IoU of `_PLACE_IOU` or more.
         """
-        held = self._held
-        assert held is not None
+        assert self._held is not None
+        return self._carry_goal_for(self._held)
+
+    def _carry_goal_for(self, held: HeldObject) -> tuple[Any, Any]:
         target = self._target_rectangle(self._tasks[0])
         tx, tz = target.mean(axis=0)
         near = 0.75 * max(held.half_x, held.half_z, 0.1)
@@ -334,37 +401,107 @@ class MapAgent:
 
         return (lambda s: distance(s) <= 1.0), (lambda s: max(distance(s) - 1.0, 0.0) / STEP)
 
-    def _start_carry(self) -> None:
-        """Estimates where the held object's footprint is relative to the robot."""
-        task = self._tasks[0]
-        self._phase = "carry"
-        self._plan = []
-        self._refused = set()
-        self._held = self._estimate_held(task)
-        # Its bases move with it from now on: forget them.
-        self.map.movable[task.category][:] = 0
+    def _choose_fetch(self, task: _Task) -> tuple[State, list[Action]] | None:
+        """A fetch pose from which the object can be carried to its target, and the way there.
 
-    def _estimate_held(self, task: _Task) -> HeldObject:
-        """The held object's footprint relative to the robot, fitted to the bases the map saw of it.
+        The object's footprint is fitted to the map (`_fit_footprint`); the poses the robot can
+        reach (breadth first) from which that footprint is within fetch reach are ranked by the
+        drive there plus the object's distance to its target, with a penalty where the robot's
+        heading is across the way the object must go (moves go along the heading). For the best
+        few, the carry is planned as if fetched there (the object keeps its pose relative to the
+        robot); the first whose carry plan exists is chosen. None when the map has no fit, or no
+        candidate's carry plan is found: any pose within reach will do then.
+        """
+        assert self.registration is not None
+        fit = self._put_down or self._fit_footprint(task, None)
+        if fit is None:
+            return None
+        self._approach_tried = True  # once per object: its fit only improves while it is fetched
+        cx, cz, yaw = fit
+        hx, hz = task.half_long, task.half_short
+        corners = rectangle(cx, cz, hx, hz, yaw)
+        target = self._target_rectangle(task)
+        tx, tz = target.mean(axis=0)
+        blocked = self._blocked()
+        robot = Occupancy(blocked, self.registration, ROBOT_RADIUS + _CLEARANCE)
+        reach = reachable(self.state, robot)
+        blocked = self._blocked(ignore=(task.category, corners))
+        # The carry is planned with the margins of `_replan`'s middle rung (the first is often too
+        # strict next to the walls that targets stand against).
+        tight = Occupancy(blocked, self.registration, ROBOT_RADIUS)
+        keys = list(reach.states)
+        xs = np.array([reach.states[k].x for k in keys])
+        zs = np.array([reach.states[k].z for k in keys])
+        ks = np.array([reach.states[k].k for k in keys])
+        gap = _gap_to_rectangle(xs, zs, cx, cz, yaw, hx, hz)
+        usable = (gap >= ROBOT_RADIUS + 0.03) & (gap <= 0.9)
+        if not usable.any():
+            return None
+        way = math.atan2(-(tz - cz), tx - cx)  # the heading that points from the object to its target
+        across = np.abs(np.sin(ks * math.pi / 8 - way))
+        # Behind the object as seen from its target: the robot follows it, instead of being
+        # dragged round it.
+        behind = 1 - np.cos(np.arctan2(-(cz - zs), cx - xs) - way)
+        far = math.hypot(tx - cx, tz - cz) / STEP
+        drive = np.array([reach.costs[k] for k in keys], dtype=np.float64)
+        score = np.where(usable, drive + far + 6 * across + 6 * behind, np.inf)
+        room = self._room_for_held(blocked, corners)
+        space: CarriedSpace | None = None
+        tries = 0
+        tried: list[State] = []
+        for index in np.argsort(score):
+            if not math.isfinite(score[index]) or tries >= _FETCH_CANDIDATES:
+                break
+            state = reach.states[keys[index]]
+            # Candidates unlike those tried: another heading, or 30 cm away.
+            if any(t.k == state.k and math.hypot(t.x - state.x, t.z - state.z) < 0.3 for t in tried):
+                continue
+            tried.append(state)
+            held = _relative(cx, cz, yaw, hx, hz, state)
+            if space is None:
+                space = CarriedSpace(room, self.registration, held, 0.0)
+            reached, heuristic = self._carry_goal_for(held)
+            tries += 1
+            found = plan(
+                state,
+                tight,
+                reached,
+                heuristic,
+                carried=space.holding(held),
+                max_expansions=self.max_expansions // 10,
+            )
+            if found is not None:
+                self._stats.setdefault("fetch_choices", []).append(tries)
+                return state, reach.path_to(keys[index])
+        self._stats.setdefault("fetch_choices", []).append(-tries)
+        return None
+
+    def _fit_footprint(self, task: _Task, robot: State | None) -> tuple[float, float, float] | None:
+        """The object's footprint (centre x, z and yaw in the start frame) fitted to the bases the
+        map saw of it (near the robot, when it is given), or None when the map has none.
 
         Its size is its target's in the goal image. Its yaw differs from its target's by a
         multiple of 22.5° (the layouts are made by carrying objects on the lattice), so the fit
         tries those 8 yaws (a rectangle is the same turned half a turn); for each, the centres on a
-        2 cm grid about the bases. A fit costs the bases' distances outside the rectangle, a third
-        of their depths inside it (a base lies on the visible boundary, or behind it for furniture
-        on legs), and is ruled out where the footprint comes nearer than the robot's radius or
-        farther than fetch reach (1 m): the fetch worked.
+        2 cm grid about the bases. A fit costs the bases' distances outside the rectangle and a
+        third of their depths inside it (a base lies on the visible boundary, or behind it for
+        furniture on legs). With `robot` (it holds the object), fits nearer its centre than its
+        radius or farther than fetch reach (1 m) are ruled out: the fetch worked.
         """
         points = self._object_points(task)
         target = self._target_rectangle(task)
         target_yaw = math.atan2(-(target[1, 1] - target[2, 1]), target[1, 0] - target[2, 0])
         hx, hz = task.half_long, task.half_short
-        if len(points):
-            d = np.hypot(points[:, 0] - self.state.x, points[:, 1] - self.state.z)
+        if len(points) and robot is not None:
+            d = np.hypot(points[:, 0] - robot.x, points[:, 1] - robot.z)
             points = points[d <= 1.0 + 2 * max(hx, hz)]
+        elif len(points):
+            # The cluster of bases nearest the robot: another object of the category may be far.
+            d = np.hypot(points[:, 0] - self.state.x, points[:, 1] - self.state.z)
+            nearest = points[int(np.argmin(d))]
+            points = points[np.hypot(*(points - nearest).T) <= 2.2 * max(hx, hz)]
         if len(points) == 0:
-            ahead = ROBOT_RADIUS + hz + 0.05
-            return HeldObject(ahead, 0.0, target_yaw - self.state.yaw, hx, hz)
+            return None
         best: tuple[float, float, float, float] | None = None
         lo = points.min(axis=0) - max(hx, hz)
         hi = points.max(axis=0) + max(hx, hz)
@@ -380,23 +517,43 @@ class MapAgent:
             outside = np.hypot(np.maximum(lx - hx, 0), np.maximum(lz - hz, 0))
             depth = np.minimum(hx - lx, hz - lz).clip(min=0)
             cost = np.minimum(outside, 0.3).sum(axis=1) + np.minimum(depth, 0.3).sum(axis=1) / 3
-            # The robot's centre in each candidate's frame: its distance to the footprint.
-            rx, rz = self.state.x - cx, self.state.z - cz
-            rlx, rlz = np.abs(rx * c - rz * s), np.abs(rx * s + rz * c)
-            gap = np.hypot(np.maximum(rlx - hx, 0), np.maximum(rlz - hz, 0))
-            cost = np.where((gap < ROBOT_RADIUS - 0.02) | (gap > 1.0), np.inf, cost)
+            if robot is not None:
+                gap = _gap_to_rectangle(np.array([robot.x]), np.array([robot.z]), cx, cz, yaw, hx, hz)
+                cost = np.where((gap < ROBOT_RADIUS - 0.02) | (gap > 1.0), np.inf, cost)
             index = int(np.argmin(cost))
             if best is None or cost[index] < best[0]:
                 best = (float(cost[index]), float(cx[index]), float(cz[index]), yaw)
         assert best is not None
-        _, x, z, yaw = best
         if not math.isfinite(best[0]):
-            ahead = ROBOT_RADIUS + hz + 0.05
-            return HeldObject(ahead, 0.0, target_yaw - self.state.yaw, hx, hz)
-        robot_yaw = self.state.yaw
-        ahead = (x - self.state.x) * math.cos(robot_yaw) - (z - self.state.z) * math.sin(robot_yaw)
-        right = (x - self.state.x) * math.sin(robot_yaw) + (z - self.state.z) * math.cos(robot_yaw)
-        return HeldObject(ahead, right, yaw - robot_yaw, hx, hz)
+            return None
+        return best[1], best[2], best[3]
+
+    def _start_carry(self) -> None:
+        """Estimates where the held object's footprint is relative to the robot."""
+        task = self._tasks[0]
+        self._phase = "carry"
+        self._plan = []
+        self._refused = set()
+        self._held = self._estimate_held(task)
+        # Its bases move with it from now on: forget them (those of its category near it; another
+        # object of the category stays).
+        layer = self.map.movable[task.category]
+        rows, cols = np.nonzero(layer)
+        x, z = self.map.centre_of(rows, cols)
+        near = _gap_to_corners(x, z, self._held.corners(self.state)) <= _OWN_BASES
+        layer[rows[near], cols[near]] = 0
+
+    def _estimate_held(self, task: _Task) -> HeldObject:
+        """The held object's footprint relative to the robot (`_fit_footprint` with the robot's
+        constraint), or, when the map saw none of it, its target's yaw straight ahead of it.
+        """
+        hx, hz = task.half_long, task.half_short
+        fit = self._put_down or self._fit_footprint(task, self.state)
+        if fit is None:
+            target = self._target_rectangle(task)
+            yaw = math.atan2(-(target[1, 1] - target[2, 1]), target[1, 0] - target[2, 0])
+            return HeldObject(ROBOT_RADIUS + hz + 0.05, 0.0, yaw - self.state.yaw, hx, hz)
+        return _relative(*fit, hx, hz, self.state)
 
     def debug_image(self, scale: int = 4) -> npt.NDArray[np.uint8]:
         """What the agent believes, drawn over its goal image magnified `scale` times: the map's
@@ -505,9 +662,19 @@ class MapAgent:
             )
         return tasks
 
+    def _solid(self, category: int) -> npt.NDArray[np.bool_]:
+        """The map's cells of `category`'s bases seen as bases at least as often as free: a
+        tall object's top edge, taken for a base, lands on the floor behind it, which other
+        views see free.
+        """
+        counts = self.map.movable[category]
+        solid: npt.NDArray[np.bool_] = (counts > 0) & (counts >= self.map.free)
+        return solid
+
     def _object_points(self, task: _Task) -> npt.NDArray[np.float64]:
         """Start-frame points of the map's bases of `task`'s category, less those on a target
-        already filled.
+        already filled. (All of them: a near face's bases share their cells with floor seen
+        free, so `_solid` would drop the very bases a footprint is fitted to.)
         """
         rows, cols = np.nonzero(self.map.movable[task.category])
         x, z = self.map.centre_of(rows, cols)
@@ -517,34 +684,42 @@ class MapAgent:
                 keep &= np.hypot(x - done.x, z - done.z) > max(done.half_long, 0.3) + 0.2
         return np.stack([x[keep], z[keep]], axis=1)
 
-    def _blocked(self) -> npt.NDArray[np.bool_]:
+    def _blocked(self, ignore: tuple[int, npt.NDArray[np.float64]] | None = None) -> npt.NDArray[np.bool_]:
         """The goal pixels a body may not cover: outside the room, static structure, the mapped
-        movable objects (not the held one), and where moves were rejected.
+        movable objects, and where moves were rejected. `ignore`: (category, corners) an object
+        about to be fetched, whose bases (those of its category within `_OWN_BASES` of its
+        footprint `corners`) are left out: it moves with the robot.
         """
         assert self.registration is not None
         blocked: npt.NDArray[np.bool_] = (self.goal.labels == STATIC) & ~floor_pixels(self.goal_rgb)
         blocked |= ~self.goal.room
         size = blocked.shape[0]
-        held = self._tasks[0].category if self._held is not None and self._tasks else None
         for index in range(len(CATEGORIES)):
-            if index == held:
-                continue
-            rows, cols = np.nonzero(self.map.movable[index])
+            rows, cols = np.nonzero(self._solid(index))
             x, z = self.map.centre_of(rows, cols)
+            if ignore is not None and ignore[0] == index:
+                keep = _gap_to_corners(x, z, ignore[1]) > _OWN_BASES
+                x, z = x[keep], z[keep]
             self._mark(blocked, x, z, size)
         if self._blocked_extra:
             xs, zs = zip(*self._blocked_extra, strict=True)
             self._mark(blocked, np.array(xs), np.array(zs), size)
+        if self._put_down is not None and self._held is None and ignore is None:
+            # The object put down to be fetched again, where the agent believes it is.
+            task = self._tasks[0]
+            corners = rectangle(*self._put_down, task.half_long, task.half_short)
+            blocked |= self._rectangle_pixels(corners, size)
         return blocked
 
-    def _room_for_held(self, blocked: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
-        """`blocked` for the held object: not where it stands now (its footprint, as believed, may
+    def _room_for_held(
+        self, blocked: npt.NDArray[np.bool_], corners: npt.NDArray[np.float64]
+    ) -> npt.NDArray[np.bool_]:
+        """`blocked` for the held object: not where it stands now (its footprint `corners`, as believed, may
         overlap what the map shows by its errors; it is there), nor on its target (the goal image
         shows it fits there, often against a wall or furniture).
         """
-        assert self._held is not None
         assert self.registration is not None
-        here = self._rectangle_pixels(self._held.corners(self.state), blocked.shape[0], grow=0.05)
+        here = self._rectangle_pixels(corners, blocked.shape[0], grow=0.05)
         there = self._rectangle_pixels(self._target_rectangle(self._tasks[0]), blocked.shape[0], grow=0.05)
         return blocked & ~here & ~there
 
@@ -579,3 +754,40 @@ class MapAgent:
         c, r = np.floor(col).astype(np.intp), np.floor(row).astype(np.intp)
         inside = (c >= 0) & (c < size) & (r >= 0) & (r < size)
         blocked[r[inside], c[inside]] = True
+
+
+def _gap_to_rectangle(
+    x: npt.NDArray[np.float64],
+    z: npt.NDArray[np.float64],
+    cx: npt.NDArray[np.float64] | float,
+    cz: npt.NDArray[np.float64] | float,
+    yaw: float,
+    half_x: float,
+    half_z: float,
+) -> npt.NDArray[np.float64]:
+    """The distance from points (x, z) to the rectangle(s) centred at (cx, cz) (0 inside)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    dx, dz = x - cx, z - cz
+    lx, lz = np.abs(dx * c - dz * s), np.abs(dx * s + dz * c)
+    gap: npt.NDArray[np.float64] = np.hypot(np.maximum(lx - half_x, 0), np.maximum(lz - half_z, 0))
+    return gap
+
+
+def _relative(cx: float, cz: float, yaw: float, half_x: float, half_z: float, robot: State) -> HeldObject:
+    """The footprint centred at (cx, cz) with `yaw` (start frame), as held by a robot at `robot`."""
+    c, s = math.cos(robot.yaw), math.sin(robot.yaw)
+    ahead = (cx - robot.x) * c - (cz - robot.z) * s
+    right = (cx - robot.x) * s + (cz - robot.z) * c
+    return HeldObject(ahead, right, yaw - robot.yaw, half_x, half_z)
+
+
+def _gap_to_corners(
+    x: npt.NDArray[np.float64], z: npt.NDArray[np.float64], corners: npt.NDArray[np.float64]
+) -> npt.NDArray[np.float64]:
+    """The distance from points (x, z) to the rectangle of (4, 2) `corners` in order (0 inside)."""
+    centre = corners.mean(axis=0)
+    axis_x = (corners[0] - corners[3]) / 2
+    axis_z = (corners[0] - corners[1]) / 2
+    half_x, half_z = float(np.hypot(*axis_x)), float(np.hypot(*axis_z))
+    yaw = math.atan2(-axis_x[1], axis_x[0])
+    return _gap_to_rectangle(x, z, float(centre[0]), float(centre[1]), yaw, half_x, half_z)

@@ -13,8 +13,10 @@ a move, and the held object's centre (and angle) along a move or a turn's arc.
 
 from __future__ import annotations
 
+import copy
 import heapq
 import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -27,12 +29,15 @@ from .register import Registration
 __all__ = [
     "KEY_CELL",
     "STEP",
+    "Reach",
     "CarriedSpace",
     "HeldObject",
     "Occupancy",
     "State",
     "inflate",
     "plan",
+    "reachable",
+    "rectangle",
     "rectangle_iou",
 ]
 
@@ -247,10 +252,21 @@ class CarriedSpace:
         self._reach = reach
         self._fft_shape = (size + 2 * reach, size + 2 * reach)
         self._blocked_fft = np.fft.rfft2(blocked.astype(np.float64), self._fft_shape)
+        self._offset = 0
+        self._base_yaw = held.rel_yaw
+
+    def holding(self, held: HeldObject) -> CarriedSpace:
+        """This space for `held`, the same object held another way (its rel_yaw differs from this
+        one's by a multiple of a quarter turn), sharing the dilations computed.
+        """
+        other = copy.copy(self)
+        other.held = held
+        other._offset = round((held.rel_yaw - self._base_yaw) / (math.pi / self.BINS))
+        return other
 
     def _bin(self, state: State, extra: float) -> int:
         """The yaw bin of the object held at `state` turned `extra` turns more (extra in quarters)."""
-        return round((state.k + extra) * 4) % self.BINS
+        return (round((state.k + extra) * 4) + self._offset) % self.BINS
 
     def space(self, index: int) -> npt.NDArray[np.bool_]:
         """(R, R) the pixels the object's centre may not be in at yaw bin `index`."""
@@ -263,7 +279,7 @@ class CarriedSpace:
     def _dilate(self, index: int) -> npt.NDArray[np.bool_]:
         fit = self.registration
         reach = self._reach
-        yaw = self.held.rel_yaw + index * math.pi / self.BINS
+        yaw = self._base_yaw + index * math.pi / self.BINS
         # Each kernel pixel's offset from the centre pixel, in start-frame metres.
         dr, dc = np.mgrid[-reach : reach + 1, -reach : reach + 1].astype(np.float64)
         x0, z0 = fit.from_goal(0.0, 0.0)
@@ -362,6 +378,51 @@ def plan(
                 pushed += 1
                 heapq.heappush(frontier, (cost + 1 + heuristic(child), cost + 1, pushed, child))
     return None
+
+
+@dataclass
+class Reach:
+    """The states a breadth-first search reached: each one's cost (actions from the start) and how
+    it was reached, by state key.
+    """
+
+    states: dict[tuple[int, int, int], State]
+    costs: dict[tuple[int, int, int], int]
+    parents: dict[tuple[int, int, int], tuple[tuple[int, int, int], Action, State]]
+
+    def path_to(self, key: tuple[int, int, int]) -> list[Action]:
+        """The actions from the start to the state of `key`."""
+        return _path(self.parents, key)
+
+
+def reachable(
+    start: State,
+    occupancy: Occupancy,
+    *,
+    max_states: int = 12000,
+    refused: set[tuple[tuple[int, int, int], Action]] | None = None,
+) -> Reach:
+    """Every state the robot alone can reach from `start` in `occupancy`, nearest first, up to
+    `max_states` of them.
+    """
+    reach = Reach({start.key(): start}, {start.key(): 0}, {})
+    queue = deque([start])
+    while queue and len(reach.states) < max_states:
+        state = queue.popleft()
+        key = state.key()
+        cost = reach.costs[key]
+        for action in (Action.FORWARD, Action.BACKWARD, Action.LEFT, Action.RIGHT):
+            if refused and (key, action) in refused:
+                continue
+            child = state.after(action)
+            child_key = child.key()
+            if child_key in reach.costs or not _allowed(state, child, action, occupancy, None):
+                continue
+            reach.states[child_key] = child
+            reach.costs[child_key] = cost + 1
+            reach.parents[child_key] = (key, action, child)
+            queue.append(child)
+    return reach
 
 
 def _allowed(
