@@ -4,23 +4,27 @@ object of the goal image drives to it, fetches it, carries it to its target and 
 It sees what the paper's agents see and nothing more: the egocentric view, the goal image and the
 grasp flag (no info field, no reward, no metrics). Its pose is dead reckoning over the actions it
 took, in its start frame; a move or turn whose view is unchanged was rejected (a collision) and
-leaves the pose, and the cell it would have entered is marked blocked before it plans again.
+leaves the pose, and the cell it would have entered is marked blocked (holding an object: that
+motion from that pose is refused) before it plans again.
 
 The phases:
 
 1. **Look around**: 15 left turns, each view added to the map (`mapping.TopDownMap`).
 2. **Register** the map to the goal image (`register.register`): the start heading, the scale and
    the start position in the goal's pixels.
-3. For each goal object, largest first: **find** it (the map's bases of its category that are not
-   on an already placed target), **drive** to within fetch reach of its nearest base (A* on the
-   action lattice against the goal's static structure and the mapped objects,
-   `planner.plan`), **fetch** (the grasp flag says whether it worked; if not it drives closer),
-   then **carry** it so that its estimated centre lands on its target's and **release** it.
+3. For each goal object, largest first: **fit** its footprint to the map's bases of its category
+   (its size from the goal image, its yaw its target's plus a multiple of 22.5°), **choose a fetch
+   pose** among those the robot can reach from which a carry plan exists (the object keeps its
+   pose relative to the robot), **drive** there (A* on the action lattice against the goal's
+   static structure and the mapped objects, `planner.plan`), **fetch** (the grasp flag says
+   whether it worked; if not it drives closer), then **carry** it, its rectangle checked along
+   every move and turn (`planner.CarriedSpace`), until its believed footprint overlaps its target
+   with an IoU of 0.6, and **release** it. With no carry plan left, it puts the object down and
+   fetches it again from another pose.
 
-Known limits of this first version: the held object's yaw is not aimed (an elongated object whose
-target is turned may be released with an IoU under 0.3), an object never seen from the start or
-from the way is not searched for, and the held object's centre is estimated from its nearest
-visible base and its size in the goal image.
+Known limits: an object never seen from the start or from the way is searched for by a few
+look-arounds only, and the held object's footprint is what the map's bases and the goal image say
+(see docs/esrp-map.md for the measured errors).
 """
 
 from __future__ import annotations
