@@ -495,3 +495,30 @@ def test_the_agents_debug_image_shows_its_beliefs(client: esrp.Client, easy_scen
     colours = {tuple(int(v) for v in c) for c in image.reshape(-1, 3)}
     assert {(190, 240, 190), (40, 80, 220), (0, 0, 0), (255, 255, 255)} <= colours
     assert not np.array_equal(image, before)
+
+
+def test_the_diagnosis_tool_compares_beliefs_with_the_truth(client: esrp.Client, tmp_path: Path) -> None:
+    """tools/map_diagnose.py on a scene the agent solves: the registration's error against the
+    privileged frame is small, the held object's belief is within a few decimetres of the truth,
+    no reason is given; and the reasons a failure is put down to, on made-up records."""
+    from conftest import load_tool
+
+    tool = load_tool("map_diagnose")
+    record = tool.play(client, "esrp-bench-v2/00007", tmp_path)
+    assert record["success"], record
+    assert record["reason"] is None
+    assert record["registration"]["heading"] == 0
+    assert record["registration"]["pixels"] < 2.0
+    assert len(record["held"]) == 1
+    assert record["held"][0]["centre"] < 0.3
+    assert not list(tmp_path.iterdir()), "images only for failures"
+    # With the truth handed over after the fetch, the belief the tool measured is the truth.
+    oracle = tool.play(client, "esrp-bench-v2/00007", None, oracle=True)
+    assert oracle["success"]
+    good: dict[str, Any] = {"heading": 0, "scale": 0.01, "pixels": 0.5}
+    base: dict[str, Any] = {"registration": good, "objects": [{"held": False, "placed": False}]}
+    assert tool.reason({**base, "registration": {**good, "heading": 2}}, {}) == "registration"
+    assert tool.reason({**base, "objects": [{"held": True, "placed": False}]}, {"phase": "carry"}) == "carry"
+    assert tool.reason(base, {"phase": "explore"}) == "not-found"
+    assert tool.reason(base, {"phase": "fetch", "fetches": 2, "releases": 1}) == "placement"
+    assert tool.reason(base, {"phase": "fetch", "fetches": 2, "releases": 0}) == "fetch"
