@@ -677,8 +677,8 @@ class MapAgent:
 
     def _object_points(self, task: _Task) -> npt.NDArray[np.float64]:
         """Start-frame points of the map's bases of `task`'s category, less those on a target
-        already filled. (All of them: a near face's bases share their cells with floor seen
-        free, so `_solid` would drop the very bases a footprint is fitted to.)
+        already filled. All of them: a near face's bases share their cells with floor seen free,
+        so `_solid` would drop the very bases a footprint is fitted to.
         """
         rows, cols = np.nonzero(self.map.movable[task.category])
         x, z = self.map.centre_of(rows, cols)
