@@ -70,6 +70,8 @@ before it is released (the server's threshold is 0.3: the rest absorbs the belie
 _OWN_BASES = 0.4
 """Metres from an object's believed footprint within which the map's bases of its category are
 taken for its own (a base lies on or behind the face it belongs to)."""
+_NEARER = 0.15
+"""Metres by which the wanted object must be nearer a fetch pose than any other object's base."""
 _FETCH_CANDIDATES = 12
 _REGRASPS = 2
 """Times an object is put down and fetched again from another pose when no carry plan is found."""
@@ -86,6 +88,7 @@ class _Task:
     """A goal object to move: its target in the start frame and its size in metres."""
 
     target: GoalObject
+    instance: int
     category: int
     x: float
     z: float
@@ -112,7 +115,11 @@ class MapAgent:
         self.goal_rgb = np.asarray(observation.goal_rgb)
         self.goal: GoalImage = parse_goal(self.goal_rgb)
         side = observation.ego_rgb.shape[0]
-        self.map = TopDownMap(side)
+        # Objects of a category seen more than once in the goal are told apart by their tops.
+        counts = [sum(o.category == g.category for o in self.goal.objects) for g in self.goal.objects]
+        tops = [(CATEGORIES.index(g.category), g.colour) for g in self.goal.objects]
+        self._told_apart = [n > 1 for n in counts]
+        self.map = TopDownMap(side, tops=tops)
         self.state = State(0.0, 0.0, 0)
         self.map.integrate(np.asarray(observation.ego_rgb), self._pose())
         self.map.visit(self._pose())
@@ -439,6 +446,15 @@ class MapAgent:
         ks = np.array([reach.states[k].k for k in keys])
         gap = _gap_to_rectangle(xs, zs, cx, cz, yaw, hx, hz)
         usable = (gap >= ROBOT_RADIUS + 0.03) & (gap <= 0.9)
+        # The server fetches the nearest object in reach: the others' bases must be farther.
+        others = self._other_bases(task.category, corners)
+        if len(others):
+            nearest_other = np.full(len(keys), np.inf)
+            for start in range(0, len(others), 256):
+                chunk = others[start : start + 256]
+                d = np.hypot(xs[:, None] - chunk[None, :, 0], zs[:, None] - chunk[None, :, 1]).min(axis=1)
+                nearest_other = np.minimum(nearest_other, d)
+            usable &= nearest_other > gap + _NEARER
         if not usable.any():
             return None
         way = math.atan2(-(tz - cz), tx - cx)  # the heading that points from the object to its target
@@ -479,6 +495,18 @@ class MapAgent:
                 return state, reach.path_to(keys[index])
         self._stats.setdefault("fetch_choices", []).append(-tries)
         return None
+
+    def _other_bases(self, category: int, corners: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        """(n, 2) the map's movable bases that are not the object of `category` at `corners`."""
+        points = []
+        for index in range(len(CATEGORIES)):
+            rows, cols = np.nonzero(self.map.movable[index])
+            x, z = self.map.centre_of(rows, cols)
+            if index == category:
+                keep = _gap_to_corners(x, z, corners) > _OWN_BASES
+                x, z = x[keep], z[keep]
+            points.append(np.stack([x, z], axis=1))
+        return np.concatenate(points) if points else np.zeros((0, 2))
 
     def _fit_footprint(self, task: _Task, robot: State | None) -> tuple[float, float, float] | None:
         """The object's footprint (centre x, z and yaw in the start frame) fitted to the bases the
@@ -546,6 +574,7 @@ class MapAgent:
         x, z = self.map.centre_of(rows, cols)
         near = _gap_to_corners(x, z, self._held.corners(self.state)) <= _OWN_BASES
         layer[rows[near], cols[near]] = 0
+        self.map.instance[:, rows[near], cols[near]] = 0
 
     def _estimate_held(self, task: _Task) -> HeldObject:
         """The held object's footprint relative to the robot (`_fit_footprint` with the robot's
@@ -641,8 +670,10 @@ class MapAgent:
             # The held object sits in front of the camera: keep its category out of the map.
             category = self._tasks[0].category
             kept = self.map.movable[category].copy()
+            kept_instances = self.map.instance.copy()
             self.map.integrate(view, pose)
             self.map.movable[category] = kept
+            self.map.instance[:] = kept_instances
         else:
             self.map.integrate(view, pose)
         self.map.visit(pose)
@@ -652,11 +683,12 @@ class MapAgent:
     def _make_tasks(self) -> list[_Task]:
         assert self.registration is not None
         tasks = []
-        for target in self.goal.objects:
+        for instance, target in enumerate(self.goal.objects):
             x, z = self.registration.from_goal(target.col, target.row)
             tasks.append(
                 _Task(
                     target,
+                    instance,
                     CATEGORIES.index(target.category),
                     float(x),
                     float(z),
@@ -681,6 +713,15 @@ class MapAgent:
         so `_solid` would drop the very bases a footprint is fitted to.
         """
         rows, cols = np.nonzero(self.map.movable[task.category])
+        if self._told_apart[task.instance]:
+            # Of several objects of its category: its own bases (seen under its top colour more
+            # than under another's), else those no top was seen above.
+            others = [i for i, t in enumerate(self.map.tops) if t[0] == task.category and i != task.instance]
+            mine = self.map.instance[task.instance][rows, cols]
+            theirs = self.map.instance[others][:, rows, cols].max(axis=0) if others else np.zeros_like(mine)
+            own = (mine > 0) & (mine > theirs)
+            pick = own if own.any() else (mine == 0) & (theirs == 0)
+            rows, cols = rows[pick], cols[pick]
         x, z = self.map.centre_of(rows, cols)
         keep = np.ones(len(x), dtype=bool)
         for done in self._placed:

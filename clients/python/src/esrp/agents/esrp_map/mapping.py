@@ -21,6 +21,8 @@ obstacle's base in it, by kind.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import numpy.typing as npt
 
@@ -50,6 +52,12 @@ class TopDownMap:
         free: (N, N) views that saw each cell's floor.
         static: (N, N) views that saw static structure stand in each cell.
         movable: (len(CATEGORIES), N, N) views that saw a movable object of each category there.
+        instance: (len(tops), N, N) views that saw, of those bases, one whose object shows the top
+            colour `tops[i]` above it in the view (the same column, one run of its category's
+            pixels): which of several objects of a category a base belongs to.
+
+    `tops`: (category index, RGB) per object to tell apart: the colour of its top faces, which a
+    view shows exactly as the goal image does (upward faces are shaded alike).
     """
 
     def __init__(
@@ -61,6 +69,7 @@ class TopDownMap:
         centre_x: float = 0.0,
         centre_z: float = 0.0,
         max_range: float = 3.0,
+        tops: Sequence[tuple[int, tuple[int, int, int]]] = (),
     ) -> None:
         if cell <= 0 or size <= cell:
             raise ValueError(f"cell {cell} m and size {size} m: need 0 < cell < size")
@@ -74,6 +83,8 @@ class TopDownMap:
         self.free = np.zeros(shape, dtype=np.int32)
         self.static = np.zeros(shape, dtype=np.int32)
         self.movable = np.zeros((len(CATEGORIES), *shape), dtype=np.int32)
+        self.tops = list(tops)
+        self.instance = np.zeros((len(self.tops), *shape), dtype=np.int32)
         below = self.projection.floor_mask()
         near = np.zeros_like(below)
         near[below] = np.hypot(self.projection.ahead[below], self.projection.right[below]) <= max_range
@@ -115,6 +126,30 @@ class TopDownMap:
         for index in range(len(CATEGORIES)):
             mask = base & (labels == 2 + index)
             self._add(self.movable[index], x[mask], z[mask])
+        if self.tops:
+            runs = self._top_runs(ego_rgb, labels)
+            for i, (category, _) in enumerate(self.tops):
+                mask = base & (labels == 2 + category) & (runs == i)
+                self._add(self.instance[i], x[mask], z[mask])
+
+    def _top_runs(
+        self, ego_rgb: npt.NDArray[np.uint8], labels: npt.NDArray[np.integer]
+    ) -> npt.NDArray[np.intp]:
+        """(R, R) for each pixel, the index of the `tops` colour seen in its column's run of
+        same-label pixels at or above it (the nearest such above), or −1.
+        """
+        match = np.full(labels.shape, -1, dtype=np.intp)
+        rgb = ego_rgb.astype(np.int16)
+        for i, (category, colour) in enumerate(self.tops):
+            hit = (labels == 2 + category) & np.all(
+                np.abs(rgb - np.array(colour, dtype=np.int16)) <= 2, axis=-1
+            )
+            match[hit & (match < 0)] = i
+        runs: npt.NDArray[np.intp] = match.copy()
+        for row in range(1, labels.shape[0]):
+            same = labels[row] == labels[row - 1]
+            runs[row] = np.where(match[row] >= 0, match[row], np.where(same, runs[row - 1], -1))
+        return runs
 
     def visit(self, pose: Pose2D, radius: float = 0.3) -> None:
         """Marks the floor under the robot at `pose` (a disc of `radius`) free: it stood there."""
