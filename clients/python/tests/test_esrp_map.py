@@ -522,3 +522,30 @@ def test_the_diagnosis_tool_compares_beliefs_with_the_truth(client: esrp.Client,
     assert tool.reason(base, {"phase": "explore"}) == "not-found"
     assert tool.reason(base, {"phase": "fetch", "fetches": 2, "releases": 1}) == "placement"
     assert tool.reason(base, {"phase": "fetch", "fetches": 2, "releases": 0}) == "fetch"
+
+
+def test_the_map_tells_objects_of_one_category_apart_by_their_tops() -> None:
+    """Two objects of one category in one view, each with its own tint: the bases under each top
+    colour count for that object alone; a base with no top colour above it counts for neither."""
+    side, top = np.array(_PALETTE[2][0]), goal.TOP_SHADE
+    tints = (1.0, 0.88)
+    tops = [(0, tuple(int(v) for v in np.round(side * t * top * 255))) for t in tints]
+    view = np.broadcast_to(mapping.FLOOR_RGB.astype(np.uint8), (128, 128, 3)).copy()
+    for (_, colour), tint, cols in zip(tops, tints, (slice(30, 40), slice(80, 90)), strict=True):
+        view[70:76, cols] = colour  # its top
+        view[76:90, cols] = np.round(side * tint * 0.7 * 255)  # its front, in shade
+    view[76:90, 55:60] = np.round(side * 0.7 * 255)  # a front whose top is out of sight
+    assert (goal.classify(view[70:90, 30:40]) == 2).all()
+    assert (goal.classify(view[70:90, 80:90]) == 2).all()
+    own = mapping.TopDownMap(tops=tops)
+    own.integrate(view, Pose2D(0.0, 0.0, 0.0))
+    seen = own.movable[0] > 0
+    first, second = own.instance[0] > 0, own.instance[1] > 0
+    assert first.sum() >= 5
+    assert second.sum() >= 5
+    assert not (first & second).any()
+    assert (first | second).sum() < seen.sum(), "the base with no top seen counts for neither"
+    # The first object stands left of the second (negative "right" is left of the heading).
+    _, z_first = own.centre_of(*np.nonzero(first))
+    _, z_second = own.centre_of(*np.nonzero(second))
+    assert z_first.max() < z_second.min()
