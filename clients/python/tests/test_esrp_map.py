@@ -529,7 +529,10 @@ def test_the_map_tells_objects_of_one_category_apart_by_their_tops() -> None:
     colour count for that object alone; a base with no top colour above it counts for neither."""
     side, top = np.array(_PALETTE[2][0]), goal.TOP_SHADE
     tints = (1.0, 0.88)
-    tops = [(0, tuple(int(v) for v in np.round(side * t * top * 255))) for t in tints]
+    tops: list[tuple[int, tuple[int, int, int]]] = []
+    for tint in tints:
+        r, g, b = (int(v) for v in np.round(side * tint * top * 255))
+        tops.append((0, (r, g, b)))
     view = np.broadcast_to(mapping.FLOOR_RGB.astype(np.uint8), (128, 128, 3)).copy()
     for (_, colour), tint, cols in zip(tops, tints, (slice(30, 40), slice(80, 90)), strict=True):
         view[70:76, cols] = colour  # its top
