@@ -195,10 +195,8 @@ class MapAgent:
             # Put down where no carry plan went on: fetch it again from a better pose, its
             # footprint known from the belief it was carried with.
             assert self._held is not None
-            corners = self._held.corners(self.state)
-            axis = corners[1] - corners[2]
-            centre = corners.mean(axis=0)
-            self._put_down = (float(centre[0]), float(centre[1]), math.atan2(-axis[1], axis[0]))
+            cx, cz, yaw, _, _ = _pose_of(self._held.corners(self.state))
+            self._put_down = (cx, cz, yaw)
             self._phase = "fetch"
             self._held = None
             self._refused = set()
@@ -522,7 +520,7 @@ class MapAgent:
         """
         points = self._object_points(task)
         target = self._target_rectangle(task)
-        target_yaw = math.atan2(-(target[1, 1] - target[2, 1]), target[1, 0] - target[2, 0])
+        target_yaw = _pose_of(target)[2]
         hx, hz = task.half_long, task.half_short
         if len(points) and robot is not None:
             d = np.hypot(points[:, 0] - robot.x, points[:, 1] - robot.z)
@@ -583,8 +581,7 @@ class MapAgent:
         hx, hz = task.half_long, task.half_short
         fit = self._put_down or self._fit_footprint(task, self.state)
         if fit is None:
-            target = self._target_rectangle(task)
-            yaw = math.atan2(-(target[1, 1] - target[2, 1]), target[1, 0] - target[2, 0])
+            yaw = _pose_of(self._target_rectangle(task))[2]
             return HeldObject(ROBOT_RADIUS + hz + 0.05, 0.0, yaw - self.state.yaw, hx, hz)
         return _relative(*fit, hx, hz, self.state)
 
@@ -775,15 +772,12 @@ class MapAgent:
         ((4, 2), in order) grown by `grow` metres each side.
         """
         assert self.registration is not None
-        centre = corners.mean(axis=0)
-        axis_x = (corners[0] - corners[3]) / 2  # half the local x side, as a vector
-        axis_z = (corners[0] - corners[1]) / 2
-        half_x, half_z = float(np.hypot(*axis_x)), float(np.hypot(*axis_z))
+        cx, cz, yaw, half_x, half_z = _pose_of(corners)
         rows, cols = np.mgrid[0:size, 0:size]
         x, z = self.registration.from_goal(cols + 0.5, rows + 0.5)
-        dx, dz = x - centre[0], z - centre[1]
-        lx = np.abs(dx * axis_x[0] + dz * axis_x[1]) / max(half_x, 1e-9)
-        lz = np.abs(dx * axis_z[0] + dz * axis_z[1]) / max(half_z, 1e-9)
+        c, s = math.cos(yaw), math.sin(yaw)
+        dx, dz = x - cx, z - cz
+        lx, lz = np.abs(dx * c - dz * s), np.abs(dx * s + dz * c)
         inside: npt.NDArray[np.bool_] = (lx <= half_x + grow) & (lz <= half_z + grow)
         return inside
 
@@ -826,13 +820,19 @@ def _relative(cx: float, cz: float, yaw: float, half_x: float, half_z: float, ro
     return HeldObject(ahead, right, yaw - robot.yaw, half_x, half_z)
 
 
+def _pose_of(corners: npt.NDArray[np.float64]) -> tuple[float, float, float, float, float]:
+    """The centre x, z, yaw and half sizes of the rectangle of (4, 2) `corners` in
+    `planner.rectangle`'s order (the inverse of `planner.rectangle`).
+    """
+    centre = corners.mean(axis=0)
+    axis_x = (corners[0] - corners[3]) / 2  # half the local x side, as a vector
+    axis_z = (corners[0] - corners[1]) / 2
+    yaw = math.atan2(-float(axis_x[1]), float(axis_x[0]))
+    return float(centre[0]), float(centre[1]), yaw, float(np.hypot(*axis_x)), float(np.hypot(*axis_z))
+
+
 def _gap_to_corners(
     x: npt.NDArray[np.float64], z: npt.NDArray[np.float64], corners: npt.NDArray[np.float64]
 ) -> npt.NDArray[np.float64]:
     """The distance from points (x, z) to the rectangle of (4, 2) `corners` in order (0 inside)."""
-    centre = corners.mean(axis=0)
-    axis_x = (corners[0] - corners[3]) / 2
-    axis_z = (corners[0] - corners[1]) / 2
-    half_x, half_z = float(np.hypot(*axis_x)), float(np.hypot(*axis_z))
-    yaw = math.atan2(-axis_x[1], axis_x[0])
-    return _gap_to_rectangle(x, z, float(centre[0]), float(centre[1]), yaw, half_x, half_z)
+    return _gap_to_rectangle(x, z, *_pose_of(corners))
