@@ -41,6 +41,8 @@ __all__ = [
     "rectangle_iou",
 ]
 
+Floats = npt.NDArray[np.float64]
+
 STEP = 0.25
 """Metres a move covers."""
 KEY_CELL = 0.10
@@ -111,6 +113,27 @@ class Occupancy:
         # A pixel's centre is free when no obstacle pixel's centre lies within the radius plus half
         # a pixel's diagonal (so that the obstacle's whole pixel clears the body).
         self.inflated = inflate(blocked, radius * registration.scale + 0.71)
+        self._pixel = _Pixels(registration, blocked.shape[0])
+        self._moves: dict[tuple[int, int], tuple[Floats, Floats]] = {}
+
+    def move_free(self, state: State, child: State) -> bool:
+        """Whether the body may move from `state` to `child`, one move along its heading: as
+        `segment_free`, with the samples' offsets computed once per heading and direction.
+        """
+        direction = (
+            1
+            if (child.x - state.x) * math.cos(state.yaw) - (child.z - state.z) * math.sin(state.yaw) > 0
+            else -1
+        )
+        key = (state.k % 16, direction)
+        offsets = self._moves.get(key)
+        if offsets is None:
+            steps = max(int(STEP / 0.025), 1)
+            t = np.linspace(0.0, 1.0, steps + 1)
+            offsets = (t * (child.x - state.x), t * (child.z - state.z))
+            self._moves[key] = offsets
+        cells = self._pixel.of(state.x + offsets[0], state.z + offsets[1])
+        return cells is not None and not bool(self.inflated[cells].any())
 
     def free(self, x: npt.ArrayLike, z: npt.ArrayLike) -> npt.NDArray[np.bool_]:
         """Whether the body's centre may be at start-frame points (x, z)."""
@@ -254,6 +277,11 @@ class CarriedSpace:
         self._blocked_fft = np.fft.rfft2(blocked.astype(np.float64), self._fft_shape)
         self._offset = 0
         self._base_yaw = held.rel_yaw
+        self._stack = np.zeros((self.BINS, size, size), dtype=np.bool_)
+        self._pixel = _Pixels(registration, size)
+        # (heading, action) → the held centre's samples relative to the robot's centre, and their
+        # yaw bins, for this held object (reset by `holding`).
+        self._sweeps: dict[tuple[int, int], tuple[Floats, Floats, npt.NDArray[np.intp]]] = {}
 
     def holding(self, held: HeldObject) -> CarriedSpace:
         """This space for `held`, the same object held another way (its rel_yaw differs from this
@@ -262,6 +290,7 @@ class CarriedSpace:
         other = copy.copy(self)
         other.held = held
         other._offset = round((held.rel_yaw - self._base_yaw) / (math.pi / self.BINS))
+        other._sweeps = {}
         return other
 
     def _bin(self, state: State, extra: float) -> int:
@@ -274,6 +303,7 @@ class CarriedSpace:
         if found is None:
             found = self._dilate(index)
             self._spaces[index] = found
+            self._stack[index] = found
         return found
 
     def _dilate(self, index: int) -> npt.NDArray[np.bool_]:
@@ -313,24 +343,71 @@ class CarriedSpace:
         return out
 
     def move_free(self, state: State, child: State) -> bool:
-        """Whether a move from `state` to `child` (same heading) keeps the object clear."""
-        x0, z0 = self.held.centre(state)
-        x1, z1 = self.held.centre(child)
-        pixels = math.hypot(x1 - x0, z1 - z0) * self.registration.scale
-        t = np.linspace(0.0, 1.0, max(int(pixels * 2), 1) + 1)
-        return bool(self.free(x0 + t * (x1 - x0), z0 + t * (z1 - z0), self._bin(state, 0)).all())
+        """Whether a move from `state` to `child` (same heading) keeps the object clear: its
+        centre sampled about every half pixel.
+        """
+        forward = (child.x - state.x) * math.cos(state.yaw) - (child.z - state.z) * math.sin(state.yaw) > 0
+        key = (state.k % 16, 0 if forward else 1)
+        sweep = self._sweeps.get(key)
+        if sweep is None:
+            x0, z0 = self.held.centre(State(0.0, 0.0, state.k))
+            dx, dz = child.x - state.x, child.z - state.z
+            pixels = math.hypot(dx, dz) * self.registration.scale
+            t = np.linspace(0.0, 1.0, max(int(pixels * 2), 1) + 1)
+            sweep = self._sweep(x0 + t * dx, z0 + t * dz, np.full(len(t), self._bin(state, 0)))
+            self._sweeps[key] = sweep
+        return self._clear(state, sweep)
 
     def turn_free(self, state: State, sign: int) -> bool:
         """Whether a turn (sign +1 left, −1 right) from `state` keeps the object clear along its
         arc: its centre sampled about every half pixel, its yaw in the nearest quarter turn bin.
         """
-        arc = math.hypot(self.held.ahead, self.held.right) * math.pi / 8 * self.registration.scale
-        count = max(int(arc * 2), 4)
-        extras = sign * np.linspace(0.0, 1.0, count + 1)
-        points = [self.held.centre(state, float(e)) for e in extras]
-        xs, zs = zip(*points, strict=True)
-        bins = np.array([self._bin(state, float(e)) for e in extras], dtype=np.intp)
-        return bool(self.free(np.array(xs), np.array(zs), bins).all())
+        key = (state.k % 16, 2 if sign > 0 else 3)
+        sweep = self._sweeps.get(key)
+        if sweep is None:
+            arc = math.hypot(self.held.ahead, self.held.right) * math.pi / 8 * self.registration.scale
+            count = max(int(arc * 2), 4)
+            extras = sign * np.linspace(0.0, 1.0, count + 1)
+            yaw = state.k * math.pi / 8 + extras * math.pi / 8
+            ahead, right = self.held.ahead, self.held.right
+            x = ahead * np.cos(yaw) + right * np.sin(yaw)
+            z = -ahead * np.sin(yaw) + right * np.cos(yaw)
+            bins = np.array([self._bin(state, float(e)) for e in extras], dtype=np.intp)
+            sweep = self._sweep(x, z, bins)
+            self._sweeps[key] = sweep
+        return self._clear(state, sweep)
+
+    def _sweep(
+        self, x: Floats, z: Floats, bins: npt.NDArray[np.intp]
+    ) -> tuple[Floats, Floats, npt.NDArray[np.intp]]:
+        """A sweep's samples (relative to the robot), with every bin they need computed."""
+        for index in np.unique(bins):
+            self.space(int(index))
+        return x, z, bins
+
+    def _clear(self, state: State, sweep: tuple[Floats, Floats, npt.NDArray[np.intp]]) -> bool:
+        x, z, bins = sweep
+        cells = self._pixel.of(state.x + x, state.z + z)
+        return cells is not None and not bool(self._stack[bins, cells[0], cells[1]].any())
+
+
+class _Pixels:
+    """Start-frame points → goal-image pixels (row, col), the registration's affine map inlined."""
+
+    def __init__(self, registration: Registration, size: int) -> None:
+        yaw = registration.heading * math.pi / 8
+        c, s = math.cos(yaw), math.sin(yaw)
+        self.a, self.b = registration.scale * c, registration.scale * s
+        self.tx, self.tz = registration.tx, registration.tz
+        self.size = size
+
+    def of(self, x: Floats, z: Floats) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]] | None:
+        """The pixels (row, col) of points (x, z), or None when one lies outside the image."""
+        col = np.floor(self.a * x + self.b * z + self.tx).astype(np.intp)
+        row = np.floor(-self.b * x + self.a * z + self.tz).astype(np.intp)
+        if col.min() < 0 or row.min() < 0 or col.max() >= self.size or row.max() >= self.size:
+            return None
+        return row, col
 
 
 def plan(
@@ -433,7 +510,7 @@ def _allowed(
     carried: CarriedSpace | None,
 ) -> bool:
     moves = action in (Action.FORWARD, Action.BACKWARD)
-    if moves and not occupancy.segment_free(state.x, state.z, child.x, child.z):
+    if moves and not occupancy.move_free(state, child):
         return False
     if carried is None:
         return True
