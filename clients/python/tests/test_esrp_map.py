@@ -310,7 +310,10 @@ def test_registration_recovers_the_start_pose_in_the_goal_image(client: esrp.Cli
         own = mapping.TopDownMap()
         for turns, view in enumerate(views):
             own.integrate(view, Pose2D(0.0, 0.0, turns * math.pi / 8))  # turning left adds 22.5°
-        fit = register.register(own, goal.parse_goal(image), image)
+        parsed = goal.parse_goal(image)
+        fit = register.register(own, parsed, image)
+        # The cost of a given transform, as the agent re-checks an earlier fit, is the fit's own.
+        assert register.cost_of(fit, own, parsed, image) == pytest.approx(fit.cost, abs=1e-9)
         min_x, min_z, metres = _goal_frame(state, image.shape[0])
         true_col, true_row = (state.agent_x - min_x) / metres, (state.agent_z - min_z) / metres
         headings += fit.heading == state.agent_heading

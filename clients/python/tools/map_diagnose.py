@@ -6,7 +6,8 @@ compares what the agent believed with the truth.
         --images runs/map-diag --out runs/map-diag.jsonl
 
 For each episode: its outcome, the registration's error against the goal frame computed from the
-privileged geometry (heading, scale, the start position in goal pixels), each object's final IoU
+privileged geometry (heading, scale, the start position in goal pixels; the first registration and
+the last), each object's final IoU
 and placement, the agent's statistics, and a reason for a failure, the first that applies:
 
 - `registration`: the heading is wrong, the scale off by more than 4 % or the start position by
@@ -38,6 +39,7 @@ import esrp
 from esrp.agents.esrp_map.agent import MapAgent
 from esrp.agents.esrp_map.goal import TOP_DOWN_MARGIN
 from esrp.agents.esrp_map.planner import HeldObject
+from esrp.agents.esrp_map.register import Registration
 
 
 def goal_frame(state: esrp.PrivilegedState, resolution: int) -> tuple[float, float, float]:
@@ -55,6 +57,21 @@ def goal_frame(state: esrp.PrivilegedState, resolution: int) -> tuple[float, flo
     side = max(max(xs) - min(xs), max(zs) - min(zs)) + 2 * TOP_DOWN_MARGIN
     centre = ((min(xs) + max(xs)) / 2, (min(zs) + max(zs)) / 2)
     return centre[0] - side / 2, centre[1] - side / 2, side / resolution
+
+
+def fit_error(
+    fit: Registration, start: esrp.PrivilegedState, frame: tuple[float, float, float]
+) -> dict[str, Any]:
+    """How far registration `fit` is from the truth: its heading's error (lattice steps), its
+    scale's (relative) and the start position's in goal pixels."""
+    min_x, min_z, metres = frame
+    col = (start.agent_x - min_x) / metres
+    row = (start.agent_z - min_z) / metres
+    return {
+        "heading": fit.heading - start.agent_heading,
+        "scale": round(float(fit.scale * metres - 1), 4),
+        "pixels": round(math.hypot(fit.tx - col, fit.tz - row), 2),
+    }
 
 
 def held_truth(agent: MapAgent, start: esrp.PrivilegedState, now: esrp.PrivilegedState) -> HeldObject | None:
@@ -115,15 +132,7 @@ def play(client: esrp.Client, scene: str, images: Path | None, oracle: bool = Fa
                         agent._plan = []  # the next step replans with the truth
                 seen_held = agent._held
             if registration_error is None and agent.registration is not None:
-                fit = agent.registration
-                min_x, min_z, metres = frame
-                col = (start.agent_x - min_x) / metres
-                row = (start.agent_z - min_z) / metres
-                registration_error = {
-                    "heading": fit.heading - start.agent_heading,
-                    "scale": round(fit.scale * metres - 1, 4),
-                    "pixels": round(math.hypot(fit.tx - col, fit.tz - row), 2),
-                }
+                registration_error = fit_error(agent.registration, start, frame)
             if action is None:
                 break
             result = episode.step(action)
@@ -133,6 +142,7 @@ def play(client: esrp.Client, scene: str, images: Path | None, oracle: bool = Fa
                 ended_by = "success" if result.terminated else "horizon"
                 break
         final = episode.privileged_state()
+    last = agent.registration
     stats = agent.stats()
     success = ended_by == "success"
     record: dict[str, Any] = {
@@ -141,6 +151,7 @@ def play(client: esrp.Client, scene: str, images: Path | None, oracle: bool = Fa
         "steps": steps,
         "ended_by": ended_by,
         "registration": registration_error,
+        "last_registration": None if last is None else fit_error(last, start, frame),
         "held": held_errors,
         "objects": [
             {"category": o.category, "iou": round(o.iou, 3), "placed": o.placed, "held": o.held}

@@ -53,7 +53,7 @@ from .planner import (
     rectangle,
     rectangle_iou,
 )
-from .register import Registration, register
+from .register import Registration, cost_of, register
 
 __all__ = ["MapAgent"]
 
@@ -76,6 +76,9 @@ _FETCH_CANDIDATES = 12
 _REGRASPS = 2
 """Times an object is put down and fetched again from another pose when no carry plan is found."""
 """Fetch poses whose carry is planned before one is chosen, at most."""
+_REFIT_MARGIN = 1.1
+"""A registration made after a later look-around replaces the last one only when the last one's
+cost on the grown map is above the new one's by this factor."""
 _LOOK_TURNS = 15
 _EXPLORATIONS = 5
 """Look-arounds from new places at most, when a wanted object has not been seen."""
@@ -181,8 +184,17 @@ class MapAgent:
             if self._looks_left > 0:
                 self._looks_left -= 1
                 return self._do(Action.LEFT)
-            # Registered again after every look around: the map has grown.
-            self.registration = register(self.map, self.goal, self.goal_rgb)
+            # Registered again after every look around: the map has grown. A new fit replaces the
+            # last only where it scores better on the grown map (a partial view can fit better
+            # elsewhere than the room the robot has been driving in).
+            fit = register(self.map, self.goal, self.goal_rgb)
+            if self.registration is not None:
+                kept = cost_of(self.registration, self.map, self.goal, self.goal_rgb)
+                if kept <= fit.cost * _REFIT_MARGIN:
+                    fit = self.registration
+                else:
+                    self._stats["refits"] = self._stats.get("refits", 0) + 1
+            self.registration = fit
             done = len(self._placed)
             self._tasks = self._make_tasks()[done:]
             self._phase = "carry" if carrying else "fetch"

@@ -22,7 +22,7 @@ import numpy.typing as npt
 from .goal import BACKGROUND, STATIC, GoalImage
 from .mapping import TopDownMap, floor_pixels
 
-__all__ = ["Registration", "distance_to", "register"]
+__all__ = ["Registration", "cost_of", "distance_to", "register"]
 
 Floats = npt.NDArray[np.float64]
 
@@ -100,20 +100,9 @@ def register(world: TopDownMap, goal: GoalImage, goal_rgb: npt.NDArray[np.uint8]
 
     Raises `ValueError` when the map has no static bases to register.
     """
-    static_rows, static_cols = np.nonzero(world.static)
-    if len(static_rows) == 0:
-        raise ValueError("the map has no static bases yet: look around first")
-    sx, sz = world.centre_of(static_rows, static_cols)
-    free_rows, free_cols = np.nonzero(world.free)
-    fx, fz = world.centre_of(free_rows, free_cols)
-    # Free floor is dense; a sample of it is as informative and keeps the rasters light.
-    if len(fx) > 4000:
-        keep = np.linspace(0, len(fx) - 1, 4000).astype(np.intp)
-        fx, fz = fx[keep], fz[keep]
+    sx, sz, fx, fz = _points(world)
     resolution = goal.labels.shape[0]
-    static = (goal.labels == STATIC) & ~floor_pixels(goal_rgb)
-    point_cost = np.minimum(distance_to(static), _CAP)
-    free_cost = np.where(goal.labels == BACKGROUND, _OUTSIDE, np.where(static, _ON_STATIC, 0.0))
+    point_cost, free_cost = _cost_images(goal, goal_rgb)
     prior = 1.0 / goal.metres_per_pixel()
     rotated = {h: (_rotate(sx, sz, h), _rotate(fx, fz, h)) for h in range(16)}
 
@@ -133,6 +122,52 @@ def register(world: TopDownMap, goal: GoalImage, goal_rgb: npt.NDArray[np.uint8]
     best.sort()
     cost, heading, scale, tx, tz = best[0]
     return Registration(heading, scale, tx, tz, cost, best[1][0])
+
+
+def cost_of(fit: Registration, world: TopDownMap, goal: GoalImage, goal_rgb: npt.NDArray[np.uint8]) -> float:
+    """What `register` would score transform `fit` on `world` (its cost at that heading, scale
+    and translation): to compare an earlier registration with a new one on the map as it is now.
+    """
+    sx, sz, fx, fz = _points(world)
+    point_cost, free_cost = _cost_images(goal, goal_rgb)
+    size = point_cost.shape[0]
+
+    def mean(x: Floats, z: Floats, image: Floats, outside: float) -> float:
+        if len(x) == 0:
+            return 0.0
+        col, row = fit.to_goal(x, z)
+        c, r = np.floor(col).astype(np.intp), np.floor(row).astype(np.intp)
+        inside = (c >= 0) & (c < size) & (r >= 0) & (r < size)
+        values = np.full(len(c), outside)
+        values[inside] = image[r[inside], c[inside]]
+        return float(values.mean())
+
+    return mean(sx, sz, point_cost, _CAP) + _FREE_SHARE * mean(fx, fz, free_cost, _OUTSIDE)
+
+
+def _points(world: TopDownMap) -> tuple[Floats, Floats, Floats, Floats]:
+    """The map's static bases and (a sample of) its free floor, as start-frame points."""
+    static_rows, static_cols = np.nonzero(world.static)
+    if len(static_rows) == 0:
+        raise ValueError("the map has no static bases yet: look around first")
+    sx, sz = world.centre_of(static_rows, static_cols)
+    free_rows, free_cols = np.nonzero(world.free)
+    fx, fz = world.centre_of(free_rows, free_cols)
+    # Free floor is dense; a sample of it is as informative and keeps the rasters light.
+    if len(fx) > 4000:
+        keep = np.linspace(0, len(fx) - 1, 4000).astype(np.intp)
+        fx, fz = fx[keep], fz[keep]
+    return sx, sz, fx, fz
+
+
+def _cost_images(goal: GoalImage, goal_rgb: npt.NDArray[np.uint8]) -> tuple[Floats, Floats]:
+    """The goal's cost of a static base (its distance to the goal's static pixels, capped) and of
+    a free point (outside the room, on static structure, or nothing) at each pixel.
+    """
+    static = (goal.labels == STATIC) & ~floor_pixels(goal_rgb)
+    point_cost = np.minimum(distance_to(static), _CAP)
+    free_cost = np.where(goal.labels == BACKGROUND, _OUTSIDE, np.where(static, _ON_STATIC, 0.0))
+    return point_cost, free_cost
 
 
 def _best_translation(
