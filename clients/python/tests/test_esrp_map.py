@@ -4,6 +4,7 @@ the depth the server renders there."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from pathlib import Path
 from typing import Any
@@ -596,3 +597,39 @@ def test_the_planners_cached_sweeps_agree_with_the_plain_checks() -> None:
             checked[plain_turn] += 1
     assert checked[True] > 50
     assert checked[False] > 50
+
+
+def test_esrp_map_plays_a_hidden_challenge_split(tmp_path: Path) -> None:
+    """Under the challenge's rules (an agent token, a hidden split whose steps carry no info
+    fields, one counted attempt a scene) the agent plays unchanged: `esrp eval --agent map` goes
+    through every hidden scene, looking around, fetching and releasing from its observations
+    alone, and the server records each episode as counted."""
+    from esrp.cli import main
+    from esrp.eval.results import read_records
+
+    (tmp_path / "tokens.toml").write_text(
+        '[[token]]\nname = "team"\nsecret = "team-secret"\nrole = "agent"\n'
+    )
+    records = tmp_path / "records"
+    args = [
+        "--tokens",
+        str(tmp_path / "tokens.toml"),
+        "--challenge-seed",
+        "esrp-map-hidden-split-seed",
+        "--challenge-scenes",
+        "2",
+    ]
+    with esrp.LocalServer(*args, "--records", str(records)) as server:
+        out = tmp_path / "map.jsonl"
+        run = ["eval", "--agent", "map", "--split", "challenge", "--out", str(out), "--no-progress"]
+        assert main([*run, "--server", server.address, "--token", "team-secret"]) == 0
+    played = read_records(out).records
+    assert sorted(r.scene_id for r in played) == ["challenge/00000", "challenge/00001"]
+    for record in played:
+        assert record.agent == "map"
+        assert record.steps > 15, "it looked around (15 turns) and went on"
+        assert record.agent_stats["fetches"] >= 1
+        assert "decision_ms_median" in record.agent_stats
+    kept = [json.loads(line) for line in (records / "team.jsonl").read_text().splitlines()]
+    assert {r["scene_id"]: r["actions"] for r in kept} == {r.scene_id: r.actions for r in played}
+    assert all(r["counted"] for r in kept)
