@@ -70,6 +70,8 @@ before it is released (the server's threshold is 0.3: the rest absorbs the belie
 _OWN_BASES = 0.4
 """Metres from an object's believed footprint within which the map's bases of its category are
 taken for its own (a base lies on or behind the face it belongs to)."""
+_NEAR_BASES = 12
+"""Bases of the held object in the view at the fetch from which its footprint is fitted alone."""
 _NEARER = 0.15
 """Metres by which the wanted object must be nearer a fetch pose than any other object's base."""
 _FETCH_CANDIDATES = 12
@@ -518,7 +520,9 @@ class MapAgent:
             points.append(np.stack([x, z], axis=1))
         return np.concatenate(points) if points else np.zeros((0, 2))
 
-    def _fit_footprint(self, task: _Task, robot: State | None) -> tuple[float, float, float] | None:
+    def _fit_footprint(
+        self, task: _Task, robot: State | None, points: npt.NDArray[np.float64] | None = None
+    ) -> tuple[float, float, float] | None:
         """The object's footprint (centre x, z and yaw in the start frame) fitted to the bases the
         map saw of it (near the robot, when it is given), or None when the map has none.
 
@@ -528,9 +532,11 @@ class MapAgent:
         2 cm grid about the bases. A fit costs the bases' distances outside the rectangle and a
         third of their depths inside it (a base lies on the visible boundary, or behind it for
         furniture on legs). With `robot` (it holds the object), fits nearer its centre than its
-        radius or farther than fetch reach (1 m) are ruled out: the fetch worked.
+        radius or farther than fetch reach (1 m) are ruled out: the fetch worked. `points`: the
+        bases to fit (default: the map's, `_object_points`).
         """
-        points = self._object_points(task)
+        if points is None:
+            points = self._object_points(task)
         target = self._target_rectangle(task)
         target_yaw = _pose_of(target)[2]
         hx, hz = task.half_long, task.half_short
@@ -591,11 +597,27 @@ class MapAgent:
         constraint), or, when the map saw none of it, its target's yaw straight ahead of it.
         """
         hx, hz = task.half_long, task.half_short
-        fit = self._put_down or self._fit_footprint(task, self.state)
+        fit = self._put_down
+        if fit is None:
+            # The view at the fetch sees the object near, where a pixel row covers a few
+            # centimetres, and with no drift of the pose: its bases alone when there are enough.
+            near = self._view_bases(task.category)
+            if len(near) >= _NEAR_BASES:
+                fit = self._fit_footprint(task, self.state, near)
+                self._stats["fits_from_view"] = self._stats.get("fits_from_view", 0) + 1
+        fit = fit or self._fit_footprint(task, self.state)
         if fit is None:
             yaw = _pose_of(self._target_rectangle(task))[2]
             return HeldObject(ROBOT_RADIUS + hz + 0.05, 0.0, yaw - self.state.yaw, hx, hz)
         return _relative(*fit, hx, hz, self.state)
+
+    def _view_bases(self, category: int) -> npt.NDArray[np.float64]:
+        """(n, 2) start-frame points of the bases of `category` in the current view alone."""
+        view = TopDownMap(self._last_view.shape[0], tops=self.map.tops)
+        view.integrate(self._last_view, self._pose())
+        rows, cols = np.nonzero(view.movable[category])
+        x, z = view.centre_of(rows, cols)
+        return np.stack([x, z], axis=1)
 
     def debug_image(self, scale: int = 4) -> npt.NDArray[np.uint8]:
         """What the agent believes, drawn over its goal image magnified `scale` times: the map's
