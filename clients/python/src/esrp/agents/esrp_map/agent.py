@@ -142,6 +142,7 @@ class MapAgent:
         self._approach_tried = False
         self._put_down: tuple[float, float, float] | None = None
         self._regrasps = 0
+        self._skipped: set[int] = set()
         self._blocked_extra: list[tuple[float, float]] = []
         self._fetch_tries = 0
         self._explorations = 0
@@ -205,6 +206,16 @@ class MapAgent:
     # The phases after the look around.
 
     def _next(self, carrying: bool) -> Action | None:
+        if self._phase == "skip":
+            # Put down where its carry went nowhere: the other objects first (moving them may
+            # clear its way), then it again.
+            self._skipped.add(self._tasks[0].instance)
+            self._tasks.append(self._tasks.pop(0))
+            self._phase = "fetch"
+            self._held = None
+            self._refused = set()
+            self._approach, self._approach_tried = None, False
+            self._put_down, self._regrasps, self._fetch_tries = None, 0, 0
         if self._phase == "regrasp":
             # Put down where no carry plan went on: fetch it again from a better pose, its
             # footprint known from the belief it was carried with.
@@ -277,6 +288,15 @@ class MapAgent:
                 self._regrasps += 1
                 self._stats["regrasps"] = self._stats.get("regrasps", 0) + 1
                 self._phase = "regrasp"
+                return self._do(Action.RELEASE)
+            if (
+                not found
+                and self._phase == "carry"
+                and len(self._tasks) > 1
+                and self._tasks[0].instance not in self._skipped
+            ):
+                self._stats["skips"] = self._stats.get("skips", 0) + 1
+                self._phase = "skip"
                 return self._do(Action.RELEASE)
             if not found and self._approach is not None and self._phase == "fetch":
                 self._approach = None  # the chosen pose is out of reach now: any within reach
