@@ -12,9 +12,12 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 import pytest
+from conftest import load_tool
 
 import esrp
 from esrp.agents.esrp_map import FloorProjection, Pose2D, goal, mapping, planner, register
+
+_DIAGNOSE = load_tool("map_diagnose")
 
 
 @pytest.mark.parametrize("turns", [0, 3])
@@ -134,21 +137,10 @@ def test_parse_goal_recovers_synthetic_rectangles() -> None:
 
 
 def _goal_frame(state: esrp.PrivilegedState, resolution: int) -> tuple[float, float, float]:
-    """esrp-render's TopDownFrame from the privileged geometry: (min_x, min_z, metres per pixel)."""
-    xs = [x for x, _ in state.floor]
-    zs = [z for _, z in state.floor]
-    for static in state.static_obstacles:
-        if static.obstacle.kind == "wall":
-            f = static.footprint
-            c, s = math.cos(f.yaw), math.sin(f.yaw)
-            for sx, sz in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
-                # esrp-core's footprint corners: local (x, z) rotated by yaw about +y.
-                lx, lz = sx * f.half_x, sz * f.half_z
-                xs.append(f.center_x + lx * c + lz * s)
-                zs.append(f.center_z - lx * s + lz * c)
-    side = max(max(xs) - min(xs), max(zs) - min(zs)) + 2 * goal.TOP_DOWN_MARGIN
-    centre = ((min(xs) + max(xs)) / 2, (min(zs) + max(zs)) / 2)
-    return centre[0] - side / 2, centre[1] - side / 2, side / resolution
+    """esrp-render's TopDownFrame from the privileged geometry: (min_x, min_z, metres per pixel),
+    as tools/map_diagnose.py computes it."""
+    frame: tuple[float, float, float] = _DIAGNOSE.goal_frame(state, resolution)
+    return frame
 
 
 def test_the_goal_images_objects_are_where_the_targets_are(client: esrp.Client) -> None:
@@ -505,9 +497,7 @@ def test_the_diagnosis_tool_compares_beliefs_with_the_truth(client: esrp.Client,
     """tools/map_diagnose.py on a scene the agent solves: the registration's error against the
     privileged frame is small, the held object's belief is within a few decimetres of the truth,
     no reason is given; and the reasons a failure is put down to, on made-up records."""
-    from conftest import load_tool
-
-    tool = load_tool("map_diagnose")
+    tool = _DIAGNOSE
     record = tool.play(client, "esrp-bench-v2/00007", tmp_path)
     assert record["success"], record
     assert record["reason"] is None
