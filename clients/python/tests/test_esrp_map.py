@@ -381,27 +381,25 @@ def test_a_held_object_must_clear_obstacles_too() -> None:
     # A bar 0.8 m ahead: 0.2 m deep along the heading, 0.7 m wide across it (rel_yaw 0).
     bar = planner.HeldObject(0.8, 0.0, 0.0, 0.1, 0.35)
     carried = planner.CarriedSpace(blocked, room.registration, bar)
-    left = start.after(esrp.Action.LEFT)
     assert not carried.free(*bar.centre(start), 0), "the bar stands on the post"
     assert robot.free(0.0, 0.0)
-    assert planner._allowed(start, left, esrp.Action.LEFT, robot, None)
+    assert planner._allowed(start, esrp.Action.LEFT, robot, None)
     # The same bar held 1.2 m ahead clears the post, and one move either way.
     far = planner.HeldObject(1.2, 0.0, 0.0, 0.1, 0.35)
     far_space = carried.holding(far)
     assert far_space.free(*far.centre(start), 0)
-    back, forward = start.after(esrp.Action.BACKWARD), start.after(esrp.Action.FORWARD)
-    assert planner._allowed(start, back, esrp.Action.BACKWARD, robot, far_space)
-    assert planner._allowed(start, forward, esrp.Action.FORWARD, robot, far_space)
+    back = start.after(esrp.Action.BACKWARD)
+    assert planner._allowed(start, esrp.Action.BACKWARD, robot, far_space)
+    assert planner._allowed(start, esrp.Action.FORWARD, robot, far_space)
     # A second move back sweeps the bar (0.95 → 0.7 m ahead) across the post.
-    assert not far_space.move_free(back, back.after(esrp.Action.BACKWARD))
+    assert not far_space.move_free(back, esrp.Action.BACKWARD)
     # Turned a quarter (rel_yaw π/2), the bar lies along the heading and passes the post's side.
     along = planner.HeldObject(0.8, 0.0, math.pi / 2, 0.1, 0.35)
     along_space = carried.holding(along)
     assert along_space.free(*along.centre(start), along_space._bin(start, 0))
     # A turn to the left sweeps its far end through the post; to the right it does not.
-    assert not planner._allowed(start, left, esrp.Action.LEFT, robot, along_space)
-    right = start.after(esrp.Action.RIGHT)
-    assert planner._allowed(start, right, esrp.Action.RIGHT, robot, along_space)
+    assert not planner._allowed(start, esrp.Action.LEFT, robot, along_space)
+    assert planner._allowed(start, esrp.Action.RIGHT, robot, along_space)
     # Spaces made afresh for an object held another way agree with those shared by `holding`.
     fresh = planner.CarriedSpace(blocked, room.registration, along)
     for k in range(16):
@@ -452,7 +450,7 @@ def test_the_planner_carries_an_object_to_where_it_fits() -> None:
     state = start
     for action in found:
         following = state.after(action)
-        assert planner._allowed(state, following, action, robot, carried)
+        assert planner._allowed(state, action, robot, carried)
         state = following
     assert bar.centre(state)[0] >= goal_x
 
@@ -567,7 +565,7 @@ def test_the_planners_cached_sweeps_agree_with_the_plain_checks() -> None:
         for action in (esrp.Action.FORWARD, esrp.Action.BACKWARD):
             child = state.after(action)
             plain = robot.segment_free(state.x, state.z, child.x, child.z)
-            assert robot.move_free(state, child) == plain
+            assert robot.move_free(state, action) == plain
             (x0, z0), (x1, z1) = held.centre(state), held.centre(child)
             t = np.linspace(
                 0.0, 1.0, max(int(math.hypot(x1 - x0, z1 - z0) * room.registration.scale * 2), 1) + 1
@@ -575,7 +573,7 @@ def test_the_planners_cached_sweeps_agree_with_the_plain_checks() -> None:
             plain_held = bool(
                 carried.free(x0 + t * (x1 - x0), z0 + t * (z1 - z0), carried._bin(state, 0)).all()
             )
-            assert carried.move_free(state, child) == plain_held
+            assert carried.move_free(state, action) == plain_held
             checked[plain_held] += 1
         for sign in (1, -1):
             arc = math.hypot(held.ahead, held.right) * math.pi / 8 * room.registration.scale

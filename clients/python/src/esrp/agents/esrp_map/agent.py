@@ -479,7 +479,7 @@ class MapAgent:
         gap = _gap_to_rectangle(xs, zs, cx, cz, yaw, hx, hz)
         usable = (gap >= ROBOT_RADIUS + 0.03) & (gap <= 0.9)
         # The server fetches the nearest object in reach: the others' bases must be farther.
-        others = self._other_bases(task.category, corners)
+        others = self._movable_bases((task.category, corners), solid=False)
         if len(others):
             nearest_other = np.full(len(keys), np.inf)
             for start in range(0, len(others), 256):
@@ -499,10 +499,9 @@ class MapAgent:
         score = np.where(usable, drive + far + 6 * across + 6 * behind, np.inf)
         room = self._room_for_held(blocked, corners)
         space: CarriedSpace | None = None
-        tries = 0
         tried: list[State] = []
         for index in np.argsort(score):
-            if not math.isfinite(score[index]) or tries >= _FETCH_CANDIDATES:
+            if not math.isfinite(score[index]) or len(tried) >= _FETCH_CANDIDATES:
                 break
             state = reach.states[keys[index]]
             # Candidates unlike those tried: another heading, or 30 cm away.
@@ -513,7 +512,6 @@ class MapAgent:
             if space is None:
                 space = CarriedSpace(room, self.registration, held, 0.0)
             reached, heuristic = self._carry_goal_for(held)
-            tries += 1
             found = plan(
                 state,
                 tight,
@@ -523,22 +521,27 @@ class MapAgent:
                 max_expansions=self.max_expansions // 10,
             )
             if found is not None:
-                self._stats.setdefault("fetch_choices", []).append(tries)
+                self._stats.setdefault("fetch_choices", []).append(len(tried))
                 return state, reach.path_to(keys[index])
-        self._stats.setdefault("fetch_choices", []).append(-tries)
+        self._stats.setdefault("fetch_choices", []).append(-len(tried))
         return None
 
-    def _other_bases(self, category: int, corners: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-        """(n, 2) the map's movable bases that are not the object of `category` at `corners`."""
+    def _movable_bases(
+        self, ignore: tuple[int, npt.NDArray[np.float64]] | None, *, solid: bool
+    ) -> npt.NDArray[np.float64]:
+        """(n, 2) start-frame points of the map's movable bases of every category (only the
+        `_solid` ones with `solid`), less, with `ignore` = (category, corners), those of that
+        category within `_OWN_BASES` of footprint `corners` (that object's own).
+        """
         points = []
         for index in range(len(CATEGORIES)):
-            rows, cols = np.nonzero(self.map.movable[index])
-            x, z = self.map.centre_of(rows, cols)
-            if index == category:
-                keep = _gap_to_corners(x, z, corners) > _OWN_BASES
+            cells = self._solid(index) if solid else self.map.movable[index] > 0
+            x, z = self.map.centre_of(*np.nonzero(cells))
+            if ignore is not None and ignore[0] == index:
+                keep = _gap_to_corners(x, z, ignore[1]) > _OWN_BASES
                 x, z = x[keep], z[keep]
             points.append(np.stack([x, z], axis=1))
-        return np.concatenate(points) if points else np.zeros((0, 2))
+        return np.concatenate(points)
 
     def _fit_footprint(
         self, task: _Task, robot: State | None, points: npt.NDArray[np.float64] | None = None
@@ -790,13 +793,8 @@ class MapAgent:
         blocked: npt.NDArray[np.bool_] = (self.goal.labels == STATIC) & ~floor_pixels(self.goal_rgb)
         blocked |= ~self.goal.room
         size = blocked.shape[0]
-        for index in range(len(CATEGORIES)):
-            rows, cols = np.nonzero(self._solid(index))
-            x, z = self.map.centre_of(rows, cols)
-            if ignore is not None and ignore[0] == index:
-                keep = _gap_to_corners(x, z, ignore[1]) > _OWN_BASES
-                x, z = x[keep], z[keep]
-            self._mark(blocked, x, z, size)
+        bases = self._movable_bases(ignore, solid=True)
+        self._mark(blocked, bases[:, 0], bases[:, 1], size)
         if self._blocked_extra:
             xs, zs = zip(*self._blocked_extra, strict=True)
             self._mark(blocked, np.array(xs), np.array(zs), size)

@@ -116,16 +116,12 @@ class Occupancy:
         self._pixel = _Pixels(registration, blocked.shape[0])
         self._moves: dict[tuple[int, int], tuple[Floats, Floats]] = {}
 
-    def move_free(self, state: State, child: State) -> bool:
-        """Whether the body may move from `state` to `child`, one move along its heading: as
+    def move_free(self, state: State, action: Action) -> bool:
+        """Whether the body may make move `action` (forward or backward) from `state`: as
         `segment_free`, with the samples' offsets computed once per heading and direction.
         """
-        direction = (
-            1
-            if (child.x - state.x) * math.cos(state.yaw) - (child.z - state.z) * math.sin(state.yaw) > 0
-            else -1
-        )
-        key = (state.k % 16, direction)
+        child = state.after(action)
+        key = (state.k % 16, int(action))
         offsets = self._moves.get(key)
         if offsets is None:
             steps = max(int(STEP / 0.025), 1)
@@ -342,14 +338,14 @@ class CarriedSpace:
             out[here] = ~self.space(int(b))[r[here], c[here]]
         return out
 
-    def move_free(self, state: State, child: State) -> bool:
-        """Whether a move from `state` to `child` (same heading) keeps the object clear: its
+    def move_free(self, state: State, action: Action) -> bool:
+        """Whether move `action` (forward or backward) from `state` keeps the object clear: its
         centre sampled about every half pixel.
         """
-        forward = (child.x - state.x) * math.cos(state.yaw) - (child.z - state.z) * math.sin(state.yaw) > 0
-        key = (state.k % 16, 0 if forward else 1)
+        key = (state.k % 16, int(action))
         sweep = self._sweeps.get(key)
         if sweep is None:
+            child = state.after(action)
             x0, z0 = self.held.centre(State(0.0, 0.0, state.k))
             dx, dz = child.x - state.x, child.z - state.z
             pixels = math.hypot(dx, dz) * self.registration.scale
@@ -445,7 +441,7 @@ def plan(
             if refused and (key, action) in refused:
                 continue
             child = state.after(action)
-            if not _allowed(state, child, action, occupancy, carried):
+            if not _allowed(state, action, occupancy, carried):
                 continue
             child_key = child.key()
             if cost + 1 < costs.get(child_key, math.inf):
@@ -493,7 +489,7 @@ def reachable(
                 continue
             child = state.after(action)
             child_key = child.key()
-            if child_key in reach.costs or not _allowed(state, child, action, occupancy, None):
+            if child_key in reach.costs or not _allowed(state, action, occupancy, None):
                 continue
             reach.states[child_key] = child
             reach.costs[child_key] = cost + 1
@@ -504,18 +500,17 @@ def reachable(
 
 def _allowed(
     state: State,
-    child: State,
     action: Action,
     occupancy: Occupancy,
     carried: CarriedSpace | None,
 ) -> bool:
     moves = action in (Action.FORWARD, Action.BACKWARD)
-    if moves and not occupancy.move_free(state, child):
+    if moves and not occupancy.move_free(state, action):
         return False
     if carried is None:
         return True
     if moves:
-        return carried.move_free(state, child)
+        return carried.move_free(state, action)
     return carried.turn_free(state, 1 if action == Action.LEFT else -1)
 
 
