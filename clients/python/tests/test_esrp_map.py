@@ -546,6 +546,33 @@ def test_the_map_tells_objects_of_one_category_apart_by_their_tops() -> None:
     assert z_first.max() < z_second.min()
 
 
+def test_a_side_face_in_another_objects_top_colour_is_not_its_top() -> None:
+    """The tints are brightnesses, so a brighter object's lit side can have exactly a darker
+    object's top colour. The side is the face its bases are on, and its own (brighter) top above it
+    wins: its bases count for it; a tall object whose top is out of sight counts for neither."""
+    side = np.array(_PALETTE[2][0])
+    bright, dark = (0, _rgb(side * 1.0 * goal.TOP_SHADE)), (0, _rgb(side * 0.88 * goal.TOP_SHADE))
+    view = np.broadcast_to(mapping.FLOOR_RGB.astype(np.uint8), (128, 128, 3)).copy()
+    view[70:76, 30:40] = bright[1]  # the bright object's top
+    view[76:90, 30:40] = dark[1]  # its front: lit so that it has the dark one's top colour
+    view[60:90, 80:90] = dark[1]  # a tall bright object's side, its top out of sight
+    assert (goal.classify(view[60:90, 30:90]) != 0).all()
+    own = mapping.TopDownMap(tops=[bright, dark])
+    own.integrate(view, Pose2D(0.0, 0.0, 0.0))
+    seen = own.movable[0] > 0
+    _, z = own.centre_of(*np.nonzero(seen))
+    assert z.min() < 0 < z.max(), "both objects' bases are seen"
+    assert own.instance[1].sum() == 0, "no base counts for the dark object"
+    _, z_bright = own.centre_of(*np.nonzero(own.instance[0] > 0))
+    assert len(z_bright) >= 5
+    assert z_bright.max() < 0, "the left object's bases count for the bright one; the tall one's for none"
+
+
+def _rgb(colour: npt.NDArray[np.float64]) -> tuple[int, int, int]:
+    r, g, b = (int(v) for v in np.round(colour * 255))
+    return r, g, b
+
+
 def test_the_planners_cached_sweeps_agree_with_the_plain_checks() -> None:
     """Moves and turns checked through offsets cached per heading give what the plain checks give
     (`Occupancy.segment_free`, and `CarriedSpace.free` at every sample of the sweep), from poses

@@ -20,7 +20,8 @@ The phases:
    whether it worked; if not it drives closer), then **carry** it, its rectangle checked along
    every move and turn (`planner.CarriedSpace`), until its believed footprint overlaps its target
    with an IoU of 0.6, and **release** it. With no carry plan left, it puts the object down and
-   fetches it again from another pose.
+   fetches it again from another pose. After a fetch it checks which object it holds (of several
+   of one category: `_held_task`); objects it left somewhere are remembered there (`_released`).
 
 Known limits: an object never seen from the start or from the way is searched for by a few
 look-arounds only, and the held object's footprint is what the map's bases and the goal image say
@@ -31,7 +32,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -75,9 +76,21 @@ _NEAR_BASES = 12
 _NEARER = 0.15
 """Metres by which the wanted object must be nearer a fetch pose than any other object's base."""
 _FETCH_CANDIDATES = 12
+"""Fetch poses whose carry is planned before one is chosen, at most."""
+_CHOOSE_MARGIN = -0.03
+"""Metres added to the robot's radius when a fetch pose's carry is planned (`_choose_fetch`)."""
+_CHOOSE_HELD_MARGIN = -0.015
+"""Metres added to the held object's half sizes when a fetch pose's carry is planned."""
 _REGRASPS = 2
 """Times an object is put down and fetched again from another pose when no carry plan is found."""
-"""Fetch poses whose carry is planned before one is chosen, at most."""
+_FIT_INSET = 0.06
+"""Metres inside a fitted footprint's edges where its points must not lie on structure (the goal
+image's pixels and the registration are a few centimetres out)."""
+_ON_STRUCTURE = 3.0
+"""A fitted footprint's cost per point of it on the goal image's structure or outside the room."""
+_ON_FREE = 0.15
+"""A fitted footprint's cost per point of it on floor the map saw free (furniture on legs shows the
+floor beneath it: a small cost, against the bases')."""
 _REFIT_MARGIN = 1.1
 """A registration made after a later look-around replaces the last one only when the last one's
 cost on the grown map is above the new one's by this factor."""
@@ -140,7 +153,7 @@ class MapAgent:
         self._refused: set[tuple[tuple[int, int, int], Action]] = set()
         self._approach: State | None = None
         self._approach_tried = False
-        self._put_down: tuple[float, float, float] | None = None
+        self._released: dict[int, npt.NDArray[np.float64]] = {}
         self._regrasps = 0
         self._skipped: set[int] = set()
         self._blocked_extra: list[tuple[float, float]] = []
@@ -198,8 +211,13 @@ class MapAgent:
                 else:
                     self._stats["refits"] = self._stats.get("refits", 0) + 1
             self.registration = fit
-            done = len(self._placed)
-            self._tasks = self._make_tasks()[done:]
+            made = {task.instance: task for task in self._make_tasks()}
+            if self._tasks or self._placed:
+                # The same tasks in the same order (skips and swaps reorder them), in the new fit.
+                self._tasks = [made[task.instance] for task in self._tasks]
+                self._placed = [made[task.instance] for task in self._placed]
+            else:
+                self._tasks = list(made.values())
             self._phase = "carry" if carrying else "fetch"
         return self._next(carrying)
 
@@ -215,13 +233,10 @@ class MapAgent:
             self._held = None
             self._refused = set()
             self._approach, self._approach_tried = None, False
-            self._put_down, self._regrasps, self._fetch_tries = None, 0, 0
+            self._regrasps, self._fetch_tries = 0, 0
         if self._phase == "regrasp":
             # Put down where no carry plan went on: fetch it again from a better pose, its
-            # footprint known from the belief it was carried with.
-            assert self._held is not None
-            cx, cz, yaw, _, _ = _pose_of(self._held.corners(self.state))
-            self._put_down = (cx, cz, yaw)
+            # footprint known from the belief it was carried with (`_released`).
             self._phase = "fetch"
             self._held = None
             self._refused = set()
@@ -233,7 +248,7 @@ class MapAgent:
             self._held = None
             self._refused = set()
             self._approach, self._approach_tried = None, False
-            self._put_down, self._regrasps = None, 0
+            self._regrasps = 0
         if self._phase == "fetching":
             self._stats["fetches"] += 1
             if carrying:
@@ -330,11 +345,21 @@ class MapAgent:
                 return found
         return None
 
+    def _put_down(self) -> tuple[float, float, float] | None:
+        """The current object's footprint (centre x, z, yaw) where it was put down, as believed,
+        or None when it has not been held.
+        """
+        corners = self._released.get(self._tasks[0].instance)
+        if corners is None:
+            return None
+        cx, cz, yaw, _, _ = _pose_of(corners)
+        return cx, cz, yaw
+
     def _fetch_goal(self) -> tuple[Any, Any] | None:
         task = self._tasks[0]
         points = self._object_points(task)
-        if self._put_down is not None:
-            corners = rectangle(*self._put_down, task.half_long, task.half_short)
+        corners = self._released.get(task.instance)
+        if corners is not None:
             points = np.concatenate([points.reshape(-1, 2), corners])
         if len(points) == 0:
             return None
@@ -456,7 +481,7 @@ class MapAgent:
         candidate's carry plan is found: any pose within reach will do then.
         """
         assert self.registration is not None
-        fit = self._put_down or self._fit_footprint(task, None)
+        fit = self._put_down() or self._fit_footprint(task, None)
         if fit is None:
             return None
         self._approach_tried = True  # once per object: its fit only improves while it is fetched
@@ -469,17 +494,21 @@ class MapAgent:
         robot = Occupancy(blocked, self.registration, ROBOT_RADIUS + _CLEARANCE)
         reach = reachable(self.state, robot)
         blocked = self._blocked(ignore=(task.category, corners))
-        # The carry is planned with the margins of `_replan`'s middle rung (the first is often too
-        # strict next to the walls that targets stand against).
-        tight = Occupancy(blocked, self.registration, ROBOT_RADIUS)
+        # The carry is planned with margins between `_replan`'s last two rungs (the first is often
+        # too strict next to the walls that targets stand against, and in the narrow ways the
+        # layouts were made through: the goal image's pixels make structure a little wider).
+        tight = Occupancy(blocked, self.registration, ROBOT_RADIUS + _CHOOSE_MARGIN)
         keys = list(reach.states)
         xs = np.array([reach.states[k].x for k in keys])
         zs = np.array([reach.states[k].z for k in keys])
         ks = np.array([reach.states[k].k for k in keys])
         gap = _gap_to_rectangle(xs, zs, cx, cz, yaw, hx, hz)
         usable = (gap >= ROBOT_RADIUS + 0.03) & (gap <= 0.9)
-        # The server fetches the nearest object in reach: the others' bases must be farther.
+        # The server fetches the nearest object in reach: the others' bases must be farther (and
+        # the outlines of those the robot left somewhere).
         others = self._movable_bases((task.category, corners), solid=False)
+        left = [_outline(c) for i, c in self._released.items() if i != task.instance]
+        others = np.concatenate([others, *left])
         if len(others):
             nearest_other = np.full(len(keys), np.inf)
             for start in range(0, len(others), 256):
@@ -510,7 +539,7 @@ class MapAgent:
             tried.append(state)
             held = _relative(cx, cz, yaw, hx, hz, state)
             if space is None:
-                space = CarriedSpace(room, self.registration, held, 0.0)
+                space = CarriedSpace(room, self.registration, held, _CHOOSE_HELD_MARGIN)
             reached, heuristic = self._carry_goal_for(held)
             found = plan(
                 state,
@@ -578,6 +607,11 @@ class MapAgent:
         hi = points.max(axis=0) + max(hx, hz)
         gx, gz = np.meshgrid(np.arange(lo[0], hi[0], 0.02), np.arange(lo[1], hi[1], 0.02))
         cx, cz = gx.ravel(), gz.ravel()
+        structure = self._structure()
+        free = self._seen_free()
+        # Points of the footprint, _FIT_INSET inside its edges, that must not lie on structure.
+        u = np.linspace(-1.0, 1.0, 5)
+        ux, uz = (a.ravel() for a in np.meshgrid(u * max(hx - _FIT_INSET, 0), u * max(hz - _FIT_INSET, 0)))
         for turn in range(8):
             yaw = target_yaw + turn * math.pi / 8
             c, s = math.cos(yaw), math.sin(yaw)
@@ -588,6 +622,14 @@ class MapAgent:
             outside = np.hypot(np.maximum(lx - hx, 0), np.maximum(lz - hz, 0))
             depth = np.minimum(hx - lx, hz - lz).clip(min=0)
             cost = np.minimum(outside, 0.3).sum(axis=1) + np.minimum(depth, 0.3).sum(axis=1) / 3
+            # A footprint through a wall or fixed furniture is not where the object stands (a
+            # tall object's top edges, taken for bases, lie behind it, beyond the wall it backs
+            # onto): each of its points on structure costs as much as 3 bases a metre out.
+            px = cx[:, None] + ux[None, :] * c + uz[None, :] * s
+            pz = cz[:, None] - ux[None, :] * s + uz[None, :] * c
+            cost = cost + _ON_STRUCTURE * structure(px, pz).sum(axis=1)
+            # Nor is one over floor the views saw free: a face is seen from the side it is not on.
+            cost = cost + _ON_FREE * free(px, pz).sum(axis=1)
             if robot is not None:
                 gap = _gap_to_rectangle(np.array([robot.x]), np.array([robot.z]), cx, cz, yaw, hx, hz)
                 cost = np.where((gap < ROBOT_RADIUS - 0.02) | (gap > 1.0), np.inf, cost)
@@ -600,12 +642,22 @@ class MapAgent:
         return best[1], best[2], best[3]
 
     def _start_carry(self) -> None:
-        """Estimates where the held object's footprint is relative to the robot."""
+        """Finds out which object it holds (`_held_task`) and estimates where its footprint is
+        relative to the robot.
+        """
+        held = self._held_task()
+        if held:
+            # Another object of the category than the one it went for: carry that one to its own
+            # target (the one it went for is still where the map saw it).
+            self._tasks.insert(0, self._tasks.pop(held))
+            self._regrasps = 0
+            self._stats["reassigned"] = self._stats.get("reassigned", 0) + 1
         task = self._tasks[0]
         self._phase = "carry"
         self._plan = []
         self._refused = set()
         self._held = self._estimate_held(task)
+        self._released.pop(task.instance, None)
         # Its bases move with it from now on: forget them (those of its category near it; another
         # object of the category stays).
         layer = self.map.movable[task.category]
@@ -615,16 +667,49 @@ class MapAgent:
         layer[rows[near], cols[near]] = 0
         self.map.instance[:, rows[near], cols[near]] = 0
 
+    def _held_task(self) -> int:
+        """The index in the tasks of the object just fetched: the server fetches the object
+        nearest the robot, which, of several objects of a category, need not be the one it went
+        for. Each candidate is placed by the map's bases that are its own by their top colour;
+        one whose bases are nearer the robot than the wanted one's by `_NEARER` is the one held.
+        0 (the wanted one) when the objects of its category are not told apart, or the map saw
+        no top of another one near.
+        """
+        task = self._tasks[0]
+        if not self._told_apart[task.instance]:
+            return 0
+        rows, cols = np.nonzero(self.map.movable[task.category])
+        x, z = self.map.centre_of(rows, cols)
+        distance = np.hypot(x - self.state.x, z - self.state.z)
+        kin = [i for i, t in enumerate(self.map.tops) if t[0] == task.category]
+        seen = self.map.instance[kin][:, rows, cols]  # (kin, bases)
+        nearest = {}
+        robot = np.array([self.state.x]), np.array([self.state.z])
+        for index, other in enumerate(self._tasks):
+            if other.category != task.category:
+                continue
+            row = kin.index(other.instance)
+            own = (seen[row] > 0) & (seen[row] > np.delete(seen, row, axis=0).max(axis=0, initial=0))
+            nearest[index] = float(distance[own].min()) if own.any() else math.inf
+            left = self._released.get(other.instance)
+            if left is not None:
+                # Put down: where it was left, as believed.
+                nearest[index] = min(nearest[index], float(_gap_to_corners(*robot, left)[0]))
+        best = min(nearest, key=lambda i: nearest[i])
+        if best != 0 and nearest[best] <= 1.0 and nearest[best] + _NEARER < nearest[0]:
+            return best
+        return 0
+
     def _estimate_held(self, task: _Task) -> HeldObject:
         """The held object's footprint relative to the robot (`_fit_footprint` with the robot's
         constraint), or, when the map saw none of it, its target's yaw straight ahead of it.
         """
         hx, hz = task.half_long, task.half_short
-        fit = self._put_down
+        fit = self._put_down()
         if fit is None:
             # The view at the fetch sees the object near, where a pixel row covers a few
             # centimetres, and with no drift of the pose: its bases alone when there are enough.
-            near = self._view_bases(task.category)
+            near = self._view_bases(task)
             if len(near) >= _NEAR_BASES:
                 fit = self._fit_footprint(task, self.state, near)
                 self._stats["fits_from_view"] = self._stats.get("fits_from_view", 0) + 1
@@ -634,11 +719,18 @@ class MapAgent:
             return HeldObject(ROBOT_RADIUS + hz + 0.05, 0.0, yaw - self.state.yaw, hx, hz)
         return _relative(*fit, hx, hz, self.state)
 
-    def _view_bases(self, category: int) -> npt.NDArray[np.float64]:
-        """(n, 2) start-frame points of the bases of `category` in the current view alone."""
+    def _view_bases(self, task: _Task) -> npt.NDArray[np.float64]:
+        """(n, 2) start-frame points of the bases of `task`'s category in the current view alone,
+        less those under another object's top colour (of several objects of the category).
+        """
         view = TopDownMap(self._last_view.shape[0], tops=self.map.tops)
         view.integrate(self._last_view, self._pose())
-        rows, cols = np.nonzero(view.movable[category])
+        rows, cols = np.nonzero(view.movable[task.category])
+        if self._told_apart[task.instance]:
+            others = [i for i, t in enumerate(view.tops) if t[0] == task.category and i != task.instance]
+            theirs = view.instance[others][:, rows, cols].max(axis=0, initial=0)
+            keep = theirs <= view.instance[task.instance][rows, cols]
+            rows, cols = rows[keep], cols[keep]
         x, z = view.centre_of(rows, cols)
         return np.stack([x, z], axis=1)
 
@@ -693,6 +785,10 @@ class MapAgent:
     # Seeing and moving.
 
     def _do(self, action: Action) -> Action:
+        if action == Action.RELEASE and self._held is not None:
+            # Where it is left, as believed: an obstacle, and another object's footprint when
+            # choosing where to fetch from, until it is fetched again.
+            self._released[self._tasks[0].instance] = self._held.corners(self.state)
         self._last_action = action
         return action
 
@@ -769,12 +865,20 @@ class MapAgent:
         rows, cols = np.nonzero(self.map.movable[task.category])
         if self._told_apart[task.instance]:
             # Of several objects of its category: its own bases (seen under its top colour more
-            # than under another's), else those no top was seen above.
+            # than under another's) and those near them no top was seen above (a top is seen
+            # above a few of an object's bases only), else all those no top was seen above.
             others = [i for i, t in enumerate(self.map.tops) if t[0] == task.category and i != task.instance]
             mine = self.map.instance[task.instance][rows, cols]
             theirs = self.map.instance[others][:, rows, cols].max(axis=0) if others else np.zeros_like(mine)
             own = (mine > 0) & (mine > theirs)
-            pick = own if own.any() else (mine == 0) & (theirs == 0)
+            pick = (mine == 0) & (theirs == 0)
+            if own.any():
+                x, z = self.map.centre_of(rows, cols)
+                near = np.zeros(len(x), dtype=bool)
+                reach = 2 * max(task.half_long, task.half_short)
+                for i in np.nonzero(own)[0]:
+                    near |= np.hypot(x - x[i], z - z[i]) <= reach
+                pick = own | (pick & near)
             rows, cols = rows[pick], cols[pick]
         x, z = self.map.centre_of(rows, cols)
         keep = np.ones(len(x), dtype=bool)
@@ -782,6 +886,43 @@ class MapAgent:
             if done.category == task.category:
                 keep &= np.hypot(x - done.x, z - done.z) > max(done.half_long, 0.3) + 0.2
         return np.stack([x[keep], z[keep]], axis=1)
+
+    def _structure(
+        self,
+    ) -> Callable[[npt.NDArray[np.float64], npt.NDArray[np.float64]], npt.NDArray[np.bool_]]:
+        """Whether start-frame points (x, z) lie on the goal image's static structure or outside
+        its room (outside the image counts as outside).
+        """
+        assert self.registration is not None
+        solid = ((self.goal.labels == STATIC) & ~floor_pixels(self.goal_rgb)) | ~self.goal.room
+        size = solid.shape[0]
+        to_goal = self.registration.to_goal
+
+        def on(x: npt.NDArray[np.float64], z: npt.NDArray[np.float64]) -> npt.NDArray[np.bool_]:
+            col, row = to_goal(x, z)
+            c, r = np.floor(col).astype(np.intp), np.floor(row).astype(np.intp)
+            inside = (c >= 0) & (c < size) & (r >= 0) & (r < size)
+            hit = np.ones(c.shape, dtype=bool)
+            hit[inside] = solid[r[inside], c[inside]]
+            return hit
+
+        return on
+
+    def _seen_free(
+        self,
+    ) -> Callable[[npt.NDArray[np.float64], npt.NDArray[np.float64]], npt.NDArray[np.bool_]]:
+        """Whether start-frame points (x, z) lie on cells the map saw free more often than it saw
+        any base there.
+        """
+        bases = self.map.static + self.map.movable.sum(axis=0)
+        seen: npt.NDArray[np.bool_] = self.map.free > bases
+
+        def on(x: npt.NDArray[np.float64], z: npt.NDArray[np.float64]) -> npt.NDArray[np.bool_]:
+            row, col = self.map.cell_of(x, z)
+            hit: npt.NDArray[np.bool_] = seen[row, col] & (row >= 0)
+            return hit
+
+        return on
 
     def _blocked(self, ignore: tuple[int, npt.NDArray[np.float64]] | None = None) -> npt.NDArray[np.bool_]:
         """The goal pixels a body may not cover: outside the room, static structure, the mapped
@@ -798,11 +939,11 @@ class MapAgent:
         if self._blocked_extra:
             xs, zs = zip(*self._blocked_extra, strict=True)
             self._mark(blocked, np.array(xs), np.array(zs), size)
-        if self._put_down is not None and self._held is None and ignore is None:
-            # The object put down to be fetched again, where the agent believes it is.
-            task = self._tasks[0]
-            corners = rectangle(*self._put_down, task.half_long, task.half_short)
-            blocked |= self._rectangle_pixels(corners, size)
+        for instance, corners in self._released.items():
+            # Objects left somewhere, where the agent believes they are (not the one about to be
+            # fetched: it moves with the robot).
+            if ignore is None or instance != self._tasks[0].instance:
+                blocked |= self._rectangle_pixels(corners, size)
         return blocked
 
     def _room_for_held(
@@ -845,6 +986,17 @@ class MapAgent:
         c, r = np.floor(col).astype(np.intp), np.floor(row).astype(np.intp)
         inside = (c >= 0) & (c < size) & (r >= 0) & (r < size)
         blocked[r[inside], c[inside]] = True
+
+
+def _outline(corners: npt.NDArray[np.float64], spacing: float = 0.05) -> npt.NDArray[np.float64]:
+    """(n, 2) points every `spacing` metres or less along the edges of rectangle `corners`."""
+    points = []
+    for i in range(4):
+        a, b = corners[i], corners[(i + 1) % 4]
+        count = max(int(math.ceil(math.hypot(*(b - a)) / spacing)), 1)
+        t = np.arange(count)[:, None] / count
+        points.append(a + t * (b - a))
+    return np.concatenate(points)
 
 
 def _gap_to_rectangle(

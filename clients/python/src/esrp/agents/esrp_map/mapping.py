@@ -136,20 +136,36 @@ class TopDownMap:
         self, ego_rgb: npt.NDArray[np.uint8], labels: npt.NDArray[np.integer]
     ) -> npt.NDArray[np.intp]:
         """(R, R) for each pixel, the index of the `tops` colour seen in its column's run of
-        same-label pixels at or above it (the nearest such above), or −1.
+        same-label pixels above the segment it is in (a segment: pixels of one colour, one face),
+        the brightest when several are, or −1.
+
+        A top face is the brightest face of an object (the light comes from above), and it is never
+        the segment an object's base pixel is in (that is the face standing on the floor). A side
+        face of a brighter object of the category can have a darker one's top colour (the tints
+        are brightnesses): such a match, in the base's own segment or below a brighter match, is
+        not taken.
         """
         match = np.full(labels.shape, -1, dtype=np.intp)
         rgb = ego_rgb.astype(np.int16)
+        brightness = np.array([sum(colour) for _, colour in self.tops] + [-1])  # [-1]: none
         for i, (category, colour) in enumerate(self.tops):
             hit = (labels == 2 + category) & np.all(
                 np.abs(rgb - np.array(colour, dtype=np.int16)) <= 2, axis=-1
             )
-            match[hit & (match < 0)] = i
-        runs: npt.NDArray[np.intp] = match.copy()
+            better = hit & (brightness[match] < brightness[i])
+            match[better] = i
+        above = np.full(labels.shape, -1, dtype=np.intp)
+        # Top to bottom: the best match of the run so far, and of the run above this segment.
+        run_best = match[0].copy()
+        above_best = np.full(labels.shape[1], -1, dtype=np.intp)
         for row in range(1, labels.shape[0]):
-            same = labels[row] == labels[row - 1]
-            runs[row] = np.where(match[row] >= 0, match[row], np.where(same, runs[row - 1], -1))
-        return runs
+            same_run = labels[row] == labels[row - 1]
+            same_segment = same_run & np.all(np.abs(rgb[row] - rgb[row - 1]) <= 2, axis=-1)
+            above_best = np.where(same_segment, above_best, np.where(same_run, run_best, -1))
+            run_best = np.where(same_run, run_best, -1)
+            run_best = np.where(brightness[match[row]] > brightness[run_best], match[row], run_best)
+            above[row] = above_best
+        return above
 
     def visit(self, pose: Pose2D, radius: float = 0.3) -> None:
         """Marks the floor under the robot at `pose` (a disc of `radius`) free: it stood there."""
