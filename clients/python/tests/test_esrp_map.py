@@ -504,9 +504,14 @@ def test_the_diagnosis_tool_compares_beliefs_with_the_truth(client: esrp.Client,
     assert len(record["held"]) == 1
     assert record["held"][0]["centre"] < 0.3
     assert not list(tmp_path.iterdir()), "images only for failures"
-    # With the truth handed over after the fetch, the belief the tool measured is the truth.
-    oracle = tool.play(client, "esrp-bench-v2/00007", None, oracle=True)
+    # With the truth handed over after the fetch, the belief the tool measured is the truth; with
+    # `phases`, an image at each change of phase (the look around ends, the fetch, the release).
+    oracle = tool.play(client, "esrp-bench-v2/00007", tmp_path, oracle=True, phases=True)
     assert oracle["success"]
+    names = sorted(path.name for path in tmp_path.iterdir())
+    assert any(name.endswith("-carry.png") for name in names), names
+    assert any(name.endswith("-released.png") for name in names), names
+    assert all(name.startswith("esrp-bench-v2-00007-step") for name in names), names
     good: dict[str, Any] = {"heading": 0, "scale": 0.01, "pixels": 0.5}
     base: dict[str, Any] = {"registration": good, "objects": [{"held": False, "placed": False}]}
     assert tool.reason({**base, "registration": {**good, "heading": 2}}, {}) == "registration"

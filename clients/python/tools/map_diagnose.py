@@ -21,6 +21,9 @@ and placement, the agent's statistics, and a reason for a failure, the first tha
 
 `--images DIR` writes the agent's debug image (`MapAgent.debug_image`) at the end of each failed
 episode, with the true targets' centres drawn in cyan and the objects' true positions in orange.
+With `--phases` as well, it also writes one at every change of the agent's phase, of every episode
+(`SCENE-stepNNN-PHASE.png`: registered and about to fetch, holding the object with its carry plan,
+...), the truth drawn as at the end.
 """
 
 from __future__ import annotations
@@ -105,9 +108,12 @@ def held_error(estimate: HeldObject, truth: HeldObject) -> dict[str, float]:
     }
 
 
-def play(client: esrp.Client, scene: str, images: Path | None, oracle: bool = False) -> dict[str, Any]:
+def play(
+    client: esrp.Client, scene: str, images: Path | None, oracle: bool = False, phases: bool = False
+) -> dict[str, Any]:
     """One episode of the agent on `scene`, diagnosed. With `oracle`, the agent's belief of a held
-    object is replaced by the truth after each fetch (what a perfect estimate would give)."""
+    object is replaced by the truth after each fetch (what a perfect estimate would give). With
+    `phases` (and `images`), the debug image at every change of the agent's phase is saved too."""
     agent = MapAgent()
     started = time.perf_counter()
     with client.create_episode(scene, privileged=True) as episode:
@@ -121,8 +127,13 @@ def play(client: esrp.Client, scene: str, images: Path | None, oracle: bool = Fa
         registration_error: dict[str, Any] | None = None
         held_errors: list[dict[str, float]] = []
         seen_held: HeldObject | None = None
+        phase = agent._phase
         while True:
             action = agent.act(observation)
+            if phases and images is not None and agent._phase != phase:
+                phase = agent._phase
+                name = f"{scene.replace('/', '-')}-step{steps:03d}-{phase}.png"
+                save_image(agent, episode.privileged_state(), frame, images / name)
             if agent._held is not None and agent._held is not seen_held:
                 truth = held_truth(agent, start, episode.privileged_state())
                 if truth is not None:
@@ -223,6 +234,11 @@ def main() -> int:
         action="store_true",
         help="give the agent the held object's true footprint after each fetch",
     )
+    parser.add_argument(
+        "--phases",
+        action="store_true",
+        help="with --images: also an image at every change of the agent's phase, in every episode",
+    )
     args = parser.parse_args()
     with esrp.LocalServer(binary=args.server_binary) as server:
         client = esrp.Client(server.address)
@@ -235,7 +251,7 @@ def main() -> int:
         reasons: dict[str, int] = {}
         wins = 0
         for index, scene in enumerate(scenes, 1):
-            record = play(client, scene, args.images, args.oracle_held)
+            record = play(client, scene, args.images, args.oracle_held, args.phases)
             wins += record["success"]
             if record["reason"]:
                 reasons[record["reason"]] = reasons.get(record["reason"], 0) + 1
