@@ -11,6 +11,16 @@ agent configuration, so instances never see two episodes at once:
 
 `config` is `--agent-config` (a JSON object, `{}` by default); it is recorded as `agent_config`.
 An agent may define `stats() -> dict` (recorded as `agent_stats` at the end of its episode).
+
+The same agents play the Gymnasium env (`esrp/Rearrange-v1`) through `as_observation`, which
+makes the env's observation dict an `Observation` (no copy):
+
+    observation, info = env.reset(options={"scene": scene})
+    agent.reset(as_observation(observation), info)
+    while (action := agent.act(as_observation(observation))) is not None:
+        observation, reward, terminated, truncated, info = env.step(int(action))
+        if terminated or truncated:
+            break
 """
 
 from __future__ import annotations
@@ -26,7 +36,15 @@ import numpy as np
 
 from .._values import Action, Observation
 
-__all__ = ["Agent", "AgentFactory", "AsyncAgent", "RandomAgent", "load_factory", "raised_at"]
+__all__ = [
+    "Agent",
+    "AgentFactory",
+    "AsyncAgent",
+    "RandomAgent",
+    "as_observation",
+    "load_factory",
+    "raised_at",
+]
 
 
 @runtime_checkable
@@ -60,6 +78,23 @@ class AsyncAgent(Protocol):
 
     async def act(self, observation: Observation) -> Action | int | None:
         """The next action, or None to stop (as `Agent.act`)."""
+
+
+def as_observation(observation: Mapping[str, Any]) -> Observation:
+    """The Gymnasium env's observation dict (`ego_rgb`, `goal_rgb`, `grasping` and the sensors it
+    was made with) as the `Observation` an agent is given, sharing its arrays.
+    """
+    missing = {"ego_rgb", "grasping"} - set(observation)
+    if missing:
+        raise ValueError(f"not an esrp observation: it lacks {sorted(missing)}")
+    return Observation(
+        ego_rgb=observation["ego_rgb"],
+        grasping=bool(observation["grasping"]),
+        goal_rgb=observation.get("goal_rgb"),
+        depth=observation.get("depth"),
+        segmentation=observation.get("segmentation"),
+        current_top_down=observation.get("current_top_down"),
+    )
 
 
 AgentFactory = Callable[[dict[str, Any]], "Agent | AsyncAgent"]

@@ -16,6 +16,7 @@ It maps the room from its egocentric views. What exists so far:
 """
 
 from . import goal, mapping, planner, register
+from .agent import MapAgent
 from .geometry import CAMERA_HEIGHT, CAMERA_HORIZONTAL_FOV, CAMERA_PITCH, FloorProjection, Pose2D
 
 __all__ = [
@@ -23,6 +24,7 @@ __all__ = [
     "CAMERA_HORIZONTAL_FOV",
     "CAMERA_PITCH",
     "FloorProjection",
+    "MapAgent",
     "Pose2D",
     "goal",
     "mapping",
