@@ -132,6 +132,10 @@ class MapAgent:
             raise ValueError("ESRP-MAP needs the goal image in the first observation")
         self.goal_rgb = np.asarray(observation.goal_rgb)
         self.goal: GoalImage = parse_goal(self.goal_rgb)
+        # The goal pixels of static structure (walls, doors, fixed furniture) and outside the room.
+        self._structure_pixels: npt.NDArray[np.bool_] = (
+            (self.goal.labels == STATIC) & ~floor_pixels(self.goal_rgb)
+        ) | ~self.goal.room
         side = observation.ego_rgb.shape[0]
         # Objects of a category seen more than once in the goal are told apart by their tops.
         counts = [sum(o.category == g.category for o in self.goal.objects) for g in self.goal.objects]
@@ -681,15 +685,13 @@ class MapAgent:
         rows, cols = np.nonzero(self.map.movable[task.category])
         x, z = self.map.centre_of(rows, cols)
         distance = np.hypot(x - self.state.x, z - self.state.z)
-        kin = [i for i, t in enumerate(self.map.tops) if t[0] == task.category]
-        seen = self.map.instance[kin][:, rows, cols]  # (kin, bases)
         nearest = {}
         robot = np.array([self.state.x]), np.array([self.state.z])
         for index, other in enumerate(self._tasks):
             if other.category != task.category:
                 continue
-            row = kin.index(other.instance)
-            own = (seen[row] > 0) & (seen[row] > np.delete(seen, row, axis=0).max(axis=0, initial=0))
+            mine, theirs = _mine_theirs(self.map, other.instance, rows, cols)
+            own = (mine > 0) & (mine > theirs)
             nearest[index] = float(distance[own].min()) if own.any() else math.inf
             left = self._released.get(other.instance)
             if left is not None:
@@ -727,9 +729,8 @@ class MapAgent:
         view.integrate(self._last_view, self._pose())
         rows, cols = np.nonzero(view.movable[task.category])
         if self._told_apart[task.instance]:
-            others = [i for i, t in enumerate(view.tops) if t[0] == task.category and i != task.instance]
-            theirs = view.instance[others][:, rows, cols].max(axis=0, initial=0)
-            keep = theirs <= view.instance[task.instance][rows, cols]
+            mine, theirs = _mine_theirs(view, task.instance, rows, cols)
+            keep = theirs <= mine
             rows, cols = rows[keep], cols[keep]
         x, z = view.centre_of(rows, cols)
         return np.stack([x, z], axis=1)
@@ -867,9 +868,7 @@ class MapAgent:
             # Of several objects of its category: its own bases (seen under its top colour more
             # than under another's) and those near them no top was seen above (a top is seen
             # above a few of an object's bases only), else all those no top was seen above.
-            others = [i for i, t in enumerate(self.map.tops) if t[0] == task.category and i != task.instance]
-            mine = self.map.instance[task.instance][rows, cols]
-            theirs = self.map.instance[others][:, rows, cols].max(axis=0) if others else np.zeros_like(mine)
+            mine, theirs = _mine_theirs(self.map, task.instance, rows, cols)
             own = (mine > 0) & (mine > theirs)
             pick = (mine == 0) & (theirs == 0)
             if own.any():
@@ -893,16 +892,11 @@ class MapAgent:
         """Whether start-frame points (x, z) lie on the goal image's static structure or outside
         its room (outside the image counts as outside).
         """
-        assert self.registration is not None
-        solid = ((self.goal.labels == STATIC) & ~floor_pixels(self.goal_rgb)) | ~self.goal.room
-        size = solid.shape[0]
-        to_goal = self.registration.to_goal
+        solid = self._structure_pixels
 
         def on(x: npt.NDArray[np.float64], z: npt.NDArray[np.float64]) -> npt.NDArray[np.bool_]:
-            col, row = to_goal(x, z)
-            c, r = np.floor(col).astype(np.intp), np.floor(row).astype(np.intp)
-            inside = (c >= 0) & (c < size) & (r >= 0) & (r < size)
-            hit = np.ones(c.shape, dtype=bool)
+            r, c, inside = self._goal_pixels(x, z)
+            hit = np.ones(inside.shape, dtype=bool)
             hit[inside] = solid[r[inside], c[inside]]
             return hit
 
@@ -931,14 +925,13 @@ class MapAgent:
         footprint `corners`) are left out: it moves with the robot.
         """
         assert self.registration is not None
-        blocked: npt.NDArray[np.bool_] = (self.goal.labels == STATIC) & ~floor_pixels(self.goal_rgb)
-        blocked |= ~self.goal.room
+        blocked: npt.NDArray[np.bool_] = self._structure_pixels.copy()
         size = blocked.shape[0]
         bases = self._movable_bases(ignore, solid=True)
-        self._mark(blocked, bases[:, 0], bases[:, 1], size)
+        self._mark(blocked, bases[:, 0], bases[:, 1])
         if self._blocked_extra:
             xs, zs = zip(*self._blocked_extra, strict=True)
-            self._mark(blocked, np.array(xs), np.array(zs), size)
+            self._mark(blocked, np.array(xs), np.array(zs))
         for instance, corners in self._released.items():
             # Objects left somewhere, where the agent believes they are (not the one about to be
             # fetched: it moves with the robot).
@@ -975,17 +968,35 @@ class MapAgent:
         return inside
 
     def _mark(
-        self,
-        blocked: npt.NDArray[np.bool_],
-        x: npt.NDArray[np.float64],
-        z: npt.NDArray[np.float64],
-        size: int,
+        self, blocked: npt.NDArray[np.bool_], x: npt.NDArray[np.float64], z: npt.NDArray[np.float64]
     ) -> None:
+        """Sets the goal pixels of start-frame points (x, z) in `blocked` (those inside it)."""
+        r, c, inside = self._goal_pixels(x, z)
+        blocked[r[inside], c[inside]] = True
+
+    def _goal_pixels(
+        self, x: npt.NDArray[np.float64], z: npt.NDArray[np.float64]
+    ) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp], npt.NDArray[np.bool_]]:
+        """The goal-image pixels (row, col) of start-frame points (x, z), and which are inside it."""
         assert self.registration is not None
+        size = self.goal_rgb.shape[0]
         col, row = self.registration.to_goal(x, z)
         c, r = np.floor(col).astype(np.intp), np.floor(row).astype(np.intp)
-        inside = (c >= 0) & (c < size) & (r >= 0) & (r < size)
-        blocked[r[inside], c[inside]] = True
+        inside: npt.NDArray[np.bool_] = (c >= 0) & (c < size) & (r >= 0) & (r < size)
+        return r, c, inside
+
+
+def _mine_theirs(
+    seen: TopDownMap, instance: int, rows: npt.NDArray[np.intp], cols: npt.NDArray[np.intp]
+) -> tuple[npt.NDArray[np.int32], npt.NDArray[np.int32]]:
+    """At cells (rows, cols) of map `seen`: the views that saw `instance`'s top above a base there,
+    and the most that saw the top of any other object of its category.
+    """
+    category = seen.tops[instance][0]
+    others = [i for i, t in enumerate(seen.tops) if t[0] == category and i != instance]
+    mine = seen.instance[instance][rows, cols]
+    theirs = seen.instance[others][:, rows, cols].max(axis=0, initial=0)
+    return mine, theirs
 
 
 def _outline(corners: npt.NDArray[np.float64], spacing: float = 0.05) -> npt.NDArray[np.float64]:
