@@ -120,10 +120,10 @@ class Occupancy:
         """Whether the body may make move `action` (forward or backward) from `state`: as
         `segment_free`, with the samples' offsets computed once per heading and direction.
         """
-        child = state.after(action)
         key = (state.k % 16, int(action))
         offsets = self._moves.get(key)
         if offsets is None:
+            child = state.after(action)
             steps = max(int(STEP / 0.025), 1)
             t = np.linspace(0.0, 1.0, steps + 1)
             offsets = (t * (child.x - state.x), t * (child.z - state.z))
