@@ -221,8 +221,8 @@ def test_dagger_runs_its_iterations_and_resumes_with_more(
     assert "already holds a DAgger run: pass --resume" in capsys.readouterr().err
     first = (run / "iter-01" / "ckpt.pt").stat().st_mtime_ns
 
-    # Two iterations now: the first is kept, the second runs.
-    more = {"bc": bc_table(expert), "dagger": dagger_table(train_easy, iterations=2)}
+    # Two iterations now, the rollouts one at a time (2 by default): the first is kept, the second runs.
+    more = {"bc": bc_table(expert), "dagger": dagger_table(train_easy, iterations=2, episodes_in_flight=1)}
     assert train_cli(server, write_toml(config, more), run, "--dagger", "--resume") == 0
     assert (run / "iter-01" / "ckpt.pt").stat().st_mtime_ns == first
     log = rows(run / "dagger.csv")
@@ -268,7 +268,10 @@ def test_dagger_runs_its_iterations_and_resumes_with_more(
     assert (state["completed"], state["current"]) == (3, None)
 
     # Settings that change what is trained are refused on resume.
-    other = {"bc": bc_table(expert), "dagger": dagger_table(train_easy, iterations=2, beta=0.25)}
+    other = {
+        "bc": bc_table(expert),
+        "dagger": dagger_table(train_easy, iterations=2, episodes_in_flight=1, beta=0.25),
+    }
     assert train_cli(server, write_toml(config, other), run, "--dagger", "--resume") == 2
     assert "other settings (beta: 0.5 → 0.25)" in capsys.readouterr().err
 
@@ -392,6 +395,7 @@ def test_bad_dagger_configs_are_refused(
         ({"rounds": 2}, "unknown dagger settings ['rounds']"),
         ({"beta": 1.5}, "dagger beta must be between 0 and 1"),
         ({"scenes_per_iteration": 0}, "dagger scenes_per_iteration must be at least 1"),
+        ({"episodes_in_flight": 0}, "dagger episodes_in_flight must be at least 1"),
         ({"iterations": "2"}, "dagger iterations must be an integer"),
         ({"split": "challenge"}, "dagger split 'challenge': train or test"),
     ):

@@ -455,3 +455,83 @@ def test_dagger_skips_a_scene_without_a_plan_from_its_start_and_a_later_run_take
     store = zarr.open_group(str(out), mode="r")
     assert store.attrs["scene_ids"] == easy_scenes[:2]
     assert list(store["meta/episode_ends"][:]) == [4, 8]
+
+
+def store_contents(path: Path) -> dict[str, object]:
+    """Every array and attribute of a store, for comparing two stores whole."""
+    store = zarr.open_group(str(path), mode="r")
+    arrays = {
+        f"{group}/{name}": store[f"{group}/{name}"][:]
+        for group in ("data", "meta")
+        for name in store[group].array_keys()
+    }
+    return {"attrs": dict(store.attrs), **arrays}
+
+
+def assert_same_stores(one: Path, other: Path) -> None:
+    first, second = store_contents(one), store_contents(other)
+    assert first.keys() == second.keys()
+    for key, value in first.items():
+        if isinstance(value, np.ndarray):
+            assert np.array_equal(value, second[key]), key  # type: ignore[arg-type]
+        else:
+            assert value == second[key], key
+
+
+def test_episodes_in_flight_write_the_store_of_one_episode_at_a_time(
+    server: esrp.LocalServer, easy_scenes: list[str], tmp_path: Path
+) -> None:
+    scenes = ["--split", "test", "--scenes", ",".join(easy_scenes[:4]), "--resolution", "32"]
+    dagger = [*scenes, "--dagger", "random", "--seed", "7", "--beta", "0.5", "--max-steps", "12"]
+    assert export(server, tmp_path / "dagger-1.zarr", *dagger) == 0
+    assert export(server, tmp_path / "dagger-3.zarr", *dagger, "--episodes-in-flight", "3") == 0
+    assert_same_stores(tmp_path / "dagger-1.zarr", tmp_path / "dagger-3.zarr")
+    store = zarr.open_group(str(tmp_path / "dagger-3.zarr"), mode="r")
+    assert store.attrs["scene_ids"] == easy_scenes[:4], "written in the scenes' order"
+    # The expert's demonstrations too.
+    assert export(server, tmp_path / "expert-1.zarr", *scenes) == 0
+    assert export(server, tmp_path / "expert-2.zarr", *scenes, "--episodes-in-flight", "2") == 0
+    assert_same_stores(tmp_path / "expert-1.zarr", tmp_path / "expert-2.zarr")
+
+
+def test_episodes_in_flight_do_not_apply_to_records_or_minari(
+    server: esrp.LocalServer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    records = tmp_path / "none.jsonl"
+    records.write_text("")
+    assert export(server, tmp_path / "r.zarr", "--records", str(records), "--episodes-in-flight", "2") == 2
+    assert "--episodes-in-flight applies to scene exports to zarr" in capsys.readouterr().err
+    assert export(server, tmp_path / "m", "--format", "minari", "--episodes-in-flight", "2") == 2
+    assert "--episodes-in-flight applies to scene exports to zarr" in capsys.readouterr().err
+
+
+def test_in_order_plays_items_at_a_time_and_yields_them_in_order() -> None:
+    import threading
+    import time
+
+    from esrp.train.demos import _in_order
+
+    running, most = 0, 0
+    lock = threading.Lock()
+    first_three = threading.Barrier(3, timeout=30)  # broken unless three play at once
+
+    def play(item: int) -> int:
+        nonlocal running, most
+        with lock:
+            running += 1
+            most = max(most, running)
+        if item < 3:
+            first_three.wait()
+        time.sleep(0.01 * (5 - item))  # the earlier items end last
+        with lock:
+            running -= 1
+        if item == 4:
+            raise ValueError("item 4")
+        return item * 10
+
+    played = _in_order(play, range(6), 3)
+    assert [next(played) for _ in range(4)] == [(0, 0), (1, 10), (2, 20), (3, 30)]
+    with pytest.raises(ValueError, match="item 4"):
+        next(played)
+    assert most == 3, "three at a time, never more"
+    assert list(_in_order(lambda item: item + 1, [5, 6], 1)) == [(5, 6), (6, 7)]

@@ -130,6 +130,14 @@ def _add_demos_export(demo_commands: argparse._SubParsersAction[Parser]) -> None
         help="--dagger: record the plan's first H actions at each state, the chunk a policy learns "
         "there (default 8, ESRP-BC's horizon)",
     )
+    export.add_argument(
+        "--episodes-in-flight",
+        type=positive,
+        metavar="N",
+        help="play N scenes' episodes at a time (default 1; the store is the same, written in the "
+        "scenes' order; --dagger's agent must then be safe to use from several threads, as the "
+        "built-in ones are)",
+    )
     export.add_argument("--no-progress", dest="progress", action="store_false")
     server_options(export)
 
@@ -221,6 +229,7 @@ def _demos(args: argparse.Namespace) -> int:
         records=args.records,
         agent=args.agent,
         successful_only=args.successful_only,
+        episodes_in_flight=args.episodes_in_flight or 1,
     )
     conflict = _export_flag_conflict(args)
     if conflict is not None:
@@ -350,6 +359,8 @@ def _export_flag_conflict(args: argparse.Namespace) -> str | None:
         return "--format minari writes demonstrations and records, not DAgger's labels (no --dagger)"
     if args.format != "minari" and args.dataset_id is not None:
         return "--dataset-id only applies with --format minari"
+    if args.episodes_in_flight is not None and (args.records or args.format == "minari"):
+        return "--episodes-in-flight applies to scene exports to zarr (no --records, no --format minari)"
     return None
 
 

@@ -77,8 +77,9 @@ BC_RESUME_FREE = frozenset(
 )
 """`[bc]` settings a resumed DAgger run may change (none changes what is trained or measured)."""
 
-DAGGER_RESUME_FREE = frozenset({"iterations"})
-"""`[dagger]` settings a resumed DAgger run may change: more (or fewer) iterations."""
+DAGGER_RESUME_FREE = frozenset({"iterations", "episodes_in_flight"})
+"""`[dagger]` settings a resumed DAgger run may change: more (or fewer) iterations, and how many
+episodes an export plays at a time (the same stores either way)."""
 
 
 @dataclass
@@ -101,6 +102,9 @@ class DaggerConfig:
         epsilon: The policy's random-action probability in the exports (None: `[bc]`'s `epsilon`).
         seed: The seed of the scene draws and the base seed of the exports' episodes (iteration k
             plays scene `id` with seed `(seed + k) XOR fnv1a64(id)`).
+        episodes_in_flight: How many of an export's episodes play at a time (`esrp demos export
+            --episodes-in-flight`: the same store, written in the scenes' order; 2 overlaps the
+            server's planning with the policy's forward passes on a 2-core machine).
         initial: Iteration 0's checkpoint: a full `ckpt.pt` (model and optimizer) of `esrp train
             bc` with `[bc]`'s settings (its `epochs` and the settings `esrp train bc --resume` may
             change aside), instead of training iteration 0; None: train it.
@@ -119,6 +123,7 @@ class DaggerConfig:
     epsilon: float | None = None
     seed: int = 0
     initial: str | None = None
+    episodes_in_flight: int = 2
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> DaggerConfig:
@@ -132,7 +137,13 @@ class DaggerConfig:
         return config
 
     def _check(self) -> None:
-        integers = ("iterations", "epochs_per_iteration", "scenes_per_iteration", "plan_budget_ms")
+        integers = (
+            "iterations",
+            "epochs_per_iteration",
+            "scenes_per_iteration",
+            "plan_budget_ms",
+            "episodes_in_flight",
+        )
         for name in (*integers, "max_steps", "seed"):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool):
@@ -288,8 +299,9 @@ class _Run:
             if different:
                 raise ValueError(
                     f"{self.out} is a DAgger run with other settings ({'; '.join(different)}): "
-                    "resume it with its own config (only iterations, threads, device, checkpoint_every, "
-                    "in_memory, eval_episodes_in_flight and eval_threads may change), or use another --out"
+                    "resume it with its own config (only iterations, episodes_in_flight, threads, device, "
+                    "checkpoint_every, in_memory, eval_episodes_in_flight and eval_threads may change), "
+                    "or use another --out"
                 )
             self.state = state
             done = int(state["completed"])
@@ -392,6 +404,7 @@ class _Run:
             plan_budget_ms=self.dagger.plan_budget_ms,
             max_steps=self.dagger.max_steps,
             label_horizon=self.bc.horizon,
+            episodes_in_flight=self.dagger.episodes_in_flight,
         )
         threads = torch.get_num_threads()  # the policy plays on eval_threads; training goes on with these
         try:

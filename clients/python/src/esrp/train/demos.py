@@ -22,6 +22,12 @@ viewer, agent `human`), each record's `actions` are stepped instead, on a new, n
 of its scene with its horizon: the store gets what that agent saw before each of its actions and the
 actions themselves. The replay must reproduce the record (the simulator is deterministic; the checks
 are `esrp verify`'s), else the export stops before the episode is written.
+
+`episodes_in_flight` plays that many of the chosen scenes' episodes at a time (threads sharing the
+client); they are still written in the scenes' order, and each one's steps depend on its own scene
+and seed alone, so the store is the one an export of one episode at a time writes. On a few cores
+it overlaps the server's work (rendering, a DAgger label's planning) with the client's (a policy's
+forward pass) instead of waiting for each in turn.
 """
 
 from __future__ import annotations
@@ -29,10 +35,12 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import sys
-from collections.abc import Sequence
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -101,6 +109,8 @@ class DemoSettings:
             do not apply).
         agent: With `records`, only the records of this agent (`human`: people in the web viewer).
         successful_only: With `records`, only the records of successful episodes.
+        episodes_in_flight: Without `records`, how many episodes play at a time (the store is the
+            same as with 1: see the module's docstring).
     """
 
     out: Path
@@ -120,6 +130,7 @@ class DemoSettings:
     records: Sequence[Path] = ()
     agent: str | None = None
     successful_only: bool = False
+    episodes_in_flight: int = 1
 
     @property
     def labels(self) -> str:
@@ -178,6 +189,38 @@ def pick_scenes(client: Client, settings: DemoSettings) -> list[SceneSummary]:
     if not listed:
         raise DemoExportError(f"no scene matches: the {settings.split} split has none with these filters")
     return listed
+
+
+_Item = TypeVar("_Item")
+_Played = TypeVar("_Played")
+
+
+def _in_order(
+    play: Callable[[_Item], _Played], items: Sequence[_Item], workers: int
+) -> Iterator[tuple[_Item, _Played]]:
+    """`(item, play(item))` for each of `items` in their order, `workers` of them played at a time on
+    threads (in the caller's thread, one by one, with 1). An error of `play` is raised at its item's
+    turn; the items not started by then (or when the caller stops iterating) are not played, and
+    those already playing are waited for.
+    """
+    if workers <= 1:
+        for item in items:
+            yield item, play(item)
+        return
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="esrp-export") as pool:
+        pending: deque[tuple[_Item, Future[_Played]]] = deque()
+        try:
+            for item in items:
+                pending.append((item, pool.submit(play, item)))
+                if len(pending) == workers:
+                    first, future = pending.popleft()
+                    yield first, future.result()
+            while pending:
+                first, future = pending.popleft()
+                yield first, future.result()
+        finally:
+            for _, future in pending:
+                future.cancel()
 
 
 _Episode = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
@@ -625,6 +668,8 @@ def export_demos(
             factory = make_factory(settings.dagger, dict(settings.agent_config), settings.out)
         except EvalError as error:
             raise DemoExportError(str(error)) from None
+    if settings.episodes_in_flight < 1:
+        raise DemoExportError(f"episodes_in_flight must be at least 1, got {settings.episodes_in_flight}")
     chunk = settings.label_horizon if settings.dagger is not None else None
     store = _Store(settings.out, info.dataset, resolution, settings.labels, settings.dagger, chunk)
     done = set(store.scene_ids)
@@ -637,12 +682,17 @@ def export_demos(
     every = max(len(scenes) // 20, 1)
     added = 0
     skipped: list[str] = []
-    for scene in todo:
+
+    def play(scene: SceneSummary) -> _Episode | _DaggerEpisode | None:
         if factory is None:
-            store.append(scene.id, _replay(client, scene, settings.resolution))
+            return _replay(client, scene, settings.resolution)
+        return _dagger(client, scene, settings, factory)
+
+    for scene, played in _in_order(play, todo, settings.episodes_in_flight):
+        if isinstance(played, tuple):
+            store.append(scene.id, played)
             added += 1
         else:
-            played = _dagger(client, scene, settings, factory)
             if played is None:
                 skipped.append(scene.id)
                 print(f"{scene.id}: the planner found no plan from its start: skipped", file=sys.stderr)
