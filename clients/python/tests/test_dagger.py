@@ -438,3 +438,28 @@ def test_an_initial_checkpoint_older_than_the_recipe_settings_is_taken_as_traine
     assert _initial_epochs(checkpoint, legacy) == 1
     with pytest.raises(ValueError, match="ema"):
         _initial_epochs(checkpoint, BcConfig.from_mapping(bc_table(expert)))
+
+
+def test_a_bc_rollout_export_with_episodes_in_flight_is_the_one_at_a_time(
+    server: esrp.LocalServer, expert: Path, train_easy: list[str], tmp_path: Path
+) -> None:
+    import subprocess
+    import sys
+
+    checkpoint = train(BcConfig.from_mapping(bc_table(expert)), tmp_path / "bc", progress=False)
+    stores = {}
+    for in_flight in (1, 2):
+        stores[in_flight] = tmp_path / f"rollouts-{in_flight}.zarr"
+        # A fresh process: the policy's agents are made on the export's threads, diffusers
+        # imported by two of them at once (its lazy imports are not thread-safe).
+        command = [sys.executable, "-m", "esrp.cli", "demos", "export", "--server", server.address]
+        command += ["--split", "train", "--scenes", ",".join(train_easy[1:4]), "--dagger", "bc"]
+        command += ["--checkpoint", str(checkpoint), "--resolution", str(RESOLUTION), "--beta", "0.5"]
+        command += ["--max-steps", "6", "--episodes-in-flight", str(in_flight), "--no-progress"]
+        done = subprocess.run([*command, "--out", str(stores[in_flight])], capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr
+    one, two = (zarr.open_group(str(stores[n]), mode="r") for n in (1, 2))
+    assert one.attrs["scene_ids"] == two.attrs["scene_ids"] == train_easy[1:4]
+    arrays = ("data/ego_rgb", "data/action", "data/policy_action", "data/label_chunk", "meta/episode_ends")
+    for name in arrays:
+        assert np.array_equal(one[name][:], two[name][:]), name

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import threading
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, fields
@@ -353,9 +354,15 @@ class DiffusionPolicy(nn.Module):
         return out
 
 
+_DIFFUSERS_IMPORT = threading.Lock()
+"""Held while importing from diffusers: its lazy imports fail (ImportError) when two threads make
+the first one at once, as agents made on the threads of `esrp demos export --episodes-in-flight` do."""
+
+
 def schedulers(config: BcConfig) -> tuple[Any, Any]:  # noqa: ANN401 - diffusers' classes
     """The DDPM scheduler of training and the DDIM scheduler of inference (same noise schedule)."""
-    from diffusers import DDIMScheduler, DDPMScheduler
+    with _DIFFUSERS_IMPORT:
+        from diffusers import DDIMScheduler, DDPMScheduler
 
     common = {
         "num_train_timesteps": config.diffusion_steps,
