@@ -243,6 +243,35 @@ def test_checkpoints_play_the_weights_average(demos: Path, tmp_path: Path) -> No
     assert "train_model" not in torch.load(plain, weights_only=False)
 
 
+def test_a_fine_tuning_goes_on_with_its_initial_average_when_asked(demos: Path, tmp_path: Path) -> None:
+    first = torch.load(train(tiny(demos, epochs=2), tmp_path / "first", progress=False), weights_only=False)
+    done = int(first["ema"]["optimization_step"])
+    assert done > 0
+    kept = torch.load(
+        train(tiny(demos, seed=1), tmp_path / "kept", init=tmp_path / "first" / "ckpt.pt", init_average=True),
+        weights_only=False,
+    )
+    anew = torch.load(
+        train(tiny(demos, seed=1), tmp_path / "anew", init=tmp_path / "first" / "ckpt.pt"), weights_only=False
+    )
+    steps = int(log_rows(tmp_path / "kept")[-1]["steps"])
+    assert int(kept["ema"]["optimization_step"]) == done + steps, "the average's count goes on"
+    assert int(anew["ema"]["optimization_step"]) == steps, "a new average starts at the loaded weights"
+    # The trained weights are the same either way; the played ones are not.
+    assert all(torch.equal(kept["train_model"][k], anew["train_model"][k]) for k in kept["train_model"])
+    assert any(not torch.equal(kept["model"][k], anew["model"][k]) for k in kept["model"])
+    # A fine-tuning may take another learning rate (DAgger's [dagger] lr), not other settings.
+    train(tiny(demos, lr=1e-4), tmp_path / "slower", init=tmp_path / "first" / "ckpt.pt", progress=False)
+    with pytest.raises(ValueError, match="batch_size"):
+        train(tiny(demos, batch_size=32), tmp_path / "other", init=tmp_path / "first" / "ckpt.pt")
+    # A checkpoint without its average has none to go on with.
+    del first["ema"]
+    bare = tmp_path / "no-average.pt"
+    torch.save(first, bare)
+    with pytest.raises(ValueError, match="holds no average of the weights"):
+        train(tiny(demos), tmp_path / "none", init=bare, init_average=True, progress=False)
+
+
 def agent_actions(checkpoint: Path, observation: esrp.Observation, steps: int) -> list[int]:
     agent = BcAgent(load_policy(checkpoint), {})
     agent.reset(observation, {"seed": 7})

@@ -288,7 +288,11 @@ def test_dagger_takes_iteration_0_from_a_finished_bc_run(
     initial = tmp_path / "bc" / "ckpt.pt"
     run = tmp_path / "run"
     # [bc]'s epochs are iteration 0's only when it is trained: the checkpoint says how many it had.
-    tables = {"bc": bc_table(expert, epochs=40), "dagger": dagger_table(train_easy, initial=str(initial))}
+    fine_tuning = {"lr": 2e-4, "keep_average": True}
+    tables = {
+        "bc": bc_table(expert, epochs=40),
+        "dagger": dagger_table(train_easy, initial=str(initial), **fine_tuning),
+    }
     config = write_toml(tmp_path / "dagger.toml", tables)
     assert train_cli(server, config, run, "--dagger") == 0
     capsys.readouterr()
@@ -304,8 +308,11 @@ def test_dagger_takes_iteration_0_from_a_finished_bc_run(
     steps = int(rows(tmp_path / "bc" / "log.csv")[-1]["steps"]) + int(
         rows(run / "iter-01" / "log.csv")[-1]["steps"]
     )
-    state = torch.load(run / "iter-01" / "ckpt.pt", weights_only=False)["optimizer"]["state"]
-    assert int(state[0]["step"]) == steps
+    tuned = torch.load(run / "iter-01" / "ckpt.pt", weights_only=False)
+    assert int(tuned["optimizer"]["state"][0]["step"]) == steps
+    # At [dagger]'s lr, going on with the given checkpoint's average of the weights.
+    assert json.loads((run / "iter-01" / "config.json").read_text())["lr"] == 2e-4
+    assert int(tuned["ema"]["optimization_step"]) == steps
 
     # A model-only checkpoint (as docs/results ships) cannot be fine-tuned; a model of other settings
     # is refused by the settings check.
@@ -394,6 +401,8 @@ def test_bad_dagger_configs_are_refused(
     for values, message in (
         ({"rounds": 2}, "unknown dagger settings ['rounds']"),
         ({"beta": 1.5}, "dagger beta must be between 0 and 1"),
+        ({"lr": 0}, "dagger lr must be a positive number"),
+        ({"keep_average": "yes"}, "dagger keep_average must be true or false"),
         ({"scenes_per_iteration": 0}, "dagger scenes_per_iteration must be at least 1"),
         ({"episodes_in_flight": 0}, "dagger episodes_in_flight must be at least 1"),
         ({"iterations": "2"}, "dagger iterations must be an integer"),

@@ -60,7 +60,7 @@ RESUME_FREE = frozenset(
 """Settings a resumed run may change: more epochs, the checkpoint interval, threads, device, where
 the batches are read from, and the held-out evaluation (none changes what is trained)."""
 
-FINE_TUNE_FREE = RESUME_FREE | {"demos", "seed"}
+FINE_TUNE_FREE = RESUME_FREE | {"demos", "seed", "lr"}
 """Settings in which a run that starts from another run's weights (`train(init=...)`) may differ
 from it: the model and the optimizer must be the same."""
 
@@ -293,6 +293,7 @@ def train(
     progress: bool = True,
     server: TrainServer | None = None,
     init: Path | None = None,
+    init_average: bool = False,
     final_eval: bool = False,
 ) -> Path:
     """Trains for `config.epochs` epochs (from the checkpoint in `out` with `resume`); returns the
@@ -307,6 +308,9 @@ def train(
             evaluates, and stopped at its end.
         init: Start from the model and optimizer of this checkpoint (of a model with the same
             settings, `FINE_TUNE_FREE` aside) instead of fresh weights; ignored when resuming.
+        init_average: With `init` and `ema`, go on with `init`'s average of the weights (its
+            shadow weights and step count, so its decay) instead of starting one from the loaded
+            weights: a fine-tuning then moves the played weights gradually.
         final_eval: Evaluate after the last epoch even with `eval_every` 0.
 
     Raises `ValueError` for bad settings or files, `EvalError` when an evaluation cannot run (and
@@ -326,7 +330,15 @@ def train(
     model = DiffusionPolicy(config).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     epoch, steps, average = _resume_or_init(
-        config, checkpoint, model, optimizer, device, resume=resume, init=init, progress=progress
+        config,
+        checkpoint,
+        model,
+        optimizer,
+        device,
+        resume=resume,
+        init=init,
+        init_average=init_average,
+        progress=progress,
     )
     total_steps = config.epochs * math.ceil(len(windows) / config.batch_size)
 
@@ -453,6 +465,7 @@ def _resume_or_init(
     *,
     resume: bool,
     init: Path | None,
+    init_average: bool,
     progress: bool,
 ) -> tuple[int, int, _Average | None]:
     """The epoch and optimizer step the run goes on after, and the weights' average (None without
@@ -460,7 +473,8 @@ def _resume_or_init(
     optimizer, average (and torch's random state) are loaded: more epochs (or another checkpoint
     interval, thread count, device or evaluation) may be asked of a resumed run. Else 0 and 0,
     from the trained model and optimizer of `init` when given (a model with the same settings,
-    `FINE_TUNE_FREE` aside; its average starts anew from them), or from fresh weights.
+    `FINE_TUNE_FREE` aside; its average starts anew from them, or with `init_average` goes on from
+    `init`'s), or from fresh weights.
     """
     if resume and checkpoint.exists():
         state = resume_from(
@@ -472,8 +486,9 @@ def _resume_or_init(
             average.load(state["ema"])
         print(f"resuming {checkpoint} after epoch {epoch}", file=sys.stderr)
         return epoch, steps, average
+    state = None
     if init is not None:
-        resume_from(
+        state = resume_from(
             init,
             "esrp-bc",
             model,
@@ -484,8 +499,14 @@ def _resume_or_init(
             legacy=LEGACY_SETTINGS,
         )
         if progress:
-            print(f"starting from the model and optimizer of {init}", file=sys.stderr)
-    return 0, 0, _Average(model, config) if config.ema else None
+            kept = " and its weights' average" if init_average and config.ema else ""
+            print(f"starting from the model and optimizer{kept} of {init}", file=sys.stderr)
+    average = _Average(model, config) if config.ema else None
+    if average is not None and init_average and state is not None:
+        if "ema" not in state:
+            raise ValueError(f"{init} holds no average of the weights to go on with")
+        average.load(state["ema"])
+    return 0, 0, average
 
 
 def _log_epoch(

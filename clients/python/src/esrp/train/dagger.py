@@ -12,7 +12,8 @@ k = 1..`iterations`:
    probability `beta` × `beta_decay`^(k-1);
 2. fine-tunes the model and optimizer of iteration k-1 for `epochs_per_iteration` epochs on the
    expert stores and every DAgger store so far (DAgger's aggregated data set), in `DIR/iter-kk`
-   (a run folder of `esrp train bc`; its seed is `[bc]`'s `seed` + k);
+   (a run folder of `esrp train bc`; its seed is `[bc]`'s `seed` + k, its peak learning rate
+   `lr`, and with `keep_average` it goes on with iteration k-1's average of the weights);
 3. evaluates the result on the held-out scenes (`[bc]`'s `eval_*` settings, as `esrp train bc`
    does after its last epoch).
 
@@ -105,6 +106,11 @@ class DaggerConfig:
         episodes_in_flight: How many of an export's episodes play at a time (`esrp demos export
             --episodes-in-flight`: the same store, written in the scenes' order; 2 overlaps the
             server's planning with the policy's forward passes on a 2-core machine).
+        lr: The peak learning rate of each iteration's fine-tuning (its warm-up and cosine
+            schedule start anew); None: `[bc]`'s `lr`.
+        keep_average: With `[bc]`'s `ema`, each fine-tuning goes on with the previous
+            iteration's average of the weights (its step count, so its decay, included) instead
+            of starting one from the trained weights: the played weights then move gradually.
         initial: Iteration 0's checkpoint: a full `ckpt.pt` (model and optimizer) of `esrp train
             bc` with `[bc]`'s settings (its `epochs` and the settings `esrp train bc --resume` may
             change aside), instead of training iteration 0; None: train it.
@@ -124,6 +130,8 @@ class DaggerConfig:
     seed: int = 0
     initial: str | None = None
     episodes_in_flight: int = 2
+    lr: float | None = None
+    keep_average: bool = False
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> DaggerConfig:
@@ -162,6 +170,12 @@ class DaggerConfig:
         if not isinstance(self.scenes, list | tuple) or not all(isinstance(s, str) for s in self.scenes):
             raise ValueError(f"dagger scenes must be a list of scene ids, not {self.scenes!r}")
         self.scenes = list(self.scenes)
+        if self.lr is not None and (
+            isinstance(self.lr, bool) or not isinstance(self.lr, int | float) or not self.lr > 0
+        ):
+            raise ValueError(f"dagger lr must be a positive number, not {self.lr!r}")
+        if not isinstance(self.keep_average, bool):
+            raise ValueError(f"dagger keep_average must be true or false, not {self.keep_average!r}")
         for name in ("beta", "beta_decay", "epsilon"):
             value = getattr(self, name)
             if name == "epsilon" and value is None:
@@ -294,8 +308,10 @@ class _Run:
             if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
                 raise ValueError(f"{self.state_path} is not the state of a DAgger run")
             held = state["settings"]
+            # A run made before a [dagger] setting existed ran with its default.
+            held_dagger = {**DaggerConfig().to_dict(), **held["dagger"]}
             different = _differences(held["bc"], self.settings()["bc"], BC_RESUME_FREE)
-            different += _differences(held["dagger"], self.settings()["dagger"], DAGGER_RESUME_FREE)
+            different += _differences(held_dagger, self.settings()["dagger"], DAGGER_RESUME_FREE)
             if different:
                 raise ValueError(
                     f"{self.out} is a DAgger run with other settings ({'; '.join(different)}): "
@@ -368,8 +384,13 @@ class _Run:
         if iteration == 0:
             return self.bc if self.dagger.initial is None else replace(self.bc, epochs=self.initial_epochs)
         demos = [*self.experts, *(str(self.store(k)) for k in range(1, iteration + 1))]
+        lr = self.bc.lr if self.dagger.lr is None else float(self.dagger.lr)
         return replace(
-            self.bc, demos=demos, epochs=self.dagger.epochs_per_iteration, seed=self.bc.seed + iteration
+            self.bc,
+            demos=demos,
+            epochs=self.dagger.epochs_per_iteration,
+            seed=self.bc.seed + iteration,
+            lr=lr,
         )
 
     def total_steps(self, iteration: int) -> int:
@@ -452,6 +473,7 @@ class _Run:
             progress=self.progress,
             server=self.server,
             init=init,
+            init_average=self.dagger.keep_average,
             final_eval=True,
         )
 
