@@ -486,9 +486,9 @@ def _resume_or_init(
             average.load(state["ema"])
         print(f"resuming {checkpoint} after epoch {epoch}", file=sys.stderr)
         return epoch, steps, average
-    state = None
+    initial: dict[str, Any] | None = None
     if init is not None:
-        state = resume_from(
+        initial = resume_from(
             init,
             "esrp-bc",
             model,
@@ -502,10 +502,10 @@ def _resume_or_init(
             kept = " and its weights' average" if init_average and config.ema else ""
             print(f"starting from the model and optimizer{kept} of {init}", file=sys.stderr)
     average = _Average(model, config) if config.ema else None
-    if average is not None and init_average and state is not None:
-        if "ema" not in state:
+    if average is not None and init_average and initial is not None:
+        if "ema" not in initial:
             raise ValueError(f"{init} holds no average of the weights to go on with")
-        average.load(state["ema"])
+        average.load(initial["ema"])
     return 0, 0, average
 
 
