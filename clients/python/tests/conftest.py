@@ -77,3 +77,28 @@ def load_tool(name: str, folder: str = "tools") -> ModuleType:
     sys.modules[name] = module
     spec.loader.exec_module(module)
     return module
+
+
+def assert_same_stores(one: Path, other: Path) -> None:
+    """Asserts that two `esrp.demos/v1` stores hold the same attributes and arrays (needs zarr)."""
+    from typing import Any, cast
+
+    import numpy as np
+    import zarr
+
+    def contents(path: Path) -> dict[str, object]:
+        store = cast(Any, zarr.open_group(str(path), mode="r"))
+        arrays = {
+            f"{group}/{name}": store[f"{group}/{name}"][:]
+            for group in ("data", "meta")
+            for name in store[group].array_keys()
+        }
+        return {"attrs": dict(store.attrs), **arrays}
+
+    first, second = contents(one), contents(other)
+    assert first.keys() == second.keys()
+    for key, value in first.items():
+        if isinstance(value, np.ndarray):
+            assert np.array_equal(value, second[key]), key  # type: ignore[arg-type]
+        else:
+            assert value == second[key], key

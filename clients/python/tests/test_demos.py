@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import assert_same_stores
 
 import esrp
 from esrp.agents import RandomAgent
@@ -455,27 +456,6 @@ def test_dagger_skips_a_scene_without_a_plan_from_its_start_and_a_later_run_take
     store = zarr.open_group(str(out), mode="r")
     assert store.attrs["scene_ids"] == easy_scenes[:2]
     assert list(store["meta/episode_ends"][:]) == [4, 8]
-
-
-def store_contents(path: Path) -> dict[str, object]:
-    """Every array and attribute of a store, for comparing two stores whole."""
-    store = zarr.open_group(str(path), mode="r")
-    arrays = {
-        f"{group}/{name}": store[f"{group}/{name}"][:]
-        for group in ("data", "meta")
-        for name in store[group].array_keys()
-    }
-    return {"attrs": dict(store.attrs), **arrays}
-
-
-def assert_same_stores(one: Path, other: Path) -> None:
-    first, second = store_contents(one), store_contents(other)
-    assert first.keys() == second.keys()
-    for key, value in first.items():
-        if isinstance(value, np.ndarray):
-            assert np.array_equal(value, second[key]), key  # type: ignore[arg-type]
-        else:
-            assert value == second[key], key
 
 
 def test_episodes_in_flight_write_the_store_of_one_episode_at_a_time(
