@@ -11,6 +11,7 @@ import csv
 import dataclasses
 import json
 import math
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -270,6 +271,38 @@ def test_a_fine_tuning_goes_on_with_its_initial_average_when_asked(demos: Path, 
     torch.save(first, bare)
     with pytest.raises(ValueError, match="holds no average of the weights"):
         train(tiny(demos), tmp_path / "none", init=bare, init_average=True, progress=False)
+
+
+def test_esrp_train_bc_init_fine_tunes_a_checkpoint_for_playing_too(demos: Path, tmp_path: Path) -> None:
+    first = train(tiny(demos, epochs=2), tmp_path / "first", progress=False)
+    state = torch.load(first, weights_only=False)
+    # What docs/results/checkpoints holds: the played weights and the config, no optimizer.
+    slim = tmp_path / "slim.pt"
+    torch.save({k: state[k] for k in ("kind", "config", "model", "epoch", "steps")}, slim)
+    config = tmp_path / "fine.json"
+    config.write_text(json.dumps({**tiny(demos).to_dict(), "lr": 0.0, "seed": 3}))
+    command = ["train", "bc", "--config", str(config), "--no-progress"]
+    assert main([*command, "--out", str(tmp_path / "fine"), "--init", str(slim)]) == 0
+    fine = torch.load(tmp_path / "fine" / "ckpt.pt", weights_only=False)
+    # At lr 0 nothing moves: the run trained on from the slim checkpoint's (averaged) weights.
+    assert all(torch.equal(fine["train_model"][k], state["model"][k]) for k in state["model"])
+    assert int(fine["ema"]["optimization_step"]) == int(log_rows(tmp_path / "fine")[-1]["steps"])
+    # A full checkpoint gives its trained weights, and with --init-average its average goes on.
+    assert main([*command, "--out", str(tmp_path / "kept"), "--init", str(first), "--init-average"]) == 0
+    kept = torch.load(tmp_path / "kept" / "ckpt.pt", weights_only=False)
+    assert all(torch.equal(kept["train_model"][k], state["train_model"][k]) for k in state["train_model"])
+    done = int(state["ema"]["optimization_step"])
+    assert int(kept["ema"]["optimization_step"]) == done + int(log_rows(tmp_path / "kept")[-1]["steps"])
+    # Refused: an average the checkpoint lacks, --init-average alone, --init with --dagger, and
+    # resuming from a checkpoint made for playing.
+    assert main([*command, "--out", str(tmp_path / "x1"), "--init", str(slim), "--init-average"]) == 2
+    assert main([*command, "--out", str(tmp_path / "x2"), "--init-average"]) == 2
+    assert main([*command, "--out", str(tmp_path / "x3"), "--init", str(slim), "--dagger"]) == 2
+    assert main([*command, "--out", str(tmp_path / "x4"), "--init", str(tmp_path / "missing.pt")]) == 2
+    (tmp_path / "x5").mkdir()
+    shutil.copyfile(slim, tmp_path / "x5" / "ckpt.pt")
+    with pytest.raises(ValueError, match="cannot be resumed"):
+        train(tiny(demos, epochs=3), tmp_path / "x5", resume=True, progress=False)
 
 
 def agent_actions(checkpoint: Path, observation: esrp.Observation, steps: int) -> list[int]:

@@ -177,6 +177,21 @@ def _add_train_bc(train_commands: argparse._SubParsersAction[Parser]) -> None:
     bc.add_argument(
         "--dagger", action="store_true", help="run the DAgger loop of the config's [dagger] table"
     )
+    bc.add_argument(
+        "--init",
+        type=Path,
+        metavar="CKPT",
+        help="fine-tune: start from this ESRP-BC checkpoint's weights (and optimizer, where it holds "
+        "one) instead of fresh ones; the config may differ from its own in demos, seed, lr, epochs "
+        "and the evaluation alone (not with --dagger: its [dagger] initial says where it starts; "
+        "a --resume of a run that has a checkpoint goes on from that)",
+    )
+    bc.add_argument(
+        "--init-average",
+        action="store_true",
+        help="with --init and ema: go on with the checkpoint's average of the weights instead of "
+        "starting one from its weights",
+    )
     bc.add_argument("--no-progress", dest="progress", action="store_false")
     server_options(bc)
 
@@ -380,6 +395,12 @@ def _train(args: argparse.Namespace) -> int:
         return 2
     from .._errors import EsrpError
 
+    if args.init is not None and args.dagger:
+        print(f"{name}: --init does not go with --dagger (the [dagger] table's initial)", file=sys.stderr)
+        return 2
+    if args.init_average and args.init is None:
+        print(f"{name}: --init-average only applies with --init", file=sys.stderr)
+        return 2
     try:
         config = load_config(args.config)
         dagger = load_dagger_config(args.config) if args.dagger else None
@@ -395,7 +416,13 @@ def _train(args: argparse.Namespace) -> int:
                 )
             else:
                 checkpoint = train(
-                    config, args.out, resume=args.resume, progress=args.progress, server=server
+                    config,
+                    args.out,
+                    resume=args.resume,
+                    progress=args.progress,
+                    server=server,
+                    init=args.init,
+                    init_average=args.init_average,
                 )
     except (OSError, ValueError, EvalError, DemoExportError, EsrpError) as error:
         print(f"{name}: {error}", file=sys.stderr)

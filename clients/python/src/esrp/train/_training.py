@@ -84,6 +84,8 @@ def load_resumable(
     if trained != {k: v for k, v in settings.items() if k not in free}:
         raise ValueError(f"{path} was trained with other settings: {state['config']}")
     if restore_rng:
+        if "torch_rng" not in state:
+            raise ValueError(f"{path} holds the model only (a checkpoint for playing): it cannot be resumed")
         torch.set_rng_state(state["torch_rng"].cpu())
     return state
 
@@ -98,15 +100,21 @@ def resume_from(
     *,
     restore_rng: bool = True,
     legacy: Mapping[str, Any] | None = None,
+    weights_only: bool = False,
 ) -> dict[str, Any]:
     """Loads the model and optimizer of the checkpoint at `path` (`load_resumable`, against the
     settings of `model.config`: kind `kind`, the same settings but `free` ones, `legacy` those it
     predates) into `model` and `optimizer`; returns the checkpoint, for its progress (epoch,
     update, steps...). The model gets the trained weights: `train_model` where the checkpoint has
-    them apart from the played ones (`save_checkpoint`'s `extra`), else `model`.
+    them apart from the played ones (`save_checkpoint`'s `extra`), else `model`. With
+    `weights_only`, a checkpoint without an optimizer (one made for playing) is taken too, and
+    `optimizer` is then left as it is; else such a checkpoint raises `ValueError`.
     """
     config: Any = model.config
     state = load_resumable(path, kind, config.to_dict(), free, device, restore_rng=restore_rng, legacy=legacy)
+    if "optimizer" not in state and not weights_only:
+        raise ValueError(f"{path} holds the model only (a checkpoint for playing): no optimizer to go on with")
     model.load_state_dict(state.get("train_model", state["model"]))
-    optimizer.load_state_dict(state["optimizer"])
+    if "optimizer" in state:
+        optimizer.load_state_dict(state["optimizer"])
     return state

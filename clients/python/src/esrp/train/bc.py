@@ -307,7 +307,9 @@ def train(
         server: The server of the held-out evaluations; None: one is started here when the run
             evaluates, and stopped at its end.
         init: Start from the model and optimizer of this checkpoint (of a model with the same
-            settings, `FINE_TUNE_FREE` aside) instead of fresh weights; ignored when resuming.
+            settings, `FINE_TUNE_FREE` aside) instead of fresh weights; ignored when resuming. A
+            checkpoint made for playing (the model alone, as `docs/results/checkpoints` holds) gives
+            its weights, and the optimizer starts afresh.
         init_average: With `init` and `ema`, go on with `init`'s average of the weights (its
             shadow weights and step count, so its decay) instead of starting one from the loaded
             weights: a fine-tuning then moves the played weights gradually.
@@ -497,14 +499,16 @@ def _resume_or_init(
             device,
             restore_rng=False,
             legacy=LEGACY_SETTINGS,
+            weights_only=True,
         )
+        if init_average and config.ema and "ema" not in initial:
+            raise ValueError(f"{init} holds no average of the weights to go on with")
         if progress:
+            what = "model and optimizer" if "optimizer" in initial else "model (a fresh optimizer: it holds none)"
             kept = " and its weights' average" if init_average and config.ema else ""
-            print(f"starting from the model and optimizer{kept} of {init}", file=sys.stderr)
+            print(f"starting from the {what}{kept} of {init}", file=sys.stderr)
     average = _Average(model, config) if config.ema else None
     if average is not None and init_average and initial is not None:
-        if "ema" not in initial:
-            raise ValueError(f"{init} holds no average of the weights to go on with")
         average.load(initial["ema"])
     return 0, 0, average
 
