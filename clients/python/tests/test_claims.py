@@ -1,7 +1,8 @@
 """Abandoned creates from a stock gRPC client leave nothing (the server's claim rule,
 `--claim-timeout-seconds`): the plain grpcio stubs the package ships, without the client's
-cancellation-safe wrapper, give up on creates of unbuilt scenes at 20 ms deadlines; once the claim
-timeout has passed, no episode is left. Episodes whose client uses them are never cut by it."""
+cancellation-safe wrapper, give up on creates of unbuilt scenes at 20 ms deadlines (or take the
+answers of those the server made in time, and never name them); once the claim timeout has passed,
+no episode is left. Episodes whose client uses them are never cut by it."""
 
 from __future__ import annotations
 
@@ -39,7 +40,10 @@ def _wait_for_live(stub: pb_grpc.EsrpStub, expected: int, timeout: float) -> int
 
 
 def test_abandoned_creates_of_a_stock_client_leave_nothing(claiming: esrp.LocalServer) -> None:
-    with grpc.insecure_channel(claiming.address) as channel:
+    # Answers of any size are taken: a create a fast server answers in time (the 512 px sensors'
+    # answer is over grpcio's 4 MiB default) is one whose client took its id and never named it.
+    options = [("grpc.max_receive_message_length", -1)]
+    with grpc.insecure_channel(claiming.address, options=options) as channel:
         stub = pb_grpc.EsrpStub(channel)
         scenes = [
             s.id for s in stub.ListScenes(pb.ListScenesRequest(split=pb.SPLIT_TRAIN, page_size=1000)).scenes
@@ -58,7 +62,8 @@ def test_abandoned_creates_of_a_stock_client_leave_nothing(claiming: esrp.LocalS
             except grpc.RpcError as error:
                 codes.append(error.code())
         assert set(codes) <= {grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.CANCELLED}, codes
-        assert len(codes) >= 30, "most creates of unbuilt scenes outlast 20 ms"
+        # A debug server answers none of them in time, a release one about 6 in 10 (2 cores).
+        assert len(codes) >= 10, "creates of unbuilt scenes outlast 20 ms"
         # Whatever was created lives at most the claim timeout (plus the reaper's tick of 1 s).
         assert _wait_for_live(stub, 0, CLAIM + 15) == 0
 
@@ -71,9 +76,10 @@ def test_episodes_of_a_client_that_vanished_after_creating_them_are_closed(
     with grpc.insecure_channel(claiming.address) as channel:
         stub = pb_grpc.EsrpStub(channel)
         scene = stub.ListScenes(pb.ListScenesRequest(split=pb.SPLIT_TEST, page_size=1)).scenes[0].id
+        before = _live(stub)
         for _ in range(5):
             stub.CreateEpisode(pb.CreateEpisodeRequest(scene_id=scene), timeout=60)
-        assert _live(stub) == 5
+        assert _live(stub) == before + 5
         assert _wait_for_live(stub, 0, CLAIM + 15) == 0
 
 
