@@ -113,7 +113,7 @@ def resume_from(
     config: Any = model.config
     state = load_resumable(path, kind, config.to_dict(), free, device, restore_rng=restore_rng, legacy=legacy)
     if "optimizer" not in state and not weights_only:
-        raise ValueError(f"{path} holds the model only (a checkpoint for playing): no optimizer to go on with")
+        raise ValueError(f"{path} holds the model only (a checkpoint for playing): no optimizer to resume")
     model.load_state_dict(state.get("train_model", state["model"]))
     if "optimizer" in state:
         optimizer.load_state_dict(state["optimizer"])

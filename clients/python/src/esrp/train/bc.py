@@ -504,7 +504,7 @@ def _resume_or_init(
         if init_average and config.ema and "ema" not in initial:
             raise ValueError(f"{init} holds no average of the weights to go on with")
         if progress:
-            what = "model and optimizer" if "optimizer" in initial else "model (a fresh optimizer: it holds none)"
+            what = "model and optimizer" if "optimizer" in initial else "model (it holds no optimizer)"
             kept = " and its weights' average" if init_average and config.ema else ""
             print(f"starting from the {what}{kept} of {init}", file=sys.stderr)
     average = _Average(model, config) if config.ema else None
