@@ -138,6 +138,7 @@ def test_held_out_evaluations_write_rows_and_change_nothing_trained(
     assert (record.agent, record.scene_id, record.split) == ("bc", train_easy[0], "train")
     assert record.agent_config == {"checkpoint": str(checkpoint), "epsilon": 0.1, "threads": 1, "batch": 8}
     assert float(evaluations[1]["rdr"]) == pytest.approx(record.rdr, abs=1e-6)
+    assert not list((run / "eval").glob("*.pt")), "evaluated checkpoints are kept when asked only"
     # The best held-out checkpoint is kept (the earliest of equals).
     top = max(evaluations, key=lambda row: (float(row["sr"]), -int(row["epoch"])))
     best = json.loads((run / "best.json").read_text())
@@ -154,6 +155,28 @@ def test_held_out_evaluations_write_rows_and_change_nothing_trained(
         csv.writer(file).writerows([list(evaluations[0]), list(evaluations[0].values())])
     train(config, run, resume=True, progress=False, server=train_server)
     assert [r["epoch"] for r in rows(run / "eval.csv")] == ["1", "2"]
+
+
+def test_evaluated_checkpoints_are_kept_for_playing_when_asked(
+    expert: Path, tmp_path: Path, train_server: TrainServer
+) -> None:
+    from esrp.agents.bc import load_policy
+
+    config = BcConfig.from_mapping(bc_table(expert, epochs=3, eval_every=2, eval_keep_checkpoints=True))
+    run = tmp_path / "run"
+    checkpoint = train(config, run, progress=False, server=train_server)
+    kept = sorted(path.name for path in (run / "eval").glob("*.pt"))
+    assert kept == ["epoch-0002.pt", "epoch-0003.pt"], "every evaluation's checkpoint, the last's too"
+    last = torch.load(run / "eval" / "epoch-0003.pt", weights_only=False)
+    full = torch.load(checkpoint, weights_only=False)
+    assert set(last) == {"kind", "config", "model", "epoch", "steps"}
+    assert (last["epoch"], last["steps"]) == (full["epoch"], full["steps"])
+    assert all(torch.equal(value, full["model"][key]) for key, value in last["model"].items())
+    second = torch.load(run / "eval" / "epoch-0002.pt", weights_only=False)
+    assert second["epoch"] == 2
+    assert any(not torch.equal(v, last["model"][k]) for k, v in second["model"].items())
+    played = load_policy(run / "eval" / "epoch-0002.pt").state_dict()
+    assert all(torch.equal(played[k], second["model"][k]) for k in played)
 
 
 def test_in_memory_batches_are_the_zarr_batches(

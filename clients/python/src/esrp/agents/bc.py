@@ -91,7 +91,9 @@ class BcConfig:
     `eval_episodes_in_flight` at a time (their requests to the policy batched), the policy on
     `eval_threads` torch threads (0: the training's): on a small machine more than one thread
     contends with the server's renderer and is several times slower. `esrp train bc --dagger`'s
-    rollouts play the policy on `eval_threads` too. None of these change what is trained.
+    rollouts play the policy on `eval_threads` too. `eval_keep_checkpoints` keeps each evaluated
+    checkpoint, made for playing, beside its results (`eval/epoch-NNNN.pt`), for choosing by
+    another held-out measure than the run's `best.pt` does. None of these change what is trained.
     """
 
     demos: str | list[str] = "demos/train.zarr"
@@ -135,6 +137,7 @@ class BcConfig:
     eval_seed: int = 0
     eval_episodes_in_flight: int = 8
     eval_threads: int = 1
+    eval_keep_checkpoints: bool = False
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> BcConfig:

@@ -13,7 +13,7 @@ from typing import Any
 import torch
 from torch import nn
 
-__all__ = ["load_resumable", "resume_from", "run_folder", "save_checkpoint"]
+__all__ = ["load_resumable", "resume_from", "run_folder", "save_checkpoint", "save_for_playing"]
 
 
 def run_folder(out: Path, resume: bool) -> Path:
@@ -59,6 +59,25 @@ def save_checkpoint(
         file.flush()
         os.fsync(file.fileno())
     partial.replace(path)
+
+
+PLAYING_KEYS = ("kind", "config", "model", "epoch", "steps", "update")
+"""What a checkpoint made for playing keeps (those present): the played weights, their settings and
+progress; not the optimizer, the trained weights beside an average, or the random state."""
+
+
+def save_for_playing(source: Path, target: Path) -> None:
+    """Writes the checkpoint at `source` as one made for playing to `target` (atomically): what
+    `PLAYING_KEYS` names, a fifth of a resumable ESRP-BC checkpoint. `esrp eval --checkpoint` and
+    `esrp train bc --init` take it; `--resume` does not.
+    """
+    state = torch.load(source, map_location="cpu", weights_only=False)
+    partial = target.with_suffix(".partial")
+    with open(partial, "wb") as file:
+        torch.save({k: state[k] for k in PLAYING_KEYS if k in state}, file)
+        file.flush()
+        os.fsync(file.fileno())
+    partial.replace(target)
 
 
 def load_resumable(

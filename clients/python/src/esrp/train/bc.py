@@ -45,7 +45,7 @@ from .. import _malloc_setup
 from ..agents.bc import LEGACY_SETTINGS, BcConfig, DiffusionPolicy, bc_loss, random_shift, schedulers
 from ..agents.encoders import resolve_device
 from ._config import read_table
-from ._training import resume_from, run_folder, save_checkpoint
+from ._training import resume_from, run_folder, save_checkpoint, save_for_playing
 from .heldout import EVAL_FIELDS, TrainServer, evaluate_checkpoint, heldout_scenes, read_eval_log
 
 __all__ = ["FINE_TUNE_FREE", "LOG_FIELDS", "NO_LABEL", "RESUME_FREE", "DemoWindows", "load_config", "train"]
@@ -609,6 +609,8 @@ class _HeldOut:
             self.out / "eval" / f"epoch-{epoch:04d}.jsonl",
             progress=self.progress,
         )
+        if self.config.eval_keep_checkpoints:
+            save_for_playing(self.checkpoint, self.out / "eval" / f"epoch-{epoch:04d}.pt")
         with open(self.log_path, "a", newline="") as file:
             csv.writer(file).writerow(result.row(epoch, steps))
         if self.progress:
