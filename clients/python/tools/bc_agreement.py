@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from esrp.agents.bc import ACTIONS, load_policy, schedulers
+from esrp.agents.bc import denoise_actions, load_policy, schedulers
 from esrp.eval.results import wilson
 from esrp.train.bc import DemoWindows
 
@@ -58,12 +58,7 @@ def main() -> int:
             cond = model.condition_indexed(
                 batch["frames"], batch["frame_index"], batch["goals"], batch["goal_index"], batch["grasping"]
             )
-            x = torch.randn((cond.shape[0], ACTIONS, config.horizon), generator=generator)
-            scheduler.set_timesteps(config.ddim_steps)
-            for t in scheduler.timesteps:
-                predicted = model.unet(x, torch.full((x.shape[0],), int(t)), cond)
-                x = scheduler.step(predicted, t, x, generator=generator).prev_sample
-            sampled = x.argmax(dim=1).numpy()
+            sampled = denoise_actions(model, scheduler, cond, generator).numpy()
             targets, mask = batch["actions"].numpy(), batch["mask"].numpy()
             first += int((sampled[:, 0] == targets[:, 0]).sum())
             executed = ((sampled == targets) | ~mask)[:, : config.n_execute]

@@ -465,16 +465,25 @@ def sample_actions(
     starts from `noise` (B, 6, h), or without it from noise drawn from `generator` (DDIM's steps
     draw nothing more).
     """
+    return denoise_actions(model, scheduler, model.condition(ego, goal, grasping), generator, noise)
+
+
+def denoise_actions(
+    model: DiffusionPolicy,
+    scheduler: Any,  # noqa: ANN401 - diffusers' DDIMScheduler
+    cond: torch.Tensor,
+    generator: torch.Generator | None,
+    noise: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The h actions DDIM denoises for a batch of conditions `cond` (B, cond_dim), as
+    `sample_actions` (which conditions on observation histories first) does: (B, h) int64.
+    """
     config = model.config
     scheduler.set_timesteps(config.ddim_steps)
-    cond = model.condition(ego, goal, grasping)
-    x = (
-        noise
-        if noise is not None
-        else torch.randn((ego.shape[0], ACTIONS, config.horizon), generator=generator)
-    )
+    batch = cond.shape[0]
+    x = noise if noise is not None else torch.randn((batch, ACTIONS, config.horizon), generator=generator)
     for step in scheduler.timesteps:
-        predicted = model.unet(x, torch.full((ego.shape[0],), int(step)), cond)
+        predicted = model.unet(x, torch.full((batch,), int(step)), cond)
         x = scheduler.step(predicted, step, x, generator=generator).prev_sample
     return x.argmax(dim=1)
 

@@ -53,6 +53,11 @@ def save_checkpoint(
         "torch_rng": torch.get_rng_state(),
         **(extra or {}),
     }
+    _save_atomically(state, path)
+
+
+def _save_atomically(state: Mapping[str, Any], path: Path) -> None:
+    """`torch.save`s `state` to a file beside `path`, flushed to disk, then renamed over `path`."""
     partial = path.with_suffix(".partial")
     with open(partial, "wb") as file:
         torch.save(state, file)
@@ -72,12 +77,7 @@ def save_for_playing(source: Path, target: Path) -> None:
     `esrp train bc --init` take it; `--resume` does not.
     """
     state = torch.load(source, map_location="cpu", weights_only=False)
-    partial = target.with_suffix(".partial")
-    with open(partial, "wb") as file:
-        torch.save({k: state[k] for k in PLAYING_KEYS if k in state}, file)
-        file.flush()
-        os.fsync(file.fileno())
-    partial.replace(target)
+    _save_atomically({k: state[k] for k in PLAYING_KEYS if k in state}, target)
 
 
 def load_resumable(
