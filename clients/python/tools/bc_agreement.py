@@ -7,7 +7,8 @@ demonstrator's next actions, or a DAgger store's planner chunk from that state).
         clients/python/demos/v2-easy-64-plan.zarr --states 256
 
 Prints, with 95 % Wilson intervals: how often the chunk's first action is the label, and how
-often its first `n_execute` actions all are (positions without a label count as agreeing). A
+often its first `n_execute` actions all are (positions without a label count as agreeing), over
+all the states and apart for those where the agent is empty-handed and holding an object. A
 policy that fits its own training store poorly cannot be imitating it; one that agrees on the
 demonstrations but not on DAgger states has not learned the states it visits.
 """
@@ -51,7 +52,7 @@ def main() -> int:
     count = min(args.states, len(windows))
     steps = np.sort(np.random.default_rng(args.seed).choice(len(windows), size=count, replace=False))
     generator = torch.Generator().manual_seed(args.seed)
-    first = chunk = 0
+    first, chunk, holding = (np.zeros(count, dtype=bool) for _ in range(3))
     with torch.no_grad():
         for start in range(0, count, args.batch):
             batch = windows.batch(steps[start : start + args.batch])
@@ -60,13 +61,19 @@ def main() -> int:
             )
             sampled = denoise_actions(model, scheduler, cond, generator).numpy()
             targets, mask = batch["actions"].numpy(), batch["mask"].numpy()
-            first += int((sampled[:, 0] == targets[:, 0]).sum())
-            executed = ((sampled == targets) | ~mask)[:, : config.n_execute]
-            chunk += int(executed.all(axis=1).sum())
-    for name, hits in (("first action", first), (f"first {config.n_execute} actions", chunk)):
-        low, high = wilson(hits, count)
-        interval = f"{100 * low:.1f}-{100 * high:.1f}"
-        print(f"{name:>18}: {100 * hits / count:5.1f} % agree ({interval}), {count} states")
+            done = slice(start, start + len(sampled))
+            first[done] = sampled[:, 0] == targets[:, 0]
+            chunk[done] = ((sampled == targets) | ~mask)[:, : config.n_execute].all(axis=1)
+            holding[done] = batch["grasping"][:, -1].numpy()
+    parts = (("all", np.ones(count, dtype=bool)), ("empty-handed", ~holding), ("holding", holding))
+    for part, where in parts:
+        states = int(where.sum())
+        for name, hits in (("first action", first), (f"first {config.n_execute} actions", chunk)):
+            agreeing = int(hits[where].sum())
+            low, high = wilson(agreeing, states)
+            interval = f"{100 * low:.1f}-{100 * high:.1f}"
+            rate = 100 * agreeing / states if states else 0.0
+            print(f"{part:>12} {name:>18}: {rate:5.1f} % agree ({interval}), {states} states")
     return 0
 
 
