@@ -119,20 +119,17 @@ def resume_from(
     *,
     restore_rng: bool = True,
     legacy: Mapping[str, Any] | None = None,
-    weights_only: bool = False,
 ) -> dict[str, Any]:
     """Loads the model and optimizer of the checkpoint at `path` (`load_resumable`, against the
     settings of `model.config`: kind `kind`, the same settings but `free` ones, `legacy` those it
     predates) into `model` and `optimizer`; returns the checkpoint, for its progress (epoch,
     update, steps...). The model gets the trained weights: `train_model` where the checkpoint has
-    them apart from the played ones (`save_checkpoint`'s `extra`), else `model`. With
-    `weights_only`, a checkpoint without an optimizer (one made for playing) is taken too, and
-    `optimizer` is then left as it is; else such a checkpoint raises `ValueError`.
+    them apart from the played ones (`save_checkpoint`'s `extra`), else `model`. A checkpoint made
+    for playing (no optimizer) leaves `optimizer` as it is; with `restore_rng` it is refused
+    (`load_resumable`: it cannot be resumed).
     """
     config: Any = model.config
     state = load_resumable(path, kind, config.to_dict(), free, device, restore_rng=restore_rng, legacy=legacy)
-    if "optimizer" not in state and not weights_only:
-        raise ValueError(f"{path} holds the model only (a checkpoint for playing): no optimizer to resume")
     model.load_state_dict(state.get("train_model", state["model"]))
     if "optimizer" in state:
         optimizer.load_state_dict(state["optimizer"])

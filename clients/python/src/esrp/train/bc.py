@@ -499,7 +499,6 @@ def _resume_or_init(
             device,
             restore_rng=False,
             legacy=LEGACY_SETTINGS,
-            weights_only=True,
         )
         if init_average and config.ema and "ema" not in initial:
             raise ValueError(f"{init} holds no average of the weights to go on with")

@@ -244,7 +244,7 @@ def _initial_epochs(path: Path, bc: BcConfig) -> int:
         raise ValueError(f"dagger initial: {path} is not an ESRP-BC checkpoint")
     if "optimizer" not in state or "torch_rng" not in state:
         raise ValueError(
-            f"dagger initial: {path} holds the model only (an evaluation checkpoint): DAgger fine-tunes "
+            f"dagger initial: {path} holds the model only (a checkpoint for playing): DAgger fine-tunes "
             "the model and its optimizer, so give the run's own ckpt.pt (or ckpt-epoch-N.pt)"
         )
     different = _differences(checkpoint_settings(state["config"]), bc.to_dict(), RESUME_FREE)
