@@ -16,7 +16,8 @@
 #   5. scale-out: N servers started first, driven by N client processes (one each), against one
 #      server driven by the same N processes;
 #   6. python: python -m esrp.bench's env-1 and vec-64 against the server, where this
-#      machine's python3 imports esrp (PYTHONPATH=clients/python/src and its dependencies).
+#      machine's python3 imports esrp (clients/python/src is put before any PYTHONPATH given, where
+#      its dependencies, and esrp-native for the native transport, may be installed).
 # Every step writes its esrp-bench JSON under OUT (default $OUT, else gpu-bench-out), and
 # OUT/summary.md gathers the tables (python3 scripts/gpu_bench_summary.py OUT).
 set -euo pipefail
@@ -167,9 +168,9 @@ for n in 2 4; do
 done
 
 if step python 40; then
-    if PYTHONPATH=clients/python/src python3 -c 'import esrp, grpc, numpy, gymnasium' 2> /dev/null; then
+    if PYTHONPATH=clients/python/src${PYTHONPATH:+:$PYTHONPATH} python3 -c 'import esrp, grpc, numpy, gymnasium' 2> /dev/null; then
         address=$(start_server "$OUT_DIR/python-server.txt")
-        PYTHONPATH=clients/python/src timeout 100 python3 -m esrp.bench --server "${address#http://}" \
+        PYTHONPATH=clients/python/src${PYTHONPATH:+:$PYTHONPATH} timeout 100 python3 -m esrp.bench --server "${address#http://}" \
             --scenarios env-1,vec-64 --seconds "$SECONDS_EACH" --json "$OUT_DIR/python.json" \
             >> "$OUT_DIR/bench.log" 2>&1 || SKIPPED+=("python (python -m esrp.bench failed: see bench.log)")
         stop_servers
