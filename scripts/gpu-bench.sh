@@ -136,8 +136,11 @@ done
 # against them (process i drives server i) and against the first alone, alternated.
 SERVERS=()
 start_server() { # start_server LOG: a server on a free port, its address once it listens
+    # Its stdin is a `sleep` that outlives the script at worst by the budget: its stderr goes
+    # nowhere, so that it holds no pipe of whoever reads this script's output (a `| tee` would
+    # wait for it).
     "$BIN/esrp-server" --listen 127.0.0.1:0 --render-backend "$BACKEND" --no-generate-ahead \
-        --stop-on-stdin-close < <(sleep "$BUDGET") > "$1" 2>&1 &
+        --stop-on-stdin-close < <(exec sleep "$BUDGET" 2> /dev/null) > "$1" 2>&1 &
     SERVERS+=($!)
     for _ in $(seq 200); do
         grep -q 'listening on' "$1" 2> /dev/null && break

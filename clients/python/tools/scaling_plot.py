@@ -4,8 +4,10 @@ StepBatch of all of them) and against render threads (256 episodes), one line pe
     python tools/scaling_plot.py --run "2-core VM, llvmpipe=/tmp/gb-gl" [--run LABEL=DIR ...] \
         --out docs/images/scaling.png
 
-Each DIR is a gpu-bench output folder (its `episodes-N.json` and `threads-N.json`); a run
-without some of them (a step its budget skipped) draws what it has. Needs matplotlib.
+Each DIR is a gpu-bench output folder: its `episodes-N.json` and `threads-N.json`, or where a
+point's JSON is absent (only the summary came back from a machine), the same figure from the
+folder's `summary.md` (`scripts/gpu_bench_summary.py`'s tables "Episodes" and "Render threads").
+A run without some of them (a step its budget skipped) draws what it has. Needs matplotlib.
 """
 
 from __future__ import annotations
@@ -20,11 +22,36 @@ EPISODES = (1, 4, 16, 64, 256, 1024)
 THREADS = (1, 2, 4, 8)
 
 
+def summary_rates(folder: Path) -> dict[tuple[str, str], float]:
+    """The steps/s in `folder/summary.md`'s tables, keyed as the JSON files name them:
+    (`episodes-N.json` or `threads-N.json`, scenario). Empty when there is no summary."""
+    path = folder / "summary.md"
+    if not path.exists():
+        return {}
+    prefixes = {"## Episodes": "episodes", "## Render threads": "threads"}
+    rates: dict[tuple[str, str], float] = {}
+    prefix: str | None = None
+    for line in path.read_text(encoding="utf-8").splitlines():
+        if line.startswith("## "):
+            prefix = next((name for head, name in prefixes.items() if line.startswith(head)), None)
+            continue
+        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        # | N | scenario | episodes | steps/s | ...: the header and the rule are not numbers.
+        if prefix is None or len(cells) < 4 or not cells[0].isdigit():
+            continue
+        try:
+            rates[(f"{prefix}-{cells[0]}.json", cells[1])] = float(cells[3].replace(",", ""))
+        except ValueError:
+            continue  # "–": no figure
+    return rates
+
+
 def rate(folder: Path, name: str, scenario: str) -> float | None:
-    """The steps/s of `scenario` in `folder/name`, or None when the file or the row is missing."""
+    """The steps/s of `scenario` in `folder/name` (else in the folder's summary.md), or None when
+    neither has it."""
     path = folder / name
     if not path.exists():
-        return None
+        return summary_rates(folder).get((name, scenario))
     report: dict[str, Any] = json.loads(path.read_text(encoding="utf-8"))
     for result in report.get("results", []):
         if result.get("scenario") == scenario and result.get("steps_per_second") is not None:

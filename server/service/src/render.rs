@@ -18,14 +18,14 @@ use tokio::sync::oneshot;
 use crate::error::ServiceError;
 use crate::metrics::{Metrics, Stages};
 
-/// The render threads `--render-threads 0` (auto) starts: one on a software renderer (Mesa's
-/// CPU renderers rasterise one scene at a time per process, so a second thread only contends: it
-/// measured slower on the 2-core VM, docs/performance.md); two on a GPU, so that one thread
-/// gathers, encodes and extracts while the other waits for the device (to be measured on a GPU
-/// machine).
-pub fn auto_render_threads(software: bool) -> usize {
-    if software { 1 } else { 2 }
-}
+/// The render threads per renderer that `--render-threads 0` (auto) starts: one, on every backend,
+/// as measured (docs/performance.md, issue 40). On a software renderer Mesa rasterises one scene
+/// at a time per process, so a second thread only contends (slower on the 2-core VM); on an
+/// NVIDIA H200 through Vulkan, 2, 4 and 8 threads sharing its device were each slower than one
+/// (batch-64 and stream-mux-64, 256 episodes: 12,352 and 16,690 steps/s with one, 11,392 and
+/// 14,015 with two), the threads queueing behind each other for the one device. A machine scales
+/// with several server processes instead (docs/server.md).
+pub const AUTO_RENDER_THREADS: usize = 1;
 
 /// The render devices `--render-devices 0` (auto) opens: one.
 pub const AUTO_RENDER_DEVICES: usize = 1;

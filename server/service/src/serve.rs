@@ -85,7 +85,7 @@ pub fn build_episodes(config: &Config) -> Result<Arc<Episodes>, ServeError> {
         .collect::<Result<Vec<_>, _>>()?;
     let (info, software) = (renderers[0].adapter_info(), renderers[0].is_software());
     let threads = match config.render_threads {
-        0 => render::auto_render_threads(software) * devices,
+        0 => render::AUTO_RENDER_THREADS * devices,
         n => usize::from(n),
     };
     tracing::info!(target: LOG_TARGET, adapter = %info.name, backend = ?info.backend, software, render_devices = devices, render_threads = threads, "renderer ready");
