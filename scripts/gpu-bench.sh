@@ -8,13 +8,15 @@
 #
 # What it measures, in this order, each step only if the budget leaves room for it (a skipped
 # step is said in the summary):
-#   1. standard: esrp-bench's scenarios with the server's stage breakdown (--breakdown);
+#   1. standard: esrp-bench's scenarios with the server's stage breakdown (--breakdown), and
+#      whether --render-backend gl starts there (unary-1 for a second; a failure is said in the
+#      summary, not fatal);
 #   2. threads: batch-64 and stream-mux-64 with 256 episodes, render threads 1, 2, 4, 8, and
 #      render devices 2 and 4 (threads auto);
 #   3. episodes: batch-64 with 1 to 1,024 episodes (the curve of steps/s against episodes);
 #   4. clients: stream-mux-64 driven by 1, 2 and 4 client processes (is the client the limit?);
-#   5. scale-out: N servers started first, driven by N client processes (one each), against one
-#      server driven by the same N processes;
+#   5. scale-out: N servers (2, 4, 8) started first, driven by N client processes (one each),
+#      against one server driven by the same N processes;
 #   6. python: python -m esrp.bench's env-1 and vec-64 against the server, where this
 #      machine's python3 imports esrp (clients/python/src is put before any PYTHONPATH given, where
 #      its dependencies, and esrp-native for the native transport, may be installed).
@@ -109,6 +111,13 @@ if step standard 60; then
     bench standard.json --breakdown \
         --scenarios unary-1,stream-1,stream-1-pipelined,unary-64,streams-64,stream-mux-64,batch-64
 fi
+if step gl 15; then
+    if ! timeout 60 "$BIN/esrp-bench" --server-binary "$BIN/esrp-server" --seconds 1 --json "$OUT_DIR/gl.json" \
+        --server-args="--render-backend=gl --no-generate-ahead" --scenarios unary-1 >> "$OUT_DIR/bench.log" 2>&1; then
+        rm -f "$OUT_DIR/gl.json"
+        SKIPPED+=("gl (--render-backend gl did not start or failed here: see bench.log)")
+    fi
+fi
 for threads in 1 2 4 8; do
     if step "threads-$threads" 30; then
         bench_args "threads-$threads.json" "--render-threads=$threads" --breakdown \
@@ -153,8 +162,8 @@ stop_servers() {
     for pid in "${SERVERS[@]}"; do wait "$pid" 2> /dev/null || true; done
     SERVERS=()
 }
-for n in 2 4; do
-    if step "servers-$n" 45; then
+for n in 2 4 8; do
+    if step "servers-$n" $((30 + 5 * n)); then
         addresses=()
         for ((i = 0; i < n; i++)); do addresses+=("$(start_server "$OUT_DIR/server-$n-$i.txt")"); done
         list=$(IFS=,; echo "${addresses[*]}")

@@ -103,7 +103,7 @@ def series(folder: Path, title: str, header: str, files: list[tuple[str, str]]) 
 
 def scale_out(folder: Path) -> list[str]:
     rows = []
-    for n in (2, 4):
+    for n in (2, 4, 8):
         apart, one = load(folder, f"servers-{n}.json"), load(folder, f"one-{n}.json")
         if apart is None or one is None:
             continue
@@ -147,6 +147,7 @@ def main(argv: list[str]) -> int:
     if machine.exists():
         lines += ["```text", machine.read_text(encoding="utf-8").strip(), "```", ""]
     lines += standard(folder)
+    lines += series(folder, "The OpenGL backend (--render-backend gl)", "backend", [("gl", "gl.json")])
     lines += series(
         folder,
         "Render threads (256 episodes)",
