@@ -180,9 +180,10 @@ for n in 2 4 8; do
 done
 
 if step python 40; then
-    if PYTHONPATH=clients/python/src${PYTHONPATH:+:$PYTHONPATH} python3 -c 'import esrp, grpc, numpy, gymnasium' 2> /dev/null; then
+    python_path=clients/python/src${PYTHONPATH:+:$PYTHONPATH}
+    if PYTHONPATH=$python_path python3 -c 'import esrp, grpc, numpy, gymnasium' 2> /dev/null; then
         address=$(start_server "$OUT_DIR/python-server.txt")
-        PYTHONPATH=clients/python/src${PYTHONPATH:+:$PYTHONPATH} timeout 100 python3 -m esrp.bench --server "${address#http://}" \
+        PYTHONPATH=$python_path timeout 100 python3 -m esrp.bench --server "${address#http://}" \
             --scenarios env-1,vec-64 --seconds "$SECONDS_EACH" --json "$OUT_DIR/python.json" \
             >> "$OUT_DIR/bench.log" 2>&1 || SKIPPED+=("python (python -m esrp.bench failed: see bench.log)")
         stop_servers

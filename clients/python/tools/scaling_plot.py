@@ -13,6 +13,7 @@ A run without some of them (a step its budget skipped) draws what it has. Needs 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 from pathlib import Path
@@ -22,9 +23,11 @@ EPISODES = (1, 4, 16, 64, 256, 1024)
 THREADS = (1, 2, 4, 8)
 
 
+@functools.cache
 def summary_rates(folder: Path) -> dict[tuple[str, str], float]:
     """The steps/s in `folder/summary.md`'s tables, keyed as the JSON files name them:
-    (`episodes-N.json` or `threads-N.json`, scenario). Empty when there is no summary."""
+    (`episodes-N.json` or `threads-N.json`, scenario). Empty when there is no summary. Read once
+    per folder."""
     path = folder / "summary.md"
     if not path.exists():
         return {}
