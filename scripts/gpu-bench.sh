@@ -9,7 +9,7 @@
 # What it measures, in this order, each step only if the budget leaves room for it (a skipped
 # step is said in the summary):
 #   1. standard: esrp-bench's scenarios with the server's stage breakdown (--breakdown), and
-#      whether --render-backend gl starts there (unary-1 for a second; a failure is said in the
+#      whether --render-backend gl starts there (unary-1; a failure is said in the
 #      summary, not fatal);
 #   2. threads: batch-64 and stream-mux-64 with 256 episodes, render threads 1, 2, 4, 8, and
 #      render devices 2 and 4 (threads auto);
@@ -84,17 +84,13 @@ step() {
     echo "== $1 ($(left) s of the budget left)" >&2
 }
 
-bench() { # bench JSON ARGS...: esrp-bench against a server it starts with the backend
-    local json=$1; shift
+bench_on() { # bench_on BACKEND JSON SERVER_ARGS ARGS...: esrp-bench against a server it starts
+    local backend=$1 json=$2 extra=$3; shift 3
     "$BIN/esrp-bench" --server-binary "$BIN/esrp-server" --seconds "$SECONDS_EACH" --json "$OUT_DIR/$json" \
-        --server-args="--render-backend=$BACKEND --no-generate-ahead" "$@" >> "$OUT_DIR/bench.log" 2>&1
+        --server-args="--render-backend=$backend --no-generate-ahead${extra:+ $extra}" "$@" >> "$OUT_DIR/bench.log" 2>&1
 }
-
-bench_args() { # bench JSON SERVER_ARGS ARGS...: the same with more server flags
-    local json=$1 extra=$2; shift 2
-    "$BIN/esrp-bench" --server-binary "$BIN/esrp-server" --seconds "$SECONDS_EACH" --json "$OUT_DIR/$json" \
-        --server-args="--render-backend=$BACKEND --no-generate-ahead $extra" "$@" >> "$OUT_DIR/bench.log" 2>&1
-}
+bench() { bench_on "$BACKEND" "$1" "" "${@:2}"; }  # bench JSON ARGS...: with the backend
+bench_args() { bench_on "$BACKEND" "$@"; }          # bench_args JSON SERVER_ARGS ARGS...
 
 {
     echo "date: $(date -u +%Y-%m-%dT%H:%M:%SZ)"
@@ -112,8 +108,7 @@ if step standard 60; then
         --scenarios unary-1,stream-1,stream-1-pipelined,unary-64,streams-64,stream-mux-64,batch-64
 fi
 if step gl 15; then
-    if ! timeout 60 "$BIN/esrp-bench" --server-binary "$BIN/esrp-server" --seconds 1 --json "$OUT_DIR/gl.json" \
-        --server-args="--render-backend=gl --no-generate-ahead" --scenarios unary-1 >> "$OUT_DIR/bench.log" 2>&1; then
+    if ! bench_on gl gl.json "" --scenarios unary-1; then
         rm -f "$OUT_DIR/gl.json"
         SKIPPED+=("gl (--render-backend gl did not start or failed here: see bench.log)")
     fi

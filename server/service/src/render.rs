@@ -21,10 +21,9 @@ use crate::metrics::{Metrics, Stages};
 /// The render threads per renderer that `--render-threads 0` (auto) starts: one, on every backend,
 /// as measured (docs/performance.md, issue 40). On a software renderer Mesa rasterises one scene
 /// at a time per process, so a second thread only contends (slower on the 2-core VM); on an
-/// NVIDIA H200 through Vulkan, 2, 4 and 8 threads sharing its device were each slower than one
-/// (batch-64 and stream-mux-64, 256 episodes: 12,352 and 16,690 steps/s with one, 11,392 and
-/// 14,015 with two), the threads queueing behind each other for the one device. A machine scales
-/// with several server processes instead (docs/server.md).
+/// NVIDIA H200 through Vulkan, 2, 4 and 8 threads sharing its device were each slower than one,
+/// the threads queueing behind each other for the one device. A machine scales with several
+/// server processes instead (docs/server.md).
 pub const AUTO_RENDER_THREADS: usize = 1;
 
 /// The render devices `--render-devices 0` (auto) opens: one.
