@@ -26,7 +26,7 @@ from .._values import Action, Observation, RewardWeights, Sensors
 from ._checkpoint import policy_checkpoint
 from .encoders import ENCODERS, check_device, make_encoder
 
-__all__ = ["PpoAgent", "PpoConfig", "PpoNet", "PpoPolicy", "load_network"]
+__all__ = ["NETWORK_SETTINGS", "PpoAgent", "PpoConfig", "PpoNet", "PpoPolicy", "load_network"]
 
 ACTIONS = len(Action)
 
@@ -41,6 +41,12 @@ class PpoConfig:
     `num_envs` × `num_steps`, minibatch 64, 6 M environment steps, context length 64 = `num_steps`)
     and otherwise CleanRL's PPO defaults. A minibatch is whole sequences: `minibatch_size` must be a
     multiple of `num_steps` (64 = one environment's 64 steps).
+
+    `init` names an ESRP-PPO checkpoint (e.g. one `esrp train ppo-bc` trained by imitation) whose
+    weights the network starts from, with a fresh optimizer; its network settings must be this
+    config's. For the first `critic_warmup` updates only the critic head learns (the policy and the
+    shared trunk stay as they are), so that a trained policy is not moved by the advantages of a
+    critic that has not learnt its returns yet (PIRLNav's critic warm-up).
 
     `norm_adv_scope` says over what `norm_adv` normalises the advantages: each `"minibatch"`
     (CleanRL's), or the whole rollout (`"batch"`: a minibatch of near-zero advantages is not
@@ -87,6 +93,9 @@ class PpoConfig:
     device: str = "auto"
     threads: int = 0
     checkpoint_every: int = 10
+    # A start from trained weights.
+    init: str | None = None
+    critic_warmup: int = 0
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> PpoConfig:
@@ -123,6 +132,16 @@ class PpoConfig:
                 f"the batch num_envs × num_steps = {self.num_envs * self.num_steps} must be a multiple "
                 f"of minibatch_size {self.minibatch_size}"
             )
+        if self.init is not None and (not isinstance(self.init, str) or not self.init):
+            raise ValueError(f"init must be a checkpoint's path, got {self.init!r}")
+        if (
+            not isinstance(self.critic_warmup, int)
+            or isinstance(self.critic_warmup, bool)
+            or self.critic_warmup < 0
+        ):
+            raise ValueError(
+                f"critic_warmup must be a number of updates (0 or more), got {self.critic_warmup!r}"
+            )
         if self.norm_adv_scope not in ("minibatch", "batch"):
             raise ValueError(f"norm_adv_scope {self.norm_adv_scope!r}: minibatch or batch")
         for name in ("norm_adv", "norm_reward", "clip_vloss", "anneal_lr"):
@@ -156,6 +175,11 @@ class PpoConfig:
     def to_dict(self) -> dict[str, Any]:
         """The config as plain values (for checkpoints and logs)."""
         return asdict(self)
+
+
+NETWORK_SETTINGS = ("resolution", "encoder", "pool", "feature_dim", "grasp_dim", "hidden")
+"""The settings of a `PpoConfig` that shape its network: a checkpoint's weights fit another config's
+network when these are equal."""
 
 
 def _layer(layer: nn.Linear, std: float = float(np.sqrt(2)), bias: float = 0.0) -> nn.Linear:

@@ -143,7 +143,7 @@ def _add_demos_export(demo_commands: argparse._SubParsersAction[Parser]) -> None
 
 
 def _add_train(commands: argparse._SubParsersAction[Parser]) -> None:
-    """`esrp train` and its commands, `bc` and `ppo`."""
+    """`esrp train` and its commands, `bc`, `ppo` and `ppo-bc`."""
     train = commands.add_parser(
         "train",
         help="train a learning baseline (ESRP-BC, ESRP-PPO) from a config file",
@@ -153,6 +153,7 @@ def _add_train(commands: argparse._SubParsersAction[Parser]) -> None:
     train_commands = train.add_subparsers(dest="train_command", required=True, metavar="AGENT")
     _add_train_bc(train_commands)
     _add_train_ppo(train_commands)
+    _add_train_ppo_bc(train_commands)
     train.set_defaults(handler=_train)
 
 
@@ -217,6 +218,24 @@ def _add_train_ppo(train_commands: argparse._SubParsersAction[Parser]) -> None:
     )
     ppo.add_argument("--no-progress", dest="progress", action="store_false")
     server_options(ppo)
+
+
+def _add_train_ppo_bc(train_commands: argparse._SubParsersAction[Parser]) -> None:
+    """`esrp train ppo-bc`: ESRP-PPO's network by imitation, the start of a PPO fine-tuning."""
+    ppo_bc = train_commands.add_parser(
+        "ppo-bc",
+        help="ESRP-PPO's network (CNN + LSTM) by imitation of demonstrations: a start for esrp train ppo",
+        description="Train ESRP-PPO's network by imitation on the demonstration stores of the "
+        "config's [ppo_bc] table, the network as its [ppo] table says; writes RUN/config.json, "
+        "RUN/log.csv and RUN/ckpt.pt (esrp eval --agent ppo --checkpoint RUN/ckpt.pt plays it; a "
+        "[ppo] table's init = 'RUN/ckpt.pt' starts a PPO run from it). Needs no server.",
+    )
+    ppo_bc.add_argument(
+        "--config", type=Path, required=True, help="a TOML file with [ppo] and [ppo_bc] tables"
+    )
+    ppo_bc.add_argument("--out", type=Path, default=Path("runs/ppo-bc"), help="the run folder")
+    ppo_bc.add_argument("--resume", action="store_true", help="go on from RUN/ckpt.pt (more epochs)")
+    ppo_bc.add_argument("--no-progress", dest="progress", action="store_false")
 
 
 @one_line_errors
@@ -385,6 +404,8 @@ def _train(args: argparse.Namespace) -> int:
     try:
         if args.train_command == "ppo":
             return _train_ppo(args, name)
+        if args.train_command == "ppo-bc":
+            return _train_ppo_bc(args, name)
         from ..train._config import read_document
         from ..train.bc import load_config, train
         from ..train.dagger import load_dagger_config, run_dagger
@@ -425,6 +446,19 @@ def _train(args: argparse.Namespace) -> int:
                     init_average=args.init_average,
                 )
     except (OSError, ValueError, EvalError, DemoExportError, EsrpError) as error:
+        print(f"{name}: {error}", file=sys.stderr)
+        return 2
+    print(f"checkpoint: {checkpoint}")
+    return 0
+
+
+def _train_ppo_bc(args: argparse.Namespace, name: str) -> int:
+    from ..train.ppo_bc import load_configs, train
+
+    try:
+        ppo, imitation = load_configs(args.config)
+        checkpoint = train(ppo, imitation, args.out, resume=args.resume, progress=args.progress)
+    except (OSError, ValueError) as error:
         print(f"{name}: {error}", file=sys.stderr)
         return 2
     print(f"checkpoint: {checkpoint}")

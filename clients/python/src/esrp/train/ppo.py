@@ -39,12 +39,21 @@ from .. import _malloc_setup
 from .._client import Client
 from .._values import Sensors
 from ..agents.encoders import resolve_device
-from ..agents.ppo import LstmState, PpoConfig, PpoNet
+from ..agents.ppo import NETWORK_SETTINGS, LstmState, PpoConfig, PpoNet
 from ..envs import RearrangeVectorEnv
 from ._config import read_table
 from ._training import resume_from, run_folder, save_checkpoint
 
-__all__ = ["RewardScale", "UpdateStats", "gae", "load_config", "make_env", "ppo_loss", "train"]
+__all__ = [
+    "RewardScale",
+    "UpdateStats",
+    "gae",
+    "load_config",
+    "load_initial_weights",
+    "make_env",
+    "ppo_loss",
+    "train",
+]
 
 LOG_FIELDS = (
     "update",
@@ -68,6 +77,8 @@ LOG_FIELDS = (
 )
 # Settings a resumed run may change: its length, its checkpoint interval, where and how it runs.
 RESUMABLE = {"total_steps", "checkpoint_every", "threads", "device"}
+# The values of settings an older run's checkpoint predates (it was trained as these say).
+LEGACY = {"init": None, "critic_warmup": 0}
 
 
 def load_config(path: Path) -> PpoConfig:
@@ -157,12 +168,16 @@ def train(
     update, global_step = 0, 0
     scale = RewardScale(config.gamma, config.num_envs) if config.norm_reward else None
     if resume and checkpoint.exists():
-        state = resume_from(checkpoint, "esrp-ppo", network, optimizer, RESUMABLE, device)
+        state = resume_from(checkpoint, "esrp-ppo", network, optimizer, RESUMABLE, device, legacy=LEGACY)
         update, global_step = int(state["update"]), int(state["steps"])
         if scale is not None:
             scale.load(state["reward_scale"])
         print(f"resuming {checkpoint} after update {update} ({global_step} steps)", file=sys.stderr)
         _trim_logs(out, update, global_step)
+    elif config.init is not None:
+        load_initial_weights(network, Path(config.init), device)
+        if progress:
+            print(f"starting from the weights of {config.init}", file=sys.stderr)
     (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")
     log_path, episodes_path = out / "log.csv", out / "episodes.csv"
     if update == 0:
@@ -193,6 +208,23 @@ def train(
     finally:
         env.close()
     return checkpoint
+
+
+def load_initial_weights(network: PpoNet, path: Path, device: torch.device) -> None:
+    """Loads the weights of the ESRP-PPO checkpoint at `path` into `network` (`PpoConfig.init`).
+    Raises `ValueError` for a missing file, another kind of checkpoint, or a network of other
+    settings (`NETWORK_SETTINGS`).
+    """
+    if not path.is_file():
+        raise ValueError(f"init: {path} does not exist")
+    state = torch.load(path, map_location=device, weights_only=False)
+    if not isinstance(state, dict) or state.get("kind") != "esrp-ppo":
+        raise ValueError(f"init: {path} is not an ESRP-PPO checkpoint")
+    theirs = {k: state["config"].get(k) for k in NETWORK_SETTINGS}
+    ours = {k: getattr(network.config, k) for k in NETWORK_SETTINGS}
+    if theirs != ours:
+        raise ValueError(f"init: {path} holds a network of other settings ({theirs}, this config's: {ours})")
+    network.load_state_dict(state["model"])
 
 
 def _loop(
@@ -237,6 +269,8 @@ def _loop(
     state = network.initial_state(n, device)
     episode_return = np.zeros(n)
     episode_length = np.zeros(n, dtype=np.int64)
+    # What the critic warm-up holds still: every parameter but the critic head's.
+    held = [p for name, p in network.named_parameters() if not name.startswith("critic.")]
     started = time.monotonic()
     while update < config.num_updates:
         update_started = time.monotonic()
@@ -358,6 +392,9 @@ def _loop(
                     raise FloatingPointError(f"update {update + 1}: the loss is {loss.item()}")
                 optimizer.zero_grad()
                 loss.backward()  # type: ignore[no-untyped-call]
+                if update < config.critic_warmup:
+                    for parameter in held:
+                        parameter.grad = None  # Adam leaves a parameter without a gradient as it is
                 nn.utils.clip_grad_norm_(network.parameters(), config.max_grad_norm)
                 optimizer.step()
                 sums += [x.item() for x in losses]
