@@ -8,7 +8,9 @@ starting from the state it had at the rollout's start. Truncated episodes (the h
 bootstrapped with the value of their final observation; terminated ones (success) are not.
 With `norm_reward` the learner's rewards are scaled by the running standard deviation of the
 discounted return (its statistics kept in the checkpoint); with `norm_adv_scope = "batch"` the
-advantages are normalised once over the rollout instead of in each minibatch.
+advantages are normalised once over the rollout instead of in each minibatch. With `init` the
+network starts from a checkpoint's weights (e.g. `esrp train ppo-bc`'s imitation), and for the first
+`critic_warmup` updates only its critic head learns.
 
 A run folder holds `config.json`, `log.csv` (one line per update: steps, episodes finished,
 their mean return, length and success rate, the losses, approximate KL, clip fraction, explained
