@@ -214,3 +214,20 @@ def test_the_shipped_imitation_config_loads() -> None:
     assert settings.demos == ["demos/v2-easy-64-plan.zarr"]
     assert bcinit.init == "runs/ppo-bc-v2-easy-plan/ckpt.pt"
     assert bcinit.critic_warmup > 0
+
+
+def test_esrp_train_ppo_bc_end_to_end(
+    demos: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    network = {k: v for k, v in network_config().to_dict().items() if v is not None and k != "reward"}
+    lines = ["[ppo]", *(f"{k} = {json.dumps(v)}" for k, v in network.items())]
+    lines += ["[ppo_bc]", f"demos = {json.dumps(str(demos))}", "epochs = 1", "streams = 2", "seq_len = 16"]
+    config = tmp_path / "c.toml"
+    config.write_text("\n".join(lines) + "\n")
+    run = tmp_path / "run"
+    assert main(["train", "ppo-bc", "--config", str(config), "--out", str(run), "--no-progress"]) == 0
+    assert f"checkpoint: {run / 'ckpt.pt'}" in capsys.readouterr().out
+    assert load_network(run / "ckpt.pt").config.resolution == 64
+    # Again without --resume: refused, the run kept.
+    assert main(["train", "ppo-bc", "--config", str(config), "--out", str(run), "--no-progress"]) == 2
+    assert "--resume" in capsys.readouterr().err
