@@ -231,3 +231,20 @@ def test_esrp_train_ppo_bc_end_to_end(
     # Again without --resume: refused, the run kept.
     assert main(["train", "ppo-bc", "--config", str(config), "--out", str(run), "--no-progress"]) == 2
     assert "--resume" in capsys.readouterr().err
+
+
+def test_policy_lr_moves_the_policy_at_its_own_rate(
+    tmp_path: Path, client: esrp.Client, easy_scenes: list[str]
+) -> None:
+    config = network_config(easy_scenes[0], lr=1e-3, policy_lr=1e-5, total_steps=16, anneal_lr=False)
+    network = PpoNet(config)
+    critic, policy = ppo.parameter_groups(network, config)
+    named = dict(network.named_parameters())
+    assert {id(p) for p in critic["params"]} == {id(p) for n, p in named.items() if n.startswith("critic.")}
+    assert len(critic["params"]) + len(policy["params"]) == len(named)
+    assert ppo.group_rates(config) == [1e-3, 1e-5]
+    assert ppo.group_rates(dataclasses.replace(config, policy_lr=None)) == [1e-3]
+    state = torch.load(ppo.train(config, tmp_path / "run", client, progress=False), weights_only=False)
+    assert [group["lr"] for group in state["optimizer"]["param_groups"]] == [1e-3, 1e-5]
+    with pytest.raises(ValueError, match="policy_lr"):
+        network_config(policy_lr=0)

@@ -46,7 +46,10 @@ class PpoConfig:
     weights the network starts from, with a fresh optimizer; its network settings must be this
     config's. For the first `critic_warmup` updates only the critic head learns (the policy and the
     shared trunk stay as they are), so that a trained policy is not moved by the advantages of a
-    critic that has not learnt its returns yet (PIRLNav's critic warm-up).
+    critic that has not learnt its returns yet (PIRLNav's critic warm-up). `policy_lr` (None: `lr`)
+    is the learning rate of every parameter but the critic head's (the encoders, the LSTM, the
+    actor head), annealed as `lr` is: a fine-tuning moves a trained policy slowly while its critic
+    learns at `lr`.
 
     `norm_adv_scope` says over what `norm_adv` normalises the advantages: each `"minibatch"`
     (CleanRL's), or the whole rollout (`"batch"`: a minibatch of near-zero advantages is not
@@ -96,6 +99,7 @@ class PpoConfig:
     # A start from trained weights.
     init: str | None = None
     critic_warmup: int = 0
+    policy_lr: float | None = None
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> PpoConfig:
@@ -142,6 +146,12 @@ class PpoConfig:
             raise ValueError(
                 f"critic_warmup must be a number of updates (0 or more), got {self.critic_warmup!r}"
             )
+        if self.policy_lr is not None and (
+            isinstance(self.policy_lr, bool)
+            or not isinstance(self.policy_lr, int | float)
+            or self.policy_lr <= 0
+        ):
+            raise ValueError(f"policy_lr must be a learning rate above 0 (or absent), got {self.policy_lr!r}")
         if self.norm_adv_scope not in ("minibatch", "batch"):
             raise ValueError(f"norm_adv_scope {self.norm_adv_scope!r}: minibatch or batch")
         for name in ("norm_adv", "norm_reward", "clip_vloss", "anneal_lr"):

@@ -52,6 +52,8 @@ __all__ = [
     "gae",
     "load_config",
     "load_initial_weights",
+    "group_rates",
+    "parameter_groups",
     "make_env",
     "ppo_loss",
     "train",
@@ -80,7 +82,7 @@ LOG_FIELDS = (
 # Settings a resumed run may change: its length, its checkpoint interval, where and how it runs.
 RESUMABLE = {"total_steps", "checkpoint_every", "threads", "device"}
 # The values of settings an older run's checkpoint predates (it was trained as these say).
-LEGACY = {"init": None, "critic_warmup": 0}
+LEGACY = {"init": None, "critic_warmup": 0, "policy_lr": None}
 
 
 def load_config(path: Path) -> PpoConfig:
@@ -166,7 +168,7 @@ def train(
     checkpoint = run_folder(out, resume)
     torch.manual_seed(config.seed)
     network = PpoNet(config).to(device)
-    optimizer = torch.optim.Adam(network.parameters(), lr=config.lr, eps=1e-5)
+    optimizer = torch.optim.Adam(parameter_groups(network, config), lr=config.lr, eps=1e-5)
     update, global_step = 0, 0
     scale = RewardScale(config.gamma, config.num_envs) if config.norm_reward else None
     if resume and checkpoint.exists():
@@ -210,6 +212,25 @@ def train(
     finally:
         env.close()
     return checkpoint
+
+
+def parameter_groups(network: PpoNet, config: PpoConfig) -> list[dict[str, Any]]:
+    """The optimizer's parameter groups, in the order of `group_rates`: one group, or with
+    `policy_lr` the critic head's and every other parameter's (the policy's: the encoders, the
+    LSTM, the actor head).
+    """
+    if config.policy_lr is None:
+        return [{"params": list(network.parameters()), "lr": config.lr}]
+    critic = [p for name, p in network.named_parameters() if name.startswith("critic.")]
+    policy = [p for name, p in network.named_parameters() if not name.startswith("critic.")]
+    return [{"params": critic, "lr": config.lr}, {"params": policy, "lr": config.policy_lr}]
+
+
+def group_rates(config: PpoConfig) -> list[float]:
+    """The learning rate of each of `parameter_groups` before annealing: `lr`, or `lr` for the
+    critic head and `policy_lr` for the rest.
+    """
+    return [config.lr] if config.policy_lr is None else [config.lr, config.policy_lr]
 
 
 def load_initial_weights(network: PpoNet, path: Path, device: torch.device) -> None:
@@ -277,9 +298,10 @@ def _loop(
     while update < config.num_updates:
         update_started = time.monotonic()
         initial = (state[0].clone(), state[1].clone())
-        lr = config.lr * (1.0 - update / config.num_updates) if config.anneal_lr else config.lr
-        for param_group in optimizer.param_groups:
-            param_group["lr"] = lr
+        fraction = 1.0 - update / config.num_updates if config.anneal_lr else 1.0
+        lr = config.lr * fraction
+        for param_group, rate in zip(optimizer.param_groups, group_rates(config), strict=True):
+            param_group["lr"] = rate * fraction
         finished: list[tuple[int, float, int, bool]] = []
         env_seconds = 0.0
         goals = [network.preprocess(_tensor(observations["goal_rgb"], device))]

@@ -40,7 +40,7 @@ from torch.nn import functional as F  # noqa: N812 - the usual name
 from .. import _malloc_setup
 from ..agents.bc import random_shift
 from ..agents.encoders import resolve_device
-from ..agents.ppo import PpoConfig, PpoNet
+from ..agents.ppo import NETWORK_SETTINGS, PpoConfig, PpoNet
 from ._config import read_table
 from ._training import resume_from, run_folder, save_checkpoint
 from .bc import NO_LABEL, DemoWindows
@@ -204,10 +204,12 @@ def train(
     optimizer = torch.optim.AdamW(network.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     epoch, step = 0, 0
     if resume and checkpoint.exists():
-        saved = resume_from(checkpoint, "esrp-ppo", network, optimizer, {"threads", "device"}, device)
-        free = ("epochs", "threads")
-        trained = {k: v for k, v in saved.get("imitation", {}).items() if k not in free}
-        if trained != {k: v for k, v in config.to_dict().items() if k not in free}:
+        # Only the [ppo] settings of the network count: the others are a later PPO run's.
+        free = {f.name for f in fields(PpoConfig)} - set(NETWORK_SETTINGS)
+        saved = resume_from(checkpoint, "esrp-ppo", network, optimizer, free, device)
+        changeable = ("epochs", "threads")
+        trained = {k: v for k, v in saved.get("imitation", {}).items() if k not in changeable}
+        if trained != {k: v for k, v in config.to_dict().items() if k not in changeable}:
             raise ValueError(
                 f"{checkpoint} was trained with other [ppo_bc] settings: {saved.get('imitation')}"
             )
