@@ -248,3 +248,39 @@ def test_policy_lr_moves_the_policy_at_its_own_rate(
     assert [group["lr"] for group in state["optimizer"]["param_groups"]] == [1e-3, 1e-5]
     with pytest.raises(ValueError, match="policy_lr"):
         network_config(policy_lr=0)
+
+
+def test_dagger_exports_at_the_policys_resolution_and_imitation_learns_the_labels(
+    demos: Path, tmp_path: Path, server: esrp.LocalServer, capsys: pytest.CaptureFixture[str]
+) -> None:
+    start = ppo_bc.train(network_config(), imitation(demos, epochs=1), tmp_path / "bc", progress=False)
+    with server.client() as client:
+        scene = next(iter(client.scenes("test", "easy", page_size=1))).id
+    store = tmp_path / "dagger.zarr"
+    arguments = ["demos", "export", "--server", server.address, "--dagger", "ppo", "--checkpoint", str(start)]
+    arguments += [
+        "--split",
+        "test",
+        "--scenes",
+        scene,
+        "--max-steps",
+        "6",
+        "--label-horizon",
+        "1",
+        "--no-progress",
+    ]
+    # The policy takes 64 px views: other ones are refused, none asked for gives the policy's.
+    assert main([*arguments, "--resolution", "128", "--out", str(store)]) == 2
+    assert "64 px" in capsys.readouterr().err
+    assert main([*arguments, "--out", str(store)]) == 0
+    windows = DemoWindows(store, 1, 1, in_memory=True)
+    assert windows.resolution == 64
+    assert len(windows) == 6
+    # A fine-tuning from the first weights on both stores: the DAgger states' label is the planner's.
+    config = imitation(demos, epochs=1, init=str(start))
+    config.demos.append(str(store))
+    both = DemoWindows(config.demos, 1, 1)
+    assert np.array_equal(both.targets[-6:, 0], windows.targets[:, 0])
+    run = tmp_path / "fine"
+    ppo_bc.train(network_config(), config, run, progress=False)
+    assert torch.load(run / "ckpt.pt", weights_only=False)["imitation"]["init"] == str(start)

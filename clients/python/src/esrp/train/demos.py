@@ -668,6 +668,17 @@ def export_demos(
             factory = make_factory(settings.dagger, dict(settings.agent_config), settings.out)
         except EvalError as error:
             raise DemoExportError(str(error)) from None
+        # A trained policy (ESRP-BC's, ESRP-PPO's) says the views it takes: the store's, unless
+        # --resolution asks for others, which it could not play on.
+        wanted = getattr(getattr(factory, "sensors", None), "resolution", None)
+        if isinstance(wanted, int) and wanted:
+            if settings.resolution and settings.resolution != wanted:
+                raise DemoExportError(
+                    f"--dagger {settings.dagger}: the policy takes {wanted} px views, not the "
+                    f"--resolution {settings.resolution} asked for (leave it out, or give {wanted})"
+                )
+            settings = dataclasses.replace(settings, resolution=wanted)
+            resolution = wanted
     if settings.episodes_in_flight < 1:
         raise DemoExportError(f"episodes_in_flight must be at least 1, got {settings.episodes_in_flight}")
     chunk = settings.label_horizon if settings.dagger is not None else None

@@ -44,6 +44,7 @@ from ..agents.ppo import NETWORK_SETTINGS, PpoConfig, PpoNet
 from ._config import read_table
 from ._training import resume_from, run_folder, save_checkpoint
 from .bc import NO_LABEL, DemoWindows
+from .ppo import load_initial_weights
 
 __all__ = [
     "LOG_FIELDS",
@@ -75,6 +76,9 @@ class ImitationConfig:
     augment_shift: int = 4
     seed: int = 0
     threads: int = 0
+    init: str | None = None
+    """An ESRP-PPO checkpoint whose weights the network starts from (a fine-tuning, e.g. on
+    DAgger stores added to the demonstrations), with a fresh optimizer and schedule."""
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> ImitationConfig:
@@ -100,6 +104,8 @@ class ImitationConfig:
         for name in ("lr_warmup_steps", "augment_shift", "seed", "threads"):
             if not isinstance(getattr(self, name), int) or getattr(self, name) < 0:
                 raise ValueError(f"{name} must be an integer of at least 0, got {getattr(self, name)!r}")
+        if self.init is not None and (not isinstance(self.init, str) or not self.init):
+            raise ValueError(f"init must be a checkpoint's path, got {self.init!r}")
         if not self.lr > 0 or self.weight_decay < 0 or not self.max_grad_norm > 0:
             raise ValueError("lr and max_grad_norm must be above 0, weight_decay at least 0")
 
@@ -216,6 +222,10 @@ def train(
         epoch, step = int(saved["epoch"]), int(saved["optimizer_steps"])
         print(f"resuming {checkpoint} after epoch {epoch}", file=sys.stderr)
         _trim_log(out / "log.csv", epoch)
+    elif config.init is not None:
+        load_initial_weights(network, Path(config.init), device)
+        if progress:
+            print(f"starting from the weights of {config.init}", file=sys.stderr)
     (out / "config.json").write_text(
         json.dumps({"ppo": ppo.to_dict(), "ppo_bc": config.to_dict()}, indent=2) + "\n", encoding="utf-8"
     )
