@@ -1,5 +1,6 @@
 """Learning curve of an `esrp train bc` run: the training loss (and its two terms) against epochs
-beside the held-out success rate (with its 95 % Wilson interval) of the checkpoints evaluated.
+beside the held-out success rate (with its 95 % Wilson interval) of the checkpoints evaluated; of an
+`esrp train ppo-bc` run: its cross-entropy and the accuracy of its most likely action.
 
     python clients/python/tools/bc_curve.py runs/bc-v2-easy --out docs/images/bc-v2-easy.png
 
@@ -37,7 +38,7 @@ def main() -> int:
     log_path = args.log or args.run / "log.csv"
     eval_path = args.eval or args.run / "eval.csv"
     if not log_path.is_file():
-        print(f"bc_curve: no {log_path}: not an esrp train bc run", file=sys.stderr)
+        print(f"bc_curve: no {log_path}: not an esrp train bc or ppo-bc run", file=sys.stderr)
         return 2
     losses = rows(log_path)
     evaluations = rows(eval_path) if eval_path.is_file() else []
@@ -52,11 +53,22 @@ def main() -> int:
     figure, axes = plt.subplots(1, panels, figsize=(5.5 * panels, 4), squeeze=False)
     epochs = [int(r["epoch"]) for r in losses]
     loss_axis = axes[0][0]
-    for key, label in (("loss", "loss (MSE + λ·CE)"), ("mse", "noise MSE"), ("ce", "cross-entropy")):
-        loss_axis.plot(epochs, [float(r[key]) for r in losses], marker="o", label=label)
+    if "accuracy" in losses[0]:  # esrp train ppo-bc: one cross-entropy, and the accuracy beside it
+        loss_axis.plot(epochs, [float(r["loss"]) for r in losses], marker="o", label="cross-entropy")
+        accuracy_axis = loss_axis.twinx()
+        accuracy = [100 * float(r["accuracy"]) for r in losses]
+        accuracy_axis.plot(epochs, accuracy, marker="s", color="tab:green", label="accuracy")
+        accuracy_axis.set_ylabel("accuracy of the most likely action, %")
+        # One legend, where neither curve is (they cross the middle of the left half).
+        handles = loss_axis.get_legend_handles_labels()[0] + accuracy_axis.get_legend_handles_labels()[0]
+        accuracy_axis.legend(handles=handles, loc="center right")
+    else:
+        for key, label in (("loss", "loss (MSE + λ·CE)"), ("mse", "noise MSE"), ("ce", "cross-entropy")):
+            loss_axis.plot(epochs, [float(r[key]) for r in losses], marker="o", label=label)
     loss_axis.set_xlabel("epoch")
     loss_axis.set_ylabel("training loss (epoch mean)")
-    loss_axis.legend(loc="upper right")
+    if "accuracy" not in losses[0]:
+        loss_axis.legend(loc="upper right")
     loss_axis.grid(alpha=0.3)
     if evaluations:
         sr_axis = axes[0][1]
