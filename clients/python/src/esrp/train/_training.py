@@ -5,15 +5,23 @@ and resumption that refuses other settings. The agents' `checkpoint` option is
 
 from __future__ import annotations
 
+import csv
 import os
-from collections.abc import Collection, Mapping
+from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import nn
 
-__all__ = ["load_resumable", "resume_from", "run_folder", "save_checkpoint", "save_for_playing"]
+__all__ = [
+    "load_resumable",
+    "resume_from",
+    "run_folder",
+    "save_checkpoint",
+    "save_for_playing",
+    "trim_epoch_log",
+]
 
 
 def run_folder(out: Path, resume: bool) -> Path:
@@ -134,3 +142,18 @@ def resume_from(
     if "optimizer" in state:
         optimizer.load_state_dict(state["optimizer"])
     return state
+
+
+def trim_epoch_log(path: Path, fields: Sequence[str], epoch: int) -> None:
+    """Makes `path` a CSV log of the epochs up to `epoch`: started over (its header only) when the
+    run starts, else its lines after `epoch` (written before an interruption, past the checkpoint
+    the run resumes from) dropped.
+    """
+    rows: list[list[str]] = []
+    if epoch > 0 and path.exists():
+        with open(path, newline="") as file:
+            rows = [row for row in list(csv.reader(file))[1:] if row and int(row[0]) <= epoch]
+    with open(path, "w", newline="") as file:
+        writer = csv.writer(file)
+        writer.writerow(fields)
+        writer.writerows(rows)

@@ -45,7 +45,7 @@ from .. import _malloc_setup
 from ..agents.bc import LEGACY_SETTINGS, BcConfig, DiffusionPolicy, bc_loss, random_shift, schedulers
 from ..agents.encoders import resolve_device
 from ._config import read_table
-from ._training import resume_from, run_folder, save_checkpoint, save_for_playing
+from ._training import resume_from, run_folder, save_checkpoint, save_for_playing, trim_epoch_log
 from .heldout import EVAL_FIELDS, TrainServer, evaluate_checkpoint, heldout_scenes, read_eval_log
 
 __all__ = ["FINE_TUNE_FREE", "LOG_FIELDS", "NO_LABEL", "RESUME_FREE", "DemoWindows", "load_config", "train"]
@@ -270,21 +270,6 @@ def _store_targets(store: Any, actions: np.ndarray, ends: np.ndarray, horizon: i
     return targets
 
 
-def _trim_log(path: Path, fields: Sequence[str], epoch: int) -> None:
-    """Makes `path` a CSV log of the epochs up to `epoch`: started over (its header only) when the
-    run starts, else its lines after `epoch` (written before an interruption, past the checkpoint
-    the run resumes from) dropped.
-    """
-    rows: list[list[str]] = []
-    if epoch > 0 and path.exists():
-        with open(path, newline="") as file:
-            rows = [row for row in list(csv.reader(file))[1:] if row and int(row[0]) <= epoch]
-    with open(path, "w", newline="") as file:
-        writer = csv.writer(file)
-        writer.writerow(fields)
-        writer.writerows(rows)
-
-
 def train(
     config: BcConfig,
     out: Path,
@@ -357,7 +342,7 @@ def train(
     (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")
     noise_scheduler, _ = schedulers(config)
     log_path = out / "log.csv"
-    _trim_log(log_path, LOG_FIELDS, epoch)
+    trim_epoch_log(log_path, LOG_FIELDS, epoch)
     held_out = _HeldOut(config, out, checkpoint, windows.resolution, final_eval=final_eval, progress=progress)
     held_out.start_log(epoch)
     own_server = server is None
@@ -570,7 +555,7 @@ class _HeldOut:
     def start_log(self, epoch: int) -> None:
         """Makes `eval.csv` the log of the evaluations up to `epoch` (when the run evaluates)."""
         if self.evaluating:
-            _trim_log(self.log_path, EVAL_FIELDS, epoch)
+            trim_epoch_log(self.log_path, EVAL_FIELDS, epoch)
 
     def choose_scenes(self, server: TrainServer) -> None:
         """Fixes the scenes of the run's evaluations (`heldout_scenes`; none when it does not

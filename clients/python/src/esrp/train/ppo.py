@@ -49,12 +49,13 @@ from ._training import resume_from, run_folder, save_checkpoint
 __all__ = [
     "RewardScale",
     "UpdateStats",
+    "critic_and_policy",
     "gae",
+    "group_rates",
     "load_config",
     "load_initial_weights",
-    "group_rates",
-    "parameter_groups",
     "make_env",
+    "parameter_groups",
     "ppo_loss",
     "train",
 ]
@@ -221,9 +222,18 @@ def parameter_groups(network: PpoNet, config: PpoConfig) -> list[dict[str, Any]]
     """
     if config.policy_lr is None:
         return [{"params": list(network.parameters()), "lr": config.lr}]
-    critic = [p for name, p in network.named_parameters() if name.startswith("critic.")]
-    policy = [p for name, p in network.named_parameters() if not name.startswith("critic.")]
+    critic, policy = critic_and_policy(network)
     return [{"params": critic, "lr": config.lr}, {"params": policy, "lr": config.policy_lr}]
+
+
+def critic_and_policy(network: PpoNet) -> tuple[list[nn.Parameter], list[nn.Parameter]]:
+    """The critic head's parameters, and every other one (the policy's: the encoders, the LSTM and
+    the actor head, which the critic shares the first two of).
+    """
+    named = list(network.named_parameters())
+    return [p for n, p in named if n.startswith("critic.")], [
+        p for n, p in named if not n.startswith("critic.")
+    ]
 
 
 def group_rates(config: PpoConfig) -> list[float]:
@@ -292,8 +302,7 @@ def _loop(
     state = network.initial_state(n, device)
     episode_return = np.zeros(n)
     episode_length = np.zeros(n, dtype=np.int64)
-    # What the critic warm-up holds still: every parameter but the critic head's.
-    held = [p for name, p in network.named_parameters() if not name.startswith("critic.")]
+    _, held = critic_and_policy(network)  # what the critic warm-up holds still
     started = time.monotonic()
     while update < config.num_updates:
         update_started = time.monotonic()

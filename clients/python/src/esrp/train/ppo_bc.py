@@ -42,7 +42,7 @@ from ..agents.bc import random_shift
 from ..agents.encoders import resolve_device
 from ..agents.ppo import NETWORK_SETTINGS, PpoConfig, PpoNet
 from ._config import read_table
-from ._training import resume_from, run_folder, save_checkpoint
+from ._training import resume_from, run_folder, save_checkpoint, trim_epoch_log
 from .bc import NO_LABEL, DemoWindows
 from .ppo import load_initial_weights
 
@@ -221,7 +221,6 @@ def train(
             )
         epoch, step = int(saved["epoch"]), int(saved["optimizer_steps"])
         print(f"resuming {checkpoint} after epoch {epoch}", file=sys.stderr)
-        _trim_log(out / "log.csv", epoch)
     elif config.init is not None:
         load_initial_weights(network, Path(config.init), device)
         if progress:
@@ -229,9 +228,7 @@ def train(
     (out / "config.json").write_text(
         json.dumps({"ppo": ppo.to_dict(), "ppo_bc": config.to_dict()}, indent=2) + "\n", encoding="utf-8"
     )
-    if epoch == 0:
-        with open(out / "log.csv", "w", newline="") as file:
-            csv.writer(file).writerow(LOG_FIELDS)
+    trim_epoch_log(out / "log.csv", LOG_FIELDS, epoch)
     if epoch >= config.epochs:
         return checkpoint
     demos = DemoWindows(config.demos, 1, 1, in_memory=True, progress=progress)
@@ -327,14 +324,3 @@ def _batch(
         "labels": torch.from_numpy(np.where(labels == NO_LABEL, 0, labels).astype(np.int64)).to(device),
         "mask": torch.from_numpy((labels != NO_LABEL).astype(np.float32)).to(device),
     }
-
-
-def _trim_log(path: Path, epoch: int) -> None:
-    """Drops the log lines written after the checkpoint a run resumes from."""
-    if not path.exists():
-        return
-    with open(path, newline="") as file:
-        rows = list(csv.reader(file))
-    kept = [rows[0], *(row for row in rows[1:] if int(row[0]) <= epoch)] if rows else []
-    with open(path, "w", newline="") as file:
-        csv.writer(file).writerows(kept)
