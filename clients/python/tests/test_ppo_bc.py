@@ -18,7 +18,7 @@ from esrp.cli import main
 
 torch = pytest.importorskip("torch", reason="esrp[train] is not installed")
 
-from esrp.agents.ppo import PpoConfig, PpoNet, load_network  # noqa: E402
+from esrp.agents.ppo import NETWORK_SETTINGS, PpoConfig, PpoNet, load_network  # noqa: E402
 from esrp.train import ppo, ppo_bc  # noqa: E402
 from esrp.train.bc import DemoWindows  # noqa: E402
 
@@ -204,16 +204,23 @@ def test_bad_inits_and_imitation_configs_are_refused(
     assert main(["train", "ppo-bc", "--config", str(bad), "--out", str(tmp_path / "d")]) == 2
 
 
-def test_the_shipped_imitation_config_loads() -> None:
+def test_the_shipped_imitation_configs_load() -> None:
     root = Path(__file__).resolve().parents[1] / "configs"
     network, settings = ppo_bc.load_configs(root / "ppo-bc-v2-easy-plan-cpu.toml")
     bcinit = ppo.load_config(root / "ppo-v2-easy-bcinit-cpu.toml")
-    assert {k: getattr(bcinit, k) for k in ("resolution", "encoder", "hidden", "feature_dim")} == {
-        k: getattr(network, k) for k in ("resolution", "encoder", "hidden", "feature_dim")
+    assert {k: getattr(bcinit, k) for k in NETWORK_SETTINGS} == {
+        k: getattr(network, k) for k in NETWORK_SETTINGS
     }
     assert settings.demos == ["demos/v2-easy-64-plan.zarr"]
     assert bcinit.init == "runs/ppo-bc-v2-easy-plan/ckpt.pt"
     assert bcinit.critic_warmup > 0
+    # The others start from or stand beside it: the same network.
+    for other in sorted(root.glob("ppo-bc-*.toml")):
+        again, more = ppo_bc.load_configs(other)
+        assert {k: getattr(again, k) for k in NETWORK_SETTINGS} == {
+            k: getattr(network, k) for k in NETWORK_SETTINGS
+        }, other.name
+        assert more.init in (None, "runs/ppo-bc-v2-easy-plan/ckpt.pt"), other.name
 
 
 def test_esrp_train_ppo_bc_end_to_end(
