@@ -28,7 +28,7 @@ import math
 import threading
 from collections import deque
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, cast
 
@@ -39,6 +39,7 @@ from torch.nn import functional as F  # noqa: N812 - the usual name
 
 from .._values import Action, Observation, Sensors
 from ._checkpoint import policy_checkpoint
+from ._config import reject_unknown
 from .encoders import ENCODERS, check_device, float_images, make_encoder
 
 __all__ = [
@@ -142,10 +143,7 @@ class BcConfig:
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> BcConfig:
         """A config from a mapping (a TOML/JSON table); unknown keys raise `ValueError`."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown bc settings {unknown}: known are {sorted(known)}")
+        reject_unknown(cls, values, "bc")
         given: dict[str, Any] = {k: tuple(v) if k == "unet_channels" else v for k, v in values.items()}
         config = cls(**given)
         if config.encoder not in ENCODERS:

@@ -24,6 +24,7 @@ from torch.nn import functional as F  # noqa: N812 - the usual name
 
 from .._values import Action, Observation, RewardWeights, Sensors
 from ._checkpoint import policy_checkpoint
+from ._config import reject_unknown
 from .encoders import ENCODERS, check_device, make_encoder
 
 __all__ = ["NETWORK_SETTINGS", "PpoAgent", "PpoConfig", "PpoNet", "PpoPolicy", "load_network"]
@@ -106,10 +107,7 @@ class PpoConfig:
         """A config from a mapping (a TOML/JSON table); unknown keys and bad values raise
         `ValueError`.
         """
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown ppo settings {unknown}: known are {sorted(known)}")
+        reject_unknown(cls, values, "ppo")
         config = cls(**dict(values))
         config.validate()
         return config

@@ -31,13 +31,14 @@ import shutil
 import sys
 import time
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
 import torch
 
+from ..agents._config import reject_unknown
 from ..agents.bc import BcConfig, checkpoint_settings
 from ._config import read_document
 from .bc import RESUME_FREE, train
@@ -136,10 +137,7 @@ class DaggerConfig:
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> DaggerConfig:
         """A config from a mapping (the TOML table); unknown keys and bad values raise `ValueError`."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown dagger settings {unknown}: known are {sorted(known)}")
+        reject_unknown(cls, values, "dagger")
         config = cls(**dict(values))
         config._check()
         return config

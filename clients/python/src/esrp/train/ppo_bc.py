@@ -38,6 +38,7 @@ import torch
 from torch.nn import functional as F  # noqa: N812 - the usual name
 
 from .. import _malloc_setup
+from ..agents._config import reject_unknown
 from ..agents.bc import random_shift
 from ..agents.encoders import resolve_device
 from ..agents.ppo import NETWORK_SETTINGS, PpoConfig, PpoNet
@@ -83,10 +84,7 @@ class ImitationConfig:
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> ImitationConfig:
         """A config from a mapping; unknown keys and bad values raise `ValueError`."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown ppo_bc settings {unknown}: known are {sorted(known)}")
+        reject_unknown(cls, values, "ppo_bc")
         settings = dict(values)
         if isinstance(settings.get("demos"), str):
             settings["demos"] = [settings["demos"]]
