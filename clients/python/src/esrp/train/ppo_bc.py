@@ -45,7 +45,7 @@ from ..agents.ppo import NETWORK_SETTINGS, PpoConfig, PpoNet
 from ._config import read_table
 from ._training import resume_from, run_folder, save_checkpoint, trim_epoch_log
 from .bc import NO_LABEL, DemoWindows
-from .ppo import load_initial_weights
+from .ppo import load_config, load_initial_weights
 
 __all__ = [
     "LOG_FIELDS",
@@ -123,10 +123,9 @@ class ImitationConfig:
 
 def load_configs(path: Path) -> tuple[PpoConfig, ImitationConfig]:
     """The `[ppo]` table (the network's settings) and the `[ppo_bc]` table of a TOML (or JSON) file."""
+    network = load_config(path)  # the [ppo] table, as esrp train ppo reads it
     try:
-        return PpoConfig.from_mapping(read_table(path, "ppo")), ImitationConfig.from_mapping(
-            read_table(path, "ppo_bc")
-        )
+        return network, ImitationConfig.from_mapping(read_table(path, "ppo_bc"))
     except (TypeError, ValueError) as error:
         raise ValueError(f"{path}: {error}") from None
 
