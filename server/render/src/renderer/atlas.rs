@@ -6,7 +6,7 @@ use std::num::NonZeroU64;
 use crate::gpu::{GpuView, VIEW_STRIDE};
 
 use super::formats::{COLOUR_FORMAT, DEPTH_FORMAT, DEPTH_OUT_FORMAT, SEGMENT_FORMAT};
-use super::limits::CHUNK_PIXELS;
+use super::limits::{CACHED_ATLASES, CHUNK_PIXELS};
 use super::requests::ViewRequest;
 
 /// Where one view lies in the atlas.
@@ -124,6 +124,13 @@ impl Atlas {
     pub(super) fn plane_bytes(&self) -> u64 {
         self.page_bytes() * u64::from(self.pages)
     }
+
+    /// The bytes of the readback buffer that hold the first `used_pages` pages of every plane
+    /// (the planes lie `plane_bytes` apart): what a batch of that many pages maps.
+    pub(super) fn readback_bytes(&self, used_pages: u32) -> u64 {
+        let planes = if self.full { 3 } else { 1 };
+        (planes - 1) * self.plane_bytes() + u64::from(used_pages) * self.page_bytes()
+    }
 }
 
 /// The atlases not in use right now. A batch takes one out (or makes one), renders with it
@@ -132,6 +139,41 @@ impl Atlas {
 pub(super) struct BatchState {
     pub(super) atlases: Vec<Atlas>,
     pub(super) batches: u64,
+    /// Atlases made since the renderer was created (each one textures, buffers and a bind
+    /// group allocated on the device).
+    pub(super) created: u64,
+}
+
+impl BatchState {
+    /// The pool, empty.
+    pub(super) fn new() -> Self {
+        Self { atlases: Vec::new(), batches: 0, created: 0 }
+    }
+
+    /// Takes out the smallest pooled atlas that holds `pages` pages of `side` pixels with the
+    /// same planes (`full`), if any. A larger one serves as well as one of the exact size (a
+    /// batch draws, copies and maps only the pages it uses), so batches whose sizes vary from
+    /// one to the next (the server's, gathered as steps arrive) reuse a few atlases instead of
+    /// making a new one for each size.
+    pub(super) fn take(&mut self, side: u32, pages: u32, full: bool) -> Option<Atlas> {
+        let best = (0..self.atlases.len())
+            .filter(|&i| {
+                let a = &self.atlases[i];
+                a.side == side && a.full == full && a.pages >= pages
+            })
+            .min_by_key(|&i| self.atlases[i].pages)?;
+        Some(self.atlases.swap_remove(best))
+    }
+
+    /// Puts `atlas` back, and drops the least recently used atlases beyond [`CACHED_ATLASES`].
+    pub(super) fn put(&mut self, atlas: Atlas) {
+        self.atlases.push(atlas);
+        while self.atlases.len() > CACHED_ATLASES
+            && let Some(oldest) = (0..self.atlases.len()).min_by_key(|&i| self.atlases[i].last_used)
+        {
+            self.atlases.swap_remove(oldest);
+        }
+    }
 }
 
 /// One page per view, every view at the page's origin: the viewport transform, and so

@@ -10,7 +10,6 @@ use crate::mesh::BACKGROUND_COLOUR;
 
 use super::atlas::{Atlas, Tile, layout};
 use super::device::Renderer;
-use super::limits::CACHED_ATLASES;
 use super::readback::{Planes, extract_all};
 use super::requests::{ViewOutput, ViewRequest};
 
@@ -63,23 +62,16 @@ impl Renderer {
         let (taken, now) = {
             let mut state = self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
             state.batches += 1;
-            let taken = state
-                .atlases
-                .iter()
-                .position(|a| a.side == side && a.pages == pages && a.full == full)
-                .map(|i| state.atlases.swap_remove(i));
+            let taken = state.take(side, pages, full);
+            if taken.is_none() {
+                state.created += 1;
+            }
             (taken, state.batches)
         };
         let mut atlas = taken.unwrap_or_else(|| Atlas::new(&self.device, &self.bind_group_layout, side, pages, full));
         let result = self.draw_and_read(&atlas, requests, &tiles, t0, timings);
         atlas.last_used = now;
-        let mut state = self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
-        state.atlases.push(atlas);
-        if state.atlases.len() > CACHED_ATLASES
-            && let Some(oldest) = (0..state.atlases.len()).min_by_key(|&i| state.atlases[i].last_used)
-        {
-            state.atlases.swap_remove(oldest);
-        }
+        self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner()).put(atlas);
         result
     }
 
@@ -104,9 +96,10 @@ impl Renderer {
         copy_to_readback(&mut encoder, atlas, used_pages);
         let t1 = Instant::now();
         let submission = self.queue.submit([encoder.finish()]);
-        self.map_readback(atlas, submission, scope)?;
+        let mapped = atlas.readback_bytes(used_pages);
+        self.map_readback(atlas, mapped, submission, scope)?;
         let t2 = Instant::now();
-        let outputs = extract_mapped(atlas, requests, tiles)?;
+        let outputs = extract_mapped(atlas, mapped, requests, tiles)?;
         let t3 = Instant::now();
         timings.encode += t1 - t0;
         timings.device += t2 - t1;
@@ -180,18 +173,18 @@ impl Renderer {
         }
     }
 
-    /// Maps `atlas`'s readback buffer once `submission` is done, and says what went wrong if the
-    /// batch failed: a validation error caught by `scope`, a lost device, a failed poll or a
-    /// buffer that could not be mapped. On success the buffer is left mapped.
+    /// Maps the first `bytes` of `atlas`'s readback buffer once `submission` is done, and says
+    /// what went wrong if the batch failed: a validation error caught by `scope`, a lost device,
+    /// a failed poll or a buffer that could not be mapped. On success the buffer is left mapped.
     fn map_readback(
         &self,
         atlas: &Atlas,
+        bytes: u64,
         submission: wgpu::SubmissionIndex,
         scope: wgpu::ErrorScopeGuard,
     ) -> Result<(), RenderError> {
         let (sender, receiver) = std::sync::mpsc::channel();
-        let planes = if atlas.full { 3 } else { 1 };
-        atlas.readback.map_async(wgpu::MapMode::Read, 0..atlas.plane_bytes() * planes, move |result| {
+        atlas.readback.map_async(wgpu::MapMode::Read, 0..bytes, move |result| {
             let _ = sender.send(result);
         });
         // Wait for this submission only: another thread's later batch may still be running.
@@ -306,11 +299,17 @@ fn copy_to_readback(encoder: &mut wgpu::CommandEncoder, atlas: &Atlas, used_page
     }
 }
 
-/// Every view of `requests` cut out of `atlas`'s mapped readback buffer, which is unmapped after.
-fn extract_mapped(atlas: &Atlas, requests: &[ViewRequest<'_>], tiles: &[Tile]) -> Result<Vec<ViewOutput>, RenderError> {
+/// Every view of `requests` cut out of the first `bytes` of `atlas`'s readback buffer (mapped),
+/// which is unmapped after.
+fn extract_mapped(
+    atlas: &Atlas,
+    bytes: u64,
+    requests: &[ViewRequest<'_>],
+    tiles: &[Tile],
+) -> Result<Vec<ViewOutput>, RenderError> {
     let outputs = {
         let mapped =
-            atlas.readback.get_mapped_range(..).map_err(|e| RenderError::Readback { reason: format!("{e:?}") })?;
+            atlas.readback.get_mapped_range(..bytes).map_err(|e| RenderError::Readback { reason: format!("{e:?}") })?;
         let planes = Planes {
             bytes: &mapped,
             plane_bytes: atlas.plane_bytes() as usize,

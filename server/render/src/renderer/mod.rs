@@ -209,7 +209,7 @@ impl Renderer {
             max_pages: limits.max_texture_array_layers.clamp(1, CHUNK_VIEWS as u32),
             cull: config.cull,
             lost,
-            state: Mutex::new(BatchState { atlases: Vec::new(), batches: 0 }),
+            state: Mutex::new(BatchState::new()),
         })
     }
 
@@ -221,6 +221,13 @@ impl Renderer {
     /// Whether the adapter is a CPU rasteriser (lavapipe, llvmpipe).
     pub fn is_software(&self) -> bool {
         self.adapter_info.device_type == wgpu::DeviceType::Cpu
+    }
+
+    /// How many atlases (the textures and buffers a batch draws into, pooled between batches)
+    /// this renderer has made so far: a figure that keeps rising under a steady load means
+    /// batches keep allocating on the device.
+    pub fn atlases_created(&self) -> u64 {
+        self.state.lock().map_or_else(|poisoned| poisoned.into_inner().created, |state| state.created)
     }
 
     /// Largest resolution of one view.

@@ -220,3 +220,48 @@ fn culling_changes_no_pixel() {
     }
     assert!(drawn * 4 < total * 3, "culling skipped too little: {drawn} of {total} triangles drawn");
 }
+
+/// Batches whose sizes vary from one to the next (the server's, gathered as steps arrive)
+/// reuse the pooled atlases instead of allocating one for each size, and each view still equals
+/// the view rendered alone. Only a larger batch, or one with other planes, makes another.
+#[test]
+fn batches_of_varying_sizes_reuse_the_pooled_atlases() {
+    let own = esrp_render::Renderer::new(esrp_render::RendererConfig {
+        backends: crate::common::backend(),
+        ..esrp_render::RendererConfig::default()
+    })
+    .unwrap();
+    let scene = bedroom();
+    let handle = own.upload_scene(&scene).unwrap();
+    let (_, now) = start(&scene);
+    let mut unit = uniform(0x5851_f42d_4c95_7f2d);
+    let cameras: Vec<_> =
+        (0..100).map(|_| ego_at(0.6 + 3.0 * unit(), 0.6 + 3.0 * unit(), (unit() * 16.0) as u8)).collect();
+    let alone: Vec<_> = cameras
+        .iter()
+        .map(|c| own.render_one(&ViewRequest::new(&handle, Camera::Ego(*c), &now)).unwrap().rgb)
+        .collect();
+    let made_by_singles = own.atlases_created();
+    assert_eq!(made_by_singles, 1, "views rendered one by one share one atlas");
+    let mut start_at = 0;
+    for (round, size) in
+        [64usize, 3, 17, 5, 33, 9, 2, 64, 40, 1, 20, 7, 63, 12].into_iter().cycle().take(42).enumerate()
+    {
+        let views: Vec<usize> = (0..size).map(|k| (start_at + k) % cameras.len()).collect();
+        start_at += size;
+        let requests: Vec<_> =
+            views.iter().map(|&i| ViewRequest::new(&handle, Camera::Ego(cameras[i]), &now)).collect();
+        let out = own.render_batch(&requests).unwrap();
+        for (&i, o) in views.iter().zip(&out) {
+            assert!(o.rgb == alone[i], "round {round} (a batch of {size}): view {i} differs from the view alone");
+        }
+    }
+    assert_eq!(own.atlases_created(), made_by_singles + 1, "42 batches of 1 to 64 views: one more atlas (64 pages)");
+    let requests: Vec<_> = cameras.iter().map(|c| ViewRequest::new(&handle, Camera::Ego(*c), &now)).collect();
+    let out = own.render_batch(&requests).unwrap();
+    assert!(out.iter().zip(&alone).all(|(o, a)| o.rgb == *a), "a batch of 100 matches the views alone");
+    let with_depth = requests[0].with_outputs(Outputs { depth: true, segmentation: false });
+    own.render_batch(&[with_depth, requests[1]]).unwrap();
+    own.render_batch(&requests[..7]).unwrap();
+    assert_eq!(own.atlases_created(), made_by_singles + 3, "a larger batch and one with depth make one each");
+}
