@@ -46,6 +46,9 @@ pub enum RenderError {
         /// What was wrong.
         reason: String,
     },
+    /// A submitted batch was given to another renderer than the one that submitted it.
+    #[error("the batch was submitted by another Renderer; finish it with that one")]
+    ForeignBatch,
     /// A view's scene was uploaded by another renderer.
     #[error("view {view}: its scene was uploaded by another Renderer; upload it with this one")]
     ForeignScene {

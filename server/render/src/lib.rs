@@ -117,7 +117,7 @@ pub use images::{
 pub use mesh::{SceneMesh, SegmentLabel, build_scene_mesh};
 pub use renderer::{
     BackendPreference, CHUNK_PIXELS, CHUNK_VIEWS, DEFAULT_RESOLUTION, MAX_MOVABLE_OBJECTS, Outputs, RenderTimings,
-    Renderer, RendererConfig, SceneHandle, UnknownBackend, ViewOutput, ViewRequest,
+    Renderer, RendererConfig, SceneHandle, SubmittedBatch, UnknownBackend, ViewOutput, ViewRequest,
 };
 
 /// Re-export of wgpu, whose [`wgpu::AdapterInfo`] and [`wgpu::PowerPreference`] appear in this

@@ -98,6 +98,12 @@ pub struct Config {
     /// Several devices render batches at once where one device's queue runs them in turn.
     #[arg(long, env = "ESRP_RENDER_DEVICES", default_value_t = 0, value_parser = clap::value_parser!(u16).range(0..=16))]
     pub render_devices: u16,
+    /// Batches each render thread may have in flight, submitted to the device and not yet read
+    /// back (0: auto, one). With more than one, a readback thread beside each render thread waits
+    /// for the device and extracts the images while the render thread gathers, encodes and
+    /// submits the next batch: the device draws one batch while the next is encoded.
+    #[arg(long, env = "ESRP_RENDER_PIPELINE", default_value_t = 0, value_parser = clap::value_parser!(u16).range(0..=8))]
+    pub render_pipeline: u16,
     /// Require `authorization: Bearer TOKEN` on every call (not empty: an empty `ESRP_TOKEN`
     /// is refused rather than taken as "no token" or as a token anyone could send). The one
     /// token is an admin named `admin`; --tokens gives several, with roles and quotas.
@@ -299,6 +305,9 @@ mod tests {
         assert_eq!(parse(&[]).unwrap().render_devices, 0);
         assert_eq!(parse(&["--render-devices", "2"]).unwrap().render_devices, 2);
         assert!(parse(&["--render-devices", "17"]).is_err());
+        assert_eq!(parse(&[]).unwrap().render_pipeline, 0);
+        assert_eq!(parse(&["--render-pipeline", "3"]).unwrap().render_pipeline, 3);
+        assert!(parse(&["--render-pipeline", "9"]).is_err());
     }
 
     #[test]

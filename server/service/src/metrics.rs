@@ -15,6 +15,7 @@
 //! | `esrp_records_written_total` | counter | records written (`--records`), by token |
 //! | `esrp_stage_seconds_total` | counter | seconds spent in each stage of stepping, by `stage` (below), summed over the threads that ran it |
 //! | `esrp_render_threads` | gauge | the threads rendering batches (`--render-threads`) |
+//! | `esrp_render_pipeline` | gauge | the batches each render thread may have in flight (`--render-pipeline`) |
 //! | `esrp_plans_total` | counter | PlanActions calls, by outcome (`planned`, `cached`, `failed`: no plan found, `deadline`: none found in the budget, `cancelled`: the client went away and the planner stopped) |
 //!
 //! The stages of `esrp_stage_seconds_total`, in the order a step goes through them (divide by
@@ -27,8 +28,8 @@
 //! | `take` | taking the steps: the simulation, the collision sweeps, the bookkeeping |
 //! | `render_queue` | a view request waiting for a render thread, per request |
 //! | `render_encode` | a render thread taking an atlas, writing the uniforms, encoding the passes |
-//! | `render_device` | a render thread waiting for the device to draw and copy, and for the readback to map |
-//! | `render_extract` | a render thread cutting the views' images out of the mapped buffer |
+//! | `render_device` | from a batch's submit until its readback is mapped: the device drawing and copying (and the batches submitted before it); with `--render-pipeline` above one, batches in flight together each count their own |
+//! | `render_extract` | cutting the views' images out of the mapped buffer (a render thread, or its readback thread with `--render-pipeline` above one) |
 //! | `answer` | putting the rendered images into the answers |
 //!
 //! Decoding requests, encoding answers and the transport are tonic's and hyper's, not counted:
@@ -132,6 +133,8 @@ pub struct Metrics {
     pub stages: Stages,
     /// The threads rendering batches.
     pub render_threads: Gauge,
+    /// The batches each render thread may have in flight.
+    pub render_pipeline: Gauge,
 }
 
 impl Default for Metrics {
@@ -195,6 +198,12 @@ impl Metrics {
         );
         let render_threads = Gauge::default();
         registry.register("render_threads", "Threads rendering batches (--render-threads)", render_threads.clone());
+        let render_pipeline = Gauge::default();
+        registry.register(
+            "render_pipeline",
+            "Batches each render thread may have in flight (--render-pipeline)",
+            render_pipeline.clone(),
+        );
         Self {
             registry,
             steps,
@@ -211,6 +220,7 @@ impl Metrics {
             records_by_token,
             stages,
             render_threads,
+            render_pipeline,
         }
     }
 

@@ -3,6 +3,11 @@
 //! gathers the view requests of all episodes that arrived while it was busy, and renders them in
 //! one batch.
 //!
+//! With more than one batch in flight per thread (`--render-pipeline`), a render thread only
+//! gathers, encodes and submits; a readback thread beside it waits for the device, cuts the
+//! images out and answers, so that the device draws one batch while the next is encoded and the
+//! last is read back.
+//!
 //! The async side sends a [`RenderJob`] (the views of one request) down a channel and awaits
 //! the reply; the runtime never blocks on rendering. Batching is automatic: the more episodes
 //! step at once, the larger the batches.
@@ -28,6 +33,12 @@ pub const AUTO_RENDER_THREADS: usize = 1;
 
 /// The render devices `--render-devices 0` (auto) opens: one.
 pub const AUTO_RENDER_DEVICES: usize = 1;
+
+/// The batches in flight per render thread that `--render-pipeline 0` (auto) allows: one (the
+/// thread submits a batch and reads it back before it gathers the next), as measured on the
+/// 2-core VM's software renderers (docs/performance.md, issue 40); a GPU's figure is to be
+/// measured with `scripts/gpu-bench.sh`.
+pub const AUTO_RENDER_PIPELINE: usize = 1;
 
 /// A scene uploaded to every renderer of the scheduler: its handle on each device, in the
 /// renderers' order.
@@ -107,8 +118,10 @@ pub struct RenderScheduler {
 
 impl RenderScheduler {
     /// Starts `threads` render threads around `renderers` (at least one each: thread i renders
-    /// on renderer i modulo their number, and there are at least as many threads as renderers).
-    pub fn start(renderers: Vec<Renderer>, metrics: Arc<Metrics>, threads: usize) -> Self {
+    /// on renderer i modulo their number, and there are at least as many threads as renderers),
+    /// each with up to `in_flight` batches submitted and not yet read back (at least one; more
+    /// than one starts a readback thread beside each render thread).
+    pub fn start(renderers: Vec<Renderer>, metrics: Arc<Metrics>, threads: usize, in_flight: usize) -> Self {
         assert!(!renderers.is_empty(), "a render scheduler needs a renderer");
         let count = threads.max(renderers.len());
         let renderers: Arc<[Arc<Renderer>]> = renderers.into_iter().map(Arc::new).collect();
@@ -120,13 +133,14 @@ impl RenderScheduler {
             let (renderer, receiver, metrics) = (renderers[device].clone(), receiver.clone(), metrics.clone());
             match std::thread::Builder::new()
                 .name(format!("esrp-render-{i}"))
-                .spawn(move || render_loop(&renderer, device, &receiver, &metrics))
+                .spawn(move || render_loop(&renderer, device, i, &receiver, &metrics, in_flight))
             {
                 Ok(thread) => threads.push(thread),
                 Err(e) => tracing::error!("cannot start a render thread: {e}"),
             }
         }
         metrics.render_threads.set(threads.len() as i64);
+        metrics.render_pipeline.set(in_flight.max(1) as i64);
         Self { renderers, jobs, threads: Arc::new(std::sync::Mutex::new(threads)) }
     }
 
@@ -215,19 +229,45 @@ impl RenderTicket {
     }
 }
 
+/// What a render thread hands its readback thread: a submitted batch, the jobs whose views it
+/// holds, and when it was taken from the queue.
+type Submitted = (esrp_render::SubmittedBatch, Vec<RenderJob>, Instant);
+
 fn render_loop(
-    renderer: &Renderer,
+    renderer: &Arc<Renderer>,
     device: usize,
+    index: usize,
     receiver: &std::sync::Mutex<mpsc::Receiver<Message>>,
-    metrics: &Metrics,
+    metrics: &Arc<Metrics>,
+    in_flight: usize,
 ) {
+    // More than one batch in flight: a readback thread finishes them in order while this one
+    // submits the next. The channel holds `in_flight - 2`: one is being read back and one more
+    // waits here, submitted, to be handed over.
+    let readback = (in_flight > 1).then(|| {
+        let (sender, batches) = mpsc::sync_channel::<Submitted>(in_flight - 2);
+        let (renderer, metrics) = (renderer.clone(), metrics.clone());
+        std::thread::Builder::new()
+            .name(format!("esrp-readback-{index}"))
+            .spawn(move || {
+                for (batch, jobs, started) in batches {
+                    let result = renderer.finish_batch(batch);
+                    metrics.batch_seconds.observe(started.elapsed().as_secs_f64());
+                    answer(jobs, result, &metrics);
+                }
+            })
+            .map(|thread| (sender, thread))
+            .map_err(|e| tracing::error!("cannot start a readback thread, rendering one batch at a time: {e}"))
+            .ok()
+    });
+    let (sender, readback_thread) = readback.flatten().unzip();
     loop {
         // Gather under the lock, render without it: while one thread renders, the other
         // gathers the next batch and submits it as soon as it can.
-        let Ok(receiver) = receiver.lock() else { return };
+        let Ok(receiver) = receiver.lock() else { break };
         let first = match receiver.recv() {
             Ok(Message::Job(job)) => job,
-            Ok(Message::Stop) | Err(_) => return,
+            Ok(Message::Stop) | Err(_) => break,
         };
         // Gather the jobs already waiting, about one submission's worth (the renderer takes
         // any number of views and draws them in chunks of its own).
@@ -252,29 +292,63 @@ fn render_loop(
         for job in &jobs {
             Stages::add(&metrics.stages.render_queue, taken.saturating_duration_since(job.sent));
         }
-        render_jobs(renderer, device, jobs, metrics);
-        if stop {
-            return;
+        metrics.batch_views.observe(count as f64);
+        match &sender {
+            None => {
+                let result = renderer.render_batch_timed(&requests(&jobs, device));
+                metrics.batch_seconds.observe(taken.elapsed().as_secs_f64());
+                answer(jobs, result, metrics);
+            }
+            Some(sender) => {
+                let submitted = renderer.submit_batch(&requests(&jobs, device));
+                match submitted {
+                    Ok(batch) => {
+                        if let Err(mpsc::SendError((_, jobs, _))) = sender.send((batch, jobs, taken)) {
+                            answer(
+                                jobs,
+                                Err(esrp_render::RenderError::Readback {
+                                    reason: "the readback thread has stopped".into(),
+                                }),
+                                metrics,
+                            );
+                        }
+                    }
+                    Err(e) => answer(jobs, Err(e), metrics),
+                }
+            }
         }
+        if stop {
+            break;
+        }
+    }
+    // The batches still in flight are read back and answered before the thread ends.
+    drop(sender);
+    if let Some(thread) = readback_thread
+        && thread.join().is_err()
+    {
+        tracing::error!("a readback thread panicked");
     }
 }
 
-fn render_jobs(renderer: &Renderer, device: usize, jobs: Vec<RenderJob>, metrics: &Metrics) {
-    let requests: Vec<ViewRequest<'_>> = jobs
-        .iter()
+/// The renderer's requests for every view of `jobs`, in order, on renderer `device`.
+fn requests(jobs: &[RenderJob], device: usize) -> Vec<ViewRequest<'_>> {
+    jobs.iter()
         .flat_map(|job| job.views.iter())
         .map(|v| {
             ViewRequest::new(v.scene.on(device), v.camera, &v.poses)
                 .with_outputs(v.outputs)
                 .with_resolution(v.resolution)
         })
-        .collect();
-    let started = std::time::Instant::now();
-    // Any number of views (a large StepBatch alone): the renderer chunks them itself.
-    let result = renderer.render_batch_timed(&requests);
-    metrics.batch_views.observe(requests.len() as f64);
-    metrics.batch_seconds.observe(started.elapsed().as_secs_f64());
-    drop(requests);
+        .collect()
+}
+
+/// Adds a rendered batch's stages to the metrics and answers each job with its views, or every
+/// job with the batch's error.
+fn answer(
+    jobs: Vec<RenderJob>,
+    result: Result<(Vec<ViewOutput>, esrp_render::RenderTimings), esrp_render::RenderError>,
+    metrics: &Metrics,
+) {
     match result {
         Ok((outputs, timings)) => {
             Stages::add(&metrics.stages.render_encode, timings.encode);

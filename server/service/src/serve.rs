@@ -88,9 +88,13 @@ pub fn build_episodes(config: &Config) -> Result<Arc<Episodes>, ServeError> {
         0 => render::AUTO_RENDER_THREADS * devices,
         n => usize::from(n),
     };
-    tracing::info!(target: LOG_TARGET, adapter = %info.name, backend = ?info.backend, software, render_devices = devices, render_threads = threads, "renderer ready");
+    let in_flight = match config.render_pipeline {
+        0 => render::AUTO_RENDER_PIPELINE,
+        n => usize::from(n),
+    };
+    tracing::info!(target: LOG_TARGET, adapter = %info.name, backend = ?info.backend, software, render_devices = devices, render_threads = threads, render_pipeline = in_flight, "renderer ready");
     let metrics = Arc::new(metrics::Metrics::new());
-    let render = render::RenderScheduler::start(renderers, metrics.clone(), threads);
+    let render = render::RenderScheduler::start(renderers, metrics.clone(), threads, in_flight);
     let episodes = Arc::new(Episodes::new(store, render, config.clone(), metrics, recorder, attempts));
     let recovered = episodes.recover_attempts().map_err(|e| ServeError::Io {
         what: "recording the attempts a crash cut".into(),

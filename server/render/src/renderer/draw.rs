@@ -11,7 +11,7 @@ use crate::mesh::BACKGROUND_COLOUR;
 use super::atlas::{Atlas, Tile, layout};
 use super::device::Renderer;
 use super::readback::{Planes, extract_all};
-use super::requests::{ViewOutput, ViewRequest};
+use super::requests::{Outputs, ViewOutput, ViewRequest};
 
 impl Renderer {
     /// The runs of `request.scene`'s indices to draw for `request`: all of them, or with
@@ -56,10 +56,23 @@ impl Renderer {
         full: bool,
         timings: &mut RenderTimings,
     ) -> Result<Vec<ViewOutput>, RenderError> {
-        let (tiles, side, pages) = layout(requests, self.max_pages);
+        let chunk = self.submit_chunk(requests, full, timings)?;
+        self.finish_chunk(chunk, timings)
+    }
 
+    /// Takes an atlas for a validated chunk, draws `requests` into it (one page each), copies
+    /// the pages to its readback buffer, submits, and asks for the buffer's mapping; returns
+    /// without waiting for the device. Adds the encoding's time to `timings`. A validation
+    /// error of the encoding or the submit is returned here.
+    pub(super) fn submit_chunk(
+        &self,
+        requests: &[ViewRequest<'_>],
+        full: bool,
+        timings: &mut RenderTimings,
+    ) -> Result<SubmittedChunk, RenderError> {
+        let (tiles, side, pages) = layout(requests, self.max_pages);
         let t0 = Instant::now();
-        let (taken, now) = {
+        let (taken, number) = {
             let mut state = self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
             state.batches += 1;
             let taken = state.take(side, pages, full);
@@ -69,52 +82,100 @@ impl Renderer {
             (taken, state.batches)
         };
         let mut atlas = taken.unwrap_or_else(|| Atlas::new(&self.device, &self.bind_group_layout, side, pages, full));
-        let result = self.draw_and_read(&atlas, requests, &tiles, t0, timings);
-        atlas.last_used = now;
-        self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner()).put(atlas);
-        result
-    }
-
-    /// Draws `requests` into `atlas` (one page each), submits, waits for that submission and
-    /// extracts every view: the uniforms written, the pages drawn and copied to the readback
-    /// buffer in one encoder, one submit, then the readback awaited and the views cut out of it.
-    /// Adds the three stages' times (from `t0`, when the chunk began) to `timings`.
-    pub(super) fn draw_and_read(
-        &self,
-        atlas: &Atlas,
-        requests: &[ViewRequest<'_>],
-        tiles: &[Tile],
-        t0: Instant,
-        timings: &mut RenderTimings,
-    ) -> Result<Vec<ViewOutput>, RenderError> {
+        atlas.last_used = number;
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         self.queue.write_buffer(&atlas.uniforms, 0, &view_uniforms(requests));
         let mut encoder =
             self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("esrp-render batch") });
         let used_pages = tiles.iter().map(|t| t.page + 1).max().unwrap_or(1);
-        self.draw_pages(&mut encoder, atlas, requests, tiles, used_pages);
-        copy_to_readback(&mut encoder, atlas, used_pages);
-        let t1 = Instant::now();
+        self.draw_pages(&mut encoder, &atlas, requests, &tiles, used_pages);
+        copy_to_readback(&mut encoder, &atlas, used_pages);
+        let submitted = Instant::now();
         let submission = self.queue.submit([encoder.finish()]);
-        let mapped = atlas.readback_bytes(used_pages);
-        self.map_readback(atlas, mapped, submission, scope)?;
+        let bytes = atlas.readback_bytes(used_pages);
+        let (sender, mapped) = std::sync::mpsc::channel();
+        atlas.readback.map_async(wgpu::MapMode::Read, 0..bytes, move |result| {
+            let _ = sender.send(result);
+        });
+        // Errors of the calls above are reported as they are made: the scope holds them all.
+        if let Some(error) = pollster::block_on(scope.pop()) {
+            // The atlas is dropped, not pooled: its mapping may still be pending.
+            return Err(RenderError::Gpu { reason: error.to_string() });
+        }
+        timings.encode += submitted - t0;
+        let outputs = requests.iter().map(|r| r.outputs).collect();
+        Ok(SubmittedChunk { atlas, tiles, outputs, bytes, submission, mapped, submitted })
+    }
+
+    /// Waits for a chunk's submission and mapping, cuts every view out of the mapped buffer and
+    /// puts the atlas back in the pool. Adds the device's and the extraction's times to
+    /// `timings`. Says what went wrong if the chunk failed: a lost device, a failed poll or a
+    /// buffer that could not be mapped.
+    pub(super) fn finish_chunk(
+        &self,
+        chunk: SubmittedChunk,
+        timings: &mut RenderTimings,
+    ) -> Result<Vec<ViewOutput>, RenderError> {
+        let SubmittedChunk { atlas, tiles, outputs, bytes, submission, mapped, submitted } = chunk;
+        // Wait for this submission only: a later batch may still be running.
+        let polled = self.device.poll(wgpu::PollType::Wait { submission_index: Some(submission), timeout: None });
+        // Another thread's poll may be the one that runs the map callback: wait for it a
+        // little, polling again meanwhile, rather than assuming this poll ran it.
+        let mut answer = None;
+        if polled.is_ok() {
+            let deadline = Instant::now() + Duration::from_secs(10);
+            loop {
+                match mapped.recv_timeout(Duration::from_millis(1)) {
+                    Ok(result) => {
+                        answer = Some(result.is_ok());
+                        break;
+                    }
+                    Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => {
+                        answer = Some(false);
+                        break;
+                    }
+                    Err(std::sync::mpsc::RecvTimeoutError::Timeout) if Instant::now() < deadline => {
+                        let _ = self.device.poll(wgpu::PollType::Poll);
+                    }
+                    Err(std::sync::mpsc::RecvTimeoutError::Timeout) => break,
+                }
+            }
+        }
+        let failure = if let Some(reason) = self.lost.lock().ok().and_then(|slot| slot.clone()) {
+            Some(RenderError::DeviceLost { reason })
+        } else if let Err(e) = polled {
+            Some(RenderError::Readback { reason: e.to_string() })
+        } else if answer != Some(true) {
+            Some(RenderError::Readback { reason: "the readback buffer could not be mapped".into() })
+        } else {
+            None
+        };
+        if let Some(error) = failure {
+            if answer == Some(true) {
+                atlas.readback.unmap();
+            }
+            // An atlas whose mapping is still pending cannot be reused.
+            if answer.is_some() {
+                self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner()).put(atlas);
+            }
+            return Err(error);
+        }
         let t2 = Instant::now();
-        let outputs = extract_mapped(atlas, mapped, requests, tiles)?;
+        let result = extract_mapped(&atlas, bytes, &outputs, &tiles);
         let t3 = Instant::now();
-        timings.encode += t1 - t0;
-        timings.device += t2 - t1;
+        timings.device += t2 - submitted;
         timings.extract += t3 - t2;
         log::trace!(
-            "esrp-render: {} views, {} pages of {}x{}: encode {:?}, device {:?}, extract {:?}",
-            requests.len(),
+            "esrp-render: {} views, {} pages of {}x{}: device {:?}, extract {:?}",
+            outputs.len(),
             atlas.pages,
             atlas.side,
             atlas.side,
-            t1 - t0,
-            t2 - t1,
+            t2 - submitted,
             t3 - t2
         );
-        Ok(outputs)
+        self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner()).put(atlas);
+        result
     }
 
     /// Encodes one render pass per used page of `atlas`: each page cleared (the colour to the
@@ -172,63 +233,20 @@ impl Renderer {
             }
         }
     }
+}
 
-    /// Maps the first `bytes` of `atlas`'s readback buffer once `submission` is done, and says
-    /// what went wrong if the batch failed: a validation error caught by `scope`, a lost device,
-    /// a failed poll or a buffer that could not be mapped. On success the buffer is left mapped.
-    fn map_readback(
-        &self,
-        atlas: &Atlas,
-        bytes: u64,
-        submission: wgpu::SubmissionIndex,
-        scope: wgpu::ErrorScopeGuard,
-    ) -> Result<(), RenderError> {
-        let (sender, receiver) = std::sync::mpsc::channel();
-        atlas.readback.map_async(wgpu::MapMode::Read, 0..bytes, move |result| {
-            let _ = sender.send(result);
-        });
-        // Wait for this submission only: another thread's later batch may still be running.
-        let polled = self.device.poll(wgpu::PollType::Wait { submission_index: Some(submission), timeout: None });
-        // Another thread's poll may be the one that runs our map callback: wait for it a
-        // little, polling again meanwhile, rather than assuming our poll ran it.
-        let mut mapped = false;
-        if polled.is_ok() {
-            let deadline = Instant::now() + std::time::Duration::from_secs(10);
-            loop {
-                match receiver.recv_timeout(std::time::Duration::from_millis(1)) {
-                    Ok(result) => {
-                        mapped = result.is_ok();
-                        break;
-                    }
-                    Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => break,
-                    Err(std::sync::mpsc::RecvTimeoutError::Timeout) if Instant::now() < deadline => {
-                        let _ = self.device.poll(wgpu::PollType::Poll);
-                    }
-                    Err(std::sync::mpsc::RecvTimeoutError::Timeout) => break,
-                }
-            }
-        }
-        let failure = if let Some(error) = pollster::block_on(scope.pop()) {
-            Some(RenderError::Gpu { reason: error.to_string() })
-        } else if let Some(reason) = self.lost.lock().ok().and_then(|slot| slot.clone()) {
-            Some(RenderError::DeviceLost { reason })
-        } else if let Err(e) = polled {
-            Some(RenderError::Readback { reason: e.to_string() })
-        } else if !mapped {
-            Some(RenderError::Readback { reason: "the readback buffer could not be mapped".into() })
-        } else {
-            None
-        };
-        match failure {
-            Some(error) => {
-                if mapped {
-                    atlas.readback.unmap();
-                }
-                Err(error)
-            }
-            None => Ok(()),
-        }
-    }
+/// A chunk handed to the device ([`Renderer::submit_chunk`]) and not yet read back: its atlas
+/// (out of the pool until [`Renderer::finish_chunk`]), where each view lies in it, what each
+/// view asked for, and the pending submission and mapping.
+pub(super) struct SubmittedChunk {
+    atlas: Atlas,
+    tiles: Vec<Tile>,
+    outputs: Vec<Outputs>,
+    /// The mapped bytes of the readback buffer.
+    bytes: u64,
+    submission: wgpu::SubmissionIndex,
+    mapped: std::sync::mpsc::Receiver<Result<(), wgpu::BufferAsyncError>>,
+    submitted: Instant,
 }
 
 /// Where a batch's time went on the thread that rendered it, summed over its chunks.
@@ -299,12 +317,12 @@ fn copy_to_readback(encoder: &mut wgpu::CommandEncoder, atlas: &Atlas, used_page
     }
 }
 
-/// Every view of `requests` cut out of the first `bytes` of `atlas`'s readback buffer (mapped),
-/// which is unmapped after.
+/// Every view (its `outputs` and tile) cut out of the first `bytes` of `atlas`'s readback buffer
+/// (mapped), which is unmapped after.
 fn extract_mapped(
     atlas: &Atlas,
     bytes: u64,
-    requests: &[ViewRequest<'_>],
+    outputs: &[Outputs],
     tiles: &[Tile],
 ) -> Result<Vec<ViewOutput>, RenderError> {
     let outputs = {
@@ -317,7 +335,7 @@ fn extract_mapped(
             row_bytes: atlas.side as usize * 4,
             full: atlas.full,
         };
-        extract_all(&planes, requests, tiles)
+        extract_all(&planes, outputs, tiles)
     };
     atlas.readback.unmap();
     outputs

@@ -327,6 +327,64 @@ impl Renderer {
         }
         Ok((outputs, timings))
     }
+
+    /// Starts rendering `requests` as [`Renderer::render_batch`] does, and returns once the
+    /// batch is submitted, without waiting for the device: the caller encodes and submits the
+    /// next batch while this one is drawn, and hands the [`SubmittedBatch`] to
+    /// [`Renderer::finish_batch`] (on any thread) for its images. Every chunk of the batch is
+    /// submitted at once and holds an atlas until it is finished, so keep batches within
+    /// [`CHUNK_VIEWS`] views. Errors of the requests and of the encoding are returned here.
+    pub fn submit_batch(&self, requests: &[ViewRequest<'_>]) -> Result<SubmittedBatch, RenderError> {
+        let mut timings = RenderTimings::default();
+        if let Some(reason) = self.lost.lock().ok().and_then(|slot| slot.clone()) {
+            return Err(RenderError::DeviceLost { reason });
+        }
+        validate(requests, self.id, self.max_atlas)?;
+        let full = requests.iter().any(|r| r.outputs.any_extra());
+        let mut submitted = Vec::new();
+        for chunk in chunks(requests, self.max_pages) {
+            submitted.push(self.submit_chunk(&requests[chunk], full, &mut timings)?);
+        }
+        Ok(SubmittedBatch { renderer_id: self.id, chunks: submitted, timings })
+    }
+
+    /// Waits for a batch of [`Renderer::submit_batch`] and returns its views in request order
+    /// (bit-identical to [`Renderer::render_batch`]'s), with where its time went: the encoding
+    /// at its submit, then the device (from the submit until the images could be read, the
+    /// batches submitted before it included) and the extraction.
+    pub fn finish_batch(&self, batch: SubmittedBatch) -> Result<(Vec<ViewOutput>, RenderTimings), RenderError> {
+        if batch.renderer_id != self.id {
+            return Err(RenderError::ForeignBatch);
+        }
+        let SubmittedBatch { chunks, mut timings, .. } = batch;
+        let mut outputs = Vec::new();
+        for chunk in chunks {
+            outputs.extend(self.finish_chunk(chunk, &mut timings)?);
+        }
+        Ok((outputs, timings))
+    }
+}
+
+/// A batch submitted to the device by [`Renderer::submit_batch`] and not yet read back; give it
+/// to [`Renderer::finish_batch`] of the same renderer. Dropping it abandons its images.
+pub struct SubmittedBatch {
+    renderer_id: u64,
+    chunks: Vec<draw::SubmittedChunk>,
+    /// The encoding's time so far.
+    timings: RenderTimings,
+}
+
+impl SubmittedBatch {
+    /// How many chunks (submissions) the batch was drawn in.
+    pub fn submissions(&self) -> usize {
+        self.chunks.len()
+    }
+}
+
+impl std::fmt::Debug for SubmittedBatch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SubmittedBatch").field("submissions", &self.chunks.len()).finish_non_exhaustive()
+    }
 }
 
 /// What to say after a device error of OpenGL on an NVIDIA GPU: it failed there ("Parent device
@@ -352,6 +410,9 @@ const _: () = {
     const fn check<T: Send + Sync>() {}
     check::<Renderer>();
     check::<SceneHandle>();
+    // A submitted batch is finished on another thread than the one that submitted it.
+    const fn send<T: Send>() {}
+    send::<SubmittedBatch>();
 };
 
 #[cfg(test)]

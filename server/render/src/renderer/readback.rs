@@ -5,7 +5,7 @@ use bytes::Bytes;
 use crate::error::RenderError;
 
 use super::atlas::Tile;
-use super::requests::{ViewOutput, ViewRequest};
+use super::requests::{Outputs, ViewOutput};
 
 /// The mapped readback buffer: one plane per output texture, rows of `row_bytes`.
 pub(super) struct Planes<'a> {
@@ -37,13 +37,13 @@ impl Planes<'_> {
         out
     }
 
-    pub(super) fn extract(&self, request: &ViewRequest<'_>, tile: &Tile) -> ViewOutput {
+    pub(super) fn extract(&self, outputs: Outputs, tile: &Tile) -> ViewOutput {
         let n = tile.size as usize;
         let mut rgb = vec![0u8; n * n * 3];
         for (row, dst) in rgb.chunks_exact_mut(n * 3).enumerate() {
             rgba_to_rgb(self.row(0, tile, row), dst);
         }
-        let depth = (request.outputs.depth && self.full).then(|| {
+        let depth = (outputs.depth && self.full).then(|| {
             self.words(1, tile)
                 .into_iter()
                 .map(|bits| {
@@ -52,7 +52,7 @@ impl Planes<'_> {
                 })
                 .collect()
         });
-        let segmentation = (request.outputs.segmentation && self.full).then(|| self.words(2, tile));
+        let segmentation = (outputs.segmentation && self.full).then(|| self.words(2, tile));
         ViewOutput { resolution: tile.size, rgb: Bytes::from(rgb), depth, segmentation }
     }
 }
@@ -78,7 +78,7 @@ pub(super) fn rgba_to_rgb(src: &[u8], dst: &mut [u8]) {
 /// device is idle by then.
 pub(super) fn extract_all(
     planes: &Planes<'_>,
-    requests: &[ViewRequest<'_>],
+    outputs: &[Outputs],
     tiles: &[Tile],
 ) -> Result<Vec<ViewOutput>, RenderError> {
     const PIXELS_PER_THREAD: u64 = 1 << 18;
@@ -88,22 +88,22 @@ pub(super) fn extract_all(
     let threads = (*CORES.get_or_init(|| std::thread::available_parallelism().map_or(1, |n| n.get()))).min(8);
     let threads = threads.min((pixels / PIXELS_PER_THREAD) as usize).max(1);
     if threads == 1 {
-        return Ok(requests.iter().zip(tiles).map(|(r, t)| planes.extract(r, t)).collect());
+        return Ok(outputs.iter().zip(tiles).map(|(o, t)| planes.extract(*o, t)).collect());
     }
-    let chunk = requests.len().div_ceil(threads);
+    let chunk = outputs.len().div_ceil(threads);
     std::thread::scope(|scope| {
         // The calling thread takes the first chunk; helpers take the rest.
-        let workers: Vec<_> = requests
+        let workers: Vec<_> = outputs
             .chunks(chunk)
             .zip(tiles.chunks(chunk))
             .skip(1)
-            .map(|(rs, ts)| {
-                scope.spawn(move || rs.iter().zip(ts).map(|(r, t)| planes.extract(r, t)).collect::<Vec<_>>())
+            .map(|(os, ts)| {
+                scope.spawn(move || os.iter().zip(ts).map(|(o, t)| planes.extract(*o, t)).collect::<Vec<_>>())
             })
             .collect();
-        let first = requests.len().min(chunk);
+        let first = outputs.len().min(chunk);
         let mut out: Vec<ViewOutput> =
-            requests[..first].iter().zip(&tiles[..first]).map(|(r, t)| planes.extract(r, t)).collect();
+            outputs[..first].iter().zip(&tiles[..first]).map(|(o, t)| planes.extract(*o, t)).collect();
         for worker in workers {
             out.extend(
                 worker.join().map_err(|_| RenderError::Readback { reason: "an extraction thread panicked".into() })?,

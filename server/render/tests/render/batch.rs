@@ -265,3 +265,69 @@ fn batches_of_varying_sizes_reuse_the_pooled_atlases() {
     own.render_batch(&requests[..7]).unwrap();
     assert_eq!(own.atlases_created(), made_by_singles + 3, "a larger batch and one with depth make one each");
 }
+
+/// Batches submitted one after another without waiting (the device draws one while the next is
+/// encoded), finished in any order and on other threads, give each view bit for bit as rendered
+/// alone; a batch finished by another renderer is refused.
+#[test]
+fn batches_in_flight_together_match_views_rendered_alone() {
+    let scene = bedroom();
+    let handle = renderer().upload_scene(&scene).unwrap();
+    let (_, now) = start(&scene);
+    let goal = targets(&scene);
+    let mut unit = uniform(0x2f1b_8c3d_6a55_e0f7);
+    let cameras: Vec<_> =
+        (0..90).map(|_| ego_at(0.6 + 3.0 * unit(), 0.6 + 3.0 * unit(), (unit() * 16.0) as u8)).collect();
+    let request = |i: usize| {
+        let r = if i % 9 == 4 {
+            ViewRequest::new(&handle, Camera::TopDown, &goal)
+        } else {
+            ViewRequest::new(&handle, Camera::Ego(cameras[i]), &now)
+        };
+        if i % 11 == 5 { r.with_outputs(Outputs::ALL) } else { r }
+    };
+    let alone: Vec<ViewOutput> = (0..cameras.len()).map(|i| renderer().render_one(&request(i)).unwrap()).collect();
+    // Four batches of different sizes (one with depth and segmentation), all in flight at once.
+    let ranges = [0..7, 7..40, 40..41, 41..90];
+    let submitted: Vec<_> = ranges
+        .iter()
+        .map(|range| {
+            let requests: Vec<_> = range.clone().map(request).collect();
+            renderer().submit_batch(&requests).unwrap()
+        })
+        .collect();
+    let mut finished: Vec<Option<Vec<ViewOutput>>> = vec![None; ranges.len()];
+    let mut submitted: Vec<_> = submitted.into_iter().enumerate().collect();
+    // The last first, then the others on a thread each.
+    let (last, batch) = submitted.pop().unwrap();
+    let (out, timings) = renderer().finish_batch(batch).unwrap();
+    assert!(timings.device > std::time::Duration::ZERO);
+    finished[last] = Some(out);
+    let others: Vec<(usize, Vec<ViewOutput>)> = std::thread::scope(|s| {
+        let threads: Vec<_> = submitted
+            .into_iter()
+            .map(|(k, batch)| s.spawn(move || (k, renderer().finish_batch(batch).unwrap().0)))
+            .collect();
+        threads.into_iter().map(|t| t.join().unwrap()).collect()
+    });
+    for (k, out) in others {
+        finished[k] = Some(out);
+    }
+    for (range, out) in ranges.iter().zip(finished) {
+        let out = out.unwrap();
+        assert_eq!(out.len(), range.len());
+        for (i, o) in range.clone().zip(&out) {
+            assert!(o.rgb == alone[i].rgb, "view {i}: RGB differs from the view rendered alone");
+            assert!(o.depth == alone[i].depth, "view {i}: depth differs");
+            assert!(o.segmentation == alone[i].segmentation, "view {i}: segmentation differs");
+        }
+    }
+    let other = esrp_render::Renderer::new(esrp_render::RendererConfig {
+        backends: crate::common::backend(),
+        ..esrp_render::RendererConfig::default()
+    })
+    .unwrap();
+    let batch = renderer().submit_batch(&[request(0)]).unwrap();
+    let error = other.finish_batch(batch).unwrap_err();
+    assert!(matches!(error, esrp_render::RenderError::ForeignBatch), "{error}");
+}

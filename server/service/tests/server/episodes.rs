@@ -285,6 +285,13 @@ async fn several_render_devices_keep_every_episode_as_it_runs_alone() {
     concurrent_matches_sequential(&["--render-devices", "2", "--render-threads", "3"]).await;
 }
 
+/// And with three batches in flight per render thread (two threads), read back by their
+/// readback threads while the next ones are submitted.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn batches_in_flight_keep_every_episode_as_it_runs_alone() {
+    concurrent_matches_sequential(&["--render-pipeline", "3", "--render-threads", "2"]).await;
+}
+
 async fn concurrent_matches_sequential(args: &[&str]) {
     let server = Server::start(args);
     let mut client = server.client().await;

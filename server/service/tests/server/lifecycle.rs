@@ -239,10 +239,15 @@ async fn do_work(address: &str, work: Work) {
 /// Runs `cycles` start → work → SIGTERM cycles on `backend` (rotating through [`WORK`]) and
 /// returns a description of each one that did not exit with status 0.
 async fn sigterm_cycles(backend: &str, cycles: usize) -> Vec<String> {
+    sigterm_cycles_with(&["--render-backend", backend], cycles).await
+}
+
+/// [`sigterm_cycles`] of a server started with `args`.
+async fn sigterm_cycles_with(args: &[&str], cycles: usize) -> Vec<String> {
     let mut failures = Vec::new();
     for cycle in 0..cycles {
         let work = WORK[cycle % WORK.len()];
-        let server = Signalled::start(backend);
+        let server = Signalled::start_with(args);
         do_work(&server.address, work).await;
         let (status, stderr) = tokio::task::spawn_blocking(move || server.terminate()).await.unwrap();
         if !status.success() {
@@ -275,6 +280,19 @@ async fn sigterm_exits_with_status_zero_every_time() {
             started.elapsed().as_secs_f64()
         );
         failures.extend(failed.into_iter().map(|f| format!("{backend}: {f}")));
+    }
+    assert!(failures.is_empty(), "SIGTERM did not end the server with status 0:\n{}", failures.join("\n"));
+}
+
+/// The same with batches in flight (`--render-pipeline 2`): the render threads hand their
+/// batches to readback threads, which finish and answer them before the renderer goes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_with_batches_in_flight_exits_with_status_zero() {
+    let cycles = cycles().div_ceil(3);
+    let mut failures = Vec::new();
+    for backend in ["gl", "vulkan"] {
+        let args = ["--render-backend", backend, "--render-pipeline", "2"];
+        failures.extend(sigterm_cycles_with(&args, cycles).await.into_iter().map(|f| format!("{backend}: {f}")));
     }
     assert!(failures.is_empty(), "SIGTERM did not end the server with status 0:\n{}", failures.join("\n"));
 }

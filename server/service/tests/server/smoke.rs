@@ -85,6 +85,7 @@ async fn metrics_count_steps_episodes_and_render_batches() {
         assert!(seconds > 0.0 && seconds < 60.0, "{stage}: {seconds}");
     }
     assert_eq!(value("esrp_render_threads"), 1.0, "auto: one thread on the software renderer");
+    assert_eq!(value("esrp_render_pipeline"), 1.0, "auto: one batch in flight per thread");
     client.close_episode(proto::CloseEpisodeRequest { episode_id: created.episode_id }).await.unwrap();
     let text = server.scrape();
     assert!(text.contains("esrp_episodes_closed_total{reason=\"client\"} 1"), "{text}");
