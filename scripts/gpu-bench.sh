@@ -6,21 +6,24 @@
 #   scripts/gpu-bench.sh --prepare            # here: release build, stripped binaries in dist/gpu-bench
 #   scripts/gpu-bench.sh [--bin DIR] [--out DIR] [--budget SECONDS] [--seconds S] [--backend NAME]
 #
-# What it measures, in this order, each step only if the budget leaves room for it (a skipped
-# step is said in the summary):
-#   1. standard: esrp-bench's scenarios with the server's stage breakdown (--breakdown), and
-#      whether --render-backend gl starts there (unary-1; a failure is said in the
-#      summary, not fatal);
-#   2. threads: batch-64 and stream-mux-64 with 256 episodes, render threads 1, 2, 4, 8, and
-#      render devices 2 and 4 (threads auto);
-#   3. episodes: batch-64 with 1 to 1,024 episodes (the curve of steps/s against episodes);
-#   4. clients: stream-mux-64 driven by 1, 2 and 4 client processes (is the client the limit?);
-#   5. scale-out: N servers (2, 4, 8) started first, driven by N client processes (one each),
-#      against one server driven by the same N processes;
-#   6. python: python -m esrp.bench's env-1 and vec-64 against the server, where this
+# What it measures, in this order (what decides issue 40 first), each step only if the budget
+# leaves room for it (a skipped step is said in the summary):
+#   1. standard: esrp-bench's scenarios with the server's stage breakdown (--breakdown);
+#   2. scale-out at 8: 8 servers started first, driven by 8 client processes (one each) and by
+#      16 (two each), against one server driven by the same 8 processes;
+#   3. pipeline: batches in flight per render thread (--render-pipeline 1, 2, 3), one server
+#      driven by 4 client processes (so that the client is not the limit), with the breakdown;
+#   4. threads: render threads 1, 2 and 4, one server driven by 4 client processes;
+#   5. scale-out at 2 and 4 servers, as in 2;
+#   6. devices: render devices 2 and 4 (threads auto), 4 client processes;
+#   7. episodes: batch-64 with 1 to 1,024 episodes (the curve of steps/s against episodes);
+#   8. clients: stream-mux-64 driven by 1, 2, 4 and 8 client processes (is the client the limit?);
+#   9. gl: whether --render-backend gl starts there (unary-1; a failure is said in the summary);
+#  10. python: python -m esrp.bench's env-1 and vec-64 against the server, where this
 #      machine's python3 imports esrp (clients/python/src is put before any PYTHONPATH given, where
 #      its dependencies, and esrp-native for the native transport, may be installed).
-# Every step writes its esrp-bench JSON under OUT (default $OUT, else gpu-bench-out), and
+# Every step writes its esrp-bench JSON under OUT (default $OUT, else gpu-bench-out) and the
+# machine's busy cores while it ran (cpu-NAME.txt: from /proc/stat, all processes), and
 # OUT/summary.md gathers the tables (python3 scripts/gpu_bench_summary.py OUT).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -84,10 +87,25 @@ step() {
     echo "== $1 ($(left) s of the budget left)" >&2
 }
 
+# The machine's CPU counters (all cores): busy and total jiffies.
+cpu_counters() { awk '/^cpu /{busy = $2 + $3 + $4 + $7 + $8 + $9; print busy, busy + $5 + $6; exit}' /proc/stat; }
+# measured NAME COMMAND...: runs COMMAND and writes the cores it kept busy on average to cpu-NAME.txt.
+measured() {
+    local name=$1 before after status=0
+    shift
+    before=$(cpu_counters)
+    "$@" || status=$?
+    after=$(cpu_counters)
+    echo "$before $after $(nproc)" | awk '{t = $4 - $2; printf "%.1f\n", (t > 0 ? ($3 - $1) / t * $5 : 0)}' \
+        > "$OUT_DIR/cpu-$name.txt"
+    return "$status"
+}
+
 bench_on() { # bench_on BACKEND JSON SERVER_ARGS ARGS...: esrp-bench against a server it starts
     local backend=$1 json=$2 extra=$3; shift 3
-    "$BIN/esrp-bench" --server-binary "$BIN/esrp-server" --seconds "$SECONDS_EACH" --json "$OUT_DIR/$json" \
-        --server-args="--render-backend=$backend --no-generate-ahead${extra:+ $extra}" "$@" >> "$OUT_DIR/bench.log" 2>&1
+    measured "${json%.json}" "$BIN/esrp-bench" --server-binary "$BIN/esrp-server" --seconds "$SECONDS_EACH" \
+        --json "$OUT_DIR/$json" --server-args="--render-backend=$backend --no-generate-ahead${extra:+ $extra}" "$@" \
+        >> "$OUT_DIR/bench.log" 2>&1
 }
 bench() { bench_on "$BACKEND" "$1" "" "${@:2}"; }  # bench JSON ARGS...: with the backend
 bench_args() { bench_on "$BACKEND" "$@"; }          # bench_args JSON SERVER_ARGS ARGS...
@@ -102,42 +120,8 @@ bench_args() { bench_on "$BACKEND" "$@"; }          # bench_args JSON SERVER_ARG
 } > "$OUT_DIR/machine.txt"
 cat "$OUT_DIR/machine.txt" >&2
 
-# The per-step costs below are what each step took on the 2-core VM's lavapipe, rounded up.
-if step standard 60; then
-    bench standard.json --breakdown \
-        --scenarios unary-1,stream-1,stream-1-pipelined,unary-64,streams-64,stream-mux-64,batch-64
-fi
-if step gl 15; then
-    if ! bench_on gl gl.json "" --scenarios unary-1; then
-        rm -f "$OUT_DIR/gl.json"
-        SKIPPED+=("gl (--render-backend gl did not start or failed here: see bench.log)")
-    fi
-fi
-for threads in 1 2 4 8; do
-    if step "threads-$threads" 30; then
-        bench_args "threads-$threads.json" "--render-threads=$threads" --breakdown \
-            --scenarios batch-64,stream-mux-64 --episodes 256
-    fi
-done
-for devices in 2 4; do
-    if step "devices-$devices" 30; then
-        bench_args "devices-$devices.json" "--render-devices=$devices" --breakdown \
-            --scenarios batch-64,stream-mux-64 --episodes 256
-    fi
-done
-for episodes in 1 4 16 64 256 1024; do
-    if step "episodes-$episodes" 25; then
-        bench "episodes-$episodes.json" --scenarios batch-64 --episodes "$episodes"
-    fi
-done
-for processes in 1 2 4; do
-    if step "clients-$processes" 25; then
-        bench "clients-$processes.json" --scenarios stream-mux-64 --processes "$processes"
-    fi
-done
-
-# Scale-out: N servers started first (their start is not measured), the same N client processes
-# against them (process i drives server i) and against the first alone, alternated.
+# Scale-out: N servers started first (their start is not measured), the same client processes
+# against them (process i drives server i modulo N) and against the first alone.
 SERVERS=()
 start_server() { # start_server LOG: a server on a free port, its address once it listens
     # Its stdin is a `sleep` that outlives the script at worst by the budget: its stderr goes
@@ -157,22 +141,73 @@ stop_servers() {
     for pid in "${SERVERS[@]}"; do wait "$pid" 2> /dev/null || true; done
     SERVERS=()
 }
-for n in 2 4 8; do
-    if step "servers-$n" $((30 + 5 * n)); then
-        addresses=()
-        for ((i = 0; i < n; i++)); do addresses+=("$(start_server "$OUT_DIR/server-$n-$i.txt")"); done
-        list=$(IFS=,; echo "${addresses[*]}")
-        # A first unmeasured pass builds the scenes on every server.
-        "$BIN/esrp-bench" --server "$list" --processes "$n" --scenarios stream-mux-64 --seconds 1 > /dev/null 2>&1 || true
-        for part in servers one; do
-            target=$list
-            [[ $part == one ]] && target=${addresses[0]}
-            "$BIN/esrp-bench" --server "$target" --processes "$n" --scenarios stream-mux-64,batch-64 \
-                --seconds "$SECONDS_EACH" --json "$OUT_DIR/$part-$n.json" >> "$OUT_DIR/bench.log" 2>&1
-        done
-        stop_servers
+scale_out() { # scale_out N: N servers against one, N client processes (and 2N against N servers at 8)
+    local n=$1 addresses=() list target part i
+    for ((i = 0; i < n; i++)); do addresses+=("$(start_server "$OUT_DIR/server-$n-$i.txt")"); done
+    list=$(IFS=,; echo "${addresses[*]}")
+    # A first unmeasured pass builds the scenes on every server.
+    "$BIN/esrp-bench" --server "$list" --processes "$n" --scenarios stream-mux-64 --seconds 1 > /dev/null 2>&1 || true
+    for part in servers one; do
+        target=$list
+        [[ $part == one ]] && target=${addresses[0]}
+        measured "$part-$n" "$BIN/esrp-bench" --server "$target" --processes "$n" \
+            --scenarios stream-mux-64,batch-64 --seconds "$SECONDS_EACH" --json "$OUT_DIR/$part-$n.json" \
+            >> "$OUT_DIR/bench.log" 2>&1 || true
+    done
+    if (( n == 8 )) && step "servers-8x2" 20; then
+        measured "servers-8x2" "$BIN/esrp-bench" --server "$list" --processes 16 --scenarios stream-mux-64 \
+            --seconds "$SECONDS_EACH" --json "$OUT_DIR/servers-8x2.json" >> "$OUT_DIR/bench.log" 2>&1 || true
+    fi
+    stop_servers
+}
+
+# The per-step costs below are what each step took on the 2-core VM, rounded up.
+if step standard 60; then
+    bench standard.json --breakdown \
+        --scenarios unary-1,stream-1,stream-1-pipelined,unary-64,streams-64,stream-mux-64,batch-64
+fi
+if step servers-8 70; then
+    scale_out 8
+fi
+for depth in 1 2 3; do
+    if step "pipeline-$depth" 25; then
+        bench_args "pipeline-$depth.json" "--render-pipeline=$depth" --breakdown \
+            --scenarios stream-mux-64,batch-64 --processes 4
     fi
 done
+for threads in 1 2 4; do
+    if step "threads-$threads" 25; then
+        bench_args "threads-$threads.json" "--render-threads=$threads" --breakdown \
+            --scenarios batch-64,stream-mux-64 --processes 4
+    fi
+done
+for n in 2 4; do
+    if step "servers-$n" $((30 + 5 * n)); then
+        scale_out "$n"
+    fi
+done
+for devices in 2 4; do
+    if step "devices-$devices" 25; then
+        bench_args "devices-$devices.json" "--render-devices=$devices" --breakdown \
+            --scenarios batch-64,stream-mux-64 --processes 4
+    fi
+done
+for episodes in 1 4 16 64 256 1024; do
+    if step "episodes-$episodes" 15; then
+        bench "episodes-$episodes.json" --scenarios batch-64 --episodes "$episodes"
+    fi
+done
+for processes in 1 2 4 8; do
+    if step "clients-$processes" 15; then
+        bench "clients-$processes.json" --scenarios stream-mux-64 --processes "$processes"
+    fi
+done
+if step gl 15; then
+    if ! bench_on gl gl.json "" --scenarios unary-1; then
+        rm -f "$OUT_DIR/gl.json"
+        SKIPPED+=("gl (--render-backend gl did not start or failed here: see bench.log)")
+    fi
+fi
 
 if step python 40; then
     python_path=clients/python/src${PYTHONPATH:+:$PYTHONPATH}

@@ -34,6 +34,14 @@ def ms(result: dict[str, Any], key: str) -> str:
     return "–" if value is None else f"{value:.2f}"
 
 
+def cores(folder: Path, name: str) -> str:
+    """The machine's busy cores while step `name` ran (its cpu-NAME.txt), or a dash."""
+    path = folder / f"cpu-{name}.txt"
+    if not path.exists():
+        return "–"
+    return path.read_text(encoding="utf-8").strip() or "–"
+
+
 def busiest(result: dict[str, Any]) -> str:
     breakdown = result.get("breakdown") or {}
     stages = breakdown.get("stages") or {}
@@ -80,22 +88,31 @@ def standard(folder: Path) -> list[str]:
 
 
 def series(folder: Path, title: str, header: str, files: list[tuple[str, str]]) -> list[str]:
+    """A table of the scenarios of each file.
+
+    Client processes × episodes each (the JSON holds the episodes of all processes), and the
+    step's busy cores, machine-wide, on its first row.
+    """
     rows = []
     for label, name in files:
         report = load(folder, name)
         if report is None:
             continue
-        for r in report["results"]:
+        for i, r in enumerate(report["results"]):
+            busy = cores(folder, name.removesuffix(".json")) if i == 0 else ""
+            processes = max(int(r.get("processes", 1)), 1)
             rows.append(
-                f"| {label} | {r['scenario']} | {r['episodes']} | {rate(r)} | {ms(r, 'p50_ms')} | {busiest(r)} |"
+                f"| {label} | {r['scenario']} | {processes} × {r['episodes'] // processes} | {rate(r)} "
+                f"| {ms(r, 'p50_ms')} | {busiest(r)} | {busy} |"
             )
     if not rows:
         return []
     return [
         f"## {title}",
         "",
-        f"| {header} | scenario | episodes | steps/s | p50 ms | busiest stage (busy) |",
-        "|---|---|---:|---:|---:|---|",
+        f"| {header} | scenario | processes × episodes | steps/s | p50 ms | busiest stage (busy) "
+        "| cores busy |",
+        "|---|---|---:|---:|---:|---|---:|",
         *rows,
         "",
     ]
@@ -107,18 +124,25 @@ def scale_out(folder: Path) -> list[str]:
         apart, one = load(folder, f"servers-{n}.json"), load(folder, f"one-{n}.json")
         if apart is None or one is None:
             continue
+        busy = f"{cores(folder, f'servers-{n}')} / {cores(folder, f'one-{n}')}"
         for mine, theirs in zip(apart["results"], one["results"], strict=False):
             a, b = mine["steps_per_second"] or 0.0, theirs["steps_per_second"] or 0.0
             faster = "servers" if a > b else "one server"
             ratio = max(a, b) / max(min(a, b), 1.0)
-            rows.append(f"| {n} | {mine['scenario']} | {a:,.0f} | {b:,.0f} | {faster} ({ratio:.2f}×) |")
+            rows.append(
+                f"| {n} | {n} | {mine['scenario']} | {a:,.0f} | {b:,.0f} | {faster} ({ratio:.2f}×) | {busy} |"
+            )
+    doubled = load(folder, "servers-8x2.json")
+    for r in doubled["results"] if doubled else []:
+        rows.append(f"| 8 | 16 | {r['scenario']} | {rate(r)} | – | – | {cores(folder, 'servers-8x2')} / – |")
     if not rows:
         return []
     return [
-        "## Scale-out: N servers against one, the same N client processes (64 episodes each)",
+        "## Scale-out: N servers against one, the same client processes (64 episodes each)",
         "",
-        "| N | scenario | N servers, steps/s | one server, steps/s | faster |",
-        "|---:|---|---:|---:|---|",
+        "| N servers | client processes | scenario | N servers, steps/s | one server, steps/s | faster "
+        "| cores busy (N servers / one) |",
+        "|---:|---:|---|---:|---:|---|---:|",
         *rows,
         "",
     ]
@@ -148,15 +172,22 @@ def main(argv: list[str]) -> int:
         lines += ["```text", machine.read_text(encoding="utf-8").strip(), "```", ""]
     lines += standard(folder)
     lines += series(folder, "The OpenGL backend (--render-backend gl)", "backend", [("gl", "gl.json")])
+    lines += scale_out(folder)
     lines += series(
         folder,
-        "Render threads (256 episodes)",
+        "Batches in flight per render thread (--render-pipeline; one server)",
+        "batches in flight",
+        [(str(d), f"pipeline-{d}.json") for d in (1, 2, 3)],
+    )
+    lines += series(
+        folder,
+        "Render threads (one server)",
         "render threads",
         [(str(t), f"threads-{t}.json") for t in (1, 2, 4, 8)],
     )
     lines += series(
         folder,
-        "Render devices (256 episodes, threads auto)",
+        "Render devices (one server, threads auto)",
         "render devices",
         [(str(d), f"devices-{d}.json") for d in (2, 4)],
     )
@@ -170,9 +201,8 @@ def main(argv: list[str]) -> int:
         folder,
         "Client processes (stream-mux-64, 64 episodes each)",
         "processes",
-        [(str(p), f"clients-{p}.json") for p in (1, 2, 4)],
+        [(str(p), f"clients-{p}.json") for p in (1, 2, 4, 8)],
     )
-    lines += scale_out(folder)
     lines += python(folder)
     skipped = folder / "skipped.txt"
     left_out = (

@@ -33,7 +33,10 @@
 //!   outside its view volume; such a piece cannot touch a pixel ([`RendererConfig::cull`]).
 //! - **Thread-safe.** [`Renderer`] and [`SceneHandle`] are `Send + Sync`; each batch renders
 //!   with an atlas of its own from a small pool, so batches from two threads overlap (one
-//!   submits while the other waits or extracts).
+//!   submits while the other waits or extracts). [`Renderer::submit_batch`] returns once a
+//!   batch is submitted and [`Renderer::finish_batch`] (on any thread) waits for it and
+//!   extracts its views: one thread may keep several batches in flight, the device drawing one
+//!   while the next is encoded, with the same outputs.
 //! - **The agent is never drawn** (SPEC §2); there is no ceiling, so the background colour shows
 //!   above the walls and through windows.
 //!

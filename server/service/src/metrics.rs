@@ -15,6 +15,7 @@
 //! | `esrp_records_written_total` | counter | records written (`--records`), by token |
 //! | `esrp_stage_seconds_total` | counter | seconds spent in each stage of stepping, by `stage` (below), summed over the threads that ran it |
 //! | `esrp_render_threads` | gauge | the threads rendering batches (`--render-threads`) |
+//! | `esrp_render_atlases_created_total` | counter | atlases (a batch's textures and buffers on the device) the renderers made; steady under a steady load once the pool holds the sizes it needs |
 //! | `esrp_render_pipeline` | gauge | the batches each render thread may have in flight (`--render-pipeline`) |
 //! | `esrp_plans_total` | counter | PlanActions calls, by outcome (`planned`, `cached`, `failed`: no plan found, `deadline`: none found in the budget, `cancelled`: the client went away and the planner stopped) |
 //!
@@ -135,6 +136,8 @@ pub struct Metrics {
     pub render_threads: Gauge,
     /// The batches each render thread may have in flight.
     pub render_pipeline: Gauge,
+    /// Atlases the renderers made.
+    pub atlases_created: Counter,
 }
 
 impl Default for Metrics {
@@ -198,6 +201,12 @@ impl Metrics {
         );
         let render_threads = Gauge::default();
         registry.register("render_threads", "Threads rendering batches (--render-threads)", render_threads.clone());
+        let atlases_created = Counter::default();
+        registry.register(
+            "render_atlases_created",
+            "Atlases (a batch's textures and buffers on the device) the renderers made",
+            atlases_created.clone(),
+        );
         let render_pipeline = Gauge::default();
         registry.register(
             "render_pipeline",
@@ -221,6 +230,7 @@ impl Metrics {
             stages,
             render_threads,
             render_pipeline,
+            atlases_created,
         }
     }
 

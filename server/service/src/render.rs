@@ -354,6 +354,7 @@ fn answer(
             Stages::add(&metrics.stages.render_encode, timings.encode);
             Stages::add(&metrics.stages.render_device, timings.device);
             Stages::add(&metrics.stages.render_extract, timings.extract);
+            metrics.atlases_created.inc_by(u64::from(timings.new_atlases));
             let mut outputs = outputs.into_iter();
             for job in jobs {
                 let mine: Vec<ViewOutput> = outputs.by_ref().take(job.views.len()).collect();

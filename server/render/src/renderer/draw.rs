@@ -78,6 +78,7 @@ impl Renderer {
             let taken = state.take(side, pages, full);
             if taken.is_none() {
                 state.created += 1;
+                timings.new_atlases += 1;
             }
             (taken, state.batches)
         };
@@ -259,6 +260,8 @@ pub struct RenderTimings {
     pub device: Duration,
     /// Cutting each view's images out of the mapped buffer (RGBA to RGB, depth, segmentation).
     pub extract: Duration,
+    /// Atlases made for the batch (none when the pool held one that fits each chunk).
+    pub new_atlases: u32,
 }
 
 impl RenderTimings {

@@ -86,6 +86,8 @@ async fn metrics_count_steps_episodes_and_render_batches() {
     }
     assert_eq!(value("esrp_render_threads"), 1.0, "auto: one thread on the software renderer");
     assert_eq!(value("esrp_render_pipeline"), 1.0, "auto: one batch in flight per thread");
+    // Batches of one and two views (the create's, then each step's) share one pooled atlas.
+    assert_eq!(value("esrp_render_atlases_created_total"), 1.0, "{text}");
     client.close_episode(proto::CloseEpisodeRequest { episode_id: created.episode_id }).await.unwrap();
     let text = server.scrape();
     assert!(text.contains("esrp_episodes_closed_total{reason=\"client\"} 1"), "{text}");
