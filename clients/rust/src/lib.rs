@@ -55,6 +55,7 @@ pub mod client;
 pub mod episode;
 pub mod error;
 pub mod local;
+pub mod malloc;
 pub mod random;
 pub mod raw;
 pub mod results;

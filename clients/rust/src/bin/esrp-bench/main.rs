@@ -519,6 +519,7 @@ fn cpu_model() -> String {
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     esrp_client::signals::exit_on_signals("esrp-bench")?;
+    esrp_client::malloc::keep_freed_memory();
     let mut server_args = args.server_args.clone();
     let claim_timeout = claim_timeout(&args, &mut server_args)?;
     if args.breakdown && args.server.is_none() && !server_args.iter().any(|a| a.starts_with("--metrics-listen")) {

@@ -252,6 +252,7 @@ fn describe_exit(status: std::process::ExitStatus) -> String {
 async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     esrp_client::signals::exit_on_signals("esrp-eval")?;
+    esrp_client::malloc::keep_freed_memory();
     let (address, mut local) = reach_or_start(args.server.as_deref(), None, &args.server_args)?;
     let client = Client::connect(&address).token_opt(args.token.as_deref()).await?;
     let info = client.server_info().await?;
