@@ -374,13 +374,6 @@ pub struct SubmittedBatch {
     timings: RenderTimings,
 }
 
-impl SubmittedBatch {
-    /// How many chunks (submissions) the batch was drawn in.
-    pub fn submissions(&self) -> usize {
-        self.chunks.len()
-    }
-}
-
 impl std::fmt::Debug for SubmittedBatch {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("SubmittedBatch").field("submissions", &self.chunks.len()).finish_non_exhaustive()
