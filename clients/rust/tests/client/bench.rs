@@ -58,3 +58,26 @@ fn several_servers_need_several_processes() {
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.contains("several servers need --processes"), "{stderr}");
 }
+
+/// `--client-threads`: a scenario of many episodes runs on one thread (a current-thread runtime)
+/// or on as many as asked; a count beyond 256 is refused.
+#[test]
+fn the_clients_runtime_threads_are_chosen() {
+    let server = start(&["--no-generate-ahead"]);
+    for threads in ["1", "3"] {
+        let output = Command::new(env!("CARGO_BIN_EXE_esrp-bench"))
+            .args(["--server", &server.address, "--client-threads", threads])
+            .args(["--scenarios", "unary-64,stream-mux-64", "--episodes", "3", "--seconds", "0.5"])
+            .output()
+            .expect("esrp-bench runs");
+        let stdout = String::from_utf8_lossy(&output.stdout);
+        assert!(output.status.success(), "{threads}: {stdout}\n{}", String::from_utf8_lossy(&output.stderr));
+        assert!(stdout.contains("unary-64") && stdout.contains("stream-mux-64"), "{stdout}");
+    }
+    let output = Command::new(env!("CARGO_BIN_EXE_esrp-bench"))
+        .args(["--server", &server.address, "--client-threads", "257", "--scenarios", "unary-1"])
+        .output()
+        .expect("esrp-bench runs");
+    assert!(!output.status.success());
+    assert!(String::from_utf8_lossy(&output.stderr).contains("--client-threads"));
+}

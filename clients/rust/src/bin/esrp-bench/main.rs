@@ -113,6 +113,13 @@ struct Args {
     /// `--episodes` episodes (not `memory-1000` or `soak`).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=256))]
     processes: u32,
+    /// Async runtime threads of each client process in the scenarios of many episodes (1: a
+    /// current-thread runtime; 0: auto, one per core with one process, and one per process with
+    /// `--processes` above one, the processes spreading the client over the cores: a process's
+    /// one connection gains little from more threads, and each hand-off between them costs a
+    /// wake-up). The scenarios of one episode always run on one thread.
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u16).range(0..=256))]
+    client_threads: u16,
 }
 
 /// The claim timeout given to a server started here (soak's cleanup waits for it).
@@ -447,6 +454,7 @@ fn in_processes(name: &str, args: &Args, addresses: &[String], metrics: Option<&
             .args(["--server", &addresses[i as usize % addresses.len()], "--scenarios", name])
             .args(["--seconds", &args.seconds.to_string(), "--episodes", &args.episodes.to_string()])
             .args(["--window", &args.window.to_string()])
+            .args(["--client-threads", &child_threads(args.client_threads).to_string()])
             .arg("--json")
             .arg(&json)
             .stdout(std::process::Stdio::null());
@@ -477,14 +485,24 @@ fn in_processes(name: &str, args: &Args, addresses: &[String], metrics: Option<&
 }
 
 /// The client's async runtime for a scenario: one thread for one episode (one agent process
-/// with one connection; a multi-threaded runtime would add a thread hand-off to every step),
-/// one per core for many.
-fn runtime_for(scenario: &str) -> std::io::Result<tokio::runtime::Runtime> {
-    if scenario.ends_with("-1") || scenario.ends_with("-1-pipelined") {
+/// with one connection; a multi-threaded runtime would add a thread hand-off to every step), and
+/// for many, `threads` threads (`--client-threads`: 1 a current-thread runtime, 0 one per core).
+fn runtime_for(scenario: &str, threads: u16) -> std::io::Result<tokio::runtime::Runtime> {
+    if scenario.ends_with("-1") || scenario.ends_with("-1-pipelined") || threads == 1 {
         tokio::runtime::Builder::new_current_thread().enable_all().build()
     } else {
-        tokio::runtime::Builder::new_multi_thread().enable_all().build()
+        let mut builder = tokio::runtime::Builder::new_multi_thread();
+        if threads > 1 {
+            builder.worker_threads(usize::from(threads));
+        }
+        builder.enable_all().build()
     }
+}
+
+/// The `--client-threads` of each client process that [`in_processes`] starts: the one given,
+/// or for auto (0) one each.
+fn child_threads(client_threads: u16) -> u16 {
+    if client_threads == 0 { 1 } else { client_threads }
 }
 
 /// The claim timeout the soak's cleanup waits for: `--server-claim-timeout` for a server named by
@@ -542,7 +560,8 @@ fn main() -> anyhow::Result<()> {
     }
     let metrics = metrics.filter(|_| args.breakdown);
     let connect = async || Client::connect(&address).token_opt(args.token.as_deref()).await;
-    let info = runtime_for("")?.block_on(async { anyhow::Ok(connect().await?.server_info().await?) })?;
+    let info =
+        runtime_for("", args.client_threads)?.block_on(async { anyhow::Ok(connect().await?.server_info().await?) })?;
     let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
     let cpu_model = cpu_model();
     println!(
@@ -569,7 +588,9 @@ fn main() -> anyhow::Result<()> {
                 rss_growth_limit_percent: args.rss_growth_limit,
                 claim_timeout: Duration::from_secs(claim_timeout),
             };
-            let report = runtime_for(name)?.block_on(soak::run(settings, local.as_ref())).context("scenario soak")?;
+            let report = runtime_for(name, args.client_threads)?
+                .block_on(soak::run(settings, local.as_ref()))
+                .context("scenario soak")?;
             report.print();
             results.push(Outcome {
                 name: name.clone(),
@@ -585,7 +606,7 @@ fn main() -> anyhow::Result<()> {
         let outcome = if args.processes > 1 && name != "memory-1000" {
             in_processes(name, &args, &addresses, metrics.as_deref())
         } else {
-            runtime_for(name)?
+            runtime_for(name, args.client_threads)?
                 .block_on(async { scenario(name, &args, &connect().await?, local.as_ref(), metrics.as_deref()).await })
         }
         .with_context(|| format!("scenario {name}"))?;
