@@ -10,7 +10,8 @@
 # leaves room for it (a skipped step is said in the summary):
 #   1. standard: esrp-bench's scenarios with the server's stage breakdown (--breakdown);
 #   2. scale-out at 8: 8 servers started first, driven by 8 client processes (one each) and by
-#      16 (two each), against one server driven by the same 8 processes;
+#      16 (two each), against one server driven by the same 8 processes; then 8 servers whose
+#      runtimes share the cores out (--worker-threads cores/8) driven by 8;
 #   3. pipeline: batches in flight per render thread (--render-pipeline 1, 2, 3), one server
 #      driven by 4 client processes (so that the client is not the limit), with the breakdown;
 #   4. threads: render threads 1, 2 and 4, one server driven by 4 client processes;
@@ -123,18 +124,20 @@ cat "$OUT_DIR/machine.txt" >&2
 # Scale-out: N servers started first (their start is not measured), the same client processes
 # against them (process i drives server i modulo N) and against the first alone.
 SERVERS=()
-start_server() { # start_server LOG: a server on a free port, its address once it listens
+start_server() { # start_server LOG [ARGS...]: a server on a free port, its address once it listens
     # Its stdin is a `sleep` that outlives the script at worst by the budget: its stderr goes
     # nowhere, so that it holds no pipe of whoever reads this script's output (a `| tee` would
     # wait for it).
-    "$BIN/esrp-server" --listen 127.0.0.1:0 --render-backend "$BACKEND" --no-generate-ahead \
-        --stop-on-stdin-close < <(exec sleep "$BUDGET" 2> /dev/null) > "$1" 2>&1 &
+    local log=$1
+    shift
+    "$BIN/esrp-server" --listen 127.0.0.1:0 --render-backend "$BACKEND" --no-generate-ahead "$@" \
+        --stop-on-stdin-close < <(exec sleep "$BUDGET" 2> /dev/null) > "$log" 2>&1 &
     SERVERS+=($!)
     for _ in $(seq 200); do
-        grep -q 'listening on' "$1" 2> /dev/null && break
+        grep -q 'listening on' "$log" 2> /dev/null && break
         sleep 0.1
     done
-    echo "http://$(grep -o 'listening on [^ ]*' "$1" | head -1 | awk '{print $3}')"
+    echo "http://$(grep -o 'listening on [^ ]*' "$log" | head -1 | awk '{print $3}')"
 }
 stop_servers() {
     for pid in "${SERVERS[@]}"; do kill "$pid" 2> /dev/null || true; done
@@ -159,6 +162,21 @@ scale_out() { # scale_out N: N servers against one, N client processes (and 2N a
             --seconds "$SECONDS_EACH" --json "$OUT_DIR/servers-8x2.json" >> "$OUT_DIR/bench.log" 2>&1 || true
     fi
     stop_servers
+    # The same 8 servers with the cores shared out among their runtimes (by default each takes
+    # the cores less one), driven by 8 processes.
+    if (( n == 8 )) && step "servers-8-shared" 30; then
+        local workers=$(( $(nproc) / n > 1 ? $(nproc) / n : 1 ))
+        addresses=()
+        for ((i = 0; i < n; i++)); do
+            addresses+=("$(start_server "$OUT_DIR/server-$n-$i-shared.txt" --worker-threads "$workers")")
+        done
+        list=$(IFS=,; echo "${addresses[*]}")
+        "$BIN/esrp-bench" --server "$list" --processes "$n" --scenarios stream-mux-64 --seconds 1 > /dev/null 2>&1 || true
+        measured "servers-8-shared" "$BIN/esrp-bench" --server "$list" --processes "$n" --scenarios stream-mux-64 \
+            --seconds "$SECONDS_EACH" --json "$OUT_DIR/servers-8-shared.json" >> "$OUT_DIR/bench.log" 2>&1 || true
+        echo "$workers" > "$OUT_DIR/servers-8-shared-workers.txt"
+        stop_servers
+    fi
 }
 
 # The per-step costs below are what each step took on the 2-core VM, rounded up.
@@ -166,7 +184,7 @@ if step standard 60; then
     bench standard.json --breakdown \
         --scenarios unary-1,stream-1,stream-1-pipelined,unary-64,streams-64,stream-mux-64,batch-64
 fi
-if step servers-8 70; then
+if step servers-8 100; then
     scale_out 8
 fi
 for depth in 1 2 3; do

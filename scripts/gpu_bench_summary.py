@@ -135,6 +135,14 @@ def scale_out(folder: Path) -> list[str]:
     doubled = load(folder, "servers-8x2.json")
     for r in doubled["results"] if doubled else []:
         rows.append(f"| 8 | 16 | {r['scenario']} | {rate(r)} | – | – | {cores(folder, 'servers-8x2')} / – |")
+    shared = load(folder, "servers-8-shared.json")
+    workers_file = folder / "servers-8-shared-workers.txt"
+    workers = workers_file.read_text(encoding="utf-8").strip() if workers_file.exists() else "?"
+    for r in shared["results"] if shared else []:
+        rows.append(
+            f"| 8 (--worker-threads {workers}) | 8 | {r['scenario']} | {rate(r)} | – | – "
+            f"| {cores(folder, 'servers-8-shared')} / – |"
+        )
     if not rows:
         return []
     return [
