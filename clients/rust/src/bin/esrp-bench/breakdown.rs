@@ -21,6 +21,8 @@ pub struct Sample {
     at: Instant,
     steps: f64,
     stages: Vec<f64>,
+    /// `esrp_render_atlases_created_total` (absent from servers older than it).
+    atlases: Option<f64>,
 }
 
 /// Fetches `url` (`http://HOST:PORT/metrics`) and reads the steps and stage counters from it.
@@ -51,7 +53,7 @@ pub fn parse(text: &str) -> anyhow::Result<Sample> {
                 .with_context(|| format!("the metrics have no stage {stage} (a server older than --breakdown?)"))
         })
         .collect::<anyhow::Result<_>>()?;
-    Ok(Sample { at: Instant::now(), steps, stages })
+    Ok(Sample { at: Instant::now(), steps, stages, atlases: value("esrp_render_atlases_created_total") })
 }
 
 /// What happened between two samples.
@@ -63,6 +65,9 @@ pub struct Breakdown {
     pub seconds: f64,
     /// Each stage's seconds.
     pub stages: Vec<f64>,
+    /// Atlases the server's renderers made meanwhile (device allocations; none once its pool
+    /// holds the batch sizes it needs), where the server counts them.
+    pub atlases: Option<f64>,
 }
 
 impl Breakdown {
@@ -72,6 +77,7 @@ impl Breakdown {
             steps: after.steps - before.steps,
             seconds: (after.at - before.at).as_secs_f64(),
             stages: after.stages.iter().zip(&before.stages).map(|(a, b)| a - b).collect(),
+            atlases: after.atlases.zip(before.atlases).map(|(a, b)| a - b),
         }
     }
 
@@ -84,6 +90,9 @@ impl Breakdown {
         )];
         for (stage, seconds) in STAGES.iter().zip(&self.stages) {
             lines.push(format!("  {:<18} {:>10.1} {:>8.2}", stage, per_step(*seconds), seconds / self.seconds));
+        }
+        if let Some(atlases) = self.atlases {
+            lines.push(format!("  atlases made: {atlases:.0}"));
         }
         lines
     }
@@ -98,7 +107,7 @@ impl Breakdown {
                 (stage.to_string(), serde_json::json!({ "us_per_step": per_step, "busy": seconds / self.seconds }))
             })
             .collect();
-        serde_json::json!({ "steps": self.steps, "seconds": self.seconds, "stages": stages })
+        serde_json::json!({ "steps": self.steps, "seconds": self.seconds, "stages": stages, "atlases_made": self.atlases })
     }
 }
 
@@ -110,7 +119,7 @@ mod tests {
         esrp_stage_seconds_total{stage=\"lock\"} 0.001\nesrp_stage_seconds_total{stage=\"take\"} 0.002\n\
         esrp_stage_seconds_total{stage=\"render_queue\"} 0.5\nesrp_stage_seconds_total{stage=\"render_encode\"} 0.1\n\
         esrp_stage_seconds_total{stage=\"render_device\"} 0.3\nesrp_stage_seconds_total{stage=\"render_extract\"} 0.05\n\
-        esrp_stage_seconds_total{stage=\"answer\"} 0.004\n# EOF\n";
+        esrp_stage_seconds_total{stage=\"answer\"} 0.004\nesrp_render_atlases_created_total 3\n# EOF\n";
 
     #[test]
     fn a_breakdown_divides_each_stage_by_the_steps_and_the_wall_time() {
@@ -123,7 +132,12 @@ mod tests {
         let encode = &b.to_json()["stages"]["render_encode"];
         assert!((encode["us_per_step"].as_f64().unwrap() - 1000.0).abs() < 1e-6, "{encode}");
         assert!((encode["busy"].as_f64().unwrap() - 0.1).abs() < 1e-9, "{encode}");
-        assert_eq!(b.lines().len(), 1 + STAGES.len());
+        assert_eq!(b.lines().len(), 1 + STAGES.len() + 1);
+        assert_eq!(b.to_json()["atlases_made"], 0.0);
+        let older = parse(&TEXT.replace("esrp_render_atlases_created_total 3\n", "")).unwrap();
+        let b = Breakdown::between(&older, &after);
+        assert!(b.atlases.is_none() && b.to_json()["atlases_made"].is_null());
+        assert_eq!(b.lines().len(), 1 + STAGES.len(), "no atlas line for a server that does not count them");
     }
 
     #[test]
