@@ -123,7 +123,10 @@ cat "$OUT_DIR/machine.txt" >&2
 
 # Scale-out: N servers started first (their start is not measured), the same client processes
 # against them (process i drives server i modulo N) and against the first alone.
-SERVERS=()
+# The servers' process ids, one a line: start_server runs in a command substitution, a subshell
+# whose variables do not come back.
+SERVER_PIDS=$OUT_DIR/.server-pids
+: > "$SERVER_PIDS"
 start_server() { # start_server LOG [ARGS...]: a server on a free port, its address once it listens
     # Its stdin is a `sleep` that outlives the script at worst by the budget: its stderr goes
     # nowhere, so that it holds no pipe of whoever reads this script's output (a `| tee` would
@@ -132,18 +135,26 @@ start_server() { # start_server LOG [ARGS...]: a server on a free port, its addr
     shift
     "$BIN/esrp-server" --listen 127.0.0.1:0 --render-backend "$BACKEND" --no-generate-ahead "$@" \
         --stop-on-stdin-close < <(exec sleep "$BUDGET" 2> /dev/null) > "$log" 2>&1 &
-    SERVERS+=($!)
+    echo "$!" >> "$SERVER_PIDS"
     for _ in $(seq 200); do
         grep -q 'listening on' "$log" 2> /dev/null && break
         sleep 0.1
     done
     echo "http://$(grep -o 'listening on [^ ]*' "$log" | head -1 | awk '{print $3}')"
 }
-stop_servers() {
-    for pid in "${SERVERS[@]}"; do kill "$pid" 2> /dev/null || true; done
-    for pid in "${SERVERS[@]}"; do wait "$pid" 2> /dev/null || true; done
-    SERVERS=()
+stop_servers() { # stops every server start_server started, and waits (10 s at most each) until it is gone
+    local pid
+    while read -r pid; do kill "$pid" 2> /dev/null || true; done < "$SERVER_PIDS"
+    # Not this shell's children (their subshell has ended): `wait` cannot see them.
+    while read -r pid; do
+        for _ in $(seq 100); do
+            kill -0 "$pid" 2> /dev/null || break
+            sleep 0.1
+        done
+    done < "$SERVER_PIDS"
+    : > "$SERVER_PIDS"
 }
+trap 'stop_servers; rm -f "$SERVER_PIDS"' EXIT
 scale_out() { # scale_out N: N servers against one, N client processes (and 2N against N servers at 8)
     local n=$1 addresses=() list target part i
     for ((i = 0; i < n; i++)); do addresses+=("$(start_server "$OUT_DIR/server-$n-$i.txt")"); done
