@@ -142,7 +142,7 @@ impl Renderer {
                 }
             }
         }
-        let failure = if let Some(reason) = self.lost.lock().ok().and_then(|slot| slot.clone()) {
+        let failure = if let Some(reason) = self.lost_reason() {
             Some(RenderError::DeviceLost { reason })
         } else if let Err(e) = polled {
             Some(RenderError::Readback { reason: e.to_string() })

@@ -313,19 +313,31 @@ impl Renderer {
         requests: &[ViewRequest<'_>],
     ) -> Result<(Vec<ViewOutput>, RenderTimings), RenderError> {
         let mut timings = RenderTimings::default();
-        if let Some(reason) = self.lost.lock().ok().and_then(|slot| slot.clone()) {
-            return Err(RenderError::DeviceLost { reason });
-        }
+        let full = self.check_batch(requests)?;
         if requests.is_empty() {
             return Ok((Vec::new(), timings));
         }
-        validate(requests, self.id, self.max_atlas)?;
-        let full = requests.iter().any(|r| r.outputs.any_extra());
         let mut outputs = Vec::with_capacity(requests.len());
         for chunk in chunks(requests, self.max_pages) {
             outputs.extend(self.render_chunk(&requests[chunk], full, &mut timings)?);
         }
         Ok((outputs, timings))
+    }
+
+    /// Why the device was lost, if it was.
+    pub(super) fn lost_reason(&self) -> Option<String> {
+        self.lost.lock().ok().and_then(|slot| slot.clone())
+    }
+
+    /// Checks a batch before it is drawn: the device is not lost and every request is valid
+    /// ([`validate`]). Returns whether the batch is drawn with the extra planes (any view asks
+    /// for depth or segmentation).
+    fn check_batch(&self, requests: &[ViewRequest<'_>]) -> Result<bool, RenderError> {
+        if let Some(reason) = self.lost_reason() {
+            return Err(RenderError::DeviceLost { reason });
+        }
+        validate(requests, self.id, self.max_atlas)?;
+        Ok(requests.iter().any(|r| r.outputs.any_extra()))
     }
 
     /// Starts rendering `requests` as [`Renderer::render_batch`] does, and returns once the
@@ -336,11 +348,7 @@ impl Renderer {
     /// [`CHUNK_VIEWS`] views. Errors of the requests and of the encoding are returned here.
     pub fn submit_batch(&self, requests: &[ViewRequest<'_>]) -> Result<SubmittedBatch, RenderError> {
         let mut timings = RenderTimings::default();
-        if let Some(reason) = self.lost.lock().ok().and_then(|slot| slot.clone()) {
-            return Err(RenderError::DeviceLost { reason });
-        }
-        validate(requests, self.id, self.max_atlas)?;
-        let full = requests.iter().any(|r| r.outputs.any_extra());
+        let full = self.check_batch(requests)?;
         let mut submitted = Vec::new();
         for chunk in chunks(requests, self.max_pages) {
             submitted.push(self.submit_chunk(&requests[chunk], full, &mut timings)?);

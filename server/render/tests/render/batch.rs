@@ -3,7 +3,9 @@
 use esrp_core::ObjectPose;
 use esrp_render::{Camera, Outputs, ViewOutput, ViewRequest};
 
-use crate::common::{bedroom, ego_at, one_box_room, pose, renderer, showcase, start, targets, uniform};
+use crate::common::{
+    bedroom, ego_at, one_box_room, own_renderer, pose, renderer, scattered_cameras, showcase, start, targets, uniform,
+};
 
 #[test]
 fn batch_output_is_identical_to_views_rendered_one_by_one() {
@@ -48,10 +50,7 @@ fn a_full_batch_of_scattered_views_matches_views_rendered_alone() {
     let handle = renderer().upload_scene(&scene).unwrap();
     let (_, now) = start(&scene);
     let goal = targets(&scene);
-    let mut unit = uniform(0x2545_f491_4f6c_dd1d);
-    let cameras: Vec<_> = (0..esrp_render::CHUNK_VIEWS)
-        .map(|_| ego_at(0.6 + 3.0 * unit(), 0.6 + 3.0 * unit(), (unit() * 16.0) as u8))
-        .collect();
+    let cameras = scattered_cameras(0x2545_f491_4f6c_dd1d, esrp_render::CHUNK_VIEWS);
     let requests: Vec<_> = cameras
         .iter()
         .enumerate()
@@ -79,10 +78,7 @@ fn a_batch_beyond_one_submission_is_chunked_and_matches_views_rendered_alone() {
     let handle = renderer().upload_scene(&scene).unwrap();
     let (_, now) = start(&scene);
     let goal = targets(&scene);
-    let mut unit = uniform(0x9e37_79b9_7f4a_7c15);
-    let cameras: Vec<_> = (0..esrp_render::CHUNK_VIEWS + 77)
-        .map(|_| ego_at(0.6 + 3.0 * unit(), 0.6 + 3.0 * unit(), (unit() * 16.0) as u8))
-        .collect();
+    let cameras = scattered_cameras(0x9e37_79b9_7f4a_7c15, esrp_render::CHUNK_VIEWS + 77);
     let mut requests: Vec<_> = cameras
         .iter()
         .enumerate()
@@ -171,12 +167,7 @@ fn renderer_is_usable_from_several_threads() {
 /// piece, and culling does skip work.
 #[test]
 fn culling_changes_no_pixel() {
-    let everything = esrp_render::Renderer::new(esrp_render::RendererConfig {
-        backends: crate::common::backend(),
-        cull: false,
-        ..esrp_render::RendererConfig::default()
-    })
-    .unwrap();
+    let everything = own_renderer(false);
     let mut unit = uniform(0x9e37_79b9_7f4a_7c15);
     let (mut drawn, mut total) = (0usize, 0usize);
     for scene in [bedroom(), showcase()] {
@@ -226,17 +217,11 @@ fn culling_changes_no_pixel() {
 /// the view rendered alone. Only a larger batch, or one with other planes, makes another.
 #[test]
 fn batches_of_varying_sizes_reuse_the_pooled_atlases() {
-    let own = esrp_render::Renderer::new(esrp_render::RendererConfig {
-        backends: crate::common::backend(),
-        ..esrp_render::RendererConfig::default()
-    })
-    .unwrap();
+    let own = own_renderer(true);
     let scene = bedroom();
     let handle = own.upload_scene(&scene).unwrap();
     let (_, now) = start(&scene);
-    let mut unit = uniform(0x5851_f42d_4c95_7f2d);
-    let cameras: Vec<_> =
-        (0..100).map(|_| ego_at(0.6 + 3.0 * unit(), 0.6 + 3.0 * unit(), (unit() * 16.0) as u8)).collect();
+    let cameras = scattered_cameras(0x5851_f42d_4c95_7f2d, 100);
     let alone: Vec<_> = cameras
         .iter()
         .map(|c| own.render_one(&ViewRequest::new(&handle, Camera::Ego(*c), &now)).unwrap().rgb)
@@ -275,9 +260,7 @@ fn batches_in_flight_together_match_views_rendered_alone() {
     let handle = renderer().upload_scene(&scene).unwrap();
     let (_, now) = start(&scene);
     let goal = targets(&scene);
-    let mut unit = uniform(0x2f1b_8c3d_6a55_e0f7);
-    let cameras: Vec<_> =
-        (0..90).map(|_| ego_at(0.6 + 3.0 * unit(), 0.6 + 3.0 * unit(), (unit() * 16.0) as u8)).collect();
+    let cameras = scattered_cameras(0x2f1b_8c3d_6a55_e0f7, 90);
     let request = |i: usize| {
         let r = if i % 9 == 4 {
             ViewRequest::new(&handle, Camera::TopDown, &goal)
@@ -322,11 +305,7 @@ fn batches_in_flight_together_match_views_rendered_alone() {
             assert!(o.segmentation == alone[i].segmentation, "view {i}: segmentation differs");
         }
     }
-    let other = esrp_render::Renderer::new(esrp_render::RendererConfig {
-        backends: crate::common::backend(),
-        ..esrp_render::RendererConfig::default()
-    })
-    .unwrap();
+    let other = own_renderer(true);
     let batch = renderer().submit_batch(&[request(0)]).unwrap();
     let error = other.finish_batch(batch).unwrap_err();
     assert!(matches!(error, esrp_render::RenderError::ForeignBatch), "{error}");

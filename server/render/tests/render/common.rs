@@ -222,6 +222,20 @@ pub fn ego_at(x: f64, z: f64, heading: u8) -> EgoCamera {
     }
 }
 
+/// `n` egocentric cameras scattered over the bedroom's floor (x and z in 0.6-3.6 m, any of the
+/// 16 headings), drawn from [`uniform`]`(seed)`.
+pub fn scattered_cameras(seed: u64, n: usize) -> Vec<EgoCamera> {
+    let mut unit = uniform(seed);
+    (0..n).map(|_| ego_at(0.6 + 3.0 * unit(), 0.6 + 3.0 * unit(), (unit() * 16.0) as u8)).collect()
+}
+
+/// A renderer of its own (not the shared [`renderer`]), on the tests' backend, culling or not:
+/// for tests that count its work or compare two renderers.
+pub fn own_renderer(cull: bool) -> Renderer {
+    Renderer::new(RendererConfig { backends: backend(), cull, ..RendererConfig::default() })
+        .unwrap_or_else(|e| panic!("esrp-render tests need a graphics adapter and found none: {e}"))
+}
+
 /// Pixels `(col, row)` whose segmentation id is `id`, and their centroid.
 pub fn pixels_with(segmentation: &[u32], resolution: u32, id: u32) -> (usize, (f64, f64)) {
     let (mut n, mut sc, mut sr) = (0usize, 0.0, 0.0);
