@@ -155,21 +155,28 @@ stop_servers() { # stops every server start_server started, and waits (10 s at m
     : > "$SERVER_PIDS"
 }
 trap 'stop_servers; rm -f "$SERVER_PIDS"' EXIT
+# start_servers N TAG [ARGS...]: N servers with ARGS (logs server-N-I[TAG].txt), their addresses in
+# ADDRESSES and comma-separated in LIST, the scenes built on each by a first unmeasured pass.
+start_servers() {
+    local n=$1 tag=$2 i
+    shift 2
+    ADDRESSES=()
+    for ((i = 0; i < n; i++)); do ADDRESSES+=("$(start_server "$OUT_DIR/server-$n-$i$tag.txt" "$@")"); done
+    LIST=$(IFS=,; echo "${ADDRESSES[*]}")
+    "$BIN/esrp-bench" --server "$LIST" --processes "$n" --scenarios stream-mux-64 --seconds 1 > /dev/null 2>&1 || true
+}
 scale_out() { # scale_out N: N servers against one, N client processes (and 2N against N servers at 8)
-    local n=$1 addresses=() list target part i
-    for ((i = 0; i < n; i++)); do addresses+=("$(start_server "$OUT_DIR/server-$n-$i.txt")"); done
-    list=$(IFS=,; echo "${addresses[*]}")
-    # A first unmeasured pass builds the scenes on every server.
-    "$BIN/esrp-bench" --server "$list" --processes "$n" --scenarios stream-mux-64 --seconds 1 > /dev/null 2>&1 || true
+    local n=$1 target part
+    start_servers "$n" ""
     for part in servers one; do
-        target=$list
-        [[ $part == one ]] && target=${addresses[0]}
+        target=$LIST
+        [[ $part == one ]] && target=${ADDRESSES[0]}
         measured "$part-$n" "$BIN/esrp-bench" --server "$target" --processes "$n" \
             --scenarios stream-mux-64,batch-64 --seconds "$SECONDS_EACH" --json "$OUT_DIR/$part-$n.json" \
             >> "$OUT_DIR/bench.log" 2>&1 || true
     done
     if (( n == 8 )) && step "servers-8x2" 20; then
-        measured "servers-8x2" "$BIN/esrp-bench" --server "$list" --processes 16 --scenarios stream-mux-64 \
+        measured "servers-8x2" "$BIN/esrp-bench" --server "$LIST" --processes 16 --scenarios stream-mux-64 \
             --seconds "$SECONDS_EACH" --json "$OUT_DIR/servers-8x2.json" >> "$OUT_DIR/bench.log" 2>&1 || true
     fi
     stop_servers
@@ -177,13 +184,8 @@ scale_out() { # scale_out N: N servers against one, N client processes (and 2N a
     # the cores less one), driven by 8 processes.
     if (( n == 8 )) && step "servers-8-shared" 30; then
         local workers=$(( $(nproc) / n > 1 ? $(nproc) / n : 1 ))
-        addresses=()
-        for ((i = 0; i < n; i++)); do
-            addresses+=("$(start_server "$OUT_DIR/server-$n-$i-shared.txt" --worker-threads "$workers")")
-        done
-        list=$(IFS=,; echo "${addresses[*]}")
-        "$BIN/esrp-bench" --server "$list" --processes "$n" --scenarios stream-mux-64 --seconds 1 > /dev/null 2>&1 || true
-        measured "servers-8-shared" "$BIN/esrp-bench" --server "$list" --processes "$n" --scenarios stream-mux-64 \
+        start_servers "$n" -shared --worker-threads "$workers"
+        measured "servers-8-shared" "$BIN/esrp-bench" --server "$LIST" --processes "$n" --scenarios stream-mux-64 \
             --seconds "$SECONDS_EACH" --json "$OUT_DIR/servers-8-shared.json" >> "$OUT_DIR/bench.log" 2>&1 || true
         echo "$workers" > "$OUT_DIR/servers-8-shared-workers.txt"
         stop_servers
