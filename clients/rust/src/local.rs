@@ -1,7 +1,7 @@
 //! [`LocalServer`]: an `esrp-server` child process on a free local port, for tools, tests and
 //! notebooks that want a server without a second terminal.
 
-use std::ffi::OsStr;
+use std::ffi::{OsStr, OsString};
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
@@ -59,6 +59,9 @@ pub struct LocalServer {
     _stdout: BufReader<ChildStdout>,
     /// `http://127.0.0.1:PORT`.
     pub address: String,
+    /// `unix:PATH`, the server's Unix domain socket, when started with `--listen-unix` (see
+    /// [`LocalServer::url`]).
+    pub unix: Option<String>,
     /// `http://127.0.0.1:PORT/metrics`, when started with `--metrics-listen`.
     pub metrics: Option<String>,
     /// `http://127.0.0.1:PORT/`, the web viewer, when started with `--http-listen`.
@@ -69,21 +72,52 @@ impl Drop for LocalServer {
     fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
+        // A killed server leaves its socket file behind.
+        if let Some(path) = self.unix.as_deref().and_then(|url| url.strip_prefix("unix:")) {
+            let _ = std::fs::remove_file(path);
+        }
     }
 }
 
+/// `args` with `--listen-unix` and a fresh [`socket_path`] added, so that the started server's
+/// [`LocalServer::url`] is its Unix domain socket (less kernel work per step than loopback TCP
+/// for the clients of this machine); unchanged where they already name a socket or ask for TLS
+/// (the socket serves plain HTTP/2 only).
+pub fn with_socket<S: AsRef<OsStr>>(args: &[S]) -> Vec<OsString> {
+    let named = |flag: &str| {
+        args.iter().any(|a| {
+            let a = a.as_ref().as_encoded_bytes();
+            a == flag.as_bytes() || a.strip_prefix(flag.as_bytes()).is_some_and(|rest| rest.starts_with(b"="))
+        })
+    };
+    let mut out: Vec<OsString> = args.iter().map(|a| a.as_ref().to_owned()).collect();
+    if !named("--listen-unix") && !named("--tls-cert") {
+        out.extend(["--listen-unix".into(), socket_path().into_os_string()]);
+    }
+    out
+}
+
+/// A fresh path for a local server's Unix domain socket (`--listen-unix`), in the temporary
+/// folder: `esrp-server-PID-N.sock`.
+pub fn socket_path() -> PathBuf {
+    static NEXT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    std::env::temp_dir().join(format!("esrp-server-{}-{n}.sock", std::process::id()))
+}
+
 /// The server at `address` if given, else a local one started now with `binary` and `args`
-/// (see [`LocalServer::start`]), running as long as the returned [`LocalServer`] lives.
-pub fn reach_or_start(
+/// (see [`LocalServer::start`]; its [`LocalServer::url`]), running as long as the returned
+/// [`LocalServer`] lives.
+pub fn reach_or_start<S: AsRef<OsStr>>(
     address: Option<&str>,
     binary: Option<PathBuf>,
-    args: &[String],
+    args: &[S],
 ) -> Result<(String, Option<LocalServer>)> {
     match address {
         Some(address) => Ok((address.to_owned(), None)),
         None => {
             let local = LocalServer::start(binary, args)?;
-            Ok((local.address.clone(), Some(local)))
+            Ok((local.url().to_owned(), Some(local)))
         }
     }
 }
@@ -97,7 +131,8 @@ impl LocalServer {
 
     /// The command [`LocalServer::start`] runs, for callers that adjust it (environment,
     /// stderr) before [`LocalServer::spawn`]: `esrp-server --listen 127.0.0.1:0
-    /// --stop-on-stdin-close ARGS`, with `ESRP_LOG` at `warn` unless set.
+    /// --stop-on-stdin-close ARGS`, with `ESRP_LOG` at `warn` unless set (and no
+    /// `ESRP_LISTEN_UNIX` from this process's environment: see [`with_socket`]).
     pub fn command<S: AsRef<OsStr>>(binary: Option<PathBuf>, args: &[S]) -> Result<Command> {
         let binary = match binary {
             Some(b) => b,
@@ -107,14 +142,22 @@ impl LocalServer {
         command
             .args(["--listen", "127.0.0.1:0", "--stop-on-stdin-close"])
             .args(args)
-            .env("ESRP_LOG", std::env::var("ESRP_LOG").unwrap_or_else(|_| "warn".into()));
+            .env("ESRP_LOG", std::env::var("ESRP_LOG").unwrap_or_else(|_| "warn".into()))
+            // A socket comes from the arguments only (`with_socket`): one inherited from this
+            // process's environment would print a line `spawn` does not expect.
+            .env_remove("ESRP_LISTEN_UNIX");
         Ok(command)
     }
 
     /// Spawns a server `command` with its stdin and stdout piped and waits until it listens; with
-    /// `--metrics-listen` or `--http-listen` among its arguments, reads the metrics or viewer
-    /// address too.
+    /// `--listen-unix`, `--metrics-listen` or `--http-listen` among its arguments, reads the
+    /// socket's, the metrics' or the viewer's address too.
     pub fn spawn(mut command: Command) -> Result<Self> {
+        let with_unix =
+            command.get_args().any(|a| a == "--listen-unix" || a.as_encoded_bytes().starts_with(b"--listen-unix="))
+                || command
+                    .get_envs()
+                    .any(|(name, value)| name == "ESRP_LISTEN_UNIX" && value.is_some_and(|v| !v.is_empty()));
         let with_metrics = command.get_args().any(|a| a == "--metrics-listen");
         let with_viewer = command.get_args().any(|a| a == "--http-listen");
         let program = Path::new(command.get_program()).display().to_string();
@@ -135,14 +178,22 @@ impl LocalServer {
             })
         };
         let address = format!("http://{}", read_line("esrp-server listening on ")?);
+        let unix = if with_unix { Some(read_line("esrp-server listening on ")?) } else { None };
         let metrics = if with_metrics { Some(read_line("esrp-server metrics on ")?) } else { None };
         let viewer = if with_viewer { Some(read_line("esrp-server viewer on ")?) } else { None };
-        Ok(Self { _stdin: child.stdin.take(), child, _stdout: stdout, address, metrics, viewer })
+        Ok(Self { _stdin: child.stdin.take(), child, _stdout: stdout, address, unix, metrics, viewer })
     }
 
-    /// Connection settings for this server (add a token or TLS, then `.await`).
+    /// What a client on this machine connects to: the Unix domain socket (`unix:PATH`) when
+    /// there is one, else the TCP `address`.
+    pub fn url(&self) -> &str {
+        self.unix.as_deref().unwrap_or(&self.address)
+    }
+
+    /// Connection settings for this server, at its [`LocalServer::url`] (add a token or TLS,
+    /// then `.await`).
     pub fn connect(&self) -> ConnectBuilder {
-        Client::connect(self.address.clone())
+        Client::connect(self.url().to_owned())
     }
 
     /// The process id.
@@ -171,5 +222,30 @@ impl LocalServer {
     /// returns its status.
     pub fn wait(&mut self) -> Result<std::process::ExitStatus> {
         self.child.wait().map_err(|e| ClientError::LocalServer(format!("cannot wait for the server: {e}")))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn with_socket_adds_a_fresh_socket_unless_one_is_named_or_tls_asked() {
+        let added = with_socket(&["--max-episodes", "8"]);
+        assert_eq!(added.len(), 4);
+        assert_eq!(added[2], "--listen-unix");
+        let path = PathBuf::from(&added[3]);
+        assert!(path.starts_with(std::env::temp_dir()) && path.extension() == Some(OsStr::new("sock")), "{path:?}");
+        assert_ne!(with_socket::<&str>(&[])[1], added[3], "each call a fresh path");
+        for named in [
+            &["--listen-unix", "/tmp/a.sock"][..],
+            &["--listen-unix=/tmp/a.sock"],
+            &["--tls-cert", "c.pem", "--tls-key", "k.pem"],
+            &["--tls-cert=c.pem"],
+        ] {
+            assert_eq!(with_socket(named), named.iter().map(OsString::from).collect::<Vec<_>>(), "{named:?}");
+        }
+        // A flag that only starts like it is not it.
+        assert_eq!(with_socket(&["--listen-unixish"]).len(), 3);
     }
 }

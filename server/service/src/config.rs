@@ -25,6 +25,12 @@ pub struct Config {
     /// Address to listen on (port 0 picks a free port; the bound address is logged and printed).
     #[arg(long, env = "ESRP_LISTEN", default_value = "127.0.0.1:50051")]
     pub listen: SocketAddr,
+    /// Serve gRPC on this Unix domain socket too, for clients on the same machine (`unix:PATH`):
+    /// less kernel work per step than loopback TCP. A socket file left by a killed server is
+    /// replaced; the file is removed at stop. Who may connect: the file's permissions (the
+    /// umask's; with the usual 022, this user only), and --token as on TCP. Plain HTTP/2 only.
+    #[arg(long, env = "ESRP_LISTEN_UNIX", conflicts_with = "tls_cert")]
+    pub listen_unix: Option<PathBuf>,
     /// Serve this dataset folder (from `esrp-dataset generate` or `import-3dfront`) instead of
     /// the built-in benchmark.
     #[arg(long, env = "ESRP_DATASET")]

@@ -32,6 +32,8 @@
 //! - [`metrics`]: Prometheus metrics and their HTTP endpoint.
 //! - [`error`]: [`error::ServiceError`], the typed errors of calls, and their one mapping to
 //!   gRPC status codes.
+//! - [`listen`]: where gRPC is served: the TCP listener and the Unix domain socket of
+//!   `--listen-unix` (bound, stale files replaced, removed at stop), one stream of connections.
 //! - [`serve`]: [`run`], the entry point `main` calls with its listeners and a shutdown signal,
 //!   in steps (the episode layer, the reaper, the side servers, the gRPC services with TLS, the
 //!   bounded drain, the ordered stop), and [`ServeError`], why the server could not start.
@@ -50,7 +52,7 @@
 //!   anything (`episodes::access`, the registry's owner and quota checks); the simulator and
 //!   the renderer know nothing of tokens.
 //! - **No import circle**: {`types`, `quote`} ← `records` ← `error` ← {`scenes`, `registry`,
-//!   `render`} ← `episodes` ← the adapters ← `serve` ← the crate root; `auth` uses only `types`
+//!   `render`} ← `episodes` ← the adapters ← `serve` ← the crate root (`listen` is a leaf `serve` uses); `auth` uses only `types`
 //!   (`scripts/module_cycles.py`, run by the tests, checks that no two modules use each other).
 //! - **No client input panics or stops the server**: every field is validated into a
 //!   [`error::ServiceError`] with a precise status code and a message that says what to change.
@@ -67,6 +69,7 @@ pub mod dm_env;
 pub mod episodes;
 pub mod error;
 pub mod esrp_v1;
+pub mod listen;
 pub mod metrics;
 pub mod quote;
 pub mod records;

@@ -169,6 +169,16 @@ async fn serve(config: Config) -> anyhow::Result<()> {
         .map_err(|e| anyhow::anyhow!("cannot listen on {}: {e}", config.listen))?;
     // Tests and scripts read the bound address (useful with port 0) from this line.
     println!("esrp-server listening on {}", listener.local_addr()?);
+    // With --listen-unix, the socket's line comes next (`unix:PATH`, what local clients connect to).
+    let unix = match &config.listen_unix {
+        Some(path) => {
+            let socket = esrp_server::listen::UnixSocket::bind(path)?;
+            let shown = std::path::absolute(path).unwrap_or_else(|_| path.clone());
+            println!("esrp-server listening on unix:{}", shown.display());
+            Some(socket)
+        }
+        None => None,
+    };
     let metrics_listener = match config.metrics_listen {
         Some(address) => {
             let listener = tokio::net::TcpListener::bind(address)
@@ -196,6 +206,6 @@ async fn serve(config: Config) -> anyhow::Result<()> {
         }
         None => None,
     };
-    let listeners = esrp_server::Listeners { grpc: listener, metrics: metrics_listener, viewer: viewer_listener };
+    let listeners = esrp_server::Listeners { grpc: listener, metrics: metrics_listener, viewer: viewer_listener, unix };
     Ok(esrp_server::run(listeners, config, signals.wait()).await?)
 }

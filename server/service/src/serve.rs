@@ -8,15 +8,18 @@
 //! for at most `--shutdown-grace-ms`, and stops everything in order.
 
 use std::future::Future;
+use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
 
 use tokio::net::TcpListener;
 use tokio::task::JoinHandle;
+use tokio_stream::Stream;
 use tonic::service::interceptor::InterceptedService;
 
 use crate::config::Config;
 use crate::episodes::Episodes;
+use crate::listen::{self, UnixSocket};
 use crate::{auth, dm_env, esrp_v1, metrics, proto, records, render, scenes, viewer};
 
 /// The target of the server's own log lines (start, serving, stop): the crate's, as when they
@@ -159,6 +162,9 @@ pub struct Listeners {
     pub metrics: Option<TcpListener>,
     /// The web viewer (`--http-listen`).
     pub viewer: Option<TcpListener>,
+    /// gRPC on a Unix domain socket too (`--listen-unix`); its file is removed as the server
+    /// stops.
+    pub unix: Option<UnixSocket>,
 }
 
 /// Serves gRPC (and Prometheus metrics and the web viewer, where their listeners are given) until
@@ -168,20 +174,23 @@ pub async fn run(
     config: Config,
     shutdown: impl Future<Output = ()> + Send,
 ) -> Result<(), ServeError> {
-    let Listeners { grpc: listener, metrics: metrics_listener, viewer: viewer_listener } = listeners;
+    let Listeners { grpc: listener, metrics: metrics_listener, viewer: viewer_listener, unix } = listeners;
     let tokens = Arc::new(tokens_of(&config)?);
     let episodes = build_episodes(&config)?;
     let render = episodes.render.clone();
     let address = listener
         .local_addr()
         .map_err(|source| ServeError::Io { what: "the listener has no address".into(), source })?;
-    log_serving(address, &tokens, &episodes);
+    log_serving(address, unix.as_ref().map(UnixSocket::path), &tokens, &episodes);
+    let (unix, socket_file) = unix.map(UnixSocket::into_parts).unzip();
 
     let reaper = spawn_reaper(episodes.clone(), config.idle_timeout(), config.claim_timeout());
     let metrics_server = metrics_listener.map(|listener| spawn_metrics(listener, episodes.clone()));
     let viewer_server = viewer_listener.map(|listener| spawn_viewer(listener, episodes.clone(), tokens.clone()));
 
-    let result = serve_grpc(listener, &config, &episodes, tokens, shutdown).await;
+    let result = serve_grpc(listen::incoming(listener, unix), &config, &episodes, tokens, shutdown).await;
+    // No longer listening: a client that comes now is refused, and the next server may bind.
+    drop(socket_file);
 
     // Shut down in order: the calls have drained (or the grace is over); end the background
     // tasks, then render what was submitted and join the render threads, so that no rendering
@@ -204,8 +213,11 @@ pub async fn run(
 }
 
 /// Logs what is served, where, and to whom.
-fn log_serving(address: std::net::SocketAddr, tokens: &auth::Tokens, episodes: &Episodes) {
+fn log_serving(address: std::net::SocketAddr, unix: Option<&Path>, tokens: &auth::Tokens, episodes: &Episodes) {
     tracing::info!(target: LOG_TARGET, %address, dataset = episodes.store.name(), scenes = episodes.store.infos().len(), "serving esrp.v1");
+    if let Some(path) = unix {
+        tracing::info!(target: LOG_TARGET, path = %path.display(), "serving on a Unix domain socket too");
+    }
     if tokens.required() {
         tracing::info!(target: LOG_TARGET, tokens = %tokens.summary().join(", "), "calls need a bearer token");
     }
@@ -277,10 +289,10 @@ async fn stop_task(task: JoinHandle<()>) {
 }
 
 /// Serves the gRPC services (health, reflection, and esrp.v1 and dm_env_rpc behind the token
-/// check) on `listener` until `shutdown` completes, then drains in-flight calls for at most
-/// `--shutdown-grace-ms`.
+/// check) on the `incoming` connections until `shutdown` completes, then drains in-flight calls
+/// for at most `--shutdown-grace-ms`.
 async fn serve_grpc(
-    listener: TcpListener,
+    incoming: impl Stream<Item = std::io::Result<listen::Connection>> + Send + 'static,
     config: &Config,
     episodes: &Arc<Episodes>,
     tokens: Arc<auth::Tokens>,
@@ -306,11 +318,7 @@ async fn serve_grpc(
         .add_service(reflection)
         .add_service(InterceptedService::new(esrp_v1::answered::Answered::new(esrp), check.clone()))
         .add_service(InterceptedService::new(dm_env, check))
-        // TCP_NODELAY: an agent waits for each answer, so Nagle + delayed ACK would add ~40 ms a step.
-        .serve_with_incoming_shutdown(
-            tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true)),
-            shutdown,
-        );
+        .serve_with_incoming_shutdown(incoming, shutdown);
     tokio::select! {
         result = serve => Ok(result?),
         () = drain_timeout => {

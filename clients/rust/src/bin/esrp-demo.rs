@@ -22,7 +22,8 @@ use tokio_stream::StreamExt;
 #[derive(Parser, Debug)]
 #[command(name = "esrp-demo", version, about = "Run the expert and a random agent on a few ESRP test scenes")]
 struct Args {
-    /// A running server (`http://host:port`); without it, esrp-demo starts one.
+    /// A running server (`http://host:port`, or `unix:PATH` for one serving `--listen-unix`);
+    /// without it, esrp-demo starts one and talks to it over a Unix domain socket.
     #[arg(long)]
     server: Option<String>,
     /// Number of test scenes.
@@ -134,7 +135,8 @@ async fn random(client: &Client, scenes: &[String], seed: u64) -> anyhow::Result
 async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     esrp_client::signals::exit_on_signals("esrp-demo")?;
-    let (address, _local) = reach_or_start(args.server.as_deref(), None, &[])?;
+    let (address, _local) =
+        reach_or_start(args.server.as_deref(), None, &esrp_client::local::with_socket::<&str>(&[]))?;
     let client = Client::connect(&address).token_opt(args.token.as_deref()).await?;
     let info = client.server_info().await?;
     println!(

@@ -81,3 +81,37 @@ fn the_clients_runtime_threads_are_chosen() {
     assert!(!output.status.success());
     assert!(String::from_utf8_lossy(&output.stderr).contains("--client-threads"));
 }
+
+/// `--transport unix`: the started server serves a Unix domain socket too and the clients (here
+/// two processes) connect through it; its file is gone when esrp-bench ends. A named server is
+/// reached as its URL says, so the flag is refused with one.
+#[test]
+fn clients_reach_a_started_server_over_its_socket() {
+    let binary = esrp_client::find_server_binary().expect("esrp-server is built (cargo build -p esrp-server)");
+    let output = Command::new(env!("CARGO_BIN_EXE_esrp-bench"))
+        .arg("--server-binary")
+        .arg(binary)
+        .arg("--server-args=--no-generate-ahead")
+        .args(["--transport", "unix", "--processes", "2", "--scenarios", "stream-mux-64,unary-1"])
+        .args(["--episodes", "3", "--seconds", "0.5"])
+        .env("NODEVICE_SELECT", "1")
+        .output()
+        .expect("esrp-bench runs");
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(output.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&output.stderr));
+    let socket = stdout
+        .split_whitespace()
+        .find_map(|word| word.strip_prefix("unix:"))
+        .unwrap_or_else(|| panic!("esrp-bench names the socket it drove: {stdout}"));
+    let socket = socket.trim_end_matches(':');
+    assert!(stdout.contains("stream-mux-64") && stdout.contains("2 processes"), "{stdout}");
+    assert!(!std::path::Path::new(socket).exists(), "{socket} is left behind");
+
+    let output = Command::new(env!("CARGO_BIN_EXE_esrp-bench"))
+        .args(["--server", "http://127.0.0.1:1", "--transport", "unix", "--scenarios", "unary-1"])
+        .output()
+        .expect("esrp-bench runs");
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("--server unix:PATH"), "{stderr}");
+}

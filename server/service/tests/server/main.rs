@@ -14,3 +14,4 @@ mod lifecycle;
 mod replays;
 mod scene_cache;
 mod smoke;
+mod unix_socket;

@@ -48,8 +48,9 @@ mod soak;
 #[derive(Parser, Debug)]
 #[command(name = "esrp-bench", version, about = "End-to-end throughput and latency of esrp-server")]
 struct Args {
-    /// A running server (`http://host:port`); without it, esrp-bench starts the `esrp-server`
-    /// next to its own executable on a free local port. With `--processes`, several servers
+    /// A running server (`http://host:port`, or `unix:PATH` for one serving `--listen-unix`);
+    /// without it, esrp-bench starts the `esrp-server` next to its own executable on a free
+    /// local port (see `--transport`). With `--processes`, several servers
     /// may be named, comma-separated: process i drives server i modulo their number (scale-out
     /// measured with the same clients as one server).
     #[arg(long)]
@@ -60,6 +61,12 @@ struct Args {
     /// Extra arguments for the started server, e.g. `--server-args=--render-backend=gl`.
     #[arg(long, allow_hyphen_values = true, value_delimiter = ' ')]
     server_args: Vec<String>,
+    /// How the clients reach the server started here: `tcp` (loopback, as a client on another
+    /// machine would, less the network) or `unix` (the server also serves a Unix domain socket,
+    /// `--listen-unix`, and the clients connect through it, as the tools and the Python envs do
+    /// with a server of their own). A server named by `--server` is reached as its URL says.
+    #[arg(long, value_enum, default_value_t = Transport::Tcp)]
+    transport: Transport,
     /// Measured seconds per scenario.
     #[arg(long, default_value_t = 5.0)]
     seconds: f64,
@@ -120,6 +127,15 @@ struct Args {
     /// wake-up). The scenarios of one episode always run on one thread.
     #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u16).range(0..=256))]
     client_threads: u16,
+}
+
+/// How the clients reach a server started here (`--transport`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum Transport {
+    /// Loopback TCP.
+    Tcp,
+    /// A Unix domain socket (`--listen-unix`).
+    Unix,
 }
 
 /// The claim timeout given to a server started here (soak's cleanup waits for it).
@@ -540,6 +556,13 @@ fn main() -> anyhow::Result<()> {
     esrp_client::malloc::keep_freed_memory();
     let mut server_args = args.server_args.clone();
     let claim_timeout = claim_timeout(&args, &mut server_args)?;
+    if args.transport == Transport::Unix {
+        if args.server.is_some() {
+            bail!("--transport unix is for the server started here: name a server's socket as --server unix:PATH");
+        }
+        let path = esrp_client::local::socket_path();
+        server_args.extend(["--listen-unix".to_owned(), path.display().to_string()]);
+    }
     if args.breakdown && args.server.is_none() && !server_args.iter().any(|a| a.starts_with("--metrics-listen")) {
         server_args.extend(["--metrics-listen".to_owned(), "127.0.0.1:0".to_owned()]);
     }

@@ -67,7 +67,8 @@ struct Args {
     /// Planner calls after the first when an episode goes on after a plan.
     #[arg(long, default_value_t = 2)]
     replans: u32,
-    /// A running server (`http://host:port`); without it, esrp-eval starts one.
+    /// A running server (`http://host:port`, or `unix:PATH` for one serving `--listen-unix`);
+    /// without it, esrp-eval starts one and talks to it over a Unix domain socket.
     #[arg(long)]
     server: Option<String>,
     /// An argument for the server esrp-eval starts (repeat it for several).
@@ -253,7 +254,8 @@ async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     esrp_client::signals::exit_on_signals("esrp-eval")?;
     esrp_client::malloc::keep_freed_memory();
-    let (address, mut local) = reach_or_start(args.server.as_deref(), None, &args.server_args)?;
+    let (address, mut local) =
+        reach_or_start(args.server.as_deref(), None, &esrp_client::local::with_socket(&args.server_args))?;
     let client = Client::connect(&address).token_opt(args.token.as_deref()).await?;
     let info = client.server_info().await?;
     eprintln!(
