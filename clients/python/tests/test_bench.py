@@ -123,3 +123,28 @@ def test_bench_processes_leave_other_programs_out(capsys: pytest.CaptureFixture[
             bench.main(arguments)
         assert exit_info.value.code == 2
         assert said in capsys.readouterr().err
+
+
+def test_bench_reaches_a_server_it_starts_over_its_socket(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    report = tmp_path / "bench.json"
+    arguments = ["--socket", "--scenarios", "client-1,vec-64,rust", "--seconds", "0.3", "--warmup", "0.1"]
+    arguments += ["--warmup-rounds", "0", "--json", str(report)]
+    assert bench.main(arguments) == 0
+    out = capsys.readouterr().out
+    written = json.loads(report.read_text())
+    assert written["server"].startswith("unix:"), written["server"]
+    assert written["server"].endswith("/server.sock"), written["server"]
+    rows = {row["scenario"]: row for row in written["results"]}
+    assert rows["vec-64"]["steps_per_second"] > 0, out
+    # The Rust esrp-bench, where built, is pointed at the same socket.
+    assert "rust:unary-1" in rows or "skipped" in out
+    assert not Path(written["server"].removeprefix("unix:")).exists()
+
+
+def test_bench_socket_is_for_its_own_server(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        bench.main(["--socket", "--server", "127.0.0.1:1"])
+    assert exit_info.value.code == 2
+    assert "--server unix:PATH" in capsys.readouterr().err

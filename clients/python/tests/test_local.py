@@ -125,3 +125,53 @@ def test_the_server_log_is_kept_without_ansi_colours() -> None:
     assert " INFO esrp_server: serving esrp.v1 address=" in log
     assert "\x1b[" not in log
     assert server.log_tail() == ""  # stopped: the log went with it
+
+
+def test_a_unix_socket_serves_both_transports_as_tcp(easy_scenes: list[str]) -> None:
+    """`unix_socket=True`: `address` is the socket (`unix:PATH`), `tcp_address` the port; the
+    same scene and actions answer the same over TCP and over the socket, on grpcio and (where
+    installed) the native transport; the socket's folder goes with the server.
+    """
+    server = esrp.LocalServer(unix_socket=True).start()
+    try:
+        assert server.address.startswith("unix:")
+        assert server.address.endswith("/server.sock")
+        assert server.tcp_address.startswith("127.0.0.1:")
+        path = Path(server.address.removeprefix("unix:"))
+        assert path.is_socket()
+        transports = ["grpcio"] + (["native"] if esrp._native.available() else [])
+        runs = {}
+        for address in (server.tcp_address, server.address):
+            for transport in transports:
+                with esrp.Client(address, transport=transport) as client:  # type: ignore[arg-type]
+                    assert client.transport == transport
+                    with client.create_episode(easy_scenes[0]) as episode:
+                        actions = [esrp.Action.LEFT, esrp.Action.FORWARD] * 3
+                        steps = [episode.step(action) for action in actions]
+                runs[(address, transport)] = [
+                    (s.observation.ego_rgb.tobytes(), s.reward, s.terminated, s.truncated) for s in steps
+                ]
+        first = next(iter(runs.values()))
+        assert all(run == first for run in runs.values()), list(runs)
+    finally:
+        assert server.stop() == 0
+    assert not path.exists()
+    assert not path.parent.exists()
+
+
+def test_an_env_reaches_its_own_server_over_a_socket() -> None:
+    from esrp.envs import RearrangeEnv
+
+    env = RearrangeEnv(split="test", difficulty="easy", horizon=4)
+    try:
+        assert env.client.address.startswith("unix:")
+        observation, _ = env.reset(seed=3)
+        assert observation["ego_rgb"].shape == (128, 128, 3)
+        env.step(0)
+    finally:
+        env.close()
+
+
+def test_a_socket_with_tls_is_refused() -> None:
+    with pytest.raises(ValueError, match="plain HTTP/2"):
+        esrp.LocalServer("--tls-cert", "c.pem", "--tls-key", "k.pem", unix_socket=True)

@@ -223,6 +223,16 @@ def test_resolve() -> None:
     assert _native.resolve("grpcio", secure=False) == "grpcio"
     assert _native.resolve("auto", secure=True) == "grpcio"
     assert _native.resolve("native", secure=False) == "native"
+    # The native channel reaches host:port and unix:PATH; other gRPC target forms are grpcio's.
+    assert _native.url("127.0.0.1:50051") == "http://127.0.0.1:50051"
+    assert _native.url("unix:/tmp/esrp.sock") == "unix:/tmp/esrp.sock"
+    assert _native.url("unix:///tmp/esrp.sock") == "unix:///tmp/esrp.sock"
+    for other in ("dns:///localhost:50051", "unix-abstract:esrp", "vsock:3:50051", "ipv4:127.0.0.1:50051"):
+        assert _native.url(other) is None
+        assert _native.resolve("auto", secure=False, address=other) == "grpcio"
+        with pytest.raises(ValueError, match="transport='grpcio'"):
+            _native.resolve("native", secure=False, address=other)
+    assert _native.resolve("native", secure=False, address="unix:/tmp/esrp.sock") == "native"
 
 
 def test_answers_are_parsed_in_place(server: esrp.LocalServer, easy_scenes: list[str]) -> None:

@@ -99,7 +99,7 @@ class AsyncClient(ClientBase):
     ) -> None:
         super().__init__(address, token, tls)
         creds = self._credentials
-        arguments = channel_options(tls_server_name, options)
+        arguments = channel_options(tls_server_name, options, self.address)
         if creds is None:
             self._channel = grpc.aio.insecure_channel(self.address, options=arguments)
         else:

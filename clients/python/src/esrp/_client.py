@@ -84,7 +84,8 @@ class Client(ClientBase):
     threads). Use it as a context manager, or call `close()`.
 
     Args:
-        address: `host:port`, `http://host:port`, or `https://host:port` (TLS).
+        address: `host:port`, `http://host:port`, `https://host:port` (TLS), or `unix:PATH` (a
+            server's `--listen-unix` socket on this machine: less kernel work per step than TCP).
         token: Sent as `authorization: Bearer TOKEN` on every call (the server's `--token`).
         tls: TLS setting: True (system roots), the CA's PEM bytes, a path to the CA's PEM file, or
             `grpc.ChannelCredentials`; None/False for a plain channel (unless `https://`).
@@ -118,8 +119,8 @@ class Client(ClientBase):
     ) -> None:
         super().__init__(address, token, tls)
         creds = self._credentials
-        self.transport = _native.resolve(transport, creds is not None)
-        arguments = channel_options(tls_server_name, options)
+        self.transport = _native.resolve(transport, creds is not None, self.address)
+        arguments = channel_options(tls_server_name, options, self.address)
         if creds is None:
             self._channel = grpc.insecure_channel(self.address, options=arguments)
         else:

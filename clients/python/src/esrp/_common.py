@@ -44,14 +44,16 @@ PEM bytes of the CA that signed the server's certificate, a path to that PEM fil
 `grpc.ChannelCredentials` (e.g. `grpc.ssl_channel_credentials(...)`)."""
 
 
-def channel_options(tls_server_name: str | None, extra: ChannelOptions) -> list[tuple[str, Any]]:
-    """The channel arguments of every client.
+def channel_options(
+    tls_server_name: str | None, extra: ChannelOptions, address: str = ""
+) -> list[tuple[str, Any]]:
+    """The channel arguments of every client (of a server at `address`).
 
     An agent waits for every answer and a batch moves megabytes: gRPC core sets TCP_NODELAY on its
     sockets itself; the message limits are raised from grpcio's 4 MiB (an observation is ~49 KB, so a
     StepBatch of ~85 episodes exceeds that); each stream starts with a 16 MiB window, and BDP probing
-    (on by default) grows the connection's window as the Rust client's 64 MiB one. `extra` options
-    come last and win.
+    (on by default) grows the connection's window as the Rust client's 64 MiB one. Over a Unix domain
+    socket (`unix:PATH`) the authority is `localhost`. `extra` options come last and win.
     """
     options: list[tuple[str, Any]] = [
         ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
@@ -61,6 +63,10 @@ def channel_options(tls_server_name: str | None, extra: ChannelOptions) -> list[
     ]
     if tls_server_name is not None:
         options.append(("grpc.ssl_target_name_override", tls_server_name))
+    if address.startswith("unix:"):
+        # gRPC core sends a socket's path, percent-encoded, as the `:authority`; the server's HTTP/2
+        # layer refuses that as malformed (PROTOCOL_ERROR): `localhost`, as Kubernetes and tonic do.
+        options.append(("grpc.default_authority", "localhost"))
     names = {name for name, _ in extra}
     return [option for option in options if option[0] not in names] + list(extra)
 

@@ -40,13 +40,33 @@ def available() -> bool:
     return _extension is not None
 
 
-def resolve(transport: str, secure: bool) -> Literal["native", "grpcio"]:
+def url(address: str) -> str | None:
+    """What the native channel connects to for a gRPC `address` (after `target`): `unix:PATH` as
+    it is, `host:port` as `http://host:port`; None for the target forms only grpcio resolves
+    (`dns:`, `unix-abstract:`, `vsock:`, `ipv4:`, `ipv6:`).
+    """
+    if address.startswith("unix:"):
+        return address
+    if address.startswith(("dns:", "unix-abstract:", "vsock:", "ipv4:", "ipv6:")):
+        return None
+    return f"http://{address}"
+
+
+def resolve(transport: str, secure: bool, address: str | None = None) -> Literal["native", "grpcio"]:
     """The transport a `Client` uses for its hot path: `auto` takes the native one where it is
-    installed and the channel is plain; `native` insists (ValueError where it cannot be had).
+    installed, the channel is plain and the native channel can reach `address` (see `url`);
+    `native` insists (ValueError where it cannot be had).
     """
     if transport not in ("auto", "native", "grpcio"):
         raise ValueError(f"transport {transport!r}: use 'auto', 'native' or 'grpcio'")
     if transport == "grpcio":
+        return "grpcio"
+    if address is not None and url(address) is None:
+        if transport == "native":
+            raise ValueError(
+                f"the native transport reaches host:port and unix:PATH addresses, not {address!r}: "
+                "use transport='grpcio'"
+            )
         return "grpcio"
     if _extension is None:
         if transport == "native":
@@ -80,11 +100,14 @@ class NativeRpcError(grpc.RpcError):
 
 
 def channel(address: str, token: str | None) -> Any:  # noqa: ANN401
-    """A native channel to `address` (`host:port`) that sends `token` with every call; it
-    connects at the first call.
+    """A native channel to `address` (`host:port` or `unix:PATH`) that sends `token` with every
+    call; it connects at the first call.
     """
     assert _extension is not None
-    return _extension.Channel(f"http://{address}", token)
+    reached = url(address)
+    if reached is None:
+        raise ValueError(f"the native transport cannot reach {address!r}: use transport='grpcio'")
+    return _extension.Channel(reached, token)
 
 
 def methods() -> list[str]:

@@ -345,7 +345,7 @@ def bench_rust(address: str, token: str | None, seconds: float, names: Sequence[
         command = [
             str(binary),
             "--server",
-            address if "://" in address else f"http://{address}",
+            address if "://" in address or address.startswith("unix:") else f"http://{address}",
             "--seconds",
             f"{seconds}",
             "--scenarios",
@@ -592,13 +592,13 @@ def _json_report(rounds: Sequence[Sequence[Measurement]], info: dict[str, Any]) 
 
 
 @contextlib.contextmanager
-def _server(address: str | None) -> Iterator[str]:
+def _server(address: str | None, unix_socket: bool) -> Iterator[str]:
     if address is not None:
         yield address
         return
     from .._local import LocalServer
 
-    with LocalServer() as local:
+    with LocalServer(unix_socket=unix_socket) as local:
         yield local.address
 
 
@@ -611,7 +611,14 @@ def _parse_args(argv: Sequence[str] | None, prog: str) -> argparse.Namespace:
         description="Throughput and latency of the esrp Python client, beside the Rust client and MiniWorld.",
     )
     parser.add_argument(
-        "--server", help="a running server, host:port (default: start esrp-server on a free port)"
+        "--server",
+        help="a running server, host:port or unix:PATH (default: start esrp-server on a free port)",
+    )
+    parser.add_argument(
+        "--socket",
+        action="store_true",
+        help="the server started here also serves a Unix domain socket (--listen-unix) and the "
+        "clients connect through it, as an env that starts its own server does (default: loopback TCP)",
     )
     parser.add_argument("--token", default=os.environ.get("ESRP_TOKEN"), help="bearer token (env ESRP_TOKEN)")
     parser.add_argument(
@@ -661,6 +668,8 @@ def _parse_args(argv: Sequence[str] | None, prog: str) -> argparse.Namespace:
     unknown = [name for name in args.scenarios if name not in SCENARIOS]
     if unknown:
         parser.error(f"unknown scenario(s) {', '.join(unknown)}: use {', '.join(SCENARIOS)}")
+    if args.socket and args.server is not None:
+        parser.error("--socket is for the server started here: name a server's socket as --server unix:PATH")
     if not 1 <= args.processes <= 256:
         parser.error("--processes must be between 1 and 256")
     if args.processes > 1 and {"rust", "miniworld"} & set(args.scenarios):
@@ -749,7 +758,7 @@ def _summed(reports: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def _main_processes(args: argparse.Namespace) -> int:
     """`--processes N`: the children's reports, summed, printed and written."""
-    with _server(args.server) as address:
+    with _server(args.server, args.socket) as address:
         print(f"server {address}: {args.processes} processes at once", flush=True)
         reports = _in_processes(args, address)
     rows = _summed(reports)
@@ -780,7 +789,7 @@ def _main(args: argparse.Namespace) -> int:
         flush=True,
     )
     rounds: list[list[Measurement]] = []
-    with _server(args.server) as address:
+    with _server(args.server, args.socket) as address:
         with Client(address, token=args.token) as client:
             info = client.server_info()
         transports = {}

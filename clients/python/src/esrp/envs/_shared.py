@@ -194,7 +194,7 @@ class Setup:
         owned = client is None
         if client is None:
             if address is None:
-                server = LocalServer().start()
+                server = LocalServer(unix_socket=True).start()
                 address = server.address
             client = Client(address, token=token, tls=tls)
         try:

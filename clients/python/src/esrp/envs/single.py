@@ -22,7 +22,8 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
     """The ESRP task as a Gymnasium env (`gymnasium.make("esrp/Rearrange-v1", ...)`).
 
     Args:
-        address: The server (`host:port`); None starts a `LocalServer` that the env owns.
+        address: The server (`host:port`, or `unix:PATH` for a `--listen-unix` socket); None
+            starts a `LocalServer` that the env owns, reached over its Unix domain socket.
         client: A `Client` to share instead (the env then does not close it).
         token: The server's bearer token.
         tls: TLS setting, as `Client`'s.
