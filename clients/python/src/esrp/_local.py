@@ -15,7 +15,7 @@ import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import IO, Any
+from typing import IO, Any, Literal
 
 import grpc
 
@@ -169,7 +169,9 @@ class LocalServer:
         unix_socket: Serve a Unix domain socket too (`--listen-unix`), and make `address` it
             (`unix:PATH`): the clients of this machine then pass a step's observation with about
             half the kernel work of loopback TCP. `tcp_address` stays the TCP one. The socket's
-            folder is removed at `stop()`. Not with `--tls-cert` (the socket is plain HTTP/2).
+            folder is removed at `stop()`. Not with `--tls-cert` (the socket is plain HTTP/2);
+            `"auto"`: a socket unless `--tls-cert` is among `args` (what the package's own tools
+            use for the servers they start and talk to).
 
     Example:
         >>> with esrp.LocalServer() as server, server.client() as client:    # doctest: +SKIP
@@ -184,12 +186,15 @@ class LocalServer:
         startup_timeout: float = 60.0,
         stop_timeout: float = 10.0,
         check_version: bool = True,
-        unix_socket: bool = False,
+        unix_socket: bool | Literal["auto"] = False,
     ) -> None:
-        if unix_socket and any(a == "--tls-cert" or a.startswith("--tls-cert=") for a in args):
+        tls = any(a == "--tls-cert" or a.startswith("--tls-cert=") for a in args)
+        if unix_socket == "auto":
+            unix_socket = not tls
+        elif unix_socket is True and tls:
             raise ValueError("unix_socket=True serves plain HTTP/2: leave out --tls-cert, or unix_socket")
         self.args: Sequence[str] = args
-        self.unix_socket = unix_socket
+        self.unix_socket: bool = bool(unix_socket)
         self._socket_dir: str | None = None
         self.binary = Path(binary) if binary is not None else None
         self.env = dict(env or {})

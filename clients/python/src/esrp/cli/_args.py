@@ -165,5 +165,5 @@ def on_server(args: argparse.Namespace, run: Callable[[str], int]) -> int:
         return run(args.server)
     from .._local import LocalServer
 
-    with LocalServer(*args.server_args) as local:
+    with LocalServer(*args.server_args, unix_socket="auto") as local:
         return run(local.address)

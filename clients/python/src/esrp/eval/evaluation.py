@@ -862,7 +862,7 @@ def run_eval(
 
     if server is not None:
         return asyncio.run(main(server))
-    with LocalServer(*server_args) as local:
+    with LocalServer(*server_args, unix_socket="auto") as local:
         return asyncio.run(main(local.address, local))
 
 

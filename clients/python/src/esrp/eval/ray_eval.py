@@ -97,7 +97,7 @@ class EvalActor:
         self.server: LocalServer | None = None
         if address is None:
             server_flags = [*server_args, *(["--token", token] if token else [])]
-            self.server = LocalServer(*server_flags).start()
+            self.server = LocalServer(*server_flags, unix_socket="auto").start()
             address = self.server.address
         self.address = address
         self.factory = agent_factory(settings)

@@ -460,7 +460,7 @@ def replay_to_file(
     if server is not None:
         replay = run(server)
     else:
-        with LocalServer(*server_args) as local:
+        with LocalServer(*server_args, unix_socket="auto") as local:
             replay = run(local.address)
     write_frames(replay.frames, out, fps=fps)
     return replay

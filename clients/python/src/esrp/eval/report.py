@@ -513,7 +513,7 @@ def _stills(
             except ServerUnavailable as error:
                 raise ReportError(unreachable(server, error)) from None
             return draw(client)
-    with LocalServer(*server_args) as local, local.client(timeout=120) as client:
+    with LocalServer(*server_args, unix_socket="auto") as local, local.client(timeout=120) as client:
         return draw(client)
 
 

@@ -466,5 +466,5 @@ def run_verify(
 
     if server is not None:
         return asyncio.run(main(server))
-    with LocalServer(*server_args) as local:
+    with LocalServer(*server_args, unix_socket="auto") as local:
         return asyncio.run(main(local.address, local))

@@ -64,7 +64,7 @@ class TrainServer:
         if self._address is not None:
             return self._address
         if self.local is None:
-            self.local = LocalServer(*self.server_args)
+            self.local = LocalServer(*self.server_args, unix_socket="auto")
             self.local.start()
         return self.local.address
 
