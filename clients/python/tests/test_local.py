@@ -6,6 +6,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 import urllib.request
 from pathlib import Path
@@ -130,12 +131,12 @@ def test_the_server_log_is_kept_without_ansi_colours() -> None:
 def test_a_unix_socket_serves_both_transports_as_tcp(easy_scenes: list[str]) -> None:
     """`unix_socket=True`: `address` is the socket (`unix:PATH`), `tcp_address` the port; the
     same scene and actions answer the same over TCP and over the socket, on grpcio and (where
-    installed) the native transport; the socket's folder goes with the server.
+    installed) the native transport; the socket's file goes with the server.
     """
     server = esrp.LocalServer(unix_socket=True).start()
     try:
         assert server.address.startswith("unix:")
-        assert server.address.endswith("/server.sock")
+        assert server.address.endswith(".sock")
         assert server.tcp_address.startswith("127.0.0.1:")
         path = Path(server.address.removeprefix("unix:"))
         assert path.is_socket()
@@ -156,7 +157,6 @@ def test_a_unix_socket_serves_both_transports_as_tcp(easy_scenes: list[str]) -> 
     finally:
         assert server.stop() == 0
     assert not path.exists()
-    assert not path.parent.exists()
 
 
 def test_an_env_reaches_its_own_server_over_a_socket() -> None:
@@ -175,3 +175,37 @@ def test_an_env_reaches_its_own_server_over_a_socket() -> None:
 def test_a_socket_with_tls_is_refused() -> None:
     with pytest.raises(ValueError, match="plain HTTP/2"):
         esrp.LocalServer("--tls-cert", "c.pem", "--tls-key", "k.pem", unix_socket=True)
+
+
+def test_sockets_of_killed_servers_are_swept_at_the_next_start(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A socket file left by a killed server is removed at the next start when the process that
+    started it is gone and nothing answers on it; a live one, and other files, are kept.
+    """
+    import socket as sockets
+
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    monkeypatch.setattr(tempfile, "tempdir", None)
+    gone = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True, check=True
+    )
+    dead_pid = int(gone.stdout)
+    stale = tmp_path / f"esrp-server-{dead_pid}-0a1b2c.sock"
+    listener = sockets.socket(sockets.AF_UNIX)
+    listener.bind(str(stale))
+    listener.close()  # the file stays, nothing listens
+    live = tmp_path / f"esrp-server-{dead_pid}-3d4e5f.sock"
+    answering = sockets.socket(sockets.AF_UNIX)
+    answering.bind(str(live))
+    answering.listen()
+    other = tmp_path / "esrp-server-notes.sock"
+    other.write_text("keep")
+    try:
+        with esrp.LocalServer(unix_socket=True) as server:
+            assert server.address.startswith(f"unix:{tmp_path}/esrp-server-{os.getpid()}-")
+            assert not stale.exists()
+            assert live.exists()
+            assert other.read_text() == "keep"
+    finally:
+        answering.close()

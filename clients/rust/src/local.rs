@@ -102,7 +102,7 @@ pub fn with_socket<S: AsRef<OsStr>>(args: &[S]) -> Vec<OsString> {
 pub fn socket_path() -> PathBuf {
     static NEXT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
     let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    std::env::temp_dir().join(format!("esrp-server-{}-{n}.sock", std::process::id()))
+    std::env::temp_dir().join(format!("esrp-server-{}-{n:x}.sock", std::process::id()))
 }
 
 /// The server at `address` if given, else a local one started now with `binary` and `args`

@@ -4,10 +4,14 @@ that want a server without a second terminal.
 
 from __future__ import annotations
 
+import contextlib
 import importlib.metadata
 import os
+import re
+import secrets
 import shutil
 import signal
+import socket
 import subprocess
 import tempfile
 import threading
@@ -143,9 +147,50 @@ def _check_version(binary: Path) -> None:
         )
 
 
+_SOCKET_NAME = re.compile(r"esrp-server-(\d+)-[0-9a-f]+\.sock")
+
+
+def _sweep_sockets() -> None:
+    """Removes the socket files that local servers left in the temporary folder when they were
+    killed (a Ray worker's process group, SIGKILL): those whose starting process (the PID in the
+    name) is gone and on which nothing answers. The Rust `LocalServer` names its sockets alike.
+    """
+    folder = tempfile.gettempdir()
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return
+    for name in names:
+        match = _SOCKET_NAME.fullmatch(name)
+        if match is None or _alive(int(match.group(1))):
+            continue
+        path = os.path.join(folder, name)
+        probe = socket.socket(socket.AF_UNIX)
+        try:
+            probe.connect(path)
+        except ConnectionRefusedError:
+            with contextlib.suppress(OSError):
+                os.unlink(path)
+        except OSError:
+            pass
+        finally:
+            probe.close()
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process `pid` exists (one of another user's counts)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True
+    return True
+
+
 class LocalServer:
     """An esrp-server child process on a free port of 127.0.0.1 (and, with `unix_socket=True`, on
-    a Unix domain socket in a temporary folder of its own).
+    a Unix domain socket in the temporary folder).
 
     `start()` (or entering the `with` block) runs `esrp-server --listen 127.0.0.1:0
     --stop-on-stdin-close ARGS...` with a pipe on its stdin (so that the server stops when this
@@ -167,9 +212,13 @@ class LocalServer:
         check_version: Refuse (`LocalServerError`) a binary whose `--version` is not of this
             package's major.minor release (`same_release`), before starting it.
         unix_socket: Serve a Unix domain socket too (`--listen-unix`), and make `address` it
-            (`unix:PATH`): the clients of this machine then pass a step's observation with about
-            half the kernel work of loopback TCP. `tcp_address` stays the TCP one. The socket's
-            folder is removed at `stop()`. Not with `--tls-cert` (the socket is plain HTTP/2);
+            (`unix:PATH`, `esrp-server-PID-RANDOM.sock` in the temporary folder): the clients of
+            this machine then pass a step's observation with about half the kernel work of
+            loopback TCP. `tcp_address` stays the TCP one. The server removes the file as it
+            stops; the files of killed servers whose process (PID) is gone are removed at the next
+            start. Who may
+            connect: the file's permissions (the umask's), like anyone on the machine may connect
+            to the TCP port. Not with `--tls-cert` (the socket is plain HTTP/2);
             `"auto"`: a socket unless `--tls-cert` is among `args` (what the package's own tools
             use for the servers they start and talk to).
 
@@ -195,7 +244,7 @@ class LocalServer:
             raise ValueError("unix_socket=True serves plain HTTP/2: leave out --tls-cert, or unix_socket")
         self.args: Sequence[str] = args
         self.unix_socket: bool = bool(unix_socket)
-        self._socket_dir: str | None = None
+        self._socket: str | None = None
         self.binary = Path(binary) if binary is not None else None
         self.env = dict(env or {})
         self.startup_timeout = startup_timeout
@@ -282,8 +331,12 @@ class LocalServer:
         environment.pop("ESRP_LISTEN_UNIX", None)
         socket: list[str] = []
         if self.unix_socket:
-            self._socket_dir = tempfile.mkdtemp(prefix="esrp-")
-            socket = ["--listen-unix", os.path.join(self._socket_dir, "server.sock")]
+            # A fresh name in the temporary folder, no folder of its own: the server removes the
+            # file when it stops, even when this process is killed (its stdin closes).
+            _sweep_sockets()
+            name = f"esrp-server-{os.getpid()}-{secrets.token_hex(6)}.sock"
+            self._socket = os.path.join(tempfile.gettempdir(), name)
+            socket = ["--listen-unix", self._socket]
         with _signals.deferred():
             try:
                 self.process = subprocess.Popen(
@@ -295,7 +348,7 @@ class LocalServer:
                     text=True,
                 )
             except OSError as error:
-                self._remove_socket_dir()
+                self._remove_socket()
                 raise LocalServerError(f"cannot start {binary}: {error} ({_INSTALL_HINT})") from error
             _signals.track(self.process)
         try:
@@ -367,10 +420,12 @@ class LocalServer:
         self._address = self._tcp_address = None
         return code
 
-    def _remove_socket_dir(self) -> None:
-        if self._socket_dir is not None:
-            shutil.rmtree(self._socket_dir, ignore_errors=True)
-            self._socket_dir = None
+    def _remove_socket(self) -> None:
+        # The server removes it as it stops; not when it was killed.
+        if self._socket is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(self._socket)
+            self._socket = None
 
     def _terminate(self) -> int | None:
         with _signals.deferred():  # a signal now would leave the server running
@@ -393,7 +448,7 @@ class LocalServer:
             self._stderr.close()
             self._stderr = None
         self._log.close()
-        self._remove_socket_dir()
+        self._remove_socket()
         return code
 
     def __enter__(self) -> LocalServer:
