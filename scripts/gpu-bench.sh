@@ -11,7 +11,8 @@
 #   1. standard: esrp-bench's scenarios with the server's stage breakdown (--breakdown);
 #   2. scale-out at 8: 8 servers started first, driven by 8 client processes (one each) and by
 #      16 (two each), against one server driven by the same 8 processes; then 8 servers whose
-#      runtimes share the cores out (--worker-threads cores/8) driven by 8;
+#      runtimes share the cores out (--worker-threads cores/8) driven by 8; then 8 servers
+#      reached over their Unix domain sockets (--listen-unix) by 8 and by 16 processes;
 #   3. pipeline: batches in flight per render thread (--render-pipeline 1, 2, 3), one server
 #      driven by 4 client processes (so that the client is not the limit), with the breakdown;
 #   4. threads: render threads 1, 2 and 4, one server driven by 4 client processes;
@@ -20,7 +21,8 @@
 #   7. episodes: batch-64 with 1 to 1,024 episodes (the curve of steps/s against episodes);
 #   8. clients: stream-mux-64 driven by 1, 2, 4 and 8 client processes (is the client the limit?);
 #   9. gl: whether --render-backend gl starts there (unary-1; a failure is said in the summary);
-#  10. python: python -m esrp.bench's env-1 and vec-64 against the server, where this
+#  10. python: python -m esrp.bench's env-1 and vec-64 against the server (over TCP, then over
+#      its Unix domain socket), where this
 #      machine's python3 imports esrp (clients/python/src is put before any PYTHONPATH given, where
 #      its dependencies, and esrp-native for the native transport, may be installed).
 # Every step writes its esrp-bench JSON under OUT (default $OUT, else gpu-bench-out) and the
@@ -128,6 +130,7 @@ cat "$OUT_DIR/machine.txt" >&2
 SERVER_PIDS=$OUT_DIR/.server-pids
 : > "$SERVER_PIDS"
 start_server() { # start_server LOG [ARGS...]: a server on a free port, its address once it listens
+    # (with --listen-unix among ARGS, its socket's: unix:PATH)
     # Its stdin is a `sleep` that outlives the script at worst by the budget: its stderr goes
     # nowhere, so that it holds no pipe of whoever reads this script's output (a `| tee` would
     # wait for it).
@@ -136,11 +139,15 @@ start_server() { # start_server LOG [ARGS...]: a server on a free port, its addr
     "$BIN/esrp-server" --listen 127.0.0.1:0 --render-backend "$BACKEND" --no-generate-ahead "$@" \
         --stop-on-stdin-close < <(exec sleep "$BUDGET" 2> /dev/null) > "$log" 2>&1 &
     echo "$!" >> "$SERVER_PIDS"
+    local pattern='listening on [^ ]*'
+    [[ " $* " == *" --listen-unix "* ]] && pattern='listening on unix:[^ ]*'
     for _ in $(seq 200); do
-        grep -q 'listening on' "$log" 2> /dev/null && break
+        grep -q "$pattern" "$log" 2> /dev/null && break
         sleep 0.1
     done
-    echo "http://$(grep -o 'listening on [^ ]*' "$log" | head -1 | awk '{print $3}')"
+    local address
+    address=$(grep -o "$pattern" "$log" | head -1 | awk '{print $3}')
+    [[ $address == unix:* ]] && echo "$address" || echo "http://$address"
 }
 stop_servers() { # stops every server start_server started, and waits (10 s at most each) until it is gone
     local pid
@@ -156,12 +163,18 @@ stop_servers() { # stops every server start_server started, and waits (10 s at m
 }
 trap 'stop_servers; rm -f "$SERVER_PIDS"' EXIT
 # start_servers N TAG [ARGS...]: N servers with ARGS (logs server-N-I[TAG].txt), their addresses in
-# ADDRESSES and comma-separated in LIST, the scenes built on each by a first unmeasured pass.
+# ADDRESSES and comma-separated in LIST, the scenes built on each by a first unmeasured pass. With
+# TAG -unix, each also serves a Unix domain socket (in /tmp: a socket's path must be short) and
+# ADDRESSES are the sockets.
 start_servers() {
-    local n=$1 tag=$2 i
+    local n=$1 tag=$2 i socket
     shift 2
     ADDRESSES=()
-    for ((i = 0; i < n; i++)); do ADDRESSES+=("$(start_server "$OUT_DIR/server-$n-$i$tag.txt" "$@")"); done
+    for ((i = 0; i < n; i++)); do
+        socket=()
+        [[ $tag == -unix ]] && socket=(--listen-unix "/tmp/esrp-gpu-bench-$$-$i.sock")
+        ADDRESSES+=("$(start_server "$OUT_DIR/server-$n-$i$tag.txt" "${socket[@]}" "$@")")
+    done
     LIST=$(IFS=,; echo "${ADDRESSES[*]}")
     "$BIN/esrp-bench" --server "$LIST" --processes "$n" --scenarios stream-mux-64 --seconds 1 > /dev/null 2>&1 || true
 }
@@ -188,6 +201,16 @@ scale_out() { # scale_out N: N servers against one, N client processes (and 2N a
         measured "servers-8-shared" "$BIN/esrp-bench" --server "$LIST" --processes "$n" --scenarios stream-mux-64 \
             --seconds "$SECONDS_EACH" --json "$OUT_DIR/servers-8-shared.json" >> "$OUT_DIR/bench.log" 2>&1 || true
         echo "$workers" > "$OUT_DIR/servers-8-shared-workers.txt"
+        stop_servers
+    fi
+    # The same 8 servers and processes, the clients on their Unix domain sockets instead of TCP.
+    if (( n == 8 )) && step "servers-8-unix" 35; then
+        start_servers "$n" -unix
+        measured "servers-8-unix" "$BIN/esrp-bench" --server "$LIST" --processes "$n" \
+            --scenarios stream-mux-64,batch-64 --seconds "$SECONDS_EACH" --json "$OUT_DIR/servers-8-unix.json" \
+            >> "$OUT_DIR/bench.log" 2>&1 || true
+        measured "servers-8x2-unix" "$BIN/esrp-bench" --server "$LIST" --processes 16 --scenarios stream-mux-64 \
+            --seconds "$SECONDS_EACH" --json "$OUT_DIR/servers-8x2-unix.json" >> "$OUT_DIR/bench.log" 2>&1 || true
         stop_servers
     fi
 }
@@ -248,6 +271,13 @@ if step python 40; then
             --scenarios env-1,vec-64 --seconds "$SECONDS_EACH" --json "$OUT_DIR/python.json" \
             >> "$OUT_DIR/bench.log" 2>&1 || SKIPPED+=("python (python -m esrp.bench failed: see bench.log)")
         stop_servers
+        if step python-unix 25; then
+            address=$(start_server "$OUT_DIR/python-server-unix.txt" --listen-unix "/tmp/esrp-gpu-bench-$$-py.sock")
+            PYTHONPATH=$python_path timeout 100 python3 -m esrp.bench --server "$address" \
+                --scenarios env-1,vec-64 --seconds "$SECONDS_EACH" --json "$OUT_DIR/python-unix.json" \
+                >> "$OUT_DIR/bench.log" 2>&1 || SKIPPED+=("python-unix (python -m esrp.bench failed: see bench.log)")
+            stop_servers
+        fi
     else
         SKIPPED+=("python (python3 here does not import esrp and its dependencies)")
     fi

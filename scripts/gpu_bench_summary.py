@@ -143,6 +143,10 @@ def scale_out(folder: Path) -> list[str]:
             f"| 8 (--worker-threads {workers}) | 8 | {r['scenario']} | {rate(r)} | – | – "
             f"| {cores(folder, 'servers-8-shared')} / – |"
         )
+    for name, processes in (("servers-8-unix", 8), ("servers-8x2-unix", 16)):
+        unix = load(folder, f"{name}.json")
+        for r in unix["results"] if unix else []:
+            rows.append(f"| 8 (Unix sockets) | {processes} | {r['scenario']} | {rate(r)} | – | – | {cores(folder, name)} / – |")
     if not rows:
         return []
     return [
@@ -157,16 +161,19 @@ def scale_out(folder: Path) -> list[str]:
 
 
 def python(folder: Path) -> list[str]:
-    report = load(folder, "python.json")
-    if report is None:
-        return []
-    results = report.get("results", report)
     rows = []
-    for r in results if isinstance(results, list) else []:
-        name = r.get("name") or r.get("scenario")
-        steps = r.get("steps_per_second")
-        rows.append(f"| {name} | {'–' if steps is None else f'{steps:,.0f}'} |")
-    return ["## python -m esrp.bench", "", "| scenario | steps/s |", "|---|---:|", *rows, ""]
+    for file, transport in (("python.json", "TCP"), ("python-unix.json", "Unix socket")):
+        report = load(folder, file)
+        if report is None:
+            continue
+        results = report.get("results", report)
+        for r in results if isinstance(results, list) else []:
+            name = r.get("name") or r.get("scenario")
+            steps = r.get("steps_per_second")
+            rows.append(f"| {name} | {transport} | {'–' if steps is None else f'{steps:,.0f}'} |")
+    if not rows:
+        return []
+    return ["## python -m esrp.bench", "", "| scenario | to the server | steps/s |", "|---|---|---:|", *rows, ""]
 
 
 def main(argv: list[str]) -> int:
