@@ -209,3 +209,20 @@ def test_sockets_of_killed_servers_are_swept_at_the_next_start(
             assert other.read_text() == "keep"
     finally:
         answering.close()
+
+
+def test_a_temporary_folder_too_deep_for_a_socket(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With a temporary folder whose paths cannot be a socket's, "auto" serves TCP only and True
+    says what to change.
+    """
+    deep = tmp_path / ("d" * 100)
+    deep.mkdir()
+    monkeypatch.setenv("TMPDIR", str(deep))
+    monkeypatch.setattr(tempfile, "tempdir", None)
+    with esrp.LocalServer(unix_socket="auto") as server:
+        assert not server.unix_socket
+        assert server.address == server.tcp_address
+        with server.client() as client:
+            assert client.server_info().live_episodes == 0
+    with pytest.raises(esrp.LocalServerError, match="set TMPDIR to a shorter folder"):
+        esrp.LocalServer(unix_socket=True).start()

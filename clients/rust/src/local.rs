@@ -79,10 +79,15 @@ impl Drop for LocalServer {
     }
 }
 
+/// The longest path a socket may have here and on macOS (`sockaddr_un`: 104 bytes there, 108 on
+/// Linux, with the final zero).
+const SOCKET_PATH_BYTES: usize = 104;
+
 /// `args` with `--listen-unix` and a fresh [`socket_path`] added, so that the started server's
 /// [`LocalServer::url`] is its Unix domain socket (less kernel work per step than loopback TCP
 /// for the clients of this machine); unchanged where they already name a socket or ask for TLS
-/// (the socket serves plain HTTP/2 only).
+/// (the socket serves plain HTTP/2 only), or where the temporary folder is too deep for a
+/// socket's path (the server is then reached over TCP).
 pub fn with_socket<S: AsRef<OsStr>>(args: &[S]) -> Vec<OsString> {
     let named = |flag: &str| {
         args.iter().any(|a| {
@@ -91,8 +96,9 @@ pub fn with_socket<S: AsRef<OsStr>>(args: &[S]) -> Vec<OsString> {
         })
     };
     let mut out: Vec<OsString> = args.iter().map(|a| a.as_ref().to_owned()).collect();
-    if !named("--listen-unix") && !named("--tls-cert") {
-        out.extend(["--listen-unix".into(), socket_path().into_os_string()]);
+    let path = socket_path();
+    if !named("--listen-unix") && !named("--tls-cert") && path.as_os_str().len() < SOCKET_PATH_BYTES {
+        out.extend(["--listen-unix".into(), path.into_os_string()]);
     }
     out
 }

@@ -147,6 +147,8 @@ def _check_version(binary: Path) -> None:
         )
 
 
+# A socket's path must fit `sockaddr_un`: 108 bytes with its final zero on Linux, 104 on macOS.
+_SOCKET_PATH_BYTES = 104
 _SOCKET_NAME = re.compile(r"esrp-server-(\d+)-[0-9a-f]+\.sock")
 
 
@@ -219,8 +221,9 @@ class LocalServer:
             start. Who may
             connect: the file's permissions (the umask's), like anyone on the machine may connect
             to the TCP port. Not with `--tls-cert` (the socket is plain HTTP/2);
-            `"auto"`: a socket unless `--tls-cert` is among `args` (what the package's own tools
-            use for the servers they start and talk to).
+            `"auto"`: a socket unless `--tls-cert` is among `args` or the temporary folder's path
+            is too deep for a socket's (104 bytes), where it is TCP only (what the package's own
+            tools use for the servers they start and talk to).
 
     Example:
         >>> with esrp.LocalServer() as server, server.client() as client:    # doctest: +SKIP
@@ -238,12 +241,14 @@ class LocalServer:
         unix_socket: bool | Literal["auto"] = False,
     ) -> None:
         tls = any(a == "--tls-cert" or a.startswith("--tls-cert=") for a in args)
-        if unix_socket == "auto":
-            unix_socket = not tls
-        elif unix_socket is True and tls:
+        if unix_socket is True and tls:
             raise ValueError("unix_socket=True serves plain HTTP/2: leave out --tls-cert, or unix_socket")
         self.args: Sequence[str] = args
-        self.unix_socket: bool = bool(unix_socket)
+        if unix_socket == "auto" and tls:
+            unix_socket = False
+        self._unix_socket: bool | Literal["auto"] = unix_socket
+        self.unix_socket = False
+        """Whether the running server serves a Unix domain socket (`address` is then `unix:PATH`)."""
         self._socket: str | None = None
         self.binary = Path(binary) if binary is not None else None
         self.env = dict(env or {})
@@ -321,22 +326,32 @@ class LocalServer:
         # terminal: no ANSI colours, which the server's log formatter writes unless NO_COLOR is set.
         environment["NO_COLOR"] = "1"
         environment.update(self.env)
+        # A socket comes from `unix_socket` only: one from this environment would print a line
+        # `_await_start` does not expect.
+        environment.pop("ESRP_LISTEN_UNIX", None)
+        socket: list[str] = []
+        self.unix_socket = False
+        if self._unix_socket:
+            # A fresh name in the temporary folder, no folder of its own: the server removes the
+            # file when it stops, even when this process is killed (its stdin closes).
+            name = f"esrp-server-{os.getpid()}-{secrets.token_hex(6)}.sock"
+            path = os.path.join(tempfile.gettempdir(), name)
+            if len(os.fsencode(path)) < _SOCKET_PATH_BYTES:
+                _sweep_sockets()
+                self._socket = path
+                self.unix_socket = True
+                socket = ["--listen-unix", path]
+            elif self._unix_socket is True:
+                raise LocalServerError(
+                    f"{path} is too long for a Unix domain socket (at most {_SOCKET_PATH_BYTES - 1} bytes): "
+                    "set TMPDIR to a shorter folder, or leave unix_socket out"
+                )
+            # "auto" with a temporary folder too deep for a socket's path: TCP only.
         # A file, not a pipe: nobody reads stderr while the server runs, and a pipe could fill up.
         # It lives as long as the server and is closed by stop().
         self._stderr = tempfile.TemporaryFile()  # noqa: SIM115
         # A command's SIGTERM must not come between the child's start and its tracking: a server
         # nobody knows of would outlive the command.
-        # A socket comes from `unix_socket` only: one from this environment would print a line
-        # `_await_start` does not expect.
-        environment.pop("ESRP_LISTEN_UNIX", None)
-        socket: list[str] = []
-        if self.unix_socket:
-            # A fresh name in the temporary folder, no folder of its own: the server removes the
-            # file when it stops, even when this process is killed (its stdin closes).
-            _sweep_sockets()
-            name = f"esrp-server-{os.getpid()}-{secrets.token_hex(6)}.sock"
-            self._socket = os.path.join(tempfile.gettempdir(), name)
-            socket = ["--listen-unix", self._socket]
         with _signals.deferred():
             try:
                 self.process = subprocess.Popen(
