@@ -80,9 +80,14 @@ impl ConnectBuilder {
 
     fn endpoint(&self) -> Result<Endpoint> {
         let mut endpoint = Endpoint::from_shared(self.url.clone())
-            .map_err(|e| ClientError::Config(format!("{:?} is not a URL like http://127.0.0.1:50051: {e}", self.url)))?
+            .map_err(|e| {
+                ClientError::Config(format!(
+                    "{:?} is not a URL like http://127.0.0.1:50051 or unix:/tmp/esrp.sock: {e}",
+                    self.url
+                ))
+            })?
             // An agent waits for every answer: no Nagle delay. Windows large enough for many
-            // ~49 KB observations in flight.
+            // ~49 KB observations in flight, and frames for one in one.
             .tcp_nodelay(true)
             .initial_connection_window_size(64 << 20)
             .initial_stream_window_size(16 << 20)
@@ -172,8 +177,9 @@ pub struct Client {
 }
 
 impl Client {
-    /// Starts a connection to `url` (`http://host:port`, or `https://` with [`ConnectBuilder::tls`]);
-    /// set the token and TLS on the builder, then `.await` it.
+    /// Starts a connection to `url` (`http://host:port`, `https://` with [`ConnectBuilder::tls`],
+    /// or `unix:PATH` for a server's `--listen-unix` socket on this machine); set the token and
+    /// TLS on the builder, then `.await` it.
     pub fn connect(url: impl Into<String>) -> ConnectBuilder {
         ConnectBuilder { url: url.into(), token: None, tls: None, connect_timeout: Duration::from_secs(10) }
     }

@@ -4,7 +4,7 @@
 //! stepping one episode that per-call cost is most of a step. This module lets the Python
 //! client send the calls of its hot path (Step, Reset, StepBatch) over the Rust client's
 //! channel instead: the same tuned connection (`esrp_client::Client`: no Nagle, large HTTP/2
-//! windows), driven by a current-thread Tokio runtime on the calling thread while the GIL is
+//! windows and frames; TCP or a Unix domain socket), driven by a current-thread Tokio runtime on the calling thread while the GIL is
 //! released. It moves serialized messages only: Python builds and parses the protobufs as it
 //! does for grpcio, so both transports share every conversion and check.
 //!
