@@ -218,9 +218,8 @@ class LocalServer:
             this machine then pass a step's observation with about half the kernel work of
             loopback TCP. `tcp_address` stays the TCP one. The server removes the file as it
             stops; the files of killed servers whose process (PID) is gone are removed at the next
-            start. Who may
-            connect: the file's permissions (the umask's), like anyone on the machine may connect
-            to the TCP port. Not with `--tls-cert` (the socket is plain HTTP/2);
+            start. Who may connect: the file's permissions (the umask's), as anyone on the machine
+            may connect to the TCP port. Not with `--tls-cert` (the socket is plain HTTP/2);
             `"auto"`: a socket unless `--tls-cert` is among `args` or the temporary folder's path
             is too deep for a socket's (104 bytes), where it is TCP only (what the package's own
             tools use for the servers they start and talk to).
@@ -377,7 +376,8 @@ class LocalServer:
         assert self.process is not None
         assert self.process.stdout is not None
         deadline = time.monotonic() + self.startup_timeout
-        wanted = [_LISTENING] * (2 if self.unix_socket else 1)
+        listening = 2 if self.unix_socket else 1  # TCP, then the socket
+        wanted = [_LISTENING] * listening
         wanted += [_METRICS] if "--metrics-listen" in self.args else []
         wanted += [_VIEWER] if "--http-listen" in self.args else []
         found: list[str] = []
@@ -386,10 +386,8 @@ class LocalServer:
             if not line.startswith(prefix):
                 self._fail(f"printed {line!r} where {prefix!r} was expected")
             found.append(line.removeprefix(prefix).strip())
-        self._tcp_address = found.pop(0)
-        self._address = found.pop(0) if self.unix_socket else self._tcp_address
-        wanted = wanted[2:] if self.unix_socket else wanted[1:]
-        for prefix, value in zip(wanted, found, strict=True):
+        self._tcp_address, self._address = found[0], found[listening - 1]
+        for prefix, value in zip(wanted[listening:], found[listening:], strict=True):
             if prefix == _METRICS:
                 self.metrics_url = value
             else:
