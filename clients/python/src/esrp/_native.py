@@ -100,13 +100,12 @@ class NativeRpcError(grpc.RpcError):
 
 
 def channel(address: str, token: str | None) -> Any:  # noqa: ANN401
-    """A native channel to `address` (`host:port` or `unix:PATH`) that sends `token` with every
-    call; it connects at the first call.
+    """A native channel to `address` (`host:port` or `unix:PATH`: `resolve` chose the native
+    transport for it) that sends `token` with every call; it connects at the first call.
     """
     assert _extension is not None
     reached = url(address)
-    if reached is None:
-        raise ValueError(f"the native transport cannot reach {address!r}: use transport='grpcio'")
+    assert reached is not None, f"resolve() gives grpcio for {address!r}"
     return _extension.Channel(reached, token)
 
 
