@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -25,9 +26,10 @@ def test_every_check_passes_with_a_server_started_from_the_binary(capsys: pytest
         for line in out.splitlines()
         if line[:5].strip() in ("ok", "warn", "FAIL")
     }
-    for name in (*CHECKS, "server binary"):
+    for name in (*CHECKS, "server binary", "local socket"):
         assert lines.get(name) in ("ok", "warn"), (name, out)
     assert "FAIL" not in lines.values(), out
+    assert "reach the servers they start over unix:" in out, out
     assert "steps/s" in out
     assert "the ego view has" in out
     assert "checks passed" in out
@@ -101,3 +103,18 @@ def test_opengl_on_an_nvidia_gpu_is_a_warning_that_names_vulkan() -> None:
     software = renderer_check("llvmpipe through gl, software (CPU)", True, "llvmpipe", "gl")
     assert software.status == "ok"
     assert "GPU" in software.detail
+
+
+def test_a_temporary_folder_too_deep_for_a_socket_is_a_warning(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    deep = tmp_path / ("d" * 100)
+    deep.mkdir()
+    monkeypatch.setenv("TMPDIR", str(deep))
+    monkeypatch.setattr(tempfile, "tempdir", None)
+    assert main(["doctor", "--seconds", "0.2"]) == 0
+    out = capsys.readouterr().out
+    socket_line = next(line for line in out.splitlines() if "local socket" in line)
+    assert socket_line.startswith("warn"), out
+    assert "set TMPDIR to a shorter folder" in out, out
+    assert "a server started here on 127.0.0.1:" in out, out

@@ -2,10 +2,12 @@
 or set for each one that fails.
 
 The checks, in order: Python and the package's dependencies; the native transport; the server
-binary `LocalServer` would start and its version (skipped with `--server`); a server started (or
-reached) and its version against this package's; the renderer it chose; a test render (a test
-scene's first views must not be blank); and the throughput of a few seconds of random steps, one
-episode and (with Gymnasium) a vector env of 16. Exit status 0 when nothing failed, 1 otherwise.
+binary `LocalServer` would start and its version (skipped with `--server`); whether the servers
+the envs and tools start are reached over a Unix domain socket (a warning where the temporary
+folder is too deep for one); a server started (or reached) and its version against this
+package's; the renderer it chose; a test render (a test scene's first views must not be blank);
+and the throughput of a few seconds of random steps, one episode and (with Gymnasium) a vector env
+of 16. Exit status 0 when nothing failed, 1 otherwise.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import argparse
 import itertools
 import platform
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -26,6 +29,7 @@ from ._args import Parser, server_options
 
 if TYPE_CHECKING:
     from .._client import Client
+    from .._local import LocalServer
 
 __all__ = ["Check", "add_commands", "same_release"]
 
@@ -202,7 +206,9 @@ def _on_server(args: argparse.Namespace, report: Callable[[Check], None]) -> Non
     from .._local import LocalServer
 
     try:
-        with LocalServer(*args.server_args) as local, local.client() as client:
+        # As the envs and tools start theirs: over a Unix domain socket where one can be had.
+        with LocalServer(*args.server_args, unix_socket="auto") as local, local.client() as client:
+            report(_socket_check(local))
             _server_checks(client, f"a server started here on {local.address}", args.seconds, report)
     except LocalServerError as error:
         # The server's own message names what to install when no renderer could be made.
@@ -214,6 +220,24 @@ def _on_server(args: argparse.Namespace, report: Callable[[Check], None]) -> Non
                 "install what the message names, or try --server-arg=--render-backend --server-arg=gl|vulkan",
             )
         )
+
+
+def _socket_check(local: LocalServer) -> Check:
+    """How the envs and tools reach the servers they start: over a Unix domain socket, or over
+    loopback TCP where the temporary folder is too deep for a socket's path (or with TLS).
+    """
+    if local.unix_socket:
+        where = local.address
+        return Check("local socket", "ok", f"the envs and tools reach the servers they start over {where}")
+    if any(a == "--tls-cert" or a.startswith("--tls-cert=") for a in local.args):
+        return Check("local socket", "ok", "TLS was asked for: servers started here are reached over TCP")
+    return Check(
+        "local socket",
+        "warn",
+        f"the temporary folder ({tempfile.gettempdir()}) is too deep for a socket's path: servers started "
+        "here are reached over loopback TCP, with more CPU per step",
+        "set TMPDIR to a shorter folder (e.g. /tmp)",
+    )
 
 
 def _server_checks(client: Client, where: str, seconds: float, report: Callable[[Check], None]) -> None:
