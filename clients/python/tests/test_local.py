@@ -1,14 +1,16 @@
-"""LocalServer: finding the binary, the metrics address, a graceful stop."""
+"""LocalServer: finding the binary, the metrics address, a graceful stop, the Unix domain socket."""
 
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import tempfile
 import time
 import urllib.request
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -177,14 +179,23 @@ def test_a_socket_with_tls_is_refused() -> None:
         esrp.LocalServer("--tls-cert", "c.pem", "--tls-key", "k.pem", unix_socket=True)
 
 
+@pytest.fixture
+def short_tmp() -> Iterator[Path]:
+    """A fresh folder in /tmp: pytest's own (`tmp_path`) can be too deep for a socket's path."""
+    folder = Path(tempfile.mkdtemp(prefix="esrp-t", dir="/tmp"))
+    yield folder
+    shutil.rmtree(folder, ignore_errors=True)
+
+
 def test_sockets_of_killed_servers_are_swept_at_the_next_start(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    short_tmp: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A socket file left by a killed server is removed at the next start when the process that
     started it is gone and nothing answers on it; a live one, and other files, are kept.
     """
     import socket as sockets
 
+    tmp_path = short_tmp
     monkeypatch.setenv("TMPDIR", str(tmp_path))
     monkeypatch.setattr(tempfile, "tempdir", None)
     gone = subprocess.run(
