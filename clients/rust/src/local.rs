@@ -89,18 +89,21 @@ const SOCKET_PATH_BYTES: usize = 104;
 /// (the socket serves plain HTTP/2 only), or where the temporary folder is too deep for a
 /// socket's path (the server is then reached over TCP).
 pub fn with_socket<S: AsRef<OsStr>>(args: &[S]) -> Vec<OsString> {
-    let named = |flag: &str| {
-        args.iter().any(|a| {
-            let a = a.as_ref().as_encoded_bytes();
-            a == flag.as_bytes() || a.strip_prefix(flag.as_bytes()).is_some_and(|rest| rest.starts_with(b"="))
-        })
-    };
+    let named = |flag| names_flag(args.iter().map(AsRef::as_ref), flag);
     let mut out: Vec<OsString> = args.iter().map(|a| a.as_ref().to_owned()).collect();
     let path = socket_path();
     if !named("--listen-unix") && !named("--tls-cert") && path.as_os_str().len() < SOCKET_PATH_BYTES {
         out.extend(["--listen-unix".into(), path.into_os_string()]);
     }
     out
+}
+
+/// Whether `args` give `flag` (`--flag VALUE` or `--flag=VALUE`).
+fn names_flag<'a>(mut args: impl Iterator<Item = &'a OsStr>, flag: &str) -> bool {
+    args.any(|a| {
+        let a = a.as_encoded_bytes();
+        a == flag.as_bytes() || a.strip_prefix(flag.as_bytes()).is_some_and(|rest| rest.starts_with(b"="))
+    })
 }
 
 /// A fresh path for a local server's Unix domain socket (`--listen-unix`), in the temporary
@@ -159,11 +162,10 @@ impl LocalServer {
     /// `--listen-unix`, `--metrics-listen` or `--http-listen` among its arguments, reads the
     /// socket's, the metrics' or the viewer's address too.
     pub fn spawn(mut command: Command) -> Result<Self> {
-        let with_unix =
-            command.get_args().any(|a| a == "--listen-unix" || a.as_encoded_bytes().starts_with(b"--listen-unix="))
-                || command
-                    .get_envs()
-                    .any(|(name, value)| name == "ESRP_LISTEN_UNIX" && value.is_some_and(|v| !v.is_empty()));
+        let with_unix = names_flag(command.get_args(), "--listen-unix")
+            || command
+                .get_envs()
+                .any(|(name, value)| name == "ESRP_LISTEN_UNIX" && value.is_some_and(|v| !v.is_empty()));
         let with_metrics = command.get_args().any(|a| a == "--metrics-listen");
         let with_viewer = command.get_args().any(|a| a == "--http-listen");
         let program = Path::new(command.get_program()).display().to_string();

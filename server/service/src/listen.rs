@@ -86,7 +86,7 @@ impl UnixSocket {
                 Ok(_) => return Err(UnixSocketError::InUse(path.to_path_buf())),
                 Err(e) if e.kind() == io::ErrorKind::ConnectionRefused => {
                     std::fs::remove_file(path).map_err(|e| io_error("cannot remove the old socket file", e))?;
-                    tracing::info!(target: "esrp_server", path = %path.display(), "replaced a socket file nothing answered on");
+                    tracing::info!(path = %path.display(), "replaced a socket file nothing answered on");
                 }
                 Err(e) => return Err(io_error("cannot check the existing socket file", e)),
             },
@@ -113,7 +113,7 @@ impl Drop for SocketFile {
     fn drop(&mut self) {
         let ours = std::fs::symlink_metadata(&self.path).is_ok_and(|meta| (meta.dev(), meta.ino()) == self.id);
         if ours && let Err(e) = std::fs::remove_file(&self.path) {
-            tracing::warn!(target: "esrp_server", path = %self.path.display(), "cannot remove the socket file: {e}");
+            tracing::warn!(path = %self.path.display(), "cannot remove the socket file: {e}");
         }
     }
 }

@@ -239,11 +239,10 @@ class LocalServer:
         check_version: bool = True,
         unix_socket: bool | Literal["auto"] = False,
     ) -> None:
-        tls = any(a == "--tls-cert" or a.startswith("--tls-cert=") for a in args)
-        if unix_socket is True and tls:
-            raise ValueError("unix_socket=True serves plain HTTP/2: leave out --tls-cert, or unix_socket")
         self.args: Sequence[str] = args
-        if unix_socket == "auto" and tls:
+        if unix_socket is True and self.asks_for_tls:
+            raise ValueError("unix_socket=True serves plain HTTP/2: leave out --tls-cert, or unix_socket")
+        if unix_socket == "auto" and self.asks_for_tls:
             unix_socket = False
         self._unix_socket: bool | Literal["auto"] = unix_socket
         self.unix_socket = False
@@ -272,6 +271,11 @@ class LocalServer:
         if self._address is None:
             raise LocalServerError("the server is not running: call start() or use `with`")
         return self._address
+
+    @property
+    def asks_for_tls(self) -> bool:
+        """Whether `args` give `--tls-cert` (the server then serves TLS, and no socket)."""
+        return any(a == "--tls-cert" or a.startswith("--tls-cert=") for a in self.args)
 
     @property
     def tcp_address(self) -> str:

@@ -229,7 +229,7 @@ def _socket_check(local: LocalServer) -> Check:
     if local.unix_socket:
         where = local.address
         return Check("local socket", "ok", f"the envs and tools reach the servers they start over {where}")
-    if any(a == "--tls-cert" or a.startswith("--tls-cert=") for a in local.args):
+    if local.asks_for_tls:
         return Check("local socket", "ok", "TLS was asked for: servers started here are reached over TCP")
     return Check(
         "local socket",
