@@ -22,7 +22,7 @@
 #   8. clients: stream-mux-64 driven by 1, 2, 4 and 8 client processes (is the client the limit?);
 #   9. gl: whether --render-backend gl starts there (unary-1; a failure is said in the summary);
 #  10. python: python -m esrp.bench's env-1 and vec-64 against the server (over TCP, then over
-#      its Unix domain socket), where this
+#      its Unix domain socket), then vec-64 spread over 4 and over 8 servers (--servers), where this
 #      machine's python3 imports esrp (clients/python/src is put before any PYTHONPATH given, where
 #      its dependencies, and esrp-native for the native transport, may be installed).
 # Every step writes its esrp-bench JSON under OUT (default $OUT, else gpu-bench-out) and the
@@ -278,6 +278,18 @@ if step python 40; then
                 >> "$OUT_DIR/bench.log" 2>&1 || SKIPPED+=("python-unix (python -m esrp.bench failed: see bench.log)")
             stop_servers
         fi
+        # One vector env of 64 spread over 4, then 8 servers (each reached over its socket):
+        # what one trainer process makes of a machine's servers.
+        for n in 4 8; do
+            if step "python-spread-$n" 30; then
+                start_servers "$n" -unix
+                PYTHONPATH=$python_path measured "python-spread-$n" timeout 100 python3 -m esrp.bench \
+                    --server "$LIST" --scenarios vec-64 --seconds "$SECONDS_EACH" \
+                    --json "$OUT_DIR/python-spread-$n.json" >> "$OUT_DIR/bench.log" 2>&1 \
+                    || SKIPPED+=("python-spread-$n (python -m esrp.bench failed: see bench.log)")
+                stop_servers
+            fi
+        done
     else
         SKIPPED+=("python (python3 here does not import esrp and its dependencies)")
     fi

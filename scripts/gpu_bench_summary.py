@@ -162,7 +162,12 @@ def scale_out(folder: Path) -> list[str]:
 
 def python(folder: Path) -> list[str]:
     rows = []
-    for file, transport in (("python.json", "TCP"), ("python-unix.json", "Unix socket")):
+    for file, transport in (
+        ("python.json", "TCP"),
+        ("python-unix.json", "Unix socket"),
+        ("python-spread-4.json", "4 servers' sockets"),
+        ("python-spread-8.json", "8 servers' sockets"),
+    ):
         report = load(folder, file)
         if report is None:
             continue

@@ -148,3 +148,55 @@ def test_bench_socket_is_for_its_own_server(capsys: pytest.CaptureFixture[str]) 
         bench.main(["--socket", "--server", "127.0.0.1:1"])
     assert exit_info.value.code == 2
     assert "--server unix:PATH" in capsys.readouterr().err
+
+
+def test_bench_spreads_vec_64_over_the_servers_it_starts(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--servers 2` starts two servers, spreads vec-64 over them (its row says so), plays the
+    other scenarios on the first, and stops both."""
+    report = tmp_path / "bench.json"
+    arguments = ["--servers", "2", "--socket", "--scenarios", "client-1,vec-64", "--seconds", "0.3"]
+    arguments += ["--warmup", "0.1", "--warmup-rounds", "0", "--json", str(report)]
+    assert bench.main(arguments) == 0
+    out = capsys.readouterr().out
+    assert "vec-64 over 2 servers" in out
+    written = json.loads(report.read_text())
+    assert len(written["servers"]) == 2
+    assert written["server"] == written["servers"][0]
+    rows = {row["scenario"]: row for row in written["results"]}
+    assert set(rows) == {"client-1", "vec-64/2-servers"}
+    assert rows["vec-64/2-servers"]["steps_per_second"] > 0
+    assert not any(Path(address.removeprefix("unix:")).exists() for address in written["servers"])
+
+
+def test_bench_spreads_over_listed_servers_in_processes(
+    server: esrp.LocalServer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--server A,B` spreads vec-64 over both, in each of `--processes` children too."""
+    with esrp.LocalServer(unix_socket=True) as other:
+        report = tmp_path / "bench.json"
+        arguments = ["--server", f"{server.address},{other.address}", "--scenarios", "vec-64"]
+        arguments += ["--processes", "2", "--seconds", "0.3", "--warmup", "0.1", "--warmup-rounds", "0"]
+        assert bench.main([*arguments, "--json", str(report)]) == 0
+        addresses = [server.address, other.address]
+    capsys.readouterr()
+    written = json.loads(report.read_text())
+    (row,) = written["results"]
+    assert row["scenario"] == "vec-64/2-servers"
+    assert len(row["processes_steps_per_second"]) == 2
+    assert all(child["servers"] == addresses for child in written["children"])
+
+
+def test_bench_servers_are_checked(capsys: pytest.CaptureFixture[str]) -> None:
+    for arguments, said in (
+        (["--servers", "2", "--server", "127.0.0.1:1"], "--servers 2 but --server names 1"),
+        (["--servers", "65"], "between 1 and 64"),
+        (["--servers", "0"], "between 1 and 64"),
+        (["--servers", "2", "--scenarios", "client-1"], "run vec-64"),
+        (["--server", " , "], "--server: give an address"),
+    ):
+        with pytest.raises(SystemExit) as exit_info:
+            bench.main(arguments)
+        assert exit_info.value.code == 2
+        assert said in capsys.readouterr().err

@@ -136,8 +136,7 @@ def test_render(server: esrp.LocalServer, easy_scenes: list[str]) -> None:
 def test_env_starts_its_own_server() -> None:
     """Without an address the env runs a LocalServer of its own, and stops it on close."""
     env = RearrangeEnv(split="test", difficulty="hard")
-    server = env._setup.server  # noqa: SLF001
-    assert server is not None
+    (server,) = env._setup.servers  # noqa: SLF001
     assert server.is_running()
     env.reset(seed=0)
     env.close()

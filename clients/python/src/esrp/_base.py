@@ -171,7 +171,8 @@ class ScenePages:
 class StepWave:
     """`step_columns` without its I/O: the StepBatch requests of one step in each of several
     episodes and of `resets` (`_convert.step_batch_requests`), and the `columns` their answers fill
-    in request order.
+    in request order (appended to `columns` where given: the waves of several servers, one after
+    the other).
     """
 
     def __init__(
@@ -180,13 +181,14 @@ class StepWave:
         actions: Sequence[ActionLike],
         sensors: Sensors,
         resets: Sequence[tuple[str, str | None]],
+        columns: StepColumns | None = None,
     ) -> None:
         self._episode_ids = episode_ids
         self._actions = actions
         self._resets = resets
         self._resolution = sensors.resolution
         self._layout = _convert.image_layout(sensors)
-        self.columns = StepColumns([key for key, _, _, _ in self._layout])
+        self.columns = columns if columns is not None else StepColumns([key for key, _, _, _ in self._layout])
 
     @property
     def empty(self) -> bool:

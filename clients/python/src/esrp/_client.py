@@ -316,15 +316,7 @@ class Client(ClientBase):
         the client more. Each call is all or nothing; a failed one raises its error, and the other
         calls' episodes may have moved.
         """
-        wave = StepWave(episode_ids, actions, sensors, resets)
-        if wave.empty:
-            return wave.columns
-        requests = wave.requests(self._batch_size(sensors))
-        started = [self._calls.start("StepBatch", request) for request in requests[:-1]]
-        last = self._calls("StepBatch", requests[-1])
-        for pending, request in zip(started, requests, strict=False):
-            wave.add(pending.result(), request)
-        return wave.add(last, requests[-1])
+        return step_columns_across([(self, episode_ids, actions, resets)], sensors)
 
     def _batch_size(self, sensors: Sensors) -> int:
         """`batch_size` for this server, asked once per client and sensors."""
@@ -336,6 +328,38 @@ class Client(ClientBase):
         episode in flight.
         """
         return EpisodeStream(self, window)
+
+
+StepPart = tuple[Client, Sequence[str], Sequence[ActionLike], Sequence[tuple[str, str | None]]]
+"""One server's share of a wave of `step_columns_across`: its client, its episodes' ids, their
+actions, and its resets (as `Client.step_columns`'s arguments)."""
+
+
+def step_columns_across(parts: Sequence[StepPart], sensors: Sensors) -> StepColumns:
+    """`Client.step_columns` over several clients (a vector env's sub-envs spread over servers):
+    every part's StepBatch calls are sent before any answer is waited for, so that the servers step
+    and render at once; the answers as one `StepColumns`, the parts' steps (and resets) one after
+    the other in the order of `parts`, each part's in its own order.
+
+    Each call is all or nothing; the first failed one (in the order of `parts`) raises its error,
+    and the episodes of the other calls may have moved.
+    """
+    layout = _convert.image_layout(sensors)
+    columns = StepColumns([key for key, _, _, _ in layout])
+    calls: list[tuple[Client, StepWave, pb.StepBatchRequest]] = []
+    for client, episode_ids, actions, resets in parts:
+        wave = StepWave(episode_ids, actions, sensors, resets, columns)
+        if not wave.empty:
+            calls += [(client, wave, r) for r in wave.requests(client._batch_size(sensors))]
+    if not calls:
+        return columns
+    started = [client._calls.start("StepBatch", request) for client, _, request in calls[:-1]]
+    client, wave, request = calls[-1]
+    last = client._calls("StepBatch", request)
+    for pending, (_, wave_of, request_of) in zip(started, calls, strict=False):
+        wave_of.add(pending.result(), request_of)
+    wave.add(last, request)
+    return columns
 
 
 class Episode(EpisodeBase["Client"]):

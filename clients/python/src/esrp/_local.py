@@ -4,6 +4,7 @@ that want a server without a second terminal.
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import importlib.metadata
 import os
@@ -475,6 +476,29 @@ class LocalServer:
         self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None
     ) -> None:
         self.stop()
+
+
+def start_servers(count: int, *args: str, **options: Any) -> list[LocalServer]:  # noqa: ANN401
+    """`count` `LocalServer(*args, **options)`s, started at once (each takes a while to load its
+    dataset and renderer); should one fail to start, the others are stopped and its
+    `LocalServerError` raised.
+    """
+    if count < 1:
+        raise ValueError(f"count must be at least 1, got {count}")
+    servers = [LocalServer(*args, **options) for _ in range(count)]
+    if count == 1:
+        return [servers[0].start()]
+    try:
+        with concurrent.futures.ThreadPoolExecutor(count) as pool:
+            errors = [future.exception() for future in [pool.submit(server.start) for server in servers]]
+        failed = [error for error in errors if error is not None]
+        if failed:
+            raise failed[0]
+    except BaseException:  # one that failed, or an interrupt while they started
+        for server in servers:
+            server.stop()
+        raise
+    return servers
 
 
 class _Log:

@@ -30,6 +30,11 @@ shows the medians (ratios to Rust: the median of each round's ratio). Before the
 built-in benchmark on its first use (a vec-64 round on a fresh server measured a third of a warm
 one's steps/s), and the measured rounds then visit the same scenes, from the same seeds.
 
+`--servers K` spreads vec-64's 64 sub-envs over K servers (`RearrangeVectorEnv`'s `servers`):
+started here, or the comma-separated addresses of `--server`; its row is then
+`vec-64/K-servers`, and the other scenarios play on the first server. One server's device queue
+caps a vector env on a GPU machine; this measures what spreading raises it to.
+
 `--processes N` runs the chosen scenarios in N processes at once against one server (started
 here unless `--server` names one), so that one Python process is not what caps the figure on a
 many-core machine: each runs every round itself, and the table sums their steps/s per scenario
@@ -176,11 +181,13 @@ class _Target:
     address: str
     token: str | None
     transport: Transport = "auto"
+    spread: tuple[str, ...] = ()
+    """The servers vec-64 spreads its sub-envs over (none: `address` alone)."""
 
-    def client(self) -> Client:
+    def client(self, address: str | None = None) -> Client:
         from .._client import Client
 
-        return Client(self.address, token=self.token, transport=self.transport)
+        return Client(address or self.address, token=self.token, transport=self.transport)
 
 
 def bench_client_1(
@@ -235,12 +242,14 @@ def bench_env_1(target: _Target, window_of: Callable[[], _Window], label: str | 
 
 
 def bench_vec_64(target: _Target, window_of: Callable[[], _Window], label: str | None = None) -> Measurement:
-    """`vec-64`: the native vector env of 64 envs, closed loop, on the 64 scenes batch-64 plays."""
+    """`vec-64`: the native vector env of 64 envs, closed loop, on the 64 scenes batch-64 plays
+    (spread over `target.spread`'s servers where it names several).
+    """
     from ..envs import RearrangeVectorEnv
 
-    client = target.client()
+    clients = [target.client(address) for address in target.spread or (target.address,)]
     envs = RearrangeVectorEnv(
-        _EPISODES, client=client, scene=_test_scenes(client, _EPISODES), scene_per_env=True
+        _EPISODES, client=clients, scene=_test_scenes(clients[0], _EPISODES), scene_per_env=True
     )
     try:
         envs.reset(seed=0)
@@ -253,7 +262,8 @@ def bench_vec_64(target: _Target, window_of: Callable[[], _Window], label: str |
         return _closed_loop(label or "vec-64", _EPISODES, window_of(), step)
     finally:
         envs.close()
-        client.close()
+        for client in clients:
+            client.close()
 
 
 def bench_stream_64(target: _Target, window_of: Callable[[], _Window]) -> Measurement:
@@ -451,11 +461,13 @@ def run(
     round_index: int = 0,
     log: Callable[[str], None] = lambda line: None,
     transports: Sequence[Transport] = ("auto",),
+    spread: Sequence[str] = (),
 ) -> list[Measurement]:
     """One round of `scenarios` against the server at `address`; their Measurements in order.
     client-1, env-1 and vec-64 run once per transport (`Client`'s `transport`): under their own
     name with the first, as `env-1@grpcio` (...) with the others. stream-64 runs once (streams
-    always go through grpcio).
+    always go through grpcio). With `spread` (several addresses), vec-64 spreads its sub-envs over
+    those servers, as `vec-64/K-servers`.
     """
 
     def window_of() -> _Window:
@@ -466,9 +478,12 @@ def run(
     for name in scenarios:
         log(f"round {round_index + 1}: {name}")
         if name in _BY_TRANSPORT:
+            spreads = name == "vec-64" and len(spread) > 1
             for index, transport in enumerate(transports):
-                label = name if index == 0 else f"{name}@{transport}"
-                results.append(_BY_TRANSPORT[name](_Target(address, token, transport), window_of, label))
+                label = f"{name}/{len(spread)}-servers" if spreads else name
+                label += "" if index == 0 else f"@{transport}"
+                target = _Target(address, token, transport, tuple(spread) if spreads else ())
+                results.append(_BY_TRANSPORT[name](target, window_of, label))
         elif name == "stream-64":
             results.append(bench_stream_64(_Target(address, token), window_of))
         elif name == "rust":
@@ -592,14 +607,19 @@ def _json_report(rounds: Sequence[Sequence[Measurement]], info: dict[str, Any]) 
 
 
 @contextlib.contextmanager
-def _server(address: str | None, unix_socket: bool) -> Iterator[str]:
-    if address is not None:
-        yield address
+def _servers(addresses: list[str] | None, count: int, unix_socket: bool) -> Iterator[list[str]]:
+    """The servers' addresses: `addresses`, or `count` servers started here (stopped after)."""
+    if addresses is not None:
+        yield addresses
         return
-    from .._local import LocalServer
+    from .._local import start_servers
 
-    with LocalServer(unix_socket=unix_socket) as local:
-        yield local.address
+    started = start_servers(count, unix_socket=unix_socket)
+    try:
+        yield [server.address for server in started]
+    finally:
+        for server in started:
+            server.stop()
 
 
 def _parse_args(argv: Sequence[str] | None, prog: str) -> argparse.Namespace:
@@ -612,7 +632,14 @@ def _parse_args(argv: Sequence[str] | None, prog: str) -> argparse.Namespace:
     )
     parser.add_argument(
         "--server",
-        help="a running server, host:port or unix:PATH (default: start esrp-server on a free port)",
+        help="a running server, host:port or unix:PATH, or several, comma-separated, for --servers "
+        "(default: start esrp-server on a free port)",
+    )
+    parser.add_argument(
+        "--servers",
+        type=int,
+        help="spread vec-64's sub-envs over this many servers: started here, or those of --server "
+        "(default 1, or --server's count)",
     )
     parser.add_argument(
         "--socket",
@@ -670,6 +697,18 @@ def _parse_args(argv: Sequence[str] | None, prog: str) -> argparse.Namespace:
         parser.error(f"unknown scenario(s) {', '.join(unknown)}: use {', '.join(SCENARIOS)}")
     if args.socket and args.server is not None:
         parser.error("--socket is for the server started here: name a server's socket as --server unix:PATH")
+    args.addresses = None
+    if args.server is not None:
+        args.addresses = [address.strip() for address in args.server.split(",") if address.strip()]
+        if not args.addresses:
+            parser.error("--server: give an address")
+        if args.servers is not None and args.servers != len(args.addresses):
+            parser.error(f"--servers {args.servers} but --server names {len(args.addresses)}")
+    args.servers = args.servers if args.servers is not None else len(args.addresses or [None])
+    if not 1 <= args.servers <= _EPISODES:
+        parser.error(f"--servers must be between 1 and {_EPISODES} (vec-64's sub-envs)")
+    if args.servers > 1 and "vec-64" not in args.scenarios:
+        parser.error("--servers spreads vec-64 over several servers: run vec-64")
     if not 1 <= args.processes <= 256:
         parser.error("--processes must be between 1 and 256")
     if args.processes > 1 and {"rust", "miniworld"} & set(args.scenarios):
@@ -705,12 +744,12 @@ def _checked(argv: Sequence[str] | None, prog: str) -> int:
         return 1
 
 
-def _in_processes(args: argparse.Namespace, address: str) -> list[dict[str, Any]]:
+def _in_processes(args: argparse.Namespace, addresses: Sequence[str]) -> list[dict[str, Any]]:
     """Runs this command with `args` in `args.processes` child processes at once against the
-    server at `address`; returns each child's JSON report.
+    servers at `addresses`; returns each child's JSON report.
     """
     flags = [
-        *("--server", address, "--scenarios", ",".join(args.scenarios)),
+        *("--server", ",".join(addresses), "--scenarios", ",".join(args.scenarios)),
         *("--seconds", str(args.seconds), "--warmup", str(args.warmup), "--repeat", str(args.repeat)),
         *("--warmup-rounds", str(args.warmup_rounds), "--transport", ",".join(args.transports)),
     ]
@@ -758,9 +797,9 @@ def _summed(reports: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def _main_processes(args: argparse.Namespace) -> int:
     """`--processes N`: the children's reports, summed, printed and written."""
-    with _server(args.server, args.socket) as address:
-        print(f"server {address}: {args.processes} processes at once", flush=True)
-        reports = _in_processes(args, address)
+    with _servers(args.addresses, args.servers, args.socket) as addresses:
+        print(f"server {', '.join(addresses)}: {args.processes} processes at once", flush=True)
+        reports = _in_processes(args, addresses)
     rows = _summed(reports)
     print(f"{'scenario':<22}{'episodes':>9}{'steps/s':>11}{'p50 ms':>9}{'p99 ms':>9}")
     for row in rows:
@@ -789,13 +828,16 @@ def _main(args: argparse.Namespace) -> int:
         flush=True,
     )
     rounds: list[list[Measurement]] = []
-    with _server(args.server, args.socket) as address:
+    with _servers(args.addresses, args.servers, args.socket) as addresses:
+        address = addresses[0]
         with Client(address, token=args.token) as client:
             info = client.server_info()
         transports = {}
         for transport in args.transports:
             with Client(address, token=args.token, transport=transport) as client:
                 transports[transport] = client.transport
+        if len(addresses) > 1:
+            print(f"vec-64 over {len(addresses)} servers: {', '.join(addresses)}", flush=True)
         print(
             f"server {address}: esrp-server {info.version}, renderer {info.renderer_adapter} "
             f"({info.renderer_backend}), dataset {info.dataset}; transport "
@@ -819,6 +861,7 @@ def _main(args: argparse.Namespace) -> int:
                 round_index=index + args.warmup_rounds if warm else index,
                 log=log,
                 transports=args.transports,
+                spread=addresses,
             )
             if not warm:
                 rounds.append(results)
@@ -831,6 +874,7 @@ def _main(args: argparse.Namespace) -> int:
             {
                 "date": time.strftime("%Y-%m-%d"),
                 "server": address,
+                "servers": addresses,
                 "server_version": info.version,
                 "renderer": info.renderer_adapter,
                 "backend": info.renderer_backend,

@@ -17,7 +17,7 @@ from gymnasium import spaces
 from .._client import Client
 from .._common import TlsSetting
 from .._errors import InvalidRequest
-from .._local import LocalServer
+from .._local import LocalServer, start_servers
 from .._values import (
     Difficulty,
     EpisodeMetrics,
@@ -157,24 +157,30 @@ def _from_fields(kind: type[_T], fields: Mapping[str, Any], what: str) -> _T:
 
 @dataclass
 class Setup:
-    """What the single and the vector env share: the connection (owned or not), the episode
-    settings, and the scene list the seeds pick from.
+    """What the single and the vector env share: the connections (owned or not; the vector env's
+    sub-envs may be spread over several servers, one client each), the episode settings, and the
+    scene list the seeds pick from.
     """
 
-    client: Client
+    clients: tuple[Client, ...]
     owned_client: bool
-    server: LocalServer | None
+    servers: list[LocalServer]
     scenes: tuple[str, ...]
     sensors: Sensors
     horizon: int
     reward: RewardWeights | None
     agent: str | None = None
 
+    @property
+    def client(self) -> Client:
+        """The first (for the single env, the only) client."""
+        return self.clients[0]
+
     @classmethod
     def connect(
         cls,
-        address: str | None,
-        client: Client | None,
+        address: str | Sequence[str] | None,
+        client: Client | Sequence[Client] | None,
         token: str | None,
         tls: TlsSetting,
         split: Split | str | None,
@@ -184,20 +190,49 @@ class Setup:
         horizon: int,
         reward: RewardWeights | Mapping[str, Any] | None,
         agent: str | None = None,
+        servers: int | None = None,
     ) -> Setup:
+        """Connects to `client` (one or a list), else to `address` (one or a list), else to
+        `servers` (default 1) `LocalServer`s started here over Unix domain sockets, started at once.
+        Several servers must serve the same dataset (`ValueError` otherwise). The scenes come from
+        `scene`, else from the first server's list of `split` and `difficulty`.
+        """
         # Mappings of the fields too, so that an env spec's kwargs can be JSON (Minari stores them).
         if isinstance(sensors, Mapping):
             sensors = _from_fields(Sensors, sensors, "sensors")
         if isinstance(reward, Mapping):
             reward = _from_fields(RewardWeights, reward, "reward")
-        server = None
+        if servers is not None and (address is not None or client is not None):
+            raise ValueError(
+                "servers is the number of servers started here: leave it out with address or client "
+                "(a list of addresses spreads the sub-envs over those servers)"
+            )
+        if servers is not None and servers < 1:
+            raise ValueError(f"servers must be at least 1, got {servers}")
         owned = client is None
-        if client is None:
-            if address is None:
-                server = LocalServer(unix_socket=True).start()
-                address = server.address
-            client = Client(address, token=token, tls=tls)
+        started: list[LocalServer] = []
+        clients: list[Client] = []
         try:
+            if client is not None:
+                clients = [client] if isinstance(client, Client) else list(client)
+                if not clients or not all(isinstance(c, Client) for c in clients):
+                    raise ValueError(f"client: a Client or a non-empty list of Clients, got {client!r}")
+            else:
+                if address is None:
+                    started = start_servers(servers or 1, unix_socket=True)
+                    addresses = [server.address for server in started]
+                elif isinstance(address, str):
+                    addresses = [address]
+                else:
+                    addresses = list(address)
+                    if not addresses or not all(isinstance(a, str) and a for a in addresses):
+                        raise ValueError(
+                            f"address: an address or a non-empty list of addresses, got {address!r}"
+                        )
+                for one in addresses:
+                    clients.append(Client(one, token=token, tls=tls))
+            if len(clients) > 1:
+                _check_same_dataset(clients)
             if isinstance(scene, str):
                 scenes: tuple[str, ...] = (scene,)
             elif scene is not None:
@@ -205,18 +240,19 @@ class Setup:
                 if not scenes or not all(isinstance(s, str) and s for s in scenes):
                     raise ValueError(f"scene: a scene id or a non-empty list of scene ids, got {scene!r}")
             else:
-                scenes = tuple(s.id for s in client.scenes(split, difficulty, page_size=1000))
+                scenes = tuple(s.id for s in clients[0].scenes(split, difficulty, page_size=1000))
                 if not scenes:
                     raise InvalidRequest(
                         f"the served dataset has no scenes of split {split!r}, difficulty {difficulty!r}"
                     )
         except BaseException:
             if owned:
-                client.close()
-            if server is not None:
+                for made in clients:
+                    made.close()
+            for server in started:
                 server.stop()
             raise
-        return cls(client, owned, server, scenes, sensors or Sensors(), horizon, reward, agent)
+        return cls(tuple(clients), owned, started, scenes, sensors or Sensors(), horizon, reward, agent)
 
     def pick_scene(
         self, rng: np.random.Generator, options: Mapping[str, Any] | None, own: str | None = None
@@ -230,8 +266,24 @@ class Setup:
         return drawn if own is None else own
 
     def close(self) -> None:
+        """Closes the clients the env made and stops the servers it started."""
         if self.owned_client:
-            self.client.close()
-        if self.server is not None:
-            self.server.stop()
-            self.server = None
+            for client in self.clients:
+                client.close()
+        servers, self.servers = self.servers, []
+        for server in servers:
+            server.stop()
+
+
+def _check_same_dataset(clients: Sequence[Client]) -> None:
+    """Raises `ValueError` unless every client's server serves the same dataset (name, scene count,
+    counts by split): a sub-env's scene must exist on whichever server plays it.
+    """
+    seen = []
+    for client in clients:
+        dataset = client.describe_dataset()
+        # The counts by split come as a protobuf map, in no fixed order.
+        seen.append((client.address, (dataset.name, dataset.scenes, tuple(sorted(dataset.by_split.items())))))
+    if len({key for _, key in seen}) > 1:
+        listed = "; ".join(f"{address}: {name} ({scenes} scenes)" for address, (name, scenes, _) in seen)
+        raise ValueError(f"the servers serve different datasets: {listed}")

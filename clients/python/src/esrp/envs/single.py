@@ -72,6 +72,12 @@ class RearrangeEnv(gymnasium.Env[ObsDict, np.int64]):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode {render_mode!r}: use None or 'rgb_array'")
         self.render_mode = render_mode
+        one_address = address is None or isinstance(address, str)
+        if not one_address or not (client is None or isinstance(client, Client)):
+            raise TypeError(
+                "RearrangeEnv plays one episode on one server: give one address or client "
+                "(RearrangeVectorEnv spreads its sub-envs over several)"
+            )
         self._setup = Setup.connect(
             address, client, token, tls, split, difficulty, scene, sensors, horizon, reward, agent
         )

@@ -1,6 +1,7 @@
 """`RearrangeVectorEnv`: N ESRP episodes owned by one StepStream, advanced together with one
 StepBatch round trip per step (its steps and autoresets in one message): no subprocesses, no
-per-env threads.
+per-env threads. Its sub-envs may be spread over several servers (one StepStream and one StepBatch
+each, sent at once).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from .. import _malloc_setup
-from .._client import Client, EpisodeStream
+from .._client import Client, EpisodeStream, StepPart, step_columns_across
 from .._common import TlsSetting
 from .._errors import EpisodeEnded, EsrpError, InvalidRequest, ProtocolError
 from .._values import (
@@ -87,6 +88,19 @@ def action_codes(actions: npt.NDArray[Any] | Sequence[ActionLike], num_envs: int
     return codes
 
 
+def _server_count(
+    address: str | Sequence[str] | None, client: Client | Sequence[Client] | None, servers: int | None
+) -> int:
+    """How many servers the sub-envs are spread over, as far as the arguments say (what
+    `Setup.connect` checks further).
+    """
+    if client is not None:
+        return 1 if isinstance(client, Client) else len(client)
+    if address is not None:
+        return 1 if isinstance(address, str) else len(address)
+    return servers if servers is not None else 1
+
+
 class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[Any]]):
     """N ESRP episodes stepped together (`gymnasium.make_vec("esrp/Rearrange-v1", num_envs=N,
     vectorization_mode="vector_entry_point", ...)`): one StepBatch call per step, no subprocesses,
@@ -114,6 +128,16 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
     closes them should the env's process die; a step's steps and autoresets go in one StepBatch
     (split only beyond the server's `max_batch` or half its message limit), whose single answer
     costs far less to receive in Python than one stream answer per episode.
+
+    Several servers: `address` a list of addresses (or `client` a list of clients), or `servers=K`
+    with neither, to start K local servers over Unix domain sockets (stopped at `close()`). The
+    sub-envs are spread over them in contiguous blocks of near-equal size (with 64 sub-envs over 3
+    servers: 0-21, 22-42, 43-63), each block's episodes living on its server; a step sends every
+    server its StepBatch before it waits for any answer, so that the servers step and render at
+    once. One server's throughput is capped by its device's queue (about 17,000 steps/s on one
+    GPU); several on one machine scale with its cores and queues. Observations, rewards and infos
+    are those of one server (same scenes and actions, same results: the servers must serve the
+    same dataset, checked at the start). At most one server per sub-env.
     """
 
     metadata = {**METADATA, "autoreset_mode": AutoresetMode.NEXT_STEP}
@@ -121,9 +145,9 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
     def __init__(
         self,
         num_envs: int = 1,
-        address: str | None = None,
+        address: str | Sequence[str] | None = None,
         *,
-        client: Client | None = None,
+        client: Client | Sequence[Client] | None = None,
         token: str | None = None,
         tls: TlsSetting = None,
         split: Split | str | None = "train",
@@ -136,9 +160,13 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         render_mode: str | None = None,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
         scene_per_env: bool = False,
+        servers: int | None = None,
     ) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be at least 1, got {num_envs}")
+        spread = _server_count(address, client, servers)
+        if spread > num_envs:
+            raise ValueError(f"{spread} servers for {num_envs} sub-envs: give at most one server per sub-env")
         # Its multi-megabyte step buffers kept mapped from step to step (see esrp._malloc_setup).
         _malloc_setup.apply()
         if render_mode is not None and render_mode not in METADATA["render_modes"]:
@@ -154,8 +182,13 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
                 f"scene_per_env: scene must list one scene id per sub-env ({num_envs}), got {scene!r}"
             )
         self._setup = Setup.connect(
-            address, client, token, tls, split, difficulty, scene, sensors, horizon, reward, agent
+            address, client, token, tls, split, difficulty, scene, sensors, horizon, reward, agent, servers
         )
+        # Sub-env i lives on server `_shard_of[i]`; `_shards[k]` lists server k's sub-envs (a
+        # contiguous block, in order).
+        shards = len(self._setup.clients)
+        self._shard_of = [i * shards // num_envs for i in range(num_envs)]
+        self._shards = [[i for i in range(num_envs) if self._shard_of[i] == k] for k in range(shards)]
         self._scene_per_env = scene_per_env
         self.single_observation_space = observation_space(self._setup.sensors)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
@@ -165,7 +198,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         self._image_spec = Images(self._setup.sensors)
         # The observation keys in the space's order (that of Gymnasium's batches).
         self._keys = tuple(self.single_observation_space.spaces)
-        self._stream: EpisodeStream | None = None
+        self._streams: list[EpisodeStream | None] = [None] * shards
         self._episode_ids: list[str | None] = [None] * num_envs
         self._scene_ids: list[str | None] = [None] * num_envs  # each episode's scene
         self._rngs: list[np.random.Generator | None] = [None] * num_envs
@@ -179,8 +212,18 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
 
     @property
     def client(self) -> Client:
-        """The client the env uses."""
+        """The client the env uses (with several servers, the first server's)."""
         return self._setup.client
+
+    @property
+    def clients(self) -> tuple[Client, ...]:
+        """The client of each server the sub-envs are spread over, in order (one without spreading)."""
+        return self._setup.clients
+
+    @property
+    def server_of_env(self) -> tuple[int, ...]:
+        """For each sub-env, the index in `clients` of the server its episode lives on."""
+        return tuple(self._shard_of)
 
     @property
     def scenes(self) -> tuple[str, ...]:
@@ -199,10 +242,12 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             self._rngs[index] = rng
         return rng
 
-    def _open_stream(self) -> EpisodeStream:
-        if self._stream is None:
-            self._stream = self._setup.client.episode_stream(window=1)
-        return self._stream
+    def _open_stream(self, shard: int) -> EpisodeStream:
+        """Server `shard`'s StepStream, which creates and owns its sub-envs' episodes."""
+        stream = self._streams[shard]
+        if stream is None:
+            stream = self._streams[shard] = self._setup.clients[shard].episode_stream(window=1)
+        return stream
 
     def _pick_scenes(self, indices: list[int], options: Mapping[str, Any] | None) -> dict[int, str]:
         """The scenes of sub-envs `indices`' next resets, each drawn from its own generator."""
@@ -269,23 +314,20 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             if seeds[index] is not None:
                 self._rngs[index], _ = seeding.np_random(seeds[index])
         scenes = self._pick_scenes(indices, options)
-        # New episodes are created on the stream (which owns them); live ones restart in one
-        # StepBatch.
+        # New episodes are created on their server's stream (which owns them), every creation sent
+        # before any answer is read; live ones restart in one StepBatch per server.
         creates = {i: scene for i, scene in scenes.items() if self._episode_ids[i] is None}
         restarts = {i: scene for i, scene in scenes.items() if i not in creates}
-        stream = self._open_stream() if creates else None
         setup = self._setup
-        for scene in creates.values():
-            assert stream is not None
-            stream.create(
+        for index, scene in creates.items():
+            self._open_stream(self._shard_of[index]).create(
                 scene, sensors=setup.sensors, horizon=setup.horizon, reward=setup.reward, agent=setup.agent
             )
         _, restarted = self._step_batch([], [], restarts)
         infos: dict[str, Any] = {}
         for index, scene in scenes.items():
             if index in creates:
-                assert stream is not None
-                info = self._take_create(stream, index, scene)
+                info = self._take_create(self._open_stream(self._shard_of[index]), index, scene)
             else:
                 info = restarted[index]
             infos = self._add_info(infos, info, index)
@@ -322,7 +364,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         """
         codes = action_codes(actions, self.num_envs)
         n = self.num_envs
-        if self._stream is None or not np.all(self._started):
+        if not np.all(self._started):
             raise gymnasium.error.ResetNeeded("call reset() before step()")
         if self.autoreset_mode == AutoresetMode.DISABLED and np.any(self._autoreset_envs):
             ended = np.flatnonzero(self._autoreset_envs).tolist()
@@ -366,29 +408,42 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
     def _step_batch(
         self, stepped: list[int], codes: list[int], restarts: Mapping[int, str]
     ) -> tuple[StepColumns, dict[int, dict[str, Any]]]:
-        """Steps sub-envs `stepped` (in order) and restarts the live sub-envs of `restarts` onto
-        their scenes with one StepBatch (several beyond the server's limits:
-        `Client.step_columns`): the steps' answers as columns in the same order, and each
-        restarted sub-env's reset info (its first observation stored as its last one).
+        """Steps sub-envs `stepped` (in increasing order) and restarts the live sub-envs of
+        `restarts` onto their scenes with one StepBatch per server (several beyond a server's
+        limits: `Client.step_columns`), all sent at once: the steps' answers as columns in the order
+        of `stepped`, and each restarted sub-env's reset info (its first observation stored as its
+        last one).
         """
         if not stepped and not restarts:
             return StepColumns(self._image_spec.keys), {}
         episode_ids = self._episode_ids
-        # The same scene again restarts the episode where it is (see `RearrangeEnv.reset`), so no
-        # new scene is sent for it.
-        resets = [
-            (cast(str, episode_ids[i]), None if scene == self._scene_ids[i] else scene)
-            for i, scene in restarts.items()
-        ]
-        columns = self._setup.client.step_columns(
-            [cast(str, episode_ids[i]) for i in stepped],
-            [codes[i] for i in stepped],
-            self._image_spec.sensors,
-            resets=resets,
-        )
+        clients = self._setup.clients
+        # Each server's share, in server order: as the blocks are contiguous, the servers' steps one
+        # after the other are `stepped` in its order.
+        steps: list[list[int]] = [[] for _ in clients]
+        restarted: list[list[int]] = [[] for _ in clients]
+        if len(clients) == 1:
+            steps[0], restarted[0] = stepped, list(restarts)
+        else:
+            for i in stepped:
+                steps[self._shard_of[i]].append(i)
+            for i in restarts:
+                restarted[self._shard_of[i]].append(i)
+        parts: list[StepPart] = []
+        for client, shard_steps, shard_restarts in zip(clients, steps, restarted, strict=True):
+            # The same scene again restarts the episode where it is (see `RearrangeEnv.reset`), so
+            # no new scene is sent for it.
+            resets = [
+                (cast(str, episode_ids[i]), None if restarts[i] == self._scene_ids[i] else restarts[i])
+                for i in shard_restarts
+            ]
+            ids = [cast(str, episode_ids[i]) for i in shard_steps]
+            parts.append((client, ids, [codes[i] for i in shard_steps], resets))
+        columns = step_columns_across(parts, self._image_spec.sensors)
+        order = [i for shard_restarts in restarted for i in shard_restarts]
         infos = {
-            i: self._take_first(i, first, summary, scene)
-            for (i, scene), (first, summary) in zip(restarts.items(), columns.resets, strict=True)
+            i: self._take_first(i, first, summary, restarts[i])
+            for i, (first, summary) in zip(order, columns.resets, strict=True)
         }
         return columns, infos
 
@@ -489,15 +544,19 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         return tuple(frame(self._single_observation(i), self._goals[i]) for i in range(self.num_envs))
 
     def close_extras(self, **kwargs: Any) -> None:  # noqa: ANN401
-        """Closes every server episode (on the stream, waiting for the answers), the stream, and
-        the client and server the env started.
+        """Closes every server episode (on its server's stream, waiting for the answers), the
+        streams, and the clients and servers the env started.
         """
-        stream, self._stream = self._stream, None
-        if stream is not None:
+        streams, self._streams = self._streams, [None] * len(self._streams)
+        self._started[:] = False
+        for shard, stream in enumerate(streams):
+            if stream is None:
+                continue
             try:
                 for answer in stream:  # answers of a step that raised
                     del answer
-                for episode in self._episode_ids:
+                for i in self._shards[shard]:
+                    episode = self._episode_ids[i]
                     if episode is not None:
                         stream.close_episode(episode)
                 for answer in stream:
