@@ -167,3 +167,18 @@ def test_unbatch_infos_follows_the_masks() -> None:
     assert unbatch_infos(infos, 3) == [{"a": 1, "m": {"x": 0.5}}, {}, {"a": 3}]
     with pytest.raises(ValueError, match="no mask"):
         unbatch_infos({"a": np.array([1])}, 1)
+
+
+def test_spread_over_two_servers(server: esrp.LocalServer) -> None:
+    """A list of addresses reaches the vector env: SB3 sees one VecEnv over both servers."""
+    with esrp.LocalServer(unix_socket=True) as other:
+        env = make_vec_env(4, [server.address, other.address], monitor=False, **SETTINGS)
+        try:
+            observations = env.reset()
+            assert isinstance(observations, dict)
+            assert observations["ego_rgb"].shape[0] == 4
+            env.step(np.array([0, 1, 2, 3]))
+            assert isinstance(env, EsrpVecEnv)
+            assert env.venv.server_of_env == (0, 0, 1, 1)
+        finally:
+            env.close()

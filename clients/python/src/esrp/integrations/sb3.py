@@ -179,15 +179,16 @@ the reset's info (`_RESET_KEYS`)."""
 
 def make_vec_env(
     num_envs: int,
-    address: str | None = None,
+    address: str | Sequence[str] | None = None,
     *,
     monitor: bool = True,
     **options: Any,  # noqa: ANN401
 ) -> VecEnv:
     """An SB3 `VecEnv` of `num_envs` ESRP episodes over one `RearrangeVectorEnv` at `address`
     (`options`: the vector env's, e.g. `split`, `difficulty`, `scene`, `sensors`, `reward`,
-    `client`). With `monitor` (the default) it is wrapped in SB3's `VecMonitor`, so episodes' returns,
-    lengths and `is_success` reach SB3's logs (`rollout/ep_rew_mean`, `rollout/success_rate`).
+    `client`; a list of addresses, or `servers=K`, spreads the episodes over several servers).
+    With `monitor` (the default) it is wrapped in SB3's `VecMonitor`, so episodes' returns, lengths
+    and `is_success` reach SB3's logs (`rollout/ep_rew_mean`, `rollout/success_rate`).
     """
     if "autoreset_mode" in options:
         raise ValueError("make_vec_env sets autoreset_mode itself (SAME_STEP, SB3's semantics)")

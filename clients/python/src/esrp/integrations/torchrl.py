@@ -21,6 +21,7 @@ the action a one-hot of 6 (or an index with `categorical_action_encoding=True`);
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -68,7 +69,7 @@ class SuccessReader(BaseInfoDictReader):
 
 def make_env(
     num_envs: int | None = None,
-    address: str | None = None,
+    address: str | Sequence[str] | None = None,
     *,
     categorical_action_encoding: bool = False,
     device: str | None = None,
@@ -77,7 +78,8 @@ def make_env(
     """A TorchRL env of ESRP at `address` (`options`: the env's, e.g. `split`, `difficulty`,
     `scene`, `sensors`, `horizon`, `reward`): one episode (`GymEnv`) with `num_envs=None`, else a
     batch of `num_envs` episodes over the native vector env (`GymWrapper`, batch size
-    `[num_envs]`). `categorical_action_encoding`: actions as indices instead of one-hot vectors.
+    `[num_envs]`; it may be spread over several servers: a list of addresses, or `servers=K`).
+    `categorical_action_encoding`: actions as indices instead of one-hot vectors.
     """
     if "autoreset_mode" in options:
         raise ValueError("make_env sets autoreset_mode itself (DISABLED: TorchRL resets ended episodes)")
