@@ -18,8 +18,10 @@ import pytest
 import esrp
 
 
-def test_stop_is_graceful_and_metrics_are_served() -> None:
-    server = esrp.LocalServer("--metrics-listen", "127.0.0.1:0").start()
+@pytest.mark.parametrize("flag", [("--metrics-listen", "127.0.0.1:0"), ("--metrics-listen=127.0.0.1:0",)])
+def test_stop_is_graceful_and_metrics_are_served(flag: tuple[str, ...]) -> None:
+    """The metrics' address is read whichever way the flag is written."""
+    server = esrp.LocalServer(*flag).start()
     try:
         assert server.is_running()
         assert server.metrics_url is not None

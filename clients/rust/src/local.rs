@@ -166,8 +166,8 @@ impl LocalServer {
             || command
                 .get_envs()
                 .any(|(name, value)| name == "ESRP_LISTEN_UNIX" && value.is_some_and(|v| !v.is_empty()));
-        let with_metrics = command.get_args().any(|a| a == "--metrics-listen");
-        let with_viewer = command.get_args().any(|a| a == "--http-listen");
+        let with_metrics = names_flag(command.get_args(), "--metrics-listen");
+        let with_viewer = names_flag(command.get_args(), "--http-listen");
         let program = Path::new(command.get_program()).display().to_string();
         let mut child = command.stdin(Stdio::piped()).stdout(Stdio::piped()).spawn().map_err(|e| {
             ClientError::LocalServer(format!(

@@ -276,7 +276,11 @@ class LocalServer:
     @property
     def asks_for_tls(self) -> bool:
         """Whether `args` give `--tls-cert` (the server then serves TLS, and no socket)."""
-        return any(a == "--tls-cert" or a.startswith("--tls-cert=") for a in self.args)
+        return self._names("--tls-cert")
+
+    def _names(self, flag: str) -> bool:
+        """Whether `args` give `flag`, as `--flag VALUE` or `--flag=VALUE`."""
+        return any(a == flag or a.startswith(f"{flag}=") for a in self.args)
 
     @property
     def tcp_address(self) -> str:
@@ -383,8 +387,8 @@ class LocalServer:
         deadline = time.monotonic() + self.startup_timeout
         listening = 2 if self.unix_socket else 1  # TCP, then the socket
         wanted = [_LISTENING] * listening
-        wanted += [_METRICS] if "--metrics-listen" in self.args else []
-        wanted += [_VIEWER] if "--http-listen" in self.args else []
+        wanted += [_METRICS] if self._names("--metrics-listen") else []
+        wanted += [_VIEWER] if self._names("--http-listen") else []
         found: list[str] = []
         for prefix in wanted:
             line = self._read_line(self.process.stdout, deadline)
@@ -400,7 +404,7 @@ class LocalServer:
         # Keep reading stdout, the server's log, so that a chatty server never blocks on a full pipe;
         # its lines are kept (in a file) for `log_tail` and for errors.
         threading.Thread(target=self._log.drain, args=(self.process.stdout,), daemon=True).start()
-        if "--tls-cert" in self.args:
+        if self.asks_for_tls:
             return
         options = channel_options(None, (), self._address)
         with grpc.insecure_channel(self._address, options=options) as channel:

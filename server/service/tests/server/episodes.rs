@@ -373,7 +373,8 @@ async fn a_batch_beyond_one_render_call_is_rendered_in_parts() {
 /// actions reaches the same states and renders each of them, with every sensor on.
 #[tokio::test]
 async fn steps_that_change_nothing_answer_the_last_images() {
-    let server = Server::start(&["--metrics-listen", "127.0.0.1:0"]);
+    // The flag's `=` form: LocalServer reads the metrics' address either way.
+    let server = Server::start(&["--metrics-listen=127.0.0.1:0"]);
     let mut client = server.client().await;
     let sensors = proto::Sensors { ego_depth: true, ego_segmentation: true, current_top_down: true, resolution: 64 };
     let create =

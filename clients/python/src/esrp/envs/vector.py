@@ -135,9 +135,9 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
     servers: 0-21, 22-42, 43-63), each block's episodes living on its server; a step sends every
     server its StepBatch before it waits for any answer, so that the servers step and render at
     once. One server's throughput is capped by its device's queue; several on one machine scale
-    with its cores and queues. Observations, rewards and infos
-    are those of one server (same scenes and actions, same results: the servers must serve the
-    same dataset, checked at the start). At most one server per sub-env.
+    with its cores and queues. Observations, rewards and infos are those of one server (same
+    scenes and actions, same results: the servers must serve the same dataset, checked at the
+    start). At most one server per sub-env.
     """
 
     metadata = {**METADATA, "autoreset_mode": AutoresetMode.NEXT_STEP}
