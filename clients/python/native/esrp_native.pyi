@@ -1,6 +1,6 @@
 """Type stubs of the native transport (see src/lib.rs); `esrp._native` wraps it."""
 
-from typing import TypeVar, overload
+from typing import Any, TypeVar, overload
 
 from google.protobuf.message import Message
 
@@ -20,3 +20,7 @@ class Channel:
     @overload
     def unary(self, method: str, request: bytes, timeout: float | None, response: type[M]) -> M: ...
     def close(self) -> None: ...
+
+def unary_all(
+    calls: list[tuple[Channel, str, bytes, float | None]], response: type[Message] | None = None
+) -> list[Any]: ...

@@ -263,3 +263,77 @@ def test_answers_are_parsed_in_place(server: esrp.LocalServer, easy_scenes: list
         # Refused before anything was sent: the episode is still at step 2.
         assert client.episode(episode.id).step(esrp.Action.LEFT).info.step_index == 3
     channel.close()
+
+
+def test_unary_all_makes_calls_on_several_channels_at_once(
+    server: esrp.LocalServer, easy_scenes: list[str]
+) -> None:
+    """`esrp_native.unary_all` answers each call in order, as `Channel.unary` would, over
+    different channels (here two servers); a call that fails comes back as its `CallError`
+    without hiding the others' answers, and `run_all` raises it as the client's error kind.
+    """
+    import esrp_native
+
+    from esrp._transport import run_all
+    from esrp.v1 import esrp_pb2 as pb
+
+    path = "/esrp.v1.Esrp/StepBatch"
+    with (
+        esrp.LocalServer(unix_socket=True) as other,
+        server.client(transport="native") as first,
+        other.client(transport="native") as second,
+        server.client(transport="grpcio") as reference,
+    ):
+        episodes = [first.create_episode(easy_scenes[0]), second.create_episode(easy_scenes[0])]
+        expected_episode = reference.create_episode(easy_scenes[0])
+        expected = reference.step_batch([(expected_episode, esrp.Action.LEFT)])[0]
+
+        def request(episode: esrp.Episode, action: int) -> pb.StepBatchRequest:
+            return pb.StepBatchRequest(steps=[pb.StepRequest(episode_id=episode.id, action=action)])
+
+        missing = pb.StepBatchRequest(steps=[pb.StepRequest(episode_id="nope")])
+        channels = [esrp_native.Channel(f"http://{server.address}"), esrp_native.Channel(other.address)]
+        calls = [
+            (channels[0], path, request(episodes[0], 2).SerializeToString(), None),
+            (channels[1], path, request(episodes[1], 2).SerializeToString(), 30.0),
+            (
+                channels[1],
+                path,
+                pb.StepBatchRequest(steps=[pb.StepRequest(episode_id="nope")]).SerializeToString(),
+                None,
+            ),
+        ]
+        answers = esrp_native.unary_all(calls, pb.StepBatchResponse)
+        assert [type(a) for a in answers[:2]] == [pb.StepBatchResponse] * 2
+        assert answers[0].responses[0].observation.ego_rgb.data == expected.observation.ego_rgb.tobytes()
+        assert answers[0] == answers[1]  # the same scene and action on either server
+        assert isinstance(answers[2], esrp_native.CallError)
+        assert "no episode" in answers[2].args[1]
+        assert esrp_native.unary_all([], pb.StepBatchResponse) == []
+        raw = esrp_native.unary_all(calls[:1])
+        assert isinstance(raw[0], bytes)
+        assert pb.StepBatchResponse.FromString(raw[0]).responses[0].info.step_index == 2
+        with pytest.raises(TypeError, match="protobuf message class"):
+            esrp_native.unary_all(calls[:1], bytes)  # type: ignore[arg-type]
+        # Through the client's transport: the answers in order, or the first failure's error kind.
+        made = run_all(
+            "StepBatch",
+            [(first._calls, request(episodes[0], 3)), (second._calls, request(episodes[1], 3))],  # noqa: SLF001
+        )
+        assert [a.responses[0].info.step_index for a in made] == [3, 2]
+        with pytest.raises(esrp.EpisodeNotFound):
+            run_all(
+                "StepBatch",
+                [
+                    (first._calls, missing),  # noqa: SLF001
+                    (second._calls, request(episodes[1], 3)),  # noqa: SLF001
+                ],
+            )
+        # The second call ran all the same: its episode moved.
+        assert second.episode(episodes[1].id).metrics().metrics.steps == 3
+        channels[1].close()
+        with pytest.raises(esrp_native.CallError, match="closed"):
+            esrp_native.unary_all(calls[1:2], pb.StepBatchResponse)
+        for episode in episodes:
+            episode.close()
+        expected_episode.close()

@@ -86,8 +86,12 @@ def test_identical_to_one_server(
 
 
 def test_each_server_holds_its_block(server: esrp.LocalServer, second: esrp.LocalServer) -> None:
-    """Sub-envs 0-2 live on the first server and 3-4 on the second; closing frees both."""
-    with server.client() as first_client, second.client() as second_client:
+    """Sub-envs 0-2 live on the first server and 3-4 on the second; closing frees both. (Over
+    grpcio: its calls are started together, not made by the native transport at once.)"""
+    with (
+        server.client(transport="grpcio") as first_client,
+        second.client(transport="grpcio") as second_client,
+    ):
         before = (first_client.server_info().live_episodes, second_client.server_info().live_episodes)
         envs = RearrangeVectorEnv(NUM_ENVS, client=[first_client, second_client], split="test", sensors=SMALL)
         try:
@@ -115,21 +119,17 @@ def test_one_step_batch_per_server_per_step(
     server: esrp.LocalServer, second: esrp.LocalServer, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A step sends each server one StepBatch of its block's steps and autoresets, all of them
-    sent before any answer is awaited (the last one waited on in place)."""
-    from esrp._transport import Calls, Pending
+    made together (one `run_all`, which makes its calls at once)."""
+    import esrp._client
+    from esrp._transport import Calls
 
-    sent: list[tuple[int, int, int]] = []
-    call, start = Calls.__call__, Calls.start
+    made: list[list[tuple[int, int, int]]] = []
+    run_all = esrp._client.run_all
 
-    def counted(self: Calls, method: str, request: Any, **options: Any) -> Any:  # noqa: ANN401
+    def counted(method: str, calls: list[tuple[Calls, Any]]) -> list[Any]:  # noqa: ANN401
         if method == "StepBatch":
-            sent.append((id(self), len(request.steps), len(request.resets)))
-        return call(self, method, request, **options)
-
-    def started(self: Calls, method: str, request: Any, **options: Any) -> Pending:  # noqa: ANN401
-        if method == "StepBatch":
-            sent.append((id(self), len(request.steps), len(request.resets)))
-        return start(self, method, request, **options)
+            made.append([(id(each), len(request.steps), len(request.resets)) for each, request in calls])
+        return run_all(method, calls)
 
     envs = RearrangeVectorEnv(
         NUM_ENVS, [server.address, second.address], split="test", sensors=SMALL, horizon=2
@@ -137,16 +137,15 @@ def test_one_step_batch_per_server_per_step(
     try:
         calls = [id(client._calls) for client in envs.clients]  # noqa: SLF001
         envs.reset(seed=5)
-        monkeypatch.setattr(Calls, "__call__", counted)
-        monkeypatch.setattr(Calls, "start", started)
+        monkeypatch.setattr(esrp._client, "run_all", counted)
         envs.step(np.array([1, 1, 1, 1, 1]))
-        assert sent == [(calls[0], 3, 0), (calls[1], 2, 0)]
-        sent.clear()
+        assert made == [[(calls[0], 3, 0), (calls[1], 2, 0)]]
+        made.clear()
         _, _, _, truncated, _ = envs.step(np.array([1, 1, 1, 1, 1]))
         assert truncated.all()
-        sent.clear()
+        made.clear()
         envs.step(np.array([1, 1, 1, 1, 1]))  # NEXT_STEP: every sub-env autoresets, no step
-        assert sent == [(calls[0], 0, 3), (calls[1], 0, 2)]
+        assert made == [[(calls[0], 0, 3), (calls[1], 0, 2)]]
     finally:
         envs.close()
 

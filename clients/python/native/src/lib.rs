@@ -10,8 +10,10 @@
 //!
 //! Python API (used by `esrp._native`, not meant to be called directly):
 //! `Channel(url, token=None, connect_timeout=10.0)`, `Channel.unary(method, request,
-//! timeout=None) -> bytes`, and `CallError(code, message)` for a call that failed with a gRPC
-//! status (`code` is the status's number).
+//! timeout=None, response=None)` (the answer: bytes, or parsed by `response`), `unary_all(calls,
+//! response=None)` (several calls at once, possibly over several channels), and
+//! `CallError(code, message)` for a call that failed with a gRPC status (`code` is the status's
+//! number).
 
 use std::sync::Mutex;
 use std::time::Duration;
@@ -136,15 +138,35 @@ impl Channel {
         timeout: Option<f64>,
         response: Option<&Bound<'py, PyType>>,
     ) -> PyResult<Bound<'py, PyAny>> {
+        check_response(py, response)?;
+        let call = self.prepare(method, request, timeout)?;
+        let answer = py.detach(|| self.run(call));
+        match answer {
+            Ok(answer) => read_answer(py, answer, response),
+            Err(status) => Err(call_error(&status)),
+        }
+    }
+
+    /// Refuses further calls; the connection closes when the channel is dropped.    /// Refuses further calls; the connection closes when the channel is dropped.
+    fn close(&self) {
+        *self.closed.lock().unwrap_or_else(std::sync::PoisonError::into_inner) = true;
+    }
+}
+
+/// A unary call checked and built, ready to run without the GIL.
+struct Prepared {
+    path: &'static str,
+    message: tonic::Request<Bytes>,
+    timeout: Option<Duration>,
+}
+
+impl Channel {
+    /// Checks `method`, `timeout` and that the channel is open, and builds the call's request.
+    fn prepare(&self, method: &str, request: &[u8], timeout: Option<f64>) -> PyResult<Prepared> {
         let Some(path) = METHODS.iter().find(|m| **m == method) else {
             return Err(PyValueError::new_err(format!("{method:?} is not one of {METHODS:?}")));
         };
         let timeout = timeout.map(|t| duration(t, "timeout")).transpose()?;
-        if let Some(class) = response
-            && !class.is_subclass(PROTOBUF_MESSAGE.import(py, "google.protobuf.message", "Message")?)?
-        {
-            return Err(PyTypeError::new_err(format!("response must be a protobuf message class, got {class}")));
-        }
         if *self.closed.lock().unwrap_or_else(std::sync::PoisonError::into_inner) {
             return Err(CallError::new_err((Code::Cancelled as i32, "the channel is closed")));
         }
@@ -155,6 +177,13 @@ impl Channel {
         if let Some(timeout) = timeout {
             message.set_timeout(timeout);
         }
+        Ok(Prepared { path, message, timeout })
+    }
+
+    /// Runs `call` to its end on this channel's runtime, driven by the calling thread (which must
+    /// not hold the GIL): the answer's bytes, or its status.
+    fn run(&self, call: Prepared) -> Result<Bytes, Status> {
+        let Prepared { path, message, timeout } = call;
         let mut grpc = self.grpc.clone();
         let call = async move {
             grpc.ready().await.map_err(|e| Status::unavailable(format!("cannot reach the server: {e}")))?;
@@ -162,42 +191,105 @@ impl Channel {
             grpc.unary(message, path, RawCodec).await
         };
         let started = std::time::Instant::now();
-        let answer = py.detach(|| {
-            self.runtime.block_on(async {
-                match timeout {
-                    None => call.await,
-                    Some(limit) => match tokio::time::timeout(limit, call).await {
-                        Ok(answer) => answer,
-                        Err(_) => Err(Status::deadline_exceeded("Deadline Exceeded")),
-                    },
-                }
-            })
+        let answer = self.runtime.block_on(async {
+            match timeout {
+                None => call.await,
+                Some(limit) => match tokio::time::timeout(limit, call).await {
+                    Ok(answer) => answer,
+                    Err(_) => Err(Status::deadline_exceeded("Deadline Exceeded")),
+                },
+            }
         });
         // tonic ends a call whose deadline passed as CANCELLED ("Timeout expired"); grpcio, and
         // so the rest of the Python client, say DEADLINE_EXCEEDED. An answer that came after the
         // deadline is one too, as grpcio's: tokio's timers tick by the millisecond, so a shorter
         // deadline would otherwise pass unnoticed by a call as quick as a step.
         let late = timeout.is_some_and(|limit| started.elapsed() >= limit);
-        let answer = match answer {
+        match answer {
             Ok(_) if late => Err(Status::deadline_exceeded("Deadline Exceeded")),
             Err(status) if late && status.code() == Code::Cancelled => {
                 Err(Status::deadline_exceeded("Deadline Exceeded"))
             }
-            answer => answer,
-        };
-        match answer {
-            Ok(answer) => match response {
-                None => Ok(PyBytes::new(py, answer.get_ref()).into_any()),
-                Some(class) => parse_in_place(py, answer.into_inner(), class),
-            },
-            Err(status) => Err(CallError::new_err((status.code() as i32, status.message().to_owned()))),
+            answer => answer.map(tonic::Response::into_inner),
         }
     }
+}
 
-    /// Refuses further calls; the connection closes when the channel is dropped.
-    fn close(&self) {
-        *self.closed.lock().unwrap_or_else(std::sync::PoisonError::into_inner) = true;
+/// A call of `unary_all`: the channel, the method, the serialized request and the timeout.
+type UnaryArgs<'py> = (Bound<'py, Channel>, String, Vec<u8>, Option<f64>);
+
+/// Makes several unary calls at once, each `(channel, method, request, timeout)` as
+/// `Channel.unary`'s arguments (the channels may differ: a vector env's servers), and waits for
+/// all of them; their answers in order, each parsed by `response` (or as bytes without it), or,
+/// for a call that failed, its `CallError` (returned, not raised: every call has ended either way).
+///
+/// The GIL is released once for all of them: one call runs on the calling thread and the others
+/// on threads of their own, each driving its channel's runtime; the answers are parsed afterwards
+/// on the calling thread. Python threads making the calls instead (one each, parsing its answer
+/// when it came) cost a vector env over two servers about a tenth more CPU per step, and as
+/// much in steps/s (measured side by side on the 2-core VM).
+#[pyfunction]
+#[pyo3(signature = (calls, response = None))]
+fn unary_all<'py>(
+    py: Python<'py>,
+    calls: Vec<UnaryArgs<'py>>,
+    response: Option<&Bound<'py, PyType>>,
+) -> PyResult<Vec<Bound<'py, PyAny>>> {
+    check_response(py, response)?;
+    let mut prepared = Vec::with_capacity(calls.len());
+    for (channel, method, request, timeout) in &calls {
+        prepared.push((channel.get(), channel.get().prepare(method, request, *timeout)?));
     }
+    let answers: Vec<Result<Bytes, Status>> = py.detach(|| {
+        let Some((channel, last)) = prepared.pop() else {
+            return Vec::new();
+        };
+        std::thread::scope(|scope| {
+            let others: Vec<_> =
+                prepared.into_iter().map(|(channel, call)| scope.spawn(move || channel.run(call))).collect();
+            let last = channel.run(last);
+            let mut answers: Vec<_> = others
+                .into_iter()
+                .map(|thread| thread.join().unwrap_or_else(|_| Err(Status::internal("a call's thread panicked"))))
+                .collect();
+            answers.push(last);
+            answers
+        })
+    });
+    answers
+        .into_iter()
+        .map(|answer| match answer {
+            Ok(answer) => read_answer(py, answer, response),
+            Err(status) => Ok(call_error(&status).into_value(py).into_bound(py).into_any()),
+        })
+        .collect()
+}
+
+/// Refuses a `response` that is not a protobuf message class.
+fn check_response(py: Python<'_>, response: Option<&Bound<'_, PyType>>) -> PyResult<()> {
+    if let Some(class) = response
+        && !class.is_subclass(PROTOBUF_MESSAGE.import(py, "google.protobuf.message", "Message")?)?
+    {
+        return Err(PyTypeError::new_err(format!("response must be a protobuf message class, got {class}")));
+    }
+    Ok(())
+}
+
+/// An answer as `Channel.unary` returns it: parsed by `response` in place, or its bytes.
+fn read_answer<'py>(
+    py: Python<'py>,
+    answer: Bytes,
+    response: Option<&Bound<'py, PyType>>,
+) -> PyResult<Bound<'py, PyAny>> {
+    match response {
+        None => Ok(PyBytes::new(py, &answer).into_any()),
+        Some(class) => parse_in_place(py, answer, class),
+    }
+}
+
+/// The `CallError(code, message)` of a failed call.
+fn call_error(status: &Status) -> PyErr {
+    CallError::new_err((status.code() as i32, status.message().to_owned()))
 }
 
 /// The answer `body` parsed by the protobuf message class `class` (`class.FromString(view)`) from
@@ -240,6 +332,7 @@ fn duration(seconds: f64, what: &str) -> PyResult<Duration> {
 #[pymodule]
 fn esrp_native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Channel>()?;
+    m.add_function(wrap_pyfunction!(unary_all, m)?)?;
     m.add("CallError", m.py().get_type::<CallError>())?;
     m.add("METHODS", METHODS.to_vec())?;
     Ok(())

@@ -41,7 +41,7 @@ from ._common import (
     run_rounds,
 )
 from ._errors import EpisodeNotFound, EsrpError, ServerUnavailable
-from ._transport import Calls, Pending
+from ._transport import Calls, Pending, run_all
 from ._values import (
     ActionLike,
     Created,
@@ -337,7 +337,7 @@ actions, and its resets (as `Client.step_columns`'s arguments)."""
 
 def step_columns_across(parts: Sequence[StepPart], sensors: Sensors) -> StepColumns:
     """`Client.step_columns` over several clients (a vector env's sub-envs spread over servers):
-    every part's StepBatch calls are sent before any answer is waited for, so that the servers step
+    every part's StepBatch calls are made at once (`_transport.run_all`), so that the servers step
     and render at once; the answers as one `StepColumns`, the parts' steps (and resets) one after
     the other in the order of `parts`, each part's in its own order.
 
@@ -353,12 +353,9 @@ def step_columns_across(parts: Sequence[StepPart], sensors: Sensors) -> StepColu
             calls += [(client, wave, r) for r in wave.requests(client._batch_size(sensors))]
     if not calls:
         return columns
-    started = [client._calls.start("StepBatch", request) for client, _, request in calls[:-1]]
-    client, wave, request = calls[-1]
-    last = client._calls("StepBatch", request)
-    for pending, (_, wave_of, request_of) in zip(started, calls, strict=False):
-        wave_of.add(pending.result(), request_of)
-    wave.add(last, request)
+    answers = run_all("StepBatch", [(client._calls, request) for client, _, request in calls])
+    for answer, (_, wave, request) in zip(answers, calls, strict=True):
+        wave.add(answer, request)
     return columns
 
 

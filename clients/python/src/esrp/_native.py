@@ -14,6 +14,7 @@ of. Messages are built and parsed in Python exactly as for grpcio, and errors co
 from __future__ import annotations
 
 import importlib
+from collections.abc import Sequence
 from types import ModuleType
 from typing import Any, Literal, TypeVar, cast
 
@@ -26,7 +27,7 @@ try:
 except ImportError:  # the package is optional
     _extension = None
 
-__all__ = ["NativeRpcError", "Transport", "available", "call", "channel", "methods", "resolve"]
+__all__ = ["NativeRpcError", "Transport", "available", "call", "call_all", "channel", "methods", "resolve"]
 
 Transport = Literal["auto", "native", "grpcio"]
 
@@ -124,3 +125,23 @@ def call(channel: Any, path: str, request: Message, answer: type[M], timeout: fl
     except _extension.CallError as error:
         code, details = error.args
         raise NativeRpcError(_CODES.get(code, grpc.StatusCode.UNKNOWN), details) from None
+
+
+def call_all(
+    calls: Sequence[tuple[Any, str, Message, float | None]], answer: type[M]
+) -> list[M | NativeRpcError]:
+    """Makes several unary calls at once, each `(channel, path, request, timeout)` (the channels
+    may differ), and waits for all of them: each one's answer (parsed in place, as `call`'s), or
+    its `NativeRpcError`, in order. The GIL is released once for all; the answers are parsed on
+    this thread after they have all come.
+    """
+    assert _extension is not None
+    sent = [(channel, path, request.SerializeToString(), limit) for channel, path, request, limit in calls]
+    results: list[M | NativeRpcError] = []
+    for result in _extension.unary_all(sent, answer):
+        if isinstance(result, _extension.CallError):
+            code, details = result.args
+            results.append(NativeRpcError(_CODES.get(code, grpc.StatusCode.UNKNOWN), details))
+        else:
+            results.append(cast(M, result))
+    return results

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Final, Generic, TypeVar
 
@@ -177,6 +177,32 @@ class Calls:
             path, answer = self._paths[method], _ANSWERS[method]
             return _native.call(self._native, path, request, answer, options["timeout"])
         return getattr(self._stub, method)(request, **options)
+
+
+def run_all(method: str, calls: Sequence[tuple[Calls, Message]]) -> list[Any]:
+    """Makes several calls of the unary `method` at once, each `(calls, request)` on its client's
+    `Calls` (a wave of StepBatch calls over one or several servers), and returns their answers in
+    order; raises the `EsrpError` of the first one (in order) that failed.
+
+    Where every call goes over the native transport, one `esrp_native.unary_all` makes them all
+    with the GIL released once and parses the answers on this thread after all have ended;
+    otherwise all but the last are started (`Calls.start`, they run on whatever happens) and the
+    last is made here.
+    """
+    if len(calls) > 1 and all(method in each._on_native for each, _ in calls):
+        made = [
+            (each._native, each._paths[method], request, each._options(CLIENT_TIMEOUT)["timeout"])
+            for each, request in calls
+        ]
+        answers = _native.call_all(made, _ANSWERS[method])
+        for answer in answers:
+            if isinstance(answer, grpc.RpcError):
+                raise from_rpc_error(answer) from answer
+        return answers
+    started = [each.start(method, request) for each, request in calls[:-1]]
+    last_calls, last_request = calls[-1]
+    last = last_calls(method, last_request)
+    return [*(pending.result() for pending in started), last]
 
 
 class AsyncCalls:
