@@ -3,8 +3,13 @@
 # that builds nothing and keeps to a time budget (480 s by default): for a lent GPU machine,
 # where the binaries are carried, and tested on this machine's lavapipe.
 #
-#   scripts/gpu-bench.sh --prepare            # here: release build, stripped binaries in dist/gpu-bench
+#   scripts/gpu-bench.sh --prepare [3.X]      # here: binaries, Python 3.X's packages (3.12) and the
+#                                             # Vulkan loader in dist/gpu-bench, and dist/gpu-bench.tar.xz
 #   scripts/gpu-bench.sh [--bin DIR] [--out DIR] [--budget SECONDS] [--seconds S] [--backend NAME]
+#
+# On a lent machine: carry dist/gpu-bench.tar.xz (the tree must stay under the carry limit: leave
+# docs/results/checkpoints out of the index for that call), then
+#   tar -xJf dist/gpu-bench.tar.xz -C dist && bash scripts/gpu-bench.sh --budget 470 --out "$OUT"
 #
 # What it measures, in this order (what decides issue 40 first), each step only if the budget
 # leaves room for it (a skipped step is said in the summary):
@@ -37,16 +42,39 @@ BUDGET=480
 SECONDS_EACH=4
 BACKEND=auto
 
-usage() { sed -n '2,20p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,/^set -euo pipefail/{/^#/p}' "$0" | sed 's/^# \{0,1\}//'; }
 
 if [[ "${1:-}" == "--prepare" ]]; then
+    # The device builds nothing: the binaries, the Python side of its python3 (PYTHON, default
+    # 3.12, the last lent machine's) and the Vulkan loader are made or fetched here, into BIN and
+    # one archive to carry. PYTHON's wheels come from the package index at the pinned versions
+    # (clients/python/constraints.txt), esrp-native is built here (maturin, from the venv or
+    # PATH); all are unpacked into BIN/site, which the script puts on PYTHONPATH (no pip there).
+    python_version=${2:-3.12}
+    [[ "$python_version" =~ ^3\.[0-9]+$ ]] || { echo "gpu-bench.sh: --prepare [3.X]: a Python version" >&2; exit 2; }
     cargo build --release -p esrp-server -p esrp-client --features esrp-client/tools --bin esrp-server --bin esrp-bench
-    mkdir -p "$BIN"
+    rm -rf "$BIN" && mkdir -p "$BIN"
     for binary in esrp-server esrp-bench; do
         cp "target/release/$binary" "$BIN/$binary"
         strip "$BIN/$binary"
     done
-    ls -la "$BIN"
+    work=$(mktemp -d)
+    trap 'rm -rf "$work"' EXIT
+    PATH="$PWD/.venv/bin:$PATH"
+    python3 -m pip download --quiet --only-binary=:all: --no-deps --python-version "$python_version" \
+        --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
+        -c clients/python/constraints.txt -d "$work/wheels" \
+        grpcio protobuf numpy gymnasium farama-notifications cloudpickle typing_extensions
+    maturin build --quiet --release --manifest-path clients/python/native/Cargo.toml --out "$work/wheels"
+    for wheel in "$work"/wheels/*.whl; do
+        python3 -m zipfile -e "$wheel" "$BIN/site"
+    done
+    echo "$python_version" > "$BIN/site/PYTHON_VERSION"
+    # The Vulkan loader: a GPU container may have NVIDIA's driver and ICD but not libvulkan.so.1.
+    (cd "$work" && apt-get download libvulkan1 > /dev/null)
+    dpkg-deb -x "$work"/libvulkan1_*.deb "$BIN/vulkan"
+    tar -C "$(dirname "$BIN")" -cJf "$BIN.tar.xz" "$(basename "$BIN")"
+    du -sh "$BIN" "$BIN.tar.xz"
     exit 0
 fi
 
@@ -73,6 +101,23 @@ if ! [[ "$BUDGET" =~ ^[0-9]+$ && "$SECONDS_EACH" =~ ^[0-9]+([.][0-9]+)?$ ]]; the
 fi
 mkdir -p "$OUT_DIR"
 export NODEVICE_SELECT=1 ESRP_LOG=${ESRP_LOG:-warn}
+# What --prepare brought: its Python packages (for the python version it was made for), and the
+# Vulkan loader where the machine has none; NVIDIA's ICD where the loader would not look for it.
+if [[ -f "$BIN/site/PYTHON_VERSION" ]]; then
+    if [[ "$(python3 -c 'import sys; print("%d.%d" % sys.version_info[:2])' 2> /dev/null)" == "$(cat "$BIN/site/PYTHON_VERSION")" ]]; then
+        export PYTHONPATH=$PWD/$BIN/site${PYTHONPATH:+:$PYTHONPATH}
+    else
+        echo "gpu-bench.sh: $BIN/site is for Python $(cat "$BIN/site/PYTHON_VERSION"), python3 here is another: not used" >&2
+    fi
+fi
+vulkan_libs=$BIN/vulkan/usr/lib/x86_64-linux-gnu
+if [[ -d $vulkan_libs ]] && ! ldconfig -p 2> /dev/null | grep -q 'libvulkan\.so\.1 '; then
+    export LD_LIBRARY_PATH=$PWD/$vulkan_libs${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
+fi
+nvidia_icd=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
+if [[ -z ${VK_DRIVER_FILES:-} && -z ${VK_ICD_FILENAMES:-} && -f $nvidia_icd ]]; then
+    export VK_DRIVER_FILES=$nvidia_icd
+fi
 # One scene cache for every server started here: the built-in benchmark's scenes are built once.
 export ESRP_SCENE_CACHE=${ESRP_SCENE_CACHE:-$OUT_DIR/scene-cache}
 START=$(date +%s)
