@@ -7,8 +7,10 @@
 #                                             # Vulkan loader in dist/gpu-bench, and dist/gpu-bench.tar.xz
 #   scripts/gpu-bench.sh [--bin DIR] [--out DIR] [--budget SECONDS] [--seconds S] [--backend NAME]
 #
-# On a lent machine: carry dist/gpu-bench.tar.xz (the tree must stay under the carry limit: leave
-# docs/results/checkpoints out of the index for that call), then
+# On a lent machine: carry dist/gpu-bench.tar.xz (~30 MB). The tree goes too and must stay under
+# the carry limit (64 MiB): for that call, untrack and exclude the checkpoints (`git rm -r -q
+# --cached docs/results/checkpoints; echo /docs/results/checkpoints >> .git/info/exclude`; after
+# it, `git reset -q HEAD -- docs/results/checkpoints` and the exclude line removed). There:
 #   tar -xJf dist/gpu-bench.tar.xz -C dist && bash scripts/gpu-bench.sh --budget 470 --out "$OUT"
 #
 # What it measures, in this order (what decides issue 40 first), each step only if the budget
