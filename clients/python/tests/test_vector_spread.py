@@ -120,11 +120,9 @@ def test_one_step_batch_per_server_per_step(
 ) -> None:
     """A step sends each server one StepBatch of its block's steps and autoresets, all of them
     made together (one `run_all`, which makes its calls at once)."""
-    import esrp._client
-    from esrp._transport import Calls
+    from esrp._transport import Calls, run_all
 
     made: list[list[tuple[int, int, int]]] = []
-    run_all = esrp._client.run_all
 
     def counted(method: str, calls: list[tuple[Calls, Any]]) -> list[Any]:  # noqa: ANN401
         if method == "StepBatch":
@@ -137,7 +135,7 @@ def test_one_step_batch_per_server_per_step(
     try:
         calls = [id(client._calls) for client in envs.clients]  # noqa: SLF001
         envs.reset(seed=5)
-        monkeypatch.setattr(esrp._client, "run_all", counted)
+        monkeypatch.setattr("esrp._client.run_all", counted)
         envs.step(np.array([1, 1, 1, 1, 1]))
         assert made == [[(calls[0], 3, 0), (calls[1], 2, 0)]]
         made.clear()
