@@ -162,23 +162,35 @@ def scale_out(folder: Path) -> list[str]:
 
 def python(folder: Path) -> list[str]:
     rows = []
-    for file, transport in (
-        ("python.json", "TCP"),
-        ("python-unix.json", "Unix socket"),
-        ("python-spread-4.json", "4 servers' sockets"),
-        ("python-spread-8.json", "8 servers' sockets"),
+    for step, transport in (
+        ("python", "TCP"),
+        ("python-unix", "Unix socket"),
+        ("python-spread-4", "4 servers' sockets"),
+        ("python-spread-8", "8 servers' sockets"),
     ):
-        report = load(folder, file)
+        report = load(folder, f"{step}.json")
         if report is None:
             continue
         results = report.get("results", report)
+        busy = cores(folder, step)
         for r in results if isinstance(results, list) else []:
             name = r.get("name") or r.get("scenario")
             steps = r.get("steps_per_second")
-            rows.append(f"| {name} | {transport} | {'–' if steps is None else f'{steps:,.0f}'} |")
+            cpu = r.get("client_cpu_us_per_step")
+            rows.append(
+                f"| {name} | {transport} | {'–' if steps is None else f'{steps:,.0f}'} "
+                f"| {'–' if cpu is None else f'{cpu:.0f}'} | {busy} |"
+            )
     if not rows:
         return []
-    return ["## python -m esrp.bench", "", "| scenario | to the server | steps/s |", "|---|---|---:|", *rows, ""]
+    return [
+        "## python -m esrp.bench",
+        "",
+        "| scenario | to the server | steps/s | client CPU per step, µs | cores busy |",
+        "|---|---|---:|---:|---:|",
+        *rows,
+        "",
+    ]
 
 
 def main(argv: list[str]) -> int:
