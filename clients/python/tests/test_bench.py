@@ -114,15 +114,17 @@ def test_bench_runs_in_several_processes_and_sums_them(
     assert rows["client-1"]["p50_ms"] > 0
 
 
+def assert_refused(capsys: pytest.CaptureFixture[str], arguments: list[str], said: str) -> None:
+    """The command refuses `arguments` as a usage error (status 2) that says `said`."""
+    with pytest.raises(SystemExit) as exit_info:
+        bench.main(arguments)
+    assert exit_info.value.code == 2
+    assert said in capsys.readouterr().err
+
+
 def test_bench_processes_leave_other_programs_out(capsys: pytest.CaptureFixture[str]) -> None:
-    for arguments, said in (
-        (["--processes", "2", "--scenarios", "vec-64,rust"], "leave rust and miniworld out"),
-        (["--processes", "0"], "between 1 and 256"),
-    ):
-        with pytest.raises(SystemExit) as exit_info:
-            bench.main(arguments)
-        assert exit_info.value.code == 2
-        assert said in capsys.readouterr().err
+    assert_refused(capsys, ["--processes", "2", "--scenarios", "vec-64,rust"], "leave rust and miniworld out")
+    assert_refused(capsys, ["--processes", "0"], "between 1 and 256")
 
 
 def test_bench_reaches_a_server_it_starts_over_its_socket(
@@ -144,10 +146,7 @@ def test_bench_reaches_a_server_it_starts_over_its_socket(
 
 
 def test_bench_socket_is_for_its_own_server(capsys: pytest.CaptureFixture[str]) -> None:
-    with pytest.raises(SystemExit) as exit_info:
-        bench.main(["--socket", "--server", "127.0.0.1:1"])
-    assert exit_info.value.code == 2
-    assert "--server unix:PATH" in capsys.readouterr().err
+    assert_refused(capsys, ["--socket", "--server", "127.0.0.1:1"], "--server unix:PATH")
 
 
 def test_bench_spreads_vec_64_over_the_servers_it_starts(
@@ -189,14 +188,8 @@ def test_bench_spreads_over_listed_servers_in_processes(
 
 
 def test_bench_servers_are_checked(capsys: pytest.CaptureFixture[str]) -> None:
-    for arguments, said in (
-        (["--servers", "2", "--server", "127.0.0.1:1"], "--servers 2 but --server names 1"),
-        (["--servers", "65"], "between 1 and 64"),
-        (["--servers", "0"], "between 1 and 64"),
-        (["--servers", "2", "--scenarios", "client-1"], "run vec-64"),
-        (["--server", " , "], "--server: give an address"),
-    ):
-        with pytest.raises(SystemExit) as exit_info:
-            bench.main(arguments)
-        assert exit_info.value.code == 2
-        assert said in capsys.readouterr().err
+    assert_refused(capsys, ["--servers", "2", "--server", "127.0.0.1:1"], "--servers 2 but --server names 1")
+    assert_refused(capsys, ["--servers", "65"], "between 1 and 64")
+    assert_refused(capsys, ["--servers", "0"], "between 1 and 64")
+    assert_refused(capsys, ["--servers", "2", "--scenarios", "client-1"], "run vec-64")
+    assert_refused(capsys, ["--server", " , "], "--server: give an address")

@@ -38,6 +38,19 @@ def assert_same(a: Any, b: Any, path: str = "") -> None:  # noqa: ANN401
         assert a == b, f"{path}: {a!r} != {b!r}"
 
 
+def assert_same_returns(got: list[Any], expected: list[Any]) -> int:
+    """Asserts that two envs returned the same from each call (resets and steps, in order);
+    returns how many episodes the steps ended."""
+    ended = 0
+    for g, e in zip(got, expected, strict=True):
+        assert len(g) == len(e)
+        for part_g, part_e in zip(g, e, strict=True):
+            assert_same(part_g, part_e)
+        if len(g) == 5:
+            ended += int(np.sum(g[2] | g[3]))
+    return ended
+
+
 def make_pair(address: str, mode: AutoresetMode, **kwargs: Any) -> tuple[Any, Any]:  # noqa: ANN401
     """The native vector env and Gymnasium's SyncVectorEnv over the same settings."""
     settings: dict[str, Any] = {"address": address, "split": "test", "difficulty": "easy", "sensors": SMALL}
@@ -87,13 +100,7 @@ def test_identical_to_sync_vector_env(
         assert native.action_space == reference.action_space
         got, expected = drive(native, 8, seed=11), drive(reference, 8, seed=11)
         assert client.server_info().live_episodes == before + 2 * NUM_ENVS
-        ended = 0
-        for g, e in zip(got, expected, strict=True):
-            assert len(g) == len(e)
-            for part_g, part_e in zip(g, e, strict=True):
-                assert_same(part_g, part_e)
-            if len(g) == 5:
-                ended += int(np.sum(g[2] | g[3]))
+        ended = assert_same_returns(got, expected)
         assert ended >= NUM_ENVS  # the horizon of 3 ended episodes, which were autoreset
         if mode is AutoresetMode.SAME_STEP:
             assert any("final_obs" in g[4] for g in got if len(g) == 5)

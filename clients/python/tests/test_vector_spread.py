@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from conftest import settled_live_episodes
 from gymnasium.vector import AutoresetMode
-from test_vector import SMALL, assert_same
+from test_vector import SMALL, assert_same_returns
 
 import esrp
 from esrp.envs import RearrangeEnv, RearrangeVectorEnv
@@ -70,13 +70,7 @@ def test_identical_to_one_server(
         assert [c.address for c in spread.clients] == [server.address, second.address, third.address]
         assert spread.client is spread.clients[0]
         got, expected = drive(spread, 9, seed=21), drive(one, 9, seed=21)
-        ended = 0
-        for g, e in zip(got, expected, strict=True):
-            assert len(g) == len(e)
-            for part_g, part_e in zip(g, e, strict=True):
-                assert_same(part_g, part_e)
-            if len(g) == 5:
-                ended += int(np.sum(g[2] | g[3]))
+        ended = assert_same_returns(got, expected)
         assert ended >= NUM_ENVS  # the horizon of 3 ended episodes on every server
         if mode is AutoresetMode.SAME_STEP:
             assert any("final_obs" in g[4] for g in got if len(g) == 5)
