@@ -184,11 +184,9 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         self._setup = Setup.connect(
             address, client, token, tls, split, difficulty, scene, sensors, horizon, reward, agent, servers
         )
-        # Sub-env i lives on server `_shard_of[i]`; `_shards[k]` lists server k's sub-envs (a
-        # contiguous block, in order).
+        # Sub-env i lives on server `_shard_of[i]` (each server's sub-envs a contiguous block).
         shards = len(self._setup.clients)
         self._shard_of = [i * shards // num_envs for i in range(num_envs)]
-        self._shards = [[i for i in range(num_envs) if self._shard_of[i] == k] for k in range(shards)]
         self._scene_per_env = scene_per_env
         self.single_observation_space = observation_space(self._setup.sensors)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
@@ -422,13 +420,10 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         # after the other are `stepped` in its order.
         steps: list[list[int]] = [[] for _ in clients]
         restarted: list[list[int]] = [[] for _ in clients]
-        if len(clients) == 1:
-            steps[0], restarted[0] = stepped, list(restarts)
-        else:
-            for i in stepped:
-                steps[self._shard_of[i]].append(i)
-            for i in restarts:
-                restarted[self._shard_of[i]].append(i)
+        for i in stepped:
+            steps[self._shard_of[i]].append(i)
+        for i in restarts:
+            restarted[self._shard_of[i]].append(i)
         parts: list[StepPart] = []
         for client, shard_steps, shard_restarts in zip(clients, steps, restarted, strict=True):
             # The same scene again restarts the episode where it is (see `RearrangeEnv.reset`), so
@@ -555,9 +550,8 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             try:
                 for answer in stream:  # answers of a step that raised
                     del answer
-                for i in self._shards[shard]:
-                    episode = self._episode_ids[i]
-                    if episode is not None:
+                for episode, owner in zip(self._episode_ids, self._shard_of, strict=True):
+                    if episode is not None and owner == shard:
                         stream.close_episode(episode)
                 for answer in stream:
                     del answer  # An episode already gone is as good as closed.
