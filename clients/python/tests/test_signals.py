@@ -185,6 +185,49 @@ def test_a_signal_in_a_deferred_section_is_raised_at_its_end() -> None:
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
+CHANNEL_SIGNALLED = """
+import asyncio
+import os
+import signal
+import sys
+import threading
+
+import esrp
+from esrp import _signals
+
+start = threading.Thread.start
+
+
+def signalled_start(self):
+    # The first grpc.aio channel starts grpcio's poller thread from inside its Cython constructor:
+    # the signal lands there, and its handler runs at the next bytecode.
+    threading.Thread.start = start
+    os.kill(os.getpid(), signal.SIGTERM)
+    start(self)
+
+
+async def main():
+    threading.Thread.start = signalled_start
+    client = esrp.AsyncClient("127.0.0.1:9")
+    print("made", flush=True)
+    await client.close()
+
+
+sys.exit(_signals.run_command("esrp test", lambda: asyncio.run(main()), handle_signals=True))
+"""
+
+
+def test_a_signal_while_a_channel_is_made_is_raised_once_it_is_whole(tmp_path: Path) -> None:
+    # grpcio dies of SIGSEGV when an exception is raised inside its channel's constructor; the
+    # command holds the signal until the channel exists, then stops as on any other signal.
+    script = tmp_path / "signalled_channel.py"
+    script.write_text(CHANNEL_SIGNALLED)
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 143, (done.returncode, done.stderr[-2000:])
+    assert "esrp test: terminated" in done.stderr
+    assert "made" not in done.stdout  # raised where the channel's section ended, in the constructor
+
+
 def test_an_exception_dropped_in_a_finalizer_is_raised_again() -> None:
     class Finalized:
         def __del__(self) -> None:

@@ -37,6 +37,7 @@ from ._common import (
     TlsSetting,
     channel_options,
     collect_run,
+    open_aio_channel,
     run_rounds,
 )
 from ._errors import EpisodeNotFound, EsrpError, ServerUnavailable
@@ -100,10 +101,7 @@ class AsyncClient(ClientBase):
         super().__init__(address, token, tls)
         creds = self._credentials
         arguments = channel_options(tls_server_name, options, self.address)
-        if creds is None:
-            self._channel = grpc.aio.insecure_channel(self.address, options=arguments)
-        else:
-            self._channel = grpc.aio.secure_channel(self.address, creds, options=arguments)
+        self._channel: grpc.aio.Channel = open_aio_channel(self.address, creds, arguments)
         self._stub: Any = pb_grpc.EsrpStub(self._channel)
         # Every unary call goes through it; streams and the health check use the channel.
         self._calls = AsyncCalls(self._stub, self._metadata, timeout)

@@ -38,6 +38,7 @@ from ._common import (
     TlsSetting,
     channel_options,
     collect_run,
+    open_channel,
     run_rounds,
 )
 from ._errors import EpisodeNotFound, EsrpError, ServerUnavailable
@@ -121,10 +122,7 @@ class Client(ClientBase):
         creds = self._credentials
         self.transport = _native.resolve(transport, creds is not None, self.address)
         arguments = channel_options(tls_server_name, options, self.address)
-        if creds is None:
-            self._channel = grpc.insecure_channel(self.address, options=arguments)
-        else:
-            self._channel = grpc.secure_channel(self.address, creds, options=arguments)
+        self._channel: grpc.Channel = open_channel(self.address, creds, arguments)
         self._stub = pb_grpc.EsrpStub(self._channel)
         native = _native.channel(self.address, token) if self.transport == "native" else None
         # Every unary call goes through it; streams and the health check use the channel.

@@ -15,7 +15,7 @@ from typing import Any, TypeVar, Union
 
 import grpc
 
-from . import _convert
+from . import _convert, _signals
 from ._errors import EsrpError, InvalidRequest, ProtocolError, from_status
 from ._values import (
     ActionLike,
@@ -69,6 +69,33 @@ def channel_options(
         options.append(("grpc.default_authority", "localhost"))
     names = {name for name, _ in extra}
     return [option for option in options if option[0] not in names] + list(extra)
+
+
+def open_channel(
+    address: str, credentials: grpc.ChannelCredentials | None, options: ChannelOptions
+) -> grpc.Channel:
+    """A grpcio channel to `address`, plain without `credentials`, made with a signal's exception
+    held until it exists (`_signals.deferred`).
+
+    grpcio makes its channels in Cython that runs Python code (the first `grpc.aio` channel starts
+    its poller thread) and does not survive an exception raised there: the half-made channel's
+    finalizer shuts down what was never set up, and the process dies of SIGSEGV. A SIGTERM or Ctrl-C
+    that lands there in an `esrp` command is raised once the channel is whole instead.
+    """
+    with _signals.deferred():
+        if credentials is None:
+            return grpc.insecure_channel(address, options=options)
+        return grpc.secure_channel(address, credentials, options=options)
+
+
+def open_aio_channel(
+    address: str, credentials: grpc.ChannelCredentials | None, options: ChannelOptions
+) -> grpc.aio.Channel:
+    """`open_channel` for `grpc.aio`."""
+    with _signals.deferred():
+        if credentials is None:
+            return grpc.aio.insecure_channel(address, options=options)
+        return grpc.aio.secure_channel(address, credentials, options=options)
 
 
 def target(address: str) -> tuple[str, bool]:

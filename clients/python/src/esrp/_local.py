@@ -22,11 +22,9 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO, Any, Literal
 
-import grpc
-
 from . import _signals
 from ._client import Client, health_check
-from ._common import channel_options
+from ._common import channel_options, open_channel
 from ._errors import LocalServerError
 from ._release import same_release
 
@@ -407,7 +405,7 @@ class LocalServer:
         if self.asks_for_tls:
             return
         options = channel_options(None, (), self._address)
-        with grpc.insecure_channel(self._address, options=options) as channel:
+        with open_channel(self._address, None, options) as channel:
             while not health_check(channel, timeout=max(min(deadline - time.monotonic(), 1.0), 0.01)):
                 if not self.is_running():
                     self._fail("exited before it was healthy")
