@@ -163,6 +163,16 @@ class Calls:
         threading.Thread(target=run, name=f"esrp-{method}", daemon=True).start()
         return Pending(future)
 
+    def native_call(
+        self, method: str, request: Message, *, timeout: float | None | _Default = CLIENT_TIMEOUT
+    ) -> tuple[Any, str, Message, float | None] | None:
+        """What `esrp._native.call_all` takes to make `method` on this client's native channel
+        (channel, path, request, deadline), or None where grpcio carries the method.
+        """
+        if method not in self._on_native:
+            return None
+        return (self._native, self._paths[method], request, self._options(timeout)["timeout"])
+
     def close(self) -> None:
         """Refuses further native calls (grpcio's end with the channel's close)."""
         if self._native is not None:
@@ -189,11 +199,9 @@ def run_all(method: str, calls: Sequence[tuple[Calls, Message]]) -> list[Any]:
     otherwise all but the last are started (`Calls.start`, they run on whatever happens) and the
     last is made here.
     """
-    if len(calls) > 1 and all(method in each._on_native for each, _ in calls):
-        made = [
-            (each._native, each._paths[method], request, each._options(CLIENT_TIMEOUT)["timeout"])
-            for each, request in calls
-        ]
+    native = [each.native_call(method, request) for each, request in calls] if len(calls) > 1 else []
+    made = [call for call in native if call is not None]
+    if made and len(made) == len(calls):
         answers = _native.call_all(made, _ANSWERS[method])
         for answer in answers:
             if isinstance(answer, grpc.RpcError):
