@@ -239,3 +239,17 @@ def test_a_temporary_folder_too_deep_for_a_socket(tmp_path: Path, monkeypatch: p
             assert client.server_info().live_episodes == 0
     with pytest.raises(esrp.LocalServerError, match="set TMPDIR to a shorter folder"):
         esrp.LocalServer(unix_socket=True).start()
+    # The envs given no address start theirs as "auto" does: over TCP there.
+    from esrp.envs import RearrangeEnv, RearrangeVectorEnv
+
+    vector = RearrangeVectorEnv(2, servers=2)
+    try:
+        assert [client.address.startswith("127.0.0.1:") for client in vector.clients] == [True, True]
+        vector.reset(seed=0)
+    finally:
+        vector.close()
+    single = RearrangeEnv()
+    try:
+        single.reset(seed=0)
+    finally:
+        single.close()

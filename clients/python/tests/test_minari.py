@@ -127,3 +127,13 @@ def test_bad_input_is_refused_and_leaves_nothing(
     # Only the first dataset and its namespace are there: no staging folder is left behind.
     assert sorted(p.name for p in datasets_root.iterdir()) == ["esrp"]
     assert list(minari.list_local_datasets()) == ["esrp/esrp-bench-v2-test-easy/expert-v0"]
+
+
+def test_a_relative_out_is_the_folder_under_the_working_directory(
+    server: esrp.LocalServer, datasets_root: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(datasets_root.parent)
+    one = ["--split", "test", "--difficulty", "easy", "--limit", "1", "--resolution", "16"]
+    assert export(server, Path("datasets"), "--format", "minari", *one) == 0
+    assert [path.name for path in datasets_root.iterdir()] == ["esrp"]  # no staging folder left
+    assert minari.load_dataset("esrp/esrp-bench-v2-test-easy/expert-v0").total_episodes == 1

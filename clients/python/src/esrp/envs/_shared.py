@@ -219,7 +219,7 @@ class Setup:
                     raise ValueError(f"client: a Client or a non-empty list of Clients, got {client!r}")
             else:
                 if address is None:
-                    started = start_servers(servers or 1, unix_socket=True)
+                    started = start_servers(servers or 1, unix_socket="auto")
                     addresses = [server.address for server in started]
                 elif isinstance(address, str):
                     addresses = [address]

@@ -113,7 +113,7 @@ def export_minari(
         parse_dataset_id(dataset_id)
     except ValueError as error:
         raise DemoExportError(f"--dataset-id {dataset_id!r}: {error}") from None
-    root = settings.out
+    root = settings.out.absolute()  # under a relative root, Minari doubled its paths
     if (root / dataset_id).exists():
         raise DemoExportError(
             f"{root / dataset_id} exists: Minari datasets are never overwritten (remove it, or pass "
