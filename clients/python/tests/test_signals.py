@@ -4,6 +4,7 @@ watchdog ends it), `esrp bench` and `esrp demos export`, and the block's own rul
 
 from __future__ import annotations
 
+import asyncio
 import os
 import signal
 import subprocess
@@ -226,6 +227,43 @@ def test_a_signal_while_a_channel_is_made_is_raised_once_it_is_whole(tmp_path: P
     assert done.returncode == 143, (done.returncode, done.stderr[-2000:])
     assert "esrp test: terminated" in done.stderr
     assert "made" not in done.stdout  # raised where the channel's section ended, in the constructor
+
+
+def test_a_signal_in_the_event_loop_cancels_its_main_task_and_is_raised_after(
+    recwarn: pytest.WarningsRecorder,
+) -> None:
+    reached = []
+
+    async def side() -> None:
+        await asyncio.sleep(30)
+
+    async def main() -> None:
+        helper = asyncio.ensure_future(side())
+        try:
+            await asyncio.sleep(0)
+            signal.raise_signal(signal.SIGTERM)  # the handler runs here, inside the loop
+            for _ in range(1000):  # no exception cuts this short: the task is cancelled at its next await
+                pass
+            reached.append("signalled")
+            await asyncio.sleep(30)
+            reached.append("not cancelled")
+        finally:
+            await asyncio.sleep(0)  # the clean-up may await
+            helper.cancel()
+            reached.append("cleaned up")
+
+    started = time.monotonic()
+    assert _signalled_in_block(lambda: _signals.run_async(main())).code == 143
+    assert reached == ["signalled", "cleaned up"]
+    assert time.monotonic() - started < 5
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    assert not [w for w in recwarn if "never awaited" in str(w.message)]
+    # Outside a block it is asyncio.run.
+
+    async def answer() -> int:
+        return 42
+
+    assert _signals.run_async(answer()) == 42
 
 
 def test_an_exception_dropped_in_a_finalizer_is_raised_again() -> None:

@@ -4,7 +4,9 @@ start (while Python imports, the command starts its server), the others within `
 seconds of the run's first line (while it creates, steps and closes episodes), and while
 finalizers run (the agent leaves garbage whose `__del__` takes time, the
 place where a signal's exception used to be dropped) — and checks that every run exits with 143
-(130) and the line `esrp eval: terminated` (`interrupted`) within a bound, and leaves no server.
+(130) and the line `esrp eval: terminated` (`interrupted`) within a bound, having unwound (not
+stopped by the watchdog), with nothing else on stderr (no traceback, no asyncio warning), and
+leaves no server.
 
     python tools/signal_stress.py --runs 1000 --jobs 2
 
@@ -70,6 +72,10 @@ class Littering:
 def make(config):
     return Littering()
 '''
+
+
+NOISE = ("Traceback (most recent call last)", "Task was destroyed", "never retrieved", "was never awaited")
+"""What a cleanly stopped run never prints: its stderr is the server's line and the command's."""
 
 
 @dataclass
@@ -162,6 +168,10 @@ def signalled_run(
         kind = f"exit status {child.returncode}, not {status}"
     elif f"esrp eval: {word}" not in stderr:
         kind = f"no 'esrp eval: {word}' line"
+    elif "had not stopped within the grace" in stderr:
+        kind = "stopped by the watchdog, not by unwinding"
+    elif any(noise in stderr for noise in NOISE):
+        kind = "tracebacks or asyncio's warnings on stderr"
     else:
         kind = "ok"
     out.unlink(missing_ok=True)

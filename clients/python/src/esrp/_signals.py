@@ -23,10 +23,15 @@ Later signals while the command unwinds are not raised again: that would cut its
 (stopping the server); the watchdog bounds how long the clean-up may take. A signal that arrives
 inside `deferred()` (starting or stopping a child, which must not be cut in two) is raised when
 that section ends. Leaving the block after a signal stops any tracked child still running.
+
+A command's event loop runs in `run_async`: there a signal cancels the loop's main task (which
+unwinds through its `async with` blocks) instead of raising inside asyncio's own code, and its
+exception is raised once the loop has closed.
 """
 
 from __future__ import annotations
 
+import asyncio
 import atexit
 import contextlib
 import os
@@ -35,14 +40,15 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
-from typing import Any
+from collections.abc import Callable, Coroutine, Iterator
+from typing import Any, TypeVar
 
 __all__ = [
     "STATUS",
     "Terminated",
     "deferred",
     "reclaim",
+    "run_async",
     "run_command",
     "stop_on_signals",
     "track",
@@ -51,6 +57,8 @@ __all__ = [
 
 STATUS = {signal.SIGTERM: 143, signal.SIGINT: 130}
 """The exit status of a command stopped by each signal (128 + its number)."""
+
+_T = TypeVar("_T")
 
 _WORD = {signal.SIGTERM: "terminated", signal.SIGINT: "interrupted"}
 """What a command stopped by each signal says: `COMMAND: terminated`."""
@@ -80,6 +88,7 @@ class _State:
         self.done = threading.Event()  # the command returned or raised out of the block
         self.defer = 0  # depth of the main thread's `deferred()` sections
         self.held = False  # a signal's exception waits for the end of a deferred section
+        self.on_hold: Callable[[], None] | None = None  # called when a signal is held (`run_async`)
         # The children started inside the block (any thread), stopped when a signal stops it.
         self.children: set[subprocess.Popen[Any]] = set()
         self.children_lock = threading.Lock()
@@ -101,6 +110,8 @@ class _State:
         self.redeliver = False
         if self.defer:
             self.held = True
+            if self.on_hold is not None:
+                self.on_hold()
             return
         raise self.exception()
 
@@ -201,6 +212,51 @@ def deferred() -> Iterator[None]:
         if not state.defer and state.held and not state.done.is_set():
             state.held = False
             raise state.exception()
+
+
+def run_async(main: Coroutine[Any, Any, _T]) -> _T:
+    """`asyncio.run(main)` for a command. Inside a `stop_on_signals` block (its main thread), a
+    signal cancels `main`'s task instead of raising at whatever bytecode the event loop is in: the
+    loop's own code does not survive that (callbacks cut in two, tasks destroyed while pending, a
+    page of "Task exception was never retrieved" after the command's last line). `main` unwinds
+    through its `async with` blocks as on any cancellation, the loop closes as usual, and the
+    signal's exception is raised after it; so is a signal that comes before `main` starts or after
+    it ends. Elsewhere it is `asyncio.run`.
+    """
+    state = _active
+    if state is None or threading.current_thread() is not threading.main_thread():
+        return asyncio.run(main)
+    task: asyncio.Task[Any] | None = None
+
+    def cancel() -> None:
+        if task is not None and not task.done():
+            task.cancel()
+            task.get_loop().call_soon_threadsafe(_nothing)  # wakes a loop that waits for events
+
+    async def guarded() -> _T:
+        nonlocal task
+        task = asyncio.current_task()
+        if state.held:  # the signal came while the loop started
+            main.close()
+            raise asyncio.CancelledError
+        return await main
+
+    previous, state.on_hold = state.on_hold, cancel
+    try:
+        with deferred():
+            try:
+                return asyncio.run(guarded())
+            except asyncio.CancelledError:
+                if not state.held:
+                    raise
+                state.held = False
+                raise state.exception() from None
+    finally:
+        state.on_hold = previous
+
+
+def _nothing() -> None:
+    pass
 
 
 def reclaim() -> None:

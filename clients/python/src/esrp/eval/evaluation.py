@@ -33,6 +33,7 @@ from .._async_client import AsyncClient, AsyncEpisode
 from .._common import unreachable
 from .._errors import DeadlineExceeded, EsrpError, ProtocolError, ServerUnavailable
 from .._local import LocalServer
+from .._signals import run_async
 from .._values import Action, EpisodeMetrics, SceneSummary, Sensors, ServerInfo, action_value
 from ..agents import (
     Agent,
@@ -861,9 +862,9 @@ def run_eval(
             return await evaluate(client, settings, local)
 
     if server is not None:
-        return asyncio.run(main(server))
+        return run_async(main(server))
     with LocalServer(*server_args, unix_socket="auto") as local:
-        return asyncio.run(main(local.address, local))
+        return run_async(main(local.address, local))
 
 
 async def reach(client: AsyncClient, address: str) -> None:

@@ -28,7 +28,6 @@ refused record is not replayed.
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import sys
 from collections.abc import Mapping, Sequence
@@ -39,6 +38,7 @@ from .._async_client import AsyncClient
 from .._common import unreachable
 from .._errors import EsrpError, SceneNotFound, ServerUnavailable
 from .._local import LocalServer
+from .._signals import run_async
 from .._values import EpisodeMetrics, RewardWeights, Sensors, ServerInfo
 from ._pool import run_workers
 from .evaluation import Progress, ServerGone, server_gone
@@ -465,6 +465,6 @@ def run_verify(
             )
 
     if server is not None:
-        return asyncio.run(main(server))
+        return run_async(main(server))
     with LocalServer(*server_args, unix_socket="auto") as local:
-        return asyncio.run(main(local.address, local))
+        return run_async(main(local.address, local))

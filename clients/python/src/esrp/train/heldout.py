@@ -12,7 +12,6 @@ from, the policy on `eval_threads` torch threads. Each evaluation writes an `esr
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import csv
 import io
@@ -27,6 +26,7 @@ import torch
 from .._async_client import AsyncClient
 from .._client import Client
 from .._local import LocalServer
+from .._signals import run_async
 from .._values import Sensors
 from ..agents.bc import BcConfig
 from ..eval.evaluation import EvalError, EvalSettings, evaluate, missing_scene, reach
@@ -200,9 +200,9 @@ def evaluate_checkpoint(
     try:
         with torch.random.fork_rng(devices=[]), contextlib.redirect_stdout(io.StringIO()):
             if progress:
-                return asyncio.run(run())
+                return run_async(run())
             with contextlib.redirect_stderr(io.StringIO()):
-                return asyncio.run(run())
+                return run_async(run())
     finally:
         torch.set_num_threads(threads)
 
