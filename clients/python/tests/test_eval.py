@@ -570,16 +570,22 @@ def test_cli_errors_are_one_line(
         # The error is the last line; a line before it may say which server the run uses.
         assert err.splitlines()[-1].startswith(start), (args, err)
         assert all(line.startswith("esrp-server ") for line in err.splitlines()[:-1]), err
-    for args in (
-        ["eval"],
-        ["replay", "--results", "r.jsonl", "--scene", "s", "--out", "x.gif", "--fps", "0"],
+    for args, command in (
+        (["eval"], "eval"),
+        (["replay", "--results", "r.jsonl", "--scene", "s", "--out", "x.gif", "--fps", "0"], "replay"),
+        # An unknown flag is the command's to name, not the top parser's.
+        (["eval", "--agent", "random", "--out", "x.jsonl", "--bogus"], "eval"),
+        (["report", "r.jsonl", "--bogus"], "report"),
+        (["demos", "export", "--out", "x", "--bogus", "1"], "demos export"),
+        (["train", "bc", "--config", "c.toml", "--bogus"], "train bc"),
     ):
         with pytest.raises(SystemExit) as exited:
             main(args)
         assert exited.value.code == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1, err
-        assert f"(see esrp {args[0]} --help)" in err
+        assert err.startswith(f"esrp {command}: error: "), err
+        assert err.endswith(f"(see esrp {command} --help)\n"), err
 
 
 def test_bad_input_files_and_modules_are_one_line(

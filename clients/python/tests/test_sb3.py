@@ -141,13 +141,32 @@ def test_the_example_trains_saves_and_plays(
     assert "easy test episodes:" in capsys.readouterr().out
 
 
+def test_per_env_reset_options_may_name_each_sub_envs_scene(
+    server: esrp.LocalServer, easy_scenes: list[str]
+) -> None:
+    env = make_vec_env(2, server.address, monitor=False, **SETTINGS)
+    try:
+        first, second = easy_scenes[3], easy_scenes[7]
+        env.set_options([{"scene": first}, {"scene": second}])
+        env.reset()
+        assert [info["scene_id"] for info in env.reset_infos] == [first, second]
+        env.set_options([{"scene": second}, {}])  # the second sub-env draws its own
+        env.reset()
+        assert env.reset_infos[0]["scene_id"] == second
+        env.set_options({"scene": first})  # one dict: for every sub-env
+        env.reset()
+        assert [info["scene_id"] for info in env.reset_infos] == [first, first]
+    finally:
+        env.close()
+
+
 def test_clear_errors(server: esrp.LocalServer) -> None:
     with pytest.raises(ValueError, match="autoreset_mode"):
         make_vec_env(2, server.address, autoreset_mode="next-step", **SETTINGS)
     env = make_vec_env(2, server.address, monitor=False, **SETTINGS)
     try:
-        env.set_options([{"scene": "a"}, {"scene": "b"}])
-        with pytest.raises(ValueError, match="one options dict"):
+        env.set_options([{"scene": "a", "difficulty": "easy"}, {"scene": "b", "difficulty": "hard"}])
+        with pytest.raises(ValueError, match="differ in more than `scene`"):
             env.reset()
         with pytest.raises(AttributeError, match="cannot set"):
             env.set_attr("horizon", 5)

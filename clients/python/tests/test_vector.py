@@ -203,6 +203,29 @@ def test_scene_per_env(server: esrp.LocalServer, easy_scenes: list[str]) -> None
             RearrangeVectorEnv(2, server.address, scene=bad, scene_per_env=True)
 
 
+def test_a_reset_may_name_each_sub_envs_scene(server: esrp.LocalServer, easy_scenes: list[str]) -> None:
+    envs = RearrangeVectorEnv(3, server.address, split="test", sensors=SMALL)
+    drawn = RearrangeVectorEnv(3, server.address, split="test", sensors=SMALL)
+    try:
+        named = [easy_scenes[4], None, easy_scenes[2]]
+        _, infos = envs.reset(seed=11, options={"scene": named})
+        _, own = drawn.reset(seed=11)
+        assert infos["scene_id"].tolist() == [easy_scenes[4], own["scene_id"][1], easy_scenes[2]]
+        # Each generator advanced as a drawn scene's would: the next draws are the same.
+        assert envs.reset()[1]["scene_id"].tolist() == drawn.reset()[1]["scene_id"].tolist()
+        # A masked reset reads the entries of the sub-envs it resets.
+        mask = np.array([True, False, False])
+        _, infos = envs.reset(options={"reset_mask": mask, "scene": [easy_scenes[5], easy_scenes[6], None]})
+        assert infos["_scene_id"].tolist() == [True, False, False]
+        assert infos["scene_id"][0] == easy_scenes[5]
+        for bad in ([easy_scenes[0]] * 2, [easy_scenes[0], "", None], 7):
+            with pytest.raises(ValueError, match=r"options\['scene'\]"):
+                envs.reset(options={"scene": bad})
+    finally:
+        envs.close()
+        drawn.close()
+
+
 def test_disabled_mode_and_reset_mask(server: esrp.LocalServer) -> None:
     envs = RearrangeVectorEnv(
         3, server.address, split="test", sensors=SMALL, horizon=1, autoreset_mode=AutoresetMode.DISABLED

@@ -8,7 +8,7 @@ import json
 import os
 import sys
 from collections.abc import Callable, Sequence
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from .._values import Sensors, Split
 from ..eval.results import ResultsError
@@ -18,7 +18,24 @@ SPLITS = tuple(split.value for split in Split)
 
 
 class Parser(argparse.ArgumentParser):
-    """An argument parser whose errors are one line: `esrp eval: error: ... (esrp eval --help)`."""
+    """An argument parser whose errors are one line: `esrp eval: error: ... (esrp eval --help)`.
+    A command's parser (one without subcommands) refuses arguments it does not know itself, so the
+    message names the command whose `--help` lists them (argparse leaves them to the top parser).
+    """
+
+    _has_commands = False
+
+    def add_subparsers(self, **kwargs: Any) -> Any:  # noqa: ANN401 - argparse's own types
+        self._has_commands = True
+        return super().add_subparsers(**kwargs)
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        parsed, extras = super().parse_known_args(args, namespace)
+        if extras and not self._has_commands:
+            self.error(f"unrecognized arguments: {' '.join(extras)}")
+        return parsed, extras
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")

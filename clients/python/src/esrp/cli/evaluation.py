@@ -46,8 +46,8 @@ def _add_eval(commands: argparse._SubParsersAction[Parser]) -> None:
         "--agent",
         required=True,
         help="random, expert, plan, vlm (ESRP-VLM over an OpenAI-compatible endpoint: --base-url, "
-        "--model), bc (ESRP-BC: --checkpoint), ppo (ESRP-PPO: --checkpoint), map (ESRP-MAP, the "
-        "mapping agent, in progress), or MODULE:CALLABLE "
+        "--model), bc (ESRP-BC: --checkpoint), ppo (ESRP-PPO: --checkpoint), map (ESRP-MAP: maps the "
+        "room from its own views and plans, unprivileged), or MODULE:CALLABLE "
         "(a factory called with the agent config, once per episode, "
         "returning an esrp.agents.Agent or AsyncAgent)",
     )
@@ -81,7 +81,7 @@ def _agent_settings(parser: argparse.ArgumentParser) -> None:
         type=json_object,
         default={},
         metavar="JSON",
-        help="a vlm or MODULE:CALLABLE agent's config",
+        help="the agent's config (vlm, bc, ppo, map, MODULE:CALLABLE; docs/evaluation.md)",
     )
     parser.add_argument(
         "--base-url",

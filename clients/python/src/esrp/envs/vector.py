@@ -117,6 +117,10 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
     - `DISABLED`: no autoreset; reset ended episodes with `reset(options={"reset_mask": mask})`.
       Stepping an ended one raises `EpisodeEnded` and moves no episode.
 
+    `reset(options={"scene": id})` plays `id` in every sub-env reset, and `{"scene": [id_0, ...,
+    id_{N-1}]}` plays `id_i` in sub-env i (None: its own pick; a masked reset reads the entries of
+    the sub-envs it resets).
+
     With `scene_per_env=True`, `scene` lists one scene id per sub-env and sub-env i plays
     `scene[i]` at every reset (unless `options["scene"]` names another): a fixed set of scenes,
     each episode restarted where it is when it ends (no new scene sent, no episode built anew).
@@ -248,12 +252,34 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         return stream
 
     def _pick_scenes(self, indices: list[int], options: Mapping[str, Any] | None) -> dict[int, str]:
-        """The scenes of sub-envs `indices`' next resets, each drawn from its own generator."""
+        """The scenes of sub-envs `indices`' next resets, each drawn from its own generator (which
+        advances alike whatever `options["scene"]` says): `options["scene"]` names one scene for
+        all, or lists one per sub-env (None where the sub-env's own pick stands).
+        """
+        named = options.get("scene") if options else None
+        listed = None if named is None or isinstance(named, str) else self._scene_list(named)
         scenes = {}
         for index in indices:
             own = self._setup.scenes[index] if self._scene_per_env else None
-            scenes[index] = self._setup.pick_scene(self._rng(index), options, own)
+            if listed is None:
+                scenes[index] = self._setup.pick_scene(self._rng(index), options, own)
+            else:
+                picked = self._setup.pick_scene(self._rng(index), None, own)
+                entry = listed[index]
+                scenes[index] = picked if entry is None else entry
         return scenes
+
+    def _scene_list(self, named: object) -> list[str | None]:
+        """`options["scene"]` given as one entry per sub-env, checked."""
+        if not isinstance(named, (list, tuple, np.ndarray)) or len(named) != self.num_envs:
+            raise ValueError(
+                f"options['scene']: a scene id, or a list of {self.num_envs} (one per sub-env, None to "
+                f"keep its own pick), got {named!r}"
+            )
+        listed = [None if entry is None else str(entry) for entry in named]
+        if not all(entry is None or entry for entry in listed):
+            raise ValueError(f"options['scene']: an empty scene id in {named!r}")
+        return listed
 
     def _take_create(self, stream: EpisodeStream, index: int, scene: str) -> dict[str, Any]:
         """Reads sub-env `index`'s creation answer (sent on `stream` for `scene`) into its last

@@ -14,13 +14,15 @@ It keeps SB3's conventions exactly, as `DummyVecEnv` over `gymnasium.make("esrp/
 would (tested side by side): an episode that ends is reset in the same step, its last observation
 in `infos[i]["terminal_observation"]` and `infos[i]["TimeLimit.truncated"]` set when the horizon
 cut it; `is_success` (and the episode's `metrics`) in the info of the step that ends it; the
-reset's info (scene id, difficulty...) in `reset_infos`; `seed(s)` seeds sub-env i with `s + i`
-at the next `reset()`, as SB3's own vector envs do.
+reset's info (scene id, difficulty...) in the `EsrpVecEnv`'s `reset_infos` (under
+`make_vec_env`'s `VecMonitor`, `env.venv.reset_infos`: SB3's wrappers keep their own, empty);
+`seed(s)` seeds sub-env i with `s + i` and `set_options(...)` sets the options of the next
+`reset()`, as SB3's own vector envs do (per-env options may differ in `scene` alone).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import gymnasium
@@ -58,6 +60,24 @@ def unbatch_infos(infos: dict[str, Any], num_envs: int) -> list[dict[str, Any]]:
     return per_env
 
 
+def merged_options(per_env: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """The vector env's reset options for SB3's per-env ones: the same for all, except `scene`,
+    which may differ (one id per sub-env, None or absent: the sub-env's own pick). Raises
+    `ValueError` where another option differs.
+    """
+    others = [{key: value for key, value in options.items() if key != "scene"} for options in per_env]
+    if any(other != others[0] for other in others):
+        raise ValueError(
+            "per-env reset options differ in more than `scene`, but ESRP's vector env takes one "
+            f"options dict for all its sub-envs (a `scene` may differ: one id per sub-env): {list(per_env)!r}"
+        )
+    merged = dict(others[0]) if others else {}
+    scenes = [options.get("scene") for options in per_env]
+    if any(scene is not None for scene in scenes):
+        merged["scene"] = scenes[0] if all(scene == scenes[0] for scene in scenes) else scenes
+    return merged
+
+
 class EsrpVecEnv(VecEnv):
     """An SB3 `VecEnv` over a `RearrangeVectorEnv` (made here in SAME_STEP autoreset mode, the one
     SB3's semantics need; see the module's doc). Attribute calls (`get_attr`, `env_method`) reach
@@ -79,13 +99,7 @@ class EsrpVecEnv(VecEnv):
         """Resets every sub-env with the seeds of `seed()` and the options of `set_options()`
         (one dict for all), both for this reset only; the infos go to `reset_infos`.
         """
-        options = self._options[0] if self._options else {}
-        if any(other != options for other in self._options):
-            raise ValueError(
-                "per-env reset options differ, but ESRP's vector env takes one options dict for all "
-                "its sub-envs (its `scene` option may list one scene id per sub-env): "
-                f"{self._options!r}"
-            )
+        options = merged_options(self._options)
         seeds = None if all(seed is None for seed in self._seeds) else list(self._seeds)
         observations, infos = self.venv.reset(seed=seeds, options=dict(options) or None)
         self.reset_infos = unbatch_infos(infos, self.num_envs)
