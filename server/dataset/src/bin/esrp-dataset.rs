@@ -104,7 +104,6 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
-    /// Print one scene as JSON: from a dataset folder, or generated from the built-in benchmark.
     /// Generate every scene of a built-in benchmark into one scene pack (the file the server
     /// ships: `server/service/packs/`), or with --check, regenerate them and compare them with a
     /// pack, byte for byte.
@@ -118,6 +117,7 @@ enum Command {
         #[arg(long)]
         check: bool,
     },
+    /// Print one scene as JSON: from a dataset folder, or generated from the built-in benchmark.
     Show {
         /// Scene id (e.g. esrp-bench-v2/00042) or index into the built-in benchmark.
         id: String,
