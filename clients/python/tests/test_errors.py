@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import socket
 from collections.abc import Iterator
 from pathlib import Path
@@ -161,6 +162,26 @@ def test_cancelled(client: esrp.Client) -> None:
     assert caught.value.code == grpc.StatusCode.CANCELLED
     assert isinstance(caught.value.rpc_error, grpc.RpcError)
     # The server closes what the cancelled stream created.
+    assert settled_live_episodes(client, before) == before
+
+
+def test_cancelled_async_stream(server: esrp.LocalServer, client: esrp.Client) -> None:
+    before = client.server_info().live_episodes
+
+    async def main() -> None:
+        async with esrp.AsyncClient(server.address) as aclient:
+            stream = await aclient.episode_stream()
+            await stream.create(split="test")
+            stream.cancel()
+            stream.cancel()  # again: nothing more
+            with pytest.raises(esrp.Cancelled) as caught:
+                await stream.next()
+            assert caught.value.code == grpc.StatusCode.CANCELLED
+            with pytest.raises(esrp.ServerUnavailable, match="ended"):
+                await stream.create(split="test")
+            await stream.close()  # after a cancel: nothing to do
+
+    asyncio.run(main())
     assert settled_live_episodes(client, before) == before
 
 

@@ -40,7 +40,7 @@ from ._common import (
     open_aio_channel,
     run_rounds,
 )
-from ._errors import EpisodeNotFound, EsrpError, ServerUnavailable
+from ._errors import Cancelled, EpisodeNotFound, EsrpError, ServerUnavailable
 from ._transport import AsyncCalls
 from ._values import (
     ActionLike,
@@ -338,6 +338,7 @@ class AsyncEpisodeStream(EpisodeStreamBase):
     def __init__(self, client: AsyncClient, window: int) -> None:
         super().__init__(window)
         self._call: Any = client._stub.StepStream(metadata=client.metadata)  # noqa: SLF001
+        self._cancelled = False
 
     async def _send(self, kind: RequestKind, episode_id: str, **body: Any) -> int:  # noqa: ANN401
         request = self._request(kind, episode_id, **body)
@@ -403,6 +404,8 @@ class AsyncEpisodeStream(EpisodeStreamBase):
             yield answer
 
     async def _read(self) -> StreamAnswer:
+        if self._cancelled:
+            raise Cancelled("the stream was cancelled by this client", code=grpc.StatusCode.CANCELLED)
         try:
             response = await self._call.read()
         except grpc.aio.AioRpcError as error:
@@ -423,6 +426,14 @@ class AsyncEpisodeStream(EpisodeStreamBase):
         async for answer in self:
             collect_run(answer, results)
         return results
+
+    def cancel(self) -> None:
+        """Cancels the stream at once (the server closes the episodes created on it); reading it
+        afterwards raises `Cancelled`, sending `ServerUnavailable`, as the sync stream does.
+        """
+        if self._end():
+            self._cancelled = True
+            self._call.cancel()
 
     async def close(self) -> None:
         """Half-closes the stream and waits for the server to end it (unread answers are dropped;
