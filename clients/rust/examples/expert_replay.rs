@@ -12,7 +12,8 @@ use tokio_stream::StreamExt;
 #[tokio::main]
 async fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut args = std::env::args().skip(1);
-    let (address, _local) = match args.next().filter(|a| a.contains("://")) {
+    // A server's URL (`http://host:port`, `unix:PATH`), else a server started here.
+    let (address, _local) = match args.next().filter(|a| a.contains("://") || a.starts_with("unix:")) {
         Some(address) => (address, None),
         None => {
             let local = LocalServer::start::<&str>(None, &[])?;

@@ -7,7 +7,9 @@
 //! - **random**: uniform random actions on every scene at once, one `StepBatch` per step, until
 //!   the horizon; a floor to compare agents against.
 //!
-//! Without `--server` it starts the `esrp-server` beside its own executable on a free port.
+//! Without `--server` it starts an `esrp-server` (found as `LocalServer` finds one: `ESRP_SERVER_BIN`,
+//! beside its own executable, on `PATH`, the workspace's `target/`) and reaches it over a Unix socket
+//! (loopback TCP where the temporary folder is too deep for a socket's path).
 
 use std::collections::HashMap;
 

@@ -49,13 +49,14 @@ mod soak;
 #[command(name = "esrp-bench", version, about = "End-to-end throughput and latency of esrp-server")]
 struct Args {
     /// A running server (`http://host:port`, or `unix:PATH` for one serving `--listen-unix`);
-    /// without it, esrp-bench starts the `esrp-server` next to its own executable on a free
-    /// local port (see `--transport`). With `--processes`, several servers
+    /// without it, esrp-bench starts an `esrp-server` (`--server-binary`) on a free local port
+    /// (see `--transport`). With `--processes`, several servers
     /// may be named, comma-separated: process i drives server i modulo their number (scale-out
     /// measured with the same clients as one server).
     #[arg(long)]
     server: Option<String>,
-    /// Path of the server binary to start (default: `esrp-server` beside esrp-bench).
+    /// Path of the server binary to start (default: found as `LocalServer` does: `ESRP_SERVER_BIN`,
+    /// beside esrp-bench or in its parent folder, on `PATH`, then the workspace's `target/`).
     #[arg(long)]
     server_binary: Option<PathBuf>,
     /// Extra arguments for the started server, e.g. `--server-args=--render-backend=gl`.
@@ -104,7 +105,7 @@ struct Args {
     rss_growth_limit: f64,
     /// `soak`: the claim timeout of the server named by `--server` (its `--claim-timeout-seconds`),
     /// which the cleanup waits for. A server started here gets `--claim-timeout-seconds 60`
-    /// unless `--server-arg` sets it (the soak's clients leave some episodes unnamed for many
+    /// unless `--server-args` sets it (the soak's clients leave some episodes unnamed for many
     /// seconds under load: a shorter timeout closes episodes they still hold).
     #[arg(long, default_value_t = 300)]
     server_claim_timeout: u64,
@@ -531,7 +532,7 @@ fn claim_timeout(args: &Args, server_args: &mut Vec<String>) -> anyhow::Result<u
         Some(i) => {
             let value =
                 server_args[i].split_once('=').map(|(_, v)| v.to_owned()).or_else(|| server_args.get(i + 1).cloned());
-            value.and_then(|v| v.parse().ok()).context("--server-arg --claim-timeout-seconds needs a number")?
+            value.and_then(|v| v.parse().ok()).context("--server-args --claim-timeout-seconds needs a number")?
         }
         None => {
             server_args.extend(["--claim-timeout-seconds".to_owned(), LOCAL_CLAIM_TIMEOUT.to_string()]);

@@ -2,7 +2,9 @@
 //! scenes of a split and writes one `esrp.results/v1` record per episode (docs/evaluation.md),
 //! with a progress bar, resumption, and a summary with the paper's rows beside it.
 //!
-//! Without `--server` it starts the `esrp-server` beside its own executable on a free port.
+//! Without `--server` it starts an `esrp-server` (found as `LocalServer` finds one: `ESRP_SERVER_BIN`,
+//! beside its own executable, on `PATH`, the workspace's `target/`) and reaches it over a Unix socket
+//! (loopback TCP where the temporary folder is too deep for a socket's path).
 
 mod agents;
 
@@ -42,7 +44,8 @@ struct Args {
     /// Only these scene ids (comma-separated), in this order; they must be in the split.
     #[arg(long, value_delimiter = ',')]
     scenes: Vec<String>,
-    /// At most this many scenes (after the filters), the first in dataset order.
+    /// At most this many scenes (after the filters): the first N of the chosen ones (dataset
+    /// order, or the order `--scenes` names them in).
     #[arg(long)]
     limit: Option<usize>,
     /// Episodes played at the same time.
