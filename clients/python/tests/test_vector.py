@@ -226,6 +226,37 @@ def test_a_reset_may_name_each_sub_envs_scene(server: esrp.LocalServer, easy_sce
         drawn.close()
 
 
+def test_a_failed_reset_leaves_nothing_for_the_next(
+    server: esrp.LocalServer, client: esrp.Client, easy_scenes: list[str]
+) -> None:
+    """Whichever creation or restart fails, the next reset answers as a fresh env's would, and the
+    env holds one episode per sub-env."""
+    fresh = RearrangeVectorEnv(3, server.address, split="test", sensors=SMALL)
+    try:
+        expected_observations, expected = fresh.reset(seed=0)
+    finally:
+        fresh.close()
+    before = client.server_info().live_episodes
+    envs = RearrangeVectorEnv(3, server.address, split="test", sensors=SMALL)
+    try:
+        for bad in (["esrp-bench-v2/no-such", None, None], "esrp-bench-v2/no-such"):
+            with pytest.raises(esrp.SceneNotFound):
+                envs.reset(seed=5, options={"scene": bad})
+            observations, infos = envs.reset(seed=0)
+            assert infos["scene_id"].tolist() == expected["scene_id"].tolist()
+            assert_same(observations, expected_observations)
+            assert settled_live_episodes(client, before + 3) == before + 3
+        # A restart that fails (every sub-env live now) moves nothing either.
+        with pytest.raises(esrp.SceneNotFound):
+            envs.reset(options={"scene": [easy_scenes[0], "esrp-bench-v2/no-such", None]})
+        observations, infos = envs.reset(seed=0)
+        assert infos["scene_id"].tolist() == expected["scene_id"].tolist()
+        assert_same(observations, expected_observations)
+    finally:
+        envs.close()
+    assert settled_live_episodes(client, before) == before
+
+
 def test_disabled_mode_and_reset_mask(server: esrp.LocalServer) -> None:
     envs = RearrangeVectorEnv(
         3, server.address, split="test", sensors=SMALL, horizon=1, autoreset_mode=AutoresetMode.DISABLED

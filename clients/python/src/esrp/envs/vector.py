@@ -347,14 +347,26 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             self._open_stream(self._shard_of[index]).create(
                 scene, sensors=setup.sensors, horizon=setup.horizon, reward=setup.reward, agent=setup.agent
             )
-        _, restarted = self._step_batch([], [], restarts)
+        # Every creation's answer is read even where a call failed (the first error is raised
+        # after), so that none is left on a stream for the next reset to take as its own; a failed
+        # restart moved no episode (a StepBatch is all or nothing).
+        failure: EsrpError | None = None
+        restarted: dict[int, dict[str, Any]] = {}
+        try:
+            _, restarted = self._step_batch([], [], restarts)
+        except EsrpError as error:
+            failure = error
+        created: dict[int, dict[str, Any]] = {}
+        for index, scene in creates.items():
+            try:
+                created[index] = self._take_create(self._open_stream(self._shard_of[index]), index, scene)
+            except EsrpError as error:
+                failure = failure or error
+        if failure is not None:
+            raise failure
         infos: dict[str, Any] = {}
-        for index, scene in scenes.items():
-            if index in creates:
-                info = self._take_create(self._open_stream(self._shard_of[index]), index, scene)
-            else:
-                info = restarted[index]
-            infos = self._add_info(infos, info, index)
+        for index in scenes:
+            infos = self._add_info(infos, created[index] if index in creates else restarted[index], index)
         return self._batch(), infos
 
     def _reset_mask(self, options: dict[str, Any] | None) -> npt.NDArray[np.bool_]:
