@@ -261,3 +261,54 @@ def test_error_mapping_covers_every_code() -> None:
         assert type(error) is kind
         assert error.code == code
     assert type(from_status(5, 'no scene "x" in the served dataset')) is esrp.SceneNotFound
+
+
+@pytest.mark.parametrize("transport", ["native", "grpcio"])
+def test_timeouts_mean_the_same_on_both_transports(
+    server: esrp.LocalServer, transport: Literal["native", "grpcio"]
+) -> None:
+    if transport == "native" and not esrp._native.available():
+        pytest.skip("esrp-native is not installed")
+    with (
+        esrp.Client(server.address, transport=transport) as client,
+        client.create_episode(split="test") as episode,
+    ):
+        # 0: no time for the call, which fails unsent; infinity and beyond years: no deadline.
+        client.timeout = 0
+        with pytest.raises(esrp.DeadlineExceeded, match="not sent"):
+            episode.step(esrp.Action.LEFT)
+        with pytest.raises(esrp.DeadlineExceeded):
+            client.server_info()
+        for none in (float("inf"), 1e10):
+            client.timeout = none
+            assert client.timeout is None
+            episode.step(esrp.Action.LEFT)
+        for bad in (-1, float("nan"), True, "1"):
+            with pytest.raises(ValueError, match="timeout must be None or"):
+                client.timeout = bad  # type: ignore[assignment]
+        client.timeout = None
+        with pytest.raises(ValueError, match="non-negative"):
+            client.wait_healthy(float("nan"))
+        with pytest.raises(ValueError, match="timeout must be None or"):
+            esrp.Client(server.address, transport=transport, timeout=-1)
+    with pytest.raises(ValueError, match="timeout must be None or"):
+        esrp.AsyncClient(server.address, timeout=float("nan"))
+
+
+def test_addresses_that_name_no_server_are_refused_up_front() -> None:
+    for bad in ("127.0.0.1:70000", "127.0.0.1:-1", "host:port", "", "  ", "http://", "https://"):
+        with pytest.raises(ValueError, match="port|names no server"):
+            esrp.Client(bad)
+        with pytest.raises(ValueError, match="port|names no server"):
+            esrp.AsyncClient(bad)
+    for wrong in (None, 50051):
+        with pytest.raises(TypeError, match="a string"):
+            esrp.Client(wrong)  # type: ignore[arg-type]
+    for good in (
+        "127.0.0.1:0",
+        "127.0.0.1:65535",
+        "[::1]:50051",
+        "unix:/tmp/x.sock",
+        "dns:///localhost:50051",
+    ):
+        esrp.Client(good, transport="grpcio").close()

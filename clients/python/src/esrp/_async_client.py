@@ -41,7 +41,7 @@ from ._common import (
     run_rounds,
 )
 from ._errors import Cancelled, EpisodeNotFound, EsrpError, ServerUnavailable
-from ._transport import AsyncCalls
+from ._transport import AsyncCalls, checked_timeout
 from ._values import (
     ActionLike,
     Created,
@@ -98,6 +98,7 @@ class AsyncClient(ClientBase):
         timeout: float | None = None,
         options: ChannelOptions = (),
     ) -> None:
+        timeout = checked_timeout(timeout)  # before a channel is made
         super().__init__(address, token, tls)
         creds = self._credentials
         arguments = channel_options(tls_server_name, options, self.address)

@@ -22,7 +22,7 @@ import grpc
 from . import _convert
 from ._common import RequestKind, StreamLedger, TlsSetting, batch_size, bearer_metadata, credentials, target
 from ._errors import DeadlineExceeded, EsrpError, ServerUnavailable, from_rpc_error
-from ._transport import UnaryCall
+from ._transport import UnaryCall, checked_timeout
 from ._values import (
     ActionLike,
     Created,
@@ -91,7 +91,7 @@ class ClientBase:
 
     @timeout.setter
     def timeout(self, value: float | None) -> None:
-        self._calls.timeout = value
+        self._calls.timeout = checked_timeout(value)
 
     @property
     def metadata(self) -> tuple[tuple[str, str], ...] | None:
@@ -100,7 +100,7 @@ class ClientBase:
 
     def _create_wait(self, timeout: float | None) -> float | None:
         """How long `create_episode` waits for its answer: `timeout`, else the client's."""
-        return timeout if timeout is not None else self.timeout
+        return checked_timeout(timeout) if timeout is not None else self.timeout
 
     def _learn_batch_size(self, sensors: Sensors, info: ServerInfo) -> int:
         """Keeps and returns `batch_size` of the server's limits in `info` for `sensors`."""
@@ -210,6 +210,8 @@ class HealthPolls:
     """
 
     def __init__(self, address: str, timeout: float, clock: Callable[[], float]) -> None:
+        if not float(timeout) >= 0:  # NaN, negative
+            raise ValueError(f"timeout must be a non-negative number of seconds, got {timeout!r}")
         self._address = address
         self._timeout = timeout
         self._clock = clock

@@ -42,7 +42,7 @@ from ._common import (
     run_rounds,
 )
 from ._errors import EpisodeNotFound, EsrpError, ServerUnavailable
-from ._transport import Calls, Pending, run_all
+from ._transport import Calls, Pending, checked_timeout, run_all
 from ._values import (
     ActionLike,
     Created,
@@ -118,6 +118,7 @@ class Client(ClientBase):
         options: ChannelOptions = (),
         transport: _native.Transport = "auto",
     ) -> None:
+        timeout = checked_timeout(timeout)  # before a channel is made
         super().__init__(address, token, tls)
         creds = self._credentials
         self.transport = _native.resolve(transport, creds is not None, self.address)

@@ -100,12 +100,39 @@ def open_aio_channel(
 
 def target(address: str) -> tuple[str, bool]:
     """`host:port` of an address (`host:port`, `http://host:port` or `https://host:port`), and
-    whether its scheme asks for TLS.
+    whether its scheme asks for TLS. Raises `TypeError` for an address that is not a string, and
+    `ValueError` for one that names no server or whose port is not a number from 0 to 65535 (gRPC
+    would wrap it around: 70000 is port 4464).
     """
-    for prefix, secure in (("http://", False), ("https://", True)):
+    if not isinstance(address, str):
+        raise TypeError(f"address: a string such as '127.0.0.1:50051', got {address!r}")
+    host, secure = address, False
+    for prefix, tls in (("http://", False), ("https://", True)):
         if address.startswith(prefix):
-            return address[len(prefix) :].rstrip("/"), secure
-    return address, False
+            host, secure = address[len(prefix) :].rstrip("/"), tls
+    if not host.strip():
+        raise ValueError(f"address {address!r} names no server: give host:port, e.g. 127.0.0.1:50051")
+    _, port = _host_and_port(host)
+    if port and not (port.isdigit() and int(port) <= 65535):
+        raise ValueError(f"address {address!r}: its port {port!r} is not a number from 0 to 65535")
+    return host, secure
+
+
+def _host_and_port(host: str) -> tuple[str, str] | tuple[None, None]:
+    """The name and port of a `host:port` (the port "" where there is none; an IPv6 name in
+    brackets), or (None, None) for another gRPC target form (`unix:...`, `dns:///...`).
+    """
+    if "/" in host or host.startswith(("unix:", "unix-abstract:", "vsock:", "ipv4:", "ipv6:")):
+        return None, None
+    if host.startswith("["):  # [IPv6] or [IPv6]:port
+        name, _, port = host[1:].partition("]")
+        return f"[{name}]", port.removeprefix(":")
+    if host.count(":") == 1:
+        name, port = host.split(":")
+        return name, port
+    if host.count(":") > 1:  # a bare IPv6 address
+        return f"[{host}]", ""
+    return host, ""
 
 
 def parsed_address(address: str) -> tuple[str, str]:
@@ -115,18 +142,9 @@ def parsed_address(address: str) -> tuple[str, str]:
     (`unix:...`, `dns:///...`).
     """
     host, _ = target(address)
-    if "/" in host or host.startswith(("unix:", "unix-abstract:", "vsock:", "ipv4:", "ipv6:")):
+    name, port = _host_and_port(host)
+    if name is None:
         return host, ""
-    if host.startswith("["):  # [IPv6] or [IPv6]:port
-        name, _, port = host[1:].partition("]")
-        port = port.removeprefix(":")
-        name = f"[{name}]"
-    elif host.count(":") == 1:
-        name, port = host.split(":")
-    elif host.count(":") > 1:  # a bare IPv6 address
-        name, port = f"[{host}]", ""
-    else:
-        name, port = host, ""
     if port:
         return f"{name}:{port}", ""
     note = f"{address!r} has no port, so gRPC's default, 443, is used"

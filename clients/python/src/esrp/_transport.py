@@ -10,6 +10,8 @@ and otherwise. Both take the same request messages and give the same answer mess
 from __future__ import annotations
 
 import concurrent.futures
+import math
+import numbers
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -20,7 +22,7 @@ import grpc.aio
 from google.protobuf.message import Message
 
 from . import _native
-from ._errors import from_rpc_error
+from ._errors import DeadlineExceeded, from_rpc_error
 from .v1 import esrp_pb2 as pb
 from .v1 import esrp_pb2_grpc as pb_grpc
 
@@ -44,9 +46,39 @@ CLIENT_TIMEOUT: Final = _Default()
 _T = TypeVar("_T")
 
 
+LONGEST_DEADLINE: Final = 1e8
+"""Seconds (about three years): a longer timeout is no deadline (grpcio fails a call at once whose
+deadline is too far to represent; the native transport would wait)."""
+
+
+def checked_timeout(value: object, what: str = "timeout") -> float | None:
+    """`value` as a deadline in seconds, the same on both transports: None (none), or a number of
+    at least 0 (a call given 0 fails with `DeadlineExceeded` unsent: `_deadline`), infinity and
+    anything past `LONGEST_DEADLINE` none. Raises `ValueError` for NaN, a negative number or
+    anything but a number (a bool included).
+    """
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{what} must be None or a number of seconds, got {value!r}")
+    seconds = float(value)
+    if math.isnan(seconds) or seconds < 0:
+        raise ValueError(f"{what} must be None or a non-negative number of seconds, got {value!r}")
+    if seconds > LONGEST_DEADLINE:
+        return None
+    return seconds
+
+
 def _deadline(client_timeout: float | None, timeout: float | None | _Default) -> float | None:
-    """The deadline of a call: `timeout`, or the client's where it is `CLIENT_TIMEOUT`."""
-    return client_timeout if isinstance(timeout, _Default) else timeout
+    """The deadline of a call: `timeout` (checked), or the client's (checked when it was set)
+    where it is `CLIENT_TIMEOUT`; raises `DeadlineExceeded` where it is 0.
+    """
+    deadline = client_timeout if isinstance(timeout, _Default) else checked_timeout(timeout)
+    if deadline == 0:
+        # No time for the call: it fails unsent (grpcio would read 0 as no deadline, and cannot
+        # time a call out within its timer's millisecond anyway).
+        raise DeadlineExceeded("the call's timeout is 0 s: not sent", code=grpc.StatusCode.DEADLINE_EXCEEDED)
+    return deadline
 
 
 @dataclass(frozen=True)
@@ -114,7 +146,7 @@ class Calls:
         metadata: tuple[tuple[str, str], ...] | None,
         timeout: float | None,
     ) -> None:
-        self.timeout = timeout
+        self.timeout = checked_timeout(timeout)
         self._stub = stub
         self._native = native
         self._metadata = metadata
@@ -229,7 +261,7 @@ class AsyncCalls:
         metadata: tuple[tuple[str, str], ...] | None,
         timeout: float | None,
     ) -> None:
-        self.timeout = timeout
+        self.timeout = checked_timeout(timeout)
         self._stub = stub
         self._metadata = metadata
 

@@ -154,6 +154,12 @@ def server_address(text: str) -> str:
     """
     if not text.strip():
         raise argparse.ArgumentTypeError("give an address, host:port (e.g. 127.0.0.1:50051)")
+    from .._common import target  # imports grpc: here, after the command's grpc settings
+
+    try:
+        target(text.strip())
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
     return text.strip()
 
 
