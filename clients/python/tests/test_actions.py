@@ -32,7 +32,10 @@ def test_episode_step(client: esrp.Client) -> None:
             assert result.info.accepted  # a turn is always accepted
         out_of_range = refused(lambda: episode.step(7))
         assert out_of_range.startswith("INVALID_ARGUMENT: step.action: unknown action code 7: use 0")
-        for bad, shown in ((2.7, "2.7"), (np.float32(2.5), "2.5"), (np.array([2.7]), "2.7"), ("2", "'2'")):
+        # Codes beyond the request's int32 are refused in the same words (not protobuf's).
+        cases: list[tuple[object, str]] = [(2.7, "2.7"), (np.float32(2.5), "2.5"), (np.array([2.7]), "2.7")]
+        cases += [("2", "'2'"), (2**40, str(2**40)), (np.int64(-(2**31) - 1), str(-(2**31) - 1))]
+        for bad, shown in cases:
             message = refused(lambda bad=bad: episode.step(bad))
             assert message == out_of_range.replace("code 7", f"code {shown}"), message
         assert "array of shape (2,)" in refused(lambda: episode.step(np.array([2, 3])))

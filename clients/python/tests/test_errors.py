@@ -13,6 +13,7 @@ import pytest
 from conftest import settled_live_episodes
 
 import esrp
+from esrp.envs import RearrangeEnv
 
 
 def check(error: esrp.EsrpError, code: grpc.StatusCode, needle: str) -> None:
@@ -40,9 +41,12 @@ def test_episode_not_found(client: esrp.Client) -> None:
     episode = client.create_episode(split="test")
     episode.close()
     with pytest.raises(esrp.EpisodeNotFound):
-        episode.close()
-    with pytest.raises(esrp.EpisodeNotFound):
         episode.metrics()
+    # Closed by another handle: this one's close finds nothing.
+    elsewhere = client.create_episode(split="test")
+    client.episode(elsewhere.id).close()
+    with pytest.raises(esrp.EpisodeNotFound):
+        elsewhere.close()
 
 
 def test_scene_not_found(client: esrp.Client) -> None:
@@ -312,3 +316,35 @@ def test_addresses_that_name_no_server_are_refused_up_front() -> None:
         "dns:///localhost:50051",
     ):
         esrp.Client(good, transport="grpcio").close()
+
+
+def test_create_arguments_the_request_cannot_carry_are_named(client: esrp.Client) -> None:
+    refused: list[tuple[dict[str, object], type[Exception], str]] = [
+        ({"scene": ""}, ValueError, "scene: an empty scene id"),
+        ({"scene": 5}, TypeError, "scene: a string"),
+        ({"seed": -1}, ValueError, "seed: an integer from 0"),
+        ({"seed": "1"}, TypeError, "seed: an integer"),
+        ({"horizon": -1}, ValueError, "horizon: an integer from 0"),
+        ({"sensors": {"bogus": 1}}, ValueError, "sensors: unknown fields"),
+        ({"sensors": "x"}, TypeError, "sensors: a Sensors or a mapping"),
+        ({"sensors": esrp.Sensors(resolution=-5)}, ValueError, "sensors.resolution"),
+        ({"agent": 5}, TypeError, "agent: a string"),
+        ({"reward": [1.0]}, TypeError, "reward: a RewardWeights or a mapping"),
+    ]
+    before = client.server_info().live_episodes
+    for arguments, kind, message in refused:
+        with pytest.raises(kind, match=message):
+            client.create_episode(**arguments)  # type: ignore[arg-type]
+    assert client.server_info().live_episodes == before  # nothing was sent
+    with client.episode_stream() as stream, pytest.raises(ValueError, match="empty scene id"):
+        stream.create("")
+    with pytest.raises(ValueError, match="empty scene id"):
+        RearrangeEnv(client=client, scene="")
+    # A mapping of the fields is a Sensors (as the envs take it), and a second close answers again.
+    episode = client.create_episode(split="test", sensors={"resolution": 32})
+    assert episode.observation is not None
+    assert episode.observation.ego_rgb.shape == (32, 32, 3)
+    episode.step(esrp.Action.LEFT)
+    first = episode.close()
+    assert episode.close() == first
+    assert first.steps == 1

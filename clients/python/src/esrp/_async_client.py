@@ -181,8 +181,8 @@ class AsyncClient(ClientBase):
         split: Split | str | None = None,
         seed: int = 0,
         horizon: int = 0,
-        reward: RewardWeights | None = None,
-        sensors: Sensors | None = None,
+        reward: RewardWeights | Mapping[str, Any] | None = None,
+        sensors: Sensors | Mapping[str, Any] | None = None,
         privileged: bool = False,
         agent: str | None = None,
         timeout: float | None = None,
@@ -312,8 +312,12 @@ class AsyncEpisode(EpisodeBase["AsyncClient"]):
         return await self.client._calls.run(self._plan_call(max_actions, budget_ms))
 
     async def close(self) -> EpisodeMetrics:
-        """Closes the episode on the server; returns its metrics at that moment."""
-        return await self.client._calls.run(self._close_call())
+        """Closes the episode on the server; returns its metrics at that moment (again, without a
+        call, when it is closed already).
+        """
+        if self._final is None:
+            self._final = await self.client._calls.run(self._close_call())
+        return self._final
 
     def detach(self) -> str:
         """Gives up the handle without closing the episode; returns its id."""
@@ -357,8 +361,8 @@ class AsyncEpisodeStream(EpisodeStreamBase):
         split: Split | str | None = None,
         seed: int = 0,
         horizon: int = 0,
-        reward: RewardWeights | None = None,
-        sensors: Sensors | None = None,
+        reward: RewardWeights | Mapping[str, Any] | None = None,
+        sensors: Sensors | Mapping[str, Any] | None = None,
         privileged: bool = False,
         agent: str | None = None,
     ) -> int:

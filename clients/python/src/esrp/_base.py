@@ -262,6 +262,7 @@ class EpisodeBase(Generic[ClientT]):
     def __init__(self, client: ClientT, created: Created | None, *, episode_id: str = "") -> None:
         self.client = client
         self.closed = False
+        self._final: EpisodeMetrics | None = None  # what its close answered
         self.observation: Observation | None
         if created is None:
             self.id = episode_id

@@ -202,8 +202,8 @@ class Client(ClientBase):
         split: Split | str | None = None,
         seed: int = 0,
         horizon: int = 0,
-        reward: RewardWeights | None = None,
-        sensors: Sensors | None = None,
+        reward: RewardWeights | Mapping[str, Any] | None = None,
+        sensors: Sensors | Mapping[str, Any] | None = None,
         privileged: bool = False,
         agent: str | None = None,
         timeout: float | None = None,
@@ -216,13 +216,19 @@ class Client(ClientBase):
             split: With neither: pick from this split (default test) ...
             seed: ... its scene number `seed mod count`, in dataset order.
             horizon: The step limit; 0: the scene's own.
-            reward: Reward weights (the server's defaults for fields left None).
-            sensors: Optional sensors and the image size (default: none, 128 px).
+            reward: Reward weights (the server's defaults for fields left None), or a mapping of
+                their fields.
+            sensors: Optional sensors and the image size (default: none, 128 px), or a mapping of
+                their fields (`{"resolution": 64}`).
             privileged: Allow `Episode.privileged_state()` (planners, debugging).
             agent: The agent's name, kept in the server's records of the episode (a server started
                 with `--records`), e.g. `"my-vlm-agent v3"`: free text, at most 200 bytes (the
                 server refuses longer); None or empty: `"unnamed"`.
             timeout: Give up waiting after this many seconds (default: the client's `timeout`).
+
+        Arguments the request cannot carry (an empty scene id, a negative seed or horizon, a
+        string where a number goes) raise `ValueError` or `TypeError` naming them, before anything
+        is sent.
 
         Cancellation-safe, as the Rust client: the call runs to its end whatever happens to the
         caller, and an answer that arrives after the caller gave up (a `timeout`, a
@@ -428,8 +434,12 @@ class Episode(EpisodeBase["Client"]):
         return self.client._calls.run(self._plan_call(max_actions, budget_ms))
 
     def close(self) -> EpisodeMetrics:
-        """Closes the episode on the server; returns its metrics at that moment."""
-        return self.client._calls.run(self._close_call())
+        """Closes the episode on the server; returns its metrics at that moment (again, without a
+        call, when it is closed already).
+        """
+        if self._final is None:
+            self._final = self.client._calls.run(self._close_call())
+        return self._final
 
     def detach(self) -> str:
         """Gives up the handle without closing the episode (exiting a `with` block then does
@@ -505,8 +515,8 @@ class EpisodeStream(EpisodeStreamBase):
         split: Split | str | None = None,
         seed: int = 0,
         horizon: int = 0,
-        reward: RewardWeights | None = None,
-        sensors: Sensors | None = None,
+        reward: RewardWeights | Mapping[str, Any] | None = None,
+        sensors: Sensors | Mapping[str, Any] | None = None,
         privileged: bool = False,
         agent: str | None = None,
     ) -> int:

@@ -8,7 +8,7 @@ Images become read-only numpy views of the message's bytes: `np.frombuffer(...).
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import grpc
@@ -49,6 +49,7 @@ from ._values import (
     TopDownFrame,
     action_value,
     observation_images,
+    of_fields,
     unknown_action,
 )
 from .v1 import esrp_pb2 as pb
@@ -112,15 +113,25 @@ def create_request(
     split: Split | str | None,
     seed: int,
     horizon: int,
-    reward: RewardWeights | None,
-    sensors: Sensors | None,
+    reward: RewardWeights | Mapping[str, Any] | None,
+    sensors: Sensors | Mapping[str, Any] | None,
     privileged: bool,
     agent: str | None = None,
 ) -> pb.CreateEpisodeRequest:
-    """The CreateEpisode request of `Client.create_episode`'s arguments."""
+    """The CreateEpisode request of `Client.create_episode`'s arguments, checked: `TypeError` or
+    `ValueError` naming the argument for what the request cannot carry (an empty scene id, a
+    negative seed...); `sensors` and `reward` may be mappings of their fields.
+    """
     if scene is not None and scene_json is not None:
         raise InvalidRequest("give either scene (an id) or scene_json, not both")
-    sensors = sensors or Sensors()
+    _check_scene(scene, "scene")
+    _check_text(scene_json, "scene_json")
+    _check_text(agent, "agent")
+    _check_unsigned(seed, "seed", 64)
+    _check_unsigned(horizon, "horizon", 32)
+    sensors = of_fields(Sensors, sensors, "sensors") or Sensors()
+    reward = of_fields(RewardWeights, reward, "reward")
+    _check_unsigned(sensors.resolution, "sensors.resolution", 32)
     request = pb.CreateEpisodeRequest(
         split=split_code(split),
         seed=seed,
@@ -144,10 +155,37 @@ def create_request(
     return request
 
 
+def _check_scene(scene: object, what: str) -> None:
+    """`scene` is None or a scene id: a string, not empty (`TypeError`, `ValueError`)."""
+    if scene is None:
+        return
+    _check_text(scene, what)
+    if not scene:
+        raise ValueError(f"{what}: an empty scene id (leave it out, None, to pick one by split and seed)")
+
+
+def _check_text(value: object, what: str) -> None:
+    """`value` is None or a string (`TypeError`)."""
+    if value is not None and not isinstance(value, str):
+        raise TypeError(f"{what}: a string, got {value!r}")
+
+
+def _check_unsigned(value: object, what: str, bits: int) -> None:
+    """`value` is an integer from 0 to 2**bits - 1, as its field of the request (`TypeError`,
+    `ValueError`).
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{what}: an integer, got {value!r}")
+    if not 0 <= int(value) < 2**bits:
+        raise ValueError(f"{what}: an integer from 0 to {2**bits - 1}, got {value}")
+
+
 def reset_request(episode_id: str, scene: str | None, scene_json: str | None) -> pb.ResetRequest:
     """The Reset request of `Episode.reset`'s arguments."""
     if scene is not None and scene_json is not None:
         raise InvalidRequest("give either scene (an id) or scene_json, not both")
+    _check_scene(scene, "scene")
+    _check_text(scene_json, "scene_json")
     request = pb.ResetRequest(episode_id=episode_id)
     if scene is not None:
         request.scene_id = scene

@@ -7,11 +7,12 @@ coordinates (x, z), headings as indices of 22.5°.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, NamedTuple, TypeAlias
+from typing import Any, NamedTuple, TypeAlias, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -88,16 +89,37 @@ def unknown_action(action: object, at: str = "step") -> str:
 def action_value(action: object) -> int | None:
     """The integer code of an `ActionLike` (an `Action` or int, a numpy integer, an integer-valued
     float, or a numpy array of one of these, shape `()` or `(1,)`), or None for anything else. The
-    range is not checked (that is the server's).
+    range 0..5 is not checked (that is the server's), only that the code fits the request's int32
+    (None beyond: an unknown code all the same).
     """
     if type(action) is int or isinstance(action, Action):  # the common case, first
-        return int(action)
-    value = plain_action(action)
-    if isinstance(value, int):
-        return int(value)
-    if isinstance(value, float) and value.is_integer():
-        return int(value)
-    return None
+        code = int(action)
+    else:
+        value = plain_action(action)
+        if isinstance(value, int) or isinstance(value, float) and value.is_integer():
+            code = int(value)
+        else:
+            return None
+    return code if -(2**31) <= code < 2**31 else None
+
+
+_F = TypeVar("_F")
+
+
+def of_fields(kind: type[_F], value: object, what: str) -> _F | None:
+    """`value` as a `kind` (a dataclass of this module, e.g. `Sensors`): itself, None, or a mapping
+    of its fields (`kind(**value)`, so that settings can come as JSON); `ValueError` naming `what`
+    and `kind`'s fields for unknown ones, `TypeError` for anything else.
+    """
+    if value is None or isinstance(value, kind):
+        return value
+    if not isinstance(value, Mapping):
+        raise TypeError(f"{what}: a {kind.__name__} or a mapping of its fields, got {value!r}")
+    try:
+        return kind(**value)
+    except TypeError:
+        known = ", ".join(f.name for f in dataclasses.fields(kind))  # type: ignore[arg-type]
+        raise ValueError(f"{what}: unknown fields in {dict(value)!r} ({kind.__name__} has {known})") from None
 
 
 class Split(str, enum.Enum):

@@ -5,10 +5,9 @@ and resets.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -27,6 +26,7 @@ from .._values import (
     Split,
     StepColumns,
     observation_images,
+    of_fields,
 )
 
 ObsDict = dict[str, npt.NDArray[Any]]
@@ -143,18 +143,6 @@ class Images:
         return result
 
 
-_T = TypeVar("_T")
-
-
-def _from_fields(kind: type[_T], fields: Mapping[str, Any], what: str) -> _T:
-    """`kind(**fields)`, or a `ValueError` naming `what` and the fields `kind` has."""
-    try:
-        return kind(**fields)
-    except TypeError:
-        known = ", ".join(f.name for f in dataclasses.fields(kind))  # type: ignore[arg-type]
-        raise ValueError(f"{what}: unknown fields in {dict(fields)!r} (it has {known})") from None
-
-
 @dataclass
 class Setup:
     """What the single and the vector env share: the connections (owned or not; the vector env's
@@ -198,10 +186,8 @@ class Setup:
         `scene`, else from the first server's list of `split` and `difficulty`.
         """
         # Mappings of the fields too, so that an env spec's kwargs can be JSON (Minari stores them).
-        if isinstance(sensors, Mapping):
-            sensors = _from_fields(Sensors, sensors, "sensors")
-        if isinstance(reward, Mapping):
-            reward = _from_fields(RewardWeights, reward, "reward")
+        sensors = of_fields(Sensors, sensors, "sensors")
+        reward = of_fields(RewardWeights, reward, "reward")
         if servers is not None and (address is not None or client is not None):
             raise ValueError(
                 "servers is the number of servers started here: leave it out with address or client "
@@ -234,6 +220,8 @@ class Setup:
             if len(clients) > 1:
                 _check_same_dataset(clients)
             if isinstance(scene, str):
+                if not scene:
+                    raise ValueError("scene: an empty scene id (leave it out, None, to draw from the split)")
                 scenes: tuple[str, ...] = (scene,)
             elif scene is not None:
                 scenes = tuple(scene)
