@@ -348,3 +348,41 @@ def test_create_arguments_the_request_cannot_carry_are_named(client: esrp.Client
     first = episode.close()
     assert episode.close() == first
     assert first.steps == 1
+
+
+@pytest.mark.parametrize("transport", ["native", "grpcio"])
+def test_a_closed_client_refuses_every_call_alike(
+    server: esrp.LocalServer, transport: Literal["native", "grpcio"]
+) -> None:
+    if transport == "native" and not esrp._native.available():
+        pytest.skip("esrp-native is not installed")
+    client = esrp.Client(server.address, transport=transport)
+    episode = client.create_episode(split="test")
+    client.close()
+    calls = [
+        client.server_info,
+        lambda: client.create_episode(split="test"),
+        client.episode_stream,
+        client.wait_healthy,
+        lambda: episode.step(esrp.Action.LEFT),
+        lambda: client.step_batch([(episode, esrp.Action.LEFT)]),
+        episode.close,
+    ]
+    for call in calls:
+        with pytest.raises(esrp.Cancelled, match="the client is closed"):
+            call()
+    client.close()  # again: nothing more
+    with client.episode(episode.id):
+        pass  # its exit cannot close it now: the server reaps it when idle
+
+    async def closed_async() -> None:
+        aclient = esrp.AsyncClient(server.address)
+        await aclient.close()
+        with pytest.raises(esrp.Cancelled, match="the client is closed"):
+            await aclient.server_info()
+        with pytest.raises(esrp.Cancelled, match="the client is closed"):
+            await aclient.create_episode(split="test")
+
+    asyncio.run(closed_async())
+    with esrp.Client(server.address) as other:
+        other.episode(episode.id).close()

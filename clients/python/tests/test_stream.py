@@ -34,6 +34,20 @@ def test_run_matches_unary_steps(client: esrp.Client, easy_scenes: list[str]) ->
                 assert got.info == expected.info
 
 
+def test_run_checks_every_action_before_sending_one(client: esrp.Client) -> None:
+    with client.episode_stream() as stream:
+        stream.create(split="test")
+        first = stream.next()
+        assert first is not None
+        episode = first.created().episode_id
+        refused = r"plans\['[0-9a-f]+'\]\[2\]\.action: unknown action code 'x'"
+        with pytest.raises(esrp.InvalidRequest, match=refused):
+            stream.run({episode: [2, 2, "x"]})  # type: ignore[list-item]
+        assert stream.outstanding == 0  # nothing was sent: the stream goes on
+        results = stream.run({episode: [2, 2]})
+        assert [r.info.step_index for r in results[episode] if isinstance(r, esrp.StepResult)] == [1, 2]
+
+
 def test_window_bounds_steps_in_flight(client: esrp.Client) -> None:
     with client.create_episode(split="test") as episode, client.episode_stream(window=2) as stream:
         ids = [stream.step(episode.id, esrp.Action.LEFT) for _ in range(5)]

@@ -41,7 +41,7 @@ from ._common import (
     run_rounds,
 )
 from ._errors import Cancelled, EpisodeNotFound, EsrpError, ServerUnavailable
-from ._transport import AsyncCalls, checked_timeout
+from ._transport import AsyncCalls, checked_timeout, client_closed
 from ._values import (
     ActionLike,
     Created,
@@ -129,6 +129,7 @@ class AsyncClient(ClientBase):
         deadline = loop.time() + grace
         while self._background and loop.time() < deadline:
             await asyncio.wait(set(self._background), timeout=deadline - loop.time())
+        self._calls.close()
         await self._channel.close()
 
     async def __aenter__(self) -> AsyncClient:
@@ -143,6 +144,8 @@ class AsyncClient(ClientBase):
         """Waits until the server's health service says `esrp.v1.Esrp` is serving, polling every
         50 ms; raises `DeadlineExceeded` after `timeout` seconds.
         """
+        if self._calls.closed:
+            raise client_closed()
         polls = HealthPolls(self.address, timeout, asyncio.get_running_loop().time)
         check: grpc.aio.UnaryUnaryMultiCallable[bytes, bytes] = self._channel.unary_unary(HEALTH_METHOD)
         while not await _serving(check, polls.next_check()):
@@ -272,6 +275,8 @@ class AsyncClient(ClientBase):
         """Opens a StepStream driven by an `AsyncEpisodeStream` (up to `window` steps of each
         episode in flight).
         """
+        if self._calls.closed:
+            raise client_closed()
         return AsyncEpisodeStream(self, window)
 
 
@@ -331,7 +336,7 @@ class AsyncEpisode(EpisodeBase["AsyncClient"]):
     ) -> None:
         if self.closed:
             return
-        with contextlib.suppress(EpisodeNotFound, ServerUnavailable):
+        with contextlib.suppress(EpisodeNotFound, ServerUnavailable, Cancelled):
             await self.close()
 
 

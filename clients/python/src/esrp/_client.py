@@ -41,8 +41,8 @@ from ._common import (
     open_channel,
     run_rounds,
 )
-from ._errors import EpisodeNotFound, EsrpError, ServerUnavailable
-from ._transport import Calls, Pending, checked_timeout, run_all
+from ._errors import Cancelled, EpisodeNotFound, EsrpError, ServerUnavailable
+from ._transport import Calls, Pending, checked_timeout, client_closed, run_all
 from ._values import (
     ActionLike,
     Created,
@@ -164,6 +164,8 @@ class Client(ClientBase):
         """Waits until the server's health service says `esrp.v1.Esrp` is serving, polling every
         50 ms; raises `DeadlineExceeded` after `timeout` seconds.
         """
+        if self._calls.closed:
+            raise client_closed()
         polls = HealthPolls(self.address, timeout, time.monotonic)
         while not health_check(self._channel, timeout=polls.next_check()):
             time.sleep(polls.pause())
@@ -332,6 +334,8 @@ class Client(ClientBase):
         """Opens a StepStream driven by an `EpisodeStream` with up to `window` steps of each
         episode in flight.
         """
+        if self._calls.closed:
+            raise client_closed()
         return EpisodeStream(self, window)
 
 
@@ -455,8 +459,9 @@ class Episode(EpisodeBase["Client"]):
     ) -> None:
         if self.closed:
             return
-        # Already gone (closed elsewhere, reaped) or the server is: nothing is left to free.
-        with contextlib.suppress(EpisodeNotFound, ServerUnavailable):
+        # Already gone (closed elsewhere, reaped) or the server is: nothing is left to free; or
+        # the client is closed, and the server reaps it when idle.
+        with contextlib.suppress(EpisodeNotFound, ServerUnavailable, Cancelled):
             self.close()
 
 

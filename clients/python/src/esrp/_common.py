@@ -327,10 +327,14 @@ class StreamLedger:
         self, plans: Mapping[str, Sequence[ActionLike]]
     ) -> dict[str, list[StepResult | EsrpError]]:
         """The empty results of `EpisodeStream.run(plans)`, by episode; raises `EsrpError` while
-        answers to earlier requests are unread (they would land among the run's).
+        answers to earlier requests are unread (they would land among the run's), and
+        `InvalidRequest` for an action that is no action code, before any step is sent.
         """
         if self.outstanding:
             raise EsrpError("read the stream's earlier answers with next() before a run")
+        for episode, actions in plans.items():
+            for k, action in enumerate(actions):
+                _convert.action_code(action, f"plans[{episode!r}][{k}]")
         return {episode: [] for episode in plans}
 
     def collect_ready(self, results: dict[str, list[StepResult | EsrpError]]) -> None:

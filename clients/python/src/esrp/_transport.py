@@ -22,7 +22,7 @@ import grpc.aio
 from google.protobuf.message import Message
 
 from . import _native
-from ._errors import DeadlineExceeded, from_rpc_error
+from ._errors import Cancelled, DeadlineExceeded, from_rpc_error
 from .v1 import esrp_pb2 as pb
 from .v1 import esrp_pb2_grpc as pb_grpc
 
@@ -67,6 +67,11 @@ def checked_timeout(value: object, what: str = "timeout") -> float | None:
     if seconds > LONGEST_DEADLINE:
         return None
     return seconds
+
+
+def client_closed() -> Cancelled:
+    """The error of a call made on a closed client (either transport, sync or async)."""
+    return Cancelled("the client is closed", code=grpc.StatusCode.CANCELLED)
 
 
 def _deadline(client_timeout: float | None, timeout: float | None | _Default) -> float | None:
@@ -150,6 +155,7 @@ class Calls:
         self._stub = stub
         self._native = native
         self._metadata = metadata
+        self.closed = False
         carried = set(_native.methods()) if native is not None else set()
         self._paths = {name: f"/esrp.v1.Esrp/{name}" for name in _ANSWERS}
         self._on_native = {name for name, path in self._paths.items() if path in carried}
@@ -177,6 +183,8 @@ class Calls:
         """Starts `method` without waiting: grpcio's own future, or the native call on a thread
         of its own (the call releases the GIL while it waits).
         """
+        if self.closed:
+            raise client_closed()
         if method not in self._on_native:
             return Pending(getattr(self._stub, method).future(request, **self._options(timeout)))
         future: concurrent.futures.Future[Any] = concurrent.futures.Future()
@@ -203,10 +211,13 @@ class Calls:
         """
         if method not in self._on_native:
             return None
+        if self.closed:
+            raise client_closed()
         return (self._native, self._paths[method], request, self._options(timeout)["timeout"])
 
     def close(self) -> None:
-        """Refuses further native calls (grpcio's end with the channel's close)."""
+        """Refuses further calls (`Cancelled`, on either transport)."""
+        self.closed = True
         if self._native is not None:
             self._native.close()
 
@@ -214,6 +225,8 @@ class Calls:
         return {"metadata": self._metadata, "timeout": _deadline(self.timeout, timeout)}
 
     def _send(self, method: str, request: Message, timeout: float | None | _Default) -> Any:  # noqa: ANN401
+        if self.closed:
+            raise client_closed()
         options = self._options(timeout)
         if method in self._on_native:
             path, answer = self._paths[method], _ANSWERS[method]
@@ -262,6 +275,7 @@ class AsyncCalls:
         timeout: float | None,
     ) -> None:
         self.timeout = checked_timeout(timeout)
+        self.closed = False
         self._stub = stub
         self._metadata = metadata
 
@@ -269,6 +283,8 @@ class AsyncCalls:
         self, method: str, request: Message, *, timeout: float | None | _Default = CLIENT_TIMEOUT
     ) -> Any:  # noqa: ANN401
         """Calls `method` (a unary method's name, e.g. "StepBatch") and waits for its answer."""
+        if self.closed:
+            raise client_closed()
         send = getattr(self._stub, method)
         try:
             return await send(request, metadata=self._metadata, timeout=_deadline(self.timeout, timeout))
@@ -278,3 +294,7 @@ class AsyncCalls:
     async def run(self, call: UnaryCall[_T]) -> _T:
         """Makes `call` and returns its value."""
         return call.value(await self(call.method, call.request, timeout=call.timeout))
+
+    def close(self) -> None:
+        """Refuses further calls (`Cancelled`)."""
+        self.closed = True
