@@ -253,3 +253,16 @@ def test_a_temporary_folder_too_deep_for_a_socket(tmp_path: Path, monkeypatch: p
         single.reset(seed=0)
     finally:
         single.close()
+
+
+def test_bad_settings_are_refused_by_name_and_a_failed_start_says_how_it_ended() -> None:
+    for name in ("startup_timeout", "stop_timeout"):
+        for bad in (0, -1, float("nan"), "1"):
+            with pytest.raises(ValueError, match=f"{name} must be a positive number"):
+                esrp.LocalServer(**{name: bad})  # type: ignore[arg-type]
+    with pytest.raises(TypeError, match="arguments are strings"):
+        esrp.LocalServer("--max-episodes", 5)  # type: ignore[arg-type]
+    # A flag the server does not know: it exits with status 2, which the error says.
+    with pytest.raises(esrp.LocalServerError, match=r"exit code 2") as caught:
+        esrp.LocalServer("--no-such-flag").start()
+    assert "--no-such-flag" in str(caught.value)

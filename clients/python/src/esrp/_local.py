@@ -238,6 +238,12 @@ class LocalServer:
         check_version: bool = True,
         unix_socket: bool | Literal["auto"] = False,
     ) -> None:
+        for name, seconds in (("startup_timeout", startup_timeout), ("stop_timeout", stop_timeout)):
+            if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not seconds > 0:
+                raise ValueError(f"{name} must be a positive number of seconds, got {seconds!r}")
+        args = tuple(os.fspath(arg) if isinstance(arg, os.PathLike) else arg for arg in args)
+        if not all(isinstance(arg, str) for arg in args):
+            raise TypeError(f"the server's arguments are strings (or paths), got {list(args)!r}")
         self.args: Sequence[str] = args
         if unix_socket is True and self.asks_for_tls:
             raise ValueError("unix_socket=True serves plain HTTP/2: leave out --tls-cert, or unix_socket")
@@ -424,7 +430,11 @@ class LocalServer:
         return result[0]
 
     def _fail(self, what: str) -> None:
-        code = self.process.poll() if self.process is not None else None
+        code = None
+        if self.process is not None:
+            # A server that closed its output is exiting: its status, once it has.
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                code = self.process.wait(timeout=0.5)
         status = f"exit code {code}" if code is not None else "still running"
         tail = self.stderr_tail()
         log = self.log_tail(20)

@@ -57,7 +57,8 @@ class SuccessReader(BaseInfoDictReader):
         success = np.broadcast_to(np.asarray(value, dtype=np.bool_), self.batch_size)
         if mask is not None:
             success = success & np.asarray(mask, dtype=np.bool_)
-        tensor = torch.as_tensor(success).reshape(*self.batch_size, 1)
+        # A copy: the broadcast is a read-only view, which torch would share (and warn about).
+        tensor = torch.from_numpy(np.array(success, dtype=np.bool_)).reshape(*self.batch_size, 1)
         tensordict.set("is_success", tensor.to(tensordict.device) if tensordict.device else tensor)
         return tensordict
 
