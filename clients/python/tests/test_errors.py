@@ -336,6 +336,9 @@ def test_create_arguments_the_request_cannot_carry_are_named(client: esrp.Client
         with pytest.raises(kind, match=message):
             client.create_episode(**arguments)  # type: ignore[arg-type]
     assert client.server_info().live_episodes == before  # nothing was sent
+    for bad_size in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="page_size"):
+            client.scenes("test", page_size=bad_size)  # type: ignore[arg-type]
     with client.episode_stream() as stream, pytest.raises(ValueError, match="empty scene id"):
         stream.create("")
     with pytest.raises(ValueError, match="empty scene id"):

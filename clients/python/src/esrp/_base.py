@@ -146,7 +146,9 @@ class ScenePages:
     def __init__(
         self, split: Split | str | None, difficulty: Difficulty | str | None, page_size: int
     ) -> None:
-        # Built here, so that a bad split or difficulty raises when `scenes()` is called.
+        # Built here, so that a bad split, difficulty or page size raises when `scenes()` is called.
+        if isinstance(page_size, bool) or not isinstance(page_size, int) or not 0 <= page_size < 2**32:
+            raise ValueError(f"page_size: 0 (the server's) or a number of scenes per page, got {page_size!r}")
         self._request: pb.ListScenesRequest | None = pb.ListScenesRequest(
             split=_convert.split_code(split),
             difficulty=_convert.difficulty_code(difficulty),
