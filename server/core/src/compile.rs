@@ -40,10 +40,45 @@ fn check_number(path: impl FnOnce() -> String, values: &[f64]) -> Result<(), Sce
     }
 }
 
-/// The checks of a scene's header and object list, before any geometry: its schema, a non-empty
-/// id, 1 to [`MAX_MOVABLE_OBJECTS`] movable objects, the difficulty of that count, a positive
-/// horizon, and object ids that are non-empty and unique.
+/// The most floor vertices a scene may have (the built-in rooms have at most 6): the floor's
+/// simplicity check takes time quadratic in their number.
+pub const MAX_FLOOR_VERTICES: usize = 256;
+/// The most wall openings a scene may have.
+pub const MAX_OPENINGS: usize = 64;
+/// The most fixed objects a scene may have (the built-in scenes have at most 15).
+pub const MAX_FIXED_OBJECTS: usize = 256;
+/// The most convex parts all of a scene's shapes may have together (the built-in scenes: < 100).
+pub const MAX_PARTS: usize = 4_096;
+/// The most vertices all of a scene's meshes may have together.
+pub const MAX_MESH_VERTICES: usize = 262_144;
+/// The most triangles all of a scene's meshes may have together.
+pub const MAX_MESH_TRIANGLES: usize = 524_288;
+
+/// The bounds on a scene's size, checked before anything is built from it: what a scene sent
+/// inline costs the server (time to check it, memory to hold it) stays bounded.
+fn validate_size(scene: &Scene) -> Result<(), SceneError> {
+    let shapes = || scene.fixed_objects.iter().map(|o| &o.shape).chain(scene.movable_objects.iter().map(|o| &o.shape));
+    let parts = shapes().map(|shape| if let Shape::Parts(parts) = shape { parts.len() } else { 0 }).sum();
+    let meshes = || shapes().filter_map(|shape| if let Shape::Mesh(mesh) = shape { Some(mesh) } else { None });
+    let checks = [
+        ("floor vertices", scene.room.floor.len(), MAX_FLOOR_VERTICES),
+        ("wall openings", scene.room.openings.len(), MAX_OPENINGS),
+        ("fixed objects", scene.fixed_objects.len(), MAX_FIXED_OBJECTS),
+        ("convex parts", parts, MAX_PARTS),
+        ("mesh vertices", meshes().map(|m| m.vertices.len()).sum(), MAX_MESH_VERTICES),
+        ("mesh triangles", meshes().map(|m| m.triangles.len()).sum(), MAX_MESH_TRIANGLES),
+    ];
+    match checks.into_iter().find(|&(_, count, max)| count > max) {
+        Some((what, count, max)) => Err(SceneError::TooLarge { what, count, max }),
+        None => Ok(()),
+    }
+}
+
+/// The checks of a scene's header and object list, before any geometry: its size
+/// (`validate_size`), its schema, a non-empty id, 1 to [`MAX_MOVABLE_OBJECTS`] movable objects,
+/// the difficulty of that count, a positive horizon, and object ids that are non-empty and unique.
 fn validate_header(scene: &Scene) -> Result<(), SceneError> {
+    validate_size(scene)?;
     if scene.schema != SCENE_SCHEMA {
         return Err(SceneError::UnknownSchema { found: scene.schema.clone() });
     }

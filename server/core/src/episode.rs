@@ -370,6 +370,10 @@ pub struct Episode {
     failure: Option<String>,
 }
 
+/// The largest magnitude of a reward weight: a step's reward, and a total over any horizon (at most
+/// 2^32 steps), stay finite, so that every record holds numbers.
+pub const MAX_REWARD_WEIGHT: f64 = 1e6;
+
 impl Episode {
     /// Starts an episode on `scene` with `config`.
     pub fn new(scene: Arc<CompiledScene>, config: EpisodeConfig) -> Result<Self, EpisodeError> {
@@ -385,8 +389,12 @@ impl Episode {
             config.reward.holding,
             config.reward.living,
         ];
-        if weights.iter().any(|w| !w.is_finite()) {
-            return Err(EpisodeError::InvalidConfig { reason: "reward weights must be finite numbers".into() });
+        if weights.iter().any(|w| !w.is_finite() || w.abs() > MAX_REWARD_WEIGHT) {
+            return Err(EpisodeError::InvalidConfig {
+                reason: format!(
+                    "reward weights must be finite numbers within ±{MAX_REWARD_WEIGHT:e} (a sum over a horizon stays finite)"
+                ),
+            });
         }
         let state = crate::error::guarded(|| Self::initial_state(&scene))
             .map_err(|message| EpisodeError::Failed { message, steps: 0 })?;

@@ -88,6 +88,17 @@ pub enum SceneError {
     /// The scene has no movable object, so there is nothing to rearrange.
     #[error("the scene has no movable object: give it 1 to 6 `movable_objects`")]
     NoMovableObjects,
+    /// More floor vertices, objects, parts or mesh elements than a scene may have (the bounds are
+    /// `crate::compile`'s `MAX_*` constants).
+    #[error("the scene has {count} {what}: at most {max} are allowed")]
+    TooLarge {
+        /// What is counted, e.g. "floor vertices".
+        what: &'static str,
+        /// How many there are.
+        count: usize,
+        /// The bound.
+        max: usize,
+    },
     /// More than six movable objects.
     #[error("the scene has {count} movable objects: at most 6 are allowed")]
     TooManyMovableObjects {

@@ -76,10 +76,13 @@ mod shapes;
 pub mod world;
 
 pub use action::{Action, UnknownAction, reverse_trajectory};
-pub use compile::MAX_SCENE_NUMBER;
+pub use compile::{
+    MAX_FIXED_OBJECTS, MAX_FLOOR_VERTICES, MAX_MESH_TRIANGLES, MAX_MESH_VERTICES, MAX_OPENINGS, MAX_PARTS,
+    MAX_SCENE_NUMBER,
+};
 pub use episode::{
-    AgentPose, EgoCamera, Episode, EpisodeConfig, EpisodeMetrics, EpisodeStatus, NoOpReason, ObjectState,
-    PrivilegedState, RewardTerms, RewardWeights, Stage, StaticObstacle, StepOutcome,
+    AgentPose, EgoCamera, Episode, EpisodeConfig, EpisodeMetrics, EpisodeStatus, MAX_REWARD_WEIGHT, NoOpReason,
+    ObjectState, PrivilegedState, RewardTerms, RewardWeights, Stage, StaticObstacle, StepOutcome,
 };
 pub use error::{EpisodeError, Layout, SceneError, guarded};
 pub use geometry::{OrientedRect, PlanPoint, footprint_iou};

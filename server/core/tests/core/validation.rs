@@ -374,3 +374,60 @@ proptest! {
         }
     }
 }
+
+#[test]
+fn scenes_beyond_the_size_bounds_are_refused_before_any_geometry() {
+    use esrp_core::{MAX_FIXED_OBJECTS, MAX_FLOOR_VERTICES, MAX_PARTS};
+    let too_large =
+        |what: &'static str| move |e: &SceneError| matches!(e, SceneError::TooLarge { what: w, .. } if *w == what);
+    // A floor of many vertices (a circle): refused by count, not checked pair by pair.
+    check(
+        |s| {
+            let n = MAX_FLOOR_VERTICES + 1;
+            s.room.floor = (0..n)
+                .map(|i| {
+                    let a = i as f64 / n as f64 * std::f64::consts::TAU;
+                    [4.0 * a.cos(), 4.0 * a.sin()]
+                })
+                .collect();
+        },
+        too_large("floor vertices"),
+    );
+    check(
+        |s| {
+            let extra = s.fixed_objects[0].clone();
+            s.fixed_objects = (0..=MAX_FIXED_OBJECTS)
+                .map(|i| {
+                    let mut o = extra.clone();
+                    o.id = format!("fixed-{i}");
+                    o
+                })
+                .collect();
+        },
+        too_large("fixed objects"),
+    );
+    check(
+        |s| {
+            let part = esrp_core::Part::Box { half_extents: [0.01, 0.01, 0.01], offset: [0.0; 3], yaw: 0.0 };
+            s.fixed_objects[0].shape = Shape::Parts(vec![part; MAX_PARTS + 1]);
+        },
+        too_large("convex parts"),
+    );
+}
+
+#[test]
+fn reward_weights_beyond_the_bound_are_refused() {
+    use esrp_core::{Episode, EpisodeConfig, EpisodeError, MAX_REWARD_WEIGHT, RewardWeights};
+    let scene = std::sync::Arc::new(CompiledScene::new(base(), Rules::default()).unwrap());
+    for living in [MAX_REWARD_WEIGHT * 10.0, -1e308, f64::INFINITY, f64::NAN] {
+        let config =
+            EpisodeConfig { reward: RewardWeights { living, ..RewardWeights::default() }, ..EpisodeConfig::default() };
+        let error = Episode::new(scene.clone(), config).err();
+        assert!(matches!(error, Some(EpisodeError::InvalidConfig { .. })), "{living}: {error:?}");
+    }
+    let config = EpisodeConfig {
+        reward: RewardWeights { living: -MAX_REWARD_WEIGHT, ..RewardWeights::default() },
+        ..EpisodeConfig::default()
+    };
+    assert!(Episode::new(scene, config).is_ok());
+}

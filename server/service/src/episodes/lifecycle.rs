@@ -121,21 +121,43 @@ async fn start_run(
         access::may_observe(caller, split, &sensors, config.reward != Default::default())?;
     }
     let run = recording::begin(episodes, caller, split, &id, keep)?;
-    let counted = run.as_ref().is_some_and(|r| r.counted);
+    // Given back unless an entry comes of it: a failed build, and a call dropped while it waits
+    // for the journal or the build (its client gave up), leave no episode to hold the attempt.
+    let mut taken = run.as_ref().filter(|r| r.counted).map(|_| TakenAttempt {
+        episodes,
+        token: caller.name.clone(),
+        scene: id.clone(),
+        kept: false,
+    });
     if let Some(run) = run.as_ref().filter(|r| r.counted) {
         // Durable before the episode exists: no crash gives the attempt back.
         recording::claim(episodes, caller, &id, &agent, config, run).await;
     }
     let owner = Owner { caller: caller.clone(), agent, run };
-    let built = new_entry(episodes, scene, config, sensors, privileged, owner).await;
-    if built.is_err() && counted {
-        recording::give_back(episodes, &caller.name, &id);
+    let (mut entry, observation) = new_entry(episodes, scene, config, sensors, privileged, owner).await?;
+    if let Some(taken) = taken.as_mut() {
+        taken.kept = true; // the entry holds it from here (no await until it is in the registry)
     }
-    built.map(|(mut entry, observation)| {
-        entry.keep_records = keep;
-        entry.paper_only = paper_only;
-        (entry, observation)
-    })
+    entry.keep_records = keep;
+    entry.paper_only = paper_only;
+    Ok((entry, observation))
+}
+
+/// A counted attempt taken for a run whose entry is being built: given back when dropped unless
+/// `kept` (the entry exists and holds it).
+struct TakenAttempt<'a> {
+    episodes: &'a Episodes,
+    token: Arc<str>,
+    scene: String,
+    kept: bool,
+}
+
+impl Drop for TakenAttempt<'_> {
+    fn drop(&mut self) {
+        if !self.kept {
+            recording::give_back(self.episodes, &self.token, &self.scene);
+        }
+    }
 }
 
 /// Creates an episode, owned by `stream` if it was created on one (it closes with it).

@@ -70,6 +70,64 @@ async fn held_create(server: &Server, secret: &str, scene: &str) -> HeldCreate {
     HeldCreate { send, _body: body, _connection: connection, episode_id }
 }
 
+/// A CreateEpisode on a raw HTTP/2 connection, reset by its client `after` it was sent: the
+/// server drops the call wherever it is (claiming the attempt, building the episode), before
+/// any answer.
+async fn abandoned_create(server: &Server, secret: &str, scene: &str, after: Duration) {
+    // Large images with every sensor: the build renders long enough for the reset to land in it.
+    let sensors = proto::Sensors { resolution: 512, ego_depth: true, ego_segmentation: true, current_top_down: true };
+    let request = proto::CreateEpisodeRequest { sensors: Some(sensors), ..create(scene, false) };
+    let authority = server.address.trim_start_matches("http://").to_owned();
+    let tcp = tokio::net::TcpStream::connect(&authority).await.expect("the server listens");
+    let (send_request, connection) = h2::client::handshake(tcp).await.expect("HTTP/2");
+    let connection = tokio::spawn(async move {
+        let _ = connection.await;
+    });
+    let mut send_request = send_request.ready().await.expect("the connection is ready");
+    let call = http::Request::builder()
+        .method("POST")
+        .uri(format!("http://{authority}/esrp.v1.Esrp/CreateEpisode"))
+        .header("content-type", "application/grpc")
+        .header("te", "trailers")
+        .header("authorization", format!("Bearer {secret}"))
+        .body(())
+        .unwrap();
+    let (_response, mut send) = send_request.send_request(call, false).expect("the create is sent");
+    let message = request.encode_to_vec();
+    let mut framed = vec![0u8];
+    framed.extend_from_slice(&(message.len() as u32).to_be_bytes());
+    framed.extend_from_slice(&message);
+    send.send_data(Bytes::from(framed), true).expect("the request's body is sent");
+    tokio::time::sleep(after).await;
+    send.send_reset(h2::Reason::CANCEL);
+    tokio::time::sleep(Duration::from_millis(20)).await;
+    connection.abort();
+}
+
+/// A create dropped while the server claims its attempt or builds its episode (its client gave
+/// up before any answer) leaves no episode, and gives the attempt back: the scene can be played.
+#[tokio::test]
+async fn a_create_abandoned_before_its_answer_gives_its_attempt_back() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start(dir.path(), &["--challenge-observations", "full"]);
+    let mut bob = client(&server, "bob-secret").await;
+    for (index, after) in [2u64, 5, 10].into_iter().enumerate() {
+        let scene = format!("challenge/{index:05}");
+        abandoned_create(&server, "bob-secret", &scene, Duration::from_millis(after)).await;
+        let deadline = std::time::Instant::now() + Duration::from_secs(10);
+        let episode_id = loop {
+            match bob.create_episode(create(&scene, false)).await {
+                Ok(created) => break created.into_inner().episode_id,
+                Err(status) if status.code() == Code::FailedPrecondition && std::time::Instant::now() < deadline => {
+                    tokio::time::sleep(Duration::from_millis(50)).await;
+                }
+                Err(status) => panic!("{scene}, reset {after} ms after its create: the attempt is lost: {status:?}"),
+            }
+        };
+        bob.close_episode(proto::CloseEpisodeRequest { episode_id }).await.unwrap();
+    }
+}
+
 /// Each moment a create's answer may be reset at: before its episode was used, after a step,
 /// after the horizon. Once used, the attempt stays spent and exactly one record is written.
 #[tokio::test]
