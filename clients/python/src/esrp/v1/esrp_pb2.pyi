@@ -254,7 +254,9 @@ Global___Sensors: _TypeAlias = Sensors  # noqa: Y015
 
 @_typing.final
 class RewardWeights(_message.Message):
-    """Reward weights (SPEC section 6); unset fields keep their defaults."""
+    """Reward weights (SPEC section 6); unset fields keep their defaults. Each must be finite and
+    within ±1e6 (INVALID_ARGUMENT otherwise).
+    """
 
     DESCRIPTOR: _descriptor.Descriptor
 
