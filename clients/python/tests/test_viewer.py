@@ -341,3 +341,44 @@ def test_watch_and_play_in_a_real_browser(viewer: esrp.LocalServer, tmp_path: Pa
         == 0
     )
     assert main(["verify", str(results), "--no-progress", *common]) == 0
+
+
+def first_frame(server: esrp.LocalServer, episode: str, token: str) -> dict[str, Any]:
+    """The first frame of `episode`'s watch stream as `token` sees it."""
+    assert server.viewer_url is not None
+    request = urllib.request.Request(f"{server.viewer_url.rstrip('/')}/api/episodes/{episode}/watch")
+    request.add_header("Authorization", f"Bearer {token}")
+    with urllib.request.urlopen(request, timeout=30) as response:
+        lines: list[str] = []
+        while True:
+            line = response.readline().decode().rstrip("\n")
+            if not line and any(item.startswith("event: frame") for item in lines):
+                break
+            if not line:
+                lines = []  # an event other than a frame (none is sent before it)
+                continue
+            lines.append(line)
+    data = "".join(item[5:].strip() for item in lines if item.startswith("data:"))
+    frame: dict[str, Any] = json.loads(data)
+    return frame
+
+
+def test_a_paper_only_episode_shows_its_watcher_what_its_client_is_told(tmp_path: Path) -> None:
+    """On a hidden scene served with the paper's observation, an agent's own watch stream holds
+    no placed count, success or accepted flags (its steps' answers do not either); an admin's
+    holds them."""
+    (tmp_path / "tokens.toml").write_text(TOKENS)
+    args = ["--http-listen", "127.0.0.1:0", "--tokens", str(tmp_path / "tokens.toml")]
+    args += ["--challenge-seed", "paper-only-watch", "--challenge-scenes", "1", "--minival-scenes", "1"]
+    with (
+        esrp.LocalServer(*args) as server,
+        esrp.Client(server.address, token="alice-secret") as alice,
+        alice.create_episode("minival/00000") as episode,
+    ):
+        for action in (esrp.Action.LEFT, esrp.Action.FORWARD, esrp.Action.RELEASE):
+            assert episode.step(action).info.accepted is False  # blanked for the client
+        seen = first_frame(server, episode.id, "alice-secret")
+        assert [set(action) for action in seen["last_actions"]] == [{"action"}] * 3
+        assert (seen["episode"]["placed"], seen["episode"]["success"]) == (0, False)
+        admin = first_frame(server, episode.id, "root-secret")
+        assert [set(action) for action in admin["last_actions"]] == [{"action", "accepted"}] * 3

@@ -71,6 +71,10 @@ pub struct WatchFrame {
     pub last_actions: Vec<(u8, bool)>,
     /// The privileged part, for a caller that may read it.
     pub privileged: Option<PrivilegedView>,
+    /// Whether the episode serves the paper's observation only and has not ended: whoever but an
+    /// admin watches it sees no placed count, success or accepted flags (what its client is not
+    /// told either). `summary` is as the caller sees it; a feed made for an admin hides the rest.
+    pub outcomes_hidden: bool,
 }
 
 /// The part of a watch frame only a caller allowed the privileged state sees.
@@ -197,6 +201,7 @@ pub(super) async fn frame(
             resolution: entry.observer.sensors.resolution,
             last_actions: entry.trail.last.iter().copied().collect(),
             privileged: privileged_view,
+            outcomes_hidden: entry.paper_only && !entry.episode.is_over(),
         };
         (frame, ego, top_down)
     };

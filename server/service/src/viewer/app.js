@@ -161,8 +161,9 @@ function drawFrame(f) {
   }
   $("actions").replaceChildren(...f.last_actions.map((a) => {
     const li = document.createElement("li");
-    li.textContent = `${ACTIONS[a.action]}${a.accepted ? "" : " (rejected)"}`;
-    if (!a.accepted) li.className = "rejected";
+    // `accepted` is left out where the episode's client is not told (a paper-only episode).
+    li.textContent = `${ACTIONS[a.action]}${a.accepted === false ? " (rejected)" : ""}`;
+    if (a.accepted === false) li.className = "rejected";
     return li;
   }));
   if (e.ended && playing === e.id && $("record").hidden) offerRecord(e);

@@ -59,8 +59,9 @@ pub const MAX_REPLAYS_PER_TOKEN: usize = 4;
 pub(super) enum FeedItem {
     /// Nothing yet.
     Pending,
-    /// A frame, as every watcher sees it (`public`) and with the privileged part (`full`).
-    Frame { public: String, full: String },
+    /// A frame, as every watcher sees it (`public`), with the privileged part (`full`), and as an
+    /// admin sees it (`admin`: `full` with what a paper-only episode hides from others).
+    Frame { public: String, full: String, admin: String },
     /// The episode is gone; why.
     Closed(String),
 }

@@ -105,13 +105,18 @@ async fn produce(
                 } else {
                     full["goal"] = goal.clone();
                 }
+                let admin = full.to_string();
+                if frame.outcomes_hidden {
+                    hide_outcomes(&mut full);
+                }
                 let mut public = full.clone();
                 if let Some(fields) = public.as_object_mut() {
                     for key in PRIVILEGED_KEYS {
                         fields.remove(key);
                     }
                 }
-                out.send_replace(Arc::new(FeedItem::Frame { public: public.to_string(), full: full.to_string() }));
+                let (public, full) = (public.to_string(), full.to_string());
+                out.send_replace(Arc::new(FeedItem::Frame { public, full, admin }));
             }
             Err(e) => {
                 out.send_replace(Arc::new(FeedItem::Closed(e.to_string())));
@@ -137,6 +142,20 @@ async fn produce(
     viewer.episodes.unwatch(&id).await;
 }
 
+/// Takes out of a frame what a paper-only episode's client is not told until it ends (its
+/// placed count, success and whether each action was accepted), as its watcher's summary does.
+fn hide_outcomes(frame: &mut Value) {
+    if let Some(episode) = frame.get_mut("episode").and_then(Value::as_object_mut) {
+        episode.insert("placed".into(), 0.into());
+        episode.insert("success".into(), false.into());
+    }
+    if let Some(actions) = frame.get_mut("last_actions").and_then(Value::as_array_mut) {
+        for action in actions.iter_mut().filter_map(Value::as_object_mut) {
+            action.remove("accepted");
+        }
+    }
+}
+
 /// The frame fields only a caller allowed the privileged state sees.
 const PRIVILEGED_KEYS: [&str; 6] = ["top_down", "top_down_side", "agent_path", "carried_paths", "objects", "rdr"];
 
@@ -152,7 +171,7 @@ pub(super) async fn watch(
     let id = EpisodeId::from(id);
     // The caller's right to watch it (its own episode, or an admin), checked here.
     drop(viewer.episodes.watch(&caller, &id).await?);
-    let privileged = caller.role != Role::Agent;
+    let (privileged, admin) = (caller.role != Role::Agent, caller.is_admin());
     let mut frames = feed_of(&viewer, &id).await?;
     let (sender, receiver) = mpsc::channel(1);
     tokio::spawn(async move {
@@ -160,8 +179,15 @@ pub(super) async fn watch(
             let item = frames.borrow_and_update().clone();
             let event = match &*item {
                 FeedItem::Pending => None,
-                FeedItem::Frame { public, full } => {
-                    Some(Event::default().event("frame").data(if privileged { full } else { public }))
+                FeedItem::Frame { public, full, admin: unhidden } => {
+                    let data = if admin {
+                        unhidden
+                    } else if privileged {
+                        full
+                    } else {
+                        public
+                    };
+                    Some(Event::default().event("frame").data(data))
                 }
                 FeedItem::Closed(why) => {
                     let _ = sender.send(Ok(Event::default().event("closed").data(why))).await;
