@@ -200,7 +200,9 @@ impl Connection {
 
     async fn create_world(&mut self, request: dm::CreateWorldRequest) -> Result<dm::CreateWorldResponse, DmEnvError> {
         let options = create_options(request.settings)?;
-        let created = self.episodes.create(&self.slot.caller, options, None).await?;
+        // The connection's own, as a StepStream's: never closed as idle while it is open (an agent
+        // may think for long between steps), closed when it ends.
+        let created = self.episodes.create(&self.slot.caller, options, Some(self.slot.id)).await?;
         // The world holds the episode from here (and closes it with the connection).
         self.episodes.claim(&created.episode);
         let (specs, observation_names) = specs_of(&created.sensors);
@@ -406,6 +408,8 @@ impl Connection {
                 "destroyed the worlds of a finished dm_env_rpc connection"
             );
         }
+        // Whatever the connection still owns (none, unless a close above failed).
+        self.episodes.end_stream(self.slot.id).await;
     }
 }
 

@@ -284,6 +284,11 @@ impl Episodes {
         StreamSlot::open(self, caller)
     }
 
+    /// Closes the episodes a stream (`StreamSlot::id`) still owns, as it ends.
+    pub async fn end_stream(&self, stream: u64) {
+        lifecycle::end_stream(self, stream).await;
+    }
+
     /// Closes the episodes not owned by a stream and idle for longer than `idle`; returns how
     /// many (counted in the metrics as closed `idle`; their runs recorded as ended).
     pub async fn reap_idle(&self, idle: Duration) -> usize {

@@ -249,7 +249,7 @@ pub async fn serve<S, I, M, T, E>(
     T: Send + 'static,
     E: std::fmt::Display + Send + 'static,
 {
-    let stream = episodes.next_stream.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let stream = slot.id;
     // Answers of each wave, in wave order, to a task that sends them in order. Each wave
     // holds permits of the stream's budget of answer bytes until its answers are sent.
     let (answers, mut waiting) = mpsc::channel::<Outgoing<M, E>>(WAVES_IN_FLIGHT);
@@ -342,6 +342,9 @@ pub struct StreamSlot {
     episodes: Arc<Episodes>,
     /// The stream's caller.
     pub caller: Arc<Caller>,
+    /// The stream's id: the episodes created with it are the stream's (no idle reaping; closed
+    /// when it ends, `Episodes::end_stream`).
+    pub id: u64,
 }
 
 impl StreamSlot {
@@ -360,7 +363,8 @@ impl StreamSlot {
             });
         }
         *open += 1;
-        Ok(Self { episodes: episodes.clone(), caller })
+        let id = episodes.next_stream.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        Ok(Self { episodes: episodes.clone(), caller, id })
     }
 }
 

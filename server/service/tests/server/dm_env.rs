@@ -297,6 +297,25 @@ async fn worlds_end_with_their_stream() {
     }
 }
 
+/// A world's episode is its connection's: an agent that thinks longer than the idle timeout
+/// between steps finds its world as it left it (the episodes of unary creates are reaped).
+#[tokio::test]
+async fn a_world_outlives_the_idle_timeout_while_its_connection_is_open() {
+    let server = Server::start(&["--idle-timeout-seconds", "1"]);
+    let mut connection = Connection::open(&server).await;
+    let world = connection.create_world(vec![("resolution", int64(32))]).await.unwrap();
+    connection.join_world(&world).await.unwrap();
+    connection.step(None, &[1]).await.unwrap();
+    let mut client = server.client().await;
+    let unary =
+        client.create_episode(create_request("esrp-bench-v2/00007", false)).await.unwrap().into_inner().episode_id;
+    tokio::time::sleep(Duration::from_millis(3_500)).await; // the reaper runs at least once a second
+    let reaped = client.get_metrics(proto::GetMetricsRequest { episode_id: unary }).await;
+    assert_eq!(reaped.err().map(|s| s.code()), Some(Code::NotFound), "an idle unary episode is reaped");
+    let stepped = connection.step(Some(action(2)), &[1]).await.unwrap();
+    assert_eq!(state(&stepped), dm::EnvironmentStateType::Running);
+}
+
 #[tokio::test]
 async fn reset_world_interrupts_the_agent_of_another_connection() {
     let server = Server::start(&[]);
