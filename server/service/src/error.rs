@@ -103,6 +103,19 @@ pub enum ServiceError {
         /// `--max-message-bytes`.
         max: usize,
     },
+    /// The answer to a create (or a reset: the first observation with the goal image) would
+    /// not fit in a message.
+    #[error(
+        "the answer to this create would take about {:.1} MB (the first observation and the goal image), \
+         over the {:.1} MB message limit (--max-message-bytes): ask for fewer sensors or a smaller resolution",
+        *.bytes as f64 / 1e6, *.max as f64 / 1e6
+    )]
+    CreateAnswerTooLarge {
+        /// An upper bound of the answer's size, bytes.
+        bytes: usize,
+        /// `--max-message-bytes`.
+        max: usize,
+    },
     /// The answer to a batch would not fit in a message.
     #[error(
         "the answer to these {steps} steps would take about {:.1} MB, over the {:.1} MB message limit \
@@ -192,6 +205,7 @@ impl ServiceError {
             ServiceError::TooManyEpisodes { .. }
             | ServiceError::BatchTooLarge { .. }
             | ServiceError::StepAnswerTooLarge { .. }
+            | ServiceError::CreateAnswerTooLarge { .. }
             | ServiceError::BatchAnswerTooLarge { .. }
             | ServiceError::Quota { .. } => Code::ResourceExhausted,
             ServiceError::Render(_) | ServiceError::Internal(_) => Code::Internal,
@@ -263,6 +277,11 @@ mod tests {
             ServiceError::StepAnswerTooLarge { bytes: 2_500_000, max: 1_000_000 },
             Code::ResourceExhausted,
             "about 2.5 MB, over the 1.0 MB",
+        );
+        check(
+            ServiceError::CreateAnswerTooLarge { bytes: 2_500_000, max: 1_000_000 },
+            Code::ResourceExhausted,
+            "this create would take about 2.5 MB",
         );
         check(
             ServiceError::BatchAnswerTooLarge { steps: 3, bytes: 2_500_000, max: 1_000_000 },

@@ -160,6 +160,10 @@ impl Drop for TakenAttempt<'_> {
     }
 }
 
+/// What a create's answer holds besides its observation (the spec, the scene's summary), bytes:
+/// an upper bound.
+const CREATE_ANSWER_EXTRA: usize = 4096;
+
 /// Creates an episode, owned by `stream` if it was created on one (it closes with it).
 pub(super) async fn create(
     episodes: &Arc<Episodes>,
@@ -183,6 +187,11 @@ pub(super) async fn create_unanswered(
     // The limits first (cheap), and again at the insertion (exact under races).
     episodes.registry.check_room(caller)?;
     let sensors = episodes.sensors(options.sensors)?;
+    // Refused before anything is built: the answer could not be sent.
+    let (bytes, max) = (sensors.answer_bytes(true) + CREATE_ANSWER_EXTRA, episodes.config.max_message_bytes);
+    if bytes > max {
+        return Err(ServiceError::CreateAnswerTooLarge { bytes, max });
+    }
     let config = EpisodeConfig { horizon: options.horizon, reward: options.reward };
     let agent = options.agent.as_deref().filter(|a| !a.is_empty()).unwrap_or("unnamed");
     if agent.len() > MAX_AGENT_LABEL {

@@ -193,6 +193,18 @@ async fn a_batch_whose_answer_exceeds_the_message_limit_is_refused_before_anythi
 }
 
 #[tokio::test]
+async fn a_create_whose_answer_exceeds_the_message_limit_is_refused_before_it_is_built() {
+    let mut server = Server::start(&["--max-message-bytes", "1000000"]);
+    let mut client = server.client().await;
+    let sensors = proto::Sensors { resolution: 512, ..Default::default() }; // 2 images of 786 KB
+    let request =
+        proto::CreateEpisodeRequest { sensors: Some(sensors), ..create_request("esrp-bench-v2/00007", false) };
+    let r = client.create_episode(request).await;
+    assert_fails(&mut server, &mut client, r, Code::ResourceExhausted, "this create would take about 1.6 MB").await;
+    assert_eq!(live_episodes(&mut client).await, 0, "nothing was built");
+}
+
+#[tokio::test]
 async fn an_unreadable_stream_request_ends_the_stream_with_its_status() {
     use esrp_server::proto::stream_request::Request as Rq;
     use tokio_stream::StreamExt;
