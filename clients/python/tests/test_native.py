@@ -121,9 +121,11 @@ def test_each_call_goes_on_its_transport(server: esrp.LocalServer, easy_scenes: 
         assert [plain._calls.transport(method) for method in UNARY] == ["grpcio"] * len(UNARY)  # noqa: SLF001
         native, grpcio = (_every_unary_call(c, easy_scenes[3]) for c in (client, plain))
         assert _plain(native) == _plain(grpcio)
-        # With its native channel closed, the hot path fails and the rest (grpcio's) goes on:
-        # each call went where it was said to.
-        client._calls.close()  # noqa: SLF001
+        # With its native channel alone closed, the hot path fails and the rest (grpcio's) goes
+        # on: each call went where it was said to.
+        channel = client._calls._native  # noqa: SLF001
+        assert channel is not None
+        channel.close()
         episode = client.create_episode(easy_scenes[3], privileged=True)
         for call in (episode.reset, lambda: episode.step(0), lambda: client.step_batch([(episode, 0)])):
             with pytest.raises(esrp.EsrpError, match="the channel is closed"):
