@@ -11,7 +11,7 @@ use esrp_server::proto;
 use prost::Message;
 use tonic::Code;
 
-use super::challenge::{client, create, play_out, records, refused, start};
+use super::challenge::{Authed, client, create, play_out, records, refused, start};
 use super::harness::Server;
 
 /// A CreateEpisode sent on a raw HTTP/2 connection whose stream window is 64 bytes: the
@@ -28,14 +28,20 @@ struct HeldCreate {
     episode_id: String,
 }
 
-/// The answer carries the paper's 128 px images (about 100 kB): the server hands an answer to
-/// the transport in pieces and takes it as delivered only once all but the last pieces left.
-async fn held_create(server: &Server, secret: &str, scene: &str) -> HeldCreate {
-    let request = proto::CreateEpisodeRequest { sensors: None, ..create(scene, false) };
+/// A raw CreateEpisode sent whole on a new HTTP/2 connection whose streams start with
+/// `window` bytes of flow-control window: the answer's future, the request's stream (to reset)
+/// and the connection's task.
+struct RawCreate {
+    response: h2::client::ResponseFuture,
+    send: h2::SendStream<Bytes>,
+    connection: tokio::task::JoinHandle<()>,
+}
+
+async fn send_create(server: &Server, secret: &str, request: proto::CreateEpisodeRequest, window: u32) -> RawCreate {
     let authority = server.address.trim_start_matches("http://").to_owned();
     let tcp = tokio::net::TcpStream::connect(&authority).await.expect("the server listens");
     let (send_request, connection) =
-        h2::client::Builder::new().initial_window_size(64).handshake::<_, Bytes>(tcp).await.expect("HTTP/2");
+        h2::client::Builder::new().initial_window_size(window).handshake::<_, Bytes>(tcp).await.expect("HTTP/2");
     let connection = tokio::spawn(async move {
         let _ = connection.await;
     });
@@ -54,6 +60,29 @@ async fn held_create(server: &Server, secret: &str, scene: &str) -> HeldCreate {
     framed.extend_from_slice(&(message.len() as u32).to_be_bytes());
     framed.extend_from_slice(&message);
     send.send_data(Bytes::from(framed), true).expect("the request's body is sent");
+    RawCreate { response, send, connection }
+}
+
+/// A create of `scene` by `client` once its attempt has come back (within 10 s); its episode id.
+/// Panics with `lost` if the attempt stays spent.
+async fn create_when_given_back(client: &mut Authed, scene: &str, lost: &str) -> String {
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    loop {
+        match client.create_episode(create(scene, false)).await {
+            Ok(created) => return created.into_inner().episode_id,
+            Err(status) if status.code() == Code::FailedPrecondition && std::time::Instant::now() < deadline => {
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+            Err(status) => panic!("{lost}: {status:?}"),
+        }
+    }
+}
+
+/// The answer carries the paper's 128 px images (about 100 kB): the server hands an answer to
+/// the transport in pieces and takes it as delivered only once all but the last pieces left.
+async fn held_create(server: &Server, secret: &str, scene: &str) -> HeldCreate {
+    let request = proto::CreateEpisodeRequest { sensors: None, ..create(scene, false) };
+    let RawCreate { response, send, connection } = send_create(server, secret, request, 64).await;
     let response = tokio::time::timeout(Duration::from_secs(60), response).await.expect("headers come").unwrap();
     assert_eq!(response.status(), 200);
     let mut body = response.into_body();
@@ -77,27 +106,7 @@ async fn abandoned_create(server: &Server, secret: &str, scene: &str, after: Dur
     // Large images with every sensor: the build renders long enough for the reset to land in it.
     let sensors = proto::Sensors { resolution: 512, ego_depth: true, ego_segmentation: true, current_top_down: true };
     let request = proto::CreateEpisodeRequest { sensors: Some(sensors), ..create(scene, false) };
-    let authority = server.address.trim_start_matches("http://").to_owned();
-    let tcp = tokio::net::TcpStream::connect(&authority).await.expect("the server listens");
-    let (send_request, connection) = h2::client::handshake(tcp).await.expect("HTTP/2");
-    let connection = tokio::spawn(async move {
-        let _ = connection.await;
-    });
-    let mut send_request = send_request.ready().await.expect("the connection is ready");
-    let call = http::Request::builder()
-        .method("POST")
-        .uri(format!("http://{authority}/esrp.v1.Esrp/CreateEpisode"))
-        .header("content-type", "application/grpc")
-        .header("te", "trailers")
-        .header("authorization", format!("Bearer {secret}"))
-        .body(())
-        .unwrap();
-    let (_response, mut send) = send_request.send_request(call, false).expect("the create is sent");
-    let message = request.encode_to_vec();
-    let mut framed = vec![0u8];
-    framed.extend_from_slice(&(message.len() as u32).to_be_bytes());
-    framed.extend_from_slice(&message);
-    send.send_data(Bytes::from(framed), true).expect("the request's body is sent");
+    let RawCreate { mut send, connection, .. } = send_create(server, secret, request, 65_535).await;
     tokio::time::sleep(after).await;
     send.send_reset(h2::Reason::CANCEL);
     tokio::time::sleep(Duration::from_millis(20)).await;
@@ -114,16 +123,8 @@ async fn a_create_abandoned_before_its_answer_gives_its_attempt_back() {
     for (index, after) in [2u64, 5, 10].into_iter().enumerate() {
         let scene = format!("challenge/{index:05}");
         abandoned_create(&server, "bob-secret", &scene, Duration::from_millis(after)).await;
-        let deadline = std::time::Instant::now() + Duration::from_secs(10);
-        let episode_id = loop {
-            match bob.create_episode(create(&scene, false)).await {
-                Ok(created) => break created.into_inner().episode_id,
-                Err(status) if status.code() == Code::FailedPrecondition && std::time::Instant::now() < deadline => {
-                    tokio::time::sleep(Duration::from_millis(50)).await;
-                }
-                Err(status) => panic!("{scene}, reset {after} ms after its create: the attempt is lost: {status:?}"),
-            }
-        };
+        let lost = format!("{scene}, reset {after} ms after its create: the attempt is lost");
+        let episode_id = create_when_given_back(&mut bob, &scene, &lost).await;
         bob.close_episode(proto::CloseEpisodeRequest { episode_id }).await.unwrap();
     }
 }
@@ -140,16 +141,7 @@ async fn a_create_reset_after_its_episode_was_used_keeps_the_attempt_spent() {
     let held = held_create(&server, "bob-secret", "challenge/00000").await;
     let HeldCreate { mut send, .. } = held;
     send.send_reset(h2::Reason::CANCEL);
-    let deadline = std::time::Instant::now() + Duration::from_secs(10);
-    let again = loop {
-        match bob.create_episode(create("challenge/00000", false)).await {
-            Ok(created) => break created.into_inner().episode_id,
-            Err(status) if status.code() == Code::FailedPrecondition && std::time::Instant::now() < deadline => {
-                tokio::time::sleep(Duration::from_millis(50)).await;
-            }
-            Err(status) => panic!("an unused create's attempt comes back: {status:?}"),
-        }
-    };
+    let again = create_when_given_back(&mut bob, "challenge/00000", "an unused create's attempt comes back").await;
     assert!(records(dir.path(), "bob").is_empty(), "an unused create is not a run");
     bob.close_episode(proto::CloseEpisodeRequest { episode_id: again }).await.unwrap();
     assert_eq!(records(dir.path(), "bob").len(), 1, "the answered create, closed, is recorded");
