@@ -22,13 +22,16 @@
 #      reached over their Unix domain sockets (--listen-unix) by 8 and by 16 processes;
 #   3. pipeline: batches in flight per render thread (--render-pipeline 1, 2, 3), one server
 #      driven by 4 client processes (so that the client is not the limit), with the breakdown;
-#   4. threads: render threads 1, 2 and 4, one server driven by 4 client processes;
-#   5. scale-out at 2 and 4 servers, as in 2;
-#   6. devices: render devices 2 and 4 (threads auto), 4 client processes;
-#   7. episodes: batch-64 with 1 to 1,024 episodes (the curve of steps/s against episodes);
-#   8. clients: stream-mux-64 driven by 1, 2, 4 and 8 client processes (is the client the limit?);
-#   9. gl: whether --render-backend gl starts there (unary-1; a failure is said in the summary);
-#  10. python: python -m esrp.bench's env-1 and vec-64 against the server (over TCP, then over
+#   4. renderer: the renderer alone, no server (esrp-render's views bench, carried): batches of 1
+#      to 256 views, 256 at 64 and 256 pixels, top-down, every plane; then 4 and 8 processes
+#      rendering at once (what one device gives, whatever the server);
+#   5. threads: render threads 1, 2 and 4, one server driven by 4 client processes;
+#   6. scale-out at 2 and 4 servers, as in 2;
+#   7. devices: render devices 2 and 4 (threads auto), 4 client processes;
+#   8. episodes: batch-64 with 1 to 1,024 episodes (the curve of steps/s against episodes);
+#   9. clients: stream-mux-64 driven by 1, 2, 4 and 8 client processes (is the client the limit?);
+#  10. gl: whether --render-backend gl starts there (unary-1; a failure is said in the summary);
+#  11. python: python -m esrp.bench's env-1 and vec-64 against the server (over TCP, then over
 #      its Unix domain socket), then vec-64 spread over 4 and over 8 servers (--servers), where this
 #      machine's python3 imports esrp (clients/python/src is put before any PYTHONPATH given, where
 #      its dependencies, and esrp-native for the native transport, may be installed).
@@ -55,11 +58,16 @@ if [[ "${1:-}" == "--prepare" ]]; then
     python_version=${2:-3.12}
     [[ "$python_version" =~ ^3\.[0-9]+$ ]] || { echo "gpu-bench.sh: --prepare [3.X]: a Python version" >&2; exit 2; }
     cargo build --release -p esrp-server -p esrp-client --features esrp-client/tools --bin esrp-server --bin esrp-bench
+    # The renderer alone: esrp-render's `views` bench, carried as esrp-render-views.
+    views=$(cargo bench --locked -p esrp-render --bench views --no-run --message-format=json \
+        | grep -o '"executable":"[^"]*"' | tail -1 | cut -d'"' -f4)
+    [[ -x "$views" ]] || { echo "gpu-bench.sh: cargo did not say where the views bench is" >&2; exit 1; }
     rm -rf "$BIN" && mkdir -p "$BIN"
+    cp "$views" "$BIN/esrp-render-views"
     for binary in esrp-server esrp-bench; do
         cp "target/release/$binary" "$BIN/$binary"
-        strip "$BIN/$binary"
     done
+    strip "$BIN"/esrp-*
     work=$(mktemp -d)
     trap 'rm -rf "$work"' EXIT
     PATH="$PWD/.venv/bin:$PATH"
@@ -276,6 +284,31 @@ for depth in 1 2 3; do
             --scenarios stream-mux-64,batch-64 --processes 4
     fi
 done
+# The renderer alone, no server (esrp-render's views bench): batches of 1 to 256 views, 256 at
+# 64 and 256 pixels, top-down and with every plane; then several processes at once, each with
+# a device of its own, measuring together (does the GPU, not one process, cap?).
+if [[ -x $BIN/esrp-render-views ]]; then
+    if step renderer 40; then
+        ESRP_RENDER_BACKEND=$BACKEND ESRP_BENCH_SECONDS=1 ESRP_BENCH_JSON=$OUT_DIR/renderer.json \
+            measured renderer "$BIN/esrp-render-views" --bench >> "$OUT_DIR/renderer.log" 2>&1 \
+            || SKIPPED+=("renderer (the views bench failed: see renderer.log)")
+    fi
+    for n in 4 8; do
+        if step "renderer-x$n" 15; then
+            start_at=$(( $(date +%s) + 3 ))
+            pids=()
+            for ((i = 0; i < n; i++)); do
+                ESRP_RENDER_BACKEND=$BACKEND ESRP_BENCH_SECONDS=2 ESRP_BENCH_CASES=ego-64,ego-256 ESRP_BENCH_CULL=on \
+                    ESRP_BENCH_START_AT=$start_at ESRP_BENCH_JSON=$OUT_DIR/renderer-x$n-$i.json \
+                    "$BIN/esrp-render-views" --bench >> "$OUT_DIR/renderer.log" 2>&1 &
+                pids+=("$!")
+            done
+            measured "renderer-x$n" wait "${pids[@]}" || SKIPPED+=("renderer-x$n (a views bench failed: see renderer.log)")
+        fi
+    done
+else
+    SKIPPED+=("renderer ($BIN/esrp-render-views is missing: made by --prepare)")
+fi
 for threads in 1 2 4; do
     if step "threads-$threads" 25; then
         bench_args "threads-$threads.json" "--render-threads=$threads" --breakdown \

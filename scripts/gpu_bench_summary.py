@@ -160,6 +160,52 @@ def scale_out(folder: Path) -> list[str]:
     ]
 
 
+def renderer(folder: Path) -> list[str]:
+    """The renderer alone: each case of the views bench in one process, then the views per
+    second of several processes rendering at once, summed (a process whose file is missing
+    failed: the row says how many answered)."""
+    alone = load(folder, "renderer.json")
+    lines: list[str] = []
+    if alone is not None:
+        columns = list(next(iter(alone["cases"].values()), {}))
+        lines += [
+            "## The renderer alone, no server (esrp-render's views bench)",
+            "",
+            f"Adapter: {alone['adapter']}; {alone['seconds']} s a case; views/s.",
+            "",
+            "| case | " + " | ".join(columns) + " |",
+            "|---|" + "---:|" * len(columns),
+        ]
+        for case, figures in alone["cases"].items():
+            lines.append(f"| {case} | " + " | ".join(f"{figures[c]:,.0f}" for c in columns) + " |")
+        lines.append("")
+    together = {n: [load(folder, f"renderer-x{n}-{i}.json") for i in range(n)] for n in (4, 8)}
+    answered = {n: [r for r in reports if r is not None] for n, reports in together.items()}
+    first = next((reports[0] for reports in answered.values() if reports), None)
+    if first is None:
+        return lines
+    cases = list(first["cases"])
+    rows = []
+    if alone is not None:
+        cells = " | ".join(f"{alone['cases'].get(c, {}).get('culling on', 0.0):,.0f}" for c in cases)
+        rows.append(f"| 1 | 1 | {cells} | {cores(folder, 'renderer')} |")
+    for n, reports in answered.items():
+        if reports:
+            total = [sum(r["cases"].get(c, {}).get("culling on", 0.0) for r in reports) for c in cases]
+            cells = " | ".join(f"{t:,.0f}" for t in total)
+            rows.append(f"| {n} | {len(reports)} | {cells} | {cores(folder, f'renderer-x{n}')} |")
+    lines += [
+        "Several processes rendering at once, each with a device of its own (culling on; views/s "
+        "summed over the processes that answered):",
+        "",
+        "| processes | answered | " + " | ".join(cases) + " | cores busy |",
+        "|---:|---:|" + "---:|" * len(cases) + "---:|",
+        *rows,
+        "",
+    ]
+    return lines
+
+
 def python(folder: Path) -> list[str]:
     rows = []
     for step, transport in (
@@ -211,6 +257,7 @@ def main(argv: list[str]) -> int:
         "batches in flight",
         [(str(d), f"pipeline-{d}.json") for d in (1, 2, 3)],
     )
+    lines += renderer(folder)
     lines += series(
         folder,
         "Render threads (one server)",

@@ -1,7 +1,13 @@
-//! Throughput of the renderer: views per second for one view per submit and for batches of
-//! 16, 64 and 256 egocentric views of furnished rooms at 128×128 (plus a top-down batch and a
-//! batch with depth and segmentation). `cargo bench -p esrp-render`; set `ESRP_BENCH_SECONDS`
-//! to change the time per case (default 3) and `ESRP_RENDER_BACKEND=gl` to measure OpenGL.
+//! Throughput of the renderer alone (no server): views per second for one view per submit and
+//! for batches of 16 to 256 egocentric views of furnished rooms at 128×128, the same 256 views at
+//! 64×64 and 256×256, a top-down batch and a batch with depth and segmentation, each with frustum
+//! culling on and off. `cargo bench -p esrp-render --bench views`; `ESRP_BENCH_SECONDS` sets the
+//! time per case (default 3), `ESRP_BENCH_CASES` picks cases by name (comma-separated; see
+//! `CASES`), `ESRP_BENCH_CULL` one column (`on` or `off`), `ESRP_BENCH_JSON` a file to write
+//! the figures to as well, `ESRP_BENCH_START_AT` (Unix time, seconds) when to start measuring
+//! (several processes measuring together), and `ESRP_RENDER_BACKEND=gl` measures OpenGL.
+//! `scripts/gpu-bench.sh` runs it on a lent GPU machine, alone and as several processes at once
+//! (whether one device, not the server, is what caps).
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -52,6 +58,43 @@ fn run(renderer: &Renderer, requests: &[ViewRequest<'_>], seconds: f64) -> f64 {
     views as f64 / start.elapsed().as_secs_f64()
 }
 
+/// The cases, by the name `ESRP_BENCH_CASES` selects them with: egocentric batches of 1 to 256
+/// views at 128×128, the same 256 at 64×64 and 256×256 (whether the device's time follows the
+/// pixels or the triangles), 256 top-down views, and 256 with depth and segmentation.
+const CASES: [&str; 9] =
+    ["ego-1", "ego-16", "ego-64", "ego-256", "ego-256-64px", "ego-256-256px", "top-256", "full-256", "ego-1024"];
+
+/// The cases to run: `ESRP_BENCH_CASES` (comma-separated names of [`CASES`]), else all but
+/// `ego-1024`. An unknown name is an error that lists the known ones.
+fn selected_cases() -> Vec<&'static str> {
+    let Ok(list) = std::env::var("ESRP_BENCH_CASES") else {
+        return CASES.iter().copied().filter(|c| *c != "ego-1024").collect();
+    };
+    list.split(',')
+        .map(str::trim)
+        .filter(|name| !name.is_empty())
+        .map(|name| {
+            CASES.iter().copied().find(|c| *c == name).unwrap_or_else(|| {
+                eprintln!("views: unknown case {name:?} in ESRP_BENCH_CASES (known: {})", CASES.join(", "));
+                std::process::exit(2)
+            })
+        })
+        .collect()
+}
+
+/// Which of the two renderers to measure: `ESRP_BENCH_CULL` = `on`, `off` or `both` (default).
+fn selected_culling() -> Vec<bool> {
+    match std::env::var("ESRP_BENCH_CULL").as_deref() {
+        Err(_) | Ok("both") => vec![true, false],
+        Ok("on") => vec![true],
+        Ok("off") => vec![false],
+        Ok(other) => {
+            eprintln!("views: ESRP_BENCH_CULL is on, off or both, not {other:?}");
+            std::process::exit(2)
+        }
+    }
+}
+
 fn main() {
     // `cargo bench` passes `--bench`; `cargo test --benches` passes nothing: run briefly then.
     let benching = std::env::args().any(|a| a == "--bench");
@@ -60,11 +103,12 @@ fn main() {
     } else {
         0.05
     });
+    let cases = selected_cases();
+    let culling = selected_culling();
     let backends = esrp_render::BackendPreference::from_env().unwrap_or_default();
-    // The same cases with culling on (the default) and off.
-    let renderers: Vec<Renderer> = [true, false]
-        .into_iter()
-        .map(|cull| {
+    let renderers: Vec<Renderer> = culling
+        .iter()
+        .map(|&cull| {
             Renderer::new(RendererConfig { backends, cull, ..RendererConfig::default() })
                 .unwrap_or_else(|e| panic!("{e}"))
         })
@@ -79,31 +123,68 @@ fn main() {
     }
     let poses: Vec<Vec<ObjectPose>> =
         scenes.iter().map(|s| s.scene().movable_objects.iter().map(|o| o.pose).collect()).collect();
-    let cameras: Vec<EgoCamera> = (0..256).map(camera).collect();
-    let ego = |r: usize, n: usize| -> Vec<ViewRequest<'_>> {
+    let cameras: Vec<EgoCamera> = (0..1024).map(camera).collect();
+    // The requests of case `name` on renderer `r`.
+    let requests = |r: usize, name: &str| -> Vec<ViewRequest<'_>> {
         let handles = &handles[r];
-        (0..n)
-            .map(|i| ViewRequest::new(&handles[i % handles.len()], Camera::Ego(cameras[i]), &poses[i % handles.len()]))
-            .collect()
+        let view = |i: usize, camera| ViewRequest::new(&handles[i % handles.len()], camera, &poses[i % handles.len()]);
+        let ego = |n: usize| (0..n).map(|i| view(i, Camera::Ego(cameras[i]))).collect::<Vec<_>>();
+        match name {
+            "ego-1" => ego(1),
+            "ego-16" => ego(16),
+            "ego-64" => ego(64),
+            "ego-256" => ego(256),
+            "ego-1024" => ego(1024),
+            "ego-256-64px" => ego(256).into_iter().map(|q| q.with_resolution(64)).collect(),
+            "ego-256-256px" => ego(256).into_iter().map(|q| q.with_resolution(256)).collect(),
+            "top-256" => (0..256).map(|i| view(i, Camera::TopDown)).collect(),
+            "full-256" => ego(256).into_iter().map(|q| q.with_outputs(Outputs::ALL)).collect(),
+            _ => unreachable!("cases are checked by selected_cases"),
+        }
     };
-    fn both<'a>(renderers: &[Renderer], seconds: f64, case: impl Fn(usize) -> Vec<ViewRequest<'a>>) -> [f64; 2] {
-        [0, 1].map(|r| run(&renderers[r], &case(r), seconds))
+    let columns: Vec<&str> = culling.iter().map(|&on| if on { "culling on" } else { "culling off" }).collect();
+    wait_for_start();
+    print!("{:<34}", "case, views/s");
+    for column in &columns {
+        print!(" {column:>12}");
     }
-    println!("{:<34} {:>12} {:>12}", "case (128x128), views/s", "culling on", "culling off");
-    for n in [1, 16, 64, 256] {
-        let [on, off] = both(&renderers, seconds, |r| ego(r, n));
-        println!("{:<34} {:>12.0} {:>12.0}", format!("ego, batch of {n}"), on, off);
+    println!();
+    let mut figures = Vec::new();
+    for name in cases {
+        print!("{name:<34}");
+        let mut row = Vec::new();
+        for (r, renderer) in renderers.iter().enumerate() {
+            let views = run(renderer, &requests(r, name), seconds);
+            print!(" {views:>12.0}");
+            row.push(views);
+        }
+        println!();
+        figures.push((name, row));
     }
-    let top = |r: usize| -> Vec<ViewRequest<'_>> {
-        let handles = &handles[r];
-        (0..256)
-            .map(|i| ViewRequest::new(&handles[i % handles.len()], Camera::TopDown, &poses[i % handles.len()]))
-            .collect()
-    };
-    let [on, off] = both(&renderers, seconds, top);
-    println!("{:<34} {:>12.0} {:>12.0}", "top-down, batch of 256", on, off);
-    let full =
-        |r: usize| -> Vec<ViewRequest<'_>> { ego(r, 256).into_iter().map(|q| q.with_outputs(Outputs::ALL)).collect() };
-    let [on, off] = both(&renderers, seconds, full);
-    println!("{:<34} {:>12.0} {:>12.0}", "ego + depth + seg, batch of 256", on, off);
+    if let Ok(path) = std::env::var("ESRP_BENCH_JSON") {
+        let adapter = format!("{} ({:?}, {})", info.name, info.backend, info.driver_info);
+        let cases: Vec<String> = figures
+            .iter()
+            .map(|(name, row)| {
+                let cells: Vec<String> =
+                    columns.iter().zip(row).map(|(column, views)| format!("\"{column}\": {views:.1}")).collect();
+                format!("\"{name}\": {{{}}}", cells.join(", "))
+            })
+            .collect();
+        let json = format!(
+            "{{\"adapter\": \"{}\", \"seconds\": {seconds}, \"cases\": {{{}}}}}\n",
+            adapter.replace('\\', "\\\\").replace('"', "\\\""),
+            cases.join(", ")
+        );
+        std::fs::write(&path, json).unwrap_or_else(|e| panic!("cannot write {path}: {e}"));
+    }
+}
+
+/// Sleeps until `ESRP_BENCH_START_AT` (Unix time in seconds), if it is set and still ahead.
+fn wait_for_start() {
+    let Some(start) = std::env::var("ESRP_BENCH_START_AT").ok().and_then(|s| s.parse::<f64>().ok()) else { return };
+    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0.0, |d| d.as_secs_f64());
+    if start > now {
+        std::thread::sleep(Duration::from_secs_f64(start - now));
+    }
 }
