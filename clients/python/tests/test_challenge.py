@@ -71,6 +71,13 @@ def test_participants_runs_are_recorded_verified_and_ranked(
         assert [s.id for s in hidden] == [f"challenge/{i:05d}" for i in range(SCENES)]
         with pytest.raises(esrp.PermissionDenied, match="role agent"):
             red.create_episode(hidden[0].id, privileged=True)
+        # The goal image comes without its frame on the floor (the room's size in metres) until
+        # the episode ends.
+        with red.create_episode("minival/00000") as practice:
+            assert practice.goal().frame is None
+            while not practice.step(esrp.Action.LEFT).ended:
+                pass
+            assert practice.goal().frame is not None
 
     # Each team runs its agent over the whole challenge; the server records every episode.
     for token, seed in [("red-secret", "1"), ("blue-secret", "2")]:

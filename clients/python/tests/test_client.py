@@ -126,6 +126,7 @@ def test_episode_lifecycle(client: esrp.Client, easy_scenes: list[str]) -> None:
 
     goal = episode.goal()
     assert np.array_equal(goal.image, first.goal_rgb)
+    assert goal.frame is not None
     assert goal.frame.resolution == 128
     assert goal.frame.metres_per_pixel > 0
 

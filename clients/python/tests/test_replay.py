@@ -144,6 +144,7 @@ def test_a_carried_path_is_outlined_so_it_shows_over_a_blue_object(client: esrp.
         assert observation is not None
         goal = episode.goal()
     frame = goal.frame
+    assert frame is not None
     # The floor all blue, as under a blue object, and an object carried across it.
     blue = np.empty_like(observation.current_top_down)
     blue[...] = OBJECT_PATH

@@ -99,13 +99,14 @@ impl Episode {
         answer.observation.ok_or_else(|| missing("observation"))?.try_into()
     }
 
-    /// The goal image and its frame on the floor.
+    /// The goal image and its frame on the floor (no frame on a hidden scene served with the
+    /// paper's observation only, until the episode has ended).
     pub async fn goal(&self) -> Result<Goal> {
         let answer =
             self.raw.clone().get_goal(proto::GetGoalRequest { episode_id: self.id.clone() }).await?.into_inner();
         Ok(Goal {
             image: Image::from_proto("goal_rgb", answer.goal_rgb.ok_or_else(|| missing("goal image"))?)?,
-            frame: answer.frame.ok_or_else(|| missing("frame"))?,
+            frame: answer.frame,
         })
     }
 

@@ -613,8 +613,10 @@ impl From<proto::ServerInfoResponse> for ServerInfo {
 pub struct Goal {
     /// The top-down image of the target layout.
     pub image: Image,
-    /// The image's frame: pixel ↔ floor coordinates.
-    pub frame: proto::TopDownFrame,
+    /// The image's frame: pixel ↔ floor coordinates. `None` on a hidden scene served with the
+    /// paper's observation only, until the episode has ended (it gives the room's size in
+    /// metres, which the paper's agent is not told).
+    pub frame: Option<proto::TopDownFrame>,
 }
 
 /// The privileged state of an episode (agent and object poses, targets, obstacles, the scene

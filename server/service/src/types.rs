@@ -346,8 +346,9 @@ pub struct Goal {
     pub rgb: Bytes,
     /// Its side, pixels.
     pub resolution: u32,
-    /// Its pixel ↔ floor mapping.
-    pub frame: esrp_render::TopDownFrame,
+    /// Its pixel ↔ floor mapping; `None` on a paper-only episode that has not ended (the room's
+    /// size in metres is not part of the paper's observation).
+    pub frame: Option<esrp_render::TopDownFrame>,
 }
 
 /// An episode's privileged state and the scene it refers to.

@@ -530,14 +530,16 @@ def progress(message: pb.GetMetricsResponse) -> Progress:
 
 
 def goal(message: pb.GetGoalResponse) -> Goal:
-    """A Goal of a GetGoal answer."""
-    if not message.HasField("goal_rgb") or not message.HasField("frame"):
-        raise ProtocolError("a goal answer without image or frame")
-    f = message.frame
-    return Goal(
-        image=rgb_image("goal_rgb", message.goal_rgb),
-        frame=TopDownFrame(f.min_x, f.min_z, f.metres_per_pixel, f.resolution),
-    )
+    """A Goal of a GetGoal answer (its frame None where the answer has none: a hidden scene
+    served with the paper's observation only, until the episode ends).
+    """
+    if not message.HasField("goal_rgb"):
+        raise ProtocolError("a goal answer without image")
+    frame = None
+    if message.HasField("frame"):
+        f = message.frame
+        frame = TopDownFrame(f.min_x, f.min_z, f.metres_per_pixel, f.resolution)
+    return Goal(image=rgb_image("goal_rgb", message.goal_rgb), frame=frame)
 
 
 def _pose(message: pb.Pose2) -> Pose2:

@@ -380,10 +380,15 @@ class TopDownFrame:
 
 @dataclass(frozen=True, eq=False)
 class Goal:
-    """The goal image, (R, R, 3) uint8 read-only, and its frame on the floor."""
+    """The goal image, (R, R, 3) uint8 read-only, and its frame on the floor.
+
+    `frame` is None on a hidden scene (challenge, minival) served with the paper's observation
+    only, until the episode has ended: it gives the room's size in metres, which the paper's
+    agent is not told.
+    """
 
     image: RgbImage
-    frame: TopDownFrame
+    frame: TopDownFrame | None
 
 
 @dataclass(frozen=True)

@@ -64,7 +64,7 @@ async fn an_episode_from_create_to_close() {
 
     let goal = episode.goal().await.unwrap();
     assert_eq!(goal.image.bytes(), goal_first.bytes());
-    assert!(goal.frame.metres_per_pixel > 0.0);
+    assert!(goal.frame.expect("a test scene's goal has its frame").metres_per_pixel > 0.0);
     let (metrics, ended) = episode.metrics().await.unwrap();
     assert_eq!((metrics.steps, ended), (2, false));
     let state = episode.privileged_state().await.unwrap();

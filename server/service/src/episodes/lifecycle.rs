@@ -291,11 +291,14 @@ pub(super) async fn reset_to(
     Ok(ResetResult { observation, scene: entry.summary.clone() })
 }
 
-/// The goal image of an episode.
+/// The goal image of an episode, and its frame on the floor unless the episode serves the
+/// paper's observation only and has not ended: the frame gives the room's size and position in
+/// metres, which the paper's agent is not told.
 pub(super) async fn goal(episodes: &Episodes, caller: &Caller, id: &EpisodeId) -> Result<Goal, ServiceError> {
     let entry = episodes.locked(caller, id).await?;
     let observer = &entry.observer;
-    Ok(Goal { rgb: observer.goal.clone(), resolution: observer.sensors.resolution, frame: observer.frame })
+    let frame = (!entry.paper_only || entry.episode.is_over()).then_some(observer.frame);
+    Ok(Goal { rgb: observer.goal.clone(), resolution: observer.sensors.resolution, frame })
 }
 
 /// The privileged state of a privileged episode.

@@ -274,10 +274,9 @@ impl From<ResetResult> for proto::ResetResponse {
 
 impl From<Goal> for proto::GetGoalResponse {
     fn from(g: Goal) -> Self {
-        let f = g.frame;
         proto::GetGoalResponse {
             goal_rgb: Some(image(g.rgb, g.resolution)),
-            frame: Some(proto::TopDownFrame {
+            frame: g.frame.map(|f| proto::TopDownFrame {
                 min_x: f.min_x,
                 min_z: f.min_z,
                 metres_per_pixel: f.metres_per_pixel(),

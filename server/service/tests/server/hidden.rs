@@ -1,6 +1,6 @@
 //! Hidden scenes serve a token other than an admin the paper's observation and nothing else,
 //! on every call of both APIs and in the viewer's list: no reward, reward terms, placed count,
-//! collision or fetch outcome, no metrics before the end; every optional sensor, other
+//! collision or fetch outcome, no metrics or goal frame before the end; every optional sensor, other
 //! resolution and reward weight is refused. An organiser's `--challenge-observations full`
 //! widens it; an admin sees everything.
 
@@ -81,9 +81,16 @@ async fn hidden_scenes_serve_the_paper_observation_only() {
     for answer in step_all(&mut bob, &id, &PROBES).await {
         assert!(paper_only(&answer), "a step answer on a challenge scene says more than the paper's: {answer:?}");
     }
-    // Metrics wait for the end.
+    // Metrics wait for the end, and so does the goal image's frame on the floor (the room's
+    // size in metres); the image itself is served.
     let metrics = bob.get_metrics(proto::GetMetricsRequest { episode_id: id.clone() }).await;
     refused(metrics, Code::PermissionDenied, "only once it has ended");
+    let goal = bob.get_goal(proto::GetGoalRequest { episode_id: id.clone() }).await.expect("the goal").into_inner();
+    assert!(
+        goal.goal_rgb.is_some_and(|i| i.width == 128) && goal.frame.is_none(),
+        "mid-run goal: frame {:?}",
+        goal.frame
+    );
     // Batched steps.
     let batch = proto::StepBatchRequest {
         steps: vec![proto::StepRequest { episode_id: id.clone(), action: 0, include_goal: false }],
@@ -107,7 +114,14 @@ async fn hidden_scenes_serve_the_paper_observation_only() {
         }
     }
     assert!(last.and_then(|a| a.metrics).is_some(), "the ending step carries the final metrics");
-    assert!(bob.get_metrics(proto::GetMetricsRequest { episode_id: id }).await.is_ok());
+    assert!(bob.get_metrics(proto::GetMetricsRequest { episode_id: id.clone() }).await.is_ok());
+    let goal = bob.get_goal(proto::GetGoalRequest { episode_id: id }).await.expect("the goal").into_inner();
+    assert!(goal.frame.is_some_and(|f| f.metres_per_pixel > 0.0), "an ended episode's goal has its frame");
+    // An admin's episode of a hidden scene is not paper-only: its goal has its frame mid-run.
+    let mut root = client(&server, "root-secret").await;
+    let theirs = root.create_episode(create("challenge/00001", false)).await.expect("created").into_inner();
+    let goal = root.get_goal(proto::GetGoalRequest { episode_id: theirs.episode_id }).await.unwrap().into_inner();
+    assert!(goal.frame.is_some(), "an admin's goal has its frame");
 
     // A stream: the same answers, in-band.
     let minival = bob.create_episode(create("minival/00000", false)).await.expect("minival").into_inner().episode_id;

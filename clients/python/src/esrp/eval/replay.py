@@ -323,6 +323,10 @@ def replay_record(
         raise ReplayError(f"cannot create an episode of {record.scene_id!r}: {error}") from error
     with episode:
         goal = episode.goal()
+        # A privileged episode is never one served with the paper's observation only.
+        frame = goal.frame
+        if frame is None:
+            raise ReplayError(f"the server gave the goal of {record.scene_id!r} no frame on the floor")
         observation = episode.observation
         assert observation is not None
         paths.add(episode.privileged_state())
@@ -334,7 +338,7 @@ def replay_record(
             action = record.actions[step - 1] if step else None
             note = step_note(caption, action, result, observation.grasping, reward)
             notes.append(note)
-            frames.append(compose_frame(observation, goal.image, goal.frame, paths, scale=scale, note=note))
+            frames.append(compose_frame(observation, goal.image, frame, paths, scale=scale, note=note))
 
         if every_frame or total == 0:
             draw(observation, 0, None)

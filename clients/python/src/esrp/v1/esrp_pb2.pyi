@@ -1088,7 +1088,9 @@ class GetGoalResponse(_message.Message):
     @_builtins.property
     def goal_rgb(self) -> Global___Image: ...
     @_builtins.property
-    def frame(self) -> Global___TopDownFrame: ...
+    def frame(self) -> Global___TopDownFrame:
+        """Absent on a hidden scene served with the paper's observation only, until the episode ends."""
+
     def __init__(
         self,
         *,

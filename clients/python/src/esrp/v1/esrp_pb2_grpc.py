@@ -168,7 +168,9 @@ class EsrpServicer:
         raise NotImplementedError('Method not implemented!')
 
     def GetGoal(self, request, context):
-        """The goal image (top-down render of the target layout) and its pixel <-> floor mapping.
+        """The goal image (top-down render of the target layout) and its pixel <-> floor mapping
+        (the mapping left out on a hidden scene served with the paper's observation only, until the
+        episode has ended: it gives the room's size in metres).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

@@ -72,7 +72,10 @@ class EsrpStub:
     closes. Errors come in-band (StreamResponse.error) and the stream goes on.
     """
     GetGoal: _grpc.UnaryUnaryMultiCallable[_esrp_pb2.GetGoalRequest, _esrp_pb2.GetGoalResponse]
-    """The goal image (top-down render of the target layout) and its pixel <-> floor mapping."""
+    """The goal image (top-down render of the target layout) and its pixel <-> floor mapping
+    (the mapping left out on a hidden scene served with the paper's observation only, until the
+    episode has ended: it gives the room's size in metres).
+    """
     GetPrivilegedState: _grpc.UnaryUnaryMultiCallable[_esrp_pb2.GetPrivilegedStateRequest, _esrp_pb2.GetPrivilegedStateResponse]
     """The full state: only for episodes created with privileged = true (PERMISSION_DENIED
     otherwise).
@@ -122,7 +125,10 @@ class EsrpAsyncStub(EsrpStub):
     closes. Errors come in-band (StreamResponse.error) and the stream goes on.
     """
     GetGoal: _aio.UnaryUnaryMultiCallable[_esrp_pb2.GetGoalRequest, _esrp_pb2.GetGoalResponse]  # type: ignore[assignment]
-    """The goal image (top-down render of the target layout) and its pixel <-> floor mapping."""
+    """The goal image (top-down render of the target layout) and its pixel <-> floor mapping
+    (the mapping left out on a hidden scene served with the paper's observation only, until the
+    episode has ended: it gives the room's size in metres).
+    """
     GetPrivilegedState: _aio.UnaryUnaryMultiCallable[_esrp_pb2.GetPrivilegedStateRequest, _esrp_pb2.GetPrivilegedStateResponse]  # type: ignore[assignment]
     """The full state: only for episodes created with privileged = true (PERMISSION_DENIED
     otherwise).
@@ -223,7 +229,10 @@ class EsrpServicer(metaclass=_abc_1.ABCMeta):
         request: _esrp_pb2.GetGoalRequest,
         context: _ServicerContext,
     ) -> _typing.Union[_esrp_pb2.GetGoalResponse, _abc.Awaitable[_esrp_pb2.GetGoalResponse]]:
-        """The goal image (top-down render of the target layout) and its pixel <-> floor mapping."""
+        """The goal image (top-down render of the target layout) and its pixel <-> floor mapping
+        (the mapping left out on a hidden scene served with the paper's observation only, until the
+        episode has ended: it gives the room's size in metres).
+        """
 
     @_abc_1.abstractmethod
     def GetPrivilegedState(
