@@ -162,21 +162,19 @@ fn main() {
         figures.push((name, row));
     }
     if let Ok(path) = std::env::var("ESRP_BENCH_JSON") {
-        let adapter = format!("{} ({:?}, {})", info.name, info.backend, info.driver_info);
-        let cases: Vec<String> = figures
+        let cases: serde_json::Map<String, serde_json::Value> = figures
             .iter()
             .map(|(name, row)| {
-                let cells: Vec<String> =
-                    columns.iter().zip(row).map(|(column, views)| format!("\"{column}\": {views:.1}")).collect();
-                format!("\"{name}\": {{{}}}", cells.join(", "))
+                let cells = columns.iter().zip(row).map(|(column, views)| ((*column).to_owned(), (*views).into()));
+                ((*name).to_owned(), serde_json::Value::Object(cells.collect()))
             })
             .collect();
-        let json = format!(
-            "{{\"adapter\": \"{}\", \"seconds\": {seconds}, \"cases\": {{{}}}}}\n",
-            adapter.replace('\\', "\\\\").replace('"', "\\\""),
-            cases.join(", ")
-        );
-        std::fs::write(&path, json).unwrap_or_else(|e| panic!("cannot write {path}: {e}"));
+        let json = serde_json::json!({
+            "adapter": format!("{} ({:?}, {})", info.name, info.backend, info.driver_info),
+            "seconds": seconds,
+            "cases": cases,
+        });
+        std::fs::write(&path, format!("{json}\n")).unwrap_or_else(|e| panic!("cannot write {path}: {e}"));
     }
 }
 
