@@ -90,6 +90,71 @@ def test_a_store_of_another_resolution_is_refused(
     assert "at 64 px, not esrp-bench-v2 at 128 px" in capsys.readouterr().err
 
 
+def test_a_resolution_the_server_cannot_render_is_refused_before_anything_is_written(
+    server: esrp.LocalServer, easy_scenes: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "demos.zarr"
+    for resolution in ("-5", "7", "4096"):
+        flags = ["--split", "test", "--scenes", easy_scenes[0], "--resolution", resolution]
+        assert export(server, out, *flags) == 2
+        err = capsys.readouterr().err
+        assert f"--resolution {resolution} is out of range: use 16 to 512 pixels" in err, err
+        assert len(err.strip().splitlines()) == 1, err
+        assert not out.exists()
+    # The corrected command runs.
+    assert export(server, out, "--split", "test", "--scenes", easy_scenes[0], "--resolution", "64") == 0
+    assert zarr.open_group(str(out), mode="r").attrs["resolution"] == 64
+
+
+def test_a_store_that_holds_no_episode_takes_the_new_settings(
+    server: esrp.LocalServer, easy_scenes: list[str], tmp_path: Path
+) -> None:
+    out = tmp_path / "demos.zarr"
+    # A run stopped before its first episode left its settings and no episode.
+    empty = zarr.open_group(str(out), mode="a")
+    stamp = {"format": "esrp.demos/v1", "dataset": "esrp-bench-v2", "resolution": 32, "labels": "expert"}
+    empty.attrs.update(stamp)
+    empty.create_array("meta/episode_ends", shape=(0,), dtype="int64")
+    assert export(server, out, "--split", "test", "--scenes", easy_scenes[0]) == 0
+    store = zarr.open_group(str(out), mode="r")
+    assert (store.attrs["resolution"], store.attrs["scene_ids"]) == (128, [easy_scenes[0]])
+    assert store["data/ego_rgb"].shape[1:] == (128, 128, 3)
+
+
+def test_a_folder_of_other_files_and_a_store_of_another_split_are_refused(
+    server: esrp.LocalServer,
+    client: esrp.Client,
+    easy_scenes: list[str],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    folder = tmp_path / "datasets"
+    folder.mkdir()
+    (folder / "readme.txt").write_text("mine")
+    assert export(server, folder, "--split", "test", "--scenes", easy_scenes[0]) == 2
+    assert "is a folder of other files, not an esrp.demos/v1 store" in capsys.readouterr().err
+    assert sorted(p.name for p in folder.iterdir()) == ["readme.txt"]
+    # A store of test scenes takes no train scenes (nor the other way round).
+    out = tmp_path / "test.zarr"
+    assert export(server, out, "--split", "test", "--scenes", easy_scenes[0]) == 0
+    train = next(iter(client.scenes("train"))).id
+    assert export(server, out, "--split", "train", "--scenes", train) == 2
+    assert "holds scenes of the test split, not train" in capsys.readouterr().err
+    assert zarr.open_group(str(out), mode="r").attrs["scene_ids"] == [easy_scenes[0]]
+
+
+def test_scenes_named_twice_or_not_at_all_are_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = str(tmp_path / "never.zarr")
+    cases = (("a,b,a", "lists a more than once"), ("", "names no scene"), (" , ", "names no scene"))
+    for scenes, said in cases:
+        with pytest.raises(SystemExit) as exited:
+            main(["demos", "export", "--out", out, "--scenes", scenes])
+        assert exited.value.code == 2
+        assert said in capsys.readouterr().err
+
+
 def test_dagger_records_the_planners_label_at_each_state_the_agent_visits(
     server: esrp.LocalServer, client: esrp.Client, easy_scenes: list[str], tmp_path: Path
 ) -> None:
@@ -430,6 +495,10 @@ def test_records_export_refuses_bad_input_in_one_line(
     bad = tmp_path / "bad.jsonl"
     bad.write_text('{"schema": "esrp.results/v2"}\n' + played[0].to_json() + "\n")
     assert f"{bad}:1: not an esrp.results/v1 record" in refused("--records", str(bad))
+    # A whole last line that is not a record is no interrupted write: refused, not left out.
+    last = tmp_path / "last.jsonl"
+    last.write_text(played[0].to_json() + '\n{"bad": 1}\n')
+    assert f"{last}:2: its last line is not an esrp.results/v1 record" in refused("--records", str(last))
     assert f"cannot read {tmp_path / 'missing.jsonl'}" in refused(
         "--records", str(tmp_path / "missing.jsonl")
     )

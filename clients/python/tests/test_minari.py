@@ -6,7 +6,10 @@ refused in one line, leaving nothing behind."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -137,3 +140,60 @@ def test_a_relative_out_is_the_folder_under_the_working_directory(
     assert export(server, Path("datasets"), "--format", "minari", *one) == 0
     assert [path.name for path in datasets_root.iterdir()] == ["esrp"]  # no staging folder left
     assert minari.load_dataset("esrp/esrp-bench-v2-test-easy/expert-v0").total_episodes == 1
+
+
+def test_a_record_whose_reward_does_not_replay_is_refused(
+    server: esrp.LocalServer,
+    played: list[EpisodeRecord],
+    datasets_root: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    # The same end after the same steps, another total reward: the checks are esrp verify's.
+    tampered = dataclasses.replace(played[0], total_reward=played[0].total_reward + 1.0)
+    records = write_records(datasets_root.parent / "tampered.jsonl", [tampered])
+    assert export(server, datasets_root, "--format", "minari", "--records", str(records)) == 2
+    err = capsys.readouterr().err
+    assert "the replay does not reproduce the record (total_reward: recorded" in err, err
+    assert not (datasets_root / "esrp" / "esrp-bench-v2").exists()
+
+
+def test_the_records_reward_weights_go_into_the_env_spec(
+    server: esrp.LocalServer, client: esrp.Client, played: list[EpisodeRecord], datasets_root: Path
+) -> None:
+    weights = {"success": 10.0, "place": 1.0, "unplace": -1.0, "potential": 1.0, "holding": 0.01}
+    weights["living"] = -0.05
+    base = played[2]  # a random agent's episode, closed before it ended
+    reward = esrp.RewardWeights(**weights)
+    with client.create_episode(base.scene_id, horizon=base.horizon, reward=reward) as episode:
+        rewards = [episode.step(action).reward for action in base.actions]
+        metrics = episode.close()
+    record = dataclasses.replace(base, total_reward=metrics.total_reward, reward_weights=weights)
+    assert record.total_reward != base.total_reward
+    records = write_records(datasets_root.parent / "weighted.jsonl", [record])
+    assert export(server, datasets_root, "--format", "minari", "--records", str(records)) == 0
+    dataset = minari.load_dataset("esrp/esrp-bench-v2/records-v0")
+    assert dataset.spec.env_spec.kwargs["reward"] == weights
+    assert next(dataset.iterate_episodes()).rewards.tolist() == rewards
+    env = dataset.recover_environment(address=server.address)
+    try:
+        env.reset(options={"scene": base.scene_id})
+        assert [float(env.step(action)[1]) for action in base.actions] == rewards
+    finally:
+        env.close()
+
+
+def test_the_staging_folder_of_a_killed_export_is_removed_by_the_next(
+    server: esrp.LocalServer, datasets_root: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    stale = datasets_root / f".esrp-minari-{gone.pid}-x1"
+    stale.mkdir(parents=True)
+    (stale / "main_data.hdf5").write_bytes(b"half written")
+    running = datasets_root / f".esrp-minari-{os.getpid()}-x2"  # an export still running
+    running.mkdir()
+    one = ["--split", "test", "--difficulty", "easy", "--limit", "1", "--resolution", "16"]
+    assert export(server, datasets_root, "--format", "minari", *one) == 0
+    assert f"removed {stale}, left by an export that was killed" in capsys.readouterr().err
+    assert not stale.exists()
+    assert running.exists()

@@ -66,6 +66,17 @@ def comma_list(text: str) -> list[str]:
     return [part.strip() for part in text.split(",") if part.strip()]
 
 
+def scene_id_list(text: str) -> list[str]:
+    """`--scenes a,b`: at least one scene id, none twice (a scene is played, and resumed, once)."""
+    ids = comma_list(text)
+    if not ids:
+        raise argparse.ArgumentTypeError("names no scene: give scene ids, e.g. esrp-bench-v2/00000")
+    twice = sorted({scene for scene in ids if ids.count(scene) > 1})
+    if twice:
+        raise argparse.ArgumentTypeError(f"lists {', '.join(twice)} more than once")
+    return ids
+
+
 def positive(text: str) -> int:
     """An integer of at least 1."""
     value = int(text)
@@ -120,7 +131,7 @@ def scene_options(
     parser.add_argument("--split", choices=splits, default=default, help=split_help)
     parser.add_argument("--difficulty", choices=("easy", "medium", "hard"))
     parser.add_argument(
-        "--scenes", type=comma_list, default=[], metavar="ID,...", help="only these scenes, in order"
+        "--scenes", type=scene_id_list, default=[], metavar="ID,...", help="only these scenes, in order"
     )
     parser.add_argument("--limit", type=positive, metavar="N", help=limit_help)
 

@@ -74,7 +74,12 @@ def _add_demos_export(demo_commands: argparse._SubParsersAction[Parser]) -> None
     export.add_argument(
         "--successful-only", action="store_true", help="--records: only the records of successful episodes"
     )
-    export.add_argument("--resolution", type=int, default=0, help="the views' side in pixels (0: 128)")
+    export.add_argument(
+        "--resolution",
+        type=int,
+        default=0,
+        help="the views' side in pixels, 16 to the server's largest (512 by default); 0: 128",
+    )
     export.add_argument(
         "--out",
         type=Path,
@@ -280,6 +285,11 @@ def _demos(args: argparse.Namespace) -> int:
 
     if args.format == "minari":
         return _demos_minari(args, settings, sources)
+    try:
+        import zarr  # noqa: F401 - the store's library, imported where the store is made
+    except ImportError as error:
+        print(f"esrp demos export: {error} (pip install 'esrp[train]')", file=sys.stderr)
+        return 2
 
     def export(client: Client) -> list[str]:
         outcome = export_demos(client, settings, sources)

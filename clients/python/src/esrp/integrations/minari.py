@@ -22,11 +22,13 @@ or one named by `address=`.
 
 Sources are those of the zarr export: the chosen scenes' expert trajectories, or with `records`
 the episodes of `esrp.results/v1` files (replayed with each record's horizon and reward weights,
-and checked against it: the same end after the same number of steps). A record whose agent
-stopped before the episode ended is marked truncated at its last step, as Minari's DataCollector
-marks an episode reset before its end. The dataset appears whole or not at all: it is written
-under a temporary folder in `--out` and moved into place at the end; an interrupted export
-leaves nothing to resume (run it again).
+and checked against it as `esrp verify` and the zarr export check: the same end, metrics and
+total reward; the reward weights go into the `env_spec` when every record played with the
+same). A record whose agent stopped before the episode ended is marked truncated at its last
+step, as Minari's DataCollector marks an episode reset before its end. The dataset appears whole
+or not at all: it is written under a temporary folder in `--out` and moved into place at the end;
+an interrupted export leaves nothing to resume (run it again), and the staging folder of one that
+was killed is removed by the next export into the same root.
 """
 
 from __future__ import annotations
@@ -55,12 +57,14 @@ from .._registration import ENV_ID, register_envs
 from .._values import RewardWeights, Sensors
 from ..envs import RearrangeEnv
 from ..eval.evaluation import expert_trajectory
+from ..eval.verify import compare
 from ..train.demos import (
     REPLAY_LABEL,
     DemoExportError,
     DemoSettings,
     ExportOutcome,
     RecordSource,
+    check_resolution,
     pick_scenes,
     read_sources,
 )
@@ -108,6 +112,7 @@ def export_minari(
     if settings.dagger is not None:
         raise DemoExportError("--format minari writes demonstrations and records, not DAgger's labels")
     info = client.server_info()
+    check_resolution(settings.resolution, info.limits.max_resolution)
     dataset_id = dataset_id or default_dataset_id(info.dataset, settings)
     try:
         parse_dataset_id(dataset_id)
@@ -127,11 +132,17 @@ def export_minari(
         kwargs.update(split=settings.split, difficulty=settings.difficulty)
     if len(horizons) == 1 and 0 not in horizons:
         kwargs["horizon"] = horizons.pop()
+    # The records' reward weights where they all played with the same (the server's default
+    # otherwise), so that `recover_environment()` gives the rewards stored.
+    weights = {repr(sorted(source.reward.items())) if source.reward else None for source in episodes}
+    if len(weights) == 1 and episodes[0].reward:
+        kwargs["reward"] = dict(episodes[0].reward)
     register_envs()
     spec = dataclasses.replace(gymnasium.spec(ENV_ID), kwargs=kwargs)
     envs: dict[tuple[int, str], RearrangeEnv] = {}
     root.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=".esrp-minari-", dir=root))
+    _remove_abandoned_staging(root)
+    staging = Path(tempfile.mkdtemp(prefix=f"{_STAGING}{os.getpid()}-", dir=root))
     steps = 0
     every = max(len(episodes) // 20, 1)
     try:
@@ -157,6 +168,27 @@ def export_minari(
             env.close()
         shutil.rmtree(staging, ignore_errors=True)
     return dataset_id, ExportOutcome(len(episodes), steps, len(episodes))
+
+
+_STAGING = ".esrp-minari-"
+"""The start of a staging folder's name in the datasets root, then its export's process id and `-`."""
+
+
+def _remove_abandoned_staging(root: Path) -> None:
+    """Removes the staging folders in `root` of exports whose process has gone (killed before it
+    could clean up); says which on stderr. One whose process is still running is left alone.
+    """
+    for path in root.glob(f"{_STAGING}*"):
+        pid = path.name.removeprefix(_STAGING).partition("-")[0]
+        if not path.is_dir() or not pid.isdigit():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            shutil.rmtree(path, ignore_errors=True)
+            print(f"esrp demos export: removed {path}, left by an export that was killed", file=sys.stderr)
+        except PermissionError:
+            pass  # another user's process: running
 
 
 def _sources(
@@ -215,6 +247,7 @@ def _play(env: RearrangeEnv, source: _Source, episode_id: int) -> EpisodeBuffer:
     terminations: list[bool] = []
     truncations: list[bool] = []
     success = False
+    ended_after: int | None = None
     for k, action in enumerate(actions, start=1):
         observation, reward, terminated, truncated, info = env.step(action)
         observations.append(observation)
@@ -222,20 +255,25 @@ def _play(env: RearrangeEnv, source: _Source, episode_id: int) -> EpisodeBuffer:
         terminations.append(bool(terminated))
         truncations.append(bool(truncated))
         if terminated or truncated:
-            success = bool(info.get("is_success", False))
-            if k != len(actions):
-                raise DemoExportError(f"{what}: the episode ended after {k} of its {len(actions)} actions")
-    ended = bool(terminations and (terminations[-1] or truncations[-1]))
-    if source.record is None and not (ended and success):
-        raise DemoExportError(f"{what}: the expert trajectory does not solve the scene")
-    if source.record is not None and (success, len(actions)) != (
-        source.record.record.success,
-        source.record.record.steps,
-    ):
-        raise DemoExportError(
-            f"{what}: the replay does not reproduce the record (success {success} after {len(actions)} "
-            f"steps, the record: {source.record.record.success} after {source.record.record.steps})"
-        )
+            success, ended_after = bool(info.get("is_success", False)), k
+            break
+    if source.record is None:
+        if ended_after is not None and ended_after != len(actions):
+            raise DemoExportError(
+                f"{what}: the episode ended after {ended_after} of its {len(actions)} actions"
+            )
+        if not success:
+            raise DemoExportError(f"{what}: the expert trajectory does not solve the scene")
+    else:
+        # The checks of `esrp verify` and of the zarr export: the same end, metrics and reward.
+        assert env.episode is not None  # reset made it
+        different = compare(source.record.record, env.episode.metrics().metrics, ended_after)
+        if different:
+            raise DemoExportError(
+                f"{what}: the replay does not reproduce the record ({'; '.join(different)}): nothing "
+                "of it was written"
+            )
+    ended = ended_after is not None
     if not ended:
         truncations[-1] = True  # the agent stopped: as Minari marks an episode reset before its end
     return EpisodeBuffer(

@@ -5,7 +5,7 @@ Each scene's expert trajectory (in its privileged scene JSON) is stepped on the 
 gets, per step, the observation the agent saw before acting (ego view, grasp flag) and the expert's
 action, and per episode the goal image and the scene id. Episodes are appended whole, in the order
 of the scenes chosen; an interrupted export resumes where it stopped (a partly written episode is
-cut off first), and the store records the dataset and resolution it was made with.
+cut off first), and the store records the dataset, split and resolution it was made with.
 
 With `dagger` (DAgger's data collection), another policy drives instead: at every state it visits,
 the server's planner (`PlanActions`) gives the label, the action the store records, and the
@@ -79,6 +79,21 @@ NO_ACTION = 255
 
 class DemoExportError(Exception):
     """The export cannot run as asked (a store of another dataset or resolution, no scenes)."""
+
+
+MIN_RESOLUTION = 16
+"""The smallest view side a server renders (0 asks for its default, 128)."""
+
+
+def check_resolution(resolution: int, most: int) -> None:
+    """Raises `DemoExportError` unless `resolution` is 0 (the server's default) or from
+    `MIN_RESOLUTION` to `most` (the server's `limits.max_resolution`): checked before anything is
+    written, so that a store is never stamped with a resolution no episode can be played at.
+    """
+    if resolution != 0 and not MIN_RESOLUTION <= resolution <= most:
+        raise DemoExportError(
+            f"--resolution {resolution} is out of range: use {MIN_RESOLUTION} to {most} pixels (0 means 128)"
+        )
 
 
 @dataclass
@@ -172,8 +187,11 @@ class ExportOutcome:
 
 def pick_scenes(client: Client, settings: DemoSettings) -> list[SceneSummary]:
     """The scenes `settings` chooses (split, difficulty, ids, limit), in order; `DemoExportError`
-    when none matches or a named one is missing.
+    when none matches, a named one is missing or one is named twice.
     """
+    twice = sorted({scene for scene in settings.scenes if list(settings.scenes).count(scene) > 1})
+    if twice:
+        raise DemoExportError(f"scenes lists {', '.join(twice)} more than once (a scene is exported once)")
     listed = list(client.scenes(settings.split, settings.difficulty, page_size=1000))
     if settings.scenes:
         by_id = {s.id: s for s in listed}
@@ -250,14 +268,39 @@ class _Store:
         labels: str,
         policy: str | None,
         label_horizon: int | None = None,
+        split: str | None = None,
     ) -> None:
         import zarr
 
+        if path.is_dir() and any(path.iterdir()) and not (path / "zarr.json").exists():
+            raise DemoExportError(
+                f"{path} is a folder of other files, not an {FORMAT} store: write to a new or empty --out"
+            )
         self.group: Any = zarr.open_group(str(path), mode="a")
         attrs = dict(self.group.attrs)
+        ends: Any = self.group.get("meta/episode_ends", None)
+        held_episodes = ends is not None and ends.shape[0] > 0
+        wanted = {"dataset": dataset, "resolution": resolution, "labels": labels, "policy": policy}
+        if (
+            attrs.get("format") == FORMAT
+            and not held_episodes
+            and any(
+                attrs.get(key, "expert" if key == "labels" else None) != value
+                for key, value in wanted.items()
+            )
+        ):
+            # Stamped by a run that wrote no episode (refused, or stopped before its first): it holds
+            # nothing, so this run's settings replace its own.
+            self.group = zarr.open_group(str(path), mode="w")
+            attrs = {}
         if attrs:
             if attrs.get("format") != FORMAT:
                 raise DemoExportError(f"{path} is not an {FORMAT} store (format {attrs.get('format')!r})")
+            held_split = attrs.get("split")
+            if split is not None and held_split is not None and held_split != split:
+                raise DemoExportError(
+                    f"{path} holds scenes of the {held_split} split, not {split}: write to another --out"
+                )
             if attrs.get("dataset") != dataset or attrs.get("resolution") != resolution:
                 raise DemoExportError(
                     f"{path} holds demonstrations of {attrs.get('dataset')} at {attrs.get('resolution')} px, "
@@ -276,6 +319,8 @@ class _Store:
             )
             if policy is not None:
                 self.group.attrs["policy"] = policy
+            if split is not None:
+                self.group.attrs["split"] = split
         side = resolution
 
         def array(name: str, shape: tuple[int, ...], dtype: str, chunk: int) -> Any:  # noqa: ANN401
@@ -514,8 +559,8 @@ def read_sources(settings: DemoSettings) -> list[RecordSource]:
     """The records of `settings.records` to export, in file order: those of `settings.agent` (all
     without it), successful ones only with `successful_only`, at most `limit`; records without
     actions hold no step and are left out. Raises `DemoExportError` for a file that cannot be read
-    or is not `esrp.results/v1`, and when no record is left. A last line cut short (a write in
-    progress) is said on stderr and left out.
+    or is not `esrp.results/v1` (a last line too, when it is whole: only a line cut short by an
+    interrupted write is said on stderr and left out), and when no record is left.
     """
     sources: list[RecordSource] = []
     for path in settings.records:
@@ -525,8 +570,10 @@ def read_sources(settings: DemoSettings) -> list[RecordSource]:
             raise DemoExportError(f"cannot read {path}: {error.strerror or error}") from None
         except ResultsError as error:
             raise DemoExportError(str(error)) from None
+        if read.torn_whole:  # a whole line that is not a record: not an interrupted write
+            raise DemoExportError(read.torn_note(path))
         if read.torn_tail:
-            print(f"esrp demos export: {path}: its last line is cut short (left out)", file=sys.stderr)
+            print(f"esrp demos export: {read.torn_note(path)} (left out)", file=sys.stderr)
         sources += [
             RecordSource(Path(path), n, r) for n, r in zip(read.line_numbers, read.records, strict=True)
         ]
@@ -606,6 +653,7 @@ def _export_records(
     if settings.scenes or settings.difficulty is not None:
         raise DemoExportError("--records replaces the scene choice: no --scenes or --difficulty with it")
     info = client.server_info()
+    check_resolution(settings.resolution, info.limits.max_resolution)
     chosen = list(sources) if sources is not None else read_sources(settings)
     for source in chosen:
         if source.record.dataset != info.dataset:
@@ -650,6 +698,7 @@ def export_demos(
     if settings.records:
         return _export_records(client, settings, sources)
     info = client.server_info()
+    check_resolution(settings.resolution, info.limits.max_resolution)
     scenes = pick_scenes(client, settings)
     resolution = settings.resolution or 128
     factory = None
@@ -682,12 +731,16 @@ def export_demos(
     if settings.episodes_in_flight < 1:
         raise DemoExportError(f"episodes_in_flight must be at least 1, got {settings.episodes_in_flight}")
     chunk = settings.label_horizon if settings.dagger is not None else None
-    store = _Store(settings.out, info.dataset, resolution, settings.labels, settings.dagger, chunk)
+    store = _Store(
+        settings.out, info.dataset, resolution, settings.labels, settings.dagger, chunk, settings.split
+    )
     done = set(store.scene_ids)
     todo = [s for s in scenes if s.id not in done]
     if done:
+        there = len(scenes) - len(todo)
+        others = f" (it holds {len(done)} episodes in all)" if len(done) != there else ""
         print(
-            f"resuming {settings.out}: {len(scenes) - len(todo)} of {len(scenes)} scenes already there",
+            f"resuming {settings.out}: {there} of {len(scenes)} scenes already there{others}",
             file=sys.stderr,
         )
     every = max(len(scenes) // 20, 1)
