@@ -7,6 +7,7 @@ stops the export."""
 from __future__ import annotations
 
 import dataclasses
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -584,3 +585,14 @@ def test_in_order_plays_items_at_a_time_and_yields_them_in_order() -> None:
         next(played)
     assert most == 3, "three at a time, never more"
     assert list(_in_order(lambda item: item + 1, [5, 6], 1)) == [(5, 6), (6, 7)]
+
+
+def test_without_zarr_the_export_says_what_to_install(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setitem(sys.modules, "zarr", None)  # `import zarr` raises ImportError
+    assert main(["demos", "export", "--out", str(tmp_path / "demos.zarr"), "--limit", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "pip install 'esrp[train]'" in err, err
+    assert len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "demos.zarr").exists()
