@@ -1,8 +1,8 @@
 """Abandoned creates from a stock gRPC client leave nothing (the server's claim rule,
 `--claim-timeout-seconds`): the plain grpcio stubs the package ships, without the client's
-cancellation-safe wrapper, give up on creates of unbuilt scenes at 20 ms deadlines (or take the
-answers of those the server made in time, and never name them); once the claim timeout has passed,
-no episode is left. Episodes whose client uses them are never cut by it."""
+cancellation-safe wrapper, give up on creates of unbuilt scenes at deadlines of 20 and 3 ms (or
+take the answers of those the server made in time, and never name them); once the claim timeout
+has passed, no episode is left. Episodes whose client uses them are never cut by it."""
 
 from __future__ import annotations
 
@@ -58,12 +58,14 @@ def test_abandoned_creates_of_a_stock_client_leave_nothing(claiming: esrp.LocalS
         for index, scene in enumerate(scenes[-60:]):
             request = pb.CreateEpisodeRequest(scene_id=scene, sensors=sensors[index % 2])
             try:
-                stub.CreateEpisode(request, timeout=0.02)
+                # Deadlines of 20 ms and of 3 ms in turn: a release server (its scenes read from
+                # the built-in pack) makes most 128 px creates within 20 ms.
+                stub.CreateEpisode(request, timeout=0.02 if index % 4 < 2 else 0.003)
             except grpc.RpcError as error:
                 codes.append(error.code())
         assert set(codes) <= {grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.CANCELLED}, codes
-        # A debug server answers none of them in time, a release one about 6 in 10 (2 cores).
-        assert len(codes) >= 10, "creates of unbuilt scenes outlast 20 ms"
+        # A debug server answers none of them in time, a release one most of those given 20 ms.
+        assert len(codes) >= 10, "creates of unbuilt scenes outlast their deadlines"
         # Whatever was created lives at most the claim timeout (plus the reaper's tick of 1 s).
         assert _wait_for_live(stub, 0, CLAIM + 15) == 0
 

@@ -12,7 +12,57 @@ from typing import Any
 
 import torch
 
-__all__ = ["policy_checkpoint"]
+__all__ = ["check_agent_config", "policy_checkpoint", "read_checkpoint"]
+
+
+def check_agent_config(config: Mapping[str, Any], agent: str, known: Mapping[str, str]) -> None:
+    """Raises `ValueError` for a key of an agent's config (`--agent-config`) that is not one of
+    `known` (each key's kind: `bool`, `int`, `probability` or `path`), or a value not of its kind:
+    a misspelt `deterministic` must not leave a researcher's run sampling.
+    """
+    unknown = sorted(set(config) - set(known))
+    if unknown:
+        raise ValueError(
+            f"the {agent} agent has no setting {', '.join(unknown)}: known are {', '.join(known)}"
+        )
+    for key, kind in known.items():
+        value = config.get(key)
+        if value is None:
+            continue
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        fits = {
+            "bool": isinstance(value, bool),
+            "int": isinstance(value, int) and not isinstance(value, bool),
+            "probability": number and 0.0 <= value <= 1.0,
+            "path": isinstance(value, str | Path),
+        }[kind]
+        if not fits:
+            wanted = {"bool": "true or false", "int": "an integer", "probability": "a number from 0 to 1"}
+            raise ValueError(f"the {agent} agent's {key} must be {wanted.get(kind, 'a path')}, not {value!r}")
+
+
+def read_checkpoint(
+    path: str | Path, kind: str, what: str, map_location: torch.device | str = "cpu"
+) -> dict[str, Any]:
+    """The checkpoint at `path` (`torch.load`), checked to be of `kind` (`esrp-bc`, `esrp-ppo`)
+    with its `config` and `model`. Raises `ValueError` naming the file when it cannot be read, is
+    not a checkpoint (empty, cut short, another file) or is another kind (`what`: its name in the
+    message, e.g. `ESRP-PPO`).
+    """
+    try:
+        state = torch.load(Path(path), map_location=map_location, weights_only=False)
+    except OSError as error:
+        raise ValueError(f"cannot read {path}: {error.strerror or error}") from None
+    except Exception as error:  # the unpickler's and the zip reader's errors, of many kinds
+        raise ValueError(f"{path} is not a readable checkpoint ({type(error).__name__}: {error})") from None
+    if (
+        not isinstance(state, dict)
+        or state.get("kind") != kind
+        or not isinstance(state.get("config"), dict)
+        or "model" not in state
+    ):
+        raise ValueError(f"{path} is not an {what} checkpoint")
+    return state
 
 
 def policy_checkpoint(config: Mapping[str, Any], agent: str) -> str:

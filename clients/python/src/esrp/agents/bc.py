@@ -38,8 +38,8 @@ from torch import nn
 from torch.nn import functional as F  # noqa: N812 - the usual name
 
 from .._values import Action, Observation, Sensors
-from ._checkpoint import policy_checkpoint
-from ._config import reject_unknown
+from ._checkpoint import check_agent_config, policy_checkpoint, read_checkpoint
+from ._config import check_at_least, check_kinds, reject_unknown
 from .encoders import ENCODERS, check_device, float_images, make_encoder
 
 __all__ = [
@@ -144,8 +144,12 @@ class BcConfig:
     def from_mapping(cls, values: Mapping[str, Any]) -> BcConfig:
         """A config from a mapping (a TOML/JSON table); unknown keys raise `ValueError`."""
         reject_unknown(cls, values, "bc")
-        given: dict[str, Any] = {k: tuple(v) if k == "unet_channels" else v for k, v in values.items()}
+        given: dict[str, Any] = {
+            k: tuple(v) if k == "unet_channels" and isinstance(v, list | tuple) else v
+            for k, v in values.items()
+        }
         config = cls(**given)
+        config._check_numbers()
         if config.encoder not in ENCODERS:
             raise ValueError(f"encoder {config.encoder!r}: one of {', '.join(ENCODERS)}")
         if not 16 <= config.resolution <= 512:
@@ -158,6 +162,28 @@ class BcConfig:
         config._check_recipe()
         config._check_evaluation()
         return config
+
+    def _check_numbers(self) -> None:
+        """Raises `ValueError` for a setting of the wrong kind, or a size, count or rate out of range
+        (the evaluation's are `_check_evaluation`'s).
+        """
+        check_kinds(self, "bc")
+        if (
+            not isinstance(self.unet_channels, tuple)
+            or not self.unet_channels
+            or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 1 for c in self.unet_channels)
+        ):
+            raise ValueError(
+                "bc setting unet_channels must be a list of integers of at least 1, "
+                f"not {self.unet_channels!r}"
+            )
+        sizes = ("feature_dim", "grasp_dim", "cond_dim", "kernel_size", "n_obs", "horizon")
+        counts = ("diffusion_steps", "ddim_steps", "batch_size", "epochs", "checkpoint_every")
+        check_at_least(self, "bc", 1, (*sizes, *counts))
+        # lr 0 trains nothing: a run that only evaluates, or checks what a fine-tuning starts from.
+        check_at_least(self, "bc", 0, ("lr", "threads", "weight_decay", "lambda_ce"))
+        if not 0.0 <= self.epsilon <= 1.0:
+            raise ValueError(f"bc setting epsilon must be from 0 to 1, not {self.epsilon!r}")
 
     def _check_recipe(self) -> None:
         """Raises `ValueError` for schedule, EMA, sampling and augmentation settings out of range."""
@@ -440,9 +466,7 @@ def load_policy(path: str | Path) -> DiffusionPolicy:
     """The policy of a checkpoint `esrp train bc` wrote, in eval mode: its `model` weights (the
     moving average of the weights, for a run with `ema`).
     """
-    state = torch.load(Path(path), map_location="cpu", weights_only=False)
-    if state.get("kind") != "esrp-bc":
-        raise ValueError(f"{path} is not an ESRP-BC checkpoint")
+    state = read_checkpoint(path, "esrp-bc", "ESRP-BC")
     model = DiffusionPolicy(BcConfig.from_mapping(checkpoint_settings(state["config"])))
     model.load_state_dict(state["model"])
     model.eval()
@@ -644,6 +668,16 @@ class BatchedBcAgent(_History):
         return self._next(chunk)
 
 
+AGENT_SETTINGS = {
+    "checkpoint": "path",
+    "epsilon": "probability",
+    "deterministic": "bool",
+    "threads": "int",
+    "batch": "int",
+}
+"""The bc agent's config keys (`esrp eval --agent bc --agent-config`) and their kinds."""
+
+
 class BcPolicy:
     """The agent factory of `esrp eval --agent bc`: loads the checkpoint (`config["checkpoint"]`)
     once; each call makes an agent for one episode. Config keys: `checkpoint`, `epsilon` (default
@@ -653,6 +687,7 @@ class BcPolicy:
     """
 
     def __init__(self, config: Mapping[str, Any]) -> None:
+        check_agent_config(config, "bc", AGENT_SETTINGS)
         self.model = load_policy(policy_checkpoint(config, "bc"))
         self.sensors = Sensors(resolution=self.model.config.resolution)
         """What its episodes must be created with: views at the model's resolution."""

@@ -23,8 +23,8 @@ from torch import nn
 from torch.nn import functional as F  # noqa: N812 - the usual name
 
 from .._values import Action, Observation, RewardWeights, Sensors
-from ._checkpoint import policy_checkpoint
-from ._config import reject_unknown
+from ._checkpoint import check_agent_config, policy_checkpoint, read_checkpoint
+from ._config import check_at_least, check_kinds, reject_unknown
 from .encoders import ENCODERS, check_device, make_encoder
 
 __all__ = ["NETWORK_SETTINGS", "PpoAgent", "PpoConfig", "PpoNet", "PpoPolicy", "load_network"]
@@ -114,6 +114,10 @@ class PpoConfig:
 
     def validate(self) -> None:
         """Raises `ValueError` for settings that cannot train."""
+        check_kinds(self, "ppo")
+        check_at_least(self, "ppo", 0, ("lr", "horizon", "threads", "vf_coef", "target_kl", "clip_coef"))
+        if not self.max_grad_norm > 0:
+            raise ValueError(f"ppo setting max_grad_norm must be above 0, not {self.max_grad_norm!r}")
         if self.encoder not in ENCODERS:
             raise ValueError(f"encoder {self.encoder!r}: one of {', '.join(ENCODERS)}")
         if self.split not in ("train", "test"):
@@ -304,9 +308,7 @@ class PpoNet(nn.Module):
 
 def load_network(path: str | Path, device: torch.device | str = "cpu") -> PpoNet:
     """The network of a checkpoint `esrp train ppo` wrote, in eval mode."""
-    state = torch.load(Path(path), map_location=device, weights_only=False)
-    if not isinstance(state, dict) or state.get("kind") != "esrp-ppo":
-        raise ValueError(f"{path} is not an ESRP-PPO checkpoint")
+    state = read_checkpoint(path, "esrp-ppo", "ESRP-PPO", device)
     network = PpoNet(PpoConfig.from_mapping(state["config"])).to(device)
     network.load_state_dict(state["model"])
     network.eval()
@@ -357,6 +359,7 @@ class PpoPolicy:
     """
 
     def __init__(self, config: Mapping[str, Any]) -> None:
+        check_agent_config(config, "ppo", {"checkpoint": "path", "deterministic": "bool", "threads": "int"})
         self.network = load_network(policy_checkpoint(config, "ppo"))
         self.sensors = Sensors(resolution=self.network.config.resolution)
         """What its episodes must be created with: views at the network's resolution."""

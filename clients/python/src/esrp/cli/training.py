@@ -188,8 +188,9 @@ def _add_train_bc(train_commands: argparse._SubParsersAction[Parser]) -> None:
         type=Path,
         metavar="CKPT",
         help="fine-tune: start from this ESRP-BC checkpoint's weights (and optimizer, where it holds "
-        "one) instead of fresh ones; the config may differ from its own in demos, seed, lr, epochs "
-        "and the evaluation alone (not with --dagger: its [dagger] initial says where it starts; "
+        "one) instead of fresh ones; the config may differ from its own in demos, seed, lr, epochs, "
+        "checkpoint_every, threads, device, in_memory and the evaluation alone (not with --dagger: "
+        "its [dagger] initial says where it starts; "
         "a --resume of a run that has a checkpoint goes on from that)",
     )
     bc.add_argument(
@@ -219,7 +220,8 @@ def _add_train_ppo(train_commands: argparse._SubParsersAction[Parser]) -> None:
         type=positive,
         metavar="STEPS",
         help="stop, with a checkpoint, after the first update that reaches STEPS environment steps, "
-        "the schedule unchanged: --resume goes on (e.g. on other scenes, a curriculum)",
+        "the schedule unchanged: --resume goes on (the same settings but total_steps, "
+        "checkpoint_every, threads and device; a curriculum changes the server's scenes)",
     )
     ppo.add_argument("--no-progress", dest="progress", action="store_false")
     server_options(ppo)
@@ -238,7 +240,9 @@ def _add_train_ppo_bc(train_commands: argparse._SubParsersAction[Parser]) -> Non
     ppo_bc.add_argument(
         "--config", type=Path, required=True, help="a TOML file with [ppo] and [ppo_bc] tables"
     )
-    ppo_bc.add_argument("--out", type=Path, default=Path("runs/ppo-bc"), help="the run folder")
+    ppo_bc.add_argument(
+        "--out", type=Path, default=Path("runs/ppo-bc"), help="the run folder (default runs/ppo-bc)"
+    )
     ppo_bc.add_argument("--resume", action="store_true", help="go on from RUN/ckpt.pt (more epochs)")
     ppo_bc.add_argument("--no-progress", dest="progress", action="store_false")
 
@@ -458,8 +462,19 @@ def _train(args: argparse.Namespace) -> int:
     except (OSError, ValueError, EvalError, DemoExportError, EsrpError) as error:
         print(f"{name}: {error}", file=sys.stderr)
         return 2
+    except FloatingPointError as error:
+        return _diverged(name, error)
     print(f"checkpoint: {checkpoint}")
     return 0
+
+
+def _diverged(name: str, error: FloatingPointError) -> int:
+    """Says that a run's loss left the numbers (a NaN or an infinity), in one line: exit status 1."""
+    print(
+        f"{name}: training diverged: {error} (the last checkpoint is kept; a lower lr may help)",
+        file=sys.stderr,
+    )
+    return 1
 
 
 def _train_ppo_bc(args: argparse.Namespace, name: str) -> int:
@@ -471,6 +486,8 @@ def _train_ppo_bc(args: argparse.Namespace, name: str) -> int:
     except (OSError, ValueError) as error:
         print(f"{name}: {error}", file=sys.stderr)
         return 2
+    except FloatingPointError as error:
+        return _diverged(name, error)
     print(f"checkpoint: {checkpoint}")
     return 0
 
@@ -499,3 +516,5 @@ def _train_ppo(args: argparse.Namespace, name: str) -> int:
     except (OSError, ValueError, EsrpError) as error:
         print(f"{name}: {error}", file=sys.stderr)
         return 2
+    except FloatingPointError as error:
+        return _diverged(name, error)

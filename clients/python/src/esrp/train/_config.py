@@ -8,7 +8,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
-__all__ = ["read_document", "read_table"]
+__all__ = ["TABLES", "read_document", "read_table"]
+
+TABLES = ("bc", "dagger", "ppo", "ppo_bc")
+"""The tables of the training configs (`esrp train bc`, `--dagger`, `ppo`, `ppo-bc`)."""
 
 
 def read_document(path: Path) -> dict[str, Any]:
@@ -35,9 +38,16 @@ def read_document(path: Path) -> dict[str, Any]:
 
 def read_table(path: Path, name: str) -> dict[str, Any]:
     """The `[name]` table of a TOML file (or the top level of a JSON file, or of a TOML file without
-    that table). Raises `ValueError` naming the file for unreadable or malformed ones.
+    that table). Raises `ValueError` naming the file for unreadable or malformed ones, and for a
+    file without that table that has another command's (`TABLES`).
     """
     values = read_document(path)
+    others = sorted(key for key in TABLES if key != name and isinstance(values.get(key), dict))
+    if name not in values and others:
+        listed = ", ".join(f"[{key}]" for key in others)
+        raise ValueError(
+            f"{path} has no [{name}] table (it has {listed}): is it the config of another command?"
+        )
     table = values.get(name, values)
     if not isinstance(table, dict):
         raise ValueError(f"{path}: [{name}] is not a table")

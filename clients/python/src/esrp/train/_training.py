@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import os
+import sys
 from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -14,24 +15,32 @@ from typing import Any
 import torch
 from torch import nn
 
+from .._signals import deferred
+from ..agents._checkpoint import read_checkpoint
+
 __all__ = [
     "load_resumable",
     "resume_from",
     "run_folder",
     "save_checkpoint",
     "save_for_playing",
+    "settings_differences",
     "trim_epoch_log",
 ]
 
 
 def run_folder(out: Path, resume: bool) -> Path:
     """Makes the run folder `out` (and its parents) if missing; returns the path of its checkpoint,
-    `out/ckpt.pt`. Raises `ValueError` when `out` already holds a run's checkpoint and not `resume`.
+    `out/ckpt.pt`. Raises `ValueError` when `out` already holds a run's checkpoint and not `resume`;
+    with `resume` and no checkpoint there, says on stderr that the run starts anew (a mistyped
+    `--out` shows at once).
     """
     out.mkdir(parents=True, exist_ok=True)
     checkpoint = out / "ckpt.pt"
     if not resume and checkpoint.exists():
         raise ValueError(f"{out} already holds a run: pass --resume to go on with it, or another --out")
+    if resume and not checkpoint.exists():
+        print(f"no checkpoint in {out} to resume: starting a new run there", file=sys.stderr)
     return checkpoint
 
 
@@ -65,13 +74,34 @@ def save_checkpoint(
 
 
 def _save_atomically(state: Mapping[str, Any], path: Path) -> None:
-    """`torch.save`s `state` to a file beside `path`, flushed to disk, then renamed over `path`."""
+    """`torch.save`s `state` to a file beside `path`, flushed to disk, then renamed over `path`. A
+    signal that comes meanwhile (Ctrl-C, SIGTERM) waits until the checkpoint is in place: torch's
+    writer does not survive an exception raised inside it. A file left half-written by an error is
+    removed.
+    """
     partial = path.with_suffix(".partial")
-    with open(partial, "wb") as file:
-        torch.save(state, file)
-        file.flush()
-        os.fsync(file.fileno())
-    partial.replace(path)
+    with deferred():
+        try:
+            with open(partial, "wb") as file:
+                torch.save(state, file)
+                file.flush()
+                os.fsync(file.fileno())
+            partial.replace(path)
+        finally:
+            partial.unlink(missing_ok=True)
+
+
+def settings_differences(
+    held: Mapping[str, Any], wanted: Mapping[str, Any], free: Collection[str]
+) -> list[str]:
+    """The settings (but `free` ones) whose values differ between a run's `held` ones (its
+    checkpoint's config) and the `wanted` ones, in words: `lr: 0.0003 → 0.001`, one per setting.
+    """
+    return [
+        f"{key}: {held.get(key)!r} → {wanted.get(key)!r}"
+        for key in sorted(set(held) | set(wanted))
+        if key not in free and held.get(key) != wanted.get(key)
+    ]
 
 
 PLAYING_KEYS = ("kind", "config", "model", "epoch", "steps", "update")
@@ -103,13 +133,11 @@ def load_resumable(
     checkpoint's config lacks (it predates them) are taken as `legacy` gives them. Restores
     torch's random state (unless not `restore_rng`: a run that starts from another's weights).
     """
-    state: dict[str, Any] = torch.load(path, map_location=device, weights_only=False)
-    if not isinstance(state, dict) or state.get("kind") != kind:
-        raise ValueError(f"{path} is not an {kind} checkpoint")
+    state = read_checkpoint(path, kind, kind, device)
     state["config"] = {**(legacy or {}), **state["config"]}
-    trained = {k: v for k, v in state["config"].items() if k not in free}
-    if trained != {k: v for k, v in settings.items() if k not in free}:
-        raise ValueError(f"{path} was trained with other settings: {state['config']}")
+    different = settings_differences(state["config"], settings, free)
+    if different:
+        raise ValueError(f"{path} was trained with other settings ({'; '.join(different)})")
     if restore_rng:
         if "torch_rng" not in state:
             raise ValueError(f"{path} holds the model only (a checkpoint for playing): it cannot be resumed")

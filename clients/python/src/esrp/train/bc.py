@@ -468,6 +468,11 @@ def _resume_or_init(
             checkpoint, "esrp-bc", model, optimizer, RESUME_FREE, device, legacy=LEGACY_SETTINGS
         )
         epoch, steps = int(state["epoch"]), int(state["steps"])
+        if epoch > config.epochs:
+            raise ValueError(
+                f"{checkpoint} has trained {epoch} epochs, more than the {config.epochs} asked: "
+                f"ask for {epoch} or more to go on"
+            )
         average = _Average(model, config) if config.ema else None
         if average is not None and "ema" in state:
             average.load(state["ema"])

@@ -38,9 +38,11 @@ from typing import Any, cast
 import numpy as np
 import torch
 
+from ..agents._checkpoint import read_checkpoint
 from ..agents._config import reject_unknown
 from ..agents.bc import BcConfig, checkpoint_settings
 from ._config import read_document
+from ._training import settings_differences
 from .bc import RESUME_FREE, train
 from .demos import DemoSettings, export_demos
 from .heldout import TrainServer, heldout_scenes, read_eval_log
@@ -237,28 +239,21 @@ def _initial_epochs(path: Path, bc: BcConfig) -> int:
     """
     if not path.is_file():
         raise ValueError(f"dagger initial: no checkpoint at {path}")
-    state = torch.load(path, map_location="cpu", weights_only=False)
-    if not isinstance(state, dict) or state.get("kind") != "esrp-bc":
-        raise ValueError(f"dagger initial: {path} is not an ESRP-BC checkpoint")
+    try:
+        state = read_checkpoint(path, "esrp-bc", "ESRP-BC")
+    except ValueError as error:
+        raise ValueError(f"dagger initial: {error}") from None
     if "optimizer" not in state or "torch_rng" not in state:
         raise ValueError(
             f"dagger initial: {path} holds the model only (a checkpoint for playing): DAgger fine-tunes "
             "the model and its optimizer, so give the run's own ckpt.pt (or ckpt-epoch-N.pt)"
         )
-    different = _differences(checkpoint_settings(state["config"]), bc.to_dict(), RESUME_FREE)
+    different = settings_differences(checkpoint_settings(state["config"]), bc.to_dict(), RESUME_FREE)
     if different:
         raise ValueError(
             f"dagger initial: {path} was trained with other settings than [bc]'s ({'; '.join(different)})"
         )
     return int(state["epoch"])
-
-
-def _differences(held: Mapping[str, Any], wanted: Mapping[str, Any], free: frozenset[str]) -> list[str]:
-    return [
-        f"{key}: {held.get(key)!r} → {wanted.get(key)!r}"
-        for key in sorted(set(held) | set(wanted))
-        if key not in free and held.get(key) != wanted.get(key)
-    ]
 
 
 class _Run:
@@ -308,8 +303,8 @@ class _Run:
             held = state["settings"]
             # A run made before a [dagger] setting existed ran with its default.
             held_dagger = {**DaggerConfig().to_dict(), **held["dagger"]}
-            different = _differences(held["bc"], self.settings()["bc"], BC_RESUME_FREE)
-            different += _differences(held_dagger, self.settings()["dagger"], DAGGER_RESUME_FREE)
+            different = settings_differences(held["bc"], self.settings()["bc"], BC_RESUME_FREE)
+            different += settings_differences(held_dagger, self.settings()["dagger"], DAGGER_RESUME_FREE)
             if different:
                 raise ValueError(
                     f"{self.out} is a DAgger run with other settings ({'; '.join(different)}): "

@@ -40,6 +40,7 @@ from torch import nn
 from .. import _malloc_setup
 from .._client import Client
 from .._values import Sensors
+from ..agents._checkpoint import read_checkpoint
 from ..agents.encoders import resolve_device
 from ..agents.ppo import NETWORK_SETTINGS, LstmState, PpoConfig, PpoNet
 from ..envs import RearrangeVectorEnv
@@ -175,6 +176,11 @@ def train(
     if resume and checkpoint.exists():
         state = resume_from(checkpoint, "esrp-ppo", network, optimizer, RESUMABLE, device, legacy=LEGACY)
         update, global_step = int(state["update"]), int(state["steps"])
+        if update > config.num_updates:
+            raise ValueError(
+                f"{checkpoint} has made {update} updates ({global_step} steps), more than total_steps "
+                f"{config.total_steps} allows ({config.num_updates}): ask for {global_step} or more to go on"
+            )
         if scale is not None:
             scale.load(state["reward_scale"])
         print(f"resuming {checkpoint} after update {update} ({global_step} steps)", file=sys.stderr)
@@ -250,9 +256,10 @@ def load_initial_weights(network: PpoNet, path: Path, device: torch.device) -> N
     """
     if not path.is_file():
         raise ValueError(f"init: {path} does not exist")
-    state = torch.load(path, map_location=device, weights_only=False)
-    if not isinstance(state, dict) or state.get("kind") != "esrp-ppo":
-        raise ValueError(f"init: {path} is not an ESRP-PPO checkpoint")
+    try:
+        state = read_checkpoint(path, "esrp-ppo", "ESRP-PPO", device)
+    except ValueError as error:
+        raise ValueError(f"init: {error}") from None
     theirs = {k: state["config"].get(k) for k in NETWORK_SETTINGS}
     ours = {k: getattr(network.config, k) for k in NETWORK_SETTINGS}
     if theirs != ours:

@@ -38,12 +38,12 @@ import torch
 from torch.nn import functional as F  # noqa: N812 - the usual name
 
 from .. import _malloc_setup
-from ..agents._config import reject_unknown
+from ..agents._config import check_kinds, reject_unknown
 from ..agents.bc import random_shift
 from ..agents.encoders import resolve_device
 from ..agents.ppo import NETWORK_SETTINGS, PpoConfig, PpoNet
 from ._config import read_table
-from ._training import resume_from, run_folder, save_checkpoint, trim_epoch_log
+from ._training import resume_from, run_folder, save_checkpoint, settings_differences, trim_epoch_log
 from .bc import NO_LABEL, DemoWindows
 from .ppo import load_config, load_initial_weights
 
@@ -94,6 +94,7 @@ class ImitationConfig:
 
     def validate(self) -> None:
         """Raises `ValueError` for settings that cannot train."""
+        check_kinds(self, "ppo_bc")
         if not self.demos or not all(isinstance(d, str) and d for d in self.demos):
             raise ValueError("demos: a demonstration store's path (or a list of them) is needed")
         for name in ("epochs", "streams", "seq_len"):
@@ -125,9 +126,15 @@ def load_configs(path: Path) -> tuple[PpoConfig, ImitationConfig]:
     """The `[ppo]` table (the network's settings) and the `[ppo_bc]` table of a TOML (or JSON) file."""
     network = load_config(path)  # the [ppo] table, as esrp train ppo reads it
     try:
-        return network, ImitationConfig.from_mapping(read_table(path, "ppo_bc"))
+        imitation = ImitationConfig.from_mapping(read_table(path, "ppo_bc"))
     except (TypeError, ValueError) as error:
         raise ValueError(f"{path}: {error}") from None
+    if imitation.augment_shift >= network.resolution // 2:
+        raise ValueError(
+            f"{path}: augment_shift {imitation.augment_shift}: less than half the network's resolution "
+            f"({network.resolution})"
+        )
+    return network, imitation
 
 
 @dataclass
@@ -210,13 +217,19 @@ def train(
         # Only the [ppo] settings of the network count: the others are a later PPO run's.
         free = {f.name for f in fields(PpoConfig)} - set(NETWORK_SETTINGS)
         saved = resume_from(checkpoint, "esrp-ppo", network, optimizer, free, device)
-        changeable = ("epochs", "threads")
-        trained = {k: v for k, v in saved.get("imitation", {}).items() if k not in changeable}
-        if trained != {k: v for k, v in config.to_dict().items() if k not in changeable}:
+        if not isinstance(saved.get("imitation"), dict) or "optimizer_steps" not in saved:
+            raise ValueError(f"{checkpoint} is a checkpoint of esrp train ppo, not of esrp train ppo-bc")
+        different = settings_differences(saved["imitation"], config.to_dict(), ("epochs", "threads"))
+        if different:
             raise ValueError(
-                f"{checkpoint} was trained with other [ppo_bc] settings: {saved.get('imitation')}"
+                f"{checkpoint} was trained with other [ppo_bc] settings ({'; '.join(different)})"
             )
         epoch, step = int(saved["epoch"]), int(saved["optimizer_steps"])
+        if epoch > config.epochs:
+            raise ValueError(
+                f"{checkpoint} has trained {epoch} epochs, more than the {config.epochs} asked: "
+                f"ask for {epoch} or more to go on"
+            )
         print(f"resuming {checkpoint} after epoch {epoch}", file=sys.stderr)
     elif config.init is not None:
         load_initial_weights(network, Path(config.init), device)
