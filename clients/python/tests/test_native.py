@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -339,3 +340,18 @@ def test_unary_all_makes_calls_on_several_channels_at_once(
         for episode in episodes:
             episode.close()
         expected_episode.close()
+
+
+def test_a_closed_native_client_leaves_no_connection_open(easy_scenes: list[str]) -> None:
+    # A server that stops drains its connections for up to its grace (here a minute): a closed
+    # client's connection must be gone at once, not when Python collects the channel.
+    server = esrp.LocalServer("--shutdown-grace-ms", "60000", "--no-generate-ahead", stop_timeout=120)
+    with server:
+        client = esrp.Client(server.address, transport="native")
+        with client.create_episode(easy_scenes[0]) as episode:
+            episode.step(esrp.Action.LEFT)
+        client.close()
+        with pytest.raises(esrp.Cancelled, match="closed"):
+            client.server_info()
+        stopping = time.monotonic()
+    assert time.monotonic() - stopping < 20, "the server waited for the closed client's connection"

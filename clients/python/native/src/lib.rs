@@ -15,7 +15,7 @@
 //! `CallError(code, message)` for a call that failed with a gRPC status (`code` is the status's
 //! number).
 
-use std::sync::Mutex;
+use std::sync::{Mutex, RwLock};
 use std::time::Duration;
 
 use bytes::{Buf, BufMut, Bytes};
@@ -82,8 +82,10 @@ const METHODS: [&str; 3] = ["/esrp.v1.Esrp/Step", "/esrp.v1.Esrp/Reset", "/esrp.
 #[pyclass(frozen, module = "esrp_native")]
 struct Channel {
     /// Driven by whichever thread is in a call (calls from several Python threads take
-    /// turns driving it; the connection is shared).
-    runtime: tokio::runtime::Runtime,
+    /// turns driving it; the connection is shared). The connection is its tasks', which run only
+    /// while a call drives them: `close` drops it (None after), so that the connection closes
+    /// then, not when Python collects the channel (a server shutting down would wait for it).
+    runtime: RwLock<Option<tokio::runtime::Runtime>>,
     grpc: tonic::client::Grpc<tonic::transport::Channel>,
     authorization: Option<MetadataValue<Ascii>>,
     /// Closed channels refuse calls.
@@ -117,7 +119,7 @@ impl Channel {
         let grpc = tonic::client::Grpc::new(client.channel())
             .max_decoding_message_size(esrp_client::MAX_MESSAGE_BYTES)
             .max_encoding_message_size(esrp_client::MAX_MESSAGE_BYTES);
-        Ok(Channel { runtime, grpc, authorization, closed: Mutex::new(false) })
+        Ok(Channel { runtime: RwLock::new(Some(runtime)), grpc, authorization, closed: Mutex::new(false) })
     }
 
     /// Calls `method` (`/esrp.v1.Esrp/Step`, `/esrp.v1.Esrp/Reset` or `/esrp.v1.Esrp/StepBatch`)
@@ -147,9 +149,15 @@ impl Channel {
         }
     }
 
-    /// Refuses further calls; the connection closes when the channel is dropped.    /// Refuses further calls; the connection closes when the channel is dropped.
+    /// Refuses further calls and closes the connection (at once, unless a call on another thread
+    /// is running: then when the channel is dropped).
     fn close(&self) {
         *self.closed.lock().unwrap_or_else(std::sync::PoisonError::into_inner) = true;
+        if let Ok(mut runtime) = self.runtime.try_write()
+            && let Some(runtime) = runtime.take()
+        {
+            runtime.shutdown_background(); // its tasks, the connection's among them, are dropped
+        }
     }
 }
 
@@ -191,7 +199,11 @@ impl Channel {
             grpc.unary(message, path, RawCodec).await
         };
         let started = std::time::Instant::now();
-        let answer = self.runtime.block_on(async {
+        let runtime = self.runtime.read().unwrap_or_else(std::sync::PoisonError::into_inner);
+        let Some(runtime) = runtime.as_ref() else {
+            return Err(Status::cancelled("the channel is closed"));
+        };
+        let answer = runtime.block_on(async {
             match timeout {
                 None => call.await,
                 Some(limit) => match tokio::time::timeout(limit, call).await {
