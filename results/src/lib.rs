@@ -127,12 +127,14 @@ pub struct ReadRecords {
     /// Byte length of the complete lines read: a last line cut short by an interruption ends
     /// after this, and [`truncate_to`] removes it.
     pub complete_bytes: u64,
-    /// Whether a last line was cut short (incomplete or unreadable).
+    /// Whether the last line was cut short: it lacks its newline (an interrupted write).
     pub torn_tail: bool,
 }
 
-/// Reads a results file. A last line that does not parse (an interrupted write) is reported in
-/// [`ReadRecords::torn_tail`], not an error; any other bad line is. Blank lines are skipped.
+/// Reads a results file. A last line without its newline (a write interrupted before it: the
+/// newline is the last byte an append writes) is reported in [`ReadRecords::torn_tail`], not an
+/// error; any other line that is not a record is, the last one too when it is whole (a file
+/// given by mistake is refused, never cut). Blank lines are skipped.
 pub fn read_records(path: &Path) -> Result<ReadRecords, ResultsError> {
     let name = path.display().to_string();
     let io = |source| ResultsError::Io { path: name.clone(), source };
@@ -156,23 +158,17 @@ pub fn read_records(path: &Path) -> Result<ReadRecords, ResultsError> {
             }
             continue;
         }
-        match parse_record(text) {
-            Ok(record) if complete => {
+        match (parse_record(text), complete) {
+            (Ok(record), true) => {
                 out.records.push(record);
                 out.complete_bytes += n as u64;
             }
-            // A record without its newline: the write was interrupted right before it.
-            Ok(_) => out.torn_tail = true,
-            Err(reason) => {
-                // Only the last line may be torn.
-                let mut rest = String::new();
-                reader.read_line(&mut rest).map_err(io)?;
-                if rest.is_empty() {
-                    out.torn_tail = true;
-                } else {
-                    return Err(ResultsError::BadLine { path: name, line: number, reason });
-                }
-            }
+            // A line without its newline is the file's last (read_line read to the end): a write
+            // interrupted before its newline, the last byte an append writes, whatever it holds.
+            (_, false) => out.torn_tail = true,
+            // A whole line that is not a record is no interrupted write, even the last: refused,
+            // never cut off (it may be a file given by mistake).
+            (Err(reason), true) => return Err(ResultsError::BadLine { path: name, line: number, reason }),
         }
     }
     Ok(out)
@@ -276,6 +272,16 @@ mod tests {
         std::fs::write(&path, &bad).unwrap();
         let err = read_records(&path).unwrap_err();
         assert!(matches!(err, ResultsError::BadLine { line: 1, .. }), "{err}");
+
+        // A whole last line that is not a record is no interrupted write: an error, not cut off.
+        let mut whole_bad = Vec::new();
+        append_record(&mut whole_bad, &record("a", "easy", true, 1.0, 0.0, 4)).unwrap();
+        whole_bad.extend_from_slice(b"{\"learning_rate\": 0.001}\n");
+        std::fs::write(&path, &whole_bad).unwrap();
+        let err = read_records(&path).unwrap_err();
+        assert!(matches!(err, ResultsError::BadLine { line: 2, .. }), "{err}");
+        std::fs::write(&path, b"{\"epochs\": 100}\n").unwrap();
+        assert!(matches!(read_records(&path).unwrap_err(), ResultsError::BadLine { line: 1, .. }));
     }
 
     #[test]

@@ -644,6 +644,24 @@ def test_bad_input_files_and_modules_are_one_line(
             f"esrp eval: {notes}:1: its last line is not an esrp.results/v1 record (",
         ),
         (
+            ["eval", "--agent", "random", "--out", str(tmp_path / "run.md"), "--server", server.address],
+            f"esrp eval: the summary would overwrite the results in {tmp_path / 'run.md'}",
+        ),
+        (
+            [
+                "eval",
+                "--agent",
+                "random",
+                "--out",
+                str(tmp_path / "s.jsonl"),
+                "--summary",
+                str(tmp_path / "s.jsonl"),
+                "--server",
+                server.address,
+            ],
+            f"esrp eval: the summary would overwrite the results in {tmp_path / 's.jsonl'}",
+        ),
+        (
             [
                 "eval",
                 "--agent",

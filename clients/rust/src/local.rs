@@ -176,14 +176,23 @@ impl LocalServer {
         })?;
         let mut stdout =
             BufReader::new(child.stdout.take().ok_or_else(|| ClientError::LocalServer("no stdout".into()))?);
+        // The server's own lines start with `esrp-server `; log lines its start wrote to stdout
+        // before them (a driver's complaint while the renderer is made) are passed over.
         let mut read_line = |prefix: &str| -> Result<String> {
-            let mut line = String::new();
-            stdout
-                .read_line(&mut line)
-                .map_err(|e| ClientError::LocalServer(format!("cannot read {program}'s output: {e}")))?;
-            line.trim().strip_prefix(prefix).map(str::to_owned).ok_or_else(|| {
-                ClientError::LocalServer(format!("{program} did not start (it printed {line:?}; its stderr says why)"))
-            })
+            loop {
+                let mut line = String::new();
+                let read = stdout
+                    .read_line(&mut line)
+                    .map_err(|e| ClientError::LocalServer(format!("cannot read {program}'s output: {e}")))?;
+                if let Some(value) = line.trim().strip_prefix(prefix) {
+                    return Ok(value.to_owned());
+                }
+                if read == 0 || line.starts_with("esrp-server ") {
+                    return Err(ClientError::LocalServer(format!(
+                        "{program} did not start (it printed {line:?}; its stderr says why)"
+                    )));
+                }
+            }
         };
         let address = format!("http://{}", read_line("esrp-server listening on ")?);
         let unix = if with_unix { Some(read_line("esrp-server listening on ")?) } else { None };

@@ -131,8 +131,12 @@ impl Summary {
         summary
     }
 
-    /// A few lines for a terminal: SR / OSR / RDR overall and per difficulty.
+    /// A few lines for a terminal: SR / OSR / RDR overall and per difficulty (one line saying so
+    /// when there are no episodes, as the Python summary's).
     pub fn text(&self) -> String {
+        if self.overall.episodes == 0 {
+            return "no episodes recorded: no SR, OSR or RDR to give\n".to_owned();
+        }
         let mut out = String::new();
         let line = |out: &mut String, name: &str, t: &Tally| {
             let _ = writeln!(
@@ -163,6 +167,14 @@ impl Summary {
     pub fn markdown(&self, title: &str) -> String {
         let mut md = String::new();
         let _ = writeln!(md, "# {title}\n");
+        if self.overall.episodes == 0 {
+            let _ = writeln!(
+                md,
+                "No episodes recorded for **{}**: there is no SR, OSR or RDR to give (every episode failed with an error, or none was played).",
+                self.agent
+            );
+            return md;
+        }
         let _ = writeln!(
             md,
             "SR and OSR in %, RDR as a ratio (lower is better). {} episodes. The paper's rows are its Tables I–III (SPEC §8).\n",

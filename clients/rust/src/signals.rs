@@ -1,7 +1,30 @@
-//! How the tools (`esrp-eval`, `esrp-bench`, `esrp-demo`) stop on SIGTERM and SIGINT:
-//! [`exit_on_signals`].
+//! How the tools (`esrp-eval`, `esrp-bench`, `esrp-demo`) stop on SIGTERM and SIGINT
+//! ([`exit_on_signals`]) and on an error ([`exit_status`]).
 
 use std::io;
+#[cfg(feature = "tools")]
+use std::process::ExitCode;
+
+/// The exit status of a tool's run: success, or its error printed as one line, `NAME: what
+/// failed: why` (its causes joined by `: `, each said once; never a backtrace, whatever
+/// `RUST_BACKTRACE` says), and status 1.
+#[cfg(feature = "tools")]
+pub fn exit_status(name: &str, result: anyhow::Result<()>) -> ExitCode {
+    let Err(error) = result else { return ExitCode::SUCCESS };
+    let mut line = String::new();
+    for cause in error.chain() {
+        let text = cause.to_string();
+        // A cause an error's own message already gives (`{source}` in it) is said once.
+        if !line.contains(&text) {
+            if !line.is_empty() {
+                line.push_str(": ");
+            }
+            line.push_str(&text);
+        }
+    }
+    eprintln!("{name}: {}", line.replace('\n', " "));
+    ExitCode::FAILURE
+}
 
 /// From now on, the first SIGTERM or SIGINT ends this process at once: it prints `NAME:
 /// terminated` (or `NAME: interrupted`) and exits with status 143 (130). Destructors do not run,

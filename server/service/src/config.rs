@@ -60,14 +60,15 @@ pub struct Config {
     /// lowest CPU priority, test split first, into the scene cache).
     #[arg(long, env = "ESRP_NO_GENERATE_AHEAD")]
     pub no_generate_ahead: bool,
-    /// Most live episodes; CreateEpisode beyond it fails with RESOURCE_EXHAUSTED.
-    #[arg(long, env = "ESRP_MAX_EPISODES", default_value_t = 4096)]
+    /// Most live episodes (at least 1); CreateEpisode beyond it fails with RESOURCE_EXHAUSTED.
+    #[arg(long, env = "ESRP_MAX_EPISODES", default_value_t = 4096, value_parser = count_parser(1))]
     pub max_episodes: usize,
-    /// Most steps in one StepBatch.
-    #[arg(long, env = "ESRP_MAX_BATCH", default_value_t = 1024)]
+    /// Most steps and resets in one StepBatch (and requests in one wave of a stream), at least 1.
+    #[arg(long, env = "ESRP_MAX_BATCH", default_value_t = 1024, value_parser = count_parser(1))]
     pub max_batch: usize,
-    /// Largest gRPC message, bytes, either way.
-    #[arg(long, env = "ESRP_MAX_MESSAGE_BYTES", default_value_t = 64 * 1024 * 1024)]
+    /// Largest gRPC message, bytes, either way (at least 65,536: a step's answer at 128 px is
+    /// about 49 KB).
+    #[arg(long, env = "ESRP_MAX_MESSAGE_BYTES", default_value_t = 64 * 1024 * 1024, value_parser = count_parser(65_536))]
     pub max_message_bytes: usize,
     /// Episodes untouched this long are closed, seconds (0: never). Episodes of an open
     /// StepStream are closed with their stream instead.
@@ -172,7 +173,7 @@ pub struct Config {
     /// Threads of the async runtime (gRPC, episode bookkeeping); 0: one per core but one, which
     /// leaves a core to the render thread (on 2 cores, one runtime thread measured 5-15 % more
     /// steps/s with 64 episodes than two).
-    #[arg(long, env = "ESRP_WORKER_THREADS", default_value_t = 0)]
+    #[arg(long, env = "ESRP_WORKER_THREADS", default_value_t = 0, value_parser = thread_count_parser())]
     pub worker_threads: usize,
     /// PlanActions: the planning time budget of a call that names none, in milliseconds.
     #[arg(long, env = "ESRP_PLAN_BUDGET_MS", default_value_t = 10_000, value_parser = clap::value_parser!(u64).range(1..))]
@@ -190,12 +191,23 @@ pub struct Config {
     /// down with it however the parent ends, SIGKILL included: the kernel closes the pipe.
     #[arg(long, env = "ESRP_STOP_ON_STDIN_CLOSE")]
     pub stop_on_stdin_close: bool,
-    /// PlanActions: plans computed at once (each on a thread of its own); 0: one per core.
-    #[arg(long, env = "ESRP_PLANNER_THREADS", default_value_t = 0)]
+    /// PlanActions: plans computed at once (each on a thread of its own), up to 1,024; 0: one per
+    /// core.
+    #[arg(long, env = "ESRP_PLANNER_THREADS", default_value_t = 0, value_parser = thread_count_parser())]
     pub planner_threads: usize,
     /// Log format.
     #[arg(long, env = "ESRP_LOG_FORMAT", value_enum, default_value_t = LogFormat::Text)]
     pub log_format: LogFormat,
+}
+
+/// A count from `least` to `u32::MAX` (what `ServerInfo` can report), as a `usize` setting.
+fn count_parser(least: u64) -> impl clap::builder::TypedValueParser<Value = usize> {
+    clap::value_parser!(u64).range(least..=u64::from(u32::MAX)).map(|v| v as usize)
+}
+
+/// A thread count from 0 (auto) to 1,024, as a `usize` setting.
+fn thread_count_parser() -> impl clap::builder::TypedValueParser<Value = usize> {
+    clap::value_parser!(u64).range(0..=1024).map(|v| v as usize)
 }
 
 impl Config {

@@ -128,17 +128,22 @@ impl Target {
     }
 }
 
-/// `error` and its causes on one line, `: ` between them, a cause that repeats the one before it
-/// (hyper's connect errors do) left out.
+/// `error` and its causes on one line, `: ` between them, a cause whose text is already said (one
+/// that repeats the one before it, as hyper's connect errors do, or that an error's own message
+/// holds) left out.
 pub fn one_line(error: &anyhow::Error) -> String {
-    let mut parts: Vec<String> = Vec::new();
+    let mut line = String::new();
     for cause in error.chain() {
         let text = cause.to_string();
-        if parts.last() != Some(&text) {
-            parts.push(text);
+        // A cause an error's own message already gives (`{source}` in it) is said once.
+        if !line.contains(&text) {
+            if !line.is_empty() {
+                line.push_str(": ");
+            }
+            line.push_str(&text);
         }
     }
-    parts.join(": ").replace('\n', " ")
+    line.replace('\n', " ")
 }
 
 /// The address to ask a server that listens on `listen`: loopback for an unspecified address.
@@ -169,6 +174,9 @@ mod tests {
     fn an_error_and_its_causes_make_one_line_without_repeats() {
         let error = anyhow!("refused").context("tcp connect").context("tcp connect").context("h:1: cannot\nconnect");
         assert_eq!(one_line(&error), "h:1: cannot connect: tcp connect: refused");
+        // A cause its error's message already holds is said once.
+        let error = anyhow!("No such file").context("d/manifest.json: No such file").context("cannot serve d");
+        assert_eq!(one_line(&error), "cannot serve d: d/manifest.json: No such file");
     }
 
     #[test]

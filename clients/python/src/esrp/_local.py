@@ -396,6 +396,11 @@ class LocalServer:
         found: list[str] = []
         for prefix in wanted:
             line = self._read_line(self.process.stdout, deadline)
+            # Log lines the server's start wrote before its own (a driver's complaint while its
+            # renderer is made) are kept in the log and passed over.
+            while line and not line.startswith("esrp-server "):
+                self._log.write(line)
+                line = self._read_line(self.process.stdout, deadline)
             if not line.startswith(prefix):
                 self._fail(f"printed {line!r} where {prefix!r} was expected")
             found.append(line.removeprefix(prefix).strip())
@@ -514,24 +519,31 @@ def start_servers(count: int, *args: str, **options: Any) -> list[LocalServer]: 
 
 
 class _Log:
-    """The server's log lines (its stdout after the address), kept in a temporary file while it
-    runs: written by the thread that drains the pipe, read by `tail`.
+    """The server's log lines (its stdout but its own `esrp-server ...` lines), kept in a temporary
+    file while it runs: written by the thread that drains the pipe (and by the start, for log lines
+    before the address), read by `tail`.
     """
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._file: IO[bytes] | None = None
+        self._closed = False
+
+    def write(self, line: str) -> None:
+        """Appends `line` (nothing once closed)."""
+        with self._lock:
+            if self._closed:
+                return
+            if self._file is None:
+                self._file = tempfile.TemporaryFile()  # noqa: SIM115 - closed by close()
+            self._file.seek(0, os.SEEK_END)
+            self._file.write(line.encode(errors="replace"))
 
     def drain(self, stream: IO[str]) -> None:
-        with self._lock:
-            self._file = tempfile.TemporaryFile()  # noqa: SIM115 - closed by close()
+        """Writes every line of `stream` until it ends (and reads on once closed)."""
         try:
             for line in stream:
-                with self._lock:
-                    if self._file is None:
-                        continue  # closed: keep draining
-                    self._file.seek(0, os.SEEK_END)
-                    self._file.write(line.encode(errors="replace"))
+                self.write(line)
         except (OSError, ValueError):
             pass
 
@@ -545,6 +557,7 @@ class _Log:
 
     def close(self) -> None:
         with self._lock:
+            self._closed = True
             if self._file is not None:
                 self._file.close()
                 self._file = None

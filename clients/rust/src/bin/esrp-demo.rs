@@ -15,6 +15,7 @@ use std::collections::HashMap;
 
 use anyhow::{Context, bail};
 use clap::Parser;
+use clap::builder::TypedValueParser as _;
 use esrp_client::{
     Action, Client, Difficulty, EpisodeMetrics, EpisodeOptions, RandomActions, SceneFilter, SceneSummary, Split,
     reach_or_start,
@@ -28,8 +29,8 @@ struct Args {
     /// without it, esrp-demo starts one and talks to it over a Unix domain socket.
     #[arg(long)]
     server: Option<String>,
-    /// Number of test scenes.
-    #[arg(long, default_value_t = 6)]
+    /// Number of test scenes (1 to 1,000).
+    #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u16).range(1..=1000).map(usize::from))]
     scenes: usize,
     /// Bearer token of a server started with `--token` (env ESRP_TOKEN).
     #[arg(long, env = "ESRP_TOKEN", hide_env_values = true)]
@@ -133,8 +134,12 @@ async fn random(client: &Client, scenes: &[String], seed: u64) -> anyhow::Result
     Ok(results)
 }
 
+fn main() -> std::process::ExitCode {
+    esrp_client::signals::exit_status("esrp-demo", run())
+}
+
 #[tokio::main]
-async fn main() -> anyhow::Result<()> {
+async fn run() -> anyhow::Result<()> {
     let args = Args::parse();
     esrp_client::signals::exit_on_signals("esrp-demo")?;
     let (address, _local) =

@@ -89,10 +89,12 @@ impl proto::esrp_server::Esrp for EsrpService {
             renderer_backend: format!("{:?}", info.backend).to_lowercase(),
             software_renderer: renderer.is_software(),
             limits: Some(proto::ServerLimits {
-                max_episodes: s.config.max_episodes as u32,
-                max_batch: s.config.max_batch as u32,
-                max_message_bytes: s.config.max_message_bytes as u32,
-                idle_timeout_seconds: s.config.idle_timeout_seconds as u32,
+                // The flags keep the first three within u32; a longer idle timeout than u32 seconds
+                // (136 years) is said as the longest.
+                max_episodes: u32::try_from(s.config.max_episodes).unwrap_or(u32::MAX),
+                max_batch: u32::try_from(s.config.max_batch).unwrap_or(u32::MAX),
+                max_message_bytes: u32::try_from(s.config.max_message_bytes).unwrap_or(u32::MAX),
+                idle_timeout_seconds: u32::try_from(s.config.idle_timeout_seconds).unwrap_or(u32::MAX),
                 max_resolution: s.max_resolution(),
             }),
             live_episodes: s.live() as u32,

@@ -167,8 +167,12 @@ impl Signalled {
         let mut child = command.spawn().expect("the server binary starts");
         let stdin = child.stdin.take();
         let mut stdout = BufReader::new(child.stdout.take().expect("piped stdout"));
+        // The server's own lines start with `esrp-server `: log lines before them are passed over.
         let mut line = String::new();
-        stdout.read_line(&mut line).expect("the server's first line");
+        while !line.starts_with("esrp-server ") {
+            line.clear();
+            assert!(stdout.read_line(&mut line).expect("the server's output") > 0, "the server printed no address");
+        }
         let address = line.trim().strip_prefix("esrp-server listening on ").unwrap_or_else(|| panic!("{line:?}"));
         let address = format!("http://{address}");
         // Keep both pipes drained (and open) until the process ends.

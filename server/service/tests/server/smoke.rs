@@ -159,3 +159,31 @@ async fn both_benchmarks_are_served() {
         .unwrap();
     assert!(!bad.status.success() && String::from_utf8_lossy(&bad.stderr).contains("esrp-bench-v2"));
 }
+
+/// A server that cannot start says why in one line on stderr (no backtrace, whatever
+/// `RUST_BACKTRACE` says; a cause said once) and prints no listening line, which launchers wait
+/// for: they would take it for a server that started.
+#[test]
+fn a_server_that_cannot_start_says_why_in_one_line_and_never_that_it_listens() {
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("missing");
+    for (flag, said) in [("--tokens", "token file"), ("--dataset", "cannot serve the dataset folder")] {
+        let output = esrp_client::LocalServer::command(
+            Some(env!("CARGO_BIN_EXE_esrp-server").into()),
+            &["--no-generate-ahead", flag, missing.to_str().unwrap()],
+        )
+        .unwrap()
+        .env("RUST_BACKTRACE", "1")
+        .env("NODEVICE_SELECT", "1")
+        .output()
+        .unwrap();
+        let (stdout, stderr) = (String::from_utf8_lossy(&output.stdout), String::from_utf8_lossy(&output.stderr));
+        assert_eq!(output.status.code(), Some(1), "{flag}: {stderr}");
+        assert!(!stdout.contains("listening on"), "{flag}: {stdout}");
+        let lines: Vec<&str> = stderr.lines().filter(|l| l.starts_with("esrp-server:")).collect();
+        assert_eq!(lines.len(), 1, "{flag}: {stderr}");
+        assert!(lines[0].starts_with(&format!("esrp-server: {said}")), "{flag}: {stderr}");
+        assert_eq!(lines[0].matches("No such file or directory").count(), 1, "a cause said once: {stderr}");
+        assert!(!stderr.contains("backtrace") && !stderr.contains("Caused by"), "{flag}: {stderr}");
+    }
+}

@@ -261,7 +261,14 @@ def _add_verify(commands: argparse._SubParsersAction[Parser]) -> None:
 
 @one_line_errors
 def _eval(args: argparse.Namespace) -> int:
-    from ..eval.evaluation import EvalError, EvalSettings, ServerGone, format_failures, run_eval
+    from ..eval.evaluation import (
+        EvalError,
+        EvalSettings,
+        ServerGone,
+        format_failures,
+        run_eval,
+        summary_path_of,
+    )
 
     # `--agent my_agents:make` imports from the working directory, as `python -m` would.
     if "" not in sys.path and os.getcwd() not in sys.path:
@@ -279,6 +286,11 @@ def _eval(args: argparse.Namespace) -> int:
             print("esrp eval: --checkpoint only applies to --agent bc or ppo", file=sys.stderr)
             return 2
         agent_config["checkpoint"] = str(args.checkpoint)
+    try:
+        summary_path_of(args.out, args.summary)  # before a server is started
+    except EvalError as error:
+        print(f"esrp eval: {error}", file=sys.stderr)
+        return 2
     settings = EvalSettings(
         agent=args.agent,
         out=args.out,

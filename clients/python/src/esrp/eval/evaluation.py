@@ -753,6 +753,20 @@ class FailureLog:
         return self.path if self.failed else None
 
 
+def summary_path_of(out: Path, summary: Path | None) -> Path:
+    """Where the Markdown summary of results file `out` goes: `summary`, else `out` with `.md`.
+    Raises `EvalError` when that is `out` itself (`--out run.md`, or `--summary` naming the results
+    file): the summary would overwrite the results.
+    """
+    path = summary or out.with_suffix(".md")
+    if path.absolute() == out.absolute():
+        raise EvalError(
+            f"the summary would overwrite the results in {out}: give --out a .jsonl file, or --summary "
+            "another path"
+        )
+    return path
+
+
 async def evaluate(
     client: AsyncClient, settings: EvalSettings, local: LocalServer | None = None
 ) -> EvalOutcome:
@@ -764,6 +778,7 @@ async def evaluate(
     """
     if settings.episodes_in_flight < 1:
         raise EvalError("--episodes-in-flight must be at least 1")
+    summary_path_of(settings.out, settings.summary)
     factory = agent_factory(settings)
     info: ServerInfo = await client.server_info()
     print(
@@ -832,7 +847,7 @@ def finish(
     summary = Summary.of(mine, settings.agent)
     print(f"{settings.agent} on {len(mine)} scenes of {info.dataset} ({seconds:.0f} s):")
     print(summary.text(), end="")
-    summary_path = settings.summary or settings.out.with_suffix(".md")
+    summary_path = summary_path_of(settings.out, settings.summary)
     markdown = summary.markdown(f"{settings.agent} on {info.dataset} ({settings.split} split)")
     markdown += (
         f"\nWritten by {CLIENT_NAME} against esrp-server {info.version} ({info.renderer_adapter} renderer) "

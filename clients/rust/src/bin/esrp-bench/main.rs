@@ -37,6 +37,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, bail};
 use breakdown::Breakdown;
 use clap::Parser;
+use clap::builder::TypedValueParser as _;
 use esrp_client::{
     Action, Answer, Client, ClientError, Episode, EpisodeOptions, LocalServer, RandomActions, SceneFilter, Split,
     StepResult, reach_or_start,
@@ -44,6 +45,38 @@ use esrp_client::{
 
 mod breakdown;
 mod soak;
+
+/// Every scenario `--scenarios` may name.
+const SCENARIOS: [&str; 9] = [
+    "unary-1",
+    "stream-1",
+    "stream-1-pipelined",
+    "unary-64",
+    "streams-64",
+    "stream-mux-64",
+    "batch-64",
+    "memory-1000",
+    "soak",
+];
+
+/// `--seconds`: a number of seconds above 0 and at most a day.
+fn seconds_parser(text: &str) -> Result<f64, String> {
+    within(text, 86_400.0, "seconds")
+}
+
+/// `--minutes`: a number of minutes above 0 and at most a day.
+fn minutes_parser(text: &str) -> Result<f64, String> {
+    within(text, 1_440.0, "minutes")
+}
+
+/// `text` as a number above 0 and at most `most` (NaN and infinities refused).
+fn within(text: &str, most: f64, unit: &str) -> Result<f64, String> {
+    let value: f64 = text.parse().map_err(|e| format!("{e}"))?;
+    if !(value > 0.0 && value <= most) {
+        return Err(format!("{text} is not a number of {unit} above 0 and at most {most}"));
+    }
+    Ok(value)
+}
 
 #[derive(Parser, Debug)]
 #[command(name = "esrp-bench", version, about = "End-to-end throughput and latency of esrp-server")]
@@ -68,21 +101,22 @@ struct Args {
     /// with a server of their own). A server named by `--server` is reached as its URL says.
     #[arg(long, value_enum, default_value_t = Transport::Tcp)]
     transport: Transport,
-    /// Measured seconds per scenario.
-    #[arg(long, default_value_t = 5.0)]
+    /// Measured seconds per scenario (above 0, at most a day).
+    #[arg(long, default_value_t = 5.0, value_parser = seconds_parser)]
     seconds: f64,
     /// Scenarios to run (comma-separated); all but `soak` by default.
     #[arg(
         long,
         value_delimiter = ',',
-        default_value = "unary-1,stream-1,stream-1-pipelined,unary-64,streams-64,stream-mux-64,batch-64,memory-1000"
+        default_value = "unary-1,stream-1,stream-1-pipelined,unary-64,streams-64,stream-mux-64,batch-64,memory-1000",
+        value_parser = clap::builder::PossibleValuesParser::new(SCENARIOS),
     )]
     scenarios: Vec<String>,
     /// Steps in flight in `stream-1-pipelined`.
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=1024))]
     window: u32,
-    /// Episodes of the multi-episode scenarios.
-    #[arg(long, default_value_t = 64)]
+    /// Episodes of the multi-episode scenarios (1 to 4,096).
+    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u16).range(1..=4096).map(usize::from))]
     episodes: usize,
     /// Bearer token of a server started with `--token` (env ESRP_TOKEN).
     #[arg(long, env = "ESRP_TOKEN", hide_env_values = true)]
@@ -90,8 +124,8 @@ struct Args {
     /// Write the results as JSON to this file too.
     #[arg(long)]
     json: Option<PathBuf>,
-    /// Minutes of load in `soak`.
-    #[arg(long, default_value_t = 5.0)]
+    /// Minutes of load in `soak` (above 0, at most a day).
+    #[arg(long, default_value_t = 5.0, value_parser = minutes_parser)]
     minutes: f64,
     /// Concurrent simulated clients in `soak`.
     #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=4096))]
@@ -551,8 +585,20 @@ fn cpu_model() -> String {
         .unwrap_or_default()
 }
 
-fn main() -> anyhow::Result<()> {
+fn main() -> std::process::ExitCode {
+    esrp_client::signals::exit_status("esrp-bench", run())
+}
+
+fn run() -> anyhow::Result<()> {
     let args = Args::parse();
+    if let Some(path) = &args.json {
+        // Where the figures go is checked before the benchmark runs, not after.
+        std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(path)
+            .with_context(|| format!("--json: cannot write {}", path.display()))?;
+    }
     esrp_client::signals::exit_on_signals("esrp-bench")?;
     esrp_client::malloc::keep_freed_memory();
     let mut server_args = args.server_args.clone();
@@ -643,7 +689,8 @@ fn main() -> anyhow::Result<()> {
             "cpus": cpus, "cpu": cpu_model, "results": results.iter().map(Outcome::to_json).collect::<Vec<_>>(),
             "soak": soaks.iter().map(soak::Report::to_json).collect::<Vec<_>>(),
         });
-        std::fs::write(path, serde_json::to_string_pretty(&report)?)?;
+        std::fs::write(path, serde_json::to_string_pretty(&report)?)
+            .with_context(|| format!("cannot write {}", path.display()))?;
     }
     let failed: Vec<String> = soaks.iter().filter(|r| !r.failures.is_empty()).map(soak::Report::verdict).collect();
     if !failed.is_empty() {

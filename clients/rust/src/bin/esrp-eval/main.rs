@@ -16,6 +16,7 @@ use std::time::{Duration, Instant, SystemTime};
 
 use anyhow::{Context, bail};
 use clap::Parser;
+use clap::builder::TypedValueParser as _;
 use esrp_client::results::{self, EpisodeRecord, SCHEMA, Summary, Tally};
 use esrp_client::{Client, ClientError, Difficulty, LocalServer, SceneFilter, SceneSummary, Split, reach_or_start};
 use futures_util::StreamExt as _;
@@ -45,8 +46,8 @@ struct Args {
     #[arg(long, value_delimiter = ',')]
     scenes: Vec<String>,
     /// At most this many scenes (after the filters): the first N of the chosen ones (dataset
-    /// order, or the order `--scenes` names them in).
-    #[arg(long)]
+    /// order, or the order `--scenes` names them in); at least 1.
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..).map(|n| n as usize))]
     limit: Option<usize>,
     /// Episodes played at the same time.
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=1024))]
@@ -252,9 +253,14 @@ fn describe_exit(status: std::process::ExitStatus) -> String {
     status.code().map_or_else(|| format!("exited ({status})"), |code| format!("exited with status {code}"))
 }
 
+fn main() -> std::process::ExitCode {
+    esrp_client::signals::exit_status("esrp-eval", run())
+}
+
 #[tokio::main]
-async fn main() -> anyhow::Result<()> {
+async fn run() -> anyhow::Result<()> {
     let args = Args::parse();
+    summary_path(&args)?; // before a server is started or anything is played
     esrp_client::signals::exit_on_signals("esrp-eval")?;
     esrp_client::malloc::keep_freed_memory();
     let (address, mut local) =
@@ -422,6 +428,20 @@ impl Recording<'_> {
     }
 }
 
+/// Where the summary goes: `--summary`, else `--out` with `.md`; an error when that is the
+/// results file itself (`--out run.md`, or `--summary` naming it): the summary would overwrite it.
+fn summary_path(args: &Args) -> anyhow::Result<PathBuf> {
+    let path = args.summary.clone().unwrap_or_else(|| args.out.with_extension("md"));
+    let absolute = |p: &Path| std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf());
+    if absolute(&path) == absolute(&args.out) {
+        bail!(
+            "the summary would overwrite the results in {}: give --out a .jsonl file, or --summary another path",
+            args.out.display()
+        );
+    }
+    Ok(path)
+}
+
 /// Prints the run's summary and writes it as markdown (`--summary`, else beside `--out`).
 fn write_summary(
     args: &Args,
@@ -430,10 +450,10 @@ fn write_summary(
     records: &[EpisodeRecord],
     started: Instant,
 ) -> anyhow::Result<()> {
-    let summary = Summary::of(records);
+    let summary = Summary { agent: agent.to_owned(), ..Summary::of(records) };
     println!("{agent} on {} scenes of {} ({:.0} s):", records.len(), info.dataset, started.elapsed().as_secs_f64());
     print!("{}", summary.text());
-    let summary_path = args.summary.clone().unwrap_or_else(|| args.out.with_extension("md"));
+    let summary_path = summary_path(args)?;
     let title = format!("{agent} on {} ({} split)", info.dataset, Split::from(args.split).name());
     let mut markdown = summary.markdown(&title);
     markdown.push_str(&format!(
