@@ -179,15 +179,15 @@ async fn serve(config: Config) -> anyhow::Result<()> {
     let listener = tokio::net::TcpListener::bind(config.listen)
         .await
         .map_err(|e| anyhow::anyhow!("cannot listen on {}: {e}", config.listen))?;
-    // Tests and scripts read the bound address (useful with port 0) from the lines printed once
-    // the server is ready (`ready` below): a server that cannot start prints none.
-    let mut lines = vec![format!("esrp-server listening on {}", listener.local_addr()?)];
+    // Tests and scripts read the bound address (useful with port 0) from this line, the first on
+    // stdout: it is printed before anything that may log (the renderer's driver does).
+    println!("esrp-server listening on {}", listener.local_addr()?);
     // With --listen-unix, the socket's line comes next (`unix:PATH`, what local clients connect to).
     let unix = match &config.listen_unix {
         Some(path) => {
             let socket = esrp_server::listen::UnixSocket::bind(path)?;
             let shown = std::path::absolute(path).unwrap_or_else(|_| path.clone());
-            lines.push(format!("esrp-server listening on unix:{}", shown.display()));
+            println!("esrp-server listening on unix:{}", shown.display());
             Some(socket)
         }
         None => None,
@@ -197,7 +197,7 @@ async fn serve(config: Config) -> anyhow::Result<()> {
             let listener = tokio::net::TcpListener::bind(address)
                 .await
                 .map_err(|e| anyhow::anyhow!("cannot listen on {address} for --metrics-listen: {e}"))?;
-            lines.push(format!("esrp-server metrics on http://{}/metrics", listener.local_addr()?));
+            println!("esrp-server metrics on http://{}/metrics", listener.local_addr()?);
             Some(listener)
         }
         None => None,
@@ -214,20 +214,11 @@ async fn serve(config: Config) -> anyhow::Result<()> {
             let listener = tokio::net::TcpListener::bind(address)
                 .await
                 .map_err(|e| anyhow::anyhow!("cannot listen on {address} for --http-listen: {e}"))?;
-            lines.push(format!("esrp-server viewer on http://{}/", listener.local_addr()?));
+            println!("esrp-server viewer on http://{}/", listener.local_addr()?);
             Some(listener)
         }
         None => None,
     };
     let listeners = esrp_server::Listeners { grpc: listener, metrics: metrics_listener, viewer: viewer_listener, unix };
-    let ready = move || {
-        // One lock for all of them: no log line of another thread comes between.
-        use std::io::Write;
-        let mut stdout = std::io::stdout().lock();
-        for line in lines {
-            let _ = writeln!(stdout, "{line}");
-        }
-        let _ = stdout.flush();
-    };
-    Ok(esrp_server::run(listeners, config, signals.wait(), ready).await?)
+    Ok(esrp_server::run(listeners, config, signals.wait()).await?)
 }

@@ -168,20 +168,15 @@ pub struct Listeners {
 }
 
 /// Serves gRPC (and Prometheus metrics and the web viewer, where their listeners are given) until
-/// `shutdown` completes, then drains in-flight calls for at most `--shutdown-grace-ms`. `ready`
-/// is called once the configuration is checked and the episodes are ready (the tokens, the
-/// dataset, the records, the renderer), right before serving: a server that fails to start never
-/// called it (`esrp-server` prints its listening lines there, which launchers wait for).
+/// `shutdown` completes, then drains in-flight calls for at most `--shutdown-grace-ms`.
 pub async fn run(
     listeners: Listeners,
     config: Config,
     shutdown: impl Future<Output = ()> + Send,
-    ready: impl FnOnce(),
 ) -> Result<(), ServeError> {
     let Listeners { grpc: listener, metrics: metrics_listener, viewer: viewer_listener, unix } = listeners;
     let tokens = Arc::new(tokens_of(&config)?);
     let episodes = build_episodes(&config)?;
-    ready();
     let render = episodes.render.clone();
     let address = listener
         .local_addr()
