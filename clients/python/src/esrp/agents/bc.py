@@ -189,18 +189,12 @@ class BcConfig:
         """Raises `ValueError` for schedule, EMA, sampling and augmentation settings out of range."""
         if self.lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule {self.lr_schedule!r}: one of {', '.join(LR_SCHEDULES)}")
-        for name in ("lr_warmup_steps", "span", "augment_shift"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool):
-                raise ValueError(f"{name} must be an integer, not {value!r}")
         if self.lr_warmup_steps < 0 or self.augment_shift < 0:
             raise ValueError("lr_warmup_steps and augment_shift must be 0 or more")
         if self.span < 1:
             raise ValueError(f"span must be at least 1, not {self.span}")
         if self.augment_shift >= self.resolution // 2:
             raise ValueError(f"augment_shift {self.augment_shift}: less than half the resolution")
-        if not isinstance(self.ema, bool):
-            raise ValueError(f"ema must be true or false, not {self.ema!r}")
         if not 0.0 < self.ema_power <= 1.0 or not 0.0 <= self.ema_max_decay < 1.0:
             raise ValueError("ema_power must be in (0, 1] and ema_max_decay in [0, 1)")
 
@@ -215,12 +209,7 @@ class BcConfig:
         return self.lr * 0.5 * (1.0 + math.cos(math.pi * progress))
 
     def _check_evaluation(self) -> None:
-        """Raises `ValueError` for `in_memory` and `eval_*` settings of the wrong type or range."""
-        if not isinstance(self.in_memory, bool):
-            raise ValueError(f"in_memory must be true or false, not {self.in_memory!r}")
-        for name in ("eval_every", "eval_offset", "eval_seed", "eval_episodes_in_flight", "eval_threads"):
-            if not isinstance(getattr(self, name), int) or isinstance(getattr(self, name), bool):
-                raise ValueError(f"{name} must be an integer, not {getattr(self, name)!r}")
+        """Raises `ValueError` for `eval_*` settings out of range (their kinds are `check_kinds`')."""
         if self.eval_every < 0 or self.eval_offset < 0 or self.eval_threads < 0:
             raise ValueError("eval_every, eval_offset and eval_threads must be 0 or more")
         if self.eval_episodes_in_flight < 1:
@@ -234,13 +223,11 @@ class BcConfig:
         ):
             raise ValueError(f"eval_scenes must be a list of scene ids, not {self.eval_scenes!r}")
         self.eval_scenes = list(self.eval_scenes)
-        if self.eval_limit is not None and (not isinstance(self.eval_limit, int) or self.eval_limit < 1):
+        if self.eval_limit is not None and self.eval_limit < 1:
             raise ValueError(f"eval_limit must be at least 1, not {self.eval_limit!r}")
         if self.eval_scenes and (self.eval_limit is not None or self.eval_offset):
             raise ValueError("eval_scenes names the scenes: no eval_limit or eval_offset with it")
-        if self.eval_epsilon is not None and not (
-            isinstance(self.eval_epsilon, int | float) and 0.0 <= self.eval_epsilon <= 1.0
-        ):
+        if self.eval_epsilon is not None and not 0.0 <= self.eval_epsilon <= 1.0:
             raise ValueError(f"eval_epsilon must be between 0 and 1, not {self.eval_epsilon!r}")
 
     def to_dict(self) -> dict[str, Any]:

@@ -138,27 +138,16 @@ class PpoConfig:
                 f"the batch num_envs × num_steps = {self.num_envs * self.num_steps} must be a multiple "
                 f"of minibatch_size {self.minibatch_size}"
             )
-        if self.init is not None and (not isinstance(self.init, str) or not self.init):
+        if self.init == "":
             raise ValueError(f"init must be a checkpoint's path, got {self.init!r}")
-        if (
-            not isinstance(self.critic_warmup, int)
-            or isinstance(self.critic_warmup, bool)
-            or self.critic_warmup < 0
-        ):
+        if self.critic_warmup < 0:
             raise ValueError(
                 f"critic_warmup must be a number of updates (0 or more), got {self.critic_warmup!r}"
             )
-        if self.policy_lr is not None and (
-            isinstance(self.policy_lr, bool)
-            or not isinstance(self.policy_lr, int | float)
-            or self.policy_lr <= 0
-        ):
+        if self.policy_lr is not None and self.policy_lr <= 0:
             raise ValueError(f"policy_lr must be a learning rate above 0 (or absent), got {self.policy_lr!r}")
         if self.norm_adv_scope not in ("minibatch", "batch"):
             raise ValueError(f"norm_adv_scope {self.norm_adv_scope!r}: minibatch or batch")
-        for name in ("norm_adv", "norm_reward", "clip_vloss", "anneal_lr"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"{name} must be true or false, not {getattr(self, name)!r}")
         if not 0 < self.gamma <= 1 or not 0 <= self.gae_lambda <= 1:
             raise ValueError("gamma must be in (0, 1] and gae_lambda in [0, 1]")
         check_device(self.device)

@@ -98,12 +98,12 @@ class ImitationConfig:
         if not self.demos or not all(isinstance(d, str) and d for d in self.demos):
             raise ValueError("demos: a demonstration store's path (or a list of them) is needed")
         for name in ("epochs", "streams", "seq_len"):
-            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
+            if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be an integer of at least 1, got {getattr(self, name)!r}")
         for name in ("lr_warmup_steps", "augment_shift", "seed", "threads"):
-            if not isinstance(getattr(self, name), int) or getattr(self, name) < 0:
+            if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be an integer of at least 0, got {getattr(self, name)!r}")
-        if self.init is not None and (not isinstance(self.init, str) or not self.init):
+        if self.init == "":
             raise ValueError(f"init must be a checkpoint's path, got {self.init!r}")
         if not self.lr > 0 or self.weight_decay < 0 or not self.max_grad_norm > 0:
             raise ValueError("lr and max_grad_norm must be above 0, weight_decay at least 0")
