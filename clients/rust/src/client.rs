@@ -283,11 +283,18 @@ impl Client {
         let (answer, waiting) = tokio::sync::oneshot::channel();
         let mut raw = self.raw();
         let request = options.to_proto();
+        let creating = crate::episode::Creating::begin()?;
         tokio::spawn(async move {
             let result = raw.create_episode(request).await.map(tonic::Response::into_inner);
+            if let Ok(created) = &result {
+                creating.made(&created.episode_id, &raw);
+            }
+            drop(creating);
             if let Err(Ok(created)) = answer.send(result) {
                 // Nobody waits for this episode any more.
-                let _ = raw.close_episode(proto::CloseEpisodeRequest { episode_id: created.episode_id }).await;
+                let episode_id = created.episode_id;
+                let _ = raw.close_episode(proto::CloseEpisodeRequest { episode_id: episode_id.clone() }).await;
+                crate::episode::forget(&episode_id);
             }
         });
         let created = waiting.await.map_err(|_| {

@@ -1,6 +1,9 @@
 //! [`Episode`]: a handle to one live episode on the server ([`crate::EpisodeOptions`] says how
 //! to create one).
 
+use std::collections::BTreeMap;
+use std::sync::Mutex;
+
 use crate::error::{ClientError, Result};
 use crate::proto;
 use crate::raw::RawClient;
@@ -12,7 +15,10 @@ use crate::types::{
 ///
 /// Dropping the handle closes the episode on the server, best effort and without blocking
 /// (a task on the current tokio runtime sends `CloseEpisode`); [`Episode::close`] closes it
-/// and returns its final metrics, and [`Episode::detach`] keeps it alive.
+/// and returns its final metrics, and [`Episode::detach`] keeps it alive. Until then the
+/// episode is also in this process's list of live episodes, which
+/// [`crate::signals::exit_on_signals`] closes when the process is stopped (a process ending
+/// runs no destructor).
 #[derive(Debug)]
 pub struct Episode {
     id: String,
@@ -23,20 +29,133 @@ pub struct Episode {
     closed: bool,
 }
 
+/// What this process has on servers: the episodes it holds a handle to (not closed, not
+/// detached), with the stub each was made through, and its creates in flight. What
+/// [`close_live`] closes when the process is stopped.
+struct Live {
+    episodes: BTreeMap<String, RawClient>,
+    /// `CreateEpisode` calls made and not yet answered (or failed).
+    creating: usize,
+    /// Set by [`close_live`]: no create starts any more.
+    stopping: bool,
+}
+
+static LIVE: Mutex<Live> = Mutex::new(Live { episodes: BTreeMap::new(), creating: 0, stopping: false });
+
+fn live() -> std::sync::MutexGuard<'static, Live> {
+    // The state stays whole whatever panicked while holding it: one change at a time.
+    LIVE.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// A `CreateEpisode` in flight, counted until dropped, so that [`close_live`] also waits for
+/// the episode it makes; see [`Creating::begin`].
+pub(crate) struct Creating(());
+
+impl Creating {
+    /// Counts a create about to be made; an error once the process is stopping.
+    pub(crate) fn begin() -> Result<Creating> {
+        let mut live = live();
+        if live.stopping {
+            return Err(ClientError::Unavailable("this process is stopping: no episode is created".into()));
+        }
+        live.creating += 1;
+        Ok(Creating(()))
+    }
+
+    /// The create made episode `id` through `raw`: it is live from now on (before this count
+    /// drops, so that [`close_live`] never misses it).
+    pub(crate) fn made(&self, id: &str, raw: &RawClient) {
+        live().episodes.insert(id.to_owned(), raw.clone());
+    }
+}
+
+impl Drop for Creating {
+    fn drop(&mut self) {
+        live().creating -= 1;
+    }
+}
+
+/// Forgets episode `id`: it was closed (or detached). A handle forgets its episode once its
+/// close is answered, not when sent, so that a process stopped meanwhile still waits for it.
+pub(crate) fn forget(id: &str) {
+    live().episodes.remove(id);
+}
+
+/// Forgets its episode when dropped: when the close it guards is answered, or given up.
+struct ForgetOnDrop(String);
+
+impl Drop for ForgetOnDrop {
+    fn drop(&mut self) {
+        forget(&self.0);
+    }
+}
+
+/// Closes every episode this process holds a live handle to, each `CloseEpisode` at once, and
+/// those its creates in flight make, until none is left or `deadline`; no create starts from
+/// the first call on. Returns how many were closed (or found gone: a handle's own close came
+/// first) and how many were not (a call that failed,
+/// or was still unanswered at the deadline). The handles stay: their own close or drop later
+/// finds the episode gone on the server. For a process about to exit (see [`crate::signals`]).
+pub(crate) async fn close_live(deadline: tokio::time::Instant) -> (usize, usize) {
+    let (mut closed, mut not_closed) = (0, 0);
+    loop {
+        let (episodes, creating) = {
+            let mut live = live();
+            live.stopping = true;
+            (std::mem::take(&mut live.episodes), live.creating)
+        };
+        if episodes.is_empty() {
+            if creating == 0 {
+                return (closed, not_closed);
+            }
+            if tokio::time::timeout_at(deadline, tokio::time::sleep(std::time::Duration::from_millis(5))).await.is_err()
+            {
+                return (closed, not_closed + creating);
+            }
+            continue;
+        }
+        let count = episodes.len();
+        let calls = episodes.into_iter().map(|(episode_id, mut raw)| async move {
+            // Not found: closed already (by its handle's own close, racing this one).
+            match raw.close_episode(proto::CloseEpisodeRequest { episode_id }).await {
+                Ok(_) => true,
+                Err(status) => status.code() == tonic::Code::NotFound,
+            }
+        });
+        match tokio::time::timeout_at(deadline, futures_util::future::join_all(calls)).await {
+            Ok(answers) => {
+                let ok = answers.iter().filter(|&&ok| ok).count();
+                closed += ok;
+                not_closed += count - ok;
+            }
+            Err(_) => {
+                let live = live();
+                return (closed, not_closed + count + live.episodes.len() + live.creating);
+            }
+        }
+    }
+}
+
 fn missing(what: &str) -> ClientError {
     ClientError::Protocol(format!("the answer has no {what}"))
 }
 
 impl Episode {
+    /// The handle of the episode `created` describes, made by [`crate::Client::create_episode`]
+    /// (whose create already counted it live); on an answer without its scene or a readable
+    /// observation, an error, and the handle dropped (which closes the episode).
     pub(crate) fn created(raw: RawClient, created: proto::CreateEpisodeResponse) -> Result<(Episode, Observation)> {
+        let scene = created.scene.map(SceneSummary::from);
         let episode = Episode {
             id: created.episode_id,
             raw,
-            scene: created.scene.ok_or_else(|| missing("scene"))?.into(),
+            scene: scene.clone().unwrap_or_default(),
             spec: created.spec.unwrap_or_default(),
             closed: false,
         };
-        // On an unreadable observation the handle is dropped here, which closes the episode.
+        if scene.is_none() {
+            return Err(missing("scene"));
+        }
         let observation = created.observation.ok_or_else(|| missing("observation"))?.try_into()?;
         Ok((episode, observation))
     }
@@ -45,7 +164,9 @@ impl Episode {
     /// another client), over `client` (a `&Client`, or its [`RawClient`]). It closes the
     /// episode on drop like any handle.
     pub fn attach(client: impl Into<RawClient>, id: impl Into<String>, scene: SceneSummary) -> Episode {
-        Episode { id: id.into(), raw: client.into(), scene, spec: Default::default(), closed: false }
+        let episode = Episode { id: id.into(), raw: client.into(), scene, spec: Default::default(), closed: false };
+        live().episodes.insert(episode.id.clone(), episode.raw.clone());
+        episode
     }
 
     /// The episode's id (32 hex digits).
@@ -139,6 +260,7 @@ impl Episode {
     /// Closes the episode; returns its metrics at that moment.
     pub async fn close(mut self) -> Result<EpisodeMetrics> {
         self.closed = true;
+        let _forget = ForgetOnDrop(self.id.clone());
         let answer = self
             .raw
             .clone()
@@ -151,6 +273,7 @@ impl Episode {
     /// Gives up the handle without closing the episode; returns its id (see [`Episode::attach`]).
     pub fn detach(mut self) -> String {
         self.closed = true;
+        forget(&self.id);
         std::mem::take(&mut self.id)
     }
 }
@@ -162,11 +285,12 @@ impl Drop for Episode {
         }
         // Best effort, never blocking: outside a runtime (or while it shuts down) the server's
         // idle reaper closes the episode instead.
+        let forget = ForgetOnDrop(std::mem::take(&mut self.id));
         if let Ok(runtime) = tokio::runtime::Handle::try_current() {
             let mut raw = self.raw.clone();
-            let episode_id = std::mem::take(&mut self.id);
             runtime.spawn(async move {
-                let _ = raw.close_episode(proto::CloseEpisodeRequest { episode_id }).await;
+                let _ = raw.close_episode(proto::CloseEpisodeRequest { episode_id: forget.0.clone() }).await;
+                drop(forget);
             });
         }
     }

@@ -4,12 +4,20 @@
 use std::io;
 #[cfg(feature = "tools")]
 use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 /// The exit status of a tool's run: success, or its error printed as one line, `NAME: what
 /// failed: why` (its causes joined by `: `, each said once; never a backtrace, whatever
 /// `RUST_BACKTRACE` says), and status 1.
+///
+/// While a stop by [`exit_on_signals`] is under way, this waits for it instead (the process
+/// exits there, with the signal's status): a tool whose calls failed because its episodes were
+/// being closed must not end the process first.
 #[cfg(feature = "tools")]
 pub fn exit_status(name: &str, result: anyhow::Result<()>) -> ExitCode {
+    while STOPPING.load(Ordering::SeqCst) {
+        std::thread::park();
+    }
     let Err(error) = result else { return ExitCode::SUCCESS };
     let mut line = String::new();
     for cause in error.chain() {
@@ -26,23 +34,34 @@ pub fn exit_status(name: &str, result: anyhow::Result<()>) -> ExitCode {
     ExitCode::FAILURE
 }
 
-/// From now on, the first SIGTERM or SIGINT ends this process at once: it prints `NAME:
-/// terminated` (or `NAME: interrupted`) and exits with status 143 (130). Destructors do not run,
-/// and need not: what the tools write (results records, one `write` each) is already with the
-/// system, and a [`crate::LocalServer`] stops by itself when its stdin pipe closes with this
-/// process. Watched on a thread of its own with a runtime of its own (so it may be called inside
-/// another runtime), and acted on wherever the tool is; returns once the handlers are installed.
+/// How long a stopped tool waits for the server to close its live episodes before it exits.
+pub const CLOSE_GRACE: std::time::Duration = std::time::Duration::from_secs(5);
+
+/// Set once a stop has begun: the tool's own end then waits for it (see [`exit_status`]).
+static STOPPING: AtomicBool = AtomicBool::new(false);
+
+/// From now on, the first SIGTERM or SIGINT stops this process: it prints `NAME: terminated`
+/// (or `NAME: interrupted`), closes on the server every episode it holds a live
+/// [`crate::Episode`] handle to (within [`CLOSE_GRACE`]; a second signal skips the wait), and
+/// exits with status 143 (130). So a job scheduler's SIGTERM leaves no episode on a shared
+/// server behind (a `StepStream`'s episodes end with its connection anyway); those that could
+/// not be closed are counted on stderr, and the server's idle timeout ends them. No other
+/// destructor runs, and none need: what the tools write (results records, one `write` each) is
+/// already with the system, and a [`crate::LocalServer`] stops by itself when its stdin pipe
+/// closes with this process. Watched on a thread of its own with a runtime of its own (so it may
+/// be called inside another runtime), and acted on wherever the tool is; returns once the
+/// handlers are installed.
 pub fn exit_on_signals(name: &'static str) -> io::Result<()> {
     let (installed, outcome) = std::sync::mpsc::channel::<io::Result<()>>();
     std::thread::Builder::new().name("esrp-signals".into()).spawn(move || {
-        let runtime = match tokio::runtime::Builder::new_current_thread().enable_io().build() {
+        let runtime = match tokio::runtime::Builder::new_current_thread().enable_all().build() {
             Ok(runtime) => runtime,
             Err(error) => {
                 let _ = installed.send(Err(error));
                 return;
             }
         };
-        let (word, status) = runtime.block_on(async move {
+        let status = runtime.block_on(async move {
             #[cfg(unix)]
             {
                 use tokio::signal::unix::{SignalKind, signal};
@@ -55,20 +74,93 @@ pub fn exit_on_signals(name: &'static str) -> io::Result<()> {
                     }
                 };
                 let _ = installed.send(Ok(()));
-                tokio::select! {
+                let (word, status) = tokio::select! {
                     _ = terminate.recv() => ("terminated", 143),
                     _ = interrupt.recv() => ("interrupted", 130),
-                }
+                };
+                let again = async {
+                    tokio::select! {
+                        _ = terminate.recv() => {}
+                        _ = interrupt.recv() => {}
+                    }
+                };
+                // A stop already under way (standard input closed) is cut short by this signal.
+                let _ = stop(name, word, again).await;
+                status
             }
             #[cfg(not(unix))]
             {
                 let _ = installed.send(Ok(()));
                 let _ = tokio::signal::ctrl_c().await;
-                ("interrupted", 130)
+                let _ = stop(name, "interrupted", async {
+                    let _ = tokio::signal::ctrl_c().await;
+                })
+                .await;
+                130
             }
         });
-        eprintln!("{name}: {word}");
         std::process::exit(status);
     })?;
     outcome.recv().map_err(|_| io::Error::other("the signal thread ended before installing its handlers"))?
+}
+
+/// Runs a tool's async `body` on `runtime` to its end. If a stop by [`exit_on_signals`] has begun
+/// by then, the body's end waits on the runtime for the process to exit instead: the episodes'
+/// closes go through the connections this runtime drives, so it must outlive them (a body whose
+/// calls failed because its episodes were being closed would otherwise drop it under them).
+pub fn block_on<F: std::future::Future>(runtime: &tokio::runtime::Runtime, body: F) -> F::Output {
+    runtime.block_on(async {
+        let output = body.await;
+        if STOPPING.load(Ordering::SeqCst) {
+            std::future::pending::<()>().await;
+        }
+        output
+    })
+}
+
+/// From now on, this process stops as on SIGTERM (episodes closed, status 143) when its
+/// standard input reaches its end: for a child process whose parent holds a pipe to it, so
+/// that the child ends with its parent however the parent ends (the `--processes` of
+/// `esrp-bench`). Returns once the watching thread runs.
+pub fn exit_when_stdin_closes(name: &'static str) -> io::Result<()> {
+    std::thread::Builder::new().name("esrp-stdin".into()).spawn(move || {
+        let mut sink = [0u8; 256];
+        let mut stdin = io::stdin().lock();
+        while !matches!(io::Read::read(&mut stdin, &mut sink), Ok(0) | Err(_)) {}
+        if let Ok(runtime) = tokio::runtime::Builder::new_current_thread().enable_all().build()
+            && !runtime.block_on(stop(name, "stopped (its standard input closed)", std::future::pending()))
+        {
+            // A signal's stop is under way: it exits.
+            loop {
+                std::thread::park();
+            }
+        }
+        std::process::exit(143);
+    })?;
+    Ok(())
+}
+
+/// What a stop does before the process exits: says `NAME: WORD`, marks the stop begun, and
+/// closes the live episodes until they are closed, [`CLOSE_GRACE`] has passed, or `again` (a
+/// second signal) completes; says how many it could not close. Returns false at once, doing
+/// nothing, when another stop had begun.
+async fn stop(name: &str, word: &str, again: impl std::future::Future<Output = ()>) -> bool {
+    if STOPPING.swap(true, Ordering::SeqCst) {
+        return false;
+    }
+    eprintln!("{name}: {word}");
+    let deadline = tokio::time::Instant::now() + CLOSE_GRACE;
+    tokio::select! {
+        (_, not_closed) = crate::episode::close_live(deadline) => {
+            if not_closed > 0 {
+                eprintln!(
+                    "{name}: {not_closed} episode(s) could not be closed on the server within {} s; \
+                     its idle timeout will end them",
+                    CLOSE_GRACE.as_secs()
+                );
+            }
+        }
+        () = again => eprintln!("{name}: stopped without closing its episodes (a second signal)"),
+    }
+    true
 }

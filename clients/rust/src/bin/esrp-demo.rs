@@ -135,10 +135,13 @@ async fn random(client: &Client, scenes: &[String], seed: u64) -> anyhow::Result
 }
 
 fn main() -> std::process::ExitCode {
-    esrp_client::signals::exit_status("esrp-demo", run())
+    let runtime = tokio::runtime::Runtime::new().context("starting the async runtime");
+    esrp_client::signals::exit_status(
+        "esrp-demo",
+        runtime.and_then(|runtime| esrp_client::signals::block_on(&runtime, run())),
+    )
 }
 
-#[tokio::main]
 async fn run() -> anyhow::Result<()> {
     let args = Args::parse();
     esrp_client::signals::exit_on_signals("esrp-demo")?;

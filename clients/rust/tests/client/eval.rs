@@ -143,7 +143,7 @@ async fn bad_requests_are_refused_with_a_reason() {
 }
 
 /// The processes whose parent is `pid` (Linux's /proc).
-fn children(pid: u32) -> Vec<u32> {
+pub(crate) fn children(pid: u32) -> Vec<u32> {
     let mut found = Vec::new();
     for entry in std::fs::read_dir("/proc").expect("/proc").flatten() {
         let Ok(child) = entry.file_name().to_string_lossy().parse::<u32>() else { continue };
@@ -180,7 +180,7 @@ fn eval_with_two_records(dir: &Path, args: &[&str]) -> (std::process::Child, std
 }
 
 /// Whether process `pid` runs (a zombie, exited but not yet reaped by its new parent, does not).
-fn alive(pid: u32) -> bool {
+pub(crate) fn alive(pid: u32) -> bool {
     std::fs::read_to_string(format!("/proc/{pid}/stat"))
         .is_ok_and(|stat| stat.rsplit_once(')').is_some_and(|(_, rest)| !rest.trim_start().starts_with('Z')))
 }

@@ -7,4 +7,5 @@ mod errors;
 mod eval;
 mod harness;
 mod planning;
+mod signals;
 mod streams;

@@ -162,6 +162,11 @@ struct Args {
     /// wake-up). The scenarios of one episode always run on one thread.
     #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u16).range(0..=256))]
     client_threads: u16,
+    /// Stop (closing this process's episodes) when standard input reaches its end: what the
+    /// `--processes` children are started with, on a pipe their parent holds, so that they end
+    /// with it however it ends.
+    #[arg(long, hide = true)]
+    stop_on_stdin_close: bool,
 }
 
 /// How the clients reach a server started here (`--transport`).
@@ -508,12 +513,17 @@ fn in_processes(name: &str, args: &Args, addresses: &[String], metrics: Option<&
             .args(["--client-threads", &child_threads(args.client_threads).to_string()])
             .arg("--json")
             .arg(&json)
+            .arg("--stop-on-stdin-close")
+            .stdin(std::process::Stdio::piped())
             .stdout(std::process::Stdio::null());
         if let Some(token) = &args.token {
             command.env("ESRP_TOKEN", token);
         }
         children.push((command.spawn().context("starting a client process")?, json));
     }
+    // The children's stdin pipes, held until every child has ended (`Child::wait` would close a
+    // child's own, which stops it): if this process ends first, they stop with it.
+    let _pipes: Vec<_> = children.iter_mut().map(|(child, _)| child.stdin.take()).collect();
     let mut outcome = Outcome { name: name.to_owned(), seconds: args.seconds, ..Default::default() };
     for (mut child, json) in children {
         let status = child.wait()?;
@@ -600,6 +610,9 @@ fn run() -> anyhow::Result<()> {
             .with_context(|| format!("--json: cannot write {}", path.display()))?;
     }
     esrp_client::signals::exit_on_signals("esrp-bench")?;
+    if args.stop_on_stdin_close {
+        esrp_client::signals::exit_when_stdin_closes("esrp-bench")?;
+    }
     esrp_client::malloc::keep_freed_memory();
     let mut server_args = args.server_args.clone();
     let claim_timeout = claim_timeout(&args, &mut server_args)?;
@@ -658,8 +671,8 @@ fn run() -> anyhow::Result<()> {
                 rss_growth_limit_percent: args.rss_growth_limit,
                 claim_timeout: Duration::from_secs(claim_timeout),
             };
-            let report = runtime_for(name, args.client_threads)?
-                .block_on(soak::run(settings, local.as_ref()))
+            let runtime = runtime_for(name, args.client_threads)?;
+            let report = esrp_client::signals::block_on(&runtime, soak::run(settings, local.as_ref()))
                 .context("scenario soak")?;
             report.print();
             results.push(Outcome {
@@ -676,8 +689,10 @@ fn run() -> anyhow::Result<()> {
         let outcome = if args.processes > 1 && name != "memory-1000" {
             in_processes(name, &args, &addresses, metrics.as_deref())
         } else {
-            runtime_for(name, args.client_threads)?
-                .block_on(async { scenario(name, &args, &connect().await?, local.as_ref(), metrics.as_deref()).await })
+            let runtime = runtime_for(name, args.client_threads)?;
+            esrp_client::signals::block_on(&runtime, async {
+                scenario(name, &args, &connect().await?, local.as_ref(), metrics.as_deref()).await
+            })
         }
         .with_context(|| format!("scenario {name}"))?;
         outcome.print_row();

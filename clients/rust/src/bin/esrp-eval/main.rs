@@ -254,10 +254,13 @@ fn describe_exit(status: std::process::ExitStatus) -> String {
 }
 
 fn main() -> std::process::ExitCode {
-    esrp_client::signals::exit_status("esrp-eval", run())
+    let runtime = tokio::runtime::Runtime::new().context("starting the async runtime");
+    esrp_client::signals::exit_status(
+        "esrp-eval",
+        runtime.and_then(|runtime| esrp_client::signals::block_on(&runtime, run())),
+    )
 }
 
-#[tokio::main]
 async fn run() -> anyhow::Result<()> {
     let args = Args::parse();
     summary_path(&args)?; // before a server is started or anything is played
