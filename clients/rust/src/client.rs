@@ -37,6 +37,51 @@ impl Tls {
         Tls { config: ClientTlsConfig::new().ca_certificate(Certificate::from_pem(pem)) }
     }
 
+    /// Trusts the CA certificate(s) in the PEM file `path`: a [`ClientError::Config`] naming
+    /// it when it cannot be read or holds no certificate.
+    pub fn ca_pem_file(path: impl AsRef<std::path::Path>) -> Result<Self> {
+        let path = path.as_ref();
+        let pem = std::fs::read(path)
+            .map_err(|e| ClientError::Config(format!("cannot read the CA certificate {}: {e}", path.display())))?;
+        if !pem.windows(27).any(|w| w == b"-----BEGIN CERTIFICATE-----") {
+            return Err(ClientError::Config(format!("{} holds no PEM certificate", path.display())));
+        }
+        Ok(Self::ca_pem(pem))
+    }
+
+    /// Trusts the system's certificate authorities (what an `https://` URL uses when no
+    /// [`ConnectBuilder::tls`] is given).
+    pub fn system_roots() -> Self {
+        Tls { config: ClientTlsConfig::new().with_native_roots() }
+    }
+
+    /// The settings of the tools' `--tls-ca FILE` and `--tls-domain NAME` for `server` (their
+    /// `--server`): none without either; otherwise `server` must be an `https://` URL (refused
+    /// here, before anything starts), trusting the CA in FILE (or else the system's) and checking
+    /// the certificate against NAME (or else the URL's host).
+    pub fn from_flags(
+        server: Option<&str>,
+        ca: Option<&std::path::Path>,
+        domain: Option<&str>,
+    ) -> Result<Option<Self>> {
+        if ca.is_none() && domain.is_none() {
+            return Ok(None);
+        }
+        if !server.is_some_and(|url| url.get(..8).is_some_and(|scheme| scheme.eq_ignore_ascii_case("https://"))) {
+            return Err(ClientError::Config(
+                "--tls-ca and --tls-domain are for a server named by an https:// --server URL".into(),
+            ));
+        }
+        let tls = match ca {
+            Some(path) => Self::ca_pem_file(path)?,
+            None => Self::system_roots(),
+        };
+        Ok(Some(match domain {
+            Some(name) => tls.domain_name(name),
+            None => tls,
+        }))
+    }
+
     /// Checks the server's certificate against `name` instead of the URL's host.
     pub fn domain_name(self, name: impl Into<String>) -> Self {
         Tls { config: self.config.domain_name(name) }
@@ -66,9 +111,16 @@ impl ConnectBuilder {
         self
     }
 
-    /// Connects over TLS (use an `https://` URL).
+    /// Connects over TLS with these settings (use an `https://` URL; without them, an
+    /// `https://` URL trusts the system's certificate authorities).
     pub fn tls(mut self, tls: Tls) -> Self {
         self.tls = Some(tls);
+        self
+    }
+
+    /// Sets the TLS settings when `tls` is `Some`.
+    pub fn tls_opt(mut self, tls: Option<Tls>) -> Self {
+        self.tls = tls;
         self
     }
 
@@ -93,8 +145,14 @@ impl ConnectBuilder {
             .initial_stream_window_size(16 << 20)
             .max_frame_size(MAX_FRAME_BYTES)
             .connect_timeout(self.connect_timeout);
-        if let Some(tls) = &self.tls {
-            endpoint = endpoint.tls_config(tls.config.clone())?;
+        let https = self.url.get(..8).is_some_and(|scheme| scheme.eq_ignore_ascii_case("https://"));
+        match &self.tls {
+            Some(tls) if !https => {
+                return Err(ClientError::Config(format!("TLS settings are for an https:// URL, not {:?}", self.url)));
+            }
+            Some(tls) => endpoint = endpoint.tls_config(tls.config.clone())?,
+            None if https => endpoint = endpoint.tls_config(Tls::system_roots().config)?,
+            None => {}
         }
         Ok(endpoint)
     }

@@ -11,7 +11,8 @@
 //! so the check needs none against a server started with `--token`. TLS: with an `https://`
 //! address, or when the server's `--tls-cert` (`ESRP_TLS_CERT`) is set in the environment the
 //! check runs in, as it is inside the server's own container, the check speaks TLS and trusts
-//! `--tls-ca` (by default that certificate chain).
+//! `--tls-ca`; without it, that certificate chain and the system's certificate authorities (for
+//! a chain that leaves out its root), or the system's alone where no chain is set.
 
 use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
 use std::path::PathBuf;
@@ -37,7 +38,8 @@ pub struct HealthCheckArgs {
     /// Give up after this many milliseconds, connecting included.
     #[arg(long, env = "ESRP_HEALTH_CHECK_TIMEOUT_MS", default_value_t = 3000, value_parser = clap::value_parser!(u64).range(1..))]
     pub timeout_ms: u64,
-    /// TLS: the certificates to trust (PEM). Default: the server's --tls-cert (`ESRP_TLS_CERT`).
+    /// TLS: the certificates to trust (PEM). Default: the server's --tls-cert (`ESRP_TLS_CERT`)
+    /// and the system's certificate authorities.
     #[arg(long, env = "ESRP_HEALTH_CHECK_TLS_CA")]
     pub tls_ca: Option<PathBuf>,
     /// TLS: the name the server's certificate must carry. Default: the address's host.
@@ -76,21 +78,27 @@ impl Target {
             Some((scheme, _)) => bail!("unknown scheme {scheme:?} in {address:?}: use http:// or https://"),
             None => ("", address.clone()),
         };
-        let ca = args.tls_ca.clone().or_else(|| config.tls_cert.clone());
         let use_tls = match scheme {
             "https" => true,
             "http" => false,
-            _ => ca.is_some(),
+            _ => args.tls_ca.is_some() || config.tls_cert.is_some(),
         };
         let tls = if use_tls {
             let mut tls = ClientTlsConfig::new();
-            match &ca {
-                Some(path) => {
+            match (&args.tls_ca, &config.tls_cert) {
+                (Some(path), _) => {
                     let pem =
                         std::fs::read(path).with_context(|| format!("cannot read --tls-ca {}", path.display()))?;
                     tls = tls.ca_certificate(Certificate::from_pem(pem));
                 }
-                None => bail!("{address:?}: TLS needs --tls-ca (the certificates to trust, PEM)"),
+                (None, Some(path)) => {
+                    // The server's own chain, and the system's authorities for a chain that
+                    // leaves out its root.
+                    let pem = std::fs::read(path)
+                        .with_context(|| format!("cannot read the server's --tls-cert {}", path.display()))?;
+                    tls = tls.ca_certificate(Certificate::from_pem(pem)).with_native_roots();
+                }
+                (None, None) => tls = tls.with_native_roots(),
             }
             if let Some(domain) = &args.tls_domain {
                 tls = tls.domain_name(domain.clone());
@@ -192,8 +200,9 @@ mod tests {
         let target = |address: &str, config: &Config| Target::new(&args(address), config);
         assert_eq!(target("127.0.0.1:9", &plain).unwrap().url, "http://127.0.0.1:9");
         assert_eq!(target("http://h:9", &plain).unwrap().url, "http://h:9");
-        let error = target("https://h:9", &plain).err().unwrap().to_string();
-        assert!(error.contains("TLS needs --tls-ca"), "{error}");
+        // Without a certificate to trust, the system's authorities.
+        let system = target("https://h:9", &plain).unwrap();
+        assert!(system.url == "https://h:9" && system.tls.is_some());
         let error = target("ftp://h:9", &plain).err().unwrap().to_string();
         assert!(error.contains("unknown scheme"), "{error}");
         // A server configured for TLS is checked over TLS, trusting its own certificate (which
@@ -201,7 +210,7 @@ mod tests {
         let mut tls = plain.clone();
         tls.tls_cert = Some("/nonexistent/cert.pem".into());
         let error = target("127.0.0.1:9", &tls).err().unwrap().to_string();
-        assert!(error.contains("cannot read --tls-ca /nonexistent/cert.pem"), "{error}");
+        assert!(error.contains("cannot read the server's --tls-cert /nonexistent/cert.pem"), "{error}");
         assert_eq!(target("http://127.0.0.1:9", &tls).unwrap().url, "http://127.0.0.1:9");
     }
 }

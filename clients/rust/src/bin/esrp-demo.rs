@@ -17,7 +17,7 @@ use anyhow::{Context, bail};
 use clap::Parser;
 use clap::builder::TypedValueParser as _;
 use esrp_client::{
-    Action, Client, Difficulty, EpisodeMetrics, EpisodeOptions, RandomActions, SceneFilter, SceneSummary, Split,
+    Action, Client, Difficulty, EpisodeMetrics, EpisodeOptions, RandomActions, SceneFilter, SceneSummary, Split, Tls,
     reach_or_start,
 };
 use tokio_stream::StreamExt;
@@ -35,6 +35,14 @@ struct Args {
     /// Bearer token of a server started with `--token` (env ESRP_TOKEN).
     #[arg(long, env = "ESRP_TOKEN", hide_env_values = true)]
     token: Option<String>,
+    /// TLS, for an `https://` --server: the certificate authority to trust (a PEM file; default:
+    /// the system's).
+    #[arg(long, env = "ESRP_TLS_CA", value_name = "FILE")]
+    tls_ca: Option<std::path::PathBuf>,
+    /// TLS, for an `https://` --server: the name its certificate must carry (default: the URL's
+    /// host).
+    #[arg(long, env = "ESRP_TLS_DOMAIN", value_name = "NAME")]
+    tls_domain: Option<String>,
     /// Seed of the random agent.
     #[arg(long, default_value_t = 1)]
     seed: u64,
@@ -144,10 +152,11 @@ fn main() -> std::process::ExitCode {
 
 async fn run() -> anyhow::Result<()> {
     let args = Args::parse();
+    let tls = Tls::from_flags(args.server.as_deref(), args.tls_ca.as_deref(), args.tls_domain.as_deref())?;
     esrp_client::signals::exit_on_signals("esrp-demo")?;
     let (address, _local) =
         reach_or_start(args.server.as_deref(), None, &esrp_client::local::with_socket::<&str>(&[]))?;
-    let client = Client::connect(&address).token_opt(args.token.as_deref()).await?;
+    let client = Client::connect(&address).token_opt(args.token.as_deref()).tls_opt(tls).await?;
     let info = client.server_info().await?;
     println!(
         "esrp-server {} at {address}: dataset {}, renderer {} ({})",

@@ -235,3 +235,42 @@ fn a_dead_local_server_stops_the_run() {
     let read = read_records(&out).expect("the results read back");
     assert!(!read.torn_tail && read.records.len() >= 2);
 }
+
+/// `--tls-ca` and `--tls-domain` reach a server serving TLS with a certificate of its own CA;
+/// without them its certificate is not trusted (the system's authorities did not sign it), and
+/// with a plain `--server` they are refused before anything runs.
+#[test]
+fn the_tools_reach_a_tls_server_with_its_ca() {
+    let rcgen::CertifiedKey { cert, signing_key } =
+        rcgen::generate_simple_self_signed(vec!["localhost".to_owned()]).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let (cert_path, key_path) = (dir.path().join("cert.pem"), dir.path().join("key.pem"));
+    std::fs::write(&cert_path, cert.pem()).unwrap();
+    std::fs::write(&key_path, signing_key.serialize_pem()).unwrap();
+    let server = start(&["--tls-cert", cert_path.to_str().unwrap(), "--tls-key", key_path.to_str().unwrap()]);
+    let port = server.address.rsplit(':').next().unwrap();
+    let (by_name, by_address) = (format!("https://localhost:{port}"), format!("https://127.0.0.1:{port}"));
+    let out = dir.path().join("random.jsonl");
+    let run = ["--agent", "random", "--split", "test", "--limit", "1", "--out", out.to_str().unwrap()];
+    let ca = ["--tls-ca", cert_path.to_str().unwrap()];
+    ok(eval(&by_name, &[&run[..], &ca].concat()));
+    std::fs::remove_file(&out).unwrap();
+    ok(eval(&by_address, &[&run[..], &ca, &["--tls-domain", "localhost"]].concat()));
+    let demo = Command::new(env!("CARGO_BIN_EXE_esrp-demo"))
+        .args(["--server", &by_name, "--scenes", "1"])
+        .args(ca)
+        .output()
+        .expect("esrp-demo runs");
+    assert!(demo.status.success(), "{}", String::from_utf8_lossy(&demo.stderr));
+
+    let untrusted = eval(&by_name, &run);
+    let stderr = String::from_utf8_lossy(&untrusted.stderr);
+    assert!(!untrusted.status.success() && stderr.lines().count() == 1, "{stderr}");
+    assert!(stderr.contains("certificate") || stderr.contains("UnknownIssuer"), "{stderr}");
+    let plain = eval("http://127.0.0.1:1", &[&run[..], &ca].concat());
+    let stderr = String::from_utf8_lossy(&plain.stderr);
+    assert!(stderr.contains("are for a server named by an https:// --server URL"), "{stderr}");
+    let missing = eval(&by_name, &[&run[..], &["--tls-ca", "/nonexistent/ca.pem"]].concat());
+    let stderr = String::from_utf8_lossy(&missing.stderr);
+    assert!(stderr.contains("cannot read the CA certificate /nonexistent/ca.pem"), "{stderr}");
+}

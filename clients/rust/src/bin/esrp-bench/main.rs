@@ -40,7 +40,7 @@ use clap::Parser;
 use clap::builder::TypedValueParser as _;
 use esrp_client::{
     Action, Answer, Client, ClientError, Episode, EpisodeOptions, LocalServer, RandomActions, SceneFilter, Split,
-    StepResult, reach_or_start,
+    StepResult, Tls, reach_or_start,
 };
 
 mod breakdown;
@@ -121,6 +121,14 @@ struct Args {
     /// Bearer token of a server started with `--token` (env ESRP_TOKEN).
     #[arg(long, env = "ESRP_TOKEN", hide_env_values = true)]
     token: Option<String>,
+    /// TLS, for an `https://` --server: the certificate authority to trust (a PEM file; default:
+    /// the system's).
+    #[arg(long, env = "ESRP_TLS_CA", value_name = "FILE")]
+    tls_ca: Option<std::path::PathBuf>,
+    /// TLS, for an `https://` --server: the name its certificate must carry (default: the URL's
+    /// host).
+    #[arg(long, env = "ESRP_TLS_DOMAIN", value_name = "NAME")]
+    tls_domain: Option<String>,
     /// Write the results as JSON to this file too.
     #[arg(long)]
     json: Option<PathBuf>,
@@ -519,6 +527,12 @@ fn in_processes(name: &str, args: &Args, addresses: &[String], metrics: Option<&
         if let Some(token) = &args.token {
             command.env("ESRP_TOKEN", token);
         }
+        if let Some(ca) = &args.tls_ca {
+            command.arg("--tls-ca").arg(ca);
+        }
+        if let Some(domain) = &args.tls_domain {
+            command.args(["--tls-domain", domain]);
+        }
         children.push((command.spawn().context("starting a client process")?, json));
     }
     // The children's stdin pipes, held until every child has ended (`Child::wait` would close a
@@ -628,6 +642,10 @@ fn run() -> anyhow::Result<()> {
     }
     let named: Vec<String> =
         args.server.iter().flat_map(|s| s.split(',')).map(|s| s.trim().to_owned()).filter(|s| !s.is_empty()).collect();
+    let mut tls = None;
+    for server in named.iter().map(|s| Some(s.as_str())).chain(named.is_empty().then_some(None)) {
+        tls = Tls::from_flags(server, args.tls_ca.as_deref(), args.tls_domain.as_deref())?;
+    }
     if named.len() > 1 && args.processes < 2 {
         bail!("several servers need --processes (process i drives server i modulo their number)");
     }
@@ -642,7 +660,7 @@ fn run() -> anyhow::Result<()> {
         bail!("--breakdown needs the server's metrics: give --metrics URL with --server");
     }
     let metrics = metrics.filter(|_| args.breakdown);
-    let connect = async || Client::connect(&address).token_opt(args.token.as_deref()).await;
+    let connect = async || Client::connect(&address).token_opt(args.token.as_deref()).tls_opt(tls.clone()).await;
     let info =
         runtime_for("", args.client_threads)?.block_on(async { anyhow::Ok(connect().await?.server_info().await?) })?;
     let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
@@ -665,6 +683,7 @@ fn run() -> anyhow::Result<()> {
             let settings = soak::Settings {
                 address: address.clone(),
                 token: args.token.clone(),
+                tls: tls.clone(),
                 minutes: args.minutes,
                 clients: args.clients as usize,
                 seed: args.seed,

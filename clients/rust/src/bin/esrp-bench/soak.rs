@@ -61,6 +61,8 @@ pub struct Settings {
     pub address: String,
     /// Its bearer token, if it wants one.
     pub token: Option<String>,
+    /// Its TLS settings, for an `https://` address.
+    pub tls: Option<esrp_client::Tls>,
     /// Minutes of load.
     pub minutes: f64,
     /// Concurrent simulated clients.
@@ -76,7 +78,7 @@ pub struct Settings {
 
 impl Settings {
     async fn connect(&self) -> Result<Client, ClientError> {
-        Client::connect(self.address.clone()).token_opt(self.token.as_deref()).await
+        Client::connect(self.address.clone()).token_opt(self.token.as_deref()).tls_opt(self.tls.clone()).await
     }
 }
 

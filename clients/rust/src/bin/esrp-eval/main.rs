@@ -18,7 +18,9 @@ use anyhow::{Context, bail};
 use clap::Parser;
 use clap::builder::TypedValueParser as _;
 use esrp_client::results::{self, EpisodeRecord, SCHEMA, Summary, Tally};
-use esrp_client::{Client, ClientError, Difficulty, LocalServer, SceneFilter, SceneSummary, Split, reach_or_start};
+use esrp_client::{
+    Client, ClientError, Difficulty, LocalServer, SceneFilter, SceneSummary, Split, Tls, reach_or_start,
+};
 use futures_util::StreamExt as _;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
@@ -81,6 +83,14 @@ struct Args {
     /// Bearer token of a server started with `--token` (env ESRP_TOKEN).
     #[arg(long, env = "ESRP_TOKEN", hide_env_values = true)]
     token: Option<String>,
+    /// TLS, for an `https://` --server: the certificate authority to trust (a PEM file; default:
+    /// the system's).
+    #[arg(long, env = "ESRP_TLS_CA", value_name = "FILE")]
+    tls_ca: Option<std::path::PathBuf>,
+    /// TLS, for an `https://` --server: the name its certificate must carry (default: the URL's
+    /// host).
+    #[arg(long, env = "ESRP_TLS_DOMAIN", value_name = "NAME")]
+    tls_domain: Option<String>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -264,11 +274,12 @@ fn main() -> std::process::ExitCode {
 async fn run() -> anyhow::Result<()> {
     let args = Args::parse();
     summary_path(&args)?; // before a server is started or anything is played
+    let tls = Tls::from_flags(args.server.as_deref(), args.tls_ca.as_deref(), args.tls_domain.as_deref())?;
     esrp_client::signals::exit_on_signals("esrp-eval")?;
     esrp_client::malloc::keep_freed_memory();
     let (address, mut local) =
         reach_or_start(args.server.as_deref(), None, &esrp_client::local::with_socket(&args.server_args))?;
-    let client = Client::connect(&address).token_opt(args.token.as_deref()).await?;
+    let client = Client::connect(&address).token_opt(args.token.as_deref()).tls_opt(tls).await?;
     let info = client.server_info().await?;
     eprintln!(
         "esrp-server {} at {address}: dataset {}, renderer {}",
