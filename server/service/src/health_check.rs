@@ -10,9 +10,11 @@
 //! The health service answers without a bearer token (kubelet's gRPC probes cannot send one),
 //! so the check needs none against a server started with `--token`. TLS: with an `https://`
 //! address, or when the server's `--tls-cert` (`ESRP_TLS_CERT`) is set in the environment the
-//! check runs in, as it is inside the server's own container, the check speaks TLS and trusts
-//! `--tls-ca`; without it, that certificate chain and the system's certificate authorities (for
-//! a chain that leaves out its root), or the system's alone where no chain is set.
+//! check runs in, as it is inside the server's own container, the check speaks TLS. It trusts
+//! `--tls-ca` when given (checking the certificate's name: the address's host, or
+//! `--tls-domain`); else, with the server's `--tls-cert` set, exactly the certificate that file
+//! starts with, whatever its names and kind (`pinned`; with `--tls-domain`, that chain and the
+//! system's authorities, the name checked); else the system's authorities.
 
 use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
 use std::path::PathBuf;
@@ -38,11 +40,13 @@ pub struct HealthCheckArgs {
     /// Give up after this many milliseconds, connecting included.
     #[arg(long, env = "ESRP_HEALTH_CHECK_TIMEOUT_MS", default_value_t = 3000, value_parser = clap::value_parser!(u64).range(1..))]
     pub timeout_ms: u64,
-    /// TLS: the certificates to trust (PEM). Default: the server's --tls-cert (`ESRP_TLS_CERT`)
-    /// and the system's certificate authorities.
+    /// TLS: the certificates to trust (PEM). Default: exactly the certificate of the server's
+    /// --tls-cert (`ESRP_TLS_CERT`) where it is set, whatever its names; else the system's
+    /// certificate authorities.
     #[arg(long, env = "ESRP_HEALTH_CHECK_TLS_CA")]
     pub tls_ca: Option<PathBuf>,
-    /// TLS: the name the server's certificate must carry. Default: the address's host.
+    /// TLS: the name the server's certificate must carry. Default: the address's host, checked
+    /// unless the server's own certificate is what is trusted.
     #[arg(long, env = "ESRP_HEALTH_CHECK_TLS_DOMAIN")]
     pub tls_domain: Option<String>,
 }
@@ -61,10 +65,23 @@ pub fn run(args: &HealthCheckArgs, config: &Config) -> anyhow::Result<String> {
     })
 }
 
+mod pinned;
+
 /// Where to connect and how.
 struct Target {
     url: String,
-    tls: Option<ClientTlsConfig>,
+    trust: Trust,
+}
+
+/// How the check trusts the server.
+#[derive(Debug)]
+enum Trust {
+    /// Plain HTTP/2.
+    Plain,
+    /// TLS verified as any client would (a CA, the certificate's name).
+    Authorities(ClientTlsConfig),
+    /// TLS trusting exactly the certificate of the server's own `--tls-cert`.
+    Itself(std::sync::Arc<rustls::ClientConfig>),
 }
 
 impl Target {
@@ -83,43 +100,51 @@ impl Target {
             "http" => false,
             _ => args.tls_ca.is_some() || config.tls_cert.is_some(),
         };
-        let tls = if use_tls {
-            let mut tls = ClientTlsConfig::new();
-            match (&args.tls_ca, &config.tls_cert) {
-                (Some(path), _) => {
-                    let pem =
-                        std::fs::read(path).with_context(|| format!("cannot read --tls-ca {}", path.display()))?;
-                    tls = tls.ca_certificate(Certificate::from_pem(pem));
+        let trust = match (use_tls, &args.tls_ca, &config.tls_cert) {
+            (false, _, _) => Trust::Plain,
+            (true, Some(path), _) => {
+                let pem = std::fs::read(path).with_context(|| format!("cannot read --tls-ca {}", path.display()))?;
+                let mut tls = ClientTlsConfig::new().ca_certificate(Certificate::from_pem(pem));
+                if let Some(domain) = &args.tls_domain {
+                    tls = tls.domain_name(domain.clone());
                 }
-                (None, Some(path)) => {
-                    // The server's own chain, and the system's authorities for a chain that
-                    // leaves out its root.
+                Trust::Authorities(tls)
+            }
+            (true, None, Some(path)) if args.tls_domain.is_none() => Trust::Itself(pinned::config(path)?),
+            (true, None, chain) => {
+                // The system's authorities, and the server's own chain when it is set (with a
+                // --tls-domain to check: the certificate's kind and names as any client would).
+                let mut tls = ClientTlsConfig::new().with_native_roots();
+                if let Some(path) = chain {
                     let pem = std::fs::read(path)
                         .with_context(|| format!("cannot read the server's --tls-cert {}", path.display()))?;
-                    tls = tls.ca_certificate(Certificate::from_pem(pem)).with_native_roots();
+                    tls = tls.ca_certificate(Certificate::from_pem(pem));
                 }
-                (None, None) => tls = tls.with_native_roots(),
+                if let Some(domain) = &args.tls_domain {
+                    tls = tls.domain_name(domain.clone());
+                }
+                Trust::Authorities(tls)
             }
-            if let Some(domain) = &args.tls_domain {
-                tls = tls.domain_name(domain.clone());
-            }
-            Some(tls)
-        } else {
-            None
         };
         let url = format!("{}://{rest}", if use_tls { "https" } else { "http" });
-        Ok(Self { url, tls })
+        Ok(Self { url, trust })
     }
 
     /// Connects and asks; the caller bounds the time of the whole (one clock for connecting and
     /// answering, one message for running out of it).
     async fn check(&self, service: &str) -> anyhow::Result<String> {
-        let mut endpoint =
-            Endpoint::from_shared(self.url.clone()).map_err(|e| anyhow!("{:?} is not an address: {e}", self.url))?;
-        if let Some(tls) = &self.tls {
-            endpoint = endpoint.tls_config(tls.clone()).with_context(|| format!("{}: TLS settings", self.url))?;
-        }
-        let channel = endpoint.connect().await.with_context(|| format!("{}: cannot connect", self.url))?;
+        let endpoint =
+            || Endpoint::from_shared(self.url.clone()).map_err(|e| anyhow!("{:?} is not an address: {e}", self.url));
+        let channel = match &self.trust {
+            Trust::Plain => endpoint()?.connect().await.map_err(anyhow::Error::from),
+            Trust::Authorities(tls) => {
+                let endpoint =
+                    endpoint()?.tls_config(tls.clone()).with_context(|| format!("{}: TLS settings", self.url))?;
+                endpoint.connect().await.map_err(anyhow::Error::from)
+            }
+            Trust::Itself(config) => pinned::connect(self.url.trim_start_matches("https://"), config.clone()).await,
+        };
+        let channel = channel.with_context(|| format!("{}: cannot connect", self.url))?;
         let answer = HealthClient::new(channel)
             .check(HealthCheckRequest { service: service.to_owned() })
             .await
@@ -202,7 +227,7 @@ mod tests {
         assert_eq!(target("http://h:9", &plain).unwrap().url, "http://h:9");
         // Without a certificate to trust, the system's authorities.
         let system = target("https://h:9", &plain).unwrap();
-        assert!(system.url == "https://h:9" && system.tls.is_some());
+        assert!(system.url == "https://h:9" && matches!(system.trust, Trust::Authorities(_)));
         let error = target("ftp://h:9", &plain).err().unwrap().to_string();
         assert!(error.contains("unknown scheme"), "{error}");
         // A server configured for TLS is checked over TLS, trusting its own certificate (which

@@ -66,27 +66,43 @@ fn a_closed_port_or_a_silent_one_is_unhealthy() {
     check(&health_check(&["ftp://127.0.0.1:1"], &[]), false, "unknown scheme");
 }
 
-/// Inside a TLS server's container the check speaks TLS, trusting the server's own certificate
-/// (ESRP_TLS_CERT), with the name to verify given.
+/// Inside a TLS server's container the check speaks TLS and trusts exactly the server's own
+/// certificate (ESRP_TLS_CERT), whatever names it carries (the check asks on 127.0.0.1) and even
+/// when it is a CA certificate (what `openssl req -x509` makes by default, which web PKI refuses
+/// as a server's); with a name to verify given, it checks as any client would.
 #[test]
 fn a_tls_server_is_checked_over_tls_with_its_own_certificate() {
-    let rcgen::CertifiedKey { cert, signing_key } =
-        rcgen::generate_simple_self_signed(vec!["localhost".to_owned()]).unwrap();
     let dir = tempfile::tempdir().unwrap();
-    let (cert_path, key_path) = (dir.path().join("cert.pem"), dir.path().join("key.pem"));
-    std::fs::write(&cert_path, cert.pem()).unwrap();
-    std::fs::write(&key_path, signing_key.serialize_pem()).unwrap();
-    let (cert_path, key_path) = (cert_path.to_str().unwrap(), key_path.to_str().unwrap());
-    let server = Server::start(&["--tls-cert", cert_path, "--tls-key", key_path]);
-    let address = host_port(&server);
-    let env = [("ESRP_TLS_CERT", cert_path), ("ESRP_TLS_KEY", key_path)];
-    check(&health_check(&["--tls-domain", "localhost", &address], &env), true, "https://");
-    check(
-        &health_check(&[&address], &[("ESRP_HEALTH_CHECK_TLS_DOMAIN", "localhost"), env[0], env[1]]),
-        true,
-        "SERVING",
-    );
-    // The certificate names localhost, not 127.0.0.1; plaintext gets no answer.
-    check(&health_check(&[&address], &env), false, "cannot connect");
-    check(&health_check(&[&format!("http://{address}")], &env), false, "http://");
+    for ca_certificate in [false, true] {
+        let key = rcgen::KeyPair::generate().unwrap();
+        let mut params = rcgen::CertificateParams::new(vec!["localhost".to_owned()]).unwrap();
+        if ca_certificate {
+            params.is_ca = rcgen::IsCa::Ca(rcgen::BasicConstraints::Unconstrained);
+        }
+        let cert = params.self_signed(&key).unwrap();
+        let (cert_path, key_path) = (dir.path().join("cert.pem"), dir.path().join("key.pem"));
+        std::fs::write(&cert_path, cert.pem()).unwrap();
+        std::fs::write(&key_path, key.serialize_pem()).unwrap();
+        let (cert_path, key_path) = (cert_path.to_str().unwrap(), key_path.to_str().unwrap());
+        let server = Server::start(&["--tls-cert", cert_path, "--tls-key", key_path]);
+        let address = host_port(&server);
+        let env = [("ESRP_TLS_CERT", cert_path), ("ESRP_TLS_KEY", key_path)];
+        check(&health_check(&[&address], &env), true, "https://127.0.0.1");
+        check(&health_check(&[], &[env[0], env[1], ("ESRP_LISTEN", &address)]), true, "SERVING");
+        // With a name to verify, the certificate is checked as any client would check it.
+        let named = health_check(&["--tls-domain", "localhost", &address], &env);
+        if ca_certificate {
+            check(&named, false, "CaUsedAsEndEntity");
+        } else {
+            check(&named, true, "SERVING");
+        }
+        check(&health_check(&["--tls-domain", "elsewhere", &address], &env), false, "invalid peer certificate");
+        // Another certificate than the server's is refused; plaintext gets no answer.
+        let other = dir.path().join("other.pem");
+        std::fs::write(&other, rcgen::generate_simple_self_signed(vec!["localhost".to_owned()]).unwrap().cert.pem())
+            .unwrap();
+        let other = other.to_str().unwrap();
+        check(&health_check(&[&address], &[("ESRP_TLS_CERT", other)]), false, "not the one in --tls-cert");
+        check(&health_check(&[&format!("http://{address}")], &env), false, "http://");
+    }
 }
