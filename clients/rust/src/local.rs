@@ -242,6 +242,55 @@ impl LocalServer {
     }
 }
 
+/// How long [`first_contact`] waits for a local server that failed to serve to exit.
+const EXIT_GRACE: std::time::Duration = std::time::Duration::from_secs(3);
+
+/// Connects with `connect` and asks the server's [`crate::ServerInfo`]: a tool's first
+/// contact with its server. When that fails and `local` (the server the tool started) has
+/// exited, or exits within a few seconds, the error says so, rather than the connection's
+/// refusal: a server prints its listening line once bound, before its configuration (a dataset,
+/// a renderer) is checked, and says on its stderr why it cannot serve.
+pub async fn first_contact(
+    connect: ConnectBuilder,
+    local: Option<&mut LocalServer>,
+) -> Result<(Client, crate::types::ServerInfo)> {
+    let contact = async {
+        let client = connect.await?;
+        let info = client.server_info().await?;
+        Ok((client, info))
+    };
+    let error = match contact.await {
+        Ok(contact) => return Ok(contact),
+        Err(error) => error,
+    };
+    let Some(local) = local else { return Err(error) };
+    let deadline = tokio::time::Instant::now() + EXIT_GRACE;
+    loop {
+        if let Some(status) = local.try_wait() {
+            return Err(ClientError::LocalServer(format!(
+                "esrp-server {} before it served (its stderr, above, says why)",
+                describe_exit(status)
+            )));
+        }
+        if tokio::time::Instant::now() >= deadline {
+            return Err(error);
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+}
+
+/// `exited with status 1`, `exited with signal 9`.
+pub fn describe_exit(status: std::process::ExitStatus) -> String {
+    #[cfg(unix)]
+    {
+        use std::os::unix::process::ExitStatusExt;
+        if let Some(signal) = status.signal() {
+            return format!("exited with signal {signal}");
+        }
+    }
+    status.code().map_or_else(|| format!("exited ({status})"), |code| format!("exited with status {code}"))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

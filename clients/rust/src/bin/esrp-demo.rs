@@ -154,10 +154,10 @@ async fn run() -> anyhow::Result<()> {
     let args = Args::parse();
     let tls = Tls::from_flags(args.server.as_deref(), args.tls_ca.as_deref(), args.tls_domain.as_deref())?;
     esrp_client::signals::exit_on_signals("esrp-demo")?;
-    let (address, _local) =
+    let (address, mut local) =
         reach_or_start(args.server.as_deref(), None, &esrp_client::local::with_socket::<&str>(&[]))?;
-    let client = Client::connect(&address).token_opt(args.token.as_deref()).tls_opt(tls).await?;
-    let info = client.server_info().await?;
+    let connect = Client::connect(&address).token_opt(args.token.as_deref()).tls_opt(tls);
+    let (client, info) = esrp_client::local::first_contact(connect, local.as_mut()).await?;
     println!(
         "esrp-server {} at {address}: dataset {}, renderer {} ({})",
         info.version, info.dataset, info.renderer_adapter, info.renderer_backend

@@ -274,3 +274,21 @@ fn the_tools_reach_a_tls_server_with_its_ca() {
     let stderr = String::from_utf8_lossy(&missing.stderr);
     assert!(stderr.contains("cannot read the CA certificate /nonexistent/ca.pem"), "{stderr}");
 }
+
+/// A local server that cannot serve (a dataset that is not there) is said to have exited, with
+/// its own reason on stderr, rather than as a refused connection.
+#[test]
+fn a_local_server_that_cannot_serve_is_said_to_have_exited() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("r.jsonl");
+    let output = Command::new(env!("CARGO_BIN_EXE_esrp-eval"))
+        .args(["--agent", "random", "--split", "test", "--out", out.to_str().unwrap()])
+        .arg("--server-arg=--dataset=/nonexistent/dataset")
+        .env("NODEVICE_SELECT", "1")
+        .output()
+        .expect("esrp-eval runs");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("esrp-server: cannot serve the dataset folder: /nonexistent/dataset"), "{stderr}");
+    assert!(stderr.contains("esrp-eval: local server: esrp-server exited with status 1 before it served"), "{stderr}");
+}

@@ -661,8 +661,11 @@ fn run() -> anyhow::Result<()> {
     }
     let metrics = metrics.filter(|_| args.breakdown);
     let connect = async || Client::connect(&address).token_opt(args.token.as_deref()).tls_opt(tls.clone()).await;
-    let info =
-        runtime_for("", args.client_threads)?.block_on(async { anyhow::Ok(connect().await?.server_info().await?) })?;
+    let mut local = local;
+    let info = runtime_for("", args.client_threads)?.block_on(async {
+        let connect = Client::connect(&address).token_opt(args.token.as_deref()).tls_opt(tls.clone());
+        anyhow::Ok(esrp_client::local::first_contact(connect, local.as_mut()).await?.1)
+    })?;
     let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
     let cpu_model = cpu_model();
     println!(

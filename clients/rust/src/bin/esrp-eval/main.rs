@@ -233,8 +233,8 @@ async fn server_gone(
     let exited = |local: &mut Option<&mut LocalServer>| {
         let status = local.as_mut()?.try_wait()?;
         Some(format!(
-            "the local esrp-server {} after {episodes} episodes of this run (its log is above)",
-            describe_exit(status)
+            "the local esrp-server {} after {episodes} episodes of this run (its stderr, above, may say why)",
+            esrp_client::local::describe_exit(status)
         ))
     };
     if let Some(why) = exited(&mut local) {
@@ -249,18 +249,6 @@ async fn server_gone(
             SERVER_RETRY.as_secs()
         ))
     })
-}
-
-/// "exited with signal 9", "exited with status 1".
-fn describe_exit(status: std::process::ExitStatus) -> String {
-    #[cfg(unix)]
-    {
-        use std::os::unix::process::ExitStatusExt;
-        if let Some(signal) = status.signal() {
-            return format!("exited with signal {signal}");
-        }
-    }
-    status.code().map_or_else(|| format!("exited ({status})"), |code| format!("exited with status {code}"))
 }
 
 fn main() -> std::process::ExitCode {
@@ -279,8 +267,8 @@ async fn run() -> anyhow::Result<()> {
     esrp_client::malloc::keep_freed_memory();
     let (address, mut local) =
         reach_or_start(args.server.as_deref(), None, &esrp_client::local::with_socket(&args.server_args))?;
-    let client = Client::connect(&address).token_opt(args.token.as_deref()).tls_opt(tls).await?;
-    let info = client.server_info().await?;
+    let connect = Client::connect(&address).token_opt(args.token.as_deref()).tls_opt(tls);
+    let (client, info) = esrp_client::local::first_contact(connect, local.as_mut()).await?;
     eprintln!(
         "esrp-server {} at {address}: dataset {}, renderer {}",
         info.version, info.dataset, info.renderer_adapter
