@@ -22,6 +22,15 @@ struct Cli {
     command: Command,
 }
 
+/// A count of at least one (`--scenes 0` would write an empty dataset).
+fn at_least_one(text: &str) -> std::result::Result<usize, String> {
+    match text.parse::<usize>() {
+        Ok(0) => Err("must be at least 1".into()),
+        Ok(n) => Ok(n),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Generate scenes of a built-in benchmark (esrp-bench-v2 unless --benchmark says) into a
@@ -30,8 +39,8 @@ enum Command {
         /// Output folder (gets manifest.json and scenes/).
         #[arg(long)]
         out: PathBuf,
-        /// How many scenes (default: all from --first to the end).
-        #[arg(long)]
+        /// How many scenes, at least 1 (default: all from --first to the end).
+        #[arg(long, value_parser = at_least_one)]
         scenes: Option<usize>,
         /// Index of the first scene.
         #[arg(long, default_value_t = 0)]
@@ -71,8 +80,8 @@ enum Command {
         /// Seed for the choice of movable pieces and the backward construction.
         #[arg(long, default_value_t = 0)]
         seed: u64,
-        /// Import at most this many houses.
-        #[arg(long)]
+        /// Import at most this many houses (at least 1).
+        #[arg(long, value_parser = at_least_one)]
         max_houses: Option<usize>,
         /// Overwrite a folder that already holds a dataset.
         #[arg(long)]
@@ -85,8 +94,9 @@ enum Command {
         /// Scene id or benchmark index (with --dataset: an id of that dataset).
         #[arg(long, required_unless_present = "sheet")]
         scene: Option<String>,
-        /// Instead: a contact sheet (sheet.png) of the goal images of the first N scenes.
-        #[arg(long, conflicts_with = "scene")]
+        /// Instead: a contact sheet (sheet.png) of the goal images of the first N scenes (N at
+        /// least 1).
+        #[arg(long, conflicts_with = "scene", value_parser = at_least_one)]
         sheet: Option<usize>,
         /// Read scenes from this dataset folder instead of generating them.
         #[arg(long)]

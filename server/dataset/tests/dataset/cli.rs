@@ -137,6 +137,14 @@ fn bad_arguments_get_clear_errors() {
     assert!(!out.status.success() && text(&out).contains("is not a scene of esrp-bench-v2"), "{}", text(&out));
     let out = run(&["validate", "/nonexistent/dataset"]);
     assert!(!out.status.success() && text(&out).contains("manifest.json"), "{}", text(&out));
+    // Counts of nothing are refused, not an empty dataset written.
+    let tmp = tempfile::tempdir().unwrap();
+    let empty = tmp.path().join("empty");
+    let out = run(&["generate", "--out", empty.to_str().unwrap(), "--scenes", "0"]);
+    assert!(!out.status.success() && text(&out).contains("must be at least 1"), "{}", text(&out));
+    assert!(!empty.exists());
+    let out = run(&["import-3dfront", "--front", "/tmp", "--future", "/tmp", "--out", "/tmp/x", "--max-houses", "0"]);
+    assert!(!out.status.success() && text(&out).contains("must be at least 1"), "{}", text(&out));
 }
 
 #[test]
