@@ -130,12 +130,35 @@ impl ConnectBuilder {
         self
     }
 
+    /// The URL to connect to: the one given, with `http://` put before a bare `host:port`
+    /// (`https://` with TLS settings); an IPv6 address without its brackets is refused (its
+    /// last `:` would be read as part of the address).
+    fn full_url(&self) -> Result<String> {
+        let url = self.url.trim();
+        if url.starts_with("unix:") {
+            return Ok(url.to_owned());
+        }
+        let (scheme, rest) = match url.split_once("://") {
+            Some((scheme, rest)) => (scheme, rest),
+            None => (if self.tls.is_some() { "https" } else { "http" }, url),
+        };
+        let authority = rest.split('/').next().unwrap_or_default();
+        let host_port = authority.rsplit('@').next().unwrap_or_default();
+        if host_port.matches(':').count() > 1 && !host_port.starts_with('[') {
+            return Err(ClientError::Config(format!(
+                "{url:?}: write an IPv6 address in brackets, as in http://[::1]:50051"
+            )));
+        }
+        Ok(format!("{scheme}://{rest}"))
+    }
+
     fn endpoint(&self) -> Result<Endpoint> {
-        let mut endpoint = Endpoint::from_shared(self.url.clone())
+        let url = self.full_url()?;
+        let https = url.get(..8).is_some_and(|scheme| scheme.eq_ignore_ascii_case("https://"));
+        let mut endpoint = Endpoint::from_shared(url.clone())
             .map_err(|e| {
                 ClientError::Config(format!(
-                    "{:?} is not a URL like http://127.0.0.1:50051 or unix:/tmp/esrp.sock: {e}",
-                    self.url
+                    "{url:?} is not a URL like http://127.0.0.1:50051, 127.0.0.1:50051 or unix:/tmp/esrp.sock: {e}"
                 ))
             })?
             // An agent waits for every answer: no Nagle delay. Windows large enough for many
@@ -145,10 +168,9 @@ impl ConnectBuilder {
             .initial_stream_window_size(16 << 20)
             .max_frame_size(MAX_FRAME_BYTES)
             .connect_timeout(self.connect_timeout);
-        let https = self.url.get(..8).is_some_and(|scheme| scheme.eq_ignore_ascii_case("https://"));
         match &self.tls {
             Some(tls) if !https => {
-                return Err(ClientError::Config(format!("TLS settings are for an https:// URL, not {:?}", self.url)));
+                return Err(ClientError::Config(format!("TLS settings are for an https:// URL, not {url:?}")));
             }
             Some(tls) => endpoint = endpoint.tls_config(tls.config.clone())?,
             None if https => endpoint = endpoint.tls_config(Tls::system_roots().config)?,
@@ -235,9 +257,10 @@ pub struct Client {
 }
 
 impl Client {
-    /// Starts a connection to `url` (`http://host:port`, `https://` with [`ConnectBuilder::tls`],
-    /// or `unix:PATH` for a server's `--listen-unix` socket on this machine); set the token and
-    /// TLS on the builder, then `.await` it.
+    /// Starts a connection to `url` (`http://host:port`, or `host:port` alike; `https://`,
+    /// trusting the system's certificate authorities or those of [`ConnectBuilder::tls`]; or
+    /// `unix:PATH` for a server's `--listen-unix` socket on this machine; an IPv6 address in
+    /// brackets, `http://[::1]:50051`); set the token and TLS on the builder, then `.await` it.
     pub fn connect(url: impl Into<String>) -> ConnectBuilder {
         ConnectBuilder { url: url.into(), token: None, tls: None, connect_timeout: Duration::from_secs(10) }
     }
@@ -398,5 +421,26 @@ impl From<&Client> for RawClient {
     /// The client's generated stub ([`Client::raw`]): what episode and stream handles call.
     fn from(client: &Client) -> Self {
         client.raw()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_bare_address_gets_its_scheme_and_an_ipv6_one_needs_brackets() {
+        let url = |url: &str| Client::connect(url).full_url();
+        assert_eq!(url("127.0.0.1:50051").unwrap(), "http://127.0.0.1:50051");
+        assert_eq!(url(" esrp.example.org:443 ").unwrap(), "http://esrp.example.org:443");
+        assert_eq!(Client::connect("h:1").tls(Tls::system_roots()).full_url().unwrap(), "https://h:1");
+        assert_eq!(url("https://h:1/").unwrap(), "https://h:1/");
+        assert_eq!(url("unix:/tmp/a:b.sock").unwrap(), "unix:/tmp/a:b.sock");
+        assert_eq!(url("[::1]:50051").unwrap(), "http://[::1]:50051");
+        assert_eq!(url("http://[fe80::1]:7").unwrap(), "http://[fe80::1]:7");
+        for bare in ["::1:50051", "http://::1:50051", "fe80::1:7"] {
+            let error = url(bare).unwrap_err().to_string();
+            assert!(error.contains("write an IPv6 address in brackets"), "{bare}: {error}");
+        }
     }
 }

@@ -25,7 +25,8 @@ use tokio_stream::StreamExt;
 #[derive(Parser, Debug)]
 #[command(name = "esrp-demo", version, about = "Run the expert and a random agent on a few ESRP test scenes")]
 struct Args {
-    /// A running server (`http://host:port`, or `unix:PATH` for one serving `--listen-unix`);
+    /// A running server (`host:port`, `http://host:port`, `https://host:port`, or `unix:PATH`
+    /// for one serving `--listen-unix`);
     /// without it, esrp-demo starts one and talks to it over a Unix domain socket.
     #[arg(long)]
     server: Option<String>,

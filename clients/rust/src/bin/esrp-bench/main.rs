@@ -81,7 +81,8 @@ fn within(text: &str, most: f64, unit: &str) -> Result<f64, String> {
 #[derive(Parser, Debug)]
 #[command(name = "esrp-bench", version, about = "End-to-end throughput and latency of esrp-server")]
 struct Args {
-    /// A running server (`http://host:port`, or `unix:PATH` for one serving `--listen-unix`);
+    /// A running server (`host:port`, `http://host:port`, `https://host:port`, or `unix:PATH`
+    /// for one serving `--listen-unix`);
     /// without it, esrp-bench starts an `esrp-server` (`--server-binary`) on a free local port
     /// (see `--transport`). With `--processes`, several servers
     /// may be named, comma-separated: process i drives server i modulo their number (scale-out

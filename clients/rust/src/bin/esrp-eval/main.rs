@@ -73,7 +73,8 @@ struct Args {
     /// Planner calls after the first when an episode goes on after a plan.
     #[arg(long, default_value_t = 2)]
     replans: u32,
-    /// A running server (`http://host:port`, or `unix:PATH` for one serving `--listen-unix`);
+    /// A running server (`host:port`, `http://host:port`, `https://host:port`, or `unix:PATH`
+    /// for one serving `--listen-unix`);
     /// without it, esrp-eval starts one and talks to it over a Unix domain socket.
     #[arg(long)]
     server: Option<String>,
