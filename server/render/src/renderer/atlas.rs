@@ -24,7 +24,18 @@ pub(super) struct PagedTexture {
     pub(super) layers: Vec<wgpu::TextureView>,
 }
 
-/// Textures and readback buffer of one atlas shape: `pages` square pages of `side` pixels.
+/// What a batch draws into: textures for the graphics pipeline, or a storage buffer for the
+/// compute rasteriser.
+pub(super) enum Targets {
+    /// The colour plane's texture array, one page of depth buffer (cleared by every pass), and
+    /// the view depth (as f32 bits) and segmentation texture arrays when `full`.
+    Textures { colour: PagedTexture, depth: wgpu::TextureView, extras: Option<Box<[PagedTexture; 2]>> },
+    /// The planes as the readback buffer holds them, written by the compute rasteriser, and
+    /// their bind group (with the uniforms): `raster.wgsl`'s group 0.
+    Buffer { planes: wgpu::Buffer, bind_group: wgpu::BindGroup },
+}
+
+/// Targets and readback buffer of one atlas shape: `pages` square pages of `side` pixels.
 ///
 /// Pages rather than one big texture: lavapipe's cost of a render pass grows with the area of
 /// its target, so views go into small pages, one render pass each, all in one submit, one copy
@@ -33,69 +44,36 @@ pub(super) struct Atlas {
     pub(super) side: u32,
     pub(super) pages: u32,
     pub(super) full: bool,
-    pub(super) colour: PagedTexture,
-    /// One page of depth buffer, cleared by every pass.
-    pub(super) depth: wgpu::TextureView,
-    /// View depth (as f32 bits) and segmentation targets, present when `full`.
-    pub(super) extras: Option<[PagedTexture; 2]>,
+    pub(super) targets: Targets,
     pub(super) readback: wgpu::Buffer,
-    /// Per-view uniforms (one `VIEW_STRIDE` slot per page) and their bind group.
+    /// Per-view uniforms (one `VIEW_STRIDE` slot per page) and their bind group for the
+    /// graphics pipeline.
     pub(super) uniforms: wgpu::Buffer,
     pub(super) bind_group: wgpu::BindGroup,
     pub(super) last_used: u64,
 }
 
 impl Atlas {
-    /// Creates the textures, readback buffer and uniforms of `pages` pages of `side` pixels,
-    /// with the view depth and segmentation targets when `full`, and binds the uniforms with
-    /// `bind_group_layout`.
+    /// Creates the targets, readback buffer and uniforms of `pages` pages of `side` pixels, with
+    /// the view depth and segmentation planes when `full`, and binds the uniforms with
+    /// `bind_group_layout`; with `compute` (the compute rasteriser's group 0 layout), the targets
+    /// are a storage buffer bound with it.
     pub(super) fn new(
         device: &wgpu::Device,
         bind_group_layout: &wgpu::BindGroupLayout,
+        compute: Option<&wgpu::BindGroupLayout>,
         side: u32,
         pages: u32,
         full: bool,
     ) -> Self {
-        let texture = |label: &str, format, usage, layers: u32| {
-            let texture = device.create_texture(&wgpu::TextureDescriptor {
-                label: Some(label),
-                size: wgpu::Extent3d { width: side, height: side, depth_or_array_layers: layers },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: wgpu::TextureDimension::D2,
-                format,
-                usage,
-                view_formats: &[],
-            });
-            let layers = (0..layers)
-                .map(|layer| {
-                    texture.create_view(&wgpu::TextureViewDescriptor {
-                        dimension: Some(wgpu::TextureViewDimension::D2),
-                        base_array_layer: layer,
-                        array_layer_count: Some(1),
-                        ..Default::default()
-                    })
-                })
-                .collect();
-            PagedTexture { texture, layers }
-        };
-        let target = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC;
-        let colour = texture("esrp-render atlas colour", COLOUR_FORMAT, target, pages);
-        let depth = texture("esrp-render atlas depth", DEPTH_FORMAT, wgpu::TextureUsages::RENDER_ATTACHMENT, 1);
-        let extras = full.then(|| {
-            [
-                texture("esrp-render atlas view depth", DEPTH_OUT_FORMAT, target, pages),
-                texture("esrp-render atlas segmentation", SEGMENT_FORMAT, target, pages),
-            ]
-        });
         let planes = if full { 3 } else { 1 };
+        let bytes = u64::from(side) * u64::from(side) * 4 * u64::from(pages) * planes;
         let readback = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("esrp-render readback"),
-            size: u64::from(side) * u64::from(side) * 4 * u64::from(pages) * planes,
+            size: bytes,
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        let depth = depth.layers.into_iter().next().unwrap_or_else(|| depth.texture.create_view(&Default::default()));
         let uniforms = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("esrp-render views"),
             size: u64::from(pages) * VIEW_STRIDE,
@@ -114,7 +92,34 @@ impl Atlas {
                 }),
             }],
         });
-        Self { side, pages, full, colour, depth, extras, readback, uniforms, bind_group, last_used: 0 }
+        let targets = match compute {
+            Some(layout) => {
+                let planes = device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("esrp-render atlas planes"),
+                    size: bytes,
+                    usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+                    mapped_at_creation: false,
+                });
+                let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: Some("esrp-render raster views"),
+                    layout,
+                    entries: &[
+                        wgpu::BindGroupEntry {
+                            binding: 0,
+                            resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                                buffer: &uniforms,
+                                offset: 0,
+                                size: NonZeroU64::new(VIEW_STRIDE),
+                            }),
+                        },
+                        wgpu::BindGroupEntry { binding: 1, resource: planes.as_entire_binding() },
+                    ],
+                });
+                Targets::Buffer { planes, bind_group }
+            }
+            None => texture_targets(device, side, pages, full),
+        };
+        Self { side, pages, full, targets, readback, uniforms, bind_group, last_used: 0 }
     }
 
     pub(super) fn page_bytes(&self) -> u64 {
@@ -131,6 +136,44 @@ impl Atlas {
         let planes = if self.full { 3 } else { 1 };
         (planes - 1) * self.plane_bytes() + u64::from(used_pages) * self.page_bytes()
     }
+}
+
+/// The textures the graphics pipeline draws `pages` pages of `side` pixels into.
+fn texture_targets(device: &wgpu::Device, side: u32, pages: u32, full: bool) -> Targets {
+    let texture = |label: &str, format, usage, layers: u32| {
+        let texture = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some(label),
+            size: wgpu::Extent3d { width: side, height: side, depth_or_array_layers: layers },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format,
+            usage,
+            view_formats: &[],
+        });
+        let layers = (0..layers)
+            .map(|layer| {
+                texture.create_view(&wgpu::TextureViewDescriptor {
+                    dimension: Some(wgpu::TextureViewDimension::D2),
+                    base_array_layer: layer,
+                    array_layer_count: Some(1),
+                    ..Default::default()
+                })
+            })
+            .collect();
+        PagedTexture { texture, layers }
+    };
+    let target = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC;
+    let colour = texture("esrp-render atlas colour", COLOUR_FORMAT, target, pages);
+    let depth = texture("esrp-render atlas depth", DEPTH_FORMAT, wgpu::TextureUsages::RENDER_ATTACHMENT, 1);
+    let extras = full.then(|| {
+        Box::new([
+            texture("esrp-render atlas view depth", DEPTH_OUT_FORMAT, target, pages),
+            texture("esrp-render atlas segmentation", SEGMENT_FORMAT, target, pages),
+        ])
+    });
+    let depth = depth.layers.into_iter().next().unwrap_or_else(|| depth.texture.create_view(&Default::default()));
+    Targets::Textures { colour, depth, extras }
 }
 
 /// The atlases not in use right now. A batch takes one out (or makes one), renders with it

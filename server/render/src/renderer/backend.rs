@@ -75,6 +75,8 @@ pub struct RendererConfig {
     /// see, by their bounding spheres: less vertex work, the same images bit for bit. `false`
     /// draws every piece in every view (for comparison).
     pub cull: bool,
+    /// What draws the triangles: the graphics pipeline, or compute shaders.
+    pub rasterizer: Rasterizer,
 }
 
 impl Default for RendererConfig {
@@ -84,6 +86,58 @@ impl Default for RendererConfig {
             power_preference: wgpu::PowerPreference::HighPerformance,
             max_atlas_size: 4096,
             cull: true,
+            rasterizer: Rasterizer::Pipeline,
+        }
+    }
+}
+
+/// What draws a view's triangles.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Rasterizer {
+    /// The graphics pipeline (vertex and fragment shaders, the device's rasteriser and depth
+    /// test).
+    #[default]
+    Pipeline,
+    /// Compute shaders (`raster.wgsl`): the same images up to the rounding of edges and depth,
+    /// drawn on the device's compute units, for devices with little fixed-function graphics
+    /// hardware (datacenter GPUs such as the H100 and H200). Needs compute shaders and storage
+    /// buffers (Vulkan, OpenGL ES 3.1).
+    Compute,
+}
+
+impl Rasterizer {
+    /// The names a rasteriser is written as, one per variant: `pipeline`, `compute`.
+    pub const NAMES: [&'static str; 2] = ["pipeline", "compute"];
+
+    /// Its name: `pipeline` or `compute`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Pipeline => "pipeline",
+            Self::Compute => "compute",
+        }
+    }
+}
+
+impl std::fmt::Display for Rasterizer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// A name that is not a [`Rasterizer`].
+#[derive(Debug, thiserror::Error)]
+#[error("unknown rasterizer {0:?}: use pipeline or compute")]
+pub struct UnknownRasterizer(pub String);
+
+impl std::str::FromStr for Rasterizer {
+    type Err = UnknownRasterizer;
+
+    /// `pipeline` or `compute`, in any case.
+    fn from_str(name: &str) -> Result<Self, UnknownRasterizer> {
+        match name.to_ascii_lowercase().as_str() {
+            "pipeline" => Ok(Self::Pipeline),
+            "compute" => Ok(Self::Compute),
+            _ => Err(UnknownRasterizer(name.to_owned())),
         }
     }
 }

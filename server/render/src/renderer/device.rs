@@ -16,6 +16,8 @@ pub struct Renderer {
     pub(super) pipeline_rgb: wgpu::RenderPipeline,
     pub(super) pipeline_full: wgpu::RenderPipeline,
     pub(super) bind_group_layout: wgpu::BindGroupLayout,
+    /// The compute rasteriser, when it is what draws ([`super::Rasterizer::Compute`]).
+    pub(super) raster: Option<super::compute::ComputeRaster>,
     pub(super) max_atlas: u32,
     pub(super) max_pages: u32,
     pub(super) cull: bool,

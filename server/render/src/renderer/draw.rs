@@ -5,10 +5,10 @@ use std::time::{Duration, Instant};
 
 use crate::camera::{Camera, EgoFrustum, ego_view, top_down_view};
 use crate::error::RenderError;
-use crate::gpu::{GpuView, VIEW_STRIDE};
+use crate::gpu::{GpuView, VIEW_STRIDE, VIEW_TARGET_OFFSET};
 use crate::mesh::BACKGROUND_COLOUR;
 
-use super::atlas::{Atlas, Tile, layout};
+use super::atlas::{Atlas, PagedTexture, Targets, Tile, layout};
 use super::device::Renderer;
 use super::readback::{Planes, extract_all};
 use super::requests::{Outputs, ViewOutput, ViewRequest};
@@ -82,14 +82,27 @@ impl Renderer {
             }
             (taken, state.batches)
         };
-        let mut atlas = taken.unwrap_or_else(|| Atlas::new(&self.device, &self.bind_group_layout, side, pages, full));
+        let mut atlas = taken.unwrap_or_else(|| {
+            let compute = self.raster.as_ref().map(|raster| &raster.views_layout);
+            Atlas::new(&self.device, &self.bind_group_layout, compute, side, pages, full)
+        });
         atlas.last_used = number;
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        self.queue.write_buffer(&atlas.uniforms, 0, &view_uniforms(requests));
+        self.queue.write_buffer(&atlas.uniforms, 0, &view_uniforms(requests, &tiles, side));
         let mut encoder =
             self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("esrp-render batch") });
         let used_pages = tiles.iter().map(|t| t.page + 1).max().unwrap_or(1);
-        self.draw_pages(&mut encoder, &atlas, requests, &tiles, used_pages);
+        match (&atlas.targets, &self.raster) {
+            (Targets::Buffer { bind_group, .. }, Some(raster)) => {
+                raster.encode(&mut encoder, bind_group, full, requests, &tiles);
+            }
+            (Targets::Textures { colour, depth, extras }, _) => {
+                self.draw_pages(&mut encoder, &atlas, colour, depth, extras.as_deref(), requests, &tiles, used_pages);
+            }
+            (Targets::Buffer { .. }, None) => {
+                return Err(RenderError::Gpu { reason: "a compute atlas without the compute rasterizer".into() });
+            }
+        }
         copy_to_readback(&mut encoder, &atlas, used_pages);
         let submitted = Instant::now();
         let submission = self.queue.submit([encoder.finish()]);
@@ -181,10 +194,14 @@ impl Renderer {
 
     /// Encodes one render pass per used page of `atlas`: each page cleared (the colour to the
     /// background, the extra planes to zero), then every view of that page drawn in its tile.
+    #[allow(clippy::too_many_arguments)] // the atlas's targets, matched out by the caller
     fn draw_pages(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         atlas: &Atlas,
+        colour: &PagedTexture,
+        depth: &wgpu::TextureView,
+        extras: Option<&[PagedTexture; 2]>,
         requests: &[ViewRequest<'_>],
         tiles: &[Tile],
         used_pages: u32,
@@ -200,8 +217,8 @@ impl Renderer {
                     ops: wgpu::Operations { load: wgpu::LoadOp::Clear(clear), store: wgpu::StoreOp::Store },
                 })
             };
-            let mut attachments = vec![attachment(&atlas.colour.layers[page as usize], clear_colour)];
-            if let Some(extras) = &atlas.extras {
+            let mut attachments = vec![attachment(&colour.layers[page as usize], clear_colour)];
+            if let Some(extras) = extras {
                 attachments.push(attachment(&extras[0].layers[page as usize], wgpu::Color::TRANSPARENT));
                 attachments.push(attachment(&extras[1].layers[page as usize], wgpu::Color::TRANSPARENT));
             }
@@ -209,7 +226,7 @@ impl Renderer {
                 label: Some("esrp-render page"),
                 color_attachments: &attachments,
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: &atlas.depth,
+                    view: depth,
                     depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(0.0), store: wgpu::StoreOp::Discard }),
                     stencil_ops: None,
                 }),
@@ -272,10 +289,11 @@ impl RenderTimings {
 }
 
 /// The per-view uniforms of `requests`, one [`VIEW_STRIDE`] apart: each view's camera and its
-/// movable objects' poses.
-fn view_uniforms(requests: &[ViewRequest<'_>]) -> Vec<u8> {
+/// movable objects' poses, then (for the compute rasteriser) its target: page, resolution,
+/// triangle count and the atlas's page `side`.
+fn view_uniforms(requests: &[ViewRequest<'_>], tiles: &[Tile], side: u32) -> Vec<u8> {
     let mut uniforms = vec![0u8; requests.len() * VIEW_STRIDE as usize];
-    for (i, request) in requests.iter().enumerate() {
+    for (i, (request, tile)) in requests.iter().zip(tiles).enumerate() {
         let mut view = match request.camera {
             Camera::Ego(camera) => ego_view(&camera),
             Camera::TopDown => top_down_view(&request.scene.frame, request.scene.max_height),
@@ -287,6 +305,9 @@ fn view_uniforms(requests: &[ViewRequest<'_>]) -> Vec<u8> {
         }
         let start = i * VIEW_STRIDE as usize;
         uniforms[start..start + std::mem::size_of::<GpuView>()].copy_from_slice(bytemuck::bytes_of(&view));
+        let target = [tile.page, tile.size, request.scene.index_count / 3, side];
+        let at = start + VIEW_TARGET_OFFSET;
+        uniforms[at..at + 16].copy_from_slice(bytemuck::cast_slice(&target));
     }
     uniforms
 }
@@ -294,6 +315,18 @@ fn view_uniforms(requests: &[ViewRequest<'_>]) -> Vec<u8> {
 /// Encodes the copies of `atlas`'s used pages into its readback buffer: the colour plane, then
 /// the extra planes (depth and segmentation) where the atlas has them.
 fn copy_to_readback(encoder: &mut wgpu::CommandEncoder, atlas: &Atlas, used_pages: u32) {
+    let (colour, extras) = match &atlas.targets {
+        Targets::Buffer { planes, .. } => {
+            // The planes lie as in the readback buffer: copy the used pages of each.
+            let used = u64::from(used_pages) * atlas.page_bytes();
+            for plane in 0..if atlas.full { 3 } else { 1 } {
+                let at = plane * atlas.plane_bytes();
+                encoder.copy_buffer_to_buffer(planes, at, &atlas.readback, at, used);
+            }
+            return;
+        }
+        Targets::Textures { colour, extras, .. } => (colour, extras),
+    };
     let copy = |encoder: &mut wgpu::CommandEncoder, texture: &wgpu::Texture, plane: u64| {
         encoder.copy_texture_to_buffer(
             wgpu::TexelCopyTextureInfo {
@@ -313,8 +346,8 @@ fn copy_to_readback(encoder: &mut wgpu::CommandEncoder, atlas: &Atlas, used_page
             wgpu::Extent3d { width: atlas.side, height: atlas.side, depth_or_array_layers: used_pages },
         );
     };
-    copy(encoder, &atlas.colour.texture, 0);
-    if let Some(extras) = &atlas.extras {
+    copy(encoder, &colour.texture, 0);
+    if let Some(extras) = extras {
         copy(encoder, &extras[0].texture, 1);
         copy(encoder, &extras[1].texture, 2);
     }

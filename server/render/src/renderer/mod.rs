@@ -32,6 +32,7 @@ use crate::mesh::build_scene_mesh;
 
 mod atlas;
 mod backend;
+mod compute;
 mod device;
 mod draw;
 mod formats;
@@ -41,7 +42,7 @@ mod requests;
 
 use atlas::{BatchState, chunks};
 use backend::request_adapter;
-pub use backend::{BackendPreference, RendererConfig, UnknownBackend};
+pub use backend::{BackendPreference, Rasterizer, RendererConfig, UnknownBackend, UnknownRasterizer};
 pub use device::Renderer;
 pub use draw::RenderTimings;
 use formats::{COLOUR_FORMAT, DEPTH_FORMAT, DEPTH_OUT_FORMAT, SEGMENT_FORMAT};
@@ -188,6 +189,19 @@ impl Renderer {
         device.on_uncaptured_error(Arc::new(|error| log::error!("esrp-render: uncaptured wgpu error: {error}")));
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let Pipelines { bind_group_layout, rgb: pipeline_rgb, full: pipeline_full } = Pipelines::new(&device);
+        let raster = match config.rasterizer {
+            Rasterizer::Pipeline => None,
+            Rasterizer::Compute => {
+                let missing = compute_raster_missing(&adapter, &limits);
+                if let Some(missing) = missing {
+                    return Err(RenderError::RequestDevice {
+                        adapter: adapter_info.name.clone(),
+                        reason: format!("the compute rasterizer needs {missing}: use the pipeline rasterizer"),
+                    });
+                }
+                Some(compute::ComputeRaster::new(&device))
+            }
+        };
         if let Some(error) = pollster::block_on(scope.pop()) {
             return Err(RenderError::RequestDevice {
                 adapter: adapter_info.name.clone(),
@@ -205,6 +219,7 @@ impl Renderer {
             pipeline_rgb,
             pipeline_full,
             bind_group_layout,
+            raster,
             max_atlas,
             max_pages: limits.max_texture_array_layers.clamp(1, CHUNK_VIEWS as u32),
             cull: config.cull,
@@ -216,6 +231,11 @@ impl Renderer {
     /// The adapter in use (name, backend, driver).
     pub fn adapter_info(&self) -> &wgpu::AdapterInfo {
         &self.adapter_info
+    }
+
+    /// What draws this renderer's triangles.
+    pub fn rasterizer(&self) -> Rasterizer {
+        if self.raster.is_some() { Rasterizer::Compute } else { Rasterizer::Pipeline }
     }
 
     /// Whether the adapter is a CPU rasteriser (lavapipe, llvmpipe).
@@ -257,21 +277,26 @@ impl Renderer {
         if indices.is_empty() {
             indices.push(0);
         }
+        // The compute rasteriser reads them as storage buffers.
+        let storage = if self.raster.is_some() { wgpu::BufferUsages::STORAGE } else { wgpu::BufferUsages::empty() };
         let vertex_buffer = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("esrp-render scene vertices"),
             contents: bytemuck::cast_slice(&vertices),
-            usage: wgpu::BufferUsages::VERTEX,
+            usage: wgpu::BufferUsages::VERTEX | storage,
         });
         let index_buffer = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("esrp-render scene indices"),
             contents: bytemuck::cast_slice(&indices),
-            usage: wgpu::BufferUsages::INDEX,
+            usage: wgpu::BufferUsages::INDEX | storage,
         });
+        let raster_bind_group =
+            self.raster.as_ref().map(|raster| raster.scene_bind_group(&self.device, &vertex_buffer, &index_buffer));
         Ok(Arc::new(SceneHandle {
             renderer_id: self.id,
             scene_id: scene.scene().id.clone(),
             vertex_buffer,
             index_buffer,
+            raster_bind_group,
             index_count,
             parts: mesh.parts,
             vertex_count: vertices.len(),
@@ -385,6 +410,20 @@ pub struct SubmittedBatch {
 impl std::fmt::Debug for SubmittedBatch {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("SubmittedBatch").field("submissions", &self.chunks.len()).finish_non_exhaustive()
+    }
+}
+
+/// What the adapter lacks for the compute rasteriser, if anything: compute shaders, three storage
+/// buffers in a compute shader, or the workgroup memory and size of `raster.wgsl`.
+fn compute_raster_missing(adapter: &wgpu::Adapter, limits: &wgpu::Limits) -> Option<&'static str> {
+    if !adapter.get_downlevel_capabilities().flags.contains(wgpu::DownlevelFlags::COMPUTE_SHADERS) {
+        Some("compute shaders")
+    } else if limits.max_storage_buffers_per_shader_stage < 3 {
+        Some("three storage buffers in a compute shader")
+    } else if limits.max_compute_workgroup_storage_size < 16384 || limits.max_compute_invocations_per_workgroup < 256 {
+        Some("workgroups of 256 invocations and 16 KiB")
+    } else {
+        None
     }
 }
 

@@ -20,6 +20,8 @@ pub struct SceneHandle {
     pub(super) scene_id: String,
     pub(super) vertex_buffer: wgpu::Buffer,
     pub(super) index_buffer: wgpu::Buffer,
+    /// The vertex and index buffers bound for the compute rasteriser, when the renderer uses it.
+    pub(super) raster_bind_group: Option<wgpu::BindGroup>,
     pub(super) index_count: u32,
     pub(super) parts: Vec<MeshPart>,
     pub(super) vertex_count: usize,

@@ -5,6 +5,7 @@
 
 mod batch;
 mod common;
+mod compute;
 mod errors;
 mod geometry;
 mod goldens;
