@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import re
 import socket
 from collections.abc import Iterator
 from pathlib import Path
@@ -13,6 +14,7 @@ import pytest
 from conftest import settled_live_episodes
 
 import esrp
+from esrp.cli import main as esrp_main
 from esrp.envs import RearrangeEnv
 
 
@@ -316,6 +318,43 @@ def test_addresses_that_name_no_server_are_refused_up_front() -> None:
         "dns:///localhost:50051",
     ):
         esrp.Client(good, transport="grpcio").close()
+
+
+def test_an_ipv6_address_with_a_port_is_refused_without_its_brackets(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """`::1:50051` is read by gRPC as one host name, on port 443 (`Misformatted domain name` on the
+    first call, or another address's port 443): refused at once, saying how to write it."""
+    for bare, written in (
+        ("::1:50051", "[::1]:50051"),
+        ("http://::1:50051", "http://[::1]:50051"),
+        ("https://2001:db8::7:443/", "https://[2001:db8::7]:443"),
+        ("fe80::1%eth0:8080", "[fe80::1%eth0]:8080"),
+        ("::ffff:127.0.0.1:50051", "[::ffff:127.0.0.1]:50051"),
+    ):
+        for client in (esrp.Client, esrp.AsyncClient):
+            with pytest.raises(ValueError, match=f"in brackets, {re.escape(written)}"):
+                client(bare)
+    # `::1:8080` is also an address on port 443: the message says how to write either.
+    with pytest.raises(ValueError, match=re.escape("[::1]:8080 ([::1:8080] for the address ::1:8080")):
+        esrp.Client("::1:8080")
+    for good in (
+        "[::1]:50051",
+        "http://[::1]:50051",
+        "::1",
+        "[::1:8080]",
+        "unix:/tmp/a:b:1",
+        "localhost:50051",
+    ):
+        esrp.Client(good, transport="grpcio").close()
+    # The commands' --server likewise, in argparse's one line.
+    with pytest.raises(SystemExit) as exit_info:
+        esrp_main(["eval", "--agent", "random", "--out", "x.jsonl", "--server", "::1:50051"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "argument --server: address '::1:50051': write an IPv6 address with a port in brackets, " in err
+    assert "[::1]:50051; without them gRPC reads it all as the host" in err
+    assert err.count("\n") == 1, err
 
 
 def test_create_arguments_the_request_cannot_carry_are_named(client: esrp.Client) -> None:

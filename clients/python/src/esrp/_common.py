@@ -6,6 +6,7 @@ per-episode windows, the order of `EpisodeStream.run`).
 from __future__ import annotations
 
 import enum
+import ipaddress
 import os
 from collections import deque
 from collections.abc import Iterator, Mapping, Sequence
@@ -101,21 +102,53 @@ def open_aio_channel(
 def target(address: str) -> tuple[str, bool]:
     """`host:port` of an address (`host:port`, `http://host:port` or `https://host:port`), and
     whether its scheme asks for TLS. Raises `TypeError` for an address that is not a string, and
-    `ValueError` for one that names no server or whose port is not a number from 0 to 65535 (gRPC
-    would wrap it around: 70000 is port 4464).
+    `ValueError` for one that names no server, whose port is not a number from 0 to 65535 (gRPC
+    would wrap it around: 70000 is port 4464), or that is an IPv6 address and a port without the
+    brackets (`::1:50051`, which gRPC reads as a host name on port 443: `[::1]:50051`).
     """
     if not isinstance(address, str):
         raise TypeError(f"address: a string such as '127.0.0.1:50051', got {address!r}")
-    host, secure = address, False
+    host, secure, scheme = address, False, ""
     for prefix, tls in (("http://", False), ("https://", True)):
         if address.startswith(prefix):
-            host, secure = address[len(prefix) :].rstrip("/"), tls
+            host, secure, scheme = address[len(prefix) :].rstrip("/"), tls, prefix
     if not host.strip():
         raise ValueError(f"address {address!r} names no server: give host:port, e.g. 127.0.0.1:50051")
+    _refuse_unbracketed_ipv6_port(address, scheme, host)
     _, port = _host_and_port(host)
     if port and not (port.isdigit() and int(port) <= 65535):
         raise ValueError(f"address {address!r}: its port {port!r} is not a number from 0 to 65535")
     return host, secure
+
+
+def _refuse_unbracketed_ipv6_port(address: str, scheme: str, host: str) -> None:
+    """Raises `ValueError` when `host` (of `address`, after its `scheme`) is an IPv6 address and a
+    decimal port without brackets (`::1:50051`, `fe80::1%eth0:8080`). gRPC takes a bare name with
+    several colons whole as the host, on port 443: `::1:50051` fails as a misformatted domain name,
+    and `::1:8080`, an IPv6 address itself, is reached on port 443. Such an address with a port is
+    written `[::1]:50051`; one meant without a port, `[::1:8080]`.
+    """
+    if host.count(":") < 2 or host.startswith("[") or _host_and_port(host)[0] is None:
+        return
+    name, _, port = host.rpartition(":")
+    if not (port.isascii() and port.isdigit() and _is_ipv6(name)):
+        return
+    alone = (
+        f" ({scheme}[{host}] for the address {host} on gRPC's default port, 443)" if _is_ipv6(host) else ""
+    )
+    raise ValueError(
+        f"address {address!r}: write an IPv6 address with a port in brackets, {scheme}[{name}]:{port}"
+        f"{alone}; without them gRPC reads it all as the host"
+    )
+
+
+def _is_ipv6(text: str) -> bool:
+    """Whether `text` is an IPv6 address (without brackets)."""
+    try:
+        ipaddress.IPv6Address(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _host_and_port(host: str) -> tuple[str, str] | tuple[None, None]:
