@@ -30,7 +30,7 @@ from esrp.train import demos as demos_module  # noqa: E402
 from esrp.train._training import save_checkpoint  # noqa: E402
 from esrp.train.bc import DemoWindows, load_config, train  # noqa: E402
 from esrp.train.dagger import DaggerConfig, load_dagger_config, run_dagger  # noqa: E402
-from esrp.train.heldout import TrainServer  # noqa: E402
+from esrp.train.heldout import TrainServer, evaluate_checkpoint  # noqa: E402
 
 RESOLUTION = 32
 
@@ -223,6 +223,69 @@ def test_a_held_out_scene_not_in_the_split_is_named(
     )
     with pytest.raises(ValueError, match="eval_scenes: scene .* is a test easy scene"):
         train(config, tmp_path / "run", progress=False, server=train_server)
+
+
+def test_a_dead_server_is_said_at_once_in_one_line_and_leaves_no_folder(
+    server: esrp.LocalServer,
+    expert: Path,
+    train_easy: list[str],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """`esrp train bc --server 127.0.0.1:1` (nothing listening there) read the demonstrations,
+    made the run folder, and then said gRPC's `UNAVAILABLE: failed to connect to all addresses;
+    ...`: now it is said first, in one line naming the address as `esrp eval` does, exit status 2.
+    Likewise other checks the server makes (a held-out scene it does not serve), and DAgger's
+    settings its first training would refuse: no run folder is left behind."""
+    plain = write_toml(tmp_path / "plain.toml", {"bc": bc_table(expert, eval_every=1)})
+    dagger = {"bc": bc_table(expert), "dagger": dagger_table(train_easy)}
+    both = write_toml(tmp_path / "dagger.toml", dagger)
+    run = tmp_path / "runs" / "run"
+    for config, more in ((plain, []), (both, ["--dagger"])):
+        arguments = ["train", "bc", "--config", str(config), "--out", str(run), "--server", "127.0.0.1:1"]
+        assert main([*arguments, "--no-progress", *more]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("esrp train bc: no esrp-server answers at 127.0.0.1:1: "), err
+        assert "Connection refused" in err, err
+        assert err.count("\n") == 1, err
+        assert not (tmp_path / "runs").exists()
+    unknown = {"bc": bc_table(expert, eval_scenes=["esrp-bench-v2/99999"], eval_every=1)}
+    del unknown["bc"]["eval_limit"]
+    other_size = {"bc": bc_table(expert, resolution=64), "dagger": dagger_table(train_easy)}
+    for tables, more, said in (
+        (unknown, [], "eval_scenes: scene 'esrp-bench-v2/99999' is not in the served dataset"),
+        (other_size, ["--dagger"], "the demonstrations hold 32 px views and the config says resolution = 64"),
+    ):
+        config = write_toml(tmp_path / "refused.toml", tables)
+        assert train_cli(server, config, run, *more) == 2
+        assert said in capsys.readouterr().err
+        assert not (tmp_path / "runs").exists()
+
+
+def test_a_server_gone_during_the_run_stops_it_in_one_line(
+    expert: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The run's server stops answering at its first held-out evaluation: one line naming the
+    address and how to go on, exit status 3 (as `esrp eval` for a server gone during its run), the
+    checkpoint kept."""
+    config = write_toml(tmp_path / "bc.toml", {"bc": bc_table(expert, eval_every=1)})
+    run = tmp_path / "run"
+    with esrp.LocalServer() as own:
+        address = own.address
+
+        def stop_then_evaluate(server: TrainServer, *args: Any, **kwargs: Any) -> Any:  # noqa: ANN401
+            own.stop()
+            return evaluate_checkpoint(server, *args, **kwargs)
+
+        monkeypatch.setattr(bc_module, "evaluate_checkpoint", stop_then_evaluate)
+        assert train_cli(own, config, run) == 3
+    err = capsys.readouterr().err
+    assert err.startswith(f"esrp train bc: no esrp-server answers at {address}: "), err
+    assert err.endswith(
+        "; the run stopped there: --resume goes on from its last checkpoint once the server answers\n"
+    )
+    assert err.count("\n") == 1, err
+    assert (run / "ckpt.pt").exists()
 
 
 # --- The DAgger loop.
@@ -441,7 +504,7 @@ def test_bad_dagger_configs_are_refused(
     held_out = {"bc": bc_table(expert), "dagger": dagger_table(train_easy, scenes=train_easy[:1])}
     assert train_cli(server, write_toml(tmp_path / "held.toml", held_out), run, "--dagger") == 2
     assert "no scene is left for DAgger's rollouts" in capsys.readouterr().err
-    assert not run.exists() or not any(run.iterdir()), "nothing written: the fixed config starts afresh"
+    assert not run.exists(), "nothing made: the fixed config starts afresh"
 
 
 def test_the_shipped_bc_configs_load() -> None:

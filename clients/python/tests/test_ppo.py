@@ -9,6 +9,7 @@ import csv
 import dataclasses
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -272,6 +273,45 @@ def test_esrp_train_and_eval_end_to_end(
     # The same checkpoint and seed play the same episode again.
     assert main([*evaluation, "--out", str(tmp_path / "again.jsonl")]) == 0
     assert read_records(tmp_path / "again.jsonl").records[0].actions == record.actions
+
+
+def test_a_server_gone_during_the_run_stops_it_in_one_line(
+    tmp_path: Path,
+    easy_scenes: list[str],
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The server stops after the first update: gRPC's `UNAVAILABLE: ...` was the message, exit
+    status 2; now one line naming the address and how to go on, exit status 3 (as `esrp eval`)."""
+    from esrp.train import ppo
+
+    config = tmp_path / "ppo.toml"
+    config.write_text(
+        "[ppo]\n"
+        f'split = "test"\nscene = "{easy_scenes[0]}"\nhorizon = 5\nresolution = 64\nfeature_dim = 16\n'
+        "grasp_dim = 4\nhidden = 16\nnum_envs = 2\nnum_steps = 8\nminibatch_size = 8\n"
+        'total_steps = 64\ncheckpoint_every = 1\nthreads = 1\ndevice = "cpu"\n',
+        encoding="utf-8",
+    )
+    log = ppo._log
+    run = tmp_path / "run"
+    with esrp.LocalServer() as own:
+        address = own.address
+
+        def log_then_stop(*args: Any) -> None:  # noqa: ANN401
+            log(*args)
+            own.stop()
+
+        monkeypatch.setattr(ppo, "_log", log_then_stop)
+        arguments = ["train", "ppo", "--config", str(config), "--out", str(run), "--server", address]
+        assert main([*arguments, "--no-progress"]) == 3
+    err = capsys.readouterr().err
+    assert err.startswith(f"esrp train ppo: no esrp-server answers at {address}: "), err
+    assert err.endswith(
+        "; the run stopped there: --resume goes on from its last checkpoint once the server answers\n"
+    )
+    assert err.count("\n") == 1, err
+    assert (run / "ckpt.pt").exists()
 
 
 def test_bad_configs_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -199,6 +199,8 @@ def test_bad_inits_and_imitation_configs_are_refused(
         ppo_bc.ImitationConfig.from_mapping({"demos": "x", "epoch": 3})
     with pytest.raises(ValueError, match="64 px"):
         ppo_bc.train(network_config(resolution=128, pool=2), imitation(demos), tmp_path / "c", progress=False)
+    # Refused at their start, the runs made no folder.
+    assert not any((tmp_path / name).exists() for name in ("a", "b", "c"))
     bad = tmp_path / "bad.toml"
     bad.write_text('[ppo]\nresolution = 64\n[ppo_bc]\ndemos = "x"\nstreams = 0\n')
     assert main(["train", "ppo-bc", "--config", str(bad), "--out", str(tmp_path / "d")]) == 2

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+import esrp
 from esrp import _signals
 from esrp.cli import main
 
@@ -143,6 +144,46 @@ def test_a_resume_says_which_settings_differ_and_that_there_is_nothing_to_resume
     assert (
         f"no checkpoint in {tmp_path / 'new'} to resume: starting a new run there" in capsys.readouterr().err
     )
+
+
+def test_a_run_refused_at_its_start_leaves_no_folder(
+    server: esrp.LocalServer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Every `esrp train` made its run folder (and its parents) before reading the demonstrations
+    (bc, ppo-bc: config.json and log.csv in it too) or creating its episodes (ppo), and a run
+    refused there left it behind: a rerun with the mistake fixed was then told the folder is taken,
+    or wrote into a stale one. A folder that was there before is left as it was."""
+    missing = tmp_path / "missing.zarr"
+    configs = {
+        "bc": f'[bc]\ndemos = "{missing}"\n',
+        "dagger": f'[bc]\ndemos = "{missing}"\n[dagger]\niterations = 1\n',
+        "ppo-bc": f'[ppo]\nresolution = 64\n[ppo_bc]\ndemos = "{missing}"\n',
+        "ppo": '[ppo]\nnum_envs = 1\nscene = "esrp-bench-v2/no-such-scene"\n',
+    }
+    commands = {
+        "bc": (["bc"], str(missing)),
+        "dagger": (["bc", "--dagger"], f"cannot open the demonstration store {missing}"),
+        "ppo-bc": (["ppo-bc"], str(missing)),
+        "ppo": (["ppo", "--server", server.address], 'no scene "esrp-bench-v2/no-such-scene"'),
+    }
+    for name, (command, said) in commands.items():
+        config = tmp_path / f"{name}.toml"
+        config.write_text(configs[name], encoding="utf-8")
+        runs = tmp_path / "runs"
+        arguments = ["train", *command, "--config", str(config), "--no-progress"]
+        assert main([*arguments, "--out", str(runs / name)]) == 2, name
+        err = capsys.readouterr().err
+        assert said in err, err
+        assert err.count("\n") == 1, err
+        assert not runs.exists(), f"esrp train {name} left {sorted(runs.rglob('*'))}"
+        # A folder of the user's (--resume of a folder without a run, an empty one) is kept whole.
+        for kept, resume in ((tmp_path / "mine", ["--resume"]), (tmp_path / "empty", [])):
+            kept.mkdir(exist_ok=True)
+            if resume:
+                (kept / "notes.txt").write_text("mine\n")
+            assert main([*arguments, *resume, "--out", str(kept)]) == 2, name
+            capsys.readouterr()
+            assert sorted(p.name for p in kept.iterdir()) == (["notes.txt"] if resume else []), name
 
 
 def test_a_diverging_loss_is_one_line(

@@ -48,7 +48,7 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Runs `esrp ARGS` (`argv` without the program name; default `sys.argv[1:]`); returns the exit
     status: 0 done, 1 episodes failed (eval) or records do not match (verify), 2 bad arguments or
-    input, 3 the server died or stayed unreachable (eval, verify: the run stopped there), 130
+    input, 3 the server died or stayed unreachable (eval, verify, train: the run stopped there), 130
     interrupted, 143 terminated (SIGTERM, when run as the `esrp` command).
     """
     arguments = list(sys.argv[1:] if argv is None else argv)

@@ -424,7 +424,7 @@ def _train(args: argparse.Namespace) -> int:
         from ..train.bc import load_config, train
         from ..train.dagger import load_dagger_config, run_dagger
         from ..train.demos import DemoExportError
-        from ..train.heldout import EvalError, TrainServer
+        from ..train.heldout import EvalError, ServerGone, TrainServer
     except ImportError as error:
         print(f"{name}: {error} (pip install 'esrp[train]')", file=sys.stderr)
         return 2
@@ -445,6 +445,10 @@ def _train(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
         with TrainServer(args.server, args.token, args.server_args) as server:
+            if args.server is not None and (dagger is not None or config.eval_every > 0):
+                # A --server the run will use is reached first: nothing answering there is said
+                # at once, before the demonstrations are read and the run folder is made.
+                server.reach()
             if dagger is not None:
                 checkpoint = run_dagger(
                     config, dagger, args.out, resume=args.resume, progress=args.progress, server=server
@@ -459,6 +463,9 @@ def _train(args: argparse.Namespace) -> int:
                     init=args.init,
                     init_average=args.init_average,
                 )
+    except ServerGone as error:  # the server stopped answering during the run (as esrp eval's)
+        print(f"{name}: {error}", file=sys.stderr)
+        return 3
     except (OSError, ValueError, EvalError, DemoExportError, EsrpError) as error:
         print(f"{name}: {error}", file=sys.stderr)
         return 2
@@ -495,6 +502,7 @@ def _train_ppo_bc(args: argparse.Namespace, name: str) -> int:
 def _train_ppo(args: argparse.Namespace, name: str) -> int:
     from .._client import Client
     from .._errors import EsrpError
+    from ..train.heldout import lost_server
     from ..train.ppo import load_config, train
 
     try:
@@ -504,10 +512,18 @@ def _train_ppo(args: argparse.Namespace, name: str) -> int:
         return 2
 
     def run(address: str) -> int:
-        with Client(address, token=args.token, timeout=120) as client:
-            checkpoint = train(
-                config, args.out, client, resume=args.resume, progress=args.progress, stop_at=args.stop_at
-            )
+        # `on_server` has reached a --server before: its going away now stops the run (status 3).
+        try:
+            with Client(address, token=args.token, timeout=120) as client:
+                checkpoint = train(
+                    config, args.out, client, resume=args.resume, progress=args.progress, stop_at=args.stop_at
+                )
+        except EsrpError as error:
+            gone = lost_server(address, args.token, error)
+            if gone is None:
+                raise
+            print(f"{name}: {gone}", file=sys.stderr)
+            return 3
         print(f"checkpoint: {checkpoint}")
         return 0
 

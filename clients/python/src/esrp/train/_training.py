@@ -30,12 +30,17 @@ __all__ = [
 
 
 def run_folder(out: Path, resume: bool) -> Path:
-    """Makes the run folder `out` (and its parents) if missing; returns the path of its checkpoint,
-    `out/ckpt.pt`. Raises `ValueError` when `out` already holds a run's checkpoint and not `resume`;
-    with `resume` and no checkpoint there, says on stderr that the run starts anew (a mistyped
-    `--out` shows at once).
+    """The path of the checkpoint of run folder `out`, `out/ckpt.pt`, checked and not made: raises
+    `ValueError` when `out` is a file, or already holds a run's checkpoint and not `resume`; with
+    `resume` and no checkpoint there, says on stderr that the run starts anew (a mistyped `--out`
+    shows at once).
+
+    A trainer makes the folder (`out.mkdir(parents=True, exist_ok=True)`) only once every check
+    that can fail before training has passed (the demonstrations, the settings, the server), so
+    that a run refused at its start leaves no folder behind.
     """
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{out} is a file, not a run folder: give another --out")
     checkpoint = out / "ckpt.pt"
     if not resume and checkpoint.exists():
         raise ValueError(f"{out} already holds a run: pass --resume to go on with it, or another --out")

@@ -48,7 +48,16 @@ from ._config import read_table
 from ._training import resume_from, run_folder, save_checkpoint, save_for_playing, trim_epoch_log
 from .heldout import EVAL_FIELDS, TrainServer, evaluate_checkpoint, heldout_scenes, read_eval_log
 
-__all__ = ["FINE_TUNE_FREE", "LOG_FIELDS", "NO_LABEL", "RESUME_FREE", "DemoWindows", "load_config", "train"]
+__all__ = [
+    "FINE_TUNE_FREE",
+    "LOG_FIELDS",
+    "NO_LABEL",
+    "RESUME_FREE",
+    "DemoWindows",
+    "check_resolution",
+    "load_config",
+    "train",
+]
 
 LOG_FIELDS = ("epoch", "steps", "loss", "mse", "ce", "lr", "seconds")
 """The columns of a run's `log.csv`: one line per epoch."""
@@ -339,16 +348,20 @@ def train(
             }
         save_checkpoint(checkpoint, "esrp-bc", model, optimizer, extra=extra, epoch=epoch, steps=steps)
 
-    (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")
     noise_scheduler, _ = schedulers(config)
     log_path = out / "log.csv"
-    trim_epoch_log(log_path, LOG_FIELDS, epoch)
     held_out = _HeldOut(config, out, checkpoint, windows.resolution, final_eval=final_eval, progress=progress)
-    held_out.start_log(epoch)
     own_server = server is None
     used = server if server is not None else TrainServer()
     try:
         held_out.choose_scenes(used)
+        # Every check that can refuse the run has passed (the folder, the demonstrations, the
+        # settings, the initial weights, the server and its held-out scenes): the run folder is
+        # made now, so that a refused run leaves none behind.
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")
+        trim_epoch_log(log_path, LOG_FIELDS, epoch)
+        held_out.start_log(epoch)
         # An evaluation the interrupted run owed (the checkpoint is written before each).
         if held_out.owed(epoch):
             held_out.run(used, epoch, steps)
@@ -399,12 +412,17 @@ def _demo_windows(config: BcConfig, progress: bool) -> DemoWindows:
     windows = DemoWindows(
         config.demos, config.n_obs, config.horizon, in_memory=config.in_memory, progress=progress
     )
-    if windows.resolution != config.resolution:
-        raise ValueError(
-            f"the demonstrations hold {windows.resolution} px views and the config says resolution = "
-            f"{config.resolution}: set resolution = {windows.resolution} in [bc]"
-        )
+    check_resolution(windows.resolution, config)
     return windows
+
+
+def check_resolution(resolution: int, config: BcConfig) -> None:
+    """Raises `ValueError` unless demonstrations of `resolution` px views suit `config`."""
+    if resolution != config.resolution:
+        raise ValueError(
+            f"the demonstrations hold {resolution} px views and the config says resolution = "
+            f"{config.resolution}: set resolution = {resolution} in [bc]"
+        )
 
 
 class _Average:

@@ -41,9 +41,10 @@ import torch
 from ..agents._checkpoint import read_checkpoint
 from ..agents._config import reject_unknown
 from ..agents.bc import BcConfig, checkpoint_settings
+from ..agents.encoders import resolve_device
 from ._config import read_document
 from ._training import settings_differences
-from .bc import RESUME_FREE, train
+from .bc import RESUME_FREE, check_resolution, train
 from .demos import DemoSettings, export_demos
 from .heldout import TrainServer, heldout_scenes, read_eval_log
 
@@ -277,6 +278,12 @@ class _Run:
         self.expert_episodes = sum(size[0] for size in sizes)
         self.expert_steps = sum(size[1] for size in sizes)
         self.resolution = sizes[0][2]
+        # What iteration 0's training would refuse, refused before the run folder is made.
+        for path, size in zip(self.experts, sizes, strict=True):
+            if size[2] != self.resolution:
+                raise ValueError(f"{path} holds {size[2]} px views, {self.experts[0]} {self.resolution} px")
+        check_resolution(self.resolution, bc)
+        resolve_device(bc.device)
         self.state: dict[str, Any] = {}
         self.heldout: list[str] = []
         self.pool: list[str] = []
@@ -290,8 +297,11 @@ class _Run:
         return {"bc": self.bc.to_dict(), "dagger": self.dagger.to_dict()}
 
     def open(self, resume: bool) -> None:
-        """Reads the state of the run `out` holds (with `resume`) or prepares one (`start` writes it)."""
-        self.out.mkdir(parents=True, exist_ok=True)
+        """Reads the state of the run `out` holds (with `resume`) or prepares one (`start` makes the
+        folder and writes it).
+        """
+        if self.out.exists() and not self.out.is_dir():
+            raise ValueError(f"{self.out} is a file, not a run folder: give another --out")
         if self.state_path.exists():
             if not resume:
                 raise ValueError(
@@ -329,7 +339,10 @@ class _Run:
         self.state["settings"] = self.settings()
 
     def start(self) -> None:
-        """Writes the state and the settings: the run is there (once its settings proved usable)."""
+        """Makes the run folder and writes the state and the settings: the run is there (once its
+        settings, stores and server proved usable: a run refused before leaves no folder behind).
+        """
+        self.out.mkdir(parents=True, exist_ok=True)
         _write_json(self.state_path, self.state)
         _write_json(self.out / "config.json", self.settings())
 

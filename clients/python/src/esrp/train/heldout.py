@@ -25,19 +25,23 @@ import torch
 
 from .._async_client import AsyncClient
 from .._client import Client
+from .._common import unreachable
+from .._errors import EsrpError, ServerUnavailable
 from .._local import LocalServer
 from .._signals import run_async
 from .._values import Sensors
 from ..agents.bc import BcConfig
-from ..eval.evaluation import EvalError, EvalSettings, evaluate, missing_scene, reach
+from ..eval.evaluation import EvalError, EvalSettings, ServerGone, evaluate, missing_scene
 
 __all__ = [
     "EVAL_FIELDS",
     "EvalError",
     "HeldOutResult",
+    "ServerGone",
     "TrainServer",
     "evaluate_checkpoint",
     "heldout_scenes",
+    "lost_server",
     "read_eval_log",
 ]
 
@@ -45,10 +49,43 @@ EVAL_FIELDS = ("epoch", "steps", "sr", "osr", "rdr", "episodes", "failed", "seco
 """The columns of a run's `eval.csv`: one line per held-out evaluation."""
 
 
+def lost_server(address: str, token: str | None, error: EsrpError) -> ServerGone | None:
+    """The error that stops a training run whose call to the server at `address` failed with
+    `error` during the run, when the server no longer answers: one line naming the address as gRPC
+    read it, and how to go on. That is an `error` of `ServerUnavailable`, or another one (a stream
+    cut off as the server went is `UNKNOWN: transport error`) after which a call (`token`'s) finds
+    nothing answering there; None when the server answers: `error` is the call's own.
+    """
+    if not isinstance(error, ServerUnavailable):
+        try:
+            with Client(address, token=token, timeout=10) as client:
+                client.server_info()
+            return None
+        except ServerUnavailable as unavailable:
+            error = unavailable
+        except EsrpError:
+            return None
+    return _stopped(address, error)
+
+
+def _stopped(address: str, error: EsrpError) -> ServerGone:
+    """`lost_server`'s error, for the server at `address` that `error` (a `ServerUnavailable`)
+    found not answering.
+    """
+    return ServerGone(
+        f"{unreachable(address, error)}; the run stopped there: --resume goes on from its last "
+        "checkpoint once the server answers"
+    )
+
+
 class TrainServer:
     """The esrp-server a training run uses for held-out evaluations and DAgger exports: the one at
     `address`, or one started here (`LocalServer` with `server_args`) at its first use and stopped
     by `close()` (or leaving the `with` block). A run that never evaluates starts none.
+
+    A server that does not answer is said in one line naming its address: at the first contact
+    (`reach`) as `EvalError`, before the run has started anything there; later, when the run
+    stops on it, as `ServerGone` (`lost_server`).
     """
 
     def __init__(
@@ -58,6 +95,8 @@ class TrainServer:
         self.server_args = list(server_args)
         self._address = address
         self.local: LocalServer | None = None
+        self._reached = False
+        """Whether a call has reached the server (`reach`)."""
 
     def address(self) -> str:
         """The server's `host:port` (starting the local server if none is running yet)."""
@@ -68,11 +107,35 @@ class TrainServer:
             self.local.start()
         return self.local.address
 
+    def reach(self) -> None:
+        """Makes sure the server answers, with one call the first time: raises `EvalError` naming
+        the address as gRPC read it when nothing answers there, at once (as `esrp eval` says it).
+        """
+        if self._reached:
+            return
+        address = self.address()
+        try:
+            with Client(address, token=self.token, timeout=30) as client:
+                client.server_info()
+        except ServerUnavailable as error:
+            raise EvalError(unreachable(address, error)) from None
+        self._reached = True
+
     @contextlib.contextmanager
     def client(self) -> Iterator[Client]:
-        """A (blocking) client of the server, closed after the block."""
-        with Client(self.address(), token=self.token, timeout=120) as client:
-            yield client
+        """A (blocking) client of the server, closed after the block; the server reached first
+        (`reach`), and its going away in the block raised as `ServerGone` (`lost_server`).
+        """
+        self.reach()
+        address = self.address()
+        try:
+            with Client(address, token=self.token, timeout=120) as client:
+                yield client
+        except EsrpError as error:
+            gone = lost_server(address, self.token, error)
+            if gone is None:
+                raise
+            raise gone from None
 
     def close(self) -> None:
         """Stops the server started here, if any."""
@@ -157,7 +220,8 @@ def evaluate_checkpoint(
 ) -> HeldOutResult:
     """Plays the policy of `checkpoint` on `scenes` (of `config.eval_split`) as `esrp eval --agent bc`
     does, with views of `resolution` pixels, writing (or resuming) the results file `out`.
-    Raises `EvalError` when the evaluation cannot run (the server is gone, a bad checkpoint).
+    Raises `EvalError` when the evaluation cannot run (a bad checkpoint; the server not answering
+    at the first contact), and `ServerGone` when the server stops answering.
     """
     epsilon = config.epsilon if config.eval_epsilon is None else config.eval_epsilon
     settings = EvalSettings(
@@ -178,14 +242,18 @@ def evaluate_checkpoint(
         sensors=Sensors(resolution=resolution),
         progress=progress,
     )
+    server.reach()
     address = server.address()
 
     async def run() -> HeldOutResult:
         async with AsyncClient(address, token=server.token, timeout=120) as client:
-            await reach(client, address)
-            await client.wait_healthy(30)
-            started = time.monotonic()
-            outcome = await evaluate(client, settings, server.local)
+            try:
+                await client.server_info()
+                await client.wait_healthy(30)
+                started = time.monotonic()
+                outcome = await evaluate(client, settings, server.local)
+            except ServerUnavailable as error:  # gone since the run reached it
+                raise _stopped(address, error) from None
             tally = outcome.summary.overall
             seconds = time.monotonic() - started
             return HeldOutResult(tally.sr, tally.osr, tally.rdr, tally.episodes, len(outcome.failed), seconds)

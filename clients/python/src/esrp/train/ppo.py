@@ -189,24 +189,23 @@ def train(
         load_initial_weights(network, Path(config.init), device)
         if progress:
             print(f"starting from the weights of {config.init}", file=sys.stderr)
-    (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")
-    log_path, episodes_path = out / "log.csv", out / "episodes.csv"
-    if update == 0:
-        with open(log_path, "w", newline="") as file:
-            csv.writer(file).writerow(LOG_FIELDS)
-        with open(episodes_path, "w", newline="") as file:
-            csv.writer(file).writerow(["steps", "return", "length", "success"])
-
     if stop_at is not None and global_step >= stop_at:
+        _start_files(config, out, update)
         print(f"{checkpoint} has {global_step} steps (stop at {stop_at}): nothing to do", file=sys.stderr)
         return checkpoint
     env = make_env(config, client)
     try:
+        # A resumed run starts fresh episodes, seeded apart from the ones before. Their creation
+        # checks the config against the server (its scenes, the resolution) before the run folder
+        # is made: a run refused at its start leaves none behind.
+        observations, _ = env.reset(seed=config.seed + update)
+        _start_files(config, out, update)
         _loop(
             config,
             network,
             optimizer,
             env,
+            observations,
             device,
             out,
             update,
@@ -219,6 +218,19 @@ def train(
     finally:
         env.close()
     return checkpoint
+
+
+def _start_files(config: PpoConfig, out: Path, update: int) -> None:
+    """Makes the run folder `out` if missing and writes its `config.json`, and at update 0 the
+    headers of `log.csv` and `episodes.csv`.
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")
+    if update == 0:
+        with open(out / "log.csv", "w", newline="") as file:
+            csv.writer(file).writerow(LOG_FIELDS)
+        with open(out / "episodes.csv", "w", newline="") as file:
+            csv.writer(file).writerow(["steps", "return", "length", "success"])
 
 
 def parameter_groups(network: PpoNet, config: PpoConfig) -> list[dict[str, Any]]:
@@ -272,6 +284,7 @@ def _loop(
     network: PpoNet,
     optimizer: torch.optim.Optimizer,
     env: RearrangeVectorEnv,
+    observations: Mapping[str, np.ndarray],
     device: torch.device,
     out: Path,
     update: int,
@@ -282,7 +295,8 @@ def _loop(
     scale: RewardScale | None = None,
 ) -> None:
     """Runs the updates after `update` (`global_step` environment steps) until `config.num_updates`
-    (or `stop_at`): each collects a rollout of `num_steps` steps of every episode of `env`, computes
+    (or `stop_at`), from the `observations` of `env`'s first reset (`train` makes it before the
+    run folder): each collects a rollout of `num_steps` steps of every episode of `env`, computes
     GAE advantages, runs the PPO epochs, then logs the update in `out` (and hands it to `on_update`)
     and writes the checkpoint: every `checkpoint_every` updates, after the last, and where it stops.
 
@@ -291,8 +305,6 @@ def _loop(
     to bottom in one place.
     """
     steps_, n = config.num_steps, config.num_envs
-    # A resumed run starts fresh episodes, seeded apart from the ones before.
-    observations, _ = env.reset(seed=config.seed + update)
     side = config.resolution // config.pool
     # Images are kept preprocessed (float, pooled): the epochs read them without converting again.
     # An episode keeps one goal image: a rollout stores each distinct goal once (`goals`) and the

@@ -235,17 +235,17 @@ def train(
         load_initial_weights(network, Path(config.init), device)
         if progress:
             print(f"starting from the weights of {config.init}", file=sys.stderr)
-    (out / "config.json").write_text(
-        json.dumps({"ppo": ppo.to_dict(), "ppo_bc": config.to_dict()}, indent=2) + "\n", encoding="utf-8"
-    )
-    trim_epoch_log(out / "log.csv", LOG_FIELDS, epoch)
     if epoch >= config.epochs:
+        _start_files(ppo, config, out, epoch)
         return checkpoint
+    # The demonstrations are read before the run folder is made: a run refused at its start (a
+    # missing store, views of another size) leaves none behind.
     demos = DemoWindows(config.demos, 1, 1, in_memory=True, progress=progress)
     if demos.resolution != ppo.resolution:
         raise ValueError(
             f"the demonstrations hold {demos.resolution} px views, the network takes {ppo.resolution}"
         )
+    _start_files(ppo, config, out, epoch)
     lengths = np.bincount(demos.episode)
     batches = (len(demos) // config.streams + config.seq_len - 1) // config.seq_len
     total = batches * config.epochs
@@ -304,6 +304,17 @@ def train(
                 file=sys.stderr,
             )
     return checkpoint
+
+
+def _start_files(ppo: PpoConfig, config: ImitationConfig, out: Path, epoch: int) -> None:
+    """Makes the run folder `out` if missing, writes its `config.json` and makes its `log.csv` the
+    log of the epochs up to `epoch`.
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.json").write_text(
+        json.dumps({"ppo": ppo.to_dict(), "ppo_bc": config.to_dict()}, indent=2) + "\n", encoding="utf-8"
+    )
+    trim_epoch_log(out / "log.csv", LOG_FIELDS, epoch)
 
 
 def _batch(
