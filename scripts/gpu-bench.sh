@@ -16,6 +16,8 @@
 # What it measures, in this order (what decides issue 40 first), each step only if the budget
 # leaves room for it (a skipped step is said in the summary):
 #   1. standard: esrp-bench's scenarios with the server's stage breakdown (--breakdown);
+#   1b. compute: the compute rasteriser (--render-rasterizer compute): the renderer alone (views
+#      bench), one server driven by 4 client processes, 8 servers driven by 8 and by 16;
 #   2. scale-out at 8: 8 servers started first, driven by 8 client processes (one each) and by
 #      16 (two each), against one server driven by the same 8 processes; then 8 servers whose
 #      runtimes share the cores out (--worker-threads cores/8) driven by 8; then 8 servers
@@ -274,6 +276,27 @@ scale_out() { # scale_out N: N servers against one, N client processes (and 2N a
 if step standard 60; then
     bench standard.json --breakdown \
         --scenarios unary-1,stream-1,stream-1-pipelined,unary-64,streams-64,stream-mux-64,batch-64
+fi
+# The compute rasteriser (--render-rasterizer compute: compute shaders instead of the graphics
+# pipeline, whose fixed-function hardware an H100 or H200 has little of): the renderer alone, one
+# server driven by 4 client processes (with the breakdown), 8 servers driven by 8 and by 16.
+if [[ -x $BIN/esrp-render-views ]] && step renderer-compute 20; then
+    ESRP_RENDER_RASTERIZER=compute ESRP_RENDER_BACKEND=$BACKEND ESRP_BENCH_SECONDS=1 ESRP_BENCH_CULL=on \
+        ESRP_BENCH_CASES=ego-1,ego-64,ego-256,top-256,full-256 ESRP_BENCH_JSON=$OUT_DIR/renderer-compute.json \
+        measured renderer-compute "$BIN/esrp-render-views" --bench >> "$OUT_DIR/renderer.log" 2>&1 \
+        || SKIPPED+=("renderer-compute (the views bench failed: see renderer.log)")
+fi
+if step compute 30; then
+    bench_args compute.json "--render-rasterizer=compute" --breakdown --scenarios stream-mux-64,batch-64 --processes 4 \
+        || SKIPPED+=("compute (the compute rasteriser's server failed: see bench.log)")
+fi
+if step compute-servers-8 50; then
+    start_servers 8 -compute --render-rasterizer compute
+    measured compute-servers-8 "$BIN/esrp-bench" --server "$LIST" --processes 8 --scenarios stream-mux-64,batch-64 \
+        --seconds "$SECONDS_EACH" --json "$OUT_DIR/compute-servers-8.json" >> "$OUT_DIR/bench.log" 2>&1 || true
+    measured compute-servers-8x2 "$BIN/esrp-bench" --server "$LIST" --processes 16 --scenarios stream-mux-64 \
+        --seconds "$SECONDS_EACH" --json "$OUT_DIR/compute-servers-8x2.json" >> "$OUT_DIR/bench.log" 2>&1 || true
+    stop_servers
 fi
 if step servers-8 100; then
     scale_out 8

@@ -160,25 +160,34 @@ def scale_out(folder: Path) -> list[str]:
     ]
 
 
+def views_table(report: dict[str, Any], title: str) -> list[str]:
+    """One run of the views bench: each case's views/s, a column per culling setting."""
+    columns = list(next(iter(report["cases"].values()), {}))
+    lines = [
+        f"## {title}",
+        "",
+        f"Adapter: {report['adapter']}; rasterizer {report.get('rasterizer', 'pipeline')}; "
+        f"{report['seconds']} s a case; views/s.",
+        "",
+        "| case | " + " | ".join(columns) + " |",
+        "|---|" + "---:|" * len(columns),
+    ]
+    for case, figures in report["cases"].items():
+        lines.append(f"| {case} | " + " | ".join(f"{figures[c]:,.0f}" for c in columns) + " |")
+    return [*lines, ""]
+
+
 def renderer(folder: Path) -> list[str]:
-    """The renderer alone: each case of the views bench in one process, then the views per
-    second of several processes rendering at once, summed (a process whose file is missing
-    failed: the row says how many answered)."""
+    """The renderer alone: each case of the views bench in one process (the graphics pipeline,
+    then the compute rasteriser), then the views per second of several processes rendering at
+    once, summed (a process whose file is missing failed: the row says how many answered)."""
     alone = load(folder, "renderer.json")
     lines: list[str] = []
     if alone is not None:
-        columns = list(next(iter(alone["cases"].values()), {}))
-        lines += [
-            "## The renderer alone, no server (esrp-render's views bench)",
-            "",
-            f"Adapter: {alone['adapter']}; {alone['seconds']} s a case; views/s.",
-            "",
-            "| case | " + " | ".join(columns) + " |",
-            "|---|" + "---:|" * len(columns),
-        ]
-        for case, figures in alone["cases"].items():
-            lines.append(f"| {case} | " + " | ".join(f"{figures[c]:,.0f}" for c in columns) + " |")
-        lines.append("")
+        lines += views_table(alone, "The renderer alone, no server (esrp-render's views bench)")
+    compute = load(folder, "renderer-compute.json")
+    if compute is not None:
+        lines += views_table(compute, "The compute rasteriser alone, no server (the views bench)")
     together = {n: [load(folder, f"renderer-x{n}-{i}.json") for i in range(n)] for n in (4, 8)}
     answered = {n: [r for r in reports if r is not None] for n, reports in together.items()}
     first = next((reports[0] for reports in answered.values() if reports), None)
@@ -249,6 +258,16 @@ def main(argv: list[str]) -> int:
     if machine.exists():
         lines += ["```text", machine.read_text(encoding="utf-8").strip(), "```", ""]
     lines += standard(folder)
+    lines += series(
+        folder,
+        "The compute rasteriser (--render-rasterizer compute)",
+        "servers",
+        [
+            ("1", "compute.json"),
+            ("8", "compute-servers-8.json"),
+            ("8", "compute-servers-8x2.json"),
+        ],
+    )
     lines += series(folder, "The OpenGL backend (--render-backend gl)", "backend", [("gl", "gl.json")])
     lines += scale_out(folder)
     lines += series(

@@ -5,7 +5,8 @@
 //! time per case (default 3), `ESRP_BENCH_CASES` picks cases by name (comma-separated; see
 //! `CASES`), `ESRP_BENCH_CULL` one column (`on` or `off`), `ESRP_BENCH_JSON` a file to write
 //! the figures to as well, `ESRP_BENCH_START_AT` (Unix time, seconds) when to start measuring
-//! (several processes measuring together), and `ESRP_RENDER_BACKEND=gl` measures OpenGL.
+//! (several processes measuring together), `ESRP_RENDER_BACKEND=gl` measures OpenGL and
+//! `ESRP_RENDER_RASTERIZER=compute` the compute rasteriser (culling does not apply to it).
 //! `scripts/gpu-bench.sh` runs it on a lent GPU machine, alone and as several processes at once
 //! (whether one device, not the server, is what caps).
 
@@ -13,7 +14,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use esrp_core::{CompiledScene, EgoCamera, FixedObject, Heading, ObjectPose, Part, Scene, Shape};
-use esrp_render::{Camera, Outputs, Renderer, RendererConfig, SceneHandle, ViewRequest};
+use esrp_render::{Camera, Outputs, Rasterizer, Renderer, RendererConfig, SceneHandle, ViewRequest};
 
 /// The example bedroom, and a copy with more furniture along the walls (a fuller room).
 fn scenes() -> Vec<Arc<CompiledScene>> {
@@ -106,15 +107,22 @@ fn main() {
     let cases = selected_cases();
     let culling = selected_culling();
     let backends = esrp_render::BackendPreference::from_env().unwrap_or_default();
+    let rasterizer: Rasterizer = match std::env::var("ESRP_RENDER_RASTERIZER") {
+        Ok(name) => name.parse().unwrap_or_else(|e| {
+            eprintln!("views: ESRP_RENDER_RASTERIZER: {e}");
+            std::process::exit(2)
+        }),
+        Err(_) => Rasterizer::default(),
+    };
     let renderers: Vec<Renderer> = culling
         .iter()
         .map(|&cull| {
-            Renderer::new(RendererConfig { backends, cull, ..RendererConfig::default() })
+            Renderer::new(RendererConfig { backends, cull, rasterizer, ..RendererConfig::default() })
                 .unwrap_or_else(|e| panic!("{e}"))
         })
         .collect();
     let info = renderers[0].adapter_info();
-    println!("adapter: {} ({:?}, {})", info.name, info.backend, info.driver_info);
+    println!("adapter: {} ({:?}, {}), rasterizer {rasterizer}", info.name, info.backend, info.driver_info);
     let scenes = scenes();
     let handles: Vec<Vec<Arc<SceneHandle>>> =
         renderers.iter().map(|r| scenes.iter().map(|s| r.upload_scene(s).unwrap()).collect()).collect();
@@ -171,6 +179,7 @@ fn main() {
             .collect();
         let json = serde_json::json!({
             "adapter": format!("{} ({:?}, {})", info.name, info.backend, info.driver_info),
+            "rasterizer": rasterizer.name(),
             "seconds": seconds,
             "cases": cases,
         });

@@ -32,14 +32,14 @@ struct View {
     forward: vec4<f32>,
     depth_map: vec4<f32>,
     poses: array<vec4<f32>, MAX_POSE_SLOTS>,
-    // x: the view's page in the atlas; y: its resolution; z: its scene's triangles; w: the page
-    // side (pixels).
+    // x: the view's page in the atlas (bound as `planes`); y: its resolution; z: its scene's
+    // triangles; w: the page side (pixels).
     tile: vec4<u32>,
 }
 
 @group(0) @binding(0) var<uniform> view: View;
-// The atlas's planes, one u32 per pixel: colour (RGBA8), then with `full`, view depth (f32 bits)
-// and segmentation; pages of side × side pixels.
+// The view's page of the atlas, one u32 per pixel: colour (RGBA8), then with `full`, view depth
+// (f32 bits) and segmentation, each side × side pixels.
 @group(0) @binding(1) var<storage, read_write> planes: array<u32>;
 @group(1) @binding(0) var<storage, read> vertices: array<u32>;
 @group(1) @binding(1) var<storage, read> indices: array<u32>;
@@ -218,11 +218,10 @@ fn raster(tile: vec3<u32>, local: vec3<u32>, full: bool) {
         return;
     }
     let side = view.tile.w;
-    let page_words = side * side;
-    let at = view.tile.x * page_words + py * side + px;
+    let plane_words = side * side;
+    let at = py * side + px;
     planes[at] = colour;
     if full {
-        let plane_words = arrayLength(&planes) / 3u;
         if best == 0xffffffffu {
             view_depth = 0.0;
         }

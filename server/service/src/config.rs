@@ -7,7 +7,7 @@ use std::time::Duration;
 use clap::builder::{PossibleValuesParser, TypedValueParser};
 use clap::{Parser, ValueEnum};
 use esrp_dataset::BenchVersion;
-use esrp_render::BackendPreference;
+use esrp_render::{BackendPreference, Rasterizer};
 
 /// Log output format.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -93,6 +93,17 @@ pub struct Config {
         value_parser = PossibleValuesParser::new(BackendPreference::NAMES).try_map(|name| name.parse::<BackendPreference>()),
     )]
     pub render_backend: BackendPreference,
+    /// What draws the views' triangles: pipeline (the graphics pipeline: the device's
+    /// rasteriser and depth test) or compute (compute shaders: for GPUs with little
+    /// fixed-function graphics hardware, such as the H100 and H200; the same images up to a
+    /// few edge pixels, and each deterministic).
+    #[arg(
+        long,
+        env = "ESRP_RENDER_RASTERIZER",
+        default_value_t = Rasterizer::Pipeline,
+        value_parser = PossibleValuesParser::new(Rasterizer::NAMES).try_map(|name| name.parse::<Rasterizer>()),
+    )]
+    pub render_rasterizer: Rasterizer,
     /// Threads rendering batches (0: auto, one per render device: more measured slower both on
     /// llvmpipe, which rasterises one scene at a time per process, and on an NVIDIA GPU, where
     /// the threads take turns at the device). Each gathers the views that arrived while it was
@@ -311,6 +322,10 @@ mod tests {
         }
         let error = parse(&["--render-backend", "metal"]).unwrap_err().to_string();
         assert!(error.contains("auto, vulkan, gl"), "{error}");
+        assert_eq!(parse(&[]).unwrap().render_rasterizer, Rasterizer::Pipeline);
+        assert_eq!(parse(&["--render-rasterizer", "compute"]).unwrap().render_rasterizer, Rasterizer::Compute);
+        let error = parse(&["--render-rasterizer", "ray"]).unwrap_err().to_string();
+        assert!(error.contains("pipeline, compute"), "{error}");
     }
 
     #[test]

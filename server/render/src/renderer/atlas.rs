@@ -30,9 +30,12 @@ pub(super) enum Targets {
     /// The colour plane's texture array, one page of depth buffer (cleared by every pass), and
     /// the view depth (as f32 bits) and segmentation texture arrays when `full`.
     Textures { colour: PagedTexture, depth: wgpu::TextureView, extras: Option<Box<[PagedTexture; 2]>> },
-    /// The planes as the readback buffer holds them, written by the compute rasteriser, and
-    /// their bind group (with the uniforms): `raster.wgsl`'s group 0.
-    Buffer { planes: wgpu::Buffer, bind_group: wgpu::BindGroup },
+    /// One storage buffer per page (its planes one after the other, as the readback buffer
+    /// holds a page's), written by the compute rasteriser, each with its bind group (with the
+    /// uniforms): `raster.wgsl`'s group 0. A buffer per page, so that the views' dispatches
+    /// write different buffers and the device may run them at once (one buffer written by
+    /// every dispatch would put a barrier between each two).
+    Buffers { pages: Vec<(wgpu::Buffer, wgpu::BindGroup)> },
 }
 
 /// Targets and readback buffer of one atlas shape: `pages` square pages of `side` pixels.
@@ -94,28 +97,31 @@ impl Atlas {
         });
         let targets = match compute {
             Some(layout) => {
-                let planes = device.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some("esrp-render atlas planes"),
-                    size: bytes,
-                    usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-                    mapped_at_creation: false,
-                });
-                let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: Some("esrp-render raster views"),
-                    layout,
-                    entries: &[
-                        wgpu::BindGroupEntry {
-                            binding: 0,
-                            resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                                buffer: &uniforms,
-                                offset: 0,
-                                size: NonZeroU64::new(VIEW_STRIDE),
-                            }),
-                        },
-                        wgpu::BindGroupEntry { binding: 1, resource: planes.as_entire_binding() },
-                    ],
-                });
-                Targets::Buffer { planes, bind_group }
+                let page = |_| {
+                    let planes = device.create_buffer(&wgpu::BufferDescriptor {
+                        label: Some("esrp-render atlas page"),
+                        size: bytes / u64::from(pages),
+                        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+                        mapped_at_creation: false,
+                    });
+                    let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                        label: Some("esrp-render raster view"),
+                        layout,
+                        entries: &[
+                            wgpu::BindGroupEntry {
+                                binding: 0,
+                                resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                                    buffer: &uniforms,
+                                    offset: 0,
+                                    size: NonZeroU64::new(VIEW_STRIDE),
+                                }),
+                            },
+                            wgpu::BindGroupEntry { binding: 1, resource: planes.as_entire_binding() },
+                        ],
+                    });
+                    (planes, bind_group)
+                };
+                Targets::Buffers { pages: (0..pages).map(page).collect() }
             }
             None => texture_targets(device, side, pages, full),
         };

@@ -94,13 +94,13 @@ impl ComputeRaster {
         })
     }
 
-    /// Encodes one compute pass that draws every view of `requests` into its tile of the atlas
-    /// whose group 0 is `views` (one dispatch per view: a workgroup per 16×16 tile of it). Every
-    /// pixel of a view is written, so the planes need no clearing.
+    /// Encodes one compute pass that draws every view of `requests` into its page of an atlas
+    /// whose pages' buffers and group 0 are `pages` (one dispatch per view: a workgroup per
+    /// 16×16 tile of it). Every pixel of a view is written, so the planes need no clearing.
     pub(super) fn encode(
         &self,
         encoder: &mut wgpu::CommandEncoder,
-        views: &wgpu::BindGroup,
+        pages: &[(wgpu::Buffer, wgpu::BindGroup)],
         full: bool,
         requests: &[ViewRequest<'_>],
         tiles: &[Tile],
@@ -111,7 +111,10 @@ impl ComputeRaster {
         });
         pass.set_pipeline(if full { &self.full } else { &self.rgb });
         for (i, (request, tile)) in requests.iter().zip(tiles).enumerate() {
-            let Some(scene) = &request.scene.raster_bind_group else { continue };
+            let (Some(scene), Some((_, views))) = (&request.scene.raster_bind_group, pages.get(tile.page as usize))
+            else {
+                continue;
+            };
             pass.set_bind_group(0, views, &[(i as u64 * VIEW_STRIDE) as u32]);
             pass.set_bind_group(1, scene, &[]);
             let groups = tile.size.div_ceil(TILE);

@@ -93,13 +93,13 @@ impl Renderer {
             self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("esrp-render batch") });
         let used_pages = tiles.iter().map(|t| t.page + 1).max().unwrap_or(1);
         match (&atlas.targets, &self.raster) {
-            (Targets::Buffer { bind_group, .. }, Some(raster)) => {
-                raster.encode(&mut encoder, bind_group, full, requests, &tiles);
+            (Targets::Buffers { pages }, Some(raster)) => {
+                raster.encode(&mut encoder, pages, full, requests, &tiles);
             }
             (Targets::Textures { colour, depth, extras }, _) => {
                 self.draw_pages(&mut encoder, &atlas, colour, depth, extras.as_deref(), requests, &tiles, used_pages);
             }
-            (Targets::Buffer { .. }, None) => {
+            (Targets::Buffers { .. }, None) => {
                 return Err(RenderError::Gpu { reason: "a compute atlas without the compute rasterizer".into() });
             }
         }
@@ -316,12 +316,14 @@ fn view_uniforms(requests: &[ViewRequest<'_>], tiles: &[Tile], side: u32) -> Vec
 /// the extra planes (depth and segmentation) where the atlas has them.
 fn copy_to_readback(encoder: &mut wgpu::CommandEncoder, atlas: &Atlas, used_pages: u32) {
     let (colour, extras) = match &atlas.targets {
-        Targets::Buffer { planes, .. } => {
-            // The planes lie as in the readback buffer: copy the used pages of each.
-            let used = u64::from(used_pages) * atlas.page_bytes();
-            for plane in 0..if atlas.full { 3 } else { 1 } {
-                let at = plane * atlas.plane_bytes();
-                encoder.copy_buffer_to_buffer(planes, at, &atlas.readback, at, used);
+        Targets::Buffers { pages } => {
+            // Each used page's planes to where the readback buffer holds them.
+            let page_bytes = atlas.page_bytes();
+            for (page, (planes, _)) in pages.iter().take(used_pages as usize).enumerate() {
+                for plane in 0..if atlas.full { 3 } else { 1 } {
+                    let to = plane * atlas.plane_bytes() + page as u64 * page_bytes;
+                    encoder.copy_buffer_to_buffer(planes, plane * page_bytes, &atlas.readback, to, page_bytes);
+                }
             }
             return;
         }

@@ -185,3 +185,48 @@ fn a_server_that_cannot_start_says_why_in_one_line() {
         assert!(!stderr.contains("backtrace") && !stderr.contains("Caused by"), "{flag}: {stderr}");
     }
 }
+
+/// A server drawing with the compute rasteriser (`--render-rasterizer compute`) answers the same
+/// observations as one drawing with the graphics pipeline, but for a few edge pixels, along a
+/// scene's expert run.
+#[tokio::test]
+async fn the_compute_rasterizer_draws_what_the_pipeline_draws() {
+    let pipeline = Server::start(&["--render-backend", "vulkan"]);
+    let compute = Server::start(&["--render-backend", "vulkan", "--render-rasterizer", "compute"]);
+    let mut observations = Vec::new();
+    for server in [&pipeline, &compute] {
+        let mut client = server.client().await;
+        let created = client
+            .create_episode(proto::CreateEpisodeRequest {
+                scene: Some(proto::create_episode_request::Scene::SceneId("esrp-bench-v2/00011".into())),
+                privileged: true,
+                ..Default::default()
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        let observation = created.observation.unwrap();
+        let mut images = vec![observation.ego_rgb.unwrap().data, observation.goal_rgb.unwrap().data];
+        let state = client
+            .get_privileged_state(proto::GetPrivilegedStateRequest { episode_id: created.episode_id.clone() })
+            .await
+            .unwrap()
+            .into_inner();
+        let scene = esrp_core::Scene::from_json(&state.scene_json).unwrap();
+        for action in scene.expert_trajectory.iter().take(40) {
+            let step = proto::StepRequest {
+                episode_id: created.episode_id.clone(),
+                action: i32::from(action.code()),
+                include_goal: false,
+            };
+            let answer = client.step(step).await.unwrap().into_inner();
+            images.push(answer.observation.unwrap().ego_rgb.unwrap().data);
+        }
+        observations.push(images);
+    }
+    for (i, (a, b)) in observations[0].iter().zip(&observations[1]).enumerate() {
+        assert_eq!(a.len(), b.len());
+        let differ = a.chunks_exact(3).zip(b.chunks_exact(3)).filter(|(p, q)| p != q).count();
+        assert!(differ * 200 < a.len() / 3, "image {i}: {differ} pixels differ");
+    }
+}
