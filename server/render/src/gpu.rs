@@ -6,18 +6,6 @@ use bytemuck::{Pod, Zeroable};
 /// The WGSL source of the renderer's graphics pipelines.
 pub(crate) const SHADER_SOURCE: &str = include_str!("shader.wgsl");
 
-/// The WGSL source of the compute rasteriser, without its `BACKGROUND` (see
-/// [`raster_source`]).
-const RASTER_SOURCE: &str = include_str!("raster.wgsl");
-
-/// The compute rasteriser's source, with `BACKGROUND`, the colour of a pixel no triangle covers,
-/// stored as the graphics pipeline stores its clear colour in an Rgba8Unorm target.
-pub(crate) fn raster_source() -> String {
-    let [r, g, b] = crate::mesh::BACKGROUND_COLOUR.map(|c| (c.clamp(0.0, 1.0) * 255.0 + 0.5).floor() as u32);
-    let packed = r | (g << 8) | (b << 16) | (255 << 24);
-    format!("const BACKGROUND: u32 = {packed}u;\n{RASTER_SOURCE}")
-}
-
 /// Where a view's target (`View.tile` in `raster.wgsl`: its page, resolution, triangle count
 /// and page side, four u32) lies in its uniforms, after [`GpuView`].
 pub(crate) const VIEW_TARGET_OFFSET: usize = 240;

@@ -4,10 +4,22 @@
 
 use std::num::NonZeroU64;
 
-use crate::gpu::{VIEW_STRIDE, raster_source};
+use crate::gpu::VIEW_STRIDE;
+use crate::mesh::BACKGROUND_COLOUR;
 
 use super::atlas::Tile;
 use super::requests::ViewRequest;
+
+/// The WGSL source of the compute rasteriser, without its `BACKGROUND` (see [`raster_source`]).
+const RASTER_SOURCE: &str = include_str!("../raster.wgsl");
+
+/// The compute rasteriser's source, with `BACKGROUND`, the colour of a pixel no triangle covers,
+/// stored as the graphics pipeline stores its clear colour in an Rgba8Unorm target.
+fn raster_source() -> String {
+    let [r, g, b] = BACKGROUND_COLOUR.map(|c| (c.clamp(0.0, 1.0) * 255.0 + 0.5).floor() as u32);
+    let packed = r | (g << 8) | (b << 16) | (255 << 24);
+    format!("const BACKGROUND: u32 = {packed}u;\n{RASTER_SOURCE}")
+}
 
 /// Pixels on a side of the tile one workgroup draws (`TILE` in `raster.wgsl`).
 const TILE: u32 = 16;
