@@ -355,3 +355,34 @@ def test_a_closed_native_client_leaves_no_connection_open(easy_scenes: list[str]
             client.server_info()
         stopping = time.monotonic()
     assert time.monotonic() - stopping < 20, "the server waited for the closed client's connection"
+
+
+def test_a_server_that_dies_under_calls_is_unavailable(easy_scenes: list[str]) -> None:
+    # tonic reports a connection broken under a call in flight as UNKNOWN "transport error";
+    # grpcio, and so every transport of this client, as UNAVAILABLE: ServerUnavailable.
+    import os
+    import signal
+
+    server = esrp.LocalServer("--no-generate-ahead", unix_socket=False)
+    errors: list[BaseException] = []
+    with server, server.client(transport="native") as client:
+        episodes = [client.create_episode(easy_scenes[0]) for _ in range(4)]
+
+        def steps(episode: esrp.Episode) -> None:
+            try:
+                while True:
+                    if episode.step(esrp.Action.LEFT).ended:
+                        episode.reset()
+            except Exception as error:  # noqa: BLE001 - what the test looks at
+                errors.append(error)
+
+        threads = [threading.Thread(target=steps, args=(e,)) for e in episodes]
+        for thread in threads:
+            thread.start()
+        time.sleep(0.3)
+        os.kill(server.pid, signal.SIGKILL)
+        for thread in threads:
+            thread.join(30)
+    assert len(errors) == 4
+    for error in errors:
+        assert isinstance(error, esrp.ServerUnavailable), repr(error)

@@ -92,7 +92,39 @@ impl ClientError {
 
 impl From<tonic::Status> for ClientError {
     fn from(status: tonic::Status) -> Self {
-        ClientError::from_code(status.code(), status.message().to_owned())
+        ClientError::from_code(status_code(&status), status_message(&status))
+    }
+}
+
+/// The code `status` stands for: its own, except that a connection that broke under a call in
+/// flight (the server died, the network dropped) is [`Code::Unavailable`], as the other gRPC
+/// clients report it. tonic reports it as `Unknown` ("transport error"), with the transport's
+/// error as its source; a status the server sent never has a source.
+pub fn status_code(status: &tonic::Status) -> Code {
+    if status.code() == Code::Unknown && std::error::Error::source(status).is_some() {
+        Code::Unavailable
+    } else {
+        status.code()
+    }
+}
+
+/// The message of `status`, with the cause of a broken connection (see [`status_code`]) after it.
+pub fn status_message(status: &tonic::Status) -> String {
+    match std::error::Error::source(status) {
+        Some(source) if status.code() == Code::Unknown => {
+            let mut message = format!("the connection broke: {}", status.message());
+            let mut cause: Option<&(dyn std::error::Error + 'static)> = Some(source);
+            while let Some(error) = cause {
+                let text = error.to_string();
+                if !message.contains(&text) {
+                    message.push_str(": ");
+                    message.push_str(&text);
+                }
+                cause = error.source();
+            }
+            message
+        }
+        _ => status.message().to_owned(),
     }
 }
 

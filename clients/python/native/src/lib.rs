@@ -299,9 +299,11 @@ fn read_answer<'py>(
     }
 }
 
-/// The `CallError(code, message)` of a failed call.
+/// The `CallError(code, message)` of a failed call: a connection that broke under it is
+/// UNAVAILABLE, as grpcio says (tonic says UNKNOWN "transport error").
 fn call_error(status: &Status) -> PyErr {
-    CallError::new_err((status.code() as i32, status.message().to_owned()))
+    let code = esrp_client::error::status_code(status);
+    CallError::new_err((code as i32, esrp_client::error::status_message(status)))
 }
 
 /// The answer `body` parsed by the protobuf message class `class` (`class.FromString(view)`) from

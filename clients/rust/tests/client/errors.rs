@@ -62,3 +62,48 @@ async fn connection_errors() {
     let error = lazy.server_info().await.unwrap_err();
     assert!(matches!(error, ClientError::Unavailable(_)), "{error}");
 }
+
+/// A server that dies under a client's calls is UNAVAILABLE to every later call, unary or on an
+/// open stream (tonic says UNKNOWN "transport error" for a broken connection; the other gRPC
+/// clients, and ours, say UNAVAILABLE), so that callers can tell a lost server by its kind.
+#[tokio::test]
+async fn a_server_that_dies_is_unavailable() {
+    let server = start(&[]);
+    let client = client(&server).await;
+    let scene = test_scenes(&client, 1).await.remove(0);
+    let (mut episode, _) = client.create_episode(EpisodeOptions::scene(&scene)).await.unwrap();
+    let mut stream = client.episode_stream(4).await.unwrap();
+    let (id, _) = {
+        stream.create(&EpisodeOptions::scene(&scene)).unwrap();
+        let answer = stream.next().await.unwrap().unwrap();
+        (answer.episode_id.clone(), answer)
+    };
+    // Calls in flight when it is killed.
+    let mut in_flight = tokio::task::JoinSet::new();
+    for _ in 0..4 {
+        let client = client.clone();
+        let scene = scene.clone();
+        in_flight.spawn(async move {
+            loop {
+                if let Err(error) = client.create_episode(EpisodeOptions::scene(&scene)).await {
+                    return error;
+                }
+            }
+        });
+    }
+    tokio::time::sleep(std::time::Duration::from_millis(300)).await;
+    drop(server); // killed
+    while let Some(error) = in_flight.join_next().await {
+        let error = error.unwrap();
+        assert!(matches!(&error, ClientError::Unavailable(m) if !m.is_empty()), "in flight: {error:?}");
+    }
+    let error = episode.step(Action::TurnLeft).await.unwrap_err();
+    assert!(matches!(error, ClientError::Unavailable(_)), "unary: {error:?}");
+    let sent = stream.step(&id, Action::TurnLeft).await;
+    let error = match sent {
+        Err(error) => error,
+        Ok(_) => stream.next().await.unwrap_err(),
+    };
+    assert!(matches!(error, ClientError::Unavailable(_)), "stream: {error:?}");
+    episode.detach();
+}
