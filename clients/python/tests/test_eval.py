@@ -761,3 +761,40 @@ def test_scene_and_agent_names_are_helped(
     assert err.count("\n") == 1
     for name in (*BUILTIN_AGENTS, "MODULE:CALLABLE"):
         assert name in err, name
+
+
+def test_a_run_stopped_by_a_lost_server_says_the_resume_it_was_given(tmp_path: Path) -> None:
+    # A training run's held-out evaluation tells its user to go on with --resume, not to re-run
+    # the same command (`EvalSettings.resume`).
+    import threading
+
+    from esrp._signals import run_async
+    from esrp.eval.evaluation import EvalSettings, ServerGone, evaluate
+
+    out = tmp_path / "random.jsonl"
+    settings = EvalSettings(
+        agent="random",
+        out=out,
+        split="test",
+        episodes_in_flight=2,
+        progress=False,
+        resume="go on with --resume",
+    )
+    with esrp.LocalServer("--no-generate-ahead") as local:
+
+        def kill_after_a_record() -> None:
+            deadline = time.monotonic() + 120
+            while not (out.exists() and out.read_bytes().count(b"\n") >= 1) and time.monotonic() < deadline:
+                time.sleep(0.01)
+            os.kill(local.pid, signal.SIGKILL)
+
+        killer = threading.Thread(target=kill_after_a_record)
+        killer.start()
+
+        async def run() -> object:
+            async with esrp.AsyncClient(local.address) as client:
+                return await evaluate(client, settings, local)
+
+        with pytest.raises(ServerGone, match="(?s)exited with signal 9 after .*go on with --resume"):
+            run_async(run())
+        killer.join()

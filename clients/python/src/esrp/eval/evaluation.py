@@ -115,6 +115,8 @@ class EvalSettings:
         privileged: Create a `MODULE:CALLABLE` agent's episodes privileged (for reference agents
             that read the state or call PlanActions; not an ESRP agent proper then).
         progress: Show a progress bar (on a terminal) or a line every 5 % (otherwise).
+        resume: What a run stopped by a lost server tells its user to do (`esrp eval`'s: rerun
+            the same command; a training run's: its `--resume`).
     """
 
     agent: str
@@ -133,6 +135,7 @@ class EvalSettings:
     sensors: Sensors | None = None
     privileged: bool = False
     progress: bool = True
+    resume: str = "re-run the same command to resume"
 
     def recorded_config(self) -> dict[str, Any]:
         """The record's `agent_config`: the plan agent's settings as the Rust tool writes them, `{}`
@@ -805,7 +808,7 @@ async def evaluate(
                 played = await _play(client, scene, settings, factory, seed)
             except Exception as error:  # noqa: BLE001 - reported, not recorded; a rerun retries it.
                 if isinstance(error, ServerUnavailable):
-                    gone = await server_gone(client, local, written)
+                    gone = await server_gone(client, local, written, resume=settings.resume)
                     if gone is not None:
                         raise ServerGone(gone) from error
                 failures.add(scene.id, error)

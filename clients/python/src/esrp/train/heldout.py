@@ -241,6 +241,7 @@ def evaluate_checkpoint(
         },
         sensors=Sensors(resolution=resolution),
         progress=progress,
+        resume="the training run stopped there: --resume goes on from its last checkpoint",
     )
     server.reach()
     address = server.address()
