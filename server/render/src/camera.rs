@@ -203,6 +203,7 @@ pub(crate) fn ego_view(camera: &EgoCamera) -> GpuView {
         // Reverse Z with an infinite far plane: z_ndc = near / d.
         depth_map: [0.0, EGO_NEAR as f32, 1.0, 0.0],
         poses: [[1.0, 0.0, 0.0, 0.0]; MAX_POSE_SLOTS],
+        tile: [0; 4],
     }
 }
 
@@ -220,5 +221,6 @@ pub(crate) fn top_down_view(frame: &TopDownFrame, max_height: f64) -> GpuView {
         // Reverse Z: z_ndc = 1 − d / range.
         depth_map: [(-1.0 / range) as f32, 1.0, 0.0, 1.0],
         poses: [[1.0, 0.0, 0.0, 0.0]; MAX_POSE_SLOTS],
+        tile: [0; 4],
     }
 }

@@ -1,14 +1,16 @@
-//! `#[repr(C)]` Pod structs that mirror `shader.wgsl` (`VertexIn` and `View`): change both
-//! together.
+//! `#[repr(C)]` Pod structs that mirror the shaders (`VertexIn` in `shader.wgsl`, the vertex
+//! words `raster.wgsl` reads, and `View` in `view.wgsl`): change them together; and the shaders'
+//! sources.
 
 use bytemuck::{Pod, Zeroable};
 
-/// The WGSL source of the renderer's graphics pipelines.
-pub(crate) const SHADER_SOURCE: &str = include_str!("shader.wgsl");
+/// The WGSL source of the renderer's graphics pipelines: the view's uniforms, placement and
+/// lighting (`view.wgsl`), then the vertex and fragment shaders.
+pub(crate) const SHADER_SOURCE: &str = concat!(include_str!("view.wgsl"), include_str!("shader.wgsl"));
 
-/// Where a view's target (`View.tile` in `raster.wgsl`: its page, resolution, triangle count
-/// and page side, four u32) lies in its uniforms, after [`GpuView`].
-pub(crate) const VIEW_TARGET_OFFSET: usize = 240;
+/// The WGSL source of the compute rasteriser: `view.wgsl`, as the graphics pipelines have it,
+/// then the rasteriser, which needs its `BACKGROUND` put before (`renderer::compute`).
+pub(crate) const RASTER_SOURCE: &str = concat!(include_str!("view.wgsl"), include_str!("raster.wgsl"));
 
 /// Number of pose slots in [`GpuView::poses`] (`MAX_POSE_SLOTS` in the shader): slot 0 for
 /// static geometry, slots `1..` for movable objects.
@@ -53,8 +55,10 @@ pub(crate) struct GpuView {
     pub forward: [f32; 4],
     pub depth_map: [f32; 4],
     pub poses: [[f32; 4]; MAX_POSE_SLOTS],
+    /// The compute rasteriser's target: the view's page, its resolution, its scene's triangle
+    /// count and the atlas's page side (unread by the graphics pipelines).
+    pub tile: [u32; 4],
 }
 
-const _: () = assert!(std::mem::size_of::<GpuView>() == VIEW_TARGET_OFFSET);
-const _: () = assert!(VIEW_TARGET_OFFSET as u64 + 16 <= VIEW_STRIDE);
+const _: () = assert!(std::mem::size_of::<GpuView>() as u64 <= VIEW_STRIDE);
 const _: () = assert!(std::mem::size_of::<GpuVertex>() == 36);

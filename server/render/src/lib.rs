@@ -51,7 +51,9 @@
 //!   prism, convex hull via parry, meshes as given, floor by ear clipping), colours and
 //!   segmentation labels ([`SegmentLabel`]).
 //! - [`images`]: PNG encoding, contact sheets, a scene's ego / goal / current views as PNG.
-//! - `gpu` and `shader.wgsl`: the `#[repr(C)]` structs and the WGSL they mirror.
+//! - `gpu`: the `#[repr(C)]` structs and the WGSL sources they mirror: `view.wgsl` (a view's
+//!   uniforms, placement and lighting) before `shader.wgsl` (the graphics pipeline's shaders) or
+//!   `raster.wgsl` (the compute rasteriser, [`Rasterizer::Compute`]).
 //!
 //! # Cameras and images
 //!

@@ -5,7 +5,7 @@
 //
 // One workgroup draws a 16×16 tile of one view, one invocation per pixel. The view's triangles
 // are taken CHUNK at a time: each of the first CHUNK invocations places one triangle as the
-// vertex shader does (`place`, mirrored below), culls it (back face, wholly outside the view or
+// vertex shader does (`placed`, which both share), culls it (back face, wholly outside the view or
 // the tile) and sets it up for 2D homogeneous rasterisation (Olano and Greer, 1997: no clipping,
 // a triangle crossing the camera's plane included); then every invocation tests the chunk's kept
 // triangles at its pixel centre. A pixel keeps the nearest (reverse Z: the largest depth; depth
@@ -14,30 +14,14 @@
 // on the order in which triangles are kept. Colour and segmentation are the triangle's first
 // vertex's (flat interpolation), the view depth is interpolated perspective-correct.
 //
-// Mirrors `gpu.rs` (`GpuVertex`, `GpuView`) and `shader.wgsl` (`place`): change them together.
-// `BACKGROUND` is defined by the Rust side, prepended to this source.
+// Appended to `view.wgsl` (the view's uniforms, `placed` and `lit`, which the vertex shader uses
+// too). Mirrors `gpu.rs` (`GpuVertex`): change both together. `BACKGROUND` is defined by the Rust
+// side, prepended to the whole.
 
-const MAX_POSE_SLOTS: u32 = 10u;
-const LIGHT: vec3<f32> = vec3<f32>(0.28746, 0.82130, 0.49278);
-const AMBIENT: f32 = 0.55;
-const DIFFUSE: f32 = 0.45;
 const TILE: u32 = 16u;
 const CHUNK: u32 = 128u;
 const VERTEX_WORDS: u32 = 9u;
 
-struct View {
-    eye: vec4<f32>,
-    right: vec4<f32>,
-    up: vec4<f32>,
-    forward: vec4<f32>,
-    depth_map: vec4<f32>,
-    poses: array<vec4<f32>, MAX_POSE_SLOTS>,
-    // x: the view's page in the atlas (bound as `planes`); y: its resolution; z: its scene's
-    // triangles; w: the page side (pixels).
-    tile: vec4<u32>,
-}
-
-@group(0) @binding(0) var<uniform> view: View;
 // The view's page of the atlas, one u32 per pixel: colour (RGBA8), then with `full`, view depth
 // (f32 bits) and segmentation, each side × side pixels.
 @group(0) @binding(1) var<storage, read_write> planes: array<u32>;
@@ -59,54 +43,21 @@ var<workgroup> setups: array<Setup, CHUNK>;
 var<workgroup> flats: array<vec3<u32>, CHUNK>;
 var<workgroup> kept: atomic<u32>;
 
-struct Placed {
-    clip: vec4<f32>,
-    depth: f32,
-}
-
 fn word_f32(i: u32) -> f32 {
     return bitcast<f32>(vertices[i]);
 }
 
-fn pose(slot: u32) -> vec4<f32> {
-    return view.poses[min(slot, MAX_POSE_SLOTS - 1u)];
-}
-
-// As `place` in shader.wgsl: the vertex's clip position and view depth.
+// Vertex `v` placed in the view (`placed`).
 fn place(v: u32) -> Placed {
     let b = v * VERTEX_WORDS;
-    let position = vec3<f32>(word_f32(b), word_f32(b + 1u), word_f32(b + 2u));
-    let p = pose(vertices[b + 3u]);
-    let c = p.x;
-    let s = p.y;
-    let world = vec3<f32>(
-        c * position.x + s * position.z + p.z,
-        position.y,
-        -s * position.x + c * position.z + p.w,
-    );
-    let rel = world - view.eye.xyz;
-    let d = dot(rel, view.forward.xyz);
-    var out: Placed;
-    out.clip = vec4<f32>(
-        dot(rel, view.right.xyz) * view.right.w,
-        dot(rel, view.up.xyz) * view.up.w,
-        view.depth_map.x * d + view.depth_map.y,
-        view.depth_map.z * d + view.depth_map.w,
-    );
-    out.depth = d;
-    return out;
+    return placed(vec3<f32>(word_f32(b), word_f32(b + 1u), word_f32(b + 2u)), vertices[b + 3u]);
 }
 
-// As the vertex shader's colour of vertex `v`, as an Rgba8Unorm target stores it.
+// As the vertex shader's colour of vertex `v` (`lit`), as an Rgba8Unorm target stores it.
 fn shaded(v: u32) -> u32 {
     let b = v * VERTEX_WORDS;
-    let p = pose(vertices[b + 3u]);
-    let c = p.x;
-    let s = p.y;
-    let n = vec3<f32>(word_f32(b + 4u), word_f32(b + 5u), word_f32(b + 6u));
-    let normal = vec3<f32>(c * n.x + s * n.z, n.y, -s * n.x + c * n.z);
-    let shade = AMBIENT + DIFFUSE * max(dot(normal, LIGHT), 0.0);
-    return pack4x8unorm(vec4<f32>(unpack4x8unorm(vertices[b + 7u]).rgb * shade, 1.0));
+    let normal = vec3<f32>(word_f32(b + 4u), word_f32(b + 5u), word_f32(b + 6u));
+    return pack4x8unorm(lit(normal, vertices[b + 3u], vertices[b + 7u]));
 }
 
 // Places triangle `t`, culls it, and keeps its setup if it may cover a pixel of the tile whose

@@ -4,14 +4,11 @@
 
 use std::num::NonZeroU64;
 
-use crate::gpu::VIEW_STRIDE;
+use crate::gpu::{RASTER_SOURCE, VIEW_STRIDE};
 use crate::mesh::BACKGROUND_COLOUR;
 
 use super::atlas::Tile;
 use super::requests::ViewRequest;
-
-/// The WGSL source of the compute rasteriser, without its `BACKGROUND` (see [`raster_source`]).
-const RASTER_SOURCE: &str = include_str!("../raster.wgsl");
 
 /// The compute rasteriser's source, with `BACKGROUND`, the colour of a pixel no triangle covers,
 /// stored as the graphics pipeline stores its clear colour in an Rgba8Unorm target.

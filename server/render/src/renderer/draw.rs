@@ -5,7 +5,7 @@ use std::time::{Duration, Instant};
 
 use crate::camera::{Camera, EgoFrustum, ego_view, top_down_view};
 use crate::error::RenderError;
-use crate::gpu::{GpuView, VIEW_STRIDE, VIEW_TARGET_OFFSET};
+use crate::gpu::{GpuView, VIEW_STRIDE};
 use crate::mesh::BACKGROUND_COLOUR;
 
 use super::atlas::{Atlas, PagedTexture, Targets, Tile, layout};
@@ -304,10 +304,8 @@ fn view_uniforms(requests: &[ViewRequest<'_>], tiles: &[Tile], side: u32) -> Vec
             *slot = [c as f32, s as f32, pose.x as f32, pose.z as f32];
         }
         let start = i * VIEW_STRIDE as usize;
+        view.tile = [tile.page, tile.size, request.scene.index_count / 3, side];
         uniforms[start..start + std::mem::size_of::<GpuView>()].copy_from_slice(bytemuck::bytes_of(&view));
-        let target = [tile.page, tile.size, request.scene.index_count / 3, side];
-        let at = start + VIEW_TARGET_OFFSET;
-        uniforms[at..at + 16].copy_from_slice(bytemuck::cast_slice(&target));
     }
     uniforms
 }
