@@ -67,7 +67,7 @@ impl Tls {
         if ca.is_none() && domain.is_none() {
             return Ok(None);
         }
-        if !server.is_some_and(|url| url.get(..8).is_some_and(|scheme| scheme.eq_ignore_ascii_case("https://"))) {
+        if !server.is_some_and(is_https) {
             return Err(ClientError::Config(
                 "--tls-ca and --tls-domain are for a server named by an https:// --server URL".into(),
             ));
@@ -86,6 +86,11 @@ impl Tls {
     pub fn domain_name(self, name: impl Into<String>) -> Self {
         Tls { config: self.config.domain_name(name) }
     }
+}
+
+/// Whether `url` starts with `https://` (in any case).
+fn is_https(url: &str) -> bool {
+    url.get(..8).is_some_and(|scheme| scheme.eq_ignore_ascii_case("https://"))
 }
 
 /// Settings of a connection; `.await` it to connect (see [`Client::connect`]).
@@ -154,7 +159,7 @@ impl ConnectBuilder {
 
     fn endpoint(&self) -> Result<Endpoint> {
         let url = self.full_url()?;
-        let https = url.get(..8).is_some_and(|scheme| scheme.eq_ignore_ascii_case("https://"));
+        let https = is_https(&url);
         let mut endpoint = Endpoint::from_shared(url.clone())
             .map_err(|e| {
                 ClientError::Config(format!(

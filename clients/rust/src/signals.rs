@@ -104,6 +104,17 @@ pub fn exit_on_signals(name: &'static str) -> io::Result<()> {
     outcome.recv().map_err(|_| io::Error::other("the signal thread ended before installing its handlers"))?
 }
 
+/// A tool's `main`: runs its async `body` on a multi-threaded runtime ([`block_on`]) and makes
+/// its result the process's exit status ([`exit_status`]).
+#[cfg(feature = "tools")]
+pub fn run_tool(name: &str, body: impl std::future::Future<Output = anyhow::Result<()>>) -> ExitCode {
+    let result = match tokio::runtime::Runtime::new() {
+        Ok(runtime) => block_on(&runtime, body),
+        Err(error) => Err(anyhow::Error::new(error).context("starting the async runtime")),
+    };
+    exit_status(name, result)
+}
+
 /// Runs a tool's async `body` on `runtime` to its end. If a stop by [`exit_on_signals`] has begun
 /// by then, the body's end waits on the runtime for the process to exit instead: the episodes'
 /// closes go through the connections this runtime drives, so it must outlive them (a body whose

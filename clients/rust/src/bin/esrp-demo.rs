@@ -144,11 +144,7 @@ async fn random(client: &Client, scenes: &[String], seed: u64) -> anyhow::Result
 }
 
 fn main() -> std::process::ExitCode {
-    let runtime = tokio::runtime::Runtime::new().context("starting the async runtime");
-    esrp_client::signals::exit_status(
-        "esrp-demo",
-        runtime.and_then(|runtime| esrp_client::signals::block_on(&runtime, run())),
-    )
+    esrp_client::signals::run_tool("esrp-demo", run())
 }
 
 async fn run() -> anyhow::Result<()> {

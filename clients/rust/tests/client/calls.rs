@@ -133,23 +133,12 @@ async fn dropped_episodes_are_closed() {
 
 #[tokio::test]
 async fn token_and_tls() {
-    let rcgen::CertifiedKey { cert, signing_key } =
-        rcgen::generate_simple_self_signed(vec!["localhost".to_owned()]).unwrap();
     let dir = tempfile::tempdir().unwrap();
-    let (cert_path, key_path) = (dir.path().join("cert.pem"), dir.path().join("key.pem"));
-    std::fs::write(&cert_path, cert.pem()).unwrap();
-    std::fs::write(&key_path, signing_key.serialize_pem()).unwrap();
-    let server = start(&[
-        "--tls-cert",
-        cert_path.to_str().unwrap(),
-        "--tls-key",
-        key_path.to_str().unwrap(),
-        "--token",
-        "s3cret",
-    ]);
+    let (cert, cert_path, key_path) = crate::harness::localhost_certificate(dir.path());
+    let server = start(&["--tls-cert", &cert_path, "--tls-key", &key_path, "--token", "s3cret"]);
     let port = server.address.rsplit(':').next().unwrap();
     let url = format!("https://localhost:{port}");
-    let tls = Tls::ca_pem(cert.pem()).domain_name("localhost");
+    let tls = Tls::ca_pem(&cert).domain_name("localhost");
     let client = esrp_client::Client::connect(&url).tls(tls.clone()).token("s3cret").await.unwrap();
     let scene = test_scenes(&client, 1).await.remove(0);
     let (mut episode, _) = client.create_episode(EpisodeOptions::scene(scene)).await.unwrap();

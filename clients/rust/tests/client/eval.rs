@@ -241,18 +241,14 @@ fn a_dead_local_server_stops_the_run() {
 /// with a plain `--server` they are refused before anything runs.
 #[test]
 fn the_tools_reach_a_tls_server_with_its_ca() {
-    let rcgen::CertifiedKey { cert, signing_key } =
-        rcgen::generate_simple_self_signed(vec!["localhost".to_owned()]).unwrap();
     let dir = tempfile::tempdir().unwrap();
-    let (cert_path, key_path) = (dir.path().join("cert.pem"), dir.path().join("key.pem"));
-    std::fs::write(&cert_path, cert.pem()).unwrap();
-    std::fs::write(&key_path, signing_key.serialize_pem()).unwrap();
-    let server = start(&["--tls-cert", cert_path.to_str().unwrap(), "--tls-key", key_path.to_str().unwrap()]);
+    let (_, cert_path, key_path) = crate::harness::localhost_certificate(dir.path());
+    let server = start(&["--tls-cert", &cert_path, "--tls-key", &key_path]);
     let port = server.address.rsplit(':').next().unwrap();
     let (by_name, by_address) = (format!("https://localhost:{port}"), format!("https://127.0.0.1:{port}"));
     let out = dir.path().join("random.jsonl");
     let run = ["--agent", "random", "--split", "test", "--limit", "1", "--out", out.to_str().unwrap()];
-    let ca = ["--tls-ca", cert_path.to_str().unwrap()];
+    let ca = ["--tls-ca", cert_path.as_str()];
     ok(eval(&by_name, &[&run[..], &ca].concat()));
     std::fs::remove_file(&out).unwrap();
     ok(eval(&by_address, &[&run[..], &ca, &["--tls-domain", "localhost"]].concat()));

@@ -34,3 +34,14 @@ pub async fn live_episodes_settled_at(client: &Client, expected: u32) -> u32 {
     }
     live
 }
+
+/// A self-signed certificate for `localhost` and its key, written as `cert.pem` and `key.pem` in
+/// `dir`: the certificate's PEM and the two paths (as `--tls-cert` and `--tls-key` take them).
+pub fn localhost_certificate(dir: &std::path::Path) -> (String, String, String) {
+    let rcgen::CertifiedKey { cert, signing_key } =
+        rcgen::generate_simple_self_signed(vec!["localhost".to_owned()]).expect("a certificate");
+    let (cert_path, key_path) = (dir.join("cert.pem"), dir.join("key.pem"));
+    std::fs::write(&cert_path, cert.pem()).expect("the certificate is written");
+    std::fs::write(&key_path, signing_key.serialize_pem()).expect("the key is written");
+    (cert.pem(), cert_path.display().to_string(), key_path.display().to_string())
+}

@@ -2,7 +2,7 @@
 
 use esrp_server::proto;
 
-use super::harness::Server;
+use super::harness::{Server, create_request, expert_actions, step_request};
 
 #[tokio::test]
 async fn the_expert_succeeds_through_unary_steps() {
@@ -196,30 +196,11 @@ async fn the_compute_rasterizer_draws_what_the_pipeline_draws() {
     let mut observations = Vec::new();
     for server in [&pipeline, &compute] {
         let mut client = server.client().await;
-        let created = client
-            .create_episode(proto::CreateEpisodeRequest {
-                scene: Some(proto::create_episode_request::Scene::SceneId("esrp-bench-v2/00011".into())),
-                privileged: true,
-                ..Default::default()
-            })
-            .await
-            .unwrap()
-            .into_inner();
+        let created = client.create_episode(create_request("esrp-bench-v2/00011", true)).await.unwrap().into_inner();
         let observation = created.observation.unwrap();
         let mut images = vec![observation.ego_rgb.unwrap().data, observation.goal_rgb.unwrap().data];
-        let state = client
-            .get_privileged_state(proto::GetPrivilegedStateRequest { episode_id: created.episode_id.clone() })
-            .await
-            .unwrap()
-            .into_inner();
-        let scene = esrp_core::Scene::from_json(&state.scene_json).unwrap();
-        for action in scene.expert_trajectory.iter().take(40) {
-            let step = proto::StepRequest {
-                episode_id: created.episode_id.clone(),
-                action: i32::from(action.code()),
-                include_goal: false,
-            };
-            let answer = client.step(step).await.unwrap().into_inner();
+        for action in expert_actions(&mut client, &created.episode_id).await.into_iter().take(40) {
+            let answer = client.step(step_request(&created.episode_id, action)).await.unwrap().into_inner();
             images.push(answer.observation.unwrap().ego_rgb.unwrap().data);
         }
         observations.push(images);

@@ -253,11 +253,7 @@ async fn server_gone(
 }
 
 fn main() -> std::process::ExitCode {
-    let runtime = tokio::runtime::Runtime::new().context("starting the async runtime");
-    esrp_client::signals::exit_status(
-        "esrp-eval",
-        runtime.and_then(|runtime| esrp_client::signals::block_on(&runtime, run())),
-    )
+    esrp_client::signals::run_tool("esrp-eval", run())
 }
 
 async fn run() -> anyhow::Result<()> {
