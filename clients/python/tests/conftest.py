@@ -102,3 +102,13 @@ def assert_same_stores(one: Path, other: Path) -> None:
             assert np.array_equal(value, second[key]), key  # type: ignore[arg-type]
         else:
             assert value == second[key], key
+
+
+def assert_stopped_for_a_lost_server(err: str, command: str, address: str) -> None:
+    """`err` is the one line of a training `command` (`esrp train bc`) whose server at `address`
+    stopped answering during the run: the address, and how to go on."""
+    assert err.startswith(f"{command}: no esrp-server answers at {address}: "), err
+    assert err.endswith(
+        "; the run stopped there: --resume goes on from its last checkpoint once the server answers\n"
+    ), err
+    assert err.count("\n") == 1, err

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import assert_same_stores
+from conftest import assert_same_stores, assert_stopped_for_a_lost_server
 
 import esrp
 from esrp.cli import main
@@ -280,11 +280,7 @@ def test_a_server_gone_during_the_run_stops_it_in_one_line(
         monkeypatch.setattr(bc_module, "evaluate_checkpoint", stop_then_evaluate)
         assert train_cli(own, config, run) == 3
     err = capsys.readouterr().err
-    assert err.startswith(f"esrp train bc: no esrp-server answers at {address}: "), err
-    assert err.endswith(
-        "; the run stopped there: --resume goes on from its last checkpoint once the server answers\n"
-    )
-    assert err.count("\n") == 1, err
+    assert_stopped_for_a_lost_server(err, "esrp train bc", address)
     assert (run / "ckpt.pt").exists()
 
 

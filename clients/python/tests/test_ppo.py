@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import settled_live_episodes
+from conftest import assert_stopped_for_a_lost_server, settled_live_episodes
 
 import esrp
 from esrp.cli import main
@@ -306,11 +306,7 @@ def test_a_server_gone_during_the_run_stops_it_in_one_line(
         arguments = ["train", "ppo", "--config", str(config), "--out", str(run), "--server", address]
         assert main([*arguments, "--no-progress"]) == 3
     err = capsys.readouterr().err
-    assert err.startswith(f"esrp train ppo: no esrp-server answers at {address}: "), err
-    assert err.endswith(
-        "; the run stopped there: --resume goes on from its last checkpoint once the server answers\n"
-    )
-    assert err.count("\n") == 1, err
+    assert_stopped_for_a_lost_server(err, "esrp train ppo", address)
     assert (run / "ckpt.pt").exists()
 
 
