@@ -92,12 +92,12 @@ impl Drop for ForgetOnDrop {
 
 /// Closes every episode this process holds a live handle to, each `CloseEpisode` at once, and
 /// those its creates in flight make, until none is left or `deadline`; no create starts from
-/// the first call on. Returns how many were closed (or found gone: a handle's own close came
-/// first) and how many were not (a call that failed,
-/// or was still unanswered at the deadline). The handles stay: their own close or drop later
-/// finds the episode gone on the server. For a process about to exit (see [`crate::signals`]).
-pub(crate) async fn close_live(deadline: tokio::time::Instant) -> (usize, usize) {
-    let (mut closed, mut not_closed) = (0, 0);
+/// the first call on. Returns how many could not be closed: a call that failed (one that found
+/// the episode gone counts as closed: its handle's own close came first), or that was still
+/// unanswered at the deadline. The handles stay: their own close or drop later finds the episode
+/// gone on the server. For a process about to exit (see [`crate::signals`]).
+pub(crate) async fn close_live(deadline: tokio::time::Instant) -> usize {
+    let mut not_closed = 0;
     loop {
         let (episodes, creating) = {
             let mut live = live();
@@ -106,31 +106,26 @@ pub(crate) async fn close_live(deadline: tokio::time::Instant) -> (usize, usize)
         };
         if episodes.is_empty() {
             if creating == 0 {
-                return (closed, not_closed);
+                return not_closed;
             }
-            if tokio::time::timeout_at(deadline, tokio::time::sleep(std::time::Duration::from_millis(5))).await.is_err()
-            {
-                return (closed, not_closed + creating);
+            if tokio::time::Instant::now() >= deadline {
+                return not_closed + creating;
             }
+            tokio::time::sleep(std::time::Duration::from_millis(5)).await;
             continue;
         }
         let count = episodes.len();
         let calls = episodes.into_iter().map(|(episode_id, mut raw)| async move {
-            // Not found: closed already (by its handle's own close, racing this one).
             match raw.close_episode(proto::CloseEpisodeRequest { episode_id }).await {
                 Ok(_) => true,
                 Err(status) => status.code() == tonic::Code::NotFound,
             }
         });
         match tokio::time::timeout_at(deadline, futures_util::future::join_all(calls)).await {
-            Ok(answers) => {
-                let ok = answers.iter().filter(|&&ok| ok).count();
-                closed += ok;
-                not_closed += count - ok;
-            }
+            Ok(answers) => not_closed += answers.iter().filter(|&&closed| !closed).count(),
             Err(_) => {
                 let live = live();
-                return (closed, not_closed + count + live.episodes.len() + live.creating);
+                return not_closed + count + live.episodes.len() + live.creating;
             }
         }
     }

@@ -162,7 +162,7 @@ async fn stop(name: &str, word: &str, again: impl std::future::Future<Output = (
     eprintln!("{name}: {word}");
     let deadline = tokio::time::Instant::now() + CLOSE_GRACE;
     tokio::select! {
-        (_, not_closed) = crate::episode::close_live(deadline) => {
+        not_closed = crate::episode::close_live(deadline) => {
             if not_closed > 0 {
                 eprintln!(
                     "{name}: {not_closed} episode(s) could not be closed on the server within {} s; \

@@ -650,7 +650,8 @@ fn run() -> anyhow::Result<()> {
     if named.len() > 1 && args.processes < 2 {
         bail!("several servers need --processes (process i drives server i modulo their number)");
     }
-    let (address, local) = reach_or_start(named.first().map(String::as_str), args.server_binary.clone(), &server_args)?;
+    let (address, mut local) =
+        reach_or_start(named.first().map(String::as_str), args.server_binary.clone(), &server_args)?;
     let addresses = if named.is_empty() { vec![address.clone()] } else { named };
     let metrics = match (&args.metrics, &local) {
         (Some(url), _) => Some(url.clone()),
@@ -661,12 +662,9 @@ fn run() -> anyhow::Result<()> {
         bail!("--breakdown needs the server's metrics: give --metrics URL with --server");
     }
     let metrics = metrics.filter(|_| args.breakdown);
-    let connect = async || Client::connect(&address).token_opt(args.token.as_deref()).tls_opt(tls.clone()).await;
-    let mut local = local;
-    let info = runtime_for("", args.client_threads)?.block_on(async {
-        let connect = Client::connect(&address).token_opt(args.token.as_deref()).tls_opt(tls.clone());
-        anyhow::Ok(esrp_client::local::first_contact(connect, local.as_mut()).await?.1)
-    })?;
+    let connect = || Client::connect(&address).token_opt(args.token.as_deref()).tls_opt(tls.clone());
+    let info = runtime_for("", args.client_threads)?
+        .block_on(async { anyhow::Ok(esrp_client::local::first_contact(connect(), local.as_mut()).await?.1) })?;
     let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
     let cpu_model = cpu_model();
     println!(
