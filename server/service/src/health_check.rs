@@ -100,15 +100,18 @@ impl Target {
             "http" => false,
             _ => args.tls_ca.is_some() || config.tls_cert.is_some(),
         };
+        // Verified as any client would: these certificates, the name checked (--tls-domain).
+        let authorities = |tls: ClientTlsConfig| {
+            Trust::Authorities(match &args.tls_domain {
+                Some(domain) => tls.domain_name(domain.clone()),
+                None => tls,
+            })
+        };
         let trust = match (use_tls, &args.tls_ca, &config.tls_cert) {
             (false, _, _) => Trust::Plain,
             (true, Some(path), _) => {
                 let pem = std::fs::read(path).with_context(|| format!("cannot read --tls-ca {}", path.display()))?;
-                let mut tls = ClientTlsConfig::new().ca_certificate(Certificate::from_pem(pem));
-                if let Some(domain) = &args.tls_domain {
-                    tls = tls.domain_name(domain.clone());
-                }
-                Trust::Authorities(tls)
+                authorities(ClientTlsConfig::new().ca_certificate(Certificate::from_pem(pem)))
             }
             (true, None, Some(path)) if args.tls_domain.is_none() => Trust::Itself(pinned::config(path)?),
             (true, None, chain) => {
@@ -120,10 +123,7 @@ impl Target {
                         .with_context(|| format!("cannot read the server's --tls-cert {}", path.display()))?;
                     tls = tls.ca_certificate(Certificate::from_pem(pem));
                 }
-                if let Some(domain) = &args.tls_domain {
-                    tls = tls.domain_name(domain.clone());
-                }
-                Trust::Authorities(tls)
+                authorities(tls)
             }
         };
         let url = format!("{}://{rest}", if use_tls { "https" } else { "http" });
