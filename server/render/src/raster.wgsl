@@ -3,12 +3,14 @@
 // H100 and H200) carry little of the fixed-function graphics hardware (rasterisers, ROPs) that
 // the graphics pipeline needs, and all of the compute units this needs.
 //
-// One workgroup draws a 16×16 tile of one view, one invocation per pixel. The view's triangles
-// are taken CHUNK at a time: each of the first CHUNK invocations places one triangle as the
+// One workgroup of 16×16 invocations draws a 32×32 tile of one view, each invocation 2×2 pixels
+// (one in each quadrant of the tile), so that a triangle is set up once per 1,024 pixels rather
+// than per 256 (docs/performance.md, "The compute rasteriser"). The view's triangles are taken
+// CHUNK at a time: each of the first CHUNK invocations places one triangle as the
 // vertex shader does (`placed`, which both share), culls it (back face, wholly outside the view or
 // the tile) and sets it up for 2D homogeneous rasterisation (Olano and Greer, 1997: no clipping,
 // a triangle crossing the camera's plane included); then every invocation tests the chunk's kept
-// triangles at its pixel centre. A pixel keeps the nearest (reverse Z: the largest depth; depth
+// triangles at its pixels' centres. A pixel keeps the nearest (reverse Z: the largest depth; depth
 // outside [0, 1] is clipped away, as the near and far planes do) and among equals the first in
 // draw order, as the graphics pipeline's depth test `Greater` does; so the result does not depend
 // on the order in which triangles are kept. Colour and segmentation are the triangle's first
@@ -18,7 +20,12 @@
 // too). Mirrors `gpu.rs` (`GpuVertex`): change both together. `BACKGROUND` is defined by the Rust
 // side, prepended to the whole.
 
-const TILE: u32 = 16u;
+// A workgroup is GROUP × GROUP invocations; each draws SPAN × SPAN pixels, one in each of the
+// tile's quadrants: a triangle is set up once per TILE × TILE pixels.
+const GROUP: u32 = 16u;
+const SPAN: u32 = 2u;
+const PIXELS: u32 = SPAN * SPAN;
+const TILE: u32 = GROUP * SPAN;
 const CHUNK: u32 = 128u;
 const VERTEX_WORDS: u32 = 9u;
 
@@ -121,17 +128,23 @@ fn inside(e: vec3<f32>, v: f32) -> bool {
 fn raster(tile: vec3<u32>, local: vec3<u32>, full: bool) {
     let size = view.tile.y;
     let triangles = view.tile.z;
-    let px = tile.x * TILE + local.x;
-    let py = tile.y * TILE + local.y;
-    let p = vec3<f32>(f32(px) + 0.5, f32(py) + 0.5, 1.0);
-    let lo = vec2<f32>(f32(tile.x * TILE) + 0.5, f32(tile.y * TILE) + 0.5);
+    let origin = tile.xy * TILE;
+    let lo = vec2<f32>(origin) + vec2<f32>(0.5);
     let hi = lo + vec2<f32>(f32(TILE - 1u));
-    let thread = local.y * TILE + local.x;
-    var best_depth = 0.0;
-    var best = 0xffffffffu;
-    var colour = BACKGROUND;
-    var segment = 0u;
-    var view_depth = 0.0;
+    let thread = local.y * GROUP + local.x;
+    // This invocation's pixels: (x, y) of the tile's GROUP × GROUP quadrants, quadrant by quadrant.
+    var best_depth = array<f32, PIXELS>();
+    var best = array<u32, PIXELS>();
+    var colour = array<u32, PIXELS>();
+    var segment = array<u32, PIXELS>();
+    var view_depth = array<f32, PIXELS>();
+    var p = array<vec3<f32>, PIXELS>();
+    for (var q = 0u; q < PIXELS; q++) {
+        let at = origin + local.xy + GROUP * vec2<u32>(q % SPAN, q / SPAN);
+        p[q] = vec3<f32>(vec2<f32>(at) + vec2<f32>(0.5), 1.0);
+        best[q] = 0xffffffffu;
+        colour[q] = BACKGROUND;
+    }
     for (var first = 0u; first < triangles; first += CHUNK) {
         if thread == 0u {
             atomicStore(&kept, 0u);
@@ -144,40 +157,46 @@ fn raster(tile: vec3<u32>, local: vec3<u32>, full: bool) {
         let count = atomicLoad(&kept);
         for (var k = 0u; k < count; k++) {
             let s = setups[k];
-            let l0 = dot(s.e0, p);
-            let l1 = dot(s.e1, p);
-            let l2 = dot(s.e2, p);
-            if !(inside(s.e0, l0) && inside(s.e1, l1) && inside(s.e2, l2)) {
-                continue;
-            }
-            let depth = dot(s.depth, p);
-            if depth < 0.0 || depth > 1.0 {
-                continue;
-            }
             let flat = flats[k];
-            if depth > best_depth || (best != 0xffffffffu && depth == best_depth && flat.z < best) {
-                best_depth = depth;
-                best = flat.z;
-                colour = flat.x;
-                segment = flat.y;
-                view_depth = dot(s.view_depth, p) / (l0 + l1 + l2);
+            for (var q = 0u; q < PIXELS; q++) {
+                let l0 = dot(s.e0, p[q]);
+                let l1 = dot(s.e1, p[q]);
+                let l2 = dot(s.e2, p[q]);
+                if !(inside(s.e0, l0) && inside(s.e1, l1) && inside(s.e2, l2)) {
+                    continue;
+                }
+                let depth = dot(s.depth, p[q]);
+                if depth < 0.0 || depth > 1.0 {
+                    continue;
+                }
+                if depth > best_depth[q] || (best[q] != 0xffffffffu && depth == best_depth[q] && flat.z < best[q]) {
+                    best_depth[q] = depth;
+                    best[q] = flat.z;
+                    colour[q] = flat.x;
+                    segment[q] = flat.y;
+                    view_depth[q] = dot(s.view_depth, p[q]) / (l0 + l1 + l2);
+                }
             }
         }
         workgroupBarrier();
     }
-    if px >= size || py >= size {
-        return;
-    }
     let side = view.tile.w;
     let plane_words = side * side;
-    let at = py * side + px;
-    planes[at] = colour;
-    if full {
-        if best == 0xffffffffu {
-            view_depth = 0.0;
+    for (var q = 0u; q < PIXELS; q++) {
+        let at = origin + local.xy + GROUP * vec2<u32>(q % SPAN, q / SPAN);
+        if at.x >= size || at.y >= size {
+            continue;
         }
-        planes[plane_words + at] = bitcast<u32>(view_depth);
-        planes[2u * plane_words + at] = segment;
+        let word = at.y * side + at.x;
+        planes[word] = colour[q];
+        if full {
+            var depth = view_depth[q];
+            if best[q] == 0xffffffffu {
+                depth = 0.0;
+            }
+            planes[plane_words + word] = bitcast<u32>(depth);
+            planes[2u * plane_words + word] = segment[q];
+        }
     }
 }
 

@@ -19,7 +19,7 @@ fn raster_source() -> String {
 }
 
 /// Pixels on a side of the tile one workgroup draws (`TILE` in `raster.wgsl`).
-const TILE: u32 = 16;
+const TILE: u32 = 32;
 
 /// The compute rasteriser's two pipelines (`rgb`: the colour plane; `full`: colour, view depth
 /// and segmentation) and their bind group layouts: group 0 a view's uniforms (dynamic offset)
@@ -105,7 +105,7 @@ impl ComputeRaster {
 
     /// Encodes one compute pass that draws every view of `requests` into its page of an atlas
     /// whose pages' buffers and group 0 are `pages` (one dispatch per view: a workgroup per
-    /// 16×16 tile of it). Every pixel of a view is written, so the planes need no clearing.
+    /// 32×32 tile of it). Every pixel of a view is written, so the planes need no clearing.
     pub(super) fn encode(
         &self,
         encoder: &mut wgpu::CommandEncoder,
