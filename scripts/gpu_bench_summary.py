@@ -55,10 +55,13 @@ def standard(folder: Path) -> list[str]:
     report = load(folder, "standard.json")
     if report is None:
         return []
+    # Reports of a server older than the compute rasteriser do not say which one drew.
+    rasterizer = f", {report['rasterizer']} rasterizer" if report.get("rasterizer") else ""
     lines = [
         "## Scenarios (render threads: auto)",
         "",
-        f"Renderer: {report['renderer']} ({report['backend']}); client machine: {report['cpus']} CPUs, {report['cpu']}.",
+        f"Renderer: {report['renderer']} ({report['backend']}{rasterizer}); client machine: {report['cpus']} CPUs, "
+        f"{report['cpu']}.",
         "",
         "| scenario | episodes | steps/s | p50 ms | p99 ms |",
         "|---|---:|---:|---:|---:|",

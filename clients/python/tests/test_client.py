@@ -25,6 +25,7 @@ def test_server_info(client: esrp.Client) -> None:
     assert info.version
     assert info.dataset == "esrp-bench-v2"
     assert info.renderer_backend in ("gl", "vulkan")
+    assert info.renderer_rasterizer == "pipeline"
     assert info.limits.max_batch == 1024
     assert info.limits.max_message_bytes == 64 << 20
     assert info.limits.max_resolution >= 128

@@ -105,6 +105,17 @@ def test_opengl_on_an_nvidia_gpu_is_a_warning_that_names_vulkan() -> None:
     assert "GPU" in software.detail
 
 
+def test_the_compute_rasterizer_on_a_cpu_renderer_is_a_warning(capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["--render-backend", "vulkan", "--render-rasterizer", "compute"]
+    assert main(["doctor", "--seconds", "0.2", *(f"--server-arg={a}" for a in args)]) == 0
+    out = capsys.readouterr().out
+    line = next(line for line in out.splitlines() if line.startswith("warn") and "renderer" in line)
+    assert "through vulkan, compute rasterizer, software (CPU)" in line, out
+    assert "without --render-rasterizer compute" in out, out
+    assert "test render" in out, out
+    assert "FAIL" not in out, out
+
+
 def test_a_temporary_folder_too_deep_for_a_socket_is_a_warning(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:

@@ -584,6 +584,8 @@ pub struct ServerInfo {
     pub renderer_adapter: String,
     /// `vulkan` or `gl`.
     pub renderer_backend: String,
+    /// What draws the triangles: `pipeline` or `compute` (empty from an older server).
+    pub renderer_rasterizer: String,
     /// Whether the renderer runs on the CPU.
     pub software_renderer: bool,
     /// The served dataset's name.
@@ -600,6 +602,7 @@ impl From<proto::ServerInfoResponse> for ServerInfo {
             version: i.version,
             renderer_adapter: i.renderer_adapter,
             renderer_backend: i.renderer_backend,
+            renderer_rasterizer: i.renderer_rasterizer,
             software_renderer: i.software_renderer,
             dataset: i.dataset,
             live_episodes: i.live_episodes,

@@ -603,6 +603,7 @@ def server_info(message: pb.ServerInfoResponse) -> ServerInfo:
         role=message.role,
         challenge=message.challenge,
         recording=message.recording,
+        renderer_rasterizer=message.renderer_rasterizer,
     )
 
 

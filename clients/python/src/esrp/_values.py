@@ -486,6 +486,8 @@ class ServerInfo:
         role: The token's role: `"agent"`, `"trainer"` or `"admin"` (empty from an older server).
         challenge: Whether the server serves a challenge split (`Split.CHALLENGE`, `Split.MINIVAL`).
         recording: Which episodes the server records: `"challenge"`, `"all"`, or `""` (none).
+        renderer_rasterizer: What draws the triangles: `"pipeline"` (the graphics pipeline) or
+            `"compute"` (compute shaders); empty from a server older than the compute rasteriser.
     """
 
     version: str
@@ -499,6 +501,7 @@ class ServerInfo:
     role: str = ""
     challenge: bool = False
     recording: str = ""
+    renderer_rasterizer: str = ""
 
 
 @dataclass(frozen=True)

@@ -103,6 +103,7 @@ impl proto::esrp_server::Esrp for EsrpService {
             role: caller.role.as_str().to_owned(),
             challenge: s.store.has_hidden(),
             recording: s.recorder.as_ref().map_or("", |r| r.mode().as_str()).to_owned(),
+            renderer_rasterizer: renderer.rasterizer().name().to_owned(),
         }))
     }
 

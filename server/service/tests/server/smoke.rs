@@ -186,16 +186,18 @@ fn a_server_that_cannot_start_says_why_in_one_line() {
     }
 }
 
-/// A server drawing with the compute rasteriser (`--render-rasterizer compute`) answers the same
-/// observations as one drawing with the graphics pipeline, but for a few edge pixels, along a
-/// scene's expert run.
+/// A server drawing with the compute rasteriser (`--render-rasterizer compute`) says so in its
+/// ServerInfo and answers the same observations as one drawing with the graphics pipeline, but
+/// for a few edge pixels, along a scene's expert run.
 #[tokio::test]
 async fn the_compute_rasterizer_draws_what_the_pipeline_draws() {
     let pipeline = Server::start(&["--render-backend", "vulkan"]);
     let compute = Server::start(&["--render-backend", "vulkan", "--render-rasterizer", "compute"]);
     let mut observations = Vec::new();
-    for server in [&pipeline, &compute] {
+    for (server, rasterizer) in [(&pipeline, "pipeline"), (&compute, "compute")] {
         let mut client = server.client().await;
+        let info = client.server_info(proto::ServerInfoRequest {}).await.unwrap().into_inner();
+        assert_eq!(info.renderer_rasterizer, rasterizer);
         let created = client.create_episode(create_request("esrp-bench-v2/00011", true)).await.unwrap().into_inner();
         let observation = created.observation.unwrap();
         let mut images = vec![observation.ego_rgb.unwrap().data, observation.goal_rgb.unwrap().data];

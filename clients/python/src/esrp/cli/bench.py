@@ -840,7 +840,8 @@ def _main(args: argparse.Namespace) -> int:
             print(f"vec-64 over {len(addresses)} servers: {', '.join(addresses)}", flush=True)
         print(
             f"server {address}: esrp-server {info.version}, renderer {info.renderer_adapter} "
-            f"({info.renderer_backend}), dataset {info.dataset}; transport "
+            f"({info.renderer_backend}, {info.renderer_rasterizer} rasterizer), dataset {info.dataset}; "
+            "transport "
             + ", ".join(f"{t} = {resolved}" if t == "auto" else t for t, resolved in transports.items()),
             flush=True,
         )
@@ -878,6 +879,7 @@ def _main(args: argparse.Namespace) -> int:
                 "server_version": info.version,
                 "renderer": info.renderer_adapter,
                 "backend": info.renderer_backend,
+                "rasterizer": info.renderer_rasterizer,
                 "seconds": args.seconds,
                 "warmup": args.warmup,
                 "repeat": args.repeat,

@@ -1448,6 +1448,7 @@ class ServerInfoResponse(_message.Message):
     ROLE_FIELD_NUMBER: _builtins.int
     CHALLENGE_FIELD_NUMBER: _builtins.int
     RECORDING_FIELD_NUMBER: _builtins.int
+    RENDERER_RASTERIZER_FIELD_NUMBER: _builtins.int
     version: _builtins.str
     renderer_adapter: _builtins.str
     """e.g. "llvmpipe (LLVM 15.0.6, 256 bits)" """
@@ -1466,6 +1467,10 @@ class ServerInfoResponse(_message.Message):
     "all", or "" when it keeps no records).
     """
     recording: _builtins.str
+    renderer_rasterizer: _builtins.str
+    """What draws the triangles: "pipeline" (the graphics pipeline) or "compute" (compute shaders);
+    empty from a server older than the compute rasteriser.
+    """
     @_builtins.property
     def limits(self) -> Global___ServerLimits: ...
     def __init__(
@@ -1482,10 +1487,11 @@ class ServerInfoResponse(_message.Message):
         role: _builtins.str = ...,
         challenge: _builtins.bool = ...,
         recording: _builtins.str = ...,
+        renderer_rasterizer: _builtins.str = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["limits", b"limits"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["caller", b"caller", "challenge", b"challenge", "dataset", b"dataset", "limits", b"limits", "live_episodes", b"live_episodes", "recording", b"recording", "renderer_adapter", b"renderer_adapter", "renderer_backend", b"renderer_backend", "role", b"role", "software_renderer", b"software_renderer", "version", b"version"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["caller", b"caller", "challenge", b"challenge", "dataset", b"dataset", "limits", b"limits", "live_episodes", b"live_episodes", "recording", b"recording", "renderer_adapter", b"renderer_adapter", "renderer_backend", b"renderer_backend", "renderer_rasterizer", b"renderer_rasterizer", "role", b"role", "software_renderer", b"software_renderer", "version", b"version"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -668,8 +668,8 @@ fn run() -> anyhow::Result<()> {
     let cpus = std::thread::available_parallelism().map_or(0, |n| n.get());
     let cpu_model = cpu_model();
     println!(
-        "esrp-bench against {address}: esrp-server {}, renderer {} ({}), dataset {}",
-        info.version, info.renderer_adapter, info.renderer_backend, info.dataset
+        "esrp-bench against {address}: esrp-server {}, renderer {} ({}, {} rasterizer), dataset {}",
+        info.version, info.renderer_adapter, info.renderer_backend, info.renderer_rasterizer, info.dataset
     );
     println!("client machine: {cpus} CPUs, {cpu_model}");
     if args.scenarios.iter().any(|name| name != "soak") {
@@ -722,6 +722,7 @@ fn run() -> anyhow::Result<()> {
     if let Some(path) = &args.json {
         let report = serde_json::json!({
             "server": address, "renderer": info.renderer_adapter, "backend": info.renderer_backend,
+            "rasterizer": info.renderer_rasterizer,
             "cpus": cpus, "cpu": cpu_model, "results": results.iter().map(Outcome::to_json).collect::<Vec<_>>(),
             "soak": soaks.iter().map(soak::Report::to_json).collect::<Vec<_>>(),
         });
