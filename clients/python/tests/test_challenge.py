@@ -92,7 +92,12 @@ def test_participants_runs_are_recorded_verified_and_ranked(
             )
             == 1
         )
-        assert "already played" in capsys.readouterr().err
+        err = capsys.readouterr().err
+        assert "already played" in err
+        ids = ", ".join(f"challenge/{i:05d}" for i in range(SCENES))
+        refused = f"{SCENES} episodes were refused by the server and not recorded, as they would be again"
+        assert f"{refused}: {ids}" in err
+        assert "rerun" not in err
 
     with (
         esrp.Client(server.address, token="red-secret") as red,

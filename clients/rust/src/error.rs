@@ -74,6 +74,22 @@ impl ClientError {
         }
     }
 
+    /// Whether the server refused the call for a reason the same call would meet again: an
+    /// unknown scene or episode, a malformed request, a missing or wrong token, a role that does
+    /// not allow it, an ended episode or a challenge scene already played. Retrying it unchanged
+    /// is pointless; the other errors (an unreachable or busy server, a deadline, a server fault)
+    /// may pass another time.
+    pub fn is_refusal(&self) -> bool {
+        matches!(
+            self,
+            ClientError::NotFound(_)
+                | ClientError::InvalidArgument(_)
+                | ClientError::EpisodeEnded(_)
+                | ClientError::Unauthenticated(_)
+                | ClientError::PermissionDenied(_)
+        )
+    }
+
     /// An error from a status code and message, as a stream's in-band error carries them.
     pub fn from_code(code: Code, message: String) -> Self {
         match code {

@@ -142,6 +142,44 @@ async fn bad_requests_are_refused_with_a_reason() {
     assert!(stderr.contains("with other settings") && stderr.contains("\"budget_ms\":5000"), "{stderr}");
 }
 
+/// A second run over a challenge's scenes is refused by the server (one counted attempt per scene
+/// and token): `esrp-eval` says that those episodes would be refused again, not to rerun them.
+#[tokio::test]
+async fn challenge_scenes_already_played_are_not_offered_for_a_rerun() {
+    let dir = tempfile::tempdir().expect("a temp dir");
+    let tokens = dir.path().join("tokens.toml");
+    std::fs::write(&tokens, "[[token]]\nname = \"team\"\nsecret = \"team-secret\"\nrole = \"agent\"\n").unwrap();
+    let records = dir.path().join("records");
+    let server = start(&[
+        "--tokens",
+        tokens.to_str().unwrap(),
+        "--challenge-seed",
+        "the-organisers-secret-seed",
+        "--challenge-scenes",
+        "2",
+        "--records",
+        records.to_str().unwrap(),
+    ]);
+    let out = dir.path().join("run.jsonl");
+    let run = |more: &[&str]| {
+        let args =
+            ["--agent", "random", "--split", "challenge", "--token", "team-secret", "--out", out.to_str().unwrap()];
+        eval(&server.address, &[&args[..], more].concat())
+    };
+    ok(run(&[]));
+    let again = run(&["--fresh"]);
+    assert!(!again.status.success());
+    let stderr = String::from_utf8_lossy(&again.stderr);
+    assert!(
+        stderr.contains(
+            "2 episodes were refused by the server and not recorded, as they would be again: challenge/00000, \
+             challenge/00001"
+        ),
+        "{stderr}"
+    );
+    assert!(stderr.contains("already played") && !stderr.contains("rerun"), "{stderr}");
+}
+
 /// The processes whose parent is `pid` (Linux's /proc).
 pub(crate) fn children(pid: u32) -> Vec<u32> {
     let mut found = Vec::new();

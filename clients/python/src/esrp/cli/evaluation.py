@@ -343,7 +343,8 @@ def _eval(args: argparse.Namespace) -> int:
         print(f"esrp eval: {error}", file=sys.stderr)
         return 2
     if outcome.failed:
-        print(f"esrp eval: {format_failures(outcome.failed, outcome.errors_log)}", file=sys.stderr)
+        closing = format_failures(outcome.failed, outcome.errors_log, outcome.refused)
+        print(f"esrp eval: {closing}", file=sys.stderr)
         return 1
     return 0
 

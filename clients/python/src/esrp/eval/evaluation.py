@@ -22,7 +22,7 @@ import json
 import sys
 import time
 import traceback
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -31,7 +31,18 @@ from typing import IO, Any
 from .. import __version__
 from .._async_client import AsyncClient, AsyncEpisode
 from .._common import unreachable
-from .._errors import DeadlineExceeded, EsrpError, ProtocolError, ServerUnavailable
+from .._errors import (
+    AlreadyPlayed,
+    DeadlineExceeded,
+    EpisodeEnded,
+    EsrpError,
+    InvalidRequest,
+    PermissionDenied,
+    ProtocolError,
+    SceneNotFound,
+    ServerUnavailable,
+    Unauthenticated,
+)
 from .._local import LocalServer
 from .._signals import run_async
 from .._values import Action, EpisodeMetrics, SceneSummary, Sensors, ServerInfo, action_value
@@ -171,6 +182,9 @@ class EvalOutcome:
         summary: The summary of `records`.
         summary_path: Where the Markdown summary was written.
         errors_log: The tracebacks of the failed episodes (None when none failed).
+        refused: The scene ids among `failed` that the server refused for a reason a rerun would
+            meet again (a challenge scene already played, an unknown scene, a malformed request,
+            a token or role that does not allow it); a rerun may play the others.
     """
 
     records: list[EpisodeRecord]
@@ -179,6 +193,7 @@ class EvalOutcome:
     summary: Summary
     summary_path: Path
     errors_log: Path | None = None
+    refused: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -718,16 +733,22 @@ def errors_log_path(out: Path) -> Path:
     return out.with_suffix(".errors.log")
 
 
+# The errors by which the server refuses a call for a reason the same call would meet again.
+_REFUSALS = (SceneNotFound, InvalidRequest, EpisodeEnded, AlreadyPlayed, Unauthenticated, PermissionDenied)
+
+
 class FailureLog:
     """The episodes of a run that failed with an error: the first one's traceback is printed, each
     one's is written to the errors log beside the results file (`errors_log_path`). The log
-    describes the last run: an earlier run's is removed when the run starts.
+    describes the last run: an earlier run's is removed when the run starts. `refused` lists those
+    the server refused for good (`EvalOutcome.refused`).
     """
 
     def __init__(self, out: Path, progress: Progress) -> None:
         self.path = errors_log_path(out)
         self.progress = progress
         self.failed: list[tuple[str, str]] = []
+        self.refused: list[str] = []
         self.path.unlink(missing_ok=True)
 
     def add(self, scene_id: str, error: BaseException, trace: str | None = None) -> None:
@@ -749,6 +770,8 @@ class FailureLog:
                 log.write(f"# esrp eval: episodes that failed with an error, {_now_rfc3339()}\n")
             log.write(f"\n## {scene_id}: {message}\n\n{trace.rstrip()}\n")
         self.failed.append((scene_id, message))
+        if isinstance(error, _REFUSALS):
+            self.refused.append(scene_id)
 
     @property
     def written(self) -> Path | None:
@@ -858,7 +881,9 @@ def finish(
     )
     summary_path.write_text(markdown, encoding="utf-8")
     print(f"summary: {summary_path}")
-    return EvalOutcome(mine, written, failures.failed, summary, summary_path, failures.written)
+    return EvalOutcome(
+        mine, written, failures.failed, summary, summary_path, failures.written, failures.refused
+    )
 
 
 def run_eval(
@@ -895,11 +920,23 @@ async def reach(client: AsyncClient, address: str) -> None:
         raise EvalError(unreachable(address, error)) from None
 
 
-def format_failures(failed: Sequence[tuple[str, str]], errors_log: Path | None = None) -> str:
-    """The closing message of a run with failed episodes (and where their tracebacks are)."""
-    ids = ", ".join(scene for scene, _ in failed)
-    where = f"; tracebacks in {errors_log}" if errors_log is not None else ""
-    return (
-        f"{len(failed)} episodes failed with an error and were not recorded (rerun to retry them): {ids}"
-        + where
+def format_failures(
+    failed: Sequence[tuple[str, str]], errors_log: Path | None = None, refused: Collection[str] = ()
+) -> str:
+    """The closing message of a run with failed episodes: those a rerun may play, those among
+    `refused` it would be refused again (`EvalOutcome.refused`), and where their tracebacks are.
+    The same words as `esrp-eval`'s.
+    """
+    retry = sorted(scene for scene, _ in failed if scene not in refused)
+    again = sorted(scene for scene, _ in failed if scene in refused)
+    retry_text = (
+        f"{len(retry)} episodes failed with an error and were not recorded (rerun to retry them): "
+        + ", ".join(retry)
     )
+    again_text = "refused by the server and not recorded, as they would be again: " + ", ".join(again)
+    where = f"; tracebacks in {errors_log}" if errors_log is not None else ""
+    if not again:
+        return retry_text + where
+    if not retry:
+        return f"{len(again)} episodes were {again_text}{where}"
+    return f"{retry_text}; {len(again)} more were {again_text}{where}"

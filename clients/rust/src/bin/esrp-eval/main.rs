@@ -312,7 +312,8 @@ async fn run() -> anyhow::Result<()> {
     }))
     .buffer_unordered(args.episodes_in_flight as usize);
 
-    let mut failed: Vec<(String, String)> = Vec::new();
+    // The scenes whose episodes failed, each with whether the server refused it for good.
+    let mut failed: Vec<(String, bool)> = Vec::new();
     let mut written = 0;
     while let Some((scene, seed, wall_seconds, played)) = episodes.next().await {
         let played = match played {
@@ -324,7 +325,8 @@ async fn run() -> anyhow::Result<()> {
                     bail!("{why}; re-run the same command to resume");
                 }
                 bar.suspend(|| eprintln!("{}: {e:#}", scene.id));
-                failed.push((scene.id, format!("{e:#}")));
+                let refused = e.chain().any(|c| c.downcast_ref::<ClientError>().is_some_and(ClientError::is_refusal));
+                failed.push((scene.id, refused));
                 bar.inc(1);
                 continue;
             }
@@ -345,13 +347,32 @@ async fn run() -> anyhow::Result<()> {
     let mine: Vec<EpisodeRecord> = records.into_iter().filter(|r| wanted.contains(r.scene_id.as_str())).collect();
     write_summary(&args, &info, recording.agent, &mine, started)?;
     if !failed.is_empty() {
-        bail!(
-            "{} episodes failed with an error and were not recorded (rerun to retry them): {}",
-            failed.len(),
-            failed.iter().map(|(id, _)| id.as_str()).collect::<Vec<_>>().join(", ")
-        );
+        bail!("{}", failures(&failed));
     }
     Ok(())
+}
+
+/// The closing message of a run whose episodes `failed` (each scene with whether the server
+/// refused it for good): those a rerun may play, and those it would be refused again (the
+/// reasons were printed as they came). The same words as `esrp eval`'s.
+fn failures(failed: &[(String, bool)]) -> String {
+    let ids = |refused: bool| {
+        let mut ids: Vec<&str> = failed.iter().filter(|f| f.1 == refused).map(|f| f.0.as_str()).collect();
+        ids.sort_unstable();
+        ids
+    };
+    let (retry, refused) = (ids(false), ids(true));
+    let again = format!("refused by the server and not recorded, as they would be again: {}", refused.join(", "));
+    let retry_text = format!(
+        "{} episodes failed with an error and were not recorded (rerun to retry them): {}",
+        retry.len(),
+        retry.join(", ")
+    );
+    match (retry.len(), refused.len()) {
+        (_, 0) => retry_text,
+        (0, n) => format!("{n} episodes were {again}"),
+        (_, n) => format!("{retry_text}; {n} more were {again}"),
+    }
 }
 
 /// The results file's records so far (the earlier run's, checked to be the same agent's; none
@@ -466,4 +487,28 @@ fn write_summary(
     std::fs::write(&summary_path, markdown).with_context(|| format!("cannot write {}", summary_path.display()))?;
     println!("summary: {}", summary_path.display());
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::failures;
+
+    #[test]
+    fn the_closing_message_tells_what_a_rerun_can_play() {
+        let failed =
+            |list: &[(&str, bool)]| list.iter().map(|&(id, refused)| (id.to_owned(), refused)).collect::<Vec<_>>();
+        assert_eq!(
+            failures(&failed(&[("b", false), ("a", false)])),
+            "2 episodes failed with an error and were not recorded (rerun to retry them): a, b"
+        );
+        assert_eq!(
+            failures(&failed(&[("c", true)])),
+            "1 episodes were refused by the server and not recorded, as they would be again: c"
+        );
+        assert_eq!(
+            failures(&failed(&[("c", true), ("a", false), ("b", true)])),
+            "1 episodes failed with an error and were not recorded (rerun to retry them): a; 2 more were refused by \
+             the server and not recorded, as they would be again: b, c"
+        );
+    }
 }
