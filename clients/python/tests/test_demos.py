@@ -186,6 +186,16 @@ def test_dagger_records_the_planners_label_at_each_state_the_agent_visits(
     assert not (labels == labels[0]).all(), "labels follow the states, not one constant"
 
 
+def test_a_dagger_agent_config_the_agent_does_not_take_is_refused(
+    server: esrp.LocalServer, easy_scenes: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "dagger.zarr"
+    arguments = ["--split", "test", "--scenes", easy_scenes[0], "--dagger", "random"]
+    assert export(server, out, *arguments, "--agent-config", '{"bogus": 1}') == 2
+    assert "the random agent has no setting bogus: it takes none" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_dagger_records_the_policys_own_actions_and_stops_at_max_steps(
     server: esrp.LocalServer,
     easy_scenes: list[str],

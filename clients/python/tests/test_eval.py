@@ -238,6 +238,32 @@ def test_failed_episodes_are_not_recorded_and_a_rerun_retries_them(
     )
 
 
+@pytest.mark.parametrize(
+    ("agent", "config", "said"),
+    [
+        ("random", {"bogus": 1}, "the random agent has no setting bogus: it takes none"),
+        ("map", {"max_expansion": 5}, "the map agent has no setting max_expansion: known are max_expansions"),
+        ("map", {"max_expansions": 0}, "the map agent's max_expansions must be an integer of at least 1"),
+        ("expert", {"steps": 1}, "the expert agent takes no --agent-config: the server plays it"),
+        ("plan", {"steps": 1}, "the plan agent takes no --agent-config: the server plays it"),
+    ],
+)
+def test_a_config_the_agent_does_not_take_is_refused_before_any_episode(
+    server: esrp.LocalServer,
+    tmp_path: Path,
+    easy_ids: str,
+    capsys: pytest.CaptureFixture[str],
+    agent: str,
+    config: dict[str, int],
+    said: str,
+) -> None:
+    out = tmp_path / "run.jsonl"
+    args = ["eval", "--agent", agent, "--agent-config", json.dumps(config), "--scenes", easy_ids]
+    assert main([*args, "--out", str(out), "--server", server.address, "--no-progress"]) == 2
+    assert said in capsys.readouterr().err
+    assert not out.exists() or not out.read_text()
+
+
 def test_resume_after_an_interrupted_run_gives_the_same_file(
     server: esrp.LocalServer, tmp_path: Path, easy_scenes: list[str], capsys: pytest.CaptureFixture[str]
 ) -> None:

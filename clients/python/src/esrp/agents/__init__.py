@@ -35,6 +35,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from .._values import Action, Observation
+from ._config import check_agent_config
 
 __all__ = [
     "Agent",
@@ -106,10 +107,12 @@ class RandomAgent:
 
     Its generator is numpy's `default_rng(info["seed"])` (PCG64), one `integers(0, 6)` per step: the
     same seed gives the same actions, on any machine. (The Rust `esrp-eval` draws from ChaCha8, so
-    the two tools' random agents play different action streams from the same seed.)
+    the two tools' random agents play different action streams from the same seed.) It has no
+    settings: a config with any key raises `ValueError`.
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
+        check_agent_config(config or {}, "random", {})
         self.config = dict(config or {})
         self._rng = np.random.default_rng(0)
 

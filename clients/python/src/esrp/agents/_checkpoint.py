@@ -12,33 +12,7 @@ from typing import Any
 
 import torch
 
-__all__ = ["check_agent_config", "policy_checkpoint", "read_checkpoint"]
-
-
-def check_agent_config(config: Mapping[str, Any], agent: str, known: Mapping[str, str]) -> None:
-    """Raises `ValueError` for a key of an agent's config (`--agent-config`) that is not one of
-    `known` (each key's kind: `bool`, `int`, `probability` or `path`), or a value not of its kind:
-    a misspelt `deterministic` must not leave a researcher's run sampling.
-    """
-    unknown = sorted(set(config) - set(known))
-    if unknown:
-        raise ValueError(
-            f"the {agent} agent has no setting {', '.join(unknown)}: known are {', '.join(known)}"
-        )
-    for key, kind in known.items():
-        value = config.get(key)
-        if value is None:
-            continue
-        number = isinstance(value, int | float) and not isinstance(value, bool)
-        fits = {
-            "bool": isinstance(value, bool),
-            "int": isinstance(value, int) and not isinstance(value, bool),
-            "probability": number and 0.0 <= value <= 1.0,
-            "path": isinstance(value, str | Path),
-        }[kind]
-        if not fits:
-            wanted = {"bool": "true or false", "int": "an integer", "probability": "a number from 0 to 1"}
-            raise ValueError(f"the {agent} agent's {key} must be {wanted.get(kind, 'a path')}, not {value!r}")
+__all__ = ["policy_checkpoint", "read_checkpoint"]
 
 
 def read_checkpoint(

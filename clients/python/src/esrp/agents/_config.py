@@ -1,6 +1,6 @@
 """What the settings tables of the learned baselines (`[bc]`, `[ppo]`, `[dagger]`, `[ppo_bc]`)
 check alike when read from a mapping: no unknown key, each value of its field's kind, and numbers
-in range.
+in range; and the same of an agent's config (`--agent-config`).
 """
 
 from __future__ import annotations
@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import fields
+from pathlib import Path
 from typing import Any
 
 _KINDS = {"int": "an integer", "float": "a number", "bool": "true or false", "str": "a string"}
@@ -62,3 +63,35 @@ def check_at_least(settings: Any, table: str, minimum: float, names: Iterable[st
         value = getattr(settings, name)
         if value is not None and value < minimum:
             raise ValueError(f"{table} setting {name} must be at least {minimum}, not {value!r}")
+
+
+def check_agent_config(config: Mapping[str, Any], agent: str, known: Mapping[str, str]) -> None:
+    """Raises `ValueError` for a key of an agent's config (`--agent-config`) that is not one of
+    `known` (each key's kind: `bool`, `int`, `positive`, `probability` or `path`), or a value not of its kind:
+    a misspelt `deterministic` must not leave a researcher's run sampling. A `positive` int is at
+    least 1.
+    """
+    unknown = sorted(set(config) - set(known))
+    if unknown:
+        which = f"known are {', '.join(known)}" if known else "it takes none"
+        raise ValueError(f"the {agent} agent has no setting {', '.join(unknown)}: {which}")
+    for key, kind in known.items():
+        value = config.get(key)
+        if value is None:
+            continue
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        fits = {
+            "bool": isinstance(value, bool),
+            "int": isinstance(value, int) and not isinstance(value, bool),
+            "positive": isinstance(value, int) and not isinstance(value, bool) and value >= 1,
+            "probability": number and 0.0 <= value <= 1.0,
+            "path": isinstance(value, str | Path),
+        }[kind]
+        if not fits:
+            wanted = {
+                "bool": "true or false",
+                "int": "an integer",
+                "positive": "an integer of at least 1",
+                "probability": "a number from 0 to 1",
+            }
+            raise ValueError(f"the {agent} agent's {key} must be {wanted.get(kind, 'a path')}, not {value!r}")

@@ -38,8 +38,8 @@ from torch import nn
 from torch.nn import functional as F  # noqa: N812 - the usual name
 
 from .._values import Action, Observation, Sensors
-from ._checkpoint import check_agent_config, policy_checkpoint, read_checkpoint
-from ._config import check_at_least, check_kinds, reject_unknown
+from ._checkpoint import policy_checkpoint, read_checkpoint
+from ._config import check_agent_config, check_at_least, check_kinds, reject_unknown
 from .encoders import ENCODERS, check_device, float_images, make_encoder
 
 __all__ = [

@@ -389,8 +389,10 @@ def make_factory(agent: str, config: dict[str, Any], results_path: Path) -> Agen
     for the server-driven `expert` and `plan`. `results_path` places a vlm agent's traces. Raises
     `EvalError` when a named module or callable cannot be loaded, or the config is bad.
     """
+    if agent in ("expert", "plan") and config:
+        raise EvalError(f"the {agent} agent takes no --agent-config: the server plays it")
     if agent == "random":
-        return RandomAgent
+        return checked_config(RandomAgent, config)
     if agent == "vlm":
         from ..agents.vlm import VlmAgentFactory
 
@@ -401,7 +403,7 @@ def make_factory(agent: str, config: dict[str, Any], results_path: Path) -> Agen
     if agent == "map":
         from ..agents.esrp_map.agent import MapAgent
 
-        return MapAgent
+        return checked_config(MapAgent, config)
     if agent in ("bc", "ppo"):
         try:
             from ..agents.bc import BcPolicy
@@ -422,6 +424,17 @@ def make_factory(agent: str, config: dict[str, Any], results_path: Path) -> Agen
             raise EvalError(str(error)) from None
         return checked_factory(factory, agent, config)
     return None
+
+
+def checked_config(factory: AgentFactory, config: dict[str, Any]) -> AgentFactory:
+    """`factory`, once an agent made by it with `config` has shown that the config is one it takes
+    (its `ValueError` becomes an `EvalError`): before any episode, not once per episode.
+    """
+    try:
+        factory(dict(config))
+    except ValueError as error:
+        raise EvalError(str(error)) from None
+    return factory
 
 
 def check_agent(agent: object, spec: str) -> None:

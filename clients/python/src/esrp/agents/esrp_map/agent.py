@@ -40,6 +40,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..._values import Action, Observation
+from .._config import check_agent_config
 from .geometry import Pose2D
 from .goal import CATEGORIES, STATIC, GoalImage, GoalObject, components, parse_goal
 from .mapping import TopDownMap, floor_pixels
@@ -116,10 +117,11 @@ class _Task:
 
 class MapAgent:
     """ESRP-MAP (see the module). `config`: `max_expansions` (A*'s budget per plan, default
-    20,000).
+    20,000); another key, or a budget below 1, raises `ValueError`.
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
+        check_agent_config(config or {}, "map", {"max_expansions": "positive"})
         self.config = dict(config or {})
         self.max_expansions = int(self.config.get("max_expansions", 20000))
         self._stats: dict[str, Any] = {}
