@@ -129,20 +129,75 @@ pub fn status_message(status: &tonic::Status) -> String {
     match std::error::Error::source(status) {
         Some(source) if status.code() == Code::Unknown => {
             let mut message = format!("the connection broke: {}", status.message());
-            let mut cause: Option<&(dyn std::error::Error + 'static)> = Some(source);
-            while let Some(error) = cause {
-                let text = error.to_string();
-                if !message.contains(&text) {
-                    message.push_str(": ");
-                    message.push_str(&text);
-                }
-                cause = error.source();
-            }
+            append_causes(&mut message, source);
             message
         }
         _ => status.message().to_owned(),
     }
 }
 
+/// `error` and its causes (its `source()` chain; an `anyhow::Error`'s `as_ref()`) on one line,
+/// `: ` between them, line breaks made spaces. A cause whose text is already said (one that
+/// repeats the one before it, as hyper's connect errors do, or that an error's own message holds)
+/// is left out. What the tools and the server print for an error that ends them.
+pub fn one_line(error: &(dyn std::error::Error + 'static)) -> String {
+    let mut line = String::new();
+    append_causes(&mut line, error);
+    line.replace('\n', " ")
+}
+
+/// Appends `error` and its causes to `line`, each after `: ` unless its text is already there.
+fn append_causes(line: &mut String, error: &(dyn std::error::Error + 'static)) {
+    let mut cause = Some(error);
+    while let Some(error) = cause {
+        let text = error.to_string();
+        if !line.contains(&text) {
+            if !line.is_empty() {
+                line.push_str(": ");
+            }
+            line.push_str(&text);
+        }
+        cause = error.source();
+    }
+}
+
 /// A result of this crate.
 pub type Result<T, E = ClientError> = std::result::Result<T, E>;
+
+#[cfg(test)]
+mod tests {
+    use super::one_line;
+
+    /// An error with a message and an optional cause.
+    #[derive(Debug)]
+    struct Said(&'static str, Option<Box<Said>>);
+
+    impl std::fmt::Display for Said {
+        fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+            f.write_str(self.0)
+        }
+    }
+
+    impl std::error::Error for Said {
+        fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+            self.1.as_deref().map(|s| s as _)
+        }
+    }
+
+    fn chain(texts: &[&'static str]) -> Said {
+        let mut error = None;
+        for text in texts.iter().rev() {
+            error = Some(Said(text, error.map(Box::new)));
+        }
+        error.expect("one text at least")
+    }
+
+    #[test]
+    fn an_error_and_its_causes_make_one_line_without_repeats() {
+        let error = chain(&["h:1: cannot\nconnect", "tcp connect", "tcp connect", "refused"]);
+        assert_eq!(one_line(&error), "h:1: cannot connect: tcp connect: refused");
+        // A cause its error's message already holds is said once.
+        let error = chain(&["cannot serve d", "d/manifest.json: No such file", "No such file"]);
+        assert_eq!(one_line(&error), "cannot serve d: d/manifest.json: No such file");
+    }
+}

@@ -19,18 +19,7 @@ pub fn exit_status(name: &str, result: anyhow::Result<()>) -> ExitCode {
         std::thread::park();
     }
     let Err(error) = result else { return ExitCode::SUCCESS };
-    let mut line = String::new();
-    for cause in error.chain() {
-        let text = cause.to_string();
-        // A cause an error's own message already gives (`{source}` in it) is said once.
-        if !line.contains(&text) {
-            if !line.is_empty() {
-                line.push_str(": ");
-            }
-            line.push_str(&text);
-        }
-    }
-    eprintln!("{name}: {}", line.replace('\n', " "));
+    eprintln!("{name}: {}", crate::error::one_line(error.as_ref()));
     ExitCode::FAILURE
 }
 
