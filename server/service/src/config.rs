@@ -309,6 +309,31 @@ fn non_empty_token(value: &str) -> Result<String, String> {
     Ok(value.to_owned())
 }
 
+/// `error`, clap's refusal of the command line `args` of `command`, with a tip that names the
+/// environment variable the refused value came from, when it came from one: clap's message names
+/// only the flag (`--max-episodes`), which a value set by `ESRP_MAX_EPISODES` in a container's
+/// environment does not show.
+pub fn tell_the_variable(mut error: clap::Error, command: &clap::Command, args: &[std::ffi::OsString]) -> clap::Error {
+    use clap::error::{ContextKind, ContextValue};
+    let Some(ContextValue::String(refused)) = error.get(ContextKind::InvalidArg) else { return error };
+    let Some(long) = refused.split_whitespace().next().and_then(|flag| flag.strip_prefix("--")).map(str::to_owned)
+    else {
+        return error;
+    };
+    let flag = format!("--{long}");
+    let given = args.iter().filter_map(|a| a.to_str()).any(|a| a == flag || a.starts_with(&format!("{flag}=")));
+    let mut arguments = command.get_arguments().chain(command.get_subcommands().flat_map(|c| c.get_arguments()));
+    let variable = arguments.find(|arg| arg.get_long() == Some(long.as_str())).and_then(|arg| arg.get_env());
+    if let Some(variable) = variable
+        && !given
+        && std::env::var_os(variable).is_some()
+    {
+        let tip = format!("this value comes from the environment variable {}", variable.to_string_lossy());
+        error.insert(ContextKind::Suggested, ContextValue::StyledStrs(vec![tip.into()]));
+    }
+    error
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -6,7 +6,7 @@
 
 mod health_check;
 
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, Parser, Subcommand};
 use esrp_server::Config;
 use esrp_server::config::LogFormat;
 
@@ -139,7 +139,9 @@ fn main() -> std::process::ExitCode {
 }
 
 fn run() -> anyhow::Result<()> {
-    let Cli { config, command } = Cli::parse();
+    let args: Vec<std::ffi::OsString> = std::env::args_os().collect();
+    let Cli { config, command } = Cli::try_parse_from(&args)
+        .unwrap_or_else(|error| esrp_server::config::tell_the_variable(error, &Cli::command(), &args).exit());
     if let Some(Command::HealthCheck(args)) = command {
         match health_check::run(&args, &config) {
             Ok(answer) => {

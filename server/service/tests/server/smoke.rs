@@ -186,6 +186,34 @@ fn a_server_that_cannot_start_says_why_in_one_line() {
     }
 }
 
+/// A value refused from an environment variable (`ESRP_*`) is said to come from it: clap's message
+/// names only the flag. One given on the command line, which wins over the variable, is not.
+#[test]
+fn a_refused_value_from_the_environment_names_its_variable() {
+    let start = |args: &[&str], variable: (&str, &str)| {
+        let output = esrp_client::LocalServer::command(Some(env!("CARGO_BIN_EXE_esrp-server").into()), args)
+            .unwrap()
+            .env(variable.0, variable.1)
+            .output()
+            .unwrap();
+        assert_eq!(output.status.code(), Some(2));
+        String::from_utf8_lossy(&output.stderr).into_owned()
+    };
+    let tip = "tip: this value comes from the environment variable";
+    for (variable, value) in
+        [("ESRP_MAX_EPISODES", "0"), ("ESRP_RENDER_RASTERIZER", "ray"), ("ESRP_RENDER_BACKEND", "metal")]
+    {
+        let stderr = start(&[], (variable, value));
+        let flag = format!("--{}", variable.trim_start_matches("ESRP_").to_lowercase().replace('_', "-"));
+        assert!(stderr.contains(&format!("invalid value '{value}' for '{flag}")), "{stderr}");
+        assert!(stderr.contains(&format!("{tip} {variable}\n")), "{stderr}");
+    }
+    let stderr = start(&["--max-episodes", "0"], ("ESRP_MAX_EPISODES", "0"));
+    assert!(stderr.contains("invalid value '0' for '--max-episodes") && !stderr.contains(tip), "{stderr}");
+    let stderr = start(&["--max-episodes=0"], ("ESRP_MAX_EPISODES", "5"));
+    assert!(!stderr.contains(tip), "{stderr}");
+}
+
 /// A server drawing with the compute rasteriser (`--render-rasterizer compute`) says so in its
 /// ServerInfo and answers the same observations as one drawing with the graphics pipeline, but
 /// for a few edge pixels, along a scene's expert run.
