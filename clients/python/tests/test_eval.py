@@ -623,7 +623,9 @@ def test_bad_input_files_and_modules_are_one_line(
     """A results line that is JSON but not an object (`[1]`) was an AttributeError traceback in
     esrp report and the leaderboard; a file whose only line is not a record was "no records" without
     a reason; esrp eval cut a whole line of someone else's file off as if an interruption had torn
-    it; an agent module with a SyntaxError was a traceback; `esrp bench` printed its usage. One
+    it; an agent module with a SyntaxError was a traceback, and one importing a missing dependency
+    was "cannot import" the module itself, naming neither the exception nor its line; `esrp bench`
+    printed its usage. One
     test on purpose: a list of bad inputs, each with the one line it must give, read top to bottom."""
     array = tmp_path / "array.jsonl"
     array.write_text("[1]\n")
@@ -637,6 +639,8 @@ def test_bad_input_files_and_modules_are_one_line(
     notes.write_text("my notes\n")
     (tmp_path / "broken_agent.py").write_text("def make(config):\n    return (\n")
     (tmp_path / "raising_agent.py").write_text("import os\nraise ValueError('no API key')\n")
+    # A module that is there but imports one that is not (a missing dependency): where, as above.
+    (tmp_path / "needy_agent.py").write_text("import os\nimport esrp_no_such_dependency\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     report = tmp_path / "report"
     not_a_record = "its last line is not an esrp.results/v1 record (a JSON list, not an object)"
@@ -711,6 +715,32 @@ def test_bad_input_files_and_modules_are_one_line(
             ],
             "esrp eval: importing 'raising_agent' for agent 'raising_agent:make' raised ValueError: "
             "no API key (raising_agent.py:2)",
+        ),
+        (
+            [
+                "eval",
+                "--agent",
+                "needy_agent:make",
+                "--out",
+                str(tmp_path / "n.jsonl"),
+                "--server",
+                server.address,
+            ],
+            "esrp eval: importing 'needy_agent' for agent 'needy_agent:make' raised ModuleNotFoundError: "
+            "No module named 'esrp_no_such_dependency' (needy_agent.py:2)",
+        ),
+        (
+            [
+                "eval",
+                "--agent",
+                "no_such_agent_module:make",
+                "--out",
+                str(tmp_path / "m.jsonl"),
+                "--server",
+                server.address,
+            ],
+            "esrp eval: cannot import 'no_such_agent_module' for agent 'no_such_agent_module:make': "
+            "No module named 'no_such_agent_module'",
         ),
     ]
     for args, start in cases:

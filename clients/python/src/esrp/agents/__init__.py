@@ -140,6 +140,15 @@ def raised_at(error: BaseException) -> str:
     return f" ({Path(frames[-1].filename).name}:{frames[-1].lineno})" if frames else ""
 
 
+def _names_module(error: ImportError, module_name: str) -> bool:
+    """Whether `error` says that `module_name` itself (or a package it is in) is not there, rather
+    than that something the module imports is missing.
+    """
+    if not isinstance(error, ModuleNotFoundError) or error.name is None:
+        return False
+    return module_name == error.name or module_name.startswith(error.name + ".")
+
+
 def load_factory(spec: str) -> AgentFactory:
     """The callable named by `MODULE:CALLABLE` (e.g. `my_agents:make_agent`, `pkg.mod:Agent`): the
     module is imported (the working directory is on the path when `esrp` runs), and CALLABLE may be
@@ -155,6 +164,12 @@ def load_factory(spec: str) -> AgentFactory:
     try:
         target: Any = importlib.import_module(module_name)
     except ImportError as error:
+        if not _names_module(error, module_name):
+            # The module was found but an import in it failed (a missing dependency): say where.
+            raise ValueError(
+                f"importing {module_name!r} for agent {spec!r} raised {type(error).__name__}: {error}"
+                f"{raised_at(error)}"
+            ) from error
         raise ValueError(f"cannot import {module_name!r} for agent {spec!r}: {error}") from error
     except Exception as error:  # noqa: BLE001 - the user's module: said in one line, with its place.
         raise ValueError(
