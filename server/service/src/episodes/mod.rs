@@ -175,15 +175,18 @@ impl Episodes {
         stepping::check_batch_len(self, steps)
     }
 
-    /// Step and StepBatch, all or nothing: validates the whole batch (at most `--max-batch`
-    /// steps, one per episode, no ended episode, an answer that fits in a message) before any
-    /// episode moves, then steps every episode and renders every view in one job.
+    /// Steps, all or nothing: validates the whole batch (at most `--max-batch` steps, one per
+    /// episode, no ended episode, an answer that fits in a message) before any episode moves,
+    /// then steps every episode and renders every view in one job. Messages name a step `step`
+    /// when it is alone (Step), `steps[i]` among several; a StepBatch goes through
+    /// [`Episodes::step_batch`], which names them `steps[i]` however few there are.
     pub async fn step_many(
         self: &Arc<Self>,
         caller: &Caller,
         steps: Vec<StepCall>,
     ) -> Result<Vec<StepResult>, ServiceError> {
-        stepping::step_many(self, caller, steps).await
+        let batch = steps.len() > 1;
+        stepping::step_many(self, caller, steps, batch).await
     }
 
     /// StepBatch with resets: `steps` and `resets` (each episode once in all, at most

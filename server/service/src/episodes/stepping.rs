@@ -169,13 +169,15 @@ impl Stepped {
     }
 }
 
-/// Step and StepBatch, all or nothing (see `Episodes::step_many`).
+/// Step and StepBatch, all or nothing (see `Episodes::step_many`); `batch` names each step
+/// `steps[i]` in messages, as a StepBatch's request does (however few it holds), else `step`.
 pub(super) async fn step_many(
     episodes: &Arc<Episodes>,
     caller: &Caller,
     steps: Vec<StepCall>,
+    batch: bool,
 ) -> Result<Vec<StepResult>, ServiceError> {
-    let stepped = start_many(episodes, caller, steps, 0).await?;
+    let stepped = start_many(episodes, caller, steps, 0, batch).await?;
     stepped.finish(&episodes.metrics).await.into_iter().collect()
 }
 
@@ -191,7 +193,7 @@ pub(super) async fn step_batch(
     resets: Vec<ResetCall>,
 ) -> Result<(Vec<StepResult>, Vec<ResetResult>), ServiceError> {
     if resets.is_empty() {
-        return Ok((step_many(episodes, caller, steps).await?, Vec::new()));
+        return Ok((step_many(episodes, caller, steps, true).await?, Vec::new()));
     }
     check_batch_len(episodes, steps.len() + resets.len())?;
     // Each episode once in the whole batch; the reset ones known and the caller's.
@@ -217,7 +219,8 @@ pub(super) async fn step_batch(
     }
     // The steps, validated whole with the resets' answers counted in the message's size; their
     // views render while the resets are taken.
-    let taken = if steps.is_empty() { None } else { Some(start_many(episodes, caller, steps, reset_bytes).await?) };
+    let taken =
+        if steps.is_empty() { None } else { Some(start_many(episodes, caller, steps, reset_bytes, true).await?) };
     let mut reset = Vec::with_capacity(targets.len());
     let mut failed = None;
     for (episode, scene) in targets {
@@ -241,16 +244,16 @@ pub(super) async fn step_batch(
 }
 
 /// Validates `steps` whole (with `more_bytes` of other answers in the same message), takes
-/// them and hands their views to the render thread (see `Episodes::step_many`).
+/// them and hands their views to the render thread (see `Episodes::step_many`); messages name a
+/// step `steps[i]` in a `batch`, else `step`.
 async fn start_many(
     episodes: &Arc<Episodes>,
     caller: &Caller,
     steps: Vec<StepCall>,
     more_bytes: usize,
+    batch: bool,
 ) -> Result<Stepped, ServiceError> {
     check_batch_len(episodes, steps.len())?;
-    // "steps[3]" in a batch, "step" alone.
-    let batch = steps.len() > 1;
     let at = |i: usize| if batch { format!("steps[{i}]") } else { "step".to_owned() };
     let mut seen = HashSet::new();
     let mut locked = Vec::with_capacity(steps.len());

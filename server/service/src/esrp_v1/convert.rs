@@ -155,14 +155,10 @@ impl TryFrom<proto::StepRequest> for StepCall {
     }
 }
 
-/// The steps of a StepBatch (`steps[3]` in messages), or of a Step alone (`step`).
+/// The steps of a StepBatch, named `steps[3]` in messages however few the batch holds (a Step
+/// alone converts with `StepCall::try_from`, named `step`).
 pub fn step_calls(requests: Vec<proto::StepRequest>) -> Result<Vec<StepCall>, ServiceError> {
-    let batch = requests.len() > 1;
-    requests
-        .into_iter()
-        .enumerate()
-        .map(|(i, r)| step_call(r, || if batch { format!("steps[{i}]") } else { "step".to_owned() }))
-        .collect()
+    requests.into_iter().enumerate().map(|(i, r)| step_call(r, || format!("steps[{i}]"))).collect()
 }
 
 /// A reset of a StepBatch.
@@ -401,6 +397,8 @@ mod tests {
         let error = step_calls(vec![step(0), step(9)]).unwrap_err().to_string();
         assert!(error.starts_with("steps[1].action: unknown action code 9"), "{error}");
         let error = step_calls(vec![step(-1)]).unwrap_err().to_string();
+        assert!(error.starts_with("steps[0].action: "), "{error}");
+        let error = StepCall::try_from(step(-1)).unwrap_err().to_string();
         assert!(error.starts_with("step.action: "), "{error}");
         assert_eq!(StepCall::try_from(step(2)).unwrap().action, Action::TurnLeft);
     }

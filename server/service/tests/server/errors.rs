@@ -79,7 +79,14 @@ async fn stepping_after_the_end_is_failed_precondition() {
     assert!(second.truncated, "the horizon of 2 steps truncates the episode");
     assert!(second.metrics.is_some());
     let r = client.step(step_request(&episode, 2)).await;
-    assert_fails(&mut server, &mut client, r, Code::FailedPrecondition, "Reset").await;
+    assert_fails(&mut server, &mut client, r, Code::FailedPrecondition, "step: episode").await;
+    // A StepBatch names its step by its place in the request, however few it holds.
+    let one = proto::StepBatchRequest { steps: vec![step_request(&episode, 2)], resets: Vec::new() };
+    let r = client.step_batch(one).await;
+    assert_fails(&mut server, &mut client, r, Code::FailedPrecondition, "steps[0]: episode").await;
+    let one = proto::StepBatchRequest { steps: vec![step_request(&episode, 9)], resets: Vec::new() };
+    let r = client.step_batch(one).await;
+    assert_fails(&mut server, &mut client, r, Code::InvalidArgument, "steps[0].action: unknown action code 9").await;
     // Reset makes it steppable again.
     client.reset(proto::ResetRequest { episode_id: episode.clone(), scene: None }).await.unwrap();
     client.step(step_request(&episode, 2)).await.unwrap();
