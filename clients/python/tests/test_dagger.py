@@ -299,7 +299,9 @@ def test_dagger_runs_its_iterations_and_resumes_with_more(
         tmp_path / "dagger.toml", {"bc": bc_table(expert), "dagger": dagger_table(train_easy)}
     )
     assert train_cli(server, config, run, "--dagger") == 0
-    assert capsys.readouterr().out.strip() == f"checkpoint: {run / 'iter-01' / 'ckpt.pt'}"
+    out, err = capsys.readouterr()
+    assert out.strip() == f"checkpoint: {run / 'iter-01' / 'ckpt.pt'}"
+    assert "to resume" not in err, "a fresh run's iterations are not resumed (no --resume note)"
     assert train_cli(server, config, run, "--dagger") == 2
     assert "already holds a DAgger run: pass --resume" in capsys.readouterr().err
     first = (run / "iter-01" / "ckpt.pt").stat().st_mtime_ns

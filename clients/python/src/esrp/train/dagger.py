@@ -474,8 +474,10 @@ class _Run:
             partial.replace(folder / "ckpt.pt")
         train(
             config,
-            self.folder(iteration),
-            resume=True,
+            folder,
+            # Resumed where an interruption left a checkpoint; else started, without the note that
+            # a --resume found nothing to go on from (the run was not asked to resume).
+            resume=(folder / "ckpt.pt").exists(),
             progress=self.progress,
             server=self.server,
             init=init,
