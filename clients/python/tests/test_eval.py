@@ -631,6 +631,17 @@ def test_bad_input_files_and_modules_are_one_line(
     array.write_text("[1]\n")
     two = tmp_path / "two.jsonl"
     two.write_text("[1]\n[2]\n")
+    one = {
+        "schema": "esrp.results/v1", "scene_id": "esrp-bench-v2/00007", "dataset": "esrp-bench-v2",
+        "split": "test", "room_type": "Bedroom", "difficulty": "easy", "objects": 1, "agent": "random",
+        "agent_config": {}, "seed": 0, "success": False, "osr": 0.0, "rdr": 1.0, "stage": 1, "placed": 0,
+        "steps": 1, "horizon": 200, "end": "agent", "total_reward": 0.0, "actions": [2], "wall_seconds": 0.1,
+        "agent_stats": {}, "server_version": "0.1.0", "client": "test", "finished_at": "2026-11-23T00:00:00Z",
+    }  # fmt: skip
+    recorded = tmp_path / "recorded.jsonl"  # a record, then a whole line that is not one
+    recorded.write_text(json.dumps(one) + "\n[1]\n")
+    cut = tmp_path / "cut.jsonl"  # a write in progress: no newline yet
+    cut.write_text(json.dumps(one))
     folder = tmp_path / "records"
     folder.mkdir()
     (folder / "a.jsonl").write_text("[1]\n[2]\n")
@@ -643,11 +654,13 @@ def test_bad_input_files_and_modules_are_one_line(
     (tmp_path / "needy_agent.py").write_text("import os\nimport esrp_no_such_dependency\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     report = tmp_path / "report"
-    not_a_record = "its last line is not an esrp.results/v1 record (a JSON list, not an object)"
+    # A whole last line (it ends with its newline, which a write in progress never leaves) is a
+    # bad line like any other: refused, not skipped (esrp verify said "all match" of such a file).
+    not_a_record = "not an esrp.results/v1 record: a JSON list, not an object"
     cases = [
         (
             ["report", str(array), "--out", str(report)],
-            f"esrp report: the results files hold no records ({array}:1: {not_a_record})",
+            f"esrp report: {array}:1: {not_a_record}",
         ),
         (
             ["report", str(two), "--out", str(report)],
@@ -663,11 +676,20 @@ def test_bad_input_files_and_modules_are_one_line(
         ),
         (
             ["verify", str(array)],
-            f"esrp verify: the results files hold no records ({array}:1: {not_a_record})",
+            f"esrp verify: {array}:1: {not_a_record}",
+        ),
+        (
+            ["verify", str(recorded), "--server", server.address],
+            f"esrp verify: {recorded}:2: {not_a_record}",
         ),
         (
             ["replay", "--results", str(array), "--scene", "s", "--out", str(tmp_path / "x.gif")],
-            f"esrp replay: the results files hold no records ({array}:1: {not_a_record})",
+            f"esrp replay: {array}:1: {not_a_record}",
+        ),
+        (
+            ["report", str(cut), "--out", str(report)],
+            f"esrp report: the results files hold no records ({cut}:1: its last line is cut short "
+            "(no newline))",
         ),
         (
             ["eval", "--agent", "random", "--out", str(notes), "--server", server.address],

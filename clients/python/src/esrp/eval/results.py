@@ -238,7 +238,8 @@ class ReadRecords:
             its newline), or why it is not a record (JSON or schema error); empty when none.
         torn_whole: Whether that line ends with its newline. An interrupted append never leaves
             one (the newline is the last byte written), so such a line is not a torn write but a
-            line of something else: `esrp eval` refuses to cut it off.
+            line of something else: `esrp eval` refuses to cut it off, and `load_records` (the
+            commands' input) refuses it.
     """
 
     records: list[EpisodeRecord] = field(default_factory=list)
@@ -298,14 +299,17 @@ def read_records(path: str | os.PathLike[str]) -> ReadRecords:
 
 def load_records(path: str | os.PathLike[str], command: str) -> ReadRecords:
     """`read_records(path)` for a command's input: a file that cannot be read raises `ResultsError`
-    in one line (`cannot read r.jsonl: No such file or directory`), and a last line that was
-    dropped is said on stderr (`esrp report: r.jsonl:7: its last line is cut short (no newline),
-    skipped`; `command` names the command).
+    in one line (`cannot read r.jsonl: No such file or directory`), as does a whole last line (one
+    that ends with its newline, which an interrupted write never leaves) that is not a record, like
+    any other line; a last line cut short, which was dropped, is said on stderr (`esrp report:
+    r.jsonl:7: its last line is cut short (no newline), skipped`; `command` names the command).
     """
     try:
         read = read_records(path)
     except OSError as error:
         raise ResultsError(f"cannot read {path}: {error.strerror or error}") from None
+    if read.torn_whole:
+        raise ResultsError(f"{path}:{read.torn_line}: not an {SCHEMA} record: {read.torn_reason}")
     if read.torn_tail:
         print(f"{command}: {read.torn_note(path)}, skipped", file=sys.stderr)
     return read
