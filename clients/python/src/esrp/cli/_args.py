@@ -142,7 +142,8 @@ def server_options(parser: argparse.ArgumentParser) -> None:
         "--server",
         type=server_address,
         metavar="ADDR",
-        help="a running esrp-server (host:port); without it, one is started",
+        help="a running esrp-server (host:port, or unix:PATH for its --listen-unix socket); without it, "
+        "one is started",
     )
     parser.add_argument(
         "--server-arg",
