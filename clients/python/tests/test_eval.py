@@ -264,6 +264,17 @@ def test_a_config_the_agent_does_not_take_is_refused_before_any_episode(
     assert not out.exists() or not out.read_text()
 
 
+@pytest.mark.parametrize("agent", ["plan", "expert"])
+def test_sensors_for_an_agent_the_server_plays_are_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], agent: str
+) -> None:
+    out = tmp_path / "run.jsonl"
+    args = ["eval", "--agent", agent, "--sensors", "depth", "--out", str(out)]
+    assert main([*args, "--server", "127.0.0.1:1"]) == 2
+    assert f"--sensors does not apply to --agent {agent}: the server plays it" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_resume_after_an_interrupted_run_gives_the_same_file(
     server: esrp.LocalServer, tmp_path: Path, easy_scenes: list[str], capsys: pytest.CaptureFixture[str]
 ) -> None:

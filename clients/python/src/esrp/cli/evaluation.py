@@ -110,9 +110,14 @@ def _agent_settings(parser: argparse.ArgumentParser) -> None:
         "--sensors",
         type=sensor_list,
         metavar="NAME,...",
-        help="MODULE:CALLABLE: depth,segmentation,current_top_down",
+        help="the optional sensors the agent's episodes serve: depth,segmentation,current_top_down "
+        "(not for plan and expert, which the server plays)",
     )
-    parser.add_argument("--privileged", action="store_true", help="MODULE:CALLABLE: privileged episodes")
+    parser.add_argument(
+        "--privileged",
+        action="store_true",
+        help="privileged episodes for the agent (plan and expert always have them)",
+    )
 
 
 def _ray_options(parser: argparse.ArgumentParser) -> None:
@@ -281,6 +286,10 @@ def _eval(args: argparse.Namespace) -> int:
         print(f"esrp eval: {flags} only apply to --agent vlm", file=sys.stderr)
         return 2
     agent_config.update({key: str(value) for key, value in given.items()})
+    if args.sensors and args.agent in ("plan", "expert"):
+        refused = f"--sensors does not apply to --agent {args.agent}: the server plays it"
+        print(f"esrp eval: {refused}", file=sys.stderr)
+        return 2
     if args.checkpoint is not None:
         if args.agent not in ("bc", "ppo"):
             print("esrp eval: --checkpoint only applies to --agent bc or ppo", file=sys.stderr)
