@@ -131,11 +131,11 @@ def is_async_agent(agent: object) -> bool:
 
 
 def raised_at(error: BaseException) -> str:
-    """` (file.py:line)`: where `error` was raised (for a SyntaxError, the line it is about), or
-    nothing when that is unknown.
+    """` (file.py:line)`: where `error` was raised, or nothing when that is unknown or when its
+    own message says it (a SyntaxError's: `invalid syntax (file.py, line 2)`).
     """
-    if isinstance(error, SyntaxError) and error.filename:
-        return f" ({Path(error.filename).name}:{error.lineno})"
+    if isinstance(error, SyntaxError):
+        return ""
     frames = traceback.extract_tb(error.__traceback__)
     return f" ({Path(frames[-1].filename).name}:{frames[-1].lineno})" if frames else ""
 
