@@ -1585,7 +1585,7 @@ class DescribeDatasetResponse(_message.Message):
     name: _builtins.str
     scenes: _builtins.int
     source: _builtins.str
-    """"built-in (seed N)" or the folder"""
+    """"built-in esrp-bench-v2 (seed N)" (or v1), or the folder"""
     @_builtins.property
     def by_split(self) -> _containers.ScalarMap[_builtins.str, _builtins.int]: ...
     @_builtins.property
