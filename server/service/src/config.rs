@@ -4,7 +4,7 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 
-use clap::builder::{PossibleValuesParser, TypedValueParser};
+use clap::builder::{BoolishValueParser, PossibleValuesParser, TypedValueParser};
 use clap::{Parser, ValueEnum};
 use esrp_dataset::BenchVersion;
 use esrp_render::{BackendPreference, Rasterizer};
@@ -54,11 +54,11 @@ pub struct Config {
     #[arg(long, env = "ESRP_SCENE_CACHE")]
     pub scene_cache: Option<PathBuf>,
     /// Generate every scene on first use, keeping none on disk.
-    #[arg(long, env = "ESRP_NO_SCENE_CACHE")]
+    #[arg(long, env = "ESRP_NO_SCENE_CACHE", value_parser = BoolishValueParser::new())]
     pub no_scene_cache: bool,
     /// Do not generate the built-in benchmark's missing scenes ahead (a background thread at the
     /// lowest CPU priority, test split first, into the scene cache).
-    #[arg(long, env = "ESRP_NO_GENERATE_AHEAD")]
+    #[arg(long, env = "ESRP_NO_GENERATE_AHEAD", value_parser = BoolishValueParser::new())]
     pub no_generate_ahead: bool,
     /// Most live episodes (at least 1); CreateEpisode beyond it fails with RESOURCE_EXHAUSTED.
     #[arg(long, env = "ESRP_MAX_EPISODES", default_value_t = 4096, value_parser = count_parser(1))]
@@ -200,7 +200,7 @@ pub struct Config {
     /// Shutdown: also stop, as on SIGTERM, when standard input reaches its end. A parent that
     /// starts the server with a pipe on its stdin (the Rust and Python `LocalServer`s do) takes it
     /// down with it however the parent ends, SIGKILL included: the kernel closes the pipe.
-    #[arg(long, env = "ESRP_STOP_ON_STDIN_CLOSE")]
+    #[arg(long, env = "ESRP_STOP_ON_STDIN_CLOSE", value_parser = BoolishValueParser::new())]
     pub stop_on_stdin_close: bool,
     /// PlanActions: plans computed at once (each on a thread of its own), up to 1,024; 0: one per
     /// core.

@@ -214,6 +214,44 @@ fn a_refused_value_from_the_environment_names_its_variable() {
     assert!(!stderr.contains(tip), "{stderr}");
 }
 
+/// A switch's environment variable takes the usual spellings of on and off (1/0, yes/no, on/off,
+/// true/false): `ESRP_STOP_ON_STDIN_CLOSE=0` leaves the server running when its stdin ends, `=1`
+/// stops it. A spelling of neither is refused.
+#[test]
+fn a_switch_s_variable_takes_the_usual_spellings() {
+    use std::io::BufRead;
+    use std::process::{Command, Stdio};
+    for (value, stops) in [("1", true), ("yes", true), ("on", true), ("0", false), ("no", false), ("off", false)] {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_esrp-server"))
+            .args(["--listen", "127.0.0.1:0", "--no-generate-ahead"])
+            .env("ESRP_STOP_ON_STDIN_CLOSE", value)
+            .env("NODEVICE_SELECT", "1")
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        let mut line = String::new();
+        std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+        assert!(line.starts_with("esrp-server listening on"), "{value}: {line}");
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(if stops { 20 } else { 2 });
+        let mut exited = None;
+        while exited.is_none() && std::time::Instant::now() < deadline {
+            exited = child.try_wait().unwrap();
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        if !stops {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+        assert_eq!(exited.is_some(), stops, "ESRP_STOP_ON_STDIN_CLOSE={value}: {exited:?}");
+    }
+    let output =
+        Command::new(env!("CARGO_BIN_EXE_esrp-server")).env("ESRP_STOP_ON_STDIN_CLOSE", "maybe").output().unwrap();
+    assert_eq!(output.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&output.stderr).contains("invalid value 'maybe' for '--stop-on-stdin-close'"));
+}
+
 /// A server drawing with the compute rasteriser (`--render-rasterizer compute`) says so in its
 /// ServerInfo and answers the same observations as one drawing with the graphics pipeline, but
 /// for a few edge pixels, along a scene's expert run.
