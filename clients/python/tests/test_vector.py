@@ -428,3 +428,34 @@ def test_a_step_and_its_autoresets_are_one_message(
         envs.close()
     # The stream created the three episodes and closed them, and carried nothing else.
     assert on_stream == ["create"] * 3 + ["close"] * 3
+
+
+def test_np_random_is_each_sub_envs_as_in_sync_vector_env(server: esrp.LocalServer) -> None:
+    """`np_random_seed` and `np_random` are the sub-envs' seeds and generators, as `SyncVectorEnv`
+    gives them: what a seeded reset set, kept by an unseeded one, the generators in step."""
+    native, reference = make_pair(server.address, AutoresetMode.NEXT_STEP)
+    try:
+        for seed, first in ((5, 5), ([1, None, 3], 1), (None, 1)):
+            native.reset(seed=seed)
+            reference.reset(seed=seed)
+            assert native.np_random_seed == reference.np_random_seed
+            assert native.np_random_seed[0] == first
+            states = [rng.bit_generator.state for rng in native.np_random]
+            assert states == [rng.bit_generator.state for rng in reference.np_random]
+    finally:
+        native.close()
+        reference.close()
+    fresh = RearrangeVectorEnv(2, server.address, split="test", sensors=SMALL)
+    try:
+        # Never seeded: each sub-env draws a seed of its own, once, and its generator is the one
+        # its resets then use.
+        seeds = fresh.np_random_seed
+        assert len(seeds) == 2
+        assert all(isinstance(seed, int) for seed in seeds)
+        assert fresh.np_random_seed == seeds
+        generators = fresh.np_random
+        fresh.reset()
+        assert fresh.np_random_seed == seeds
+        assert all(a is b for a, b in zip(fresh.np_random, generators, strict=True))
+    finally:
+        fresh.close()

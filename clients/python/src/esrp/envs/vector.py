@@ -203,7 +203,9 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         self._streams: list[EpisodeStream | None] = [None] * shards
         self._episode_ids: list[str | None] = [None] * num_envs
         self._scene_ids: list[str | None] = [None] * num_envs  # each episode's scene
+        # Each sub-env's generator and its seed, made at its first seeded reset or first draw.
         self._rngs: list[np.random.Generator | None] = [None] * num_envs
+        self._seeds: list[int] = [0] * num_envs
         # Each sub-env's last observation: its images as the answer's bytes or read-only views (never
         # written), whether it grasps, and its goal, in a batch array that only resets write to.
         self._last_images: dict[str, list[Any]] = {key: [None] * num_envs for key in self._image_spec.keys}
@@ -237,10 +239,26 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         """The server episode of each sub-env (None before its first reset)."""
         return tuple(self._episode_ids)
 
+    @property
+    def np_random_seed(self) -> tuple[int, ...]:  # type: ignore[override]
+        """Each sub-env's seed, as `SyncVectorEnv.np_random_seed` gives its sub-envs': that of its
+        last seeded reset, else one drawn at random once.
+        """
+        for index in range(self.num_envs):
+            self._rng(index)
+        return tuple(self._seeds)
+
+    @property  # type: ignore[misc]  # read-only, as SyncVectorEnv's
+    def np_random(self) -> tuple[np.random.Generator, ...]:  # type: ignore[override]
+        """Each sub-env's generator (which draws its scenes), as `SyncVectorEnv.np_random` gives
+        its sub-envs'.
+        """
+        return tuple(self._rng(index) for index in range(self.num_envs))
+
     def _rng(self, index: int) -> np.random.Generator:
         rng = self._rngs[index]
         if rng is None:
-            rng, _ = seeding.np_random()
+            rng, self._seeds[index] = seeding.np_random()
             self._rngs[index] = rng
         return rng
 
@@ -336,7 +354,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         indices: list[int] = np.flatnonzero(mask).tolist()
         for index in indices:
             if seeds[index] is not None:
-                self._rngs[index], _ = seeding.np_random(seeds[index])
+                self._rngs[index], self._seeds[index] = seeding.np_random(seeds[index])
         scenes = self._pick_scenes(indices, options)
         # New episodes are created on their server's stream (which owns them), every creation sent
         # before any answer is read; live ones restart in one StepBatch per server.
