@@ -240,10 +240,10 @@ fn a_switch_s_variable_takes_the_usual_spellings() {
             exited = child.try_wait().unwrap();
             std::thread::sleep(std::time::Duration::from_millis(20));
         }
-        if !stops {
+        if exited.is_none() {
             let _ = child.kill();
-            let _ = child.wait();
         }
+        let _ = child.wait();
         assert_eq!(exited.is_some(), stops, "ESRP_STOP_ON_STDIN_CLOSE={value}: {exited:?}");
     }
     let output =
