@@ -459,3 +459,18 @@ def test_np_random_is_each_sub_envs_as_in_sync_vector_env(server: esrp.LocalServ
         assert all(a is b for a, b in zip(fresh.np_random, generators, strict=True))
     finally:
         fresh.close()
+
+
+def test_a_closed_env_refuses_resets_and_steps(server: esrp.LocalServer, client: esrp.Client) -> None:
+    """As Gymnasium's AsyncVectorEnv: after `close()`, `reset` and `step` raise
+    `ClosedEnvironmentError` (a reset made episodes that no later `close()` would free)."""
+    before = client.server_info().live_episodes
+    envs = RearrangeVectorEnv(2, client=client, split="test", sensors=SMALL)
+    envs.reset(seed=0)
+    envs.close()
+    with pytest.raises(gymnasium.error.ClosedEnvironmentError):
+        envs.reset(seed=0)
+    with pytest.raises(gymnasium.error.ClosedEnvironmentError):
+        envs.step(np.array([0, 0]))
+    envs.close()
+    assert settled_live_episodes(client, before) == before

@@ -126,6 +126,8 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
     each episode restarted where it is when it ends (no new scene sent, no episode built anew).
     Seeds still advance each sub-env's generator as a drawn scene would.
 
+    After `close()` (idempotent), `reset` and `step` raise `gymnasium.error.ClosedEnvironmentError`.
+
     Infos are dicts of arrays with `_key` masks, exactly as Gymnasium's `VectorEnv._add_info`
     builds them (here a column at a time). Observations are fresh arrays at every call (keeping
     them is safe). The episodes are created and closed on the env's StepStream, so the server
@@ -335,6 +337,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         """Resets every sub-env, or those of `options["reset_mask"]` (a bool array of shape
         (num_envs,)). `seed`: None, an int (sub-env i gets seed + i) or one seed per sub-env.
         """
+        self._check_open()
         if seed is None:
             seeds: list[int | None] = [None] * self.num_envs
         elif isinstance(seed, int):
@@ -387,6 +390,15 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             infos = self._add_info(infos, created[index] if index in creates else restarted[index], index)
         return self._batch(), infos
 
+    def _check_open(self) -> None:
+        """Raises `ClosedEnvironmentError` after `close()`, as Gymnasium's `AsyncVectorEnv` does (a
+        reset would make episodes that no later `close()` frees).
+        """
+        if self.closed:
+            raise gymnasium.error.ClosedEnvironmentError(
+                f"{self} is closed: make a new one (reset and step after close() are refused)"
+            )
+
     def _reset_mask(self, options: dict[str, Any] | None) -> npt.NDArray[np.bool_]:
         if options is None or "reset_mask" not in options:
             return np.ones(self.num_envs, dtype=np.bool_)
@@ -416,6 +428,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         sub-envs the step ended). `actions`: one action per sub-env, each as the single env takes
         it (`action_codes`).
         """
+        self._check_open()
         codes = action_codes(actions, self.num_envs)
         n = self.num_envs
         if not np.all(self._started):
