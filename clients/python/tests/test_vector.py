@@ -474,3 +474,24 @@ def test_a_closed_env_refuses_resets_and_steps(server: esrp.LocalServer, client:
         envs.step(np.array([0, 0]))
     envs.close()
     assert settled_live_episodes(client, before) == before
+
+
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_max_episode_steps_as_sync_vector_envs_time_limit(
+    server: esrp.LocalServer, mode: AutoresetMode
+) -> None:
+    """`make_vec(..., max_episode_steps=N)` hands a vector entry point `max_episode_steps`: the native
+    env truncates as `SyncVectorEnv` over `make(..., max_episode_steps=N)` (a `TimeLimit` each)
+    does, before the server's horizon or after it."""
+    for limit, horizon in ((2, 3), (4, 3)):
+        native, reference = make_pair(server.address, mode, horizon=horizon, max_episode_steps=limit)
+        try:
+            got, expected = drive(native, 9, seed=2), drive(reference, 9, seed=2)
+            assert assert_same_returns(got, expected) >= NUM_ENVS
+            truncated_at = [t for t, g in enumerate(got) if len(g) == 5 and g[3][1]]
+            assert truncated_at[0] == 1 + min(limit, horizon)  # sub-env 1 was never reset alone
+        finally:
+            native.close()
+            reference.close()
+    with pytest.raises(ValueError, match="max_episode_steps"):
+        RearrangeVectorEnv(2, server.address, split="test", max_episode_steps=0)

@@ -106,7 +106,9 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
     vectorization_mode="vector_entry_point", ...)`): one StepBatch call per step, no subprocesses,
     no per-env threads.
 
-    Arguments as `RearrangeEnv`'s, plus `num_envs` and `autoreset_mode` (`AutoresetMode` or its
+    Arguments as `RearrangeEnv`'s, plus `num_envs`, `max_episode_steps` (None, or truncate each
+    episode after that many steps, as `gymnasium.make(..., max_episode_steps=N)`'s `TimeLimit`
+    around a `RearrangeEnv` does; `make_vec` passes it) and `autoreset_mode` (`AutoresetMode` or its
     value; declared in `metadata["autoreset_mode"]`):
 
     - `NEXT_STEP` (default): the step after an episode ended resets it instead of stepping it, with
@@ -167,9 +169,14 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
         scene_per_env: bool = False,
         servers: int | None = None,
+        max_episode_steps: int | None = None,
     ) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be at least 1, got {num_envs}")
+        limit = max_episode_steps
+        if limit is not None and (not isinstance(limit, int) or isinstance(limit, bool) or limit < 1):
+            raise ValueError(f"max_episode_steps must be None or a positive int, got {max_episode_steps!r}")
+        self.max_episode_steps = max_episode_steps
         spread = _server_count(address, client, servers)
         if spread > num_envs:
             raise ValueError(f"{spread} servers for {num_envs} sub-envs: give at most one server per sub-env")
@@ -214,6 +221,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         self._grasping = np.zeros(num_envs, dtype=np.int64)
         self._goals = np.zeros((num_envs, side, side, 3), dtype=np.uint8)
         self._started = np.zeros(num_envs, dtype=np.bool_)
+        self._elapsed_steps = np.zeros(num_envs, dtype=np.int64)  # since each sub-env's reset
         self._autoreset_envs = np.zeros(num_envs, dtype=np.bool_)
 
     @property
@@ -326,6 +334,7 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         self._grasping[index] = first.grasping
         self._goals[index] = first.goal_rgb
         self._started[index] = True
+        self._elapsed_steps[index] = 0
         return reset_info(summary, self._setup.horizon)
 
     def reset(
@@ -453,6 +462,11 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
             rewards[stepped] = columns.rewards
             terminations[stepped] = columns.terminated
             truncations[stepped] = columns.truncated
+            self._elapsed_steps[stepped] += 1
+            if self.max_episode_steps is not None:
+                # What a TimeLimit around each sub-env would add (the episode goes on on the server
+                # until its reset).
+                truncations[stepped] |= self._elapsed_steps[stepped] >= self.max_episode_steps
             self._grasping[stepped] = columns.grasping
             for key, column in columns.images.items():
                 if len(stepped) == n:
