@@ -163,6 +163,20 @@ impl<E> Registry<E> {
         Ok(slot.episode.clone())
     }
 
+    /// The episode `id` for a watcher `caller` (its creator, or an admin): as [`Registry::peek`],
+    /// but its creator watching it claims it, as a call naming it would: a watcher sees its views
+    /// (its first ego view and goal image), so its client has seen the scene.
+    pub fn watch(&self, id: &EpisodeId, caller: &Caller) -> Result<Locked<E>, ServiceError> {
+        let mut map = self.map();
+        let slot = map.slots.get_mut(id).ok_or_else(|| ServiceError::UnknownEpisode(id.clone()))?;
+        if slot.owner.name == caller.name {
+            slot.claimed = true;
+        } else if !caller.is_admin() {
+            return Err(ServiceError::NotYours { episode: id.clone(), caller: caller.describe() });
+        }
+        Ok(slot.episode.clone())
+    }
+
     /// The episode `id`, whoever created it, without claiming it (the server's own use).
     pub fn peek_any(&self, id: &EpisodeId) -> Option<Locked<E>> {
         self.map().slots.get(id).map(|slot| slot.episode.clone())

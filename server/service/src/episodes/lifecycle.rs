@@ -20,13 +20,16 @@ use crate::types::{
 /// A created episode whose answer has not reached its client yet: dropping the last clone
 /// before [`Unanswered::answered`] closes the episode, unless a call has named it since (its
 /// client read the id from the answer's first bytes and used it: the episode is a run like any
-/// other, and its counted attempt stays spent). Clone (one shared state), so that it can
-/// travel in a response's extensions to where the answer is known to be sent.
+/// other, and its counted attempt stays spent). Dropped before [`Unanswered::seen`] (nothing of
+/// the answer's observation left), the closed episode was never a run and its attempt is given
+/// back; dropped after (its images may have reached the client), it is closed as a run ended
+/// there, recorded (`closed_by: "unanswered"`) and counted. Clone (one shared state), so that it
+/// can travel in a response's extensions to where the answer is known to be sent.
 #[derive(Clone)]
 pub struct Unanswered(Arc<Pending>);
 
 /// The episode to close unless answered, with its creator and, if its run took a counted
-/// attempt, that attempt's scene (given back with the episode: its client never saw it).
+/// attempt, that attempt's scene (given back with the episode if its client saw nothing of it).
 struct Pending(std::sync::Mutex<Option<PendingEpisode>>);
 
 struct PendingEpisode {
@@ -34,12 +37,22 @@ struct PendingEpisode {
     episode: EpisodeId,
     owner: Arc<Caller>,
     counted_scene: Option<String>,
+    /// Whether the answer's observation started to leave: the client may have seen the scene.
+    seen: bool,
 }
 
 impl Unanswered {
     fn new(episodes: Arc<Episodes>, episode: EpisodeId, owner: Arc<Caller>, counted_scene: Option<String>) -> Self {
-        let pending = PendingEpisode { episodes, episode, owner, counted_scene };
+        let pending = PendingEpisode { episodes, episode, owner, counted_scene, seen: false };
         Self(Arc::new(Pending(std::sync::Mutex::new(Some(pending)))))
+    }
+
+    /// The answer's observation (its images) started to leave: from here on the episode is a
+    /// run, closed and recorded if the answer is then given up.
+    pub fn seen(&self) {
+        if let Some(pending) = self.0.0.lock().unwrap_or_else(|poisoned| poisoned.into_inner()).as_mut() {
+            pending.seen = true;
+        }
     }
 
     /// The answer was sent: the episode stays.
@@ -51,14 +64,31 @@ impl Unanswered {
 impl Drop for Pending {
     fn drop(&mut self) {
         let pending = self.0.get_mut().unwrap_or_else(|poisoned| poisoned.into_inner()).take();
-        if let Some(PendingEpisode { episodes, episode, owner, counted_scene }) = pending
-            && episodes.registry.take_unclaimed(&episode).is_some()
-        {
+        let Some(PendingEpisode { episodes, episode, owner, counted_scene, seen }) = pending else { return };
+        let Some(entry) = episodes.registry.take_unclaimed(&episode) else { return };
+        episodes.metrics.count_closed("unanswered", 1);
+        if !seen {
             if let Some(scene) = counted_scene {
                 recording::give_back(&episodes, &owner.name, &scene);
             }
-            episodes.metrics.count_closed("unanswered", 1);
             tracing::debug!(%episode, "closed an episode whose create was abandoned before its answer was sent");
+            return;
+        }
+        tracing::debug!(%episode, "closed an episode whose create was abandoned while its answer was sent");
+        let removed = vec![(episode, entry, owner)];
+        match tokio::runtime::Handle::try_current() {
+            Ok(runtime) => {
+                runtime.spawn(async move { recording::close_removed(&episodes, removed, "unanswered").await });
+            }
+            // No runtime to wait for the record on (never in the server): it is queued as it is.
+            Err(_) => {
+                for (_, entry, _) in removed {
+                    if let Ok(mut entry) = entry.try_lock() {
+                        let record = recording::finish(&episodes, &mut entry, Some("unanswered"));
+                        drop(recording::write(&episodes, record.into_iter().collect()));
+                    }
+                }
+            }
         }
     }
 }

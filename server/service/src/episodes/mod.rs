@@ -245,7 +245,8 @@ impl Episodes {
     }
 
     /// Starts watching the episode `id` (`caller`'s, or any for an admin): the receiver
-    /// changes at every step and reset. Call [`Episodes::unwatch`] when the watcher leaves.
+    /// changes at every step and reset. Its creator watching it claims it, as a call naming it
+    /// would (see [`Unanswered`]). Call [`Episodes::unwatch`] when the watcher leaves.
     pub async fn watch(
         &self,
         caller: &Caller,

@@ -131,13 +131,15 @@ pub(super) async fn list(episodes: &Episodes, caller: &Caller) -> Vec<EpisodeSum
     out
 }
 
-/// Starts watching the episode `id`: the receiver changes at every step (and reset).
+/// Starts watching the episode `id`: the receiver changes at every step (and reset). Its own
+/// token watching it claims it, as a call naming it would: the watcher sees its views, so an
+/// abandoned create of it no longer gives its attempt back.
 pub(super) async fn subscribe(
     episodes: &Episodes,
     caller: &Caller,
     id: &EpisodeId,
 ) -> Result<tokio::sync::watch::Receiver<u64>, ServiceError> {
-    let shared = episodes.registry.peek(id, caller)?;
+    let shared = episodes.registry.watch(id, caller)?;
     let mut entry = shared.lock().await;
     let watch = entry.watch.get_or_insert_with(|| tokio::sync::watch::channel(0).0);
     Ok(watch.subscribe())

@@ -40,8 +40,12 @@ struct RawCreate {
 async fn send_create(server: &Server, secret: &str, request: proto::CreateEpisodeRequest, window: u32) -> RawCreate {
     let authority = server.address.trim_start_matches("http://").to_owned();
     let tcp = tokio::net::TcpStream::connect(&authority).await.expect("the server listens");
-    let (send_request, connection) =
-        h2::client::Builder::new().initial_window_size(window).handshake::<_, Bytes>(tcp).await.expect("HTTP/2");
+    let (send_request, connection) = h2::client::Builder::new()
+        .initial_window_size(window)
+        .initial_connection_window_size(window.max(65_535))
+        .handshake::<_, Bytes>(tcp)
+        .await
+        .expect("HTTP/2");
     let connection = tokio::spawn(async move {
         let _ = connection.await;
     });
@@ -78,8 +82,9 @@ async fn create_when_given_back(client: &mut Authed, scene: &str, lost: &str) ->
     }
 }
 
-/// The answer carries the paper's 128 px images (about 100 kB): the server hands an answer to
-/// the transport in pieces and takes it as delivered only once all but the last pieces left.
+/// The answer carries the paper's 128 px images (about 100 kB) after the id and the spec: the
+/// server takes it as delivered once the client's window lets the images leave, and a 64-byte
+/// window holds back more than the id.
 async fn held_create(server: &Server, secret: &str, scene: &str) -> HeldCreate {
     let request = proto::CreateEpisodeRequest { sensors: None, ..create(scene, false) };
     let RawCreate { response, send, connection } = send_create(server, secret, request, 64).await;
@@ -208,4 +213,125 @@ async fn records_are_signed_and_the_challenge_scenes_listed() {
     assert_eq!(scenes.len(), 3, "every challenge scene (--challenge-scenes 3)");
     assert!(scenes.iter().all(|s| s["id"].as_str().is_some_and(|id| id.starts_with("challenge/"))));
     assert!(scenes.iter().all(|s| s["objects"].as_u64().is_some_and(|n| n > 0)));
+}
+
+/// Reads a protobuf varint at `*at` of `bytes`, moving `*at` past it.
+fn varint(bytes: &[u8], at: &mut usize) -> u64 {
+    let mut value = 0u64;
+    for shift in (0..64).step_by(7) {
+        let byte = bytes[*at];
+        *at += 1;
+        value |= u64::from(byte & 0x7f) << shift;
+        if byte & 0x80 == 0 {
+            break;
+        }
+    }
+    value
+}
+
+/// The length-delimited field `field` of the message in `bytes[start..]`: its payload's start
+/// and length. Every field before it must be length-delimited.
+fn field_at(bytes: &[u8], start: usize, field: u64) -> (usize, usize) {
+    let mut at = start;
+    loop {
+        let tag = varint(bytes, &mut at);
+        assert_eq!(tag & 7, 2, "a length-delimited field");
+        let len = varint(bytes, &mut at) as usize;
+        if tag >> 3 == field {
+            return (at, len);
+        }
+        at += len;
+    }
+}
+
+/// A client that lets the create's answer in up to all but its last piece (the server hands an
+/// answer to the transport in 16 kB pieces): it reads the whole first ego view and nearly all
+/// the goal image of a challenge scene, then resets the create. It has seen the scene: the
+/// attempt is spent, and recorded as closed there.
+#[tokio::test]
+async fn a_create_whose_images_were_let_in_keeps_its_attempt_spent() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start(dir.path(), &[]);
+    let mut bob = client(&server, "bob-secret").await;
+    // The answer is about 98.5 kB (two 128 px images): six whole pieces, then a last one.
+    let window = 6 * 16 * 1024;
+    let request = proto::CreateEpisodeRequest { sensors: None, ..create("challenge/00000", false) };
+    let RawCreate { response, mut send, connection } = send_create(&server, "bob-secret", request, window).await;
+    let response = tokio::time::timeout(Duration::from_secs(60), response).await.expect("headers come").unwrap();
+    let mut body = response.into_body();
+    let mut got = Vec::new();
+    while got.len() < window as usize {
+        let chunk = tokio::time::timeout(Duration::from_secs(60), body.data()).await.expect("data comes");
+        got.extend_from_slice(&chunk.expect("the answer goes on").expect("a data frame"));
+    }
+    // Its observation (field 3): the ego view whole, and all of the goal image but its end.
+    let (observation, length) = field_at(&got, 5, 3);
+    let (ego, ego_len) = field_at(&got, observation, 1);
+    assert!(ego + ego_len < got.len(), "the ego view arrived whole");
+    assert!(observation + length - got.len() < 1024, "all but the goal image's last bytes arrived");
+    send.send_reset(h2::Reason::CANCEL);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    refused(bob.create_episode(create("challenge/00000", false)).await, Code::FailedPrecondition, "already played");
+    // Its episode is closed as a run ended there, and recorded.
+    let written = records(dir.path(), "bob");
+    assert_eq!(written.len(), 1, "one record of the seen attempt");
+    let closed_by = written[0].agent_stats.get("closed_by").and_then(|v| v.as_str());
+    assert_eq!((written[0].counted, closed_by), (Some(true), Some("unanswered")));
+    connection.abort();
+}
+
+/// The first frame the web viewer sends `secret`'s watcher of episode `episode`, as JSON.
+async fn watched_frame(server: &Server, secret: &str, episode: &str) -> serde_json::Value {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let url = server.viewer.as_deref().expect("started with --http-listen");
+    let host = url.trim_start_matches("http://").trim_end_matches('/');
+    let mut socket = tokio::net::TcpStream::connect(host).await.expect("the viewer accepts");
+    let request =
+        format!("GET /api/episodes/{episode}/watch HTTP/1.0\r\nHost: {host}\r\nAuthorization: Bearer {secret}\r\n\r\n");
+    socket.write_all(request.as_bytes()).await.unwrap();
+    let mut text = String::new();
+    let mut buffer = [0u8; 65536];
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    loop {
+        if let Some((_, after)) = text.split_once("event: frame\ndata: ")
+            && let Some((data, _)) = after.split_once('\n')
+        {
+            return serde_json::from_str(data).expect("a frame is JSON");
+        }
+        assert!(std::time::Instant::now() < deadline, "no frame came: {text}");
+        let n = tokio::time::timeout(Duration::from_secs(60), socket.read(&mut buffer)).await.unwrap().unwrap();
+        assert!(n > 0, "the watch ended without a frame: {text}");
+        text.push_str(&String::from_utf8_lossy(&buffer[..n]));
+    }
+}
+
+/// A client that never lets the create's answer in, but watches its episode in the web viewer
+/// (the list shows its id): the watch shows the scene's ego view and goal image, so the
+/// attempt is spent when the create is then reset.
+#[tokio::test]
+async fn a_create_watched_in_the_viewer_keeps_its_attempt_spent() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start(dir.path(), &["--http-listen", "127.0.0.1:0"]);
+    let mut bob = client(&server, "bob-secret").await;
+    let request = proto::CreateEpisodeRequest { sensors: None, ..create("challenge/00001", false) };
+    let RawCreate { mut send, connection, .. } = send_create(&server, "bob-secret", request, 0).await;
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    let episode = loop {
+        let (status, body) = server.viewer_request("GET", "/api/episodes", Some("bob-secret"), "").await;
+        assert_eq!(status, 200, "{body}");
+        let list: Vec<serde_json::Value> = serde_json::from_str(&body).expect("JSON");
+        if let Some(id) = list.first().and_then(|e| e["id"].as_str()) {
+            break id.to_owned();
+        }
+        assert!(std::time::Instant::now() < deadline, "the held create's episode is listed");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    let frame = watched_frame(&server, "bob-secret", &episode).await;
+    for image in ["ego", "goal"] {
+        assert!(frame[image].as_str().is_some_and(|u| u.starts_with("data:image/png")), "{image}: {frame}");
+    }
+    send.send_reset(h2::Reason::CANCEL);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    refused(bob.create_episode(create("challenge/00001", false)).await, Code::FailedPrecondition, "already played");
+    connection.abort();
 }
