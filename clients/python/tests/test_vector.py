@@ -495,3 +495,29 @@ def test_max_episode_steps_as_sync_vector_envs_time_limit(
             reference.close()
     with pytest.raises(ValueError, match="max_episode_steps"):
         RearrangeVectorEnv(2, server.address, split="test", max_episode_steps=0)
+
+
+def test_identical_to_sync_vector_env_when_disabled(server: esrp.LocalServer) -> None:
+    """DISABLED: the ended sub-envs, reset by `reset_mask` (with a seed for some), answer as
+    `SyncVectorEnv`'s do; so do the steps between."""
+    native, reference = make_pair(server.address, AutoresetMode.DISABLED, horizon=2)
+    try:
+        actions = np.random.default_rng(6).integers(0, 6, size=(10, NUM_ENVS))
+        got, expected = [native.reset(seed=6)], [reference.reset(seed=6)]
+        resets = 0
+        for t, action in enumerate(actions):
+            got.append(native.step(action))
+            expected.append(reference.step(action))
+            ended = got[-1][2] | got[-1][3]
+            if t == 0:
+                ended[0] = True  # sub-env 0 restarts early: the episodes end at different steps
+            if ended.any():
+                resets += 1
+                seed = [None, 40 + t, None]
+                got.append(native.reset(seed=seed, options={"reset_mask": ended.copy()}))
+                expected.append(reference.reset(seed=seed, options={"reset_mask": ended.copy()}))
+        assert assert_same_returns(got, expected) >= NUM_ENVS
+        assert resets >= 4
+    finally:
+        native.close()
+        reference.close()
