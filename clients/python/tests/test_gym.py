@@ -31,6 +31,24 @@ def test_check_env(server: esrp.LocalServer, client: esrp.Client) -> None:
     assert settled_live_episodes(client, before) == before
 
 
+def test_check_env_with_render_and_sensors(server: esrp.LocalServer) -> None:
+    """check_env with its render checks, over every sensor: no warning but the one about depth's
+    unbounded Box (depth is +inf where nothing is seen, so the bound is the true one)."""
+    everything = esrp.Sensors(depth=True, segmentation=True, current_top_down=True, resolution=16)
+    env = gymnasium.make(
+        esrp.ENV_ID, address=server.address, split="test", sensors=everything, render_mode="rgb_array"
+    )
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            check_env(env.unwrapped, skip_render_check=False)
+        messages = [str(w.message) for w in caught]
+        assert len(messages) == 1, messages
+        assert "Box observation space maximum value is infinity" in messages[0]
+    finally:
+        env.close()
+
+
 def test_spaces_and_observations(server: esrp.LocalServer, easy_scenes: list[str]) -> None:
     sensors = esrp.Sensors(depth=True, segmentation=True, current_top_down=True, resolution=32)
     env = gymnasium.make(esrp.ENV_ID, address=server.address, scene=easy_scenes[0], sensors=sensors)
