@@ -24,6 +24,13 @@ pub enum DmEnvError {
     /// JoinWorld while joined.
     #[error("this connection is already joined to world {}: send LeaveWorld first (one world per connection)", quoted(.0))]
     AlreadyJoined(String),
+    /// Step or Reset in a world destroyed while this connection was joined to it (its creating
+    /// connection ended).
+    #[error(
+        "world {} was destroyed while this connection was joined to it (the connection that created it ended): send LeaveWorld, then create or join another world",
+        quoted(.0)
+    )]
+    WorldGone(String),
     /// JoinWorld on a world that has its agent.
     #[error("world {} already has its agent (ESRP is single-agent): create another world", quoted(.0))]
     WorldTaken(String),
@@ -55,7 +62,7 @@ impl DmEnvError {
         match self {
             // The native API's one mapping of episode errors to codes.
             DmEnvError::Episode(error) => error.code(),
-            DmEnvError::UnknownWorld(_) => Code::NotFound,
+            DmEnvError::UnknownWorld(_) | DmEnvError::WorldGone(_) => Code::NotFound,
             DmEnvError::NotJoined
             | DmEnvError::AlreadyJoined(_)
             | DmEnvError::WorldTaken(_)

@@ -46,8 +46,11 @@
 //! # Errors and lifetime
 //!
 //! Errors travel in-band (`EnvironmentResponse.error`, a `google.rpc.Status` with the gRPC
-//! code and a message saying what to change) and the stream goes on. When a stream ends, its
-//! connection leaves its world and the worlds it created are destroyed (their episodes closed).
+//! code and a message saying what to change) and the stream goes on. A world is its creating
+//! token's: only that token (or an admin) may join, reset or destroy it. When a stream ends, its
+//! connection leaves its world and the worlds it created are destroyed (their episodes closed);
+//! an agent still joined to one of them (from another connection) is answered NOT_FOUND on Step
+//! and Reset until it sends LeaveWorld.
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -271,9 +274,9 @@ impl Connection {
         // A ResetWorld sent by another connection interrupts the running sequence.
         let reset_by_world = {
             let map = self.worlds.map();
-            map.get(&joined.world)
-                .filter(|w| w.generation != joined.generation)
-                .map(|w| (w.generation, w.fresh.clone()))
+            // Its creating connection ended while this one was joined: the episode is closed.
+            let world = map.get(&joined.world).ok_or_else(|| DmEnvError::WorldGone(joined.world.clone()))?;
+            (world.generation != joined.generation).then(|| (world.generation, world.fresh.clone()))
         };
         if let Some((generation, fresh)) = reset_by_world {
             joined.generation = generation;
@@ -321,6 +324,9 @@ impl Connection {
     fn reset(&mut self, request: dm::ResetRequest) -> Result<dm::ResetResponse, DmEnvError> {
         let joined = self.joined.as_mut().ok_or(DmEnvError::NotJoined)?;
         no_settings("Reset", &request.settings)?;
+        if !self.worlds.map().contains_key(&joined.world) {
+            return Err(DmEnvError::WorldGone(joined.world.clone()));
+        }
         // The episode restarts when the next step starts the next sequence.
         joined.running = false;
         Ok(dm::ResetResponse { specs: Some(joined.specs.clone()) })
@@ -330,9 +336,11 @@ impl Connection {
         let scene = reset_world_scene(request.settings)?;
         let episode_id = {
             let map = self.worlds.map();
-            map.get(&request.world_name)
-                .map(|w| w.episode_id.clone())
-                .ok_or_else(|| DmEnvError::UnknownWorld(request.world_name.clone()))?
+            let world =
+                map.get(&request.world_name).ok_or_else(|| DmEnvError::UnknownWorld(request.world_name.clone()))?;
+            // Whose it is, before its episode is named: another token's world stays as it was.
+            may_use(&self.slot.caller, &request.world_name, world)?;
+            world.episode_id.clone()
         };
         let reset = self.episodes.reset(&self.slot.caller, &episode_id, scene).await?;
         let mut map = self.worlds.map();
@@ -420,14 +428,14 @@ pub struct DmEnvService {
     worlds: Arc<Worlds>,
 }
 
-/// Refuses `caller` a world another token created (an admin may use any): joining it or destroying
-/// it is its owner's alone.
+/// Refuses `caller` a world another token created (an admin may use any): joining, resetting or
+/// destroying it is its owner's alone.
 fn may_use(caller: &Caller, world_name: &str, world: &World) -> Result<(), DmEnvError> {
     if caller.is_admin() || world.owner == caller.name {
         return Ok(());
     }
     Err(ServiceError::Denied(format!(
-        "world {} belongs to another token: {} may join or destroy only the worlds it created",
+        "world {} belongs to another token: {} may join, reset or destroy only the worlds it created",
         quoted(world_name),
         caller.describe()
     ))

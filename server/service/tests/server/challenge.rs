@@ -247,6 +247,12 @@ async fn each_role_gets_only_what_it_may_on_both_apis() {
     let status = joined.expect_err("alice may not join bob's world");
     assert_eq!(status.code, Code::PermissionDenied as i32, "{status:?}");
     assert!(status.message.contains("belongs to another token"), "{status:?}");
+    // Nor reset it: refused as a world of bob's, its episode never named to alice.
+    let reset = dm::ResetWorldRequest { world_name: bob_world.clone(), settings: Default::default() };
+    let status = alice_connection.call(dm::environment_request::Payload::ResetWorld(reset)).await;
+    let status = status.expect_err("alice may not reset bob's world");
+    assert_eq!(status.code, Code::PermissionDenied as i32, "{status:?}");
+    assert!(status.message.contains(&format!("world \"{bob_world}\" belongs to another token")), "{status:?}");
     // Nor destroy it: refused before anything is removed, so bob's world is still there.
     let destroy = dm::DestroyWorldRequest { world_name: bob_world };
     let destroyed = alice_connection.call(dm::environment_request::Payload::DestroyWorld(destroy)).await;

@@ -341,3 +341,31 @@ async fn reset_world_interrupts_the_agent_of_another_connection() {
     assert_ne!(first.observations[&1], start.observations[&1], "another scene, another view");
     assert_eq!(state(&agent.step(Some(action(2)), &[]).await.unwrap()), dm::EnvironmentStateType::Running);
 }
+
+/// A world whose creating connection ends under its agent (another connection) is gone: the
+/// agent's Step and Reset say so, naming the world, and after LeaveWorld it joins another.
+#[tokio::test]
+async fn the_agent_of_a_world_whose_creator_ended_is_told_so() {
+    let server = Server::start(&[]);
+    let mut host = Connection::open(&server).await;
+    let mut agent = Connection::open(&server).await;
+    let world = host.create_world(vec![("resolution", int64(32))]).await.unwrap();
+    agent.join_world(&world).await.unwrap();
+    agent.step(None, &[]).await.unwrap();
+    drop(host);
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let status = loop {
+        match agent.step(Some(action(2)), &[]).await {
+            Ok(_) => assert!(Instant::now() < deadline, "the world of an ended connection is destroyed"),
+            Err(status) => break status,
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    assert_eq!(status.code, Code::NotFound as i32, "{status:?}");
+    assert!(status.message.contains(&world) && status.message.contains("LeaveWorld"), "{status:?}");
+    check_code(agent.send(Rq::Reset(dm::ResetRequest::default())).await, Code::NotFound, "LeaveWorld");
+    assert!(agent.send(Rq::LeaveWorld(dm::LeaveWorldRequest {})).await.is_ok());
+    let other = agent.create_world(vec![("resolution", int64(32))]).await.unwrap();
+    agent.join_world(&other).await.unwrap();
+    assert_eq!(state(&agent.step(None, &[]).await.unwrap()), dm::EnvironmentStateType::Running);
+}
