@@ -366,6 +366,7 @@ impl Client {
     /// arrives after the caller left is closed on the server at once. (The server closes the
     /// episode itself when the call is abandoned before its answer is sent.)
     pub async fn create_episode(&self, options: EpisodeOptions) -> Result<(Episode, Observation)> {
+        options.check()?;
         let (answer, waiting) = tokio::sync::oneshot::channel();
         let mut raw = self.raw();
         let request = options.to_proto();

@@ -201,9 +201,14 @@ impl Episode {
         self.reset_request(None).await
     }
 
-    /// Restarts the episode on another served scene.
+    /// Restarts the episode on another served scene (an empty `scene_id` is a
+    /// [`ClientError::InvalidArgument`]; [`Episode::reset`] restarts the same scene).
     pub async fn reset_to_scene(&mut self, scene_id: impl Into<String>) -> Result<Observation> {
-        self.reset_request(Some(proto::reset_request::Scene::SceneId(scene_id.into()))).await
+        let scene_id = scene_id.into();
+        if scene_id.is_empty() {
+            return Err(crate::types::empty_scene_id());
+        }
+        self.reset_request(Some(proto::reset_request::Scene::SceneId(scene_id))).await
     }
 
     async fn reset_request(&mut self, scene: Option<proto::reset_request::Scene>) -> Result<Observation> {

@@ -12,7 +12,10 @@ pub enum ClientError {
     /// The request was malformed (bad action, unknown split, invalid scene, ...).
     #[error("invalid argument: {0}")]
     InvalidArgument(String),
-    /// The episode has ended (success or horizon): reset it or create a new one.
+    /// The episode has ended (success or horizon): reset it or create a new one. The server's
+    /// other FAILED_PRECONDITION refusals come as this kind too, their message saying which: a
+    /// challenge scene whose one counted attempt is taken, records asked of a server that keeps
+    /// none.
     #[error("episode ended: {0}")]
     EpisodeEnded(String),
     /// A server limit was reached (live episodes, batch size, message size).

@@ -163,7 +163,9 @@ impl EpisodeStream {
     }
 
     /// Sends a create. The episode lives as long as the stream; its id comes in the answer.
+    /// Options the server would misread (an empty scene id) fail here, and nothing is sent.
     pub fn create(&mut self, options: &EpisodeOptions) -> Result<u64> {
+        options.check()?;
         self.send(Kind::Create, "", Rq::Create(options.to_proto()))
     }
 

@@ -779,6 +779,13 @@ pub enum SceneChoice {
     },
 }
 
+/// The error for an empty scene id, which the protocol reads as "no scene".
+pub(crate) fn empty_scene_id() -> ClientError {
+    ClientError::InvalidArgument(
+        "the scene id is empty: give the id of a served scene (Client::list_scenes lists them), or pick one with EpisodeOptions::seeded".into(),
+    )
+}
+
 /// How to create an episode: the scene, the horizon, the reward weights, the sensors and
 /// whether privileged state may be read.
 #[derive(Clone, Debug, PartialEq)]
@@ -798,7 +805,8 @@ pub struct EpisodeOptions {
 }
 
 impl EpisodeOptions {
-    /// An episode of the served scene `id`.
+    /// An episode of the served scene `id` (an empty `id` fails the create with
+    /// [`ClientError::InvalidArgument`]).
     pub fn scene(id: impl Into<String>) -> Self {
         Self::with_scene(SceneChoice::Id(id.into()))
     }
@@ -853,6 +861,15 @@ impl EpisodeOptions {
     pub fn agent(mut self, agent: impl Into<String>) -> Self {
         self.agent = agent.into();
         self
+    }
+
+    /// Refuses options the server would read as something else: an empty scene id is the
+    /// protocol's "no scene", which the server answers with a scene of the test split.
+    pub(crate) fn check(&self) -> Result<()> {
+        match &self.scene {
+            SceneChoice::Id(id) if id.is_empty() => Err(empty_scene_id()),
+            _ => Ok(()),
+        }
     }
 
     /// The `CreateEpisode` request these options make.

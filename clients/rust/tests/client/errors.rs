@@ -107,3 +107,24 @@ async fn a_server_that_dies_is_unavailable() {
     assert!(matches!(error, ClientError::Unavailable(_)), "stream: {error:?}");
     episode.detach();
 }
+
+/// An empty scene id is the protocol's "no scene", which the server would answer with some
+/// scene of the test split: the client refuses it before anything is sent.
+#[tokio::test]
+async fn an_empty_scene_id_is_refused_not_replaced() {
+    let server = start(&[]);
+    let client = client(&server).await;
+    let empty = |result: Result<(), ClientError>| {
+        let error = result.expect_err("an empty scene id is refused");
+        assert!(matches!(&error, ClientError::InvalidArgument(m) if m.contains("scene id is empty")), "{error}");
+    };
+    empty(client.create_episode(EpisodeOptions::scene("")).await.map(drop));
+    let mut stream = client.episode_stream(1).await.unwrap();
+    empty(stream.create(&EpisodeOptions::scene("")).map(drop));
+    assert_eq!(stream.outstanding(), 0, "nothing was sent");
+    let scene = test_scenes(&client, 1).await.remove(0);
+    let (mut episode, _) = client.create_episode(EpisodeOptions::scene(&scene)).await.unwrap();
+    empty(episode.reset_to_scene("").await.map(drop));
+    assert_eq!(client.server_info().await.unwrap().live_episodes, 1, "no episode but the one asked for");
+    episode.close().await.unwrap();
+}
