@@ -79,6 +79,17 @@ fn string_setting(name: &str, tensor: &dm::Tensor) -> Result<String, DmEnvError>
     }
 }
 
+/// The `scene` setting: a scene id, never empty (leave the setting out for the default).
+fn scene_setting(tensor: &dm::Tensor) -> Result<String, DmEnvError> {
+    let id = string_setting("scene", tensor)?;
+    if id.is_empty() {
+        return Err(DmEnvError::InvalidSetting(
+            "setting scene: the scene id is empty: give a served scene's id, or leave the setting out".into(),
+        ));
+    }
+    Ok(id)
+}
+
 fn bool_setting(name: &str, tensor: &dm::Tensor) -> Result<bool, DmEnvError> {
     check_scalar_setting(name, tensor)?;
     match &tensor.payload {
@@ -130,7 +141,7 @@ pub fn create_options(settings: HashMap<String, dm::Tensor>) -> Result<CreateOpt
     let mut sensors = SensorRequest::default();
     for (name, value) in sorted(settings) {
         match name.as_str() {
-            "scene" => scene = Some(string_setting(&name, &value)?),
+            "scene" => scene = Some(scene_setting(&value)?),
             "agent" => agent = Some(string_setting(&name, &value)?).filter(|a| !a.is_empty()),
             "split" => {
                 let name = string_setting(&name, &value)?;
@@ -157,8 +168,8 @@ pub fn create_options(settings: HashMap<String, dm::Tensor>) -> Result<CreateOpt
         }
     }
     let scene = match scene {
-        Some(id) if !id.is_empty() => SceneChoice::SceneId(id),
-        _ => SceneChoice::FromSplit { split, seed },
+        Some(id) => SceneChoice::SceneId(id),
+        None => SceneChoice::FromSplit { split, seed },
     };
     Ok(CreateOptions {
         scene,
@@ -176,7 +187,7 @@ pub fn reset_world_scene(settings: HashMap<String, dm::Tensor>) -> Result<Option
     let mut scene = None;
     for (name, value) in sorted(settings) {
         match name.as_str() {
-            "scene" => scene = Some(string_setting(&name, &value)?).filter(|id| !id.is_empty()),
+            "scene" => scene = Some(scene_setting(&value)?),
             other => {
                 return Err(DmEnvError::InvalidSetting(format!(
                     "unknown ResetWorld setting {}: the only one is \"scene\"",
@@ -373,6 +384,10 @@ mod tests {
         check_settings(vec![("seed", int64(-1))], "setting seed: -1 is negative");
         check_settings(vec![("split", string("dev"))], "not a split");
         check_settings(vec![("scene", int64(3))], "setting scene: expected a STRING, got INT64");
+        // An explicit empty scene is not the default scene.
+        check_settings(vec![("scene", string(""))], "setting scene: the scene id is empty");
+        let reset = reset_world_scene([("scene".to_owned(), string(""))].into());
+        assert!(reset.unwrap_err().to_string().contains("the scene id is empty"));
         check_settings(vec![("seed", int32(vec![2], vec![1, 2]))], "expected a single value, got 2 elements");
         check_settings(vec![("zeta", int64(1)), ("alpha", int64(1))], "unknown CreateWorld setting \"alpha\"");
     }

@@ -14,7 +14,7 @@
 //!
 //! | name | tensor | meaning |
 //! |---|---|---|
-//! | `scene` | string | scene id of the served dataset (default: chosen by `split` and `seed`) |
+//! | `scene` | string | scene id of the served dataset, not empty (absent: chosen by `split` and `seed`) |
 //! | `split` | string `"train"`, `"test"`, `"challenge"` or `"minival"` | split to choose from when `scene` is absent (default test) |
 //! | `seed` | integer ≥ 0 | which scene of the split: index `seed mod count` (default 0: the first) |
 //! | `horizon` | integer ≥ 0 | step limit; 0 or absent: the scene's own |
