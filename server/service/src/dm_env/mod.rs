@@ -101,6 +101,11 @@ struct World {
     /// The first observation of an episode not stepped since it was created or reset: the next
     /// sequence starts from it without restarting the episode.
     fresh: Option<Observation>,
+    /// Held by a ResetWorld from its episode's reset to its generation's bump, and by the agent's
+    /// Step from its look at the generation to its answer: a step sent while another connection
+    /// resets the world is taken before the reset or answered INTERRUPTED after it, never taken
+    /// in the new sequence behind the agent's back.
+    turn: Arc<tokio::sync::Mutex<()>>,
 }
 
 /// The live worlds of every connection, by name.
@@ -139,6 +144,8 @@ struct Joined {
     generation: u64,
     /// Whether a sequence is running (its next step takes the action).
     running: bool,
+    /// The world's [`World::turn`].
+    turn: Arc<tokio::sync::Mutex<()>>,
 }
 
 /// One stream: its joined world and the worlds it created.
@@ -219,6 +226,7 @@ impl Connection {
             agent: None,
             generation: 0,
             fresh: Some(created.observation),
+            turn: Arc::default(),
         };
         tracing::debug!(connection = self.id, world = %world_name, episode = %world.episode_id, "world created");
         self.worlds.map().insert(world_name.clone(), world);
@@ -245,6 +253,7 @@ impl Connection {
             observation_names: world.observation_names.clone(),
             generation: world.generation,
             running: false,
+            turn: world.turn.clone(),
         });
         Ok(dm::JoinWorldResponse { specs: Some(world.specs.clone()) })
     }
@@ -271,7 +280,9 @@ impl Connection {
             Ok::<_, DmEnvError>(dm::StepResponse { state: state as i32, observations })
         };
 
-        // A ResetWorld sent by another connection interrupts the running sequence.
+        // A ResetWorld sent by another connection interrupts the running sequence; one under way
+        // finishes first.
+        let _turn = joined.turn.clone().lock_owned().await;
         let reset_by_world = {
             let map = self.worlds.map();
             // Its creating connection ended while this one was joined: the episode is closed.
@@ -334,14 +345,16 @@ impl Connection {
 
     async fn reset_world(&mut self, request: dm::ResetWorldRequest) -> Result<dm::ResetWorldResponse, DmEnvError> {
         let scene = reset_world_scene(request.settings)?;
-        let episode_id = {
+        let (episode_id, turn) = {
             let map = self.worlds.map();
             let world =
                 map.get(&request.world_name).ok_or_else(|| DmEnvError::UnknownWorld(request.world_name.clone()))?;
             // Whose it is, before its episode is named: another token's world stays as it was.
             may_use(&self.slot.caller, &request.world_name, world)?;
-            world.episode_id.clone()
+            (world.episode_id.clone(), world.turn.clone())
         };
+        // No step of the agent's between the reset and the bump of the generation below.
+        let _turn = turn.lock_owned().await;
         let reset = self.episodes.reset(&self.slot.caller, &episode_id, scene).await?;
         let mut map = self.worlds.map();
         if let Some(world) = map.get_mut(&request.world_name) {

@@ -369,3 +369,41 @@ async fn the_agent_of_a_world_whose_creator_ended_is_told_so() {
     agent.join_world(&other).await.unwrap();
     assert_eq!(state(&agent.step(None, &[]).await.unwrap()), dm::EnvironmentStateType::Running);
 }
+
+/// A step that the agent sends while another connection's ResetWorld is under way is taken
+/// either before the reset (in the old sequence) or after it (answered INTERRUPTED), never in
+/// the new sequence behind the agent's back: every sequence that follows runs its whole
+/// horizon from the first observation it was shown.
+#[tokio::test]
+async fn a_step_racing_a_reset_world_never_lands_in_the_new_sequence() {
+    const HORIZON: usize = 2;
+    let server = Server::start(&[]);
+    let mut host = Connection::open(&server).await;
+    let mut agent = Connection::open(&server).await;
+    let settings = vec![("resolution", int64(256)), ("horizon", int64(HORIZON as i64)), ("split", string("train"))];
+    let world = host.create_world(settings).await.unwrap();
+    agent.join_world(&world).await.unwrap();
+    for round in 0..6 {
+        assert_eq!(state(&agent.step(None, &[]).await.unwrap()), dm::EnvironmentStateType::Running, "{round}");
+        // Another scene each round: a reset that takes a while.
+        let scene = string(&format!("esrp-bench-v2/{:05}", 10 + round));
+        let reset = dm::ResetWorldRequest { world_name: world.clone(), settings: [("scene".to_owned(), scene)].into() };
+        let (reset, raced) = tokio::join!(host.send(Rq::ResetWorld(reset)), async {
+            tokio::time::sleep(Duration::from_millis(3)).await;
+            agent.step(Some(action(2)), &[]).await
+        });
+        assert!(matches!(reset, Ok(Rs::ResetWorld(_))), "{round}: {reset:?}");
+        // The reset reaches the agent (once) as an INTERRUPTED step, then a new sequence starts.
+        let mut last = state(&raced.unwrap());
+        while last != dm::EnvironmentStateType::Interrupted {
+            last = state(&agent.step(Some(action(2)), &[]).await.unwrap());
+        }
+        assert_eq!(state(&agent.step(Some(action(2)), &[]).await.unwrap()), dm::EnvironmentStateType::Running);
+        for step in 1..=HORIZON {
+            let expected =
+                if step == HORIZON { dm::EnvironmentStateType::Interrupted } else { dm::EnvironmentStateType::Running };
+            let got = state(&agent.step(Some(action(2)), &[]).await.unwrap());
+            assert_eq!(got, expected, "round {round}: step {step} of a sequence whose horizon is {HORIZON}");
+        }
+    }
+}
