@@ -42,6 +42,10 @@ else
     cargo check --workspace --all-targets --locked
 fi
 
+step "client library docs (esrp-client: every intra-doc link resolves, with and without its features)"
+RUSTDOCFLAGS="-D warnings" cargo doc -p esrp-client --no-deps --locked --no-default-features
+RUSTDOCFLAGS="-D warnings" cargo doc -p esrp-client --no-deps --locked --all-features
+
 step "module import cycles (esrp-core, esrp-server, esrp-client, esrp-render, esrp-dataset, esrp-planner)"
 # No module imports one that imports it (ARCHITECTURE.md); the self-test first shows the check
 # finds circles put in on purpose.

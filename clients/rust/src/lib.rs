@@ -45,7 +45,7 @@
 //! `esrp-eval` (an agent over a whole split, results in `esrp.results/v1`) and `esrp-bench`
 //! (end-to-end throughput and latency).
 //!
-//! Features: `image` adds [`Image::to_rgb_image`]; `tools` (default) builds the binaries and
+//! Features: `image` adds `Image::to_rgb_image` (an observation as an `image::RgbImage`); `tools` (default) builds the binaries and
 //! their dependencies (clap, indicatif, anyhow, humantime), which a library user turns off with
 //! `default-features = false`.
 

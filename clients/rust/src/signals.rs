@@ -1,5 +1,5 @@
 //! How the tools (`esrp-eval`, `esrp-bench`, `esrp-demo`) stop on SIGTERM and SIGINT
-//! ([`exit_on_signals`]) and on an error ([`exit_status`]).
+//! ([`exit_on_signals`]) and on an error (`exit_status`, with the `tools` feature).
 
 use std::io;
 #[cfg(feature = "tools")]

@@ -798,7 +798,7 @@ pub struct EpisodeOptions {
     pub reward: Option<proto::RewardWeights>,
     /// Optional sensors and the image size.
     pub sensors: Sensors,
-    /// Allow [`Episode::privileged_state`].
+    /// Allow [`crate::Episode::privileged_state`].
     pub privileged: bool,
     /// The agent's name, kept in the server's records of the episode (empty: "unnamed").
     pub agent: String,
