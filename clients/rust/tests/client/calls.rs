@@ -174,3 +174,31 @@ async fn abandoned_creates_leave_no_episode() {
     }
     assert_eq!(live_episodes_settled_at(&client, 0).await, 0, "every abandoned create's episode is closed");
 }
+
+/// What a user moves into tasks is `Send` (and what it shares, `Sync`), and so are the futures
+/// of the calls (`tokio::spawn` takes only those): checked when this compiles.
+#[test]
+fn handles_and_the_futures_of_their_calls_are_send() {
+    use esrp_client::{Client, ClientError, Episode, EpisodeStream, LocalServer};
+    fn shared<T: Send + Sync + 'static>() {}
+    fn moved<T: Send + 'static>() {}
+    fn send<T: Send>(_: T) {}
+    shared::<Client>();
+    shared::<Episode>();
+    shared::<ClientError>();
+    shared::<LocalServer>();
+    moved::<EpisodeStream>();
+    let _calls = |client: Client, mut episode: Episode, mut stream: EpisodeStream| {
+        send(client.create_episode(EpisodeOptions::seeded(Split::Test, 0)));
+        send(client.list_scenes(SceneFilter::default()));
+        send(client.scenes(SceneFilter::default()));
+        send(client.episode_stream(4));
+        send(episode.step(Action::TurnLeft));
+        send(episode.reset());
+        send(episode.plan_actions(0, None));
+        send(stream.step("e", Action::TurnLeft));
+        send(stream.next());
+        send(stream.run(&[]));
+        send(episode.close());
+    };
+}
