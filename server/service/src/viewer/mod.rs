@@ -19,7 +19,9 @@
 //! | `POST /api/replay/{id}/seek` | moves a replay to step k: forward by stepping, back by a reset and stepping again |
 //!
 //! Every API call needs `authorization: Bearer TOKEN` when the server has tokens; with none, the
-//! viewer serves only a loopback address (checked at start). A watched episode's frames are made
+//! viewer serves only a loopback address (checked at start). Every failed API call answers a
+//! JSON `{"error": "..."}` with its status, a malformed request (bad JSON, a missing field, a
+//! path or query that does not parse), an unknown route and a wrong method included. A watched episode's frames are made
 //! once for all its watchers, after its agent's steps and at most ten a second; each watcher gets
 //! the latest when it has taken the previous one, so older frames are dropped, never queued.
 //!
@@ -34,7 +36,10 @@ mod watch;
 
 use std::sync::Arc;
 
-use axum::http::header;
+use axum::extract::Request;
+use axum::http::{StatusCode, header};
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 
 use crate::auth::Tokens;
@@ -64,7 +69,43 @@ pub fn router(episodes: Arc<Episodes>, tokens: Arc<Tokens>) -> axum::Router {
         .route("/api/replay/{id}/seek", post(replay::seek))
         .route("/api/scenes", get(play::scenes))
         .route("/api/play", post(play::play))
+        .fallback(|uri: axum::http::Uri| async move {
+            let api = uri.path().starts_with("/api/");
+            (StatusCode::NOT_FOUND, if api { "no such API route" } else { "no such page: the viewer is at /" })
+        })
+        .layer(middleware::from_fn(json_errors))
         .with_state(Viewer { episodes, tokens, replays: Default::default(), feeds: Default::default() })
+}
+
+/// Answers every failure of an `/api/` call as `{"error": "..."}`: the handlers' own failures
+/// already are; axum's (a body that is not the JSON asked for, a path or query that does not
+/// parse, an unknown route, a wrong method) come as plain text or empty, which the page could
+/// only show as a bare status.
+async fn json_errors(request: Request, next: Next) -> Response {
+    let api = request.uri().path().starts_with("/api/");
+    let response = next.run(request).await;
+    let json =
+        response.headers().get(header::CONTENT_TYPE).is_some_and(|v| v.as_bytes().starts_with(b"application/json"));
+    if !api || json || !(response.status().is_client_error() || response.status().is_server_error()) {
+        return response;
+    }
+    let (mut parts, body) = response.into_parts();
+    let text = axum::body::to_bytes(body, 64 * 1024).await.unwrap_or_default();
+    let mut message = String::from_utf8_lossy(&text).trim().to_owned();
+    if message.is_empty() {
+        message = match parts.status {
+            StatusCode::NOT_FOUND => "no such API route".to_owned(),
+            // axum adds the `allow` header, naming the one it takes, after this layer.
+            StatusCode::METHOD_NOT_ALLOWED => {
+                "wrong method for this route: its `allow` header names the one it takes".to_owned()
+            }
+            status => status.canonical_reason().unwrap_or("failed").to_owned(),
+        };
+    }
+    parts.headers.remove(header::CONTENT_LENGTH);
+    parts.headers.insert(header::CONTENT_TYPE, header::HeaderValue::from_static("application/json"));
+    let body = serde_json::json!({ "error": message }).to_string();
+    (parts, body).into_response()
 }
 
 /// Serves the viewer on `listener` until the task is aborted.

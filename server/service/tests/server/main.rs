@@ -15,3 +15,4 @@ mod replays;
 mod scene_cache;
 mod smoke;
 mod unix_socket;
+mod viewer;
