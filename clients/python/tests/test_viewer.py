@@ -14,13 +14,16 @@ import urllib.error
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pytest
 
 import esrp
 from esrp.cli import main
+
+if TYPE_CHECKING:
+    from playwright.sync_api import Browser, Page, Playwright
 
 CHROMIUM = Path(os.environ.get("ESRP_CHROMIUM", "/usr/bin/chromium"))
 KEYS = "wsadfr"  # action codes 0..5
@@ -110,7 +113,7 @@ def test_the_servers_records_by_scene(viewer: esrp.LocalServer) -> None:
     # Alice plays a scene in the page and closes it: the server keeps her record (--records).
     status, scenes = get(viewer, "/api/scenes?split=test&difficulty=medium", "alice-secret")
     assert status == 200
-    scene = scenes[2]["id"]
+    scene = scenes["scenes"][2]["id"]
     status, played = get(viewer, "/api/play", "alice-secret", {"scene": scene})
     assert status == 200
     episode = f"/api/episodes/{played['episode']}"
@@ -145,8 +148,8 @@ def test_a_replay_seeks_and_ends_with_its_episode(viewer: esrp.LocalServer) -> N
     assert status == 200
     actions = [2, 0, 0, 3, 0, 1, 2, 0] * 4
     started = [
-        get(viewer, "/api/replay", "alice-secret", {"scene_id": scenes[k]["id"], "actions": actions})
-        for k in (3, 4)
+        get(viewer, "/api/replay", "alice-secret", {"scene_id": scene["id"], "actions": actions})
+        for scene in scenes["scenes"][3:5]
     ]
     assert [s for s, _ in started] == [200, 200], started
     ids = [body["episode"] for _, body in started]
@@ -382,3 +385,188 @@ def test_a_paper_only_episode_shows_its_watcher_what_its_client_is_told(tmp_path
         assert (seen["episode"]["placed"], seen["episode"]["success"]) == (0, False)
         admin = first_frame(server, episode.id, "root-secret")
         assert [set(action) for action in admin["last_actions"]] == [{"action", "accepted"}] * 3
+
+
+def launch(playwright: Playwright) -> Browser:
+    """Headless Chromium (Debian's), as the other browser tests start it."""
+    return playwright.chromium.launch(
+        executable_path=str(CHROMIUM),
+        args=["--headless", "--no-sandbox", "--disable-background-networking"],
+    )
+
+
+def sign_in(page: Page, secret: str) -> None:
+    page.fill("#token", secret)
+    page.click("#signin button")
+
+
+def shows(page: Page, element: str, test: str, timeout: float = 30_000) -> None:
+    """Waits until the text of element `element` passes `test` (a JS expression over `text`)."""
+    page.wait_for_function(
+        f"(() => {{ const text = document.getElementById('{element}').textContent; return {test}; }})()",
+        timeout=timeout,
+    )
+
+
+def live(server: esrp.LocalServer, secret: str) -> set[str]:
+    """The ids of the live episodes `secret` sees."""
+    status, listed = get(server, "/api/episodes", secret)
+    assert status == 200, listed
+    return {e["id"] for e in listed}
+
+
+def test_the_page_under_a_demanding_user(viewer: esrp.LocalServer, tmp_path: Path) -> None:
+    """One browser session that does what the first test does not: signs in with a wrong token
+    after a good one, watches from the keyboard, narrows a long scene list, uses the browser's
+    own shortcuts while playing, loads a file that is no results file, replays more records than a
+    token may keep open at once, closes its episode, and reloads the page while playing."""
+    if not CHROMIUM.is_file():
+        pytest.skip(f"no Chromium at {CHROMIUM}: apt-get install chromium (scripts/python-tests.sh does)")
+    from playwright.sync_api import sync_playwright
+
+    assert viewer.viewer_url is not None
+    with esrp.Client(viewer.address, token="alice-secret") as alice, sync_playwright() as playwright:
+        easy = [s.id for s in alice.scenes("test", "easy")]
+        browser = launch(playwright)
+        try:
+            page = browser.new_page(viewport={"width": 1400, "height": 1000})
+            page.goto(viewer.viewer_url)
+            with alice.create_episode(easy[0]) as theirs:
+                row = f'#episodes tr[data-episode="{theirs.id}"]'
+                # A good token lists the episode; a wrong one after it clears the page and says why.
+                sign_in(page, "alice-secret")
+                page.wait_for_selector(row)
+                sign_in(page, "not-a-token")
+                shows(page, "notice", "text.includes('not one the server knows')")
+                assert page.locator("#episodes tbody tr").count() == 0
+                assert page.inner_text("#who") == "not signed in"
+                assert page.evaluate("document.activeElement.id") == "token"
+
+                # Watching from the keyboard: a row takes the focus, and Enter watches it.
+                sign_in(page, "alice-secret")
+                page.wait_for_selector(row)
+                page.focus(row)
+                page.keyboard.press("Enter")
+                page.wait_for_function(
+                    f"document.getElementById('watch-panel').dataset.episode === '{theirs.id}'"
+                )
+
+            # A long scene list says it is cut, and an id narrows it.
+            page.select_option("#play-split", "train")
+            page.select_option("#play-difficulty", "")
+            shows(page, "play-count", "text.startsWith('the first 1000 of ')")
+            page.fill("#play-find", easy[2])
+            shows(page, "play-count", "text === '0 scenes'")
+            page.select_option("#play-split", "test")
+            shows(page, "play-count", "text === '1 scene'")
+            assert page.eval_on_selector("#play-scene", "s => s.value") == easy[2]
+
+            # Play: the browser's shortcuts (Ctrl+R, Ctrl+F, Alt+D) are not moves; the plain keys are.
+            page.click("#play button")
+            shows(page, "watch-title", "text.includes('you are playing')")
+            played = page.get_attribute("#watch-panel", "data-episode")
+            shortcut = page.evaluate(
+                """["r", "f", "d"].map((key, i) => {
+                    const event = new KeyboardEvent("keydown", { key, ctrlKey: i < 2, altKey: i === 2,
+                                                                bubbles: true, cancelable: true });
+                    document.body.dispatchEvent(event);
+                    return event.defaultPrevented;
+                })"""
+            )
+            assert shortcut == [False, False, False], "the page took the browser's shortcuts"
+            page.locator("body").click(position={"x": 5, "y": 5})
+            page.keyboard.press("a")
+            page.wait_for_function("document.getElementById('watch-panel').dataset.step === '1'")
+            assert page.locator("#actions li").all_inner_texts() == ["turn left"]
+
+            # A file that is not a results file: the page says which line, and lists nothing.
+            bad = tmp_path / "notes.jsonl"
+            bad.write_text(json.dumps({"scene_id": easy[3], "actions": [2]}) + "\nthis is no JSON\n")
+            page.set_input_files("#replay-file", str(bad))
+            shows(page, "notice", "text.includes('line 2: not JSON')")
+            assert page.locator("#replay-record option").count() == 0
+
+            # More replays one after the other than a token may keep open: each replaces the last
+            # (and the first replaces the played episode), so none is refused.
+            good = tmp_path / "runs.jsonl"
+            good.write_text(
+                "".join(
+                    json.dumps({"scene_id": easy[k], "agent": "test", "steps": 2, "actions": [2, 3]}) + "\n"
+                    for k in range(3, 9)
+                )
+            )
+            page.set_input_files("#replay-file", str(good))
+            page.wait_for_function("document.getElementById('replay-record').options.length === 6")
+            replays = []
+            for k in range(6):
+                page.select_option("#replay-record", str(k))
+                page.click("#replay button[type=submit]")
+                shows(page, "watch-title", f"text.startsWith('{easy[3 + k]} ')")
+                replays.append(page.get_attribute("#watch-panel", "data-episode"))
+            assert live(viewer, "alice-secret") == {replays[-1]}, (played, replays)
+
+            # The close button closes it, and the page says so.
+            page.click("#close")
+            shows(page, "banner", "text.startsWith('closed: ')")
+            assert page.locator("#close").is_hidden()
+            assert page.locator("#scrub").is_hidden()
+            assert live(viewer, "alice-secret") == set()
+
+            # Reloading the page while playing closes the played episode.
+            page.select_option("#play-scene", easy[2])
+            page.click("#play button")
+            shows(page, "watch-title", "text.includes('you are playing')")
+            assert len(live(viewer, "alice-secret")) == 1
+            page.reload()
+            shows(page, "who", "text === 'alice (agent)'")
+            for _ in range(50):
+                if not live(viewer, "alice-secret"):
+                    break
+                page.wait_for_timeout(100)
+            assert live(viewer, "alice-secret") == set()
+        finally:
+            browser.close()
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+def test_the_page_rides_out_a_server_restart(tmp_path: Path) -> None:
+    """The server stops while the page watches an episode: the page says it lost the connection,
+    reconnects once a server answers on the address again, then lists that server's episodes and
+    says the watched one is gone, all without a reload."""
+    if not CHROMIUM.is_file():
+        pytest.skip(f"no Chromium at {CHROMIUM}: apt-get install chromium (scripts/python-tests.sh does)")
+    from playwright.sync_api import sync_playwright
+
+    address = f"127.0.0.1:{free_port()}"
+    with sync_playwright() as playwright:
+        browser = launch(playwright)
+        try:
+            page = browser.new_page()
+            with esrp.LocalServer("--http-listen", address) as first, esrp.Client(first.address) as client:
+                scene = next(iter(client.scenes("test", "easy"))).id
+                episode = client.create_episode(scene)
+                page.goto(f"http://{address}/")
+                page.click(f'#episodes tr[data-episode="{episode.id}"]')
+                page.wait_for_function(
+                    f"document.getElementById('watch-panel').dataset.episode === '{episode.id}'"
+                )
+                page.wait_for_function("document.getElementById('ego').src.startsWith('data:image/png')")
+            shows(page, "notice", "text.includes('lost the connection')")
+            with (
+                esrp.LocalServer("--http-listen", address) as second,
+                esrp.Client(second.address) as client,
+                client.create_episode(scene) as again,
+            ):
+                page.wait_for_selector(f'#episodes tr[data-episode="{again.id}"]', timeout=20_000)
+                assert page.inner_text("#notice") == ""
+                shows(page, "banner", "text.startsWith('closed: no episode')", timeout=20_000)
+        finally:
+            browser.close()

@@ -11,8 +11,17 @@ let token = sessionStorage.getItem("esrp-token") || "";
 let listAbort = null;
 let watchAbort = null;
 let watching = null; // episode id
-let playing = null; // episode id driven from the keyboard
+let playing = null; // episode id driven from the keyboard (this page's played episode)
+let mine = null; // the episode this page started (played or replayed), closed when it starts another
 let episodes = [];
+let records = []; // the records to replay (from a results file, or the server's)
+let replaying = null; // { episode, steps }: this page's replay
+let seeking = Promise.resolve();
+// The most episode rows drawn at once: a busy server's list is narrowed with the filter.
+const MAX_ROWS = 200;
+// Seconds between tries to reach the server again after a stream broke.
+const RETRY_SECONDS = 2;
+const sleep = (seconds) => new Promise((resolve) => setTimeout(resolve, seconds * 1000));
 
 function headers(extra = {}) {
   return token ? { Authorization: `Bearer ${token}`, ...extra } : extra;
@@ -60,7 +69,22 @@ function notice(text) {
   $("notice").textContent = text;
 }
 
+// Stops following the server (a token that failed, or another token signing in).
+function signOut() {
+  if (listAbort) listAbort.abort();
+  if (watchAbort) watchAbort.abort();
+  listAbort = watchAbort = null;
+  watching = playing = mine = replaying = null;
+  episodes = [];
+  drawEpisodes();
+  $("watch-panel").hidden = true;
+  $("scrub").hidden = true;
+  $("play-scene").replaceChildren();
+  $("who").textContent = "not signed in";
+}
+
 async function signIn() {
+  signOut();
   try {
     const me = await api("/api/whoami");
     $("who").textContent = `${me.caller} (${me.role})`;
@@ -70,58 +94,150 @@ async function signIn() {
     followEpisodes();
     loadScenes();
   } catch (e) {
-    $("who").textContent = "not signed in";
-    notice(e.status === 401 ? "enter a token the server knows" : e.message);
+    if (e.status === 401) {
+      notice("that token is not one the server knows: enter another");
+      $("token").focus();
+    } else if (e.status === undefined) {
+      notice(`cannot reach the server (${e.message}): trying again`);
+      setTimeout(signIn, RETRY_SECONDS * 1000);
+    } else {
+      notice(e.message);
+    }
   }
 }
 
-function followEpisodes() {
+// Follows the list of episodes; when the stream breaks (the server stopped, a proxy dropped
+// it), says so and reconnects until the server answers again.
+async function followEpisodes() {
   if (listAbort) listAbort.abort();
-  listAbort = new AbortController();
-  stream("/api/episodes/events", (name, data) => {
-    if (name === "episodes") {
-      episodes = JSON.parse(data);
-      drawEpisodes();
+  const abort = new AbortController();
+  listAbort = abort;
+  let lost = false;
+  while (!abort.signal.aborted) {
+    try {
+      await stream("/api/episodes/events", (name, data) => {
+        if (name !== "episodes") return;
+        if (lost) {
+          lost = false;
+          notice("");
+        }
+        episodes = JSON.parse(data);
+        drawEpisodes();
+      }, abort.signal);
+    } catch (e) {
+      if (abort.signal.aborted) return;
+      if (e.status === 401) return signIn();
     }
-  }, listAbort.signal).catch((e) => { if (e.name !== "AbortError") notice(e.message); });
+    if (abort.signal.aborted) return;
+    lost = true;
+    notice("lost the connection to the server: reconnecting…");
+    await sleep(RETRY_SECONDS);
+  }
 }
 
 function drawEpisodes() {
   const filter = $("filter").value.trim().toLowerCase();
   const body = $("episodes").tBodies[0];
+  // The row with the keyboard focus keeps it across redraws.
+  const focused = document.activeElement?.closest?.("#episodes tr")?.dataset.episode;
   body.replaceChildren();
-  for (const e of episodes) {
-    const text = `${e.scene} ${e.room_type} ${e.difficulty} ${e.owner} ${e.agent}`.toLowerCase();
-    if (filter && !text.includes(filter)) continue;
+  const shown = episodes.filter((e) => !filter ||
+    `${e.scene} ${e.room_type} ${e.difficulty} ${e.owner} ${e.agent}`.toLowerCase().includes(filter));
+  for (const e of shown.slice(0, MAX_ROWS)) {
     const row = body.insertRow();
     row.dataset.episode = e.id;
+    row.tabIndex = 0;
     if (e.id === watching) row.classList.add("selected");
+    row.setAttribute("aria-selected", String(e.id === watching));
     for (const cell of [e.scene, e.room_type, e.difficulty, `${e.steps} / ${e.horizon}`,
       `${e.placed} / ${e.objects}`, e.holding ? "yes" : "no", e.owner, e.agent, `${Math.round(e.age_seconds)} s`]) {
       row.insertCell().textContent = cell;
     }
     row.addEventListener("click", () => watch(e.id));
+    row.addEventListener("keydown", (event) => {
+      if (event.key === "Enter" || event.key === " ") {
+        event.preventDefault();
+        watch(e.id);
+      }
+    });
+    if (e.id === focused) row.focus();
   }
+  $("episodes-more").textContent = shown.length > MAX_ROWS
+    ? `the first ${MAX_ROWS} of ${shown.length} episodes: narrow them with the filter`
+    : (episodes.length && !shown.length ? "no episode matches the filter" : "");
 }
 
-function watch(id) {
+function showBanner(text, className = "") {
+  $("banner").hidden = false;
+  $("banner").className = className;
+  $("banner").textContent = text;
+}
+
+// Follows one episode's frames; when the stream breaks without the server saying the episode
+// closed, says so and reconnects (the episode may be gone then: a restarted server forgot it).
+async function watch(id) {
   if (watchAbort) watchAbort.abort();
-  watchAbort = new AbortController();
+  const abort = new AbortController();
+  watchAbort = abort;
   watching = id;
-  if (playing !== id) playing = null;
   $("watch-panel").hidden = false;
   $("banner").hidden = true;
   $("record").hidden = true;
+  $("scrub").hidden = !replaying || replaying.episode !== id;
+  $("close").hidden = !mine || mine.id !== id;
   $("goal").removeAttribute("src");
   drawEpisodes();
-  stream(`/api/episodes/${id}/watch`, (name, data) => {
-    if (name === "frame") drawFrame(JSON.parse(data));
-    if (name === "closed") {
-      $("banner").hidden = false;
-      $("banner").className = "";
-      $("banner").textContent = `closed: ${data}`;
+  let closed = false;
+  while (!abort.signal.aborted && !closed) {
+    try {
+      await stream(`/api/episodes/${encodeURIComponent(id)}/watch`, (name, data) => {
+        if (name === "frame") drawFrame(JSON.parse(data));
+        if (name === "closed") {
+          closed = true;
+          episodeGone(id, `closed: ${data}`);
+        }
+      }, abort.signal);
+    } catch (e) {
+      if (abort.signal.aborted) return;
+      if (e.status !== undefined) {
+        // The server answered, and it will not show this episode (gone, or not this token's).
+        return episodeGone(id, `closed: ${e.message}`);
+      }
     }
-  }, watchAbort.signal).catch((e) => { if (e.name !== "AbortError") notice(e.message); });
+    if (abort.signal.aborted || closed) return;
+    showBanner("lost the connection to the server: reconnecting…", "lost");
+    await sleep(RETRY_SECONDS);
+  }
+}
+
+// This page no longer drives episode `id` (closed, or gone): its controls go.
+function forget(id) {
+  if (mine && mine.id === id) mine = null;
+  if (playing === id) playing = null;
+  if (replaying && replaying.episode === id) replaying = null;
+  if (watching === id) {
+    $("scrub").hidden = true;
+    $("close").hidden = true;
+    $("watch-title").textContent = $("watch-title").textContent.replace(" (you are playing)", "");
+  }
+}
+
+// The watched episode `id` is gone: the banner says why.
+function episodeGone(id, why) {
+  showBanner(why);
+  forget(id);
+}
+
+// Closes the episode this page started, if any (a new one replaces it; so does leaving the page).
+async function closeMine() {
+  if (!mine) return;
+  const { id } = mine;
+  forget(id);
+  try {
+    await api(`/api/episodes/${encodeURIComponent(id)}/close`, {});
+  } catch (e) {
+    if (e.status !== 404) notice(e.message); // 404: it is gone already
+  }
 }
 
 function drawFrame(f) {
@@ -169,11 +285,9 @@ function drawFrame(f) {
   if (e.ended && playing === e.id && $("record").hidden) offerRecord(e);
   if (!e.ended) $("banner").hidden = true;
   if (e.ended) {
-    $("banner").hidden = false;
-    $("banner").className = e.success ? "success" : "failure";
-    $("banner").textContent = e.success
+    showBanner(e.success
       ? `Success: every object placed in ${e.steps} steps.`
-      : `Episode over: ${e.placed} of ${e.objects} placed after ${e.steps} steps.`;
+      : `Episode over: ${e.placed} of ${e.objects} placed after ${e.steps} steps.`, e.success ? "success" : "failure");
   }
 }
 
@@ -193,12 +307,18 @@ async function offerRecord(e) {
   }
 }
 
+let scenesAsked = 0;
 async function loadScenes() {
-  const split = $("play-split").value;
-  const difficulty = $("play-difficulty").value;
+  const query = new URLSearchParams({ split: $("play-split").value, difficulty: $("play-difficulty").value,
+    id: $("play-find").value.trim() });
+  const asked = ++scenesAsked;
   try {
-    const scenes = await api(`/api/scenes?split=${split}&difficulty=${difficulty}`);
-    $("play-scene").replaceChildren(...scenes.map((s) => new Option(`${s.id} (${s.room_type}, ${s.objects})`, s.id)));
+    const found = await api(`/api/scenes?${query}`);
+    if (asked !== scenesAsked) return; // a later choice's answer is the one to show
+    $("play-scene").replaceChildren(...found.scenes.map((s) => new Option(`${s.id} (${s.room_type}, ${s.objects})`, s.id)));
+    $("play-count").textContent = found.total > found.scenes.length
+      ? `the first ${found.scenes.length} of ${found.total} scenes: type part of an id to narrow them`
+      : `${found.total} scene${found.total === 1 ? "" : "s"}`;
   } catch (e) {
     notice(e.message);
   }
@@ -206,9 +326,13 @@ async function loadScenes() {
 
 async function play(event) {
   event.preventDefault();
+  const scene = $("play-scene").value;
+  if (!scene) return notice("no scene chosen: pick a split and difficulty that have some");
   try {
-    const started = await api("/api/play", { scene: $("play-scene").value });
+    await closeMine();
+    const started = await api("/api/play", { scene });
     playing = started.episode;
+    mine = { id: started.episode };
     watch(started.episode);
   } catch (e) {
     notice(e.message);
@@ -217,14 +341,32 @@ async function play(event) {
 
 // Replay: a record (from a results file, or the server's records of a scene) re-run on the
 // server, scrubbed step by step. Records listed from the server are fetched whole when chosen.
-let records = [];
-let replaying = null; // { episode, steps }
-let seeking = Promise.resolve();
 
+// The records of a results file: every line an esrp.results/v1 record, else a notice of the
+// first line that is not one (and no records).
 async function readRecords() {
   const file = $("replay-file").files[0];
   if (!file) return;
-  records = (await file.text()).split("\n").filter((l) => l.trim()).map((l) => JSON.parse(l));
+  records = [];
+  $("replay-record").replaceChildren();
+  const lines = (await file.text()).split("\n");
+  const read = [];
+  for (const [i, line] of lines.entries()) {
+    if (!line.trim()) continue;
+    let r;
+    try {
+      r = JSON.parse(line);
+    } catch {
+      return notice(`${file.name}, line ${i + 1}: not JSON, so not a results file (esrp.results/v1 JSON Lines)`);
+    }
+    if (!r || typeof r.scene_id !== "string" || !Array.isArray(r.actions)) {
+      return notice(`${file.name}, line ${i + 1}: not an esrp.results/v1 record (no scene_id or actions)`);
+    }
+    read.push(r);
+  }
+  if (!read.length) return notice(`${file.name} holds no records`);
+  records = read;
+  notice("");
   $("replay-record").replaceChildren(...records.map((r, i) =>
     new Option(`${r.scene_id} — ${r.agent}, ${r.steps} steps${r.success ? ", success" : ""}`, String(i))));
 }
@@ -249,8 +391,10 @@ async function startReplay(event) {
   if (!r) return notice("choose a results file (or find the server's records) and a record");
   try {
     if (!r.actions) r = await api(`/api/records/${encodeURIComponent(r.token)}/${r.index}`);
+    await closeMine();
     const started = await api("/api/replay", { scene_id: r.scene_id, horizon: r.horizon, actions: r.actions });
     replaying = { episode: started.episode, steps: started.steps };
+    mine = { id: started.episode };
     $("scrub").hidden = false;
     $("scrub-step").max = String(started.steps);
     $("scrub-step").value = "0";
@@ -274,7 +418,10 @@ function seek(step) {
 
 let stepping = Promise.resolve();
 function key(event) {
-  if (!playing || event.target.tagName === "INPUT" || event.target.tagName === "SELECT") return;
+  if (!playing || watching !== playing) return;
+  // Typing in a field, and the browser's own shortcuts (Ctrl+R, Ctrl+F, ...), are not moves.
+  if (event.ctrlKey || event.metaKey || event.altKey) return;
+  if (["INPUT", "SELECT", "TEXTAREA"].includes(event.target.tagName) || event.target.isContentEditable) return;
   const action = KEYS[event.key.toLowerCase()];
   if (action === undefined) return;
   event.preventDefault();
@@ -283,8 +430,9 @@ function key(event) {
   stepping = stepping.then(() => api(`/api/episodes/${episode}/step`, { action })).catch((e) => notice(e.message));
 }
 
-$("signin").addEventListener("submit", (event) => {
+$("signin").addEventListener("submit", async (event) => {
   event.preventDefault();
+  await closeMine(); // with the token that started it
   token = $("token").value.trim();
   sessionStorage.setItem("esrp-token", token);
   signIn();
@@ -292,6 +440,12 @@ $("signin").addEventListener("submit", (event) => {
 $("filter").addEventListener("input", drawEpisodes);
 $("play-split").addEventListener("change", loadScenes);
 $("play-difficulty").addEventListener("change", loadScenes);
+$("play-find").addEventListener("input", loadScenes);
+$("close").addEventListener("click", closeMine);
+// Leaving the page closes the episode it started (a request that outlives the page).
+addEventListener("pagehide", () => {
+  if (mine) fetch(`/api/episodes/${encodeURIComponent(mine.id)}/close`, { method: "POST", headers: headers(), keepalive: true });
+});
 $("play").addEventListener("submit", play);
 document.addEventListener("keydown", key);
 $("replay-file").addEventListener("change", readRecords);

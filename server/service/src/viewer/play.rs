@@ -15,8 +15,15 @@ use crate::types::{CreateOptions, EpisodeId, SceneChoice, SensorRequest, StepCal
 pub(super) struct SceneQuery {
     split: Option<String>,
     difficulty: Option<String>,
+    /// Part of the scene id.
+    id: Option<String>,
 }
 
+/// The most scenes `/api/scenes` lists (the first ones; `total` says how many matched).
+const LISTED_SCENES: usize = 1000;
+
+/// The scenes of a split and difficulty (both optional), whose id contains `id` if given: the
+/// first [`LISTED_SCENES`], and how many matched.
 pub(super) async fn scenes(
     State(viewer): State<Viewer>,
     Query(q): Query<SceneQuery>,
@@ -25,20 +32,23 @@ pub(super) async fn scenes(
     caller(&viewer, &headers)?;
     let split = q.split.filter(|s| !s.is_empty());
     let difficulty = q.difficulty.filter(|s| !s.is_empty());
-    let list: Vec<Value> = viewer
-        .episodes
-        .store
-        .infos()
+    let id = q.id.map(|s| s.trim().to_owned()).filter(|s| !s.is_empty());
+    let infos = viewer.episodes.store.infos();
+    let matching = infos
         .iter()
         .filter(|s| split.as_deref().is_none_or(|x| x == s.split.as_str()))
         .filter(|s| difficulty.as_deref().is_none_or(|x| x == s.difficulty.as_str()))
-        .take(1000)
-        .map(|s| {
-            json!({ "id": s.id, "room_type": s.room_type, "difficulty": s.difficulty.as_str(),
-                    "split": s.split.as_str(), "objects": s.movable_objects })
-        })
-        .collect();
-    Ok(Json(list.into()))
+        .filter(|s| id.as_deref().is_none_or(|x| s.id.contains(x)));
+    let mut total = 0;
+    let mut list = Vec::new();
+    for s in matching {
+        total += 1;
+        if list.len() < LISTED_SCENES {
+            list.push(json!({ "id": s.id, "room_type": s.room_type, "difficulty": s.difficulty.as_str(),
+                              "split": s.split.as_str(), "objects": s.movable_objects }));
+        }
+    }
+    Ok(Json(json!({ "scenes": list, "total": total })))
 }
 
 #[derive(Deserialize)]

@@ -38,3 +38,29 @@ async fn every_api_failure_is_json() {
     assert_eq!(status, 200);
     assert!(text.starts_with("<!doctype html>"), "{text}");
 }
+
+#[tokio::test]
+async fn the_scene_list_says_how_many_match_and_narrows_by_id() {
+    let server = Server::start(&["--http-listen", "127.0.0.1:0"]);
+    let scenes = |query: &'static str| {
+        let server = &server;
+        async move {
+            let (status, text) = server.viewer_request("GET", &format!("/api/scenes?{query}"), None, "").await;
+            assert_eq!(status, 200, "{text}");
+            serde_json::from_str::<serde_json::Value>(&text).expect("JSON")
+        }
+    };
+    // The train split has more scenes than a list holds: the first 1,000, and how many there are.
+    let train = scenes("split=train").await;
+    assert_eq!(train["scenes"].as_array().expect("a list").len(), 1000);
+    assert!(train["total"].as_u64().expect("a total") > 1000, "{}", train["total"]);
+    // Part of an id narrows it to the scenes whose id holds it.
+    let test = scenes("split=test&difficulty=easy").await;
+    let id = test["scenes"][2]["id"].as_str().expect("an id").to_owned();
+    let (status, text) =
+        server.viewer_request("GET", &format!("/api/scenes?split=test&id={}", id.replace('/', "%2F")), None, "").await;
+    assert_eq!(status, 200, "{text}");
+    let found: serde_json::Value = serde_json::from_str(&text).expect("JSON");
+    assert_eq!(found["total"], 1, "{found}");
+    assert_eq!(found["scenes"][0]["id"], id.as_str());
+}
