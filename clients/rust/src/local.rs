@@ -160,44 +160,65 @@ impl LocalServer {
 
     /// Spawns a server `command` with its stdin and stdout piped and waits until it listens; with
     /// `--listen-unix`, `--metrics-listen` or `--http-listen` among its arguments, reads the
-    /// socket's, the metrics' or the viewer's address too.
-    pub fn spawn(mut command: Command) -> Result<Self> {
+    /// socket's, the metrics' or the viewer's address too. A process that ends or prints
+    /// something else first, or prints no listening line within [`START_TIMEOUT`], is killed and
+    /// reaped, and the error says so.
+    pub fn spawn(command: Command) -> Result<Self> {
+        Self::spawn_within(command, START_TIMEOUT)
+    }
+
+    /// [`LocalServer::spawn`], waiting at most `timeout` for the server's lines.
+    pub fn spawn_within(mut command: Command, timeout: std::time::Duration) -> Result<Self> {
         let with_unix = names_flag(command.get_args(), "--listen-unix")
             || command
                 .get_envs()
                 .any(|(name, value)| name == "ESRP_LISTEN_UNIX" && value.is_some_and(|v| !v.is_empty()));
         let with_metrics = names_flag(command.get_args(), "--metrics-listen");
         let with_viewer = names_flag(command.get_args(), "--http-listen");
+        // The lines to read, in the order the server prints them.
+        let mut wanted = vec!["esrp-server listening on "];
+        wanted.extend(with_unix.then_some("esrp-server listening on "));
+        wanted.extend(with_metrics.then_some("esrp-server metrics on "));
+        wanted.extend(with_viewer.then_some("esrp-server viewer on "));
         let program = Path::new(command.get_program()).display().to_string();
         let mut child = command.stdin(Stdio::piped()).stdout(Stdio::piped()).spawn().map_err(|e| {
             ClientError::LocalServer(format!(
                 "cannot start {program}: {e} (build it with `cargo build --release -p esrp-server`)"
             ))
         })?;
-        let mut stdout =
-            BufReader::new(child.stdout.take().ok_or_else(|| ClientError::LocalServer("no stdout".into()))?);
-        // The server's own lines start with `esrp-server `; log lines its start wrote to stdout
-        // before them (a driver's complaint while the renderer is made) are passed over.
-        let mut read_line = |prefix: &str| -> Result<String> {
-            loop {
-                let mut line = String::new();
-                let read = stdout
-                    .read_line(&mut line)
-                    .map_err(|e| ClientError::LocalServer(format!("cannot read {program}'s output: {e}")))?;
-                if let Some(value) = line.trim().strip_prefix(prefix) {
-                    return Ok(value.to_owned());
-                }
-                if read == 0 || line.starts_with("esrp-server ") {
-                    return Err(ClientError::LocalServer(format!(
-                        "{program} did not start (it printed {line:?}; its stderr says why)"
-                    )));
-                }
+        let Some(stdout) = child.stdout.take() else {
+            stop(&mut child);
+            return Err(ClientError::LocalServer("no stdout".into()));
+        };
+        // The lines are read on a thread of their own, so that a server that prints nothing
+        // cannot hold this one past `timeout`; killing it ends the thread's read.
+        let (sender, lines) = std::sync::mpsc::channel();
+        let reader_program = program.clone();
+        std::thread::spawn(move || {
+            let mut stdout = BufReader::new(stdout);
+            let values: Result<Vec<String>> =
+                wanted.iter().map(|prefix| read_value(&mut stdout, prefix, &reader_program)).collect();
+            let _ = sender.send((values, stdout));
+        });
+        let (values, stdout) = match lines.recv_timeout(timeout) {
+            Ok((Ok(values), stdout)) => (values, stdout),
+            Ok((Err(error), _)) => {
+                stop(&mut child);
+                return Err(error);
+            }
+            Err(_) => {
+                stop(&mut child);
+                return Err(ClientError::LocalServer(format!(
+                    "{program} printed no listening line within {:?}: stopped it",
+                    timeout
+                )));
             }
         };
-        let address = format!("http://{}", read_line("esrp-server listening on ")?);
-        let unix = if with_unix { Some(read_line("esrp-server listening on ")?) } else { None };
-        let metrics = if with_metrics { Some(read_line("esrp-server metrics on ")?) } else { None };
-        let viewer = if with_viewer { Some(read_line("esrp-server viewer on ")?) } else { None };
+        let mut values = values.into_iter();
+        let address = format!("http://{}", values.next().unwrap_or_default());
+        let unix = if with_unix { values.next() } else { None };
+        let metrics = if with_metrics { values.next() } else { None };
+        let viewer = if with_viewer { values.next() } else { None };
         Ok(Self { _stdin: child.stdin.take(), child, _stdout: stdout, address, unix, metrics, viewer })
     }
 
@@ -239,6 +260,38 @@ impl LocalServer {
     /// returns its status.
     pub fn wait(&mut self) -> Result<std::process::ExitStatus> {
         self.child.wait().map_err(|e| ClientError::LocalServer(format!("cannot wait for the server: {e}")))
+    }
+}
+
+/// How long [`LocalServer::spawn`] waits for the server's listening lines. A server prints them
+/// once its sockets are bound, before its dataset and renderer are checked: in well under a
+/// second, unless something is badly wrong.
+pub const START_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(60);
+
+/// Kills `child` (if it still runs) and reaps it.
+fn stop(child: &mut Child) {
+    let _ = child.kill();
+    let _ = child.wait();
+}
+
+/// The rest of the first line of `stdout` that starts with `prefix`. The server's own lines
+/// start with `esrp-server `; log lines its start wrote to stdout before them (a driver's
+/// complaint while the renderer is made) are passed over. Another `esrp-server ` line first, or
+/// the output's end, is an error: the server did not start.
+fn read_value(stdout: &mut BufReader<ChildStdout>, prefix: &str, program: &str) -> Result<String> {
+    loop {
+        let mut line = String::new();
+        let read = stdout
+            .read_line(&mut line)
+            .map_err(|e| ClientError::LocalServer(format!("cannot read {program}'s output: {e}")))?;
+        if let Some(value) = line.trim().strip_prefix(prefix) {
+            return Ok(value.to_owned());
+        }
+        if read == 0 || line.starts_with("esrp-server ") {
+            return Err(ClientError::LocalServer(format!(
+                "{program} did not start (it printed {line:?}; its stderr says why)"
+            )));
+        }
     }
 }
 

@@ -1,6 +1,6 @@
 //! Each `ClientError` variant, from a real bad request to a real server.
 
-use esrp_client::{Action, Client, ClientError, EpisodeOptions};
+use esrp_client::{Action, Client, ClientError, EpisodeOptions, LocalServer};
 
 use crate::harness::{client, start, test_scenes};
 
@@ -127,4 +127,34 @@ async fn an_empty_scene_id_is_refused_not_replaced() {
     empty(episode.reset_to_scene("").await.map(drop));
     assert_eq!(client.server_info().await.unwrap().live_episodes, 1, "no episode but the one asked for");
     episode.close().await.unwrap();
+}
+
+/// The processes whose command line is exactly `args` (Linux's /proc).
+fn processes_running(args: &[&str]) -> usize {
+    let wanted: Vec<u8> = args.iter().flat_map(|a| a.bytes().chain([0])).collect();
+    std::fs::read_dir("/proc")
+        .expect("/proc")
+        .flatten()
+        .filter(|entry| std::fs::read(entry.path().join("cmdline")).is_ok_and(|cmdline| cmdline == wanted))
+        .count()
+}
+
+/// A program that prints no listening line in time, or ends without one, is no server: the
+/// error says so, and the process is not left behind (killed, reaped).
+#[test]
+fn a_server_that_does_not_listen_is_stopped_and_said_so() {
+    let silent = ["sleep", "101.25"];
+    let mut command = std::process::Command::new(silent[0]);
+    command.arg(silent[1]);
+    let started = std::time::Instant::now();
+    let error = LocalServer::spawn_within(command, std::time::Duration::from_millis(500)).unwrap_err().to_string();
+    assert!(error.contains("printed no listening line within 500ms: stopped it"), "{error}");
+    assert!(started.elapsed() < std::time::Duration::from_secs(5));
+    assert_eq!(processes_running(&silent), 0, "the silent process was killed");
+
+    let mut command = std::process::Command::new("sh");
+    command.args(["-c", "echo 'esrp-server cannot listen'; exec sleep 102.5"]);
+    let error = LocalServer::spawn(command).unwrap_err().to_string();
+    assert!(error.contains("did not start (it printed \"esrp-server cannot listen\\n\""), "{error}");
+    assert_eq!(processes_running(&["sleep", "102.5"]), 0, "a server that said it did not start is stopped");
 }
