@@ -9,11 +9,17 @@ CRD itself, 1.1 MB of generated YAML, is not vendored); its pod templates are co
 and are validated as such. The overlay is rendered by a small kustomize subset below (resources,
 images, RFC 6902 patches), which refuses any kustomization key it does not implement, since no
 kustomize binary is installed here. Then cross-references: selectors, ports, names, the Secret.
+And against the server: every ESRP_* variable the image, compose file, manifests and
+docs/challenge.md's excerpt set is one esrp-server reads (from its sources), each artifact's
+environment parses (`esrp-server health-check` with it, where a built esrp-server is at hand), the
+termination grace outlasts the server's drain, and the volumes it writes are writable by its user.
 """
 
 from __future__ import annotations
 
 import copy
+import os
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -26,6 +32,7 @@ import pytest
 import yaml
 
 DOCKER = Path(__file__).resolve().parents[1]
+ROOT = DOCKER.parent
 K8S = DOCKER / "k8s"
 # Native gRPC probes are GA from 1.27; 1.29 is the oldest we claim, 1.37 the newest schemas shipped.
 KUBERNETES_VERSIONS = ("1.29.0", "1.37.0")
@@ -395,3 +402,148 @@ def test_the_compose_file_is_valid_and_its_replicas_have_ports_of_their_own() ->
     assert [job_env[f"ESRP_SERVER_{i}"] for i in range(len(servers))] == [
         f"http://127.0.0.1:{p}" for p in listen_ports
     ]
+
+
+# --- What the artifacts tell the server, against what it reads ---
+
+SERVER_SOURCES = [ROOT / "server/service/src" / name for name in ("config.rs", "health_check.rs")]
+# The variables esrp-server reads: one per flag (`env = "ESRP_..."`), and ESRP_LOG (the log level).
+SERVER_VARIABLES = {
+    name for path in SERVER_SOURCES for name in re.findall(r'env = "(ESRP_[A-Z0-9_]+)"', path.read_text())
+} | {"ESRP_LOG"}
+# The image's user, which owns nothing on a fresh volume.
+IMAGE_USER = 10001
+
+
+def dockerfile_env(path: Path) -> dict[str, str]:
+    """The variables a Dockerfile's ENV instructions set (`ENV A=1 \\ B=2` form)."""
+    text = re.sub(r"\\\n\s*", " ", path.read_text())
+    found: dict[str, str] = {}
+    for line in text.splitlines():
+        if line.startswith("ENV "):
+            found.update(pair.split("=", 1) for pair in line[4:].split())
+    return found
+
+
+def challenge_excerpt() -> dict[str, Any]:
+    """The pod spec excerpt of docs/challenge.md's "Containers and Kubernetes"."""
+    text = (ROOT / "docs/challenge.md").read_text()
+    section = text[text.index("### Containers and Kubernetes") :]
+    block = re.search(r"```yaml\n(.*?)```", section, re.DOTALL)
+    assert block, "docs/challenge.md: no yaml excerpt under Containers and Kubernetes"
+    excerpt: dict[str, Any] = yaml.safe_load(block.group(1))
+    return excerpt
+
+
+def challenge_statefulset() -> Resource:
+    """The base StatefulSet as docs/challenge.md tells an organiser to change it."""
+    statefulset = copy.deepcopy(by_kind(BASE, "StatefulSet"))
+    statefulset["spec"]["replicas"] = 1
+    spec, excerpt = statefulset["spec"]["template"]["spec"], challenge_excerpt()
+    spec["securityContext"].update(excerpt["securityContext"])
+    (server,) = spec["containers"]
+    (changes,) = excerpt["containers"]
+    assert changes["name"] == server["name"]
+    server["env"] = [e for e in server["env"] if e["name"] != "ESRP_TOKEN"] + changes["env"]
+    server["volumeMounts"] += changes["volumeMounts"]
+    spec["volumes"] += excerpt["volumes"]
+    return statefulset
+
+
+def test_every_server_variable_the_artifacts_set_is_one_the_server_reads() -> None:
+    assert {"ESRP_LISTEN", "ESRP_TOKEN", "ESRP_SHUTDOWN_GRACE_MS"} <= SERVER_VARIABLES  # the parse works
+    image = {n for n in dockerfile_env(DOCKER / "server.Dockerfile") if n.startswith("ESRP_")}
+    assert image == {"ESRP_LISTEN", "ESRP_SCENE_CACHE"}
+    compose = load_all(DOCKER / "compose.yaml")[0]
+    compose_servers = {
+        entry.split("=", 1)[0]
+        for name, service in compose["services"].items()
+        if name.startswith("server-")
+        for entry in service["environment"]
+    }
+    manifests = {name for r in BASE + GPU for c in containers([r]) for name in env(c)}
+    challenge = set(env(challenge_excerpt()["containers"][0]))
+    for where, names in [
+        ("server.Dockerfile", image),
+        ("compose.yaml", compose_servers),
+        ("k8s", manifests),
+        ("docs/challenge.md", challenge),
+    ]:
+        unknown = names - SERVER_VARIABLES
+        assert not unknown, f"{where} sets variables esrp-server does not read: {sorted(unknown)}"
+
+
+def server_binary() -> Path | None:
+    """The esrp-server to ask: ESRP_SERVER_BIN (scripts/docker-tests.sh), else a debug build here."""
+    for candidate in (os.environ.get("ESRP_SERVER_BIN"), ROOT / "target/debug/esrp-server"):
+        if candidate and Path(candidate).is_file():
+            return Path(candidate)
+    return None
+
+
+def resolved(settings: dict[str, Any]) -> dict[str, str]:
+    """A container's environment with a stand-in for each value from a Secret."""
+    return {
+        name: value if isinstance(value, str) else "0123456789abcdef-secret"
+        for name, value in settings.items()
+    }
+
+
+@pytest.mark.parametrize("variant", ["image", "base", "gpu", "challenge"])
+def test_the_server_accepts_the_environment_each_artifact_gives_it(variant: str) -> None:
+    """Its flags parse from these variables: `health-check` reads them as the server does, and
+    then fails only to connect (1), not on a refused value (clap's 2)."""
+    binary = server_binary()
+    if binary is None:
+        pytest.skip("no esrp-server built (cargo build -p esrp-server, or ESRP_SERVER_BIN)")
+    image = dockerfile_env(DOCKER / "server.Dockerfile")
+    container = {
+        "image": {},
+        "base": env(containers(BASE)[0]),
+        "gpu": env(containers(GPU)[0]),
+        "challenge": env(containers([challenge_statefulset()])[0]),
+    }[variant]
+    environment = {"PATH": "/usr/bin:/bin", **image, **resolved(container)}
+    result = subprocess.run(
+        [str(binary), "health-check", "127.0.0.1:1", "--timeout-ms", "2000"],
+        capture_output=True,
+        text=True,
+        env=environment,
+        timeout=60,
+    )
+    assert result.returncode == 1, result.stderr
+    assert "cannot connect" in result.stderr, result.stderr
+
+
+@pytest.mark.parametrize("variant", ["base", "gpu"])
+def test_the_termination_grace_outlasts_the_server_s_drain(variant: str) -> None:
+    pod = by_kind({"base": BASE, "gpu": GPU}[variant], "StatefulSet")["spec"]["template"]["spec"]
+    config = (ROOT / "server/service/src/config.rs").read_text()
+    default = re.search(r'env = "ESRP_SHUTDOWN_GRACE_MS", default_value_t = ([0-9_]+)', config)
+    assert default, "config.rs: ESRP_SHUTDOWN_GRACE_MS's default not found"
+    grace_ms = int(env(pod["containers"][0]).get("ESRP_SHUTDOWN_GRACE_MS", default.group(1).replace("_", "")))
+    # The drain, then closing the episodes (their records written) and stopping the renderer.
+    assert pod["terminationGracePeriodSeconds"] * 1000 >= grace_ms + 10_000
+
+
+def test_the_challenge_excerpt_fits_the_statefulset() -> None:
+    """docs/challenge.md's changes to the StatefulSet give a valid pod that can write its records."""
+    statefulset = challenge_statefulset()
+    for version in KUBERNETES_VERSIONS:
+        validate(statefulset, version)
+    spec = statefulset["spec"]["template"]["spec"]
+    settings = env(spec["containers"][0])
+    assert "ESRP_TOKENS" in settings
+    assert "ESRP_TOKEN" not in settings, "the server refuses ESRP_TOKEN with ESRP_TOKENS"
+    assert spec["securityContext"]["runAsUser"] == IMAGE_USER
+    assert spec["securityContext"]["fsGroup"] == IMAGE_USER, "the records volume must be writable"
+    mounts = {m["mountPath"]: m["name"] for m in spec["containers"][0]["volumeMounts"]}
+    claims = {v["name"] for v in spec["volumes"] if "persistentVolumeClaim" in v}
+    assert mounts[settings["ESRP_RECORDS"]] in claims, "the records on a persistent volume"
+    assert settings["ESRP_TOKENS"].startswith(next(p for p, n in mounts.items() if n == "tokens") + "/")
+
+
+def test_the_ray_head_can_write_its_results_volume() -> None:
+    assert f"USER {IMAGE_USER}:{IMAGE_USER}" in (DOCKER / "eval.Dockerfile").read_text()
+    head = ray_templates(RAYJOB)[0]["spec"]
+    assert head["securityContext"]["fsGroup"] == IMAGE_USER
