@@ -28,8 +28,10 @@ RUN apt-get update \
 # driver's Vulkan and EGL libraries (graphics) and nvidia-smi (utility); its default,
 # compute,utility, would leave the GPU invisible to the renderer. It is inert without a GPU.
 # NO_COLOR: plain log lines (no terminal escapes) in `docker logs`; ESRP_LOG_FORMAT=json for JSON.
-# ESRP_SCENE_CACHE: the user has no home; the built-in scenes are kept in /tmp (an emptyDir in the
-# Kubernetes manifests; mount a volume there to keep them across restarts).
+# ESRP_SCENE_CACHE: the user has no home; the built-in benchmark's generated scenes are kept in /tmp
+# (an emptyDir in the Kubernetes manifests; mount a volume there to keep them across restarts).
+# Only other benchmarks or seeds than esrp-bench-v2 at seed 0 generate any (tens of MB for all of
+# one benchmark's scenes): the binary holds that one's.
 ENV ESRP_LISTEN=0.0.0.0:50051 \
     ESRP_SCENE_CACHE=/tmp/esrp-scenes \
     NODEVICE_SELECT=1 \
