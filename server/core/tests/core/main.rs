@@ -4,4 +4,5 @@ mod collision;
 mod fixtures;
 mod properties;
 mod rules;
+mod spec;
 mod validation;
