@@ -316,3 +316,26 @@ fn a_rejected_motion_pays_no_potential_but_holding_still_pays_and_moving_away_co
     assert!(o.collided());
     assert_eq!((o.reward.potential, o.reward.holding, o.reward.total), (0.0, 0.01, 0.01));
 }
+
+#[test]
+fn an_ended_episode_refuses_steps_keeps_its_metrics_and_resets_to_a_running_start() {
+    let mut e = SceneBuilder::room(6.0, 6.0)
+        .agent(2.0, 2.0, 0)
+        .horizon(2)
+        .movable("box", small_box(), pose(3.0, 2.0, 0.0), pose(3.5, 2.0, 0.0))
+        .episode();
+    let fresh = e.clone();
+    step(&mut e, Action::Fetch);
+    assert!(step(&mut e, Action::MoveForward).truncated);
+    let ended = e.metrics();
+    for action in Action::ALL {
+        assert!(matches!(e.step(action), Err(EpisodeError::Finished { reason: "horizon reached", steps: 2 })));
+    }
+    assert_eq!(e.metrics(), ended);
+    assert_eq!((ended.steps, ended.stage), (2, Stage::Fetched));
+    e.reset();
+    assert!(e.same_state(&fresh));
+    assert_eq!((e.status(), e.steps(), e.held()), (EpisodeStatus::Running, 0, None));
+    assert_eq!(e.metrics(), fresh.metrics());
+    assert_eq!(step(&mut e, Action::Fetch).step_index, 1);
+}
