@@ -182,7 +182,9 @@ pub struct EpisodeMetrics {
     pub success: bool,
     /// `OSR = placed / M`.
     pub object_success_rate: f64,
-    /// `RDR = D_now / D_start`.
+    /// `RDR = D_now / D_start`; 0 when `D_start = 0` (possible only for a hand-made scene with an
+    /// object turned on its target's centre; SPEC §5 leaves `0 / 0` open), so that it is always a
+    /// number.
     pub remaining_distance_ratio: f64,
     /// Progress stage 1–4.
     pub stage: Stage,
