@@ -35,7 +35,12 @@
 //! - **Deterministic and portable.** `f64` state; headings are integers with a literal sine
 //!   table; the agent's position is its start plus integer move counts; parry is built with
 //!   `enhanced-determinism` (libm, scalar math). Same scene and same actions give bit-identical
-//!   states on every machine, and a motion followed by its inverse restores the state exactly.
+//!   states on every run, under any load, and a motion followed by its inverse restores the
+//!   state exactly. Across platforms the agent's position and heading and every collision answer
+//!   are exact; an object's footprint corners at its yaw, IoU and distances use the standard
+//!   library's `sin_cos`, `hypot` and `atan2` (the platform's maths library: glibc on Linux),
+//!   so a decision exactly at a threshold (placed, within reach) could differ in its last bit on
+//!   another one.
 //! - **Nothing panics on input.** Every scene is validated into a typed [`SceneError`] that names
 //!   the offending item before any episode exists; a rejected motion is data in the
 //!   [`StepOutcome`], not an error; the only step error is stepping a finished episode.
