@@ -198,7 +198,8 @@ fn fetch_takes_the_nearest_then_the_best_aligned_then_the_first() {
 
 #[test]
 fn fetch_reach_is_a_closest_point_distance_of_one_metre() {
-    // A 0.5 m box whose near face is exactly 1.0 m from the agent's centre: in reach.
+    // A 0.5 m box whose near face is exactly 1.0 m from the agent's centre: in reach (inclusive;
+    // 1.000001 m is not).
     let at = |x: f64| {
         SceneBuilder::room(6.0, 6.0)
             .agent(3.0, 3.0, 0)
@@ -207,12 +208,24 @@ fn fetch_reach_is_a_closest_point_distance_of_one_metre() {
     };
     let mut e = at(4.25);
     assert_eq!(step(&mut e, Action::Fetch).fetched, Some(0));
+    assert_eq!(step(&mut at(4.250001), Action::Fetch).no_op, Some(NoOpReason::NothingInReach));
     // 1.05 m: out of reach, and fetch says why.
     let mut e = at(4.3);
     let o = step(&mut e, Action::Fetch);
     assert_eq!((o.accepted, o.fetched, o.no_op), (false, None, Some(NoOpReason::NothingInReach)));
     assert_eq!(e.held(), None);
     assert_eq!(e.steps(), 1);
+
+    // A 1.2 × 0.2 m bar centred 1.5 m ahead: pointing at the agent its end is 0.9 m away (in
+    // reach); turned 90° its side is 1.4 m away (out of reach). The footprint's yaw counts.
+    let bar = |yaw: f64| {
+        SceneBuilder::room(6.0, 6.0)
+            .agent(2.0, 3.0, 0)
+            .movable("bar", vec![box_part(0.6, 0.1, 0.5)], pose(3.5, 3.0, yaw), pose(1.0, 5.0, 0.0))
+            .episode()
+    };
+    assert_eq!(bar(0.0).fetch_candidate(), Some(0));
+    assert_eq!(bar(std::f64::consts::FRAC_PI_2).fetch_candidate(), None);
 }
 
 #[test]

@@ -6,8 +6,8 @@ use esrp_core::world::{
     CAMERA_HEIGHT, CAMERA_HORIZONTAL_FOV, CAMERA_PITCH, MAX_MOVABLE_OBJECTS, MOVE_DISTANCE, ROBOT_HEIGHT, ROBOT_RADIUS,
 };
 use esrp_core::{
-    Action, CompiledScene, Difficulty, Episode, EpisodeConfig, EpisodeError, EpisodeStatus, HEADING_COUNT, NoOpReason,
-    Obstacle, RewardWeights, Rules, Stage, TURN_ANGLE, footprint_iou,
+    Action, CompiledScene, Difficulty, Episode, EpisodeConfig, EpisodeError, EpisodeStatus, HEADING_COUNT, Obstacle,
+    RewardWeights, Rules, Stage, TURN_ANGLE, footprint_iou,
 };
 
 use super::fixtures::{SceneBuilder, box_part, cylinder_part, pose, small_box};
@@ -102,30 +102,6 @@ fn a_rejected_motion_names_the_obstacle_it_meets_first() {
         .movable("board", vec![box_part(0.02, 0.4, 0.5)], pose(4.9, 2.5, 0.0), pose(1.0, 1.0, 0.0))
         .episode();
     assert_eq!(step(&mut e, Action::MoveForward).collided_with, Some(Obstacle::Movable(0)));
-}
-
-#[test]
-fn fetch_reach_is_one_metre_inclusive_to_the_oriented_footprint() {
-    // A 0.5 m box whose near face is 1.0 m from the agent's centre is in reach; 1.000001 m is not.
-    let at = |x: f64| {
-        SceneBuilder::room(6.0, 6.0)
-            .agent(3.0, 3.0, 0)
-            .movable("box", vec![box_part(0.25, 0.25, 0.5)], pose(x, 3.0, 0.0), pose(1.0, 5.0, 0.0))
-            .episode()
-    };
-    assert_eq!(step(&mut at(4.25), Action::Fetch).fetched, Some(0));
-    assert_eq!(step(&mut at(4.250001), Action::Fetch).no_op, Some(NoOpReason::NothingInReach));
-
-    // A 1.2 × 0.2 m bar centred 1.5 m ahead: pointing at the agent its end is 0.9 m away (in
-    // reach); turned 90° its side is 1.4 m away (out of reach). The footprint's yaw counts.
-    let bar = |yaw: f64| {
-        SceneBuilder::room(6.0, 6.0)
-            .agent(2.0, 3.0, 0)
-            .movable("bar", vec![box_part(0.6, 0.1, 0.5)], pose(3.5, 3.0, yaw), pose(1.0, 5.0, 0.0))
-            .episode()
-    };
-    assert_eq!(bar(0.0).fetch_candidate(), Some(0));
-    assert_eq!(bar(std::f64::consts::FRAC_PI_2).fetch_candidate(), None);
 }
 
 #[test]
