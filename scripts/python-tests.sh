@@ -127,6 +127,30 @@ else
     step "python client on Python 3.10: skipped (no python3.10 here; set PYTHON310 to test the oldest supported Python)"
 fi
 
+# LeRobot 0.4 pins torch < 2.11 and (through wandb) protobuf < 7: its export's tests run in a venv of
+# their own, which also holds the package's oldest protobuf (6.32.1), so the client's core tests
+# (calls, errors, streams, the envs) run there too, and the stub generator (grpcio-tools 1.80.1:
+# test_stubs.py). The tests fail there, rather than skip, when it lacks LeRobot or the generator.
+step "python client with LeRobot and protobuf 6 (.venv-lerobot)"
+if [ ! -x .venv-lerobot/bin/python ] || ! .venv-lerobot/bin/python -c '' >/dev/null 2>&1; then
+    rm -rf .venv-lerobot
+    "$python" -m venv .venv-lerobot
+fi
+piplr() { .venv-lerobot/bin/python -m pip --disable-pip-version-check --quiet "$@"; }
+stamp=.venv-lerobot/.esrp-requirements
+wanted="$(cat "$client/constraints-lerobot.txt" "$client/pyproject.toml" | sha256sum | cut -d' ' -f1)"
+if [ "$(cat "$stamp" 2>/dev/null)" != "$wanted" ]; then
+    piplr install hatchling -c "$client/constraints-lerobot.txt"
+    piplr install --no-build-isolation "./$client[lerobot,stubs]" pytest -c "$client/constraints-lerobot.txt"
+    echo "$wanted" >"$stamp"
+fi
+piplr install --no-build-isolation --no-deps --force-reinstall "./$client"
+.venv-lerobot/bin/python -m pip list --disable-pip-version-check --format=freeze \
+    | grep -iE '^(esrp|lerobot|torch|protobuf|grpcio|grpcio-tools)=='
+(cd "$client" && ESRP_TESTS_REQUIRE=lerobot,torch,grpc_tools ../../.venv-lerobot/bin/python -m pytest \
+    -p no:cacheprovider -q tests/test_lerobot.py tests/test_stubs.py tests/test_client.py tests/test_async.py \
+    tests/test_errors.py tests/test_stream.py tests/test_gym.py tests/test_vector.py)
+
 cd tests/python
 step "dm_env_rpc tests: ruff"
 "../../$venv/bin/ruff" check .

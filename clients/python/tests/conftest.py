@@ -3,7 +3,9 @@ client of it; a helper that waits for the server's live-episode count to settle.
 
 from __future__ import annotations
 
+import importlib
 import importlib.util
+import os
 import sys
 import time
 from collections.abc import Iterator
@@ -63,6 +65,19 @@ def child_pids(pid: int) -> list[int]:
             if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
                 found.append(int(entry.name))
     return found
+
+
+def needs(module: str, extra: str) -> ModuleType:
+    """`module`, imported; a test module that needs it is skipped where the `extra` that brings it
+    is not installed, unless `module` is named in `ESRP_TESTS_REQUIRE` (comma-separated), where its
+    absence fails the collection instead: the venvs made to run those tests set it, so that they
+    cannot pass by skipping.
+    """
+    required = {name.strip() for name in os.environ.get("ESRP_TESTS_REQUIRE", "").split(",")}
+    if module in required:
+        return importlib.import_module(module)
+    imported: ModuleType = pytest.importorskip(module, reason=f"esrp[{extra}] is not installed")
+    return imported
 
 
 def load_tool(name: str, folder: str = "tools") -> ModuleType:

@@ -13,18 +13,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import assert_same_stores
+from demo_records import export, played, write_records
 
 import esrp
 from esrp.agents import RandomAgent
 from esrp.cli import main
-from esrp.eval.evaluation import expert_trajectory
-from esrp.eval.results import SCHEMA, EpisodeRecord, scene_seed
+from esrp.eval.results import EpisodeRecord, scene_seed
 
 zarr = pytest.importorskip("zarr", reason="esrp[train] is not installed")
 
-
-def export(server: esrp.LocalServer, out: Path, *more: str) -> int:
-    return main(["demos", "export", "--server", server.address, "--out", str(out), "--no-progress", *more])
+__all__ = ["played"]  # the records fixture of demo_records, used here
 
 
 def test_the_store_holds_episodes_that_replay_to_success(
@@ -317,75 +315,6 @@ def test_dagger_and_expert_stores_are_kept_apart_and_train_together(
 
 
 # --- Recorded episodes: `esrp demos export --records`.
-
-
-def record_of(
-    client: esrp.Client, scene: str, actions: list[int], agent: str, horizon: int = 0
-) -> EpisodeRecord:
-    """The `esrp.results/v1` record of `actions` stepped on a new (non-privileged) episode of
-    `scene`, as a recording server writes it (the actions taken until the episode ended)."""
-    info = client.server_info()
-    with client.create_episode(scene, horizon=horizon) as episode:
-        taken: list[int] = []
-        metrics = None
-        for action in actions:
-            result = episode.step(action)
-            taken.append(action)
-            if result.ended:
-                metrics = result.metrics
-                break
-        end = "agent" if metrics is None else "success" if metrics.success else "horizon"
-        if metrics is None:
-            metrics = episode.close()
-        summary = episode.scene
-    return EpisodeRecord(
-        schema=SCHEMA,
-        scene_id=scene,
-        dataset=info.dataset,
-        split="test",
-        room_type=summary.room_type,
-        difficulty="easy",
-        objects=summary.movable_objects,
-        agent=agent,
-        agent_config={},
-        seed=None,
-        success=metrics.success,
-        osr=metrics.object_success_rate,
-        rdr=metrics.remaining_distance_ratio,
-        stage=metrics.stage,
-        placed=metrics.placed,
-        steps=metrics.steps,
-        horizon=horizon or summary.horizon,  # the listing says the scene's own
-        end=end,
-        total_reward=metrics.total_reward,
-        actions=taken,
-        wall_seconds=1.0,
-        agent_stats={},
-        server_version=info.version,
-        client="test_demos",
-        finished_at="2026-11-23T19:40:00Z",
-    )
-
-
-def write_records(path: Path, records: list[EpisodeRecord]) -> Path:
-    path.write_text("".join(record.to_json() + "\n" for record in records))
-    return path
-
-
-@pytest.fixture(scope="module")
-def played(client: esrp.Client, easy_scenes: list[str]) -> list[EpisodeRecord]:
-    """Three records: a person's success (the expert's actions, stepped without privilege), a
-    person's episode cut by a short horizon, and a random agent's episode it closed early."""
-    with client.create_episode(easy_scenes[0], privileged=True) as episode:
-        expert = [int(a) for a in expert_trajectory(episode.privileged_state().scene_json)]
-    rng = np.random.default_rng(3)
-    records = [
-        record_of(client, easy_scenes[0], expert, "human"),
-        record_of(client, easy_scenes[1], [int(a) for a in rng.integers(0, 6, 12)], "human", horizon=12),
-        record_of(client, easy_scenes[0], [int(a) for a in rng.integers(0, 6, 7)], "random", horizon=30),
-    ]
-    assert [r.end for r in records] == ["success", "horizon", "agent"]
-    return records
 
 
 def test_records_export_holds_each_records_steps_and_trains(

@@ -16,7 +16,7 @@ from pathlib import Path
 import gymnasium
 import numpy as np
 import pytest
-from test_demos import export, played, write_records
+from demo_records import export, played, write_records
 
 import esrp
 from esrp.eval.results import EpisodeRecord
@@ -24,7 +24,7 @@ from esrp.eval.results import EpisodeRecord
 minari = pytest.importorskip("minari", reason="esrp[minari] is not installed")
 zarr = pytest.importorskip("zarr", reason="esrp[train] is not installed")
 
-__all__ = ["played"]  # the records fixture of test_demos, used here too
+__all__ = ["played"]  # the records fixture of demo_records, used here too
 
 DATASET_ID = "esrp/esrp-bench-v2-easy/expert-v0"
 

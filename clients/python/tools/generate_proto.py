@@ -1,10 +1,12 @@
 """Generates the esrp.v1 gRPC/protobuf stubs of the Python package from proto/esrp/v1/esrp.proto.
 
 The stubs are checked in under src/esrp/v1/ and never edited by hand: run this after changing the
-proto (with the pinned grpcio-tools and mypy-protobuf of constraints.txt installed):
+proto, with the `stubs` extra's grpcio-tools and mypy-protobuf pinned by constraints-lerobot.txt
+(grpcio-tools 1.80.1, whose gencode, protobuf 6.31.1, both protobuf 6 and 7 run;
+the venv scripts/python-tests.sh makes for LeRobot, .venv-lerobot, has them):
 
-    python clients/python/tools/generate_proto.py            # rewrite src/esrp/v1/
-    python clients/python/tools/generate_proto.py --check    # fail if the checked-in copy is stale
+    .venv-lerobot/bin/python clients/python/tools/generate_proto.py            # rewrite src/esrp/v1/
+    .venv-lerobot/bin/python clients/python/tools/generate_proto.py --check    # fail if stale
 
 protoc runs with `-I proto`, so the files are named `esrp/v1/esrp.proto` in the descriptor pool (as
 on the server and in reflection) and the generated code imports `esrp.v1.esrp_pb2`, which is this
@@ -37,7 +39,10 @@ def generate(out: Path) -> dict[str, str]:
     plugins = {name: bin_dir / name for name in ("protoc-gen-mypy", "protoc-gen-mypy_grpc")}
     for path in plugins.values():
         if not path.is_file():
-            raise SystemExit(f"{path} is missing: install mypy-protobuf in this Python ({sys.executable})")
+            raise SystemExit(
+                f"{path} is missing: install the stubs extra in this Python ({sys.executable}): "
+                "pip install './clients/python[stubs]' -c clients/python/constraints-lerobot.txt"
+            )
     command = [
         sys.executable,
         "-m",

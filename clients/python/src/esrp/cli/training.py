@@ -84,21 +84,25 @@ def _add_demos_export(demo_commands: argparse._SubParsersAction[Parser]) -> None
         "--out",
         type=Path,
         required=True,
-        help="the zarr store (a folder); with --format minari, the Minari datasets root the dataset goes in",
+        help="the zarr store (a folder); with --format minari, the Minari datasets root the dataset goes "
+        "in; with --format lerobot, the LeRobot home (the dataset is the folder OUT/ID)",
     )
     export.add_argument(
         "--format",
-        choices=("zarr", "minari"),
+        choices=("zarr", "minari", "lerobot"),
         default="zarr",
         help="zarr (default): ESRP-BC's store, resumable; minari: a Minari dataset "
-        "(pip install 'esrp[minari]'), loaded with MINARI_DATASETS_PATH=OUT minari.load_dataset(ID)",
+        "(pip install 'esrp[minari]'), loaded with MINARI_DATASETS_PATH=OUT minari.load_dataset(ID); "
+        "lerobot: a LeRobot dataset (pip install 'esrp[lerobot]'), loaded with "
+        "LeRobotDataset(ID, root=OUT/ID)",
     )
     export.add_argument(
         "--dataset-id",
         metavar="ID",
-        help="--format minari: the dataset's id (default esrp/DATASET-DIFFICULTY/expert-v0 for the "
-        "train split, esrp/DATASET-SPLIT-DIFFICULTY/expert-v0 for another, esrp/DATASET/AGENT-v0 with "
-        "--records)",
+        help="--format minari or lerobot: the dataset's id (minari: default "
+        "esrp/DATASET-DIFFICULTY/expert-v0 for the train split, esrp/DATASET-SPLIT-DIFFICULTY/expert-v0 "
+        "for another, esrp/DATASET/AGENT-v0 with --records; lerobot: esrp/DATASET-DIFFICULTY-expert, "
+        "esrp/DATASET-SPLIT-DIFFICULTY-expert, esrp/DATASET-AGENT)",
     )
     export.add_argument(
         "--dagger",
@@ -289,6 +293,8 @@ def _demos(args: argparse.Namespace) -> int:
 
     if args.format == "minari":
         return _demos_minari(args, settings, sources)
+    if args.format == "lerobot":
+        return _demos_lerobot(args, settings, sources)
     try:
         import zarr  # noqa: F401 - the store's library, imported where the store is made
     except ImportError as error:
@@ -329,6 +335,26 @@ def _demos_minari(
         return [
             f"{args.out}: Minari dataset {dataset_id}, {outcome.episodes} episodes, {outcome.steps} steps "
             f"(MINARI_DATASETS_PATH={args.out} minari.load_dataset({dataset_id!r}))"
+        ]
+
+    return _export_on_server(args, export)
+
+
+def _demos_lerobot(
+    args: argparse.Namespace, settings: DemoSettings, sources: list[RecordSource] | None
+) -> int:
+    """`esrp demos export --format lerobot`."""
+    try:
+        from ..integrations.lerobot import export_lerobot
+    except ImportError as error:
+        print(f"esrp demos export: {error} (pip install 'esrp[lerobot]')", file=sys.stderr)
+        return 2
+
+    def export(client: Client) -> list[str]:
+        repo_id, outcome = export_lerobot(client, settings, args.dataset_id, sources)
+        return [
+            f"{args.out / repo_id}: LeRobot dataset {repo_id}, {outcome.episodes} episodes, "
+            f"{outcome.steps} frames (LeRobotDataset({repo_id!r}, root={str(args.out / repo_id)!r}))"
         ]
 
     return _export_on_server(args, export)
@@ -403,12 +429,16 @@ def _export_flag_conflict(args: argparse.Namespace) -> str | None:
         return f"{', '.join(records_flags)} only apply with --records"
     if args.dagger is None and dagger_flags:
         return f"{', '.join(dagger_flags)} only apply with --dagger"
-    if args.format == "minari" and args.dagger is not None:
-        return "--format minari writes demonstrations and records, not DAgger's labels (no --dagger)"
-    if args.format != "minari" and args.dataset_id is not None:
-        return "--dataset-id only applies with --format minari"
-    if args.episodes_in_flight is not None and (args.records or args.format == "minari"):
-        return "--episodes-in-flight applies to scene exports to zarr (no --records, no --format minari)"
+    if args.format != "zarr" and args.dagger is not None:
+        return f"--format {args.format} writes demonstrations and records, not DAgger's labels (no --dagger)"
+    if args.format == "zarr" and args.dataset_id is not None:
+        return "--dataset-id only applies with --format minari or lerobot"
+    if args.episodes_in_flight is not None and (args.records or args.format != "zarr"):
+        return (
+            f"--episodes-in-flight applies to scene exports to zarr (no --records, no --format {args.format})"
+            if args.format != "zarr"
+            else "--episodes-in-flight applies to scene exports to zarr (no --records)"
+        )
     return None
 
 

@@ -37,11 +37,9 @@ import dataclasses
 import os
 import shutil
 import sys
-import tempfile
 import warnings
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -54,37 +52,15 @@ from minari.namespace import create_namespace, list_local_namespaces
 
 from .._client import Client
 from .._registration import ENV_ID, register_envs
-from .._values import RewardWeights, Sensors
 from ..envs import RearrangeEnv
-from ..eval.evaluation import expert_trajectory
-from ..eval.verify import compare
-from ..train.demos import (
-    REPLAY_LABEL,
-    DemoExportError,
-    DemoSettings,
-    ExportOutcome,
-    RecordSource,
-    check_resolution,
-    pick_scenes,
-    read_sources,
-)
+from ..train.demos import DemoExportError, DemoSettings, ExportOutcome, RecordSource, check_resolution
+from ._replay import Replay, env_for, horizon_kwargs, make_staging, replay, reward_kwargs
+from ._replay import sources as replay_sources
 
 __all__ = ["CHUNK_EPISODES", "default_dataset_id", "export_minari"]
 
 CHUNK_EPISODES = 16
 """Episodes replayed, then written, at a time (a chunk of 16 Easy episodes at 128 px is ~60 MB)."""
-
-
-@dataclass(frozen=True)
-class _Source:
-    """An episode to replay: its scene, its actions, its horizon (0: the scene's) and reward weights,
-    and the record it comes from (None for an expert trajectory, read when it is played).
-    """
-
-    scene_id: str
-    horizon: int = 0
-    reward: dict[str, float] | None = None
-    record: RecordSource | None = None
 
 
 def default_dataset_id(dataset: str, settings: DemoSettings) -> str:
@@ -124,25 +100,19 @@ def export_minari(
             f"{root / dataset_id} exists: Minari datasets are never overwritten (remove it, or pass "
             "another --dataset-id)"
         )
-    episodes = _sources(client, settings, sources, info.dataset)
+    episodes = replay_sources(client, settings, sources, info.dataset)
     resolution = settings.resolution or 128
-    horizons = {source.horizon for source in episodes}
     kwargs: dict[str, Any] = {"sensors": {"resolution": resolution}}
     if not settings.records:
         kwargs.update(split=settings.split, difficulty=settings.difficulty)
-    if len(horizons) == 1 and 0 not in horizons:
-        kwargs["horizon"] = horizons.pop()
+    kwargs.update(horizon_kwargs(episodes))
     # The records' reward weights where they all played with the same (the server's default
     # otherwise), so that `recover_environment()` gives the rewards stored.
-    weights = {repr(sorted(source.reward.items())) if source.reward else None for source in episodes}
-    if len(weights) == 1 and episodes[0].reward:
-        kwargs["reward"] = dict(episodes[0].reward)
+    kwargs.update(reward_kwargs(episodes))
     register_envs()
     spec = dataclasses.replace(gymnasium.spec(ENV_ID), kwargs=kwargs)
     envs: dict[tuple[int, str], RearrangeEnv] = {}
-    root.mkdir(parents=True, exist_ok=True)
-    _remove_abandoned_staging(root)
-    staging = Path(tempfile.mkdtemp(prefix=f"{_STAGING}{os.getpid()}-", dir=root))
+    staging = make_staging(root, _STAGING)
     steps = 0
     every = max(len(episodes) // 20, 1)
     try:
@@ -151,7 +121,7 @@ def export_minari(
             for start in range(0, len(episodes), CHUNK_EPISODES):
                 chunk = episodes[start : start + CHUNK_EPISODES]
                 buffers = [
-                    _play(_env(envs, client, source, resolution, spec), source, start + k)
+                    _buffer(replay(env_for(envs, client, source, resolution, spec), source), start + k)
                     for k, source in enumerate(chunk)
                 ]
                 steps += sum(len(buffer.rewards) for buffer in buffers)
@@ -174,116 +144,17 @@ _STAGING = ".esrp-minari-"
 """The start of a staging folder's name in the datasets root, then its export's process id and `-`."""
 
 
-def _remove_abandoned_staging(root: Path) -> None:
-    """Removes the staging folders in `root` of exports whose process has gone (killed before it
-    could clean up); says which on stderr. One whose process is still running is left alone.
-    """
-    for path in root.glob(f"{_STAGING}*"):
-        pid = path.name.removeprefix(_STAGING).partition("-")[0]
-        if not path.is_dir() or not pid.isdigit():
-            continue
-        try:
-            os.kill(int(pid), 0)
-        except ProcessLookupError:
-            shutil.rmtree(path, ignore_errors=True)
-            print(f"esrp demos export: removed {path}, left by an export that was killed", file=sys.stderr)
-        except PermissionError:
-            pass  # another user's process: running
-
-
-def _sources(
-    client: Client, settings: DemoSettings, sources: Sequence[RecordSource] | None, dataset: str
-) -> list[_Source]:
-    """The episodes to replay, in order: the chosen scenes, or the chosen records."""
-    if not settings.records:
-        return [_Source(scene.id) for scene in pick_scenes(client, settings)]
-    chosen = list(sources) if sources is not None else read_sources(settings)
-    for source in chosen:
-        if source.record.dataset != dataset:
-            raise DemoExportError(
-                f"{source.where}: {source.record.scene_id}: the record is of dataset "
-                f"{source.record.dataset!r}, the server serves {dataset!r} (start a server of that dataset)"
-            )
-    return [_Source(s.record.scene_id, s.record.horizon, s.record.reward_weights, record=s) for s in chosen]
-
-
-def _env(
-    envs: dict[tuple[int, str], RearrangeEnv],
-    client: Client,
-    source: _Source,
-    resolution: int,
-    spec: gymnasium.envs.registration.EnvSpec,
-) -> RearrangeEnv:
-    """The env that replays `source` (one per horizon and reward weights), made on first use."""
-    key = (source.horizon, repr(sorted((source.reward or {}).items())))
-    env = envs.get(key)
-    if env is None:
-        env = RearrangeEnv(
-            client=client,
-            scene=source.scene_id,  # any scene: each reset names its own
-            sensors=Sensors(resolution=resolution),
-            horizon=source.horizon,
-            reward=RewardWeights(**source.reward) if source.reward else None,
-            agent=REPLAY_LABEL if source.record is not None else None,
-        )
-        env.spec = spec  # what Minari stores as the dataset's env_spec (JSON kwargs, no address)
-        envs[key] = env
-    return env
-
-
-def _play(env: RearrangeEnv, source: _Source, episode_id: int) -> EpisodeBuffer:
-    """Replays `source` on `env`: its Minari episode buffer."""
-    options = {"scene": source.scene_id}
-    observation, _ = env.reset(options=options)
-    if source.record is None:
-        with env.client.create_episode(source.scene_id, privileged=True) as episode:
-            actions = [int(a) for a in expert_trajectory(episode.privileged_state().scene_json)]
-        what = source.scene_id
-    else:
-        actions = list(source.record.record.actions)
-        what = f"{source.record.where}: {source.scene_id}"
-    observations = [observation]
-    rewards: list[float] = []
-    terminations: list[bool] = []
-    truncations: list[bool] = []
-    success = False
-    ended_after: int | None = None
-    for k, action in enumerate(actions, start=1):
-        observation, reward, terminated, truncated, info = env.step(action)
-        observations.append(observation)
-        rewards.append(float(reward))
-        terminations.append(bool(terminated))
-        truncations.append(bool(truncated))
-        if terminated or truncated:
-            success, ended_after = bool(info.get("is_success", False)), k
-            break
-    if source.record is None:
-        if ended_after is not None and ended_after != len(actions):
-            raise DemoExportError(
-                f"{what}: the episode ended after {ended_after} of its {len(actions)} actions"
-            )
-        if not success:
-            raise DemoExportError(f"{what}: the expert trajectory does not solve the scene")
-    else:
-        # The checks of `esrp verify` and of the zarr export: the same end, metrics and reward.
-        assert env.episode is not None  # reset made it
-        different = compare(source.record.record, env.episode.metrics().metrics, ended_after)
-        if different:
-            raise DemoExportError(
-                f"{what}: the replay does not reproduce the record ({'; '.join(different)}): nothing "
-                "of it was written"
-            )
-    ended = ended_after is not None
-    if not ended:
-        truncations[-1] = True  # the agent stopped: as Minari marks an episode reset before its end
+def _buffer(played: Replay, episode_id: int) -> EpisodeBuffer:
+    """Minari's episode buffer of a replayed episode."""
+    observations = played.observations
     return EpisodeBuffer(
         id=episode_id,
-        options=options,
+        options=played.options,
         observations={key: np.stack([o[key] for o in observations]) for key in observations[0]},
-        actions=np.array(actions, dtype=np.int64),
-        rewards=rewards,
-        terminations=terminations,
-        truncations=truncations,
+        actions=np.array(played.actions, dtype=np.int64),
+        rewards=played.rewards,
+        terminations=played.terminations,
+        truncations=played.truncations,
     )
 
 

@@ -5,7 +5,7 @@ import warnings
 
 from esrp.v1 import esrp_pb2 as esrp_dot_v1_dot_esrp__pb2
 
-GRPC_GENERATED_VERSION = '1.85.1'
+GRPC_GENERATED_VERSION = '1.80.1'
 GRPC_VERSION = grpc.__version__
 _version_not_supported = False
 
@@ -25,7 +25,7 @@ if _version_not_supported:
     )
 
 
-class EsrpStub:
+class EsrpStub(object):
     """The ESRP environment service.
     """
 
@@ -102,7 +102,7 @@ class EsrpStub:
                 _registered_method=True)
 
 
-class EsrpServicer:
+class EsrpServicer(object):
     """The ESRP environment service.
     """
 
@@ -287,7 +287,7 @@ def add_EsrpServicer_to_server(servicer, server):
 
 
  # This class is part of an EXPERIMENTAL API.
-class Esrp:
+class Esrp(object):
     """The ESRP environment service.
     """
 

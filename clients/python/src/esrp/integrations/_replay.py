@@ -1,0 +1,222 @@
+"""What the dataset exports of `esrp.integrations` (Minari, LeRobot) share.
+
+The episodes to write are those of the zarr export (`esrp.train.demos`): the chosen scenes'
+expert trajectories, or the records of `esrp.results/v1` files. Each is replayed through the
+Gymnasium env (`esrp.envs.RearrangeEnv`), which gives the observations a dataset stores, and
+checked: an expert trajectory must solve its scene with its last action; a record must replay to
+its own end, metrics and total reward (the checks of `esrp verify`). An export writes into a
+staging folder beside its target and moves the finished dataset into place; the staging folders of
+exports that were killed are removed by the next export into the same folder.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium
+import numpy as np
+
+from .._client import Client
+from .._values import RewardWeights, Sensors
+from ..envs import RearrangeEnv
+from ..eval.evaluation import expert_trajectory
+from ..eval.verify import compare
+from ..train.demos import REPLAY_LABEL, DemoExportError, DemoSettings, RecordSource, pick_scenes, read_sources
+
+__all__ = [
+    "Replay",
+    "Source",
+    "env_for",
+    "horizon_kwargs",
+    "make_staging",
+    "remove_abandoned_staging",
+    "replay",
+    "reward_kwargs",
+    "sources",
+]
+
+
+@dataclass(frozen=True)
+class Source:
+    """An episode to replay: its scene, its horizon (0: the scene's) and reward weights (None: the
+    server's), and the record it comes from (None for an expert trajectory, read when it is played).
+    """
+
+    scene_id: str
+    horizon: int = 0
+    reward: dict[str, float] | None = None
+    record: RecordSource | None = None
+
+
+@dataclass(frozen=True)
+class Replay:
+    """One replayed episode, as the Gymnasium env gave it.
+
+    Attributes:
+        options: The reset options that play the episode's scene again (`{"scene": SCENE_ID}`).
+        observations: The observations, one more than the actions (the last is the observation
+            after the last action).
+        actions: The actions stepped.
+        rewards: The reward of each step.
+        terminations: Whether each step solved the scene (only the last can).
+        truncations: Whether each step reached the horizon; the last is also true when the agent of
+            a record stopped before the episode ended (as Minari's DataCollector marks an episode
+            reset before its end).
+        ended: Whether the episode ended (success or the horizon) at its last step.
+        success: Whether it ended solved.
+    """
+
+    options: dict[str, str]
+    observations: list[dict[str, np.ndarray]]
+    actions: list[int]
+    rewards: list[float]
+    terminations: list[bool]
+    truncations: list[bool]
+    ended: bool
+    success: bool
+
+
+def sources(
+    client: Client, settings: DemoSettings, records: Sequence[RecordSource] | None, dataset: str
+) -> list[Source]:
+    """The episodes to replay, in order: the chosen scenes, or the chosen records (`records`, read
+    from `settings` when None), which must be of the server's `dataset`.
+    """
+    if not settings.records:
+        return [Source(scene.id) for scene in pick_scenes(client, settings)]
+    chosen = list(records) if records is not None else read_sources(settings)
+    for source in chosen:
+        if source.record.dataset != dataset:
+            raise DemoExportError(
+                f"{source.where}: {source.record.scene_id}: the record is of dataset "
+                f"{source.record.dataset!r}, the server serves {dataset!r} (start a server of that dataset)"
+            )
+    return [Source(s.record.scene_id, s.record.horizon, s.record.reward_weights, record=s) for s in chosen]
+
+
+def env_for(
+    envs: dict[tuple[int, str], RearrangeEnv],
+    client: Client,
+    source: Source,
+    resolution: int,
+    spec: gymnasium.envs.registration.EnvSpec | None = None,
+) -> RearrangeEnv:
+    """The env that replays `source`, one per horizon and reward weights, kept in `envs` (the
+    caller closes them); made on first use, with `spec` as its `spec` when given.
+    """
+    key = (source.horizon, repr(sorted((source.reward or {}).items())))
+    env = envs.get(key)
+    if env is None:
+        env = RearrangeEnv(
+            client=client,
+            scene=source.scene_id,  # any scene: each reset names its own
+            sensors=Sensors(resolution=resolution),
+            horizon=source.horizon,
+            reward=RewardWeights(**source.reward) if source.reward else None,
+            agent=REPLAY_LABEL if source.record is not None else None,
+        )
+        if spec is not None:
+            env.spec = spec
+        envs[key] = env
+    return env
+
+
+def replay(env: RearrangeEnv, source: Source) -> Replay:
+    """Replays `source` on `env` and checks it (see the module's docstring); raises
+    `DemoExportError` when the check fails.
+    """
+    options = {"scene": source.scene_id}
+    observation, _ = env.reset(options=options)
+    if source.record is None:
+        with env.client.create_episode(source.scene_id, privileged=True) as episode:
+            actions = [int(a) for a in expert_trajectory(episode.privileged_state().scene_json)]
+        what = source.scene_id
+    else:
+        actions = list(source.record.record.actions)
+        what = f"{source.record.where}: {source.scene_id}"
+    observations = [observation]
+    rewards: list[float] = []
+    terminations: list[bool] = []
+    truncations: list[bool] = []
+    success = False
+    ended_after: int | None = None
+    for k, action in enumerate(actions, start=1):
+        observation, reward, terminated, truncated, info = env.step(action)
+        observations.append(observation)
+        rewards.append(float(reward))
+        terminations.append(bool(terminated))
+        truncations.append(bool(truncated))
+        if terminated or truncated:
+            success, ended_after = bool(info.get("is_success", False)), k
+            break
+    if source.record is None:
+        if ended_after is not None and ended_after != len(actions):
+            raise DemoExportError(
+                f"{what}: the episode ended after {ended_after} of its {len(actions)} actions"
+            )
+        if not success:
+            raise DemoExportError(f"{what}: the expert trajectory does not solve the scene")
+    else:
+        assert env.episode is not None  # reset made it
+        different = compare(source.record.record, env.episode.metrics().metrics, ended_after)
+        if different:
+            raise DemoExportError(
+                f"{what}: the replay does not reproduce the record ({'; '.join(different)}): nothing "
+                "of it was written"
+            )
+    ended = ended_after is not None
+    if not ended:
+        truncations[-1] = True
+    return Replay(options, observations, actions, rewards, terminations, truncations, ended, success)
+
+
+def make_staging(root: Path, prefix: str) -> Path:
+    """A new staging folder in `root` (created if missing), named `prefix`, this process's id, `-`
+    and a random part; first removes the staging folders of `prefix` left by killed exports.
+    """
+    root.mkdir(parents=True, exist_ok=True)
+    remove_abandoned_staging(root, prefix)
+    return Path(tempfile.mkdtemp(prefix=f"{prefix}{os.getpid()}-", dir=root))
+
+
+def remove_abandoned_staging(root: Path, prefix: str) -> None:
+    """Removes the staging folders `PREFIX PID-...` in `root` whose export's process has gone
+    (killed before it could clean up); says which on stderr. One whose process is still running is
+    left alone.
+    """
+    for path in root.glob(f"{prefix}*"):
+        pid = path.name.removeprefix(prefix).partition("-")[0]
+        if not path.is_dir() or not pid.isdigit():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            shutil.rmtree(path, ignore_errors=True)
+            print(f"esrp demos export: removed {path}, left by an export that was killed", file=sys.stderr)
+        except PermissionError:
+            pass  # another user's process: running
+
+
+def reward_kwargs(episodes: Sequence[Source]) -> dict[str, Any]:
+    """`{"reward": WEIGHTS}` when every episode played with the same reward weights, which are not
+    the server's default; `{}` otherwise.
+    """
+    weights = {repr(sorted(source.reward.items())) if source.reward else None for source in episodes}
+    if len(weights) == 1 and episodes and episodes[0].reward:
+        return {"reward": dict(episodes[0].reward)}
+    return {}
+
+
+def horizon_kwargs(episodes: Sequence[Source]) -> dict[str, Any]:
+    """`{"horizon": H}` when every episode played with the same horizon H, not the scenes' own."""
+    horizons = {source.horizon for source in episodes}
+    if len(horizons) == 1 and 0 not in horizons:
+        return {"horizon": horizons.pop()}
+    return {}
