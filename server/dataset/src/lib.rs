@@ -44,7 +44,9 @@ pub mod pack;
 pub mod start;
 pub mod stats;
 
-pub use backward::{Construction, ConstructionParams, Rejection, construct, construct_run, validate_by_replay};
+pub use backward::{
+    Construction, ConstructionParams, Rejection, construct, construct_run, horizon_for, validate_by_replay,
+};
 pub use benchmark::{
     BENCH_SCENES, BENCH_V1, BENCH_V2, BenchVersion, Benchmark, DEFAULT_SEED, Generated, GenerationFailed,
     UnknownBenchmark, split_for_id,

@@ -11,7 +11,7 @@ use clap::{Parser, Subcommand};
 use esrp_dataset::files::{Dataset, MANIFEST_SCHEMA, Manifest, write_manifest, write_scene};
 use esrp_dataset::front::{ImportOptions, import};
 use esrp_dataset::stats::Stats;
-use esrp_dataset::{BenchVersion, Benchmark, DEFAULT_SEED, StartRule, check_start, validate_by_replay};
+use esrp_dataset::{BenchVersion, Benchmark, DEFAULT_SEED, StartRule, check_start, horizon_for, validate_by_replay};
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 
@@ -419,21 +419,21 @@ fn validate(dir: &Path) -> Result<bool> {
     let outcomes: Vec<(String, Result<Option<f64>, String>)> = entries
         .par_iter()
         .map(|entry| {
-            let outcome =
-                match dataset.read_scene(entry) {
-                    Err(e) => Err(e.to_string()),
-                    Ok(scene) if scene.id != entry.id => {
-                        Err(format!("the file holds scene {:?}, the manifest says {:?}", scene.id, entry.id))
-                    }
-                    Ok(scene) => validate_by_replay(&scene).map_err(|e| e.to_string()).and_then(|()| {
-                        match BenchVersion::of_scene_id(&scene.id) {
-                            Some(BenchVersion::V2) => {
-                                check_start(&scene, &rule).map(Some).map_err(|e| format!("start pose: {e}"))
-                            }
-                            _ => Ok(None),
+            let outcome = match dataset.read_scene(entry) {
+                Err(e) => Err(e.to_string()),
+                Ok(scene) if scene.id != entry.id => {
+                    Err(format!("the file holds scene {:?}, the manifest says {:?}", scene.id, entry.id))
+                }
+                Ok(scene) => validate_by_replay(&scene).map_err(|e| e.to_string()).and_then(|()| {
+                    check_horizon(&scene)?;
+                    match BenchVersion::of_scene_id(&scene.id) {
+                        Some(BenchVersion::V2) => {
+                            check_start(&scene, &rule).map(Some).map_err(|e| format!("start pose: {e}"))
                         }
-                    }),
-                };
+                        _ => Ok(None),
+                    }
+                }),
+            };
             bar.inc(1);
             (entry.id.clone(), outcome)
         })
@@ -451,6 +451,21 @@ fn validate(dir: &Path) -> Result<bool> {
         print_fallback_starts(&starts, &rule);
     }
     Ok(failures.is_empty())
+}
+
+/// The horizon rule of SPEC §5: a scene's horizon is twice its expert trajectory's length,
+/// rounded up to a multiple of 50, and at least 200 steps.
+fn check_horizon(scene: &esrp_core::Scene) -> Result<(), String> {
+    let rule = horizon_for(scene.expert_trajectory.len());
+    if scene.horizon == rule {
+        return Ok(());
+    }
+    Err(format!(
+        "horizon {} where the rule gives {rule} for an expert trajectory of {} actions (SPEC §5: twice \
+         its length, rounded up to a multiple of 50, at least 200)",
+        scene.horizon,
+        scene.expert_trajectory.len()
+    ))
 }
 
 /// Reports the esrp-bench-v2 starts that keep the rule only because no reachable pose is

@@ -130,6 +130,26 @@ fn validate_reports_a_broken_scene_and_fails() {
 }
 
 #[test]
+fn validate_checks_the_horizon_rule() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("d");
+    assert!(run(&["generate", "--out", dir.to_str().unwrap(), "--scenes", "2"]).status.success());
+    let path = dir.join("scenes/esrp-bench-v2_00001.json");
+    let mut scene: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    let steps = scene["expert_trajectory"].as_array().unwrap().len();
+    let rule = scene["horizon"].as_u64().unwrap();
+    assert_eq!(rule, ((2 * steps as u64).div_ceil(50) * 50).max(200), "the generator keeps the rule");
+    // Longer than the rule: the expert still replays, the scene is still refused.
+    scene["horizon"] = serde_json::json!(rule + 50);
+    std::fs::write(&path, scene.to_string()).unwrap();
+    let out = run(&["validate", dir.to_str().unwrap()]);
+    let t = text(&out);
+    assert!(!out.status.success(), "{t}");
+    let expected = format!("esrp-bench-v2/00001: horizon {} where the rule gives {rule}", rule + 50);
+    assert!(t.contains(&expected) && t.contains("1 of 2 scenes valid"), "{t}");
+}
+
+#[test]
 fn bad_arguments_get_clear_errors() {
     let out = run(&["generate", "--out", "/tmp/never-written", "--first", "99999"]);
     assert!(!out.status.success() && text(&out).contains("past the end"), "{}", text(&out));
