@@ -100,6 +100,9 @@ pub enum Difficulty {
 }
 
 impl Difficulty {
+    /// Every difficulty, in the order above.
+    pub const ALL: [Difficulty; 3] = [Difficulty::Easy, Difficulty::Medium, Difficulty::Hard];
+
     /// The difficulty that SPEC §5 assigns to a scene with `movable_objects` objects, if any.
     pub fn for_object_count(movable_objects: usize) -> Option<Self> {
         match movable_objects {
@@ -117,6 +120,17 @@ impl Difficulty {
             Self::Medium => "medium",
             Self::Hard => "hard",
         }
+    }
+}
+
+impl std::str::FromStr for Difficulty {
+    type Err = String;
+    /// A difficulty by its name ([`Difficulty::as_str`]).
+    fn from_str(name: &str) -> Result<Self, Self::Err> {
+        Self::ALL
+            .into_iter()
+            .find(|d| d.as_str() == name)
+            .ok_or_else(|| format!("{name:?} is not a difficulty: use easy, medium or hard"))
     }
 }
 

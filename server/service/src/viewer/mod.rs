@@ -8,7 +8,7 @@
 //! | `GET /api/episodes` | the live episodes the caller may see (its own; all for an admin) |
 //! | `GET /api/episodes/events` | the same list as a stream of server-sent events, sent when it changes |
 //! | `GET /api/episodes/{id}/watch` | frames of one episode as server-sent events, at the agent's pace |
-//! | `GET /api/scenes?split=&difficulty=&id=` | scenes to play (`id`: part of the id): `{scenes, total}`, the first 1,000 |
+//! | `GET /api/scenes?split=&difficulty=&id=` | scenes to play (`id`: part of the id; an unknown split or difficulty is 400): `{scenes, total}`, the first 1,000 |
 //! | `POST /api/play` | a new episode for the caller, driven from the page (agent `human`) |
 //! | `POST /api/episodes/{id}/step` | one action of such an episode |
 //! | `POST /api/episodes/{id}/close` | closes it |

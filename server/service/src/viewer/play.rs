@@ -5,6 +5,7 @@ use axum::Json;
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, StatusCode, header};
 use axum::response::{IntoResponse, Response};
+use esrp_core::{Difficulty, Split};
 use serde::Deserialize;
 use serde_json::{Value, json};
 
@@ -30,14 +31,16 @@ pub(super) async fn scenes(
     headers: HeaderMap,
 ) -> Result<Json<Value>, Failure> {
     caller(&viewer, &headers)?;
-    let split = q.split.filter(|s| !s.is_empty());
-    let difficulty = q.difficulty.filter(|s| !s.is_empty());
+    let bad = |e: String| Failure(StatusCode::BAD_REQUEST, e);
+    let split = q.split.filter(|s| !s.is_empty()).map(|s| s.parse::<Split>()).transpose().map_err(bad)?;
+    let difficulty =
+        q.difficulty.filter(|s| !s.is_empty()).map(|s| s.parse::<Difficulty>()).transpose().map_err(bad)?;
     let id = q.id.map(|s| s.trim().to_owned()).filter(|s| !s.is_empty());
     let infos = viewer.episodes.store.infos();
     let matching = infos
         .iter()
-        .filter(|s| split.as_deref().is_none_or(|x| x == s.split.as_str()))
-        .filter(|s| difficulty.as_deref().is_none_or(|x| x == s.difficulty.as_str()))
+        .filter(|s| split.is_none_or(|x| x == s.split))
+        .filter(|s| difficulty.is_none_or(|x| x == s.difficulty))
         .filter(|s| id.as_deref().is_none_or(|x| s.id.contains(x)));
     let mut total = 0;
     let mut list = Vec::new();

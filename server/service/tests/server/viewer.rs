@@ -63,4 +63,16 @@ async fn the_scene_list_says_how_many_match_and_narrows_by_id() {
     let found: serde_json::Value = serde_json::from_str(&text).expect("JSON");
     assert_eq!(found["total"], 1, "{found}");
     assert_eq!(found["scenes"][0]["id"], id.as_str());
+    // A split or difficulty that does not exist is refused, not answered with an empty list.
+    for (query, says) in [
+        ("split=tets", "\"tets\" is not a split: use train, test, challenge or minival"),
+        ("split=test&difficulty=EASY", "\"EASY\" is not a difficulty: use easy, medium or hard"),
+    ] {
+        let (status, text) = server.viewer_request("GET", &format!("/api/scenes?{query}"), None, "").await;
+        assert_eq!(status, 400, "{query}: {text}");
+        let error: serde_json::Value = serde_json::from_str(&text).expect("JSON");
+        assert_eq!(error["error"], says, "{query}");
+    }
+    // Empty values still mean "any".
+    assert_eq!(scenes("split=test&difficulty=").await["total"], scenes("split=test").await["total"]);
 }
