@@ -241,6 +241,9 @@ def test_watch_and_play_in_a_real_browser(viewer: esrp.LocalServer, tmp_path: Pa
                 page = browser.new_page(viewport={"width": 1400, "height": 1000})
                 page.goto(viewer.viewer_url)
                 assert page.title() == "ESRP viewer"
+                # The page carries its icon: a browser's request for /favicon.ico would find nothing.
+                icon = page.evaluate("document.querySelector('link[rel=icon]')?.href ?? ''")
+                assert icon.startswith("data:image/svg+xml,"), icon
                 page.fill("#token", "tina-secret")
                 page.click("#signin button")
                 page.wait_for_function("document.getElementById('who').textContent === 'tina (trainer)'")
