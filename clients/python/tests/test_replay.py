@@ -93,6 +93,28 @@ def test_a_record_that_does_not_replay_is_an_error(
     assert "has no record of scene 'nope'" in capsys.readouterr().err
 
 
+def test_a_record_replays_with_the_reward_weights_it_played_with(
+    server: esrp.LocalServer, client: esrp.Client, random_records: Path, tmp_path: Path
+) -> None:
+    # A server record of an episode whose client set its own weights (a living cost here) says so
+    # in `reward_weights`; its replay pays the same rewards, as `esrp verify`'s does.
+    base: EpisodeRecord = read_records(random_records).records[0]
+    weights = {"success": 10.0, "place": 1.0, "unplace": -1.0, "potential": 1.0, "holding": 0.01}
+    weights["living"] = -0.05
+    reward = esrp.RewardWeights(**weights)
+    with client.create_episode(base.scene_id, horizon=base.horizon, reward=reward) as episode:
+        for action in base.actions:
+            episode.step(action)
+        metrics = episode.close()
+    record = dataclasses.replace(base, total_reward=metrics.total_reward, reward_weights=weights)
+    assert record.total_reward != base.total_reward
+    assert replay_record(client, record, every_frame=False).metrics.total_reward == record.total_reward
+    results = tmp_path / "weighted.jsonl"
+    results.write_text(record.to_json() + "\n")
+    args = ["replay", "--results", str(results), "--scene", record.scene_id, "--out", str(tmp_path / "w.png")]
+    assert main([*args, "--server", server.address]) == 0
+
+
 def test_frames_say_what_each_step_did(client: esrp.Client, random_records: Path) -> None:
     """Frames carried a one-line caption alone: each now names its action, whether it was accepted,
     collided or had no effect, the grasp flag and the reward, and labels its three panels."""

@@ -27,7 +27,7 @@ from esrp.eval.signing import (
     signature_of,
     signed_bytes,
 )
-from esrp.eval.verify import REFUSED, _weights, manifests_beside, read_inputs, refusals
+from esrp.eval.verify import REFUSED, manifests_beside, read_inputs, refusals
 
 KEY = b"0123456789abcdef0123456789abcdef"
 WEIGHTS = {"success": 5.0, "place": 2.0, "unplace": -2.0, "potential": 0.5, "holding": 0.0, "living": -0.01}
@@ -158,7 +158,7 @@ def test_a_server_line_reads_and_writes_back_byte_for_byte() -> None:
     assert parsed.signature == signature_of(line)
     assert set(parsed.extra) == {"token", "started_at", "dataset_hash", "counted"}
     assert parsed.to_json().encode() == line
-    weights = _weights(parsed)
+    weights = parsed.played_weights()
     assert weights is not None
     assert weights.living == -0.01
     # Other tools' records have none of them, and write none.
@@ -166,7 +166,7 @@ def test_a_server_line_reads_and_writes_back_byte_for_byte() -> None:
     other = EpisodeRecord.from_dict(plain)
     assert (other.reward_weights, other.observations, other.signature) == (None, None, None)
     assert "observations" not in other.to_json()
-    assert _weights(other) is None
+    assert other.played_weights() is None
     bad: list[tuple[str, Any]] = [
         ("reward_weights", {"success": 1.0}),
         ("observations", "some"),

@@ -301,9 +301,10 @@ def replay_record(
     every_frame: bool = True,
     progress: Callable[[int, int], None] | None = None,
 ) -> Replay:
-    """Steps `record.actions` in a new privileged episode of `record.scene_id` (its horizon) on
-    `client`'s server, drawing a frame after each; checks the final metrics against the record.
-    With `every_frame=False` only the final frame is composed (a still).
+    """Steps `record.actions` in a new privileged episode of `record.scene_id` (its horizon, and
+    the reward weights a server record says it played with) on `client`'s server, drawing a frame
+    after each; checks the final metrics against the record. With `every_frame=False` only the
+    final frame is composed (a still).
     """
     info = client.server_info()
     if info.dataset != record.dataset:
@@ -316,8 +317,13 @@ def replay_record(
     notes: list[StepNote] = []
     paths = _Paths()
     try:
+        # With the reward weights it played with (a server record's), as `esrp verify` replays it.
         episode = client.create_episode(
-            record.scene_id, privileged=True, sensors=sensors, horizon=record.horizon
+            record.scene_id,
+            privileged=True,
+            sensors=sensors,
+            horizon=record.horizon,
+            reward=record.played_weights(),
         )
     except EsrpError as error:
         raise ReplayError(f"cannot create an episode of {record.scene_id!r}: {error}") from error

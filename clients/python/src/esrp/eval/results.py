@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
+from .._values import RewardWeights
+
 __all__ = [
     "DIFFICULTIES",
     "OBSERVATIONS",
@@ -48,7 +50,8 @@ DIFFICULTIES = ("easy", "medium", "hard")
 """The difficulty names, in the order tables list them."""
 
 REWARD_TERMS = ("success", "place", "unplace", "potential", "holding", "living")
-"""The members of a server record's `reward_weights`, in the order the server writes them."""
+"""The members of a server record's `reward_weights`, in the order SPEC §6 lists them (and
+`to_json` writes them; the server writes them sorted by name)."""
 
 OBSERVATIONS = ("paper", "full")
 """The values of a server record's `observations`: the paper's observation only, or everything."""
@@ -118,6 +121,12 @@ class EpisodeRecord:
     """A server record's: the HMAC-SHA256 of its line (`esrp.eval.signing`), 64 hex digits, the
     last member of the line; None in other tools' records. A record written again by `to_json`
     keeps it, but it signs the server's line, not the rewritten one."""
+
+    def played_weights(self) -> RewardWeights | None:
+        """The reward weights the episode played with, to replay it with (a server record's
+        `reward_weights`); None for records without them (the server's defaults).
+        """
+        return None if self.reward_weights is None else RewardWeights(**self.reward_weights)
 
     def to_json(self) -> str:
         """The record as one line of compact JSON (no newline), UTF-8 text as is: the schema's

@@ -39,7 +39,7 @@ from .._common import unreachable
 from .._errors import EsrpError, SceneNotFound, ServerUnavailable
 from .._local import LocalServer
 from .._signals import run_async
-from .._values import EpisodeMetrics, RewardWeights, Sensors, ServerInfo
+from .._values import EpisodeMetrics, Sensors, ServerInfo
 from ._pool import run_workers
 from .evaluation import Progress, ServerGone, server_gone
 from .manifest import MANIFEST, ChallengeScenes, load_manifest
@@ -301,13 +301,6 @@ def compare(record: EpisodeRecord, metrics: EpisodeMetrics, ended_after: int | N
     return different
 
 
-def _weights(record: EpisodeRecord) -> RewardWeights | None:
-    """The reward weights a record played with (a server record's), else None (the server's)."""
-    if record.reward_weights is None:
-        return None
-    return RewardWeights(**record.reward_weights)
-
-
 async def _replay(client: AsyncClient, record: EpisodeRecord, scene_checks: bool = False) -> list[str]:
     """Replays one record; returns what differs (nothing: it matches). Raises `ServerUnavailable`
     when the server does not answer; other errors of the server are differences. With
@@ -318,7 +311,7 @@ async def _replay(client: AsyncClient, record: EpisodeRecord, scene_checks: bool
         episode = await client.create_episode(
             record.scene_id,
             horizon=record.horizon,
-            reward=_weights(record),
+            reward=record.played_weights(),
             sensors=_SENSORS,
             agent=LABEL,
         )
