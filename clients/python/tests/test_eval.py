@@ -149,6 +149,77 @@ def test_agents_from_a_module(
             assert r.agent_stats == {"seed": r.seed, "horizon": r.horizon}
 
 
+STATS_MODULE = """
+import numpy as np
+
+import esrp
+
+
+class Counter:
+    def __init__(self, config):
+        self.steps = 0
+
+    def reset(self, observation, info):
+        pass
+
+    def act(self, observation):
+        self.steps += 1
+        return None if self.steps > 2 else esrp.Action.LEFT
+
+    def stats(self):
+        # What an agent's statistics often hold: numpy values, a mean over nothing, a tuple.
+        return {"count": np.int64(self.steps), "mean": np.float32(0.5), "loss": float("nan"),
+                "best": -np.inf, "probs": np.array([0.25, 0.75]), "pair": (1, 2)}
+
+
+def make(config):
+    return Counter(config)
+"""
+
+
+def test_agent_stats_and_configs_are_what_json_carries(
+    server: esrp.LocalServer,
+    tmp_path: Path,
+    easy_scenes: list[str],
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """An agent's stats() with numpy values or a NaN stopped the whole run with a traceback (the
+    record could not be written) and recorded nothing; `--agent-config` took NaN, which no record
+    can carry either. Stats are now written as JSON carries them (numpy as numbers and lists, NaN
+    and infinities as null), and a config JSON has no form for is refused before any episode."""
+    (tmp_path / "stats_agents.py").write_text(STATS_MODULE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    out = tmp_path / "stats.jsonl"
+    args = ["eval", "--agent", "stats_agents:make", "--scenes", ",".join(easy_scenes[:2])]
+    assert main([*args, "--out", str(out), "--server", server.address]) == 0
+    records = read_records(out).records
+    assert len(records) == 2
+    for r in records:
+        assert r.agent_stats == {
+            "count": 3,
+            "mean": 0.5,
+            "loss": None,
+            "best": None,
+            "probs": [0.25, 0.75],
+            "pair": [1, 2],
+        }
+    capsys.readouterr()
+    for config in ('{"x": NaN}', '{"x": -Infinity}'):
+        nan_out = tmp_path / "nan.jsonl"
+        with pytest.raises(SystemExit) as exited:
+            main([*args, "--agent-config", config, "--out", str(nan_out), "--server", server.address])
+        assert exited.value.code == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1, err
+        assert "--agent-config: not JSON: NaN is not a JSON value" in err or "Infinity is not" in err, err
+        assert not nan_out.exists()
+    from esrp.eval.evaluation import EvalError, EvalSettings, agent_factory
+
+    with pytest.raises(EvalError, match="is not plain JSON"):
+        agent_factory(EvalSettings("stats_agents:make", out, agent_config={"x": float("nan")}))
+
+
 def test_a_privileged_run_of_an_agent_is_marked_and_reported_as_such(
     server: esrp.LocalServer,
     tmp_path: Path,

@@ -10,7 +10,8 @@ agent configuration, so instances never see two episodes at once:
     factory(config: dict[str, Any]) -> Agent | AsyncAgent
 
 `config` is `--agent-config` (a JSON object, `{}` by default); it is recorded as `agent_config`.
-An agent may define `stats() -> dict` (recorded as `agent_stats` at the end of its episode).
+An agent may define `stats() -> dict` (recorded as `agent_stats` at the end of its episode, as JSON
+carries it: numpy values as numbers and lists, NaN and infinities as null).
 
 The same agents play the Gymnasium env (`esrp/Rearrange-v1`) through `as_observation`, which
 makes the env's observation dict an `Observation` (no copy):

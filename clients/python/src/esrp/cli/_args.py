@@ -93,10 +93,15 @@ def positive_float(text: str) -> float:
     return value
 
 
+def _no_constant(name: str) -> object:
+    """`NaN`, `Infinity` and `-Infinity`, which Python's json reads but JSON has not."""
+    raise ValueError(f"{name} is not a JSON value")
+
+
 def json_object(text: str) -> dict[str, object]:
     """A JSON object (`--agent-config`)."""
     try:
-        value = json.loads(text)
+        value = json.loads(text, parse_constant=_no_constant)
     except ValueError as error:
         raise argparse.ArgumentTypeError(f"not JSON: {error}") from None
     if not isinstance(value, dict):

@@ -19,6 +19,7 @@ import contextlib
 import dataclasses
 import inspect
 import json
+import math
 import sys
 import time
 import traceback
@@ -27,6 +28,8 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import IO, Any
+
+import numpy as np
 
 from .. import __version__
 from .._async_client import AsyncClient, AsyncEpisode
@@ -341,8 +344,28 @@ async def _play_agent(
             break
         observation = dataclasses.replace(result.observation, goal_rgb=goal)
     stats_method = getattr(agent, "stats", None)
-    stats = dict(stats_method()) if callable(stats_method) else {}
+    stats = as_json(dict(stats_method()), "its stats()") if callable(stats_method) else {}
     return actions, metrics, stats
+
+
+def as_json(value: Any, where: str) -> Any:  # noqa: ANN401 - free-form agent statistics
+    """`value` as a record can carry it: numpy scalars and arrays as numbers and lists, tuples as
+    lists, and numbers JSON has no form for (NaN, infinities) as null. Raises `TypeError` naming
+    `where` for anything else JSON cannot carry (an episode that fails, not a run that stops).
+    """
+    if value is None or isinstance(value, (bool, str, int)):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, (np.generic, np.ndarray)):
+        return as_json(value.tolist(), where)
+    if isinstance(value, (list, tuple)):
+        return [as_json(v, where) for v in value]
+    if isinstance(value, Mapping):
+        if not all(isinstance(key, str) for key in value):
+            raise TypeError(f"the agent's {where} has keys that are not strings: {list(value)!r}")
+        return {key: as_json(v, where) for key, v in value.items()}
+    raise TypeError(f"the agent's {where} holds a {type(value).__name__}, which a record cannot carry")
 
 
 async def _play(
@@ -377,10 +400,24 @@ async def _play(
     return _Played(episode.scene, metrics if metrics is not None else closed, actions, end, stats)
 
 
+def check_config(config: Mapping[str, Any]) -> None:
+    """Raises `EvalError` unless `config` (a record's `agent_config`) is plain JSON: every record
+    carries it, so a value JSON has no form for (NaN, an object) is refused before any episode.
+    """
+    try:
+        json.dumps(config, allow_nan=False)
+    except (TypeError, ValueError) as error:
+        raise EvalError(
+            f"the agent config {config!r} is not plain JSON, which records carry: {error}"
+        ) from None
+
+
 def agent_factory(settings: EvalSettings) -> AgentFactory | None:
     """The factory of `settings.agent`'s agents; None for the server-driven `expert` and `plan`.
-    Raises `EvalError` when a named module or callable cannot be loaded, or the vlm config is bad.
+    Raises `EvalError` when a named module or callable cannot be loaded, or the config is bad (one
+    the agent does not take, or one that is not plain JSON: `check_config`).
     """
+    check_config(settings.recorded_config())
     return make_factory(settings.agent, settings.agent_config, settings.out)
 
 
