@@ -147,6 +147,36 @@ def test_bad_lines_and_unknown_fields(tmp_path: Path) -> None:
     assert only.osr == 1.0
 
 
+# Lines every reader refuses, the Rust tools' too (test_rust_interop.py): Python's json read the
+# first ones (NaN, Infinity) and the out-of-range integers, which the Rust reader refuses.
+NOT_RECORDS = [
+    ('"rdr":0.0', '"rdr":NaN', "NaN is not a JSON number"),
+    ('"agent_stats":{}', '"agent_stats":{"loss":-Infinity}', "-Infinity is not a JSON number"),
+    ('"steps":10', '"steps":-10', "field 'steps' is -10, not an integer 0..4294967295"),
+    ('"objects":1', '"objects":4294967296', "field 'objects' is 4294967296"),
+    ('"seed":3', '"seed":18446744073709551616', "field 'seed' is 18446744073709551616"),
+    ('"seed":3', '"seed":-1', "field 'seed' is -1, not an integer 0..18446744073709551615"),
+    ('"actions":[0,0,0,0,0,0,0,0,0,0]', '"actions":[0,0,0,0,0,0,0,0,0,6]', "action codes 0..5"),
+]
+
+
+def test_numbers_json_has_not_and_integers_out_of_range_are_refused(tmp_path: Path) -> None:
+    good = record("a", "easy", False, 0.0, 0.0, 1).to_json()
+    path = tmp_path / "r.jsonl"
+    for old, new, why in NOT_RECORDS:
+        assert old in good, old
+        path.write_text(good.replace(old, new) + "\n" + good + "\n")
+        with pytest.raises(ResultsError, match=":1: not an esrp.results/v1 record: ") as error:
+            read_records(path)
+        assert why in str(error.value), (new, str(error.value))
+    # The largest values are records.
+    path.write_text(
+        good.replace('"seed":3', f'"seed":{2**64 - 1}').replace('"steps":10', f'"steps":{2**32 - 1}') + "\n"
+    )
+    (only,) = read_records(path).records
+    assert (only.seed, only.steps) == (2**64 - 1, 2**32 - 1)
+
+
 def test_lines_that_are_not_objects_and_what_a_dropped_last_line_was(tmp_path: Path) -> None:
     """A line of JSON that is not an object (`[1]`, `3`) is a bad line like any other (it raised
     AttributeError); a dropped last line says why it was dropped and whether it was whole."""

@@ -57,6 +57,7 @@ OBSERVATIONS = ("paper", "full")
 """The values of a server record's `observations`: the paper's observation only, or everything."""
 
 _U64 = (1 << 64) - 1
+_U32 = (1 << 32) - 1
 
 
 def fnv1a64(text: str) -> int:
@@ -164,6 +165,9 @@ class EpisodeRecord:
             if not _is(value, kinds):
                 raise ValueError(f"field {name!r} is {value!r}, not {' or '.join(k.__name__ for k in kinds)}")
             values[name] = float(value) if float in kinds and not isinstance(value, bool) else value
+            limit = _INT_LIMITS.get(name)
+            if limit is not None and value is not None and not 0 <= value <= limit:
+                raise ValueError(f"field {name!r} is {value!r}, not an integer 0..{limit}")
         if not all(isinstance(a, int) and not isinstance(a, bool) and 0 <= a <= 5 for a in values["actions"]):
             raise ValueError("field 'actions' holds something other than action codes 0..5")
         weights = data.get("reward_weights")
@@ -220,6 +224,10 @@ _FIELD_TYPES: dict[str, tuple[type, ...]] = {
 }
 
 
+_INT_LIMITS = {"objects": _U32, "stage": _U32, "placed": _U32, "steps": _U32, "horizon": _U32, "seed": _U64}
+"""The integer fields' ranges, as every tool reads them (the Rust tools' `u32` and `u64`)."""
+
+
 _SERVER_FIELDS = ("reward_weights", "observations")
 """The typed fields of a server record written after `counted` (then `signature`, last)."""
 
@@ -272,6 +280,11 @@ class ReadRecords:
         return f"{path}:{self.torn_line}: its last line is not an {SCHEMA} record ({self.torn_reason})"
 
 
+def _not_json(name: str) -> float:
+    """`NaN`, `Infinity` and `-Infinity`: Python's json reads them, JSON (and the Rust tools) do not."""
+    raise ValueError(f"{name} is not a JSON number")
+
+
 def read_records(path: str | os.PathLike[str]) -> ReadRecords:
     """Reads a results file. A last line that does not parse (an interrupted write), or that lacks
     its newline, is reported in `torn_tail`, not an error; any other bad line raises
@@ -288,7 +301,7 @@ def read_records(path: str | os.PathLike[str]) -> ReadRecords:
                 out.complete_bytes += len(raw)
             continue
         try:
-            record = EpisodeRecord.from_dict(json.loads(text.decode()))
+            record = EpisodeRecord.from_dict(json.loads(text.decode(), parse_constant=_not_json))
         except (ValueError, TypeError) as error:
             if number == len(lines):  # only the last line may be torn
                 out.torn_tail, out.torn_line, out.torn_whole = True, number, complete
