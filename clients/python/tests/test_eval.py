@@ -396,6 +396,55 @@ def test_resume_after_an_interrupted_run_gives_the_same_file(
     )
 
 
+def test_a_run_with_another_seed_does_not_resume_the_file(
+    server: esrp.LocalServer, tmp_path: Path, easy_scenes: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A random run resumed with another --seed appended its episodes to the first seed's: one
+    file of two runs, which no rerun reproduces. The records' per-scene seeds say the base seed."""
+    out = tmp_path / "random.jsonl"
+    args = ["eval", "--agent", "random", "--server", server.address, "--out", str(out), "--no-progress"]
+    assert main([*args, "--seed", "3", "--scenes", easy_scenes[0]]) == 0
+    written = out.read_bytes()
+    capsys.readouterr()
+    assert main([*args, "--seed", "4", "--scenes", ",".join(easy_scenes[:2])]) == 2
+    err = capsys.readouterr().err
+    expected = f"esrp eval: {out} holds results of agent 'random' played with --seed 3, not 4: "
+    assert err.endswith(expected + "write to another --out, or pass --fresh to start it over\n"), err
+    assert out.read_bytes() == written
+    assert main([*args, "--seed", "3", "--scenes", ",".join(easy_scenes[:2])]) == 0
+    assert len(read_records(out).records) == 2
+
+
+def test_a_file_of_one_line_without_its_newline_is_not_cut_off(
+    server: esrp.LocalServer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`esrp eval --out` a file whose only line lacks its newline (a JSON file as json.dump writes
+    it, given by mistake) took that line for a record cut short by an interruption and cut it off:
+    the file was lost. Only a last line that begins as a record line does is such a cut."""
+    config = tmp_path / "config.json"
+    config.write_text(json.dumps({"learning_rate": 0.001, "epochs": 100}))
+    before = config.read_bytes()
+    capsys.readouterr()
+    args = ["eval", "--agent", "random", "--limit", "1", "--server", server.address, "--no-progress"]
+    assert main([*args, "--out", str(config)]) == 2
+    err = capsys.readouterr().err.splitlines()[-1]
+    assert err.startswith(f"esrp eval: {config}:1: its last line is not an esrp.results/v1 record ("), err
+    assert config.read_bytes() == before
+    # The commands that read results say the same in one line (it was "no records", line skipped).
+    assert main(["report", str(config), "--out", str(tmp_path / "report")]) == 2
+    assert capsys.readouterr().err == (
+        f"esrp report: {config}:1: not an esrp.results/v1 record: schema is None, not 'esrp.results/v1'\n"
+    )
+    # A record cut short is still what an interruption leaves: dropped, and the run resumes.
+    out = tmp_path / "cut.jsonl"
+    assert main([*args, "--out", str(out)]) == 0
+    line = out.read_bytes()
+    out.write_bytes(line[: len(line) // 3])
+    assert main([*args, "--out", str(out)]) == 0
+    assert "dropping a last line an interruption cut short" in capsys.readouterr().err
+    assert len(read_records(out).records) == 1
+
+
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
 def test_sigterm_unwinds_the_command_and_stops_its_server(tmp_path: Path) -> None:
     out = tmp_path / "random.jsonl"

@@ -65,6 +65,7 @@ from .results import (
     Summary,
     Tally,
     append_record,
+    fnv1a64,
     read_records,
     scene_seed,
     truncate_to,
@@ -646,7 +647,8 @@ def open_results(settings: EvalSettings, scenes: Sequence[SceneSummary]) -> Resu
     if settings.fresh and out.exists():
         out.unlink()
     out.parent.mkdir(parents=True, exist_ok=True)
-    records = resume_records(out, settings.agent, settings.recorded_config(), privileged_mark(settings))
+    seed = settings.seed if settings.seeded() else None
+    records = resume_records(out, settings.agent, settings.recorded_config(), privileged_mark(settings), seed)
     done = {r.scene_id for r in records}
     wanted = {s.id for s in scenes}
     earlier = sum(1 for r in records if r.scene_id in wanted)
@@ -658,13 +660,20 @@ def open_results(settings: EvalSettings, scenes: Sequence[SceneSummary]) -> Resu
 
 
 def resume_records(
-    path: Path, agent: str, config: dict[str, Any], mark: Mapping[str, Any] | None = None
+    path: Path,
+    agent: str,
+    config: dict[str, Any],
+    mark: Mapping[str, Any] | None = None,
+    seed: int | None = None,
 ) -> list[EpisodeRecord]:
     """What an earlier run wrote (a torn last line is cut off first). Refuses a file of another
     agent, or of the same agent with other settings (another model, budget, ...): one file, one run;
     and a file whose last line is whole (it ends with its newline) but not a record, which no
     interrupted write leaves (it is not cut off). `mark`: the run's `privileged_mark`, which the
-    file's records must carry too (a privileged run and another are not mixed).
+    file's records must carry too (a privileged run and another are not mixed). `seed`: the base
+    seed of a run whose agent draws random numbers (None for one that draws none): the file's
+    records must have played with it (their per-scene seeds say so), and have been written by
+    this tool, whose random numbers differ from the Rust `esrp-eval`'s for the same seed.
     """
     if not path.exists():
         return []
@@ -690,6 +699,8 @@ def resume_records(
                 f"{path} holds results of agent {agent!r} with other settings ({record.agent_config}, not "
                 f"{config}): write to another --out, or pass --fresh to start it over"
             )
+        if seed is not None:
+            _check_seed(path, agent, record, seed)
         if bool(record.extra.get("privileged")) != bool((mark or {}).get("privileged")):
             had = "privileged" if record.extra.get("privileged") else "not privileged"
             raise EvalError(
@@ -697,6 +708,29 @@ def resume_records(
                 "write to another --out, or pass --fresh to start it over"
             )
     return read.records
+
+
+def _tool(client: str) -> str:
+    """The tool of a record's `client`, without its version: `esrp eval (Python)`, `esrp-eval`."""
+    name, _, version = client.rpartition(" ")
+    return name if name and version[:1].isdigit() else client
+
+
+def _check_seed(path: Path, agent: str, record: EpisodeRecord, seed: int) -> None:
+    """Raises `EvalError` unless `record` was played by this tool with base seed `seed`."""
+    again = "write to another --out, or pass --fresh to start it over"
+    if record.seed is None:
+        raise EvalError(f"{path} holds results of agent {agent!r} without a seed, unlike this run: {again}")
+    if _tool(record.client) != _tool(CLIENT_NAME):
+        raise EvalError(
+            f"{path} holds results of agent {agent!r} written by {record.client}, whose random numbers "
+            f"differ from {_tool(CLIENT_NAME)}'s for the same seed: {again}"
+        )
+    base = record.seed ^ fnv1a64(record.scene_id)
+    if base != seed % (1 << 64):  # scene_seed's 64 bits
+        raise EvalError(
+            f"{path} holds results of agent {agent!r} played with --seed {base}, not {seed}: {again}"
+        )
 
 
 def _running(tally: Tally) -> str:

@@ -25,6 +25,7 @@ __all__ = [
     "PAPER_DATASET",
     "PAPER_TEST_SCENES",
     "PRIVILEGED_AGENTS",
+    "RECORD_START",
     "REWARD_TERMS",
     "SCHEMA",
     "EpisodeRecord",
@@ -36,6 +37,7 @@ __all__ = [
     "append_record",
     "fnv1a64",
     "load_records",
+    "may_be_cut_record",
     "no_records",
     "read_records",
     "scene_seed",
@@ -253,10 +255,12 @@ class ReadRecords:
         torn_line: The number (1-based) of that last line; 0 when there is none.
         torn_reason: Why it was dropped: `no newline` (a record whose write stopped right before
             its newline), or why it is not a record (JSON or schema error); empty when none.
-        torn_whole: Whether that line ends with its newline. An interrupted append never leaves
-            one (the newline is the last byte written), so such a line is not a torn write but a
-            line of something else: `esrp eval` refuses to cut it off, and `load_records` (the
-            commands' input) refuses it.
+        torn_whole: Whether that line is not what an interrupted append leaves: it ends with its
+            newline (the last byte an append writes), or it does not begin as every tool's record
+            line begins (`{"schema":"esrp.results/v1"`, spaces aside; a one-line JSON file of
+            something else often lacks its newline). Such a line is not a torn write but a line of
+            something else: `esrp eval` refuses to cut it off, and `load_records` (the commands'
+            input) refuses it.
     """
 
     records: list[EpisodeRecord] = field(default_factory=list)
@@ -280,6 +284,18 @@ class ReadRecords:
         return f"{path}:{self.torn_line}: its last line is not an {SCHEMA} record ({self.torn_reason})"
 
 
+RECORD_START = b'{"schema":"esrp.results/v1"'
+"""How every tool's record line begins (the Rust tools', Python's and the server's)."""
+
+
+def may_be_cut_record(line: bytes) -> bool:
+    """Whether `line`, a last line without its newline, may be a record whose append was cut short:
+    it begins as a record line does (`RECORD_START`, spaces aside), or is a beginning of that.
+    """
+    squeezed = line.translate(None, b" \t\r\n")
+    return squeezed.startswith(RECORD_START) or RECORD_START.startswith(squeezed)
+
+
 def _not_json(name: str) -> float:
     """`NaN`, `Infinity` and `-Infinity`: Python's json reads them, JSON (and the Rust tools) do not."""
     raise ValueError(f"{name} is not a JSON number")
@@ -287,8 +303,8 @@ def _not_json(name: str) -> float:
 
 def read_records(path: str | os.PathLike[str]) -> ReadRecords:
     """Reads a results file. A last line that does not parse (an interrupted write), or that lacks
-    its newline, is reported in `torn_tail`, not an error; any other bad line raises
-    `ResultsError`. Blank lines are skipped.
+    its newline, is reported in `torn_tail`, not an error (`torn_whole` says whether it cannot be
+    an interrupted write); any other bad line raises `ResultsError`. Blank lines are skipped.
     """
     out = ReadRecords()
     with open(path, "rb") as file:
@@ -304,7 +320,8 @@ def read_records(path: str | os.PathLike[str]) -> ReadRecords:
             record = EpisodeRecord.from_dict(json.loads(text.decode(), parse_constant=_not_json))
         except (ValueError, TypeError) as error:
             if number == len(lines):  # only the last line may be torn
-                out.torn_tail, out.torn_line, out.torn_whole = True, number, complete
+                whole = complete or not may_be_cut_record(raw)
+                out.torn_tail, out.torn_line, out.torn_whole = True, number, whole
                 out.torn_reason = str(error) or type(error).__name__
                 break
             raise ResultsError(f"{path}:{number}: not an {SCHEMA} record: {error}") from None
