@@ -1,8 +1,9 @@
 """`esrp demos export --format lerobot` against the real server: LeRobot's own loader reads the
 dataset; its frames are what the Gymnasium env gives when the episode is played again from the
 scene and actions the dataset names (views, goal, grasp flag, action, reward, ends), and torch's
-DataLoader batches them. Records export with their ends as they were, and bad input is refused in
-one line, leaving nothing behind.
+DataLoader batches them. Records export with their ends as they were and their own reward weights'
+rewards; bad input is refused in one line, before anything is replayed where it can be, and a
+signal stops an export (130, 143): both leave nothing behind.
 
 LeRobot 0.4 needs protobuf < 7 and torch < 2.11: these tests run in their own venv
 (`.venv-lerobot`, made by scripts/python-tests.sh), and skip where the `lerobot` extra is not
@@ -14,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -169,9 +171,48 @@ def test_bad_input_is_refused_and_leaves_nothing(
     assert "(no --records, no --format lerobot)" in capsys.readouterr().err
     assert export(server, out, "--dataset-id", "a/b", *one) == 2
     assert "--dataset-id only applies with --format minari or lerobot" in capsys.readouterr().err
+    assert export(server, out, "--format", "lerobot", "--dataset-id", "", *one) == 2  # not the default
+    assert "--dataset-id '': a LeRobot dataset's id is NAMESPACE/NAME" in capsys.readouterr().err
+    assert export(server, out, "--format", "lerobot", "--dataset-id", "a/b/c", *one) == 2
+    assert "--dataset-id 'a/b/c': a LeRobot dataset's id is NAMESPACE/NAME\n" in capsys.readouterr().err
     # Only the first dataset is there: no staging folder is left behind.
     assert [p.name for p in out.iterdir()] == ["esrp"]
     assert [p.name for p in (out / "esrp").iterdir()] == ["esrp-bench-v2-test-easy-expert"]
+
+
+def test_an_out_or_a_namespace_that_is_a_file_is_refused_before_anything_is_replayed(
+    server: esrp.LocalServer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    one = ["--split", "test", "--difficulty", "easy", "--limit", "1", "--resolution", "16"]
+    mine = tmp_path / "mine.txt"
+    mine.write_text("mine\n")
+    assert export(server, mine, "--format", "lerobot", *one) == 2
+    assert capsys.readouterr().err == f"esrp demos export: --out {mine} is a file, not a folder\n"
+    # The id's namespace is a file in --out: said at once, not once every episode has been replayed.
+    out = tmp_path / "home"
+    out.mkdir()
+    (out / "esrp").write_text("mine\n")
+    assert export(server, out, "--format", "lerobot", *one) == 2
+    assert f"{out / 'esrp'} is a file: the dataset cannot go in it" in capsys.readouterr().err
+    assert mine.read_text() == (out / "esrp").read_text() == "mine\n"
+    assert [p.name for p in out.iterdir()] == ["esrp"]
+
+
+def test_a_default_id_that_is_no_repository_id_asks_for_one(
+    server: esrp.LocalServer, played: list[EpisodeRecord], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The records of `esrp eval --agent MODULE:CALLABLE` carry that name, which no repository id holds.
+    agent = "my_agents.policy:make"
+    records = write_records(tmp_path / "mine.jsonl", [dataclasses.replace(played[0], agent=agent)])
+    out = tmp_path / "home"
+    assert export(server, out, "--format", "lerobot", "--records", str(records), "--agent", agent) == 2
+    err = capsys.readouterr().err
+    assert f"the default id 'esrp/esrp-bench-v2-{agent}': " in err, err
+    assert err.endswith(" (pass --dataset-id NAMESPACE/NAME)\n"), err
+    assert "--dataset-id 'esrp" not in err
+    mine = ["--records", str(records), "--agent", agent, "--dataset-id", "me/policy"]
+    assert export(server, out, "--format", "lerobot", *mine) == 0
+    assert LeRobotDataset("me/policy", root=out / "me" / "policy").num_episodes == 1
 
 
 def test_a_record_that_does_not_replay_is_refused_and_nothing_is_written(
@@ -184,6 +225,16 @@ def test_a_record_that_does_not_replay_is_refused_and_nothing_is_written(
     assert export(server, out, "--format", "lerobot", "--records", str(records)) == 2
     err = capsys.readouterr().err
     assert f"{records}:2: {played[1].scene_id}: the replay does not reproduce the record (total_reward" in err
+    assert list(out.iterdir()) == []
+    # A record of a scene the server does not serve: the record is named, in one line.
+    elsewhere = dataclasses.replace(played[1], scene_id="esrp-bench-v2/99999")
+    records = write_records(tmp_path / "elsewhere.jsonl", [played[0], elsewhere])
+    assert export(server, out, "--format", "lerobot", "--records", str(records)) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(
+        f"esrp demos export: {records}:2: esrp-bench-v2/99999: the replay failed: SceneNotFound"
+    )
+    assert err.count("\n") == 1, err
     assert list(out.iterdir()) == []
 
 
@@ -203,3 +254,53 @@ def test_the_staging_folder_of_a_killed_export_is_removed_by_the_next(
     assert f"removed {stale}, left by an export that was killed" in capsys.readouterr().err
     assert not stale.exists()
     assert running.exists()
+
+
+def test_a_records_reward_weights_give_its_rewards(
+    server: esrp.LocalServer, client: esrp.Client, played: list[EpisodeRecord], tmp_path: Path
+) -> None:
+    weights = {"success": 10.0, "place": 1.0, "unplace": -1.0, "potential": 1.0, "holding": 0.01}
+    weights["living"] = -0.05
+    base = played[2]  # a random agent's episode, closed before it ended
+    with client.create_episode(
+        base.scene_id, horizon=base.horizon, reward=esrp.RewardWeights(**weights)
+    ) as episode:
+        rewards = [episode.step(action).reward for action in base.actions]
+        metrics = episode.close()
+    record = dataclasses.replace(base, total_reward=metrics.total_reward, reward_weights=weights)
+    assert record.total_reward != base.total_reward
+    records = write_records(tmp_path / "weighted.jsonl", [record])
+    out = tmp_path / "home"
+    assert export(server, out, "--format", "lerobot", "--records", str(records), "--resolution", "16") == 0
+    folder = out / "esrp" / "esrp-bench-v2-records"
+    frames = frames_of(LeRobotDataset("esrp/esrp-bench-v2-records", root=folder), 0)
+    assert [float(frame["next.reward"]) for frame in frames] == pytest.approx(rewards, abs=1e-6)
+    assert sidecar(folder)["env"]["kwargs"] == {
+        "sensors": {"resolution": 16},
+        "horizon": base.horizon,
+        "reward": weights,
+    }
+
+
+@pytest.mark.parametrize(
+    ("sent", "status", "said"), [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated")]
+)
+def test_a_signal_stops_the_export_and_leaves_nothing(
+    server: esrp.LocalServer, tmp_path: Path, sent: signal.Signals, status: int, said: str
+) -> None:
+    out = tmp_path / "home"
+    command = [sys.executable, "-m", "esrp.cli", "demos", "export", "--format", "lerobot"]
+    command += ["--server", server.address, "--split", "train", "--difficulty", "easy", "--limit", "20"]
+    command += ["--resolution", "16", "--out", str(out)]
+    child = subprocess.Popen(
+        command, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+    )
+    assert child.stderr is not None
+    first = child.stderr.readline()  # the first episode's progress line: the dataset is being written
+    assert first.startswith(b"1/20 episodes, "), first + child.communicate(timeout=60)[1]
+    assert [path.name.startswith(".esrp-lerobot-") for path in out.iterdir()] == [True]
+    child.send_signal(sent)
+    _, err = child.communicate(timeout=60)
+    assert child.returncode == status, err
+    assert err.decode().endswith(f"esrp demos: {said}\n"), err
+    assert list(out.iterdir()) == []  # no dataset, no staging folder

@@ -130,6 +130,13 @@ def test_bad_input_is_refused_and_leaves_nothing(
     # Only the first dataset and its namespace are there: no staging folder is left behind.
     assert sorted(p.name for p in datasets_root.iterdir()) == ["esrp"]
     assert list(minari.list_local_datasets()) == ["esrp/esrp-bench-v2-test-easy/expert-v0"]
+    # A namespace that is a file in the root: said at once, not after every episode's replay.
+    other = datasets_root.parent / "other"
+    other.mkdir()
+    (other / "esrp").write_text("mine\n")
+    assert export(server, other, "--format", "minari", *one) == 2
+    assert f"{other / 'esrp'} is a file: the dataset cannot go in it" in capsys.readouterr().err
+    assert [p.name for p in other.iterdir()] == ["esrp"]
 
 
 def test_a_relative_out_is_the_folder_under_the_working_directory(

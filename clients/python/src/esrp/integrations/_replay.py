@@ -24,6 +24,7 @@ import gymnasium
 import numpy as np
 
 from .._client import Client
+from .._errors import EsrpError
 from .._values import RewardWeights, Sensors
 from ..envs import RearrangeEnv
 from ..eval.evaluation import expert_trajectory
@@ -33,6 +34,7 @@ from ..train.demos import REPLAY_LABEL, DemoExportError, DemoSettings, RecordSou
 __all__ = [
     "Replay",
     "Source",
+    "check_target",
     "env_for",
     "horizon_kwargs",
     "make_staging",
@@ -130,17 +132,25 @@ def env_for(
 
 def replay(env: RearrangeEnv, source: Source) -> Replay:
     """Replays `source` on `env` and checks it (see the module's docstring); raises
-    `DemoExportError` when the check fails.
+    `DemoExportError` naming the episode (its scene, and a record's `FILE:LINE`) when the check
+    fails or the server refuses the replay (a record of a scene it does not serve).
     """
+    what = source.scene_id if source.record is None else f"{source.record.where}: {source.scene_id}"
+    try:
+        return _replay(env, source, what)
+    except EsrpError as error:  # a record's scene the server does not serve, a server gone...
+        raise DemoExportError(f"{what}: the replay failed: {type(error).__name__}: {error.message}") from None
+
+
+def _replay(env: RearrangeEnv, source: Source, what: str) -> Replay:
+    """`replay`, the episode named `what` in its errors."""
     options = {"scene": source.scene_id}
     observation, _ = env.reset(options=options)
     if source.record is None:
         with env.client.create_episode(source.scene_id, privileged=True) as episode:
             actions = [int(a) for a in expert_trajectory(episode.privileged_state().scene_json)]
-        what = source.scene_id
     else:
         actions = list(source.record.record.actions)
-        what = f"{source.record.where}: {source.scene_id}"
     observations = [observation]
     rewards: list[float] = []
     terminations: list[bool] = []
@@ -175,6 +185,27 @@ def replay(env: RearrangeEnv, source: Source) -> Replay:
     if not ended:
         truncations[-1] = True
     return Replay(options, observations, actions, rewards, terminations, truncations, ended, success)
+
+
+def check_target(root: Path, target: Path, kind: str) -> None:
+    """Raises `DemoExportError`, before anything is replayed, when the dataset cannot go at `target`
+    in the folder `root` (`--out`): `root` or a folder between them is a file, or `target` exists
+    (datasets of `kind`, `Minari` or `LeRobot`, are never overwritten).
+    """
+    if root.exists() and not root.is_dir():
+        raise DemoExportError(f"--out {root} is a file, not a folder")
+    if target.exists() or target.is_symlink():
+        raise DemoExportError(
+            f"{target} exists: {kind} datasets are never overwritten (remove it, or pass another "
+            "--dataset-id)"
+        )
+    for folder in target.parents:
+        if folder == root:
+            break
+        if folder.exists() and not folder.is_dir():
+            raise DemoExportError(
+                f"{folder} is a file: the dataset cannot go in it (remove it, or pass another --dataset-id)"
+            )
 
 
 def make_staging(root: Path, prefix: str) -> Path:

@@ -24,17 +24,21 @@ observation after an episode's last action is not stored). Its features:
   a record whose agent stopped before the end.
 - `next.success`: the step solved the scene.
 
+LeRobot gives the (1,) features of a frame as 0-d tensors (a `DataLoader` batch's `action` is (B,)).
+
 Every frame's task is `TASK`. The dataset's `fps` is `FPS` (an ESRP step takes no time; LeRobot
 needs a rate to give timestamps). What LeRobot's format has no place for is in `meta/esrp.json`
 (`esrp.lerobot/v1`): the server's dataset, the env's id and kwargs (as the Minari export's env spec:
 `sensors`, and `split` and `difficulty` or the records' shared `horizon` and `reward`), the action
-names, and each episode's scene id, reset options (`{"scene": SCENE_ID}`: what
-`env.reset(options=...)` takes to play it again), end and source.
+names, and each episode's index, scene id, reset options (`{"scene": SCENE_ID}`: what
+`env.reset(options=...)` takes to play it again), steps, end and source.
 
-Sources and checks are those of the Minari export (`esrp.integrations._replay`). The dataset
-appears whole or not at all: it is written in a staging folder in `--out` and moved into place at
-the end; an interrupted export leaves nothing to resume (run it again), and the staging folder of
-one that was killed is removed by the next export into the same folder.
+Sources and checks are those of the Minari export (`esrp.integrations._replay`). The id must be a
+Hugging Face repository id `NAMESPACE/NAME`: a default one that is not (an `--agent` named
+`MODULE:CALLABLE`) asks for `--dataset-id`. The dataset appears whole or not at all: it is written
+in a staging folder in `--out` and moved into place at the end; an interrupted export leaves
+nothing to resume (run it again), and the staging folder of one that was killed is removed by the
+next export into the same folder.
 """
 
 from __future__ import annotations
@@ -59,7 +63,16 @@ from .._registration import ENV_ID
 from .._values import Action
 from ..envs import RearrangeEnv
 from ..train.demos import DemoExportError, DemoSettings, ExportOutcome, RecordSource, check_resolution
-from ._replay import Replay, Source, env_for, horizon_kwargs, make_staging, replay, reward_kwargs
+from ._replay import (
+    Replay,
+    Source,
+    check_target,
+    env_for,
+    horizon_kwargs,
+    make_staging,
+    replay,
+    reward_kwargs,
+)
 from ._replay import sources as replay_sources
 
 __all__ = ["FORMAT", "FPS", "TASK", "default_repo_id", "export_lerobot", "features"]
@@ -117,15 +130,14 @@ def export_lerobot(
         raise DemoExportError("--format lerobot writes demonstrations and records, not DAgger's labels")
     info = client.server_info()
     check_resolution(settings.resolution, info.limits.max_resolution)
-    repo_id = repo_id or default_repo_id(info.dataset, settings)
-    _check_repo_id(repo_id)
+    if repo_id is None:
+        repo_id = default_repo_id(info.dataset, settings)
+        _check_repo_id(repo_id, f"the default id {repo_id!r}", " (pass --dataset-id NAMESPACE/NAME)")
+    else:
+        _check_repo_id(repo_id, f"--dataset-id {repo_id!r}")
     root = settings.out.absolute()
     target = root / repo_id
-    if target.exists():
-        raise DemoExportError(
-            f"{target} exists: LeRobot datasets are never overwritten (remove it, or pass another "
-            "--dataset-id)"
-        )
+    check_target(root, target, "LeRobot")
     episodes = replay_sources(client, settings, sources, info.dataset)
     resolution = settings.resolution or 128
     kwargs: dict[str, Any] = {"sensors": {"resolution": resolution}}
@@ -173,14 +185,16 @@ def export_lerobot(
     return repo_id, ExportOutcome(len(episodes), steps, len(episodes))
 
 
-def _check_repo_id(repo_id: str) -> None:
-    """Refuses an id that is not a Hugging Face repository id `NAMESPACE/NAME`."""
+def _check_repo_id(repo_id: str, what: str, hint: str = "") -> None:
+    """Refuses an id that is not a Hugging Face repository id `NAMESPACE/NAME`, saying `what` it is
+    (`--dataset-id ID`, or the default id, made of the server's dataset and `--agent`) and `hint`.
+    """
+    if repo_id.count("/") != 1:
+        raise DemoExportError(f"{what}: a LeRobot dataset's id is NAMESPACE/NAME{hint}")
     try:
         validate_repo_id(repo_id)
     except HFValidationError as error:
-        raise DemoExportError(f"--dataset-id {repo_id!r}: {error}") from None
-    if repo_id.count("/") != 1:
-        raise DemoExportError(f"--dataset-id {repo_id!r}: a LeRobot dataset's id is NAMESPACE/NAME")
+        raise DemoExportError(f"{what}: {error}{hint}") from None
 
 
 def _write(dataset: LeRobotDataset, played: Replay) -> None:

@@ -54,7 +54,7 @@ from .._client import Client
 from .._registration import ENV_ID, register_envs
 from ..envs import RearrangeEnv
 from ..train.demos import DemoExportError, DemoSettings, ExportOutcome, RecordSource, check_resolution
-from ._replay import Replay, env_for, horizon_kwargs, make_staging, replay, reward_kwargs
+from ._replay import Replay, check_target, env_for, horizon_kwargs, make_staging, replay, reward_kwargs
 from ._replay import sources as replay_sources
 
 __all__ = ["CHUNK_EPISODES", "default_dataset_id", "export_minari"]
@@ -89,17 +89,16 @@ def export_minari(
         raise DemoExportError("--format minari writes demonstrations and records, not DAgger's labels")
     info = client.server_info()
     check_resolution(settings.resolution, info.limits.max_resolution)
-    dataset_id = dataset_id or default_dataset_id(info.dataset, settings)
+    given = dataset_id is not None
+    dataset_id = dataset_id if dataset_id is not None else default_dataset_id(info.dataset, settings)
     try:
         parse_dataset_id(dataset_id)
     except ValueError as error:
-        raise DemoExportError(f"--dataset-id {dataset_id!r}: {error}") from None
+        if given:
+            raise DemoExportError(f"--dataset-id {dataset_id!r}: {error}") from None
+        raise DemoExportError(f"the default id {dataset_id!r}: {error} (pass --dataset-id)") from None
     root = settings.out.absolute()  # under a relative root, Minari doubled its paths
-    if (root / dataset_id).exists():
-        raise DemoExportError(
-            f"{root / dataset_id} exists: Minari datasets are never overwritten (remove it, or pass "
-            "another --dataset-id)"
-        )
+    check_target(root, root / dataset_id, "Minari")
     episodes = replay_sources(client, settings, sources, info.dataset)
     resolution = settings.resolution or 128
     kwargs: dict[str, Any] = {"sensors": {"resolution": resolution}}
