@@ -489,6 +489,23 @@ def test_the_page_under_a_demanding_user(viewer: esrp.LocalServer, tmp_path: Pat
             shows(page, "notice", "text.includes('line 2: not JSON')")
             assert page.locator("#replay-record option").count() == 0
 
+            # A results file being written (a run still going): its last line, cut short, is
+            # skipped and said, as the other readers of results skip it (the page refused the file).
+            going = tmp_path / "going.jsonl"
+            whole = json.dumps(
+                {"schema": "esrp.results/v1", "scene_id": easy[3], "agent": "test", "actions": [2]}
+            )
+            going.write_text(whole + "\n" + whole[:40])
+            page.set_input_files("#replay-file", str(going))
+            page.wait_for_function("document.getElementById('replay-record').options.length === 1")
+            shows(page, "notice", "text.includes('line 2: cut short (no newline')")
+            # A one-line file of something else without its newline is no results file.
+            config = tmp_path / "config.json"
+            config.write_text(json.dumps({"learning_rate": 0.001}))
+            page.set_input_files("#replay-file", str(config))
+            shows(page, "notice", "text.includes('line 1: not an esrp.results/v1 record')")
+            assert page.locator("#replay-record option").count() == 0
+
             # More replays one after the other than a token may keep open: each replaces the last
             # (and the first replaces the played episode), so none is refused.
             good = tmp_path / "runs.jsonl"

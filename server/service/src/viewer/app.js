@@ -343,7 +343,14 @@ async function play(event) {
 // server, scrubbed step by step. Records listed from the server are fetched whole when chosen.
 
 // The records of a results file: every line an esrp.results/v1 record, else a notice of the
-// first line that is not one (and no records).
+// first line that is not one (and no records). A last line without its newline that begins as a
+// record line does is a write in progress (a run still going): skipped and said, as the other
+// tools that read results files skip it.
+const RECORD_START = '{"schema":"esrp.results/v1"';
+const mayBeCutRecord = (line) => {
+  const squeezed = line.replace(/[ \t\r]/g, "");
+  return squeezed.startsWith(RECORD_START) || RECORD_START.startsWith(squeezed);
+};
 async function readRecords() {
   const file = $("replay-file").files[0];
   if (!file) return;
@@ -351,12 +358,17 @@ async function readRecords() {
   $("replay-record").replaceChildren();
   const lines = (await file.text()).split("\n");
   const read = [];
+  let skipped = "";
   for (const [i, line] of lines.entries()) {
     if (!line.trim()) continue;
     let r;
     try {
       r = JSON.parse(line);
     } catch {
+      if (i === lines.length - 1 && mayBeCutRecord(line)) {
+        skipped = `${file.name}, line ${i + 1}: cut short (no newline: a write in progress), skipped`;
+        continue;
+      }
       return notice(`${file.name}, line ${i + 1}: not JSON, so not a results file (esrp.results/v1 JSON Lines)`);
     }
     if (!r || typeof r.scene_id !== "string" || !Array.isArray(r.actions)) {
@@ -364,9 +376,9 @@ async function readRecords() {
     }
     read.push(r);
   }
-  if (!read.length) return notice(`${file.name} holds no records`);
+  if (!read.length) return notice(`${file.name} holds no records${skipped ? ` (${skipped})` : ""}`);
   records = read;
-  notice("");
+  notice(skipped);
   $("replay-record").replaceChildren(...records.map((r, i) =>
     new Option(`${r.scene_id} — ${r.agent}, ${r.steps} steps${r.success ? ", success" : ""}`, String(i))));
 }
