@@ -68,6 +68,12 @@ pub struct EpisodeRecord {
     pub client: String,
     /// RFC 3339 UTC time of the episode's end.
     pub finished_at: String,
+    /// `Some(true)` for a privileged episode (one that could read the simulator's state): the
+    /// server's records of privileged episodes say it, and Python's `esrp eval --privileged` for
+    /// an agent whose name does not (`plan` and `expert` always play privileged). Absent
+    /// otherwise, never `false`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub privileged: Option<bool>,
     /// Server records only: the name of the token that played the episode.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub token: Option<String>,
@@ -133,51 +139,70 @@ pub struct ReadRecords {
 
 /// Reads a results file. A last line without its newline (a write interrupted before it: the
 /// newline is the last byte an append writes) is reported in [`ReadRecords::torn_tail`], not an
-/// error; any other line that is not a record is, the last one too when it is whole (a file
-/// given by mistake is refused, never cut). Blank lines are skipped.
+/// error, when it is a record or begins as a record line does ([`may_be_cut_record`]); any
+/// other line that is not a record is, the last one too (a file given by mistake is refused,
+/// never cut). Blank lines are skipped.
 pub fn read_records(path: &Path) -> Result<ReadRecords, ResultsError> {
     let name = path.display().to_string();
     let io = |source| ResultsError::Io { path: name.clone(), source };
     let file = std::fs::File::open(path).map_err(io)?;
     let mut reader = BufReader::new(file);
     let mut out = ReadRecords::default();
-    let mut line = String::new();
+    let mut line = Vec::new();
     let mut number = 0;
     loop {
         line.clear();
-        let n = reader.read_line(&mut line).map_err(io)?;
+        let n = reader.read_until(b'\n', &mut line).map_err(io)?;
         if n == 0 {
             break;
         }
         number += 1;
-        let complete = line.ends_with('\n');
-        let text = line.trim();
-        if text.is_empty() {
+        let complete = line.ends_with(b"\n");
+        // A line that is not UTF-8 (a gzip-compressed file, say) is a bad line like any other.
+        let text = std::str::from_utf8(&line).map(str::trim).map_err(|e| format!("not UTF-8 text ({e})"));
+        if text.as_ref().is_ok_and(|t| t.is_empty()) {
             if complete {
                 out.complete_bytes += n as u64;
             }
             continue;
         }
-        match (parse_record(text), complete) {
+        match (text.and_then(parse_record), complete) {
             (Ok(record), true) => {
                 out.records.push(record);
                 out.complete_bytes += n as u64;
             }
-            // A line without its newline is the file's last (read_line read to the end): a write
-            // interrupted before its newline, the last byte an append writes, whatever it holds.
-            (_, false) => out.torn_tail = true,
-            // A whole line that is not a record is no interrupted write, even the last: refused,
-            // never cut off (it may be a file given by mistake).
-            (Err(reason), true) => return Err(ResultsError::BadLine { path: name, line: number, reason }),
+            // A line without its newline is the file's last (read_until read to the end): a write
+            // interrupted before its newline, the last byte an append writes, if it is a record
+            // or begins as a record line does.
+            (Ok(_), false) => out.torn_tail = true,
+            (Err(_), false) if may_be_cut_record(&line) => out.torn_tail = true,
+            // A whole line that is not a record is no interrupted write, even the last, and
+            // neither is a last line that begins otherwise (a one-line JSON file as most JSON
+            // writers leave it, without its newline): refused, never cut off (it may be a file
+            // given by mistake).
+            (Err(reason), _) => return Err(ResultsError::BadLine { path: name, line: number, reason }),
         }
     }
     Ok(out)
+}
+
+/// How every tool's record line begins (the Rust tools', Python's and the server's).
+pub const RECORD_START: &[u8] = br#"{"schema":"esrp.results/v1""#;
+
+/// Whether `line`, a last line without its newline, may be a record whose append was cut short:
+/// it begins as a record line does ([`RECORD_START`], ASCII spaces aside), or is a beginning of it.
+pub fn may_be_cut_record(line: &[u8]) -> bool {
+    let squeezed: Vec<u8> = line.iter().copied().filter(|b| !b" \t\r\n".contains(b)).collect();
+    squeezed.starts_with(RECORD_START) || RECORD_START.starts_with(&squeezed)
 }
 
 fn parse_record(text: &str) -> Result<EpisodeRecord, String> {
     let record: EpisodeRecord = serde_json::from_str(text).map_err(|e| e.to_string())?;
     if record.schema != SCHEMA {
         return Err(format!("schema is {:?}, not {SCHEMA:?}", record.schema));
+    }
+    if let Some(code) = record.actions.iter().find(|&&a| a > 5) {
+        return Err(format!("field `actions` holds {code}, not an action code 0..5"));
     }
     Ok(record)
 }
@@ -231,6 +256,7 @@ pub mod testing {
             server_version: "0.1.0".into(),
             client: "test".into(),
             finished_at: "2026-11-23T00:00:00Z".into(),
+            privileged: None,
             token: None,
             started_at: None,
             dataset_hash: None,
@@ -282,6 +308,59 @@ mod tests {
         assert!(matches!(err, ResultsError::BadLine { line: 2, .. }), "{err}");
         std::fs::write(&path, b"{\"epochs\": 100}\n").unwrap();
         assert!(matches!(read_records(&path).unwrap_err(), ResultsError::BadLine { line: 1, .. }));
+    }
+
+    #[test]
+    fn lines_of_something_else_are_refused_never_cut_off() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("r.jsonl");
+        // A one-line JSON file as most writers leave it (no newline) is no record cut short: it
+        // was cut off (the file lost) by a resuming esrp-eval.
+        std::fs::write(&path, br#"{"learning_rate": 0.001, "epochs": 100}"#).unwrap();
+        let err = read_records(&path).unwrap_err();
+        assert!(matches!(err, ResultsError::BadLine { line: 1, .. }), "{err}");
+        // A gzip-compressed file (not UTF-8) names its line instead of "cannot read".
+        let mut gzip = b"\x1f\x8b\x08\x00\xff\xfe\n".to_vec();
+        append_record(&mut gzip, &record("a", "easy", true, 1.0, 0.0, 4)).unwrap();
+        std::fs::write(&path, &gzip).unwrap();
+        let err = read_records(&path).unwrap_err();
+        assert!(
+            matches!(&err, ResultsError::BadLine { line: 1, reason, .. } if reason.starts_with("not UTF-8")),
+            "{err}"
+        );
+        // Action codes are 0..5, as the Python reader reads them.
+        let mut bad = serde_json::to_string(&record("a", "easy", true, 1.0, 0.0, 4)).unwrap();
+        bad = bad.replace(r#""actions":[0,0"#, r#""actions":[6,0"#) + "\n";
+        std::fs::write(&path, bad).unwrap();
+        let err = read_records(&path).unwrap_err();
+        assert!(
+            err.to_string()
+                .ends_with(":1: not an esrp.results/v1 record: field `actions` holds 6, not an action code 0..5"),
+            "{err}"
+        );
+        // What an interrupted append leaves is still dropped: any beginning of a record line,
+        // as short as one byte, spaced as Python's json.dumps spaces it, or a whole record.
+        let mut line = Vec::new();
+        append_record(&mut line, &record("a", "easy", true, 1.0, 0.0, 4)).unwrap();
+        for cut in
+            [&line[..1], &line[..10], &line[..40], &line[..line.len() - 1], br#"{"schema": "esrp.results/v1", "sc"#]
+        {
+            let mut bytes = line.clone();
+            bytes.extend_from_slice(cut);
+            std::fs::write(&path, &bytes).unwrap();
+            let read = read_records(&path).unwrap();
+            assert_eq!((read.records.len(), read.torn_tail, read.complete_bytes), (1, true, line.len() as u64));
+        }
+    }
+
+    #[test]
+    fn the_privileged_mark_is_kept_and_never_written_false() {
+        let plain = record("a", "easy", true, 1.0, 0.0, 4);
+        assert!(!serde_json::to_string(&plain).unwrap().contains("privileged"));
+        let marked = EpisodeRecord { privileged: Some(true), ..plain };
+        let line = serde_json::to_string(&marked).unwrap();
+        assert!(line.contains(r#""finished_at":"2026-11-23T00:00:00Z","privileged":true}"#), "{line}");
+        assert_eq!(serde_json::from_str::<EpisodeRecord>(&line).unwrap(), marked);
     }
 
     #[test]

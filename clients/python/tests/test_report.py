@@ -290,6 +290,31 @@ def test_warns_about_different_scene_sets_and_partial_splits_and_marks_privilege
     )
 
 
+def test_the_servers_records_of_privileged_episodes_say_so(tmp_path: Path) -> None:
+    """The server's records of a privileged episode did not say it was one, so esrp report showed
+    an agent that read the simulator's state, from the server's records, as an ESRP agent proper
+    (esrp eval --privileged marks its own records). They carry `"privileged": true` now, signed
+    with the rest, right after `finished_at` as esrp eval writes it; other records lack it."""
+    folder = tmp_path / "records"
+    with esrp.LocalServer("--records", str(folder), "--record", "all") as server, server.client() as client:
+        scene = next(client.scenes("test", "easy")).id
+        for agent, privileged in (("my-reference", True), ("my-agent", False)):
+            with client.create_episode(scene, privileged=privileged, agent=agent) as episode:
+                episode.step(esrp.Action.LEFT)
+        lines = (folder / "anonymous.jsonl").read_text().splitlines()
+        assert len(lines) == 2
+        assert '"finished_at":' in lines[0]
+        assert lines[0].split('"finished_at":')[1].split(",", 2)[1] == '"privileged":true'
+        assert '"privileged"' not in lines[1]
+        runs = {run.agent: run for run in load_runs([folder / "anonymous.jsonl"])}
+        assert runs["my-reference"].shown == "my-reference (privileged)"
+        assert runs["my-agent"].shown == "my-agent"
+        # Signed as it is written: the records verify with the key.
+        key = folder / "records.key"
+        args = ["verify", str(folder / "anonymous.jsonl"), "--key", str(key), "--no-progress"]
+        assert main([*args, "--server", server.address]) == 0
+
+
 def test_runs_of_one_agent_are_told_apart_by_their_file(tmp_path: Path) -> None:
     paths = write_fixture(tmp_path)
     again = tmp_path / "alpha-again.jsonl"

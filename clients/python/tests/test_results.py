@@ -147,32 +147,37 @@ def test_bad_lines_and_unknown_fields(tmp_path: Path) -> None:
     assert only.osr == 1.0
 
 
-# Lines every reader refuses, the Rust tools' too (test_rust_interop.py): Python's json read the
-# first ones (NaN, Infinity) and the out-of-range integers, which the Rust reader refuses.
+# Values every reader refuses, the Rust tools' too (test_rust_interop.py): (field, its value as
+# the line writes it, what the error says). Python's json read the first ones (NaN, Infinity),
+# and the Python reader the out-of-range integers, which the Rust reader refuses.
 NOT_RECORDS = [
-    ('"rdr":0.0', '"rdr":NaN', "NaN is not a JSON number"),
-    ('"agent_stats":{}', '"agent_stats":{"loss":-Infinity}', "-Infinity is not a JSON number"),
-    ('"steps":10', '"steps":-10', "field 'steps' is -10, not an integer 0..4294967295"),
-    ('"objects":1', '"objects":4294967296', "field 'objects' is 4294967296"),
-    ('"seed":3', '"seed":18446744073709551616', "field 'seed' is 18446744073709551616"),
-    ('"seed":3', '"seed":-1', "field 'seed' is -1, not an integer 0..18446744073709551615"),
-    ('"actions":[0,0,0,0,0,0,0,0,0,0]', '"actions":[0,0,0,0,0,0,0,0,0,6]', "action codes 0..5"),
+    ("rdr", "NaN", "NaN is not a JSON number"),
+    ("agent_stats", '{"loss":-Infinity}', "-Infinity is not a JSON number"),
+    ("steps", "-10", "field 'steps' is -10, not an integer 0..4294967295"),
+    ("objects", "4294967296", "field 'objects' is 4294967296"),
+    ("seed", "18446744073709551616", "field 'seed' is 18446744073709551616"),
+    ("seed", "-1", "field 'seed' is -1, not an integer 0..18446744073709551615"),
+    ("actions", "[0,6]", "action codes 0..5"),
 ]
+
+
+def with_value(line: str, name: str, raw: str) -> str:
+    """`line` (a record's JSON) with field `name` set to `raw`, as written (`NaN` included)."""
+    data = json.loads(line)
+    data[name] = "@VALUE@"
+    return json.dumps(data, separators=(",", ":")).replace('"@VALUE@"', raw)
 
 
 def test_numbers_json_has_not_and_integers_out_of_range_are_refused(tmp_path: Path) -> None:
     good = record("a", "easy", False, 0.0, 0.0, 1).to_json()
     path = tmp_path / "r.jsonl"
-    for old, new, why in NOT_RECORDS:
-        assert old in good, old
-        path.write_text(good.replace(old, new) + "\n" + good + "\n")
+    for name, raw, why in NOT_RECORDS:
+        path.write_text(with_value(good, name, raw) + "\n" + good + "\n")
         with pytest.raises(ResultsError, match=":1: not an esrp.results/v1 record: ") as error:
             read_records(path)
-        assert why in str(error.value), (new, str(error.value))
+        assert why in str(error.value), (raw, str(error.value))
     # The largest values are records.
-    path.write_text(
-        good.replace('"seed":3', f'"seed":{2**64 - 1}').replace('"steps":10', f'"steps":{2**32 - 1}') + "\n"
-    )
+    path.write_text(with_value(with_value(good, "seed", str(2**64 - 1)), "steps", str(2**32 - 1)) + "\n")
     (only,) = read_records(path).records
     assert (only.seed, only.steps) == (2**64 - 1, 2**32 - 1)
 

@@ -64,6 +64,7 @@ pub(super) fn finish(episodes: &Episodes, entry: &mut EpisodeEntry, closed_by: O
         agent: &entry.agent,
         token: &entry.owner.name,
         paper_only: entry.paper_only,
+        privileged: entry.privileged,
     };
     let record = record_of(episodes, &played, run, closed_by, finished_at);
     if keep {
@@ -79,6 +80,8 @@ struct Played<'a> {
     agent: &'a str,
     token: &'a str,
     paper_only: bool,
+    /// The episode could read the simulator's state (its record says so).
+    privileged: bool,
 }
 
 /// The record of a run ended at `finished_at` (its actions taken out of `run`).
@@ -89,7 +92,7 @@ fn record_of(
     closed_by: Option<&str>,
     finished_at: String,
 ) -> EpisodeRecord {
-    let Played { episode, summary, agent, token, paper_only } = *played;
+    let Played { episode, summary, agent, token, paper_only, privileged } = *played;
     let m = episode.metrics();
     let over = episode.is_over();
     let end = if m.success {
@@ -129,6 +132,7 @@ fn record_of(
         server_version: env!("CARGO_PKG_VERSION").to_owned(),
         client: concat!("esrp-server ", env!("CARGO_PKG_VERSION")).to_owned(),
         finished_at,
+        privileged: privileged.then_some(true),
         token: Some(token.to_owned()),
         started_at: Some(rfc3339(run.started)),
         dataset_hash: Some(episodes.dataset_hash.clone()),
@@ -204,7 +208,9 @@ pub(super) fn recover(episodes: &Episodes) -> Result<usize, ServiceError> {
             finished: true,
         };
         let paper_only = super::access::split_is_paper_only(summary.split, &episodes.config);
-        let played = Played { episode: &episode, summary: &summary, agent, token, paper_only };
+        // A counted attempt is never privileged (the challenge refuses privileged episodes to
+        // every token but an admin's, whose attempts are not counted).
+        let played = Played { episode: &episode, summary: &summary, agent, token, paper_only, privileged: false };
         let finished_at = rfc3339(SystemTime::now());
         let record = record_of(episodes, &played, &mut run, Some("restart"), finished_at.clone());
         recorder.write_now(&record).map_err(internal)?;

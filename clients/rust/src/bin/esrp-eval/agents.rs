@@ -35,6 +35,11 @@ impl AgentKind {
     pub fn seeded(self) -> bool {
         self == AgentKind::Random
     }
+
+    /// Whether the agent plays privileged episodes (it reads the simulator's state).
+    pub fn privileged(self) -> bool {
+        matches!(self, AgentKind::Plan | AgentKind::Expert)
+    }
 }
 
 /// The agents' settings.
@@ -113,7 +118,7 @@ fn end_of(metrics: &EpisodeMetrics) -> &'static str {
 
 /// Plays `scene` with `settings` (seeded with `seed` if the agent draws random numbers).
 pub async fn play(client: &Client, scene: &str, settings: &AgentSettings, seed: u64) -> anyhow::Result<Played> {
-    let privileged = matches!(settings.kind, AgentKind::Plan | AgentKind::Expert);
+    let privileged = settings.kind.privileged();
     // The agent's name labels the episode in a recording server's records.
     let options = EpisodeOptions::scene(scene).privileged(privileged).agent(settings.kind.name());
     let (episode, _) = client.create_episode(options).await?;

@@ -165,10 +165,16 @@ async fn pick_scenes(client: &Client, args: &Args) -> anyhow::Result<Vec<SceneSu
 }
 
 /// Reads what an earlier run wrote (dropping a torn last line) and returns the scenes done.
+/// Refuses a file of another run: another agent, other settings, privileged episodes of an agent
+/// that plays none (Python's `esrp eval --privileged` marks them), and, for an agent that draws
+/// random numbers (`seed`: the run's base seed), another base seed or another tool's records
+/// (Python's random agent draws other actions from the same seed).
 fn resume(
     path: &Path,
     agent: &str,
     config: &serde_json::Map<String, serde_json::Value>,
+    privileged: bool,
+    seed: Option<u64>,
 ) -> anyhow::Result<Vec<EpisodeRecord>> {
     if !path.exists() {
         return Ok(Vec::new());
@@ -195,7 +201,43 @@ fn resume(
             serde_json::Value::Object(config.clone())
         );
     }
+    let again = "write to another --out, or pass --fresh to start it over";
+    if !privileged && let Some(other) = read.records.iter().find(|r| r.privileged == Some(true)) {
+        bail!(
+            "{} holds results of agent {agent:?} played privileged ({}), unlike this run: {again}",
+            path.display(),
+            other.client
+        );
+    }
+    if let Some(seed) = seed {
+        for r in &read.records {
+            if tool(&r.client) != tool(CLIENT) {
+                bail!(
+                    "{} holds results of agent {agent:?} written by {}, whose random numbers differ from {}'s for the same seed: {again}",
+                    path.display(),
+                    r.client,
+                    tool(CLIENT)
+                );
+            }
+            let base = r.seed.map(|s| s ^ agents::fnv1a64(&r.scene_id));
+            if base != Some(seed) {
+                let played = base.map_or_else(|| "without a seed".to_owned(), |b| format!("with --seed {b}"));
+                bail!("{} holds results of agent {agent:?} played {played}, not {seed}: {again}", path.display());
+            }
+        }
+    }
     Ok(read.records)
+}
+
+/// The `client` of this tool's records.
+const CLIENT: &str = concat!("esrp-eval ", env!("CARGO_PKG_VERSION"));
+
+/// The tool of a record's `client`, without its version: `esrp-eval`, `esrp eval (Python)`.
+fn tool(client: &str) -> &str {
+    match client.rsplit_once(' ') {
+        Some((name, version)) if version.starts_with(|c: char| c.is_ascii_digit()) => name,
+        _ => client,
+    }
 }
 
 fn now_rfc3339() -> String {
@@ -281,10 +323,10 @@ async fn run() -> anyhow::Result<()> {
         agent: args.agent.name(),
         config: settings.config(),
         seeded: settings.kind.seeded(),
-        client: format!("esrp-eval {}", env!("CARGO_PKG_VERSION")),
+        client: CLIENT.to_owned(),
         info: &info,
     };
-    let (mut records, mut file) = open_results(&args, recording.agent, &recording.config)?;
+    let (mut records, mut file) = open_results(&args, &settings, &recording.config)?;
     let done: HashSet<String> = records.iter().map(|r| r.scene_id.clone()).collect();
     let todo: Vec<SceneSummary> = scenes.iter().filter(|s| !done.contains(&s.id)).cloned().collect();
     let wanted: HashSet<&str> = scenes.iter().map(|s| s.id.as_str()).collect();
@@ -375,11 +417,12 @@ fn failures(failed: &[(String, bool)]) -> String {
     }
 }
 
-/// The results file's records so far (the earlier run's, checked to be the same agent's; none
-/// with `--fresh`, which removes the file), and the file open for appending, its folder made.
+/// The results file's records so far (the earlier run's, checked to be the same run's:
+/// [`resume`]; none with `--fresh`, which removes the file), and the file open for appending,
+/// its folder made.
 fn open_results(
     args: &Args,
-    agent: &str,
+    settings: &AgentSettings,
     config: &serde_json::Map<String, serde_json::Value>,
 ) -> anyhow::Result<(Vec<EpisodeRecord>, std::fs::File)> {
     if args.fresh && args.out.exists() {
@@ -388,7 +431,9 @@ fn open_results(
     if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     }
-    let records = resume(&args.out, agent, config)?;
+    let kind = settings.kind;
+    let seed = kind.seeded().then_some(args.seed);
+    let records = resume(&args.out, kind.name(), config, kind.privileged(), seed)?;
     let file = OpenOptions::new()
         .create(true)
         .append(true)
@@ -437,6 +482,7 @@ impl Recording<'_> {
             server_version: self.info.version.clone(),
             client: self.client.clone(),
             finished_at: now_rfc3339(),
+            privileged: None,
             token: None,
             started_at: None,
             dataset_hash: None,
