@@ -294,7 +294,8 @@ def test_the_servers_records_of_privileged_episodes_say_so(tmp_path: Path) -> No
     """The server's records of a privileged episode did not say it was one, so esrp report showed
     an agent that read the simulator's state, from the server's records, as an ESRP agent proper
     (esrp eval --privileged marks its own records). They carry `"privileged": true` now, signed
-    with the rest, right after `finished_at` as esrp eval writes it; other records lack it."""
+    with the rest, right after `finished_at` as esrp eval writes it; other records lack it. And an
+    esrp replay's episodes were recorded `unnamed`; they are `esrp replay`'s now."""
     folder = tmp_path / "records"
     with esrp.LocalServer("--records", str(folder), "--record", "all") as server, server.client() as client:
         scene = next(client.scenes("test", "easy")).id
@@ -313,6 +314,11 @@ def test_the_servers_records_of_privileged_episodes_say_so(tmp_path: Path) -> No
         key = folder / "records.key"
         args = ["verify", str(folder / "anonymous.jsonl"), "--key", str(key), "--no-progress"]
         assert main([*args, "--server", server.address]) == 0
+        # The episodes of esrp verify and esrp replay say whose they are (a replay's were unnamed).
+        replay = ["replay", "--results", str(folder / "anonymous.jsonl"), "--scene", scene]
+        assert main([*replay, "--out", str(tmp_path / "r.png"), "--server", server.address]) == 0
+        agents = [r.agent for r in read_records(folder / "anonymous.jsonl").records]
+        assert agents == ["my-reference", "my-agent", "esrp verify", "esrp verify", "esrp replay"]
 
 
 def test_runs_of_one_agent_are_told_apart_by_their_file(tmp_path: Path) -> None:

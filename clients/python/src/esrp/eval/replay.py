@@ -38,6 +38,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "AGENT_PATH",
+    "LABEL",
     "OBJECT_PATH",
     "PANEL_TITLES",
     "Replay",
@@ -54,6 +55,9 @@ AGENT_PATH = (230, 25, 25)
 """The colour of the agent's path (red)."""
 OBJECT_PATH = (20, 90, 255)
 """The colour of carried objects' paths (blue)."""
+
+LABEL = "esrp replay"
+"""The agent label of the episodes a replay creates (a recording server's records name them so)."""
 
 _GAP = 4  # pixels between panels
 
@@ -324,6 +328,7 @@ def replay_record(
             sensors=sensors,
             horizon=record.horizon,
             reward=record.played_weights(),
+            agent=LABEL,
         )
     except EsrpError as error:
         raise ReplayError(f"cannot create an episode of {record.scene_id!r}: {error}") from error
