@@ -315,6 +315,7 @@ def test_failed_episodes_are_not_recorded_and_a_rerun_retries_them(
         ("random", {"bogus": 1}, "the random agent has no setting bogus: it takes none"),
         ("map", {"max_expansion": 5}, "the map agent has no setting max_expansion: known are max_expansions"),
         ("map", {"max_expansions": 0}, "the map agent's max_expansions must be an integer of at least 1"),
+        ("map", {"max_expansions": None}, "max_expansions must be an integer of at least 1, not None"),
         ("expert", {"steps": 1}, "the expert agent takes no --agent-config: the server plays it"),
         ("plan", {"steps": 1}, "the plan agent takes no --agent-config: the server plays it"),
     ],
@@ -325,7 +326,7 @@ def test_a_config_the_agent_does_not_take_is_refused_before_any_episode(
     easy_ids: str,
     capsys: pytest.CaptureFixture[str],
     agent: str,
-    config: dict[str, int],
+    config: dict[str, int | None],
     said: str,
 ) -> None:
     out = tmp_path / "run.jsonl"

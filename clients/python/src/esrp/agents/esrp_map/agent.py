@@ -117,13 +117,18 @@ class _Task:
 
 class MapAgent:
     """ESRP-MAP (see the module). `config`: `max_expansions` (A*'s budget per plan, default
-    20,000); another key, or a budget below 1, raises `ValueError`.
+    20,000); another key, or a budget that is not an integer of at least 1 (None included),
+    raises `ValueError`.
     """
 
     def __init__(self, config: Mapping[str, Any] | None = None) -> None:
         check_agent_config(config or {}, "map", {"max_expansions": "positive"})
         self.config = dict(config or {})
-        self.max_expansions = int(self.config.get("max_expansions", 20000))
+        budget = self.config.get("max_expansions", 20000)
+        if budget is None:
+            # `check_agent_config` passes None over; a JSON null is no budget.
+            raise ValueError("the map agent's max_expansions must be an integer of at least 1, not None")
+        self.max_expansions = int(budget)
         self._stats: dict[str, Any] = {}
 
     def reset(self, observation: Observation, info: Mapping[str, Any]) -> None:
