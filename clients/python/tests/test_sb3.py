@@ -172,6 +172,38 @@ def test_clear_errors(server: esrp.LocalServer) -> None:
             env.set_attr("horizon", 5)
         assert env.get_attr("num_envs", [0, 1]) == [2, 2]
         assert env.env_is_wrapped(gymnasium.Wrapper) == [False, False]
+        # Indices as DummyVecEnv takes them: negative ones count from the end, others out of range
+        # are refused (not answered as if the sub-env existed), and no index calls nothing.
+        assert env.get_attr("num_envs", -1) == [2]
+        with pytest.raises(IndexError, match="sub-env index 2 is out of range"):
+            env.get_attr("num_envs", [0, 2])
+        with pytest.raises(IndexError, match="sub-env index -3 is out of range"):
+            env.env_method("render", indices=-3)
+        with pytest.raises(IndexError, match="sub-env index 5 is out of range"):
+            env.env_is_wrapped(gymnasium.Wrapper, indices=[5])
+        assert env.env_method("close", indices=[]) == []
+        assert isinstance(env, EsrpVecEnv)
+        assert not env.venv.closed  # `close` was not called
+    finally:
+        env.close()
+
+
+def test_render_shows_each_sub_envs_view_beside_its_goal(server: esrp.LocalServer) -> None:
+    """With `render_mode="rgb_array"`, `get_images()` gives each sub-env's frame as the single
+    env's `render()` does (the view, then the goal image), which SB3's `render()` tiles."""
+    env = make_vec_env(2, server.address, monitor=False, render_mode="rgb_array", **SETTINGS)
+    try:
+        assert env.render_mode == "rgb_array"
+        observations = env.reset()
+        assert isinstance(observations, dict)
+        frames = env.get_images()
+        for i, image in enumerate(frames):
+            assert image is not None
+            expected = np.concatenate([observations["ego_rgb"][i], observations["goal_rgb"][i]], axis=1)
+            assert np.array_equal(image, expected)
+        tiled = env.render()
+        assert tiled is not None
+        assert tiled.shape == (2 * 32, 2 * 32, 3)  # SB3 tiles 2 frames of 32 x 64 one above the other
     finally:
         env.close()
 

@@ -82,7 +82,8 @@ class EsrpVecEnv(VecEnv):
     """An SB3 `VecEnv` over a `RearrangeVectorEnv` (made here in SAME_STEP autoreset mode, the one
     SB3's semantics need; see the module's doc). Attribute calls (`get_attr`, `env_method`) reach
     the vector env itself, as there are no per-env objects: each returns the same value for every
-    index asked.
+    index asked. Indices are taken as `DummyVecEnv` takes them (None: every sub-env; an int or a
+    sequence of them; negative ones count from the end); one out of range raises `IndexError`.
     """
 
     def __init__(self, venv: RearrangeVectorEnv) -> None:
@@ -159,8 +160,12 @@ class EsrpVecEnv(VecEnv):
         indices: VecEnvIndices = None,
         **method_kwargs: Any,  # noqa: ANN401
     ) -> list[Any]:
-        """Calls the vector env's method `method_name` once; its result, once per index asked."""
-        targets = list(self._get_indices(indices))
+        """Calls the vector env's method `method_name` once (not at all for no index); its result,
+        once per index asked.
+        """
+        targets = self._get_indices(indices)
+        if not targets:
+            return []
         result = getattr(self.venv, method_name)(*method_args, **method_kwargs)
         return [result for _ in targets]
 
@@ -172,18 +177,30 @@ class EsrpVecEnv(VecEnv):
         return [False for _ in self._get_indices(indices)]
 
     def get_images(self) -> Sequence[np.ndarray | None]:
-        """Each sub-env's egocentric view (with `render_mode="rgb_array"`), else Nones."""
+        """Each sub-env's frame with `render_mode="rgb_array"`, as the single env's `render()`
+        gives it: the egocentric view, the goal image and (with that sensor) the current top-down
+        side by side, (R, 2R or 3R, 3) uint8; else Nones.
+        """
         frames = self.venv.render()
         if frames is None:
             return [None] * self.num_envs
         return list(frames)
 
-    def _get_indices(self, indices: VecEnvIndices) -> Iterable[int]:
+    def _get_indices(self, indices: VecEnvIndices) -> list[int]:
+        """The sub-envs `indices` names, as `DummyVecEnv` reads them, each checked."""
+        every = range(self.num_envs)
         if indices is None:
-            return range(self.num_envs)
-        if isinstance(indices, int):
-            return [indices]
-        return indices
+            return list(every)
+        asked: Iterable[int] = [indices] if isinstance(indices, int | np.integer) else indices
+        checked = []
+        for index in asked:
+            if not -self.num_envs <= index < self.num_envs:
+                raise IndexError(
+                    f"sub-env index {index} is out of range: the env has {self.num_envs} sub-envs "
+                    f"(0 to {self.num_envs - 1}, or negative from the end)"
+                )
+            checked.append(every[index])
+        return checked
 
 
 _AUTORESET_KEYS = frozenset(_FINAL_KEYS)
