@@ -8,6 +8,8 @@ Starts a local esrp-server (the `esrp-server` wheel, or `--server ADDRESS` for a
 trains for `--timesteps` steps with SB3's `MultiInputPolicy` (a NatureCNN per view, the grasp
 flag one-hot), saves the model to `--save` and prints the test episodes' success rate. A few
 thousand steps only show the loop working; the paper's PPO trained for 6 M steps (SPEC §8).
+Arguments it cannot run with are refused before anything starts (status 2); a server that cannot
+be reached, or is lost mid-run, ends it with a line naming the error (status 1).
 """
 
 from __future__ import annotations
@@ -33,7 +35,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--save", type=Path, default=Path("sb3-ppo-esrp.zip"), help="where the model goes")
     parser.add_argument("--server", help="a running esrp-server (default: one is started here)")
     args = parser.parse_args(argv)
+    # What SB3 would otherwise fail on deep inside, with a traceback.
+    if args.resolution < 36:
+        parser.error(f"--resolution must be 36 or more (SB3's NatureCNN), not {args.resolution}")
+    for name in ("envs", "test_episodes", "n_steps"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be at least 1, not {getattr(args, name)}")
+    rollout = args.n_steps * args.envs
+    if rollout < 2:
+        parser.error(f"--n-steps x --envs must be 2 or more (PPO's minibatch), not {rollout}")
+    if args.timesteps < 0:
+        parser.error(f"--timesteps must be 0 or more, not {args.timesteps}")
+    try:
+        return _train_and_play(args)
+    except esrp.EsrpError as error:
+        print(f"{parser.prog}: {type(error).__name__}: {error}", file=sys.stderr)
+        return 1
 
+
+def _train_and_play(args: argparse.Namespace) -> int:
     with esrp.LocalServer() if args.server is None else _Running(args.server) as server:
         sensors = esrp.Sensors(resolution=args.resolution)
         env = make_vec_env(args.envs, server.address, split="train", difficulty="easy", sensors=sensors)

@@ -141,6 +141,45 @@ def test_the_example_trains_saves_and_plays(
     assert "easy test episodes:" in capsys.readouterr().out
 
 
+@pytest.mark.parametrize(
+    ("argv", "said"),
+    [
+        (["--resolution", "32"], "--resolution must be 36 or more (SB3's NatureCNN), not 32"),
+        (["--envs", "0"], "--envs must be at least 1, not 0"),
+        (["--test-episodes", "0"], "--test-episodes must be at least 1, not 0"),
+        (["--n-steps", "0"], "--n-steps must be at least 1, not 0"),
+        (["--envs", "1", "--n-steps", "1"], "--n-steps x --envs must be 2 or more (PPO's minibatch), not 1"),
+        (["--timesteps", "-5"], "--timesteps must be 0 or more, not -5"),
+    ],
+)
+def test_the_example_refuses_bad_arguments_before_starting_anything(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str], said: str
+) -> None:
+    """Refused by its parser (a usage line, status 2), before a server or a model is made (the
+    server given cannot be reached: it is not tried)."""
+    example = load_tool("sb3_ppo", folder="examples")
+    with pytest.raises(SystemExit) as exited:
+        example.main([*argv, "--server", "127.0.0.1:1", "--save", str(tmp_path / "model.zip")])
+    assert exited.value.code == 2
+    err = capsys.readouterr().err
+    assert said in err
+    assert "Traceback" not in err
+    assert not (tmp_path / "model.zip").exists()
+
+
+def test_the_example_says_when_the_server_is_not_there(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A server that cannot be reached (or is lost mid-run) ends the example with a line that
+    names the error, status 1, no traceback."""
+    example = load_tool("sb3_ppo", folder="examples")
+    argv = ["--timesteps", "64", "--envs", "2", "--n-steps", "16", "--resolution", "48"]
+    assert example.main([*argv, "--server", "127.0.0.1:1", "--save", str(tmp_path / "model.zip")]) == 1
+    err = capsys.readouterr().err
+    assert ": ServerUnavailable: UNAVAILABLE" in err  # after the program's name
+    assert "Traceback" not in err
+
+
 def test_per_env_reset_options_may_name_each_sub_envs_scene(
     server: esrp.LocalServer, easy_scenes: list[str]
 ) -> None:
