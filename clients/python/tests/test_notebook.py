@@ -4,6 +4,7 @@ plan solves the scene, the server stops)."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -29,6 +30,19 @@ def test_the_quickstart_notebook_runs(tmp_path: Path) -> None:
         if output.output_type == "stream" and output.name == "stdout"
     )
     assert "esrp-bench-v2" in printed
+    # What its text says of the benchmark is what the server lists: the scenes of each split, and
+    # the movable objects of each difficulty.
+    listed = re.findall(
+        r"^(\w+): (\d+) scenes; movable objects by difficulty: easy (\S+), medium (\S+), hard (\S+)$",
+        printed,
+        re.MULTILINE,
+    )
+    assert [split for split, *_ in listed] == ["train", "test"]
+    text = "".join("".join(cell.source) for cell in notebook.cells if cell.cell_type == "markdown")
+    total = sum(int(count) for _, count, *_ in listed)
+    assert f"{total:,} scene pairs (a start and a goal layout) in two splits, train and test" in text
+    for _, _, easy, medium, hard in listed:
+        assert f"(Easy: {easy} movable object, Medium: {medium}, Hard: {hard})" in text
     assert "success: True" in printed
     assert "server stopped" in printed
     images = [
