@@ -207,6 +207,9 @@ def test_clear_errors(server: esrp.LocalServer) -> None:
         env.set_options([{"scene": "a", "difficulty": "easy"}, {"scene": "b", "difficulty": "hard"}])
         with pytest.raises(ValueError, match="differ in more than `scene`"):
             env.reset()
+        env.set_options([{"scene": "a"}])  # a list, but not one dict per sub-env
+        with pytest.raises(ValueError, match="given 1 options dicts for 2 sub-envs"):
+            env.reset()
         with pytest.raises(AttributeError, match="cannot set"):
             env.set_attr("horizon", 5)
         assert env.get_attr("num_envs", [0, 1]) == [2, 2]

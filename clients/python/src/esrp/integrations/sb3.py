@@ -98,8 +98,15 @@ class EsrpVecEnv(VecEnv):
 
     def reset(self) -> VecEnvObs:
         """Resets every sub-env with the seeds of `seed()` and the options of `set_options()`
-        (one dict for all), both for this reset only; the infos go to `reset_infos`.
+        (one dict for all, or one per sub-env), both for this reset only; the infos go to
+        `reset_infos`. Options that ESRP's vector env cannot take (a list of another length than
+        `num_envs`; dicts that differ in more than `scene`) raise `ValueError` and stay set.
         """
+        if len(self._options) != self.num_envs:
+            raise ValueError(
+                f"set_options() was given {len(self._options)} options dicts for {self.num_envs} "
+                "sub-envs: give one dict (for every sub-env) or a list of one per sub-env"
+            )
         options = merged_options(self._options)
         seeds = None if all(seed is None for seed in self._seeds) else list(self._seeds)
         observations, infos = self.venv.reset(seed=seeds, options=dict(options) or None)
