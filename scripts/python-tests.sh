@@ -140,7 +140,12 @@ piplr() { .venv-lerobot/bin/python -m pip --disable-pip-version-check --quiet "$
 stamp=.venv-lerobot/.esrp-requirements
 wanted="$(cat "$client/constraints-lerobot.txt" "$client/pyproject.toml" | sha256sum | cut -d' ' -f1)"
 if [ "$(cat "$stamp" 2>/dev/null)" != "$wanted" ]; then
-    piplr install hatchling -c "$client/constraints-lerobot.txt"
+    # LeRobot's pynput needs evdev on Linux, published as source only: it is compiled here, with the
+    # pinned setuptools (the venv's own is too old for its pyproject.toml) and Python's headers.
+    if ! .venv-lerobot/bin/python -c 'import os, sysconfig; os.stat(os.path.join(sysconfig.get_paths()["include"], "Python.h"))' 2>/dev/null; then
+        apt_install python3-dev
+    fi
+    piplr install hatchling setuptools -c "$client/constraints-lerobot.txt"
     piplr install --no-build-isolation "./$client[lerobot,stubs]" pytest -c "$client/constraints-lerobot.txt"
     echo "$wanted" >"$stamp"
 fi
