@@ -1,6 +1,7 @@
-"""ESRP-MAP (issue 42, in progress): a non-privileged modular agent that maps the room and plans.
+"""ESRP-MAP: a non-privileged modular agent that maps the room and plans (docs/esrp-map.md).
 
-It maps the room from its egocentric views. What exists so far:
+It sees only what the paper's agents see (the egocentric view, the goal image and the grasp flag)
+and maps the room from its egocentric views. Its parts:
 
 - `geometry`: where each pixel of the egocentric view meets the floor, from the camera the server
   renders with (SPEC §2);
