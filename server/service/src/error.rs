@@ -77,6 +77,19 @@ pub enum ServiceError {
         /// The budget the call had.
         budget_ms: u64,
     },
+    /// PlanActions waited its whole time budget for a planner thread: every one was planning for
+    /// other calls, so this call planned nothing.
+    #[error(
+        "no planner thread came free within the budget of {budget_ms} ms: all {threads} (--planner-threads) \
+         were planning for other calls, so this call planned nothing; call again, with a larger budget_ms, \
+         or start the server with more --planner-threads"
+    )]
+    PlannersBusy {
+        /// The budget the call had.
+        budget_ms: u64,
+        /// Plans computed at once (`--planner-threads`).
+        threads: usize,
+    },
     /// The server holds its maximum of live episodes.
     #[error("the server holds its maximum of {max} live episodes: close some (CloseEpisode) or raise --max-episodes")]
     TooManyEpisodes {
@@ -201,7 +214,7 @@ impl ServiceError {
                 Code::PermissionDenied
             }
             ServiceError::AlreadyPlayed(_) => Code::FailedPrecondition,
-            ServiceError::PlanDeadline { .. } => Code::DeadlineExceeded,
+            ServiceError::PlanDeadline { .. } | ServiceError::PlannersBusy { .. } => Code::DeadlineExceeded,
             ServiceError::TooManyEpisodes { .. }
             | ServiceError::BatchTooLarge { .. }
             | ServiceError::StepAnswerTooLarge { .. }
@@ -326,6 +339,16 @@ mod tests {
             ServiceError::NotYours { episode: EpisodeId::from("e9"), caller: "token \"b\" (role agent)".into() },
             Code::PermissionDenied,
             "episode e9 belongs to another token: token \"b\" (role agent) may use only",
+        );
+        check(
+            ServiceError::PlanDeadline { budget_ms: 40 },
+            Code::DeadlineExceeded,
+            "the planner found no plan within its budget of 40 ms",
+        );
+        check(
+            ServiceError::PlannersBusy { budget_ms: 40, threads: 2 },
+            Code::DeadlineExceeded,
+            "no planner thread came free within the budget of 40 ms: all 2 (--planner-threads) were planning",
         );
         let unknown = esrp_core::Action::from_code(6).unwrap_err();
         check(

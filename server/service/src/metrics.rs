@@ -17,7 +17,7 @@
 //! | `esrp_render_threads` | gauge | the threads rendering batches (`--render-threads`) |
 //! | `esrp_render_atlases_created_total` | counter | atlases (a batch's textures and buffers on the device) the renderers made; steady under a steady load once the pool holds the sizes it needs |
 //! | `esrp_render_pipeline` | gauge | the batches each render thread may have in flight (`--render-pipeline`) |
-//! | `esrp_plans_total` | counter | PlanActions calls, by outcome (`planned`, `cached`, `failed`: no plan found, `deadline`: none found in the budget, `cancelled`: the client went away and the planner stopped) |
+//! | `esrp_plans_total` | counter | PlanActions calls, by outcome (`planned`, `cached`, `failed`: no plan found, `deadline`: none found in the budget, `busy`: the budget ran out waiting for a planner thread (`--planner-threads` all planning), `cancelled`: the client went away and the planner stopped) |
 //!
 //! The stages of `esrp_stage_seconds_total`, in the order a step goes through them (divide by
 //! `esrp_steps_total` for the seconds per step, or by the wall time for how busy a stage keeps
@@ -99,7 +99,7 @@ pub struct TokenLabel {
 /// How a PlanActions call ended.
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 pub struct PlanOutcome {
-    /// `planned`, `cached`, `failed`, `deadline` or `cancelled`.
+    /// `planned`, `cached`, `failed`, `deadline`, `busy` or `cancelled`.
     pub outcome: &'static str,
 }
 

@@ -431,7 +431,8 @@ class Episode(EpisodeBase["Client"]):
         answers the rest at once (`cached`).
 
         Raises:
-            DeadlineExceeded: No plan was found within the budget.
+            DeadlineExceeded: No plan was found within the budget, or every planner thread of
+                the server was busy with other calls for all of it (nothing was planned).
             EpisodeEnded: The episode has ended.
             PermissionDenied: The episode is not privileged.
         """

@@ -188,3 +188,70 @@ async fn an_abandoned_plan_stops_its_planner() {
     }
     panic!("the abandoned plan was not cancelled:\n{text}");
 }
+
+/// A call that waits its whole budget while every planner thread plans for other calls says so
+/// (it planned nothing), rather than that the planner found no plan, and counts as `busy`.
+#[tokio::test]
+async fn a_call_that_waits_its_whole_budget_for_a_planner_thread_says_so() {
+    let server = start(&["--planner-threads", "1", "--metrics-listen", "127.0.0.1:0"]);
+    let client = client(&server).await;
+    let scene = scenes_of(&client, Difficulty::Easy, 1).await.remove(0);
+    let (waiting, _) = client.create_episode(EpisodeOptions::scene(&scene).privileged(true)).await.expect("created");
+    // The slowest test scene to plan holds the one planner thread.
+    let (slow, _) =
+        client.create_episode(EpisodeOptions::scene("esrp-bench-v2/04304").privileged(true)).await.expect("created");
+    let holder = tokio::spawn(async move { slow.plan_actions(0, Some(Duration::from_secs(30))).await.map(drop) });
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let err = waiting.plan_actions(0, Some(Duration::from_millis(1500))).await.unwrap_err();
+    assert!(
+        matches!(&err, ClientError::DeadlineExceeded(m)
+            if m.contains("no planner thread came free within the budget of 1500 ms: all 1 (--planner-threads)")),
+        "{err}"
+    );
+    holder.abort();
+    let text = server_scrape(&server);
+    assert!(text.contains("esrp_plans_total{outcome=\"busy\"} 1"), "{text}");
+}
+
+/// A plan that finishes after its episode was reset onto another scene is not kept for that
+/// scene, even where the two start states are the same (the state fingerprint does not cover the
+/// scene): here the second scene is the first with a horizon of 3 steps, where no plan fits.
+#[tokio::test]
+async fn a_plan_for_a_scene_the_episode_has_left_is_not_cached_for_the_next() {
+    use esrp_client::proto;
+    let server = start(&["--planner-threads", "1"]);
+    let client = client(&server).await;
+    let scene = scenes_of(&client, Difficulty::Easy, 1).await.remove(0);
+    let (listed, _) = client.create_episode(EpisodeOptions::scene(&scene).privileged(true)).await.expect("created");
+    let mut json: serde_json::Value =
+        serde_json::from_str(&listed.privileged_state().await.expect("state").0.scene_json).expect("scene JSON");
+    json["id"] = "inline/roomy".into();
+    let roomy = json.to_string();
+    json["id"] = "inline/short".into();
+    json["horizon"] = 3.into();
+    let short = json.to_string();
+    let (episode, _) =
+        client.create_episode(EpisodeOptions::scene_json(roomy).privileged(true)).await.expect("created");
+
+    // The one planner thread is busy, so the call on `episode` waits, its start state taken.
+    let (slow, _) =
+        client.create_episode(EpisodeOptions::scene("esrp-bench-v2/04304").privileged(true)).await.expect("created");
+    let holder = tokio::spawn(async move { slow.plan_actions(0, Some(Duration::from_secs(30))).await.map(drop) });
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let request = proto::PlanActionsRequest { episode_id: episode.id().to_owned(), max_actions: 0, budget_ms: 60_000 };
+    let mut raw = client.raw();
+    let pending = tokio::spawn(async move { raw.plan_actions(request).await.map(tonic::Response::into_inner) });
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let reset = proto::ResetRequest {
+        episode_id: episode.id().to_owned(),
+        scene: Some(proto::reset_request::Scene::SceneJson(short)),
+    };
+    client.raw().reset(reset).await.expect("reset onto the short scene");
+    holder.abort(); // its planner stops, and the waiting call plans the roomy scene's start
+    let planned = pending.await.expect("the call ends").expect("an answer");
+    assert!(planned.reaches_success && !planned.cached, "planned from the roomy scene's start: {planned:?}");
+
+    let answer = episode.plan_actions(0, None).await.expect("an answer");
+    assert!(!answer.cached, "the roomy scene's plan was answered for the short one: {answer:?}");
+    assert_eq!(answer.failure, Some(esrp_client::PlanFailure::TooLong), "{}", answer.failure_message);
+}

@@ -2,16 +2,21 @@
 //!
 //! - Only privileged episodes may ask ([`ServiceError::NotPrivileged`]); an ended episode is
 //!   [`ServiceError::EpisodeOver`].
-//! - Planning runs on a blocking thread, never on the async runtime, and at most one plan per
-//!   core runs at once (a semaphore); the time budget (the request's, or `--plan-budget-ms`,
-//!   capped at `--max-plan-ms`) counts from the call, waiting for a core included, and a plan
-//!   not found within it is [`ServiceError::PlanDeadline`]. A call its client abandons stops
-//!   its planner at the next check (the planner's cancel flag), so it frees its core.
+//! - Planning runs on a blocking thread, never on the async runtime, and at most
+//!   `--planner-threads` plans (one per core by default) run at once (a semaphore); the time
+//!   budget (the request's, or `--plan-budget-ms`, capped at `--max-plan-ms`) counts from the
+//!   call, waiting for a planner thread included, and a plan not found within it is
+//!   [`ServiceError::PlanDeadline`]; a call that waited the whole budget for a planner thread is
+//!   [`ServiceError::PlannersBusy`]. A call its client abandons stops its planner at the next
+//!   check (the planner's cancel flag), so it frees its thread.
 //! - The answer (a plan, or why there is none) is cached with the episode, keyed by the exact
 //!   states the plan passes through: a later call from any of them (the agent followed the
 //!   plan, or reset to its start) answers from the cache without planning; any other state
-//!   plans afresh. A deadline is not cached (a larger budget may succeed).
+//!   plans afresh. A deadline is not cached (a larger budget may succeed), nor is an answer for
+//!   a scene the episode has left meanwhile (a Reset onto another scene, whose start state may
+//!   fingerprint the same: the fingerprint does not cover the scene).
 
+use std::sync::Arc;
 use std::time::Instant;
 
 use esrp_planner::{CancelToken, PlanFailure, PlanOptions};
@@ -53,10 +58,15 @@ pub(super) async fn plan(episodes: &Episodes, caller: &Caller, call: PlanCall) -
         }
         (entry.episode.clone(), fingerprint)
     };
-    let permit = tokio::time::timeout_at(deadline.into(), episodes.planners.acquire())
-        .await
-        .map_err(|_| ServiceError::PlanDeadline { budget_ms: budget.as_millis() as u64 })?
-        .map_err(|_| ServiceError::Internal("the planner pool is closed".into()))?;
+    let scene = episode.compiled().clone();
+    let Ok(permit) = tokio::time::timeout_at(deadline.into(), episodes.planners.acquire()).await else {
+        episodes.metrics.count_plan("busy");
+        return Err(ServiceError::PlannersBusy {
+            budget_ms: budget.as_millis() as u64,
+            threads: episodes.config.planner_threads(),
+        });
+    };
+    let permit = permit.map_err(|_| ServiceError::Internal("the planner pool is closed".into()))?;
     let cancel = CancelOnDrop(CancelToken::new());
     let options = PlanOptions { deadline: Some(deadline), cancel: Some(cancel.0.clone()), ..PlanOptions::default() };
     let metrics = episodes.metrics.clone();
@@ -91,11 +101,11 @@ pub(super) async fn plan(episodes: &Episodes, caller: &Caller, call: PlanCall) -
     let answer =
         cached.answer(fingerprint, call.max_actions).unwrap_or_else(|| cached.answer_at_start(call.max_actions));
     let answer = Planned { cached: false, ..answer };
-    // Keep the answer if the episode is still where the plan starts (it may have moved on
-    // while the planner ran).
+    // Keep the answer if the episode is still where the plan starts, on the same scene (it may
+    // have moved on, or been reset onto another scene, while the planner ran).
     if let Ok(shared) = episodes.registry.get(&call.episode, caller) {
         let mut entry = shared.lock().await;
-        if entry.episode.state_fingerprint() == fingerprint {
+        if entry.episode.state_fingerprint() == fingerprint && Arc::ptr_eq(entry.episode.compiled(), &scene) {
             entry.plan = Some(cached);
         }
     }
