@@ -490,6 +490,7 @@ def test_bad_dagger_configs_are_refused(
         ({"keep_average": "yes"}, "dagger keep_average must be true or false"),
         ({"scenes_per_iteration": 0}, "dagger scenes_per_iteration must be at least 1"),
         ({"episodes_in_flight": 0}, "dagger episodes_in_flight must be at least 1"),
+        ({"plan_budget_ms": 2**32}, "dagger plan_budget_ms must be at most 4294967295"),
         ({"iterations": "2"}, "dagger iterations must be an integer"),
         ({"split": "challenge"}, "dagger split 'challenge': train or test"),
     ):

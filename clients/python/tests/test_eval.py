@@ -347,6 +347,45 @@ def test_sensors_for_an_agent_the_server_plays_are_refused(
     assert not out.exists()
 
 
+def test_plan_settings_out_of_range_are_refused_before_any_episode(
+    server: esrp.LocalServer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--replans -1` recorded episodes in which the planner was never asked, and a budget over 32
+    bits failed every episode with a traceback; the flags are refused by the parser, the settings
+    by `evaluate` (the library's way in), before any episode. So is `demos export --dagger`'s."""
+    from esrp.eval.evaluation import EvalError, EvalSettings, run_eval
+
+    out = tmp_path / "run.jsonl"
+    flags = [
+        ("eval", "--replans", "-1", "must be at least 0, not -1"),
+        ("eval", "--plan-budget-ms", "4294967296", "must be 1 to 4294967295 milliseconds, not 4294967296"),
+        ("eval", "--plan-budget-ms", "0", "must be 1 to 4294967295 milliseconds, not 0"),
+    ]
+    for command, flag, value, said in flags:
+        with pytest.raises(SystemExit) as exited:
+            main(["eval", "--agent", "plan", flag, value, "--out", str(out), "--server", server.address])
+        assert exited.value.code == 2
+        assert f"esrp {command}: error: argument {flag}: {said}" in capsys.readouterr().err
+    export = ["demos", "export", "--dagger", "random", "--plan-budget-ms", "4294967296"]
+    with pytest.raises(SystemExit) as exited:
+        main([*export, "--out", str(tmp_path / "d"), "--server", server.address])
+    assert exited.value.code == 2
+    assert "argument --plan-budget-ms: must be 1 to 4294967295" in capsys.readouterr().err
+    settings = [
+        (EvalSettings(agent="plan", out=out, replans=-1), "--replans must be at least 0, not -1"),
+        (EvalSettings(agent="plan", out=out, plan_budget_ms=2**32), "--plan-budget-ms must be 1 to"),
+    ]
+    for setting, said in settings:
+        with pytest.raises(EvalError, match=said):
+            run_eval(setting, server=server.address)
+    assert not out.exists()
+    from esrp.train.demos import DemoExportError, DemoSettings, export_demos
+
+    with esrp.Client(server.address) as client, pytest.raises(DemoExportError, match="plan_budget_ms must"):
+        export_demos(client, DemoSettings(out=tmp_path / "d", dagger="random", plan_budget_ms=0))
+    assert not (tmp_path / "d").exists()
+
+
 def test_resume_after_an_interrupted_run_gives_the_same_file(
     server: esrp.LocalServer, tmp_path: Path, easy_scenes: list[str], capsys: pytest.CaptureFixture[str]
 ) -> None:

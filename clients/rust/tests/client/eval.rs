@@ -142,6 +142,22 @@ async fn bad_requests_are_refused_with_a_reason() {
     assert!(stderr.contains("with other settings") && stderr.contains("\"budget_ms\":5000"), "{stderr}");
 }
 
+/// A planning budget PlanActions cannot carry is refused before anything runs: 0 was sent as
+/// 1 ms (every episode then failed with deadline_exceeded), and one over 32 bits was cut down.
+#[test]
+fn a_plan_budget_out_of_range_is_refused_up_front() {
+    let dir = tempfile::tempdir().expect("a temp dir");
+    let out = dir.path().join("plan.jsonl");
+    for budget in ["0", "4294967296"] {
+        let output =
+            eval("127.0.0.1:1", &["--agent", "plan", "--plan-budget-ms", budget, "--out", out.to_str().unwrap()]);
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert_eq!(output.status.code(), Some(2), "{budget}: {stderr}");
+        assert!(stderr.contains(&format!("invalid value '{budget}' for '--plan-budget-ms")), "{stderr}");
+        assert!(!out.exists());
+    }
+}
+
 /// A second run over a challenge's scenes is refused by the server (one counted attempt per scene
 /// and token): `esrp-eval` says that those episodes would be refused again, not to rerun them.
 #[tokio::test]

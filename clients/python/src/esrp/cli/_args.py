@@ -85,6 +85,22 @@ def positive(text: str) -> int:
     return value
 
 
+def non_negative(text: str) -> int:
+    """An integer of at least 0."""
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be at least 0, not {value}")
+    return value
+
+
+def plan_budget(text: str) -> int:
+    """A PlanActions budget: milliseconds from 1 to 2³²−1 (the request's `budget_ms` is 32 bits)."""
+    value = int(text)
+    if not 1 <= value < 2**32:
+        raise argparse.ArgumentTypeError(f"must be 1 to 4294967295 milliseconds, not {value}")
+    return value
+
+
 def positive_float(text: str) -> float:
     """A number above 0."""
     value = float(text)

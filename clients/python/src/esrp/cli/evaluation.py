@@ -14,7 +14,9 @@ from ._args import (
     Parser,
     comma_list,
     json_object,
+    non_negative,
     one_line_errors,
+    plan_budget,
     positive,
     positive_float,
     scene_options,
@@ -103,9 +105,14 @@ def _agent_settings(parser: argparse.ArgumentParser) -> None:
         help="vlm: the per-episode traces' folder (default: --out without .jsonl, plus .traces)",
     )
     parser.add_argument(
-        "--plan-budget-ms", type=positive, default=60_000, help="plan: budget per PlanActions call"
+        "--plan-budget-ms",
+        type=plan_budget,
+        default=60_000,
+        help="plan: budget per PlanActions call, 1 to 4294967295 ms (the server caps it)",
     )
-    parser.add_argument("--replans", type=int, default=2, help="plan: PlanActions calls after the first")
+    parser.add_argument(
+        "--replans", type=non_negative, default=2, help="plan: PlanActions calls after the first (0 or more)"
+    )
     parser.add_argument(
         "--sensors",
         type=sensor_list,

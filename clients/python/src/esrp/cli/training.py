@@ -13,6 +13,7 @@ from ._args import (
     json_object,
     on_server,
     one_line_errors,
+    plan_budget,
     positive,
     scene_options,
     server_options,
@@ -124,7 +125,9 @@ def _add_demos_export(demo_commands: argparse._SubParsersAction[Parser]) -> None
         "--seed", type=int, help="--dagger: base seed (scene ID: seed XOR fnv1a64(ID); default 0)"
     )
     export.add_argument(
-        "--plan-budget-ms", type=positive, help="--dagger: planning budget per label (default 10000)"
+        "--plan-budget-ms",
+        type=plan_budget,
+        help="--dagger: planning budget per label, 1 to 4294967295 ms (default 10000)",
     )
     export.add_argument(
         "--max-steps",

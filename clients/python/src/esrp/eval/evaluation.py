@@ -124,8 +124,10 @@ class EvalSettings:
         fresh: Start the results file over instead of resuming it.
         summary: The Markdown summary's path (default: `out` with `.md`).
         agent_config: The agent's settings (a factory's argument; recorded as `agent_config`).
-        plan_budget_ms: The planner's time budget per PlanActions call (plan agent).
-        replans: PlanActions calls after the first when the episode goes on (plan agent).
+        plan_budget_ms: The planner's time budget per PlanActions call (plan agent), 1 to 2³²−1
+            milliseconds (the server caps it at its `--max-plan-ms`).
+        replans: PlanActions calls after the first when the episode goes on (plan agent), 0 or
+            more.
         sensors: Optional sensors of a `MODULE:CALLABLE` agent's episodes.
         privileged: Create a `MODULE:CALLABLE` agent's episodes privileged (for reference agents
             that read the state or call PlanActions; not an ESRP agent proper then).
@@ -888,6 +890,11 @@ async def evaluate(
     """
     if settings.episodes_in_flight < 1:
         raise EvalError("--episodes-in-flight must be at least 1")
+    if settings.agent == "plan" and not 1 <= settings.plan_budget_ms < 2**32:
+        budget = settings.plan_budget_ms
+        raise EvalError(f"--plan-budget-ms must be 1 to 4294967295 milliseconds, not {budget}")
+    if settings.agent == "plan" and settings.replans < 0:
+        raise EvalError(f"--replans must be at least 0, not {settings.replans}")
     summary_path_of(settings.out, settings.summary)
     factory = agent_factory(settings)
     info: ServerInfo = await client.server_info()

@@ -102,7 +102,7 @@ class DaggerConfig:
         beta: The probability that the planner's label is stepped instead of the policy's action,
             in iteration 1.
         beta_decay: `beta`'s factor per further iteration.
-        plan_budget_ms: The planner's budget per label.
+        plan_budget_ms: The planner's budget per label, 1 to 2³²−1 milliseconds.
         max_steps: At most this many labelled states per episode (0: until the episode ends).
         epsilon: The policy's random-action probability in the exports (None: `[bc]`'s `epsilon`).
         seed: The seed of the scene draws and the base seed of the exports' episodes (iteration k
@@ -162,6 +162,9 @@ class DaggerConfig:
         for name in integers[1:]:
             if getattr(self, name) < 1:
                 raise ValueError(f"dagger {name} must be at least 1, not {getattr(self, name)}")
+        if self.plan_budget_ms >= 2**32:
+            budget = self.plan_budget_ms
+            raise ValueError(f"dagger plan_budget_ms must be at most 4294967295 (32 bits), not {budget}")
         if self.split not in ("train", "test"):
             raise ValueError(f"dagger split {self.split!r}: train or test")
         if self.initial is not None and (not isinstance(self.initial, str) or not self.initial):

@@ -114,7 +114,7 @@ class DemoSettings:
         beta: With `dagger`, the probability that the planner's label, not the agent's action, is
             stepped (DAgger's mixing; 0: the agent alone).
         seed: With `dagger`, the base seed: scene `id` plays with `seed XOR fnv1a64(id)`.
-        plan_budget_ms: With `dagger`, the planning budget of each label.
+        plan_budget_ms: With `dagger`, the planning budget of each label, 1 to 2³²−1 milliseconds.
         label_horizon: With `dagger`, how many of the plan's first actions each state records
             (`data/label_chunk`): the trained policy's action horizon.
         max_steps: With `dagger`, at most this many states recorded per episode (the episode is
@@ -713,6 +713,8 @@ def export_demos(
             raise DemoExportError(f"max_steps must be 0 (no limit) or more, got {settings.max_steps}")
         if settings.label_horizon < 1:
             raise DemoExportError(f"label_horizon must be at least 1, got {settings.label_horizon}")
+        if not 1 <= settings.plan_budget_ms < 2**32:
+            raise DemoExportError(f"plan_budget_ms must be 1 to 4294967295, got {settings.plan_budget_ms}")
         try:
             factory = make_factory(settings.dagger, dict(settings.agent_config), settings.out)
         except EvalError as error:

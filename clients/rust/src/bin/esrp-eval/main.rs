@@ -66,10 +66,10 @@ struct Args {
     /// Base seed of seeded agents; scene `id` uses `seed XOR fnv1a64(id)`.
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// The planner's time budget per call, in milliseconds (the server caps it at its
-    /// --max-plan-ms, 60000 by default).
-    #[arg(long, default_value_t = 60_000)]
-    plan_budget_ms: u64,
+    /// The planner's time budget per call, in milliseconds, 1 to 4294967295 (PlanActions'
+    /// budget_ms; the server caps it at its --max-plan-ms, 60000 by default).
+    #[arg(long, default_value_t = 60_000, value_parser = clap::value_parser!(u32).range(1..))]
+    plan_budget_ms: u32,
     /// Planner calls after the first when an episode goes on after a plan.
     #[arg(long, default_value_t = 2)]
     replans: u32,
@@ -316,7 +316,7 @@ async fn run() -> anyhow::Result<()> {
     let scenes = pick_scenes(&client, &args).await?;
     let settings = AgentSettings {
         kind: args.agent,
-        plan_budget: Some(Duration::from_millis(args.plan_budget_ms)),
+        plan_budget: Some(Duration::from_millis(u64::from(args.plan_budget_ms))),
         replans: args.replans,
     };
     let recording = Recording {
