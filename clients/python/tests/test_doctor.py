@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 import esrp
+from esrp import _native
 from esrp.cli import main
 from esrp.cli.doctor import same_release
 
@@ -63,6 +64,16 @@ def test_an_address_without_a_server_fails_at_once(capsys: pytest.CaptureFixture
     assert main(["doctor", "--server", "127.0.0.1:1"]) == 1
     out = capsys.readouterr().out
     assert "FAIL  server             no esrp-server answers at 127.0.0.1:1" in out
+
+
+def test_an_address_no_channel_can_be_made_to_fails_in_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    # The parser lets it through (gRPC would resolve it); the native transport refuses it.
+    assert main(["doctor", "--server", "bad address!!"]) == 1
+    out = capsys.readouterr().out
+    assert "FAIL  server             " in out
+    if _native.available():  # over grpcio the address fails to resolve: "no esrp-server answers"
+        assert "give an address like 127.0.0.1:50051" in out
+    assert "1 check(s) failed: server" in out
 
 
 def test_bad_seconds_are_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:

@@ -197,7 +197,13 @@ def _on_server(args: argparse.Namespace, report: Callable[[Check], None]) -> Non
 
     if args.server is not None:
         try:
-            with Client(args.server, token=args.token, timeout=30) as client:
+            client = Client(args.server, token=args.token, timeout=30)
+        except ValueError as error:
+            # An address the parser let through that no channel can be made to (`bad host!!`).
+            report(Check("server", "FAIL", str(error), "give an address like 127.0.0.1:50051 or unix:PATH"))
+            return
+        try:
+            with client:
                 _server_checks(client, f"the server at {args.server}", args.seconds, report)
         except EsrpError as error:
             detail = unreachable(args.server, error) if isinstance(error, ServerUnavailable) else str(error)
