@@ -39,10 +39,12 @@ class Request:
 
 @dataclass
 class Reply:
-    """What the fake server answers: a completion with `content`, or an HTTP error `status`."""
+    """What the fake server answers: a completion with `content`, an HTTP error `status`, or
+    `raw`, a body that is not JSON (`content-type: text/html`)."""
 
     content: str | None = None
     status: int = 200
+    raw: str | None = None
     prompt_tokens: int = 100
     completion_tokens: int = 10
 
@@ -91,7 +93,7 @@ class FakeServer:
     most_in_flight: int = 0
     lock: threading.Lock = field(default_factory=threading.Lock)
 
-    def handle(self, body: dict[str, Any], headers: dict[str, str]) -> tuple[int, dict[str, Any]]:
+    def handle(self, body: dict[str, Any], headers: dict[str, str]) -> tuple[int, dict[str, Any] | str]:
         with self.lock:
             self.in_flight += 1
             self.most_in_flight = max(self.most_in_flight, self.in_flight)
@@ -107,6 +109,8 @@ class FakeServer:
         finally:
             with self.lock:
                 self.in_flight -= 1
+        if reply.raw is not None:
+            return reply.status, reply.raw
         if reply.status != 200:
             return reply.status, {"error": {"message": f"scripted {reply.status}", "type": "server_error"}}
         return 200, {
@@ -140,13 +144,15 @@ def fake_openai(script: Script) -> Iterator[FakeServer]:
         def do_POST(self) -> None:  # noqa: N802 - the http.server name
             length = int(self.headers.get("content-length", "0"))
             body = json.loads(self.rfile.read(length))
+            payload: dict[str, Any] | str
             if self.path.rstrip("/") != "/v1/chat/completions":
                 status, payload = 404, {"error": {"message": f"no route {self.path}"}}
             else:
                 status, payload = fake.handle(body, {k.lower(): v for k, v in self.headers.items()})
-            data = json.dumps(payload).encode()
+            html = isinstance(payload, str)
+            data = (payload if isinstance(payload, str) else json.dumps(payload)).encode()
             self.send_response(status)
-            self.send_header("content-type", "application/json")
+            self.send_header("content-type", "text/html" if html else "application/json")
             self.send_header("content-length", str(len(data)))
             # The openai client honours this delay before retrying a 429 or 5xx: keeps the tests fast.
             self.send_header("retry-after-ms", "5")

@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import json
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,6 +20,7 @@ import pytest
 from fake_openai import FakeServer, Reply, Request, fake_openai
 
 import esrp
+import esrp.agents.vlm
 from esrp.agents import is_async_agent
 from esrp.agents.vlm import (
     ACTION_NAMES,
@@ -86,6 +88,9 @@ def test_parse_answer_keeps_the_thought() -> None:
         ({"model": "m", "constrained": "grammar"}, "constrained must be one of"),
         ({"model": "m", "fallback_action": "jump"}, "is not an action"),
         ({"model": "m", "max_concurrent_requests": 0}, "must be at least 1"),
+        ({"model": "m", "timeout_s": 0}, "timeout_s must be more than 0"),
+        ({"model": "m", "timeout_s": float("nan")}, "timeout_s must be more than 0"),
+        ({"model": "m", "temperature": -0.5}, "temperature must be 0 or more"),
     ],
 )
 def test_settings_say_what_is_wrong(config: dict[str, Any], message: str) -> None:
@@ -389,6 +394,78 @@ def test_a_model_that_keeps_failing_fails_the_episode_and_a_rerun_overwrites_its
     lines = trace_lines(trace)
     assert [line["type"] for line in lines] == ["episode", "step", "step", "end"]
     assert [line["action"] for line in lines[1:3]] == ["fetch", "fetch"]
+
+
+def test_a_misbehaving_endpoint_fails_its_episode_in_one_line_and_the_run_goes_on(
+    server: esrp.LocalServer, scenes: Scenes, tmp_path: Path
+) -> None:
+    # By scene: an HTML page with status 200 (a proxy's), a 401 (a wrong key), good answers.
+    page, refused, good = scenes.by_goal.values()
+    replies = {
+        page.scene_id: Reply(raw="<html><body>Welcome to nginx!</body></html>"),
+        refused.scene_id: Reply(status=401),
+        good.scene_id: Reply("Thought: go\nAction: turn_left"),
+    }
+
+    def script(request: Request) -> Reply:
+        return replies[scenes.of(request).scene_id]
+
+    out = tmp_path / "vlm.jsonl"
+    ids = [p.scene_id for p in (page, refused, good)]
+    with fake_openai(script) as fake:
+        args = [*eval_args(fake, server, out, ids), "--agent-config", '{"max_steps": 1}']
+        assert main(args) == 1
+    assert fake.failures == []
+    assert len(fake.requests) == 3  # none of these is retried
+    (record,) = read_records(out).records  # the run went on with the others
+    assert record.scene_id == good.scene_id
+    assert record.actions == [2]
+    log = (tmp_path / "vlm.errors.log").read_text()
+    where = f"VlmEndpointError: the model endpoint {fake.base_url}"
+    assert f"## {page.scene_id}: {where} answered HTTP 200 but not a chat completion (text/html: " in log
+    assert "Welcome to nginx!" in log
+    assert f"## {refused.scene_id}: {where} answered HTTP 401 (scripted 401); check the API key" in log
+
+
+def test_an_endpoint_that_is_not_there_too_slow_or_elsewhere_names_itself(tmp_path: Path) -> None:
+    rng = np.random.default_rng(2)
+    first = esrp.Observation(
+        ego_rgb=rng.integers(0, 256, (128, 128, 3), dtype=np.uint8),
+        grasping=False,
+        goal_rgb=rng.integers(0, 256, (128, 128, 3), dtype=np.uint8),
+    )
+
+    async def one_step(config: dict[str, Any]) -> str:
+        factory = VlmAgentFactory({"model": "m", "traces": False, **config})
+        agent = factory()
+        await agent.reset(first, {"scene_id": "s/1", "horizon": 200})
+        try:
+            with pytest.raises(esrp.agents.vlm.VlmEndpointError) as raised:
+                await agent.act(first)
+        finally:
+            await factory.aclose()
+        return str(raised.value)
+
+    def slow(request: Request) -> Reply:
+        time.sleep(0.5)
+        return Reply("Action: turn_left")
+
+    with fake_openai(slow) as fake:
+        message = asyncio.run(one_step({"base_url": fake.base_url, "timeout_s": 0.1, "max_retries": 1}))
+        assert message == (
+            f"the model endpoint {fake.base_url} did not answer within timeout_s 0.1 s, after 1 retries"
+        )
+        assert len(fake.requests) == 2
+        # Without /v1 the fake has no such route: 404.
+        elsewhere = fake.base_url.removesuffix("/v1")
+        message = asyncio.run(one_step({"base_url": elsewhere}))
+        assert message.startswith(f"the model endpoint {elsewhere} answered HTTP 404 (")
+        assert message.endswith("; check --base-url (e.g. http://localhost:8000/v1) and --model 'm'")
+        closed = fake.base_url
+    message = asyncio.run(one_step({"base_url": closed, "max_retries": 0}))
+    assert message == (
+        f"the model endpoint {closed} could not be reached (max_retries 0): is it running? (--base-url)"
+    )
 
 
 def test_vlm_flags_and_config_errors(server: esrp.LocalServer, tmp_path: Path) -> None:

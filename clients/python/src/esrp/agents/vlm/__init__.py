@@ -17,8 +17,10 @@ and rendering is deterministic), whether a fetch or release worked from the gras
 `VlmAgentFactory` (what `esrp eval` builds once per run) owns the one `openai.AsyncOpenAI` client
 and a semaphore that caps the model calls in flight over all its episodes; HTTP 429, 5xx, timeouts
 and connection errors are retried by the `openai` client (`max_retries`, exponential backoff,
-honouring `Retry-After`). Each episode writes a trace (JSON Lines, `trace_dir/<scene>.jsonl`):
-the prompt text, image sizes and hashes, each answer with its thought, usage and latency.
+honouring `Retry-After`); a request that still fails, any other HTTP error (401, 404...), or an
+answer that is not a chat completion raises `VlmEndpointError`, which fails the episode. Each
+episode writes a trace (JSON Lines, `trace_dir/<scene>.jsonl`): the prompt text, image sizes and
+hashes, each answer with its thought, usage and latency.
 The package's modules: `_settings` (`VlmSettings`, the API key, trace paths), `_prompt` (the
 prompt and the images), `_parse` (reading an answer); the agent and its factory are here.
 """
@@ -59,6 +61,7 @@ __all__ = [
     "ParsedAnswer",
     "VlmAgent",
     "VlmAgentFactory",
+    "VlmEndpointError",
     "VlmSettings",
     "api_key",
     "correction_message",
@@ -75,6 +78,45 @@ __all__ = [
 
 # ---------------------------------------------------------------------------------------------
 # The agent
+
+
+class VlmEndpointError(RuntimeError):
+    """The model endpoint failed a request for good (after the `openai` client's retries): it
+    refused the connection, timed out, answered an HTTP error, or answered something that is not a
+    chat completion. It fails the episode (not recorded; a rerun retries it); the message names
+    the endpoint and what to check.
+    """
+
+
+def _endpoint_error(error: Exception, settings: VlmSettings) -> VlmEndpointError | None:
+    """`error` (raised by the `openai` client) as a `VlmEndpointError`, or None if it is not one of
+    the client's.
+    """
+    try:
+        import openai
+    except ImportError:  # a client passed in (tests) without the package
+        return None
+    where = f"the model endpoint {settings.base_url or '(OPENAI_BASE_URL, else OpenAI)'}"
+    retried = f"after {settings.max_retries} retries" if settings.max_retries else "(max_retries 0)"
+    if isinstance(error, openai.APITimeoutError):
+        timeout = f"timeout_s {settings.timeout_s:g} s"
+        return VlmEndpointError(f"{where} did not answer within {timeout}, {retried}")
+    if isinstance(error, openai.APIConnectionError):
+        return VlmEndpointError(f"{where} could not be reached {retried}: is it running? (--base-url)")
+    if isinstance(error, openai.APIStatusError):
+        status = error.status_code
+        body = error.body
+        said = body.get("message") if isinstance(body, dict) else body  # the error object's message
+        message = " ".join(str(said if said is not None else error.message).split())[:200]
+        hint = {
+            401: "; check the API key (ESRP_VLM_API_KEY, else OPENAI_API_KEY)",
+            403: "; check the API key (ESRP_VLM_API_KEY, else OPENAI_API_KEY)",
+            404: f"; check --base-url (e.g. http://localhost:8000/v1) and --model {settings.model!r}",
+        }.get(status, "")
+        if status in (408, 409, 429) or status >= 500:
+            hint = f" {retried}" + hint
+        return VlmEndpointError(f"{where} answered HTTP {status} ({message}){hint}")
+    return None
 
 
 @dataclass
@@ -319,9 +361,23 @@ class VlmAgent:
         queued = time.monotonic()
         async with self.factory.semaphore:
             started = time.monotonic()
-            raw = await self.factory.client.chat.completions.with_raw_response.create(**request)
+            try:
+                raw = await self.factory.client.chat.completions.with_raw_response.create(**request)
+            except Exception as error:
+                endpoint = _endpoint_error(error, settings)
+                if endpoint is None:
+                    raise
+                raise endpoint from error
             latency = time.monotonic() - started
         completion = raw.parse()
+        if not hasattr(completion, "choices"):  # a 200 whose body is no JSON object (a proxy's page)
+            kind = raw.headers.get("content-type", "no content type")
+            body = " ".join(str(completion).split())[:80]
+            raise VlmEndpointError(
+                f"the model endpoint {settings.base_url or '(OPENAI_BASE_URL, else OpenAI)'} answered "
+                f"HTTP 200 but not a chat completion ({kind}: {body!r}): is --base-url the API's "
+                "(e.g. http://localhost:8000/v1)?"
+            )
         retries = int(getattr(raw, "retries_taken", 0) or 0)
         choice = completion.choices[0] if completion.choices else None
         message = None if choice is None else choice.message

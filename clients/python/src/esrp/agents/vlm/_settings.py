@@ -5,6 +5,7 @@ traces go.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import re
 from collections.abc import Mapping
@@ -34,12 +35,12 @@ class VlmSettings:
         model: The model name the endpoint serves (`Qwen/Qwen3-VL-2B-Instruct`, `gemini-2.5-flash-lite`).
         base_url: The endpoint's base URL (`http://localhost:8000/v1`); None: `OPENAI_BASE_URL`,
             else OpenAI's.
-        temperature: Sampling temperature (0: greedy).
+        temperature: Sampling temperature, 0 or more (0: greedy).
         max_tokens: The answer's token limit (`max_tokens`).
         history: How many past actions the prompt lists.
         image_scale: Each image is enlarged by this integer factor (nearest neighbour) before encoding.
         max_concurrent_requests: Model calls in flight at once, over all episodes of the run.
-        timeout_s: One HTTP request's timeout, seconds.
+        timeout_s: One HTTP request's timeout, seconds (more than 0).
         max_retries: The `openai` client's retries of 429, 5xx, timeouts and connection errors.
         reprompts: Correction requests after an unusable answer, before the fallback.
         fallback_action: What a step plays when no usable answer came (name or code).
@@ -97,6 +98,10 @@ class VlmSettings:
         for name in ("history", "max_retries", "reprompts"):
             if getattr(settings, name) < 0:
                 raise ValueError(f"{name} must not be negative")
+        if not (math.isfinite(settings.timeout_s) and settings.timeout_s > 0):
+            raise ValueError(f"timeout_s must be more than 0 seconds, not {settings.timeout_s!r}")
+        if not (math.isfinite(settings.temperature) and settings.temperature >= 0):
+            raise ValueError(f"temperature must be 0 or more, not {settings.temperature!r}")
         if settings.max_steps is not None and settings.max_steps < 1:
             raise ValueError("max_steps must be at least 1")
         return settings
