@@ -399,11 +399,11 @@ def test_a_model_that_keeps_failing_fails_the_episode_and_a_rerun_overwrites_its
 def test_a_misbehaving_endpoint_fails_its_episode_in_one_line_and_the_run_goes_on(
     server: esrp.LocalServer, scenes: Scenes, tmp_path: Path
 ) -> None:
-    # By scene: an HTML page with status 200 (a proxy's), a 401 (a wrong key), good answers.
+    # By scene: an HTML page with status 200 (a proxy's), a 400 (a request it refused), good answers.
     page, refused, good = scenes.by_goal.values()
     replies = {
         page.scene_id: Reply(raw="<html><body>Welcome to nginx!</body></html>"),
-        refused.scene_id: Reply(status=401),
+        refused.scene_id: Reply(status=400),
         good.scene_id: Reply("Thought: go\nAction: turn_left"),
     }
 
@@ -424,7 +424,37 @@ def test_a_misbehaving_endpoint_fails_its_episode_in_one_line_and_the_run_goes_o
     where = f"VlmEndpointError: the model endpoint {fake.base_url}"
     assert f"## {page.scene_id}: {where} answered HTTP 200 but not a chat completion (text/html: " in log
     assert "Welcome to nginx!" in log
-    assert f"## {refused.scene_id}: {where} answered HTTP 401 (scripted 401); check the API key" in log
+    assert f"## {refused.scene_id}: {where} answered HTTP 400 (scripted 400)" in log
+
+
+@pytest.mark.parametrize("status", [401, 403, 404])
+def test_a_wrong_key_url_or_model_stops_the_run_there_and_a_rerun_resumes(
+    server: esrp.LocalServer, scenes: Scenes, tmp_path: Path, capsys: pytest.CaptureFixture[str], status: int
+) -> None:
+    # Every request of the run would get the same answer: the run stops at the first, keeping what
+    # it recorded, instead of failing each episode in turn.
+    first, refused, last = scenes.by_goal.values()
+    answer = {first.scene_id: Reply("Action: turn_left"), refused.scene_id: Reply(status=status)}
+
+    def script(request: Request) -> Reply:
+        return answer[scenes.of(request).scene_id]
+
+    out = tmp_path / "vlm.jsonl"
+    ids = [p.scene_id for p in (first, refused, last)]
+    config = ["--agent-config", '{"max_steps": 1}', "--episodes-in-flight", "1"]
+    with fake_openai(script) as fake:
+        capsys.readouterr()
+        assert main([*eval_args(fake, server, out, ids), *config]) == 1
+        err = capsys.readouterr().err
+        assert len(fake.requests) == 2  # the last scene was never started
+        assert [r.scene_id for r in read_records(out).records] == [first.scene_id]
+        where = f"the model endpoint {fake.base_url} answered HTTP {status}"
+        assert f"esrp eval: {refused.scene_id}: VlmEndpointError: {where}" in err, err
+        assert "stopped the run there, as every episode would fail the same way (1 episodes" in err
+        # Fixed (the key, the URL or the model), the same command resumes.
+        answer.update({refused.scene_id: Reply("Action: turn_right"), last.scene_id: Reply("Action: fetch")})
+        assert main([*eval_args(fake, server, out, ids), *config]) == 0
+    assert [r.scene_id for r in read_records(out).records] == ids
 
 
 def test_an_endpoint_that_is_not_there_too_slow_or_elsewhere_names_itself(tmp_path: Path) -> None:

@@ -274,6 +274,7 @@ def _add_verify(commands: argparse._SubParsersAction[Parser]) -> None:
 @one_line_errors
 def _eval(args: argparse.Namespace) -> int:
     from ..eval.evaluation import (
+        AgentStopped,
         EvalError,
         EvalSettings,
         ServerGone,
@@ -355,6 +356,9 @@ def _eval(args: argparse.Namespace) -> int:
     except ServerGone as error:
         print(f"esrp eval: {error}", file=sys.stderr)
         return 3
+    except AgentStopped as error:
+        print(f"esrp eval: {error}", file=sys.stderr)
+        return 1
     except EvalError as error:
         print(f"esrp eval: {error}", file=sys.stderr)
         return 2

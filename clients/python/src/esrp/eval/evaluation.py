@@ -103,6 +103,27 @@ class ServerGone(EvalError):
     """
 
 
+class AgentStopped(EvalError):
+    """The agent failed an episode in a way every episode would (its exception says so with a true
+    `stops_run` attribute, as `VlmEndpointError` does for a wrong API key, URL or model): the run
+    stopped there instead of failing each episode in turn. The records of the episodes that ended
+    are kept; once the cause is fixed, running the same command again resumes.
+    """
+
+
+def stops_the_run(scene_id: str, error: BaseException, written: int) -> AgentStopped | None:
+    """`AgentStopped` for `scene_id`'s `error` when the agent said every episode would fail the
+    same way (`error.stops_run` is true), None otherwise; `written`: the records this run kept.
+    """
+    if getattr(error, "stops_run", False) is not True:
+        return None
+    return AgentStopped(
+        f"{scene_id}: {type(error).__name__}: {error}; stopped the run there, as every episode would "
+        f"fail the same way ({written} episodes recorded by this run are kept: run the same command "
+        "again to resume once it is fixed)"
+    )
+
+
 SERVER_RETRY_SECONDS = 10.0
 """How long a run waits for a server that stopped answering before it stops (`ServerGone`)."""
 
@@ -925,6 +946,9 @@ async def evaluate(
                     gone = await server_gone(client, local, written, resume=settings.resume)
                     if gone is not None:
                         raise ServerGone(gone) from error
+                stopped = stops_the_run(scene.id, error, written)
+                if stopped is not None:
+                    raise stopped from error
                 failures.add(scene.id, error)
                 progress.advance(tally)
                 continue

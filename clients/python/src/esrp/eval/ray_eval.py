@@ -49,6 +49,7 @@ from .evaluation import (
     open_results,
     pick_scenes,
     play_episode,
+    stops_the_run,
 )
 from .results import EpisodeRecord, append_record
 
@@ -258,6 +259,9 @@ def _drive(ray: Any, settings: EvalSettings, cluster: RaySettings) -> EvalOutcom
                             ) from error
                         pending.appendleft(scene)  # played again from its start elsewhere
                     else:
+                        stopped = stops_the_run(scene.id, cause, written)
+                        if stopped is not None:
+                            raise stopped from error
                         # A task's error carries the worker's traceback in its text.
                         failures.add(scene.id, cause, trace=str(error))
                         progress.advance(tally)

@@ -85,7 +85,20 @@ class VlmEndpointError(RuntimeError):
     refused the connection, timed out, answered an HTTP error, or answered something that is not a
     chat completion. It fails the episode (not recorded; a rerun retries it); the message names
     the endpoint and what to check.
+
+    Attributes:
+        stops_run: The endpoint refused the request for a reason every request meets (HTTP 401 or
+            403: the API key; 404: the URL or the model): `esrp eval` stops the run there instead
+            of failing every episode in turn (`esrp.eval.evaluation.AgentStopped`).
     """
+
+    def __init__(self, message: str, *, stops_run: bool = False) -> None:
+        super().__init__(message)
+        self.stops_run = stops_run
+
+
+_LASTING = (401, 403, 404)
+"""The HTTP statuses that every request of the run would get too: a wrong key, URL or model."""
 
 
 def _endpoint_error(error: Exception, settings: VlmSettings) -> VlmEndpointError | None:
@@ -115,7 +128,9 @@ def _endpoint_error(error: Exception, settings: VlmSettings) -> VlmEndpointError
         }.get(status, "")
         if status in (408, 409, 429) or status >= 500:
             hint = f" {retried}" + hint
-        return VlmEndpointError(f"{where} answered HTTP {status} ({message}){hint}")
+        return VlmEndpointError(
+            f"{where} answered HTTP {status} ({message}){hint}", stops_run=status in _LASTING
+        )
     return None
 
 
