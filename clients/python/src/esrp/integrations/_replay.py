@@ -36,6 +36,7 @@ __all__ = [
     "Source",
     "check_target",
     "env_for",
+    "env_kwargs",
     "horizon_kwargs",
     "make_staging",
     "remove_abandoned_staging",
@@ -233,6 +234,20 @@ def remove_abandoned_staging(root: Path, prefix: str) -> None:
             print(f"esrp demos export: removed {path}, left by an export that was killed", file=sys.stderr)
         except PermissionError:
             pass  # another user's process: running
+
+
+def env_kwargs(settings: DemoSettings, episodes: Sequence[Source], resolution: int) -> dict[str, Any]:
+    """The kwargs of `esrp/Rearrange-v1` that play `episodes` again, as JSON: the views'
+    `sensors`; the `split` and `difficulty` of expert demonstrations; the `horizon` and the
+    `reward` weights that every record shares (`horizon_kwargs`, `reward_kwargs`), so that the env
+    gives the rewards stored.
+    """
+    kwargs: dict[str, Any] = {"sensors": {"resolution": resolution}}
+    if not settings.records:
+        kwargs.update(split=settings.split, difficulty=settings.difficulty)
+    kwargs.update(horizon_kwargs(episodes))
+    kwargs.update(reward_kwargs(episodes))
+    return kwargs
 
 
 def reward_kwargs(episodes: Sequence[Source]) -> dict[str, Any]:

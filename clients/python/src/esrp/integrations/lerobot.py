@@ -68,10 +68,9 @@ from ._replay import (
     Source,
     check_target,
     env_for,
-    horizon_kwargs,
+    env_kwargs,
     make_staging,
     replay,
-    reward_kwargs,
 )
 from ._replay import sources as replay_sources
 
@@ -140,11 +139,7 @@ def export_lerobot(
     check_target(root, target, "LeRobot")
     episodes = replay_sources(client, settings, sources, info.dataset)
     resolution = settings.resolution or 128
-    kwargs: dict[str, Any] = {"sensors": {"resolution": resolution}}
-    if not settings.records:
-        kwargs.update(split=settings.split, difficulty=settings.difficulty)
-    kwargs.update(horizon_kwargs(episodes))
-    kwargs.update(reward_kwargs(episodes))
+    kwargs = env_kwargs(settings, episodes, resolution)
     envs: dict[tuple[int, str], RearrangeEnv] = {}
     staging = make_staging(root, _STAGING)
     steps = 0

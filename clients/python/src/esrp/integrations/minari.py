@@ -54,7 +54,7 @@ from .._client import Client
 from .._registration import ENV_ID, register_envs
 from ..envs import RearrangeEnv
 from ..train.demos import DemoExportError, DemoSettings, ExportOutcome, RecordSource, check_resolution
-from ._replay import Replay, check_target, env_for, horizon_kwargs, make_staging, replay, reward_kwargs
+from ._replay import Replay, check_target, env_for, env_kwargs, make_staging, replay
 from ._replay import sources as replay_sources
 
 __all__ = ["CHUNK_EPISODES", "default_dataset_id", "export_minari"]
@@ -101,13 +101,7 @@ def export_minari(
     check_target(root, root / dataset_id, "Minari")
     episodes = replay_sources(client, settings, sources, info.dataset)
     resolution = settings.resolution or 128
-    kwargs: dict[str, Any] = {"sensors": {"resolution": resolution}}
-    if not settings.records:
-        kwargs.update(split=settings.split, difficulty=settings.difficulty)
-    kwargs.update(horizon_kwargs(episodes))
-    # The records' reward weights where they all played with the same (the server's default
-    # otherwise), so that `recover_environment()` gives the rewards stored.
-    kwargs.update(reward_kwargs(episodes))
+    kwargs = env_kwargs(settings, episodes, resolution)  # `recover_environment()` plays them again
     register_envs()
     spec = dataclasses.replace(gymnasium.spec(ENV_ID), kwargs=kwargs)
     envs: dict[tuple[int, str], RearrangeEnv] = {}
