@@ -1049,3 +1049,22 @@ def test_a_run_stopped_by_a_lost_server_says_the_resume_it_was_given(tmp_path: P
         with pytest.raises(ServerGone, match="(?s)exited with signal 9 after .*go on with --resume"):
             run_async(run())
         killer.join()
+
+
+def test_the_committed_gzip_results_are_read_as_they_are_and_never_appended_to(
+    server: esrp.LocalServer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """docs/results keeps its records as .jsonl.gz: esrp report reads one as it is (the numbers of
+    its committed summary), and esrp eval refuses to resume it, leaving it as it was."""
+    committed = Path(__file__).resolve().parents[3] / "docs" / "results" / "random-v2.jsonl.gz"
+    assert main(["report", str(committed), "--out", str(tmp_path / "report")]) == 0
+    report = (tmp_path / "report" / "report.md").read_text()
+    assert "| **random** | 544 | 1.47 | 0.75–2.87 | 1.47 | 1.0722 |" in report, report
+    packed = tmp_path / "mine.jsonl.gz"
+    packed.write_bytes(committed.read_bytes())
+    capsys.readouterr()
+    args = ["eval", "--agent", "random", "--split", "test", "--limit", "1", "--seed", "0"]
+    assert main([*args, "--out", str(packed), "--server", server.address]) == 2
+    err = capsys.readouterr().err
+    assert f"{packed} is gzip-compressed: esrp eval appends to plain files" in err, err
+    assert packed.read_bytes() == committed.read_bytes()

@@ -3,6 +3,7 @@ Rust tool's, checked against the same expectations as clients/rust/src/results.r
 
 from __future__ import annotations
 
+import gzip
 import json
 from pathlib import Path
 
@@ -114,6 +115,30 @@ def test_round_trip_and_a_torn_last_line(tmp_path: Path) -> None:
     line = json.loads(path.read_text().splitlines()[0])
     assert list(line)[:3] == ["schema", "scene_id", "dataset"]
     assert list(line)[-1] == "finished_at"
+
+
+def test_a_gzip_file_reads_as_its_plain_twin(tmp_path: Path) -> None:
+    """docs/results keeps its records as .jsonl.gz: the readers take them as they are."""
+    plain = tmp_path / "r.jsonl"
+    with open(plain, "wb") as file:
+        for name in ("a", "b"):
+            append_record(file, record(name, "easy", True, 1.0, 0.0, 4))
+        file.write(b'{"schema":"esrp.results/v1","scene_id":"c"')  # cut short
+    packed = tmp_path / "r.jsonl.gz"
+    packed.write_bytes(gzip.compress(plain.read_bytes()))
+    one, other = read_records(plain), read_records(packed)
+    assert (one.compressed, other.compressed) == (False, True)
+    assert other.records == one.records
+    assert other.lines == one.lines  # what a signature covers: the decompressed line's bytes
+    assert (other.line_numbers, other.complete_bytes) == (one.line_numbers, one.complete_bytes)
+    assert (other.torn_tail, other.torn_line, other.torn_whole) == (True, 3, False)
+    # A file of several gzip members (cat a.gz b.gz) is read whole, as gunzip reads it.
+    packed.write_bytes(gzip.compress(b"\n") + gzip.compress(plain.read_bytes()))
+    assert read_records(packed).records == one.records
+    broken = tmp_path / "broken.jsonl.gz"
+    broken.write_bytes(gzip.compress(plain.read_bytes())[:-12])
+    with pytest.raises(ResultsError, match=r"broken.jsonl.gz: a gzip file that does not decompress: "):
+        read_records(broken)
 
 
 def test_a_complete_record_without_its_newline_is_torn(tmp_path: Path) -> None:

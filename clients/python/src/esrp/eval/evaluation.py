@@ -701,6 +701,11 @@ def resume_records(
     if not path.exists():
         return []
     read = read_records(path)
+    if read.compressed:
+        raise EvalError(
+            f"{path} is gzip-compressed: esrp eval appends to plain files (decompress it with gunzip to "
+            "resume it, or write to another --out)"
+        )
     if read.torn_whole:
         # Not what an interrupted append leaves (it never writes the newline without the rest):
         # a line of something else, which is not cut off.

@@ -7,10 +7,12 @@ the paper's rows beside it — the same text as the Rust tool's (`clients/rust/s
 
 from __future__ import annotations
 
+import gzip
 import json
 import math
 import os
 import sys
+import zlib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -271,6 +273,9 @@ class ReadRecords:
     torn_line: int = 0
     torn_reason: str = ""
     torn_whole: bool = False
+    compressed: bool = False
+    """Whether the file is gzip-compressed (`.jsonl.gz`, as docs/results keeps them): it was read
+    decompressed, and its lines and byte counts are the decompressed ones."""
 
     def torn_note(self, path: str | os.PathLike[str]) -> str:
         """The dropped last line of file `path`, in words (empty when none was dropped):
@@ -301,14 +306,29 @@ def _not_json(name: str) -> float:
     raise ValueError(f"{name} is not a JSON number")
 
 
+GZIP_MAGIC = b"\x1f\x8b"
+"""The first two bytes of a gzip file."""
+
+
 def read_records(path: str | os.PathLike[str]) -> ReadRecords:
-    """Reads a results file. A last line that does not parse (an interrupted write), or that lacks
-    its newline, is reported in `torn_tail`, not an error (`torn_whole` says whether it cannot be
-    an interrupted write); any other bad line raises `ResultsError`. Blank lines are skipped.
+    """Reads a results file, decompressed first when it is gzip-compressed (`compressed` says so).
+    A last line that does not parse (an interrupted write), or that lacks its newline, is reported
+    in `torn_tail`, not an error (`torn_whole` says whether it cannot be an interrupted write); any
+    other bad line raises `ResultsError`, as does a gzip file that does not decompress. Blank lines
+    are skipped.
     """
     out = ReadRecords()
     with open(path, "rb") as file:
-        lines = file.readlines()
+        data = file.read()
+    if data.startswith(GZIP_MAGIC):
+        try:
+            data = gzip.decompress(data)
+        except (OSError, EOFError, zlib.error) as error:
+            raise ResultsError(f"{path}: a gzip file that does not decompress: {error}") from None
+        out.compressed = True
+    # Lines as `readlines()` gives them: split at newlines only, each keeping its own.
+    *ended, tail = data.split(b"\n")
+    lines = [line + b"\n" for line in ended] + ([tail] if tail else [])
     for number, raw in enumerate(lines, start=1):
         complete = raw.endswith(b"\n")
         text = raw.strip()
