@@ -16,21 +16,17 @@ from __future__ import annotations
 
 import argparse
 import csv
-import gzip
-import json
 import sys
 from pathlib import Path
 
 from _curves import save, success_errorbar
 
-from esrp.eval.results import EpisodeRecord
+from esrp.eval.results import read_records
 
 
 def successes(path: Path) -> tuple[int, int]:
-    """The successes and the episodes of esrp.results/v1 file `path` (gzip when it ends in .gz)."""
-    opener = gzip.open if path.suffix == ".gz" else open
-    with opener(path, "rt") as file:
-        records = [EpisodeRecord.from_dict(json.loads(line)) for line in file if line.strip()]
+    """The successes and the episodes of esrp.results/v1 file `path` (gzip-compressed or not)."""
+    records = read_records(path).records
     return sum(r.success for r in records), len(records)
 
 
