@@ -14,7 +14,16 @@ import sys
 from pathlib import Path
 from typing import Any
 
-STAGES = ("lock", "take", "render_queue", "render_encode", "render_device", "render_extract", "answer")
+STAGES = (
+    "lock",
+    "take",
+    "render_queue",
+    "render_encode",
+    "render_submit",
+    "render_device",
+    "render_extract",
+    "answer",
+)
 
 
 def load(folder: Path, name: str) -> dict[str, Any] | None:
@@ -51,6 +60,13 @@ def busiest(result: dict[str, Any]) -> str:
     return f"{name} {stages[name]['busy']:.2f}"
 
 
+def figures(entry: dict[str, Any] | None) -> str:
+    """A stage's cell: microseconds per step and busy share, or a dash (a stage not counted)."""
+    if entry is None or entry.get("us_per_step") is None:
+        return "–"
+    return f"{entry['us_per_step']:.1f} ({entry['busy']:.2f})"
+
+
 def standard(folder: Path) -> list[str]:
     report = load(folder, "standard.json")
     if report is None:
@@ -72,20 +88,17 @@ def standard(folder: Path) -> list[str]:
     ]
     lines += [
         "",
-        "Where the server's time went (µs per step, and how busy each stage kept its threads):",
+        "Where the server's time went (µs per step, and how busy each stage kept its threads;",
+        "gpu_drawing: the part of render_device the device spent drawing, by its own clock,",
+        "where the server times it):",
         "",
-        "| scenario | " + " | ".join(STAGES) + " |",
-        "|---|" + "---:|" * len(STAGES),
+        "| scenario | " + " | ".join(STAGES) + " | gpu_drawing |",
+        "|---|" + "---:|" * (len(STAGES) + 1),
     ]
     for r in report["results"]:
-        stages = (r.get("breakdown") or {}).get("stages") or {}
-        cells = []
-        for stage in STAGES:
-            entry = stages.get(stage)
-            if entry is None or entry["us_per_step"] is None:
-                cells.append("–")
-            else:
-                cells.append(f"{entry['us_per_step']:.1f} ({entry['busy']:.2f})")
+        breakdown = r.get("breakdown") or {}
+        stages = breakdown.get("stages") or {}
+        cells = [figures(stages.get(stage)) for stage in STAGES] + [figures(breakdown.get("gpu_drawing"))]
         lines.append(f"| {r['scenario']} | " + " | ".join(cells) + " |")
     return [*lines, ""]
 
@@ -164,19 +177,28 @@ def scale_out(folder: Path) -> list[str]:
 
 
 def views_table(report: dict[str, Any], title: str) -> list[str]:
-    """One run of the views bench: each case's views/s, a column per culling setting."""
+    """One run of the views bench: each case's views/s, a column per culling setting, and where
+    the renderer timed its device, the device's drawing per view (µs, by its clock) in brackets."""
     columns = list(next(iter(report["cases"].values()), {}))
+    drawing = report.get("gpu_us_per_view") or {}
+    unit = "views/s (the device's drawing, µs a view)" if drawing else "views/s"
     lines = [
         f"## {title}",
         "",
         f"Adapter: {report['adapter']}; rasterizer {report.get('rasterizer', 'pipeline')}; "
-        f"{report['seconds']} s a case; views/s.",
+        f"{report['seconds']} s a case; {unit}.",
         "",
         "| case | " + " | ".join(columns) + " |",
         "|---|" + "---:|" * len(columns),
     ]
-    for case, figures in report["cases"].items():
-        lines.append(f"| {case} | " + " | ".join(f"{figures[c]:,.0f}" for c in columns) + " |")
+
+    def cell(case: str, column: str) -> str:
+        views = f"{report['cases'][case][column]:,.0f}"
+        us = (drawing.get(case) or {}).get(column)
+        return views if us is None else f"{views} ({us:.1f})"
+
+    for case in report["cases"]:
+        lines.append(f"| {case} | " + " | ".join(cell(case, c) for c in columns) + " |")
     return [*lines, ""]
 
 

@@ -8,13 +8,17 @@
 //! (several processes measuring together), `ESRP_RENDER_BACKEND=gl` measures OpenGL and
 //! `ESRP_RENDER_RASTERIZER=compute` the compute rasteriser (culling does not apply to it).
 //! `scripts/gpu-bench.sh` runs it on a lent GPU machine, alone and as several processes at once
-//! (whether one device, not the server, is what caps).
+//! (whether one device, not the server, is what caps). Where the adapter has timestamp queries,
+//! each cell also says how many microseconds a view took the device to draw, by its own clock
+//! (in brackets; `gpu_us_per_view` in the JSON): the rest of a view's time is the submission,
+//! the wait and the readback (the timestamps are a GPU's by default; `ESRP_RENDER_TIMESTAMPS=on`
+//! or `off` asks for them or not, on any adapter).
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use esrp_core::{CompiledScene, EgoCamera, FixedObject, Heading, ObjectPose, Part, Scene, Shape};
-use esrp_render::{Camera, Outputs, Rasterizer, Renderer, RendererConfig, SceneHandle, ViewRequest};
+use esrp_render::{Camera, Outputs, Rasterizer, Renderer, RendererConfig, SceneHandle, Timestamps, ViewRequest};
 
 /// The example bedroom, and a copy with more furniture along the walls (a fuller room).
 fn scenes() -> Vec<Arc<CompiledScene>> {
@@ -47,16 +51,21 @@ fn camera(i: usize) -> EgoCamera {
     }
 }
 
-fn run(renderer: &Renderer, requests: &[ViewRequest<'_>], seconds: f64) -> f64 {
+/// Renders `requests` over and over for `seconds`; returns the views per second, and the
+/// device's drawing per view in microseconds where the renderer times it.
+fn run(renderer: &Renderer, requests: &[ViewRequest<'_>], seconds: f64) -> (f64, Option<f64>) {
     for _ in 0..3 {
         renderer.render_batch(requests).unwrap();
     }
     let start = Instant::now();
-    let mut views = 0usize;
+    let (mut views, mut drawing) = (0usize, Some(Duration::ZERO));
     while start.elapsed() < Duration::from_secs_f64(seconds) {
-        views += renderer.render_batch(requests).unwrap().len();
+        let (outputs, timings) = renderer.render_batch_timed(requests).unwrap();
+        views += outputs.len();
+        drawing = drawing.zip(timings.gpu).map(|(sum, batch)| sum + batch);
     }
-    views as f64 / start.elapsed().as_secs_f64()
+    let per_view = drawing.map(|d| d.as_secs_f64() * 1e6 / views.max(1) as f64);
+    (views as f64 / start.elapsed().as_secs_f64(), per_view)
 }
 
 /// The cases, by the name `ESRP_BENCH_CASES` selects them with: egocentric batches of 1 to 256
@@ -114,10 +123,17 @@ fn main() {
         }),
         Err(_) => Rasterizer::default(),
     };
+    let timestamps: Timestamps = match std::env::var("ESRP_RENDER_TIMESTAMPS") {
+        Ok(name) => name.parse().unwrap_or_else(|e| {
+            eprintln!("views: ESRP_RENDER_TIMESTAMPS: {e}");
+            std::process::exit(2)
+        }),
+        Err(_) => Timestamps::default(),
+    };
     let renderers: Vec<Renderer> = culling
         .iter()
         .map(|&cull| {
-            Renderer::new(RendererConfig { backends, cull, rasterizer, ..RendererConfig::default() })
+            Renderer::new(RendererConfig { backends, cull, rasterizer, timestamps, ..RendererConfig::default() })
                 .unwrap_or_else(|e| panic!("{e}"))
         })
         .collect();
@@ -152,9 +168,10 @@ fn main() {
     };
     let columns: Vec<&str> = culling.iter().map(|&on| if on { "culling on" } else { "culling off" }).collect();
     wait_for_start();
-    print!("{:<34}", "case, views/s");
+    let timed = renderers.iter().all(Renderer::times_device);
+    print!("{:<34}", if timed { "case, views/s (device µs/view)" } else { "case, views/s" });
     for column in &columns {
-        print!(" {column:>12}");
+        print!(" {column:>20}");
     }
     println!();
     let mut figures = Vec::new();
@@ -162,26 +179,33 @@ fn main() {
         print!("{name:<34}");
         let mut row = Vec::new();
         for (r, renderer) in renderers.iter().enumerate() {
-            let views = run(renderer, &requests(r, name), seconds);
-            print!(" {views:>12.0}");
-            row.push(views);
+            let (views, drawing) = run(renderer, &requests(r, name), seconds);
+            match drawing {
+                Some(us) => print!(" {:>20}", format!("{views:.0} ({us:.1})")),
+                None => print!(" {views:>20.0}"),
+            }
+            row.push((views, drawing));
         }
         println!();
         figures.push((name, row));
     }
     if let Ok(path) = std::env::var("ESRP_BENCH_JSON") {
-        let cases: serde_json::Map<String, serde_json::Value> = figures
-            .iter()
-            .map(|(name, row)| {
-                let cells = columns.iter().zip(row).map(|(column, views)| ((*column).to_owned(), (*views).into()));
-                ((*name).to_owned(), serde_json::Value::Object(cells.collect()))
-            })
-            .collect();
+        // One table of the cases' cells, by `pick`ing a figure of each.
+        let table = |pick: fn(&(f64, Option<f64>)) -> serde_json::Value| -> serde_json::Map<String, serde_json::Value> {
+            figures
+                .iter()
+                .map(|(name, row)| {
+                    let cells = columns.iter().zip(row).map(|(column, cell)| ((*column).to_owned(), pick(cell)));
+                    ((*name).to_owned(), serde_json::Value::Object(cells.collect()))
+                })
+                .collect()
+        };
         let json = serde_json::json!({
             "adapter": format!("{} ({:?}, {})", info.name, info.backend, info.driver_info),
             "rasterizer": rasterizer.name(),
             "seconds": seconds,
-            "cases": cases,
+            "cases": table(|(views, _)| (*views).into()),
+            "gpu_us_per_view": timed.then(|| table(|(_, drawing)| (*drawing).into())),
         });
         std::fs::write(&path, format!("{json}\n")).unwrap_or_else(|e| panic!("cannot write {path}: {e}"));
     }

@@ -7,7 +7,7 @@ use std::time::Duration;
 use clap::builder::{BoolishValueParser, PossibleValuesParser, TypedValueParser};
 use clap::{Parser, ValueEnum};
 use esrp_dataset::BenchVersion;
-use esrp_render::{BackendPreference, Rasterizer};
+use esrp_render::{BackendPreference, Rasterizer, Timestamps};
 
 /// Log output format.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -122,6 +122,19 @@ pub struct Config {
     /// submits the next batch: the device draws one batch while the next is encoded.
     #[arg(long, env = "ESRP_RENDER_PIPELINE", default_value_t = 0, value_parser = clap::value_parser!(u16).range(0..=8))]
     pub render_pipeline: u16,
+    /// Whether to time the render devices' drawing: each batch then carries two timestamp
+    /// queries (the device's clock at the start and the end of its drawing), read back with its
+    /// images, so that the metrics tell the device's drawing from the rest of the wait for it
+    /// (`esrp_render_gpu_seconds_total`, `esrp-bench --breakdown`). auto: on a GPU, not on a CPU
+    /// renderer (whose drawing is the render thread's own time, and where lavapipe's timestamps
+    /// cost about 70 µs a batch); on, off. Never where the adapter lacks timestamp queries.
+    #[arg(
+        long,
+        env = "ESRP_RENDER_TIMESTAMPS",
+        default_value_t = Timestamps::Auto,
+        value_parser = PossibleValuesParser::new(Timestamps::NAMES).try_map(|name| name.parse::<Timestamps>()),
+    )]
+    pub render_timestamps: Timestamps,
     /// Require `authorization: Bearer TOKEN` on every call (not empty: an empty `ESRP_TOKEN`
     /// is refused rather than taken as "no token" or as a token anyone could send). The one
     /// token is an admin named `admin`; --tokens gives several, with roles and quotas.
@@ -351,6 +364,12 @@ mod tests {
         assert_eq!(parse(&["--render-rasterizer", "compute"]).unwrap().render_rasterizer, Rasterizer::Compute);
         let error = parse(&["--render-rasterizer", "ray"]).unwrap_err().to_string();
         assert!(error.contains("pipeline, compute"), "{error}");
+        assert_eq!(parse(&[]).unwrap().render_timestamps, Timestamps::Auto);
+        for (name, timestamps) in [("on", Timestamps::On), ("off", Timestamps::Off), ("auto", Timestamps::Auto)] {
+            assert_eq!(parse(&["--render-timestamps", name]).unwrap().render_timestamps, timestamps);
+        }
+        let error = parse(&["--render-timestamps", "yes"]).unwrap_err().to_string();
+        assert!(error.contains("auto, on, off"), "{error}");
     }
 
     #[test]

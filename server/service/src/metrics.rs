@@ -17,6 +17,8 @@
 //! | `esrp_render_threads` | gauge | the threads rendering batches (`--render-threads`) |
 //! | `esrp_render_atlases_created_total` | counter | atlases (a batch's textures and buffers on the device) the renderers made; steady under a steady load once the pool holds the sizes it needs |
 //! | `esrp_render_pipeline` | gauge | the batches each render thread may have in flight (`--render-pipeline`) |
+//! | `esrp_render_timestamps` | gauge | 1 when the render devices time their drawing with timestamp queries (`--render-timestamps`: by default on a GPU, where the adapter has them), else 0 |
+//! | `esrp_render_gpu_seconds_total` | counter | seconds the render devices spent drawing batches, by their own clocks: from the start of a batch's first pass to the end of its last (part of the `render_device` stage; stays 0 without timestamps) |
 //! | `esrp_plans_total` | counter | PlanActions calls, by outcome (`planned`, `cached`, `failed`: no plan found, `deadline`: none found in the budget, `busy`: the budget ran out waiting for a planner thread (`--planner-threads` all planning), `cancelled`: the client went away and the planner stopped) |
 //!
 //! The stages of `esrp_stage_seconds_total`, in the order a step goes through them (divide by
@@ -29,7 +31,8 @@
 //! | `take` | taking the steps: the simulation, the collision sweeps, the bookkeeping |
 //! | `render_queue` | a view request waiting for a render thread, per request |
 //! | `render_encode` | a render thread taking an atlas, writing the uniforms, encoding the passes |
-//! | `render_device` | from a batch's submit until its readback is mapped: the device drawing and copying (and the batches submitted before it); with `--render-pipeline` above one, batches in flight together each count their own |
+//! | `render_submit` | a render thread submitting the encoded batch to the device and asking for its readback (the driver's work on that thread) |
+//! | `render_device` | from a batch's submit until its readback is mapped: the device drawing and copying (and the batches submitted before it), and the wait for it; with `--render-pipeline` above one, batches in flight together each count their own. How much of it the device spent drawing is `esrp_render_gpu_seconds_total` |
 //! | `render_extract` | cutting the views' images out of the mapped buffer (a render thread, or its readback thread with `--render-pipeline` above one) |
 //! | `answer` | putting the rendered images into the answers |
 //!
@@ -67,6 +70,8 @@ pub struct Stages {
     pub render_queue: Counter<f64, AtomicU64>,
     /// Encoding a batch.
     pub render_encode: Counter<f64, AtomicU64>,
+    /// Submitting a batch.
+    pub render_submit: Counter<f64, AtomicU64>,
     /// Waiting for the device and the readback.
     pub render_device: Counter<f64, AtomicU64>,
     /// Extracting the views' images.
@@ -138,6 +143,10 @@ pub struct Metrics {
     pub render_pipeline: Gauge,
     /// Atlases the renderers made.
     pub atlases_created: Counter,
+    /// Whether the render devices time their drawing (1) or not (0).
+    pub render_timestamps: Gauge,
+    /// Seconds the render devices spent drawing, by their clocks.
+    pub render_gpu_seconds: Counter<f64, AtomicU64>,
 }
 
 impl Default for Metrics {
@@ -190,6 +199,7 @@ impl Metrics {
             take: stage("take"),
             render_queue: stage("render_queue"),
             render_encode: stage("render_encode"),
+            render_submit: stage("render_submit"),
             render_device: stage("render_device"),
             render_extract: stage("render_extract"),
             answer: stage("answer"),
@@ -213,6 +223,18 @@ impl Metrics {
             "Batches each render thread may have in flight (--render-pipeline)",
             render_pipeline.clone(),
         );
+        let render_timestamps = Gauge::default();
+        registry.register(
+            "render_timestamps",
+            "1 when the render devices time their drawing with timestamp queries, else 0",
+            render_timestamps.clone(),
+        );
+        let render_gpu_seconds = Counter::<f64, AtomicU64>::default();
+        registry.register(
+            "render_gpu_seconds",
+            "Seconds the render devices spent drawing batches, by their own clocks (part of the render_device stage)",
+            render_gpu_seconds.clone(),
+        );
         Self {
             registry,
             steps,
@@ -231,6 +253,8 @@ impl Metrics {
             render_threads,
             render_pipeline,
             atlases_created,
+            render_timestamps,
+            render_gpu_seconds,
         }
     }
 

@@ -141,6 +141,7 @@ impl RenderScheduler {
         }
         metrics.render_threads.set(threads.len() as i64);
         metrics.render_pipeline.set(in_flight.max(1) as i64);
+        metrics.render_timestamps.set(i64::from(renderers.iter().all(|r| r.times_device())));
         Self { renderers, jobs, threads: Arc::new(std::sync::Mutex::new(threads)) }
     }
 
@@ -352,7 +353,11 @@ fn answer(
     match result {
         Ok((outputs, timings)) => {
             Stages::add(&metrics.stages.render_encode, timings.encode);
+            Stages::add(&metrics.stages.render_submit, timings.submit);
             Stages::add(&metrics.stages.render_device, timings.device);
+            if let Some(drawing) = timings.gpu {
+                Stages::add(&metrics.render_gpu_seconds, drawing);
+            }
             Stages::add(&metrics.stages.render_extract, timings.extract);
             metrics.atlases_created.inc_by(u64::from(timings.new_atlases));
             let mut outputs = outputs.into_iter();

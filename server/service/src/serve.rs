@@ -78,15 +78,24 @@ pub fn build_episodes(config: &Config) -> Result<Arc<Episodes>, ServeError> {
         Some(dir) => Some(records::Recorder::open(dir, config.record, &attempts, config.records_key.as_deref())?),
         None => None,
     };
-    let (backends, rasterizer) = (config.render_backend, config.render_rasterizer);
+    let (backends, rasterizer, timestamps) =
+        (config.render_backend, config.render_rasterizer, config.render_timestamps);
     let devices = match config.render_devices {
         0 => render::AUTO_RENDER_DEVICES,
         n => usize::from(n),
     };
     let renderers = (0..devices)
-        .map(|_| esrp_render::Renderer::new(esrp_render::RendererConfig { backends, rasterizer, ..Default::default() }))
+        .map(|_| {
+            esrp_render::Renderer::new(esrp_render::RendererConfig {
+                backends,
+                rasterizer,
+                timestamps,
+                ..Default::default()
+            })
+        })
         .collect::<Result<Vec<_>, _>>()?;
-    let (info, software) = (renderers[0].adapter_info(), renderers[0].is_software());
+    let (info, software, timed) =
+        (renderers[0].adapter_info(), renderers[0].is_software(), renderers[0].times_device());
     let threads = match config.render_threads {
         0 => render::AUTO_RENDER_THREADS * devices,
         n => usize::from(n),
@@ -95,7 +104,7 @@ pub fn build_episodes(config: &Config) -> Result<Arc<Episodes>, ServeError> {
         0 => render::AUTO_RENDER_PIPELINE,
         n => usize::from(n),
     };
-    tracing::info!(target: LOG_TARGET, adapter = %info.name, backend = ?info.backend, software, %rasterizer, render_devices = devices, render_threads = threads, render_pipeline = in_flight, "renderer ready");
+    tracing::info!(target: LOG_TARGET, adapter = %info.name, backend = ?info.backend, software, %rasterizer, gpu_timestamps = timed, render_devices = devices, render_threads = threads, render_pipeline = in_flight, "renderer ready");
     let metrics = Arc::new(metrics::Metrics::new());
     let render = render::RenderScheduler::start(renderers, metrics.clone(), threads, in_flight);
     let episodes = Arc::new(Episodes::new(store, render, config.clone(), metrics, recorder, attempts));

@@ -53,27 +53,60 @@ pub(super) struct Atlas {
     /// graphics pipeline.
     pub(super) uniforms: wgpu::Buffer,
     pub(super) bind_group: wgpu::BindGroup,
+    /// Where the device writes when it starts and ends drawing a batch, with a renderer that
+    /// times the device ([`super::RendererConfig::timestamps`]).
+    pub(super) timestamps: Option<Timestamps>,
     pub(super) last_used: u64,
+}
+
+/// The bytes after the used pages of the readback buffer that hold a batch's two timestamps
+/// (the start of its first pass and the end of its last, in the device's ticks).
+pub(super) const TIMESTAMP_BYTES: u64 = 2 * wgpu::QUERY_SIZE as u64;
+
+/// A batch's two timestamp queries and the buffer they are resolved into before they are copied
+/// behind the batch's pages in the readback buffer (a resolve needs a 256-byte aligned offset,
+/// the pages' ends only have 4).
+pub(super) struct Timestamps {
+    pub(super) set: wgpu::QuerySet,
+    pub(super) resolved: wgpu::Buffer,
+}
+
+impl Timestamps {
+    fn new(device: &wgpu::Device) -> Self {
+        let set = device.create_query_set(&wgpu::QuerySetDescriptor {
+            label: Some("esrp-render batch timestamps"),
+            ty: wgpu::QueryType::Timestamp,
+            count: 2,
+        });
+        let resolved = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("esrp-render batch timestamps"),
+            size: TIMESTAMP_BYTES,
+            usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        });
+        Self { set, resolved }
+    }
 }
 
 impl Atlas {
     /// Creates the targets, readback buffer and uniforms of `pages` pages of `side` pixels, with
     /// the view depth and segmentation planes when `full`, and binds the uniforms with
     /// `bind_group_layout`; with `compute` (the compute rasteriser's group 0 layout), the targets
-    /// are a storage buffer bound with it.
+    /// are a storage buffer bound with it. With `timestamps`, the atlas has its timestamp
+    /// queries, and its readback buffer room for them behind its last page.
     pub(super) fn new(
         device: &wgpu::Device,
         bind_group_layout: &wgpu::BindGroupLayout,
         compute: Option<&wgpu::BindGroupLayout>,
-        side: u32,
-        pages: u32,
+        (side, pages): (u32, u32),
         full: bool,
+        timestamps: bool,
     ) -> Self {
         let planes = if full { 3 } else { 1 };
         let bytes = u64::from(side) * u64::from(side) * 4 * u64::from(pages) * planes;
         let readback = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("esrp-render readback"),
-            size: bytes,
+            size: bytes + if timestamps { TIMESTAMP_BYTES } else { 0 },
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
@@ -125,7 +158,8 @@ impl Atlas {
             }
             None => texture_targets(device, side, pages, full),
         };
-        Self { side, pages, full, targets, readback, uniforms, bind_group, last_used: 0 }
+        let timestamps = timestamps.then(|| Timestamps::new(device));
+        Self { side, pages, full, targets, readback, uniforms, bind_group, timestamps, last_used: 0 }
     }
 
     pub(super) fn page_bytes(&self) -> u64 {
@@ -137,10 +171,17 @@ impl Atlas {
     }
 
     /// The bytes of the readback buffer that hold the first `used_pages` pages of every plane
-    /// (the planes lie `plane_bytes` apart): what a batch of that many pages maps.
+    /// (the planes lie `plane_bytes` apart): where a batch of that many pages puts its
+    /// timestamps, if it has them.
     pub(super) fn readback_bytes(&self, used_pages: u32) -> u64 {
         let planes = if self.full { 3 } else { 1 };
         (planes - 1) * self.plane_bytes() + u64::from(used_pages) * self.page_bytes()
+    }
+
+    /// What a batch of `used_pages` pages maps of the readback buffer: its pages, and its
+    /// timestamps after them (in the last plane's unused pages, or past the last page).
+    pub(super) fn mapped_bytes(&self, used_pages: u32) -> u64 {
+        self.readback_bytes(used_pages) + if self.timestamps.is_some() { TIMESTAMP_BYTES } else { 0 }
     }
 }
 

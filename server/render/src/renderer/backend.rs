@@ -77,6 +77,10 @@ pub struct RendererConfig {
     pub cull: bool,
     /// What draws the triangles: the graphics pipeline, or compute shaders.
     pub rasterizer: Rasterizer,
+    /// Whether to time each batch's drawing on the device's own clock (two timestamp queries
+    /// a batch, read back with its images: [`RenderTimings::gpu`](crate::RenderTimings::gpu)),
+    /// where the adapter has timestamp queries.
+    pub timestamps: Timestamps,
 }
 
 impl Default for RendererConfig {
@@ -87,6 +91,70 @@ impl Default for RendererConfig {
             max_atlas_size: 4096,
             cull: true,
             rasterizer: Rasterizer::Pipeline,
+            timestamps: Timestamps::Auto,
+        }
+    }
+}
+
+/// Whether a renderer times its device's drawing with timestamp queries (where the adapter has
+/// them; without, it never does).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Timestamps {
+    /// On a GPU, not on a CPU renderer (lavapipe, llvmpipe): there the device's drawing is the
+    /// submitting threads' own time, which the stages already show, and lavapipe's timestamps
+    /// cost about 70 µs a batch (docs/performance.md).
+    #[default]
+    Auto,
+    /// Always.
+    On,
+    /// Never.
+    Off,
+}
+
+impl Timestamps {
+    /// The names it is written as, one per variant: `auto`, `on`, `off`.
+    pub const NAMES: [&'static str; 3] = ["auto", "on", "off"];
+
+    /// Its name: `auto`, `on` or `off`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Auto => "auto",
+            Self::On => "on",
+            Self::Off => "off",
+        }
+    }
+
+    /// Whether an adapter of `device_type` is timed.
+    pub fn wanted(self, device_type: wgpu::DeviceType) -> bool {
+        match self {
+            Self::Auto => device_type != wgpu::DeviceType::Cpu,
+            Self::On => true,
+            Self::Off => false,
+        }
+    }
+}
+
+impl std::fmt::Display for Timestamps {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// A name that is not a [`Timestamps`] setting.
+#[derive(Debug, thiserror::Error)]
+#[error("unknown timestamps setting {0:?}: use auto, on or off")]
+pub struct UnknownTimestamps(pub String);
+
+impl std::str::FromStr for Timestamps {
+    type Err = UnknownTimestamps;
+
+    /// `auto`, `on` or `off`, in any case.
+    fn from_str(name: &str) -> Result<Self, UnknownTimestamps> {
+        match name.to_ascii_lowercase().as_str() {
+            "auto" => Ok(Self::Auto),
+            "on" => Ok(Self::On),
+            "off" => Ok(Self::Off),
+            _ => Err(UnknownTimestamps(name.to_owned())),
         }
     }
 }

@@ -105,7 +105,8 @@ impl ComputeRaster {
 
     /// Encodes one compute pass that draws every view of `requests` into its page of an atlas
     /// whose pages' buffers and group 0 are `pages` (one dispatch per view: a workgroup per
-    /// 32×32 tile of it). Every pixel of a view is written, so the planes need no clearing.
+    /// 32×32 tile of it). Every pixel of a view is written, so the planes need no clearing. With
+    /// `timestamps`, the device writes its clock into queries 0 and 1 at the pass's start and end.
     pub(super) fn encode(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -113,10 +114,15 @@ impl ComputeRaster {
         full: bool,
         requests: &[ViewRequest<'_>],
         tiles: &[Tile],
+        timestamps: Option<&wgpu::QuerySet>,
     ) {
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("esrp-render raster"),
-            timestamp_writes: None,
+            timestamp_writes: timestamps.map(|query_set| wgpu::ComputePassTimestampWrites {
+                query_set,
+                beginning_of_pass_write_index: Some(0),
+                end_of_pass_write_index: Some(1),
+            }),
         });
         pass.set_pipeline(if full { &self.full } else { &self.rgb });
         for (i, (request, tile)) in requests.iter().zip(tiles).enumerate() {

@@ -21,6 +21,9 @@ pub struct Renderer {
     pub(super) max_atlas: u32,
     pub(super) max_pages: u32,
     pub(super) cull: bool,
+    /// The nanoseconds of one tick of the device's timestamps, when it times its drawing
+    /// ([`super::RendererConfig::timestamps`] on and the adapter able to).
+    pub(super) timestamp_period: Option<f32>,
     pub(super) lost: Arc<Mutex<Option<String>>>,
     pub(super) state: Mutex<BatchState>,
 }

@@ -8,7 +8,7 @@ use crate::error::RenderError;
 use crate::gpu::{GpuView, VIEW_STRIDE};
 use crate::mesh::BACKGROUND_COLOUR;
 
-use super::atlas::{Atlas, PagedTexture, Targets, Tile, layout};
+use super::atlas::{Atlas, PagedTexture, TIMESTAMP_BYTES, Targets, Tile, layout};
 use super::device::Renderer;
 use super::readback::{Planes, extract_all};
 use super::requests::{Outputs, ViewOutput, ViewRequest};
@@ -84,7 +84,14 @@ impl Renderer {
         };
         let mut atlas = taken.unwrap_or_else(|| {
             let compute = self.raster.as_ref().map(|raster| &raster.views_layout);
-            Atlas::new(&self.device, &self.bind_group_layout, compute, side, pages, full)
+            Atlas::new(
+                &self.device,
+                &self.bind_group_layout,
+                compute,
+                (side, pages),
+                full,
+                self.timestamp_period.is_some(),
+            )
         });
         atlas.last_used = number;
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
@@ -94,7 +101,8 @@ impl Renderer {
         let used_pages = tiles.iter().map(|t| t.page + 1).max().unwrap_or(1);
         match (&atlas.targets, &self.raster) {
             (Targets::Buffers { pages }, Some(raster)) => {
-                raster.encode(&mut encoder, pages, full, requests, &tiles);
+                let timestamps = atlas.timestamps.as_ref().map(|t| &t.set);
+                raster.encode(&mut encoder, pages, full, requests, &tiles, timestamps);
             }
             (Targets::Textures { colour, depth, extras }, _) => {
                 self.draw_pages(&mut encoder, &atlas, colour, depth, extras.as_deref(), requests, &tiles, used_pages);
@@ -104,21 +112,30 @@ impl Renderer {
             }
         }
         copy_to_readback(&mut encoder, &atlas, used_pages);
-        let submitted = Instant::now();
+        // The timestamps go behind the pages the batch maps, where no page of it is copied.
+        let stamps_at = atlas.timestamps.as_ref().map(|t| {
+            let at = atlas.readback_bytes(used_pages);
+            encoder.resolve_query_set(&t.set, 0..2, &t.resolved, 0);
+            encoder.copy_buffer_to_buffer(&t.resolved, 0, &atlas.readback, at, TIMESTAMP_BYTES);
+            at
+        });
+        let encoded = Instant::now();
         let submission = self.queue.submit([encoder.finish()]);
-        let bytes = atlas.readback_bytes(used_pages);
+        let bytes = atlas.mapped_bytes(used_pages);
         let (sender, mapped) = std::sync::mpsc::channel();
         atlas.readback.map_async(wgpu::MapMode::Read, 0..bytes, move |result| {
             let _ = sender.send(result);
         });
+        let submitted = Instant::now();
         // Errors of the calls above are reported as they are made: the scope holds them all.
         if let Some(error) = pollster::block_on(scope.pop()) {
             // The atlas is dropped, not pooled: its mapping may still be pending.
             return Err(RenderError::Gpu { reason: error.to_string() });
         }
-        timings.encode += submitted - t0;
+        timings.encode += encoded - t0;
+        timings.submit += submitted - encoded;
         let outputs = requests.iter().map(|r| r.outputs).collect();
-        Ok(SubmittedChunk { atlas, tiles, outputs, bytes, submission, mapped, submitted })
+        Ok(SubmittedChunk { atlas, tiles, outputs, bytes, stamps_at, submission, mapped, submitted })
     }
 
     /// Waits for a chunk's submission and mapping, cuts every view out of the mapped buffer and
@@ -130,7 +147,7 @@ impl Renderer {
         chunk: SubmittedChunk,
         timings: &mut RenderTimings,
     ) -> Result<Vec<ViewOutput>, RenderError> {
-        let SubmittedChunk { atlas, tiles, outputs, bytes, submission, mapped, submitted } = chunk;
+        let SubmittedChunk { atlas, tiles, outputs, bytes, stamps_at, submission, mapped, submitted } = chunk;
         // Wait for this submission only: a later batch may still be running.
         let polled = self.device.poll(wgpu::PollType::Wait { submission_index: Some(submission), timeout: None });
         // Another thread's poll may be the one that runs the map callback: wait for it a
@@ -175,21 +192,27 @@ impl Renderer {
             return Err(error);
         }
         let t2 = Instant::now();
-        let result = extract_mapped(&atlas, bytes, &outputs, &tiles);
+        let stamps = stamps_at.zip(self.timestamp_period);
+        let result = extract_mapped(&atlas, bytes, &outputs, &tiles, stamps);
         let t3 = Instant::now();
         timings.device += t2 - submitted;
         timings.extract += t3 - t2;
+        let drawn = result.as_ref().ok().and_then(|(_, drawn)| *drawn);
+        if let Some(drawn) = drawn {
+            timings.gpu = Some(timings.gpu.unwrap_or_default() + drawn);
+        }
         log::trace!(
-            "esrp-render: {} views, {} pages of {}x{}: device {:?}, extract {:?}",
+            "esrp-render: {} views, {} pages of {}x{}: device {:?} (drawing {:?}), extract {:?}",
             outputs.len(),
             atlas.pages,
             atlas.side,
             atlas.side,
             t2 - submitted,
+            drawn,
             t3 - t2
         );
         self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner()).put(atlas);
-        result
+        result.map(|(views, _)| views)
     }
 
     /// Encodes one render pass per used page of `atlas`: each page cleared (the colour to the
@@ -222,6 +245,16 @@ impl Renderer {
                 attachments.push(attachment(&extras[0].layers[page as usize], wgpu::Color::TRANSPARENT));
                 attachments.push(attachment(&extras[1].layers[page as usize], wgpu::Color::TRANSPARENT));
             }
+            // The device's clock at the start of the first page and at the end of the last.
+            let first = (page == 0).then_some(0);
+            let last = (page + 1 == used_pages).then_some(1);
+            let timestamp_writes = atlas.timestamps.as_ref().filter(|_| first.is_some() || last.is_some()).map(|t| {
+                wgpu::RenderPassTimestampWrites {
+                    query_set: &t.set,
+                    beginning_of_pass_write_index: first,
+                    end_of_pass_write_index: last,
+                }
+            });
             let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("esrp-render page"),
                 color_attachments: &attachments,
@@ -230,7 +263,7 @@ impl Renderer {
                     depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(0.0), store: wgpu::StoreOp::Discard }),
                     stencil_ops: None,
                 }),
-                timestamp_writes: None,
+                timestamp_writes,
                 occlusion_query_set: None,
                 multiview_mask: None,
             });
@@ -262,6 +295,8 @@ pub(super) struct SubmittedChunk {
     outputs: Vec<Outputs>,
     /// The mapped bytes of the readback buffer.
     bytes: u64,
+    /// Where in them the timestamps lie, if the renderer times the device.
+    stamps_at: Option<u64>,
     submission: wgpu::SubmissionIndex,
     mapped: std::sync::mpsc::Receiver<Result<(), wgpu::BufferAsyncError>>,
     submitted: Instant,
@@ -272,9 +307,17 @@ pub(super) struct SubmittedChunk {
 pub struct RenderTimings {
     /// Taking an atlas, writing the views' uniforms and encoding the passes and copies.
     pub encode: Duration,
-    /// From the submit until the readback buffer is mapped: the device drawing and copying
-    /// (and, on a busy device, other threads' work before it).
+    /// Submitting the encoded commands and asking for the readback buffer's mapping (the
+    /// driver's work on the calling thread).
+    pub submit: Duration,
+    /// From the submit's return until the readback buffer is mapped: the device drawing and
+    /// copying (and, on a busy device, other threads' work before it), and the wait for it.
     pub device: Duration,
+    /// The part of `device` the device spent drawing, by its own clock: from the start of a
+    /// chunk's first pass to the end of its last (timestamp queries). `None` when the renderer
+    /// does not time the device (the adapter lacks timestamp queries, or
+    /// [`RendererConfig::timestamps`](crate::RendererConfig::timestamps) does not ask for them).
+    pub gpu: Option<Duration>,
     /// Cutting each view's images out of the mapped buffer (RGBA to RGB, depth, segmentation).
     pub extract: Duration,
     /// Atlases made for the batch (none when the pool held one that fits each chunk).
@@ -282,9 +325,9 @@ pub struct RenderTimings {
 }
 
 impl RenderTimings {
-    /// The three stages together.
+    /// The time on the calling thread: encoding, submitting, the device and extraction.
     pub fn total(&self) -> Duration {
-        self.encode + self.device + self.extract
+        self.encode + self.submit + self.device + self.extract
     }
 }
 
@@ -354,16 +397,19 @@ fn copy_to_readback(encoder: &mut wgpu::CommandEncoder, atlas: &Atlas, used_page
 }
 
 /// Every view (its `outputs` and tile) cut out of the first `bytes` of `atlas`'s readback buffer
-/// (mapped), which is unmapped after.
+/// (mapped), which is unmapped after, and with `stamps` (where the timestamps lie, and the
+/// nanoseconds of a tick), how long the device took to draw them.
 fn extract_mapped(
     atlas: &Atlas,
     bytes: u64,
     outputs: &[Outputs],
     tiles: &[Tile],
-) -> Result<Vec<ViewOutput>, RenderError> {
+    stamps: Option<(u64, f32)>,
+) -> Result<(Vec<ViewOutput>, Option<Duration>), RenderError> {
     let outputs = {
         let mapped =
             atlas.readback.get_mapped_range(..bytes).map_err(|e| RenderError::Readback { reason: format!("{e:?}") })?;
+        let drawn = stamps.and_then(|(at, period)| drawing_time(mapped.get(at as usize..)?, period));
         let planes = Planes {
             bytes: &mapped,
             plane_bytes: atlas.plane_bytes() as usize,
@@ -371,8 +417,17 @@ fn extract_mapped(
             row_bytes: atlas.side as usize * 4,
             full: atlas.full,
         };
-        extract_all(&planes, outputs, tiles)
+        extract_all(&planes, outputs, tiles).map(|views| (views, drawn))
     };
     atlas.readback.unmap();
     outputs
+}
+
+/// The time between the two timestamps at the start of `stamps` (little-endian ticks of
+/// `period` nanoseconds), or `None` if they are not in order (a device whose clock was reset,
+/// or that wrote nothing).
+fn drawing_time(stamps: &[u8], period: f32) -> Option<Duration> {
+    let tick = |i: usize| Some(u64::from_le_bytes(stamps.get(i * 8..i * 8 + 8)?.try_into().ok()?));
+    let (start, end) = (tick(0)?, tick(1)?);
+    (start != 0 && end >= start).then(|| Duration::from_secs_f64((end - start) as f64 * f64::from(period) * 1e-9))
 }

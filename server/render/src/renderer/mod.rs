@@ -42,7 +42,9 @@ mod requests;
 
 use atlas::{BatchState, chunks};
 use backend::request_adapter;
-pub use backend::{BackendPreference, Rasterizer, RendererConfig, UnknownBackend, UnknownRasterizer};
+pub use backend::{
+    BackendPreference, Rasterizer, RendererConfig, Timestamps, UnknownBackend, UnknownRasterizer, UnknownTimestamps,
+};
 pub use device::Renderer;
 pub use draw::RenderTimings;
 use formats::{COLOUR_FORMAT, DEPTH_FORMAT, DEPTH_OUT_FORMAT, SEGMENT_FORMAT};
@@ -164,9 +166,11 @@ impl Renderer {
             adapter_info.driver_info
         );
         let limits = adapter.limits();
+        let timestamps = config.timestamps.wanted(adapter_info.device_type)
+            && adapter.features().contains(wgpu::Features::TIMESTAMP_QUERY);
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("esrp-render"),
-            required_features: wgpu::Features::empty(),
+            required_features: if timestamps { wgpu::Features::TIMESTAMP_QUERY } else { wgpu::Features::empty() },
             required_limits: limits.clone(),
             ..Default::default()
         }))
@@ -209,6 +213,7 @@ impl Renderer {
             });
         }
 
+        let timestamp_period = timestamps.then(|| queue.get_timestamp_period());
         let max_side = config.max_atlas_size.min(limits.max_texture_dimension_2d).max(64);
         let max_atlas = 1u32 << (31 - max_side.leading_zeros());
         Ok(Self {
@@ -223,6 +228,7 @@ impl Renderer {
             max_atlas,
             max_pages: limits.max_texture_array_layers.clamp(1, CHUNK_VIEWS as u32),
             cull: config.cull,
+            timestamp_period,
             lost,
             state: Mutex::new(BatchState::new()),
         })
@@ -236,6 +242,12 @@ impl Renderer {
     /// What draws this renderer's triangles.
     pub fn rasterizer(&self) -> Rasterizer {
         if self.raster.is_some() { Rasterizer::Compute } else { Rasterizer::Pipeline }
+    }
+
+    /// Whether the renderer times each batch's drawing on the device's clock
+    /// ([`RendererConfig::timestamps`] asks for it, and the adapter has timestamp queries).
+    pub fn times_device(&self) -> bool {
+        self.timestamp_period.is_some()
     }
 
     /// Whether the adapter is a CPU rasteriser (lavapipe, llvmpipe).
@@ -332,7 +344,8 @@ impl Renderer {
     }
 
     /// [`Renderer::render_batch`], and where its time went on the calling thread
-    /// ([`RenderTimings`]: encoding, the device, extraction), summed over its chunks.
+    /// ([`RenderTimings`]: encoding, submitting, the device and extraction, and the device's
+    /// drawing by its own clock where it is timed), summed over its chunks.
     pub fn render_batch_timed(
         &self,
         requests: &[ViewRequest<'_>],
@@ -383,8 +396,9 @@ impl Renderer {
 
     /// Waits for a batch of [`Renderer::submit_batch`] and returns its views in request order
     /// (bit-identical to [`Renderer::render_batch`]'s), with where its time went: the encoding
-    /// at its submit, then the device (from the submit until the images could be read, the
-    /// batches submitted before it included) and the extraction.
+    /// and the submit, then the device (from the submit until the images could be read, the
+    /// batches submitted before it included, and its drawing by its own clock where it is
+    /// timed) and the extraction.
     pub fn finish_batch(&self, batch: SubmittedBatch) -> Result<(Vec<ViewOutput>, RenderTimings), RenderError> {
         if batch.renderer_id != self.id {
             return Err(RenderError::ForeignBatch);

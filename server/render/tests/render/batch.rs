@@ -310,3 +310,44 @@ fn batches_in_flight_together_match_views_rendered_alone() {
     let error = other.finish_batch(batch).unwrap_err();
     assert!(matches!(error, esrp_render::RenderError::ForeignBatch), "{error}");
 }
+
+/// A renderer timing its device (asked to: lavapipe and llvmpipe have timestamp queries) draws
+/// the same images as one that does not, for batches that fill their atlas, leave pages of it
+/// unused, span several chunks' worth of pages, and carry the extra planes; and says how long
+/// the device drew, within the time the batch took on the thread. `auto` does not time a CPU
+/// renderer.
+#[test]
+fn timing_the_device_changes_no_image_and_fits_in_the_batch() {
+    use esrp_render::{Renderer, RendererConfig, Timestamps};
+    let with = |timestamps| {
+        Renderer::new(RendererConfig { backends: crate::common::backend(), timestamps, ..RendererConfig::default() })
+            .unwrap()
+    };
+    let (timed, untimed) = (with(Timestamps::On), with(Timestamps::Off));
+    assert!(timed.times_device(), "the tests' adapter ({:?}) has timestamp queries", timed.adapter_info().backend);
+    assert!(!untimed.times_device());
+    assert!(timed.is_software() && !renderer().times_device(), "auto leaves a CPU renderer untimed");
+    let scene = bedroom();
+    let (handle, plain) = (timed.upload_scene(&scene).unwrap(), untimed.upload_scene(&scene).unwrap());
+    let (_, now) = start(&scene);
+    let cameras = scattered_cameras(0x51a7_0e11_c0de_0042, 40);
+    // 4 views fill a 4-page atlas, 3 leave one page unused, 40 take 64 pages; then with depth and
+    // segmentation (three planes: the timestamps go after the last plane's used pages).
+    for (n, outputs) in [(4, Outputs::RGB), (3, Outputs::RGB), (40, Outputs::RGB), (3, Outputs::ALL), (4, Outputs::ALL)]
+    {
+        let requests = |h| -> Vec<ViewRequest<'_>> {
+            cameras[..n].iter().map(|&c| ViewRequest::new(h, Camera::Ego(c), &now).with_outputs(outputs)).collect()
+        };
+        let started = std::time::Instant::now();
+        let (out, timings) = timed.render_batch_timed(&requests(&handle)).unwrap();
+        let wall = started.elapsed();
+        let (expected, untimed_timings) = untimed.render_batch_timed(&requests(&plain)).unwrap();
+        assert!(untimed_timings.gpu.is_none(), "{n} views: an untimed renderer reports no device time");
+        let drawing = timings.gpu.unwrap_or_else(|| panic!("{n} views: no device time"));
+        assert!(drawing > std::time::Duration::ZERO && drawing <= wall, "{n} views: drew {drawing:?} in {wall:?}");
+        assert!(timings.total() <= wall, "{n} views: {timings:?} in {wall:?}");
+        for (i, (a, b)) in out.iter().zip(&expected).enumerate() {
+            assert!(a.rgb == b.rgb && a.depth == b.depth && a.segmentation == b.segmentation, "{n} views: view {i}");
+        }
+    }
+}

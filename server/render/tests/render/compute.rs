@@ -3,13 +3,20 @@
 //! and of depth; the same batch twice, the same bytes.
 
 use esrp_core::{EgoCamera, ObjectPose};
-use esrp_render::{Camera, Outputs, Rasterizer, Renderer, RendererConfig, ViewOutput, ViewRequest};
+use esrp_render::{Camera, Outputs, Rasterizer, Renderer, RendererConfig, Timestamps, ViewOutput, ViewRequest};
 
 use crate::common::{backend, bedroom, ego_at, renderer, scattered_cameras, showcase, start, targets};
 
+/// The compute rasteriser, timing its device (as on a GPU; the tests' adapters have timestamp
+/// queries).
 fn compute_renderer() -> Renderer {
-    Renderer::new(RendererConfig { backends: backend(), rasterizer: Rasterizer::Compute, ..RendererConfig::default() })
-        .unwrap_or_else(|e| panic!("the compute rasteriser needs an adapter with compute shaders: {e}"))
+    Renderer::new(RendererConfig {
+        backends: backend(),
+        rasterizer: Rasterizer::Compute,
+        timestamps: Timestamps::On,
+        ..RendererConfig::default()
+    })
+    .unwrap_or_else(|e| panic!("the compute rasteriser needs an adapter with compute shaders: {e}"))
 }
 
 /// How two renderings of one view differ: the share of pixels whose RGB differ, and the share
@@ -61,7 +68,9 @@ fn compute_views_match_the_pipeline_s() {
         };
         let expected = pipeline.render_batch(&views(&on_pipeline)).unwrap();
         let got = compute.render_batch(&views(&on_compute)).unwrap();
-        let again = compute.render_batch(&views(&on_compute)).unwrap();
+        let (again, timings) = compute.render_batch_timed(&views(&on_compute)).unwrap();
+        // The compute pass is timed as the render passes are.
+        assert!(timings.gpu.is_some_and(|d| d > std::time::Duration::ZERO), "{timings:?}");
         let (mut worst_any, mut worst_more) = (0.0f64, 0.0f64);
         for (i, (e, g)) in expected.iter().zip(&got).enumerate() {
             assert_eq!((e.resolution, e.rgb.len()), (g.resolution, g.rgb.len()), "view {i}");

@@ -80,10 +80,15 @@ async fn metrics_count_steps_episodes_and_render_batches() {
     // Create renders goal + first view, each step one view.
     assert!(value("esrp_render_batch_views_sum") >= 5.0, "{text}");
     // Where the steps' time went, by stage: each stage the steps went through took some.
-    for stage in ["lock", "take", "render_queue", "render_encode", "render_device", "render_extract", "answer"] {
+    let stages =
+        ["lock", "take", "render_queue", "render_encode", "render_submit", "render_device", "render_extract", "answer"];
+    for stage in stages {
         let seconds = value(&format!("esrp_stage_seconds_total{{stage=\"{stage}\"}}"));
         assert!(seconds > 0.0 && seconds < 60.0, "{stage}: {seconds}");
     }
+    // A CPU renderer's drawing is not timed by default (--render-timestamps auto).
+    assert_eq!(value("esrp_render_timestamps"), 0.0, "{text}");
+    assert_eq!(value("esrp_render_gpu_seconds_total"), 0.0, "{text}");
     assert_eq!(value("esrp_render_threads"), 1.0, "auto: one thread on the software renderer");
     assert_eq!(value("esrp_render_pipeline"), 1.0, "auto: one batch in flight per thread");
     // Batches of one and two views (the create's, then each step's) share one pooled atlas.
@@ -92,6 +97,41 @@ async fn metrics_count_steps_episodes_and_render_batches() {
     let text = server.scrape();
     assert!(text.contains("esrp_episodes_closed_total{reason=\"client\"} 1"), "{text}");
     assert!(text.contains("esrp_live_episodes 0"), "{text}");
+}
+
+/// --render-timestamps on times the device's drawing (the software renderers have timestamp
+/// queries): the gauge says so, and the drawing is a part of the batches' time on the render
+/// thread.
+#[tokio::test]
+async fn render_timestamps_time_the_device_s_drawing() {
+    let server = Server::start(&["--metrics-listen", "127.0.0.1:0", "--render-timestamps", "on"]);
+    let mut client = server.client().await;
+    let created = client
+        .create_episode(proto::CreateEpisodeRequest {
+            scene: Some(proto::create_episode_request::Scene::SceneId("esrp-bench-v2/00003".into())),
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    for action in [2, 3, 0] {
+        client
+            .step(proto::StepRequest { episode_id: created.episode_id.clone(), action, include_goal: false })
+            .await
+            .unwrap();
+    }
+    let text = server.scrape();
+    let value = |name: &str| -> f64 {
+        let line = text.lines().find(|l| l.strip_prefix(name).is_some_and(|rest| rest.starts_with(' ')));
+        line.unwrap_or_else(|| panic!("{name} in {text}")).rsplit(' ').next().unwrap().parse().unwrap()
+    };
+    assert_eq!(value("esrp_render_timestamps"), 1.0, "{text}");
+    let drawing = value("esrp_render_gpu_seconds_total");
+    let thread: f64 = ["render_encode", "render_submit", "render_device"]
+        .iter()
+        .map(|stage| value(&format!("esrp_stage_seconds_total{{stage=\"{stage}\"}}")))
+        .sum();
+    assert!(drawing > 0.0 && drawing <= thread, "drew {drawing} s of {thread} s");
 }
 
 /// With --tls-cert/--tls-key the server speaks TLS only: a client that trusts the certificate is

@@ -4,7 +4,9 @@
 //! For each stage it prints the microseconds per step (the stage's seconds over the steps
 //! taken meanwhile) and how busy it kept the server (its seconds over the wall seconds: 0.95
 //! is one thread busy 95 % of the time, 3.2 several threads at once). A stage near 1.0 that
-//! runs on one thread is what caps the server.
+//! runs on one thread is what caps the server. Where the server times its render devices
+//! (`esrp_render_timestamps`), a last line says how much of `render_device` the devices spent
+//! drawing, by their own clocks: the rest of it is submission, synchronisation and the copy back.
 
 use std::io::{Read, Write};
 use std::time::Instant;
@@ -12,17 +14,20 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 
 /// The stages, in the order a step goes through them (esrp-server's `metrics` module).
-pub const STAGES: [&str; 7] =
-    ["lock", "take", "render_queue", "render_encode", "render_device", "render_extract", "answer"];
+pub const STAGES: [&str; 8] =
+    ["lock", "take", "render_queue", "render_encode", "render_submit", "render_device", "render_extract", "answer"];
 
 /// One scrape of the server's metrics.
 #[derive(Clone, Debug)]
 pub struct Sample {
     at: Instant,
     steps: f64,
-    stages: Vec<f64>,
+    /// Each stage's counter; `None` for a stage the server does not count (one older than it).
+    stages: Vec<Option<f64>>,
     /// `esrp_render_atlases_created_total` (absent from servers older than it).
     atlases: Option<f64>,
+    /// `esrp_render_gpu_seconds_total`, where the server times its devices.
+    gpu: Option<f64>,
 }
 
 /// Fetches `url` (`http://HOST:PORT/metrics`) and reads the steps and stage counters from it.
@@ -46,14 +51,14 @@ pub fn parse(text: &str) -> anyhow::Result<Sample> {
             .and_then(|v| v.trim().parse().ok())
     };
     let steps = value("esrp_steps_total").context("the metrics have no esrp_steps_total")?;
-    let stages = STAGES
-        .iter()
-        .map(|stage| {
-            value(&format!("esrp_stage_seconds_total{{stage=\"{stage}\"}}"))
-                .with_context(|| format!("the metrics have no stage {stage} (a server older than --breakdown?)"))
-        })
-        .collect::<anyhow::Result<_>>()?;
-    Ok(Sample { at: Instant::now(), steps, stages, atlases: value("esrp_render_atlases_created_total") })
+    let stages: Vec<Option<f64>> =
+        STAGES.iter().map(|stage| value(&format!("esrp_stage_seconds_total{{stage=\"{stage}\"}}"))).collect();
+    if stages.iter().all(Option::is_none) {
+        bail!("the metrics have no esrp_stage_seconds_total (a server older than --breakdown?)");
+    }
+    let timed = value("esrp_render_timestamps").is_some_and(|v| v > 0.0);
+    let gpu = value("esrp_render_gpu_seconds_total").filter(|_| timed);
+    Ok(Sample { at: Instant::now(), steps, stages, atlases: value("esrp_render_atlases_created_total"), gpu })
 }
 
 /// What happened between two samples.
@@ -63,11 +68,13 @@ pub struct Breakdown {
     pub steps: f64,
     /// Wall seconds.
     pub seconds: f64,
-    /// Each stage's seconds.
-    pub stages: Vec<f64>,
+    /// Each stage's seconds (`None`: not counted by the server).
+    pub stages: Vec<Option<f64>>,
     /// Atlases the server's renderers made meanwhile (device allocations; none once its pool
     /// holds the batch sizes it needs), where the server counts them.
     pub atlases: Option<f64>,
+    /// Seconds the server's render devices spent drawing, by their clocks, where it times them.
+    pub gpu: Option<f64>,
 }
 
 impl Breakdown {
@@ -76,8 +83,9 @@ impl Breakdown {
         Breakdown {
             steps: after.steps - before.steps,
             seconds: (after.at - before.at).as_secs_f64(),
-            stages: after.stages.iter().zip(&before.stages).map(|(a, b)| a - b).collect(),
+            stages: after.stages.iter().zip(&before.stages).map(|(a, b)| Some(a.as_ref()? - b.as_ref()?)).collect(),
             atlases: after.atlases.zip(before.atlases).map(|(a, b)| a - b),
+            gpu: after.gpu.zip(before.gpu).map(|(a, b)| a - b),
         }
     }
 
@@ -89,7 +97,18 @@ impl Breakdown {
             "stage", "µs/step", "busy", self.steps, self.seconds
         )];
         for (stage, seconds) in STAGES.iter().zip(&self.stages) {
-            lines.push(format!("  {:<18} {:>10.1} {:>8.2}", stage, per_step(*seconds), seconds / self.seconds));
+            lines.push(match seconds {
+                Some(s) => format!("  {:<18} {:>10.1} {:>8.2}", stage, per_step(*s), s / self.seconds),
+                None => format!("  {stage:<18} {:>10} {:>8}   (not counted by this server)", "-", "-"),
+            });
+        }
+        if let Some(gpu) = self.gpu {
+            lines.push(format!(
+                "  {:<18} {:>10.1} {:>8.2}   (the device drawing, by its clock: part of render_device)",
+                "gpu_drawing",
+                per_step(gpu),
+                gpu / self.seconds
+            ));
         }
         if let Some(atlases) = self.atlases {
             lines.push(format!("  atlases made: {atlases:.0}"));
@@ -102,12 +121,21 @@ impl Breakdown {
         let stages: serde_json::Map<String, serde_json::Value> = STAGES
             .iter()
             .zip(&self.stages)
-            .map(|(stage, seconds)| {
-                let per_step = if self.steps > 0.0 { Some(seconds / self.steps * 1e6) } else { None };
-                (stage.to_string(), serde_json::json!({ "us_per_step": per_step, "busy": seconds / self.seconds }))
-            })
+            .map(|(stage, seconds)| (stage.to_string(), self.figures(*seconds)))
             .collect();
-        serde_json::json!({ "steps": self.steps, "seconds": self.seconds, "stages": stages, "atlases_made": self.atlases })
+        serde_json::json!({
+            "steps": self.steps,
+            "seconds": self.seconds,
+            "stages": stages,
+            "gpu_drawing": self.gpu.map(|gpu| self.figures(Some(gpu))),
+            "atlases_made": self.atlases,
+        })
+    }
+
+    /// A stage's microseconds per step and busy share, as JSON (nulls for a stage not counted).
+    fn figures(&self, seconds: Option<f64>) -> serde_json::Value {
+        let per_step = seconds.filter(|_| self.steps > 0.0).map(|s| s / self.steps * 1e6);
+        serde_json::json!({ "us_per_step": per_step, "busy": seconds.map(|s| s / self.seconds) })
     }
 }
 
@@ -115,34 +143,74 @@ impl Breakdown {
 mod tests {
     use super::*;
 
+    /// A server's metrics before `render_submit` and the device's timestamps.
     const TEXT: &str = "# TYPE esrp_steps counter\nesrp_steps_total 100\n\
         esrp_stage_seconds_total{stage=\"lock\"} 0.001\nesrp_stage_seconds_total{stage=\"take\"} 0.002\n\
         esrp_stage_seconds_total{stage=\"render_queue\"} 0.5\nesrp_stage_seconds_total{stage=\"render_encode\"} 0.1\n\
         esrp_stage_seconds_total{stage=\"render_device\"} 0.3\nesrp_stage_seconds_total{stage=\"render_extract\"} 0.05\n\
         esrp_stage_seconds_total{stage=\"answer\"} 0.004\nesrp_render_atlases_created_total 3\n# EOF\n";
 
+    /// `TEXT` with `render_submit`, the timestamps' gauge at `timed` and `gpu` seconds drawn.
+    fn newer(timed: u8, gpu: f64) -> String {
+        TEXT.replace(
+            "esrp_render_atlases_created_total 3\n",
+            &format!(
+                "esrp_render_atlases_created_total 3\nesrp_stage_seconds_total{{stage=\"render_submit\"}} 0.02\n\
+                 esrp_render_timestamps {timed}\nesrp_render_gpu_seconds_total {gpu}\n"
+            ),
+        )
+    }
+
     #[test]
     fn a_breakdown_divides_each_stage_by_the_steps_and_the_wall_time() {
-        let before = parse(TEXT).unwrap();
-        let mut after = parse(&TEXT.replace("esrp_steps_total 100", "esrp_steps_total 300")).unwrap();
-        after.stages[3] += 0.2; // render_encode: 0.2 s more over 200 steps
+        let before = parse(&newer(1, 0.5)).unwrap();
+        let mut after = parse(&newer(1, 0.9).replace("esrp_steps_total 100", "esrp_steps_total 300")).unwrap();
+        after.stages[3] = after.stages[3].map(|s| s + 0.2); // render_encode: 0.2 s more over 200 steps
         after.at = before.at + std::time::Duration::from_secs(2);
         let b = Breakdown::between(&before, &after);
         assert_eq!(b.steps, 200.0);
-        let encode = &b.to_json()["stages"]["render_encode"];
+        let json = b.to_json();
+        let encode = &json["stages"]["render_encode"];
         assert!((encode["us_per_step"].as_f64().unwrap() - 1000.0).abs() < 1e-6, "{encode}");
         assert!((encode["busy"].as_f64().unwrap() - 0.1).abs() < 1e-9, "{encode}");
-        assert_eq!(b.lines().len(), 1 + STAGES.len() + 1);
-        assert_eq!(b.to_json()["atlases_made"], 0.0);
-        let older = parse(&TEXT.replace("esrp_render_atlases_created_total 3\n", "")).unwrap();
-        let b = Breakdown::between(&older, &after);
-        assert!(b.atlases.is_none() && b.to_json()["atlases_made"].is_null());
-        assert_eq!(b.lines().len(), 1 + STAGES.len(), "no atlas line for a server that does not count them");
+        let gpu = &json["gpu_drawing"];
+        assert!((gpu["us_per_step"].as_f64().unwrap() - 2000.0).abs() < 1e-6, "{gpu}");
+        assert!((gpu["busy"].as_f64().unwrap() - 0.2).abs() < 1e-9, "{gpu}");
+        assert_eq!(json["stages"]["render_submit"]["us_per_step"], 0.0);
+        let lines = b.lines();
+        assert_eq!(lines.len(), 1 + STAGES.len() + 2, "{lines:#?}");
+        assert!(lines[STAGES.len() + 1].contains("gpu_drawing") && lines[STAGES.len() + 1].contains("2000.0"));
+        assert_eq!(json["atlases_made"], 0.0);
+    }
+
+    #[test]
+    fn an_older_server_misses_a_stage_the_timestamps_and_the_atlases() {
+        let before = parse(&TEXT.replace("esrp_render_atlases_created_total 3\n", "")).unwrap();
+        let mut after = parse(&TEXT.replace("esrp_steps_total 100", "esrp_steps_total 300")).unwrap();
+        after.at = before.at + std::time::Duration::from_secs(2);
+        let b = Breakdown::between(&before, &after);
+        let json = b.to_json();
+        assert!(b.atlases.is_none() && json["atlases_made"].is_null());
+        assert!(json["stages"]["render_submit"]["us_per_step"].is_null(), "{json}");
+        assert!(json["gpu_drawing"].is_null());
+        let lines = b.lines();
+        assert_eq!(lines.len(), 1 + STAGES.len(), "no atlas or gpu line: {lines:#?}");
+        assert!(
+            lines[5].starts_with("  render_submit") && lines[5].contains("not counted by this server"),
+            "{lines:#?}"
+        );
+    }
+
+    #[test]
+    fn a_device_not_timed_has_no_gpu_line() {
+        let sample = parse(&newer(0, 0.0)).unwrap();
+        let b = Breakdown::between(&sample, &sample);
+        assert!(b.gpu.is_none() && b.to_json()["gpu_drawing"].is_null());
     }
 
     #[test]
     fn a_server_without_stages_is_named() {
         let error = parse("esrp_steps_total 5\n").unwrap_err().to_string();
-        assert!(error.contains("no stage lock"), "{error}");
+        assert!(error.contains("no esrp_stage_seconds_total"), "{error}");
     }
 }

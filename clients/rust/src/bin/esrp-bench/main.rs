@@ -152,8 +152,9 @@ struct Args {
     /// seconds under load: a shorter timeout closes episodes they still hold).
     #[arg(long, default_value_t = 300)]
     server_claim_timeout: u64,
-    /// Print where the server's time went in each scenario, by stage (its metrics: a server
-    /// started here is given `--metrics-listen`; with `--server`, name its endpoint with
+    /// Print where the server's time went in each scenario, by stage, and how much of the wait
+    /// for the device the device spent drawing, where the server times it (its metrics: a
+    /// server started here is given `--metrics-listen`; with `--server`, name its endpoint with
     /// `--metrics`).
     #[arg(long)]
     breakdown: bool,
