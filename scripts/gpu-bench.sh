@@ -23,7 +23,9 @@
 #      runtimes share the cores out (--worker-threads cores/8) driven by 8; then 8 servers
 #      reached over their Unix domain sockets (--listen-unix) by 8 and by 16 processes;
 #   3. pipeline: batches in flight per render thread (--render-pipeline 1, 2, 3), one server
-#      driven by 4 client processes (so that the client is not the limit), with the breakdown;
+#      driven by 4 client processes (so that the client is not the limit), with the breakdown
+#      (on a GPU it says how busy the device kept drawing, by its timestamps); then the first
+#      again with --render-timestamps off (what they cost);
 #   4. renderer: the renderer alone, no server (esrp-render's views bench, carried): batches of 1
 #      to 256 views, 256 at 64 and 256 pixels, top-down, every plane; then 4 and 8 processes
 #      rendering at once (what one device gives, whatever the server);
@@ -307,6 +309,11 @@ for depth in 1 2 3; do
             --scenarios stream-mux-64,batch-64 --processes 4
     fi
 done
+# What the device's timestamps cost (auto times a GPU): pipeline-1 again without them.
+if step timestamps-off 25; then
+    bench_args timestamps-off.json "--render-pipeline=1 --render-timestamps=off" --breakdown \
+        --scenarios stream-mux-64,batch-64 --processes 4
+fi
 # The renderer alone, no server (esrp-render's views bench): batches of 1 to 256 views, 256 at
 # 64 and 256 pixels, top-down and with every plane; then several processes at once, each with
 # a device of its own, measuring together (does the GPU, not one process, cap?).

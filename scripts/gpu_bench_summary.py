@@ -67,6 +67,14 @@ def figures(entry: dict[str, Any] | None) -> str:
     return f"{entry['us_per_step']:.1f} ({entry['busy']:.2f})"
 
 
+def drawing(result: dict[str, Any]) -> str:
+    """How busy the device kept drawing (its own clock), where the server timed it, or a dash."""
+    entry = (result.get("breakdown") or {}).get("gpu_drawing")
+    if not entry or entry.get("busy") is None:
+        return "–"
+    return f"{entry['busy']:.2f}"
+
+
 def standard(folder: Path) -> list[str]:
     report = load(folder, "standard.json")
     if report is None:
@@ -119,7 +127,7 @@ def series(folder: Path, title: str, header: str, files: list[tuple[str, str]]) 
             processes = max(int(r.get("processes", 1)), 1)
             rows.append(
                 f"| {label} | {r['scenario']} | {processes} × {r['episodes'] // processes} | {rate(r)} "
-                f"| {ms(r, 'p50_ms')} | {busiest(r)} | {busy} |"
+                f"| {ms(r, 'p50_ms')} | {busiest(r)} | {drawing(r)} | {busy} |"
             )
     if not rows:
         return []
@@ -127,8 +135,8 @@ def series(folder: Path, title: str, header: str, files: list[tuple[str, str]]) 
         f"## {title}",
         "",
         f"| {header} | scenario | processes × episodes | steps/s | p50 ms | busiest stage (busy) "
-        "| cores busy |",
-        "|---|---|---:|---:|---:|---|---:|",
+        "| device drawing (busy) | cores busy |",
+        "|---|---|---:|---:|---:|---|---:|---:|",
         *rows,
         "",
     ]
@@ -300,6 +308,12 @@ def main(argv: list[str]) -> int:
         "Batches in flight per render thread (--render-pipeline; one server)",
         "batches in flight",
         [(str(d), f"pipeline-{d}.json") for d in (1, 2, 3)],
+    )
+    lines += series(
+        folder,
+        "The device's timestamps (--render-timestamps; one server, one batch in flight): what they cost",
+        "timestamps",
+        [("auto (on a GPU)", "pipeline-1.json"), ("off", "timestamps-off.json")],
     )
     lines += renderer(folder)
     lines += series(
