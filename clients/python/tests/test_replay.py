@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 
 import numpy as np
@@ -83,7 +84,7 @@ def test_a_record_that_does_not_replay_is_an_error(
     with pytest.raises(ReplayError, match=r"does not reproduce the record: rdr"):
         replay_record(client, wrong, every_frame=False)
     fewer = dataclasses.replace(record, actions=record.actions[:10])
-    with pytest.raises(ReplayError, match="steps 200 \\(replay 10\\)"):
+    with pytest.raises(ReplayError, match="steps: recorded 200, replayed 10"):
         replay_record(client, fewer, every_frame=False)
     other = dataclasses.replace(record, dataset="another-dataset")
     with pytest.raises(ReplayError, match="serves 'esrp-bench-v2'"):
@@ -91,6 +92,35 @@ def test_a_record_that_does_not_replay_is_an_error(
     args = ["replay", "--results", str(random_records), "--scene", "nope", "--out", "x.gif"]
     assert main([*args, "--server", server.address]) == 2
     assert "has no record of scene 'nope'" in capsys.readouterr().err
+
+
+def test_a_replay_is_compared_with_its_record_as_verify_compares_it(
+    client: esrp.Client, random_records: Path
+) -> None:
+    """The replay compared OSR, RDR and the reward within a relative 1e-9 and ignored `end`, where
+    `esrp verify` compares all exactly: a record one double off, or ended otherwise, replayed
+    without a word. Both now share `esrp.eval.verify.compare`."""
+    record: EpisodeRecord = read_records(random_records).records[0]
+    assert replay_record(client, record, every_frame=False).metrics.total_reward == record.total_reward
+
+    def above(value: float) -> float:  # the next double: one unit in the last place off
+        return math.nextafter(value, math.inf)
+
+    offs = {
+        "osr": dataclasses.replace(record, osr=above(record.osr)),
+        "rdr": dataclasses.replace(record, rdr=above(record.rdr)),
+        "total_reward": dataclasses.replace(record, total_reward=above(record.total_reward)),
+    }
+    for name, off in offs.items():
+        with pytest.raises(ReplayError, match=rf"does not reproduce the record: {name}: recorded "):
+            replay_record(client, off, every_frame=False)
+    assert record.end == "horizon"
+    with pytest.raises(ReplayError, match="end: recorded 'agent', replayed 'horizon'"):
+        replay_record(client, dataclasses.replace(record, end="agent"), every_frame=False)
+    # Actions past the episode's end: the replay ends first, which `compare` says.
+    longer = dataclasses.replace(record, actions=[*record.actions, 2, 2])
+    with pytest.raises(ReplayError, match=rf"ended \(horizon\) after {record.steps} of the record's"):
+        replay_record(client, longer, every_frame=False)
 
 
 def test_a_record_replays_with_the_reward_weights_it_played_with(

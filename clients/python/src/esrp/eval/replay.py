@@ -1,14 +1,15 @@
 """`esrp replay`: re-runs a recorded episode's actions on the server and draws it.
 
 The simulator is deterministic, so a record's `actions` stepped from its scene's start reproduce the
-episode exactly (docs/evaluation.md); `replay_record` checks that the final metrics equal the
-record's and raises `ReplayError` when they do not (another dataset, another server version, an
-edited file). Each frame shows, side by side and labelled: the egocentric view, the goal image, and
-the current top-down view (the episode's `current_top_down` sensor) with the agent's path in red and
-each carried object's path in blue, outlined in white, drawn from the privileged state (the
-replay's episode is created with `privileged=True`) through the goal's pixel ↔ floor frame
-(`GetGoal`); a header says the step, the action taken and whether it was accepted, collided or had
-no effect, the grasp flag and the reward.
+episode exactly (docs/evaluation.md); `replay_record` checks the replay against the record as
+`esrp verify` does (`esrp.eval.verify.compare`: the metrics compared exactly, since both are the
+server's doubles and JSON carries them without loss, and the end) and raises `ReplayError` when
+they differ (another dataset, another server version, an edited file). Each frame shows, side by
+side and labelled: the egocentric view, the goal image, and the current top-down view (the
+episode's `current_top_down` sensor) with the agent's path in red and each carried object's path
+in blue, outlined in white, drawn from the privileged state (the replay's episode is created with
+`privileged=True`) through the goal's pixel ↔ floor frame (`GetGoal`); a header says the step, the
+action taken and whether it was accepted, collided or had no effect, the grasp flag and the reward.
 
 Needs Pillow (the `report` extra); MP4 output needs imageio-ffmpeg besides.
 """
@@ -16,7 +17,6 @@ Needs Pillow (the `report` extra); MP4 output needs imageio-ffmpeg besides.
 from __future__ import annotations
 
 import importlib
-import math
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -32,6 +32,7 @@ from .._errors import EsrpError, ServerUnavailable
 from .._local import LocalServer
 from .._values import Action, EpisodeMetrics, Observation, PrivilegedState, Sensors, StepResult, TopDownFrame
 from .results import EpisodeRecord, ResultsError, load_records, no_records
+from .verify import compare
 
 if TYPE_CHECKING:
     from PIL import Image
@@ -279,24 +280,6 @@ def compose_frame(
     return composed
 
 
-def _metrics_differences(record: EpisodeRecord, m: EpisodeMetrics) -> list[str]:
-    pairs: list[tuple[str, object, object]] = [
-        ("success", record.success, m.success),
-        ("stage", record.stage, m.stage),
-        ("placed", record.placed, m.placed),
-        ("steps", record.steps, m.steps),
-    ]
-    different = [f"{name} {want!r} (replay {got!r})" for name, want, got in pairs if want != got]
-    for name, want_f, got_f in (
-        ("osr", record.osr, m.object_success_rate),
-        ("rdr", record.rdr, m.remaining_distance_ratio),
-        ("total_reward", record.total_reward, m.total_reward),
-    ):
-        if not math.isclose(want_f, got_f, rel_tol=1e-9, abs_tol=1e-12):
-            different.append(f"{name} {want_f!r} (replay {got_f!r})")
-    return different
-
-
 def replay_record(
     client: Client,
     record: EpisodeRecord,
@@ -307,8 +290,9 @@ def replay_record(
 ) -> Replay:
     """Steps `record.actions` in a new privileged episode of `record.scene_id` (its horizon, and
     the reward weights a server record says it played with) on `client`'s server, drawing a frame
-    after each; checks the final metrics against the record. With `every_frame=False` only the
-    final frame is composed (a still).
+    after each; checks the replay against the record exactly, as `esrp verify` does (`compare`:
+    success, OSR, RDR, stage, placed, steps, total reward and the end), raising `ReplayError` on
+    any difference. With `every_frame=False` only the final frame is composed (a still).
     """
     info = client.server_info()
     if info.dataset != record.dataset:
@@ -354,12 +338,8 @@ def replay_record(
         if every_frame or total == 0:
             draw(observation, 0, None)
         metrics: EpisodeMetrics | None = None
+        ended_after: int | None = None
         for k, action in enumerate(record.actions, start=1):
-            if metrics is not None:
-                raise ReplayError(
-                    f"the replay of {record.scene_id} ended after {k - 1} of the record's {total} actions "
-                    f"({metrics}): the record does not replay on this server"
-                )
             try:
                 result = episode.step(action)
             except EsrpError as error:
@@ -368,13 +348,18 @@ def replay_record(
             paths.add(episode.privileged_state())
             if every_frame or k == total:
                 draw(result.observation, k, result)
-            if result.ended:
-                metrics = result.metrics
             if progress is not None:
                 progress(k, total)
+            if result.ended:
+                # An episode that ends before the record's last action does not reproduce it:
+                # `compare` says so, with the metrics it ended with.
+                metrics, ended_after = result.metrics, k
+                break
         if metrics is None:
             metrics = episode.metrics().metrics
-    different = _metrics_differences(record, metrics)
+    # `esrp verify`'s comparison: exact (both sides are the server's doubles, which JSON carries
+    # without loss), and the end too.
+    different = compare(record, metrics, ended_after)
     if different:
         raise ReplayError(
             f"the replay of {record.scene_id} does not reproduce the record: " + "; ".join(different)
