@@ -290,6 +290,38 @@ def test_warns_about_different_scene_sets_and_partial_splits_and_marks_privilege
     )
 
 
+def test_a_run_that_repeats_scenes_is_said_to(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A results file holding some scene more than once (files concatenated, a server's records of
+    a token that played a scene again) was averaged without a word, each repeat weighing as another
+    scene. Every record still counts, as in esrp eval's and esrp-eval's summaries, but the report
+    says so on stderr and in its "Read with care" list, and its runs line gives the scenes."""
+    alpha, beta = write_fixture(tmp_path)
+    first, second = FIXTURE["alpha"][0], FIXTURE["alpha"][1]
+    with open(alpha, "ab") as file:
+        for r in (first, first, second):  # f/1 three times, f/2 twice
+            append_record(file, r)
+    out = tmp_path / "report"
+    assert main(["report", str(alpha), str(beta), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    said = (
+        "alpha holds 2 scenes more than once (e.g. f/1, recorded 3 times; 3 records beyond one per "
+        "scene): its rows count every record, so a repeated scene weighs more than the others"
+    )
+    assert f"esrp report: warning: {said}\n" in err
+    assert "beta holds" not in err
+    text = (out / "report.md").read_text()
+    assert "**Read with care:**" in text
+    assert f"\n- {said}\n" in text
+    assert "`alpha.jsonl` (alpha, 7 episodes of 4 scenes (some repeated))" in text
+    assert "`beta.jsonl` (beta, 3 episodes)" in text
+    assert "| **alpha** | 7 |" in text  # every record counts, as the tools' summaries count them
+    page = (out / "report.html").read_text()
+    assert '<div class="warnings">' in page
+    assert "alpha holds 2 scenes more than once" in page
+    assert report.repeated_scenes(load_runs([alpha])[0]) == {"f/1": 3, "f/2": 2}
+    assert report.repeated_scenes(load_runs([beta])[0]) == {}
+
+
 def test_the_servers_records_of_privileged_episodes_say_so(tmp_path: Path) -> None:
     """The server's records of a privileged episode did not say it was one, so esrp report showed
     an agent that read the simulator's state, from the server's records, as an ESRP agent proper

@@ -6,8 +6,9 @@ with the paper's rows (SPEC §8) beside them: Table I (SR / OSR / RDR overall), 
 per difficulty, the SR with its 95 % Wilson interval) and Table III (failure stages); then plots
 (SR and OSR by difficulty, stage shares, the RDR distribution, the share of episodes solved within
 k steps) and, for chosen episodes, a replay still (the final frame of `esrp.eval.replay`). Privileged
-agents (plan, expert) are marked as such, and runs over different scenes, or over less than the full
-test split the paper's rows were measured on, are warned about. Needs the `report` extra
+agents (plan, expert) are marked as such, and runs over different scenes, runs that hold a scene
+more than once (every record counts), or runs over less than the full test split the paper's rows
+were measured on, are warned about. Needs the `report` extra
 (matplotlib, Pillow); stills need a server.
 
 The HTML marks its numbers for machines: each table has an `id` (`table-overall`,
@@ -48,7 +49,7 @@ from .results import (
     wilson,
 )
 
-__all__ = ["ReportError", "Run", "coverage_warnings", "load_runs", "write_report"]
+__all__ = ["ReportError", "Run", "coverage_warnings", "load_runs", "repeated_scenes", "write_report"]
 
 _DIFFICULTY_TITLES = {"easy": "Easy", "medium": "Medium", "hard": "Hard"}
 _STAGE_TITLES = ("1 never in reach", "2 never fetched", "3 fetched, no success", "4 success")
@@ -121,10 +122,21 @@ def load_runs(paths: Sequence[str | os.PathLike[str]]) -> list[Run]:
     return runs
 
 
+def repeated_scenes(run: Run) -> dict[str, int]:
+    """The scenes `run` holds more than one record of, each with its number of records, in the
+    order they first appear.
+    """
+    counts: dict[str, int] = {}
+    for r in run.records:
+        counts[r.scene_id] = counts.get(r.scene_id, 0) + 1
+    return {scene: count for scene, count in counts.items() if count > 1}
+
+
 def coverage_warnings(runs: Sequence[Run]) -> list[str]:
     """What makes the runs' numbers hard to compare with each other or with the paper's rows: runs
-    over different scenes, and runs that are not over the full test split of the paper's dataset
-    (the paper's rows are full-test-split figures).
+    over different scenes, runs that hold some scene more than once (their means count every
+    record, so a repeated scene weighs more than the others), and runs that are not over the full
+    test split of the paper's dataset (the paper's rows are full-test-split figures).
     """
     warnings: list[str] = []
     scenes = [{r.scene_id for r in run.records} for run in runs]
@@ -135,6 +147,19 @@ def coverage_warnings(runs: Sequence[Run]) -> list[str]:
             f"the runs cover different scenes ({counts}; {len(common)} common to all): their rows compare "
             "different episodes"
         )
+    for run in runs:
+        # Every record counts, as in the tools' summaries (esrp eval, esrp-eval): said, so that a
+        # ranking is not skewed by repeated episodes without a word.
+        repeated = repeated_scenes(run)
+        if repeated:
+            scene, count = next(iter(repeated.items()))
+            extra = sum(repeated.values()) - len(repeated)
+            plural = "s" if len(repeated) > 1 else ""
+            warnings.append(
+                f"{run.label} holds {len(repeated)} scene{plural} more than once (e.g. {scene}, recorded "
+                f"{count} times; {extra} records beyond one per scene): its rows count every record, so a "
+                "repeated scene weighs more than the others"
+            )
     for run, ids in zip(runs, scenes, strict=True):
         datasets = sorted({r.dataset for r in run.records})
         if datasets != [PAPER_DATASET]:
@@ -578,11 +603,18 @@ def write_report(
     warnings = coverage_warnings(runs)
     for warning in warnings:
         print(f"esrp report: warning: {warning}", file=sys.stderr)
-    sources = ", ".join(f"`{run.path.name}` ({run.label}, {len(run.records)} episodes)" for run in runs)
+    sources = ", ".join(f"`{run.path.name}` ({run.label}, {_episodes(run)})" for run in runs)
     report = _Report(title, sources, warnings, tables, plots, stills)
     markdown_path = _write_markdown(folder, report)
     html_path = _write_html(folder, report)
     return [markdown_path, html_path]
+
+
+def _episodes(run: Run) -> str:
+    """`N episodes`, and `of K scenes` where the run repeats some (the tables count every record)."""
+    scenes = len({r.scene_id for r in run.records})
+    repeated = f" of {scenes} scenes (some repeated)" if scenes != len(run.records) else ""
+    return f"{len(run.records)} episodes{repeated}"
 
 
 @dataclass(frozen=True)
