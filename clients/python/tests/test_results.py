@@ -117,6 +117,31 @@ def test_round_trip_and_a_torn_last_line(tmp_path: Path) -> None:
     assert list(line)[-1] == "finished_at"
 
 
+def test_agent_stats_and_configs_are_written_with_their_members_sorted(tmp_path: Path) -> None:
+    """The Rust tools (serde_json's maps) write every object's members sorted by name; the Python
+    writer kept `agent_stats` and `agent_config` in the order the agent gave them, so the same
+    stats were other bytes in the two tools' files. Both are written sorted now, at every depth
+    (objects in lists too); lists keep their order, and the record itself is left as it was."""
+    stats = {"zeta": 1, "alpha": {"b": [{"y": 1, "x": 2}, 3], "a": None}, "mid": (2, 1)}
+    config = {"turns": 3, "budget_ms": 50}
+    mine = record("a", "easy", True, 1.0, 0.0, 4)
+    mine.agent_stats, mine.agent_config = stats, config
+    line = mine.to_json()
+    assert '"agent_config":{"budget_ms":50,"turns":3},' in line
+    assert '"agent_stats":{"alpha":{"a":null,"b":[{"x":2,"y":1},3]},"mid":[2,1],"zeta":1},' in line
+    # What serde_json writes: the members sorted, compact.
+    compact = json.dumps(stats, sort_keys=True, separators=(",", ":"))
+    assert f'"agent_stats":{compact},' in line
+    assert list(mine.agent_stats) == ["zeta", "alpha", "mid"]  # the record is not changed
+    path = tmp_path / "r.jsonl"
+    with open(path, "wb") as file:
+        append_record(file, mine)
+    again = read_records(path).records[0]
+    assert again.agent_stats == {**stats, "mid": [2, 1]}
+    assert again.agent_config == config
+    assert again.to_json() == line
+
+
 def test_a_gzip_file_reads_as_its_plain_twin(tmp_path: Path) -> None:
     """docs/results keeps its records as .jsonl.gz: the readers take them as they are."""
     plain = tmp_path / "r.jsonl"

@@ -12,6 +12,7 @@ import json
 import os
 import subprocess
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -105,6 +106,30 @@ def test_the_rust_tool_resumes_and_summarises_a_python_file(
     )
     assert out.read_bytes() == written
     assert tables(rust_summary.read_text()) == tables(python_summary)
+
+
+def test_both_tools_write_the_members_of_agent_stats_in_one_order(
+    rust_eval: Path, server: esrp.LocalServer, tmp_path: Path, easy_scenes: list[str]
+) -> None:
+    """esrp-eval writes the plan agent's stats sorted by name (serde_json's maps); esrp eval wrote
+    them in the order it built them (plan_calls, nodes_expanded...), so the same stats were other
+    bytes in the two tools' files. Both write them sorted now, and the agent's config alike."""
+    scene = easy_scenes[0]
+    rust, python = tmp_path / "rust-plan.jsonl", tmp_path / "python-plan.jsonl"
+    run_rust(rust_eval, server, "--agent", "plan", "--scenes", scene, "--out", str(rust))
+    args = ["eval", "--agent", "plan", "--scenes", scene, "--out", str(python), "--server", server.address]
+    assert main(args) == 0
+
+    def members(path: Path, name: str) -> list[str]:
+        line: dict[str, Any] = json.loads(path.read_text().splitlines()[0])
+        return list(line[name])
+
+    assert members(rust, "agent_stats") == sorted(members(rust, "agent_stats"))
+    assert members(python, "agent_stats") == members(rust, "agent_stats")
+    assert members(python, "agent_config") == members(rust, "agent_config")
+    config = '"agent_config":{"budget_ms":'
+    assert config in rust.read_text()
+    assert config in python.read_text()
 
 
 def rust_refuses(binary: Path, server: esrp.LocalServer, *args: str) -> str:

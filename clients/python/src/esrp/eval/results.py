@@ -136,9 +136,15 @@ class EpisodeRecord:
     def to_json(self) -> str:
         """The record as one line of compact JSON (no newline), UTF-8 text as is: the schema's
         fields in order, then the `extra` ones, with `reward_weights` and `observations` after
-        `counted` (after the `extra` ones when there is no `counted`), and `signature` last.
+        `counted` (after the `extra` ones when there is no `counted`), and `signature` last. The
+        members of `agent_config` and `agent_stats` are written sorted by name, in nested objects
+        too (as the Rust tools write them), whatever order the agent gave them in.
         """
         data = {name: getattr(self, name) for name in _FIELD_TYPES}
+        # The free-form objects with their members sorted by name at every depth, as the Rust
+        # tools (serde_json's maps) write them: the same stats are the same bytes in either tool.
+        data["agent_config"] = _sorted_members(self.agent_config)
+        data["agent_stats"] = _sorted_members(self.agent_stats)
         server = {name: getattr(self, name) for name in _SERVER_FIELDS if getattr(self, name) is not None}
         for name, value in self.extra.items():
             if name in _FIELD_TYPES or name in _SERVER_FIELDS or name == "signature":
@@ -197,6 +203,15 @@ class EpisodeRecord:
         return cls(
             **values, extra=extra, reward_weights=weights, observations=observations, signature=signature
         )
+
+
+def _sorted_members(value: Any) -> Any:  # noqa: ANN401 - free-form JSON
+    """`value` with the members of every object in it sorted by name (lists keep their order)."""
+    if isinstance(value, Mapping):
+        return {key: _sorted_members(value[key]) for key in sorted(value)}
+    if isinstance(value, (list, tuple)):
+        return [_sorted_members(v) for v in value]
+    return value
 
 
 _FIELD_TYPES: dict[str, tuple[type, ...]] = {
