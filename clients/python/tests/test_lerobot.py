@@ -198,6 +198,33 @@ def test_an_out_or_a_namespace_that_is_a_file_is_refused_before_anything_is_repl
     assert [p.name for p in out.iterdir()] == ["esrp"]
 
 
+def test_a_refused_export_leaves_no_folder_it_made_and_the_closing_line_is_absolute(
+    server: esrp.LocalServer,
+    played: list[EpisodeRecord],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A refused export left the `--out` folder it had made, empty; and the closing line repeated a
+    relative `--out` as typed (as the Minari export's did: test_minari checks both further)."""
+    tampered = dataclasses.replace(played[0], total_reward=played[0].total_reward + 1.0)
+    records = write_records(tmp_path / "tampered.jsonl", [tampered])
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    for out in (tmp_path / "new" / "home", empty):
+        assert export(server, out, "--format", "lerobot", "--records", str(records)) == 2
+        assert "does not reproduce the record" in capsys.readouterr().err
+        assert not (tmp_path / "new").exists()
+        assert list(empty.iterdir()) == []
+    monkeypatch.chdir(tmp_path)
+    one = ["--split", "test", "--difficulty", "easy", "--limit", "1", "--resolution", "16"]
+    assert export(server, Path("home"), "--format", "lerobot", *one) == 0
+    folder = tmp_path / "home" / "esrp" / "esrp-bench-v2-test-easy-expert"
+    line = capsys.readouterr().out
+    assert line.startswith(f"{folder}: LeRobot dataset esrp/esrp-bench-v2-test-easy-expert, 1 episodes")
+    assert f"root={str(folder)!r}" in line
+
+
 def test_a_default_id_that_is_no_repository_id_asks_for_one(
     server: esrp.LocalServer, played: list[EpisodeRecord], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

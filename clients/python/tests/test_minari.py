@@ -164,6 +164,52 @@ def test_a_record_whose_reward_does_not_replay_is_refused(
     assert not (datasets_root / "esrp" / "esrp-bench-v2").exists()
 
 
+def test_a_refused_export_leaves_no_folder_it_made_and_keeps_those_that_were_there(
+    server: esrp.LocalServer,
+    played: list[EpisodeRecord],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """An export refused once its replays had begun (a record that does not replay, a scene the
+    server does not serve) removed its staging folder but left the `--out` folder it had created,
+    empty. It leaves nothing it made now, the folders above `--out` it made included; a folder that
+    was there before stays, empty or not."""
+    tampered = dataclasses.replace(played[0], total_reward=played[0].total_reward + 1.0)
+    unknown = dataclasses.replace(played[0], scene_id="esrp-bench-v2/no-such-scene")
+    cases = [
+        (write_records(tmp_path / "tampered.jsonl", [played[1], tampered]), "does not reproduce the record"),
+        (write_records(tmp_path / "unknown.jsonl", [unknown]), "no-such-scene: the replay failed"),
+    ]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    full = tmp_path / "full"
+    (full / "mine").mkdir(parents=True)
+    for records, why in cases:
+        for out in (tmp_path / "new" / "deeper" / "datasets", empty, full, empty / "new"):
+            assert export(server, out, "--format", "minari", "--records", str(records)) == 2
+            assert why in capsys.readouterr().err
+            assert not (tmp_path / "new").exists()
+            assert list(empty.iterdir()) == []
+            assert [p.name for p in full.iterdir()] == ["mine"]
+
+
+def test_the_closing_line_names_the_datasets_root_as_an_absolute_path(
+    server: esrp.LocalServer,
+    datasets_root: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """It repeated `--out` as typed: a relative root, which loads nothing from another folder."""
+    monkeypatch.chdir(datasets_root.parent)
+    one = ["--split", "test", "--difficulty", "easy", "--limit", "1", "--resolution", "16"]
+    assert export(server, Path("datasets"), "--format", "minari", *one) == 0
+    line = capsys.readouterr().out.strip()
+    dataset_id = "esrp/esrp-bench-v2-test-easy/expert-v0"
+    assert datasets_root.is_absolute()
+    assert line.startswith(f"{datasets_root}: Minari dataset {dataset_id}, 1 episodes, ")
+    assert line.endswith(f" steps (MINARI_DATASETS_PATH={datasets_root} minari.load_dataset({dataset_id!r}))")
+
+
 def test_the_records_reward_weights_go_into_the_env_spec(
     server: esrp.LocalServer, client: esrp.Client, played: list[EpisodeRecord], datasets_root: Path
 ) -> None:

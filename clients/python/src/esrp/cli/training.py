@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -335,9 +336,11 @@ def _demos_minari(
 
     def export(client: Client) -> list[str]:
         dataset_id, outcome = export_minari(client, settings, args.dataset_id, sources)
+        # The root as a path that loads from any working directory (quoted for a shell).
+        root = args.out.absolute()
         return [
-            f"{args.out}: Minari dataset {dataset_id}, {outcome.episodes} episodes, {outcome.steps} steps "
-            f"(MINARI_DATASETS_PATH={args.out} minari.load_dataset({dataset_id!r}))"
+            f"{root}: Minari dataset {dataset_id}, {outcome.episodes} episodes, {outcome.steps} steps "
+            f"(MINARI_DATASETS_PATH={shlex.quote(str(root))} minari.load_dataset({dataset_id!r}))"
         ]
 
     return _export_on_server(args, export)
@@ -355,9 +358,10 @@ def _demos_lerobot(
 
     def export(client: Client) -> list[str]:
         repo_id, outcome = export_lerobot(client, settings, args.dataset_id, sources)
+        folder = args.out.absolute() / repo_id  # a path that loads from any working directory
         return [
-            f"{args.out / repo_id}: LeRobot dataset {repo_id}, {outcome.episodes} episodes, "
-            f"{outcome.steps} frames (LeRobotDataset({repo_id!r}, root={str(args.out / repo_id)!r}))"
+            f"{folder}: LeRobot dataset {repo_id}, {outcome.episodes} episodes, "
+            f"{outcome.steps} frames (LeRobotDataset({repo_id!r}, root={str(folder)!r}))"
         ]
 
     return _export_on_server(args, export)

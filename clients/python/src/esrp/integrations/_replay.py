@@ -5,8 +5,9 @@ expert trajectories, or the records of `esrp.results/v1` files. Each is replayed
 Gymnasium env (`esrp.envs.RearrangeEnv`), which gives the observations a dataset stores, and
 checked: an expert trajectory must solve its scene with its last action; a record must replay to
 its own end, metrics and total reward (the checks of `esrp verify`). An export writes into a
-staging folder beside its target and moves the finished dataset into place; the staging folders of
-exports that were killed are removed by the next export into the same folder.
+staging folder beside its target and moves the finished dataset into place; a refused one removes
+it, and the `--out` folders it created for it; the staging folders of exports that were killed are
+removed by the next export into the same folder.
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ import os
 import shutil
 import sys
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -38,11 +40,11 @@ __all__ = [
     "env_for",
     "env_kwargs",
     "horizon_kwargs",
-    "make_staging",
     "remove_abandoned_staging",
     "replay",
     "reward_kwargs",
     "sources",
+    "staging_folder",
 ]
 
 
@@ -209,13 +211,33 @@ def check_target(root: Path, target: Path, kind: str) -> None:
             )
 
 
-def make_staging(root: Path, prefix: str) -> Path:
-    """A new staging folder in `root` (created if missing), named `prefix`, this process's id, `-`
-    and a random part; first removes the staging folders of `prefix` left by killed exports.
+@contextmanager
+def staging_folder(root: Path, prefix: str) -> Iterator[Path]:
+    """A new staging folder in `root` for the block, named `prefix`, this process's id, `-` and a
+    random part; first removes the staging folders of `prefix` left by killed exports. After the
+    block the staging folder is removed, and so are the folders made for it (`root`, created if
+    missing, and those above it that did not exist) where they are empty: a refused export leaves
+    nothing it created, a finished one its dataset. A folder that existed before is never removed.
     """
+    made: list[Path] = []  # deepest first
+    for folder in (root, *root.parents):
+        if folder.exists() or folder.is_symlink():
+            break
+        made.append(folder)
     root.mkdir(parents=True, exist_ok=True)
-    remove_abandoned_staging(root, prefix)
-    return Path(tempfile.mkdtemp(prefix=f"{prefix}{os.getpid()}-", dir=root))
+    try:
+        remove_abandoned_staging(root, prefix)
+        staging = Path(tempfile.mkdtemp(prefix=f"{prefix}{os.getpid()}-", dir=root))
+        try:
+            yield staging
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+    finally:
+        for folder in made:
+            try:
+                folder.rmdir()
+            except OSError:  # not empty: the dataset, or what another process put there since
+                break
 
 
 def remove_abandoned_staging(root: Path, prefix: str) -> None:

@@ -69,8 +69,8 @@ from ._replay import (
     check_target,
     env_for,
     env_kwargs,
-    make_staging,
     replay,
+    staging_folder,
 )
 from ._replay import sources as replay_sources
 
@@ -141,42 +141,45 @@ def export_lerobot(
     resolution = settings.resolution or 128
     kwargs = env_kwargs(settings, episodes, resolution)
     envs: dict[tuple[int, str], RearrangeEnv] = {}
-    staging = make_staging(root, _STAGING)
     steps = 0
     every = max(len(episodes) // 20, 1)
     described: list[dict[str, Any]] = []
-    try:
-        with _quiet():
-            dataset = LeRobotDataset.create(
-                repo_id, fps=FPS, features=features(resolution), root=staging / "dataset", use_videos=False
-            )
-            try:
-                for index, source in enumerate(episodes):
-                    played = replay(env_for(envs, client, source, resolution), source)
-                    _write(dataset, played)
-                    described.append(_described(index, source, played))
-                    steps += len(played.actions)
-                    done = index + 1
-                    if settings.progress and (done // every != index // every or done == len(episodes)):
-                        print(f"{done}/{len(episodes)} episodes, {steps} steps", file=sys.stderr)
-            finally:
-                dataset.finalize()
-        written = staging / "dataset"
-        _remove_empty_image_folders(written)
-        sidecar = {
-            "format": FORMAT,
-            "dataset": info.dataset,
-            "env": {"id": ENV_ID, "kwargs": kwargs},
-            "actions": [action.name.lower() for action in Action],
-            "episodes": described,
-        }
-        (written / "meta" / "esrp.json").write_text(json.dumps(sidecar, indent=1) + "\n")
-        target.parent.mkdir(parents=True, exist_ok=True)
-        written.replace(target)
-    finally:
-        for env in envs.values():
-            env.close()
-        shutil.rmtree(staging, ignore_errors=True)
+    with staging_folder(root, _STAGING) as staging:
+        try:
+            with _quiet():
+                dataset = LeRobotDataset.create(
+                    repo_id,
+                    fps=FPS,
+                    features=features(resolution),
+                    root=staging / "dataset",
+                    use_videos=False,
+                )
+                try:
+                    for index, source in enumerate(episodes):
+                        played = replay(env_for(envs, client, source, resolution), source)
+                        _write(dataset, played)
+                        described.append(_described(index, source, played))
+                        steps += len(played.actions)
+                        done = index + 1
+                        if settings.progress and (done // every != index // every or done == len(episodes)):
+                            print(f"{done}/{len(episodes)} episodes, {steps} steps", file=sys.stderr)
+                finally:
+                    dataset.finalize()
+            written = staging / "dataset"
+            _remove_empty_image_folders(written)
+            sidecar = {
+                "format": FORMAT,
+                "dataset": info.dataset,
+                "env": {"id": ENV_ID, "kwargs": kwargs},
+                "actions": [action.name.lower() for action in Action],
+                "episodes": described,
+            }
+            (written / "meta" / "esrp.json").write_text(json.dumps(sidecar, indent=1) + "\n")
+            target.parent.mkdir(parents=True, exist_ok=True)
+            written.replace(target)
+        finally:
+            for env in envs.values():
+                env.close()
     return repo_id, ExportOutcome(len(episodes), steps, len(episodes))
 
 

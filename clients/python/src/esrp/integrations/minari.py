@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import shutil
 import sys
 import warnings
 from collections.abc import Iterator, Sequence
@@ -54,7 +53,7 @@ from .._client import Client
 from .._registration import ENV_ID, register_envs
 from ..envs import RearrangeEnv
 from ..train.demos import DemoExportError, DemoSettings, ExportOutcome, RecordSource, check_resolution
-from ._replay import Replay, check_target, env_for, env_kwargs, make_staging, replay
+from ._replay import Replay, check_target, env_for, env_kwargs, replay, staging_folder
 from ._replay import sources as replay_sources
 
 __all__ = ["CHUNK_EPISODES", "default_dataset_id", "export_minari"]
@@ -105,31 +104,30 @@ def export_minari(
     register_envs()
     spec = dataclasses.replace(gymnasium.spec(ENV_ID), kwargs=kwargs)
     envs: dict[tuple[int, str], RearrangeEnv] = {}
-    staging = make_staging(root, _STAGING)
     steps = 0
     every = max(len(episodes) // 20, 1)
-    try:
-        dataset: Any = None
-        with _datasets_root(staging):
-            for start in range(0, len(episodes), CHUNK_EPISODES):
-                chunk = episodes[start : start + CHUNK_EPISODES]
-                buffers = [
-                    _buffer(replay(env_for(envs, client, source, resolution, spec), source), start + k)
-                    for k, source in enumerate(chunk)
-                ]
-                steps += sum(len(buffer.rewards) for buffer in buffers)
-                if dataset is None:
-                    dataset = _create(dataset_id, buffers, next(iter(envs.values())), settings)
-                else:
-                    dataset.update_dataset_from_buffer(buffers)
-                done = start + len(chunk)
-                if settings.progress and (done // every != start // every or done == len(episodes)):
-                    print(f"{done}/{len(episodes)} episodes, {steps} steps", file=sys.stderr)
-        _publish(staging, root, dataset_id)
-    finally:
-        for env in envs.values():
-            env.close()
-        shutil.rmtree(staging, ignore_errors=True)
+    with staging_folder(root, _STAGING) as staging:
+        try:
+            dataset: Any = None
+            with _datasets_root(staging):
+                for start in range(0, len(episodes), CHUNK_EPISODES):
+                    chunk = episodes[start : start + CHUNK_EPISODES]
+                    buffers = [
+                        _buffer(replay(env_for(envs, client, source, resolution, spec), source), start + k)
+                        for k, source in enumerate(chunk)
+                    ]
+                    steps += sum(len(buffer.rewards) for buffer in buffers)
+                    if dataset is None:
+                        dataset = _create(dataset_id, buffers, next(iter(envs.values())), settings)
+                    else:
+                        dataset.update_dataset_from_buffer(buffers)
+                    done = start + len(chunk)
+                    if settings.progress and (done // every != start // every or done == len(episodes)):
+                        print(f"{done}/{len(episodes)} episodes, {steps} steps", file=sys.stderr)
+            _publish(staging, root, dataset_id)
+        finally:
+            for env in envs.values():
+                env.close()
     return dataset_id, ExportOutcome(len(episodes), steps, len(episodes))
 
 
