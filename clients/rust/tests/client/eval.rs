@@ -142,6 +142,24 @@ async fn bad_requests_are_refused_with_a_reason() {
     assert!(stderr.contains("with other settings") && stderr.contains("\"budget_ms\":5000"), "{stderr}");
 }
 
+/// `--scenes` naming a scene twice, or an empty id, is refused before anything runs (exit 2), as
+/// `esrp eval` refuses it: each scene is played, and resumed, once.
+#[test]
+fn scenes_named_twice_or_empty_are_refused_up_front() {
+    let dir = tempfile::tempdir().expect("a temp dir");
+    let out = dir.path().join("r.jsonl");
+    for (scenes, said) in [
+        ("a/1,b/2,a/1,b/2,c/3", "--scenes lists a/1, b/2 more than once"),
+        ("a/1,,b/2", "--scenes names an empty scene id"),
+    ] {
+        let output = eval("127.0.0.1:1", &["--agent", "random", "--scenes", scenes, "--out", out.to_str().unwrap()]);
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert_eq!(output.status.code(), Some(2), "{scenes}: {stderr}");
+        assert!(stderr.contains(said), "{scenes}: {stderr}");
+        assert!(!out.exists());
+    }
+}
+
 /// A planning budget PlanActions cannot carry is refused before anything runs: 0 was sent as
 /// 1 ms (every episode then failed with deadline_exceeded), and one over 32 bits was cut down.
 #[test]

@@ -44,7 +44,8 @@ struct Args {
     /// Only scenes of this difficulty.
     #[arg(long, value_enum)]
     difficulty: Option<DifficultyArg>,
-    /// Only these scene ids (comma-separated), in this order; they must be in the split.
+    /// Only these scene ids (comma-separated), in this order, none twice (a scene is played, and
+    /// resumed, once); they must be in the split.
     #[arg(long, value_delimiter = ',')]
     scenes: Vec<String>,
     /// At most this many scenes (after the filters): the first N of the chosen ones (dataset
@@ -130,6 +131,19 @@ impl From<DifficultyArg> for Difficulty {
             DifficultyArg::Hard => Difficulty::Hard,
         }
     }
+}
+
+/// What is wrong with `--scenes`, if anything: an empty id, or an id named more than once (as
+/// `esrp eval --scenes` refuses them).
+fn scenes_error(scenes: &[String]) -> Option<String> {
+    if scenes.iter().any(|id| id.trim().is_empty()) {
+        return Some("--scenes names an empty scene id: give scene ids, e.g. esrp-bench-v2/00000".into());
+    }
+    let mut seen = HashSet::new();
+    let mut twice: Vec<&str> = scenes.iter().map(String::as_str).filter(|id| !seen.insert(*id)).collect();
+    twice.sort_unstable();
+    twice.dedup();
+    (!twice.is_empty()).then(|| format!("--scenes lists {} more than once", twice.join(", ")))
 }
 
 /// The scenes to run, fixed up front: the split's (filtered), or the ones named, in order.
@@ -300,6 +314,10 @@ fn main() -> std::process::ExitCode {
 
 async fn run() -> anyhow::Result<()> {
     let args = Args::parse();
+    if let Some(error) = scenes_error(&args.scenes) {
+        use clap::CommandFactory as _;
+        Args::command().error(clap::error::ErrorKind::ValueValidation, error).exit();
+    }
     summary_path(&args)?; // before a server is started or anything is played
     let tls = Tls::from_flags(args.server.as_deref(), args.tls_ca.as_deref(), args.tls_domain.as_deref())?;
     esrp_client::signals::exit_on_signals("esrp-eval")?;
