@@ -46,33 +46,33 @@ async fn the_expert_succeeds_through_unary_steps() {
     assert!(last.metrics.unwrap().success);
 }
 
+/// An episode of esrp-bench-v2/00003 created on `server` and stepped with `actions`: the client
+/// and the episode's id.
+async fn stepped(
+    server: &Server,
+    actions: &[i32],
+) -> (proto::esrp_client::EsrpClient<tonic::transport::Channel>, String) {
+    let mut client = server.client().await;
+    let id = client.create_episode(create_request("esrp-bench-v2/00003", false)).await.unwrap().into_inner().episode_id;
+    for &action in actions {
+        client.step(step_request(&id, action)).await.unwrap();
+    }
+    (client, id)
+}
+
+/// The value of metric `name` (its full name with labels) in a metrics text.
+fn metric(text: &str, name: &str) -> f64 {
+    let line = text.lines().find(|l| l.strip_prefix(name).is_some_and(|rest| rest.starts_with(' ')));
+    line.unwrap_or_else(|| panic!("{name} in {text}")).rsplit(' ').next().unwrap().parse().unwrap()
+}
+
 /// The Prometheus endpoint counts steps, episodes and render batches.
 #[tokio::test]
 async fn metrics_count_steps_episodes_and_render_batches() {
     let server = Server::start(&["--metrics-listen", "127.0.0.1:0"]);
-    let mut client = server.client().await;
-    let created = client
-        .create_episode(proto::CreateEpisodeRequest {
-            scene: Some(proto::create_episode_request::Scene::SceneId("esrp-bench-v2/00003".into())),
-            ..Default::default()
-        })
-        .await
-        .unwrap()
-        .into_inner();
-    for action in [2, 2, 3] {
-        client
-            .step(proto::StepRequest { episode_id: created.episode_id.clone(), action, include_goal: false })
-            .await
-            .unwrap();
-    }
+    let (mut client, episode_id) = stepped(&server, &[2, 2, 3]).await;
     let text = server.scrape();
-    let value = |name: &str| -> f64 {
-        let line = text
-            .lines()
-            .find(|l| l.starts_with(name) && l[name.len()..].starts_with(' '))
-            .unwrap_or_else(|| panic!("{name} in {text}"));
-        line.rsplit(' ').next().unwrap().parse().unwrap()
-    };
+    let value = |name: &str| metric(&text, name);
     assert_eq!(value("esrp_steps_total"), 3.0);
     assert_eq!(value("esrp_episodes_created_total"), 1.0);
     assert_eq!(value("esrp_live_episodes"), 1.0);
@@ -93,7 +93,7 @@ async fn metrics_count_steps_episodes_and_render_batches() {
     assert_eq!(value("esrp_render_pipeline"), 1.0, "auto: one batch in flight per thread");
     // Batches of one and two views (the create's, then each step's) share one pooled atlas.
     assert_eq!(value("esrp_render_atlases_created_total"), 1.0, "{text}");
-    client.close_episode(proto::CloseEpisodeRequest { episode_id: created.episode_id }).await.unwrap();
+    client.close_episode(proto::CloseEpisodeRequest { episode_id }).await.unwrap();
     let text = server.scrape();
     assert!(text.contains("esrp_episodes_closed_total{reason=\"client\"} 1"), "{text}");
     assert!(text.contains("esrp_live_episodes 0"), "{text}");
@@ -105,26 +105,9 @@ async fn metrics_count_steps_episodes_and_render_batches() {
 #[tokio::test]
 async fn render_timestamps_time_the_device_s_drawing() {
     let server = Server::start(&["--metrics-listen", "127.0.0.1:0", "--render-timestamps", "on"]);
-    let mut client = server.client().await;
-    let created = client
-        .create_episode(proto::CreateEpisodeRequest {
-            scene: Some(proto::create_episode_request::Scene::SceneId("esrp-bench-v2/00003".into())),
-            ..Default::default()
-        })
-        .await
-        .unwrap()
-        .into_inner();
-    for action in [2, 3, 0] {
-        client
-            .step(proto::StepRequest { episode_id: created.episode_id.clone(), action, include_goal: false })
-            .await
-            .unwrap();
-    }
+    stepped(&server, &[2, 3, 0]).await;
     let text = server.scrape();
-    let value = |name: &str| -> f64 {
-        let line = text.lines().find(|l| l.strip_prefix(name).is_some_and(|rest| rest.starts_with(' ')));
-        line.unwrap_or_else(|| panic!("{name} in {text}")).rsplit(' ').next().unwrap().parse().unwrap()
-    };
+    let value = |name: &str| metric(&text, name);
     assert_eq!(value("esrp_render_timestamps"), 1.0, "{text}");
     let drawing = value("esrp_render_gpu_seconds_total");
     let thread: f64 = ["render_encode", "render_submit", "render_device"]
