@@ -5,6 +5,7 @@ use std::num::NonZeroU64;
 
 use crate::gpu::{GpuView, VIEW_STRIDE};
 
+use super::clock::{StampQueries, TIMESTAMP_BYTES};
 use super::formats::{COLOUR_FORMAT, DEPTH_FORMAT, DEPTH_OUT_FORMAT, SEGMENT_FORMAT};
 use super::limits::{CACHED_ATLASES, CHUNK_PIXELS};
 use super::requests::ViewRequest;
@@ -55,37 +56,8 @@ pub(super) struct Atlas {
     pub(super) bind_group: wgpu::BindGroup,
     /// Where the device writes when it starts and ends drawing a batch, with a renderer that
     /// times the device ([`super::RendererConfig::timestamps`]).
-    pub(super) timestamps: Option<Timestamps>,
+    pub(super) timestamps: Option<StampQueries>,
     pub(super) last_used: u64,
-}
-
-/// The bytes after the used pages of the readback buffer that hold a batch's two timestamps
-/// (the start of its first pass and the end of its last, in the device's ticks).
-pub(super) const TIMESTAMP_BYTES: u64 = 2 * wgpu::QUERY_SIZE as u64;
-
-/// A batch's two timestamp queries and the buffer they are resolved into before they are copied
-/// behind the batch's pages in the readback buffer (a resolve needs a 256-byte aligned offset,
-/// the pages' ends only have 4).
-pub(super) struct Timestamps {
-    pub(super) set: wgpu::QuerySet,
-    pub(super) resolved: wgpu::Buffer,
-}
-
-impl Timestamps {
-    fn new(device: &wgpu::Device) -> Self {
-        let set = device.create_query_set(&wgpu::QuerySetDescriptor {
-            label: Some("esrp-render batch timestamps"),
-            ty: wgpu::QueryType::Timestamp,
-            count: 2,
-        });
-        let resolved = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("esrp-render batch timestamps"),
-            size: TIMESTAMP_BYTES,
-            usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
-        });
-        Self { set, resolved }
-    }
 }
 
 impl Atlas {
@@ -158,7 +130,7 @@ impl Atlas {
             }
             None => texture_targets(device, side, pages, full),
         };
-        let timestamps = timestamps.then(|| Timestamps::new(device));
+        let timestamps = timestamps.then(|| StampQueries::new(device));
         Self { side, pages, full, targets, readback, uniforms, bind_group, timestamps, last_used: 0 }
     }
 

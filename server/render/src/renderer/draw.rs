@@ -8,7 +8,8 @@ use crate::error::RenderError;
 use crate::gpu::{GpuView, VIEW_STRIDE};
 use crate::mesh::BACKGROUND_COLOUR;
 
-use super::atlas::{Atlas, PagedTexture, TIMESTAMP_BYTES, Targets, Tile, layout};
+use super::atlas::{Atlas, PagedTexture, Targets, Tile, layout};
+use super::clock::{TIMESTAMP_BYTES, drawing_time};
 use super::device::Renderer;
 use super::readback::{Planes, extract_all};
 use super::requests::{Outputs, ViewOutput, ViewRequest};
@@ -421,13 +422,4 @@ fn extract_mapped(
     };
     atlas.readback.unmap();
     outputs
-}
-
-/// The time between the two timestamps at the start of `stamps` (little-endian ticks of
-/// `period` nanoseconds), or `None` if they are not in order (a device whose clock was reset,
-/// or that wrote nothing).
-fn drawing_time(stamps: &[u8], period: f32) -> Option<Duration> {
-    let tick = |i: usize| Some(u64::from_le_bytes(stamps.get(i * 8..i * 8 + 8)?.try_into().ok()?));
-    let (start, end) = (tick(0)?, tick(1)?);
-    (start != 0 && end >= start).then(|| Duration::from_secs_f64((end - start) as f64 * f64::from(period) * 1e-9))
 }

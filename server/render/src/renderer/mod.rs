@@ -5,7 +5,8 @@
 //! (default resolution, chunk limits, pose slots), `requests` what the renderer is asked and
 //! answers and the check of a batch, `atlas` the textures a batch draws into, their pool and how
 //! a batch is laid out and chunked, `draw` the pieces a view draws and one chunk's encoder,
-//! submit and readback, and `readback` the images cut out of the read-back planes.
+//! submit and readback, `readback` the images cut out of the read-back planes, and `clock` the
+//! timestamps that time the device's drawing.
 //!
 //! # Concurrency
 //!
@@ -32,6 +33,7 @@ use crate::mesh::build_scene_mesh;
 
 mod atlas;
 mod backend;
+mod clock;
 mod compute;
 mod device;
 mod draw;
@@ -213,6 +215,17 @@ impl Renderer {
             });
         }
 
+        // A device whose timestamps fail their check is not timed: a batch's error would fail
+        // its views.
+        let timestamps = timestamps
+            && clock::check_timestamps(&device, &queue)
+                .map_err(|reason| {
+                    log::warn!(
+                        "esrp-render: {}: not timing the device: its timestamps failed a check: {reason}",
+                        adapter_info.name
+                    )
+                })
+                .is_ok();
         let timestamp_period = timestamps.then(|| queue.get_timestamp_period());
         let max_side = config.max_atlas_size.min(limits.max_texture_dimension_2d).max(64);
         let max_atlas = 1u32 << (31 - max_side.leading_zeros());
