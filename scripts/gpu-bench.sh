@@ -25,7 +25,8 @@
 #   3. pipeline: batches in flight per render thread (--render-pipeline 1, 2, 3), one server
 #      driven by 4 client processes (so that the client is not the limit), with the breakdown
 #      (on a GPU it says how busy the device kept drawing, by its timestamps); then the first
-#      again with --render-timestamps off (what they cost);
+#      again with --render-timestamps off (what they cost), and with --render-depth-buffers
+#      per-page (a depth buffer per view's pass), also measured on the renderer alone;
 #   4. renderer: the renderer alone, no server (esrp-render's views bench, carried): batches of 1
 #      to 256 views, 256 at 64 and 256 pixels, top-down, every plane; then 4 and 8 processes
 #      rendering at once (what one device gives, whatever the server);
@@ -313,6 +314,20 @@ done
 if step timestamps-off 25; then
     bench_args timestamps-off.json "--render-pipeline=1 --render-timestamps=off" --breakdown \
         --scenarios stream-mux-64,batch-64 --processes 4
+fi
+# A depth buffer per page (--render-depth-buffers per-page): a batch's passes no longer wait for
+# each other's depth writes; pipeline-1 again with it, then the renderer alone with it.
+if step depth-per-page 25; then
+    bench_args depth-per-page.json "--render-pipeline=1 --render-depth-buffers=per-page" --breakdown \
+        --scenarios stream-mux-64,batch-64 --processes 4
+fi
+if [[ -x $BIN/esrp-render-views ]] && step renderer-depth 15; then
+    for depth in shared per-page; do
+        ESRP_RENDER_DEPTH_BUFFERS=$depth ESRP_RENDER_BACKEND=$BACKEND ESRP_BENCH_SECONDS=1 ESRP_BENCH_CULL=on \
+            ESRP_BENCH_CASES=ego-1,ego-64,ego-256,full-256 ESRP_BENCH_JSON=$OUT_DIR/renderer-depth-$depth.json \
+            "$BIN/esrp-render-views" --bench >> "$OUT_DIR/renderer.log" 2>&1 \
+            || SKIPPED+=("renderer-depth-$depth (the views bench failed: see renderer.log)")
+    done
 fi
 # The renderer alone, no server (esrp-render's views bench): batches of 1 to 256 views, 256 at
 # 64 and 256 pixels, top-down and with every plane; then several processes at once, each with

@@ -315,6 +315,16 @@ def main(argv: list[str]) -> int:
         "timestamps",
         [("auto (on a GPU)", "pipeline-1.json"), ("off", "timestamps-off.json")],
     )
+    lines += series(
+        folder,
+        "Depth buffers (--render-depth-buffers; one server, one batch in flight)",
+        "depth buffers",
+        [("shared", "pipeline-1.json"), ("per-page", "depth-per-page.json")],
+    )
+    for depth in ("shared", "per-page"):
+        report = load(folder, f"renderer-depth-{depth}.json")
+        if report is not None:
+            lines += views_table(report, f"The renderer alone with --render-depth-buffers {depth}")
     lines += renderer(folder)
     lines += series(
         folder,

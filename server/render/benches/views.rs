@@ -12,13 +12,16 @@
 //! each cell also says how many microseconds a view took the device to draw, by its own clock
 //! (in brackets; `gpu_us_per_view` in the JSON): the rest of a view's time is the submission,
 //! the wait and the readback (the timestamps are a GPU's by default; `ESRP_RENDER_TIMESTAMPS=on`
-//! or `off` asks for them or not, on any adapter).
+//! or `off` asks for them or not, on any adapter). `ESRP_RENDER_DEPTH_BUFFERS=per-page` gives each
+//! view's pass a depth buffer of its own (default `shared`).
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use esrp_core::{CompiledScene, EgoCamera, FixedObject, Heading, ObjectPose, Part, Scene, Shape};
-use esrp_render::{Camera, Outputs, Rasterizer, Renderer, RendererConfig, SceneHandle, Timestamps, ViewRequest};
+use esrp_render::{
+    Camera, DepthBuffers, Outputs, Rasterizer, Renderer, RendererConfig, SceneHandle, Timestamps, ViewRequest,
+};
 
 /// The example bedroom, and a copy with more furniture along the walls (a fuller room).
 fn scenes() -> Vec<Arc<CompiledScene>> {
@@ -130,11 +133,18 @@ fn main() {
         }),
         Err(_) => Timestamps::default(),
     };
+    let depth_buffers: DepthBuffers = match std::env::var("ESRP_RENDER_DEPTH_BUFFERS") {
+        Ok(name) => name.parse().unwrap_or_else(|e| {
+            eprintln!("views: ESRP_RENDER_DEPTH_BUFFERS: {e}");
+            std::process::exit(2)
+        }),
+        Err(_) => DepthBuffers::default(),
+    };
     let renderers: Vec<Renderer> = culling
         .iter()
         .map(|&cull| {
-            Renderer::new(RendererConfig { backends, cull, rasterizer, timestamps, ..RendererConfig::default() })
-                .unwrap_or_else(|e| panic!("{e}"))
+            let config = RendererConfig { backends, cull, rasterizer, timestamps, depth_buffers, ..Default::default() };
+            Renderer::new(config).unwrap_or_else(|e| panic!("{e}"))
         })
         .collect();
     let info = renderers[0].adapter_info();
@@ -203,6 +213,7 @@ fn main() {
         let json = serde_json::json!({
             "adapter": format!("{} ({:?}, {})", info.name, info.backend, info.driver_info),
             "rasterizer": rasterizer.name(),
+            "depth_buffers": depth_buffers.name(),
             "seconds": seconds,
             "cases": table(|(views, _)| (*views).into()),
             "gpu_us_per_view": timed.then(|| table(|(_, drawing)| (*drawing).into())),

@@ -121,9 +121,9 @@ pub use images::{
 };
 pub use mesh::{SceneMesh, SegmentLabel, build_scene_mesh};
 pub use renderer::{
-    BackendPreference, CHUNK_PIXELS, CHUNK_VIEWS, DEFAULT_RESOLUTION, MAX_MOVABLE_OBJECTS, Outputs, Rasterizer,
-    RenderTimings, Renderer, RendererConfig, SceneHandle, SubmittedBatch, Timestamps, UnknownBackend,
-    UnknownRasterizer, UnknownTimestamps, ViewOutput, ViewRequest,
+    BackendPreference, CHUNK_PIXELS, CHUNK_VIEWS, DEFAULT_RESOLUTION, DepthBuffers, MAX_MOVABLE_OBJECTS, Outputs,
+    Rasterizer, RenderTimings, Renderer, RendererConfig, SceneHandle, SubmittedBatch, Timestamps, UnknownBackend,
+    UnknownDepthBuffers, UnknownRasterizer, UnknownTimestamps, ViewOutput, ViewRequest,
 };
 
 /// Re-export of wgpu, whose [`wgpu::AdapterInfo`] and [`wgpu::PowerPreference`] appear in this

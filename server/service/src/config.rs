@@ -7,7 +7,7 @@ use std::time::Duration;
 use clap::builder::{BoolishValueParser, PossibleValuesParser, TypedValueParser};
 use clap::{Parser, ValueEnum};
 use esrp_dataset::BenchVersion;
-use esrp_render::{BackendPreference, Rasterizer, Timestamps};
+use esrp_render::{BackendPreference, DepthBuffers, Rasterizer, Timestamps};
 
 /// Log output format.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -135,6 +135,18 @@ pub struct Config {
         value_parser = PossibleValuesParser::new(Timestamps::NAMES).try_map(|name| name.parse::<Timestamps>()),
     )]
     pub render_timestamps: Timestamps,
+    /// The depth buffers of the graphics pipeline's passes (one pass per view): shared (one
+    /// buffer every pass clears in turn: the least memory, and on a CPU renderer a buffer that
+    /// stays in cache; on a GPU each pass waits for the one before it) or per-page (a buffer per
+    /// view, 4 bytes a pixel more: a GPU may draw a batch's views at once). The same images
+    /// either way.
+    #[arg(
+        long,
+        env = "ESRP_RENDER_DEPTH_BUFFERS",
+        default_value_t = DepthBuffers::Shared,
+        value_parser = PossibleValuesParser::new(DepthBuffers::NAMES).try_map(|name| name.parse::<DepthBuffers>()),
+    )]
+    pub render_depth_buffers: DepthBuffers,
     /// Require `authorization: Bearer TOKEN` on every call (not empty: an empty `ESRP_TOKEN`
     /// is refused rather than taken as "no token" or as a token anyone could send). The one
     /// token is an admin named `admin`; --tokens gives several, with roles and quotas.
@@ -370,6 +382,11 @@ mod tests {
         }
         let error = parse(&["--render-timestamps", "yes"]).unwrap_err().to_string();
         assert!(error.contains("auto, on, off"), "{error}");
+        assert_eq!(parse(&[]).unwrap().render_depth_buffers, DepthBuffers::Shared);
+        let per_page = parse(&["--render-depth-buffers", "per-page"]).unwrap().render_depth_buffers;
+        assert_eq!(per_page, DepthBuffers::PerPage);
+        let error = parse(&["--render-depth-buffers", "many"]).unwrap_err().to_string();
+        assert!(error.contains("shared, per-page"), "{error}");
     }
 
     #[test]

@@ -78,8 +78,8 @@ pub fn build_episodes(config: &Config) -> Result<Arc<Episodes>, ServeError> {
         Some(dir) => Some(records::Recorder::open(dir, config.record, &attempts, config.records_key.as_deref())?),
         None => None,
     };
-    let (backends, rasterizer, timestamps) =
-        (config.render_backend, config.render_rasterizer, config.render_timestamps);
+    let (backends, rasterizer, timestamps, depth_buffers) =
+        (config.render_backend, config.render_rasterizer, config.render_timestamps, config.render_depth_buffers);
     let devices = match config.render_devices {
         0 => render::AUTO_RENDER_DEVICES,
         n => usize::from(n),
@@ -90,6 +90,7 @@ pub fn build_episodes(config: &Config) -> Result<Arc<Episodes>, ServeError> {
                 backends,
                 rasterizer,
                 timestamps,
+                depth_buffers,
                 ..Default::default()
             })
         })
@@ -104,7 +105,7 @@ pub fn build_episodes(config: &Config) -> Result<Arc<Episodes>, ServeError> {
         0 => render::AUTO_RENDER_PIPELINE,
         n => usize::from(n),
     };
-    tracing::info!(target: LOG_TARGET, adapter = %info.name, backend = ?info.backend, software, %rasterizer, gpu_timestamps = timed, render_devices = devices, render_threads = threads, render_pipeline = in_flight, "renderer ready");
+    tracing::info!(target: LOG_TARGET, adapter = %info.name, backend = ?info.backend, software, %rasterizer, gpu_timestamps = timed, %depth_buffers, render_devices = devices, render_threads = threads, render_pipeline = in_flight, "renderer ready");
     let metrics = Arc::new(metrics::Metrics::new());
     let render = render::RenderScheduler::start(renderers, metrics.clone(), threads, in_flight);
     let episodes = Arc::new(Episodes::new(store, render, config.clone(), metrics, recorder, attempts));

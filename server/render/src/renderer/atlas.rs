@@ -5,6 +5,7 @@ use std::num::NonZeroU64;
 
 use crate::gpu::{GpuView, VIEW_STRIDE};
 
+use super::backend::DepthBuffers;
 use super::clock::{StampQueries, TIMESTAMP_BYTES};
 use super::formats::{COLOUR_FORMAT, DEPTH_FORMAT, DEPTH_OUT_FORMAT, SEGMENT_FORMAT};
 use super::limits::{CACHED_ATLASES, CHUNK_PIXELS};
@@ -28,9 +29,10 @@ pub(super) struct PagedTexture {
 /// What a batch draws into: textures for the graphics pipeline, or a storage buffer for the
 /// compute rasteriser.
 pub(super) enum Targets {
-    /// The colour plane's texture array, one page of depth buffer (cleared by every pass), and
-    /// the view depth (as f32 bits) and segmentation texture arrays when `full`.
-    Textures { colour: PagedTexture, depth: wgpu::TextureView, extras: Option<Box<[PagedTexture; 2]>> },
+    /// The colour plane's texture array, the depth buffer (one page that every pass clears in
+    /// turn, or a layer per page: [`DepthBuffers`]), and the view depth (as f32 bits) and
+    /// segmentation texture arrays when `full`.
+    Textures { colour: PagedTexture, depth: PagedTexture, extras: Option<Box<[PagedTexture; 2]>> },
     /// One storage buffer per page (its planes one after the other, as the readback buffer
     /// holds a page's), written by the compute rasteriser, each with its bind group (with the
     /// uniforms): `raster.wgsl`'s group 0. A buffer per page, so that the views' dispatches
@@ -64,16 +66,17 @@ impl Atlas {
     /// Creates the targets, readback buffer and uniforms of `pages` pages of `side` pixels, with
     /// the view depth and segmentation planes when `full`, and binds the uniforms with
     /// `bind_group_layout`; with `compute` (the compute rasteriser's group 0 layout), the targets
-    /// are a storage buffer bound with it. With `timestamps`, the atlas has its timestamp
-    /// queries, and its readback buffer room for them behind its last page.
+    /// are a storage buffer bound with it. With `settings.timestamps`, the atlas has its
+    /// timestamp queries, and its readback buffer room for them behind its last page.
     pub(super) fn new(
         device: &wgpu::Device,
         bind_group_layout: &wgpu::BindGroupLayout,
         compute: Option<&wgpu::BindGroupLayout>,
         (side, pages): (u32, u32),
         full: bool,
-        timestamps: bool,
+        settings: AtlasSettings,
     ) -> Self {
+        let timestamps = settings.timestamps;
         let planes = if full { 3 } else { 1 };
         let bytes = u64::from(side) * u64::from(side) * 4 * u64::from(pages) * planes;
         let readback = device.create_buffer(&wgpu::BufferDescriptor {
@@ -128,7 +131,7 @@ impl Atlas {
                 };
                 Targets::Buffers { pages: (0..pages).map(page).collect() }
             }
-            None => texture_targets(device, side, pages, full),
+            None => texture_targets(device, (side, pages), full, settings.depth),
         };
         let timestamps = timestamps.then(|| StampQueries::new(device));
         Self { side, pages, full, targets, readback, uniforms, bind_group, timestamps, last_used: 0 }
@@ -157,8 +160,17 @@ impl Atlas {
     }
 }
 
+/// What a renderer's atlases are made with, the same for all of them.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct AtlasSettings {
+    /// Timestamp queries ([`super::RendererConfig::timestamps`] and the device's check).
+    pub(super) timestamps: bool,
+    /// The depth buffers of the graphics pipeline's passes.
+    pub(super) depth: DepthBuffers,
+}
+
 /// The textures the graphics pipeline draws `pages` pages of `side` pixels into.
-fn texture_targets(device: &wgpu::Device, side: u32, pages: u32, full: bool) -> Targets {
+fn texture_targets(device: &wgpu::Device, (side, pages): (u32, u32), full: bool, depth: DepthBuffers) -> Targets {
     let texture = |label: &str, format, usage, layers: u32| {
         let texture = device.create_texture(&wgpu::TextureDescriptor {
             label: Some(label),
@@ -184,14 +196,17 @@ fn texture_targets(device: &wgpu::Device, side: u32, pages: u32, full: bool) -> 
     };
     let target = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC;
     let colour = texture("esrp-render atlas colour", COLOUR_FORMAT, target, pages);
-    let depth = texture("esrp-render atlas depth", DEPTH_FORMAT, wgpu::TextureUsages::RENDER_ATTACHMENT, 1);
+    let depth_layers = match depth {
+        DepthBuffers::Shared => 1,
+        DepthBuffers::PerPage => pages,
+    };
+    let depth = texture("esrp-render atlas depth", DEPTH_FORMAT, wgpu::TextureUsages::RENDER_ATTACHMENT, depth_layers);
     let extras = full.then(|| {
         Box::new([
             texture("esrp-render atlas view depth", DEPTH_OUT_FORMAT, target, pages),
             texture("esrp-render atlas segmentation", SEGMENT_FORMAT, target, pages),
         ])
     });
-    let depth = depth.layers.into_iter().next().unwrap_or_else(|| depth.texture.create_view(&Default::default()));
     Targets::Textures { colour, depth, extras }
 }
 

@@ -81,6 +81,8 @@ pub struct RendererConfig {
     /// a batch, read back with its images: [`RenderTimings::gpu`](crate::RenderTimings::gpu)),
     /// where the adapter has timestamp queries.
     pub timestamps: Timestamps,
+    /// The depth buffers of the graphics pipeline's passes (one pass per view).
+    pub depth_buffers: DepthBuffers,
 }
 
 impl Default for RendererConfig {
@@ -92,6 +94,58 @@ impl Default for RendererConfig {
             cull: true,
             rasterizer: Rasterizer::Pipeline,
             timestamps: Timestamps::Auto,
+            depth_buffers: DepthBuffers::Shared,
+        }
+    }
+}
+
+/// The depth buffers the graphics pipeline's passes draw with: each view of a batch has a pass
+/// of its own (its page). The images are the same either way.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum DepthBuffers {
+    /// One buffer that every pass clears in turn: the least memory, and a depth buffer that
+    /// stays in a CPU renderer's caches; on a GPU, each pass waits for the one before it to
+    /// finish its depth writes.
+    #[default]
+    Shared,
+    /// A layer per page (4 bytes a pixel a page more): no pass waits for another's depth
+    /// writes, so a GPU may draw a batch's views at once.
+    PerPage,
+}
+
+impl DepthBuffers {
+    /// The names it is written as, one per variant: `shared`, `per-page`.
+    pub const NAMES: [&'static str; 2] = ["shared", "per-page"];
+
+    /// Its name: `shared` or `per-page`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Shared => "shared",
+            Self::PerPage => "per-page",
+        }
+    }
+}
+
+impl std::fmt::Display for DepthBuffers {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// A name that is not a [`DepthBuffers`] setting.
+#[derive(Debug, thiserror::Error)]
+#[error("unknown depth buffers setting {0:?}: use shared or per-page")]
+pub struct UnknownDepthBuffers(pub String);
+
+impl std::str::FromStr for DepthBuffers {
+    type Err = UnknownDepthBuffers;
+
+    /// `shared` or `per-page`, in any case.
+    fn from_str(name: &str) -> Result<Self, UnknownDepthBuffers> {
+        match name.to_ascii_lowercase().as_str() {
+            "shared" => Ok(Self::Shared),
+            "per-page" => Ok(Self::PerPage),
+            _ => Err(UnknownDepthBuffers(name.to_owned())),
         }
     }
 }

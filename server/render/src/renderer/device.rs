@@ -24,8 +24,17 @@ pub struct Renderer {
     /// The nanoseconds of one tick of the device's timestamps, when it times its drawing
     /// ([`super::RendererConfig::timestamps`] on and the adapter able to).
     pub(super) timestamp_period: Option<f32>,
+    /// The depth buffers of the graphics pipeline's passes ([`super::RendererConfig::depth_buffers`]).
+    pub(super) depth_buffers: super::DepthBuffers,
     pub(super) lost: Arc<Mutex<Option<String>>>,
     pub(super) state: Mutex<BatchState>,
+}
+
+impl Renderer {
+    /// What this renderer's atlases are made with.
+    pub(super) fn atlas_settings(&self) -> super::atlas::AtlasSettings {
+        super::atlas::AtlasSettings { timestamps: self.timestamp_period.is_some(), depth: self.depth_buffers }
+    }
 }
 
 impl std::fmt::Debug for Renderer {

@@ -85,14 +85,7 @@ impl Renderer {
         };
         let mut atlas = taken.unwrap_or_else(|| {
             let compute = self.raster.as_ref().map(|raster| &raster.views_layout);
-            Atlas::new(
-                &self.device,
-                &self.bind_group_layout,
-                compute,
-                (side, pages),
-                full,
-                self.timestamp_period.is_some(),
-            )
+            Atlas::new(&self.device, &self.bind_group_layout, compute, (side, pages), full, self.atlas_settings())
         });
         atlas.last_used = number;
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
@@ -217,14 +210,15 @@ impl Renderer {
     }
 
     /// Encodes one render pass per used page of `atlas`: each page cleared (the colour to the
-    /// background, the extra planes to zero), then every view of that page drawn in its tile.
+    /// background, the extra planes to zero, its depth buffer to the far plane), then every view
+    /// of that page drawn in its tile.
     #[allow(clippy::too_many_arguments)] // the atlas's targets, matched out by the caller
     fn draw_pages(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         atlas: &Atlas,
         colour: &PagedTexture,
-        depth: &wgpu::TextureView,
+        depth: &PagedTexture,
         extras: Option<&[PagedTexture; 2]>,
         requests: &[ViewRequest<'_>],
         tiles: &[Tile],
@@ -260,7 +254,8 @@ impl Renderer {
                 label: Some("esrp-render page"),
                 color_attachments: &attachments,
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: depth,
+                    // Its own layer, or the one every page clears in turn.
+                    view: &depth.layers[page as usize % depth.layers.len()],
                     depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(0.0), store: wgpu::StoreOp::Discard }),
                     stencil_ops: None,
                 }),

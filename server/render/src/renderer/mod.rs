@@ -45,7 +45,8 @@ mod requests;
 use atlas::{BatchState, chunks};
 use backend::request_adapter;
 pub use backend::{
-    BackendPreference, Rasterizer, RendererConfig, Timestamps, UnknownBackend, UnknownRasterizer, UnknownTimestamps,
+    BackendPreference, DepthBuffers, Rasterizer, RendererConfig, Timestamps, UnknownBackend, UnknownDepthBuffers,
+    UnknownRasterizer, UnknownTimestamps,
 };
 pub use device::Renderer;
 pub use draw::RenderTimings;
@@ -242,6 +243,7 @@ impl Renderer {
             max_pages: limits.max_texture_array_layers.clamp(1, CHUNK_VIEWS as u32),
             cull: config.cull,
             timestamp_period,
+            depth_buffers: config.depth_buffers,
             lost,
             state: Mutex::new(BatchState::new()),
         })

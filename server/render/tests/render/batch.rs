@@ -351,3 +351,47 @@ fn timing_the_device_changes_no_image_and_fits_in_the_batch() {
         }
     }
 }
+
+/// A depth buffer per page draws the same images as the one every page clears in turn: batches
+/// of one page, of several, of views that see each other's rooms' walls at other depths, and
+/// with every plane.
+#[test]
+fn a_depth_buffer_per_page_draws_what_the_shared_one_draws() {
+    use esrp_render::{DepthBuffers, Renderer, RendererConfig};
+    let with = |depth_buffers| {
+        Renderer::new(RendererConfig { backends: crate::common::backend(), depth_buffers, ..RendererConfig::default() })
+            .unwrap()
+    };
+    let (shared, per_page) = (with(DepthBuffers::Shared), with(DepthBuffers::PerPage));
+    let scenes = [bedroom(), showcase()];
+    let handles = |r: &Renderer| scenes.iter().map(|s| r.upload_scene(s).unwrap()).collect::<Vec<_>>();
+    let (on_shared, on_per_page) = (handles(&shared), handles(&per_page));
+    let (_, bed_now) = start(&scenes[0]);
+    let (_, show_now) = start(&scenes[1]);
+    let cameras = scattered_cameras(0x0de9_7b00_ff17_3c5d, 37);
+    // Every other view of each room, every fifth with every plane, then a top-down view.
+    fn requests<'a>(
+        h: &'a [std::sync::Arc<esrp_render::SceneHandle>],
+        cameras: &[esrp_core::EgoCamera],
+        poses: [&'a [ObjectPose]; 2],
+    ) -> Vec<ViewRequest<'a>> {
+        let mut views: Vec<ViewRequest<'a>> = cameras
+            .iter()
+            .enumerate()
+            .map(|(i, &c)| {
+                let view = ViewRequest::new(&h[i % 2], Camera::Ego(c), poses[i % 2]);
+                if i % 5 == 0 { view.with_outputs(Outputs::ALL) } else { view }
+            })
+            .collect();
+        views.push(ViewRequest::new(&h[0], Camera::TopDown, poses[0]));
+        views
+    }
+    let poses = [bed_now.as_slice(), show_now.as_slice()];
+    for n in [1, 2, 38] {
+        let expected = shared.render_batch(&requests(&on_shared, &cameras, poses)[..n]).unwrap();
+        let got = per_page.render_batch(&requests(&on_per_page, &cameras, poses)[..n]).unwrap();
+        for (i, (e, g)) in expected.iter().zip(&got).enumerate() {
+            assert!(e == g, "{n} views: view {i} differs with a depth buffer per page");
+        }
+    }
+}
