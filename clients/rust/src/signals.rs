@@ -2,8 +2,10 @@
 //! ([`exit_on_signals`]) and on an error (`exit_status`, with the `tools` feature).
 
 use std::io;
+use std::path::{Path, PathBuf};
 #[cfg(feature = "tools")]
 use std::process::ExitCode;
+use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 /// The exit status of a tool's run: success, or its error printed as one line, `NAME: what
@@ -29,6 +31,53 @@ pub const CLOSE_GRACE: std::time::Duration = std::time::Duration::from_secs(5);
 /// Set once a stop has begun: the tool's own end then waits for it (see [`exit_status`]).
 static STOPPING: AtomicBool = AtomicBool::new(false);
 
+/// The paths of the live [`RemovedOnExit`] guards: a stop removes them before the process exits.
+static MADE: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+
+/// A folder (or file) the tool made for its run and removes when the run is over: when the guard
+/// is dropped (the run ended, or failed), or when a stop by [`exit_on_signals`] or
+/// [`exit_when_stdin_closes`] ends the process, which runs no destructor. E.g. the folder where
+/// `esrp-bench --processes` collects its client processes' results.
+#[derive(Debug)]
+pub struct RemovedOnExit(PathBuf);
+
+impl RemovedOnExit {
+    /// Removes `path` when the guard is dropped or the process is stopped (see the type).
+    pub fn new(path: PathBuf) -> Self {
+        MADE.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(path.clone());
+        Self(path)
+    }
+
+    /// The path.
+    pub fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for RemovedOnExit {
+    fn drop(&mut self) {
+        let mut made = MADE.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        if let Some(i) = made.iter().position(|p| *p == self.0) {
+            made.swap_remove(i);
+        }
+        drop(made);
+        remove(&self.0);
+    }
+}
+
+/// Removes a folder with what it holds, or a file; what is not there is no error.
+fn remove(path: &Path) {
+    let _ = std::fs::remove_dir_all(path).or_else(|_| std::fs::remove_file(path));
+}
+
+/// Removes what the live [`RemovedOnExit`] guards hold: a stop's last act before it exits.
+fn remove_made() {
+    let made = std::mem::take(&mut *MADE.lock().unwrap_or_else(std::sync::PoisonError::into_inner));
+    for path in &made {
+        remove(path);
+    }
+}
+
 /// From now on, the first SIGTERM or SIGINT stops this process: it prints `NAME: terminated`
 /// (or `NAME: interrupted`), closes on the server every episode it holds a live
 /// [`crate::Episode`] handle to (within [`CLOSE_GRACE`]; a second signal skips the wait), and
@@ -36,8 +85,8 @@ static STOPPING: AtomicBool = AtomicBool::new(false);
 /// server behind (a `StepStream`'s episodes end with its connection anyway); those that could
 /// not be closed are counted on stderr, and the server's idle timeout ends them. No other
 /// destructor runs, and none need: what the tools write (results records, one `write` each) is
-/// already with the system, and a [`crate::LocalServer`] stops by itself when its stdin pipe
-/// closes with this process. Watched on a thread of its own with a runtime of its own (so it may
+/// already with the system, a [`crate::LocalServer`] stops by itself when its stdin pipe
+/// closes with this process, and what [`RemovedOnExit`] guards is removed. Watched on a thread of its own with a runtime of its own (so it may
 /// be called inside another runtime), and acted on wherever the tool is; returns once the
 /// handlers are installed.
 pub fn exit_on_signals(name: &'static str) -> io::Result<()> {
@@ -88,6 +137,7 @@ pub fn exit_on_signals(name: &'static str) -> io::Result<()> {
                 130
             }
         });
+        remove_made();
         std::process::exit(status);
     })?;
     outcome.recv().map_err(|_| io::Error::other("the signal thread ended before installing its handlers"))?
@@ -135,6 +185,7 @@ pub fn exit_when_stdin_closes(name: &'static str) -> io::Result<()> {
                 std::thread::park();
             }
         }
+        remove_made();
         std::process::exit(143);
     })?;
     Ok(())

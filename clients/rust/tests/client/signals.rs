@@ -73,7 +73,8 @@ async fn a_stopped_tool_closes_its_episodes_on_the_server() {
 }
 
 /// SIGTERM to `esrp-bench --processes 2`: the parent stops, its children (which would have run
-/// out their `--seconds`) stop with it, and none of their episodes is left.
+/// out their `--seconds`) stop with it, none of their episodes is left, and neither is the
+/// folder where the children were to leave their results.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_stopped_bench_takes_its_client_processes_along() {
     let server = start(&["--no-generate-ahead"]);
@@ -81,7 +82,10 @@ async fn a_stopped_bench_takes_its_client_processes_along() {
     let run = started_with_live_episodes(&server, env!("CARGO_BIN_EXE_esrp-bench"), &args, 16).await;
     let children = crate::eval::children(run.child.id());
     assert_eq!(children.len(), 2, "two client processes: {children:?}");
+    let results = std::env::temp_dir().join(format!("esrp-bench-{}-unary-64", run.child.id()));
+    assert!(results.is_dir(), "{} holds the children's results while they run", results.display());
     let (code, stderr) = stopped(run, "-TERM");
+    assert!(!results.exists(), "{} is left behind: {stderr}", results.display());
     assert_eq!(code, Some(143), "{stderr}");
     let deadline = Instant::now() + Duration::from_secs(15);
     while children.iter().any(|&pid| crate::eval::alive(pid)) {

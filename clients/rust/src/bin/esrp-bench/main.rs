@@ -509,8 +509,12 @@ async fn scenario(
 /// before they start to after they end (their creates and closes included).
 fn in_processes(name: &str, args: &Args, addresses: &[String], metrics: Option<&str>) -> anyhow::Result<Outcome> {
     let exe = std::env::current_exe().context("this program's path")?;
-    let dir = std::env::temp_dir().join(format!("esrp-bench-{}-{name}", std::process::id()));
-    std::fs::create_dir_all(&dir)?;
+    // Removed once the processes are done, whether they succeeded, failed or were stopped.
+    let made = esrp_client::signals::RemovedOnExit::new(
+        std::env::temp_dir().join(format!("esrp-bench-{}-{name}", std::process::id())),
+    );
+    let dir = made.path();
+    std::fs::create_dir_all(dir)?;
     let before = metrics.map(breakdown::scrape).transpose()?;
     let mut children = Vec::new();
     for i in 0..args.processes {
@@ -553,7 +557,7 @@ fn in_processes(name: &str, args: &Args, addresses: &[String], metrics: Option<&
         let ms = |key: &str| result[key].as_f64().map_or(f64::NAN, |v| v / 1e3);
         outcome.process_percentiles.push((ms("p50_ms"), ms("p99_ms")));
     }
-    let _ = std::fs::remove_dir_all(&dir);
+    drop(made);
     if let (Some(before), Some(url)) = (before, metrics) {
         outcome.breakdown = Some(Breakdown::between(&before, &breakdown::scrape(url)?));
     }
