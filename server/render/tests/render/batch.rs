@@ -318,11 +318,8 @@ fn batches_in_flight_together_match_views_rendered_alone() {
 /// renderer.
 #[test]
 fn timing_the_device_changes_no_image_and_fits_in_the_batch() {
-    use esrp_render::{Renderer, RendererConfig, Timestamps};
-    let with = |timestamps| {
-        Renderer::new(RendererConfig { backends: crate::common::backend(), timestamps, ..RendererConfig::default() })
-            .unwrap()
-    };
+    use esrp_render::{RendererConfig, Timestamps};
+    let with = |timestamps| crate::common::renderer_with(RendererConfig { timestamps, ..RendererConfig::default() });
     let (timed, untimed) = (with(Timestamps::On), with(Timestamps::Off));
     assert!(timed.times_device(), "the tests' adapter ({:?}) has timestamp queries", timed.adapter_info().backend);
     assert!(!untimed.times_device());
@@ -358,10 +355,8 @@ fn timing_the_device_changes_no_image_and_fits_in_the_batch() {
 #[test]
 fn a_depth_buffer_per_page_draws_what_the_shared_one_draws() {
     use esrp_render::{DepthBuffers, Renderer, RendererConfig};
-    let with = |depth_buffers| {
-        Renderer::new(RendererConfig { backends: crate::common::backend(), depth_buffers, ..RendererConfig::default() })
-            .unwrap()
-    };
+    let with =
+        |depth_buffers| crate::common::renderer_with(RendererConfig { depth_buffers, ..RendererConfig::default() });
     let (shared, per_page) = (with(DepthBuffers::Shared), with(DepthBuffers::PerPage));
     let scenes = [bedroom(), showcase()];
     let handles = |r: &Renderer| scenes.iter().map(|s| r.upload_scene(s).unwrap()).collect::<Vec<_>>();

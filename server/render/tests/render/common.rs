@@ -232,7 +232,12 @@ pub fn scattered_cameras(seed: u64, n: usize) -> Vec<EgoCamera> {
 /// A renderer of its own (not the shared [`renderer`]), on the tests' backend, culling or not:
 /// for tests that count its work or compare two renderers.
 pub fn own_renderer(cull: bool) -> Renderer {
-    Renderer::new(RendererConfig { backends: backend(), cull, ..RendererConfig::default() })
+    renderer_with(RendererConfig { cull, ..RendererConfig::default() })
+}
+
+/// A renderer of its own made with `config`, on the tests' backend (whatever `config` says).
+pub fn renderer_with(config: RendererConfig) -> Renderer {
+    Renderer::new(RendererConfig { backends: backend(), ..config })
         .unwrap_or_else(|e| panic!("esrp-render tests need a graphics adapter and found none: {e}"))
 }
 
