@@ -148,6 +148,10 @@ pub struct PlanStats {
     pub elapsed: Duration,
     /// Objects moved to a buffer pose.
     pub objects_relocated: u32,
+    /// The deadline (or a cancel) stopped a search that had found a way to place its object
+    /// but not yet proven it the cheapest, and the plan took the best found: with more time the
+    /// same call may return a shorter plan. Never set without a deadline or a cancel token.
+    pub cut_short: bool,
 }
 
 /// A plan: actions that, stepped on a clone of the planned episode, end in success.

@@ -75,6 +75,8 @@ pub(crate) struct Found {
     pub actions: Vec<Action>,
     pub end: Episode,
     pub nodes: u64,
+    /// The deadline or a cancel stopped the search before it proved `actions` the cheapest.
+    pub cut_short: bool,
 }
 
 /// Why a search found nothing.
@@ -289,7 +291,7 @@ impl Search<'_> {
                 break if self.fetched { Miss::NoGoal } else { Miss::NeverFetched };
             };
             let node = match entry.what {
-                What::Accept(release) => return Ok(self.found(release, expanded)),
+                What::Accept(release) => return Ok(self.found(release, expanded, false)),
                 What::Expand(node) => node,
             };
             let n = &mut self.nodes[node as usize];
@@ -314,7 +316,7 @@ impl Search<'_> {
         };
         // Out of nodes or time with goals found but not yet proven best: take the best found.
         match self.best_release {
-            Some((_, release)) => Ok(self.found(release, expanded)),
+            Some((_, release)) => Ok(self.found(release, expanded, miss == Miss::Deadline)),
             None => Err(self.not_found(miss, expanded)),
         }
     }
@@ -329,7 +331,7 @@ impl Search<'_> {
         }
     }
 
-    fn found(&mut self, release: u32, nodes: u64) -> Found {
+    fn found(&mut self, release: u32, nodes: u64, cut_short: bool) -> Found {
         let Release { node, end } = self.releases.swap_remove(release as usize);
         let mut actions = vec![Action::Release];
         let mut at = node;
@@ -339,7 +341,7 @@ impl Search<'_> {
             at = n.parent;
         }
         actions.reverse();
-        Found { actions, end, nodes }
+        Found { actions, end, nodes, cut_short }
     }
 
     fn expand(&mut self, node: u32, episode: &Episode, expanded: u64) {

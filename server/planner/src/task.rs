@@ -286,6 +286,7 @@ impl<'a> TaskPlanner<'a> {
         match search(&self.state, object, &goal, limits) {
             Ok(found) => {
                 self.stats.nodes_expanded += found.nodes;
+                self.stats.cut_short |= found.cut_short;
                 self.actions.extend_from_slice(&found.actions);
                 self.state = found.end;
                 Ok(())
@@ -326,6 +327,7 @@ impl<'a> TaskPlanner<'a> {
         match search(&there, object, goal, limits) {
             Ok(found) => {
                 self.stats.nodes_expanded += found.nodes;
+                self.stats.cut_short |= found.cut_short;
                 self.actions.extend_from_slice(&path);
                 self.actions.extend_from_slice(&found.actions);
                 self.state = found.end;

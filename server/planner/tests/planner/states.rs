@@ -109,6 +109,34 @@ fn a_past_deadline_is_exceeded() {
 }
 
 #[test]
+fn a_plan_the_deadline_cut_short_says_so_and_one_it_did_not_is_the_unhurried_plan() {
+    let episode = bench_episode(MEDIUM);
+    let unhurried = plan(&episode, &PlanOptions::default()).expect("a plan");
+    assert!(!unhurried.stats.cut_short, "no deadline, nothing cut short");
+    let full = unhurried.stats.elapsed.max(std::time::Duration::from_millis(1));
+    // Deadlines across the whole call: some land while a search polishes a way it has found.
+    let mut cut = 0;
+    for attempt in 0..3u32 {
+        let tries = 40 * (attempt + 1);
+        for i in 1..=tries {
+            let options = PlanOptions { deadline: Some(Instant::now() + full * i / tries), ..PlanOptions::default() };
+            match plan(&episode, &options) {
+                Ok(found) if found.stats.cut_short => {
+                    cut += 1;
+                    assert_replays_to_success(&episode, &found.actions);
+                }
+                Ok(found) => assert_eq!(found.actions, unhurried.actions, "deadline {i}/{tries}, not cut short"),
+                Err(error) => assert_eq!(error.reason, PlanFailure::DeadlineExceeded, "deadline {i}/{tries}"),
+            }
+        }
+        if cut > 0 {
+            return;
+        }
+    }
+    panic!("no deadline across {full:?} cut a search short");
+}
+
+#[test]
 fn a_cancelled_plan_stops_and_says_so() {
     let episode = bench_episode(MEDIUM);
     let cancel = esrp_planner::CancelToken::new();

@@ -12,8 +12,9 @@
 //! - The answer (a plan, or why there is none) is cached with the episode, keyed by the exact
 //!   states the plan passes through: a later call from any of them (the agent followed the
 //!   plan, or reset to its start) answers from the cache without planning; any other state
-//!   plans afresh. A deadline is not cached (a larger budget may succeed), nor is an answer for
-//!   a scene the episode has left meanwhile (a Reset onto another scene, whose start state may
+//!   plans afresh. A deadline is not cached (a larger budget may succeed), nor a plan the
+//!   deadline cut short (`PlanStats::cut_short`: a larger budget may find a shorter one), nor an
+//!   answer for a scene the episode has left meanwhile (a Reset onto another scene, whose start state may
 //!   fingerprint the same: the fingerprint does not cover the scene).
 
 use std::sync::Arc;
@@ -77,9 +78,10 @@ pub(super) async fn plan(episodes: &Episodes, caller: &Caller, call: PlanCall) -
             metrics.count_plan("cancelled");
         }
         let cached = CachedPlan::of(&episode, &outcome);
-        (outcome, cached)
+        let keep = !outcome.as_ref().is_ok_and(|plan| plan.stats.cut_short);
+        (outcome, cached, keep)
     };
-    let (outcome, cached) =
+    let (outcome, cached, keep) =
         tokio::task::spawn_blocking(job).await.map_err(|e| ServiceError::Internal(e.to_string()))?;
     drop(permit);
     drop(cancel);
@@ -103,7 +105,7 @@ pub(super) async fn plan(episodes: &Episodes, caller: &Caller, call: PlanCall) -
     let answer = Planned { cached: false, ..answer };
     // Keep the answer if the episode is still where the plan starts, on the same scene (it may
     // have moved on, or been reset onto another scene, while the planner ran).
-    if let Ok(shared) = episodes.registry.get(&call.episode, caller) {
+    if keep && let Ok(shared) = episodes.registry.get(&call.episode, caller) {
         let mut entry = shared.lock().await;
         if entry.episode.state_fingerprint() == fingerprint && Arc::ptr_eq(entry.episode.compiled(), &scene) {
             entry.plan = Some(cached);
