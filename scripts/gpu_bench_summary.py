@@ -108,7 +108,38 @@ def standard(folder: Path) -> list[str]:
         stages = breakdown.get("stages") or {}
         cells = [figures(stages.get(stage)) for stage in STAGES] + [figures(breakdown.get("gpu_drawing"))]
         lines.append(f"| {r['scenario']} | " + " | ".join(cells) + " |")
+    cpu_rows = [
+        f"| {r['scenario']} | {client_cpu(r)} | {figures(((r.get('breakdown') or {}).get('cpu') or {}).get('process'))} "
+        f"| {server_threads(r)} |"
+        for r in report["results"]
+        if r.get("client_cpu_seconds") is not None or (r.get("breakdown") or {}).get("cpu")
+    ]
+    if cpu_rows:
+        lines += [
+            "",
+            "CPU per step (core-µs per step, and cores kept busy; the server's by its threads, the",
+            "three busiest):",
+            "",
+            "| scenario | client | server | server's threads |",
+            "|---|---:|---:|---|",
+            *cpu_rows,
+        ]
     return [*lines, ""]
+
+
+def client_cpu(result: dict[str, Any]) -> str:
+    """The client's CPU over the measured seconds: core-µs per step (cores busy), or a dash."""
+    seconds, per_step = result.get("client_cpu_seconds"), result.get("client_cpu_us_per_step")
+    if seconds is None or per_step is None or not result.get("seconds"):
+        return "–"
+    return f"{per_step:.1f} ({seconds / result['seconds']:.2f})"
+
+
+def server_threads(result: dict[str, Any]) -> str:
+    """The server's three busiest groups of threads, by CPU, or a dash."""
+    threads = (((result.get("breakdown") or {}).get("cpu") or {}).get("threads")) or {}
+    busiest = sorted(threads.items(), key=lambda item: -(item[1].get("us_per_step") or 0.0))[:3]
+    return ", ".join(f"{name} {figures(entry)}" for name, entry in busiest) or "–"
 
 
 def series(folder: Path, title: str, header: str, files: list[tuple[str, str]]) -> list[str]:
@@ -142,6 +173,12 @@ def series(folder: Path, title: str, header: str, files: list[tuple[str, str]]) 
     ]
 
 
+def client_cores(result: dict[str, Any]) -> str:
+    """The cores the client processes kept busy over the measured seconds, or a dash."""
+    seconds = result.get("client_cpu_seconds")
+    return "–" if seconds is None or not result.get("seconds") else f"{seconds / result['seconds']:.1f}"
+
+
 def scale_out(folder: Path) -> list[str]:
     rows = []
     for n in (2, 4, 8):
@@ -154,31 +191,37 @@ def scale_out(folder: Path) -> list[str]:
             faster = "servers" if a > b else "one server"
             ratio = max(a, b) / max(min(a, b), 1.0)
             rows.append(
-                f"| {n} | {n} | {mine['scenario']} | {a:,.0f} | {b:,.0f} | {faster} ({ratio:.2f}×) | {busy} |"
+                f"| {n} | {n} | {mine['scenario']} | {a:,.0f} | {b:,.0f} | {faster} ({ratio:.2f}×) | {busy} "
+                f"| {client_cores(mine)} |"
             )
     doubled = load(folder, "servers-8x2.json")
     for r in doubled["results"] if doubled else []:
-        rows.append(f"| 8 | 16 | {r['scenario']} | {rate(r)} | – | – | {cores(folder, 'servers-8x2')} / – |")
+        rows.append(
+            f"| 8 | 16 | {r['scenario']} | {rate(r)} | – | – | {cores(folder, 'servers-8x2')} / – | {client_cores(r)} |"
+        )
     shared = load(folder, "servers-8-shared.json")
     workers_file = folder / "servers-8-shared-workers.txt"
     workers = workers_file.read_text(encoding="utf-8").strip() if workers_file.exists() else "?"
     for r in shared["results"] if shared else []:
         rows.append(
             f"| 8 (--worker-threads {workers}) | 8 | {r['scenario']} | {rate(r)} | – | – "
-            f"| {cores(folder, 'servers-8-shared')} / – |"
+            f"| {cores(folder, 'servers-8-shared')} / – | {client_cores(r)} |"
         )
     for name, processes in (("servers-8-unix", 8), ("servers-8x2-unix", 16)):
         unix = load(folder, f"{name}.json")
         for r in unix["results"] if unix else []:
-            rows.append(f"| 8 (Unix sockets) | {processes} | {r['scenario']} | {rate(r)} | – | – | {cores(folder, name)} / – |")
+            rows.append(
+                f"| 8 (Unix sockets) | {processes} | {r['scenario']} | {rate(r)} | – | – | {cores(folder, name)} / – "
+                f"| {client_cores(r)} |"
+            )
     if not rows:
         return []
     return [
         "## Scale-out: N servers against one, the same client processes (64 episodes each)",
         "",
         "| N servers | client processes | scenario | N servers, steps/s | one server, steps/s | faster "
-        "| cores busy (N servers / one) |",
-        "|---:|---:|---|---:|---:|---|---:|",
+        "| cores busy (N servers / one) | of them the clients' |",
+        "|---:|---:|---|---:|---:|---|---:|---:|",
         *rows,
         "",
     ]

@@ -100,7 +100,7 @@ impl Signals {
 fn watch_stdin() -> anyhow::Result<tokio::sync::oneshot::Receiver<()>> {
     let (closed, receiver) = tokio::sync::oneshot::channel();
     std::thread::Builder::new()
-        .name("esrp-stdin-watch".into())
+        .name("esrp-stdin".into())
         .spawn(move || {
             let mut sink = std::io::sink();
             let _ = std::io::copy(&mut std::io::stdin().lock(), &mut sink);
@@ -156,8 +156,13 @@ fn run() -> anyhow::Result<()> {
         }
     }
     default_lavapipe_threads();
-    let runtime =
-        tokio::runtime::Builder::new_multi_thread().worker_threads(config.worker_threads()).enable_all().build()?;
+    // One name for the async workers and the blocking pool (planning): `esrp_thread_cpu_seconds_total`
+    // counts their CPU as `esrp-runtime`.
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(config.worker_threads())
+        .thread_name("esrp-runtime")
+        .enable_all()
+        .build()?;
     let result = runtime.block_on(serve(config));
     // Dropping the runtime waits for its blocking tasks and drops every task, and with them the
     // episodes, scenes and renderer they hold: all of that is released here, before `main`

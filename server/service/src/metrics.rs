@@ -19,6 +19,8 @@
 //! | `esrp_render_pipeline` | gauge | the batches each render thread may have in flight (`--render-pipeline`) |
 //! | `esrp_render_timestamps` | gauge | 1 when the render devices time their drawing with timestamp queries (`--render-timestamps`: by default on a GPU, where the adapter has them), else 0 |
 //! | `esrp_render_gpu_seconds_total` | counter | seconds the render devices spent drawing batches, by their own clocks: from the start of a batch's first pass to the end of its last (part of the `render_device` stage; stays 0 without timestamps) |
+//! | `esrp_process_cpu_seconds_total` | counter | CPU seconds the server's process has used, all its threads (user and system; Linux: absent elsewhere) |
+//! | `esrp_thread_cpu_seconds_total` | counter | the same by thread, summed by `threads`: a thread's name less a trailing number (`esrp-render` for `esrp-render-0`, `esrp-readback`, `esrp-runtime`: the async workers and the blocking pool, planning included; `esrp-generate`, `esrp-records`, the main thread `esrp-server`, and the graphics driver's own threads by their names, which Linux cuts to 15 characters). Read from `/proc/self/task` at each scrape; a thread that ended counts what it had used by the scrape before (Linux; absent elsewhere) |
 //! | `esrp_plans_total` | counter | PlanActions calls, by outcome (`planned`, `cached`, `failed`: no plan found, `deadline`: none found in the budget, `busy`: the budget ran out waiting for a planner thread (`--planner-threads` all planning), `cancelled`: the client went away and the planner stopped) |
 //!
 //! The stages of `esrp_stage_seconds_total`, in the order a step goes through them (divide by
@@ -39,13 +41,15 @@
 //! Decoding requests, encoding answers and the transport are tonic's and hyper's, not counted:
 //! what is left of a step's latency is theirs.
 
+use std::collections::{BTreeMap, HashMap};
 use std::net::SocketAddr;
-use std::sync::Arc;
 use std::sync::atomic::AtomicU64;
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use prometheus_client::encoding::EncodeLabelSet;
-use prometheus_client::metrics::counter::Counter;
+use prometheus_client::collector::Collector;
+use prometheus_client::encoding::{DescriptorEncoder, EncodeLabelSet, EncodeMetric};
+use prometheus_client::metrics::counter::{ConstCounter, Counter};
 use prometheus_client::metrics::family::Family;
 use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
@@ -235,6 +239,7 @@ impl Metrics {
             "Seconds the render devices spent drawing batches, by their own clocks (part of the render_device stage)",
             render_gpu_seconds.clone(),
         );
+        registry.register_collector(Box::new(ThreadCpu::default()));
         Self {
             registry,
             steps,
@@ -301,6 +306,136 @@ impl Metrics {
     }
 }
 
+/// A group of threads (`esrp_thread_cpu_seconds_total`'s label).
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct ThreadsLabel {
+    /// The threads' name, less a trailing number.
+    threads: String,
+}
+
+/// `esrp_process_cpu_seconds_total` and `esrp_thread_cpu_seconds_total`, read from `/proc` at
+/// each scrape (Linux; elsewhere neither is written).
+#[derive(Debug, Default)]
+struct ThreadCpu {
+    seen: Mutex<SeenThreads>,
+}
+
+/// What [`ThreadCpu`] read at its last scrape.
+#[derive(Debug, Default)]
+struct SeenThreads {
+    /// Each thread's group and CPU seconds, by thread id.
+    live: HashMap<u32, (String, f64)>,
+    /// The seconds of the threads that have ended since they were seen, by group.
+    ended: BTreeMap<String, f64>,
+}
+
+impl SeenThreads {
+    /// Takes in `now` (thread id, group, seconds, as read) and returns each group's seconds:
+    /// its live threads' now, plus what its ended threads had used when last seen. A thread id
+    /// seen before with another group or fewer seconds is a new thread that reused the id.
+    fn update(&mut self, now: Vec<proc_cpu::ThreadSeconds>) -> BTreeMap<String, f64> {
+        let mut live = HashMap::with_capacity(now.len());
+        for (tid, group, seconds) in now {
+            if let Some((old_group, old)) = self.live.remove(&tid)
+                && (old_group != group || old > seconds)
+            {
+                *self.ended.entry(old_group).or_default() += old;
+            }
+            live.insert(tid, (group, seconds));
+        }
+        for (group, seconds) in std::mem::replace(&mut self.live, live).into_values() {
+            *self.ended.entry(group).or_default() += seconds;
+        }
+        let mut groups = self.ended.clone();
+        for (group, seconds) in self.live.values() {
+            *groups.entry(group.clone()).or_default() += seconds;
+        }
+        groups
+    }
+}
+
+impl Collector for ThreadCpu {
+    fn encode(&self, mut encoder: DescriptorEncoder) -> Result<(), std::fmt::Error> {
+        let Some((process, threads)) = proc_cpu::read() else { return Ok(()) };
+        let groups = self.seen.lock().unwrap_or_else(std::sync::PoisonError::into_inner).update(threads);
+        let total = ConstCounter::new(process);
+        total.encode(encoder.encode_descriptor(
+            "process_cpu_seconds",
+            "CPU seconds the server's process has used (user and system, all threads)",
+            None,
+            total.metric_type(),
+        )?)?;
+        let mut family = encoder.encode_descriptor(
+            "thread_cpu_seconds",
+            "CPU seconds of the server's threads, by name less a trailing number",
+            None,
+            prometheus_client::metrics::MetricType::Counter,
+        )?;
+        for (threads, seconds) in groups {
+            let label = ThreadsLabel { threads };
+            ConstCounter::new(seconds).encode(family.encode_family(&label)?)?;
+        }
+        Ok(())
+    }
+}
+
+/// The CPU time of this process and of each of its threads, from `/proc/self` (Linux).
+mod proc_cpu {
+    /// A live thread's id, group and CPU seconds.
+    pub(super) type ThreadSeconds = (u32, String, f64);
+
+    /// The process's CPU seconds, and each live thread's; `None` where `/proc/self` cannot be
+    /// read (not Linux).
+    pub(super) fn read() -> Option<(f64, Vec<ThreadSeconds>)> {
+        let tick = ticks_per_second();
+        let (_, process) = parse_stat(&std::fs::read_to_string("/proc/self/stat").ok()?, tick)?;
+        let mut threads = Vec::new();
+        for entry in std::fs::read_dir("/proc/self/task").ok()?.flatten() {
+            let Some(tid) = entry.file_name().to_str().and_then(|t| t.parse().ok()) else { continue };
+            // A thread that ended since the listing has no stat left to read.
+            if let Some((name, seconds)) =
+                std::fs::read_to_string(entry.path().join("stat")).ok().and_then(|text| parse_stat(&text, tick))
+            {
+                threads.push((tid, group(&name), seconds));
+            }
+        }
+        Some((process, threads))
+    }
+
+    /// The command name and user + system CPU seconds of a `stat` line (`proc(5)`: fields 2, 14
+    /// and 15; the name, in brackets, may itself hold spaces and brackets).
+    pub(super) fn parse_stat(text: &str, ticks_per_second: f64) -> Option<(String, f64)> {
+        let open = text.find('(')?;
+        let close = text.rfind(')')?;
+        let name = text.get(open + 1..close)?.to_owned();
+        let fields: Vec<&str> = text.get(close + 1..)?.split_whitespace().collect();
+        let ticks = |field: usize| fields.get(field - 3)?.parse::<u64>().ok();
+        Some((name, (ticks(14)? + ticks(15)?) as f64 / ticks_per_second))
+    }
+
+    /// A thread's group: its name less a trailing number and the separator before it
+    /// (`esrp-render-3` → `esrp-render`).
+    pub(super) fn group(name: &str) -> String {
+        let base = name.trim_end_matches(|c: char| c.is_ascii_digit());
+        let base = if base.len() < name.len() { base.trim_end_matches(['-', '_', ':', '#', ' ', '.']) } else { base };
+        if base.is_empty() { name.to_owned() } else { base.to_owned() }
+    }
+
+    /// The kernel's clock ticks per second (`USER_HZ`) that `stat`'s times count in.
+    #[allow(unsafe_code)] // Audited: one libc call with no arguments, see the SAFETY note.
+    fn ticks_per_second() -> f64 {
+        #[cfg(target_os = "linux")]
+        {
+            // SAFETY: sysconf reads a system setting; it takes no pointers and changes nothing.
+            let ticks = unsafe { libc::sysconf(libc::_SC_CLK_TCK) };
+            if ticks > 0 {
+                return ticks as f64;
+            }
+        }
+        100.0
+    }
+}
+
 /// Serves `GET /metrics` on `listener` until the task is dropped; `refresh` runs before each
 /// scrape (to update gauges).
 pub async fn serve(
@@ -323,4 +458,82 @@ pub async fn serve(
         }),
     );
     axum::serve(listener, app).await
+}
+
+#[cfg(test)]
+mod tests {
+    use super::proc_cpu::{group, parse_stat};
+    use super::*;
+
+    #[test]
+    fn a_stat_line_gives_its_name_and_seconds_whatever_the_name_holds() {
+        let line = "4242 (odd) name (x) S 1 2 3 4 5 6 7 8 9 10 250 50 0 0 20 0 1 0 9 10 11";
+        let (name, seconds) = parse_stat(line, 100.0).unwrap();
+        assert_eq!(name, "odd) name (x");
+        assert!((seconds - 3.0).abs() < 1e-12, "{seconds}");
+        assert!(parse_stat("4242 (short) S 1 2", 100.0).is_none());
+    }
+
+    #[test]
+    fn threads_are_grouped_by_name_less_a_trailing_number() {
+        assert_eq!(group("esrp-render-0"), "esrp-render");
+        assert_eq!(group("esrp-readback-12"), "esrp-readback");
+        assert_eq!(group("llvmpipe-3"), "llvmpipe");
+        assert_eq!(group("esrp-server"), "esrp-server");
+        assert_eq!(group("tokio-runtime-w"), "tokio-runtime-w");
+        assert_eq!(group("42"), "42");
+        assert_eq!(group("gpu2"), "gpu");
+    }
+
+    #[test]
+    fn an_ended_thread_keeps_counting_and_a_reused_id_is_a_new_thread() {
+        let mut seen = SeenThreads::default();
+        let row = |tid, group: &str, s| (tid, group.to_owned(), s);
+        let groups = seen.update(vec![row(1, "a", 1.0), row(2, "b", 2.0), row(3, "b", 0.5)]);
+        assert_eq!(groups, BTreeMap::from([("a".into(), 1.0), ("b".into(), 2.5)]));
+        // Thread 2 ended; thread 3's id was reused by a new thread of group "a", and thread 1
+        // went on working.
+        let groups = seen.update(vec![row(1, "a", 1.5), row(3, "a", 0.25)]);
+        assert_eq!(groups, BTreeMap::from([("a".into(), 1.75), ("b".into(), 2.5)]));
+        // The same id again, with fewer seconds: another new thread.
+        let groups = seen.update(vec![row(1, "a", 0.1)]);
+        assert_eq!(groups, BTreeMap::from([("a".into(), 1.5 + 0.25 + 0.1), ("b".into(), 2.5)]));
+    }
+
+    /// The value of the metric line that starts with `prefix`.
+    fn value(text: &str, prefix: &str) -> Option<f64> {
+        text.lines().find_map(|l| l.strip_prefix(prefix)?.trim().parse().ok())
+    }
+
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn the_metrics_count_each_thread_groups_cpu_and_keep_an_ended_threads() {
+        let metrics = Metrics::new();
+        let busy = |name: &str| {
+            std::thread::Builder::new()
+                .name(name.to_owned())
+                .spawn(|| {
+                    let start = std::time::Instant::now();
+                    let mut x = 0u64;
+                    while start.elapsed() < Duration::from_millis(150) {
+                        x = std::hint::black_box(x.wrapping_mul(31).wrapping_add(7));
+                    }
+                    x
+                })
+                .unwrap()
+        };
+        let worker = busy("esrp-cputest-7");
+        // Seen while it runs, then counted after it ended.
+        std::thread::sleep(Duration::from_millis(60));
+        let during = metrics.encode();
+        assert!(during.contains("# TYPE esrp_thread_cpu_seconds counter"), "{during}");
+        let line = "esrp_thread_cpu_seconds_total{threads=\"esrp-cputest\"}";
+        let seen = value(&during, line).unwrap_or_else(|| panic!("{during}"));
+        worker.join().unwrap();
+        let after = metrics.encode();
+        let ended = value(&after, line).unwrap_or_else(|| panic!("{after}"));
+        assert!(ended >= seen && ended > 0.0, "{seen} then {ended}");
+        let process = value(&after, "esrp_process_cpu_seconds_total").unwrap_or_else(|| panic!("{after}"));
+        assert!(process >= ended, "the process {process} s, one thread {ended} s");
+    }
 }

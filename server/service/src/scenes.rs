@@ -205,7 +205,7 @@ impl SceneStore {
             order.extend(indices);
         }
         std::thread::Builder::new()
-            .name("esrp-generate-ahead".into())
+            .name("esrp-generate".into())
             .spawn(move || {
                 lowest_priority();
                 let started = std::time::Instant::now();

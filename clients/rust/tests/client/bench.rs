@@ -33,6 +33,27 @@ fn scenarios_run_in_processes_with_the_servers_breakdown() {
         assert!((0.0..64.0).contains(&busy), "{stage}: {breakdown}");
     }
     assert!(breakdown["stages"]["render_device"]["us_per_step"].as_f64().unwrap() > 0.0);
+    if cfg!(target_os = "linux") {
+        // The server's CPU, by threads: its render thread drew every view, and the whole
+        // process used at least what its threads did.
+        let cpu = &breakdown["cpu"];
+        let render = cpu["threads"]["esrp-render"]["us_per_step"].as_f64().unwrap_or_else(|| panic!("{cpu}"));
+        let process = cpu["process"]["us_per_step"].as_f64().unwrap();
+        let threads: f64 =
+            cpu["threads"].as_object().unwrap().values().map(|t| t["us_per_step"].as_f64().unwrap()).sum();
+        assert!(render > 0.0 && process > 0.0, "{cpu}");
+        // Ticks of 10 ms: the threads' sum and the process's total may differ by a few.
+        assert!(threads <= process * 1.2 + 1e3, "{cpu}");
+        assert!(stdout.contains("server CPU") && stdout.contains("esrp-render"), "{stdout}");
+    }
+    if cfg!(all(target_os = "linux", target_env = "gnu")) {
+        // The client's CPU, summed over its two processes.
+        let seconds = batch["client_cpu_seconds"].as_f64().unwrap_or_else(|| panic!("{batch}"));
+        assert!(seconds > 0.0 && seconds < 2.0 * 2.0 * 2.0, "two processes of at most 2 cores for 1 s: {batch}");
+        assert!(batch["client_cpu_us_per_step"].as_f64().unwrap() > 0.0, "{batch}");
+        assert!(report["results"][1]["client_cpu_seconds"].as_f64().unwrap() > 0.0);
+        assert!(stdout.contains("client CPU:"), "{stdout}");
+    }
     assert_eq!(report["results"][1]["episodes"], 2);
 }
 

@@ -7,7 +7,13 @@
 //! runs on one thread is what caps the server. Where the server times its render devices
 //! (`esrp_render_timestamps`), a last line says how much of `render_device` the devices spent
 //! drawing, by their own clocks: the rest of it is submission, synchronisation and the copy back.
+//! Where the server reports its CPU time (`esrp_process_cpu_seconds_total` and, by threads,
+//! `esrp_thread_cpu_seconds_total`: Linux), the lines after say how many core-microseconds each
+//! group of its threads used per step and how many cores it kept busy: a render thread busy far
+//! beyond its stages' time is spinning while it waits, and a server whose threads together near
+//! the machine's cores is what the cores cap.
 
+use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::time::Instant;
 
@@ -28,6 +34,10 @@ pub struct Sample {
     atlases: Option<f64>,
     /// `esrp_render_gpu_seconds_total`, where the server times its devices.
     gpu: Option<f64>,
+    /// `esrp_process_cpu_seconds_total`, where the server reports it.
+    cpu: Option<f64>,
+    /// `esrp_thread_cpu_seconds_total`, by its `threads` label.
+    threads: BTreeMap<String, f64>,
 }
 
 /// Fetches `url` (`http://HOST:PORT/metrics`) and reads the steps and stage counters from it.
@@ -58,7 +68,23 @@ pub fn parse(text: &str) -> anyhow::Result<Sample> {
     }
     let timed = value("esrp_render_timestamps").is_some_and(|v| v > 0.0);
     let gpu = value("esrp_render_gpu_seconds_total").filter(|_| timed);
-    Ok(Sample { at: Instant::now(), steps, stages, atlases: value("esrp_render_atlases_created_total"), gpu })
+    let threads = text
+        .lines()
+        .filter_map(|line| {
+            let rest = line.strip_prefix("esrp_thread_cpu_seconds_total{threads=\"")?;
+            let (name, rest) = rest.split_once("\"}")?;
+            Some((name.to_owned(), rest.trim().parse().ok()?))
+        })
+        .collect();
+    Ok(Sample {
+        at: Instant::now(),
+        steps,
+        stages,
+        atlases: value("esrp_render_atlases_created_total"),
+        gpu,
+        cpu: value("esrp_process_cpu_seconds_total"),
+        threads,
+    })
 }
 
 /// What happened between two samples.
@@ -75,6 +101,10 @@ pub struct Breakdown {
     pub atlases: Option<f64>,
     /// Seconds the server's render devices spent drawing, by their clocks, where it times them.
     pub gpu: Option<f64>,
+    /// CPU seconds the server's process used, where it reports them.
+    pub cpu: Option<f64>,
+    /// CPU seconds of each group of the server's threads that used any, the busiest first.
+    pub threads: Vec<(String, f64)>,
 }
 
 impl Breakdown {
@@ -86,6 +116,18 @@ impl Breakdown {
             stages: after.stages.iter().zip(&before.stages).map(|(a, b)| Some(a.as_ref()? - b.as_ref()?)).collect(),
             atlases: after.atlases.zip(before.atlases).map(|(a, b)| a - b),
             gpu: after.gpu.zip(before.gpu).map(|(a, b)| a - b),
+            cpu: after.cpu.zip(before.cpu).map(|(a, b)| a - b),
+            threads: {
+                // A group absent before had used nothing yet (its threads started meanwhile).
+                let mut threads: Vec<(String, f64)> = after
+                    .threads
+                    .iter()
+                    .map(|(name, a)| (name.clone(), a - before.threads.get(name).copied().unwrap_or(0.0)))
+                    .filter(|&(_, used)| used > 0.0)
+                    .collect();
+                threads.sort_by(|a, b| b.1.total_cmp(&a.1).then_with(|| a.0.cmp(&b.0)));
+                threads
+            },
         }
     }
 
@@ -113,6 +155,13 @@ impl Breakdown {
         if let Some(atlases) = self.atlases {
             lines.push(format!("  atlases made: {atlases:.0}"));
         }
+        if let Some(cpu) = self.cpu {
+            lines.push(format!("  {:<18} {:>10} {:>8}", "server CPU", "core-µs", "cores"));
+            for (threads, seconds) in &self.threads {
+                lines.push(format!("  {:<18} {:>10.1} {:>8.2}", threads, per_step(*seconds), seconds / self.seconds));
+            }
+            lines.push(format!("  {:<18} {:>10.1} {:>8.2}", "(all threads)", per_step(cpu), cpu / self.seconds));
+        }
         lines
     }
 
@@ -129,6 +178,11 @@ impl Breakdown {
             "stages": stages,
             "gpu_drawing": self.gpu.map(|gpu| self.figures(Some(gpu))),
             "atlases_made": self.atlases,
+            "cpu": self.cpu.map(|cpu| serde_json::json!({
+                "process": self.figures(Some(cpu)),
+                "threads": self.threads.iter().map(|(name, s)| (name.clone(), self.figures(Some(*s))))
+                    .collect::<serde_json::Map<String, serde_json::Value>>(),
+            })),
         })
     }
 
@@ -199,6 +253,44 @@ mod tests {
             lines[5].starts_with("  render_submit") && lines[5].contains("not counted by this server"),
             "{lines:#?}"
         );
+    }
+
+    #[test]
+    fn the_servers_cpu_is_divided_by_thread_groups_the_busiest_first() {
+        let with_cpu = |process: f64, render: f64, runtime: Option<f64>, steps: u32| {
+            let mut text = newer(0, 0.0).replace("esrp_steps_total 100", &format!("esrp_steps_total {steps}"));
+            text.push_str(&format!(
+                "esrp_process_cpu_seconds_total {process}\n\
+                 esrp_thread_cpu_seconds_total{{threads=\"esrp-render\"}} {render}\n\
+                 esrp_thread_cpu_seconds_total{{threads=\"idle one\"}} 0.5\n"
+            ));
+            if let Some(runtime) = runtime {
+                text.push_str(&format!("esrp_thread_cpu_seconds_total{{threads=\"esrp-runtime\"}} {runtime}\n"));
+            }
+            parse(&text).unwrap()
+        };
+        // esrp-runtime's threads started after the first scrape.
+        let before = with_cpu(10.0, 4.0, None, 1000);
+        let mut after = with_cpu(13.0, 5.0, Some(1.5), 2000);
+        after.at = before.at + std::time::Duration::from_secs(2);
+        let b = Breakdown::between(&before, &after);
+        assert_eq!(b.threads, vec![("esrp-runtime".to_owned(), 1.5), ("esrp-render".to_owned(), 1.0)]);
+        let json = b.to_json();
+        let process = &json["cpu"]["process"];
+        assert!((process["us_per_step"].as_f64().unwrap() - 3000.0).abs() < 1e-6, "{json}");
+        assert!((process["busy"].as_f64().unwrap() - 1.5).abs() < 1e-9, "{json}");
+        let render = &json["cpu"]["threads"]["esrp-render"];
+        assert!((render["us_per_step"].as_f64().unwrap() - 1000.0).abs() < 1e-6, "{json}");
+        assert!(json["cpu"]["threads"].get("idle one").is_none(), "a group that used nothing: {json}");
+        let lines = b.lines();
+        let at = lines.iter().position(|l| l.contains("server CPU")).unwrap_or_else(|| panic!("{lines:#?}"));
+        assert!(lines[at + 1].trim_start().starts_with("esrp-runtime") && lines[at + 1].contains("1500.0"));
+        assert!(lines[at + 2].trim_start().starts_with("esrp-render"), "{lines:#?}");
+        assert!(lines[at + 3].contains("(all threads)") && lines[at + 3].contains("1.50"), "{lines:#?}");
+        // A server that does not report its CPU: no such lines, and null in the JSON.
+        let old = parse(TEXT).unwrap();
+        let b = Breakdown::between(&old, &old);
+        assert!(b.to_json()["cpu"].is_null() && !b.lines().iter().any(|l| l.contains("server CPU")));
     }
 
     #[test]

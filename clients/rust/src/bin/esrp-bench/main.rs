@@ -26,7 +26,9 @@
 //! Actions are random (seeded); episodes that end are reset.
 //!
 //! `--breakdown` prints, under each scenario, where the server's time went by stage (from its
-//! metrics: see `breakdown.rs`). `--processes N` runs each scenario in N processes at once
+//! metrics: see `breakdown.rs`). Under each scenario's row, a line says how much CPU the client
+//! used (core-microseconds per step and cores kept busy, over the measured seconds, all its
+//! processes; Linux). `--processes N` runs each scenario in N processes at once
 //! against the same server (each with `--episodes` episodes), so that the client is never what
 //! is measured on a many-core machine: the row sums their steps.
 
@@ -204,6 +206,9 @@ struct Outcome {
     breakdown: Option<Breakdown>,
     /// Per process with `--processes`: each one's p50 and p99 latencies, seconds.
     process_percentiles: Vec<(f64, f64)>,
+    /// CPU seconds the client used over the measured seconds (all its processes), where it can
+    /// tell ([`own_cpu_seconds`]).
+    client_cpu: Option<f64>,
 }
 
 impl Outcome {
@@ -236,6 +241,13 @@ impl Outcome {
     /// and its breakdown under it.
     fn print_row(&self) {
         self.print_measured();
+        if let Some(cpu) = self.client_cpu.filter(|_| self.steps > 0) {
+            println!(
+                "  client CPU: {:.1} core-µs/step, {:.2} cores",
+                cpu / self.steps as f64 * 1e6,
+                cpu / self.seconds.max(1e-9)
+            );
+        }
         for line in self.breakdown.iter().flat_map(Breakdown::lines) {
             println!("{line}");
         }
@@ -268,6 +280,8 @@ impl Outcome {
             "p99_ms": if measured { Some(self.percentile(0.99) * 1e3) } else { None },
             "note": self.note,
             "processes": self.process_percentiles.len().max(1),
+            "client_cpu_seconds": self.client_cpu,
+            "client_cpu_us_per_step": self.client_cpu.filter(|_| self.steps > 0).map(|c| c / self.steps as f64 * 1e6),
             "breakdown": self.breakdown.as_ref().map(Breakdown::to_json),
         })
     }
@@ -475,6 +489,13 @@ async fn scenario(
         return Ok(outcome);
     }
     let window = Window::new(args.seconds);
+    // This process's CPU over the measured seconds, read when they start and end.
+    let client_cpu = tokio::spawn(async move {
+        tokio::time::sleep_until(window.measure_from.into()).await;
+        let from = own_cpu_seconds();
+        tokio::time::sleep_until(window.until.into()).await;
+        Some(own_cpu_seconds()? - from?)
+    });
     let ids: Vec<String> = episodes.iter().map(|e| e.id().to_owned()).collect();
     let before = metrics.map(breakdown::scrape).transpose()?;
     let (steps, latencies) = match name {
@@ -499,6 +520,7 @@ async fn scenario(
     outcome.steps = steps;
     outcome.seconds = args.seconds;
     outcome.latencies = latencies;
+    outcome.client_cpu = client_cpu.await.ok().flatten();
     close_all(episodes).await?;
     Ok(outcome)
 }
@@ -544,7 +566,8 @@ fn in_processes(name: &str, args: &Args, addresses: &[String], metrics: Option<&
     // The children's stdin pipes, held until every child has ended (`Child::wait` would close a
     // child's own, which stops it): if this process ends first, they stop with it.
     let _pipes: Vec<_> = children.iter_mut().map(|(child, _)| child.stdin.take()).collect();
-    let mut outcome = Outcome { name: name.to_owned(), seconds: args.seconds, ..Default::default() };
+    let mut outcome =
+        Outcome { name: name.to_owned(), seconds: args.seconds, client_cpu: Some(0.0), ..Default::default() };
     for (mut child, json) in children {
         let status = child.wait()?;
         if !status.success() {
@@ -556,6 +579,8 @@ fn in_processes(name: &str, args: &Args, addresses: &[String], metrics: Option<&
         outcome.steps += result["steps"].as_u64().unwrap_or(0);
         let ms = |key: &str| result[key].as_f64().map_or(f64::NAN, |v| v / 1e3);
         outcome.process_percentiles.push((ms("p50_ms"), ms("p99_ms")));
+        // Known for all the processes, or not at all.
+        outcome.client_cpu = outcome.client_cpu.zip(result["client_cpu_seconds"].as_f64()).map(|(a, b)| a + b);
     }
     drop(made);
     if let (Some(before), Some(url)) = (before, metrics) {
@@ -603,6 +628,25 @@ fn claim_timeout(args: &Args, server_args: &mut Vec<String>) -> anyhow::Result<u
             LOCAL_CLAIM_TIMEOUT
         }
     })
+}
+
+/// CPU seconds this process has used so far (user and system, all its threads), where it can
+/// tell (Linux with glibc: `getrusage`).
+#[allow(unsafe_code)] // Audited: one libc call that fills the struct it is given, see the SAFETY notes.
+fn own_cpu_seconds() -> Option<f64> {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        let mut usage = std::mem::MaybeUninit::<libc::rusage>::zeroed();
+        // SAFETY: getrusage writes one `rusage` where the pointer points, which is one, and
+        // touches nothing else.
+        if unsafe { libc::getrusage(libc::RUSAGE_SELF, usage.as_mut_ptr()) } == 0 {
+            // SAFETY: a `rusage` of plain integers, zeroed and then filled by getrusage.
+            let usage = unsafe { usage.assume_init() };
+            let seconds = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+            return Some(seconds(usage.ru_utime) + seconds(usage.ru_stime));
+        }
+    }
+    None
 }
 
 /// This machine's CPU model (`/proc/cpuinfo`), or nothing where it cannot be read.
