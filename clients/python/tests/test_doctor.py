@@ -116,6 +116,20 @@ def test_opengl_on_an_nvidia_gpu_is_a_warning_that_names_vulkan() -> None:
     assert "GPU" in software.detail
 
 
+def test_a_gpu_on_a_machine_of_many_cores_gets_the_hint_to_run_several_servers() -> None:
+    from esrp.cli.doctor import renderer_check
+
+    many = renderer_check("NVIDIA H200 through vulkan", False, "NVIDIA H200", "vulkan", "pipeline", cores=16)
+    assert many.status == "ok"
+    assert "several servers" in many.fix, many
+    assert "16 cores" in many.fix, many
+    # Few cores, a server elsewhere (cores unknown), or a CPU renderer: no such hint.
+    assert renderer_check("NVIDIA H200 through vulkan", False, "NVIDIA H200", "vulkan", cores=4).fix == ""
+    assert renderer_check("NVIDIA H200 through vulkan", False, "NVIDIA H200", "vulkan").fix == ""
+    software = renderer_check("llvmpipe through gl, software (CPU)", True, "llvmpipe", "gl", cores=64)
+    assert "several servers" not in software.fix
+
+
 def test_the_compute_rasterizer_on_a_cpu_renderer_is_a_warning(capsys: pytest.CaptureFixture[str]) -> None:
     args = ["--render-backend", "vulkan", "--render-rasterizer", "compute"]
     assert main(["doctor", "--seconds", "0.2", *(f"--server-arg={a}" for a in args)]) == 0

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import os
 import platform
 import sys
 import tempfile
@@ -34,6 +35,9 @@ if TYPE_CHECKING:
 __all__ = ["Check", "add_commands", "same_release"]
 
 MINIMUM_PYTHON = (3, 10)
+# From this many cores, a GPU machine serves more with several servers than with one
+# (docs/performance.md: four servers on an H200 with 16 cores made twice one server's steps).
+MANY_CORES = 8
 
 
 @dataclass
@@ -204,7 +208,7 @@ def _on_server(args: argparse.Namespace, report: Callable[[Check], None]) -> Non
             return
         try:
             with client:
-                _server_checks(client, f"the server at {args.server}", args.seconds, report)
+                _server_checks(client, f"the server at {args.server}", args.seconds, report, local_cores=None)
         except EsrpError as error:
             detail = unreachable(args.server, error) if isinstance(error, ServerUnavailable) else str(error)
             report(Check("server", "FAIL", detail, "is a server running there?"))
@@ -215,7 +219,8 @@ def _on_server(args: argparse.Namespace, report: Callable[[Check], None]) -> Non
         # As the envs and tools start theirs: over a Unix domain socket where one can be had.
         with LocalServer(*args.server_args, unix_socket="auto") as local, local.client() as client:
             report(_socket_check(local))
-            _server_checks(client, f"a server started here on {local.address}", args.seconds, report)
+            where = f"a server started here on {local.address}"
+            _server_checks(client, where, args.seconds, report, local_cores=os.cpu_count())
     except LocalServerError as error:
         # The server's own message names what to install when no renderer could be made.
         report(
@@ -246,7 +251,10 @@ def _socket_check(local: LocalServer) -> Check:
     )
 
 
-def _server_checks(client: Client, where: str, seconds: float, report: Callable[[Check], None]) -> None:
+def _server_checks(
+    client: Client, where: str, seconds: float, report: Callable[[Check], None], *, local_cores: int | None
+) -> None:
+    """The checks of a running server; `local_cores`, for a server on this machine, its cores."""
     info = client.server_info()
     if same_release(__version__, info.version):
         report(Check("server", "ok", f"{where}: esrp-server {info.version}, dataset {info.dataset}"))
@@ -263,7 +271,8 @@ def _server_checks(client: Client, where: str, seconds: float, report: Callable[
     rasterizer = f", {info.renderer_rasterizer} rasterizer" if info.renderer_rasterizer else ""
     renderer = f"{info.renderer_adapter} through {info.renderer_backend}{rasterizer}, {kind}"
     backend, adapter = info.renderer_backend, info.renderer_adapter
-    report(renderer_check(renderer, info.software_renderer, adapter, backend, info.renderer_rasterizer))
+    rasterizer_name = info.renderer_rasterizer
+    report(renderer_check(renderer, info.software_renderer, adapter, backend, rasterizer_name, local_cores))
     render, scene = _test_render(client)
     report(render)
     if scene is None:
@@ -272,11 +281,14 @@ def _server_checks(client: Client, where: str, seconds: float, report: Callable[
     report(_vector_throughput(client, scene, seconds))
 
 
-def renderer_check(described: str, software: bool, adapter: str, backend: str, rasterizer: str = "") -> Check:
+def renderer_check(
+    described: str, software: bool, adapter: str, backend: str, rasterizer: str = "", cores: int | None = None
+) -> Check:
     """The renderer's line: fine, with a hint where a GPU would render faster, a warning for
     OpenGL on an NVIDIA GPU (it failed there with "Parent device is lost": Vulkan is the path),
     and one for the compute rasteriser on a CPU renderer (Mesa runs compute shaders far slower
-    than it draws).
+    than it draws). For a GPU on a machine of `cores` cores (a server started here), from 8 up,
+    the hint that several servers on the GPU, not one, use the machine.
     """
     if software and rasterizer == "compute":
         return Check(
@@ -294,6 +306,15 @@ def renderer_check(described: str, software: bool, adapter: str, backend: str, r
             "warn",
             described + ": OpenGL on NVIDIA GPUs failed with a lost device under load",
             "start the server with --render-backend vulkan (what auto picks on a GPU)",
+        )
+    if cores is not None and cores >= MANY_CORES:
+        return Check(
+            "renderer",
+            "ok",
+            described,
+            f"one server renders through one device queue: to use this GPU and its {cores} cores, run "
+            "several servers side by side and spread the clients over them (docs/server.md, "
+            '"Using a whole GPU machine")',
         )
     return Check("renderer", "ok", described)
 
