@@ -157,6 +157,29 @@ def test_held_out_evaluations_write_rows_and_change_nothing_trained(
     assert [r["epoch"] for r in rows(run / "eval.csv")] == ["1", "2"]
 
 
+def test_an_interruption_before_best_pt_is_copied_is_repaired_on_resume(
+    expert: Path, tmp_path: Path, train_server: TrainServer, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A signal after an evaluation's row reached eval.csv but before its checkpoint was copied to
+    best.pt left the run without best.pt (or with an older one) for good: the resumed run owed no
+    evaluation, so nothing copied it again."""
+    config = BcConfig.from_mapping(bc_table(expert, epochs=1, eval_every=1))
+    run = tmp_path / "run"
+
+    def stop(*_: object) -> None:
+        raise Interrupted
+
+    monkeypatch.setattr(bc_module._HeldOut, "keep_best", stop)
+    with pytest.raises(Interrupted):
+        train(config, run, progress=False, server=train_server)
+    monkeypatch.undo()
+    assert [r["epoch"] for r in rows(run / "eval.csv")] == ["1"]
+    assert not (run / "best.pt").exists()
+    train(config, run, resume=True, progress=False, server=train_server)
+    assert json.loads((run / "best.json").read_text())["epoch"] == 1
+    assert torch.load(run / "best.pt", weights_only=False)["epoch"] == 1
+
+
 def test_evaluated_checkpoints_are_kept_for_playing_when_asked(
     expert: Path, tmp_path: Path, train_server: TrainServer
 ) -> None:
@@ -504,6 +527,34 @@ def test_bad_dagger_configs_are_refused(
     assert train_cli(server, write_toml(tmp_path / "held.toml", held_out), run, "--dagger") == 2
     assert "no scene is left for DAgger's rollouts" in capsys.readouterr().err
     assert not run.exists(), "nothing made: the fixed config starts afresh"
+
+
+def test_dagger_and_plain_runs_keep_out_of_each_others_folders(
+    server: esrp.LocalServer,
+    expert: Path,
+    train_easy: list[str],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """`--dagger` given a plain run's folder (or forgotten on a DAgger run's `--resume`) wrote its
+    files among the other run's, config.json overwritten."""
+    plain = write_toml(tmp_path / "bc.toml", {"bc": bc_table(expert)})
+    assert train_cli(server, plain, tmp_path / "bc") == 0
+    before = (tmp_path / "bc" / "config.json").read_text()
+    tables = {"bc": bc_table(expert), "dagger": dagger_table(train_easy)}
+    config = write_toml(tmp_path / "dagger.toml", tables)
+    assert train_cli(server, config, tmp_path / "bc", "--dagger") == 2
+    assert "holds a run without --dagger (ckpt.pt), not a DAgger run" in capsys.readouterr().err
+    assert (tmp_path / "bc" / "config.json").read_text() == before
+    assert not (tmp_path / "bc" / "state.json").exists()
+    # A DAgger run's folder (its state.json) refuses a plain run, with or without --resume.
+    dagger_run = tmp_path / "dagger"
+    dagger_run.mkdir()
+    (dagger_run / "state.json").write_text("{}")
+    for more in ((), ("--resume",)):
+        assert train_cli(server, plain, dagger_run, *more) == 2
+        assert "holds a DAgger run (state.json)" in capsys.readouterr().err
+    assert sorted(p.name for p in dagger_run.iterdir()) == ["state.json"]
 
 
 def test_the_shipped_bc_configs_load() -> None:

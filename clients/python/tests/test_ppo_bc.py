@@ -199,8 +199,10 @@ def test_bad_inits_and_imitation_configs_are_refused(
         ppo_bc.ImitationConfig.from_mapping({"demos": "x", "epoch": 3})
     with pytest.raises(ValueError, match="64 px"):
         ppo_bc.train(network_config(resolution=128, pool=2), imitation(demos), tmp_path / "c", progress=False)
+    with pytest.raises(ValueError, match="cannot fill 100000 streams: fewer streams"):
+        ppo_bc.train(network_config(), imitation(demos, streams=100_000), tmp_path / "e", progress=False)
     # Refused at their start, the runs made no folder.
-    assert not any((tmp_path / name).exists() for name in ("a", "b", "c"))
+    assert not any((tmp_path / name).exists() for name in ("a", "b", "c", "e"))
     bad = tmp_path / "bad.toml"
     bad.write_text('[ppo]\nresolution = 64\n[ppo_bc]\ndemos = "x"\nstreams = 0\n')
     assert main(["train", "ppo-bc", "--config", str(bad), "--out", str(tmp_path / "d")]) == 2

@@ -42,6 +42,10 @@ from esrp.train._training import run_folder, save_checkpoint, settings_differenc
         ({"epsilon": 5}, "epsilon must be from 0 to 1"),
         ({"unet_channels": 5}, "unet_channels must be a list of integers"),
         ({"unet_channels": [16, 0]}, "unet_channels must be a list of integers"),
+        # Models that would fail mid-training (a traceback) or play nowhere, refused at the start.
+        ({"unet_channels": [12, 24]}, "unet_channels must be a list of integers, each a multiple of 8"),
+        ({"kernel_size": 4}, "kernel_size must be odd"),
+        ({"ddim_steps": 100}, r"ddim_steps \(100\) must be at most diffusion_steps \(50\)"),
         ({"eval_limit": 0}, "eval_limit must be at least 1"),
         ({"ema": 1}, "ema must be true or false"),
     ],
@@ -144,6 +148,11 @@ def test_a_resume_says_which_settings_differ_and_that_there_is_nothing_to_resume
     assert (
         f"no checkpoint in {tmp_path / 'new'} to resume: starting a new run there" in capsys.readouterr().err
     )
+    # A DAgger run's folder is not a plain run's (a forgotten --dagger on its --resume).
+    (tmp_path / "dagger").mkdir()
+    (tmp_path / "dagger" / "state.json").write_text("{}")
+    with pytest.raises(ValueError, match=r"holds a DAgger run \(state.json\)"):
+        run_folder(tmp_path / "dagger", resume=True)
 
 
 def test_a_run_refused_at_its_start_leaves_no_folder(

@@ -177,9 +177,24 @@ class BcConfig:
                 "bc setting unet_channels must be a list of integers of at least 1, "
                 f"not {self.unet_channels!r}"
             )
+        if any(c % 8 for c in self.unet_channels):
+            # Each block's GroupNorm has 8 groups.
+            raise ValueError(
+                "bc setting unet_channels must be a list of integers, each a multiple of 8 (the U-Net's "
+                f"group norms have 8 groups), not {list(self.unet_channels)!r}"
+            )
         sizes = ("feature_dim", "grasp_dim", "cond_dim", "kernel_size", "n_obs", "horizon")
         counts = ("diffusion_steps", "ddim_steps", "batch_size", "epochs", "checkpoint_every")
         check_at_least(self, "bc", 1, (*sizes, *counts))
+        if self.kernel_size % 2 == 0:
+            # An even kernel changes the length of the U-Net's convolutions' outputs.
+            raise ValueError(f"bc setting kernel_size must be odd, not {self.kernel_size!r}")
+        if self.ddim_steps > self.diffusion_steps:
+            # DDIM samples from the DDPM schedule the model was trained on: at most its steps.
+            raise ValueError(
+                f"bc setting ddim_steps ({self.ddim_steps}) must be at most diffusion_steps "
+                f"({self.diffusion_steps})"
+            )
         # lr 0 trains nothing: a run that only evaluates, or checks what a fine-tuning starts from.
         check_at_least(self, "bc", 0, ("lr", "threads", "weight_decay", "lambda_ce"))
         if not 0.0 <= self.epsilon <= 1.0:

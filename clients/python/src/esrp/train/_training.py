@@ -31,7 +31,8 @@ __all__ = [
 
 def run_folder(out: Path, resume: bool) -> Path:
     """The path of the checkpoint of run folder `out`, `out/ckpt.pt`, checked and not made: raises
-    `ValueError` when `out` is a file, or already holds a run's checkpoint and not `resume`; with
+    `ValueError` when `out` is a file, holds a DAgger run (`state.json`: `esrp train bc --dagger`'s),
+    or already holds a run's checkpoint and not `resume`; with
     `resume` and no checkpoint there, says on stderr that the run starts anew (a mistyped `--out`
     shows at once).
 
@@ -41,6 +42,12 @@ def run_folder(out: Path, resume: bool) -> Path:
     """
     if out.exists() and not out.is_dir():
         raise ValueError(f"{out} is a file, not a run folder: give another --out")
+    if (out / "state.json").exists():
+        # `esrp train bc --dagger`'s folder: a run here would write its files among the DAgger run's.
+        raise ValueError(
+            f"{out} holds a DAgger run (state.json): esrp train bc --dagger --resume goes on with it; "
+            "give another --out"
+        )
     checkpoint = out / "ckpt.pt"
     if not resume and checkpoint.exists():
         raise ValueError(f"{out} already holds a run: pass --resume to go on with it, or another --out")

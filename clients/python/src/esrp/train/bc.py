@@ -362,9 +362,12 @@ def train(
         (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2) + "\n", encoding="utf-8")
         trim_epoch_log(log_path, LOG_FIELDS, epoch)
         held_out.start_log(epoch)
-        # An evaluation the interrupted run owed (the checkpoint is written before each).
+        # An evaluation the interrupted run owed (the checkpoint is written before each); or, if
+        # it was made, its checkpoint kept as best.pt where an interruption cut that short.
         if held_out.owed(epoch):
             held_out.run(used, epoch, steps)
+        elif epoch > 0 and held_out.evaluating:
+            held_out.keep_best(epoch)
         started = time.monotonic()
         model.train()
         while epoch < config.epochs:

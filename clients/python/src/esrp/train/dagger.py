@@ -333,6 +333,12 @@ class _Run:
                 raise ValueError(
                     f"{self.out} holds iter-00 but no state.json: not a DAgger run; use another --out"
                 )
+            if (self.out / "ckpt.pt").exists():
+                # A run of esrp train bc (or ppo): its config.json would be overwritten.
+                raise ValueError(
+                    f"{self.out} holds a run without --dagger (ckpt.pt), not a DAgger run: use another "
+                    "--out (a [dagger] table's initial = its ckpt.pt starts from it)"
+                )
             self.state = {
                 "format": STATE_FORMAT,
                 "settings": self.settings(),

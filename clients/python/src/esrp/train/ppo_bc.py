@@ -245,6 +245,8 @@ def train(
         raise ValueError(
             f"the demonstrations hold {demos.resolution} px views, the network takes {ppo.resolution}"
         )
+    if len(demos) < config.streams:  # as `stream_order` would say in the first epoch
+        raise ValueError(f"{len(demos)} steps cannot fill {config.streams} streams: fewer streams")
     _start_files(ppo, config, out, epoch)
     lengths = np.bincount(demos.episode)
     batches = (len(demos) // config.streams + config.seq_len - 1) // config.seq_len
