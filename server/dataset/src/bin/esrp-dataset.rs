@@ -148,6 +148,30 @@ enum Command {
 fn pack(out: &Path, version: BenchVersion, seed: u64, check: bool) -> Result<bool> {
     use esrp_dataset::pack::{ScenePack, scene_json, write_pack};
     let bench = Benchmark::new(version, seed);
+    // Generating every scene takes minutes: a pack that cannot be compared, or an --out that
+    // cannot be written, is reported before.
+    let existing = if check {
+        let bytes = std::fs::read(out).with_context(|| format!("reading {}", out.display()))?;
+        let pack = ScenePack::parse(&bytes)?;
+        if !pack.serves(&bench) {
+            println!(
+                "{}: holds {:?}, not every scene of {} from this generator",
+                out.display(),
+                pack.header(),
+                bench.name()
+            );
+            return Ok(false);
+        }
+        Some(bytes)
+    } else {
+        if out.is_dir() {
+            bail!("{} is a folder: --out names the pack file", out.display());
+        }
+        if let Some(dir) = out.parent().filter(|dir| !dir.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        }
+        None
+    };
     let started = Instant::now();
     let bar = progress(bench.len(), "generate");
     let scenes: Vec<String> = (0..bench.len())
@@ -159,7 +183,7 @@ fn pack(out: &Path, version: BenchVersion, seed: u64, check: bool) -> Result<boo
         })
         .collect::<Result<_>>()?;
     bar.finish_and_clear();
-    if !check {
+    let Some(bytes) = existing else {
         let mut bytes = Vec::new();
         write_pack(&bench, &scenes, &mut bytes)?;
         esrp_dataset::files::write_atomic(out, &bytes)?;
@@ -172,18 +196,8 @@ fn pack(out: &Path, version: BenchVersion, seed: u64, check: bool) -> Result<boo
             started.elapsed().as_secs_f64()
         );
         return Ok(true);
-    }
-    let bytes = std::fs::read(out).with_context(|| format!("reading {}", out.display()))?;
+    };
     let pack = ScenePack::parse(&bytes)?;
-    if !pack.serves(&bench) {
-        println!(
-            "{}: holds {:?}, not every scene of {} from this generator",
-            out.display(),
-            pack.header(),
-            bench.name()
-        );
-        return Ok(false);
-    }
     let differing: Vec<usize> =
         (0..scenes.len()).filter(|&i| pack.json(i).map_or(true, |json| json != scenes[i])).collect();
     if differing.is_empty() {
@@ -253,12 +267,16 @@ fn generate(
         bail!("--first {first} is past the end: the benchmark has {} scenes (0..{})", bench.len(), bench.len());
     }
     let count = scenes.unwrap_or(bench.len() - first);
-    if first + count > bench.len() {
+    if first.checked_add(count).is_none_or(|end| end > bench.len()) {
         bail!("--first {first} --scenes {count} runs past the benchmark's {} scenes", bench.len());
     }
     if out.join("manifest.json").exists() && !force {
         bail!("{} already holds a dataset (manifest.json): choose another --out or pass --force", out.display());
     }
+    // Made now: an --out that cannot be written fails here, not once per scene after every
+    // scene was generated.
+    let scenes_dir = out.join("scenes");
+    std::fs::create_dir_all(&scenes_dir).with_context(|| format!("cannot create {}", scenes_dir.display()))?;
     let started = Instant::now();
     let bar = progress(count, "generate");
     let rejections: Mutex<BTreeMap<String, usize>> = Mutex::new(BTreeMap::new());
@@ -376,6 +394,14 @@ fn import_3dfront(front: &Path, future: &Path, out: &Path, options: &ImportOptio
         bar.set_position(done as u64);
     })?;
     bar.finish_and_clear();
+    if report.scenes.is_empty() {
+        bail!(
+            "no room of the {} rooms in {} house(s) could be imported (skipped: {:?}); nothing written",
+            report.rooms_seen,
+            report.houses,
+            report.rooms_skipped
+        );
+    }
     // Every scene is written only now, after the whole import succeeded: a failed import
     // leaves no partial dataset behind.
     let mut entries = Vec::with_capacity(report.scenes.len());
@@ -413,6 +439,16 @@ fn import_3dfront(front: &Path, future: &Path, out: &Path, options: &ImportOptio
 fn validate(dir: &Path) -> Result<bool> {
     let dataset = Dataset::open(dir)?;
     let entries = &dataset.manifest().scenes;
+    if entries.is_empty() {
+        eprintln!("{}: the manifest lists no scenes", dir.display());
+        println!("0 of 0 scenes valid: the dataset holds no scenes");
+        return Ok(false);
+    }
+    // The server finds a scene by its id: an id listed twice leaves one of them unreachable.
+    let mut listed: BTreeMap<&str, usize> = BTreeMap::new();
+    for entry in entries {
+        *listed.entry(entry.id.as_str()).or_default() += 1;
+    }
     let rule = StartRule::default();
     let bar = progress(entries.len(), "validate");
     // Each scene's failure, or for an esrp-bench-v2 scene, its start's distance to the objects.
@@ -424,14 +460,19 @@ fn validate(dir: &Path) -> Result<bool> {
                 Ok(scene) if scene.id != entry.id => {
                     Err(format!("the file holds scene {:?}, the manifest says {:?}", scene.id, entry.id))
                 }
+                Ok(_) if listed[entry.id.as_str()] > 1 => {
+                    Err(format!("listed {} times in the manifest", listed[entry.id.as_str()]))
+                }
                 Ok(scene) => validate_by_replay(&scene).map_err(|e| e.to_string()).and_then(|()| {
                     check_horizon(&scene)?;
-                    match BenchVersion::of_scene_id(&scene.id) {
+                    let start = match BenchVersion::of_scene_id(&scene.id) {
                         Some(BenchVersion::V2) => {
-                            check_start(&scene, &rule).map(Some).map_err(|e| format!("start pose: {e}"))
+                            Some(check_start(&scene, &rule).map_err(|e| format!("start pose: {e}"))?)
                         }
-                        _ => Ok(None),
-                    }
+                        _ => None,
+                    };
+                    entry_matches(entry, &scene)?;
+                    Ok(start)
                 }),
             };
             bar.inc(1);
@@ -451,6 +492,24 @@ fn validate(dir: &Path) -> Result<bool> {
         print_fallback_starts(&starts, &rule);
     }
     Ok(failures.is_empty())
+}
+
+/// What a manifest entry says differently from its scene file (the server lists and splits a
+/// folder's scenes by the manifest alone).
+fn entry_matches(entry: &esrp_dataset::files::ManifestEntry, scene: &esrp_core::Scene) -> Result<(), String> {
+    let fields = [
+        ("room_type", entry.room_type.clone(), scene.room_type.clone()),
+        ("difficulty", entry.difficulty.as_str().to_owned(), scene.difficulty.as_str().to_owned()),
+        ("split", entry.split.as_str().to_owned(), scene.split.as_str().to_owned()),
+        ("movable_objects", entry.movable_objects.to_string(), scene.movable_objects.len().to_string()),
+        ("expert_length", entry.expert_length.to_string(), scene.expert_trajectory.len().to_string()),
+    ];
+    let differing: Vec<String> = fields
+        .iter()
+        .filter(|(_, manifest, file)| manifest != file)
+        .map(|(field, manifest, file)| format!("the manifest says {field} {manifest}, the file {file}"))
+        .collect();
+    if differing.is_empty() { Ok(()) } else { Err(differing.join("; ")) }
 }
 
 /// The horizon rule of SPEC §5: a scene's horizon is twice its expert trajectory's length,
@@ -604,8 +663,22 @@ fn main() -> ExitCode {
         Ok(true) => ExitCode::SUCCESS,
         Ok(false) => ExitCode::FAILURE,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", error_text(&e));
             ExitCode::FAILURE
         }
     }
+}
+
+/// An error and its causes, each said once: a file error's text already ends with its I/O
+/// error, which is also its cause.
+fn error_text(error: &anyhow::Error) -> String {
+    let mut text = error.to_string();
+    for cause in error.chain().skip(1) {
+        let cause = cause.to_string();
+        if !text.contains(&cause) {
+            text.push_str(": ");
+            text.push_str(&cause);
+        }
+    }
+    text
 }
