@@ -356,8 +356,12 @@ impl SeenThreads {
 
 impl Collector for ThreadCpu {
     fn encode(&self, mut encoder: DescriptorEncoder) -> Result<(), std::fmt::Error> {
+        // Read under the lock: two scrapes at once must take their readings in the order they
+        // made them (an older reading after a newer would look like new threads).
+        let mut seen = self.seen.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         let Some((process, threads)) = proc_cpu::read() else { return Ok(()) };
-        let groups = self.seen.lock().unwrap_or_else(std::sync::PoisonError::into_inner).update(threads);
+        let groups = seen.update(threads);
+        drop(seen);
         let total = ConstCounter::new(process);
         total.encode(encoder.encode_descriptor(
             "process_cpu_seconds",
