@@ -1,7 +1,6 @@
 //! `esrp-dataset` on bad input and bad output paths: a clear error and a non-zero exit, found
 //! before minutes of generation are spent, and a dataset that `validate` passes is one the
 //! server reads as its scenes say.
-#![cfg(feature = "cli")]
 
 use std::path::Path;
 use std::process::{Command, Output, Stdio};
