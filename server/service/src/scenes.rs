@@ -143,7 +143,10 @@ impl SceneStore {
             })
             .collect();
         let name = dataset.manifest().name.clone();
-        // The manifest names every scene with the hash of its file: those are the scenes.
+        // The manifest lists the scenes (ids, files, summaries), not their contents: a scene file
+        // changed under the same manifest keeps the hash (scenes load lazily, and hashing every
+        // file would read the whole dataset at start). A replay against another copy of the
+        // dataset (`esrp verify`) tells such a change apart.
         let manifest = serde_json::to_string(dataset.manifest()).unwrap_or_default();
         let hash = format!("{name}\0{manifest}");
         Ok(Self::new(Source::Folder(dataset), infos, name, dir.display().to_string(), hash))
