@@ -40,11 +40,12 @@ class Request:
 @dataclass
 class Reply:
     """What the fake server answers: a completion with `content`, an HTTP error `status`, or
-    `raw`, a body that is not JSON (`content-type: text/html`)."""
+    `raw`, a body that is not JSON (`content-type: text/html`), or `body`, any JSON."""
 
     content: str | None = None
     status: int = 200
     raw: str | None = None
+    body: Any = None  # a JSON body answered as it is (with `status`), instead of a completion
     prompt_tokens: int = 100
     completion_tokens: int = 10
 
@@ -78,6 +79,13 @@ def parse(body: dict[str, Any], headers: dict[str, str]) -> Request:
     return Request(body, headers, texts, images, pngs, corrections, answers)
 
 
+@dataclass
+class Json:
+    """A scripted JSON body (which may be a string: not the HTML page a `str` payload is)."""
+
+    value: Any
+
+
 Script = Callable[[Request], Reply]
 
 
@@ -93,7 +101,7 @@ class FakeServer:
     most_in_flight: int = 0
     lock: threading.Lock = field(default_factory=threading.Lock)
 
-    def handle(self, body: dict[str, Any], headers: dict[str, str]) -> tuple[int, dict[str, Any] | str]:
+    def handle(self, body: dict[str, Any], headers: dict[str, str]) -> tuple[int, Any]:
         with self.lock:
             self.in_flight += 1
             self.most_in_flight = max(self.most_in_flight, self.in_flight)
@@ -111,6 +119,8 @@ class FakeServer:
                 self.in_flight -= 1
         if reply.raw is not None:
             return reply.status, reply.raw
+        if reply.body is not None:
+            return reply.status, Json(reply.body)
         if reply.status != 200:
             return reply.status, {"error": {"message": f"scripted {reply.status}", "type": "server_error"}}
         return 200, {
@@ -144,13 +154,15 @@ def fake_openai(script: Script) -> Iterator[FakeServer]:
         def do_POST(self) -> None:  # noqa: N802 - the http.server name
             length = int(self.headers.get("content-length", "0"))
             body = json.loads(self.rfile.read(length))
-            payload: dict[str, Any] | str
+            payload: Any
             if self.path.rstrip("/") != "/v1/chat/completions":
                 status, payload = 404, {"error": {"message": f"no route {self.path}"}}
             else:
                 status, payload = fake.handle(body, {k.lower(): v for k, v in self.headers.items()})
             html = isinstance(payload, str)
-            data = (payload if isinstance(payload, str) else json.dumps(payload)).encode()
+            if isinstance(payload, Json):
+                payload = payload.value
+            data = (payload if html else json.dumps(payload)).encode()
             self.send_response(status)
             self.send_header("content-type", "text/html" if html else "application/json")
             self.send_header("content-length", str(len(data)))

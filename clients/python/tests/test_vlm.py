@@ -7,6 +7,7 @@ answers are asked again and counted; 429 and 500 are retried; traces are written
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import json
 import threading
 import time
@@ -57,6 +58,9 @@ PARSE_CASES: list[tuple[str, str, str | None, str | None]] = [
     ("Thought: x\nAction: jump", "none", None, "not_one_action"),
     ("Thought: x\nAction: 7", "none", None, "not_one_action"),
     ("Thought: x\nAction: forward", "none", None, "not_one_action"),
+    # A thinking model served without a reasoning parser: the template opened the block.
+    ("Plan:\nAction: fetch\n</think>\n\nThought: x\nAction: turn_left", "none", "turn_left", None),
+    ("<think>unclosed\nAction: fetch", "none", "fetch", None),
     ('{"thought": "go", "action": "turn_left"}', "json_schema", "turn_left", None),
     ('```json\n{"thought": "go", "action": 4}\n```', "json_schema", "fetch", None),
     ('{"thought": "go", "action": "fly"}', "json_schema", None, "not_one_action"),
@@ -76,6 +80,24 @@ def test_parse_answer(answer: str, mode: str, action: str | None, kind: str | No
 def test_parse_answer_keeps_the_thought() -> None:
     assert parse_answer("Thought: the sofa is left.\nAction: turn_left").thought == "the sofa is left."
     assert parse_answer("<think>hmm</think>Thought: go\nAction: fetch").thought == "hmm\ngo"
+    assert parse_answer("weigh it</think>Thought: go\nAction: fetch").thought == "weigh it\ngo"
+
+
+@pytest.mark.parametrize(
+    "answer",
+    [
+        "<think>" * 20_000,  # a degenerate model repeating a tag: was quadratic (seconds)
+        "Thought: x\nAction: a" + " " * 40_000 + "b",  # a run of spaces in the action line: the same
+    ],
+)
+def test_parse_answer_takes_linear_time(answer: str) -> None:
+    # The parse runs on the event loop every episode shares: a slow one stalls the whole run.
+    started = time.monotonic()
+    parsed = parse_answer(answer)
+    assert time.monotonic() - started < 0.5
+    assert parsed.action is None
+    assert parsed.error is not None
+    assert len(parsed.error) < 200
 
 
 @pytest.mark.parametrize(
@@ -496,6 +518,115 @@ def test_an_endpoint_that_is_not_there_too_slow_or_elsewhere_names_itself(tmp_pa
     assert message == (
         f"the model endpoint {closed} could not be reached (max_retries 0): is it running? (--base-url)"
     )
+
+
+def test_an_endpoint_that_cannot_be_reached_stops_the_run(
+    server: esrp.LocalServer, scenes: Scenes, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # Still unreachable after the client's retries, it would be for every episode, each waiting
+    # through the same retries: the run stops at the first, as for a wrong key (a rerun resumes).
+    with fake_openai(lambda request: Reply("Action: fetch")) as fake:
+        pass
+    out = tmp_path / "vlm.jsonl"
+    ids = [p.scene_id for p in scenes.by_goal.values()]
+    config = ["--agent-config", '{"max_steps": 1, "max_retries": 0}', "--episodes-in-flight", "1"]
+    capsys.readouterr()
+    assert main([*eval_args(fake, server, out, ids), *config]) == 1
+    err = capsys.readouterr().err
+    assert f"esrp eval: {ids[0]}: VlmEndpointError: the model endpoint {fake.base_url} could not" in err
+    assert "stopped the run there, as every episode would fail the same way (0 episodes" in err
+    assert ids[1] not in err
+    assert read_records(out).records == []
+
+
+async def _one_step(base_url: str, tmp_path: Path) -> tuple[esrp.Action | None, dict[str, Any]]:
+    rng = np.random.default_rng(3)
+    first = esrp.Observation(
+        ego_rgb=rng.integers(0, 256, (128, 128, 3), dtype=np.uint8),
+        grasping=False,
+        goal_rgb=rng.integers(0, 256, (128, 128, 3), dtype=np.uint8),
+    )
+    config = {"model": "fake-vlm", "base_url": base_url, "max_retries": 0}
+    factory = VlmAgentFactory(config, results_path=tmp_path / "r.jsonl")
+    agent = factory()
+    try:
+        await agent.reset(first, {"scene_id": "s/1", "horizon": 200})
+        action = await agent.act(first)
+    finally:
+        await factory.aclose()
+    return action, agent.stats()
+
+
+@pytest.mark.parametrize(
+    ("body", "said"),
+    [
+        # A gateway's upstream failure, sent with status 200: was played as an empty answer.
+        (
+            {"error": {"message": "upstream  overloaded", "code": 502}},
+            "with an error instead of a completion",
+        ),
+        ({}, "but not a chat completion ('{}')"),  # was played as an empty answer too
+        ({"choices": "x"}, "but not a chat completion (\"{'choices': 'x'}\")"),  # was an AttributeError
+        ({"choices": [{"message": {"content": 5}}]}, "but not a chat completion ("),
+        ({"choices": [{"message": {"content": [3]}}]}, "but not a chat completion ("),
+        ({"choices": [{"message": "Action: fetch"}]}, "but not a chat completion ("),
+    ],
+)
+def test_a_200_that_is_no_completion_fails_the_step_instead_of_playing_the_fallback(
+    body: dict[str, Any], said: str, tmp_path: Path
+) -> None:
+    with fake_openai(lambda request: Reply(body=body)) as fake:
+        with pytest.raises(esrp.agents.vlm.VlmEndpointError) as raised:
+            asyncio.run(_one_step(fake.base_url, tmp_path))
+        assert len(fake.requests) == 1  # not asked again as if the model had answered badly
+    message = str(raised.value)
+    assert message.startswith(f"the model endpoint {fake.base_url} answered HTTP 200 {said}"), message
+    if "error" in body:
+        assert message.endswith("(upstream overloaded)")
+    assert not raised.value.stops_run
+
+
+def test_content_parts_are_read_and_the_stats_say_what_was_asked_and_served(tmp_path: Path) -> None:
+    body = {
+        "object": "chat.completion",
+        "model": "fake-vlm-2025-01-01",  # the dated snapshot an alias resolved to
+        "choices": [
+            {
+                "index": 0,
+                "message": {
+                    "role": "assistant",
+                    "content": [
+                        {"type": "thinking", "thinking": [{"type": "text", "text": "Action: release?"}]},
+                        {"type": "text", "text": "Thought: grab it\n"},
+                        {"type": "text", "text": "Action: fetch"},
+                    ],
+                },
+                "finish_reason": "stop",
+            }
+        ],
+        "usage": "not counted",  # was an AttributeError
+    }
+    with fake_openai(lambda request: Reply(body=body)) as fake:
+        action, stats = asyncio.run(_one_step(fake.base_url, tmp_path))
+    assert action == esrp.Action.FETCH
+    assert stats["requests"] == stats["requests_without_usage"] == 1
+    assert stats["invalid_answers"] == 0
+    assert stats["model"] == "fake-vlm"
+    assert stats["served_models"] == ["fake-vlm-2025-01-01"]
+    # Every setting in effect, defaults included: a record says how it was played.
+    settings = stats["settings"]
+    assert settings["base_url"] == fake.base_url
+    assert (settings["temperature"], settings["max_tokens"], settings["history"]) == (0.0, 256, 8)
+    assert (settings["reprompts"], settings["fallback_action"], settings["constrained"]) == (
+        1,
+        "turn_left",
+        "none",
+    )
+    assert "trace_dir" not in settings
+    assert "traces" not in settings
+    prompt = esrp.agents.vlm.system_prompt("none").encode()
+    assert stats["system_prompt_sha256"] == hashlib.sha256(prompt).hexdigest()
+    json.dumps(stats, allow_nan=False)  # what a record can carry
 
 
 def test_vlm_flags_and_config_errors(server: esrp.LocalServer, tmp_path: Path) -> None:

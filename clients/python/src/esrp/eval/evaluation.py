@@ -105,9 +105,10 @@ class ServerGone(EvalError):
 
 class AgentStopped(EvalError):
     """The agent failed an episode in a way every episode would (its exception says so with a true
-    `stops_run` attribute, as `VlmEndpointError` does for a wrong API key, URL or model): the run
-    stopped there instead of failing each episode in turn. The records of the episodes that ended
-    are kept; once the cause is fixed, running the same command again resumes.
+    `stops_run` attribute, as `VlmEndpointError` does for a wrong API key, URL or model, or a model
+    endpoint that cannot be reached): the run stopped there instead of failing each episode in
+    turn. The records of the episodes that ended are kept; once the cause is fixed, running the
+    same command again resumes.
     """
 
 

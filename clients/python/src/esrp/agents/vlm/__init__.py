@@ -28,6 +28,8 @@ prompt and the images), `_parse` (reading an answer); the agent and its factory 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+import hashlib
 import json
 import time
 from collections.abc import Mapping
@@ -88,8 +90,9 @@ class VlmEndpointError(RuntimeError):
 
     Attributes:
         stops_run: The endpoint refused the request for a reason every request meets (HTTP 401 or
-            403: the API key; 404: the URL or the model): `esrp eval` stops the run there instead
-            of failing every episode in turn (`esrp.eval.evaluation.AgentStopped`).
+            403: the API key; 404: the URL or the model), or could not be reached at all after the
+            retries: `esrp eval` stops the run there instead of failing every episode in turn
+            (`esrp.eval.evaluation.AgentStopped`).
     """
 
     def __init__(self, message: str, *, stops_run: bool = False) -> None:
@@ -115,7 +118,11 @@ def _endpoint_error(error: Exception, settings: VlmSettings) -> VlmEndpointError
         timeout = f"timeout_s {settings.timeout_s:g} s"
         return VlmEndpointError(f"{where} did not answer within {timeout}, {retried}")
     if isinstance(error, openai.APIConnectionError):
-        return VlmEndpointError(f"{where} could not be reached {retried}: is it running? (--base-url)")
+        # Still unreachable after the client's retries (seconds of backoff): every episode would
+        # wait as long and fail the same way, so the run stops here (a rerun resumes).
+        return VlmEndpointError(
+            f"{where} could not be reached {retried}: is it running? (--base-url)", stops_run=True
+        )
     if isinstance(error, openai.APIStatusError):
         status = error.status_code
         body = error.body
@@ -132,6 +139,17 @@ def _endpoint_error(error: Exception, settings: VlmSettings) -> VlmEndpointError
             f"{where} answered HTTP {status} ({message}){hint}", stops_run=status in _LASTING
         )
     return None
+
+
+def _usage_of(usage: object) -> dict[str, int] | None:
+    """A completion's token counts, or None when it has none (or ones that are not numbers)."""
+    keys = ("prompt_tokens", "completion_tokens", "total_tokens")
+    values = [getattr(usage, key, None) for key in keys]
+    if all(value is None for value in values) or any(
+        value is not None and (isinstance(value, bool) or not isinstance(value, int)) for value in values
+    ):
+        return None
+    return {key: int(value or 0) for key, value in zip(keys, values, strict=True)}
 
 
 @dataclass
@@ -227,8 +245,14 @@ class VlmAgent:
         self._previous_action = None
         self._steps = 0
         self._latencies = []
+        settings = dataclasses.asdict(self.settings)
+        for where in ("trace_dir", "traces"):  # where the traces go: no part of what was asked
+            settings.pop(where)
         self._stats = {
             "model": self.settings.model,
+            "served_models": [],
+            "settings": settings,
+            "system_prompt_sha256": hashlib.sha256(self._system.encode()).hexdigest(),
             "steps": 0,
             "requests": 0,
             "invalid_answers": 0,
@@ -385,30 +409,51 @@ class VlmAgent:
                 raise endpoint from error
             latency = time.monotonic() - started
         completion = raw.parse()
+        where = f"the model endpoint {settings.base_url or '(OPENAI_BASE_URL, else OpenAI)'}"
         if not hasattr(completion, "choices"):  # a 200 whose body is no JSON object (a proxy's page)
             kind = raw.headers.get("content-type", "no content type")
             body = " ".join(str(completion).split())[:80]
             raise VlmEndpointError(
-                f"the model endpoint {settings.base_url or '(OPENAI_BASE_URL, else OpenAI)'} answered "
-                f"HTTP 200 but not a chat completion ({kind}: {body!r}): is --base-url the API's "
-                "(e.g. http://localhost:8000/v1)?"
+                f"{where} answered HTTP 200 but not a chat completion ({kind}: {body!r}): is "
+                "--base-url the API's (e.g. http://localhost:8000/v1)?"
             )
+        choices = completion.choices
+        failed = (getattr(completion, "model_extra", None) or {}).get("error")
+        if failed is not None and not choices:
+            # Some gateways answer an upstream failure with status 200 and an error object: an
+            # endpoint failure, not an empty answer (which would be played as the fallback).
+            said = failed.get("message", failed) if isinstance(failed, dict) else failed
+            text = " ".join(str(said).split())[:200]
+            raise VlmEndpointError(
+                f"{where} answered HTTP 200 with an error instead of a completion ({text})"
+            )
+        choice = choices[0] if isinstance(choices, list) and choices else None
+        message = getattr(choice, "message", None)
+        content = getattr(message, "content", None)
+        if isinstance(content, list) and all(isinstance(part, dict) for part in content):
+            # Content parts (`[{"type": "text", "text": ...}]`): the text ones, in order.
+            texts = [part.get("text") for part in content if part.get("type") == "text"]
+            if all(isinstance(text, str) for text in texts):
+                content = "".join(texts)
+        if (
+            not isinstance(choices, list)
+            or (choice is not None and not hasattr(choice, "message"))
+            or (message is not None and not hasattr(message, "content"))
+            or not isinstance(content, (str, type(None)))
+        ):
+            body = " ".join(str(completion.to_dict(warnings=False)).split())[:120]
+            raise VlmEndpointError(f"{where} answered HTTP 200 but not a chat completion ({body!r})")
         retries = int(getattr(raw, "retries_taken", 0) or 0)
-        choice = completion.choices[0] if completion.choices else None
-        message = None if choice is None else choice.message
         extra = (getattr(message, "model_extra", None) or {}) if message is not None else {}
         reasoning = extra.get("reasoning_content") or extra.get("reasoning")
-        usage = None
-        if completion.usage is not None:
-            usage = {
-                "prompt_tokens": int(completion.usage.prompt_tokens or 0),
-                "completion_tokens": int(completion.usage.completion_tokens or 0),
-                "total_tokens": int(completion.usage.total_tokens or 0),
-            }
+        usage = _usage_of(getattr(completion, "usage", None))
+        served = getattr(completion, "model", None)
+        if isinstance(served, str) and served not in self._stats["served_models"]:
+            self._stats["served_models"].append(served)
         self._count(latency, started - queued, retries, usage)
         return _Call(
-            content=None if message is None else message.content,
-            finish_reason=None if choice is None else choice.finish_reason,
+            content=content,
+            finish_reason=getattr(choice, "finish_reason", None),
             model_reasoning=reasoning if isinstance(reasoning, str) else None,
             usage=usage,
             latency_s=latency,
@@ -439,15 +484,19 @@ class VlmAgent:
     def stats(self) -> dict[str, Any]:
         """The episode's counts (the record's `agent_stats`); also closes the trace with them.
 
-        `steps` actions taken; `requests` model calls (a correction is one more); `invalid_answers`
-        unusable answers by `invalid_kinds`; `reprompts` corrections asked; `fallbacks` steps that
-        played `fallback_action`; `http_retries` retries the `openai` client made (429, 5xx,
-        timeouts); token counts summed from the answers' `usage` (`requests_without_usage` had
-        none); `model_seconds` (sum, mean, max) the calls' latency; `queue_seconds` the time spent
-        waiting for the concurrency limit; `trace` the trace file.
+        `model` the model asked for, `served_models` the names the answers gave (a dated snapshot
+        of an alias, a server's own name), `settings` every setting in effect (defaults included;
+        not where the traces go), `system_prompt_sha256` the prompt's hash; `steps` actions taken;
+        `requests` model calls (a correction is one more); `invalid_answers` unusable answers by
+        `invalid_kinds`; `reprompts` corrections asked; `fallbacks` steps that played
+        `fallback_action`; `http_retries` retries the `openai` client made (429, 5xx, timeouts);
+        token counts summed from the answers' `usage` (`requests_without_usage` had none);
+        `model_seconds` (sum, mean, max) the calls' latency; `queue_seconds` the time spent waiting
+        for the concurrency limit; `trace` the trace file.
         """
         stats = dict(self._stats)
         stats["invalid_kinds"] = dict(stats.get("invalid_kinds", {}))
+        stats["served_models"] = list(stats.get("served_models", []))
         for key in ("model_seconds", "model_seconds_mean", "model_seconds_max", "queue_seconds"):
             if key in stats:
                 stats[key] = round(float(stats[key]), 6)

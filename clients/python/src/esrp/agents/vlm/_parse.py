@@ -31,8 +31,9 @@ class ParsedAnswer:
     kind: str | None = None
 
 
-_THINK = re.compile(r"<think>(.*?)</think>", re.DOTALL | re.IGNORECASE)
-_ACTION_LINE = re.compile(r"^\s*(?:[-#>]\s*)*action\s*:\s*(.*?)\s*$", re.IGNORECASE)
+_THINK_TAG = re.compile(r"<(/?)think>", re.IGNORECASE)
+# Linear: no lazy group before a `\s*$` (quadratic in a long run of spaces); the value is stripped.
+_ACTION_LINE = re.compile(r"^\s*(?:[-#>]\s*)*action\s*:(.*)$", re.IGNORECASE)
 _THOUGHT_LINE = re.compile(r"^\s*(?:[-#>]\s*)*thought\s*:\s*", re.IGNORECASE)
 _TWO_WORDS = re.compile(r"\b(move|turn)[\s_-]+(forward|backward|left|right)\b")
 _TOKENS = re.compile(r"[a-z_]+|\d+")
@@ -69,8 +70,9 @@ def parse_answer(text: str | None, constrained: str = "none") -> ParsedAnswer:
         return ParsedAnswer(None, "", "the answer was empty", "empty")
     if constrained == "json_schema":
         return _parse_json(text)
-    thinking = " ".join(block.strip() for block in _THINK.findall(text))
-    body = _THINK.sub("", text).replace("*", "").replace("`", "")
+    blocks, body = _split_thinking(text)
+    thinking = " ".join(block.strip() for block in blocks)
+    body = body.replace("*", "").replace("`", "")
     lines = body.splitlines()
     action_lines = [i for i, line in enumerate(lines) if _ACTION_LINE.match(line)]
     if not action_lines:
@@ -91,10 +93,41 @@ def parse_answer(text: str | None, constrained: str = "none") -> ParsedAnswer:
     thought = _join(thinking, thought)
     action = parse_action_value(value)
     if action is None:
+        shown = value if len(value) <= 80 else value[:77] + "..."  # the correction quotes it
         return ParsedAnswer(
-            None, thought, f"'Action: {value}' does not name exactly one action", "not_one_action"
+            None, thought, f"'Action: {shown}' does not name exactly one action", "not_one_action"
         )
     return ParsedAnswer(action, thought)
+
+
+def _split_thinking(text: str) -> tuple[list[str], str]:
+    """The `<think>...</think>` blocks of `text` and what is left around them, in one pass (a
+    regex per block rescans the rest of the text for each unclosed `<think>`: quadratic in an
+    answer that repeats it). Text before a first `</think>` that no `<think>` opened is a block
+    too: a chat template that opens the block in the prompt (a thinking model served without a
+    reasoning parser) leaves only its end in the answer. An unclosed `<think>` stays in the text.
+    """
+    tags = [(m.start(), m.end(), m.group(1) == "/") for m in _THINK_TAG.finditer(text)]
+    blocks: list[str] = []
+    kept: list[str] = []
+    position = 0
+    index = 0
+    if tags and tags[0][2]:
+        blocks.append(text[: tags[0][0]])
+        position, index = tags[0][1], 1
+    while index < len(tags):
+        start, end, closing = tags[index]
+        if closing:  # a stray end tag: left in the text
+            index += 1
+            continue
+        close = next((i for i in range(index + 1, len(tags)) if tags[i][2]), None)
+        if close is None:
+            break
+        kept.append(text[position:start])
+        blocks.append(text[end : tags[close][0]])
+        position, index = tags[close][1], close + 1
+    kept.append(text[position:])
+    return blocks, "".join(kept)
 
 
 def _parse_json(text: str) -> ParsedAnswer:
