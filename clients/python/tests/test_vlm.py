@@ -479,6 +479,41 @@ def test_a_wrong_key_url_or_model_stops_the_run_there_and_a_rerun_resumes(
     assert [r.scene_id for r in read_records(out).records] == ids
 
 
+def test_an_endpoint_that_echoes_the_api_key_in_its_error_does_not_put_it_in_the_messages(
+    server: esrp.LocalServer,
+    scenes: Scenes,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    key = "sk-secret-1234567890"
+    monkeypatch.setenv("ESRP_VLM_API_KEY", key)
+    first, refused, _ = scenes.by_goal.values()
+
+    def script(request: Request) -> Reply:
+        said = request.headers["authorization"].removeprefix("Bearer ")
+        if scenes.of(request).scene_id == refused.scene_id:
+            # A 400 (not retried, not stopping the run) and a 401 (stopping it), each quoting the key.
+            return Reply(status=400, body={"error": {"message": f"Incorrect API key provided: {said}"}})
+        return Reply(status=401, body={"error": {"message": f"Incorrect API key provided: {said}"}})
+
+    out = tmp_path / "vlm.jsonl"
+    config = ["--agent-config", '{"max_steps": 1}', "--episodes-in-flight", "1"]
+    with fake_openai(script) as fake:
+        capsys.readouterr()
+        assert main([*eval_args(fake, server, out, [refused.scene_id, first.scene_id]), *config]) == 1
+        err = capsys.readouterr().err
+        assert len(fake.requests) == 2
+    assert "Incorrect API key provided: [the API key]" in err, err
+    log = (tmp_path / "vlm.errors.log").read_text()
+    assert "Incorrect API key provided: [the API key]" in log, log
+    for text, where in ((err, "stderr"), (log, "the errors log")):
+        assert key not in text, f"the key in {where}: {text}"
+    for path in tmp_path.rglob("*"):
+        if path.is_file():
+            assert key not in path.read_text(errors="replace"), path
+
+
 def test_an_endpoint_that_is_not_there_too_slow_or_elsewhere_names_itself(tmp_path: Path) -> None:
     rng = np.random.default_rng(2)
     first = esrp.Observation(

@@ -376,6 +376,22 @@ class VlmAgent:
         return action
 
     async def _complete(self, messages: list[dict[str, Any]]) -> _Call:
+        """One chat completion; an endpoint failure never carries the API key, where the endpoint
+        echoed it in its error text (its message blanks it out, and the `openai` error that held it
+        is not chained: the errors log prints the chain).
+        """
+        try:
+            return await self._request(messages)
+        except VlmEndpointError as error:
+            key = getattr(self.factory.client, "api_key", None)
+            if not isinstance(key, str) or len(key) < 4 or key == "EMPTY":
+                raise
+            if key not in str(error) and key not in str(error.__cause__ or ""):
+                raise
+            message = str(error).replace(key, "[the API key]")
+            raise VlmEndpointError(message, stops_run=error.stops_run) from None
+
+    async def _request(self, messages: list[dict[str, Any]]) -> _Call:
         settings = self.settings
         request: dict[str, Any] = {
             "model": settings.model,
