@@ -479,6 +479,37 @@ def test_a_wrong_key_url_or_model_stops_the_run_there_and_a_rerun_resumes(
     assert [r.scene_id for r in read_records(out).records] == ids
 
 
+def test_a_resumed_run_may_change_how_requests_are_made_but_not_what_is_asked(
+    server: esrp.LocalServer, scenes: Scenes, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    first, second, third = scenes.by_goal.values()
+
+    def script(request: Request) -> Reply:
+        return Reply("Action: turn_left")
+
+    out = tmp_path / "vlm.jsonl"
+    ids = [p.scene_id for p in (first, second, third)]
+
+    def run(scene_ids: list[str], config: dict[str, Any]) -> int:
+        return main([*eval_args(fake, server, out, scene_ids), "--agent-config", json.dumps(config)])
+
+    with fake_openai(script) as fake:
+        assert run(ids[:1], {"max_steps": 1, "timeout_s": 60}) == 0
+        # Another timeout, more requests at once, fewer retries, no traces: the same run, resumed.
+        changed = {"max_steps": 1, "timeout_s": 5, "max_concurrent_requests": 2, "max_retries": 1}
+        changed["traces"] = False
+        capsys.readouterr()
+        assert run(ids[:2], changed) == 0
+        assert "1 of 2 scenes already done" in capsys.readouterr().err
+        # Another step limit (or model, prompt, temperature...) is another run.
+        assert run(ids, {"max_steps": 2, "timeout_s": 60}) == 2
+        err = capsys.readouterr().err
+        assert "with other settings" in err, err
+        free = "max_concurrent_requests, max_retries, timeout_s, trace_dir, traces"
+        assert f"only {free} may change" in err, err
+    assert [r.scene_id for r in read_records(out).records] == ids[:2]
+
+
 def test_an_endpoint_that_echoes_the_api_key_in_its_error_does_not_put_it_in_the_messages(
     server: esrp.LocalServer,
     scenes: Scenes,

@@ -100,7 +100,12 @@ def as_observation(observation: Mapping[str, Any]) -> Observation:
 
 
 AgentFactory = Callable[[dict[str, Any]], "Agent | AsyncAgent"]
-"""What `--agent MODULE:CALLABLE` names: called with the agent config, once per episode."""
+"""What `--agent MODULE:CALLABLE` names: called with the agent config, once per episode.
+
+A factory may name, in an attribute `settings_free_on_resume` (a set of str), the settings of its
+config that change how it runs but not what it plays (timeouts, concurrency, where logs go):
+`esrp eval` resumes a results file whose records differ from the run's config only in those.
+"""
 
 
 class RandomAgent:

@@ -488,6 +488,23 @@ def make_factory(agent: str, config: dict[str, Any], results_path: Path) -> Agen
     return None
 
 
+def free_on_resume(settings: EvalSettings) -> frozenset[str]:
+    """The agent's settings that a resumed run may change: its factory's `settings_free_on_resume`
+    (`esrp.agents.AgentFactory`), read without making the factory; none for the others.
+    """
+    if settings.agent == "vlm":
+        from ..agents.vlm import VlmAgentFactory
+
+        return VlmAgentFactory.settings_free_on_resume
+    if settings.agent in BUILTIN_AGENTS:
+        return frozenset()
+    try:
+        factory = load_factory(settings.agent)
+    except ValueError:
+        return frozenset()  # said when the factory is made
+    return frozenset(getattr(factory, "settings_free_on_resume", ()))
+
+
 def checked_config(factory: AgentFactory, config: dict[str, Any]) -> AgentFactory:
     """`factory`, once an agent made by it with `config` has shown that the config is one it takes
     (its `ValueError` becomes an `EvalError`): before any episode, not once per episode.
@@ -663,16 +680,20 @@ class Resumed:
     tally: Tally
 
 
-def open_results(settings: EvalSettings, scenes: Sequence[SceneSummary]) -> Resumed:
+def open_results(
+    settings: EvalSettings, scenes: Sequence[SceneSummary], free: frozenset[str] = frozenset()
+) -> Resumed:
     """Prepares `settings.out` for a run over `scenes`: started over with `fresh`, else what an
-    earlier run of the same agent and settings wrote is kept (`resume_records`) and said.
+    earlier run of the same agent and settings (but the agent's settings `free`) wrote is kept
+    (`resume_records`) and said.
     """
     out = settings.out
     if settings.fresh and out.exists():
         out.unlink()
     out.parent.mkdir(parents=True, exist_ok=True)
     seed = settings.seed if settings.seeded() else None
-    records = resume_records(out, settings.agent, settings.recorded_config(), privileged_mark(settings), seed)
+    mark = privileged_mark(settings)
+    records = resume_records(out, settings.agent, settings.recorded_config(), mark, seed, free=free)
     done = {r.scene_id for r in records}
     wanted = {s.id for s in scenes}
     earlier = sum(1 for r in records if r.scene_id in wanted)
@@ -683,12 +704,19 @@ def open_results(settings: EvalSettings, scenes: Sequence[SceneSummary]) -> Resu
     return Resumed(mine, done, todo, earlier, Tally.of(mine))
 
 
+def _bound(config: Mapping[str, Any], free: frozenset[str]) -> dict[str, Any]:
+    """The settings of `config` that a resumed run must keep."""
+    return {key: value for key, value in config.items() if key not in free}
+
+
 def resume_records(
     path: Path,
     agent: str,
     config: dict[str, Any],
     mark: Mapping[str, Any] | None = None,
     seed: int | None = None,
+    *,
+    free: frozenset[str] = frozenset(),
 ) -> list[EpisodeRecord]:
     """What an earlier run wrote (a torn last line is cut off first). Refuses a file of another
     agent, or of the same agent with other settings (another model, budget, ...): one file, one run;
@@ -697,7 +725,8 @@ def resume_records(
     file's records must carry too (a privileged run and another are not mixed). `seed`: the base
     seed of a run whose agent draws random numbers (None for one that draws none): the file's
     records must have played with it (their per-scene seeds say so), and have been written by
-    this tool, whose random numbers differ from the Rust `esrp-eval`'s for the same seed.
+    this tool, whose random numbers differ from the Rust `esrp-eval`'s for the same seed. `free`:
+    the agent's settings that may differ (its factory's `settings_free_on_resume`).
     """
     if not path.exists():
         return []
@@ -723,10 +752,11 @@ def resume_records(
                 f"{path} holds results of agent {record.agent!r}, not {agent!r}: write to another --out, "
                 "or pass --fresh to start it over"
             )
-        if record.agent_config != config:
+        if _bound(record.agent_config, free) != _bound(config, free):
+            may = f" (only {', '.join(sorted(free))} may change)" if free else ""
             raise EvalError(
                 f"{path} holds results of agent {agent!r} with other settings ({record.agent_config}, not "
-                f"{config}): write to another --out, or pass --fresh to start it over"
+                f"{config}){may}: write to another --out, or pass --fresh to start it over"
             )
         if seed is not None:
             _check_seed(path, agent, record, seed)
@@ -932,7 +962,7 @@ async def evaluate(
     )
     scenes = await pick_scenes(client, settings)
     out = settings.out
-    resumed = open_results(settings, scenes)
+    resumed = open_results(settings, scenes, free_on_resume(settings))
     records, todo, earlier, tally = resumed.records, resumed.todo, resumed.earlier, resumed.tally
     progress = Progress(len(scenes), earlier, settings.progress)
     failures = FailureLog(out, progress)

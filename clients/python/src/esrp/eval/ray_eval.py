@@ -46,6 +46,7 @@ from .evaluation import (
     Progress,
     agent_factory,
     finish,
+    free_on_resume,
     open_results,
     pick_scenes,
     play_episode,
@@ -217,7 +218,7 @@ def _drive(ray: Any, settings: EvalSettings, cluster: RaySettings) -> EvalOutcom
     )
 
     out = settings.out
-    resumed = open_results(settings, scenes)
+    resumed = open_results(settings, scenes, free_on_resume(settings))
     records, done, earlier, tally = resumed.records, resumed.done, resumed.earlier, resumed.tally
     pending = deque(resumed.todo)
     progress = Progress(len(scenes), earlier, settings.progress)

@@ -178,6 +178,12 @@ class VlmAgentFactory:
         client: An `openai.AsyncOpenAI` to use instead of one made from the settings (tests).
     """
 
+    settings_free_on_resume = frozenset(
+        {"max_concurrent_requests", "timeout_s", "max_retries", "trace_dir", "traces"}
+    )
+    """Settings a resumed `esrp eval` may change: how requests are made and where traces go,
+    not what the model is asked or answers."""
+
     def __init__(
         self,
         config: Mapping[str, Any],
