@@ -436,6 +436,37 @@ def test_resume_after_an_interrupted_run_gives_the_same_file(
     )
 
 
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_an_interrupted_run_says_what_it_kept_and_how_to_go_on(
+    tmp_path: Path, easy_scenes: list[str], signum: signal.Signals
+) -> None:
+    ids = ",".join(easy_scenes[:6])
+    out = tmp_path / "cut.jsonl"
+    command = [sys.executable, "-m", "esrp.cli", "eval", "--agent", "random", "--scenes", ids]
+    command += ["--episodes-in-flight", "1", "--no-progress", "--out", str(out)]
+    with esrp.LocalServer() as own:
+        child = subprocess.Popen(
+            [*command, "--server", own.address],
+            env=dict(os.environ, PYTHONUNBUFFERED="1"),
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        deadline = time.monotonic() + 120
+        while child.poll() is None and time.monotonic() < deadline:
+            if out.exists() and out.read_bytes().count(b"\n") >= 1:
+                child.send_signal(signum)
+                break
+            time.sleep(0.005)
+        _, err = child.communicate(timeout=60)
+    assert child.returncode == (130 if signum == signal.SIGINT else 143), err
+    kept = len(read_records(out).records)
+    assert 1 <= kept < 6, err
+    said = f"esrp eval: the {kept} episodes in {out} are kept: run the same command again to resume"
+    assert said in err, err
+    assert ("interrupted" if signum == signal.SIGINT else "terminated") in err.splitlines()[-1], err
+
+
 def test_a_run_with_another_seed_does_not_resume_the_file(
     server: esrp.LocalServer, tmp_path: Path, easy_scenes: list[str], capsys: pytest.CaptureFixture[str]
 ) -> None:

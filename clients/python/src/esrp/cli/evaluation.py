@@ -9,6 +9,7 @@ import os
 import sys
 from pathlib import Path
 
+from .._signals import Terminated
 from ._args import (
     SPLITS,
     Parser,
@@ -271,6 +272,20 @@ def _add_verify(commands: argparse._SubParsersAction[Parser]) -> None:
     parser.set_defaults(handler=_verify)
 
 
+def _say_kept(out: Path) -> None:
+    """Says, as an interrupted `esrp eval` stops, what its results file keeps and how to go on."""
+    from ..eval.results import read_records
+
+    try:
+        records = len(read_records(out).records) if out.exists() else 0
+    except Exception:  # noqa: BLE001 - only a courtesy on the way out: say nothing
+        return
+    print(
+        f"esrp eval: the {records} episodes in {out} are kept: run the same command again to resume",
+        file=sys.stderr,
+    )
+
+
 @one_line_errors
 def _eval(args: argparse.Namespace) -> int:
     from ..eval.evaluation import (
@@ -362,6 +377,9 @@ def _eval(args: argparse.Namespace) -> int:
     except EvalError as error:
         print(f"esrp eval: {error}", file=sys.stderr)
         return 2
+    except (KeyboardInterrupt, Terminated):
+        _say_kept(settings.out)
+        raise
     if outcome.failed:
         closing = format_failures(outcome.failed, outcome.errors_log, outcome.refused)
         print(f"esrp eval: {closing}", file=sys.stderr)
