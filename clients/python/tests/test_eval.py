@@ -462,7 +462,8 @@ def test_an_interrupted_run_says_what_it_kept_and_how_to_go_on(
     assert child.returncode == (130 if signum == signal.SIGINT else 143), err
     kept = len(read_records(out).records)
     assert 1 <= kept < 6, err
-    said = f"esrp eval: the {kept} episodes in {out} are kept: run the same command again to resume"
+    episodes = "1 episode" if kept == 1 else f"{kept} episodes"
+    said = f"esrp eval: {out} keeps {episodes}: run the same command again to resume"
     assert said in err, err
     assert ("interrupted" if signum == signal.SIGINT else "terminated") in err.splitlines()[-1], err
 

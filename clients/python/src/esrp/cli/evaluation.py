@@ -280,10 +280,8 @@ def _say_kept(out: Path) -> None:
         records = len(read_records(out).records) if out.exists() else 0
     except Exception:  # noqa: BLE001 - only a courtesy on the way out: say nothing
         return
-    print(
-        f"esrp eval: the {records} episodes in {out} are kept: run the same command again to resume",
-        file=sys.stderr,
-    )
+    episodes = "1 episode" if records == 1 else f"{records} episodes"
+    print(f"esrp eval: {out} keeps {episodes}: run the same command again to resume", file=sys.stderr)
 
 
 @one_line_errors
