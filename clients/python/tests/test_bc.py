@@ -380,6 +380,25 @@ def test_training_resumes_from_its_checkpoint(demos: Path, tmp_path: Path) -> No
     assert torch.load(run / "ckpt.pt", weights_only=False)["epoch"] == 2
 
 
+def test_a_run_resumes_only_on_the_demonstrations_it_began_with(demos: Path, tmp_path: Path) -> None:
+    import zarr
+
+    store = tmp_path / "store.zarr"
+    shutil.copytree(demos, store)
+    run = tmp_path / "run"
+    train(tiny(store, epochs=1), run, progress=False)
+    # The store exported again at the same path, with another action.
+    data: Any = zarr.open_group(str(store), mode="r+")["data/action"]
+    first = int(data[0])
+    data[0] = (first + 1) % 6
+    with pytest.raises(ValueError, match="trained on other demonstrations .* exported again or appended to"):
+        train(tiny(store, epochs=2), run, resume=True, progress=False)
+    assert torch.load(run / "ckpt.pt", weights_only=False)["epoch"] == 1, "the refused resume changed nothing"
+    data[0] = first
+    train(tiny(store, epochs=2), run, resume=True, progress=False)
+    assert torch.load(run / "ckpt.pt", weights_only=False)["epoch"] == 2
+
+
 def test_the_best_held_out_checkpoint_is_kept(demos: Path, tmp_path: Path) -> None:
     from esrp.train.bc import _HeldOut
 

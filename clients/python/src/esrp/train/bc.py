@@ -29,6 +29,7 @@ the one to evaluate on the test split.
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import math
 import shutil
@@ -159,6 +160,12 @@ class DemoWindows:
         self.step_offsets = np.cumsum([0, *(len(a) for a in actions)])
         self.episode_offsets = np.cumsum([0, *(len(e) for e in ends_list)])
         self.paths = [str(path) for path in listed]
+        digest = hashlib.sha256()
+        for part in (ends, self.actions, self.grasping, self.targets):
+            digest.update(np.ascontiguousarray(part).tobytes())
+        self.fingerprint = f"{len(ends)} episodes, {len(self.episode)} steps, {digest.hexdigest()[:16]}"
+        """What the windows learn from, in a line: episodes, steps and a hash of their bounds, actions,
+        grasp flags and labels (a store appended to or exported again changes it)."""
         self.resolution = int(self.stores[0]["data/ego_rgb"].shape[1])
         """The views' side in pixels."""
         self.memory: dict[str, np.ndarray] = {}
@@ -335,13 +342,14 @@ def train(
         init=init,
         init_average=init_average,
         progress=progress,
+        demos=windows.fingerprint,
     )
     total_steps = config.epochs * math.ceil(len(windows) / config.batch_size)
 
     def save() -> None:
-        extra = None
+        extra: dict[str, Any] = {"demos_fingerprint": windows.fingerprint}
         if average is not None:
-            extra = {
+            extra |= {
                 "model": average.weights(model),
                 "train_model": model.state_dict(),
                 "ema": average.state(),
@@ -475,6 +483,7 @@ def _resume_or_init(
     init: Path | None,
     init_average: bool,
     progress: bool,
+    demos: str,
 ) -> tuple[int, int, _Average | None]:
     """The epoch and optimizer step the run goes on after, and the weights' average (None without
     `ema`). With `resume` and a `checkpoint`, those of the checkpoint, whose trained model,
@@ -482,12 +491,20 @@ def _resume_or_init(
     interval, thread count, device or evaluation) may be asked of a resumed run. Else 0 and 0,
     from the trained model and optimizer of `init` when given (a model with the same settings,
     `FINE_TUNE_FREE` aside; its average starts anew from them, or with `init_average` goes on from
-    `init`'s), or from fresh weights.
+    `init`'s), or from fresh weights. A resumed run's demonstrations (`demos`: their
+    `DemoWindows.fingerprint`) must be those it began with, where its checkpoint says which.
     """
     if resume and checkpoint.exists():
         state = resume_from(
             checkpoint, "esrp-bc", model, optimizer, RESUME_FREE, device, legacy=LEGACY_SETTINGS
         )
+        began = state.get("demos_fingerprint")
+        if began is not None and began != demos:
+            raise ValueError(
+                f"{checkpoint} was trained on other demonstrations ({began}; the stores now hold {demos}): "
+                "a store was exported again or appended to since the run began; resume with the "
+                "stores it began with, or start another run"
+            )
         epoch, steps = int(state["epoch"]), int(state["steps"])
         if epoch > config.epochs:
             raise ValueError(
