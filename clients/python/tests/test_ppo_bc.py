@@ -8,7 +8,9 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import shutil
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -156,6 +158,23 @@ def test_imitation_resumes_and_refuses_other_settings(demos: Path, tmp_path: Pat
     ppo_bc.train(network_config(), imitation(demos, epochs=2), run, resume=True, progress=False)
     with open(run / "log.csv", newline="") as file:
         assert [row["epoch"] for row in csv.DictReader(file)] == ["1", "2"]
+    assert torch.load(run / "ckpt.pt", weights_only=False)["epoch"] == 2
+
+
+def test_imitation_resumes_only_on_the_demonstrations_it_began_with(demos: Path, tmp_path: Path) -> None:
+    import zarr
+
+    store = tmp_path / "store.zarr"
+    shutil.copytree(demos, store)
+    run = tmp_path / "run"
+    ppo_bc.train(network_config(), imitation(store, epochs=1), run, progress=False)
+    data: Any = zarr.open_group(str(store), mode="r+")["data/action"]
+    first = int(data[0])
+    data[0] = (first + 1) % 6
+    with pytest.raises(ValueError, match="trained on other demonstrations .* exported again or appended to"):
+        ppo_bc.train(network_config(), imitation(store, epochs=2), run, resume=True, progress=False)
+    data[0] = first
+    ppo_bc.train(network_config(), imitation(store, epochs=2), run, resume=True, progress=False)
     assert torch.load(run / "ckpt.pt", weights_only=False)["epoch"] == 2
 
 

@@ -212,7 +212,7 @@ def train(
     torch.manual_seed(config.seed)
     network = PpoNet(ppo).to(device)
     optimizer = torch.optim.AdamW(network.parameters(), lr=config.lr, weight_decay=config.weight_decay)
-    epoch, step = 0, 0
+    epoch, step, began = 0, 0, None
     if resume and checkpoint.exists():
         # Only the [ppo] settings of the network count: the others are a later PPO run's.
         free = {f.name for f in fields(PpoConfig)} - set(NETWORK_SETTINGS)
@@ -225,6 +225,7 @@ def train(
                 f"{checkpoint} was trained with other [ppo_bc] settings ({'; '.join(different)})"
             )
         epoch, step = int(saved["epoch"]), int(saved["optimizer_steps"])
+        began = saved.get("demos_fingerprint")
         if epoch > config.epochs:
             raise ValueError(
                 f"{checkpoint} has trained {epoch} epochs, more than the {config.epochs} asked: "
@@ -247,6 +248,12 @@ def train(
         )
     if len(demos) < config.streams:  # as `stream_order` would say in the first epoch
         raise ValueError(f"{len(demos)} steps cannot fill {config.streams} streams: fewer streams")
+    if began is not None and began != demos.fingerprint:
+        raise ValueError(
+            f"{checkpoint} was trained on other demonstrations ({began}; the stores now hold "
+            f"{demos.fingerprint}): a store was exported again or appended to since the run began; resume "
+            "with the stores it began with, or start another run"
+        )
     _start_files(ppo, config, out, epoch)
     lengths = np.bincount(demos.episode)
     batches = (len(demos) // config.streams + config.seq_len - 1) // config.seq_len
@@ -293,7 +300,7 @@ def train(
             "esrp-ppo",
             network,
             optimizer,
-            extra={"imitation": config.to_dict()},
+            extra={"imitation": config.to_dict(), "demos_fingerprint": demos.fingerprint},
             epoch=epoch,
             optimizer_steps=step,
             update=0,
