@@ -34,6 +34,20 @@ static STOPPING: AtomicBool = AtomicBool::new(false);
 /// The paths of the live [`RemovedOnExit`] guards: a stop removes them before the process exits.
 static MADE: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
 
+/// What a stop says last ([`say_when_stopped`]).
+type Note = Box<dyn Fn() -> Option<String> + Send>;
+
+/// The line a stop says last, if the tool gave one ([`say_when_stopped`]).
+static NOTE: Mutex<Option<Note>> = Mutex::new(None);
+
+/// Has a stop by [`exit_on_signals`] or [`exit_when_stdin_closes`] say, after closing the
+/// episodes and before the process exits, `NAME: ` and the line `note` makes then (none where it
+/// returns `None`): e.g. what the tool's results file keeps and how to go on. Replaces an earlier
+/// note.
+pub fn say_when_stopped(note: impl Fn() -> Option<String> + Send + 'static) {
+    *NOTE.lock().unwrap_or_else(std::sync::PoisonError::into_inner) = Some(Box::new(note));
+}
+
 /// A folder (or file) the tool made for its run and removes when the run is over: when the guard
 /// is dropped (the run ended, or failed), or when a stop by [`exit_on_signals`] or
 /// [`exit_when_stdin_closes`] ends the process, which runs no destructor. E.g. the folder where
@@ -212,6 +226,10 @@ async fn stop(name: &str, word: &str, again: impl std::future::Future<Output = (
             }
         }
         () = again => eprintln!("{name}: stopped without closing its episodes (a second signal)"),
+    }
+    let note = NOTE.lock().unwrap_or_else(std::sync::PoisonError::into_inner).take();
+    if let Some(line) = note.and_then(|note| note()) {
+        eprintln!("{name}: {line}");
     }
     true
 }

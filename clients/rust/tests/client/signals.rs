@@ -69,6 +69,13 @@ async fn a_stopped_tool_closes_its_episodes_on_the_server() {
         assert_eq!(code, Some(status), "{program} {signal}: {stderr}");
         assert!(stderr.contains(said) && !stderr.contains("could not be closed"), "{stderr}");
         assert_eq!(live_episodes_settled_at(&watcher, 0).await, 0, "{program} {signal} left episodes: {stderr}");
+        if program.ends_with("esrp-eval") {
+            // Its last line: what its results file keeps, and how to go on.
+            let kept = std::fs::read_to_string(&out).map_or(0, |text| text.lines().count());
+            let episodes = if kept == 1 { "1 episode".to_owned() } else { format!("{kept} episodes") };
+            let last = format!("esrp-eval: {} keeps {episodes}: run the same command again to resume", out.display());
+            assert_eq!(stderr.lines().last(), Some(last.as_str()), "{stderr}");
+        }
     }
 }
 

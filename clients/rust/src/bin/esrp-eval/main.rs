@@ -345,6 +345,12 @@ async fn run() -> anyhow::Result<()> {
         info: &info,
     };
     let (mut records, mut file) = open_results(&args, &settings, &recording.config)?;
+    let out = args.out.clone();
+    esrp_client::signals::say_when_stopped(move || {
+        let kept = results::read_records(&out).ok()?.records.len();
+        let episodes = if kept == 1 { "1 episode".to_owned() } else { format!("{kept} episodes") };
+        Some(format!("{} keeps {episodes}: run the same command again to resume", out.display()))
+    });
     let done: HashSet<String> = records.iter().map(|r| r.scene_id.clone()).collect();
     let todo: Vec<SceneSummary> = scenes.iter().filter(|s| !done.contains(&s.id)).cloned().collect();
     let wanted: HashSet<&str> = scenes.iter().map(|s| s.id.as_str()).collect();
