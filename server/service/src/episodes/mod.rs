@@ -74,7 +74,7 @@ impl Episodes {
         recorder: Option<Recorder>,
         attempts: Attempts,
     ) -> Self {
-        let planners = tokio::sync::Semaphore::new(config.planner_threads());
+        let planners = Arc::new(tokio::sync::Semaphore::new(config.planner_threads()));
         let dataset_hash = store.dataset_hash();
         Self {
             store,

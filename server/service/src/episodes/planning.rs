@@ -8,7 +8,7 @@
 //!   call, waiting for a planner thread included, and a plan not found within it is
 //!   [`ServiceError::PlanDeadline`]; a call that waited the whole budget for a planner thread is
 //!   [`ServiceError::PlannersBusy`]. A call its client abandons stops its planner at the next
-//!   check (the planner's cancel flag), so it frees its thread.
+//!   check (the planner's cancel flag), so it frees its thread (counted busy until then).
 //! - The answer (a plan, or why there is none) is cached with the episode, keyed by the exact
 //!   states the plan passes through: a later call from any of them (the agent followed the
 //!   plan, or reset to its start) answers from the cache without planning; any other state
@@ -60,7 +60,7 @@ pub(super) async fn plan(episodes: &Episodes, caller: &Caller, call: PlanCall) -
         (entry.episode.clone(), fingerprint)
     };
     let scene = episode.compiled().clone();
-    let Ok(permit) = tokio::time::timeout_at(deadline.into(), episodes.planners.acquire()).await else {
+    let Ok(permit) = tokio::time::timeout_at(deadline.into(), episodes.planners.clone().acquire_owned()).await else {
         episodes.metrics.count_plan("busy");
         return Err(ServiceError::PlannersBusy {
             budget_ms: budget.as_millis() as u64,
@@ -72,6 +72,9 @@ pub(super) async fn plan(episodes: &Episodes, caller: &Caller, call: PlanCall) -
     let options = PlanOptions { deadline: Some(deadline), cancel: Some(cancel.0.clone()), ..PlanOptions::default() };
     let metrics = episodes.metrics.clone();
     let job = move || {
+        // Held until the planner returns, not until the handler does: a call its client abandons
+        // leaves its planner running to its next check, and the thread is not free before that.
+        let _permit = permit;
         let outcome = esrp_planner::plan(&episode, &options);
         // Counted here: a cancelled call's handler is gone by now.
         if outcome.as_ref().is_err_and(|e| e.reason == PlanFailure::Cancelled) {
@@ -83,7 +86,6 @@ pub(super) async fn plan(episodes: &Episodes, caller: &Caller, call: PlanCall) -
     };
     let (outcome, cached, keep) =
         tokio::task::spawn_blocking(job).await.map_err(|e| ServiceError::Internal(e.to_string()))?;
-    drop(permit);
     drop(cancel);
     if let Err(e) = &outcome
         && matches!(e.reason, PlanFailure::DeadlineExceeded | PlanFailure::Cancelled)

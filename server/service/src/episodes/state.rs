@@ -35,7 +35,7 @@ pub struct Episodes {
     /// The next stream's id.
     pub(super) next_stream: AtomicU64,
     /// One permit per plan allowed to run at once (PlanActions).
-    pub(super) planners: tokio::sync::Semaphore,
+    pub(super) planners: Arc<tokio::sync::Semaphore>,
     /// Prometheus metrics.
     pub metrics: Arc<Metrics>,
     /// The records writer (`--records`).
