@@ -90,6 +90,38 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FilesError> {
     std::fs::rename(&tmp, path).map_err(io_error(path))
 }
 
+/// Removes the temporary files that [`write_atomic`] left in `dir` in processes that are gone (a
+/// run stopped by a signal between a write and its rename): `.NAME.tmp-PID-N` whose process `PID`
+/// no longer runs. Returns how many it removed. Only where a process's liveness can be read
+/// (`/proc`, Linux); elsewhere none.
+pub fn remove_stale_temporaries(dir: &Path) -> usize {
+    if !Path::new("/proc/self").exists() {
+        return 0;
+    }
+    let Ok(entries) = std::fs::read_dir(dir) else { return 0 };
+    let mut removed = 0;
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let Some(pid) = name.to_str().and_then(temporary_writer) else { continue };
+        if pid != std::process::id()
+            && !Path::new(&format!("/proc/{pid}")).exists()
+            && std::fs::remove_file(entry.path()).is_ok()
+        {
+            removed += 1;
+        }
+    }
+    removed
+}
+
+/// The process that wrote the temporary file `name` (`.NAME.tmp-PID-N`), if it is one.
+fn temporary_writer(name: &str) -> Option<u32> {
+    let rest = name.strip_prefix('.')?;
+    let (_, tail) = rest.rsplit_once(".tmp-")?;
+    let (pid, n) = tail.split_once('-')?;
+    n.parse::<u64>().ok()?;
+    pid.parse().ok()
+}
+
 /// The file name of a scene: its id with every character outside `[A-Za-z0-9._-]` replaced by
 /// `_`, plus `.json` (`esrp-bench-v1/00042` → `esrp-bench-v1_00042.json`).
 pub fn scene_file_name(id: &str) -> String {
@@ -176,5 +208,27 @@ mod tests {
     fn file_names_are_safe() {
         assert_eq!(scene_file_name("esrp-bench-v1/00042"), "esrp-bench-v1_00042.json");
         assert_eq!(scene_file_name("3dfront/a b/../c"), "3dfront_a_b_.._c.json");
+    }
+
+    #[test]
+    fn a_gone_writers_temporaries_are_removed_and_nothing_else() {
+        assert_eq!(temporary_writer(".esrp_00001.json.tmp-4242-7"), Some(4242));
+        assert_eq!(temporary_writer("esrp_00001.json"), None);
+        assert_eq!(temporary_writer(".hidden"), None);
+        assert_eq!(temporary_writer(".a.tmp-x-1"), None);
+        if !Path::new("/proc/self").exists() {
+            return;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        // A process id that runs no process: past the kernel's limit (4,194,304 at most).
+        let gone = dir.path().join(".s.json.tmp-4194305-0");
+        let mine = dir.path().join(format!(".s.json.tmp-{}-0", std::process::id()));
+        let kept = [dir.path().join("s.json"), dir.path().join(".notes"), mine];
+        for path in kept.iter().chain([&gone]) {
+            std::fs::write(path, b"{}").unwrap();
+        }
+        assert_eq!(remove_stale_temporaries(dir.path()), 1);
+        assert!(!gone.exists());
+        assert!(kept.iter().all(|p| p.exists()));
     }
 }

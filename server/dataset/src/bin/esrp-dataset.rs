@@ -277,6 +277,11 @@ fn generate(
     // scene was generated.
     let scenes_dir = out.join("scenes");
     std::fs::create_dir_all(&scenes_dir).with_context(|| format!("cannot create {}", scenes_dir.display()))?;
+    // What a run stopped between a write and its rename left behind.
+    let stale = esrp_dataset::files::remove_stale_temporaries(&scenes_dir);
+    if stale > 0 {
+        eprintln!("removed {stale} temporary file(s) a stopped run left in {}", scenes_dir.display());
+    }
     let started = Instant::now();
     let bar = progress(count, "generate");
     let rejections: Mutex<BTreeMap<String, usize>> = Mutex::new(BTreeMap::new());
