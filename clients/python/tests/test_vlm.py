@@ -113,11 +113,13 @@ def test_parse_answer_takes_linear_time(answer: str) -> None:
         ({"model": "m", "timeout_s": 0}, "timeout_s must be more than 0"),
         ({"model": "m", "timeout_s": float("nan")}, "timeout_s must be more than 0"),
         ({"model": "m", "temperature": -0.5}, "temperature must be 0 or more"),
+        ({"model": "m", "base_url": "http://me:sk-123@gateway:8000/v1"}, "base_url holds a password"),
     ],
 )
 def test_settings_say_what_is_wrong(config: dict[str, Any], message: str) -> None:
-    with pytest.raises(ValueError, match=message.replace("[", r"\[").replace("]", r"\]")):
+    with pytest.raises(ValueError, match=message.replace("[", r"\[").replace("]", r"\]")) as raised:
         VlmSettings.from_config(config)
+    assert "sk-123" not in str(raised.value)
 
 
 def test_settings_defaults_and_paths() -> None:

@@ -8,6 +8,7 @@ import dataclasses
 import math
 import os
 import re
+import urllib.parse
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -104,6 +105,12 @@ class VlmSettings:
             raise ValueError(f"temperature must be 0 or more, not {settings.temperature!r}")
         if settings.max_steps is not None and settings.max_steps < 1:
             raise ValueError("max_steps must be at least 1")
+        if settings.base_url is not None and urllib.parse.urlsplit(settings.base_url).password is not None:
+            # The URL is recorded in every record, and said in every endpoint error.
+            raise ValueError(
+                "base_url holds a password: give the key in ESRP_VLM_API_KEY (sent as a bearer token, "
+                "never recorded) and the URL without it"
+            )
         return settings
 
     @property
