@@ -279,9 +279,10 @@ def test_failed_episodes_are_not_recorded_and_a_rerun_retries_them(
     monkeypatch.chdir(tmp_path)
     (tmp_path / "FAIL_ON").write_text(bad)
     assert main([*base, "--agent-config", json.dumps({"steps": 3})]) == 1
-    assert f"1 episodes failed with an error and were not recorded (rerun to retry them): {bad}" in (
-        capsys.readouterr().err
-    )
+    captured = capsys.readouterr()
+    said = f"1 episodes failed with an error and were not recorded (rerun to retry them): {bad}"
+    assert said in captured.err
+    assert "my_agents:make on 3 scenes of esrp-bench-v2, 1 more failed (not recorded) (" in captured.out
     assert bad not in {r.scene_id for r in read_records(out).records}
     assert len(read_records(out).records) == 3
     (tmp_path / "FAIL_ON").unlink()

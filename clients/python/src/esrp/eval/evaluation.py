@@ -1022,7 +1022,8 @@ def finish(
     beside the results file, and returns the outcome.
     """
     summary = Summary.of(mine, settings.agent)
-    print(f"{settings.agent} on {len(mine)} scenes of {info.dataset} ({seconds:.0f} s):")
+    failed = f", {len(failures.failed)} more failed (not recorded)" if failures.failed else ""
+    print(f"{settings.agent} on {len(mine)} scenes of {info.dataset}{failed} ({seconds:.0f} s):")
     print(summary.text(), end="")
     summary_path = summary_path_of(settings.out, settings.summary)
     markdown = summary.markdown(f"{settings.agent} on {info.dataset} ({settings.split} split)")
