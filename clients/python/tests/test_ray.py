@@ -205,6 +205,23 @@ def test_ray_flags_need_ray(tmp_path: Path, capsys: Any) -> None:  # noqa: ANN40
     assert not out.exists()
 
 
+def test_a_ray_address_with_no_cluster_says_what_to_do(
+    tmp_path: Path,
+    capsys: Any,  # noqa: ANN401
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Ray's own message named its `--address` flag, which esrp eval does not have."""
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    if Path("/tmp/ray/ray_current_cluster").exists():
+        pytest.skip("a Ray cluster started on this machine (ray start) is what --ray auto would join")
+    out = tmp_path / "x.jsonl"
+    # No cluster was started on this machine (`ray start`): `auto` finds none.
+    assert main(["eval", "--agent", "expert", "--out", str(out), "--ray", "auto"]) == 2
+    err = capsys.readouterr().err
+    assert "--ray auto: no Ray cluster could be reached there" in err, err
+    assert "--ray local" in err, err
+
+
 PRINTING_AGENT = """
 import sys
 import time

@@ -185,7 +185,15 @@ def run_ray_eval(settings: EvalSettings, cluster: RaySettings) -> EvalOutcome:
         options: dict[str, Any] = {"include_dashboard": False, "log_to_driver": True}
         # `ray.init()` with no address joins the newest cluster started on this machine (or
         # $RAY_ADDRESS's) when there is one; "local" always starts a cluster of the run's own.
-        ray.init(address=cluster.address or "local", **options)
+        try:
+            ray.init(address=cluster.address or "local", **options)
+        except ConnectionError as error:
+            # Ray's own message names its `ray.init` arguments (`--address`), not esrp eval's.
+            raise EvalError(
+                f"--ray {cluster.address}: no Ray cluster could be reached there ({error}): start one "
+                "(`ray start --head` for `auto`), name its address, or pass --ray local for one of the "
+                "run's own"
+            ) from None
         started_ray = True
         _signals.reclaim()  # ray.init replaced the command's SIGTERM handler with one of its own
     try:
