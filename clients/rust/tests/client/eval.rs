@@ -212,6 +212,9 @@ async fn challenge_scenes_already_played_are_not_offered_for_a_rerun() {
         "{stderr}"
     );
     assert!(stderr.contains("already played") && !stderr.contains("rerun"), "{stderr}");
+    // The summary's first line counts them too (it said `random on 0 scenes`, no more).
+    let stdout = String::from_utf8_lossy(&again.stdout);
+    assert!(stdout.contains("random on 0 scenes of esrp-bench-v2, 2 more failed (not recorded) ("), "{stdout}");
 }
 
 /// The processes whose parent is `pid` (Linux's /proc).

@@ -411,7 +411,7 @@ async fn run() -> anyhow::Result<()> {
     bar.finish_and_clear();
 
     let mine: Vec<EpisodeRecord> = records.into_iter().filter(|r| wanted.contains(r.scene_id.as_str())).collect();
-    write_summary(&args, &info, recording.agent, &mine, started)?;
+    write_summary(&args, &info, recording.agent, &mine, failed.len(), started)?;
     if !failed.is_empty() {
         bail!("{}", failures(&failed));
     }
@@ -532,16 +532,24 @@ fn summary_path(args: &Args) -> anyhow::Result<PathBuf> {
     Ok(path)
 }
 
-/// Prints the run's summary and writes it as markdown (`--summary`, else beside `--out`).
+/// Prints the run's summary (with how many of its episodes failed and were not recorded) and
+/// writes it as markdown (`--summary`, else beside `--out`).
 fn write_summary(
     args: &Args,
     info: &esrp_client::ServerInfo,
     agent: &str,
     records: &[EpisodeRecord],
+    failed: usize,
     started: Instant,
 ) -> anyhow::Result<()> {
     let summary = Summary { agent: agent.to_owned(), ..Summary::of(records) };
-    println!("{agent} on {} scenes of {} ({:.0} s):", records.len(), info.dataset, started.elapsed().as_secs_f64());
+    let more = if failed > 0 { format!(", {failed} more failed (not recorded)") } else { String::new() };
+    println!(
+        "{agent} on {} scenes of {}{more} ({:.0} s):",
+        records.len(),
+        info.dataset,
+        started.elapsed().as_secs_f64()
+    );
     print!("{}", summary.text());
     let summary_path = summary_path(args)?;
     let title = format!("{agent} on {} ({} split)", info.dataset, Split::from(args.split).name());
