@@ -427,6 +427,19 @@ def _demo_windows(config: BcConfig, progress: bool) -> DemoWindows:
     return windows
 
 
+def check_same_demos(checkpoint: Path, began: object, now: str) -> None:
+    """Raises `ValueError` unless a resumed run's stores hold what it began with: `began`, the
+    `DemoWindows.fingerprint` its checkpoint keeps (None in a checkpoint from before it: not
+    checked), against `now`, theirs today.
+    """
+    if began is not None and began != now:
+        raise ValueError(
+            f"{checkpoint} was trained on other demonstrations ({began}; the stores now hold {now}): a "
+            "store was exported again or appended to since the run began; resume with the stores it "
+            "began with, or start another run"
+        )
+
+
 def check_resolution(resolution: int, config: BcConfig) -> None:
     """Raises `ValueError` unless demonstrations of `resolution` px views suit `config`."""
     if resolution != config.resolution:
@@ -498,13 +511,7 @@ def _resume_or_init(
         state = resume_from(
             checkpoint, "esrp-bc", model, optimizer, RESUME_FREE, device, legacy=LEGACY_SETTINGS
         )
-        began = state.get("demos_fingerprint")
-        if began is not None and began != demos:
-            raise ValueError(
-                f"{checkpoint} was trained on other demonstrations ({began}; the stores now hold {demos}): "
-                "a store was exported again or appended to since the run began; resume with the "
-                "stores it began with, or start another run"
-            )
+        check_same_demos(checkpoint, state.get("demos_fingerprint"), demos)
         epoch, steps = int(state["epoch"]), int(state["steps"])
         if epoch > config.epochs:
             raise ValueError(

@@ -44,7 +44,7 @@ from ..agents.encoders import resolve_device
 from ..agents.ppo import NETWORK_SETTINGS, PpoConfig, PpoNet
 from ._config import read_table
 from ._training import resume_from, run_folder, save_checkpoint, settings_differences, trim_epoch_log
-from .bc import NO_LABEL, DemoWindows
+from .bc import NO_LABEL, DemoWindows, check_same_demos
 from .ppo import load_config, load_initial_weights
 
 __all__ = [
@@ -248,12 +248,7 @@ def train(
         )
     if len(demos) < config.streams:  # as `stream_order` would say in the first epoch
         raise ValueError(f"{len(demos)} steps cannot fill {config.streams} streams: fewer streams")
-    if began is not None and began != demos.fingerprint:
-        raise ValueError(
-            f"{checkpoint} was trained on other demonstrations ({began}; the stores now hold "
-            f"{demos.fingerprint}): a store was exported again or appended to since the run began; resume "
-            "with the stores it began with, or start another run"
-        )
+    check_same_demos(checkpoint, began, demos.fingerprint)
     _start_files(ppo, config, out, epoch)
     lengths = np.bincount(demos.episode)
     batches = (len(demos) // config.streams + config.seq_len - 1) // config.seq_len
