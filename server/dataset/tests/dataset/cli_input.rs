@@ -6,9 +6,7 @@ use std::path::Path;
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-fn run(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_esrp-dataset")).args(args).output().expect("the binary runs")
-}
+use super::cli::{run, text};
 
 /// Runs the binary, killing it if it is still running after `limit` (then `None`).
 fn run_within(args: &[&str], limit: Duration) -> Option<Output> {
@@ -28,10 +26,6 @@ fn run_within(args: &[&str], limit: Duration) -> Option<Output> {
     child.kill().unwrap();
     child.wait().unwrap();
     None
-}
-
-fn text(output: &Output) -> String {
-    format!("{}{}", String::from_utf8_lossy(&output.stdout), String::from_utf8_lossy(&output.stderr))
 }
 
 #[test]
