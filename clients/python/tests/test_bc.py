@@ -374,9 +374,16 @@ def test_training_resumes_from_its_checkpoint(demos: Path, tmp_path: Path) -> No
         train(tiny(demos, epochs=2), run, progress=False)
     with pytest.raises(ValueError, match="other settings"):
         train(tiny(demos, epochs=2, lr=5e-4), run, resume=True, progress=False)
+    # The resumed run's seconds count on from the interrupted run's last line.
+    first = log_rows(run)[0] | {"seconds": "1000.0"}
+    with open(run / "log.csv", "w", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=list(first))
+        writer.writeheader()
+        writer.writerow(first)
     train(tiny(demos, epochs=2), run, resume=True, progress=False)
     rows = log_rows(run)
     assert [row["epoch"] for row in rows] == ["1", "2"]
+    assert 1000.0 < float(rows[1]["seconds"]) < 1000.0 + 600
     assert torch.load(run / "ckpt.pt", weights_only=False)["epoch"] == 2
 
 

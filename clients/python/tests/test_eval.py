@@ -280,7 +280,7 @@ def test_failed_episodes_are_not_recorded_and_a_rerun_retries_them(
     (tmp_path / "FAIL_ON").write_text(bad)
     assert main([*base, "--agent-config", json.dumps({"steps": 3})]) == 1
     captured = capsys.readouterr()
-    said = f"1 episodes failed with an error and were not recorded (rerun to retry them): {bad}"
+    said = f"1 episode failed with an error and was not recorded (rerun to retry it): {bad}"
     assert said in captured.err
     assert "my_agents:make on 3 scenes of esrp-bench-v2, 1 more failed (not recorded) (" in captured.out
     assert bad not in {r.scene_id for r in read_records(out).records}
@@ -1101,3 +1101,23 @@ def test_the_committed_gzip_results_are_read_as_they_are_and_never_appended_to(
     err = capsys.readouterr().err
     assert f"{packed} is gzip-compressed: esrp eval appends to plain files" in err, err
     assert packed.read_bytes() == committed.read_bytes()
+
+
+def test_the_closing_message_agrees_with_its_counts() -> None:
+    """`format_failures`: the same words as esrp-eval's, singular and plural alike."""
+    from esrp.eval.evaluation import format_failures
+
+    assert format_failures([("b", "e"), ("a", "e")]) == (
+        "2 episodes failed with an error and were not recorded (rerun to retry them): a, b"
+    )
+    assert format_failures([("c", "e")], refused={"c"}) == (
+        "1 episode was refused by the server and not recorded, as it would be again: c"
+    )
+    assert format_failures([("a", "e"), ("c", "e")], Path("errors.log"), refused={"c"}) == (
+        "1 episode failed with an error and was not recorded (rerun to retry it): a; 1 more was refused "
+        "by the server and not recorded, as it would be again: c; tracebacks in errors.log"
+    )
+    assert format_failures([("c", "e"), ("a", "e"), ("b", "e")], refused={"b", "c"}) == (
+        "1 episode failed with an error and was not recorded (rerun to retry it): a; 2 more were refused "
+        "by the server and not recorded, as they would be again: b, c"
+    )

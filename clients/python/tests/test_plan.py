@@ -100,3 +100,42 @@ def test_async_plan_matches_sync(
     got = asyncio.run(main())
     assert got.actions == expected.actions  # the planner is deterministic
     assert got.plan_length == expected.plan_length
+
+
+def test_a_plan_call_deadline_covers_the_budget() -> None:
+    """The client's `timeout` is stretched to the planning budget plus 5 s: the call's own, else
+    the server's (`ServerLimits.plan_budget_ms`; 60 s where an older server says none)."""
+    from esrp._convert import plan_timeout
+
+    assert plan_timeout(None, None, 90_000) is None  # no deadline stays none
+    assert plan_timeout(1.0, 2_000, 90_000) == 7.0  # the call's budget
+    assert plan_timeout(1.0, None, 90_000) == 95.0  # the server's
+    assert plan_timeout(1.0, None, 0) == 65.0  # an older server's: its cap by default
+    assert plan_timeout(300.0, None, 90_000) == 300.0  # a longer timeout is kept
+
+
+def test_a_client_with_a_timeout_learns_the_server_plan_budget() -> None:
+    """A call that names its budget asks nothing more; one that names none learns the server's
+    budget once (its deadline is stretched to it), on both clients."""
+    with esrp.LocalServer("--plan-budget-ms", "90000", "--max-plan-ms", "120000") as server:
+        with esrp.Client(server.address, timeout=30) as client:
+            limits = client.server_info().limits
+            assert (limits.plan_budget_ms, limits.max_plan_ms) == (90_000, 120_000)
+            scene = next(client.scenes("test", "easy")).id
+            with client.create_episode(scene, privileged=True) as episode:
+                assert episode.plan_actions(budget_ms=5_000).reaches_success
+                assert client._plan_budget_ms is None
+                assert episode.plan_actions().reaches_success
+                assert client._plan_budget_ms == 90_000
+
+        async def main() -> None:
+            async with (
+                esrp.AsyncClient(server.address, timeout=30) as aclient,
+                await aclient.create_episode(scene, privileged=True) as episode,
+            ):
+                assert (await episode.plan_actions(budget_ms=5_000)).reaches_success
+                assert aclient._plan_budget_ms is None
+                assert (await episode.plan_actions()).reaches_success
+                assert aclient._plan_budget_ms == 90_000
+
+        asyncio.run(main())

@@ -204,7 +204,11 @@ def test_training_resumes_from_its_checkpoint(
     with pytest.raises(ValueError, match="other settings"):
         train(tiny(easy_scenes[0], total_steps=32, lr=1e-3), run, client, resume=True, progress=False)
     # A log written before the timing columns existed is carried over under today's columns.
-    old = [{k: v for k, v in row.items() if not k.endswith("_seconds")} for row in rows(run / "log.csv")]
+    # Its seconds are made large: the resumed run's count on from them.
+    old = [
+        {k: v for k, v in row.items() if not k.endswith("_seconds")} | {"seconds": "1000"}
+        for row in rows(run / "log.csv")
+    ]
     with open(run / "log.csv", "w", newline="") as file:
         writer = csv.DictWriter(file, fieldnames=list(old[0]))
         writer.writeheader()
@@ -215,6 +219,7 @@ def test_training_resumes_from_its_checkpoint(
     assert [row["steps"] for row in log] == ["16", "32"]
     assert log[0]["env_seconds"] == ""
     assert log[0]["entropy"] == old[0]["entropy"]
+    assert 1000.0 < float(log[1]["seconds"]) < 1000.0 + 600
     # Where an update's time went: the environment, the actions, the learning.
     parts = [float(log[1][k]) for k in ("env_seconds", "act_seconds", "learn_seconds")]
     assert all(part > 0 for part in parts)

@@ -155,9 +155,18 @@ def test_imitation_resumes_and_refuses_other_settings(demos: Path, tmp_path: Pat
         ppo_bc.train(network_config(), imitation(demos, epochs=2), run, progress=False)
     with pytest.raises(ValueError, match="other"):
         ppo_bc.train(network_config(), imitation(demos, epochs=2, lr=1e-2), run, resume=True, progress=False)
+    # The resumed run's seconds count on from the interrupted run's last line.
+    with open(run / "log.csv", newline="") as file:
+        (first,) = [row | {"seconds": "1000.0"} for row in csv.DictReader(file)]
+    with open(run / "log.csv", "w", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=list(first))
+        writer.writeheader()
+        writer.writerow(first)
     ppo_bc.train(network_config(), imitation(demos, epochs=2), run, resume=True, progress=False)
     with open(run / "log.csv", newline="") as file:
-        assert [row["epoch"] for row in csv.DictReader(file)] == ["1", "2"]
+        log = list(csv.DictReader(file))
+    assert [row["epoch"] for row in log] == ["1", "2"]
+    assert 1000.0 < float(log[1]["seconds"]) < 1000.0 + 600
     assert torch.load(run / "ckpt.pt", weights_only=False)["epoch"] == 2
 
 

@@ -474,7 +474,8 @@ def test_a_wrong_key_url_or_model_stops_the_run_there_and_a_rerun_resumes(
         assert [r.scene_id for r in read_records(out).records] == [first.scene_id]
         where = f"the model endpoint {fake.base_url} answered HTTP {status}"
         assert f"esrp eval: {refused.scene_id}: VlmEndpointError: {where}" in err, err
-        assert "stopped the run there, as every episode would fail the same way (1 episodes" in err
+        said = "as every episode would fail the same way (1 episode recorded by this run is kept"
+        assert said in err
         # Fixed (the key, the URL or the model), the same command resumes.
         answer.update({refused.scene_id: Reply("Action: turn_right"), last.scene_id: Reply("Action: fetch")})
         assert main([*eval_args(fake, server, out, ids), *config]) == 0

@@ -314,6 +314,8 @@ class AsyncEpisode(EpisodeBase["AsyncClient"]):
         only for episodes created with `privileged=True`. Arguments, answer, caching and errors as
         `Episode.plan_actions`.
         """
+        if self._needs_server_budget(budget_ms):
+            self.client._learn_plan_budget(await self.client.server_info())
         return await self.client._calls.run(self._plan_call(max_actions, budget_ms))
 
     async def close(self) -> EpisodeMetrics:

@@ -83,6 +83,9 @@ class ClientBase:
         self._credentials = credentials(tls, https)
         # Steps per StepBatch of `step_columns`, by sensors (from the server's limits).
         self._batch_sizes: dict[Sensors, int] = {}
+        # The server's PlanActions budget of a call that names none (`ServerLimits.plan_budget_ms`),
+        # once learnt: it sets such a call's deadline.
+        self._plan_budget_ms: int | None = None
 
     @property
     def timeout(self) -> float | None:
@@ -106,6 +109,10 @@ class ClientBase:
         """Keeps and returns `batch_size` of the server's limits in `info` for `sensors`."""
         size = self._batch_sizes[sensors] = batch_size(info.limits, sensors)
         return size
+
+    def _learn_plan_budget(self, info: ServerInfo) -> None:
+        """Keeps the server's PlanActions budget of a call that names none, from `info`."""
+        self._plan_budget_ms = info.limits.plan_budget_ms
 
 
 def server_info_call() -> UnaryCall[ServerInfo]:
@@ -301,9 +308,15 @@ class EpisodeBase(Generic[ClientT]):
         request = pb.GetPrivilegedStateRequest(episode_id=self.id)
         return UnaryCall("GetPrivilegedState", request, _convert.privileged_state)
 
+    def _needs_server_budget(self, budget_ms: int | None) -> bool:
+        """Whether a PlanActions call's deadline depends on the server's default budget, which the
+        client has not learnt yet: the call names no budget and the client has a deadline.
+        """
+        return budget_ms is None and self.client.timeout is not None and self.client._plan_budget_ms is None
+
     def _plan_call(self, max_actions: int, budget_ms: int | None) -> UnaryCall[PlanAnswer]:
         request = _convert.plan_request(self.id, max_actions, budget_ms)
-        timeout = _convert.plan_timeout(self.client.timeout, budget_ms)
+        timeout = _convert.plan_timeout(self.client.timeout, budget_ms, self.client._plan_budget_ms or 0)
         return UnaryCall("PlanActions", request, _convert.plan_answer, timeout)
 
     def _close_call(self) -> UnaryCall[EpisodeMetrics]:

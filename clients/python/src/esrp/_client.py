@@ -423,7 +423,9 @@ class Episode(EpisodeBase["Client"]):
             max_actions: At most this many next actions; 0: the whole plan.
             budget_ms: Planning time in milliseconds, counted from the call (waiting for a planner
                 thread included); None: the server's `--plan-budget-ms` (10 s by default). The
-                server caps it at its `--max-plan-ms` (60 s by default).
+                server caps it at its `--max-plan-ms` (60 s by default). A client `timeout`
+                shorter than the budget plus 5 s is stretched to that for this call (the first
+                call without a budget asks the server for its own, `ServerLimits.plan_budget_ms`).
 
         Returns the plan's next actions and how it was made; a plan that does not exist comes back
         as a `PlanAnswer` with `failure` set (and the actions the planner took before failing).
@@ -436,6 +438,8 @@ class Episode(EpisodeBase["Client"]):
             EpisodeEnded: The episode has ended.
             PermissionDenied: The episode is not privileged.
         """
+        if self._needs_server_budget(budget_ms):
+            self.client._learn_plan_budget(self.client.server_info())
         return self.client._calls.run(self._plan_call(max_actions, budget_ms))
 
     def close(self) -> EpisodeMetrics:

@@ -224,15 +224,18 @@ def plan_request(episode_id: str, max_actions: int, budget_ms: int | None) -> pb
     return pb.PlanActionsRequest(episode_id=episode_id, max_actions=max_actions, budget_ms=budget_ms or 0)
 
 
-def plan_timeout(timeout: float | None, budget_ms: int | None) -> float | None:
+def plan_timeout(timeout: float | None, budget_ms: int | None, server_budget_ms: int = 0) -> float | None:
     """The gRPC deadline of a PlanActions call: the client's `timeout`, but never shorter than the
-    planning budget plus 5 s (the server's cap, 60 s, where the budget is the server's), so that a
-    short default deadline does not cancel (and stop) a planner the caller gave more time.
+    planning budget plus 5 s, so that a short default deadline does not cancel (and stop) a
+    planner the caller gave more time. Where the call names no budget, the budget is the server's,
+    `server_budget_ms` (`ServerLimits.plan_budget_ms`; 0, from a server older than it: 60 s, the
+    default cap).
     """
     if timeout is None:
         return None
-    budget = (budget_ms if budget_ms is not None else 60_000) / 1000
-    return max(timeout, budget + 5.0)
+    if budget_ms is None:
+        budget_ms = server_budget_ms or 60_000
+    return max(timeout, budget_ms / 1000 + 5.0)
 
 
 def step_batch_request(episode_ids: Sequence[str], actions: Sequence[int]) -> pb.StepBatchRequest:
@@ -596,6 +599,8 @@ def server_info(message: pb.ServerInfoResponse) -> ServerInfo:
             max_message_bytes=limits.max_message_bytes,
             idle_timeout_seconds=limits.idle_timeout_seconds,
             max_resolution=limits.max_resolution,
+            plan_budget_ms=limits.plan_budget_ms,
+            max_plan_ms=limits.max_plan_ms,
         ),
         live_episodes=message.live_episodes,
         dataset=message.dataset,

@@ -466,13 +466,22 @@ class PrivilegedState:
 
 @dataclass(frozen=True)
 class ServerLimits:
-    """The server's limits (its flags)."""
+    """The server's limits (its flags).
+
+    Attributes:
+        plan_budget_ms: The planning time of a PlanActions call that names none (`--plan-budget-ms`,
+            capped by `max_plan_ms`); 0 from a server older than this field.
+        max_plan_ms: The most planning time a call may ask for (`--max-plan-ms`); 0 from an older
+            server.
+    """
 
     max_episodes: int
     max_batch: int
     max_message_bytes: int
     idle_timeout_seconds: int
     max_resolution: int
+    plan_budget_ms: int = 0
+    max_plan_ms: int = 0
 
 
 @dataclass(frozen=True)

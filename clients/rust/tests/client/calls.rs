@@ -15,6 +15,8 @@ async fn server_dataset_and_scene_listing() {
     let info = client.server_info().await.unwrap();
     assert_eq!(info.dataset, "esrp-bench-v2");
     assert!(info.limits.max_episodes > 0);
+    // PlanActions' budgets, the flags' defaults.
+    assert_eq!((info.limits.plan_budget_ms, info.limits.max_plan_ms), (10_000, 60_000));
     let dataset = client.describe_dataset().await.unwrap();
     assert_eq!(dataset.name, "esrp-bench-v2");
     let tests = dataset.by_split["test"] as usize;
@@ -32,6 +34,21 @@ async fn server_dataset_and_scene_listing() {
     assert!(all.iter().all(|s| s.split == Some(Split::Test)));
     let hard = client.list_scenes(SceneFilter::split(Split::Test).difficulty(Difficulty::Hard)).await.unwrap();
     assert!(!hard.is_empty() && hard.iter().all(|s| s.difficulty == Some(Difficulty::Hard) && s.movable_objects >= 4));
+}
+
+#[tokio::test]
+async fn server_info_says_the_plan_budgets_of_its_flags() {
+    // A default budget above the cap is said as the cap, which is what a call gets.
+    for (flags, said) in [
+        (&["--plan-budget-ms", "2500", "--max-plan-ms", "90000"][..], (2_500, 90_000)),
+        (&["--plan-budget-ms", "120000", "--max-plan-ms", "30000"][..], (30_000, 30_000)),
+    ] {
+        let server = start(flags);
+        let client = client(&server).await;
+        client.wait_healthy(Duration::from_secs(10)).await.expect("healthy");
+        let limits = client.server_info().await.unwrap().limits;
+        assert_eq!((limits.plan_budget_ms, limits.max_plan_ms), said, "{flags:?}");
+    }
 }
 
 #[tokio::test]

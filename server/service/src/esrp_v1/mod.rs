@@ -35,6 +35,11 @@ impl EsrpService {
     }
 }
 
+/// Milliseconds of `duration`, said as the longest a u32 holds when it is longer (49 days).
+fn clamp_ms(duration: std::time::Duration) -> u32 {
+    u32::try_from(duration.as_millis()).unwrap_or(u32::MAX)
+}
+
 /// A StreamRequest as a tagged wave request (the tag is its request id).
 fn read_stream_request(r: proto::StreamRequest) -> (u64, WaveRequest) {
     use proto::stream_request::Request as Rq;
@@ -96,6 +101,8 @@ impl proto::esrp_server::Esrp for EsrpService {
                 max_message_bytes: u32::try_from(s.config.max_message_bytes).unwrap_or(u32::MAX),
                 idle_timeout_seconds: u32::try_from(s.config.idle_timeout_seconds).unwrap_or(u32::MAX),
                 max_resolution: s.max_resolution(),
+                plan_budget_ms: clamp_ms(s.config.plan_budget().min(s.config.max_plan())),
+                max_plan_ms: clamp_ms(s.config.max_plan()),
             }),
             live_episodes: s.live() as u32,
             dataset: s.store.name().to_owned(),

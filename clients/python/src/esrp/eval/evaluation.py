@@ -118,10 +118,12 @@ def stops_the_run(scene_id: str, error: BaseException, written: int) -> AgentSto
     """
     if getattr(error, "stops_run", False) is not True:
         return None
+    kept = f"{written} episodes recorded by this run are kept"
+    if written == 1:
+        kept = "1 episode recorded by this run is kept"
     return AgentStopped(
         f"{scene_id}: {type(error).__name__}: {error}; stopped the run there, as every episode would "
-        f"fail the same way ({written} episodes recorded by this run are kept: run the same command "
-        "again to resume once it is fixed)"
+        f"fail the same way ({kept}: run the same command again to resume once it is fixed)"
     )
 
 
@@ -1081,14 +1083,21 @@ def format_failures(
     """
     retry = sorted(scene for scene, _ in failed if scene not in refused)
     again = sorted(scene for scene, _ in failed if scene in refused)
+    n, m = len(retry), len(again)
+
+    def one(count: int, single: str, plural: str) -> str:
+        # The words agree with the count: "1 episode ... was ... it", "2 episodes ... were ... them".
+        return single if count == 1 else plural
+
     retry_text = (
-        f"{len(retry)} episodes failed with an error and were not recorded (rerun to retry them): "
-        + ", ".join(retry)
+        f"{n} {one(n, 'episode', 'episodes')} failed with an error and {one(n, 'was', 'were')} not "
+        f"recorded (rerun to retry {one(n, 'it', 'them')}): " + ", ".join(retry)
     )
-    again_text = "refused by the server and not recorded, as they would be again: " + ", ".join(again)
+    again_text = f"refused by the server and not recorded, as {one(m, 'it', 'they')} would be again: "
+    again_text += ", ".join(again)
     where = f"; tracebacks in {errors_log}" if errors_log is not None else ""
     if not again:
         return retry_text + where
     if not retry:
-        return f"{len(again)} episodes were {again_text}{where}"
-    return f"{retry_text}; {len(again)} more were {again_text}{where}"
+        return f"{m} {one(m, 'episode', 'episodes')} {one(m, 'was', 'were')} {again_text}{where}"
+    return f"{retry_text}; {m} more {one(m, 'was', 'were')} {again_text}{where}"

@@ -20,11 +20,13 @@ from ..agents._checkpoint import read_checkpoint
 
 __all__ = [
     "load_resumable",
+    "logged_seconds",
     "resume_from",
     "run_folder",
     "save_checkpoint",
     "save_for_playing",
     "settings_differences",
+    "rewrite_csv",
     "trim_epoch_log",
 ]
 
@@ -187,13 +189,41 @@ def resume_from(
 def trim_epoch_log(path: Path, fields: Sequence[str], epoch: int) -> None:
     """Makes `path` a CSV log of the epochs up to `epoch`: started over (its header only) when the
     run starts, else its lines after `epoch` (written before an interruption, past the checkpoint
-    the run resumes from) dropped.
+    the run resumes from) dropped. The file is replaced whole (`rewrite_csv`).
     """
     rows: list[list[str]] = []
     if epoch > 0 and path.exists():
         with open(path, newline="") as file:
             rows = [row for row in list(csv.reader(file))[1:] if row and int(row[0]) <= epoch]
-    with open(path, "w", newline="") as file:
-        writer = csv.writer(file)
-        writer.writerow(fields)
-        writer.writerows(rows)
+    rewrite_csv(path, [list(fields), *rows])
+
+
+def rewrite_csv(path: Path, rows: Sequence[Sequence[str]]) -> None:
+    """Writes `rows` as the CSV file `path` atomically: into a temporary file beside it, then
+    renamed over it, so that an interruption leaves the old log or the new one, never a part.
+    """
+    partial = path.with_name(f".{path.name}.partial")
+    with open(partial, "w", newline="") as file:
+        csv.writer(file).writerows(rows)
+        file.flush()
+        os.fsync(file.fileno())
+    os.replace(partial, path)
+
+
+def logged_seconds(path: Path) -> float:
+    """The `seconds` column of the last line of the CSV log `path`: the training time a resumed run
+    goes on from, so that its lines count on from the interrupted run's (0.0 when the log is
+    missing, holds no line, or has no such column).
+    """
+    if not path.exists():
+        return 0.0
+    with open(path, newline="") as file:
+        rows = [row for row in csv.reader(file) if row]
+    if len(rows) < 2 or "seconds" not in rows[0]:
+        return 0.0
+    at = rows[0].index("seconds")
+    try:
+        seconds = float(rows[-1][at])
+    except (IndexError, ValueError):
+        return 0.0
+    return seconds if seconds >= 0 and seconds != float("inf") else 0.0

@@ -46,7 +46,14 @@ from .. import _malloc_setup
 from ..agents.bc import LEGACY_SETTINGS, BcConfig, DiffusionPolicy, bc_loss, random_shift, schedulers
 from ..agents.encoders import resolve_device
 from ._config import read_table
-from ._training import resume_from, run_folder, save_checkpoint, save_for_playing, trim_epoch_log
+from ._training import (
+    logged_seconds,
+    resume_from,
+    run_folder,
+    save_checkpoint,
+    save_for_playing,
+    trim_epoch_log,
+)
 from .heldout import EVAL_FIELDS, TrainServer, evaluate_checkpoint, heldout_scenes, read_eval_log
 
 __all__ = [
@@ -376,7 +383,8 @@ def train(
             held_out.run(used, epoch, steps)
         elif epoch > 0 and held_out.evaluating:
             held_out.keep_best(epoch)
-        started = time.monotonic()
+        # A resumed run's `seconds` go on from the interrupted run's last logged epoch.
+        started = time.monotonic() - logged_seconds(log_path)
         model.train()
         while epoch < config.epochs:
             order = windows.epoch_order(config.seed + epoch, config.span)

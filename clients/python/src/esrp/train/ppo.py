@@ -45,7 +45,7 @@ from ..agents.encoders import resolve_device
 from ..agents.ppo import NETWORK_SETTINGS, LstmState, PpoConfig, PpoNet
 from ..envs import RearrangeVectorEnv
 from ._config import read_table
-from ._training import resume_from, run_folder, save_checkpoint
+from ._training import logged_seconds, resume_from, rewrite_csv, run_folder, save_checkpoint
 
 __all__ = [
     "RewardScale",
@@ -322,7 +322,8 @@ def _loop(
     episode_return = np.zeros(n)
     episode_length = np.zeros(n, dtype=np.int64)
     _, held = critic_and_policy(network)  # what the critic warm-up holds still
-    started = time.monotonic()
+    # A resumed run's `seconds` go on from the interrupted run's last logged update.
+    started = time.monotonic() - logged_seconds(out / "log.csv")
     while update < config.num_updates:
         update_started = time.monotonic()
         initial = (state[0].clone(), state[1].clone())
@@ -628,5 +629,4 @@ def _trim_logs(out: Path, update: int, steps: int) -> None:
             # A log of an older version: its lines under today's columns, the new ones left empty.
             named = [dict(zip(rows[0], row, strict=False)) for row in kept[1:]]
             kept = [list(LOG_FIELDS), *([line.get(field, "") for field in LOG_FIELDS] for line in named)]
-        with open(path, "w", newline="") as file:
-            csv.writer(file).writerows(kept)
+        rewrite_csv(path, kept)

@@ -43,7 +43,14 @@ from ..agents.bc import random_shift
 from ..agents.encoders import resolve_device
 from ..agents.ppo import NETWORK_SETTINGS, PpoConfig, PpoNet
 from ._config import read_table
-from ._training import resume_from, run_folder, save_checkpoint, settings_differences, trim_epoch_log
+from ._training import (
+    logged_seconds,
+    resume_from,
+    run_folder,
+    save_checkpoint,
+    settings_differences,
+    trim_epoch_log,
+)
 from .bc import NO_LABEL, DemoWindows, check_same_demos
 from .ppo import load_config, load_initial_weights
 
@@ -253,7 +260,8 @@ def train(
     lengths = np.bincount(demos.episode)
     batches = (len(demos) // config.streams + config.seq_len - 1) // config.seq_len
     total = batches * config.epochs
-    started = time.monotonic()
+    # A resumed run's `seconds` go on from the interrupted run's last logged epoch.
+    started = time.monotonic() - logged_seconds(out / "log.csv")
     while epoch < config.epochs:
         network.train()
         order, starts = stream_order(lengths, config.streams, config.seed * 1_000_003 + epoch)

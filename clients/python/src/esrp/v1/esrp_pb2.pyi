@@ -1411,11 +1411,18 @@ class ServerLimits(_message.Message):
     MAX_MESSAGE_BYTES_FIELD_NUMBER: _builtins.int
     IDLE_TIMEOUT_SECONDS_FIELD_NUMBER: _builtins.int
     MAX_RESOLUTION_FIELD_NUMBER: _builtins.int
+    PLAN_BUDGET_MS_FIELD_NUMBER: _builtins.int
+    MAX_PLAN_MS_FIELD_NUMBER: _builtins.int
     max_episodes: _builtins.int
     max_batch: _builtins.int
     max_message_bytes: _builtins.int
     idle_timeout_seconds: _builtins.int
     max_resolution: _builtins.int
+    plan_budget_ms: _builtins.int
+    """PlanActions' time budgets in milliseconds: of a call that names none (--plan-budget-ms, capped
+    by the next) and the most a call may ask for (--max-plan-ms); 0 from a server older than them.
+    """
+    max_plan_ms: _builtins.int
     def __init__(
         self,
         *,
@@ -1424,10 +1431,12 @@ class ServerLimits(_message.Message):
         max_message_bytes: _builtins.int = ...,
         idle_timeout_seconds: _builtins.int = ...,
         max_resolution: _builtins.int = ...,
+        plan_budget_ms: _builtins.int = ...,
+        max_plan_ms: _builtins.int = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["idle_timeout_seconds", b"idle_timeout_seconds", "max_batch", b"max_batch", "max_episodes", b"max_episodes", "max_message_bytes", b"max_message_bytes", "max_resolution", b"max_resolution"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["idle_timeout_seconds", b"idle_timeout_seconds", "max_batch", b"max_batch", "max_episodes", b"max_episodes", "max_message_bytes", b"max_message_bytes", "max_plan_ms", b"max_plan_ms", "max_resolution", b"max_resolution", "plan_budget_ms", b"plan_budget_ms"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 

@@ -428,16 +428,25 @@ fn failures(failed: &[(String, bool)]) -> String {
         ids
     };
     let (retry, refused) = (ids(false), ids(true));
-    let again = format!("refused by the server and not recorded, as they would be again: {}", refused.join(", "));
+    // The words agree with the count: "1 episode ... was ... it", "2 episodes ... were ... them".
+    let (n, m) = (retry.len(), refused.len());
+    let one = |n: usize, single: &'static str, plural: &'static str| if n == 1 { single } else { plural };
+    let again = format!(
+        "refused by the server and not recorded, as {} would be again: {}",
+        one(m, "it", "they"),
+        refused.join(", ")
+    );
     let retry_text = format!(
-        "{} episodes failed with an error and were not recorded (rerun to retry them): {}",
-        retry.len(),
+        "{n} {} failed with an error and {} not recorded (rerun to retry {}): {}",
+        one(n, "episode", "episodes"),
+        one(n, "was", "were"),
+        one(n, "it", "them"),
         retry.join(", ")
     );
-    match (retry.len(), refused.len()) {
+    match (n, m) {
         (_, 0) => retry_text,
-        (0, n) => format!("{n} episodes were {again}"),
-        (_, n) => format!("{retry_text}; {n} more were {again}"),
+        (0, m) => format!("{m} {} {} {again}", one(m, "episode", "episodes"), one(m, "was", "were")),
+        (_, m) => format!("{retry_text}; {m} more {} {again}", one(m, "was", "were")),
     }
 }
 
@@ -581,11 +590,16 @@ mod tests {
         );
         assert_eq!(
             failures(&failed(&[("c", true)])),
-            "1 episodes were refused by the server and not recorded, as they would be again: c"
+            "1 episode was refused by the server and not recorded, as it would be again: c"
+        );
+        assert_eq!(
+            failures(&failed(&[("a", false), ("c", true)])),
+            "1 episode failed with an error and was not recorded (rerun to retry it): a; 1 more was refused by the \
+             server and not recorded, as it would be again: c"
         );
         assert_eq!(
             failures(&failed(&[("c", true), ("a", false), ("b", true)])),
-            "1 episodes failed with an error and were not recorded (rerun to retry them): a; 2 more were refused by \
+            "1 episode failed with an error and was not recorded (rerun to retry it): a; 2 more were refused by \
              the server and not recorded, as they would be again: b, c"
         );
     }
