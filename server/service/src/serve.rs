@@ -349,12 +349,50 @@ fn server_builder(config: &Config) -> Result<tonic::transport::Server, ServeErro
             std::fs::read(path)
                 .map_err(|source| ServeError::Io { what: format!("cannot read {flag} {}", path.display()), source })
         };
-        let (cert, key) = (read("--tls-cert", cert)?, read("--tls-key", key)?);
+        let (cert_pem, key_pem) = (read("--tls-cert", cert)?, read("--tls-key", key)?);
+        check_tls_identity(cert, &cert_pem, key, &key_pem).map_err(ServeError::Config)?;
         builder = builder.tls_config(
-            tonic::transport::ServerTlsConfig::new().identity(tonic::transport::Identity::from_pem(cert, key)),
+            tonic::transport::ServerTlsConfig::new().identity(tonic::transport::Identity::from_pem(cert_pem, key_pem)),
         )?;
     }
     Ok(builder)
+}
+
+/// Checks the PEM files of `--tls-cert` and `--tls-key` before the transport takes them, so that
+/// a refusal names the flag and the file at fault (the transport's own errors name neither: an
+/// empty certificate file there is "peer sent no certificates", a certificate given as the key
+/// "no RSA or PKCS8-encoded keys found", whatever the key's kind, and a key of another
+/// certificate "KeyMismatch").
+fn check_tls_identity(cert: &Path, cert_pem: &[u8], key: &Path, key_pem: &[u8]) -> Result<(), String> {
+    use rustls::pki_types::pem::PemObject;
+    use rustls::pki_types::{CertificateDer, PrivateKeyDer};
+    let (cert, key) = (cert.display(), key.display());
+    let chain = CertificateDer::pem_slice_iter(cert_pem)
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| format!("--tls-cert {cert}: not a PEM certificate chain: {e}"))?;
+    if chain.is_empty() {
+        return Err(format!(
+            "--tls-cert {cert}: no certificate in it (a PEM block `-----BEGIN CERTIFICATE-----`, the server's \
+             own first, then its chain)"
+        ));
+    }
+    let private_key = PrivateKeyDer::from_pem_slice(key_pem).map_err(|e| {
+        format!(
+            "--tls-key {key}: no private key in it (a PEM block `-----BEGIN PRIVATE KEY-----`, or of an RSA or \
+             EC key): {e}"
+        )
+    })?;
+    let signing_key = rustls::crypto::ring::sign::any_supported_type(&private_key)
+        .map_err(|e| format!("--tls-key {key}: a key TLS cannot sign with (RSA, ECDSA P-256/P-384 or Ed25519): {e}"))?;
+    match rustls::sign::CertifiedKey::new(chain, signing_key).keys_match() {
+        // Where rustls cannot tell (a key that does not give its public half), the handshake will.
+        Ok(()) | Err(rustls::Error::InconsistentKeys(rustls::InconsistentKeys::Unknown)) => Ok(()),
+        Err(rustls::Error::InconsistentKeys(_)) => Err(format!(
+            "--tls-key {key} is not the key of --tls-cert {cert} (the chain's first certificate must be the one the \
+             key is for)"
+        )),
+        Err(e) => Err(format!("--tls-cert {cert}: its first certificate cannot be read: {e}")),
+    }
 }
 
 /// `shutdown`, passed on to the server, and a timer that completes `grace` after it did. The

@@ -14,5 +14,6 @@ mod lifecycle;
 mod replays;
 mod scene_cache;
 mod smoke;
+mod startup;
 mod unix_socket;
 mod viewer;
