@@ -106,7 +106,10 @@ impl Tokens {
                 return Err(format!("{at}: the name is used twice"));
             }
             let hash = match (&t.secret, &t.secret_sha256) {
-                (Some(secret), None) if !secret.trim().is_empty() => digest(secret.as_bytes()),
+                (Some(secret), None) if !secret.trim().is_empty() => {
+                    sendable_secret(secret).map_err(|why| format!("{at}: the secret {why}"))?;
+                    digest(secret.as_bytes())
+                }
                 (Some(_), None) => return Err(format!("{at}: the secret is empty")),
                 (None, Some(hex)) => parse_sha256(hex).ok_or_else(|| {
                     format!("{at}: secret_sha256 is not 64 hex digits (e.g. `printf %s SECRET | sha256sum`)")
@@ -155,6 +158,30 @@ impl Tokens {
         }
         found
     }
+}
+
+/// Whether a client can send `secret` at all: a bearer token travels in the `authorization`
+/// header, which carries printable ASCII only (0x20 to 0x7E) and no space at either end (gRPC
+/// libraries refuse or trim the rest). A secret that breaks this, most often one read from a file
+/// with its line break (a Kubernetes Secret made with `--from-file`), would be a token no client
+/// could ever present; the error says why without quoting the secret.
+pub fn sendable_secret(secret: &str) -> Result<(), String> {
+    if let Some((at, c)) = secret.chars().enumerate().find(|(_, c)| !(' '..='~').contains(c)) {
+        let what = match c {
+            '\n' | '\r' => "a line break (read from a file with its newline?)".to_owned(),
+            '\t' => "a tab".to_owned(),
+            c if c.is_ascii_control() => format!("the control character U+{:04X}", u32::from(c)),
+            _ => "a character that is not ASCII".to_owned(),
+        };
+        return Err(format!(
+            "has {what} at character {}: a bearer token is printable ASCII only (a gRPC header carries nothing else)",
+            at + 1
+        ));
+    }
+    if secret.starts_with(' ') || secret.ends_with(' ') {
+        return Err("starts or ends with a space, which gRPC libraries trim from a header: drop it".to_owned());
+    }
+    Ok(())
 }
 
 fn parse_sha256(hex: &str) -> Option<[u8; 32]> {

@@ -60,11 +60,16 @@ pub enum ServeError {
     Config(String),
 }
 
-/// The tokens of `config`: `--tokens FILE`, `--token` (one admin) or none.
+/// The tokens of `config`: `--tokens FILE`, `--token` (one admin) or none. A `--token` no client
+/// could send is refused here rather than by the flag parser, whose message would quote it.
 pub fn tokens_of(config: &Config) -> Result<auth::Tokens, ServeError> {
     Ok(match (&config.tokens, &config.token) {
         (Some(path), _) => auth::Tokens::from_file(path)?,
-        (None, Some(secret)) => auth::Tokens::single_admin(secret),
+        (None, Some(secret)) => {
+            auth::sendable_secret(secret)
+                .map_err(|why| ServeError::Config(format!("--token (ESRP_TOKEN): the token {why}")))?;
+            auth::Tokens::single_admin(secret)
+        }
         (None, None) => auth::Tokens::open(),
     })
 }

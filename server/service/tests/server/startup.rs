@@ -56,3 +56,33 @@ fn tls_files_that_cannot_serve_are_refused_naming_their_flag() {
         assert!(line.starts_with(&format!("esrp-server: {said}")), "{line}");
     }
 }
+
+/// A secret no client could send (a bearer header is printable ASCII, with no space at either
+/// end) is refused at start, without being quoted: most often a token read from a file with its
+/// line break, as from a Kubernetes Secret made with `--from-file`. Such a server used to start
+/// and answer UNAUTHENTICATED to every call.
+#[test]
+fn a_token_no_client_could_send_is_refused() {
+    let line = refused_at_start(&[], &[("ESRP_TOKEN", "s3cret-from-a-file\n")]);
+    assert!(
+        line.starts_with("esrp-server: --token (ESRP_TOKEN): the token has a line break (read from a file"),
+        "{line}"
+    );
+    assert!(!line.contains("s3cret"), "the secret is not quoted: {line}");
+
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("tokens.toml");
+    for (secret, said) in [
+        ("team\\n", "has a line break"),
+        ("t\u{e9}am-secret", "has a character that is not ASCII"),
+        ("team-secret ", "starts or ends with a space"),
+    ] {
+        let text = format!(
+            "[[token]]\nname = \"ops\"\nsecret = \"ops-secret\"\nrole = \"admin\"\n\n[[token]]\nname = \"team\"\nsecret = \"{secret}\"\nrole = \"agent\"\n"
+        );
+        std::fs::write(&file, text).unwrap();
+        let line = refused_at_start(&["--tokens", path(&file)], &[]);
+        let expected = format!("esrp-server: token file {}: token #2 (\"team\"): the secret {said}", path(&file));
+        assert!(line.starts_with(&expected), "{line}");
+    }
+}
