@@ -217,7 +217,7 @@ pub struct Config {
     /// PlanActions: the most planning time a call may ask for, in milliseconds.
     #[arg(long, env = "ESRP_MAX_PLAN_MS", default_value_t = 60_000, value_parser = clap::value_parser!(u64).range(1..))]
     pub max_plan_ms: u64,
-    /// Shutdown: how long, after SIGTERM/SIGINT, calls in flight and open streams may take to
+    /// Shutdown: how long, after SIGTERM/SIGINT/SIGHUP, calls in flight and open streams may take to
     /// finish, in milliseconds; then the server stops anyway (clients still connected see their
     /// calls fail with UNAVAILABLE) and exits 0.
     #[arg(long, env = "ESRP_SHUTDOWN_GRACE_MS", default_value_t = 5_000)]

@@ -1,4 +1,4 @@
-//! `esrp-server`: parses the configuration, sets up logging and serves until SIGINT/SIGTERM;
+//! `esrp-server`: parses the configuration, sets up logging and serves until SIGINT/SIGTERM/SIGHUP;
 //! `esrp-server health-check` asks a running server whether it is serving.
 
 // Proving `esrp_server::run`'s future Send walks deep into wgpu's types (as in the library).
@@ -34,14 +34,19 @@ enum Command {
     HealthCheck(health_check::HealthCheckArgs),
 }
 
-/// SIGINT and SIGTERM, listened for from the moment this is made: a signal that arrives before
-/// anything awaits [`Signals::wait`] (while the renderer starts, say) is kept, not lost, and
-/// does not kill the process. With `--stop-on-stdin-close`, the end of standard input too.
+/// SIGINT, SIGTERM and SIGHUP, listened for from the moment this is made: a signal that arrives
+/// before anything awaits [`Signals::wait`] (while the renderer starts, say) is kept, not lost,
+/// and does not kill the process. With `--stop-on-stdin-close`, the end of standard input too.
 struct Signals {
     #[cfg(unix)]
     interrupt: tokio::signal::unix::Signal,
     #[cfg(unix)]
     terminate: tokio::signal::unix::Signal,
+    /// SIGHUP (the terminal or SSH session the server was started from went away), unless the
+    /// server was started ignoring it (`nohup`): left to its default, it ended the process at
+    /// once, its open episodes unrecorded and its Unix socket file left behind.
+    #[cfg(unix)]
+    hangup: Option<tokio::signal::unix::Signal>,
     stdin_closed: Option<tokio::sync::oneshot::Receiver<()>>,
 }
 
@@ -54,9 +59,16 @@ impl Signals {
         {
             use tokio::signal::unix::{SignalKind, signal};
             let error = |e: std::io::Error| anyhow::anyhow!("cannot install the SIGINT/SIGTERM handlers: {e}");
+            let hangup = if hangup_ignored() {
+                None
+            } else {
+                let error = |e: std::io::Error| anyhow::anyhow!("cannot install the SIGHUP handler: {e}");
+                Some(signal(SignalKind::hangup()).map_err(error)?)
+            };
             Ok(Self {
                 interrupt: signal(SignalKind::interrupt()).map_err(error)?,
                 terminate: signal(SignalKind::terminate()).map_err(error)?,
+                hangup,
                 stdin_closed,
             })
         }
@@ -64,8 +76,8 @@ impl Signals {
         Ok(Self { stdin_closed })
     }
 
-    /// Completes on the first SIGINT or SIGTERM (Ctrl-C elsewhere), or the end of stdin when
-    /// watched.
+    /// Completes on the first SIGINT, SIGTERM or SIGHUP (Ctrl-C elsewhere), or the end of stdin
+    /// when watched.
     async fn wait(self) {
         let stdin_closed = async move {
             match self.stdin_closed {
@@ -79,9 +91,19 @@ impl Signals {
         #[cfg(unix)]
         {
             let (mut interrupt, mut terminate) = (self.interrupt, self.terminate);
+            let hangup = async move {
+                match self.hangup {
+                    Some(mut hangup) => {
+                        hangup.recv().await;
+                        tracing::info!("SIGHUP: the terminal or session that started the server went away");
+                    }
+                    None => std::future::pending().await,
+                }
+            };
             tokio::select! {
                 _ = interrupt.recv() => {},
                 _ = terminate.recv() => {},
+                () = hangup => {},
                 () = stdin_closed => {},
             }
         }
@@ -91,6 +113,19 @@ impl Signals {
             () = stdin_closed => {},
         }
         tracing::info!("shutting down");
+    }
+}
+
+/// Whether SIGHUP is ignored, as `nohup` (or a parent that set it so) leaves it: then it stays
+/// ignored, as the one who started the server asked.
+#[cfg(unix)]
+#[allow(unsafe_code)]
+fn hangup_ignored() -> bool {
+    // SAFETY: sigaction with a null new action only reads the current disposition into `old`,
+    // a zeroed plain C struct that it fills.
+    unsafe {
+        let mut old: libc::sigaction = std::mem::zeroed();
+        libc::sigaction(libc::SIGHUP, std::ptr::null(), &mut old) == 0 && old.sa_sigaction == libc::SIG_IGN
     }
 }
 

@@ -1,6 +1,6 @@
 //! Episode and process lifetimes: streams take their episodes with them, idle episodes are
-//! reaped, the server holds a thousand live episodes at once, and SIGTERM/SIGINT end it with
-//! status 0 whatever it is doing.
+//! reaped, the server holds a thousand live episodes at once, and SIGTERM/SIGINT (and SIGHUP)
+//! end it with status 0 whatever it is doing.
 
 use std::time::{Duration, Instant};
 
@@ -187,12 +187,18 @@ impl Signalled {
     }
 
     /// Sends SIGTERM and waits (at most 30 s) for the process to end; its status and stderr.
-    fn terminate(mut self) -> (std::process::ExitStatus, String) {
+    fn terminate(self) -> (std::process::ExitStatus, String) {
+        self.signal("-TERM")
+    }
+
+    /// Sends `signal` (`kill`'s spelling: `-TERM`, `-HUP`) and waits (at most 30 s) for the
+    /// process to end; its status and stderr.
+    fn signal(mut self, signal: &str) -> (std::process::ExitStatus, String) {
         let killed = std::process::Command::new("kill")
-            .args(["-TERM", &self.child.id().to_string()])
+            .args([signal, &self.child.id().to_string()])
             .status()
             .expect("kill(1) runs");
-        assert!(killed.success(), "kill -TERM failed");
+        assert!(killed.success(), "kill {signal} failed");
         let deadline = Instant::now() + Duration::from_secs(30);
         let status = loop {
             if let Some(status) = self.child.try_wait().expect("waitpid") {
@@ -202,7 +208,7 @@ impl Signalled {
                 let _ = self.child.kill();
                 let status = self.child.wait().expect("waitpid");
                 let stderr = self.stderr.join().unwrap_or_default();
-                panic!("the server did not exit within 30 s of SIGTERM ({status}); stderr:\n{stderr}");
+                panic!("the server did not exit within 30 s of {signal} ({status}); stderr:\n{stderr}");
             }
             std::thread::sleep(Duration::from_millis(10));
         };
@@ -371,6 +377,30 @@ async fn a_signal_right_after_listening_is_a_graceful_exit() {
         .unwrap();
         assert!(status.0.success(), "kill {signal} right after listening: {}; stderr:\n{}", status.0, status.1);
     }
+}
+
+/// SIGHUP (the terminal or SSH session that started the server went away) is a graceful shutdown
+/// too: status 0, the open episode recorded, the Unix socket file removed. It used to end the
+/// process at once (status 129), losing the record and leaving the socket file behind.
+#[tokio::test]
+async fn sighup_is_a_graceful_shutdown() {
+    let dir = tempfile::tempdir().unwrap();
+    let (socket, records) = (dir.path().join("esrp.sock"), dir.path().join("records"));
+    let server = Signalled::start_with(&[
+        "--listen-unix",
+        socket.to_str().unwrap(),
+        "--records",
+        records.to_str().unwrap(),
+        "--record",
+        "all",
+    ]);
+    do_work(&server.address, Work::FiveSteps).await;
+    let (status, stderr) = tokio::task::spawn_blocking(move || server.signal("-HUP")).await.unwrap();
+    assert!(status.success(), "SIGHUP: {status}; stderr:\n{stderr}");
+    assert!(!socket.exists(), "the socket file is removed");
+    let read = esrp_client::results::read_records(&records.join("anonymous.jsonl")).expect("the record is written");
+    assert_eq!(read.records.len(), 1, "{:?}", read.records);
+    assert_eq!(read.records[0].steps, 5, "{:?}", read.records[0]);
 }
 
 /// A CreateEpisode whose client gives up (its deadline expires) before the answer is sent
