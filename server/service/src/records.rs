@@ -284,6 +284,10 @@ pub fn read_journal(dir: &Path) -> Result<Vec<Journaled>, RecordsError> {
 /// --leaderboard` scores every participant over all of them).
 pub const CHALLENGE_SCENES: &str = "challenge-scenes.json";
 
+/// A file the server creates and removes at start in the records folder, to learn whether it can
+/// write there.
+const WRITE_CHECK: &str = ".esrp-write-check";
+
 /// Writes `DIR/challenge-scenes.json` (atomically: a temporary file renamed): the schema, the
 /// served dataset's hash, what the hidden splits serve (`observations`: split → `paper` or
 /// `full`) and each challenge scene's id, difficulty and object count.
@@ -379,8 +383,22 @@ impl Recorder {
     /// starts the writer thread.
     pub fn open(dir: &Path, mode: RecordMode, attempts: &Attempts, key: Option<&Path>) -> Result<Self, RecordsError> {
         let error = |reason: String| RecordsError { dir: dir.display().to_string(), reason };
+        if dir.exists() && !dir.is_dir() {
+            return Err(error("not a folder: give a folder (it is created if missing)".into()));
+        }
         std::fs::create_dir_all(dir).map_err(|e| error(format!("cannot create it: {e}")))?;
         let key = RecordsKey::load_or_create(dir, key)?;
+        // Every record is written here as its episode ends: a folder the server cannot write in
+        // is refused now, not found out as records are lost (a key already there, or given by
+        // --records-key, is only read).
+        let probe = dir.join(WRITE_CHECK);
+        std::fs::OpenOptions::new()
+            .write(true)
+            .create(true)
+            .truncate(true)
+            .open(&probe)
+            .and_then(|_| std::fs::remove_file(&probe))
+            .map_err(|e| error(format!("cannot write in it: {e}")))?;
         let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
             .map_err(|e| error(format!("cannot list it: {e}")))?
             .filter_map(|entry| entry.ok().map(|e| e.path()))

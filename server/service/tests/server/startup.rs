@@ -86,3 +86,23 @@ fn a_token_no_client_could_send_is_refused() {
         assert!(line.starts_with(&expected), "{line}");
     }
 }
+
+/// A records folder the server could not record in is refused at start: a file in its place
+/// (it used to say "cannot create it: File exists"), and a folder it cannot write in, which it
+/// used to serve with, losing every record (logged) as its episode ended.
+#[test]
+fn a_records_folder_that_cannot_take_records_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("records");
+    std::fs::write(&file, "").unwrap();
+    let line = refused_at_start(&["--records", path(&file)], &[]);
+    assert!(line.starts_with(&format!("esrp-server: --records {}: not a folder", path(&file))), "{line}");
+
+    // A folder no one may create a file in, whoever runs the tests (root included); the key is
+    // given, so the server only reads it.
+    let key = dir.path().join("records.key");
+    std::fs::write(&key, "0123456789abcdef0123456789abcdef").unwrap();
+    let unwritable = "/proc/self/fdinfo";
+    let line = refused_at_start(&["--records", unwritable, "--records-key", path(&key), "--record", "all"], &[]);
+    assert!(line.starts_with(&format!("esrp-server: --records {unwritable}: cannot write in it")), "{line}");
+}
