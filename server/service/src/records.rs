@@ -288,6 +288,34 @@ pub const CHALLENGE_SCENES: &str = "challenge-scenes.json";
 /// write there.
 const WRITE_CHECK: &str = ".esrp-write-check";
 
+/// Refuses a records folder that holds another challenge's records: its `challenge-scenes.json`
+/// names another served dataset than `dataset_hash` (another challenge seed, number of hidden
+/// scenes, benchmark or dataset). Checked before anything in the folder is read or written: the
+/// old challenge's counted attempts would refuse the new challenge's scenes of the same ids as
+/// played, its journal would be replayed on the new scenes, and its scene list, overwritten,
+/// would no longer verify its records.
+pub fn check_same_challenge(dir: &Path, dataset_hash: &str) -> Result<(), RecordsError> {
+    let error = |reason: String| RecordsError { dir: dir.display().to_string(), reason };
+    let path = dir.join(CHALLENGE_SCENES);
+    if !path.is_file() {
+        return Ok(()); // a new folder (or none yet, or not a folder: opening it says so)
+    }
+    let text = std::fs::read_to_string(&path).map_err(|e| error(format!("cannot read {}: {e}", path.display())))?;
+    let recorded = serde_json::from_str::<serde_json::Value>(&text)
+        .ok()
+        .and_then(|manifest| manifest.get("dataset_hash").and_then(|h| h.as_str()).map(str::to_owned))
+        .ok_or_else(|| error(format!("{} is not a scene list the server wrote (no dataset_hash)", path.display())))?;
+    if recorded != dataset_hash {
+        return Err(error(format!(
+            "it holds the records of another challenge ({CHALLENGE_SCENES}: dataset_hash {recorded}; this server \
+             serves {dataset_hash}: another --challenge-seed, --challenge-scenes, --minival-scenes, --benchmark, \
+             --bench-seed or --dataset): give each challenge a folder of its own, or start with the flags this one \
+             was recorded with"
+        )));
+    }
+    Ok(())
+}
+
 /// Writes `DIR/challenge-scenes.json` (atomically: a temporary file renamed): the schema, the
 /// served dataset's hash, what the hidden splits serve (`observations`: split → `paper` or
 /// `full`) and each challenge scene's id, difficulty and object count.

@@ -78,6 +78,9 @@ pub fn tokens_of(config: &Config) -> Result<auth::Tokens, ServeError> {
 /// the records (`--records`, read back), the renderer and its thread.
 pub fn build_episodes(config: &Config) -> Result<Arc<Episodes>, ServeError> {
     let store = scene_store(config)?;
+    if let (Some(dir), Some(_)) = (&config.records, &config.challenge_seed) {
+        records::check_same_challenge(dir, &store.dataset_hash())?;
+    }
     let attempts = records::Attempts::default();
     let recorder = match &config.records {
         Some(dir) => Some(records::Recorder::open(dir, config.record, &attempts, config.records_key.as_deref())?),

@@ -106,3 +106,51 @@ fn a_records_folder_that_cannot_take_records_is_refused() {
     let line = refused_at_start(&["--records", unwritable, "--records-key", path(&key), "--record", "all"], &[]);
     assert!(line.starts_with(&format!("esrp-server: --records {unwritable}: cannot write in it")), "{line}");
 }
+
+/// A records folder kept for one challenge is refused to a server of another (another challenge
+/// seed here), before anything in it is read or written: its counted attempts would refuse the
+/// new challenge's scenes of the same ids as played already, and its scene list, overwritten,
+/// would no longer verify its records. The same challenge restarted is served as before.
+#[tokio::test]
+async fn a_records_folder_of_another_challenge_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    {
+        let server = super::challenge::start(dir.path(), &[]);
+        let mut bob = super::challenge::client(&server, "bob-secret").await;
+        let created = bob.create_episode(super::challenge::create("challenge/00000", false)).await.unwrap();
+        let episode_id = created.into_inner().episode_id;
+        bob.close_episode(esrp_server::proto::CloseEpisodeRequest { episode_id }).await.unwrap();
+    }
+    let records = dir.path().join("records");
+    let before: Vec<_> = ["challenge-scenes.json", "bob.jsonl", "attempts.journal"]
+        .iter()
+        .map(|name| std::fs::read(records.join(name)).unwrap())
+        .collect();
+    let tokens = dir.path().join("tokens.toml");
+    let args = |seed| {
+        vec![
+            "--tokens",
+            path(&tokens),
+            "--challenge-seed",
+            seed,
+            "--challenge-scenes",
+            "3",
+            "--minival-scenes",
+            "1",
+            "--records",
+            path(&records),
+        ]
+    };
+    let line = refused_at_start(&args("another-seed-of-another-challenge"), &[]);
+    let said = format!("esrp-server: --records {}: it holds the records of another challenge", path(&records));
+    assert!(line.starts_with(&said), "{line}");
+    let after: Vec<_> = ["challenge-scenes.json", "bob.jsonl", "attempts.journal"]
+        .iter()
+        .map(|name| std::fs::read(records.join(name)).unwrap())
+        .collect();
+    assert!(before == after, "the folder is left as it was");
+    let again = super::challenge::start(dir.path(), &[]);
+    let mut bob = super::challenge::client(&again, "bob-secret").await;
+    let replayed = bob.create_episode(super::challenge::create("challenge/00000", false)).await;
+    super::challenge::refused(replayed, tonic::Code::FailedPrecondition, "already played");
+}
