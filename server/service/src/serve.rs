@@ -250,8 +250,8 @@ fn log_serving(address: std::net::SocketAddr, unix: Option<&Path>, tokens: &auth
     }
 }
 
-/// Closes idle episodes (`--idle-timeout-s`) and unclaimed ones (`Episodes::reap_unclaimed`,
-/// `--claim-timeout-ms`), checking ten times per shortest timeout (between 1 s and 60 s). A zero
+/// Closes idle episodes (`--idle-timeout-seconds`) and unclaimed ones (`Episodes::reap_unclaimed`,
+/// `--claim-timeout-seconds`), checking ten times per shortest timeout (between 1 s and 60 s). A zero
 /// timeout never reaps; with both zero the task ends at once.
 fn spawn_reaper(episodes: Arc<Episodes>, idle: Duration, claim: Duration) -> JoinHandle<()> {
     let shortest = [idle, claim].into_iter().filter(|t| !t.is_zero()).min();
