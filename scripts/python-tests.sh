@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Runs the Python tests against the real esrp-server binary: the Python client package
-# (clients/python: `pip install ./clients/python[test]`, then ruff, mypy, the import contracts
+# (clients/python: `pip install ./clients/python[test]`, then ruff, mypy, pyright, the import contracts
 # (lint-imports) and its pytest suite) and
 # the end-to-end tests of tests/python (dm_env_rpc's compliance suites and whole DmEnvAdaptor
 # episodes). Creates .venv (gitignored) with the pinned packages of both, builds the binaries,
@@ -100,6 +100,19 @@ step "python client: ruff ($client)"
 
 step "python client: mypy (strict)"
 (cd "$client" && "../../$venv/bin/mypy")
+
+step "python client: pyright (src/, as users' editors check the package)"
+# Pinned here; installed from npm beside the venv (pyright is a Node program, with no dependencies
+# of its own), with Debian's Node.js where the machine has none.
+pyright_version=1.1.414
+pyright_dir="$venv/pyright-$pyright_version"
+if [ ! -x "$pyright_dir/node_modules/.bin/pyright" ]; then
+    if ! command -v npm >/dev/null 2>&1; then
+        apt_install nodejs npm
+    fi
+    npm install --silent --no-audit --no-fund --prefix "$pyright_dir" "pyright@$pyright_version"
+fi
+(cd "$client" && "../../$pyright_dir/node_modules/.bin/pyright" --pythonpath "../../$venv/bin/python")
 
 step "python client: import contracts (lint-imports; $client/pyproject.toml's [tool.importlinter])"
 (cd "$client" && "../../$venv/bin/lint-imports")

@@ -154,3 +154,14 @@ def test_a_temporary_folder_too_deep_for_a_socket_is_a_warning(
     assert socket_line.startswith("warn"), out
     assert "set TMPDIR to a shorter folder" in out, out
     assert "a server started here on 127.0.0.1:" in out, out
+
+
+def test_the_commands_run_without_docstrings() -> None:
+    """`python -OO` drops docstrings: `esrp doctor`'s description came of its module's docstring,
+    and every command failed there with an AttributeError while the parsers were made."""
+    for command in (["doctor", "--help"], ["eval", "--help"], ["--help"]):
+        done = subprocess.run(
+            [sys.executable, "-OO", "-m", "esrp.cli", *command], capture_output=True, text=True, timeout=60
+        )
+        assert done.returncode == 0, (command, done.stderr)
+        assert "usage: esrp" in done.stdout, command

@@ -75,7 +75,7 @@ async def _serving(check: grpc.aio.UnaryUnaryMultiCallable[bytes, bytes], timeou
         return False
 
 
-class AsyncClient(ClientBase):
+class AsyncClient(ClientBase[AsyncCalls]):
     """An asyncio connection to an ESRP server; the twin of `Client` (same arguments).
 
     Use it as an async context manager, or `await client.close()`.

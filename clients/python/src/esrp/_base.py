@@ -62,7 +62,11 @@ __all__ = [
 ]
 
 
-class ClientBase:
+CallsT = TypeVar("CallsT", "Calls", "AsyncCalls")
+"""The unary calls' runner of a client: the sync client's `Calls`, the async client's `AsyncCalls`."""
+
+
+class ClientBase(Generic[CallsT]):
     """The state both clients keep besides their channel: the address, the call metadata (the
     bearer token), the calls' default deadline (`timeout`, held by `_calls`) and the steps per
     StepBatch the server allows, by sensors.
@@ -73,7 +77,7 @@ class ClientBase:
         tls: The TLS setting (`TlsSetting`); the channel's credentials come of it and the address.
     """
 
-    _calls: Calls | AsyncCalls
+    _calls: CallsT
 
     def __init__(self, address: str, token: str | None, tls: TlsSetting) -> None:
         host, https = target(address)
@@ -259,7 +263,7 @@ def abandoning(abandon: Callable[[], None], wait: float | None) -> Iterator[None
         raise
 
 
-ClientT = TypeVar("ClientT", bound=ClientBase)
+ClientT = TypeVar("ClientT", bound=ClientBase[Any])
 
 
 class EpisodeBase(Generic[ClientT]):

@@ -78,7 +78,7 @@ def health_check(channel: grpc.Channel, timeout: float) -> bool:
     return bool(answer == SERVING)
 
 
-class Client(ClientBase):
+class Client(ClientBase[Calls]):
     """A synchronous connection to an ESRP server (esrp.v1 over gRPC).
 
     One channel, shared by every call (HTTP/2 multiplexes them; it is safe to use from several

@@ -144,7 +144,8 @@ def from_rpc_error(error: grpc.RpcError) -> EsrpError:
     code_method = getattr(error, "code", None)
     details_method = getattr(error, "details", None)
     code = code_method() if callable(code_method) else grpc.StatusCode.UNKNOWN
-    message = (details_method() if callable(details_method) else None) or str(error)
+    details = details_method() if callable(details_method) else None
+    message = details if isinstance(details, str) and details else str(error)
     if not isinstance(code, grpc.StatusCode):
         code = grpc.StatusCode.UNKNOWN
     converted = error_class(code, message)(message, code=code, rpc_error=error)

@@ -31,7 +31,7 @@ import inspect
 import traceback
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Protocol, cast, runtime_checkable
 
 import numpy as np
 
@@ -188,5 +188,4 @@ def load_factory(spec: str) -> AgentFactory:
         target = getattr(target, part)
     if not callable(target):
         raise ValueError(f"{spec!r} is not callable: it must be a factory called with the agent config")
-    factory: AgentFactory = target
-    return factory
+    return cast("AgentFactory", target)

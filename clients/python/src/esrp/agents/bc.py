@@ -391,7 +391,8 @@ the first one at once, as agents made on the threads of `esrp demos export --epi
 def schedulers(config: BcConfig) -> tuple[Any, Any]:  # noqa: ANN401 - diffusers' classes
     """The DDPM scheduler of training and the DDIM scheduler of inference (same noise schedule)."""
     with _DIFFUSERS_IMPORT:
-        from diffusers import DDIMScheduler, DDPMScheduler
+        from diffusers.schedulers.scheduling_ddim import DDIMScheduler
+        from diffusers.schedulers.scheduling_ddpm import DDPMScheduler
 
     common = {
         "num_train_timesteps": config.diffusion_steps,
@@ -399,7 +400,7 @@ def schedulers(config: BcConfig) -> tuple[Any, Any]:  # noqa: ANN401 - diffusers
         "clip_sample": True,
         "prediction_type": "epsilon",
     }
-    return DDPMScheduler(**common), DDIMScheduler(**common)  # type: ignore[no-untyped-call]
+    return DDPMScheduler(**common), DDIMScheduler(**common)
 
 
 def bc_loss(

@@ -32,6 +32,8 @@ class Parser(argparse.ArgumentParser):
     def parse_known_args(  # type: ignore[override]
         self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
     ) -> tuple[argparse.Namespace, list[str]]:
+        # argparse makes the namespace where none is given; made here, its type is Namespace.
+        namespace = namespace if namespace is not None else argparse.Namespace()
         parsed, extras = super().parse_known_args(args, namespace)
         if extras and not self._has_commands:
             self.error(f"unrecognized arguments: {' '.join(extras)}")

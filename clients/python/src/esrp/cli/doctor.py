@@ -55,7 +55,7 @@ def add_commands(commands: argparse._SubParsersAction[Parser]) -> None:
     doctor = commands.add_parser(
         "doctor",
         help="check that this machine can run ESRP, and say what to install or set",
-        description=__doc__.split("\n\n")[0],
+        description=__doc__.split("\n\n")[0] if __doc__ else None,  # none under python -OO
     )
     doctor.add_argument(
         "--seconds", type=float, default=5.0, help="seconds of random steps per throughput check (default 5)"

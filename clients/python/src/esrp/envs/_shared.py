@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
@@ -136,7 +136,9 @@ class Images:
         result: ObsDict = {
             "ego_rgb": self.view("ego_rgb", images["ego_rgb"]),
             "goal_rgb": goal,
-            "grasping": np.int64(grasping),
+            # A Discrete space's value, a numpy scalar: ObsDict types every value as an array, whose
+            # operations the scalar has too.
+            "grasping": cast("npt.NDArray[Any]", np.int64(grasping)),
         }
         for key in self.keys[1:]:
             result[key] = self.view(key, images[key])

@@ -625,7 +625,8 @@ class RearrangeVectorEnv(VectorEnv[ObsDict, npt.NDArray[np.int64], npt.NDArray[A
         """Closes every server episode (on its server's stream, waiting for the answers), the
         streams, and the clients and servers the env started.
         """
-        streams, self._streams = self._streams, [None] * len(self._streams)
+        streams = self._streams
+        self._streams = [None for _ in streams]
         self._started[:] = False
         for shard, stream in enumerate(streams):
             if stream is None:

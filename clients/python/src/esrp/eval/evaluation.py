@@ -23,7 +23,7 @@ import math
 import sys
 import time
 import traceback
-from collections.abc import Collection, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -370,7 +370,7 @@ async def _play_agent(
                 raise ProtocolError("an ended step without metrics")
             break
         observation = dataclasses.replace(result.observation, goal_rgb=goal)
-    stats_method = getattr(agent, "stats", None)
+    stats_method: Callable[[], Any] | None = getattr(agent, "stats", None)
     stats = as_json(dict(stats_method()), "its stats()") if callable(stats_method) else {}
     return actions, metrics, stats
 

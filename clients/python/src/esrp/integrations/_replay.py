@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium
+import gymnasium.envs.registration
 import numpy as np
 
 from .._client import Client

@@ -40,7 +40,7 @@ import warnings
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import gymnasium
 import minari
@@ -142,7 +142,8 @@ def _buffer(played: Replay, episode_id: int) -> EpisodeBuffer:
         id=episode_id,
         options=played.options,
         observations={key: np.stack([o[key] for o in observations]) for key in observations[0]},
-        actions=np.array(played.actions, dtype=np.int64),
+        # An array, as Minari stores it (its annotation names lists and dicts only).
+        actions=cast("list[int]", np.array(played.actions, dtype=np.int64)),
         rewards=played.rewards,
         terminations=played.terminations,
         truncations=played.truncations,

@@ -47,7 +47,8 @@ class SuccessReader(BaseInfoDictReader):
 
     def __init__(self, batch_size: torch.Size) -> None:
         self.batch_size = batch_size
-        self._spec = Composite(is_success=Unbounded((*batch_size, 1), dtype=torch.bool), shape=batch_size)
+        success = Unbounded(torch.Size((*batch_size, 1)), dtype=torch.bool)
+        self._spec = Composite(is_success=success, shape=batch_size)
 
     def __call__(self, info_dict: dict[str, Any], tensordict: TensorDictBase) -> TensorDictBase:
         """Sets `is_success` in `tensordict` from the step's `info_dict`."""
@@ -63,7 +64,7 @@ class SuccessReader(BaseInfoDictReader):
         return tensordict
 
     @property
-    def info_spec(self) -> Composite:
+    def info_spec(self) -> Composite:  # pyright: ignore[reportIncompatibleMethodOverride]  # TorchRL's own type
         """The spec of what the reader adds: `is_success`."""
         return self._spec
 

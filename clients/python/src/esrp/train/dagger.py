@@ -528,7 +528,7 @@ class _Run:
             with open(self.log_path, newline="") as file:
                 kept = [r for r in csv.DictReader(file) if int(r["iteration"]) < iteration]
         with open(self.log_path, "w", newline="") as file:
-            writer = csv.DictWriter(file, fieldnames=DAGGER_FIELDS)
+            writer: csv.DictWriter[str] = csv.DictWriter(file, fieldnames=DAGGER_FIELDS)
             writer.writeheader()
             writer.writerows([*kept, line])
         return line

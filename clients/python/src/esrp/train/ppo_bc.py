@@ -167,7 +167,7 @@ def stream_order(
     lengths = np.asarray(episode_lengths, dtype=np.int64)
     firsts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
     order = np.random.default_rng(seed).permutation(len(lengths))
-    steps = np.concatenate([np.arange(firsts[e], firsts[e] + lengths[e]) for e in order])
+    steps = np.concatenate([np.arange(int(firsts[e]), int(firsts[e] + lengths[e])) for e in order])
     begins = np.zeros(len(steps), dtype=np.float32)
     begins[np.concatenate([[0], np.cumsum(lengths[order])[:-1]])] = 1.0
     per_stream = len(steps) // streams
@@ -268,6 +268,7 @@ def train(
         generator = torch.Generator().manual_seed(config.seed * 1_000_003 + epoch)
         state = network.initial_state(config.streams, device)
         sums, count = np.zeros(2), 0
+        lr = config.lr_at(step, total)  # (an epoch has a batch at least: the streams are filled)
         for first in range(0, order.shape[0], config.seq_len):
             lr = config.lr_at(step, total)
             for group in optimizer.param_groups:

@@ -805,7 +805,7 @@ class MapAgent:
 
     def _update_pose(self, view: npt.NDArray[np.uint8]) -> None:
         action = self._last_action
-        if action in (Action.FORWARD, Action.BACKWARD, Action.LEFT, Action.RIGHT):
+        if action is not None and action in (Action.FORWARD, Action.BACKWARD, Action.LEFT, Action.RIGHT):
             if np.array_equal(view, self._last_view):
                 self._stats["rejected"] += 1
                 self._plan = []
