@@ -161,7 +161,7 @@ pub struct Config {
     /// Serve a hidden challenge split generated from this secret (at least 16 characters: it
     /// must not be guessable) by the current benchmark's rules: `--challenge-scenes` scenes of
     /// the test split's distribution, and `--minival-scenes` more in the split `minival`.
-    #[arg(long, env = "ESRP_CHALLENGE_SEED", hide_env_values = true, value_parser = challenge_secret)]
+    #[arg(long, env = "ESRP_CHALLENGE_SEED", hide_env_values = true, value_parser = ChallengeSecret)]
     pub challenge_seed: Option<String>,
     /// Scenes of the challenge split.
     #[arg(long, env = "ESRP_CHALLENGE_SCENES", default_value_t = 550, value_parser = clap::value_parser!(u32).range(1..=5000))]
@@ -317,11 +317,33 @@ impl Observations {
 
 /// `--challenge-seed`'s value: at least 16 characters, so that no one can guess it from the
 /// hash the records carry.
-fn challenge_secret(value: &str) -> Result<String, String> {
-    if value.trim().chars().count() < 16 {
-        return Err("the challenge seed is a secret: give at least 16 characters (e.g. `openssl rand -hex 16`)".into());
+/// `--challenge-seed`'s parser: at least 16 characters. Its refusal does not quote the value, as
+/// clap's errors do: the seed is a secret, and a refused one may be a typo of the real one.
+#[derive(Clone, Copy, Debug)]
+struct ChallengeSecret;
+
+impl clap::builder::TypedValueParser for ChallengeSecret {
+    type Value = String;
+
+    fn parse_ref(
+        &self,
+        cmd: &clap::Command,
+        _arg: Option<&clap::Arg>,
+        value: &std::ffi::OsStr,
+    ) -> Result<String, clap::Error> {
+        let refuse = |why: &str| {
+            clap::Error::raw(
+                clap::error::ErrorKind::InvalidValue,
+                format!("--challenge-seed (ESRP_CHALLENGE_SEED): {why} (the value is a secret: it is not shown)\n"),
+            )
+            .with_cmd(cmd)
+        };
+        let value = value.to_str().ok_or_else(|| refuse("not UTF-8"))?;
+        if value.trim().chars().count() < 16 {
+            return Err(refuse("give at least 16 characters, e.g. `openssl rand -hex 16`"));
+        }
+        Ok(value.to_owned())
     }
-    Ok(value.to_owned())
 }
 
 /// `--token`'s value: anything but an empty or blank string.
@@ -421,8 +443,9 @@ mod tests {
         let config = parse(&[]).unwrap();
         assert_eq!((config.challenge_seed, config.challenge_scenes, config.minival_scenes), (None, 550, 50));
         assert_eq!(config.record, crate::records::RecordMode::Challenge);
-        let short = parse(&["--challenge-seed", "1234"]).unwrap_err().to_string();
-        assert!(short.contains("at least 16 characters"), "{short}");
+        let short = parse(&["--challenge-seed", "secret-1234"]).unwrap_err().to_string();
+        assert!(short.contains("--challenge-seed (ESRP_CHALLENGE_SEED): give at least 16 characters"), "{short}");
+        assert!(!short.contains("secret-1234"), "the refusal quotes the secret: {short}");
         assert!(parse(&["--challenge-seed", "0123456789abcdef"]).is_ok());
         let both = parse(&["--token", "a", "--tokens", "t.toml"]).unwrap_err().to_string();
         assert!(both.contains("cannot be used with"), "{both}");
