@@ -183,6 +183,13 @@ pub enum ServiceError {
         /// The record's place in it.
         index: usize,
     },
+    /// A counted attempt whose claim could not be journaled (the records folder cannot be
+    /// written): refused, and not counted, rather than played without a trace.
+    #[error(
+        "this attempt cannot be recorded ({0}), so it was not started and is not counted: try again once the \
+         server's records folder can be written"
+    )]
+    NotRecordable(String),
     /// Rendering failed.
     #[error("rendering failed: {0}")]
     Render(String),
@@ -221,6 +228,7 @@ impl ServiceError {
             | ServiceError::CreateAnswerTooLarge { .. }
             | ServiceError::BatchAnswerTooLarge { .. }
             | ServiceError::Quota { .. } => Code::ResourceExhausted,
+            ServiceError::NotRecordable(_) => Code::Unavailable,
             ServiceError::Render(_) | ServiceError::Internal(_) => Code::Internal,
         }
     }

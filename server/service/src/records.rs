@@ -365,7 +365,8 @@ struct Job {
     /// The file's name in the records folder: `<token>.jsonl`, or the attempts journal.
     file: String,
     line: Vec<u8>,
-    done: tokio::sync::oneshot::Sender<()>,
+    /// Told once the line is on disk, or why it is not.
+    done: tokio::sync::oneshot::Sender<Result<(), String>>,
 }
 
 /// Writes records: a thread appending lines to `DIR/<token>.jsonl`, one `fsync` per file per
@@ -379,7 +380,7 @@ pub struct Recorder {
 }
 
 /// A record's write, awaited before the answer that ended its episode leaves.
-pub struct Written(Option<tokio::sync::oneshot::Receiver<()>>);
+pub struct Written(Option<tokio::sync::oneshot::Receiver<Result<(), String>>>);
 
 impl Written {
     /// Nothing to wait for.
@@ -389,8 +390,15 @@ impl Written {
 
     /// Waits until the record is on disk (or its write failed, which the recorder logged).
     pub async fn wait(self) {
-        if let Some(receiver) = self.0 {
-            let _ = receiver.await;
+        let _ = self.outcome().await;
+    }
+
+    /// Waits until the record is on disk; says why it is not where its write failed (the folder
+    /// gone, a full disk) or the recorder stopped before writing it.
+    pub async fn outcome(self) -> Result<(), String> {
+        match self.0 {
+            None => Ok(()),
+            Some(receiver) => receiver.await.unwrap_or_else(|_| Err("the records writer has stopped".to_owned())),
         }
     }
 }
@@ -505,9 +513,17 @@ impl Recorder {
 
     /// Journals the claim of `token`'s counted attempt at `scene`; the returned [`Written`]
     /// completes once the claim is on disk (the create waits for it before the episode exists:
-    /// a crash after that cannot give the attempt back).
+    /// a crash after that cannot give the attempt back), and says so if it could not be written.
     pub fn claim(&self, claim: &Claim) -> Written {
-        self.journal(&JournalLine::Claim(claim.clone())).unwrap_or_else(Written::nothing)
+        match self.journal(&JournalLine::Claim(claim.clone())) {
+            Some(written) => written,
+            None => {
+                // Stopped: a claim that is not journaled must not make an episode.
+                let (done, receiver) = tokio::sync::oneshot::channel();
+                let _ = done.send(Err("the server is stopping: it records no more".to_owned()));
+                Written(Some(receiver))
+            }
+        }
     }
 
     /// Journals one action of `token`'s counted attempt at `scene`, without waiting: it is on
@@ -605,7 +621,9 @@ fn write_records(dir: &Path, jobs: &std::sync::mpsc::Receiver<Job>) {
         let mut batch = vec![first];
         batch.extend(jobs.try_iter());
         let mut touched: Vec<String> = Vec::new();
-        for job in &batch {
+        // What went wrong with each job's line, by its place in the batch.
+        let mut failed: Vec<Option<String>> = vec![None; batch.len()];
+        for (job, failure) in batch.iter().zip(&mut failed) {
             let file = match files.entry(job.file.clone()) {
                 std::collections::hash_map::Entry::Occupied(f) => f.into_mut(),
                 std::collections::hash_map::Entry::Vacant(v) => {
@@ -614,14 +632,22 @@ fn write_records(dir: &Path, jobs: &std::sync::mpsc::Receiver<Job>) {
                         Ok(f) => v.insert(f),
                         Err(e) => {
                             tracing::error!(file = %path.display(), "cannot open a records file: {e}; the record is lost");
+                            *failure = Some(format!("cannot open {}: {e}", path.display()));
                             continue;
                         }
                     }
                 }
             };
-            // One write per line: a crash leaves whole lines and at most one torn last line.
+            // One write per line: a crash leaves whole lines and at most one torn last line. A
+            // write that fails (a full disk) is cut off again, so that the lines after it are
+            // not appended to a torn one.
+            let length = file.metadata().map(|m| m.len());
             if let Err(e) = file.write_all(&job.line) {
                 tracing::error!(file = %job.file, "cannot write a record: {e}; it is lost");
+                if let Ok(length) = length {
+                    let _ = file.set_len(length);
+                }
+                *failure = Some(format!("cannot write {}: {e}", job.file));
             }
             if !touched.contains(&job.file) {
                 touched.push(job.file.clone());
@@ -630,10 +656,15 @@ fn write_records(dir: &Path, jobs: &std::sync::mpsc::Receiver<Job>) {
         for name in &touched {
             if let Some(Err(e)) = files.get(name).map(File::sync_data) {
                 tracing::error!(file = %name, "cannot sync a records file: {e}");
+                for (job, failure) in batch.iter().zip(&mut failed) {
+                    if job.file == *name && failure.is_none() {
+                        *failure = Some(format!("cannot sync {name}: {e}"));
+                    }
+                }
             }
         }
-        for job in batch {
-            let _ = job.done.send(());
+        for (job, failure) in batch.into_iter().zip(failed) {
+            let _ = job.done.send(failure.map_or(Ok(()), Err));
         }
     }
 }
@@ -695,6 +726,33 @@ mod tests {
         assert!(read_journal(tempfile::tempdir().unwrap().path()).unwrap().is_empty(), "no journal, no attempts");
         std::fs::write(dir.path().join(JOURNAL), "not json\n").unwrap();
         assert!(read_journal(dir.path()).unwrap_err().to_string().contains("not a journal line"));
+    }
+
+    #[test]
+    fn a_claim_says_whether_it_was_journaled() {
+        let dir = tempfile::tempdir().unwrap();
+        let folder = dir.path().join("records");
+        let recorder = Recorder::open(&folder, RecordMode::Challenge, &Attempts::default(), None).unwrap();
+        let claim = Claim {
+            token: "bob".into(),
+            scene: "challenge/00001".into(),
+            agent: "a".into(),
+            started_at: "2026-11-29T11:00:00Z".into(),
+            config: Default::default(),
+        };
+        let runtime = tokio::runtime::Builder::new_current_thread().build().unwrap();
+        let outcome = |written: Written| runtime.block_on(written.outcome());
+        // The folder gone (the journal not yet opened): the claim is not on disk, and says why.
+        std::fs::rename(&folder, dir.path().join("away")).unwrap();
+        let why = outcome(recorder.claim(&claim)).unwrap_err();
+        assert!(why.contains("cannot open") && why.contains(JOURNAL), "{why}");
+        std::fs::rename(dir.path().join("away"), &folder).unwrap();
+        assert_eq!(outcome(recorder.claim(&claim)), Ok(()));
+        assert_eq!(read_journal(&folder).unwrap().len(), 1, "the journaled claim is read back");
+        // Stopped (shutting down), the recorder journals no claim.
+        recorder.stop();
+        let why = outcome(recorder.claim(&claim)).unwrap_err();
+        assert!(why.contains("stopping"), "{why}");
     }
 
     #[test]

@@ -161,7 +161,7 @@ async fn start_run(
     });
     if let Some(run) = run.as_ref().filter(|r| r.counted) {
         // Durable before the episode exists: no crash gives the attempt back.
-        recording::claim(episodes, caller, &id, &agent, config, run).await;
+        recording::claim(episodes, caller, &id, &agent, config, run).await?;
     }
     let owner = Owner { caller: caller.clone(), agent, run };
     let (mut entry, observation) = new_entry(episodes, scene, config, sensors, privileged, owner).await?;

@@ -144,7 +144,8 @@ fn record_of(
 }
 
 /// Journals the claim of a counted run and waits until it is on disk (where the server keeps
-/// records): from then on, no crash gives the attempt back.
+/// records): from then on, no crash gives the attempt back. A claim that could not be written
+/// refuses the run ([`ServiceError::NotRecordable`]; the caller gives the attempt back).
 pub(super) async fn claim(
     episodes: &Episodes,
     caller: &Caller,
@@ -152,7 +153,7 @@ pub(super) async fn claim(
     agent: &str,
     config: esrp_core::EpisodeConfig,
     run: &RunLog,
-) {
+) -> Result<(), ServiceError> {
     if let Some(recorder) = &episodes.recorder {
         let claim = crate::records::Claim {
             token: caller.name.to_string(),
@@ -161,8 +162,9 @@ pub(super) async fn claim(
             started_at: rfc3339(run.started),
             config,
         };
-        recorder.claim(&claim).wait().await;
+        recorder.claim(&claim).outcome().await.map_err(ServiceError::NotRecordable)?;
     }
+    Ok(())
 }
 
 /// Gives `token`'s attempt at `scene` back (its episode was never used), in memory and in the

@@ -335,3 +335,24 @@ async fn a_create_watched_in_the_viewer_keeps_its_attempt_spent() {
     refused(bob.create_episode(create("challenge/00001", false)).await, Code::FailedPrecondition, "already played");
     connection.abort();
 }
+
+#[tokio::test]
+async fn an_attempt_whose_claim_cannot_be_journaled_is_refused_and_not_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = start(dir.path(), &[]);
+    let mut bob = client(&server, "bob-secret").await;
+    // The records folder goes away under the running server (a volume unmounted, say): the
+    // attempts journal cannot be opened, so no claim can be made durable.
+    bob.server_info(proto::ServerInfoRequest {}).await.expect("served: the records folder is open");
+    let (folder, away) = (dir.path().join("records"), dir.path().join("away"));
+    std::fs::rename(&folder, &away).unwrap();
+    refused(bob.create_episode(create("challenge/00002", false)).await, Code::Unavailable, "cannot be recorded");
+    // Back in place, the same scene is played: the refused create counted no attempt.
+    std::fs::rename(&away, &folder).unwrap();
+    let episode = bob.create_episode(create("challenge/00002", false)).await.expect("the attempt is not spent");
+    let episode_id = episode.into_inner().episode_id;
+    play_out(&mut bob, &episode_id).await;
+    let journal = std::fs::read_to_string(folder.join("attempts.journal")).unwrap();
+    assert_eq!(journal.matches("{\"claim\":").count(), 1, "one claim, the played one's: {journal}");
+    assert_eq!(records(dir.path(), "bob").len(), 1);
+}
