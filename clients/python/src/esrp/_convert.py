@@ -613,13 +613,16 @@ def server_info(message: pb.ServerInfoResponse) -> ServerInfo:
 
 
 def dataset_info(message: pb.DescribeDatasetResponse) -> DatasetInfo:
-    """A DatasetInfo of its message."""
+    """A DatasetInfo of its message, its counts sorted by name: a protobuf map comes in no set order
+    (the server's encoder and upb's hash table, seeded per process, each order it their own way), and
+    the same dataset should give the same values, printed alike, everywhere.
+    """
     return DatasetInfo(
         name=message.name,
         scenes=message.scenes,
-        by_split=dict(message.by_split),
-        by_difficulty=dict(message.by_difficulty),
-        by_room_type=dict(message.by_room_type),
+        by_split=dict(sorted(message.by_split.items())),
+        by_difficulty=dict(sorted(message.by_difficulty.items())),
+        by_room_type=dict(sorted(message.by_room_type.items())),
         source=message.source,
     )
 

@@ -515,7 +515,9 @@ class ServerInfo:
 
 @dataclass(frozen=True)
 class DatasetInfo:
-    """The served dataset: its name, scene count, counts by split, difficulty and room type."""
+    """The served dataset: its name, scene count, counts by split, difficulty and room type (each
+    sorted by name, so that the same dataset gives the same values in the same order everywhere).
+    """
 
     name: str
     scenes: int
