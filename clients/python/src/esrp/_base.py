@@ -68,8 +68,8 @@ CallsT = TypeVar("CallsT", "Calls", "AsyncCalls")
 
 class ClientBase(Generic[CallsT]):
     """The state both clients keep besides their channel: the address, the call metadata (the
-    bearer token), the calls' default deadline (`timeout`, held by `_calls`) and the steps per
-    StepBatch the server allows, by sensors.
+    bearer token), the calls' default deadline (`timeout`, held by `_calls`), the steps per
+    StepBatch the server allows, by sensors, and the server's default planning budget once learnt.
 
     Args:
         address: `host:port`, `http://host:port`, or `https://host:port` (TLS).

@@ -22,11 +22,11 @@ __all__ = [
     "load_resumable",
     "logged_seconds",
     "resume_from",
+    "rewrite_csv",
     "run_folder",
     "save_checkpoint",
     "save_for_playing",
     "settings_differences",
-    "rewrite_csv",
     "trim_epoch_log",
 ]
 
