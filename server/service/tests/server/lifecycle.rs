@@ -152,12 +152,19 @@ impl Signalled {
         Signalled::start_with(&["--render-backend", backend])
     }
 
-    /// A server started with `args`.
+    /// A server started with `args`, SIGHUP at its default.
     fn start_with(args: &[&str]) -> Signalled {
+        Signalled::start_with_hangup(args, Hangup::Default)
+    }
+
+    /// A server started with `args` and SIGHUP as `hangup` says, whatever this process's own
+    /// disposition (a test run under `nohup` passes SIGHUP on ignored).
+    fn start_with_hangup(args: &[&str], hangup: Hangup) -> Signalled {
         use std::io::{BufRead, BufReader, Read};
         use std::process::Stdio;
         let mut command = esrp_client::LocalServer::command(Some(env!("CARGO_BIN_EXE_esrp-server").into()), args)
             .expect("the server command");
+        set_hangup(&mut command, hangup);
         command
             .env("NODEVICE_SELECT", "1")
             .env("ESRP_LOG", "warn")
@@ -191,14 +198,19 @@ impl Signalled {
         self.signal("-TERM")
     }
 
-    /// Sends `signal` (`kill`'s spelling: `-TERM`, `-HUP`) and waits (at most 30 s) for the
-    /// process to end; its status and stderr.
-    fn signal(mut self, signal: &str) -> (std::process::ExitStatus, String) {
+    /// Sends `signal` (`kill`'s spelling: `-TERM`, `-HUP`).
+    fn send(&self, signal: &str) {
         let killed = std::process::Command::new("kill")
             .args([signal, &self.child.id().to_string()])
             .status()
             .expect("kill(1) runs");
         assert!(killed.success(), "kill {signal} failed");
+    }
+
+    /// Sends `signal` (`kill`'s spelling: `-TERM`, `-HUP`) and waits (at most 30 s) for the
+    /// process to end; its status and stderr.
+    fn signal(mut self, signal: &str) -> (std::process::ExitStatus, String) {
+        self.send(signal);
         let deadline = Instant::now() + Duration::from_secs(30);
         let status = loop {
             if let Some(status) = self.child.try_wait().expect("waitpid") {
@@ -213,6 +225,34 @@ impl Signalled {
             std::thread::sleep(Duration::from_millis(10));
         };
         (status, self.stderr.join().unwrap_or_default())
+    }
+}
+
+/// How a server's parent leaves SIGHUP to it: at its default (a terminal's or SSH session's
+/// child), or ignored (started under `nohup`).
+#[derive(Clone, Copy, Debug)]
+enum Hangup {
+    Default,
+    Ignored,
+}
+
+/// Makes `command`'s process start with SIGHUP as `hangup` says.
+#[allow(unsafe_code)]
+fn set_hangup(command: &mut std::process::Command, hangup: Hangup) {
+    use std::os::unix::process::CommandExt;
+    let disposition = match hangup {
+        Hangup::Default => libc::SIG_DFL,
+        Hangup::Ignored => libc::SIG_IGN,
+    };
+    // SAFETY: between fork and exec the child runs only signal(2), which is async-signal-safe
+    // and sets nothing but its own disposition of SIGHUP.
+    unsafe {
+        command.pre_exec(move || {
+            if libc::signal(libc::SIGHUP, disposition) == libc::SIG_ERR {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
     }
 }
 
@@ -401,6 +441,17 @@ async fn sighup_is_a_graceful_shutdown() {
     let read = esrp_client::results::read_records(&records.join("anonymous.jsonl")).expect("the record is written");
     assert_eq!(read.records.len(), 1, "{:?}", read.records);
     assert_eq!(read.records[0].steps, 5, "{:?}", read.records[0]);
+}
+
+/// A server started ignoring SIGHUP (`nohup esrp-server ...`) keeps it ignored, as whoever started
+/// it asked: it serves on after one, and stops on SIGTERM.
+#[tokio::test]
+async fn sighup_stays_ignored_where_the_server_was_started_ignoring_it() {
+    let server = Signalled::start_with_hangup(&[], Hangup::Ignored);
+    server.send("-HUP");
+    do_work(&server.address, Work::FiveSteps).await;
+    let (status, stderr) = tokio::task::spawn_blocking(move || server.terminate()).await.unwrap();
+    assert!(status.success(), "SIGTERM after an ignored SIGHUP: {status}; stderr:\n{stderr}");
 }
 
 /// A CreateEpisode whose client gives up (its deadline expires) before the answer is sent
