@@ -190,22 +190,9 @@ fn a_server_that_cannot_start_says_why_in_one_line() {
     let dir = tempfile::tempdir().unwrap();
     let missing = dir.path().join("missing");
     for (flag, said) in [("--tokens", "token file"), ("--dataset", "cannot serve the dataset folder")] {
-        let output = esrp_client::LocalServer::command(
-            Some(env!("CARGO_BIN_EXE_esrp-server").into()),
-            &["--no-generate-ahead", flag, missing.to_str().unwrap()],
-        )
-        .unwrap()
-        .env("RUST_BACKTRACE", "1")
-        .env("NODEVICE_SELECT", "1")
-        .output()
-        .unwrap();
-        let stderr = String::from_utf8_lossy(&output.stderr);
-        assert_eq!(output.status.code(), Some(1), "{flag}: {stderr}");
-        let lines: Vec<&str> = stderr.lines().filter(|l| l.starts_with("esrp-server:")).collect();
-        assert_eq!(lines.len(), 1, "{flag}: {stderr}");
-        assert!(lines[0].starts_with(&format!("esrp-server: {said}")), "{flag}: {stderr}");
-        assert_eq!(lines[0].matches("No such file or directory").count(), 1, "a cause said once: {stderr}");
-        assert!(!stderr.contains("backtrace") && !stderr.contains("Caused by"), "{flag}: {stderr}");
+        let line = super::startup::refused_at_start(&[flag, missing.to_str().unwrap()], &[]);
+        assert!(line.starts_with(&format!("esrp-server: {said}")), "{flag}: {line}");
+        assert_eq!(line.matches("No such file or directory").count(), 1, "a cause said once: {line}");
     }
 }
 
